@@ -1,0 +1,25 @@
+"""knnrefine: a small certified mesh carrying the k-th-nearest-neighbour distance of planar points.
+
+An implementation of Gardner & Sheehy, "kth Nearest Neighbor Sampling in the Plane" (CCCG 2016):
+``refine(points, k, tau)`` returns mesh vertices M with alpha d_{P,k} <= d_{M,2} <= beta d_{P,k}
+everywhere in the box, whose Delaunay triangulation is tau-well-spaced.
+"""
+
+from .api import refine
+from .errors import BudgetError, EngineError, InputError, KnnRefineError
+from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "refine",
+    "Mesh",
+    "Torus",
+    "theorem6_constants",
+    "KIND_NAMES",
+    "KnnRefineError",
+    "InputError",
+    "BudgetError",
+    "EngineError",
+    "__version__",
+]

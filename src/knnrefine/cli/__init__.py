@@ -1,0 +1,1 @@
+"""The knnrefine command line: one module per subcommand, ``main(argv=None)`` in main.py."""

@@ -1,0 +1,232 @@
+"""Python side of the engine: owns the flat arrays, builds the initial mesh, runs the kernels.
+
+Everything here is O(1) Python per kernel call; the work happens in the ``@njit`` kernels.
+Coordinates are internal: the torus is [0, lx) x [0, ly) with lx, ly <= 1 multiples of the
+grid step ``geometry.Q``.
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import refine as R
+from .geometry import Q, snap
+from .index import STACK_SIZE, build_index
+from .queue import Q_SIZE, Q_USED, new_queue
+from ..errors import EngineError
+from .triangulation import C_NT, C_NV, MAX_CAVITY, P_LX, P_LY, set_all_circumcircles
+
+MAX_DEGREE = 4096  # scratch for a vertex's neighbours; a well-spaced mesh has degree < 20
+CLEAN_FLOOR = 2.0**-36  # Clean never splits a cell of outradius below this (internal units)
+
+
+@dataclass
+class RunResult:
+    """What a refinement produced, in internal coordinates."""
+
+    vxy: np.ndarray  # (m, 2) vertices
+    kind: np.ndarray  # (m,) int8, refine.INITIAL ... refine.CLEAN
+    tv: np.ndarray  # (2m, 3) triangle corners
+    tn: np.ndarray  # (2m, 3) neighbours
+    to: np.ndarray  # (2m, 3, 2) corner offsets
+    tcc: np.ndarray  # (2m, 2) circumcenters (triangle frame)
+    tr2: np.ndarray  # (2m,) squared circumradii
+    tstate: np.ndarray  # (2m,) circumball states
+    vcell: np.ndarray  # (m,) cell states
+    vflag: np.ndarray  # (m,) flags (Clean floor)
+    counters: dict = field(default_factory=dict)
+    status: str = "done"
+
+
+def grid_shape(lx, ly):
+    """Initial grid: at least 4 x 4 and spacing at most min(lx, ly) / 4 on both axes, so that
+    every circumradius is below a quarter of the shorter period."""
+    h = min(lx, ly) / 4.0
+    return max(4, int(np.ceil(lx / h - 1e-9))), max(4, int(np.ceil(ly / h - 1e-9)))
+
+
+def initial_grid(lx, ly):
+    """M0: a tensor grid on the torus, triangulated with one diagonal per cell.
+
+    Its cells are axis-aligned rectangles, so the four corners of each are exactly cocircular
+    and the triangulation is exactly Delaunay even after snapping to the grid.
+    Returns (vxy, tv, to, tn, spacing)."""
+    nx, ny = grid_shape(lx, ly)
+    gx = np.array([snap((i + 0.5) * lx / nx) for i in range(nx)])
+    gy = np.array([snap((j + 0.5) * ly / ny) for j in range(ny)])
+    vxy = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
+    i = i.ravel()
+    j = j.ravel()
+    i1 = (i + 1) % nx
+    j1 = (j + 1) % ny
+    wx = (i + 1 == nx).astype(np.int8)
+    wy = (j + 1 == ny).astype(np.int8)
+    v00 = j * nx + i
+    v10 = j * nx + i1
+    v01 = j1 * nx + i
+    v11 = j1 * nx + i1
+    zero = np.zeros_like(wx)
+    tv = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    to = np.concatenate(
+        [
+            np.stack([np.stack([zero, zero], 1), np.stack([wx, zero], 1), np.stack([wx, wy], 1)], 1),
+            np.stack([np.stack([zero, zero], 1), np.stack([wx, wy], 1), np.stack([zero, wy], 1)], 1),
+        ]
+    ).astype(np.int8)
+    # neighbours: match each directed edge (a -> b, offset of b relative to a) with its reverse
+    nt = tv.shape[0]
+    edges = {}
+    for t in range(nt):
+        for c in range(3):
+            a, b = tv[t, (c + 1) % 3], tv[t, (c + 2) % 3]
+            d = tuple(to[t, (c + 2) % 3] - to[t, (c + 1) % 3])
+            edges[(a, b, d)] = (t, c)
+    tn = np.empty((nt, 3), np.int32)
+    for (a, b, d), (t, c) in edges.items():
+        tn[t, c] = edges[(b, a, (-d[0], -d[1]))][0]
+    spacing = min(float(np.min(np.diff(np.append(gx, gx[0] + lx)))),
+                  float(np.min(np.diff(np.append(gy, gy[0] + ly)))))
+    return vxy, tv.astype(np.int32), to, tn, spacing
+
+
+def _grow(a, n):
+    out = np.zeros((n,) + a.shape[1:], a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+class Refinement:
+    """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
+
+    def __init__(self, points, k, lx, ly, tau, min_size, max_vertices):
+        self.lx = lx
+        self.ly = ly
+        self.n = int(points.shape[0])
+        t0 = time.perf_counter()
+        px = np.ascontiguousarray(points[:, 0], dtype=np.float64)
+        py = np.ascontiguousarray(points[:, 1], dtype=np.float64)
+        self.index = build_index(px, py)
+        self.time_index = time.perf_counter() - t0
+
+        vxy, tv, to, tn, self.spacing = initial_grid(lx, ly)
+        m0 = vxy.shape[0]
+        cap_v = max(1024, 4 * m0)
+        cap_t = 2 * cap_v
+        self.vxy = _grow(vxy, cap_v)
+        self.vtri = np.zeros(cap_v, np.int32)
+        self.vtri[tv[:, 0]] = np.arange(tv.shape[0], dtype=np.int32)
+        self.vtri[tv[:, 1]] = np.arange(tv.shape[0], dtype=np.int32)
+        self.vkind = np.zeros(cap_v, np.int8)
+        self.vcell = np.zeros(cap_v, np.int8)
+        self.vflag = np.zeros(cap_v, np.int8)
+        self.tv = _grow(tv, cap_t)
+        self.tn = _grow(tn, cap_t)
+        self.to = _grow(to, cap_t)
+        self.tcc = np.zeros((cap_t, 2))
+        self.tr2 = np.zeros(cap_t)
+        self.tstamp = np.zeros(cap_t, np.int32)
+        self.tstate = np.zeros(cap_t, np.int8)
+        self.tmark = np.zeros(cap_t, np.int64)
+        self.vslot_a = np.zeros(cap_v, np.int32)
+        self.vslot_b = np.zeros(cap_v, np.int32)
+        self.queues = [new_queue(cap_t), new_queue(cap_v), new_queue(cap_v)]
+        self.cav = np.zeros(MAX_CAVITY + 2, np.int32)
+        self.cav_s = np.zeros((MAX_CAVITY + 2, 2), np.int64)
+        self.bnd = np.zeros((MAX_CAVITY + 2, 4), np.int32)
+        self.bnd_o = np.zeros((MAX_CAVITY + 2, 4), np.int64)
+        self.work = (np.zeros(MAX_DEGREE), np.zeros(MAX_DEGREE), np.zeros(MAX_DEGREE),
+                     np.zeros(STACK_SIZE, np.int64))
+        self.cnt = np.zeros(R.N_COUNTERS, np.int64)
+        self.cnt[C_NV] = m0
+        self.cnt[C_NT] = tv.shape[0]
+        self.cnt[R.C_K] = k
+        self.cnt[R.C_MAX_VERTICES] = max_vertices
+        self.prm = np.zeros(R.N_PARAMS)
+        self.prm[P_LX] = lx
+        self.prm[P_LY] = ly
+        self.prm[R.P_TAU2] = tau * tau * (1.0 - 1e-12)
+        floor = max(float(min_size), CLEAN_FLOOR)
+        self.prm[R.P_FLOOR2] = floor * floor
+        self.prm[R.P_CLEAN_FLOOR2] = CLEAN_FLOOR * CLEAN_FLOOR
+        self.prm[R.P_INFLATE] = 1.0 + 1e-9
+        tri = self._tri()
+        ver = self._ver()
+        set_all_circumcircles(tri, ver, self.prm, tv.shape[0])
+        R.queue_all(tri, ver, tuple(self.queues), self.work, self.cnt, self.prm)
+
+    # -- tuples handed to the kernels (rebuilt after growth) --
+    def _tri(self):
+        return (self.tv, self.tn, self.to, self.tcc, self.tr2, self.tstamp, self.tstate)
+
+    def _ver(self):
+        return (self.vxy, self.vtri, self.vkind, self.vcell, self.vflag)
+
+    def _scr(self):
+        return (self.tmark, self.vslot_a, self.vslot_b, self.cav, self.cav_s, self.bnd, self.bnd_o)
+
+    def _grow_if_needed(self):
+        """Double every array that could overflow during the next insertion."""
+        nv, nt = self.cnt[C_NV], self.cnt[C_NT]
+        cap_v = self.vxy.shape[0]
+        if nv + 1 > cap_v:
+            n = 2 * cap_v
+            for name in ("vxy", "vtri", "vkind", "vcell", "vflag", "vslot_a", "vslot_b"):
+                setattr(self, name, _grow(getattr(self, name), n))
+        cap_t = self.tv.shape[0]
+        if nt + 2 > cap_t:
+            n = 2 * cap_t
+            for name in ("tv", "tn", "to", "tcc", "tr2", "tstamp", "tstate", "tmark"):
+                setattr(self, name, _grow(getattr(self, name), n))
+        for i, base in enumerate((R.C_Q_TRI, R.C_Q_CELL, R.C_Q_CLEAN)):
+            head, ent_id, ent_aux, ent_next = self.queues[i]
+            if self.cnt[base + Q_USED] + R.HEADROOM > ent_id.shape[0]:
+                n = 2 * ent_id.shape[0]
+                self.queues[i] = (head, _grow(ent_id, n), _grow(ent_aux, n), _grow(ent_next, n))
+
+    def run(self, time_limit=None, progress=None):
+        """Refine to completion. Returns a STATUS_* code (DONE or MAX_VERTICES, or the time
+        limit as STATUS_STEPS)."""
+        t0 = time.perf_counter()
+        steps = 2000
+        while True:
+            t1 = time.perf_counter()
+            status = R.refine_steps(self._tri(), self._ver(), tuple(self.queues), self._scr(),
+                                    self.work, self.cnt, self.prm, self.index, steps)
+            dt = time.perf_counter() - t1
+            # aim at ~50 ms per call: progress stays live and Ctrl-C is answered promptly
+            steps = int(min(max(steps * 0.05 / max(dt, 1e-4), 100), 200000))
+            if progress is not None:
+                progress(int(self.cnt[C_NV]), self.pending())
+            if status == R.STATUS_GROW:
+                self._grow_if_needed()
+                continue
+            if status == R.STATUS_ERROR:
+                raise EngineError(f"refinement kernel failed with code {self.cnt[R.C_ERROR]}")
+            if status in (R.STATUS_DONE, R.STATUS_MAX_VERTICES):
+                self.time_refine = time.perf_counter() - t0
+                return status
+            if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                self.time_refine = time.perf_counter() - t0
+                return R.STATUS_STEPS
+
+    def pending(self):
+        """Queued candidates (an upper bound on the work left, not a promise)."""
+        return int(sum(self.cnt[b + Q_SIZE] for b in (R.C_Q_TRI, R.C_Q_CELL, R.C_Q_CLEAN)))
+
+    def result(self):
+        nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
+        counters = {name: int(self.cnt[R.C_MOVES + i]) for i, name in enumerate(R.KIND_NAMES)}
+        counters["initial"] = int(np.count_nonzero(self.vkind[:nv] == R.INITIAL))
+        counters["disk_tests"] = int(self.cnt[R.C_DISK_TESTS])
+        counters["cell_tests"] = int(self.cnt[R.C_CELL_TESTS])
+        counters["failed_insertions"] = int(self.cnt[R.C_FAILED])
+        return RunResult(
+            vxy=self.vxy[:nv].copy(), kind=self.vkind[:nv].copy(), tv=self.tv[:nt].copy(),
+            tn=self.tn[:nt].copy(), to=self.to[:nt].copy(), tcc=self.tcc[:nt].copy(),
+            tr2=self.tr2[:nt].copy(), tstate=self.tstate[:nt].copy(),
+            vcell=self.vcell[:nv].copy(), vflag=self.vflag[:nv].copy(), counters=counters,
+        )
+
+

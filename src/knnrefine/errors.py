@@ -1,0 +1,23 @@
+"""The project's exception types."""
+
+
+class KnnRefineError(Exception):
+    """Base class of every error knnrefine raises on purpose."""
+
+
+class InputError(KnnRefineError, ValueError):
+    """The input cannot be refined as given; the message says what was wrong and what to do."""
+
+
+class BudgetError(KnnRefineError, RuntimeError):
+    """A run hit ``max_vertices`` or ``time_limit`` before it finished.
+
+    ``progress`` holds how far it got (vertices, moves, seconds)."""
+
+    def __init__(self, message, progress):
+        super().__init__(message)
+        self.progress = progress
+
+
+class EngineError(KnnRefineError, RuntimeError):
+    """A broken internal invariant: a bug in knnrefine. Please report it with the input."""

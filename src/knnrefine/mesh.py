@@ -1,0 +1,129 @@
+"""The result of a refinement: the mesh M and what it promises (Theorem 6)."""
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
+
+
+def theorem6_constants(tau):
+    """(alpha, beta) of Theorem 6: alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} for a tau-well-spaced
+    output. alpha = (tau - 2) / (5 tau - 2), beta = (3 - theta) / (1 - theta) with
+    theta = sqrt(1 - 1 / tau^2)."""
+    theta = np.sqrt(1.0 - 1.0 / tau**2)
+    return (tau - 2.0) / (5.0 * tau - 2.0), float((3.0 - theta) / (1.0 - theta))
+
+
+@dataclass(frozen=True, eq=False)
+class Torus:
+    """The triangulation of the flat torus that the engine refined, in input units.
+
+    In periodic mode it is the mesh itself; in non-periodic mode the data box sits inside it
+    with a margin (see ``knnrefine.engine.embedding``). Corner i of triangle t sits at
+    ``vertices[triangles[t, i]] + offsets[t, i] * period``; ``neighbors[t, i]`` is the
+    triangle across the edge opposite corner i.
+    """
+
+    origin: tuple
+    period: tuple
+    vertices: np.ndarray
+    triangles: np.ndarray
+    offsets: np.ndarray
+    neighbors: np.ndarray
+    kinds: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """Mesh vertices M whose second-nearest-neighbour distance approximates d_{P,k}.
+
+    Attributes
+    ----------
+    vertices : (m, 2) float64
+        In input coordinates. Periodic axes: wrapped into the box. Non-periodic axes: every
+        vertex that is one of the two nearest mesh vertices of some point of the box.
+    triangles : (t, 3) int32
+        Counter-clockwise Delaunay triangles. Periodic mode: all triangles of the torus.
+        Non-periodic mode: those that meet the box.
+    offsets : (t, 3, 2) int8 or None
+        Corner i of triangle t is ``vertices[triangles[t, i]] + offsets[t, i] * period``
+        (periodic axes only; None when no axis is periodic).
+    kinds : (m,) int8
+        How each vertex arrived: 0 initial, 1 Break (circumcenter of a circumball holding
+        >= k points), 2 Break (far corner of a cell holding >= k points), 3 Clean.
+    order : (m,) int64
+        Insertion index of each vertex (vertices are sorted by it; in non-periodic mode one
+        torus vertex can appear as several planar copies).
+    k, tau, periodic, box, min_size, alpha, beta, period
+        The run's parameters and Theorem 6's constants for tau.
+    floor_points : (f, 2) float64
+        Where refinement stopped at the resolution floor ``min_size``: circumcenters of
+        circumballs and vertices of cells that still hold >= k points but are smaller than
+        ``min_size``. Empty when the guarantee holds everywhere.
+    stats : dict
+        Moves of each kind, counting tests, timings (seconds), sizes.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    offsets: np.ndarray | None
+    kinds: np.ndarray
+    order: np.ndarray
+    k: int
+    tau: float
+    periodic: tuple
+    box: tuple
+    min_size: float
+    floor_points: np.ndarray
+    stats: dict = field(default_factory=dict)
+    torus: Torus | None = None
+
+    @property
+    def alpha(self):
+        return theorem6_constants(self.tau)[0]
+
+    @property
+    def beta(self):
+        return theorem6_constants(self.tau)[1]
+
+    @property
+    def period(self):
+        """Periods along (x, y) in input units, 0 along non-periodic axes."""
+        return tuple(
+            (self.box[a + 2] - self.box[a]) if self.periodic[a] else 0.0 for a in range(2)
+        )
+
+    @cached_property
+    def _tree(self):
+        lo = np.array(self.box[:2])
+        return cKDTree(self._to_tree_frame(self.vertices),
+                       boxsize=np.array(self.period) if any(self.periodic) else None), lo
+
+    def _to_tree_frame(self, x):
+        x = np.asarray(x, float) - np.array(self.box[:2])
+        for a in range(2):
+            if self.periodic[a]:
+                p = self.period[a]
+                x[:, a] = np.mod(x[:, a], p)
+                x[x[:, a] >= p, a] = 0.0
+        return x
+
+    def d_m2(self, x):
+        """d_{M,2}: distance from each query point to its second-nearest mesh vertex.
+
+        Periodic axes use the torus metric. Guaranteed to lie within
+        [alpha, beta] * d_{P,k} at every point of the box (above the floor)."""
+        x = np.atleast_2d(np.asarray(x, float))
+        if x.ndim != 2 or x.shape[1] != 2:
+            raise ValueError(f"query points must have shape (q, 2), got {x.shape}")
+        tree, _ = self._tree
+        return tree.query(self._to_tree_frame(x), k=2)[0][:, 1]
+
+    def __repr__(self):
+        mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
+            self.periodic, f"periodic={self.periodic}")
+        return (f"<Mesh m={len(self.vertices)} triangles={len(self.triangles)} k={self.k} "
+                f"tau={self.tau:g} {mode} box={self.box}>")

@@ -1,0 +1,121 @@
+"""Checks at the public boundary: every message says what was wrong and what to do."""
+
+import numbers
+
+import numpy as np
+
+from .errors import InputError
+
+
+def as_points(points):
+    """(n, 2) float64 array from lists, numpy arrays of any real dtype, pandas frames."""
+    try:
+        arr = np.asarray(points)
+    except Exception as exc:  # ragged lists and the like
+        raise InputError(f"points could not be read as an (n, 2) array: {exc}") from None
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise InputError(
+            f"points must be numeric, got dtype {arr.dtype}; convert the columns to numbers "
+            "first (for example with pandas.to_numeric)"
+        )
+    if np.iscomplexobj(arr):
+        raise InputError("points must be real numbers, got complex values")
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise InputError(
+            f"points must have shape (n, 2), got {arr.shape}; pass one row per point with its "
+            "x and y coordinates"
+        )
+    if arr.shape[0] == 0:
+        raise InputError("points is empty: give at least one point")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise InputError(
+            f"points holds {int(bad.sum())} row(s) with NaN or infinite coordinates, the first "
+            f"at index {first} ({arr[first].tolist()}); drop or fill them first"
+        )
+    return arr
+
+
+def check_k(k):
+    if isinstance(k, bool) or not isinstance(k, numbers.Integral):
+        raise InputError(f"k must be an integer >= 1, got {k!r}")
+    if k < 1:
+        raise InputError(f"k must be an integer >= 1, got {k}")
+    return int(k)
+
+
+def check_tau(tau):
+    if isinstance(tau, bool) or not isinstance(tau, numbers.Real) or not np.isfinite(tau):
+        raise InputError(f"tau must be a finite number > 2, got {tau!r}")
+    if tau <= 2:
+        raise InputError(
+            f"tau must be > 2, got {tau}: at tau = 2 Theorem 6's lower bound alpha is 0 "
+            "(3 is the usual choice)"
+        )
+    return float(tau)
+
+
+def check_periodic(periodic):
+    if isinstance(periodic, (bool, np.bool_)):
+        return (bool(periodic), bool(periodic))
+    try:
+        px, py = periodic
+    except (TypeError, ValueError):
+        raise InputError(
+            f"periodic must be a bool or a pair of bools (x, y), got {periodic!r}"
+        ) from None
+    if not all(isinstance(p, (bool, np.bool_)) for p in (px, py)):
+        raise InputError(f"periodic must be a bool or a pair of bools (x, y), got {periodic!r}")
+    return (bool(px), bool(py))
+
+
+def check_box(box):
+    try:
+        vals = [float(b) for b in box]
+    except (TypeError, ValueError):
+        raise InputError(f"box must be four numbers (xmin, ymin, xmax, ymax), got {box!r}") from None
+    if len(vals) != 4 or not np.all(np.isfinite(vals)):
+        raise InputError(f"box must be four finite numbers (xmin, ymin, xmax, ymax), got {box!r}")
+    xmin, ymin, xmax, ymax = vals
+    if not (xmax > xmin and ymax > ymin):
+        raise InputError(
+            f"box {tuple(vals)} has zero or negative width or height; it must satisfy "
+            "xmin < xmax and ymin < ymax"
+        )
+    return tuple(vals)
+
+
+def default_box(points):
+    """The points' bounding box; a zero side (collinear or identical points) is widened to the
+    other side, or to 1 when all points coincide, centred on the data."""
+    lo = points.min(axis=0)
+    hi = points.max(axis=0)
+    size = hi - lo
+    side = size.max()
+    if side == 0.0:
+        side = max(1.0, float(np.abs(lo).max()) * 2.0**-30)
+    for a in range(2):
+        if size[a] == 0.0:
+            mid = lo[a]
+            lo[a] = mid - side / 2.0
+            hi[a] = mid + side / 2.0
+    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+
+def check_inside(points, box, periodic):
+    """Points must lie in the box along non-periodic axes (periodic axes wrap)."""
+    for a in range(2):
+        if periodic[a]:
+            continue
+        lo, hi = box[a], box[a + 2]
+        out = (points[:, a] < lo) | (points[:, a] > hi)
+        if out.any():
+            first = int(np.argmax(out))
+            axis = "xy"[a]
+            raise InputError(
+                f"{int(out.sum())} point(s) lie outside the box along {axis} "
+                f"[{lo}, {hi}], the first at index {first} ({points[first].tolist()}); enlarge "
+                "the box, drop those points, or make that axis periodic"
+            )

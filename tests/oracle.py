@@ -1,0 +1,140 @@
+"""Independent checks of a kNNRefine result, written with numpy and scipy alone.
+
+Nothing here imports the engine: the periodic Delaunay triangulation is scipy's (qhull) over
+the 3 x 3 cover, k-th-neighbour distances come from cKDTree (``boxsize`` on periodic axes),
+and counts are brute force over those.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import Delaunay, cKDTree
+
+
+def theorem6(tau):
+    theta = np.sqrt(1.0 - 1.0 / tau**2)
+    return (tau - 2.0) / (5.0 * tau - 2.0), (3.0 - theta) / (1.0 - theta)
+
+
+def circumcenters(a, b, c):
+    b = b - a
+    c = c - a
+    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    b2 = (b**2).sum(1)
+    c2 = (c**2).sum(1)
+    ux = (c[:, 1] * b2 - b[:, 1] * c2) / d
+    uy = (b[:, 0] * c2 - c[:, 0] * b2) / d
+    return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
+
+
+def wrap(x, period):
+    x = np.mod(x, period)
+    x[x >= period] = 0.0
+    return x
+
+
+def periodic_delaunay(vertices, period):
+    """Delaunay triangles of a periodic point set, one per torus triangle.
+
+    Returns (ids (t, 3) torus vertex indices, corners (t, 3, 2) realised positions,
+    circumcenters (t, 2) wrapped into the domain, radii (t,))."""
+    m = vertices.shape[0]
+    shifts = np.array([(0, 0)] + [(sx, sy) for sx in (-1, 0, 1) for sy in (-1, 0, 1)
+                                  if (sx, sy) != (0, 0)], float)
+    cover = (vertices[None, :, :] + shifts[:, None, :] * period).reshape(-1, 2)
+    s = Delaunay(cover).simplices
+    ids = s % m
+    # one representative per torus triangle: the copy whose smallest torus id is central
+    j = np.argmin(ids, axis=1)
+    s = s[s[np.arange(len(s)), j] < m]
+    cc, r = circumcenters(cover[s[:, 0]], cover[s[:, 1]], cover[s[:, 2]])
+    return s % m, cover[s], wrap(cc, period), r
+
+
+@dataclass
+class TorusReport:
+    m: int
+    triangles: int
+    max_aspect: float
+    max_cell_count: int  # over cells with outradius >= min_size
+    max_ball_count: int  # over circumballs with radius >= min_size
+    ratio_min: float
+    ratio_max: float
+    alpha: float
+    beta: float
+
+
+def check_torus(vertices, points, k, tau, period, min_size=0.0, n_random=4000, seed=0):
+    """Theorem 6 on the torus [0, period): aspect, counts and the ratio d_{M,2} / d_{P,k}.
+
+    Elements smaller than ``min_size`` (the resolution floor) are exempt from the counts, and
+    probes with d_{P,k} < min_size from the ratio."""
+    period = np.asarray(period, float)
+    points = wrap(np.asarray(points, float).reshape(-1, 2), period)
+    m = vertices.shape[0]
+    ids, corners, cc, r = periodic_delaunay(vertices, period)
+    R = np.zeros(m)
+    for c in range(3):
+        np.maximum.at(R, ids[:, c], r)
+    vt = cKDTree(vertices, boxsize=period)
+    d2 = vt.query(vertices, k=2)[0][:, 1]
+    max_aspect = float(np.max(2.0 * R / d2))
+
+    big = r >= min_size
+    pt = cKDTree(points, boxsize=period) if len(points) else None
+    ball = pt.query_ball_point(cc[big], r[big], return_length=True) if pt and big.any() else [0]
+    cell = np.zeros(m, int)
+    if pt is not None:
+        kk = min(4, m)
+        dd, ii = vt.query(points, k=kk)
+        tie = dd <= dd[:, :1] * (1 + 1e-12) + 1e-300
+        for j in range(kk):
+            np.add.at(cell, ii[tie[:, j], j], 1)
+    cell = cell[R >= min_size]
+
+    rng = np.random.default_rng(seed)
+    probes = np.concatenate([points, vertices, cc, rng.random((n_random, 2)) * period])
+    rmin, rmax = ratio_range(probes, vt, pt, k, min_size, len(points))
+    alpha, beta = theorem6(tau)
+    return TorusReport(m, len(r), max_aspect, int(np.max(cell, initial=0)),
+                       int(np.max(ball, initial=0)), rmin, rmax, alpha, beta)
+
+
+def ratio_range(probes, mesh_tree, point_tree, k, min_size, n):
+    """min and max of d_{M,2} / d_{P,k} over the probes whose d_{P,k} >= min_size."""
+    if point_tree is None or n < k:
+        return np.nan, np.nan
+    dm2 = mesh_tree.query(probes, k=2)[0][:, 1]
+    dpk = point_tree.query(probes, k=[k])[0][:, 0]
+    ok = dpk >= min_size
+    ratio = dm2[ok] / dpk[ok]
+    return float(ratio.min()), float(ratio.max())
+
+
+def box_trees(vertices, points, box, periodic):
+    """cKDTrees of the returned vertices and of the points in the box's own metric: periodic
+    axes wrapped with ``boxsize``, the others planar (boxsize 0)."""
+    lo = np.array(box[:2], float)
+    size = np.array(box[2:], float) - lo
+    per = np.array(periodic, bool)
+    boxsize = np.where(per, size, 0.0)
+
+    def shift(x):
+        x = np.asarray(x, float) - lo
+        for a in range(2):
+            if per[a]:
+                x[:, a] = wrap(x[:, a], size[a])
+        return x
+
+    vt = cKDTree(shift(vertices), boxsize=boxsize if per.any() else None)
+    pt = cKDTree(shift(points), boxsize=boxsize if per.any() else None) if len(points) else None
+    return vt, pt, shift
+
+
+def box_probes(vertices, points, box, n_random=4000, seed=0):
+    lo = np.array(box[:2], float)
+    hi = np.array(box[2:], float)
+    rng = np.random.default_rng(seed)
+    parts = [np.asarray(points, float).reshape(-1, 2), vertices, lo + rng.random((n_random, 2)) * (hi - lo)]
+    probes = np.concatenate(parts)
+    return probes[(probes >= lo).all(1) & (probes <= hi).all(1)]
