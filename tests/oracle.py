@@ -51,6 +51,60 @@ def periodic_delaunay(vertices, period):
     return s % m, cover[s], wrap(cc, period), r
 
 
+def realise(torus_vertices, triangles, offsets, period):
+    """Corner positions (t, 3, 2) of torus triangles given by vertex ids and corner offsets."""
+    return torus_vertices[triangles] + offsets * np.asarray(period, float)
+
+
+def check_triangulation(vertices, triangles, offsets, neighbors, period):
+    """Raise AssertionError unless (triangles, offsets, neighbors) is a Delaunay
+    triangulation of the torus with these vertices. Returns (corners, circumcenters, radii)."""
+    period = np.asarray(period, float)
+    m, t = len(vertices), len(triangles)
+    # topology: F = 2V, V - E + F = 0, symmetric neighbours sharing the same edge
+    assert t == 2 * m, (t, m)
+    assert np.all(np.isin(np.arange(m), triangles)), "a vertex belongs to no triangle"
+    tri = np.asarray(triangles)
+    off = np.asarray(offsets, np.int64)
+    nb = np.asarray(neighbors)
+    f = np.repeat(np.arange(t), 3)
+    i = np.tile(np.arange(3), t)
+    a = tri[f, (i + 1) % 3]
+    b = tri[f, (i + 2) % 3]
+    n = nb[f, i]
+    found = np.zeros(len(f), int)
+    shared_ok = np.ones(len(f), bool)
+    for j in range(3):
+        hit = (nb[n, j] == f) & (tri[n, (j + 1) % 3] == b) & (tri[n, (j + 2) % 3] == a)
+        found += hit
+        da = off[f, (i + 1) % 3] - off[n, (j + 2) % 3]
+        db = off[f, (i + 2) % 3] - off[n, (j + 1) % 3]
+        shared_ok &= ~hit | np.all(da == db, axis=1)
+    assert np.all(found == 1), f"{int((found != 1).sum())} neighbour links are not symmetric"
+    assert np.all(shared_ok), "neighbours disagree on the offset of a shared edge"
+    d = off[f, (i + 2) % 3] - off[f, (i + 1) % 3]
+    flip = a > b
+    key = np.stack([np.where(flip, b, a), np.where(flip, a, b),
+                    np.where(flip, -d[:, 0], d[:, 0]), np.where(flip, -d[:, 1], d[:, 1])], 1)
+    n_edges = len(np.unique(key, axis=0))
+    assert n_edges == 3 * t // 2, "every edge must border exactly two triangles"
+    assert m - n_edges + t == 0, "the Euler characteristic of a torus is 0"
+    corners = realise(vertices, triangles, offsets, period)
+    # orientation (in local coordinates) and coverage: areas sum to the torus area
+    e1 = corners[:, 1] - corners[:, 0]
+    e2 = corners[:, 2] - corners[:, 0]
+    area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    assert np.all(area > 0), "a triangle is not counter-clockwise"
+    assert abs(area.sum() - period.prod()) <= 1e-9 * period.prod(), (area.sum(), period.prod())
+    # empty circles: no vertex (any periodic copy) strictly inside any circumcircle
+    cc, r = circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
+    ccw = wrap(cc, period)
+    tree = cKDTree(vertices, boxsize=period)
+    inside = tree.query_ball_point(ccw, r * (1 - 1e-9), return_length=True)
+    assert np.all(inside == 0), f"{int((inside > 0).sum())} circumcircles hold a vertex"
+    return corners, ccw, r
+
+
 @dataclass
 class TorusReport:
     m: int
@@ -64,18 +118,23 @@ class TorusReport:
     beta: float
 
 
-def check_torus(vertices, points, k, tau, period, min_size=0.0, n_random=4000, seed=0):
-    """Theorem 6 on the torus [0, period): aspect, counts and the ratio d_{M,2} / d_{P,k}.
+def check_torus(torus, points, k, tau, min_size=0.0, n_random=4000, seed=0):
+    """Theorem 6 on the whole torus of a mesh: aspect, counts and the ratio d_{M,2} / d_{P,k}.
 
-    Elements smaller than ``min_size`` (the resolution floor) are exempt from the counts, and
-    probes with d_{P,k} < min_size from the ratio."""
-    period = np.asarray(period, float)
-    points = wrap(np.asarray(points, float).reshape(-1, 2), period)
+    ``torus`` has origin, period, vertices, triangles, offsets, neighbors (input units). The
+    triangulation is verified first (check_triangulation). Elements smaller than ``min_size``
+    (the resolution floor) are exempt from the counts, probes with d_{P,k} < min_size from the
+    ratio."""
+    period = np.asarray(torus.period, float)
+    origin = np.asarray(torus.origin, float)
+    vertices = np.asarray(torus.vertices, float)
+    points = wrap(np.asarray(points, float).reshape(-1, 2) - origin, period)
     m = vertices.shape[0]
-    ids, corners, cc, r = periodic_delaunay(vertices, period)
+    corners, cc, r = check_triangulation(vertices, torus.triangles, torus.offsets,
+                                         torus.neighbors, period)
     R = np.zeros(m)
     for c in range(3):
-        np.maximum.at(R, ids[:, c], r)
+        np.maximum.at(R, torus.triangles[:, c], r)
     vt = cKDTree(vertices, boxsize=period)
     d2 = vt.query(vertices, k=2)[0][:, 1]
     max_aspect = float(np.max(2.0 * R / d2))
@@ -98,6 +157,16 @@ def check_torus(vertices, points, k, tau, period, min_size=0.0, n_random=4000, s
     alpha, beta = theorem6(tau)
     return TorusReport(m, len(r), max_aspect, int(np.max(cell, initial=0)),
                        int(np.max(ball, initial=0)), rmin, rmax, alpha, beta)
+
+
+def qhull_outradii(vertices, period):
+    """R(v) for each vertex from scipy's Delaunay of the 3 x 3 cover (a cross-check of the
+    engine's triangulation; reliable only at moderate scales)."""
+    ids, corners, cc, r = periodic_delaunay(vertices, period)
+    R = np.zeros(len(vertices))
+    for c in range(3):
+        np.maximum.at(R, ids[:, c], r)
+    return R
 
 
 def ratio_range(probes, mesh_tree, point_tree, k, min_size, n):

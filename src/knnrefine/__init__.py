@@ -5,6 +5,7 @@ An implementation of Gardner & Sheehy, "kth Nearest Neighbor Sampling in the Pla
 everywhere in the box, whose Delaunay triangulation is tau-well-spaced.
 """
 
+from . import datasets
 from .api import refine
 from .errors import BudgetError, EngineError, InputError, KnnRefineError
 from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants

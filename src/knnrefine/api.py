@@ -136,11 +136,12 @@ def _assemble(res, emb, k, tau, min_size, m0, run):
         "clean_floor": int(np.count_nonzero(res.vflag & R.CLEAN_FLOOR)),
         "failed_insertions": res.counters["failed_insertions"],
         "m0": m0,
+        "m0_violations": run.m0_violations,
     }
     torus = Torus(
         origin=tuple(float(o) for o in emb.origin),
         period=emb.period,
-        vertices=res.vxy / emb.scale + emb.origin,
+        vertices=res.vxy / emb.scale,
         triangles=res.tv,
         offsets=res.to,
         neighbors=res.tn,

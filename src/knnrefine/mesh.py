@@ -22,9 +22,11 @@ class Torus:
     """The triangulation of the flat torus that the engine refined, in input units.
 
     In periodic mode it is the mesh itself; in non-periodic mode the data box sits inside it
-    with a margin (see ``knnrefine.engine.embedding``). Corner i of triangle t sits at
-    ``vertices[triangles[t, i]] + offsets[t, i] * period``; ``neighbors[t, i]`` is the
-    triangle across the edge opposite corner i.
+    with a margin (see ``knnrefine.engine.embedding``). ``vertices`` are relative to
+    ``origin`` (in [0, period), so that they keep full precision whatever the offset of the
+    data); corner i of triangle t sits at ``origin + vertices[triangles[t, i]] +
+    offsets[t, i] * period``, and ``neighbors[t, i]`` is the triangle across the edge
+    opposite corner i.
     """
 
     origin: tuple

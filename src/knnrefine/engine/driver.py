@@ -12,7 +12,7 @@ import numpy as np
 
 from . import refine as R
 from .geometry import Q, snap
-from .index import STACK_SIZE, build_index
+from .index import STACK_SIZE, build_index, count_in_disk
 from .queue import Q_SIZE, Q_USED, new_queue
 from ..errors import EngineError
 from .triangulation import C_NT, C_NV, MAX_CAVITY, P_LX, P_LY, set_all_circumcircles
@@ -154,6 +154,12 @@ class Refinement:
         tri = self._tri()
         ver = self._ver()
         set_all_circumcircles(tri, ver, self.prm, tv.shape[0])
+        # Theorem 6 assumes d_{P,k}(u) <= (K - 1) lambda_u at the initial vertices (Lemmas 1-2,
+        # K = 2 tau / (tau - 2), lambda_u their spacing); count where that fails
+        reach = (2.0 * tau / (tau - 2.0) - 1.0) * self.spacing
+        self.m0_violations = int(sum(
+            count_in_disk(self.index, x, y, reach * reach, k, lx, ly, self.work[3]) < k
+            for x, y in vxy))
         R.queue_all(tri, ver, tuple(self.queues), self.work, self.cnt, self.prm)
 
     # -- tuples handed to the kernels (rebuilt after growth) --

@@ -1,0 +1,153 @@
+"""kNNRefine against the independent oracle, over the issue's matrix of inputs and parameters."""
+
+import zlib
+
+import numpy as np
+import pytest
+from conftest import assert_certified, load_shared
+
+import knnrefine
+
+
+def uniform(rng, n=400):
+    return rng.random((n, 2)) * [3.0, 2.0] + [10.0, -5.0]
+
+
+def mixture(rng, n=400):
+    """Gaussian clusters whose scales differ by four orders of magnitude."""
+    parts = [rng.normal([0, 0], 1.0, (n // 2, 2)), rng.normal([4, 4], 1e-2, (n // 4, 2)),
+             rng.normal([-3, 4], 1e-4, (n - n // 2 - n // 4, 2))]
+    return np.concatenate(parts)
+
+
+def lattice(rng, n=400):
+    side = int(np.sqrt(n))
+    g = np.arange(side, dtype=float)
+    return np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+
+
+def collinear(rng, n=400):
+    t = rng.random(n)
+    return np.stack([3 * t, 1 + 2 * t], 1)
+
+
+def duplicates(rng, n=400):
+    """Every point three times: multiplicity < k for k >= 4 (k = 1, 2 exercise the floor)."""
+    return np.repeat(rng.random((n // 3, 2)), 3, axis=0)
+
+
+def boundary(rng, n=400):
+    """Points on the sides and corners of the box [0, 1]^2, plus interior points."""
+    s = rng.random(n // 4)
+    edge = np.concatenate([np.stack([s, 0 * s], 1), np.stack([s, 0 * s + 1], 1),
+                           np.stack([0 * s, s], 1)])
+    corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1.0]])
+    return np.concatenate([edge, corners, rng.random((n - len(edge) - 4, 2))])
+
+
+INPUTS = {"uniform": uniform, "mixture": mixture, "lattice": lattice, "collinear": collinear,
+          "duplicates": duplicates, "boundary": boundary}
+MODES = [False, True, (True, False), (False, True)]
+
+
+def box_for(points, periodic):
+    lo = points.min(0)
+    hi = points.max(0)
+    pad = 0.05 * (hi - lo).max()
+    return tuple(lo - pad) + tuple(hi + pad) if np.any(periodic) else None
+
+
+@pytest.mark.parametrize("name", list(INPUTS))
+@pytest.mark.parametrize("k", [1, 2, 10, 100])
+@pytest.mark.parametrize("tau", [2.5, 3.0, 4.0, 6.0])
+def test_matrix(name, k, tau):
+    rng = np.random.default_rng(zlib.crc32(f"{name} {k} {tau}".encode()))
+    n = 120 if k == 1 else 400  # k = 1 refines every point down to the floor
+    points = INPUTS[name](rng, n)
+    # the periodic mode cycles with tau so the whole matrix stays quick
+    periodic = MODES[[2.5, 3.0, 4.0, 6.0].index(tau)]
+    # boundary points sit exactly on the sides (and, when periodic, on the seam) of the box
+    box = (0.0, 0.0, 1.0, 1.0) if name == "boundary" else box_for(points, periodic)
+    side = np.ptp(points, axis=0).max() if box is None else max(box[2] - box[0], box[3] - box[1])
+    min_size = 1e-3 * side if k <= 2 else None
+    mesh = knnrefine.refine(points, k, tau, periodic=periodic, box=box, min_size=min_size)
+    assert_certified(mesh, points, label=f"{name}")
+
+
+@pytest.mark.parametrize("periodic", MODES)
+@pytest.mark.parametrize("k", [2, 10])
+def test_every_mode_at_tau3(periodic, k):
+    rng = np.random.default_rng(k)
+    points = mixture(rng, 600)
+    mesh = knnrefine.refine(points, k, 3.0, periodic=periodic, box=box_for(points, periodic))
+    assert_certified(mesh, points, label=f"mixture {periodic}")
+
+
+def test_k1_is_floor_limited_everywhere():
+    """d_{P,1} vanishes at every input point: refinement stops at the floor around each one,
+    and the guarantee holds wherever d_{P,1} >= min_size."""
+    rng = np.random.default_rng(5)
+    points = rng.random((50, 2))
+    mesh = knnrefine.refine(points, 1, 3.0, min_size=1e-4)
+    assert mesh.stats["floor_circumballs"] > 0
+    assert len(mesh.floor_points) > 0
+    # every floor element sits at an input point (within the floor size)
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(mesh.floor_points)
+    assert d.max() < 1e-3
+    assert_certified(mesh, points, label="k=1 floor")
+
+
+def test_multiplicity_at_least_k_terminates_and_is_flagged():
+    rng = np.random.default_rng(6)
+    points = np.concatenate([rng.random((300, 2)), np.repeat([[0.25, 0.75]], 12, axis=0)])
+    mesh = knnrefine.refine(points, 10, 3.0)
+    assert mesh.stats["floor_circumballs"] + mesh.stats["floor_cells"] > 0
+    d = np.hypot(*(mesh.floor_points - [0.25, 0.75]).T)
+    assert d.max() < 1e-4
+    assert_certified(mesh, points, label="multiplicity 12, k=10")
+
+
+def test_size_is_proportional_to_n_over_k():
+    """|M| tracks the integral of 1 / d_{P,k}^2 (about 2.4 n / k for uniform data)."""
+    rng = np.random.default_rng(7)
+    points = rng.random((20000, 2))
+    sizes = {k: len(knnrefine.refine(points, k, periodic=True, box=(0, 0, 1, 1)).vertices)
+             for k in (10, 40, 160)}
+    for k, m in sizes.items():
+        assert 1.0 * 20000 / k < m < 5.0 * 20000 / k, sizes
+
+
+REAL = {
+    # file: (periodic, box) -- torsion angles are periodic; the others are planar
+    "old_faithful.csv": (False, None),
+    "bci_bei_trees.csv": (False, None),
+    "clm_forest_fires.csv": (False, None),
+    "shapley_galaxies.csv": (False, None),
+    "mopsi_finland.csv": (False, None),
+    "franti_s1.csv": (False, None),
+    "franti_birch1.csv": (False, None),
+    "franti_worms2.csv": (False, None),
+    "uber_nyc_pickups_apr2014.csv": (False, None),
+    "earthquakes_global_1965_2016.csv": ((True, False), (-180, -90, 180, 90)),
+    "rama_top8000_phi_psi.csv": (True, (-180, -180, 180, 180)),
+    "rota_top8000_trp_chi1_chi2.csv": (True, (0, 0, 360, 360)),
+    "rama_sars_cov2_spike_chainB.csv": (True, (0, 0, 360, 360)),
+    "delaunator_ukraine.csv": (False, None),
+    "delaunator_issue44.csv": (False, None),
+    "delaunator_robustness1.csv": (False, None),
+    "delaunator_robustness2.csv": (False, None),
+    "delaunator_robustness3.csv": (False, None),
+    "delaunator_robustness4.csv": (False, None),
+}
+
+
+@pytest.mark.parametrize("name", list(REAL))
+def test_real_data(name):
+    points = load_shared(name)
+    periodic, box = REAL[name]
+    k = 10 if len(points) < 50000 else 100
+    k = min(k, max(2, len(points) // 4))
+    mesh = knnrefine.refine(points, k, 3.0, periodic=periodic, box=box)
+    assert_certified(mesh, points, label=name.removesuffix(".csv"))
