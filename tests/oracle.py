@@ -6,6 +6,7 @@ and counts are brute force over those.
 """
 
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 from scipy.spatial import Delaunay, cKDTree
@@ -96,13 +97,30 @@ def check_triangulation(vertices, triangles, offsets, neighbors, period):
     area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     assert np.all(area > 0), "a triangle is not counter-clockwise"
     assert abs(area.sum() - period.prod()) <= 1e-9 * period.prod(), (area.sum(), period.prod())
-    # empty circles: no vertex (any periodic copy) strictly inside any circumcircle
+    # empty circles: no vertex (any periodic copy) strictly inside any circumcircle. Floats
+    # find the candidates near each circle; exact rational arithmetic gives the verdict.
     cc, r = circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
     ccw = wrap(cc, period)
     tree = cKDTree(vertices, boxsize=period)
-    inside = tree.query_ball_point(ccw, r * (1 - 1e-9), return_length=True)
-    assert np.all(inside == 0), f"{int((inside > 0).sum())} circumcircles hold a vertex"
+    candidates = tree.query_ball_point(ccw, r * (1 + 1e-6) + 1e-6 * r.max())
+    for f, near in enumerate(candidates):
+        for v in near:
+            if v in tri[f]:
+                continue
+            p = vertices[v] + np.round((cc[f] - vertices[v]) / period) * period
+            assert incircle_exact(*corners[f], p) <= 0, f"vertex {v} inside circle of {f}"
     return corners, ccw, r
+
+
+def incircle_exact(a, b, c, d):
+    """Sign of the in-circle determinant in exact rational arithmetic (+1: d strictly inside
+    the circle through the counter-clockwise a, b, c)."""
+    ax, ay, bx, by, cx, cy, dx, dy = (Fraction(float(x)) for x in (*a, *b, *c, *d))
+    adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
+    det = ((adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
+           + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
+           + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady))
+    return (det > 0) - (det < 0)
 
 
 @dataclass

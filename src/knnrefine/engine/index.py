@@ -180,8 +180,9 @@ def _count_disk(index, cx, cy, r2, k, count, stack):
 
 @njit(cache=True)
 def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
-    """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)),
-    counted up to k (the count stops once it reaches k). Needs sqrt(r2) < min(lx, ly) / 2."""
+    """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)):
+    exact when below k; otherwise the search stops early and returns some value >= k.
+    Needs sqrt(r2) < min(lx, ly) / 2."""
     cx -= np.floor(cx / lx) * lx
     cy -= np.floor(cy / ly) * ly
     r = np.sqrt(r2)
@@ -218,7 +219,9 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
         dy = max(y0, 0.0, -y1)
         if dx * dx + dy * dy > r2:
             continue
-        inside = True
+        fx = max(-x0, x1)
+        fy = max(-y0, y1)
+        inside = fx * fx + fy * fy <= r2
         outside = False
         for j in range(nh):
             a = hx[j]
@@ -243,8 +246,10 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
             for i in range(lo[node], hi[node]):
                 ex = xs[i] - vx
                 ey = ys[i] - vy
-                ok = True
+                ok = ex * ex + ey * ey <= r2
                 for j in range(nh):
+                    if not ok:
+                        break
                     if hx[j] * ex + hy[j] * ey > hc[j]:
                         ok = False
                         break
@@ -262,8 +267,9 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
 @njit(cache=True)
 def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack):
     """Number of points of the periodic P in the closed cell {v + p : hx[j] px + hy[j] py <= hc[j]}
-    contained in the disk (v, sqrt(r2)), counted up to k. For a Voronoi cell, (hx[j], hy[j]) is
-    the j-th neighbour minus v and hc[j] half its squared length."""
+    contained in the disk (v, sqrt(r2)): exact when below k, otherwise some value >= k. For a
+    Voronoi cell, (hx[j], hy[j]) is the j-th neighbour minus v and hc[j] half its squared
+    length."""
     vx -= np.floor(vx / lx) * lx
     vy -= np.floor(vy / ly) * ly
     r = np.sqrt(r2)

@@ -1,0 +1,107 @@
+"""The counting kd-tree against brute force: closed disks and convex cells, periodic."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from knnrefine.engine.index import STACK_SIZE, build_index, count_in_cell, count_in_disk
+
+
+def periodic_copies(points, lx, ly):
+    return np.concatenate([points + [sx * lx, sy * ly] for sx in (-1, 0, 1) for sy in (-1, 0, 1)])
+
+
+def assert_count(got, lo, hi, k):
+    """Exact below k (up to points on the boundary); otherwise any value in [k, true count]."""
+    if got >= k:
+        assert hi >= k and got <= hi, (got, lo, hi, k)
+    else:
+        assert lo <= got <= hi, (got, lo, hi, k)
+
+
+def make(points):
+    return build_index(np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1]))
+
+
+def point_sets(rng):
+    yield "empty", np.zeros((0, 2))
+    yield "one", np.array([[0.3, 0.7]])
+    yield "uniform", rng.random((3000, 2))
+    yield "duplicates", np.repeat(rng.random((40, 2)), 30, axis=0)
+    g = np.arange(20) / 20
+    yield "lattice", np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    yield "clustered", np.clip(rng.normal(0.5, 1e-6, (2000, 2)), 0, 0.999)
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_count_in_disk_matches_brute_force(case):
+    rng = np.random.default_rng(case)
+    name, pts = list(point_sets(rng))[case]
+    index = make(pts)
+    stack = np.empty(STACK_SIZE, np.int64)
+    cover = periodic_copies(pts, 1.0, 1.0)
+    for _ in range(300):
+        c = rng.random(2) * 1.4 - 0.2
+        r = rng.choice([1e-7, 0.01, 0.05, 0.2, 0.45]) * rng.random()
+        if name == "lattice" and rng.random() < 0.5:  # discs through lattice points
+            c = np.round(c * 20) / 20 + 0.025
+            r = np.hypot(0.025, 0.025)
+        d2 = ((cover - c) ** 2).sum(1)
+        # points within rounding of the circle may count either way
+        lo = int((d2 <= r * r * (1 - 1e-12)).sum())
+        hi = int((d2 <= r * r * (1 + 1e-12)).sum())
+        for k in (1, 7, 100, 10**9):
+            got = count_in_disk(index, c[0], c[1], r * r, k, 1.0, 1.0, stack)
+            assert_count(got, lo, hi, k)
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_count_in_cell_matches_brute_force(case):
+    rng = np.random.default_rng(10 + case)
+    name, pts = list(point_sets(rng))[case]
+    index = make(pts)
+    stack = np.empty(STACK_SIZE, np.int64)
+    cover = periodic_copies(pts, 1.0, 1.0)
+    for _ in range(200):
+        v = rng.random(2)
+        # a Voronoi-like cell: half-planes towards a ring of neighbours around v
+        deg = rng.integers(3, 9)
+        ang = np.sort(rng.random(deg)) * 2 * np.pi
+        nb = 0.2 * rng.random() * np.stack([np.cos(ang), np.sin(ang)], 1) + 1e-3
+        hc = 0.5 * (nb**2).sum(1)
+        R2 = float((4 * hc).max())
+        rel = cover - v
+        lo = int((np.all(rel @ nb.T <= hc * (1 - 1e-12), axis=1)
+                  & ((rel**2).sum(1) <= R2 * (1 - 1e-12))).sum())
+        hi = int((np.all(rel @ nb.T <= hc * (1 + 1e-12), axis=1)
+                  & ((rel**2).sum(1) <= R2 * (1 + 1e-12))).sum())
+        for k in (1, 5, 10**9):
+            got = count_in_cell(index, v[0], v[1], nb[:, 0].copy(), nb[:, 1].copy(), hc, deg,
+                                R2, k, 1.0, 1.0, stack)
+            assert_count(got, lo, hi, k)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 0.999), st.floats(0, 0.999)), min_size=0, max_size=60),
+       st.floats(-0.5, 1.5), st.floats(-0.5, 1.5), st.floats(0, 0.49))
+def test_disk_property(pts, cx, cy, r):
+    pts = np.array(pts, float).reshape(-1, 2)
+    index = make(pts)
+    stack = np.empty(STACK_SIZE, np.int64)
+    exact = int((((periodic_copies(pts, 1.0, 1.0) - [cx, cy]) ** 2).sum(1) <= r * r).sum())
+    assert count_in_disk(index, cx, cy, r * r, 10**9, 1.0, 1.0, stack) == exact
+
+
+def test_tree_is_a_partition():
+    rng = np.random.default_rng(2)
+    pts = rng.random((5000, 2))
+    xs, ys, lo, hi, child, bx0, by0, bx1, by1 = make(pts)
+    assert sorted(zip(xs, ys, strict=True)) == sorted(map(tuple, pts))
+    for node in range(len(lo)):
+        sl = slice(lo[node], hi[node])
+        assert np.all(xs[sl] >= bx0[node]) and np.all(xs[sl] <= bx1[node])
+        assert np.all(ys[sl] >= by0[node]) and np.all(ys[sl] <= by1[node])
+        c = child[node]
+        if c >= 0:
+            assert lo[c] == lo[node] and hi[c] == lo[c + 1] and hi[c + 1] == hi[node]

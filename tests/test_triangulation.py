@@ -1,0 +1,143 @@
+"""The periodic Delaunay triangulation kernel on its own: insertions keep every invariant."""
+
+import numpy as np
+import oracle
+import pytest
+
+import knnrefine
+from knnrefine.engine import driver
+from knnrefine.engine.geometry import Q, snap
+from knnrefine.engine.triangulation import (
+    C_NT,
+    C_NV,
+    INSERT_NOT_IN_SEED,
+    in_circumcircle,
+    insert_vertex,
+    vertex_star,
+)
+
+
+def empty_torus(lx, ly):
+    """A refinement state with no input points: just the initial grid on the torus."""
+    return driver.Refinement(np.zeros((0, 2)), 1, lx, ly, 3.0, 0.0, 10**6)
+
+
+def seed_for(state, px, py):
+    """Brute force: a triangle (and periodic shift) whose circumcircle strictly holds p."""
+    tri, ver = state._tri(), state._ver()
+    for t in range(int(state.cnt[C_NT])):
+        for sx in (-1, 0, 1):
+            for sy in (-1, 0, 1):
+                if in_circumcircle(tri, ver, state.prm, t, sx, sy, px, py) > 0:
+                    return t, px - sx * state.lx, py - sy * state.ly
+    return None
+
+
+def insert(state, x, y):
+    px, py = snap(x), snap(y)
+    found = seed_for(state, px, py)
+    if found is None:
+        return INSERT_NOT_IN_SEED
+    t, qx, qy = found
+    state._grow_if_needed()
+    return insert_vertex(qx, qy, t, 0, state._tri(), state._ver(), state._scr(), state.cnt,
+                         state.prm)
+
+
+def validate(state):
+    nv, nt = int(state.cnt[C_NV]), int(state.cnt[C_NT])
+    oracle.check_triangulation(state.vxy[:nv], state.tv[:nt], state.to[:nt], state.tn[:nt],
+                               (state.lx, state.ly))
+    # the cached circumcircles agree with the corners
+    corners = oracle.realise(state.vxy[:nv], state.tv[:nt], state.to[:nt], (state.lx, state.ly))
+    cc, r = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
+    np.testing.assert_allclose(state.tcc[:nt], cc, atol=1e-12)
+    np.testing.assert_allclose(np.sqrt(state.tr2[:nt]), r, rtol=1e-9)
+    # validity on the torus: every circumradius below a quarter of the shorter period
+    assert r.max() < min(state.lx, state.ly) / 4
+    # offsets are normalised (minimum 0 on each axis)
+    assert np.all(state.to[:nt].min(axis=1) == 0)
+
+
+@pytest.mark.parametrize("lx,ly", [(1.0, 1.0), (0.5, 1.0), (1.0, 0.125)])
+def test_initial_grid_is_delaunay(lx, ly):
+    validate(empty_torus(lx, ly))
+
+
+def test_random_insertions_keep_invariants():
+    state = empty_torus(1.0, 0.75)
+    rng = np.random.default_rng(0)
+    for x, y in rng.random((400, 2)) * [1.0, 0.75]:
+        assert insert(state, x, y) >= 0
+    validate(state)
+
+
+def test_lattice_insertions_with_cocircular_points():
+    """A lattice makes nearly every quadruple cocircular; exact predicates must cope."""
+    state = empty_torus(1.0, 1.0)
+    g = (np.arange(16) + 0.25) / 16
+    pts = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    for x, y in pts:
+        assert insert(state, x, y) >= 0
+    validate(state)
+    # circumcenters of lattice cells: distinct triangles share them
+    for x, y in pts[:40] + 0.5 / 16:
+        insert(state, x, y)
+    validate(state)
+
+
+def test_insertion_on_an_existing_vertex_is_refused():
+    state = empty_torus(1.0, 1.0)
+    rng = np.random.default_rng(1)
+    pts = rng.random((50, 2))
+    for x, y in pts:
+        insert(state, x, y)
+    before = int(state.cnt[C_NV])
+    for x, y in pts[:10]:
+        assert insert(state, x, y) == INSERT_NOT_IN_SEED
+    assert int(state.cnt[C_NV]) == before
+    validate(state)
+
+
+def test_points_on_the_seam_and_near_grid_resolution():
+    state = empty_torus(1.0, 1.0)
+    for x, y in [(0.0, 0.0), (1.0 - Q, 0.5), (0.5, 1.0 - Q), (0.3, 0.0), (0.0, 0.7)]:
+        assert insert(state, x, y) >= 0
+    validate(state)
+    rng = np.random.default_rng(2)
+    base = rng.random((20, 2))
+    for x, y in np.concatenate([base, base + 2**-30, base - 2**-40]) % 1.0:
+        insert(state, x, y)
+    validate(state)
+
+
+def test_vertex_star_gives_aspect():
+    state = empty_torus(1.0, 1.0)
+    rng = np.random.default_rng(3)
+    for x, y in rng.random((200, 2)):
+        insert(state, x, y)
+    nv = int(state.cnt[C_NV])
+    hx = np.zeros(64)
+    hy = np.zeros(64)
+    corners = oracle.realise(state.vxy[:nv], state.tv[: 2 * nv], state.to[: 2 * nv], (1.0, 1.0))
+    _, r = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
+    R = np.zeros(nv)
+    for c in range(3):
+        np.maximum.at(R, state.tv[: 2 * nv, c], r)
+    d2 = oracle.cKDTree(state.vxy[:nv], boxsize=1.0).query(state.vxy[:nv], k=2)[0][:, 1]
+    for v in range(nv):
+        big2, far, e2, deg = vertex_star(v, state._tri(), state._ver(), state.prm, hx, hy)
+        assert np.isclose(np.sqrt(big2), R[v]) and np.isclose(np.sqrt(e2), d2[v])
+        assert deg == np.count_nonzero(state.tv[: 2 * nv] == v)
+
+
+def test_refined_meshes_are_valid_triangulations():
+    rng = np.random.default_rng(4)
+    for periodic in (True, False):
+        pts = rng.random((2000, 2))
+        mesh = knnrefine.refine(pts, 5, 3.0, periodic=periodic, box=(0, 0, 1, 1))
+        t = mesh.torus
+        oracle.check_triangulation(t.vertices, t.triangles, t.offsets, t.neighbors, t.period)
+        if periodic:
+            # F = 2V on the torus for the returned mesh itself
+            assert len(mesh.triangles) == 2 * len(mesh.vertices)
