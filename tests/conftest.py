@@ -2,12 +2,14 @@ import os
 from pathlib import Path
 
 import numpy as np
+import oracle
 import pytest
 
-import oracle
-
-SHARED_DATA = Path(os.environ.get("KNNREFINE_SHARED_DATA",
-                                  Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
+SHARED_DATA = Path(
+    os.environ.get(
+        "KNNREFINE_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+    )
+)
 
 # achieved ratio ranges, printed at the end of the run
 ACHIEVED = []
@@ -50,10 +52,15 @@ def assert_certified(mesh, points, label="", torus_ratio=None):
     torus_tree = oracle.cKDTree(mesh.torus.vertices, boxsize=mesh.torus.period)
     rel = oracle.wrap(probes - np.array(mesh.torus.origin), np.array(mesh.torus.period))
     full = torus_tree.query(rel, k=2)[0][:, 1]
-    np.testing.assert_allclose(mesh.d_m2(probes), full, rtol=1e-9, atol=1e-12 * max(
-        b - a for a, b in zip(mesh.box[:2], mesh.box[2:], strict=True)))
-    ACHIEVED.append((label, len(points), k, tau, mesh.periodic, len(mesh.vertices),
-                     rep.max_aspect, lo, hi))
+    np.testing.assert_allclose(
+        mesh.d_m2(probes),
+        full,
+        rtol=1e-9,
+        atol=1e-12 * max(b - a for a, b in zip(mesh.box[:2], mesh.box[2:], strict=True)),
+    )
+    ACHIEVED.append(
+        (label, len(points), k, tau, mesh.periodic, len(mesh.vertices), rep.max_aspect, lo, hi)
+    )
     return rep, (lo, hi)
 
 
@@ -62,8 +69,12 @@ def pytest_terminal_summary(terminalreporter):
         return
     tr = terminalreporter
     tr.section("achieved d_M2 / d_Pk in the box (alpha, beta: Theorem 6)")
-    tr.write_line(f"{'case':34s} {'n':>7s} {'k':>4s} {'tau':>4s} {'periodic':>14s} {'m':>7s} "
-                  f"{'aspect':>7s} {'min':>7s} {'max':>7s}")
+    tr.write_line(
+        f"{'case':34s} {'n':>7s} {'k':>4s} {'tau':>4s} {'periodic':>14s} {'m':>7s} "
+        f"{'aspect':>7s} {'min':>7s} {'max':>7s}"
+    )
     for label, n, k, tau, per, m, asp, lo, hi in ACHIEVED:
-        tr.write_line(f"{label[:34]:34s} {n:7d} {k:4d} {tau:4g} {str(per):>14s} {m:7d} "
-                      f"{asp:7.3f} {lo:7.3f} {hi:7.3f}")
+        tr.write_line(
+            f"{label[:34]:34s} {n:7d} {k:4d} {tau:4g} {str(per):>14s} {m:7d} "
+            f"{asp:7.3f} {lo:7.3f} {hi:7.3f}"
+        )

@@ -40,8 +40,9 @@ def periodic_delaunay(vertices, period):
     Returns (ids (t, 3) torus vertex indices, corners (t, 3, 2) realised positions,
     circumcenters (t, 2) wrapped into the domain, radii (t,))."""
     m = vertices.shape[0]
-    shifts = np.array([(0, 0)] + [(sx, sy) for sx in (-1, 0, 1) for sy in (-1, 0, 1)
-                                  if (sx, sy) != (0, 0)], float)
+    shifts = np.array(
+        [(0, 0)] + [(sx, sy) for sx in (-1, 0, 1) for sy in (-1, 0, 1) if (sx, sy) != (0, 0)], float
+    )
     cover = (vertices[None, :, :] + shifts[:, None, :] * period).reshape(-1, 2)
     s = Delaunay(cover).simplices
     ids = s % m
@@ -85,8 +86,15 @@ def check_triangulation(vertices, triangles, offsets, neighbors, period):
     assert np.all(shared_ok), "neighbours disagree on the offset of a shared edge"
     d = off[f, (i + 2) % 3] - off[f, (i + 1) % 3]
     flip = a > b
-    key = np.stack([np.where(flip, b, a), np.where(flip, a, b),
-                    np.where(flip, -d[:, 0], d[:, 0]), np.where(flip, -d[:, 1], d[:, 1])], 1)
+    key = np.stack(
+        [
+            np.where(flip, b, a),
+            np.where(flip, a, b),
+            np.where(flip, -d[:, 0], d[:, 0]),
+            np.where(flip, -d[:, 1], d[:, 1]),
+        ],
+        1,
+    )
     n_edges = len(np.unique(key, axis=0))
     assert n_edges == 3 * t // 2, "every edge must border exactly two triangles"
     assert m - n_edges + t == 0, "the Euler characteristic of a torus is 0"
@@ -117,9 +125,11 @@ def incircle_exact(a, b, c, d):
     the circle through the counter-clockwise a, b, c)."""
     ax, ay, bx, by, cx, cy, dx, dy = (Fraction(float(x)) for x in (*a, *b, *c, *d))
     adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
-    det = ((adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
-           + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
-           + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady))
+    det = (
+        (adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
+        + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
+        + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady)
+    )
     return (det > 0) - (det < 0)
 
 
@@ -148,8 +158,9 @@ def check_torus(torus, points, k, tau, min_size=0.0, n_random=4000, seed=0):
     vertices = np.asarray(torus.vertices, float)
     points = wrap(np.asarray(points, float).reshape(-1, 2) - origin, period)
     m = vertices.shape[0]
-    corners, cc, r = check_triangulation(vertices, torus.triangles, torus.offsets,
-                                         torus.neighbors, period)
+    corners, cc, r = check_triangulation(
+        vertices, torus.triangles, torus.offsets, torus.neighbors, period
+    )
     R = np.zeros(m)
     for c in range(3):
         np.maximum.at(R, torus.triangles[:, c], r)
@@ -173,8 +184,17 @@ def check_torus(torus, points, k, tau, min_size=0.0, n_random=4000, seed=0):
     probes = np.concatenate([points, vertices, cc, rng.random((n_random, 2)) * period])
     rmin, rmax = ratio_range(probes, vt, pt, k, min_size, len(points))
     alpha, beta = theorem6(tau)
-    return TorusReport(m, len(r), max_aspect, int(np.max(cell, initial=0)),
-                       int(np.max(ball, initial=0)), rmin, rmax, alpha, beta)
+    return TorusReport(
+        m,
+        len(r),
+        max_aspect,
+        int(np.max(cell, initial=0)),
+        int(np.max(ball, initial=0)),
+        rmin,
+        rmax,
+        alpha,
+        beta,
+    )
 
 
 def qhull_outradii(vertices, period):
@@ -222,6 +242,10 @@ def box_probes(vertices, points, box, n_random=4000, seed=0):
     lo = np.array(box[:2], float)
     hi = np.array(box[2:], float)
     rng = np.random.default_rng(seed)
-    parts = [np.asarray(points, float).reshape(-1, 2), vertices, lo + rng.random((n_random, 2)) * (hi - lo)]
+    parts = [
+        np.asarray(points, float).reshape(-1, 2),
+        vertices,
+        lo + rng.random((n_random, 2)) * (hi - lo),
+    ]
     probes = np.concatenate(parts)
     return probes[(probes >= lo).all(1) & (probes <= hi).all(1)]

@@ -72,19 +72,32 @@ def test_count_in_cell_matches_brute_force(case):
         hc = 0.5 * (nb**2).sum(1)
         R2 = float((4 * hc).max())
         rel = cover - v
-        lo = int((np.all(rel @ nb.T <= hc * (1 - 1e-12), axis=1)
-                  & ((rel**2).sum(1) <= R2 * (1 - 1e-12))).sum())
-        hi = int((np.all(rel @ nb.T <= hc * (1 + 1e-12), axis=1)
-                  & ((rel**2).sum(1) <= R2 * (1 + 1e-12))).sum())
+        lo = int(
+            (
+                np.all(rel @ nb.T <= hc * (1 - 1e-12), axis=1)
+                & ((rel**2).sum(1) <= R2 * (1 - 1e-12))
+            ).sum()
+        )
+        hi = int(
+            (
+                np.all(rel @ nb.T <= hc * (1 + 1e-12), axis=1)
+                & ((rel**2).sum(1) <= R2 * (1 + 1e-12))
+            ).sum()
+        )
         for k in (1, 5, 10**9):
-            got = count_in_cell(index, v[0], v[1], nb[:, 0].copy(), nb[:, 1].copy(), hc, deg,
-                                R2, k, 1.0, 1.0, stack)
+            got = count_in_cell(
+                index, v[0], v[1], nb[:, 0].copy(), nb[:, 1].copy(), hc, deg, R2, k, 1.0, 1.0, stack
+            )
             assert_count(got, lo, hi, k)
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.floats(0, 0.999), st.floats(0, 0.999)), min_size=0, max_size=60),
-       st.floats(-0.5, 1.5), st.floats(-0.5, 1.5), st.floats(0, 0.49))
+@given(
+    st.lists(st.tuples(st.floats(0, 0.999), st.floats(0, 0.999)), min_size=0, max_size=60),
+    st.floats(-0.5, 1.5),
+    st.floats(-0.5, 1.5),
+    st.floats(0, 0.49),
+)
 def test_disk_property(pts, cx, cy, r):
     pts = np.array(pts, float).reshape(-1, 2)
     index = make(pts)

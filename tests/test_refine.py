@@ -15,8 +15,11 @@ def uniform(rng, n=400):
 
 def mixture(rng, n=400):
     """Gaussian clusters whose scales differ by four orders of magnitude."""
-    parts = [rng.normal([0, 0], 1.0, (n // 2, 2)), rng.normal([4, 4], 1e-2, (n // 4, 2)),
-             rng.normal([-3, 4], 1e-4, (n - n // 2 - n // 4, 2))]
+    parts = [
+        rng.normal([0, 0], 1.0, (n // 2, 2)),
+        rng.normal([4, 4], 1e-2, (n // 4, 2)),
+        rng.normal([-3, 4], 1e-4, (n - n // 2 - n // 4, 2)),
+    ]
     return np.concatenate(parts)
 
 
@@ -39,14 +42,21 @@ def duplicates(rng, n=400):
 def boundary(rng, n=400):
     """Points on the sides and corners of the box [0, 1]^2, plus interior points."""
     s = rng.random(n // 4)
-    edge = np.concatenate([np.stack([s, 0 * s], 1), np.stack([s, 0 * s + 1], 1),
-                           np.stack([0 * s, s], 1)])
+    edge = np.concatenate(
+        [np.stack([s, 0 * s], 1), np.stack([s, 0 * s + 1], 1), np.stack([0 * s, s], 1)]
+    )
     corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1.0]])
     return np.concatenate([edge, corners, rng.random((n - len(edge) - 4, 2))])
 
 
-INPUTS = {"uniform": uniform, "mixture": mixture, "lattice": lattice, "collinear": collinear,
-          "duplicates": duplicates, "boundary": boundary}
+INPUTS = {
+    "uniform": uniform,
+    "mixture": mixture,
+    "lattice": lattice,
+    "collinear": collinear,
+    "duplicates": duplicates,
+    "boundary": boundary,
+}
 MODES = [False, True, (True, False), (False, True)]
 
 
@@ -113,8 +123,10 @@ def test_size_is_proportional_to_n_over_k():
     """|M| tracks the integral of 1 / d_{P,k}^2 (about 2.4 n / k for uniform data)."""
     rng = np.random.default_rng(7)
     points = rng.random((20000, 2))
-    sizes = {k: len(knnrefine.refine(points, k, periodic=True, box=(0, 0, 1, 1)).vertices)
-             for k in (10, 40, 160)}
+    sizes = {
+        k: len(knnrefine.refine(points, k, periodic=True, box=(0, 0, 1, 1)).vertices)
+        for k in (10, 40, 160)
+    }
     for k, m in sizes.items():
         assert 1.0 * 20000 / k < m < 5.0 * 20000 / k, sizes
 

@@ -40,14 +40,16 @@ def insert(state, x, y):
         return INSERT_NOT_IN_SEED
     t, qx, qy = found
     state._grow_if_needed()
-    return insert_vertex(qx, qy, t, 0, state._tri(), state._ver(), state._scr(), state.cnt,
-                         state.prm)
+    return insert_vertex(
+        qx, qy, t, 0, state._tri(), state._ver(), state._scr(), state.cnt, state.prm
+    )
 
 
 def validate(state):
     nv, nt = int(state.cnt[C_NV]), int(state.cnt[C_NT])
-    oracle.check_triangulation(state.vxy[:nv], state.tv[:nt], state.to[:nt], state.tn[:nt],
-                               (state.lx, state.ly))
+    oracle.check_triangulation(
+        state.vxy[:nv], state.tv[:nt], state.to[:nt], state.tn[:nt], (state.lx, state.ly)
+    )
     # the cached circumcircles agree with the corners
     corners = oracle.realise(state.vxy[:nv], state.tv[:nt], state.to[:nt], (state.lx, state.ly))
     cc, r = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])

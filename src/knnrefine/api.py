@@ -90,18 +90,26 @@ def refine(
 
     emb = Embedding.make(box, per)
     internal = emb.to_internal(pts)
-    run = Refinement(internal, k, *emb.period_internal, tau, min_size * emb.scale, int(max_vertices))
+    run = Refinement(
+        internal, k, *emb.period_internal, tau, min_size * emb.scale, int(max_vertices)
+    )
     m0 = int(run.cnt[0])
     status = run.run(time_limit=time_limit, progress=progress)
     if status != R.STATUS_DONE:
         got = run.result().counters
-        what = (f"max_vertices={max_vertices}" if status == R.STATUS_MAX_VERTICES
-                else f"time_limit={time_limit} s")
+        what = (
+            f"max_vertices={max_vertices}"
+            if status == R.STATUS_MAX_VERTICES
+            else f"time_limit={time_limit} s"
+        )
         raise BudgetError(
             f"refinement stopped at {what} with {int(run.cnt[0])} vertices and {run.pending()} "
             "candidates still queued; raise the budget, use a larger k, or a larger min_size",
-            progress={"vertices": int(run.cnt[0]), "moves": got,
-                      "seconds": time.perf_counter() - t_start},
+            progress={
+                "vertices": int(run.cnt[0]),
+                "moves": got,
+                "seconds": time.perf_counter() - t_start,
+            },
         )
     res = run.result()
     t_assemble = time.perf_counter()
@@ -122,13 +130,19 @@ def _assemble(res, emb, k, tau, min_size, m0, run):
     floor_t = res.tstate == R.FLOOR
     floor_v = res.vcell == R.FLOOR
     floor_int = np.concatenate([res.tcc[floor_t], res.vxy[floor_v]])
-    floor_pts = emb.to_input(floor_int - np.floor(floor_int / L) * L) if len(floor_int) else np.zeros((0, 2))
+    floor_pts = (
+        emb.to_input(floor_int - np.floor(floor_int / L) * L)
+        if len(floor_int)
+        else np.zeros((0, 2))
+    )
     stats = {
         "n": run.n,
         "m": int(len(out_v)),
         "m_torus": int(res.vxy.shape[0]),
         "triangles": int(len(tri)),
-        "moves": {name: int(np.count_nonzero(res.kind == i)) for i, name in enumerate(R.KIND_NAMES)},
+        "moves": {
+            name: int(np.count_nonzero(res.kind == i)) for i, name in enumerate(R.KIND_NAMES)
+        },
         "disk_tests": res.counters["disk_tests"],
         "cell_tests": res.counters["cell_tests"],
         "floor_circumballs": int(floor_t.sum()),

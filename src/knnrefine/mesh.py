@@ -94,15 +94,15 @@ class Mesh:
     @property
     def period(self):
         """Periods along (x, y) in input units, 0 along non-periodic axes."""
-        return tuple(
-            (self.box[a + 2] - self.box[a]) if self.periodic[a] else 0.0 for a in range(2)
-        )
+        return tuple((self.box[a + 2] - self.box[a]) if self.periodic[a] else 0.0 for a in range(2))
 
     @cached_property
     def _tree(self):
         lo = np.array(self.box[:2])
-        return cKDTree(self._to_tree_frame(self.vertices),
-                       boxsize=np.array(self.period) if any(self.periodic) else None), lo
+        return cKDTree(
+            self._to_tree_frame(self.vertices),
+            boxsize=np.array(self.period) if any(self.periodic) else None,
+        ), lo
 
     def _to_tree_frame(self, x):
         x = np.asarray(x, float) - np.array(self.box[:2])
@@ -126,6 +126,9 @@ class Mesh:
 
     def __repr__(self):
         mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
-            self.periodic, f"periodic={self.periodic}")
-        return (f"<Mesh m={len(self.vertices)} triangles={len(self.triangles)} k={self.k} "
-                f"tau={self.tau:g} {mode} box={self.box}>")
+            self.periodic, f"periodic={self.periodic}"
+        )
+        return (
+            f"<Mesh m={len(self.vertices)} triangles={len(self.triangles)} k={self.k} "
+            f"tau={self.tau:g} {mode} box={self.box}>"
+        )

@@ -75,7 +75,9 @@ def check_box(box):
     try:
         vals = [float(b) for b in box]
     except (TypeError, ValueError):
-        raise InputError(f"box must be four numbers (xmin, ymin, xmax, ymax), got {box!r}") from None
+        raise InputError(
+            f"box must be four numbers (xmin, ymin, xmax, ymax), got {box!r}"
+        ) from None
     if len(vals) != 4 or not np.all(np.isfinite(vals)):
         raise InputError(f"box must be four finite numbers (xmin, ymin, xmax, ymax), got {box!r}")
     xmin, ymin, xmax, ymax = vals

@@ -28,11 +28,17 @@ def run(args):
     ratio = mesh.d_m2(probes) / dpk
     print("knnrefine demo: tryptophan side-chain torsions (chi1, chi2), Top8000, CC BY 4.0")
     print(f"  input      n = {len(points)} points on the 360 x 360 degree torus")
-    print(f"  parameters k = {mesh.k}, tau = {mesh.tau:g}  (Theorem 6: alpha = {mesh.alpha:.4f}, "
-          f"beta = {mesh.beta:.2f})")
-    print(f"  mesh       m = {len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles "
-          f"({moves['break_circumball']} circumball breaks, {moves['break_cell']} cell breaks, "
-          f"{moves['clean']} cleans) in {seconds:.2f} s")
-    print(f"  achieved   d_M2 / d_Pk in [{ratio.min():.3f}, {ratio.max():.3f}] over "
-          f"{len(probes)} probes")
+    print(
+        f"  parameters k = {mesh.k}, tau = {mesh.tau:g}  (Theorem 6: alpha = {mesh.alpha:.4f}, "
+        f"beta = {mesh.beta:.2f})"
+    )
+    print(
+        f"  mesh       m = {len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles "
+        f"({moves['break_circumball']} circumball breaks, {moves['break_cell']} cell breaks, "
+        f"{moves['clean']} cleans) in {seconds:.2f} s"
+    )
+    print(
+        f"  achieved   d_M2 / d_Pk in [{ratio.min():.3f}, {ratio.max():.3f}] over "
+        f"{len(probes)} probes"
+    )
     return 0

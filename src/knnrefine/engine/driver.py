@@ -10,11 +10,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import EngineError
 from . import refine as R
-from .geometry import Q, snap
+from .geometry import snap
 from .index import STACK_SIZE, build_index, count_in_disk
 from .queue import Q_SIZE, Q_USED, new_queue
-from ..errors import EngineError
 from .triangulation import C_NT, C_NV, MAX_CAVITY, P_LX, P_LY, set_all_circumcircles
 
 MAX_DEGREE = 4096  # scratch for a vertex's neighbours; a well-spaced mesh has degree < 20
@@ -71,8 +71,12 @@ def initial_grid(lx, ly):
     tv = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
     to = np.concatenate(
         [
-            np.stack([np.stack([zero, zero], 1), np.stack([wx, zero], 1), np.stack([wx, wy], 1)], 1),
-            np.stack([np.stack([zero, zero], 1), np.stack([wx, wy], 1), np.stack([zero, wy], 1)], 1),
+            np.stack(
+                [np.stack([zero, zero], 1), np.stack([wx, zero], 1), np.stack([wx, wy], 1)], 1
+            ),
+            np.stack(
+                [np.stack([zero, zero], 1), np.stack([wx, wy], 1), np.stack([zero, wy], 1)], 1
+            ),
         ]
     ).astype(np.int8)
     # neighbours: match each directed edge (a -> b, offset of b relative to a) with its reverse
@@ -86,8 +90,10 @@ def initial_grid(lx, ly):
     tn = np.empty((nt, 3), np.int32)
     for (a, b, d), (t, c) in edges.items():
         tn[t, c] = edges[(b, a, (-d[0], -d[1]))][0]
-    spacing = min(float(np.min(np.diff(np.append(gx, gx[0] + lx)))),
-                  float(np.min(np.diff(np.append(gy, gy[0] + ly)))))
+    spacing = min(
+        float(np.min(np.diff(np.append(gx, gx[0] + lx)))),
+        float(np.min(np.diff(np.append(gy, gy[0] + ly)))),
+    )
     return vxy, tv.astype(np.int32), to, tn, spacing
 
 
@@ -136,8 +142,12 @@ class Refinement:
         self.cav_s = np.zeros((MAX_CAVITY + 2, 2), np.int64)
         self.bnd = np.zeros((MAX_CAVITY + 2, 4), np.int32)
         self.bnd_o = np.zeros((MAX_CAVITY + 2, 4), np.int64)
-        self.work = (np.zeros(MAX_DEGREE), np.zeros(MAX_DEGREE), np.zeros(MAX_DEGREE),
-                     np.zeros(STACK_SIZE, np.int64))
+        self.work = (
+            np.zeros(MAX_DEGREE),
+            np.zeros(MAX_DEGREE),
+            np.zeros(MAX_DEGREE),
+            np.zeros(STACK_SIZE, np.int64),
+        )
         self.cnt = np.zeros(R.N_COUNTERS, np.int64)
         self.cnt[C_NV] = m0
         self.cnt[C_NT] = tv.shape[0]
@@ -157,9 +167,12 @@ class Refinement:
         # Theorem 6 assumes d_{P,k}(u) <= (K - 1) lambda_u at the initial vertices (Lemmas 1-2,
         # K = 2 tau / (tau - 2), lambda_u their spacing); count where that fails
         reach = (2.0 * tau / (tau - 2.0) - 1.0) * self.spacing
-        self.m0_violations = int(sum(
-            count_in_disk(self.index, x, y, reach * reach, k, lx, ly, self.work[3]) < k
-            for x, y in vxy))
+        self.m0_violations = int(
+            sum(
+                count_in_disk(self.index, x, y, reach * reach, k, lx, ly, self.work[3]) < k
+                for x, y in vxy
+            )
+        )
         R.queue_all(tri, ver, tuple(self.queues), self.work, self.cnt, self.prm)
 
     # -- tuples handed to the kernels (rebuilt after growth) --
@@ -198,8 +211,17 @@ class Refinement:
         steps = 2000
         while True:
             t1 = time.perf_counter()
-            status = R.refine_steps(self._tri(), self._ver(), tuple(self.queues), self._scr(),
-                                    self.work, self.cnt, self.prm, self.index, steps)
+            status = R.refine_steps(
+                self._tri(),
+                self._ver(),
+                tuple(self.queues),
+                self._scr(),
+                self.work,
+                self.cnt,
+                self.prm,
+                self.index,
+                steps,
+            )
             dt = time.perf_counter() - t1
             # aim at ~50 ms per call: progress stays live and Ctrl-C is answered promptly
             steps = int(min(max(steps * 0.05 / max(dt, 1e-4), 100), 200000))
@@ -229,10 +251,15 @@ class Refinement:
         counters["cell_tests"] = int(self.cnt[R.C_CELL_TESTS])
         counters["failed_insertions"] = int(self.cnt[R.C_FAILED])
         return RunResult(
-            vxy=self.vxy[:nv].copy(), kind=self.vkind[:nv].copy(), tv=self.tv[:nt].copy(),
-            tn=self.tn[:nt].copy(), to=self.to[:nt].copy(), tcc=self.tcc[:nt].copy(),
-            tr2=self.tr2[:nt].copy(), tstate=self.tstate[:nt].copy(),
-            vcell=self.vcell[:nv].copy(), vflag=self.vflag[:nv].copy(), counters=counters,
+            vxy=self.vxy[:nv].copy(),
+            kind=self.vkind[:nv].copy(),
+            tv=self.tv[:nt].copy(),
+            tn=self.tn[:nt].copy(),
+            to=self.to[:nt].copy(),
+            tcc=self.tcc[:nt].copy(),
+            tr2=self.tr2[:nt].copy(),
+            tstate=self.tstate[:nt].copy(),
+            vcell=self.vcell[:nv].copy(),
+            vflag=self.vflag[:nv].copy(),
+            counters=counters,
         )
-
-

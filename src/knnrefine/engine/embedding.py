@@ -123,8 +123,11 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
         y2 = vxy[tv[t, 2], 1] + to[t, 2, 1] * L[1]
         xlo, xhi = min(x0, x1, x2), max(x0, x1, x2)
         ylo, yhi = min(y0, y1, y2), max(y0, y1, y2)
-        e2 = max((x1 - x0) ** 2 + (y1 - y0) ** 2, (x2 - x1) ** 2 + (y2 - y1) ** 2,
-                 (x0 - x2) ** 2 + (y0 - y2) ** 2)
+        e2 = max(
+            (x1 - x0) ** 2 + (y1 - y0) ** 2,
+            (x2 - x1) ** 2 + (y2 - y1) ** 2,
+            (x0 - x2) ** 2 + (y0 - y2) ** 2,
+        )
         for sx in range(sx_lo, sx_hi + 1):
             for sy in range(sy_lo, sy_hi + 1):
                 ok = True

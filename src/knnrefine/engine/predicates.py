@@ -7,8 +7,9 @@ from error-free transformations) and returns the sign of the exact value.
 
 Refinement terminates only if in-circle decisions are consistent, so these kernels must never
 be compiled with ``fastmath``: reassociation or FMA contraction breaks the error-free
-transformations below. The inputs may be any finite doubles of moderate magnitude
-(|x| < 1e150, so that no product overflows); the engine feeds coordinates in [-1, 3).
+transformations below. Exactness holds while no intermediate product overflows or
+underflows: coordinates that are zero or of magnitude in [1e-50, 1e50]. The engine's are
+multiples of 2^-50 in [-1, 3).
 """
 
 import numpy as np
@@ -127,11 +128,13 @@ def expansion_product(e, elen, f, flen, h):
     for j in range(flen):
         m = expansion_scale(e, elen, f[j], part)
         if n == 0:
-            h[:m] = part[:m]
+            for i in range(m):
+                h[i] = part[i]
             n = m
         else:
             n = expansion_sum(h, n, part, m, acc)
-            h[:n] = acc[:n]
+            for i in range(n):
+                h[i] = acc[i]
     return n
 
 

@@ -114,32 +114,11 @@ def _touch(v, tri, ver, queues, work, cnt, prm):
 
 
 @njit(cache=True)
-def _insert_circumcenter(t, kind, tri, ver, queues, scr, work, cnt, prm):
-    """Insert cc(t) (snapped to the grid) and queue everything the insertion changed."""
-    tcc = tri[3]
-    tr2 = tri[4]
-    tstamp = tri[5]
-    v = insert_vertex(snap(tcc[t, 0]), snap(tcc[t, 1]), t, kind, tri, ver, scr, cnt, prm)
-    if v < 0:
-        return v
-    cav = scr[3]
-    bnd = scr[5]
-    nb = cnt[C_LAST_NB]
-    for e in range(nb):
-        s = cav[e]
-        queue_push(queues[0], cnt, C_Q_TRI, size_class(tr2[s]), s, tstamp[s])
-    for e in range(nb):
-        _touch(bnd[e, 0], tri, ver, queues, work, cnt, prm)
-    _touch(v, tri, ver, queues, work, cnt, prm)
-    cnt[C_MOVES + kind] += 1
-    return v
+def clean(tri, ver, queues, work, cnt, prm):
+    """Choose the next Clean move: the largest cell whose aspect exceeds tau.
 
-
-@njit(cache=True)
-def clean(tri, ver, queues, scr, work, cnt, prm):
-    """One Clean move: insert the far corner of the largest cell with aspect > tau.
-
-    Returns 1 after an insertion, 0 when no vertex needs cleaning, a negative code on error."""
+    Returns (t, v): insert the circumcenter of triangle t, the far corner of vertex v's cell;
+    (-1, -1) when no vertex needs cleaning."""
     vflag = ver[4]
     while cnt[C_Q_CLEAN + Q_SIZE] > 0:
         cls, v, _ = queue_pop(queues[2], cnt, C_Q_CLEAN)
@@ -155,24 +134,18 @@ def clean(tri, ver, queues, scr, work, cnt, prm):
         if big2 < prm[P_CLEAN_FLOOR2]:
             vflag[v] = vflag[v] | CLEAN_FLOOR
             continue
-        r = _insert_circumcenter(far, CLEAN, tri, ver, queues, scr, work, cnt, prm)
-        if r == INSERT_NOT_IN_SEED:
-            vflag[v] = vflag[v] | CLEAN_FAILED
-            cnt[C_FAILED] += 1
-            continue
-        if r < 0:
-            return r
-        return 1
-    return 0
+        return far, v
+    return -1, -1
 
 
 @njit(cache=True)
-def break_(tri, ver, queues, scr, work, cnt, prm, index):
-    """One Break move: split the largest circumball holding >= k points, else the largest
+def break_(tri, ver, queues, work, cnt, prm, index):
+    """Choose the next Break move: the largest circumball holding >= k points, else the largest
     Voronoi cell holding >= k points.
 
-    Returns 1 after an insertion, 0 when every circumball and cell holds < k points (or is at
-    the floor), a negative code on error."""
+    Returns (t, kind, element): insert the circumcenter of triangle t; element is the triangle
+    (BREAK_BALL) or the vertex (BREAK_CELL) being split. (-1, 0, -1) when every circumball and
+    cell holds < k points or is at the floor; t < -1 on error."""
     tcc = tri[3]
     tr2 = tri[4]
     tstamp = tri[5]
@@ -196,14 +169,7 @@ def break_(tri, ver, queues, scr, work, cnt, prm, index):
         if tr2[t] < prm[P_FLOOR2]:
             tstate[t] = FLOOR
             continue
-        r = _insert_circumcenter(t, BREAK_BALL, tri, ver, queues, scr, work, cnt, prm)
-        if r == INSERT_NOT_IN_SEED:
-            tstate[t] = FAILED
-            cnt[C_FAILED] += 1
-            continue
-        if r < 0:
-            return r
-        return 1
+        return t, BREAK_BALL, t
     while cnt[C_Q_CELL + Q_SIZE] > 0:
         cls, v, _ = queue_pop(queues[1], cnt, C_Q_CELL)
         vflag[v] = vflag[v] & ~IN_CELL_QUEUE
@@ -211,7 +177,7 @@ def break_(tri, ver, queues, scr, work, cnt, prm, index):
             continue
         big2, far, d2, deg = vertex_star(v, tri, ver, prm, hx, hy)
         if deg < 0:
-            return -100
+            return -100, 0, -1
         now = size_class(big2)
         if now > cls:
             queue_push(queues[1], cnt, C_Q_CELL, now, v, 0)
@@ -220,22 +186,17 @@ def break_(tri, ver, queues, scr, work, cnt, prm, index):
         for j in range(deg):
             hc[j] = 0.5 * (hx[j] * hx[j] + hy[j] * hy[j]) * inflate
         cnt[C_CELL_TESTS] += 1
-        c = count_in_cell(index, vxy[v, 0], vxy[v, 1], hx, hy, hc, deg, big2 * inflate, k, lx, ly, stack)
+        c = count_in_cell(
+            index, vxy[v, 0], vxy[v, 1], hx, hy, hc, deg, big2 * inflate, k, lx, ly, stack
+        )
         if c < k:
             vcell[v] = GOOD
             continue
         if big2 < prm[P_FLOOR2]:
             vcell[v] = FLOOR
             continue
-        r = _insert_circumcenter(far, BREAK_CELL, tri, ver, queues, scr, work, cnt, prm)
-        if r == INSERT_NOT_IN_SEED:
-            vcell[v] = FAILED
-            cnt[C_FAILED] += 1
-            continue
-        if r < 0:
-            return r
-        return 1
-    return 0
+        return far, BREAK_CELL, v
+    return -1, 0, -1
 
 
 @njit(cache=True)
@@ -266,19 +227,50 @@ def needs_growth(tri, ver, queues, cnt):
 @njit(cache=True)
 def refine_steps(tri, ver, queues, scr, work, cnt, prm, index, max_steps):
     """Run Algorithm 1 for at most max_steps insertions; returns a STATUS_* code."""
+    tcc = tri[3]
+    tr2 = tri[4]
+    tstamp = tri[5]
+    tstate = tri[6]
+    vcell = ver[3]
+    vflag = ver[4]
+    cav = scr[3]
+    bnd = scr[5]
     steps = 0
     while steps < max_steps:
         if cnt[C_NV] >= cnt[C_MAX_VERTICES]:
             return STATUS_MAX_VERTICES
         if needs_growth(tri, ver, queues, cnt):
             return STATUS_GROW
-        r = clean(tri, ver, queues, scr, work, cnt, prm)
-        if r == 0:
-            r = break_(tri, ver, queues, scr, work, cnt, prm, index)
-            if r == 0:
+        # Clean first: after every Break, clean until every aspect is <= tau
+        t, elem = clean(tri, ver, queues, work, cnt, prm)
+        kind = CLEAN
+        if t == -1:
+            t, kind, elem = break_(tri, ver, queues, work, cnt, prm, index)
+            if t == -1:
                 return STATUS_DONE
-        if r < 0:
-            cnt[C_ERROR] = r
+            if t < -1:
+                cnt[C_ERROR] = t
+                return STATUS_ERROR
+        v = insert_vertex(snap(tcc[t, 0]), snap(tcc[t, 1]), t, kind, tri, ver, scr, cnt, prm)
+        if v == INSERT_NOT_IN_SEED:  # the split point rounds onto an existing vertex
+            cnt[C_FAILED] += 1
+            if kind == CLEAN:
+                vflag[elem] = vflag[elem] | CLEAN_FAILED
+            elif kind == BREAK_BALL:
+                tstate[elem] = FAILED
+            else:
+                vcell[elem] = FAILED
+            continue
+        if v < 0:
+            cnt[C_ERROR] = v
             return STATUS_ERROR
+        # queue what the insertion changed: the new triangles, the vertices around the cavity
+        nb = cnt[C_LAST_NB]
+        for e in range(nb):
+            s = cav[e]
+            queue_push(queues[0], cnt, C_Q_TRI, size_class(tr2[s]), s, tstamp[s])
+        for e in range(nb + 1):
+            _touch(bnd[e, 0] if e < nb else v, tri, ver, queues, work, cnt, prm)
+        cnt[C_MOVES + kind] += 1
         steps += 1
     return STATUS_STEPS

@@ -236,12 +236,13 @@ def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
 
 @njit(cache=True)
 def vertex_star(v, tri, ver, prm, hx, hy):
-    """Walk the triangles around vertex v.
+    """Walk the triangles around vertex v: everything aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) needs.
 
     Returns (R2, far, d2, deg): the squared outradius R(v)^2 (largest circumradius around v),
-    the triangle whose circumcenter is the far corner of v's Voronoi cell, the squared length of
-    the shortest edge at v (d_{M,2}(v)^2) and the degree. The neighbours, relative to v, go to
-    hx[:deg], hy[:deg] when hx is long enough; deg is -1 if it is not.
+    the triangle whose circumcenter is farCorner(Vor(v)), the squared length of the shortest
+    edge at v (d_{M,2}(v)^2, the nearest other vertex being a Delaunay neighbour) and the
+    degree. The neighbours, relative to v, go to hx[:deg], hy[:deg] when hx is long enough;
+    deg is -1 if it is not.
     """
     tv, tn, to, tcc, tr2, tstamp, tstate = tri
     vxy = ver[0]
@@ -281,24 +282,3 @@ def vertex_star(v, tri, ver, prm, hx, hy):
     if deg > cap:
         deg = -1
     return big2, far, d2, deg
-
-
-@njit(cache=True)
-def far_corner(v, tri, ver, prm, hx, hy):
-    """The far corner of v's Voronoi cell, in the frame where v sits at ``vxy[v]``."""
-    tv, tn, to, tcc, tr2, tstamp, tstate = tri
-    vxy = ver[0]
-    big2, far, d2, deg = vertex_star(v, tri, ver, prm, hx, hy)
-    i = 0
-    if tv[far, 1] == v:
-        i = 1
-    elif tv[far, 2] == v:
-        i = 2
-    return tcc[far, 0] - to[far, i, 0] * prm[P_LX], tcc[far, 1] - to[far, i, 1] * prm[P_LY]
-
-
-@njit(cache=True)
-def aspect(v, tri, ver, prm, hx, hy):
-    """aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) (Definition 3)."""
-    big2, far, d2, deg = vertex_star(v, tri, ver, prm, hx, hy)
-    return 2.0 * np.sqrt(big2 / d2)
