@@ -21,7 +21,7 @@ def assert_count(got, lo, hi, k):
 
 
 def make(points):
-    return build_index(np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1]))
+    return build_index(np.array(points, dtype=np.float64).reshape(-1, 2))
 
 
 def point_sets(rng):
@@ -109,12 +109,16 @@ def test_disk_property(pts, cx, cy, r):
 def test_tree_is_a_partition():
     rng = np.random.default_rng(2)
     pts = rng.random((5000, 2))
-    xs, ys, lo, hi, child, bx0, by0, bx1, by1 = make(pts)
-    assert sorted(zip(xs, ys, strict=True)) == sorted(map(tuple, pts))
-    for node in range(len(lo)):
-        sl = slice(lo[node], hi[node])
-        assert np.all(xs[sl] >= bx0[node]) and np.all(xs[sl] <= bx1[node])
-        assert np.all(ys[sl] >= by0[node]) and np.all(ys[sl] <= by1[node])
-        c = child[node]
+    sorted_pts, box, node, split = make(pts)
+    assert sorted(map(tuple, sorted_pts)) == sorted(map(tuple, pts))
+    for t in range(len(node)):
+        lo, hi, c, axis = node[t]
+        inside = sorted_pts[lo:hi]
+        assert np.all(inside >= box[t, :2]) and np.all(inside <= box[t, 2:])
         if c >= 0:
-            assert lo[c] == lo[node] and hi[c] == lo[c + 1] and hi[c + 1] == hi[node]
+            assert node[c, 0] == lo and node[c, 1] == node[c + 1, 0] and node[c + 1, 1] == hi
+            left = sorted_pts[node[c, 0] : node[c, 1], axis]
+            right = sorted_pts[node[c + 1, 0] : node[c + 1, 1], axis]
+            assert left.max() <= split[t] <= right.min()
+        else:
+            assert hi - lo <= 12 or np.all(inside == inside[0])

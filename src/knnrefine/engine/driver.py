@@ -46,15 +46,27 @@ def grid_shape(lx, ly):
     return max(4, int(np.ceil(lx / h - 1e-9))), max(4, int(np.ceil(ly / h - 1e-9)))
 
 
+def _jittered_positions(n, length, phase):
+    """n positions around a circle of the given length with gaps (1 +- 0.15) * length / n, in
+    a fixed low-discrepancy pattern, snapped to the grid."""
+    gaps = 1.0 + 0.3 * (((np.arange(n) + phase) * 0.6180339887498949) % 1.0 - 0.5)
+    edges = np.concatenate([[0.0], np.cumsum(gaps)]) * (length / gaps.sum())
+    return np.array([snap(x) for x in 0.5 * (edges[:-1] + edges[1:])])
+
+
 def initial_grid(lx, ly):
     """M0: a tensor grid on the torus, triangulated with one diagonal per cell.
 
     Its cells are axis-aligned rectangles, so the four corners of each are exactly cocircular
-    and the triangulation is exactly Delaunay even after snapping to the grid.
+    and the triangulation is exactly Delaunay even after snapping to the grid. The column
+    widths and row heights vary by up to 15%: with a perfectly regular grid the circumcenters of
+    its right triangles are the cell centres, which form a finer square lattice, and so on at
+    every level, so uniform regions would stay exactly cocircular and every in-circle test
+    would need the slow exact fallback.
     Returns (vxy, tv, to, tn, spacing)."""
     nx, ny = grid_shape(lx, ly)
-    gx = np.array([snap((i + 0.5) * lx / nx) for i in range(nx)])
-    gy = np.array([snap((j + 0.5) * ly / ny) for j in range(ny)])
+    gx = _jittered_positions(nx, lx, 0.0)
+    gy = _jittered_positions(ny, ly, 0.5)
     vxy = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
     i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
     i = i.ravel()
@@ -107,13 +119,13 @@ class Refinement:
     """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
 
     def __init__(self, points, k, lx, ly, tau, min_size, max_vertices):
+        """points: (n, 2) internal coordinates in the torus; the array is permuted in place by
+        the index and kept, so pass one the caller does not need."""
         self.lx = lx
         self.ly = ly
         self.n = int(points.shape[0])
         t0 = time.perf_counter()
-        px = np.ascontiguousarray(points[:, 0], dtype=np.float64)
-        py = np.ascontiguousarray(points[:, 1], dtype=np.float64)
-        self.index = build_index(px, py)
+        self.index = build_index(np.ascontiguousarray(points, dtype=np.float64))
         self.time_index = time.perf_counter() - t0
 
         vxy, tv, to, tn, self.spacing = initial_grid(lx, ly)

@@ -59,8 +59,9 @@ class Embedding:
         return tuple(p / self.scale for p in self.period_internal)
 
     def to_internal(self, x):
-        u = (np.asarray(x, float) - self.origin) * self.scale
-        return np.stack([wrap(u[:, a], self.period_internal[a]) for a in range(2)], axis=1)
+        """Internal coordinates of input points (n, 2), wrapped into the torus (a new array)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        return _to_internal(x, self.origin, self.scale, np.array(self.period_internal))
 
     def to_input(self, u):
         u = np.asarray(u, float)
@@ -75,6 +76,17 @@ class Embedding:
         lo = (np.array(self.box[:2]) - self.origin) * self.scale
         hi = (np.array(self.box[2:]) - self.origin) * self.scale
         return lo, hi
+
+
+@njit(cache=True)
+def _to_internal(x, origin, scale, period):
+    out = np.empty_like(x)
+    for i in range(x.shape[0]):
+        for a in range(2):
+            u = (x[i, a] - origin[a]) * scale
+            u -= np.floor(u / period[a]) * period[a]
+            out[i, a] = u if u < period[a] else 0.0  # (-1e-17) % 1.0 rounds to 1.0
+    return out
 
 
 def unfold(vxy, tv, to, emb):

@@ -8,15 +8,18 @@ them, both of the form "does this region hold at least k points of P":
   radius R(v) about v (``count_in_cell``).
 
 The tree is built once by median splits along the wider side of each node's tight bounding
-box; the points are permuted in place so that every node owns a contiguous range of the
-coordinate arrays and its count is ``hi - lo``. A query adds whole nodes that lie inside the
-region, skips nodes that miss it, tests the points of boundary leaves one by one, and stops as
-soon as the count reaches k. On the torus a query is repeated for each periodic copy of the
-region that meets the fundamental domain (regions are smaller than half a period).
+box; the points are permuted in place so that every node owns a contiguous range of them and
+its count is ``hi - lo``. A query adds whole nodes that lie inside the region, skips nodes
+that miss it, tests the points of boundary leaves one by one, and stops as soon as the count
+reaches k. On the torus a query is repeated for each periodic copy of the region that meets
+the fundamental domain (regions are smaller than half a period).
 
-Layout (all flat arrays; node i's children are ``child[i]`` and ``child[i] + 1``, -1 at a leaf):
-``xs, ys`` (n,) float64 permuted points; ``lo, hi, child`` (nodes,) int64;
-``bx0, by0, bx1, by1`` (nodes,) float64 tight bounding boxes.
+Layout, chosen for the cache (a query visits both children of a node, whose boxes share one
+64-byte line): ``pts`` (n, 2) float64, permuted; ``box`` (nodes, 4) float64 tight bounding
+boxes (x0, y0, x1, y1); ``node`` (nodes, 4) int64: lo, hi, the first child (the second is
+next to it; -1 at a leaf) and the split axis; ``split`` (nodes,) float64: the split value
+(points of the first child are <= it, of the second >= it, along the axis). A query first
+descends while its region lies strictly on one side of the split, then counts from there.
 """
 
 import numpy as np
@@ -27,16 +30,15 @@ STACK_SIZE = 128  # > 2 * tree depth for any n that fits in memory
 
 
 @njit(cache=True)
-def _select(a, b, lo, hi, kth):
-    """Partially sort a[lo:hi] (and b alongside) so that a[kth] is in its sorted place."""
+def _select(pts, axis, lo, hi, kth):
+    """Partially sort the rows pts[lo:hi] by coordinate ``axis`` so that row kth is in place."""
     left = lo
     right = hi - 1
     while right > left:
         mid = (left + right) >> 1
-        # median of three as pivot
-        x0 = a[left]
-        x1 = a[mid]
-        x2 = a[right]
+        x0 = pts[left, axis]  # median of three as pivot
+        x1 = pts[mid, axis]
+        x2 = pts[right, axis]
         if x0 > x1:
             x0, x1 = x1, x0
         if x1 > x2:
@@ -47,13 +49,13 @@ def _select(a, b, lo, hi, kth):
         i = left
         j = right
         while i <= j:
-            while a[i] < pivot:
+            while pts[i, axis] < pivot:
                 i += 1
-            while a[j] > pivot:
+            while pts[j, axis] > pivot:
                 j -= 1
             if i <= j:
-                a[i], a[j] = a[j], a[i]
-                b[i], b[j] = b[j], b[i]
+                for a in range(2):
+                    pts[i, a], pts[j, a] = pts[j, a], pts[i, a]
                 i += 1
                 j -= 1
         if kth <= j:
@@ -65,108 +67,122 @@ def _select(a, b, lo, hi, kth):
 
 
 @njit(cache=True)
-def build_index(px, py):
-    """Build the kd-tree over (px, py); returns the tuple of index arrays described above."""
-    n = px.shape[0]
-    xs = px.copy()
-    ys = py.copy()
-    cap = 4 * (n // LEAF_SIZE) + 8
-    lo = np.empty(cap, np.int64)
-    hi = np.empty(cap, np.int64)
-    child = np.empty(cap, np.int64)
-    bx0 = np.empty(cap)
-    by0 = np.empty(cap)
-    bx1 = np.empty(cap)
-    by1 = np.empty(cap)
-    lo[0] = 0
-    hi[0] = n
+def _node_bound(n):
+    """Nodes of the tree over n points (an upper bound when many points coincide)."""
+    count = 0
+    sizes = np.empty(STACK_SIZE, np.int64)
+    sizes[0] = n
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        m = sizes[sp]
+        count += 1
+        if m > LEAF_SIZE:
+            sizes[sp] = m >> 1
+            sizes[sp + 1] = m - (m >> 1)
+            sp += 2
+    return count
+
+
+@njit(cache=True)
+def build_index(pts):
+    """Build the kd-tree over the (n, 2) array pts, which it permutes in place and keeps."""
+    n = pts.shape[0]
+    cap = _node_bound(n)
+    box = np.empty((cap, 4))
+    node = np.empty((cap, 4), np.int64)
+    split = np.zeros(cap)
+    node[0, 0] = 0
+    node[0, 1] = n
     nnodes = 1
     stack = np.empty(STACK_SIZE, np.int64)
     stack[0] = 0
     sp = 1
     while sp > 0:
         sp -= 1
-        node = stack[sp]
-        a = lo[node]
-        b = hi[node]
+        t = stack[sp]
+        a = node[t, 0]
+        b = node[t, 1]
         x0 = np.inf
         y0 = np.inf
         x1 = -np.inf
         y1 = -np.inf
         for i in range(a, b):
-            x = xs[i]
-            y = ys[i]
-            if x < x0:
-                x0 = x
-            if x > x1:
-                x1 = x
-            if y < y0:
-                y0 = y
-            if y > y1:
-                y1 = y
-        bx0[node] = x0
-        by0[node] = y0
-        bx1[node] = x1
-        by1[node] = y1
+            x = pts[i, 0]
+            y = pts[i, 1]
+            x0 = min(x0, x)
+            x1 = max(x1, x)
+            y0 = min(y0, y)
+            y1 = max(y1, y)
+        box[t, 0] = x0
+        box[t, 1] = y0
+        box[t, 2] = x1
+        box[t, 3] = y1
         if b - a <= LEAF_SIZE or (x1 == x0 and y1 == y0):
-            child[node] = -1
+            node[t, 2] = -1
             continue
         mid = (a + b) >> 1
-        if x1 - x0 >= y1 - y0:
-            _select(xs, ys, a, b, mid)
-        else:
-            _select(ys, xs, a, b, mid)
+        axis = 0 if x1 - x0 >= y1 - y0 else 1
+        _select(pts, axis, a, b, mid)
         c = nnodes
         nnodes += 2
-        child[node] = c
-        lo[c] = a
-        hi[c] = mid
-        lo[c + 1] = mid
-        hi[c + 1] = b
+        node[t, 2] = c
+        node[t, 3] = axis
+        split[t] = pts[mid, axis]
+        node[c, 0] = a
+        node[c, 1] = mid
+        node[c + 1, 0] = mid
+        node[c + 1, 1] = b
         stack[sp] = c
         stack[sp + 1] = c + 1
         sp += 2
-    return (
-        xs,
-        ys,
-        lo[:nnodes].copy(),
-        hi[:nnodes].copy(),
-        child[:nnodes].copy(),
-        bx0[:nnodes].copy(),
-        by0[:nnodes].copy(),
-        bx1[:nnodes].copy(),
-        by1[:nnodes].copy(),
-    )
+    return pts, box[:nnodes], node[:nnodes], split[:nnodes]
+
+
+@njit(cache=True)
+def _start(node, split, cx, cy, r):
+    """The deepest node whose split region strictly contains the disk (c, r): points outside
+    it cannot lie in the disk."""
+    t = 0
+    while node[t, 2] >= 0:
+        c = cx if node[t, 3] == 0 else cy
+        if c + r < split[t]:
+            t = node[t, 2]
+        elif c - r > split[t]:
+            t = node[t, 2] + 1
+        else:
+            break
+    return t
 
 
 @njit(cache=True)
 def _count_disk(index, cx, cy, r2, k, count, stack):
-    xs, ys, lo, hi, child, bx0, by0, bx1, by1 = index
-    if lo.shape[0] == 0 or hi[0] == 0:
+    pts, box, node, split = index
+    if node[0, 1] == 0:
         return count
-    stack[0] = 0
+    stack[0] = _start(node, split, cx, cy, np.sqrt(r2))
     sp = 1
     while sp > 0:
         sp -= 1
-        node = stack[sp]
+        t = stack[sp]
         # nearest point of the box to the centre
-        dx = max(bx0[node] - cx, 0.0, cx - bx1[node])
-        dy = max(by0[node] - cy, 0.0, cy - by1[node])
+        dx = max(box[t, 0] - cx, 0.0, cx - box[t, 2])
+        dy = max(box[t, 1] - cy, 0.0, cy - box[t, 3])
         if dx * dx + dy * dy > r2:
             continue
         # farthest corner
-        fx = max(cx - bx0[node], bx1[node] - cx)
-        fy = max(cy - by0[node], by1[node] - cy)
+        fx = max(cx - box[t, 0], box[t, 2] - cx)
+        fy = max(cy - box[t, 1], box[t, 3] - cy)
         if fx * fx + fy * fy <= r2:
-            count += hi[node] - lo[node]
+            count += node[t, 1] - node[t, 0]
             if count >= k:
                 return count
             continue
-        c = child[node]
+        c = node[t, 2]
         if c < 0:
-            for i in range(lo[node], hi[node]):
-                ex = xs[i] - cx
-                ey = ys[i] - cy
+            for i in range(node[t, 0], node[t, 1]):
+                ex = pts[i, 0] - cx
+                ey = pts[i, 1] - cy
                 if ex * ex + ey * ey <= r2:
                     count += 1
                     if count >= k:
@@ -203,18 +219,18 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
 
 @njit(cache=True)
 def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
-    xs, ys, lo, hi, child, bx0, by0, bx1, by1 = index
-    if lo.shape[0] == 0 or hi[0] == 0:
+    pts, box, node, split = index
+    if node[0, 1] == 0:
         return count
-    stack[0] = 0
+    stack[0] = _start(node, split, vx, vy, np.sqrt(r2))
     sp = 1
     while sp > 0:
         sp -= 1
-        node = stack[sp]
-        x0 = bx0[node] - vx
-        x1 = bx1[node] - vx
-        y0 = by0[node] - vy
-        y1 = by1[node] - vy
+        t = stack[sp]
+        x0 = box[t, 0] - vx
+        x1 = box[t, 2] - vx
+        y0 = box[t, 1] - vy
+        y1 = box[t, 3] - vy
         dx = max(x0, 0.0, -x1)
         dy = max(y0, 0.0, -y1)
         if dx * dx + dy * dy > r2:
@@ -237,15 +253,15 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
         if outside:
             continue
         if inside:
-            count += hi[node] - lo[node]
+            count += node[t, 1] - node[t, 0]
             if count >= k:
                 return count
             continue
-        c = child[node]
+        c = node[t, 2]
         if c < 0:
-            for i in range(lo[node], hi[node]):
-                ex = xs[i] - vx
-                ey = ys[i] - vy
+            for i in range(node[t, 0], node[t, 1]):
+                ex = pts[i, 0] - vx
+                ey = pts[i, 1] - vy
                 ok = ex * ex + ey * ey <= r2
                 for j in range(nh):
                     if not ok:

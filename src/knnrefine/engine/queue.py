@@ -50,7 +50,7 @@ def queue_init(cnt, base):
     cnt[base + Q_USED] = 0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def queue_push(q, cnt, base, cls, ident, aux):
     head, ent_id, ent_aux, ent_next = q
     e = cnt[base + Q_FREE]
@@ -68,7 +68,7 @@ def queue_push(q, cnt, base, cls, ident, aux):
     cnt[base + Q_SIZE] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def queue_pop(q, cnt, base):
     """Remove an entry of the largest class; returns (class, id, aux). Must not be empty."""
     head, ent_id, ent_aux, ent_next = q

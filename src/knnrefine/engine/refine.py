@@ -96,7 +96,7 @@ STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code
 HEADROOM = 1100  # free slots required before an insertion (> MAX_CAVITY + 2)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _touch(v, tri, ver, queues, work, cnt, prm):
     """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean."""
     vcell = ver[3]
@@ -113,7 +113,7 @@ def _touch(v, tri, ver, queues, work, cnt, prm):
         vflag[v] = vflag[v] | IN_CLEAN_QUEUE
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def clean(tri, ver, queues, work, cnt, prm):
     """Choose the next Clean move: the largest cell whose aspect exceeds tau.
 
@@ -138,7 +138,7 @@ def clean(tri, ver, queues, work, cnt, prm):
     return -1, -1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def break_(tri, ver, queues, work, cnt, prm, index):
     """Choose the next Break move: the largest circumball holding >= k points, else the largest
     Voronoi cell holding >= k points.
@@ -183,12 +183,16 @@ def break_(tri, ver, queues, work, cnt, prm, index):
             queue_push(queues[1], cnt, C_Q_CELL, now, v, 0)
             vflag[v] = vflag[v] | IN_CELL_QUEUE
             continue
-        for j in range(deg):
-            hc[j] = 0.5 * (hx[j] * hx[j] + hy[j] * hy[j]) * inflate
         cnt[C_CELL_TESTS] += 1
-        c = count_in_cell(
-            index, vxy[v, 0], vxy[v, 1], hx, hy, hc, deg, big2 * inflate, k, lx, ly, stack
-        )
+        # the cell lies in the disk of radius R(v) about v: when that disk holds < k points,
+        # so does the cell, and the cheaper disk count settles it
+        c = count_in_disk(index, vxy[v, 0], vxy[v, 1], big2 * inflate, k, lx, ly, stack)
+        if c >= k:
+            for j in range(deg):
+                hc[j] = 0.5 * (hx[j] * hx[j] + hy[j] * hy[j]) * inflate
+            c = count_in_cell(
+                index, vxy[v, 0], vxy[v, 1], hx, hy, hc, deg, big2 * inflate, k, lx, ly, stack
+            )
         if c < k:
             vcell[v] = GOOD
             continue
@@ -212,7 +216,7 @@ def queue_all(tri, ver, queues, work, cnt, prm):
         _touch(v, tri, ver, queues, work, cnt, prm)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def needs_growth(tri, ver, queues, cnt):
     """True when an array could overflow during the next insertion."""
     return (

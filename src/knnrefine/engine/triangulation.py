@@ -55,7 +55,7 @@ def corner(tv, to, vxy, t, i, sx, sy, lx, ly):
     return vxy[v, 0] + (to[t, i, 0] + sx) * lx, vxy[v, 1] + (to[t, i, 1] + sy) * ly
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def set_circumcircle(tri, ver, prm, t):
     tv, tn, to, tcc, tr2, tstamp, tstate = tri
     vxy = ver[0]
@@ -76,7 +76,7 @@ def set_all_circumcircles(tri, ver, prm, nt):
         set_circumcircle(tri, ver, prm, t)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def in_circumcircle(tri, ver, prm, t, sx, sy, px, py):
     """Exact sign: +1 if p is strictly inside the circumcircle of t shifted by (sx, sy)."""
     tv = tri[0]
@@ -234,7 +234,7 @@ def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
     return v
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def vertex_star(v, tri, ver, prm, hx, hy):
     """Walk the triangles around vertex v: everything aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) needs.
 
