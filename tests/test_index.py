@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from knnrefine.engine.index import STACK_SIZE, build_index, count_in_cell, count_in_disk
+from knnrefine.engine.index import LEAF_SIZE, STACK_SIZE, build_index, count_in_cell, count_in_disk
 
 
 def periodic_copies(points, lx, ly):
@@ -121,4 +121,4 @@ def test_tree_is_a_partition():
             right = sorted_pts[node[c + 1, 0] : node[c + 1, 1], axis]
             assert left.max() <= split[t] <= right.min()
         else:
-            assert hi - lo <= 12 or np.all(inside == inside[0])
+            assert hi - lo <= LEAF_SIZE or np.all(inside == inside[0])

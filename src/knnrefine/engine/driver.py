@@ -146,7 +146,7 @@ class Refinement:
         self.tr2 = np.zeros(cap_t)
         self.tstamp = np.zeros(cap_t, np.int32)
         self.tstate = np.zeros(cap_t, np.int8)
-        self.tmark = np.zeros(cap_t, np.int64)
+        self.tmark = np.zeros(cap_t, np.int32)
         self.vslot_a = np.zeros(cap_v, np.int32)
         self.vslot_b = np.zeros(cap_v, np.int32)
         self.queues = [new_queue(cap_t), new_queue(cap_v), new_queue(cap_v)]

@@ -25,7 +25,7 @@ descends while its region lies strictly on one side of the split, then counts fr
 import numpy as np
 from numba import njit
 
-LEAF_SIZE = 12
+LEAF_SIZE = 32
 STACK_SIZE = 128  # > 2 * tree depth for any n that fits in memory
 
 
