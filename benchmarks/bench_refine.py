@@ -45,18 +45,11 @@ def make_points(kind, n, seed=0):
     return np.clip(pts, 0.0, 1.0)
 
 
-def peak_rss_mb():
+def _status_mb(field):
+    """A memory figure of this process from /proc/self/status (VmHWM: peak, VmRSS: now)."""
     with open("/proc/self/status") as f:
         for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
-def rss_mb():
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024.0
     return float("nan")
 
@@ -78,7 +71,7 @@ def worker(kind, n, k, tau, repeat, ckdtree_budget):
 
     knnrefine.refine(make_points(kind, 2000, seed=1), min(k, 50), tau)  # warm-up (JIT cache)
     pts = make_points(kind, n)
-    base = rss_mb()
+    base = _status_mb("VmRSS")
     times = []
     peaks = []
     totals = []
@@ -87,7 +80,7 @@ def worker(kind, n, k, tau, repeat, ckdtree_budget):
         t0 = time.perf_counter()
         mesh = knnrefine.refine(pts, k, tau)
         times.append(time.perf_counter() - t0)
-        totals.append(peak_rss_mb() if ok else float("nan"))
+        totals.append(_status_mb("VmHWM") if ok else float("nan"))
         peaks.append(totals[-1] - base)
         stats = mesh.stats
         m = len(mesh.vertices)
