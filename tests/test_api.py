@@ -168,6 +168,15 @@ def test_bad_parameters(points, kw, message):
         knnrefine.refine(points / 4.0, k, **args)
 
 
+def test_elongated_periodic_boxes():
+    rng = np.random.default_rng(8)
+    pts = rng.random((2000, 2)) * [100.0, 1.0]
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 100, 1))
+    assert mesh.stats["moves"]["initial"] == 400 * 4  # spacing a quarter of the short period
+    with pytest.raises(InputError, match="too elongated"):
+        knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1e6, 1))
+
+
 def test_numpy_integer_k_is_fine(points):
     assert len(knnrefine.refine(points, np.int64(5)).vertices) > 0
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from . import validation as V
 from .engine import refine as R
-from .engine.driver import Refinement
+from .engine.driver import Refinement, grid_shape
 from .engine.embedding import Embedding, unfold
 from .errors import BudgetError, InputError
 from .mesh import Mesh, Torus
@@ -89,31 +89,36 @@ def refine(
         raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
 
     emb = Embedding.make(box, per)
+    nx, ny = grid_shape(*emb.period_internal)
+    if nx * ny > max_vertices:
+        raise InputError(
+            f"the box {box} is too elongated: the initial mesh of the torus alone needs "
+            f"{nx} x {ny} vertices (max_vertices={max_vertices}); rescale the coordinates, use "
+            "a less elongated periodic box, or raise max_vertices"
+        )
     internal = emb.to_internal(pts)
     run = Refinement(
         internal, k, *emb.period_internal, tau, min_size * emb.scale, int(max_vertices)
     )
-    m0 = int(run.cnt[0])
     status = run.run(time_limit=time_limit, progress=progress)
     if status != R.STATUS_DONE:
-        got = run.result().counters
         what = (
             f"max_vertices={max_vertices}"
             if status == R.STATUS_MAX_VERTICES
             else f"time_limit={time_limit} s"
         )
         raise BudgetError(
-            f"refinement stopped at {what} with {int(run.cnt[0])} vertices and {run.pending()} "
+            f"refinement stopped at {what} with {run.vertices} vertices and {run.pending()} "
             "candidates still queued; raise the budget, use a larger k, or a larger min_size",
             progress={
-                "vertices": int(run.cnt[0]),
-                "moves": got,
+                "vertices": run.vertices,
+                "moves": run.counters()["moves"],
                 "seconds": time.perf_counter() - t_start,
             },
         )
     res = run.result()
     t_assemble = time.perf_counter()
-    mesh = _assemble(res, emb, k, tau, min_size, m0, run)
+    mesh = _assemble(res, emb, k, tau, min_size, run)
     stats = mesh.stats
     stats["time"] = {
         "index": run.time_index,
@@ -124,7 +129,7 @@ def refine(
     return mesh
 
 
-def _assemble(res, emb, k, tau, min_size, m0, run):
+def _assemble(res, emb, k, tau, min_size, run):
     out_v, out_s, pos, tri, offsets = unfold(res.vxy, res.tv, res.to, emb)
     L = np.array(emb.period_internal)
     floor_t = res.tstate == R.FLOOR
@@ -140,16 +145,10 @@ def _assemble(res, emb, k, tau, min_size, m0, run):
         "m": int(len(out_v)),
         "m_torus": int(res.vxy.shape[0]),
         "triangles": int(len(tri)),
-        "moves": {
-            name: int(np.count_nonzero(res.kind == i)) for i, name in enumerate(R.KIND_NAMES)
-        },
-        "disk_tests": res.counters["disk_tests"],
-        "cell_tests": res.counters["cell_tests"],
+        **res.counters,
         "floor_circumballs": int(floor_t.sum()),
         "floor_cells": int(floor_v.sum()),
         "clean_floor": int(np.count_nonzero(res.vflag & R.CLEAN_FLOOR)),
-        "failed_insertions": res.counters["failed_insertions"],
-        "m0": m0,
         "m0_violations": run.m0_violations,
     }
     torus = Torus(

@@ -255,13 +255,24 @@ class Refinement:
         """Queued candidates (an upper bound on the work left, not a promise)."""
         return int(sum(self.cnt[b + Q_SIZE] for b in (R.C_Q_TRI, R.C_Q_CELL, R.C_Q_CLEAN)))
 
+    @property
+    def vertices(self):
+        return int(self.cnt[C_NV])
+
+    def counters(self):
+        """Moves of each kind (from the vertices' kinds) and the counting tests so far."""
+        nv = self.vertices
+        kinds = np.bincount(self.vkind[:nv], minlength=len(R.KIND_NAMES))
+        return {
+            "moves": {name: int(kinds[i]) for i, name in enumerate(R.KIND_NAMES)},
+            "disk_tests": int(self.cnt[R.C_DISK_TESTS]),
+            "cell_tests": int(self.cnt[R.C_CELL_TESTS]),
+            "failed_insertions": int(self.cnt[R.C_FAILED]),
+        }
+
     def result(self):
-        nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
-        counters = {name: int(self.cnt[R.C_MOVES + i]) for i, name in enumerate(R.KIND_NAMES)}
-        counters["initial"] = int(np.count_nonzero(self.vkind[:nv] == R.INITIAL))
-        counters["disk_tests"] = int(self.cnt[R.C_DISK_TESTS])
-        counters["cell_tests"] = int(self.cnt[R.C_CELL_TESTS])
-        counters["failed_insertions"] = int(self.cnt[R.C_FAILED])
+        nv, nt = self.vertices, int(self.cnt[C_NT])
+        counters = self.counters()
         return RunResult(
             vxy=self.vxy[:nv].copy(),
             kind=self.vkind[:nv].copy(),
