@@ -41,6 +41,17 @@ def assert_certified(mesh, points, label="", torus_ratio=None):
     assert rep.max_ball_count < k, f"a circumball holds {rep.max_ball_count} >= k points"
     vt, pt, frame = oracle.box_trees(mesh.vertices, points, mesh.box, mesh.periodic)
     probes = oracle.box_probes(mesh.vertices, points, mesh.box)
+    # and the circumcenters of the returned triangles that lie in the box
+    period = np.array(mesh.period)
+    corners = mesh.vertices[mesh.triangles]
+    if mesh.offsets is not None:
+        corners = corners + mesh.offsets * period
+    cc, _ = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
+    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
+    for a in range(2):
+        if mesh.periodic[a]:
+            cc[:, a] = lo[a] + oracle.wrap(cc[:, a] - lo[a], period[a])
+    probes = np.concatenate([probes, cc[np.all((cc >= lo) & (cc <= hi), axis=1)]])
     lo, hi = oracle.ratio_range(frame(probes), vt, pt, k, mesh.min_size, len(points))
     if len(points) >= k:
         assert rep.alpha <= lo and hi <= rep.beta, (lo, hi, rep.alpha, rep.beta)
