@@ -2,8 +2,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-import oracle
 import pytest
+from scipy.spatial import cKDTree
+
+import knnrefine
 
 SHARED_DATA = Path(
     os.environ.get(
@@ -11,7 +13,7 @@ SHARED_DATA = Path(
     )
 )
 
-# achieved ratio ranges, printed at the end of the run
+# achieved constants, printed at the end of the run
 ACHIEVED = []
 
 
@@ -22,70 +24,42 @@ def load_shared(name):
     return np.loadtxt(path, delimiter=",", skiprows=1)
 
 
-def assert_certified(mesh, points, label="", torus_ratio=None):
-    """Check a mesh with the independent oracle and record the achieved ratio range.
-
-    Always: the torus triangulation is a valid Delaunay triangulation; every vertex has aspect
-    <= tau; every Voronoi cell and closed circumball above the floor holds < k points;
-    d_{M,2} / d_{P,k} lies in [alpha, beta] on probes in the box (input points, vertices,
-    circumcenters, random points) where d_{P,k} >= min_size; and the returned vertices give
-    the same d_{M,2} in the box as the whole torus mesh. ``torus_ratio`` (default: when every
-    axis is periodic or the initial mesh meets Theorem 6's precondition) also requires the
-    bounds on the whole torus.
-    """
-    points = np.asarray(points, float)
-    k, tau = mesh.k, mesh.tau
-    rep = oracle.check_torus(mesh.torus, points, k, tau, min_size=mesh.min_size)
-    assert rep.max_aspect <= tau, f"aspect {rep.max_aspect} > tau {tau}"
-    assert rep.max_cell_count < k, f"a Voronoi cell holds {rep.max_cell_count} >= k points"
-    assert rep.max_ball_count < k, f"a circumball holds {rep.max_ball_count} >= k points"
-    vt, pt, frame = oracle.box_trees(mesh.vertices, points, mesh.box, mesh.periodic)
-    probes = oracle.box_probes(mesh.vertices, points, mesh.box)
-    # and the circumcenters of the returned triangles that lie in the box
-    period = np.array(mesh.period)
-    corners = mesh.vertices[mesh.triangles]
-    if mesh.offsets is not None:
-        corners = corners + mesh.offsets * period
-    cc, _ = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
+def assert_certified(mesh, points, label=""):
+    """knnrefine.certify (validated against brute force in test_certify.py) must pass: the
+    torus triangulation is Delaunay; aspect <= tau; every Voronoi cell and closed circumball
+    above the floor holds < k points; d_{M,2} / d_{P,k} lies in [alpha, beta] on probes in the
+    box (input points, vertices, circumcenters, edge midpoints, random points) wherever
+    d_{P,k} >= min_size. Also: the returned vertices give the same d_{M,2} in the box as the
+    whole torus mesh."""
+    cert = knnrefine.certify(mesh, points, n_random=20_000)
+    assert cert.passed, str(cert)
+    rng = np.random.default_rng(0)
     lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
-    for a in range(2):
-        if mesh.periodic[a]:
-            cc[:, a] = lo[a] + oracle.wrap(cc[:, a] - lo[a], period[a])
-    probes = np.concatenate([probes, cc[np.all((cc >= lo) & (cc <= hi), axis=1)]])
-    lo, hi = oracle.ratio_range(frame(probes), vt, pt, k, mesh.min_size, len(points))
-    if len(points) >= k:
-        assert rep.alpha <= lo and hi <= rep.beta, (lo, hi, rep.alpha, rep.beta)
-        if torus_ratio is None:
-            torus_ratio = all(mesh.periodic) or mesh.stats["m0_violations"] == 0
-        if torus_ratio:
-            assert rep.alpha <= rep.ratio_min and rep.ratio_max <= rep.beta, rep
-    # completeness of the returned vertices: same d_{M,2} in the box as the whole torus
-    torus_tree = oracle.cKDTree(mesh.torus.vertices, boxsize=mesh.torus.period)
-    rel = oracle.wrap(probes - np.array(mesh.torus.origin), np.array(mesh.torus.period))
-    full = torus_tree.query(rel, k=2)[0][:, 1]
+    probes = np.concatenate([lo + rng.random((2000, 2)) * (hi - lo), np.asarray(points)[:2000]])
+    torus = mesh.torus
+    period = np.array(torus.period)
+    full = cKDTree(torus.vertices, boxsize=period).query(
+        np.mod(probes - np.array(torus.origin), period) % period, k=2
+    )[0][:, 1]
     np.testing.assert_allclose(
-        mesh.d_m2(probes),
-        full,
-        rtol=1e-9,
-        atol=1e-12 * max(b - a for a, b in zip(mesh.box[:2], mesh.box[2:], strict=True)),
+        mesh.d_m2(probes), full, rtol=1e-9, atol=1e-12 * float((hi - lo).max())
     )
-    ACHIEVED.append(
-        (label, len(points), k, tau, mesh.periodic, len(mesh.vertices), rep.max_aspect, lo, hi)
-    )
-    return rep, (lo, hi)
+    ACHIEVED.append((label, cert))
+    return cert
 
 
 def pytest_terminal_summary(terminalreporter):
     if not ACHIEVED:
         return
     tr = terminalreporter
-    tr.section("achieved d_M2 / d_Pk in the box (alpha, beta: Theorem 6)")
+    tr.section("certified meshes: achieved d_M2 / d_Pk (alpha_hat, beta_hat) and size ratio")
     tr.write_line(
         f"{'case':34s} {'n':>7s} {'k':>4s} {'tau':>4s} {'periodic':>14s} {'m':>7s} "
-        f"{'aspect':>7s} {'min':>7s} {'max':>7s}"
+        f"{'aspect':>7s} {'a_hat':>7s} {'b_hat':>7s} {'size':>6s}"
     )
-    for label, n, k, tau, per, m, asp, lo, hi in ACHIEVED:
+    for label, c in ACHIEVED:
         tr.write_line(
-            f"{label[:34]:34s} {n:7d} {k:4d} {tau:4g} {str(per):>14s} {m:7d} "
-            f"{asp:7.3f} {lo:7.3f} {hi:7.3f}"
+            f"{label[:34]:34s} {c.n:7d} {c.k:4d} {c.tau:4g} {str(c.periodic):>14s} "
+            f"{c.m:7d} {c.max_aspect:7.3f} {c.alpha_hat:7.3f} {c.beta_hat:7.3f} "
+            f"{c.size_ratio:6.2f}"
         )

@@ -3,7 +3,6 @@
 import zlib
 
 import numpy as np
-import oracle
 import pytest
 from conftest import assert_certified, load_shared
 from scipy.spatial import cKDTree
@@ -163,28 +162,3 @@ def test_real_data(name):
     k = min(k, max(2, len(points) // 4))
     mesh = knnrefine.refine(points, k, 3.0, periodic=periodic, box=box)
     assert_certified(mesh, points, label=name.removesuffix(".csv"))
-
-
-@pytest.mark.parametrize("periodic", [True, False])
-def test_scipy_cover_delaunay_agrees(periodic):
-    """Cross-check with qhull: scipy's Delaunay triangulation of the 3 x 3 periodic cover of
-    the mesh has the same Voronoi vertices (hence the same outradii R(v), whichever way
-    cocircular vertices are triangulated) and its circumballs hold < k points. Moderate scales
-    only: qhull is not exact."""
-    rng = np.random.default_rng(11)
-    points = np.concatenate([rng.random((3000, 2)), rng.normal(0.3, 0.02, (1000, 2)) % 1.0])
-    box = (0.0, 0.0, 1.0, 1.0)
-    mesh = knnrefine.refine(points, 8, 3.0, periodic=periodic, box=box)
-    torus = mesh.torus
-    period = np.array(torus.period)
-    R_qhull = oracle.qhull_outradii(torus.vertices, period)
-    corners = oracle.realise(torus.vertices, torus.triangles, torus.offsets, period)
-    _, r = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
-    R_engine = np.zeros(len(torus.vertices))
-    for c in range(3):
-        np.maximum.at(R_engine, torus.triangles[:, c], r)
-    np.testing.assert_allclose(R_qhull, R_engine, rtol=1e-9)
-    ids, _, cc, rq = oracle.periodic_delaunay(torus.vertices, period)
-    inside = oracle.wrap(points - np.array(torus.origin), period)
-    counts = cKDTree(inside, boxsize=period).query_ball_point(cc, rq, return_length=True)
-    assert counts.max() < mesh.k

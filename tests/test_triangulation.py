@@ -1,10 +1,13 @@
 """The periodic Delaunay triangulation kernel on its own: insertions keep every invariant."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import oracle
 import pytest
 
 import knnrefine
+from knnrefine.certify import verify_triangulation
 from knnrefine.engine import driver
 from knnrefine.engine.geometry import Q, snap
 from knnrefine.engine.triangulation import (
@@ -47,18 +50,23 @@ def insert(state, x, y):
 
 def validate(state):
     nv, nt = int(state.cnt[C_NV]), int(state.cnt[C_NT])
-    oracle.check_triangulation(
-        state.vxy[:nv], state.tv[:nt], state.to[:nt], state.tn[:nt], (state.lx, state.ly)
-    )
+    vxy, tv, to, tn = state.vxy[:nv], state.tv[:nt], state.to[:nt], state.tn[:nt]
+    period = np.array([state.lx, state.ly])
+    problems, corners, cc, r = verify_triangulation(vxy, tv, to, tn, period)
+    assert not problems, problems
+    if nv <= 600:  # brute force: every circumcircle against every copy of every vertex
+        torus = SimpleNamespace(
+            period=period, origin=(0.0, 0.0), vertices=vxy, triangles=tv, offsets=to
+        )
+        assert oracle.torus_facts(torus, np.zeros((0, 2)))["empty"]
     # the cached circumcircles agree with the corners
-    corners = oracle.realise(state.vxy[:nv], state.tv[:nt], state.to[:nt], (state.lx, state.ly))
-    cc, r = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
-    np.testing.assert_allclose(state.tcc[:nt], cc, atol=1e-12)
-    np.testing.assert_allclose(np.sqrt(state.tr2[:nt]), r, rtol=1e-9)
+    cc_raw, r_raw = oracle.circumcircles(corners)
+    np.testing.assert_allclose(state.tcc[:nt], cc_raw, atol=1e-12)
+    np.testing.assert_allclose(np.sqrt(state.tr2[:nt]), r_raw, rtol=1e-9)
     # validity on the torus: every circumradius below a quarter of the shorter period
     assert r.max() < min(state.lx, state.ly) / 4
     # offsets are normalised (minimum 0 on each axis)
-    assert np.all(state.to[:nt].min(axis=1) == 0)
+    assert np.all(to.min(axis=1) == 0)
 
 
 @pytest.mark.parametrize("lx,ly", [(1.0, 1.0), (0.5, 1.0), (1.0, 0.125)])
@@ -121,15 +129,18 @@ def test_vertex_star_gives_aspect():
     nv = int(state.cnt[C_NV])
     hx = np.zeros(64)
     hy = np.zeros(64)
-    corners = oracle.realise(state.vxy[:nv], state.tv[: 2 * nv], state.to[: 2 * nv], (1.0, 1.0))
-    _, r = oracle.circumcenters(corners[:, 0], corners[:, 1], corners[:, 2])
-    R = np.zeros(nv)
-    for c in range(3):
-        np.maximum.at(R, state.tv[: 2 * nv, c], r)
-    d2 = oracle.cKDTree(state.vxy[:nv], boxsize=1.0).query(state.vxy[:nv], k=2)[0][:, 1]
+    torus = SimpleNamespace(
+        period=(1.0, 1.0),
+        origin=(0.0, 0.0),
+        vertices=state.vxy[:nv],
+        triangles=state.tv[: 2 * nv],
+        offsets=state.to[: 2 * nv],
+    )
+    facts = oracle.torus_facts(torus, np.zeros((0, 2)))
     for v in range(nv):
         big2, far, e2, deg = vertex_star(v, state._tri(), state._ver(), state.prm, hx, hy)
-        assert np.isclose(np.sqrt(big2), R[v]) and np.isclose(np.sqrt(e2), d2[v])
+        assert np.isclose(np.sqrt(big2), facts["R"][v])
+        assert np.isclose(2 * np.sqrt(big2 / e2), facts["aspect"][v])
         assert deg == np.count_nonzero(state.tv[: 2 * nv] == v)
 
 
@@ -139,7 +150,10 @@ def test_refined_meshes_are_valid_triangulations():
         pts = rng.random((2000, 2))
         mesh = knnrefine.refine(pts, 5, 3.0, periodic=periodic, box=(0, 0, 1, 1))
         t = mesh.torus
-        oracle.check_triangulation(t.vertices, t.triangles, t.offsets, t.neighbors, t.period)
+        problems = verify_triangulation(
+            t.vertices, t.triangles, t.offsets, t.neighbors, np.array(t.period)
+        )[0]
+        assert not problems, problems
         if periodic:
             # F = 2V on the torus for the returned mesh itself
             assert len(mesh.triangles) == 2 * len(mesh.vertices)

@@ -7,6 +7,7 @@ everywhere in the box, whose Delaunay triangulation is tau-well-spaced.
 
 from . import datasets
 from .api import refine
+from .certify import Certificate, certify
 from .errors import BudgetError, EngineError, InputError, KnnRefineError
 from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
 
@@ -14,6 +15,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "refine",
+    "certify",
+    "Certificate",
     "datasets",
     "Mesh",
     "Torus",

@@ -1,0 +1,425 @@
+"""certify(mesh, points): check a mesh against Theorem 6, independently of the engine.
+
+Nothing here calls the refinement kernels. The torus triangulation that came with the mesh is
+first verified (so that its circumcircles and Voronoi vertices can be trusted): it must be a
+triangulation of the torus (symmetric neighbours, F = 2V, Euler characteristic 0, positive
+orientation, areas adding up to the torus) whose circumcircles hold no vertex, the latter
+decided in exact rational arithmetic wherever floating point is not conclusive. Distances and
+counts then come from scipy's cKDTree (``boxsize`` on the torus).
+
+Probes for the achieved constants alpha_hat = min and beta_hat = max of d_{M,2} / d_{P,k}: all
+mesh vertices, all circumcenters and all edge midpoints (where d_{M,2} has its local extremes),
+up to ``max_point_probes`` input points drawn at random, and ``n_random`` uniform points in the
+box. Only probes in the box count, and only where d_{P,k} >= min_size (the floor).
+"""
+
+import time
+from dataclasses import asdict, dataclass, field
+from fractions import Fraction
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from .mesh import theorem6_constants
+from .validation import as_points
+
+
+@dataclass
+class Certificate:
+    """What certify measured. ``passed`` is True when every guarantee holds above the floor."""
+
+    n: int
+    m: int
+    k: int
+    tau: float
+    periodic: tuple
+    box: tuple
+    min_size: float
+    triangulation_ok: bool
+    triangulation_problems: list
+    max_aspect: float
+    max_cell_count: int  # over cells with outradius >= min_size
+    max_ball_count: int  # over circumballs with radius >= min_size
+    alpha: float
+    beta: float
+    alpha_hat: float
+    beta_hat: float
+    alpha_hat_at: tuple
+    beta_hat_at: tuple
+    n_probes: int
+    size_integral: float  # Monte Carlo estimate of the integral of 1 / d_{P,k}^2 over the box
+    size_integral_stderr: float
+    size_ratio: float  # m / size_integral
+    floor_circumballs: int  # circumballs holding >= k points left alone below min_size
+    floor_cells: int
+    floor_sites: list = field(default_factory=list)  # [(x, y, elements), ...] largest first
+    m0_violations: int = 0
+    seconds: float = 0.0
+
+    @property
+    def passed(self):
+        return bool(
+            self.triangulation_ok
+            and self.max_aspect <= self.tau
+            and self.max_cell_count < self.k
+            and self.max_ball_count < self.k
+            and (np.isnan(self.alpha_hat) or self.alpha <= self.alpha_hat)
+            and (np.isnan(self.beta_hat) or self.beta_hat <= self.beta)
+        )
+
+    def to_dict(self):
+        d = asdict(self)
+        d["passed"] = self.passed
+        return {key: _plain(v) for key, v in d.items()}
+
+    def __str__(self):
+        def verdict(ok):
+            return "ok" if ok else "FAILED"
+
+        mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
+            tuple(self.periodic), f"periodic={tuple(self.periodic)}"
+        )
+        lines = [
+            f"knnrefine certificate: n = {self.n}, m = {self.m}, k = {self.k}, "
+            f"tau = {self.tau:g}, {mode}, box {tuple(round(b, 6) for b in self.box)}",
+            f"  triangulation      Delaunay on the torus: "
+            f"{verdict(self.triangulation_ok)}"
+            + ("" if self.triangulation_ok else f" ({'; '.join(self.triangulation_problems)})"),
+            f"  well-spaced        max aspect {self.max_aspect:.4f} <= tau {self.tau:g}: "
+            f"{verdict(self.max_aspect <= self.tau)}",
+            f"  Voronoi cells      max count {self.max_cell_count} < k: "
+            f"{verdict(self.max_cell_count < self.k)}",
+            f"  circumballs        max count {self.max_ball_count} < k: "
+            f"{verdict(self.max_ball_count < self.k)}",
+            f"  d_M2 / d_Pk        in [{self.alpha_hat:.4f}, {self.beta_hat:.4f}] over "
+            f"{self.n_probes} probes; Theorem 6 allows [{self.alpha:.4f}, {self.beta:.2f}]: "
+            f"{verdict(self.alpha <= self.alpha_hat and self.beta_hat <= self.beta)}"
+            if not np.isnan(self.alpha_hat)
+            else "  d_M2 / d_Pk        not measured (n < k: d_Pk is infinite)",
+            f"  size               m / integral(1 / d_Pk^2) = {self.size_ratio:.3f} "
+            f"(integral {self.size_integral:.4g} +- {self.size_integral_stderr:.2g})",
+        ]
+        if self.floor_circumballs or self.floor_cells:
+            sites = ", ".join(f"({x:.6g}, {y:.6g}) x{c}" for x, y, c in self.floor_sites[:5])
+            more = f" and {len(self.floor_sites) - 5} more" if len(self.floor_sites) > 5 else ""
+            lines.append(
+                f"  resolution floor   {self.floor_circumballs} circumballs and "
+                f"{self.floor_cells} cells hold >= k points below min_size = {self.min_size:.3g}"
+                f", at {len(self.floor_sites)} site(s): {sites}{more}; the bounds hold wherever "
+                "d_Pk >= min_size"
+            )
+        else:
+            lines.append("  resolution floor   not reached")
+        if self.m0_violations:
+            lines.append(
+                f"  note               {self.m0_violations} initial vertices miss Theorem 6's "
+                "precondition d_Pk(u) <= (K - 1) lambda_u (see docs/algorithm.md)"
+            )
+        lines.append(
+            f"  verdict            {'PASSED' if self.passed else 'FAILED'} ({self.seconds:.2f} s)"
+        )
+        return "\n".join(lines)
+
+
+def certify(
+    mesh,
+    points,
+    *,
+    samples=100_000,
+    n_random=20_000,
+    max_point_probes=100_000,
+    seed=0,
+    workers=-1,
+):
+    """Check ``mesh`` (from ``knnrefine.refine``) against ``points`` (the same P).
+
+    Probes: ``samples`` stratified random points inside the mesh triangles (at least 4 per
+    triangle: dense where d_{P,k} is small, which is where the ratio has its extremes), every
+    vertex, circumcenter and edge midpoint, up to ``max_point_probes`` input points and
+    ``n_random`` uniform points of the box. Returns a Certificate; nothing is raised when a
+    check fails (look at ``.passed``). ``workers`` is passed to cKDTree queries (-1: all
+    cores)."""
+    t0 = time.perf_counter()
+    pts = as_points(points)
+    k, tau, min_size = mesh.k, mesh.tau, mesh.min_size
+    torus = mesh.torus
+    period = np.asarray(torus.period, float)
+    origin = np.asarray(torus.origin, float)
+    vertices = np.asarray(torus.vertices, float)
+    P = _wrap(pts - origin, period)
+    rng = np.random.default_rng(seed)
+    per_triangle = max(4, -(-samples // max(len(torus.triangles), 1)))
+
+    problems, corners, cc, r = verify_triangulation(
+        vertices, torus.triangles, torus.offsets, torus.neighbors, period
+    )
+    m_t = len(vertices)
+    R = np.zeros(m_t)
+    for c in range(3):
+        np.maximum.at(R, torus.triangles[:, c], r)
+    vtree = cKDTree(vertices, boxsize=period)
+    d2 = vtree.query(vertices, k=2, workers=workers)[0][:, 1]
+    max_aspect = float(np.max(2.0 * R / d2))
+
+    ptree = cKDTree(P, boxsize=period)
+    ball = ptree.query_ball_point(cc, r, return_length=True, workers=workers)
+    floor_balls = (ball >= k) & (r < min_size)
+    above = r >= min_size
+    max_ball = int(ball[above].max()) if above.any() else 0
+    kk = min(3, m_t)
+    dd, ii = vtree.query(P, k=kk, workers=workers)
+    dd = dd.reshape(len(P), kk)
+    ii = ii.reshape(len(P), kk)
+    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
+    cell = np.bincount(ii[tie], minlength=m_t)
+    floor_cells = (cell >= k) & (R < min_size)
+    max_cell = int(cell[R >= min_size].max()) if (R >= min_size).any() else 0
+
+    # achieved constants on probes in the box; the samples inside every triangle double as
+    # the Monte Carlo samples of the size integral
+    lo = np.array(mesh.box[:2]) - origin
+    hi = np.array(mesh.box[2:]) - origin
+    per = np.array(mesh.periodic, bool)
+    samples, weights = _triangle_samples(corners, per_triangle, rng)
+    samples = _wrap(samples, period)
+    in_box = _in_box(samples, lo, hi, per)
+    point_sample = (
+        P if len(P) <= max_point_probes else P[rng.choice(len(P), max_point_probes, False)]
+    )
+    mids = 0.5 * (corners + corners[:, [1, 2, 0]]).reshape(-1, 2)
+    others = np.concatenate(
+        [
+            point_sample,
+            vertices,
+            cc,
+            _wrap(mids, period),
+            lo + rng.random((n_random, 2)) * (hi - lo),
+        ]
+    )
+    probes = np.concatenate([samples[in_box], others[_in_box(others, lo, hi, per)]])
+    alpha, beta = theorem6_constants(tau)
+    a_hat = b_hat = float("nan")
+    a_at = b_at = (float("nan"), float("nan"))
+    n_probes = 0
+    integral = stderr = 0.0
+    if len(P) >= k:
+        dm2 = vtree.query(probes, k=2, workers=workers)[0][:, 1]
+        dpk = ptree.query(probes, k=[k], workers=workers)[0][:, 0]
+        ok = dpk >= min_size
+        ratio = dm2[ok] / dpk[ok]
+        n_probes = int(ok.sum())
+        if n_probes:
+            i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
+            a_hat, b_hat = float(ratio[i]), float(ratio[j])
+            a_at = tuple(float(x) for x in _to_input(probes[ok][i], origin, mesh))
+            b_at = tuple(float(x) for x in _to_input(probes[ok][j], origin, mesh))
+        # integral of 1 / d_Pk^2 over the box (d_Pk clipped at min_size): stratified over the
+        # triangles, each sample weighted by its share of its triangle's area
+        f = np.zeros(len(samples))
+        f[in_box] = 1.0 / np.maximum(dpk[: in_box.sum()], min_size) ** 2
+        contrib = (weights * f).reshape(len(corners), -1).sum(1)
+        integral = float(contrib.sum())
+        per_tri = (weights * f).reshape(len(corners), -1)
+        var = (
+            (per_tri.var(axis=1, ddof=1) * per_tri.shape[1]).sum() if per_tri.shape[1] > 1 else 0.0
+        )
+        stderr = float(np.sqrt(var))
+
+    sites = _floor_sites(
+        np.concatenate([cc[floor_balls], vertices[floor_cells]]),
+        10.0 * max(min_size, 1e-300),
+        period,
+        origin,
+        mesh,
+    )
+    return Certificate(
+        n=len(pts),
+        m=len(mesh.vertices),
+        k=k,
+        tau=tau,
+        periodic=tuple(mesh.periodic),
+        box=tuple(mesh.box),
+        min_size=min_size,
+        triangulation_ok=not problems,
+        triangulation_problems=problems,
+        max_aspect=max_aspect,
+        max_cell_count=max_cell,
+        max_ball_count=max_ball,
+        alpha=alpha,
+        beta=beta,
+        alpha_hat=a_hat,
+        beta_hat=b_hat,
+        alpha_hat_at=a_at,
+        beta_hat_at=b_at,
+        n_probes=n_probes,
+        size_integral=integral,
+        size_integral_stderr=stderr,
+        size_ratio=len(mesh.vertices) / integral if integral > 0 else float("nan"),
+        floor_circumballs=int(floor_balls.sum()),
+        floor_cells=int(floor_cells.sum()),
+        floor_sites=sites,
+        m0_violations=int(mesh.stats.get("m0_violations", 0)),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def verify_triangulation(vertices, triangles, offsets, neighbors, period):
+    """Problems (a list of strings, empty if none) that stop (triangles, offsets, neighbors)
+    from being a Delaunay triangulation of the torus; also the realised corners, circumcenters
+    (wrapped into the domain) and circumradii."""
+    problems = []
+    m, t = len(vertices), len(triangles)
+    tri = np.asarray(triangles)
+    off = np.asarray(offsets, np.int64)
+    nb = np.asarray(neighbors)
+    if t != 2 * m:
+        problems.append(f"{t} triangles for {m} vertices (a torus has F = 2V)")
+    if not np.all(np.isin(np.arange(m), tri)):
+        problems.append("a vertex belongs to no triangle")
+    f = np.repeat(np.arange(t), 3)
+    i = np.tile(np.arange(3), t)
+    a = tri[f, (i + 1) % 3]
+    b = tri[f, (i + 2) % 3]
+    n = nb[f, i]
+    found = np.zeros(len(f), int)
+    same_edge = np.ones(len(f), bool)
+    for j in range(3):
+        hit = (nb[n, j] == f) & (tri[n, (j + 1) % 3] == b) & (tri[n, (j + 2) % 3] == a)
+        found += hit
+        da = off[f, (i + 1) % 3] - off[n, (j + 2) % 3]
+        db = off[f, (i + 2) % 3] - off[n, (j + 1) % 3]
+        same_edge &= ~hit | np.all(da == db, axis=1)
+    if np.any(found != 1):
+        problems.append(f"{int((found != 1).sum())} neighbour links are not symmetric")
+    if not np.all(same_edge):
+        problems.append("neighbours disagree on the periodic offset of a shared edge")
+    d = off[f, (i + 2) % 3] - off[f, (i + 1) % 3]
+    flip = a > b
+    key = np.stack(
+        [
+            np.where(flip, b, a),
+            np.where(flip, a, b),
+            np.where(flip, -d[:, 0], d[:, 0]),
+            np.where(flip, -d[:, 1], d[:, 1]),
+        ],
+        1,
+    )
+    n_edges = len(np.unique(key, axis=0))
+    if m - n_edges + t != 0:
+        problems.append(f"Euler characteristic {m - n_edges + t} (a torus has 0)")
+    corners = vertices[tri] + off * period
+    e1 = corners[:, 1] - corners[:, 0]
+    e2 = corners[:, 2] - corners[:, 0]
+    area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    if np.any(area <= 0):
+        problems.append(f"{int((area <= 0).sum())} triangles are not counter-clockwise")
+    if abs(area.sum() - period.prod()) > 1e-9 * period.prod():
+        problems.append("the triangles do not tile the torus (areas do not add up)")
+    cc, r = _circumcircles(corners)
+    ccw = _wrap(cc, period)
+    # empty circles: floating point finds the vertices near each circle, rationals decide
+    near = cKDTree(vertices, boxsize=period).query_ball_point(ccw, r * (1 + 1e-6) + 1e-9 * r.max())
+    sizes = np.fromiter((len(c) for c in near), int, len(near))
+    face = np.repeat(np.arange(t), sizes)
+    cand = np.concatenate([np.asarray(c, int) for c in near]) if t else np.zeros(0, int)
+    other = (cand != tri[face, 0]) & (cand != tri[face, 1]) & (cand != tri[face, 2])
+    inside = 0
+    for f_, v in zip(face[other], cand[other], strict=True):
+        p = vertices[v] + np.round((cc[f_] - vertices[v]) / period) * period
+        if _incircle_exact(corners[f_], p) > 0:
+            inside += 1
+    if inside:
+        problems.append(f"{inside} circumcircles hold a vertex (not Delaunay)")
+    return problems, corners, ccw, r
+
+
+def _incircle_exact(c, d):
+    (ax, ay), (bx, by), (cx, cy) = ((Fraction(float(u)), Fraction(float(w))) for u, w in c)
+    dx, dy = Fraction(float(d[0])), Fraction(float(d[1]))
+    adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
+    det = (
+        (adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
+        + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
+        + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady)
+    )
+    return (det > 0) - (det < 0)
+
+
+def _circumcircles(corners):
+    a = corners[:, 0]
+    b = corners[:, 1] - a
+    c = corners[:, 2] - a
+    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    b2 = (b**2).sum(1)
+    c2 = (c**2).sum(1)
+    ux = (c[:, 1] * b2 - b[:, 1] * c2) / d
+    uy = (b[:, 0] * c2 - c[:, 0] * b2) / d
+    return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
+
+
+def _wrap(x, period):
+    x = np.mod(x, period)
+    return np.where(x >= period, 0.0, x)
+
+
+def _in_box(x, lo, hi, per):
+    """Mask of the points (wrapped into the torus) that lie in the box: periodic axes always,
+    non-periodic axes within [lo, hi]."""
+    ok = np.ones(len(x), bool)
+    for a in range(2):
+        if not per[a]:
+            ok &= (x[:, a] >= lo[a]) & (x[:, a] <= hi[a])
+    return ok
+
+
+def _to_input(x, origin, mesh):
+    y = np.asarray(x, float) + origin
+    for a in range(2):
+        if mesh.periodic[a]:
+            lo, hi = mesh.box[a], mesh.box[a + 2]
+            y[..., a] = lo + np.mod(y[..., a] - lo, hi - lo)
+    return y
+
+
+def _triangle_samples(corners, per_triangle, rng):
+    """per_triangle uniform points in every triangle (triangle-major order) and the weight of
+    each: its triangle's area / per_triangle, so that sum(weight * f) estimates the integral
+    of f. The mesh is graded like d_{P,k}, so samples are dense where d_{P,k} is small."""
+    t = len(corners)
+    u = rng.random((t, per_triangle, 2))
+    flip = u.sum(-1) > 1
+    u[flip] = 1 - u[flip]
+    a = corners[:, None, 0]
+    e1 = corners[:, 1] - corners[:, 0]
+    e2 = corners[:, 2] - corners[:, 0]
+    x = a + u[..., :1] * e1[:, None] + u[..., 1:] * e2[:, None]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return x.reshape(-1, 2), np.repeat(area / per_triangle, per_triangle)
+
+
+def _floor_sites(points, radius, period, origin, mesh):
+    """Group floor elements that lie within ``radius`` of each other: [(x, y, count), ...]."""
+    if len(points) == 0:
+        return []
+    pairs = cKDTree(points, boxsize=period).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix(
+        (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points))
+    )
+    ncomp, label = connected_components(graph, directed=False)
+    counts = np.bincount(label, minlength=ncomp)
+    order = np.argsort(-counts, kind="stable")
+    first = np.array([np.flatnonzero(label == c)[0] for c in order])
+    where = _to_input(points[first], origin, mesh)
+    return [(float(x), float(y), int(counts[c])) for (x, y), c in zip(where, order, strict=True)]
+
+
+def _plain(v):
+    if isinstance(v, (np.floating, np.integer, np.bool_)):
+        return v.item()
+    if isinstance(v, tuple):
+        return [_plain(x) for x in v]
+    if isinstance(v, list):
+        return [_plain(x) for x in v]
+    return v

@@ -1,0 +1,183 @@
+"""certify against brute force (tests/oracle.py) and qhull, and on meshes that must fail."""
+
+import dataclasses
+import json
+
+import numpy as np
+import oracle
+import pytest
+from scipy.spatial import Delaunay
+
+import knnrefine
+from knnrefine import certify
+
+CASES = {
+    "uniform periodic": (lambda r: r.random((300, 2)), 5, 3.0, True, (0, 0, 1, 1), None),
+    "uniform planar": (lambda r: r.random((300, 2)), 5, 3.0, False, None, None),
+    "mixture x-periodic": (
+        lambda r: np.concatenate([r.random((200, 2)), r.normal(0.3, 0.01, (100, 2)) % 1]),
+        8,
+        2.5,
+        (True, False),
+        (0, 0, 1, 1),
+        None,
+    ),
+    "y-periodic tau 6": (lambda r: r.random((250, 2)), 4, 6.0, (False, True), (0, 0, 1, 1), None),
+    "duplicates at the floor": (
+        lambda r: np.concatenate([r.random((150, 2)), np.repeat([[0.4, 0.6]], 6, 0)]),
+        4,
+        3.0,
+        False,
+        None,
+        1e-3,
+    ),
+    "k = 1": (lambda r: r.random((30, 2)), 1, 4.0, True, (0, 0, 1, 1), 1e-2),
+}
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def case(request):
+    make, k, tau, periodic, box, min_size = CASES[request.param]
+    points = make(np.random.default_rng(len(request.param)))
+    mesh = knnrefine.refine(points, k, tau, periodic=periodic, box=box, min_size=min_size)
+    return request.param, points, mesh, certify(mesh, points, n_random=5000)
+
+
+def test_matches_brute_force(case):
+    name, points, mesh, cert = case
+    facts = oracle.torus_facts(mesh.torus, points)
+    assert facts["empty"] and cert.triangulation_ok
+    assert cert.max_aspect == pytest.approx(facts["aspect"].max(), rel=1e-9)
+    above = facts["r"] >= mesh.min_size
+    assert cert.max_ball_count == (facts["ball"][above].max() if above.any() else 0)
+    cells = facts["cell"][facts["R"] >= mesh.min_size]
+    assert cert.max_cell_count == (cells.max() if len(cells) else 0)
+    floor_balls = int(((facts["ball"] >= mesh.k) & ~above).sum())
+    floor_cells = int(((facts["cell"] >= mesh.k) & (facts["R"] < mesh.min_size)).sum())
+    assert (cert.floor_circumballs, cert.floor_cells) == (floor_balls, floor_cells)
+    assert sum(c for _, _, c in cert.floor_sites) == floor_balls + floor_cells
+    assert cert.passed, str(cert)
+
+
+def box_metric(mesh):
+    """Periods of the box's own metric (0 along non-periodic axes)."""
+    return np.array(mesh.period)
+
+
+def test_achieved_constants_are_what_they_claim(case):
+    name, points, mesh, cert = case
+    per = box_metric(mesh)
+    # the ratio at the reported argmin / argmax, recomputed by brute force in the box's metric
+    for value, where in ((cert.alpha_hat, cert.alpha_hat_at), (cert.beta_hat, cert.beta_hat_at)):
+        x = np.array([where])
+        ratio = oracle.kth(x, mesh.vertices, 2, per) / oracle.kth(x, points, mesh.k, per)
+        assert ratio[0] == pytest.approx(value, rel=1e-9)
+    # and a dense brute-force probe set agrees on the range, within sampling
+    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
+    q = lo + np.random.default_rng(1).random((3000, 2)) * (hi - lo)
+    q = np.concatenate([q, points[(points >= lo).all(1) & (points <= hi).all(1)]])
+    dpk = oracle.kth(q, points, mesh.k, per)
+    keep = dpk >= mesh.min_size
+    ratio = oracle.kth(q[keep], mesh.vertices, 2, per) / dpk[keep]
+    assert cert.alpha <= ratio.min() and ratio.max() <= cert.beta
+    assert cert.alpha_hat <= ratio.min() * 1.05 and cert.beta_hat >= ratio.max() / 1.05
+
+
+def test_size_ratio_is_a_monte_carlo_integral(case):
+    name, points, mesh, cert = case
+    per = box_metric(mesh)
+    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
+    q = lo + np.random.default_rng(2).random((40000, 2)) * (hi - lo)
+    integral = np.prod(hi - lo) * np.mean(
+        1.0 / np.maximum(oracle.kth(q, points, mesh.k, per), mesh.min_size) ** 2
+    )
+    if name in ("duplicates at the floor", "k = 1"):
+        # 1 / d^2 is dominated by the floor regions: uniform sampling cannot see them; the
+        # importance-sampled estimate must be at least as large
+        assert cert.size_integral >= 0.5 * integral
+    else:
+        assert cert.size_integral == pytest.approx(integral, rel=0.1)
+    assert cert.size_ratio == pytest.approx(len(mesh.vertices) / cert.size_integral)
+
+
+def test_outradii_agree_with_qhull():
+    """A second, independent triangulation: scipy's Delaunay of the 3 x 3 periodic cover gives
+    the same Voronoi vertices, hence the same outradii R(v) (at moderate scales: qhull is not
+    exact)."""
+    rng = np.random.default_rng(11)
+    points = np.concatenate([rng.random((3000, 2)), rng.normal(0.3, 0.02, (1000, 2)) % 1.0])
+    mesh = knnrefine.refine(points, 8, 3.0, periodic=True, box=(0, 0, 1, 1))
+    V = mesh.torus.vertices
+    m = len(V)
+    shifts = np.array(
+        [(0, 0)] + [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if (a, b) != (0, 0)]
+    )
+    cover = (V[None] + shifts[:, None]).reshape(-1, 2)
+    s = Delaunay(cover).simplices
+    s = s[(s < m).any(1)]
+    _, r = oracle.circumcircles(cover[s])
+    R_qhull = np.zeros(m)
+    for c in range(3):
+        np.maximum.at(R_qhull, s[:, c] % m, r)
+    facts = oracle.torus_facts(mesh.torus, np.zeros((0, 2))) if m < 800 else None
+    corners = V[mesh.torus.triangles] + mesh.torus.offsets
+    _, r_engine = oracle.circumcircles(corners)
+    R_engine = np.zeros(m)
+    for c in range(3):
+        np.maximum.at(R_engine, mesh.torus.triangles[:, c], r_engine)
+    np.testing.assert_allclose(R_qhull, R_engine, rtol=1e-9)
+    assert facts is None or np.allclose(facts["R"], R_engine)
+    assert certify(mesh, points).passed
+
+
+def test_reports_failures():
+    """certify must be able to say no."""
+    rng = np.random.default_rng(3)
+    points = rng.random((2000, 2))
+    mesh = knnrefine.refine(points, 10, 4.0, periodic=True, box=(0, 0, 1, 1))
+    assert certify(mesh, points).passed
+    # more data than the mesh was made for: cells and circumballs overflow
+    more = np.concatenate([points, 0.5 + 0.01 * rng.random((500, 2))])
+    c = certify(mesh, more)
+    assert not c.passed and c.max_cell_count >= 10 and c.max_ball_count >= 10
+    assert "FAILED" in str(c)
+    # a stricter tau than the mesh was made for
+    c = certify(dataclasses.replace(mesh, tau=2.2), points)
+    assert not c.passed and c.max_aspect > 2.2
+    # a vertex moved: no longer Delaunay
+    torus = mesh.torus
+    moved = torus.vertices.copy()
+    (a, b, _), (oa, ob, _) = torus.triangles[0], torus.offsets[0]
+    moved[a] += 0.6 * ((moved[b] + ob) - (moved[a] + oa))  # along an edge (period 1)
+    bad = dataclasses.replace(mesh, torus=dataclasses.replace(torus, vertices=moved))
+    c = certify(bad, points)
+    assert not c.triangulation_ok and not c.passed
+    # a neighbour link broken
+    nb = torus.neighbors.copy()
+    nb[0, 0] = nb[0, 1]
+    c = certify(dataclasses.replace(mesh, torus=dataclasses.replace(torus, neighbors=nb)), points)
+    assert any("symmetric" in p for p in c.triangulation_problems)
+
+
+def test_report_formats(case):
+    name, points, mesh, cert = case
+    text = str(cert)
+    assert "knnrefine certificate" in text and "PASSED" in text
+    d = cert.to_dict()
+    json.dumps(d)
+    assert d["passed"] is True and d["k"] == mesh.k
+
+
+def test_n_below_k():
+    points = np.random.default_rng(4).random((5, 2))
+    mesh = knnrefine.refine(points, 10)
+    c = certify(mesh, points)
+    assert c.passed and np.isnan(c.alpha_hat) and "n < k" in str(c)
+
+
+def test_larger_input_samples_its_probes():
+    """Input points are sampled (100k at most) for the probes; timing is in benchmarks/."""
+    points = np.random.default_rng(5).random((200_000, 2))
+    mesh = knnrefine.refine(points, 100)
+    c = certify(mesh, points)
+    assert c.passed and c.n_probes > 100_000
