@@ -49,6 +49,8 @@ def refine(
         even if they hold >= k points (where k or more points coincide d_{P,k} is 0 and
         refinement could not stop). Default: 1e-6 times the box's longer side. Where it acts is
         reported in ``Mesh.floor_points``; everywhere d_{P,k} >= min_size the bounds hold.
+        Values below the engine's resolution (2^-36 of the torus period) act as that
+        resolution, which ``Mesh.min_size`` then reports.
     max_vertices : int, optional
         Budget: stop with BudgetError beyond this many vertices. Default max(10^6, 2 n).
     time_limit : float, optional
@@ -100,6 +102,8 @@ def refine(
     run = Refinement(
         internal, k, *emb.period_internal, tau, min_size * emb.scale, int(max_vertices)
     )
+    # below the engine's resolution limit nothing is split whatever min_size says
+    min_size = max(min_size, run.floor / emb.scale)
     status = run.run(time_limit=time_limit, progress=progress)
     if status != R.STATUS_DONE:
         what = (

@@ -60,7 +60,8 @@ class Mesh:
         Insertion index of each vertex (vertices are sorted by it; in non-periodic mode one
         torus vertex can appear as several planar copies).
     k, tau, periodic, box, min_size, alpha, beta, period
-        The run's parameters and Theorem 6's constants for tau.
+        The run's parameters and Theorem 6's constants for tau; ``min_size`` is the floor that
+        was in effect (at least the engine's resolution, 2^-36 of the torus period).
     floor_points : (f, 2) float64
         Where refinement stopped at the resolution floor ``min_size``: circumcenters of
         circumballs and vertices of cells that still hold >= k points but are smaller than

@@ -6,6 +6,10 @@ import numpy as np
 
 from .errors import InputError
 
+# squared distances of coordinates up to 1e100 stay far from overflow and underflow
+MAX_COORDINATE = 1e100
+MIN_SIDE = 1e-100
+
 
 def as_points(points):
     """(n, 2) float64 array from lists, numpy arrays of any real dtype, pandas frames."""
@@ -34,6 +38,12 @@ def as_points(points):
         raise InputError(
             f"points holds {int(bad.sum())} row(s) with NaN or infinite coordinates, the first "
             f"at index {first} ({arr[first].tolist()}); drop or fill them first"
+        )
+    big = float(np.abs(arr).max())
+    if big > MAX_COORDINATE:
+        raise InputError(
+            f"coordinates reach {big:.3g}; knnrefine works with |x| <= {MAX_COORDINATE:g} "
+            "(squared distances must stay finite): rescale the data first"
         )
     return arr
 
@@ -86,7 +96,20 @@ def check_box(box):
             f"box {tuple(vals)} has zero or negative width or height; it must satisfy "
             "xmin < xmax and ymin < ymax"
         )
+    check_box_scale(vals)
     return tuple(vals)
+
+
+def check_box_scale(box):
+    """A box whose sides or corners leave [1e-100, 1e100] cannot be meshed in double
+    precision without overflow or underflow of squared distances."""
+    big = max(abs(b) for b in box)
+    side = min(box[2] - box[0], box[3] - box[1])
+    if big > MAX_COORDINATE or side < MIN_SIDE:
+        raise InputError(
+            f"box {tuple(box)} is out of range: corners must satisfy |x| <= {MAX_COORDINATE:g} "
+            f"and sides >= {MIN_SIDE:g}; rescale the data first"
+        )
 
 
 def default_box(points):
@@ -96,8 +119,13 @@ def default_box(points):
     hi = points.max(axis=0)
     size = hi - lo
     side = size.max()
-    if side == 0.0:
+    if side == 0.0:  # all points coincide
         side = max(1.0, float(np.abs(lo).max()) * 2.0**-30)
+    elif side < MIN_SIDE:
+        raise InputError(
+            f"the points span only {side:.3g}; knnrefine needs a box side >= {MIN_SIDE:g}: "
+            "rescale the data first"
+        )
     for a in range(2):
         if size[a] == 0.0:
             mid = lo[a]

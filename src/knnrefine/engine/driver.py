@@ -169,8 +169,8 @@ class Refinement:
         self.prm[P_LX] = lx
         self.prm[P_LY] = ly
         self.prm[R.P_TAU2] = tau * tau * (1.0 - 1e-12)
-        floor = max(float(min_size), CLEAN_FLOOR)
-        self.prm[R.P_FLOOR2] = floor * floor
+        self.floor = max(float(min_size), CLEAN_FLOOR)  # the Break floor in internal units
+        self.prm[R.P_FLOOR2] = self.floor * self.floor
         self.prm[R.P_CLEAN_FLOOR2] = CLEAN_FLOOR * CLEAN_FLOOR
         self.prm[R.P_INFLATE] = 1.0 + 1e-9
         tri = self._tri()

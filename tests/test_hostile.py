@@ -1,0 +1,172 @@
+"""Hostile inputs: each is rejected with a clear message or handled with a documented answer,
+and every mesh that comes back is certified (above the resolution floor)."""
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import knnrefine
+from knnrefine import InputError, certify
+
+
+@pytest.fixture(scope="module")
+def points():
+    return np.random.default_rng(0).random((500, 2))
+
+
+def refine_certified(pts, k, **kw):
+    mesh = knnrefine.refine(pts, k, **kw)
+    cert = certify(mesh, pts, samples=20_000)
+    assert cert.passed, str(cert)
+    return mesh, cert
+
+
+@pytest.mark.parametrize(
+    "pts, box, message",
+    [
+        (np.random.default_rng(1).random((50, 2)) * 1e300, None, "coordinates reach"),
+        (np.random.default_rng(1).random((50, 2)) * 1e-300, None, "span only"),
+        (np.array([[-1.7e308, 0.0], [1.7e308, 1.0]]), None, "coordinates reach"),
+        (np.zeros((3, 2)), (0, 0, 1e-200, 1e-200), "out of range"),
+        (np.zeros((3, 2)), (0, 0, 1e200, 1e200), "out of range"),
+    ],
+)
+def test_out_of_range_magnitudes(pts, box, message):
+    with pytest.raises(InputError, match=message):
+        knnrefine.refine(pts, 2, box=box)
+
+
+def test_one_point():
+    """k = 1: refinement down to the floor around it. k >= 2: n < k, the initial mesh."""
+    one = np.array([[0.3, 0.7]])
+    mesh, cert = refine_certified(one, 1, min_size=1e-4)
+    assert cert.floor_circumballs + cert.floor_cells > 0
+    mesh, cert = refine_certified(one, 2)
+    assert sum(mesh.stats["moves"].values()) == mesh.stats["moves"]["initial"]
+
+
+def test_fewer_points_than_k_and_k_equal_n(points):
+    mesh, cert = refine_certified(points[:20], 30)
+    assert np.isnan(cert.alpha_hat)  # d_Pk is infinite in the plane
+    mesh, cert = refine_certified(points, len(points))
+    assert cert.alpha <= cert.alpha_hat and cert.beta_hat <= cert.beta
+
+
+@pytest.mark.parametrize("k", [3, 20, 40])
+def test_all_points_identical(k):
+    """The default box is a unit square around them; d_Pk is 0 at the point when n >= k, so the
+    refinement stops at the floor there (flagged); otherwise only the initial mesh."""
+    pts = np.full((30, 2), 123.25)
+    mesh, cert = refine_certified(pts, k)
+    assert mesh.box == (122.75, 122.75, 123.75, 123.75)
+    if k <= 30:
+        assert cert.floor_sites and np.allclose(cert.floor_sites[0][:2], 123.25, atol=1e-5)
+    else:
+        assert not cert.floor_sites
+
+
+@pytest.mark.parametrize("periodic", [True, (True, False), False])
+def test_points_on_the_box_boundary_and_seam(periodic):
+    rng = np.random.default_rng(2)
+    s = rng.random(40)
+    pts = np.concatenate(
+        [
+            np.stack([s, 0 * s], 1),
+            np.stack([0 * s + 2.0, s], 1),
+            np.stack([s * 2, 0 * s + 1.0], 1),
+            [[0, 0], [2, 1], [2, 0], [0, 1]],
+            rng.random((200, 2)) * [2, 1],
+        ]
+    )
+    mesh, cert = refine_certified(pts, 4, periodic=periodic, box=(0, 0, 2, 1))
+    if periodic is True:  # on the torus x = 2 is x = 0: the seam points merge with their twins
+        assert np.all(mesh.vertices < [2, 1])
+
+
+def test_translation_gives_the_same_mesh(points):
+    """Coordinates offset by 1e12 are quantised at ulp(1e12) ~ 1.2e-4; the engine works in
+    translated units, so the mesh of the quantised data is the same, bit for bit."""
+    shifted = points + 1e12
+    a = knnrefine.refine(shifted, 5)
+    b = knnrefine.refine(shifted - 1e12, 5)
+    np.testing.assert_array_equal(a.torus.vertices, b.torus.vertices)
+    np.testing.assert_array_equal(a.triangles, b.triangles)
+    assert certify(a, shifted).passed
+
+
+@pytest.mark.parametrize("e", [-30, 30])
+def test_power_of_two_scaling_gives_the_same_mesh(points, e):
+    ref = knnrefine.refine(points, 5)
+    scaled = knnrefine.refine(points * 2.0**e, 5)
+    np.testing.assert_array_equal(scaled.vertices * 2.0**-e, ref.vertices)
+    np.testing.assert_array_equal(scaled.triangles, ref.triangles)
+
+
+@pytest.mark.parametrize("scale", [1e-9, 1e9])
+def test_decimal_scaling_gives_the_same_mesh_up_to_rounding(points, scale):
+    """As delaunator tests its fixtures rescaled: the same refinement up to the rounding of the
+    rescaled input (a different answer only where decisions were ties)."""
+    ref = knnrefine.refine(points, 5)
+    mesh, cert = refine_certified(points * scale, 5)
+    assert abs(len(mesh.vertices) - len(ref.vertices)) <= 0.05 * len(ref.vertices)
+    ref_cert = certify(ref, points, samples=20_000)
+    assert cert.alpha_hat == pytest.approx(ref_cert.alpha_hat, rel=0.2)
+
+
+def test_cluster_collapsed_to_1e_12(points):
+    tight = 0.5 + 1e-12 * np.random.default_rng(3).random((50, 2))
+    pts = np.concatenate([points, tight])
+    mesh, cert = refine_certified(pts, 10)
+    assert cert.floor_circumballs + cert.floor_cells > 0
+    x, y, _ = cert.floor_sites[0]
+    assert abs(x - 0.5) < 1e-5 and abs(y - 0.5) < 1e-5
+    # everything above the floor keeps its guarantee; the floor is where d_Pk < min_size
+    assert mesh.stats["floor_circumballs"] == cert.floor_circumballs
+
+
+def test_rounded_coordinates_with_multiplicity_above_k():
+    """GPS-like fixes rounded to a coarse grid: many exact repeats, some of multiplicity >= k."""
+    rng = np.random.default_rng(4)
+    pts = np.round(rng.normal(0, 1, (3000, 2)), 1)
+    mesh, cert = refine_certified(pts, 8)
+    values, counts = np.unique(pts, axis=0, return_counts=True)
+    heavy = values[counts >= 8]
+    sites = np.array([s[:2] for s in cert.floor_sites])
+    # every floor site is one of the heavy locations, and every heavy location is flagged
+    d = np.abs(sites[:, None, :] - heavy[None, :, :]).max(-1)
+    assert d.min(1).max() < 1e-4 and d.min(0).max() < 1e-4
+
+
+def test_min_size_zero_still_terminates_at_the_resolution_limit():
+    """Without a floor, coincident points would need infinitely many vertices; the engine's
+    resolution limit (2^-36 of the torus period) stops it, and the mesh reports it as its
+    min_size."""
+    pts = np.concatenate([np.random.default_rng(5).random((30, 2)), np.zeros((5, 2)) + 0.5])
+    mesh, cert = refine_certified(pts, 3, min_size=0.0)
+    assert 0 < mesh.min_size < 1e-9
+    assert cert.floor_sites and np.allclose(cert.floor_sites[0][:2], 0.5, atol=1e-8)
+
+
+def test_ctrl_c_leaves_the_interpreter_usable(tmp_path):
+    script = textwrap.dedent("""
+        import os, signal, threading
+        import numpy as np
+        import knnrefine
+        knnrefine.refine(np.random.default_rng(0).random((100, 2)), 3)  # warm the kernels
+        pts = np.random.default_rng(1).random((200000, 2))
+        threading.Timer(0.5, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+        try:
+            knnrefine.refine(pts, 1, min_size=0.0, max_vertices=10**9)
+            print("not interrupted")
+        except KeyboardInterrupt:
+            print("interrupted")
+        mesh = knnrefine.refine(np.random.default_rng(2).random((300, 2)), 5)
+        print("still works", len(mesh.vertices) > 0)
+    """)
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120
+    )
+    assert "interrupted" in out.stdout and "still works True" in out.stdout, out.stderr
