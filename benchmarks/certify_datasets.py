@@ -33,8 +33,10 @@ def main(argv=None):
     ap.add_argument("--tau", type=float, default=3.0)
     ap.add_argument("--data", default=DATA)
     args = ap.parse_args(argv)
-    print(f"| data set | n | k | periodic | m | max aspect | alpha_hat | beta_hat | "
-          f"size ratio | floor elements (sites) | certify |")
+    print(
+        "| data set | n | k | periodic | m | max aspect | alpha_hat | beta_hat | "
+        "size ratio | floor elements (sites) | certify |"
+    )
     print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|")
     for name in sorted(os.listdir(args.data)):
         if not name.endswith(".csv"):
@@ -48,10 +50,13 @@ def main(argv=None):
             c = knnrefine.certify(mesh, pts)
             floor = c.floor_circumballs + c.floor_cells
             per = {(True, True): "yes", (False, False): "no"}.get(tuple(c.periodic), "x only")
-            print(f"| {name.removesuffix('.csv')} | {c.n} | {k} | {per} | {c.m} | "
-                  f"{c.max_aspect:.3f} | {c.alpha_hat:.3f} | {c.beta_hat:.3f} | "
-                  f"{c.size_ratio:.2f} | {floor} ({len(c.floor_sites)}) | "
-                  f"{'passed' if c.passed else 'FAILED'} |", flush=True)
+            print(
+                f"| {name.removesuffix('.csv')} | {c.n} | {k} | {per} | {c.m} | "
+                f"{c.max_aspect:.3f} | {c.alpha_hat:.3f} | {c.beta_hat:.3f} | "
+                f"{c.size_ratio:.2f} | {floor} ({len(c.floor_sites)}) | "
+                f"{'passed' if c.passed else 'FAILED'} |",
+                flush=True,
+            )
     alpha, beta = knnrefine.theorem6_constants(args.tau)
     print(f"\nTheorem 6 at tau = {args.tau:g}: alpha = {alpha:.4f}, beta = {beta:.2f}.")
     pts = np.random.default_rng(0).random((1_000_000, 2))
@@ -61,9 +66,11 @@ def main(argv=None):
         t0 = time.perf_counter()
         c = knnrefine.certify(mesh, pts)
         times.append(time.perf_counter() - t0)
-    print(f"certify, 10^6 uniform points, k = 100: median {np.median(times):.2f} s "
-          f"(runs {', '.join(f'{t:.2f}' for t in times)}), {c.n_probes} probes, "
-          f"{'passed' if c.passed else 'FAILED'}")
+    print(
+        f"certify, 10^6 uniform points, k = 100: median {np.median(times):.2f} s "
+        f"(runs {', '.join(f'{t:.2f}' for t in times)}), {c.n_probes} probes, "
+        f"{'passed' if c.passed else 'FAILED'}"
+    )
 
 
 if __name__ == "__main__":

@@ -1,35 +1,313 @@
+"""The knnrefine command line: every subcommand in-process and through a subprocess, file
+formats both ways, pictures, and bad files."""
+
+import json
+import os
 import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
+import knnrefine
+from knnrefine import io
 from knnrefine.cli.main import main
 
 
-def test_demo_in_process(capsys):
-    assert main(["demo"]) == 0
-    out = capsys.readouterr().out
-    assert "n = 18748" in out and "d_M2 / d_Pk in [" in out
-
-
-def test_demo_as_console_script():
-    exe = shutil.which("knnrefine")
-    cmd = (
-        [exe, "demo", "-k", "50"]
-        if exe
-        else [sys.executable, "-m", "knnrefine.cli.main", "demo", "-k", "50"]
+@pytest.fixture(scope="module")
+def points():
+    rng = np.random.default_rng(0)
+    return np.concatenate(
+        [rng.random((1500, 2)) * [360, 180] - [180, 90], rng.normal([20, 10], 3, (500, 2))]
     )
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
-    assert "k = 50" in out
 
 
-def test_usage_errors_exit_2():
-    with pytest.raises(SystemExit) as info:
-        main(["no-such-command"])
-    assert info.value.code == 2
+@pytest.fixture()
+def csv(tmp_path, points):
+    path = tmp_path / "quakes.csv"
+    with open(path, "w") as f:
+        f.write("id,lon,lat\n")
+        for i, (x, y) in enumerate(points.tolist()):
+            f.write(f"{i},{x!r},{y!r}\n")
+    return path
 
 
-def test_bad_parameter_exits_1(capsys):
-    assert main(["demo", "--tau", "1.5"]) == 1
-    assert "tau must be > 2" in capsys.readouterr().err
+def run(*argv):
+    return main([str(a) for a in argv])
+
+
+def test_refine_writes_every_format(tmp_path, csv, points, capsys):
+    outs = [tmp_path / f"m{ext}" for ext in (".npz", ".vtu", ".vtk", ".xdmf", ".geojson", ".csv")]
+    args = [
+        "refine",
+        csv,
+        "--columns",
+        "lon,lat",
+        "-k",
+        8,
+        "--periodic-x",
+        "--box",
+        -180,
+        -90,
+        180,
+        90,
+        "--plot",
+        tmp_path / "m.png",
+    ]
+    for o in outs:
+        args += ["-o", o]
+    assert run(*args) == 0
+    out = capsys.readouterr().out
+    assert "refined n = 2,000 points" in out and "wrote" in out
+    mesh = io.read_mesh(tmp_path / "m.npz")
+    direct = knnrefine.refine(points, 8, periodic=(True, False), box=(-180, -90, 180, 90))
+    # .npz is lossless: the same mesh, field by field
+    for name in ("vertices", "triangles", "offsets", "kinds", "order", "floor_points"):
+        np.testing.assert_array_equal(getattr(mesh, name), getattr(direct, name))
+    assert (mesh.k, mesh.tau, mesh.periodic, mesh.box, mesh.min_size) == (
+        direct.k,
+        direct.tau,
+        direct.periodic,
+        direct.box,
+        direct.min_size,
+    )
+    for name in ("vertices", "triangles", "offsets", "neighbors", "kinds"):
+        np.testing.assert_array_equal(getattr(mesh.torus, name), getattr(direct.torus, name))
+    assert mesh.stats["moves"] == direct.stats["moves"]
+    assert knnrefine.certify(mesh, points).passed
+    # meshio formats: the flat mesh (seam-crossing corners copied), with point data
+    meshio = pytest.importorskip("meshio")
+    flat_points, flat_tri, source = mesh.flat()
+    for ext in (".vtu", ".vtk", ".xdmf"):
+        m = meshio.read(tmp_path / f"m{ext}")
+        np.testing.assert_allclose(m.points[:, :2], flat_points)
+        np.testing.assert_array_equal(m.cells_dict["triangle"], flat_tri)
+        np.testing.assert_array_equal(m.point_data["vertex"], source)
+        np.testing.assert_allclose(m.point_data["d_m2"], mesh.d_m2(flat_points))
+    gj = json.loads((tmp_path / "m.geojson").read_text())
+    assert gj["type"] == "FeatureCollection" and len(gj["features"]) == len(mesh.triangles)
+    ring = np.array(gj["features"][0]["geometry"]["coordinates"][0])
+    np.testing.assert_allclose(ring[:3], mesh.corners()[0])
+    assert gj["properties"]["k"] == 8
+    table = np.loadtxt(tmp_path / "m.csv", delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(table[:, :2], mesh.vertices)
+    np.testing.assert_array_equal(table[:, 2], mesh.kinds)
+
+
+def picture_is_real(path):
+    ext = os.path.splitext(path)[1]
+    data = open(path, "rb").read()
+    if ext == ".png":
+        import matplotlib.image
+
+        img = matplotlib.image.imread(path)
+        assert img.shape[0] > 300 and img.shape[1] > 300
+        assert img[..., :3].std() > 0.05  # not a blank canvas
+        colours = np.unique((img[..., :3] * 255).astype(np.uint8).reshape(-1, 3), axis=0)
+        assert len(colours) > 100  # a colour map, not just lines
+    elif ext == ".svg":
+        import xml.etree.ElementTree as ET
+
+        assert len(list(ET.fromstring(data).iter())) > 200
+    else:
+        assert data.startswith(b"%PDF") and len(data) > 20_000
+
+
+@pytest.mark.parametrize("ext", [".png", ".svg", ".pdf"])
+@pytest.mark.parametrize("cells", ["triangles", "voronoi"])
+def test_plot(tmp_path, csv, ext, cells):
+    assert run("refine", csv, "--columns", "1,2", "-k", 10, "-o", tmp_path / "m.npz", "-q") == 0
+    pic = tmp_path / f"pic{ext}"
+    assert (
+        run(
+            "plot",
+            tmp_path / "m.npz",
+            "-o",
+            pic,
+            "--points",
+            csv,
+            "--columns",
+            "lon,lat",
+            "--cells",
+            cells,
+            "-q",
+        )
+        == 0
+    )
+    picture_is_real(pic)
+
+
+def test_certify_command(tmp_path, csv, capsys):
+    assert run("refine", csv, "--columns", "lon,lat", "-k", 10, "-o", tmp_path / "m.npz") == 0
+    assert (
+        run(
+            "certify",
+            tmp_path / "m.npz",
+            csv,
+            "--columns",
+            "lon,lat",
+            "--json",
+            tmp_path / "c.json",
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "PASSED" in out
+    assert json.loads((tmp_path / "c.json").read_text())["passed"] is True
+    # certifying against other data than the mesh was made for fails with status 3
+    other = tmp_path / "other.npy"
+    np.save(other, np.random.default_rng(1).normal(0, 1, (5000, 2)))
+    assert run("certify", tmp_path / "m.npz", other, "-q") == 3
+
+
+def test_inputs_npy_npz_parquet_tsv_whitespace_stdin(tmp_path, points):
+    np.save(tmp_path / "p.npy", points)
+    np.savez(tmp_path / "p.npz", points=points)
+    ref = io.read_points(tmp_path / "p.npy")
+    np.testing.assert_array_equal(ref, points)
+    np.testing.assert_array_equal(io.read_points(tmp_path / "p.npz"), points)
+    (tmp_path / "p.tsv").write_text(
+        "lat\tlon\n" + "".join(f"{y!r}\t{x!r}\n" for x, y in points.tolist())
+    )
+    np.testing.assert_array_equal(io.read_points(tmp_path / "p.tsv", "lon,lat"), points)
+    (tmp_path / "p.txt").write_text(
+        "# no header\n" + "".join(f"{x!r}   {y!r}\n" for x, y in points.tolist())
+    )
+    np.testing.assert_array_equal(io.read_points(tmp_path / "p.txt"), points)
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    pq.write_table(pa.table({"x": points[:, 0], "y": points[:, 1]}), tmp_path / "p.parquet")
+    np.testing.assert_array_equal(io.read_points(tmp_path / "p.parquet", "x,y"), points)
+    # standard input, through the real console script
+    text = "x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in points.tolist())
+    out = subprocess.run(
+        cli() + ["refine", "-", "-k", "10", "-o", str(tmp_path / "s.npz")],
+        input=text,
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stderr
+    np.testing.assert_array_equal(
+        io.read_mesh(tmp_path / "s.npz").vertices, knnrefine.refine(points, 10).vertices
+    )
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (None, "no such file"),
+        ("", "empty"),
+        ("x,y\n", "header but no points"),
+        ("x,y\n1,2\n3,4,5\n6,7\n", "malformed rows"),
+        ("x,y\n1,2\n3,abc\n", "non-numeric value 'abc' in column 'y', line 3"),
+        ("x\n1\n2\n", "at least two columns"),
+        ("x,y\n1,2\n3,nan\n4,5\n", "NaN or infinite"),
+    ],
+)
+def test_bad_files_exit_1_with_a_message(tmp_path, capsys, content, message):
+    path = tmp_path / "bad.csv"
+    if content is not None:
+        path.write_text(content)
+    assert run("refine", path, "-k", 1, "-o", tmp_path / "m.npz") == 1
+    err = capsys.readouterr().err
+    assert err.startswith("knnrefine: error:") and message in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_bad_columns_and_formats(tmp_path, csv, capsys):
+    assert run("refine", csv, "--columns", "lon,depth", "-k", 5, "-o", tmp_path / "m.npz") == 1
+    assert "no column named 'depth'" in capsys.readouterr().err
+    assert run("refine", csv, "-k", 5, "-o", tmp_path / "m.stl") == 1
+    assert "unknown mesh format" in capsys.readouterr().err
+    assert run("plot", tmp_path / "missing.npz", "-o", tmp_path / "p.png") == 1
+    (tmp_path / "fake.npz").write_bytes(b"not a zip file")
+    assert run("plot", tmp_path / "fake.npz", "-o", tmp_path / "p.png") == 1
+    assert "not a readable .npz" in capsys.readouterr().err
+
+
+def test_refuses_to_overwrite_without_force(tmp_path, csv, capsys):
+    out = tmp_path / "m.npz"
+    assert run("refine", csv, "-k", 5, "-o", out, "-q") == 0
+    before = out.read_bytes()
+    assert run("refine", csv, "-k", 7, "-o", out) == 1
+    assert "exists; use --force" in capsys.readouterr().err
+    assert out.read_bytes() == before
+    assert run("refine", csv, "-k", 7, "-o", out, "--force", "-q") == 0
+    assert io.read_mesh(out).k == 7
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".knnrefine-")]  # no leftovers
+
+
+def test_a_failed_write_leaves_nothing(tmp_path, monkeypatch):
+    mesh = knnrefine.refine(np.random.default_rng(2).random((200, 2)), 5)
+
+    def broken(mesh, path):
+        open(path, "w").write("half")
+        raise OSError("disk full")
+
+    monkeypatch.setitem(io.WRITERS, ".npz", broken)
+    with pytest.raises(OSError):
+        io.write_mesh(mesh, str(tmp_path / "m.npz"))
+    assert os.listdir(tmp_path) == []
+
+
+def test_usage_errors_exit_2(capsys):
+    for argv in (["no-such-command"], ["refine"], ["refine", "x.csv"], []):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 2
+
+
+def test_help_shows_examples(capsys):
+    for argv in (
+        ["--help"],
+        ["refine", "--help"],
+        ["certify", "--help"],
+        ["plot", "--help"],
+        ["demo", "--help"],
+    ):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 0
+        assert "example" in capsys.readouterr().out
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    with pytest.raises(knnrefine.InputError):
+        main(["refine", str(tmp_path / "missing.csv"), "-k", "3", "--debug"])
+
+
+def test_demo_in_process(tmp_path, capsys):
+    assert run("demo", "--out", tmp_path / "demo") == 0
+    out = capsys.readouterr().out
+    assert "18,748 points" in out and "PASSED" in out
+    for name in ("mesh.npz", "mesh.vtu", "mesh.png", "certificate.txt", "certificate.json"):
+        assert (tmp_path / "demo" / name).stat().st_size > 0
+    picture_is_real(str(tmp_path / "demo" / "mesh.png"))
+    assert run("demo", "--out", tmp_path / "demo", "-q") == 0  # re-runnable
+    assert capsys.readouterr().out == ""
+
+
+def cli():
+    exe = shutil.which("knnrefine")
+    return [exe] if exe else [sys.executable, "-m", "knnrefine.cli.main"]
+
+
+def test_every_subcommand_through_a_subprocess(tmp_path, csv):
+    def call(*argv):
+        return subprocess.run(
+            cli() + [str(a) for a in argv], capture_output=True, text=True, cwd=tmp_path
+        )
+
+    r = call("refine", csv, "--columns", "lon,lat", "-k", 10, "-o", "m.npz")
+    assert r.returncode == 0 and "refined" in r.stdout, r.stderr
+    r = call("certify", "m.npz", csv, "--columns", "lon,lat")
+    assert r.returncode == 0 and "PASSED" in r.stdout
+    r = call("plot", "m.npz", "-o", "m.png")
+    assert r.returncode == 0 and (tmp_path / "m.png").exists()
+    r = call("demo", "-k", 40)
+    assert r.returncode == 0 and (tmp_path / "knnrefine-demo" / "mesh.png").exists()
+    r = call("refine", "missing.csv", "-k", 3)
+    assert r.returncode == 1 and "Traceback" not in r.stderr

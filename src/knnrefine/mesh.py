@@ -125,6 +125,37 @@ class Mesh:
         tree, _ = self._tree
         return tree.query(self._to_tree_frame(x), k=2)[0][:, 1]
 
+    def corners(self):
+        """(t, 3, 2) triangle corners, offsets applied (periodic triangles may reach past the
+        box across the seam)."""
+        c = self.vertices[self.triangles]
+        if self.offsets is not None:
+            c = c + self.offsets * np.array(self.period)
+        return c
+
+    def flat(self):
+        """A plain planar triangulation for drawing and mesh files: (points (p, 2), triangles
+        (t, 3), source (p,) index into ``vertices``). Corners that sit across a periodic seam
+        become extra copies of their vertex, so every triangle is drawn where it is."""
+        if self.offsets is None:
+            return self.vertices, self.triangles, np.arange(len(self.vertices))
+        # a corner is (vertex, offset); code the offset in 0..8, 4 meaning none
+        off = self.offsets.astype(np.int64)
+        code = (off[..., 0] + 1) * 3 + (off[..., 1] + 1)
+        own = np.arange(len(self.vertices), dtype=np.int64) * 9 + 4
+        keys, inverse = np.unique(
+            np.concatenate([own, (self.triangles * 9 + code).ravel()]), return_inverse=True
+        )
+        # every vertex first, in its own place, then the copies across the seam
+        order = np.argsort(keys % 9 != 4, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        keys = keys[order]
+        shift = np.stack([(keys % 9) // 3 - 1, keys % 3 - 1], axis=1)
+        points = self.vertices[keys // 9] + shift * np.array(self.period)
+        triangles = rank[inverse[len(own) :]].reshape(-1, 3).astype(np.int32)
+        return points, triangles, keys // 9
+
     def __repr__(self):
         mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
             self.periodic, f"periodic={self.periodic}"

@@ -1,35 +1,80 @@
-"""Entry point of the ``knnrefine`` console script."""
+"""Entry point of the ``knnrefine`` console script: one module per subcommand."""
 
 import argparse
 import sys
 
-from . import demo
+from . import certify, demo, plot, refine
 
-SUBCOMMANDS = {"demo": demo}
+SUBCOMMANDS = {"refine": refine, "certify": certify, "plot": plot, "demo": demo}
+
+DESCRIPTION = """Certified meshes carrying the k-th nearest neighbour distance of planar points
+(kNNRefine: Gardner & Sheehy, CCCG 2016)."""
+EPILOG = """examples:
+  knnrefine demo
+  knnrefine refine points.csv -k 20 -o mesh.npz --plot mesh.png
+  knnrefine certify mesh.npz points.csv
+  knnrefine plot mesh.npz -o cells.svg --cells voronoi
+
+exit status: 0 success, 1 bad input, 2 usage, 3 a certificate that fails
+'knnrefine COMMAND --help' shows each command's options and examples."""
 
 
 def build_parser():
+    # accepted before or after the command; SUPPRESS keeps a subcommand from resetting them
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="print nothing but errors",
+    )
+    common.add_argument(
+        "--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks on errors"
+    )
     parser = argparse.ArgumentParser(
         prog="knnrefine",
-        description="Certified meshes carrying the k-th nearest neighbour distance.",
-        epilog="example: knnrefine demo",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        parents=[common],
     )
-    sub = parser.add_subparsers(dest="command", required=True)
+    from .. import __version__
+
+    parser.add_argument("--version", action="version", version=f"knnrefine {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module in SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        p = sub.add_parser(
+            name,
+            help=module.HELP,
+            description=module.HELP,
+            epilog=module.EXAMPLES,
+            parents=[common],
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         module.add_arguments(p)
     return parser
 
 
 def main(argv=None):
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run the command line; returns the exit status (2 for usage errors, via SystemExit)."""
+    args = build_parser().parse_args(argv)
+    # parents share their option objects with the subcommands, so defaults are set here
+    args.quiet = getattr(args, "quiet", False)
+    args.debug = getattr(args, "debug", False)
     from ..errors import KnnRefineError
 
     try:
         return SUBCOMMANDS[args.command].run(args)
-    except KnnRefineError as exc:
-        print(f"knnrefine: error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print("knnrefine: interrupted", file=sys.stderr)
+        return 130
+    except (KnnRefineError, OSError) as exc:
+        if args.debug:
+            raise
+        print(f"knnrefine: error: {exc}".replace("\n", " "), file=sys.stderr)
         return 1
 
 

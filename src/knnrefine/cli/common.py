@@ -1,0 +1,126 @@
+"""Options and helpers shared by the subcommands."""
+
+import time
+
+from ..errors import InputError
+
+
+def add_input_options(parser, positional="points"):
+    parser.add_argument(
+        positional, help="points: CSV/TSV/text, .npy, .npz, .parquet, or - for standard input"
+    )
+    parser.add_argument(
+        "--columns",
+        metavar="A,B",
+        help="the x and y columns, by name (lon,lat) or zero-based index (2,3); "
+        "default: the first two",
+    )
+    parser.add_argument(
+        "--delimiter",
+        metavar="D",
+        help="text field separator; default: sniffed (comma, tab, semicolon or whitespace)",
+    )
+
+
+def add_refine_options(parser):
+    parser.add_argument("-k", type=int, required=True, help="which nearest neighbour (k >= 1)")
+    parser.add_argument("--tau", type=float, default=3.0, help="well-spacedness, > 2 (default 3)")
+    per = parser.add_mutually_exclusive_group()
+    per.add_argument(
+        "--periodic", action="store_true", help="the box is a flat torus (needs --box)"
+    )
+    per.add_argument("--periodic-x", action="store_true", help="periodic in x only")
+    per.add_argument("--periodic-y", action="store_true", help="periodic in y only")
+    parser.add_argument(
+        "--box",
+        type=float,
+        nargs=4,
+        metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
+        help="the box; default: the points' bounding box",
+    )
+    parser.add_argument(
+        "--min-size", type=float, help="resolution floor (default 1e-6 of the box's longer side)"
+    )
+    parser.add_argument("--max-vertices", type=int, help="vertex budget")
+    parser.add_argument(
+        "--time-limit", type=float, metavar="SECONDS", help="time budget for the refinement"
+    )
+
+
+def periodic_of(args):
+    if args.periodic:
+        return True
+    if args.periodic_x:
+        return (True, False)
+    if args.periodic_y:
+        return (False, True)
+    return False
+
+
+def refine_with_progress(points, args, quiet):
+    """knnrefine.refine with a progress bar (shown only after a second) unless quiet."""
+    from .. import refine
+
+    bar = None
+    if not quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(
+            total=None,
+            unit=" vertices",
+            delay=1.0,
+            desc="refining",
+            leave=False,
+            dynamic_ncols=True,
+        )
+
+    def progress(vertices, pending):
+        if bar is not None:  # update() honours the delay: short runs show no bar at all
+            bar.set_postfix_str(f"{pending} queued", refresh=False)
+            bar.update(vertices - bar.n)
+
+    t0 = time.perf_counter()
+    try:
+        mesh = refine(
+            points,
+            args.k,
+            args.tau,
+            periodic=periodic_of(args),
+            box=tuple(args.box) if args.box else None,
+            min_size=args.min_size,
+            max_vertices=args.max_vertices,
+            time_limit=args.time_limit,
+            progress=progress,
+        )
+    finally:
+        if bar is not None:
+            bar.close()
+    return mesh, time.perf_counter() - t0
+
+
+def summary(mesh, seconds):
+    t = mesh.stats["time"]
+    moves = mesh.stats["moves"]
+    floor = mesh.stats["floor_circumballs"] + mesh.stats["floor_cells"]
+    lines = [
+        f"refined n = {mesh.stats['n']:,} points (k = {mesh.k}, tau = {mesh.tau:g}) into "
+        f"m = {len(mesh.vertices):,} vertices and {len(mesh.triangles):,} triangles in "
+        f"{seconds:.2f} s (index {t['index']:.2f} s, refinement {t['refine']:.2f} s)",
+        f"  moves: {moves['break_circumball']:,} circumball breaks, {moves['break_cell']:,} "
+        f"cell breaks, {moves['clean']:,} cleans; Theorem 6: alpha = {mesh.alpha:.4f}, "
+        f"beta = {mesh.beta:.2f}",
+    ]
+    if floor:
+        lines.append(
+            f"  resolution floor reached by {floor} elements "
+            f"(min_size = {mesh.min_size:.3g}); see 'knnrefine certify'"
+        )
+    return "\n".join(lines)
+
+
+def require_outputs_free(paths, force):
+    import os
+
+    for p in paths:
+        if os.path.exists(p) and not force:
+            raise InputError(f"{p} exists; use --force to overwrite it")

@@ -1,0 +1,71 @@
+"""knnrefine refine: points in, mesh files (and optionally a picture and a certificate) out."""
+
+import os
+import time
+
+from .common import (
+    add_input_options,
+    add_refine_options,
+    refine_with_progress,
+    require_outputs_free,
+    summary,
+)
+
+HELP = "refine a file of points into a mesh"
+EXAMPLES = """examples:
+  knnrefine refine quakes.csv --columns lon,lat -k 20 --periodic-x --box -180 -90 180 90 \\
+      -o quakes.npz -o quakes.vtu --plot quakes.png
+  knnrefine refine angles.tsv -k 50 --periodic --box 0 0 360 360 -o angles.npz --certify
+  cat points.txt | knnrefine refine - -k 10 -o mesh.geojson
+
+outputs (by extension): .npz (knnrefine's lossless format), .vtu/.vtk/.xdmf (ParaView),
+.geojson (GIS), .csv (the vertices)"""
+
+
+def add_arguments(parser):
+    add_input_options(parser)
+    add_refine_options(parser)
+    parser.add_argument(
+        "-o",
+        "--output",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="write the mesh here (repeatable); default: <points>-k<K>.npz",
+    )
+    parser.add_argument("--plot", metavar="PICTURE", help="also draw it (.png, .svg or .pdf)")
+    parser.add_argument(
+        "--certify", action="store_true", help="also certify the mesh and print the report"
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite existing files")
+
+
+def run(args):
+    from .. import certify, io
+    from ..plot import save_plot
+
+    outputs = args.output or [_default_output(args.points, args.k)]
+    require_outputs_free(outputs + ([args.plot] if args.plot else []), args.force)
+    t0 = time.perf_counter()
+    points = io.read_points(args.points, args.columns, args.delimiter)
+    if not args.quiet:
+        print(f"read {len(points):,} points from {args.points} in {time.perf_counter() - t0:.2f} s")
+    mesh, seconds = refine_with_progress(points, args, args.quiet)
+    for path in outputs:
+        io.write_mesh(mesh, path, force=args.force)
+    if args.plot:
+        labels = tuple(args.columns.split(",")) if args.columns else ("x", "y")
+        save_plot(mesh, args.plot, points=points, force=args.force, labels=labels)
+    if not args.quiet:
+        print(summary(mesh, seconds))
+        print("  wrote " + ", ".join(outputs + ([args.plot] if args.plot else [])))
+    if args.certify:
+        cert = certify(mesh, points)
+        print(cert)
+        return 0 if cert.passed else 3
+    return 0
+
+
+def _default_output(points, k):
+    stem = "points" if points == "-" else os.path.splitext(os.path.basename(points))[0]
+    return f"{stem}-k{k}.npz"

@@ -1,0 +1,403 @@
+"""Reading point files and writing meshes.
+
+Points: CSV, TSV, semicolon- or whitespace-separated text with or without a header (pandas'
+C parser: a 10^7-row CSV reads in under a second), ``.npy``, ``.npz``, Parquet (with pyarrow),
+and ``-`` for standard input; two columns chosen by name or by index.
+
+Meshes: one writer per extension in ``WRITERS`` (and readers in ``READERS``):
+``.npz`` is knnrefine's own, lossless format (everything ``certify`` needs); ``.vtu``,
+``.vtk`` and ``.xdmf`` go through meshio for ParaView and friends; ``.geojson`` for GIS;
+``.csv`` lists the vertices. Writes go to a temporary file that is renamed into place, so a
+failed or interrupted write never leaves half a file; existing files are kept unless
+``force``.
+"""
+
+import io as _io
+import json
+import os
+import sys
+import tempfile
+
+import numpy as np
+
+from .errors import InputError
+from .mesh import Mesh, Torus
+
+FORMAT_VERSION = 1
+
+
+# --- points -------------------------------------------------------------------------------
+
+
+def read_points(path, columns=None, delimiter=None):
+    """Read an (n, 2) float64 array of points.
+
+    ``columns``: two column names (``"lon,lat"``) or zero-based indices (``"2,3"``); default:
+    the first two columns. ``delimiter``: default sniffed from the first line (comma, tab,
+    semicolon, else whitespace)."""
+    cols = _parse_columns(columns)
+    if path == "-":
+        data = sys.stdin.buffer.read()
+        return _read_text(_io.BytesIO(data), _io.BytesIO(data), "<stdin>", cols, delimiter)
+    if not os.path.exists(path):
+        raise InputError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise InputError(f"{path}: is a directory, not a file of points")
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".npy":
+        return _select_array(_load_npy(path), path, cols)
+    if ext == ".npz":
+        return _read_npz_points(path, cols)
+    if ext in (".parquet", ".pq"):
+        return _read_parquet(path, cols)
+    with open(path, "rb") as head:
+        return _read_text(head, path, path, cols, delimiter)
+
+
+def _parse_columns(columns):
+    if columns is None:
+        return None
+    if isinstance(columns, str):
+        parts = [c.strip() for c in columns.split(",")]
+    else:
+        parts = list(columns)
+    if len(parts) != 2 or not all(str(p) for p in parts):
+        raise InputError(f"--columns needs two columns, like lon,lat or 0,1; got {columns!r}")
+    return [int(p) if str(p).lstrip("-").isdigit() else str(p) for p in parts]
+
+
+def _sniff(first_line):
+    for sep in (",", "\t", ";"):
+        if sep in first_line:
+            return sep
+    return r"\s+"
+
+
+def _is_number(token):
+    try:
+        float(token)
+        return True
+    except ValueError:
+        return False
+
+
+def _read_text(head, source, name, cols, delimiter):
+    """``head``: a binary stream to sniff the first data line from; ``source``: what pandas
+    reads (a path, or the same bytes)."""
+    import pandas as pd
+
+    first = None
+    for raw in head:
+        line = raw.decode("utf-8-sig", errors="replace").strip()
+        if line and not line.startswith("#"):
+            first = line
+            break
+    if first is None:
+        raise InputError(f"{name}: the file is empty: no points to read")
+    sep = delimiter if delimiter else _sniff(first)
+    tokens = [t.strip().strip('"') for t in (first.split() if sep == r"\s+" else first.split(sep))]
+    header = None if all(_is_number(t) for t in tokens if t) else 0
+    try:
+        frame = pd.read_csv(
+            source, sep=sep, header=header, comment="#", skip_blank_lines=True, encoding="utf-8-sig"
+        )
+    except pd.errors.ParserError as exc:
+        raise InputError(f"{name}: malformed rows: {exc}".replace("\n", " ")) from None
+    except pd.errors.EmptyDataError:
+        raise InputError(f"{name}: the file holds a header but no points") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{name}: not a text file of points (it is not UTF-8)") from None
+    if len(frame) == 0:
+        raise InputError(f"{name}: the file holds a header but no points")
+    return _select_frame(frame, name, cols, header is not None)
+
+
+def _select_frame(frame, name, cols, has_header):
+    import pandas as pd
+
+    if frame.shape[1] < 2:
+        raise InputError(f"{name}: needs at least two columns (x and y), found {frame.shape[1]}")
+    if cols is None:
+        cols = [0, 1]
+    picked = []
+    for c in cols:
+        if isinstance(c, int):
+            if not -frame.shape[1] <= c < frame.shape[1]:
+                raise InputError(
+                    f"{name}: column index {c} is out of range "
+                    f"(the file has {frame.shape[1]} columns)"
+                )
+            picked.append(frame.columns[c])
+        else:
+            if not has_header:
+                raise InputError(
+                    f"{name}: has no header, so columns must be given by index "
+                    f"(like 0,1), not by name ({c!r})"
+                )
+            if c not in frame.columns:
+                raise InputError(
+                    f"{name}: no column named {c!r}; columns are "
+                    f"{', '.join(map(str, frame.columns))}"
+                )
+            picked.append(c)
+    out = np.empty((len(frame), 2))
+    for j, c in enumerate(picked):
+        col = frame[c]
+        if not pd.api.types.is_numeric_dtype(col):
+            num = pd.to_numeric(col, errors="coerce")
+            bad = num.isna() & col.notna()
+            if bad.any():
+                row = int(np.argmax(bad.to_numpy()))
+                line = row + 1 + (1 if has_header else 0)
+                raise InputError(
+                    f"{name}: non-numeric value {col.iloc[row]!r} in column {c!r}, line {line}"
+                )
+            col = num
+        out[:, j] = col.to_numpy(dtype=np.float64, na_value=np.nan)
+    return out
+
+
+def _load_npy(path):
+    try:
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: not a readable .npy file ({exc})") from None
+
+
+def _select_array(arr, name, cols):
+    if arr.ndim != 2 or arr.shape[1] < 2:
+        raise InputError(f"{name}: needs an (n, 2) array (or more columns), got shape {arr.shape}")
+    if cols is None:
+        cols = [0, 1]
+    if not all(isinstance(c, int) for c in cols):
+        raise InputError(f"{name}: array columns are chosen by index, like 0,1")
+    try:
+        return np.ascontiguousarray(arr[:, cols], dtype=np.float64)
+    except IndexError:
+        raise InputError(
+            f"{name}: column indices {cols} out of range for shape {arr.shape}"
+        ) from None
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: the array is not numeric (dtype {arr.dtype})") from None
+
+
+def _read_npz_points(path, cols):
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({exc})") from None
+    if "points" in data:
+        return _select_array(data["points"], path, cols)
+    if len(data.files) == 1:
+        return _select_array(data[data.files[0]], path, cols)
+    raise InputError(f"{path}: holds {', '.join(data.files)}; store the points as 'points'")
+
+
+def _read_parquet(path, cols):
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise InputError(
+            "reading Parquet needs pyarrow: pip install 'knnrefine[parquet]'"
+        ) from None
+    try:
+        frame = pq.read_table(path).to_pandas()
+    except Exception as exc:  # pyarrow raises many types for a bad file
+        raise InputError(f"{path}: not a readable Parquet file ({exc})") from None
+    return _select_frame(frame, path, cols, True)
+
+
+# --- meshes -------------------------------------------------------------------------------
+
+
+def write_mesh(mesh, path, force=False):
+    """Write ``mesh`` in the format its extension names (see WRITERS)."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in WRITERS:
+        raise InputError(
+            f"{path}: unknown mesh format {ext!r}; use one of {', '.join(sorted(WRITERS))}"
+        )
+    _atomic_write(path, force, lambda tmp: WRITERS[ext](mesh, tmp))
+
+
+def read_mesh(path):
+    """Read a mesh written by ``write_mesh`` as ``.npz`` (the lossless format)."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in READERS:
+        raise InputError(f"{path}: knnrefine reads meshes from {', '.join(READERS)} files")
+    if not os.path.exists(path):
+        raise InputError(f"{path}: no such file")
+    return READERS[ext](path)
+
+
+def _atomic_write(path, force, write):
+    if os.path.exists(path) and not force:
+        raise InputError(f"{path} exists; use --force (force=True) to overwrite it")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"{path}: the folder {folder} does not exist")
+    ext = os.path.splitext(path)[1]
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".knnrefine-", suffix=ext)
+    os.close(fd)
+    try:
+        write(tmp)
+        umask = os.umask(0)  # mkstemp makes the file private; give it the usual permissions
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def _write_npz(mesh, path):
+    t = mesh.torus
+    with open(path, "wb") as f:
+        np.savez_compressed(
+            f,
+            format=np.array(FORMAT_VERSION),
+            vertices=mesh.vertices,
+            triangles=mesh.triangles,
+            offsets=mesh.offsets if mesh.offsets is not None else np.zeros((0, 3, 2), np.int8),
+            has_offsets=np.array(mesh.offsets is not None),
+            kinds=mesh.kinds,
+            order=mesh.order,
+            k=np.array(mesh.k),
+            tau=np.array(mesh.tau),
+            periodic=np.array(mesh.periodic),
+            box=np.array(mesh.box),
+            min_size=np.array(mesh.min_size),
+            floor_points=mesh.floor_points,
+            stats=np.array(json.dumps(mesh.stats)),
+            torus_origin=np.array(t.origin),
+            torus_period=np.array(t.period),
+            torus_vertices=t.vertices,
+            torus_triangles=t.triangles,
+            torus_offsets=t.offsets,
+            torus_neighbors=t.neighbors,
+            torus_kinds=t.kinds,
+        )
+
+
+def _read_npz(path):
+    try:
+        d = np.load(path, allow_pickle=False)
+        if int(d["format"]) > FORMAT_VERSION:
+            raise InputError(f"{path}: written by a newer knnrefine (format {int(d['format'])})")
+        torus = Torus(
+            origin=tuple(d["torus_origin"].tolist()),
+            period=tuple(d["torus_period"].tolist()),
+            vertices=d["torus_vertices"],
+            triangles=d["torus_triangles"],
+            offsets=d["torus_offsets"],
+            neighbors=d["torus_neighbors"],
+            kinds=d["torus_kinds"],
+        )
+        return Mesh(
+            vertices=d["vertices"],
+            triangles=d["triangles"],
+            offsets=d["offsets"] if bool(d["has_offsets"]) else None,
+            kinds=d["kinds"],
+            order=d["order"],
+            k=int(d["k"]),
+            tau=float(d["tau"]),
+            periodic=tuple(bool(p) for p in d["periodic"]),
+            box=tuple(float(b) for b in d["box"]),
+            min_size=float(d["min_size"]),
+            floor_points=d["floor_points"],
+            stats=json.loads(str(d["stats"])),
+            torus=torus,
+        )
+    except KeyError as exc:
+        raise InputError(f"{path}: not a knnrefine mesh (missing {exc})") from None
+    except (ValueError, OSError) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({exc})") from None
+
+
+def _meshio_writer(file_format):
+    def write(mesh, path):
+        import meshio
+
+        if file_format == "xdmf":
+            try:
+                import h5py  # noqa: F401  (meshio's XDMF writer needs it even for XML data)
+            except ImportError:
+                raise InputError(
+                    "writing .xdmf needs h5py: pip install 'knnrefine[xdmf]' "
+                    "(or write .vtu, which needs nothing more)"
+                ) from None
+
+        points, triangles, source = mesh.flat()
+        out = meshio.Mesh(
+            points=np.column_stack([points, np.zeros(len(points))]),
+            cells=[("triangle", triangles.astype(np.int64))],
+            point_data={
+                "kind": mesh.kinds[source].astype(np.int32),
+                "order": mesh.order[source].astype(np.int64),
+                "d_m2": mesh.d_m2(points),
+                "vertex": source.astype(np.int64),
+            },
+        )
+        kwargs = {"data_format": "XML"} if file_format == "xdmf" else {}
+        meshio.write(path, out, file_format=file_format, **kwargs)
+
+    return write
+
+
+def _write_geojson(mesh, path):
+    """Triangles as Polygon features (corners across a periodic seam kept where they are),
+    with d_M2 at their centroid; parameters in the collection's properties."""
+    c = mesh.corners()
+    centroid = c.mean(axis=1)
+    d = mesh.d_m2(centroid)
+    with open(path, "w") as f:
+        f.write('{"type": "FeatureCollection", "properties": ')
+        f.write(
+            json.dumps(
+                {
+                    "k": mesh.k,
+                    "tau": mesh.tau,
+                    "periodic": list(mesh.periodic),
+                    "box": list(mesh.box),
+                    "alpha": mesh.alpha,
+                    "beta": mesh.beta,
+                }
+            )
+        )
+        f.write(', "features": [\n')
+        for i in range(len(c)):
+            ring = [[float(x), float(y)] for x, y in c[i]] + [
+                [float(c[i, 0, 0]), float(c[i, 0, 1])]
+            ]
+            f.write(
+                json.dumps(
+                    {
+                        "type": "Feature",
+                        "geometry": {"type": "Polygon", "coordinates": [ring]},
+                        "properties": {"d_m2": float(d[i])},
+                    }
+                )
+            )
+            f.write(",\n" if i + 1 < len(c) else "\n")
+        f.write("]}\n")
+
+
+def _write_csv(mesh, path):
+    """One row per vertex: x, y, kind (0 initial, 1 circumball Break, 2 cell Break, 3 Clean),
+    insertion order."""
+    with open(path, "w") as f:
+        f.write("x,y,kind,order\n")
+        table = np.column_stack([mesh.vertices, mesh.kinds, mesh.order])
+        np.savetxt(f, table, delimiter=",", fmt=["%.17g", "%.17g", "%d", "%d"])
+
+
+WRITERS = {
+    ".npz": _write_npz,
+    ".vtu": _meshio_writer("vtu"),
+    ".vtk": _meshio_writer("vtk"),
+    ".xdmf": _meshio_writer("xdmf"),
+    ".geojson": _write_geojson,
+    ".csv": _write_csv,
+}
+READERS = {".npz": _read_npz}

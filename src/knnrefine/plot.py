@@ -1,0 +1,185 @@
+"""Pictures of a mesh with matplotlib: the input points, the triangles, and the triangles or the
+Voronoi cells coloured by d_{M,2} (log scale). Periodic meshes are drawn across the seam."""
+
+import os
+
+import numpy as np
+
+from .errors import InputError
+
+
+def plot_mesh(
+    mesh,
+    points=None,
+    *,
+    ax=None,
+    cells="triangles",
+    show_mesh=True,
+    show_points=True,
+    max_points=200_000,
+    cmap="viridis",
+    title=None,
+    labels=("x", "y"),
+):
+    """Draw ``mesh`` on ``ax`` (a new figure if None); returns the axes.
+
+    cells: "triangles" (coloured by d_{M,2} at their centroid), "voronoi" (each vertex's cell
+    coloured by d_{M,2} at the vertex, the distance to its nearest other vertex) or "none".
+    """
+    from matplotlib.collections import LineCollection, PolyCollection
+    from matplotlib.colors import LogNorm
+
+    if cells not in ("triangles", "voronoi", "none"):
+        raise InputError(f"cells must be 'triangles', 'voronoi' or 'none', got {cells!r}")
+    if ax is None:
+        from matplotlib.figure import Figure
+
+        ax = Figure(figsize=figure_size(mesh), layout="constrained").add_subplot()
+    lo = np.array(mesh.box[:2])
+    hi = np.array(mesh.box[2:])
+    period = np.array(mesh.period)
+    tris = _copies_meeting_box(mesh.corners(), mesh, lo, hi)
+    norm = None
+    if cells == "triangles":
+        values = mesh.d_m2(tris.mean(axis=1))
+        polys, values = tris, values
+    elif cells == "voronoi":
+        polys, values = _voronoi_cells(mesh, lo, hi)
+    if cells != "none":
+        values = np.maximum(values, np.min(values[values > 0]) if (values > 0).any() else 1.0)
+        norm = LogNorm(vmin=values.min(), vmax=max(values.max(), values.min() * 1.0001))
+        coll = PolyCollection(
+            polys,
+            array=values,
+            cmap=cmap,
+            norm=norm,
+            edgecolors="none",
+            rasterized=len(polys) > 20000,
+        )
+        ax.add_collection(coll)
+        cbar = ax.figure.colorbar(coll, ax=ax)
+        cbar.set_label("$d_{M,2}$ (distance to the second-nearest mesh vertex)")
+    if show_mesh:
+        edges = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+        # each edge once (neighbours and periodic copies share it): equal alpha everywhere
+        flip = (edges[:, 0, 0] > edges[:, 1, 0]) | (
+            (edges[:, 0, 0] == edges[:, 1, 0]) & (edges[:, 0, 1] > edges[:, 1, 1])
+        )
+        edges[flip] = edges[flip][:, ::-1]
+        edges = np.unique(edges.reshape(-1, 4), axis=0).reshape(-1, 2, 2)
+        ax.add_collection(
+            LineCollection(
+                edges,
+                colors="0.1",
+                alpha=0.35,
+                linewidths=0.25 if len(tris) > 2000 else 0.5,
+                rasterized=len(tris) > 20000,
+            )
+        )
+    n = None
+    if points is not None:
+        pts = np.asarray(points, float)
+        n = len(pts)
+        if show_points:
+            if len(pts) > max_points:
+                pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
+            for a in range(2):  # periodic axes: show the points wrapped into the box
+                if mesh.periodic[a]:
+                    pts[:, a] = lo[a] + np.mod(pts[:, a] - lo[a], period[a])
+            ax.scatter(
+                pts[:, 0],
+                pts[:, 1],
+                s=1.5 if len(pts) > 5000 else 4,
+                c="black",
+                linewidths=0,
+                alpha=0.5 if len(pts) > 5000 else 0.8,
+                rasterized=True,
+                label=f"input points{' (sample)' if n > max_points else ''}",
+            )
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ratio = (hi[1] - lo[1]) / (hi[0] - lo[0])
+    ax.set_aspect("equal" if 0.05 < ratio < 20 else "auto")
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    if title is None:
+        n = n if n is not None else mesh.stats.get("n")
+        mode = {(True, True): ", periodic", (False, False): ""}.get(
+            tuple(mesh.periodic), f", periodic in {'x' if mesh.periodic[0] else 'y'}"
+        )
+        title = (
+            f"kNNRefine: n = {n}, k = {mesh.k}, tau = {mesh.tau:g}, m = {len(mesh.vertices)}{mode}"
+        )
+    ax.set_title(title)
+    return ax
+
+
+def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
+    """Draw the mesh and write the picture; PNG, SVG or PDF by the extension."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .io import _atomic_write
+
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in (".png", ".svg", ".pdf"):
+        raise InputError(f"{path}: pictures are written as .png, .svg or .pdf")
+    fig = Figure(figsize=figure_size(mesh), layout="constrained")
+    FigureCanvasAgg(fig)
+    plot_mesh(mesh, points, ax=fig.add_subplot(), **kwargs)
+    _atomic_write(path, force, lambda tmp: fig.savefig(tmp, dpi=dpi, format=ext[1:]))
+
+
+def figure_size(mesh, width=9.0):
+    """Inches for a picture of the box at equal aspect, with room for the colour bar."""
+    w = mesh.box[2] - mesh.box[0]
+    h = mesh.box[3] - mesh.box[1]
+    ratio = min(max(h / w, 0.3), 1.6)
+    return width, 1.0 + (width - 2.0) * ratio
+
+
+def _copies_meeting_box(corners, mesh, lo, hi):
+    """Triangles plus their periodic copies (one period either way along periodic axes) that
+    meet the box: a triangle across the seam shows on both sides."""
+    period = np.array(mesh.period)
+    shifts = [
+        (sx, sy)
+        for sx in ((-1, 0, 1) if mesh.periodic[0] else (0,))
+        for sy in ((-1, 0, 1) if mesh.periodic[1] else (0,))
+    ]
+    out = []
+    for s in shifts:
+        c = corners + np.array(s) * period
+        meets = np.all((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi), axis=1)
+        out.append(c[meets])
+    return np.concatenate(out)
+
+
+def _voronoi_cells(mesh, lo, hi):
+    """Voronoi cells of the vertices (and their periodic copies) that meet the box, from
+    scipy; the picture's limits clip them."""
+    from scipy.spatial import Voronoi
+
+    period = np.array(mesh.period)
+    sites = mesh.vertices
+    shifts = [
+        (sx, sy)
+        for sx in ((-1, 0, 1) if mesh.periodic[0] else (0,))
+        for sy in ((-1, 0, 1) if mesh.periodic[1] else (0,))
+    ]
+    cover = np.concatenate([sites + np.array(s) * period for s in shifts])
+    own = np.tile(np.arange(len(sites)), len(shifts))
+    vor = Voronoi(cover)
+    spacing = mesh.d_m2(sites)  # at a vertex: the distance to its nearest other vertex
+    polys, values = [], []
+    span = hi - lo
+    for i, region in enumerate(vor.point_region):
+        verts = vor.regions[region]
+        if not verts or -1 in verts:
+            continue
+        poly = vor.vertices[verts]
+        if np.any(poly.max(0) < lo - 0.01 * span) or np.any(poly.min(0) > hi + 0.01 * span):
+            continue
+        polys.append(poly)
+        values.append(spacing[own[i]])
+    return polys, np.array(values)
