@@ -311,3 +311,18 @@ def test_every_subcommand_through_a_subprocess(tmp_path, csv):
     assert r.returncode == 0 and (tmp_path / "knnrefine-demo" / "mesh.png").exists()
     r = call("refine", "missing.csv", "-k", 3)
     assert r.returncode == 1 and "Traceback" not in r.stderr
+
+
+def test_reading_from_a_pipe_reads_it_once(tmp_path, points):
+    """A named pipe (or `<(...)` in a shell) can be read only once: the sniffing of the first
+    line must not lose it (regression)."""
+    import threading
+
+    fifo = tmp_path / "points.fifo"
+    os.mkfifo(fifo)
+    text = "x,y\n" + "".join(f"{x!r},{y!r}\n" for x, y in points.tolist())
+    writer = threading.Thread(target=lambda: fifo.write_text(text))
+    writer.start()
+    got = io.read_points(str(fifo))
+    writer.join()
+    np.testing.assert_array_equal(got, points)

@@ -50,6 +50,10 @@ def read_points(path, columns=None, delimiter=None):
         return _read_npz_points(path, cols)
     if ext in (".parquet", ".pq"):
         return _read_parquet(path, cols)
+    if not os.path.isfile(path):  # a pipe or a device: it can be read only once
+        with open(path, "rb") as f:
+            data = f.read()
+        return _read_text(_io.BytesIO(data), _io.BytesIO(data), path, cols, delimiter)
     with open(path, "rb") as head:
         return _read_text(head, path, path, cols, delimiter)
 

@@ -48,12 +48,14 @@ def plot_mesh(
     if cells != "none":
         values = np.maximum(values, np.min(values[values > 0]) if (values > 0).any() else 1.0)
         norm = LogNorm(vmin=values.min(), vmax=max(values.max(), values.min() * 1.0001))
+        # face-coloured hairlines close the antialiasing seams between neighbouring polygons
         coll = PolyCollection(
             polys,
             array=values,
             cmap=cmap,
             norm=norm,
-            edgecolors="none",
+            edgecolors="face",
+            linewidths=0.3,
             rasterized=len(polys) > 20000,
         )
         ax.add_collection(coll)
@@ -71,7 +73,7 @@ def plot_mesh(
             LineCollection(
                 edges,
                 colors="0.1",
-                alpha=0.35,
+                alpha=0.45,
                 linewidths=0.25 if len(tris) > 2000 else 0.5,
                 rasterized=len(tris) > 20000,
             )
