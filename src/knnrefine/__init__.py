@@ -8,6 +8,7 @@ everywhere in the box, whose Delaunay triangulation is tau-well-spaced.
 from . import datasets
 from .api import refine
 from .certify import Certificate, certify
+from .cluster import Clustering, cluster
 from .density import KnnDensity, KnnDistance
 from .errors import BudgetError, EngineError, InputError, KnnRefineError
 from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
@@ -19,6 +20,8 @@ __all__ = [
     "certify",
     "Certificate",
     "KnnDistance",
+    "cluster",
+    "Clustering",
     "KnnDensity",
     "datasets",
     "Mesh",

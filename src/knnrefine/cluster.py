@@ -1,0 +1,117 @@
+"""Mode-seeking clustering through the mesh: ToMATo on the mesh graph.
+
+ToMATo (Chazal, Guibas, Oudot, Skraba 2013; gudhi's implementation) grows clusters from the
+peaks of a density on a graph and merges those whose prominence is small. Here the graph is the
+mesh (m vertices, not n points) and the density at a vertex is the kNN estimate from exact
+d_{P,k} there (log scale); each input point then takes the label of its Voronoi cell, i.e. of
+its nearest mesh vertex. The number of clusters is chosen at the largest gap between the
+prominences, unless given.
+"""
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import InputError
+from .topology import _exact_dpk, _gudhi
+from .validation import as_points
+
+
+@dataclass
+class Clustering:
+    """labels (n,): cluster of each input point (0 .. n_clusters - 1, by decreasing peak
+    density); vertex_labels (m,): of each mesh vertex (-1 for vertex copies outside every
+    triangle); prominence: of every peak found, by decreasing value (the n_clusters first
+    were kept); seconds."""
+
+    labels: np.ndarray
+    vertex_labels: np.ndarray
+    n_clusters: int
+    prominence: np.ndarray
+    seconds: float
+
+
+def cluster(mesh, points, n_clusters=None, merge_threshold=None):
+    """ToMATo clusters of ``points`` on the mesh graph (see the module docstring).
+
+    n_clusters: how many to keep (default: cut at the largest prominence gap);
+    merge_threshold: or keep the peaks more prominent than this (log density units)."""
+    t0 = time.perf_counter()
+    gudhi = _gudhi()
+    from gudhi.clustering.tomato import Tomato
+
+    pts = as_points(points)
+    if len(pts) < mesh.k:
+        raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
+    if n_clusters is not None and (int(n_clusters) != n_clusters or n_clusters < 1):
+        raise InputError(f"n_clusters must be a positive integer, got {n_clusters!r}")
+    del gudhi
+    # the graph: the vertices of the triangles (a non-periodic mesh also returns vertex copies
+    # near the box that no kept triangle uses) and the triangles' edges
+    used, tri = np.unique(mesh.triangles.astype(np.int64), return_inverse=True)
+    tri = tri.reshape(-1, 3)
+    vertices = mesh.vertices[used]
+    m = len(vertices)
+    edges = np.unique(
+        np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1), axis=0
+    )
+    neighbours = [[] for _ in range(m)]
+    for a, b in edges:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    d = _exact_dpk(pts, vertices, mesh.k, mesh.box, mesh.periodic)
+    log_density = np.log(mesh.k / (len(pts) * np.pi)) - 2.0 * np.log(d)
+    tomato = Tomato(graph_type="manual", density_type="manual")
+    tomato.fit(neighbours, weights=log_density)
+    # gudhi's diagram lists the peaks that merge; the highest peak of each connected piece
+    # never merges (infinite prominence)
+    diagram = np.asarray(tomato.diagram_, float).reshape(-1, 2)
+    finite = np.sort(diagram[:, 0] - diagram[:, 1])[::-1]
+    essential = len(tomato.max_weight_per_cc_)
+    prominence = np.concatenate([np.full(essential, np.inf), finite])
+    if n_clusters is None and merge_threshold is None:
+        # keep the peaks above the largest gap between consecutive prominences
+        gaps = finite[:-1] - finite[1:] if len(finite) > 1 else np.zeros(0)
+        keep = int(np.argmax(gaps)) + 1 if len(gaps) and gaps.max() > 0 else len(finite)
+        n_clusters = essential + keep
+    if n_clusters is not None:
+        tomato.n_clusters_ = min(int(n_clusters), tomato.n_leaves_)
+    else:
+        tomato.merge_threshold_ = float(merge_threshold)
+    vertex_labels = np.asarray(tomato.labels_)
+    # number clusters by decreasing peak density
+    peaks = np.array(
+        [log_density[vertex_labels == c].max() for c in range(vertex_labels.max() + 1)]
+    )
+    rank = np.empty(len(peaks), int)
+    rank[np.argsort(-peaks, kind="stable")] = np.arange(len(peaks))
+    vertex_labels = rank[vertex_labels]
+    labels = vertex_labels[_nearest_vertex(vertices, mesh, pts)]
+    all_labels = np.full(len(mesh.vertices), -1)
+    all_labels[used] = vertex_labels
+    return Clustering(
+        labels=labels,
+        vertex_labels=all_labels,
+        n_clusters=int(vertex_labels.max() + 1),
+        prominence=prominence,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def _nearest_vertex(vertices, mesh, pts):
+    lo = np.array(mesh.box[:2])
+    per = np.array(mesh.periodic)
+    period = np.array(mesh.period)
+
+    def frame(x):
+        x = np.asarray(x, float) - lo
+        for a in range(2):
+            if per[a]:
+                x[:, a] = np.mod(x[:, a], period[a])
+                x[x[:, a] >= period[a], a] = 0.0
+        return x
+
+    tree = cKDTree(frame(vertices), boxsize=np.where(per, period, 0.0) if per.any() else None)
+    return tree.query(frame(pts), workers=-1)[1]
