@@ -12,10 +12,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .errors import InputError
-from .topology import _exact_dpk, _gudhi
+from .metric import BoxMetric
+from .topology import _gudhi
 from .validation import as_points
 
 
@@ -61,7 +61,8 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None):
     for a, b in edges:
         neighbours[a].append(b)
         neighbours[b].append(a)
-    d = _exact_dpk(pts, vertices, mesh.k, mesh.box, mesh.periodic)
+    metric = BoxMetric(mesh.box, mesh.periodic)
+    d = metric.kth(pts, vertices, mesh.k)
     log_density = np.log(mesh.k / (len(pts) * np.pi)) - 2.0 * np.log(d)
     tomato = Tomato(graph_type="manual", density_type="manual")
     tomato.fit(neighbours, weights=log_density)
@@ -88,7 +89,7 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None):
     rank = np.empty(len(peaks), int)
     rank[np.argsort(-peaks, kind="stable")] = np.arange(len(peaks))
     vertex_labels = rank[vertex_labels]
-    labels = vertex_labels[_nearest_vertex(vertices, mesh, pts)]
+    labels = vertex_labels[metric.tree(vertices).query(metric.frame(pts), workers=-1)[1]]
     all_labels = np.full(len(mesh.vertices), -1)
     all_labels[used] = vertex_labels
     return Clustering(
@@ -98,20 +99,3 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None):
         prominence=prominence,
         seconds=time.perf_counter() - t0,
     )
-
-
-def _nearest_vertex(vertices, mesh, pts):
-    lo = np.array(mesh.box[:2])
-    per = np.array(mesh.periodic)
-    period = np.array(mesh.period)
-
-    def frame(x):
-        x = np.asarray(x, float) - lo
-        for a in range(2):
-            if per[a]:
-                x[:, a] = np.mod(x[:, a], period[a])
-                x[x[:, a] >= period[a], a] = 0.0
-        return x
-
-    tree = cKDTree(frame(vertices), boxsize=np.where(per, period, 0.0) if per.any() else None)
-    return tree.query(frame(pts), workers=-1)[1]

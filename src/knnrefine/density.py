@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import InputError
+from .metric import BoxMetric
 from .validation import as_points
 
 # Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
@@ -61,14 +62,13 @@ class KnnDistance:
         self.n = len(pts)
         self.lo = np.array(mesh.box[:2], float)
         self.hi = np.array(mesh.box[2:], float)
-        self.periodic = np.array(mesh.periodic, bool)
-        self.period = np.array(mesh.period, float)
         nodes, triangles = covering_triangulation(mesh)
         if subdivide:
             nodes, triangles = _split_in_four(nodes, triangles)
         self.nodes = nodes
         self.triangles = triangles
-        self._tree = cKDTree(self._frame(pts), boxsize=self._boxsize())
+        self._metric = BoxMetric(mesh.box, mesh.periodic)
+        self._tree = self._metric.tree(pts)
         self.values = self._exact(nodes)
 
     # -- evaluation ------------------------------------------------------------------------
@@ -182,23 +182,11 @@ class KnnDistance:
             todo = todo[~hit]
         return tri, bary
 
-    def _boxsize(self):
-        return np.where(self.periodic, self.period, 0.0) if self.periodic.any() else None
-
-    def _frame(self, x):
-        """Coordinates relative to the box's lower corner, periodic axes wrapped."""
-        x = np.asarray(x, float) - self.lo
-        for a in range(2):
-            if self.periodic[a]:
-                x[:, a] = np.mod(x[:, a], self.period[a])
-                x[x[:, a] >= self.period[a], a] = 0.0
-        return x
-
     def _wrap(self, x):
-        return self._frame(x) + self.lo
+        return self._metric.wrap(x)
 
     def _exact(self, x):
-        return self._tree.query(self._frame(x), k=[self.k], workers=-1)[0][:, 0]
+        return self._tree.query(self._metric.frame(x), k=[self.k], workers=-1)[0][:, 0]
 
     def _region(self, region):
         if region is None:

@@ -4,7 +4,8 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from .metric import BoxMetric
 
 KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
 
@@ -98,21 +99,12 @@ class Mesh:
         return tuple((self.box[a + 2] - self.box[a]) if self.periodic[a] else 0.0 for a in range(2))
 
     @cached_property
-    def _tree(self):
-        lo = np.array(self.box[:2])
-        return cKDTree(
-            self._to_tree_frame(self.vertices),
-            boxsize=np.array(self.period) if any(self.periodic) else None,
-        ), lo
+    def _metric(self):
+        return BoxMetric(self.box, self.periodic)
 
-    def _to_tree_frame(self, x):
-        x = np.asarray(x, float) - np.array(self.box[:2])
-        for a in range(2):
-            if self.periodic[a]:
-                p = self.period[a]
-                x[:, a] = np.mod(x[:, a], p)
-                x[x[:, a] >= p, a] = 0.0
-        return x
+    @cached_property
+    def _tree(self):
+        return self._metric.tree(self.vertices)
 
     def d_m2(self, x):
         """d_{M,2}: distance from each query point to its second-nearest mesh vertex.
@@ -122,8 +114,7 @@ class Mesh:
         x = np.atleast_2d(np.asarray(x, float))
         if x.ndim != 2 or x.shape[1] != 2:
             raise ValueError(f"query points must have shape (q, 2), got {x.shape}")
-        tree, _ = self._tree
-        return tree.query(self._to_tree_frame(x), k=2)[0][:, 1]
+        return self._tree.query(self._metric.frame(x), k=2)[0][:, 1]
 
     def corners(self):
         """(t, 3, 2) triangle corners, offsets applied (periodic triangles may reach past the

@@ -10,9 +10,9 @@ Persistence is computed by gudhi (``pip install "knnrefine[topology]"``).
 """
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .errors import InputError
+from .metric import BoxMetric
 from .validation import as_points
 
 
@@ -75,35 +75,9 @@ def mesh_complex(mesh, subdivide=True):
             np.stack([m[:, 0], m[:, 1], m[:, 2]], 1),
         ]
     )
-    positions = np.concatenate([mesh.vertices, _wrap_box(mid_pos, mesh.box, mesh.periodic)])
+    positions = np.concatenate([mesh.vertices, BoxMetric(mesh.box, mesh.periodic).wrap(mid_pos)])
     used = np.unique(tri)  # drop the vertices of triangles left out (non-periodic mode)
     return positions[used], np.searchsorted(used, tri)
-
-
-def _wrap_box(x, box, periodic):
-    x = np.array(x, float)
-    for a in range(2):
-        if periodic[a]:
-            x[:, a] = box[a] + np.mod(x[:, a] - box[a], box[a + 2] - box[a])
-    return x
-
-
-def _exact_dpk(points, queries, k, box, periodic):
-    """Exact d_{P,k} at the queries in the box's metric (periodic axes wrap)."""
-    lo = np.array(box[:2], float)
-    period = np.array(box[2:], float) - lo
-    per = np.array(periodic, bool)
-
-    def frame(x):
-        x = np.asarray(x, float) - lo
-        for a in range(2):
-            if per[a]:
-                x[:, a] = np.mod(x[:, a], period[a])
-                x[x[:, a] >= period[a], a] = 0.0
-        return x
-
-    tree = cKDTree(frame(points), boxsize=np.where(per, period, 0.0) if per.any() else None)
-    return tree.query(frame(queries), k=[k], workers=-1)[0][:, 0]
 
 
 class Persistence:
@@ -121,7 +95,7 @@ class Persistence:
         self.mesh = mesh
         self.log = log
         self.positions, self.triangles = mesh_complex(mesh, subdivide)
-        d = _exact_dpk(pts, self.positions, mesh.k, mesh.box, mesh.periodic)
+        d = BoxMetric(mesh.box, mesh.periodic).kth(pts, self.positions, mesh.k)
         self.values = np.log(d) if log else d
         st = gudhi.SimplexTree()
         n = len(self.positions)
@@ -171,7 +145,7 @@ def grid_persistence(points, k, box, periodic=(False, False), shape=(512, 512), 
     xs = box[0] + (np.arange(nx) + 0.5) * (box[2] - box[0]) / nx
     ys = box[1] + (np.arange(ny) + 0.5) * (box[3] - box[1]) / ny
     gx, gy = np.meshgrid(xs, ys)
-    d = _exact_dpk(pts, np.column_stack([gx.ravel(), gy.ravel()]), k, box, periodic)
+    d = BoxMetric(box, periodic).kth(pts, np.column_stack([gx.ravel(), gy.ravel()]), k)
     values = (np.log(d) if log else d).reshape(ny, nx)
     if any(periodic):  # array axes are (y, x)
         cc = gudhi.PeriodicCubicalComplex(

@@ -1,0 +1,37 @@
+"""The box's own metric: periodic axes wrap (a torus or a cylinder), the others are planar."""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+class BoxMetric:
+    """Coordinates and kd-trees in the metric of ``box`` with ``periodic`` axes."""
+
+    def __init__(self, box, periodic):
+        self.lo = np.array(box[:2], float)
+        self.hi = np.array(box[2:], float)
+        self.periodic = np.array(periodic, bool)
+        self.period = self.hi - self.lo
+
+    def frame(self, x):
+        """Coordinates relative to the box's lower corner, periodic axes wrapped into
+        [0, period) (guarding the rounding case (-1e-17) % 1.0 == 1.0)."""
+        x = np.array(x, float).reshape(-1, 2) - self.lo
+        for a in range(2):
+            if self.periodic[a]:
+                x[:, a] = np.mod(x[:, a], self.period[a])
+                x[x[:, a] >= self.period[a], a] = 0.0
+        return x
+
+    def wrap(self, x):
+        """The points with their periodic coordinates wrapped into the box."""
+        return self.frame(x) + self.lo
+
+    def tree(self, x):
+        """A cKDTree of the points in this metric (query it with ``frame`` coordinates)."""
+        boxsize = np.where(self.periodic, self.period, 0.0) if self.periodic.any() else None
+        return cKDTree(self.frame(x), boxsize=boxsize)
+
+    def kth(self, points, queries, k):
+        """Exact d_{S,k} at the queries for the point set S = points."""
+        return self.tree(points).query(self.frame(queries), k=[k], workers=-1)[0][:, 0]
