@@ -187,7 +187,8 @@ def sklearn_estimate(points, truth, ev):
 METHODS = {
     "knnrefine": knnrefine_estimate,
     "gaussian_kde": scipy_estimate,
-    "FFTKDE": fftkde_estimate,
+    "FFTKDE (ISJ)": fftkde_estimate,
+    "FFTKDE (Silverman)": fftkde_silverman_estimate,
     "KernelDensity": sklearn_estimate,
 }
 

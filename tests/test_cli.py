@@ -326,3 +326,83 @@ def test_reading_from_a_pipe_reads_it_once(tmp_path, points):
     got = io.read_points(str(fifo))
     writer.join()
     np.testing.assert_array_equal(got, points)
+
+
+def test_density_persistence_cluster_commands(tmp_path, capsys):
+    pytest.importorskip("gudhi")
+    rng = np.random.default_rng(7)
+    t = rng.random(1200) * 2 * np.pi
+    ring = np.concatenate(
+        [
+            np.stack([np.cos(t), np.sin(t)], 1) + rng.normal(0, 0.05, (1200, 2)),
+            rng.normal([3, 0], 0.1, (600, 2)),
+            rng.random((300, 2)) * 6 - 2,
+        ]
+    )
+    src = tmp_path / "ring.npy"
+    np.save(src, ring)
+    # density: a grid that integrates to about 1, and a picture
+    assert (
+        run(
+            "density",
+            src,
+            "-o",
+            tmp_path / "d.npz",
+            "-o",
+            tmp_path / "d.csv",
+            "--grid",
+            64,
+            48,
+            "--plot",
+            tmp_path / "d.png",
+        )
+        == 0
+    )
+    g = np.load(tmp_path / "d.npz")
+    assert g["density"].shape == (48, 64) and int(g["k"]) == round(0.5 * np.sqrt(len(ring)))
+    cell = np.diff(g["xs"])[0] * np.diff(g["ys"])[0]
+    assert g["density"].sum() * cell == pytest.approx(1.0, rel=0.05)
+    assert np.loadtxt(tmp_path / "d.csv", delimiter=",", skiprows=1).shape == (48 * 64, 4)
+    picture_is_real(str(tmp_path / "d.png"))
+    # persistence: the ring's loop is the one long H1 class
+    assert (
+        run(
+            "persistence",
+            src,
+            "-k",
+            30,
+            "--linear",
+            "-o",
+            tmp_path / "p.csv",
+            "--plot",
+            tmp_path / "p.svg",
+        )
+        == 0
+    )
+    rows = np.loadtxt(tmp_path / "p.csv", delimiter=",", skiprows=1)
+    h1 = rows[rows[:, 0] == 1]
+    life = np.sort(h1[:, 2] - h1[:, 1])[::-1]
+    assert life[0] > 0.4 and (len(life) == 1 or life[0] > 3 * life[1])  # the ring dominates
+    picture_is_real(str(tmp_path / "p.svg"))
+    # cluster, reusing a mesh file: the ring and the blob
+    assert run("refine", src, "-k", 30, "-o", tmp_path / "m.npz", "-q") == 0
+    assert (
+        run(
+            "cluster",
+            src,
+            "--mesh",
+            tmp_path / "m.npz",
+            "-o",
+            tmp_path / "c.npy",
+            "--plot",
+            tmp_path / "c.png",
+        )
+        == 0
+    )
+    labels = np.load(tmp_path / "c.npy")
+    assert len(np.unique(labels[:1800])) == 2
+    assert np.bincount(labels[1200:1800]).argmax() != np.bincount(labels[:1200]).argmax()
+    picture_is_real(str(tmp_path / "c.png"))
+    assert run("cluster", src, "--mesh", tmp_path / "m.npz", "-k", 10) == 1  # disagrees
+    out = capsys.readouterr()
+    assert "disagrees with the mesh's k = 30" in out.err

@@ -73,10 +73,10 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None):
     essential = len(tomato.max_weight_per_cc_)
     prominence = np.concatenate([np.full(essential, np.inf), finite])
     if n_clusters is None and merge_threshold is None:
-        # keep the peaks above the largest gap between consecutive prominences
-        gaps = finite[:-1] - finite[1:] if len(finite) > 1 else np.zeros(0)
-        keep = int(np.argmax(gaps)) + 1 if len(gaps) and gaps.max() > 0 else len(finite)
-        n_clusters = essential + keep
+        # keep the peaks above the largest gap between consecutive prominences, counting the
+        # gap down to 0 after the last one (when every peak is a real cluster)
+        steps = np.append(finite, 0.0)
+        n_clusters = essential + (int(np.argmax(steps[:-1] - steps[1:])) + 1 if len(finite) else 0)
     if n_clusters is not None:
         tomato.n_clusters_ = min(int(n_clusters), tomato.n_leaves_)
     else:

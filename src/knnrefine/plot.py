@@ -118,6 +118,17 @@ def plot_mesh(
 
 def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
     """Draw the mesh and write the picture; PNG, SVG or PDF by the extension."""
+    save_figure(
+        path,
+        figure_size(mesh),
+        lambda ax: plot_mesh(mesh, points, ax=ax, **kwargs),
+        force=force,
+        dpi=dpi,
+    )
+
+
+def save_figure(path, figsize, draw, force=False, dpi=150):
+    """Make a figure, let ``draw(ax)`` fill it, write it atomically (PNG, SVG or PDF)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -126,10 +137,105 @@ def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".png", ".svg", ".pdf"):
         raise InputError(f"{path}: pictures are written as .png, .svg or .pdf")
-    fig = Figure(figsize=figure_size(mesh), layout="constrained")
+    fig = Figure(figsize=figsize, layout="constrained")
     FigureCanvasAgg(fig)
-    plot_mesh(mesh, points, ax=fig.add_subplot(), **kwargs)
+    draw(fig.add_subplot())
     _atomic_write(path, force, lambda tmp: fig.savefig(tmp, dpi=dpi, format=ext[1:]))
+
+
+def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma"):
+    """The kNN density estimate on a grid over the box, log colour scale."""
+    from matplotlib.colors import LogNorm
+
+    xs, ys, f = density.grid(shape)
+    mesh = density.distance.mesh
+    positive = f[np.isfinite(f) & (f > 0)]
+    im = ax.imshow(
+        f,
+        origin="lower",
+        extent=(*mesh.box[::2], *mesh.box[1::2]),
+        cmap=cmap,
+        norm=LogNorm(vmin=max(positive.min(), positive.max() * 1e-6), vmax=positive.max()),
+        interpolation="nearest",
+        aspect="auto",
+    )
+    ax.figure.colorbar(im, ax=ax).set_label("kNN density (integrates to 1 over the box)")
+    ratio = (mesh.box[3] - mesh.box[1]) / (mesh.box[2] - mesh.box[0])
+    ax.set_aspect("equal" if 0.05 < ratio < 20 else "auto")
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    ax.set_title(f"kNN density: n = {density.n}, k = {density.k}, m = {len(mesh.vertices)}")
+    return ax
+
+
+def plot_diagram(persistence, ax, dims=(0, 1)):
+    """Persistence diagram: birth against death per dimension; classes that never die on a
+    line at the top."""
+    colours = {0: "tab:blue", 1: "tab:orange", 2: "tab:green"}
+    finite = np.concatenate([persistence.diagram(d)[:, :2].ravel() for d in dims])
+    finite = finite[np.isfinite(finite)]
+    lo, hi = (finite.min(), finite.max()) if len(finite) else (0.0, 1.0)
+    pad = 0.05 * (hi - lo if hi > lo else 1.0)
+    top = hi + 3 * pad
+    ax.plot([lo - pad, top], [lo - pad, top], color="0.5", lw=0.8)
+    ax.axhline(top, color="0.7", lw=0.8, ls="--")
+    for d in dims:
+        dg = persistence.diagram(d)
+        if len(dg) == 0:
+            continue
+        death = np.where(np.isfinite(dg[:, 1]), dg[:, 1], top)
+        ax.scatter(
+            dg[:, 0],
+            death,
+            s=12,
+            color=colours.get(d, "k"),
+            label=f"H{d} ({len(dg)})",
+            alpha=0.8,
+            edgecolors="none",
+        )
+    scale = "log d_Pk" if persistence.log else "d_Pk"
+    ax.set_xlabel(f"birth ({scale})")
+    ax.set_ylabel(f"death ({scale}); dashed: never dies")
+    mesh = persistence.mesh
+    ax.set_title(f"sublevel sets of d_Pk: k = {mesh.k}, m = {len(mesh.vertices)}")
+    ax.legend(loc="lower right")
+    ax.set_xlim(lo - pad, top + pad)
+    ax.set_ylim(lo - pad, top + pad)
+    ax.set_aspect("equal")
+    return ax
+
+
+def plot_clusters(mesh, points, labels, ax, max_points=200_000, labels_xy=("x", "y")):
+    """Input points coloured by cluster over the mesh's edges."""
+    pts = np.asarray(points, float)
+    lab = np.asarray(labels)
+    if len(pts) > max_points:
+        pick = np.random.default_rng(0).choice(len(pts), max_points, replace=False)
+        pts, lab = pts[pick], lab[pick]
+    plot_mesh(
+        mesh,
+        None,
+        ax=ax,
+        cells="none",
+        show_points=False,
+        labels=labels_xy,
+        title=f"ToMATo on the mesh: {lab.max() + 1} clusters, k = {mesh.k}, "
+        f"m = {len(mesh.vertices)}",
+    )
+    lo = np.array(mesh.box[:2])
+    for a in range(2):
+        if mesh.periodic[a]:
+            pts[:, a] = lo[a] + np.mod(pts[:, a] - lo[a], mesh.period[a])
+    ax.scatter(
+        pts[:, 0],
+        pts[:, 1],
+        c=lab,
+        cmap="tab20",
+        s=2 if len(pts) > 5000 else 6,
+        linewidths=0,
+        rasterized=True,
+    )
+    return ax
 
 
 def figure_size(mesh, width=9.0):

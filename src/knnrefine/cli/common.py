@@ -22,8 +22,8 @@ def add_input_options(parser, positional="points"):
     )
 
 
-def add_refine_options(parser):
-    parser.add_argument("-k", type=int, required=True, help="which nearest neighbour (k >= 1)")
+def add_refine_options(parser, k_required=True, k_help="which nearest neighbour (k >= 1)"):
+    parser.add_argument("-k", type=int, required=k_required, help=k_help)
     parser.add_argument("--tau", type=float, default=3.0, help="well-spacedness, > 2 (default 3)")
     per = parser.add_mutually_exclusive_group()
     per.add_argument(
@@ -124,3 +124,28 @@ def require_outputs_free(paths, force):
     for p in paths:
         if os.path.exists(p) and not force:
             raise InputError(f"{p} exists; use --force to overwrite it")
+
+
+def add_mesh_option(parser):
+    parser.add_argument(
+        "--mesh",
+        metavar="MESH.npz",
+        help="use this mesh (from 'knnrefine refine', made from the same points) "
+        "instead of refining again; its k is used",
+    )
+
+
+def mesh_for(args, points, default_k=None):
+    """The mesh of the points: --mesh if given, else a refinement with the options."""
+    from .. import io
+
+    if args.mesh:
+        mesh = io.read_mesh(args.mesh)
+        if args.k is not None and args.k != mesh.k:
+            raise InputError(f"-k {args.k} disagrees with the mesh's k = {mesh.k}")
+        return mesh, 0.0
+    if args.k is None:
+        if default_k is None:
+            raise InputError("give -k (or --mesh)")
+        args.k = default_k(len(points))
+    return refine_with_progress(points, args, args.quiet)

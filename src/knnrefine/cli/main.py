@@ -3,9 +3,17 @@
 import argparse
 import sys
 
-from . import certify, demo, plot, refine
+from . import certify, cluster, demo, density, persistence, plot, refine
 
-SUBCOMMANDS = {"refine": refine, "certify": certify, "plot": plot, "demo": demo}
+SUBCOMMANDS = {
+    "refine": refine,
+    "certify": certify,
+    "plot": plot,
+    "density": density,
+    "persistence": persistence,
+    "cluster": cluster,
+    "demo": demo,
+}
 
 DESCRIPTION = """Certified meshes carrying the k-th nearest neighbour distance of planar points
 (kNNRefine: Gardner & Sheehy, CCCG 2016)."""
@@ -14,6 +22,9 @@ EPILOG = """examples:
   knnrefine refine points.csv -k 20 -o mesh.npz --plot mesh.png
   knnrefine certify mesh.npz points.csv
   knnrefine plot mesh.npz -o cells.svg --cells voronoi
+  knnrefine density points.csv -o density.npz --plot density.png
+  knnrefine persistence ring.csv -k 30 --plot diagram.png
+  knnrefine cluster points.csv -k 50 -o labels.csv --plot clusters.png
 
 exit status: 0 success, 1 bad input, 2 usage, 3 a certificate that fails
 'knnrefine COMMAND --help' shows each command's options and examples."""
