@@ -83,11 +83,14 @@ def mesh_complex(mesh, subdivide=True):
 class Persistence:
     """Sublevel-set persistence of d_{P,k} (log scale by default) on the mesh.
 
+    ``function="d_m2"`` filters by the mesh's own d_{M,2} instead (no query of P at all; by
+    Theorem 6 it is within the factors [alpha, beta] of d_{P,k}).
+
     ``diagram(dim)``: (q, 2) birth and death of the classes in dimension dim (death inf for
     the classes that never die). ``log``: filtration by log d_{P,k}, which makes the diagram
     scale-free (features of a tight cluster and of a wide ring compare by ratios)."""
 
-    def __init__(self, mesh, points, log=True, subdivide=True):
+    def __init__(self, mesh, points, log=True, subdivide=True, function="d_pk"):
         gudhi = _gudhi()
         pts = as_points(points)
         if len(pts) < mesh.k:
@@ -95,7 +98,12 @@ class Persistence:
         self.mesh = mesh
         self.log = log
         self.positions, self.triangles = mesh_complex(mesh, subdivide)
-        d = BoxMetric(mesh.box, mesh.periodic).kth(pts, self.positions, mesh.k)
+        if function == "d_pk":
+            d = BoxMetric(mesh.box, mesh.periodic).kth(pts, self.positions, mesh.k)
+        elif function == "d_m2":  # the mesh's own sizing: within [alpha, beta] d_Pk, free
+            d = mesh.d_m2(self.positions)
+        else:
+            raise InputError(f"function must be 'd_pk' or 'd_m2', got {function!r}")
         self.values = np.log(d) if log else d
         st = gudhi.SimplexTree()
         n = len(self.positions)
