@@ -135,30 +135,15 @@ def scipy_estimate(points, truth, ev):
     return kde(ev.T), f"bw = {kde.factor:.3g} x sd"
 
 
-def fftkde_estimate(points, truth, ev):
+def fftkde_estimate(points, truth, ev, rule="ISJ"):
+    """KDEpy's FFTKDE; its bandwidth rules are 1-D, so the isotropic bandwidth is the mean of
+    the two marginals'. The grid step is at most bw / 2 (capped at 4096 x 4096)."""
     from KDEpy import FFTKDE
-    from KDEpy.bw_selection import improved_sheather_jones
+    from KDEpy.bw_selection import improved_sheather_jones, silvermans_rule
     from scipy.interpolate import RegularGridInterpolator
 
-    bw = float(np.mean([improved_sheather_jones(points[:, [a]]) for a in range(2)]))
-    # a grid step of at most bw / 2 (so the binned estimate is faithful), capped at 4096^2
-    span = float(np.ptp(points, axis=0).max()) + 8 * bw
-    grid = int(min(4096, max(256, np.ceil(2 * span / bw))))
-    g, v = FFTKDE(bw=bw).fit(points).evaluate((grid, grid))
-    xs = np.unique(g[:, 0])
-    ys = np.unique(g[:, 1])
-    f = RegularGridInterpolator(
-        (xs, ys), v.reshape(len(xs), len(ys)), bounds_error=False, fill_value=0.0
-    )
-    return f(ev), f"bw = {bw:.3g}, grid {grid}^2"
-
-
-def fftkde_silverman_estimate(points, truth, ev):
-    from KDEpy import FFTKDE
-    from KDEpy.bw_selection import silvermans_rule
-    from scipy.interpolate import RegularGridInterpolator
-
-    bw = float(np.mean([silvermans_rule(points[:, [a]]) for a in range(2)]))
+    select = improved_sheather_jones if rule == "ISJ" else silvermans_rule
+    bw = float(np.mean([select(points[:, [a]]) for a in range(2)]))
     span = float(np.ptp(points, axis=0).max()) + 8 * bw
     grid = int(min(4096, max(256, np.ceil(2 * span / bw))))
     g, v = FFTKDE(bw=bw).fit(points).evaluate((grid, grid))
@@ -188,7 +173,7 @@ METHODS = {
     "knnrefine": knnrefine_estimate,
     "gaussian_kde": scipy_estimate,
     "FFTKDE (ISJ)": fftkde_estimate,
-    "FFTKDE (Silverman)": fftkde_silverman_estimate,
+    "FFTKDE (Silverman)": lambda p, t, e: fftkde_estimate(p, t, e, rule="Silverman"),
     "KernelDensity": sklearn_estimate,
 }
 

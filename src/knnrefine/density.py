@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import InputError
+from .mesh import split_in_four
 from .metric import BoxMetric
 from .validation import as_points
 
@@ -261,24 +262,9 @@ def covering_triangulation(mesh):
 
 
 def _split_in_four(nodes, triangles):
-    """Each triangle into four, through its edge midpoints (shared between neighbours)."""
-    t = len(triangles)
-    edges = np.concatenate([triangles[:, [1, 2]], triangles[:, [2, 0]], triangles[:, [0, 1]]])
-    edges.sort(axis=1)
-    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    mids = 0.5 * (nodes[unique[:, 0]] + nodes[unique[:, 1]])
-    m = len(nodes) + inverse.reshape(3, t).T  # midpoint opposite corner i, per triangle
-    a, b, c = triangles.T
-    out = np.concatenate(
-        [
-            np.stack([a, m[:, 2], m[:, 1]], 1),
-            np.stack([m[:, 2], b, m[:, 0]], 1),
-            np.stack([m[:, 1], m[:, 0], c], 1),
-            np.stack([m[:, 0], m[:, 1], m[:, 2]], 1),
-        ]
-    )
-    return np.concatenate([nodes, mids]), out
+    """Each triangle into four through its edge midpoints (planar: halfway between nodes)."""
+    edges, _, pieces = split_in_four(triangles, len(nodes))
+    return np.concatenate([nodes, 0.5 * (nodes[edges[:, 0]] + nodes[edges[:, 1]])]), pieces
 
 
 def _quadrature(corners, d, func):

@@ -155,3 +155,28 @@ class Mesh:
             f"<Mesh m={len(self.vertices)} triangles={len(self.triangles)} k={self.k} "
             f"tau={self.tau:g} {mode} box={self.box}>"
         )
+
+
+def split_in_four(triangles, n_nodes):
+    """Each triangle into four through its edge midpoints, shared between neighbours.
+
+    Returns (edges (e, 2) sorted vertex pairs, edge_of (t, 3): the edge opposite each corner,
+    triangles (4 t, 3) where midpoint j is node ``n_nodes + j``). The caller places the
+    midpoints (halfway along each edge, across a periodic seam if need be)."""
+    t = len(triangles)
+    sides = np.sort(
+        np.concatenate([triangles[:, [1, 2]], triangles[:, [2, 0]], triangles[:, [0, 1]]]), axis=1
+    )
+    edges, inverse = np.unique(sides, axis=0, return_inverse=True)
+    edge_of = inverse.reshape(3, t).T
+    m = n_nodes + edge_of
+    a, b, c = np.asarray(triangles).T
+    pieces = np.concatenate(
+        [
+            np.stack([a, m[:, 2], m[:, 1]], 1),
+            np.stack([m[:, 2], b, m[:, 0]], 1),
+            np.stack([m[:, 1], m[:, 0], c], 1),
+            np.stack([m[:, 0], m[:, 1], m[:, 2]], 1),
+        ]
+    )
+    return edges, edge_of, pieces

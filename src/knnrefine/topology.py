@@ -12,6 +12,7 @@ Persistence is computed by gudhi (``pip install "knnrefine[topology]"``).
 import numpy as np
 
 from .errors import InputError
+from .mesh import split_in_four
 from .metric import BoxMetric
 from .validation import as_points
 
@@ -43,7 +44,6 @@ def mesh_complex(mesh, subdivide=True):
         keep = np.flatnonzero(np.all((c >= mesh.box[:2]) & (c <= mesh.box[2:]), axis=1))
     tri = mesh.triangles[keep].astype(np.int64)
     corners = corners[keep]
-    t = len(tri)
     edges = np.sort(np.concatenate([tri[:, [1, 2]], tri[:, [2, 0]], tri[:, [0, 1]]]), axis=1)
     pairs, inv = np.unique(edges, axis=0, return_inverse=True)
     # in a triangulated surface an edge borders two triangles (one on a boundary); a vertex
@@ -56,25 +56,12 @@ def mesh_complex(mesh, subdivide=True):
     if not subdivide:
         used = np.unique(tri)
         return mesh.vertices[used], np.searchsorted(used, tri)
-    mids = 0.5 * np.concatenate(
-        [
-            corners[:, 1] + corners[:, 2],
-            corners[:, 2] + corners[:, 0],
-            corners[:, 0] + corners[:, 1],
-        ]
-    )
+    # midpoints of the geometric edges (offsets applied: across the seam where need be)
+    pairs, edge_of, tri = split_in_four(tri, len(mesh.vertices))
     mid_pos = np.zeros((len(pairs), 2))
-    mid_pos[inv.reshape(-1)] = mids
-    m = len(mesh.vertices) + inv.reshape(3, t).T  # the midpoint opposite corner i
-    a, b, c = tri.T
-    tri = np.concatenate(
-        [
-            np.stack([a, m[:, 2], m[:, 1]], 1),
-            np.stack([m[:, 2], b, m[:, 0]], 1),
-            np.stack([m[:, 1], m[:, 0], c], 1),
-            np.stack([m[:, 0], m[:, 1], m[:, 2]], 1),
-        ]
-    )
+    for corner in range(3):
+        a, b = (corner + 1) % 3, (corner + 2) % 3
+        mid_pos[edge_of[:, corner]] = 0.5 * (corners[:, a] + corners[:, b])
     positions = np.concatenate([mesh.vertices, BoxMetric(mesh.box, mesh.periodic).wrap(mid_pos)])
     used = np.unique(tri)  # drop the vertices of triangles left out (non-periodic mode)
     return positions[used], np.searchsorted(used, tri)
