@@ -7,7 +7,7 @@ import numpy as np
 from . import validation as V
 from .engine import refine as R
 from .engine.driver import Refinement, grid_shape
-from .engine.embedding import Embedding, unfold
+from .engine.embedding import Embedding, unfold, wrap
 from .errors import BudgetError, InputError
 from .mesh import Mesh, Torus
 
@@ -139,11 +139,7 @@ def _assemble(res, emb, k, tau, min_size, run):
     floor_t = res.tstate == R.FLOOR
     floor_v = res.vcell == R.FLOOR
     floor_int = np.concatenate([res.tcc[floor_t], res.vxy[floor_v]])
-    floor_pts = (
-        emb.to_input(floor_int - np.floor(floor_int / L) * L)
-        if len(floor_int)
-        else np.zeros((0, 2))
-    )
+    floor_pts = emb.to_input(wrap(floor_int, L)) if len(floor_int) else np.zeros((0, 2))
     stats = {
         "n": run.n,
         "m": int(len(out_v)),

@@ -23,6 +23,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .mesh import theorem6_constants
+from .metric import BoxMetric
 from .validation import as_points
 
 
@@ -148,7 +149,8 @@ def certify(
     period = np.asarray(torus.period, float)
     origin = np.asarray(torus.origin, float)
     vertices = np.asarray(torus.vertices, float)
-    P = _wrap(pts - origin, period)
+    frame = BoxMetric((0.0, 0.0, *period), (True, True)).frame  # the torus, from its origin
+    P = frame(pts - origin)
     rng = np.random.default_rng(seed)
     per_triangle = max(4, -(-samples // max(len(torus.triangles), 1)))
 
@@ -183,7 +185,7 @@ def certify(
     hi = np.array(mesh.box[2:]) - origin
     per = np.array(mesh.periodic, bool)
     samples, weights = _triangle_samples(corners, per_triangle, rng)
-    samples = _wrap(samples, period)
+    samples = frame(samples)
     in_box = _in_box(samples, lo, hi, per)
     point_sample = (
         P if len(P) <= max_point_probes else P[rng.choice(len(P), max_point_probes, False)]
@@ -194,7 +196,7 @@ def certify(
             point_sample,
             vertices,
             cc,
-            _wrap(mids, period),
+            frame(mids),
             lo + rng.random((n_random, 2)) * (hi - lo),
         ]
     )
@@ -318,7 +320,7 @@ def verify_triangulation(vertices, triangles, offsets, neighbors, period):
     if abs(area.sum() - period.prod()) > 1e-9 * period.prod():
         problems.append("the triangles do not tile the torus (areas do not add up)")
     cc, r = _circumcircles(corners)
-    ccw = _wrap(cc, period)
+    ccw = BoxMetric((0.0, 0.0, *period), (True, True)).frame(cc)
     # empty circles: floating point finds the vertices near each circle, rationals decide
     near = cKDTree(vertices, boxsize=period).query_ball_point(ccw, r * (1 + 1e-6) + 1e-9 * r.max())
     sizes = np.fromiter((len(c) for c in near), int, len(near))
@@ -357,11 +359,6 @@ def _circumcircles(corners):
     ux = (c[:, 1] * b2 - b[:, 1] * c2) / d
     uy = (b[:, 0] * c2 - c[:, 0] * b2) / d
     return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
-
-
-def _wrap(x, period):
-    x = np.mod(x, period)
-    return np.where(x >= period, 0.0, x)
 
 
 def _in_box(x, lo, hi, per):

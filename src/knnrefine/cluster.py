@@ -57,10 +57,10 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None):
     edges = np.unique(
         np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1), axis=0
     )
-    neighbours = [[] for _ in range(m)]
-    for a, b in edges:
-        neighbours[a].append(b)
-        neighbours[b].append(a)
+    # adjacency lists, CSR-style: both directions of every edge grouped by their first vertex
+    both = np.concatenate([edges, edges[:, ::-1]])
+    both = both[np.argsort(both[:, 0], kind="stable")]
+    neighbours = np.split(both[:, 1], np.cumsum(np.bincount(both[:, 0], minlength=m))[:-1])
     metric = BoxMetric(mesh.box, mesh.periodic)
     d = metric.kth(pts, vertices, mesh.k)
     log_density = np.log(mesh.k / (len(pts) * np.pi)) - 2.0 * np.log(d)

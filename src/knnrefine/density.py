@@ -63,7 +63,7 @@ class KnnDistance:
         self.n = len(pts)
         self.lo = np.array(mesh.box[:2], float)
         self.hi = np.array(mesh.box[2:], float)
-        nodes, triangles = covering_triangulation(mesh)
+        nodes, triangles = mesh.covering()
         if subdivide:
             nodes, triangles = _split_in_four(nodes, triangles)
         self.nodes = nodes
@@ -232,33 +232,6 @@ class KnnDensity:
     def mass(self, region=None):
         """Integral of the estimate over the rectangle (x0, y0, x1, y1) (default: the box)."""
         return self.distance.integrate(lambda d: self.constant / d**2, region)
-
-
-def covering_triangulation(mesh):
-    """Triangles covering the box as a plain planar triangulation: the mesh's triangles plus,
-    along periodic axes, their copies one period back that still meet the box; one index per
-    distinct point. Returns (nodes (p, 2), triangles (t, 3))."""
-    per = np.array(mesh.periodic, bool)
-    period = np.array(mesh.period, float)
-    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
-    tri = mesh.triangles.astype(np.int64)
-    off = (
-        np.zeros(tri.shape + (2,), np.int64)
-        if mesh.offsets is None
-        else mesh.offsets.astype(np.int64)
-    )
-    keys = []
-    for sx in (0, -1) if per[0] else (0,):
-        for sy in (0, -1) if per[1] else (0,):
-            o = off + np.array([sx, sy])
-            c = mesh.vertices[tri] + o * period
-            meets = np.all((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi), axis=1)
-            keys.append((tri[meets] * 5 + (o[meets][..., 0] + 2)) * 5 + (o[meets][..., 1] + 2))
-    keys = np.concatenate(keys)
-    unique, inverse = np.unique(keys, return_inverse=True)
-    shift = np.stack([(unique // 5) % 5 - 2, unique % 5 - 2], axis=1)
-    nodes = mesh.vertices[unique // 25] + shift * period
-    return nodes, inverse.reshape(-1, 3)
 
 
 def _split_in_four(nodes, triangles):

@@ -221,7 +221,7 @@ def write_mesh(mesh, path, force=False):
         raise InputError(
             f"{path}: unknown mesh format {ext!r}; use one of {', '.join(sorted(WRITERS))}"
         )
-    _atomic_write(path, force, lambda tmp: WRITERS[ext](mesh, tmp))
+    atomic_write(path, force, lambda tmp: WRITERS[ext](mesh, tmp))
 
 
 def read_mesh(path):
@@ -234,7 +234,9 @@ def read_mesh(path):
     return READERS[ext](path)
 
 
-def _atomic_write(path, force, write):
+def atomic_write(path, force, write):
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it into place; an
+    existing ``path`` is kept unless ``force``."""
     if os.path.exists(path) and not force:
         raise InputError(f"{path} exists; use --force (force=True) to overwrite it")
     folder = os.path.dirname(os.path.abspath(path))
@@ -253,6 +255,24 @@ def _atomic_write(path, force, write):
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
+
+
+def write_table(path, columns, rows, force=False, formats=None):
+    """A CSV file with a header line of ``columns`` and one line per row, written atomically;
+    ``formats`` per column (default: 17 significant digits, enough to round-trip)."""
+    rows = np.asarray(rows)
+    fmt = formats or ["%.17g"] * len(columns)
+    atomic_write(
+        path,
+        force,
+        lambda tmp: np.savetxt(
+            tmp, rows, delimiter=",", header=",".join(columns), comments="", fmt=fmt
+        ),
+    )
+
+
+def write_text(path, text, force=False):
+    atomic_write(path, force, lambda tmp: open(tmp, "w").write(text))
 
 
 def _write_npz(mesh, path):

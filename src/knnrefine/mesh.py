@@ -147,6 +147,32 @@ class Mesh:
         triangles = rank[inverse[len(own) :]].reshape(-1, 3).astype(np.int32)
         return points, triangles, keys // 9
 
+    def covering(self):
+        """A plain planar triangulation covering the box: the triangles plus, along periodic
+        axes, their copies one period back that still meet the box (corners only ever reach
+        past the upper side of the box), one index per distinct point. Returns (nodes (p, 2),
+        triangles (t, 3))."""
+        per = np.array(self.periodic, bool)
+        period = np.array(self.period, float)
+        lo, hi = np.array(self.box[:2]), np.array(self.box[2:])
+        tri = self.triangles.astype(np.int64)
+        off = (
+            np.zeros(tri.shape + (2,), np.int64)
+            if self.offsets is None
+            else self.offsets.astype(np.int64)
+        )
+        keys = []
+        for sx in (0, -1) if per[0] else (0,):
+            for sy in (0, -1) if per[1] else (0,):
+                o = off + np.array([sx, sy])
+                c = self.vertices[tri] + o * period
+                meets = np.all((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi), axis=1)
+                keys.append((tri[meets] * 5 + (o[meets][..., 0] + 2)) * 5 + (o[meets][..., 1] + 2))
+        keys = np.concatenate(keys)
+        unique, inverse = np.unique(keys, return_inverse=True)
+        shift = np.stack([(unique // 5) % 5 - 2, unique % 5 - 2], axis=1)
+        return self.vertices[unique // 25] + shift * period, inverse.reshape(-1, 3)
+
     def __repr__(self):
         mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
             self.periodic, f"periodic={self.periodic}"

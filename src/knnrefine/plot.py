@@ -38,7 +38,8 @@ def plot_mesh(
     lo = np.array(mesh.box[:2])
     hi = np.array(mesh.box[2:])
     period = np.array(mesh.period)
-    tris = _copies_meeting_box(mesh.corners(), mesh, lo, hi)
+    nodes, covering = mesh.covering()
+    tris = nodes[covering]
     norm = None
     if cells == "triangles":
         values = mesh.d_m2(tris.mean(axis=1))
@@ -132,7 +133,7 @@ def save_figure(path, figsize, draw, force=False, dpi=150):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from .io import _atomic_write
+    from .io import atomic_write
 
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".png", ".svg", ".pdf"):
@@ -140,7 +141,7 @@ def save_figure(path, figsize, draw, force=False, dpi=150):
     fig = Figure(figsize=figsize, layout="constrained")
     FigureCanvasAgg(fig)
     draw(fig.add_subplot())
-    _atomic_write(path, force, lambda tmp: fig.savefig(tmp, dpi=dpi, format=ext[1:]))
+    atomic_write(path, force, lambda tmp: fig.savefig(tmp, dpi=dpi, format=ext[1:]))
 
 
 def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma"):
@@ -244,23 +245,6 @@ def figure_size(mesh, width=9.0):
     h = mesh.box[3] - mesh.box[1]
     ratio = min(max(h / w, 0.3), 1.6)
     return width, 1.0 + (width - 2.0) * ratio
-
-
-def _copies_meeting_box(corners, mesh, lo, hi):
-    """Triangles plus their periodic copies (one period either way along periodic axes) that
-    meet the box: a triangle across the seam shows on both sides."""
-    period = np.array(mesh.period)
-    shifts = [
-        (sx, sy)
-        for sx in ((-1, 0, 1) if mesh.periodic[0] else (0,))
-        for sy in ((-1, 0, 1) if mesh.periodic[1] else (0,))
-    ]
-    out = []
-    for s in shifts:
-        c = corners + np.array(s) * period
-        meets = np.all((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi), axis=1)
-        out.append(c[meets])
-    return np.concatenate(out)
 
 
 def _voronoi_cells(mesh, lo, hi):

@@ -34,7 +34,7 @@ def run(args):
     cert = certify(mesh, points, samples=args.samples)
     if args.json:
         text = json.dumps(cert.to_dict(), indent=1)
-        io._atomic_write(args.json, args.force, lambda tmp: open(tmp, "w").write(text))
+        io.write_text(args.json, text, args.force)
     if not args.quiet:
         print(cert)
     return 0 if cert.passed else 3

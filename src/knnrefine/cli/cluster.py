@@ -39,21 +39,15 @@ def run(args):
     if args.output:
         ext = os.path.splitext(args.output)[1].lower()
         if ext == ".csv":
-            table = np.column_stack([points, cl.labels])
-            io._atomic_write(
+            io.write_table(
                 args.output,
+                ["x", "y", "label"],
+                np.column_stack([points, cl.labels]),
                 args.force,
-                lambda tmp: np.savetxt(
-                    tmp,
-                    table,
-                    delimiter=",",
-                    header="x,y,label",
-                    comments="",
-                    fmt=["%.17g", "%.17g", "%d"],
-                ),
+                ["%.17g", "%.17g", "%d"],
             )
         elif ext == ".npy":
-            io._atomic_write(args.output, args.force, lambda tmp: np.save(tmp, cl.labels))
+            io.atomic_write(args.output, args.force, lambda tmp: np.save(tmp, cl.labels))
         else:
             raise InputError(f"{args.output}: labels are written as .csv or .npy")
     if args.plot:

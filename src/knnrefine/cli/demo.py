@@ -66,9 +66,9 @@ def run(args):
     )
     cert = certify(mesh, points)
     text = str(cert) + "\n"
-    io._atomic_write(files["certificate.txt"], True, lambda p: open(p, "w").write(text))
+    io.write_text(files["certificate.txt"], text, force=True)
     blob = json.dumps(cert.to_dict(), indent=1)
-    io._atomic_write(files["certificate.json"], True, lambda p: open(p, "w").write(blob))
+    io.write_text(files["certificate.json"], blob, force=True)
     say(
         f"  certified in {cert.seconds:.2f} s: d_M2 / d_Pk in [{cert.alpha_hat:.3f}, "
         f"{cert.beta_hat:.3f}] (Theorem 6 allows [{cert.alpha:.4f}, {cert.beta:.2f}]), "

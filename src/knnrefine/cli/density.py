@@ -64,7 +64,7 @@ def run(args):
     for path in args.output:
         ext = os.path.splitext(path)[1].lower()
         if ext == ".npz":
-            io._atomic_write(
+            io.atomic_write(
                 path,
                 args.force,
                 lambda tmp: np.savez_compressed(
@@ -82,13 +82,7 @@ def run(args):
         elif ext == ".csv":
             gx, gy = np.meshgrid(xs, ys)
             table = np.column_stack([gx.ravel(), gy.ravel(), f.ravel(), d.ravel()])
-            io._atomic_write(
-                path,
-                args.force,
-                lambda tmp, table=table: np.savetxt(
-                    tmp, table, delimiter=",", header="x,y,density,d_pk", comments="", fmt="%.10g"
-                ),
-            )
+            io.write_table(path, ["x", "y", "density", "d_pk"], table, args.force, ["%.10g"] * 4)
         else:
             raise InputError(f"{path}: the grid is written as .npz or .csv")
     if args.plot:

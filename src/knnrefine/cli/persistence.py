@@ -38,17 +38,8 @@ def run(args):
         rows = np.concatenate(
             [np.column_stack([np.full(len(ph.diagram(d)), d), ph.diagram(d)]) for d in (0, 1, 2)]
         )
-        io._atomic_write(
-            args.output,
-            args.force,
-            lambda tmp: np.savetxt(
-                tmp,
-                rows,
-                delimiter=",",
-                header="dimension,birth,death",
-                comments="",
-                fmt=["%d", "%.10g", "%.10g"],
-            ),
+        io.write_table(
+            args.output, ["dimension", "birth", "death"], rows, args.force, ["%d", "%.10g", "%.10g"]
         )
     if args.plot:
         save_figure(

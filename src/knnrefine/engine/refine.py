@@ -72,7 +72,6 @@ C_MAX_VERTICES = 9
 C_Q_TRI = 10  # 10..13: the circumball queue's scalars
 C_Q_CELL = 14  # 14..17: the cell queue's
 C_Q_CLEAN = 18  # 18..21: the clean queue's
-C_MOVES = 22  # 22..25: insertions by kind
 C_DISK_TESTS = 26
 C_CELL_TESTS = 27
 C_FAILED = 28
@@ -275,6 +274,5 @@ def refine_steps(tri, ver, queues, scr, work, cnt, prm, index, max_steps):
             queue_push(queues[0], cnt, C_Q_TRI, size_class(tr2[s]), s, tstamp[s])
         for e in range(nb + 1):
             _touch(bnd[e, 0] if e < nb else v, tri, ver, queues, work, cnt, prm)
-        cnt[C_MOVES + kind] += 1
         steps += 1
     return STATUS_STEPS
