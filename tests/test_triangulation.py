@@ -10,6 +10,7 @@ import knnrefine
 from knnrefine.certify import verify_triangulation
 from knnrefine.engine import driver
 from knnrefine.engine.geometry import Q, snap
+from knnrefine.engine.index import build_index
 from knnrefine.engine.triangulation import (
     C_NT,
     C_NV,
@@ -22,7 +23,7 @@ from knnrefine.engine.triangulation import (
 
 def empty_torus(lx, ly):
     """A refinement state with no input points: just the initial grid on the torus."""
-    return driver.Refinement(np.zeros((0, 2)), 1, lx, ly, 3.0, 0.0, 10**6)
+    return driver.Refinement(build_index(np.zeros((0, 2))), 1, lx, ly, 3.0, 0.0, 10**6)
 
 
 def seed_for(state, px, py):

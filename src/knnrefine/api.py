@@ -6,8 +6,18 @@ import numpy as np
 
 from . import validation as V
 from .engine import refine as R
-from .engine.driver import Refinement, grid_shape
-from .engine.embedding import Embedding, unfold, wrap
+from .engine.driver import Refinement
+from .engine.embedding import Embedding, diameter, unfold, wrap
+from .engine.index import build_index
+from .engine.initial import (
+    GRIDS,
+    choose_initial_mesh,
+    grid_shape,
+    largest_passing,
+    reach_bound,
+    reach_factor,
+    tau_for_factor,
+)
 from .errors import BudgetError, InputError
 from .mesh import Mesh, Torus
 
@@ -64,7 +74,7 @@ def refine(
     """
     t_start = time.perf_counter()
     pts = V.as_points(points)
-    k = V.check_k(k)
+    k = V.check_k(k, len(pts))
     tau = V.check_tau(tau)
     per = V.check_periodic(periodic)
     if box is None:
@@ -90,18 +100,24 @@ def refine(
     if time_limit is not None and not (time_limit > 0):
         raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
 
-    emb = Embedding.make(box, per)
-    nx, ny = grid_shape(*emb.period_internal)
-    if nx * ny > max_vertices:
-        raise InputError(
-            f"the box {box} is too elongated: the initial mesh of the torus alone needs "
-            f"{nx} x {ny} vertices (max_vertices={max_vertices}); rescale the coordinates, use "
-            "a less elongated periodic box, or raise max_vertices"
-        )
-    internal = emb.to_internal(pts)
+    _check_resolution(box, per)
+    _check_initial_budget(box, per, int(max_vertices))
+    start = _Start(pts, box, per, int(max_vertices))
+    found = start.find(k, reach_factor(tau))
+    if found is None:
+        raise InputError(start.refusal(k, tau))
+    emb, index, (m0, m0_order, m0_grid) = found
     run = Refinement(
-        internal, k, *emb.period_internal, tau, min_size * emb.scale, int(max_vertices)
+        index,
+        k,
+        *emb.period_internal,
+        tau,
+        min_size * emb.scale,
+        int(max_vertices),
+        m0=m0,
+        grid=emb.grid,
     )
+    run.time_index = start.seconds
     # below the engine's resolution limit nothing is split whatever min_size says
     min_size = max(min_size, run.floor / emb.scale)
     status = run.run(time_limit=time_limit, progress=progress)
@@ -122,7 +138,13 @@ def refine(
         )
     res = run.result()
     t_assemble = time.perf_counter()
-    mesh = _assemble(res, emb, k, tau, min_size, run)
+    m0_stats = {
+        "vertices": int(len(m0_order)),
+        "per_period": int(m0_grid[0]),
+        "shift": float(m0_grid[2]),
+        "reach_factor": reach_factor(tau),
+    }
+    mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats)
     stats = mesh.stats
     stats["time"] = {
         "index": run.time_index,
@@ -133,7 +155,117 @@ def refine(
     return mesh
 
 
-def _assemble(res, emb, k, tau, min_size, run):
+RESOLUTION_BITS = 24  # a box must span at least 2^24 grid steps: the floor is 2^14 of them
+
+
+def _check_resolution(box, per):
+    """The box must be wide compared with the spacing of doubles at its coordinates: the
+    engine works on a grid no finer than that spacing (so that every vertex is returned
+    exactly), and its resolution floor is 2^14 grid steps."""
+    emb = Embedding.make(box, per)
+    step = emb.grid / emb.scale
+    side = max(box[2] - box[0], box[3] - box[1])
+    if side < step * 2.0**RESOLUTION_BITS:
+        big = float(np.max(np.abs(box)))
+        raise InputError(
+            f"the box {box} is too small for its coordinates' magnitude: near {big:.6g} doubles "
+            f"are {step:.3g} apart, and knnrefine needs at least 2^{RESOLUTION_BITS} such steps "
+            f"across the box (its side is {side:.3g}, about {side / step:.3g} steps); subtract "
+            "an offset first, for example points - points.min(axis=0)"
+        )
+
+
+def _check_initial_budget(box, per, max_vertices):
+    """The smallest initial mesh of the default torus must fit in max_vertices."""
+    lx, ly = Embedding.make(box, per).period_internal
+    nx, ny = min((grid_shape(lx, ly, g[0]) for g in GRIDS), key=lambda s: s[0] * s[1])
+    if nx * ny <= max_vertices:
+        return
+    if max(nx, ny) <= 4 * min(nx, ny):
+        raise InputError(
+            f"max_vertices={max_vertices} is too small: the initial mesh alone has {nx * ny} "
+            "vertices; raise max_vertices"
+        )
+    raise InputError(
+        f"the box {box} is too elongated: the initial mesh of the torus alone needs "
+        f"{nx} x {ny} vertices (max_vertices={max_vertices}); rescale the coordinates, use "
+        "a less elongated periodic box, or raise max_vertices"
+    )
+
+
+def _initial(emb, index, k, factor, max_vertices):
+    return choose_initial_mesh(index, k, factor, *emb.period_internal, max_vertices, emb.grid)
+
+
+class _Start:
+    """Where refinement starts: the embedding torus, the counting index over the points in it,
+    and an initial mesh that satisfies Theorem 6's precondition.
+
+    The default torus (a margin of 1.05 x the box's diameter along non-periodic axes) is
+    tried first. When its initial mesh cannot be ordered to satisfy the precondition, other
+    margins are tried along non-periodic axes: 1.05 x a bound on max d_Pk over the box (the
+    least that keeps d_Pk exact on the box: fewer initial vertices far from the data), then
+    2, 4 and 10 diameters (initial meshes coarser relative to the box). Indexes are built once
+    per torus."""
+
+    def __init__(self, pts, box, per, max_vertices):
+        self.pts, self.box, self.per, self.max_vertices = pts, box, per, max_vertices
+        self.tori = {}
+        self.seconds = 0.0  # building indexes
+
+    def torus(self, reach=None):
+        if reach not in self.tori:
+            t0 = time.perf_counter()
+            emb = Embedding.make(self.box, self.per, reach)
+            self.tori[reach] = emb, build_index(emb.to_internal(self.pts))
+            self.seconds += time.perf_counter() - t0
+        return self.tori[reach]
+
+    def find(self, k, factor):
+        """(embedding, index, (m0, order, grid)) for the first torus that works, or None."""
+        emb, index = self.torus()
+        choice = _initial(emb, index, k, factor, self.max_vertices)
+        if choice is not None:
+            return emb, index, choice
+        if all(self.per):
+            return None
+        lo, hi = emb.box_internal()
+        reach = reach_bound(index, lo, hi, k, *emb.period_internal) / emb.scale
+        diam = diameter(self.box, self.per)
+        for r in (reach, 2.0 * diam, 4.0 * diam, 10.0 * diam):
+            emb, index = self.torus(r)
+            choice = _initial(emb, index, k, factor, self.max_vertices)
+            if choice is not None:
+                return emb, index, choice
+        return None
+
+    def refusal(self, k, tau):
+        """The message for an input no torus can start: what failed and what would work."""
+        factor = reach_factor(tau)
+        k_max, f_min = largest_passing(lambda kk, f: self.find(kk, f) is not None, k, factor)
+        emb = self.torus()[0]
+        mode = {(True, True): "periodic", (False, False): "ordinary"}.get(
+            emb.periodic, f"periodic={emb.periodic}"
+        )
+        options = []
+        if k_max >= 1:
+            options.append(f"use k <= {k_max} (the largest k certifiable here at tau = {tau:g})")
+        if f_min is not None and tau_for_factor(f_min) > 2.0:
+            options.append(
+                f"use tau <= {np.floor(tau_for_factor(f_min) * 1000) / 1000:g} with k = {k}"
+            )
+        if any(self.per):
+            options.append("make the shorter periodic side of the box longer")
+        return (
+            f"k = {k} cannot be certified for these {len(self.pts)} points in the {mode} box "
+            f"{emb.box} at tau = {tau:g}: Theorem 6's lower bound needs d_Pk <= {factor:.3g} "
+            "x the distance to the nearest earlier vertex at every initial mesh vertex, and no "
+            "valid initial mesh of the torus meets it (its spacing cannot exceed about a third "
+            f"of the torus' shorter period, {min(emb.period) / 3.0:.3g}); " + ", or ".join(options)
+        )
+
+
+def _assemble(res, emb, k, tau, min_size, run, m0_stats):
     out_v, out_s, pos, tri, offsets = unfold(res.vxy, res.tv, res.to, emb)
     L = np.array(emb.period_internal)
     floor_t = res.tstate == R.FLOOR
@@ -149,7 +281,7 @@ def _assemble(res, emb, k, tau, min_size, run):
         "floor_circumballs": int(floor_t.sum()),
         "floor_cells": int(floor_v.sum()),
         "clean_floor": int(np.count_nonzero(res.vflag & R.CLEAN_FLOOR)),
-        "m0_violations": run.m0_violations,
+        "m0": m0_stats,
     }
     torus = Torus(
         origin=tuple(float(o) for o in emb.origin),

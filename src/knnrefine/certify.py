@@ -56,19 +56,41 @@ class Certificate:
     floor_circumballs: int  # circumballs holding >= k points left alone below min_size
     floor_cells: int
     floor_sites: list = field(default_factory=list)  # [(x, y, elements), ...] largest first
-    m0_violations: int = 0
+    under_floor: float = 0.0  # fraction of the input points where d_Pk < min_size
+    mesh_problems: list = field(default_factory=list)  # returned mesh vs the certified torus
+    precondition_ok: bool = True  # Lemma 2's precondition on the initial vertices
+    precondition_note: str = ""
     seconds: float = 0.0
 
     @property
     def passed(self):
         return bool(
             self.triangulation_ok
+            and not self.mesh_problems
+            and self.precondition_ok
+            and self.n >= self.k
             and self.max_aspect <= self.tau
             and self.max_cell_count < self.k
             and self.max_ball_count < self.k
             and (np.isnan(self.alpha_hat) or self.alpha <= self.alpha_hat)
             and (np.isnan(self.beta_hat) or self.beta_hat <= self.beta)
         )
+
+    @property
+    def warnings(self):
+        """What holds but deserves attention: the guarantee is claimed only above the floor."""
+        out = []
+        if self.under_floor > 0.5:
+            out.append(
+                f"{100 * self.under_floor:.0f}% of the input points lie where d_Pk < min_size = "
+                f"{self.min_size:.3g}: the bounds are not claimed there"
+                + (
+                    " (k = 1: d_Pk is 0 at every input point)"
+                    if self.k == 1
+                    else "; pass a smaller min_size, or a box fitted to the data"
+                )
+            )
+        return out
 
     def to_dict(self):
         d = asdict(self)
@@ -88,6 +110,12 @@ class Certificate:
             f"  triangulation      Delaunay on the torus: "
             f"{verdict(self.triangulation_ok)}"
             + ("" if self.triangulation_ok else f" ({'; '.join(self.triangulation_problems)})"),
+            f"  returned mesh      the certified torus mesh, exactly, no repeated vertex: "
+            f"{verdict(not self.mesh_problems)}"
+            + ("" if not self.mesh_problems else f" ({'; '.join(self.mesh_problems)})"),
+            f"  initial mesh       Lemma 2's precondition d_Pk <= (K - 1) lambda: "
+            f"{verdict(self.precondition_ok)}"
+            + (f" ({self.precondition_note})" if self.precondition_note else ""),
             f"  well-spaced        max aspect {self.max_aspect:.4f} <= tau {self.tau:g}: "
             f"{verdict(self.max_aspect <= self.tau)}",
             f"  Voronoi cells      max count {self.max_cell_count} < k: "
@@ -97,8 +125,12 @@ class Certificate:
             f"  d_M2 / d_Pk        in [{self.alpha_hat:.4f}, {self.beta_hat:.4f}] over "
             f"{self.n_probes} probes; Theorem 6 allows [{self.alpha:.4f}, {self.beta:.2f}]: "
             f"{verdict(self.alpha <= self.alpha_hat and self.beta_hat <= self.beta)}"
-            if not np.isnan(self.alpha_hat)
-            else "  d_M2 / d_Pk        not measured (n < k: d_Pk is infinite)",
+            if self.n >= self.k and not np.isnan(self.alpha_hat)
+            else (
+                "  d_M2 / d_Pk        FAILED: n < k, d_Pk is infinite"
+                if self.n < self.k
+                else "  d_M2 / d_Pk        not measured (no probe above the floor)"
+            ),
             f"  size               m / integral(1 / d_Pk^2) = {self.size_ratio:.3f} "
             f"(integral {self.size_integral:.4g} +- {self.size_integral_stderr:.2g})",
         ]
@@ -109,18 +141,14 @@ class Certificate:
                 f"  resolution floor   {self.floor_circumballs} circumballs and "
                 f"{self.floor_cells} cells hold >= k points below min_size = {self.min_size:.3g}"
                 f", at {len(self.floor_sites)} site(s): {sites}{more}; the bounds hold wherever "
-                "d_Pk >= min_size"
+                f"d_Pk >= min_size ({100 * self.under_floor:.1f}% of the points lie below it)"
             )
         else:
             lines.append("  resolution floor   not reached")
-        if self.m0_violations:
-            lines.append(
-                f"  note               {self.m0_violations} initial vertices miss Theorem 6's "
-                "precondition d_Pk(u) <= (K - 1) lambda_u (see docs/algorithm.md)"
-            )
-        lines.append(
-            f"  verdict            {'PASSED' if self.passed else 'FAILED'} ({self.seconds:.2f} s)"
-        )
+        verdict_line = "PASSED" if self.passed else "FAILED"
+        if self.passed and self.warnings:
+            verdict_line = "PASSED above the resolution floor only: " + "; ".join(self.warnings)
+        lines.append(f"  verdict            {verdict_line} ({self.seconds:.2f} s)")
         return "\n".join(lines)
 
 
@@ -149,8 +177,9 @@ def certify(
     period = np.asarray(torus.period, float)
     origin = np.asarray(torus.origin, float)
     vertices = np.asarray(torus.vertices, float)
-    frame = BoxMetric((0.0, 0.0, *period), (True, True)).frame  # the torus, from its origin
-    P = frame(pts - origin)
+    # the torus, from its origin: wrapped by the package's one rule, exact at any magnitude
+    frame = BoxMetric((0.0, 0.0, *period), (True, True)).frame
+    P = BoxMetric((*origin, *(origin + period)), (True, True)).frame(pts)
     rng = np.random.default_rng(seed)
     per_triangle = max(4, -(-samples // max(len(torus.triangles), 1)))
 
@@ -202,6 +231,13 @@ def certify(
     )
     probes = np.concatenate([samples[in_box], others[_in_box(others, lo, hi, per)]])
     alpha, beta = theorem6_constants(tau)
+    under_floor = 0.0
+    if len(P) >= k:
+        dpk_points = ptree.query(point_sample, k=[k], workers=workers)[0][:, 0]
+        under_floor = float(np.mean(dpk_points < min_size))
+    precondition_ok, precondition_note = check_precondition(
+        vertices[np.asarray(torus.kinds) == 0], ptree, k, tau, period
+    )
     a_hat = b_hat = float("nan")
     a_at = b_at = (float("nan"), float("nan"))
     n_probes = 0
@@ -262,9 +298,106 @@ def certify(
         floor_circumballs=int(floor_balls.sum()),
         floor_cells=int(floor_cells.sum()),
         floor_sites=sites,
-        m0_violations=int(mesh.stats.get("m0_violations", 0)),
+        under_floor=under_floor,
+        mesh_problems=verify_returned_mesh(mesh),
+        precondition_ok=precondition_ok,
+        precondition_note=precondition_note,
         seconds=time.perf_counter() - t0,
     )
+
+
+def check_precondition(initial, ptree, k, tau, period):
+    """Lemma 2's base case, checked here independently of the engine: can the initial vertices
+    be ordered so that each u has d_Pk(u) <= (K - 1) lambda_u, lambda_u its distance to the
+    nearest earlier one (K = max(2 tau / (tau - 2), 3))? Peel: a vertex whose disk of radius
+    (K - 1) x (distance to the nearest other remaining vertex) holds k points can go last.
+    Returns (ok, note)."""
+    factor = max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
+    remaining = np.asarray(initial, float)
+    if ptree.n < k:
+        return False, "n < k"
+    rounds = 0
+    while len(remaining) > 1:
+        lam = cKDTree(remaining, boxsize=period).query(remaining, k=2)[0][:, 1]
+        ok = ptree.query_ball_point(remaining, factor * lam, return_length=True) >= k
+        if not ok.any():
+            return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"
+        remaining = remaining[~ok]
+        rounds += 1
+    return True, f"{len(initial)} vertices ordered in {rounds} round(s)"
+
+
+def verify_returned_mesh(mesh):
+    """Problems (a list of strings) that stop ``mesh.vertices``, ``mesh.triangles`` and
+    ``mesh.offsets`` (what the user works with) from being, exactly and without repeated
+    vertices, copies of the torus mesh that certify checks."""
+    torus = mesh.torus
+    problems = []
+    v = np.asarray(mesh.vertices, float)
+    if v.ndim != 2 or v.shape[1] != 2 or not np.isfinite(v).all():
+        return ["vertices are not finite (m, 2) coordinates"]
+    repeated = len(v) - len(np.unique(v, axis=0))
+    if repeated:
+        problems.append(f"{repeated} repeated vertices")
+    origin = np.asarray(torus.origin, float)
+    period = np.asarray(torus.period, float)
+    tv = np.asarray(torus.vertices, float)
+    order = np.asarray(mesh.order)
+    if len(order) != len(v) or order.min(initial=0) < 0 or order.max(initial=0) >= len(tv):
+        return problems + ["vertex order does not index the torus vertices"]
+    # each returned vertex is a torus vertex shifted by whole periods, exactly
+    shift = np.rint((v - origin - tv[order]) / period)
+    if np.any(v != origin + (tv[order] + shift * period)):
+        bad = int(np.any(v != origin + (tv[order] + shift * period), axis=1).sum())
+        problems.append(f"{bad} vertices differ from their torus vertex (rounded coordinates)")
+    # each returned triangle is a torus triangle (same corners, same cyclic order) shifted by
+    # whole periods
+    tri = np.asarray(mesh.triangles, np.int64)
+    off = np.zeros(tri.shape + (2,)) if mesh.offsets is None else np.asarray(mesh.offsets, float)
+    user_corners = v[tri] + off * np.array(mesh.period, float)
+    ttri = np.asarray(torus.triangles, np.int64)
+    tcorners = tv[ttri] + np.asarray(torus.offsets, float) * period
+    # match by the vertex triple in canonical rotation (smallest index first): in a torus
+    # triangulation that is a simplicial complex a triple names one triangle
+    t_rot = np.argmin(ttri, axis=1)
+    u_rot = np.argmin(order[tri], axis=1) if len(tri) else np.zeros(0, np.int64)
+    t_key = _rotate(ttri, t_rot)
+    u_key = _rotate(order[tri], u_rot)
+    pos = _find_rows(t_key, u_key)
+    unmatched = int((pos < 0).sum())
+    hit = pos >= 0
+    t = pos[hit]
+    target = origin + _rotate(tcorners[t], t_rot[t])
+    mine = _rotate(user_corners[hit], u_rot[hit])
+    d = np.rint((mine - target) / period)
+    same_shift = np.all(d == d[:, :1], axis=(1, 2))
+    exact = np.all(mine == origin + (_rotate(tcorners[t], t_rot[t]) + d * period), axis=(1, 2))
+    moved = int((~(same_shift & exact)).sum())
+    if unmatched:
+        problems.append(f"{unmatched} triangles are not triangles of the torus mesh")
+    if moved:
+        problems.append(f"{moved} triangles have corners off their torus triangle")
+    return problems
+
+
+def _rotate(rows, r):
+    """Each row (of 3 items) rotated left by r[i]."""
+    idx = (np.arange(3)[None, :] + np.asarray(r)[:, None]) % 3
+    return np.take_along_axis(rows, idx.reshape(idx.shape + (1,) * (rows.ndim - 2)), axis=1)
+
+
+def _find_rows(table, rows):
+    """Index of each of ``rows`` (int64 triples) in ``table``, -1 if absent."""
+    if len(rows) == 0:
+        return np.zeros(0, np.int64)
+    view = np.dtype((np.void, 8 * 3))
+    a = np.ascontiguousarray(table, np.int64).view(view).ravel()
+    b = np.ascontiguousarray(rows, np.int64).view(view).ravel()
+    order = np.argsort(a, kind="stable")  # byte order, consistent for both searches
+    i = np.searchsorted(a[order], b)
+    i = np.minimum(i, len(a) - 1)
+    found = a[order][i] == b
+    return np.where(found, order[i], -1)
 
 
 def verify_triangulation(vertices, triangles, offsets, neighbors, period):

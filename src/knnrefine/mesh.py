@@ -11,11 +11,15 @@ KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
 
 
 def theorem6_constants(tau):
-    """(alpha, beta) of Theorem 6: alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} for a tau-well-spaced
-    output. alpha = (tau - 2) / (5 tau - 2), beta = (3 - theta) / (1 - theta) with
-    theta = sqrt(1 - 1 / tau^2)."""
+    """(alpha, beta) with alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} for a refinement at tau.
+
+    beta = (3 - theta) / (1 - theta), theta = sqrt(1 - 1 / tau^2) (Theorem 5). alpha =
+    1 / (2 K + 1) with K = max(2 tau / (tau - 2), 3) (Lemma 2 and Theorem 3): for tau <= 6 this
+    is Theorem 6's (tau - 2) / (5 tau - 2); beyond, the induction step for a Break at a cell's
+    far corner needs K >= 3 (the paper's alpha is not proven there), so alpha stays 1/7."""
     theta = np.sqrt(1.0 - 1.0 / tau**2)
-    return (tau - 2.0) / (5.0 * tau - 2.0), float((3.0 - theta) / (1.0 - theta))
+    big_k = max(2.0 * tau / (tau - 2.0), 3.0)
+    return 1.0 / (2.0 * big_k + 1.0), float((3.0 - theta) / (1.0 - theta))
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,8 +99,14 @@ class Mesh:
 
     @property
     def period(self):
-        """Periods along (x, y) in input units, 0 along non-periodic axes."""
-        return tuple((self.box[a + 2] - self.box[a]) if self.periodic[a] else 0.0 for a in range(2))
+        """Periods along (x, y) in input units, 0 along non-periodic axes: the torus' period,
+        which is the box's side rounded to the engine's grid (a relative 2^-51 at most)."""
+        sides = (
+            self.torus.period
+            if self.torus is not None
+            else (self.box[2] - self.box[0], self.box[3] - self.box[1])
+        )
+        return tuple(float(sides[a]) if self.periodic[a] else 0.0 for a in range(2))
 
     @cached_property
     def _metric(self):

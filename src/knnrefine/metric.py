@@ -3,6 +3,8 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .engine.embedding import wrap_offsets
+
 
 class BoxMetric:
     """Coordinates and kd-trees in the metric of ``box`` with ``periodic`` axes."""
@@ -15,13 +17,13 @@ class BoxMetric:
 
     def frame(self, x):
         """Coordinates relative to the box's lower corner, periodic axes wrapped into
-        [0, period) (guarding the rounding case (-1e-17) % 1.0 == 1.0)."""
-        x = np.array(x, float).reshape(-1, 2) - self.lo
+        [0, period) by the engine's one wrapping rule (accurate whatever the magnitude)."""
+        x = np.array(x, float).reshape(-1, 2)
+        out = x - self.lo
         for a in range(2):
             if self.periodic[a]:
-                x[:, a] = np.mod(x[:, a], self.period[a])
-                x[x[:, a] >= self.period[a], a] = 0.0
-        return x
+                out[:, a] = wrap_offsets(x[:, a].copy(), self.lo[a], self.period[a])
+        return out
 
     def wrap(self, x):
         """The points with their periodic coordinates wrapped into the box."""

@@ -48,11 +48,18 @@ def as_points(points):
     return arr
 
 
-def check_k(k):
+def check_k(k, n=None):
+    """k is a positive integer, at most the number of points n when given (beyond it d_{P,k}
+    is infinite everywhere and there is nothing to sample)."""
     if isinstance(k, bool) or not isinstance(k, numbers.Integral):
         raise InputError(f"k must be an integer >= 1, got {k!r}")
     if k < 1:
         raise InputError(f"k must be an integer >= 1, got {k}")
+    if n is not None and k > n:
+        raise InputError(
+            f"k = {k} is larger than the number of points, {n}: d_Pk would be infinite "
+            f"everywhere; use k <= {n}"
+        )
     return int(k)
 
 
@@ -134,10 +141,25 @@ def default_box(points):
     return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
+PERIOD_BITS = 24  # a periodic coordinate must resolve 2^-24 of its period
+
+
 def check_inside(points, box, periodic):
-    """Points must lie in the box along non-periodic axes (periodic axes wrap)."""
+    """Points must lie in the box along non-periodic axes. Periodic axes wrap, exactly, but a
+    coordinate so large that doubles near it are coarser than 2^-24 of the period has lost
+    its position within the period."""
     for a in range(2):
         if periodic[a]:
+            period = box[a + 2] - box[a]
+            big = float(np.abs(points[:, a]).max())
+            if np.spacing(big) > period * 2.0**-PERIOD_BITS:
+                axis = "xy"[a]
+                raise InputError(
+                    f"coordinates along {axis} reach {big:.3g}, where doubles are "
+                    f"{np.spacing(big):.3g} apart, coarser than 2^-{PERIOD_BITS} of the period "
+                    f"{period:g}: the position within the period is lost at that magnitude; "
+                    f"keep periodic coordinates below about {period * 2.0**28:.3g} in magnitude"
+                )
             continue
         lo, hi = box[a], box[a + 2]
         out = (points[:, a] < lo) | (points[:, a] > hi)

@@ -1,8 +1,8 @@
-"""Python side of the engine: owns the flat arrays, builds the initial mesh, runs the kernels.
+"""Python side of the engine: owns the flat arrays, takes the initial mesh, runs the kernels.
 
-Everything here is O(1) Python per kernel call; the work happens in the ``@njit`` kernels.
+Everything here is O(1) Python per kernel call; the work happens in the ``kernel``s.
 Coordinates are internal: the torus is [0, lx) x [0, ly) with lx, ly <= 1 multiples of the
-grid step ``geometry.Q``.
+grid step q (``geometry``).
 """
 
 import time
@@ -12,13 +12,13 @@ import numpy as np
 
 from ..errors import EngineError
 from . import refine as R
-from .geometry import snap
-from .index import STACK_SIZE, build_index, count_in_disk
+from .geometry import FLOOR_BITS, Q
+from .index import STACK_SIZE
+from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .triangulation import C_NT, C_NV, MAX_CAVITY, P_LX, P_LY, set_all_circumcircles
 
 MAX_DEGREE = 4096  # scratch for a vertex's neighbours; a well-spaced mesh has degree < 20
-CLEAN_FLOOR = 2.0**-36  # Clean never splits a cell of outradius below this (internal units)
 
 
 @dataclass
@@ -39,76 +39,6 @@ class RunResult:
     status: str = "done"
 
 
-def grid_shape(lx, ly):
-    """Initial grid: at least 4 x 4 and spacing at most min(lx, ly) / 4 on both axes, so that
-    every circumradius is below a quarter of the shorter period."""
-    h = min(lx, ly) / 4.0
-    return max(4, int(np.ceil(lx / h - 1e-9))), max(4, int(np.ceil(ly / h - 1e-9)))
-
-
-def _jittered_positions(n, length, phase):
-    """n positions around a circle of the given length with gaps (1 +- 0.15) * length / n, in
-    a fixed low-discrepancy pattern, snapped to the grid."""
-    gaps = 1.0 + 0.3 * (((np.arange(n) + phase) * 0.6180339887498949) % 1.0 - 0.5)
-    edges = np.concatenate([[0.0], np.cumsum(gaps)]) * (length / gaps.sum())
-    return np.array([snap(x) for x in 0.5 * (edges[:-1] + edges[1:])])
-
-
-def initial_grid(lx, ly):
-    """M0: a tensor grid on the torus, triangulated with one diagonal per cell.
-
-    Its cells are axis-aligned rectangles, so the four corners of each are exactly cocircular
-    and the triangulation is exactly Delaunay even after snapping to the grid. The column
-    widths and row heights vary by up to 15%: with a perfectly regular grid the circumcenters of
-    its right triangles are the cell centres, which form a finer square lattice, and so on at
-    every level, so uniform regions would stay exactly cocircular and every in-circle test
-    would need the slow exact fallback.
-    Returns (vxy, tv, to, tn, spacing)."""
-    nx, ny = grid_shape(lx, ly)
-    gx = _jittered_positions(nx, lx, 0.0)
-    gy = _jittered_positions(ny, ly, 0.5)
-    vxy = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
-    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
-    i = i.ravel()
-    j = j.ravel()
-    i1 = (i + 1) % nx
-    j1 = (j + 1) % ny
-    wx = (i + 1 == nx).astype(np.int8)
-    wy = (j + 1 == ny).astype(np.int8)
-    v00 = j * nx + i
-    v10 = j * nx + i1
-    v01 = j1 * nx + i
-    v11 = j1 * nx + i1
-    zero = np.zeros_like(wx)
-    tv = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
-    to = np.concatenate(
-        [
-            np.stack(
-                [np.stack([zero, zero], 1), np.stack([wx, zero], 1), np.stack([wx, wy], 1)], 1
-            ),
-            np.stack(
-                [np.stack([zero, zero], 1), np.stack([wx, wy], 1), np.stack([zero, wy], 1)], 1
-            ),
-        ]
-    ).astype(np.int8)
-    # neighbours: match each directed edge (a -> b, offset of b relative to a) with its reverse
-    nt = tv.shape[0]
-    edges = {}
-    for t in range(nt):
-        for c in range(3):
-            a, b = tv[t, (c + 1) % 3], tv[t, (c + 2) % 3]
-            d = tuple(to[t, (c + 2) % 3] - to[t, (c + 1) % 3])
-            edges[(a, b, d)] = (t, c)
-    tn = np.empty((nt, 3), np.int32)
-    for (a, b, d), (t, c) in edges.items():
-        tn[t, c] = edges[(b, a, (-d[0], -d[1]))][0]
-    spacing = min(
-        float(np.min(np.diff(np.append(gx, gx[0] + lx)))),
-        float(np.min(np.diff(np.append(gy, gy[0] + ly)))),
-    )
-    return vxy, tv.astype(np.int32), to, tn, spacing
-
-
 def _grow(a, n):
     out = np.zeros((n,) + a.shape[1:], a.dtype)
     out[: a.shape[0]] = a
@@ -118,17 +48,18 @@ def _grow(a, n):
 class Refinement:
     """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
 
-    def __init__(self, points, k, lx, ly, tau, min_size, max_vertices):
-        """points: (n, 2) internal coordinates in the torus; the array is permuted in place by
-        the index and kept, so pass one the caller does not need."""
+    def __init__(self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q):
+        """index: the counting kd-tree over P in internal coordinates (``build_index``); m0:
+        the initial mesh (vxy, tv, to, tn) on the grid step ``grid``, by default
+        ``initial.initial_grid(lx, ly)``. Elements smaller than 2^14 grid (the resolution
+        floor) or than min_size are never split."""
         self.lx = lx
         self.ly = ly
-        self.n = int(points.shape[0])
-        t0 = time.perf_counter()
-        self.index = build_index(np.ascontiguousarray(points, dtype=np.float64))
-        self.time_index = time.perf_counter() - t0
-
-        vxy, tv, to, tn, self.spacing = initial_grid(lx, ly)
+        self.index = index
+        self.n = int(index[0].shape[0])
+        vxy, tv, to, tn = initial_grid(lx, ly, q=grid) if m0 is None else m0
+        self.grid = grid
+        clean_floor = grid * 2.0**FLOOR_BITS
         m0 = vxy.shape[0]
         cap_v = max(1024, 4 * m0)
         cap_t = 2 * cap_v
@@ -169,22 +100,14 @@ class Refinement:
         self.prm[P_LX] = lx
         self.prm[P_LY] = ly
         self.prm[R.P_TAU2] = tau * tau * (1.0 - 1e-12)
-        self.floor = max(float(min_size), CLEAN_FLOOR)  # the Break floor in internal units
+        self.floor = max(float(min_size), clean_floor)  # the Break floor in internal units
         self.prm[R.P_FLOOR2] = self.floor * self.floor
-        self.prm[R.P_CLEAN_FLOOR2] = CLEAN_FLOOR * CLEAN_FLOOR
+        self.prm[R.P_CLEAN_FLOOR2] = clean_floor * clean_floor
+        self.prm[R.P_GRID] = grid
         self.prm[R.P_INFLATE] = 1.0 + 1e-9
         tri = self._tri()
         ver = self._ver()
         set_all_circumcircles(tri, ver, self.prm, tv.shape[0])
-        # Theorem 6 assumes d_{P,k}(u) <= (K - 1) lambda_u at the initial vertices (Lemmas 1-2,
-        # K = 2 tau / (tau - 2), lambda_u their spacing); count where that fails
-        reach = (2.0 * tau / (tau - 2.0) - 1.0) * self.spacing
-        self.m0_violations = int(
-            sum(
-                count_in_disk(self.index, x, y, reach * reach, k, lx, ly, self.work[3]) < k
-                for x, y in vxy
-            )
-        )
         R.queue_all(tri, ver, tuple(self.queues), self.work, self.cnt, self.prm)
 
     # -- tuples handed to the kernels (rebuilt after growth) --

@@ -5,71 +5,125 @@ axis the torus period is the box's side. Along a non-periodic axis the box is em
 longer period, with a margin on both sides, long enough that no periodic copy of a point can be
 among the k nearest of any point of the box:
 
-    for x, p in the box, |x - (p + L e)| >= L - w > D >= d_{P,k}(x)        (n >= k)
+    for x, p in the box, |x - (p + L e)| >= L - w > 1.05 r >= d_{P,k}(x)        (n >= k)
 
-where w is the box's side along that axis and D the box's diameter in its own metric (half the
-side along periodic axes, the full side along the others). We take L = w + 1.05 D. Then on the
-box the periodic k-th-neighbour distance *is* the planar one, the torus refinement's guarantee
-holds verbatim for the planar d_{P,k}, and nothing is approximated. The margin holds no data,
-so the mesh there coarsens quickly and costs few vertices.
+where w is the box's side along that axis and r a bound on d_{P,k} over the box: by default the
+box's diameter D in its own metric (half the side along periodic axes, the full side along the
+others), or a bound computed from the data (``initial.reach_bound``). Then on the box the
+periodic k-th-neighbour distance *is* the planar one, the torus refinement's guarantee holds
+verbatim for the planar d_{P,k}, and nothing is approximated. The margin holds no data, so the
+mesh there coarsens quickly and costs few vertices.
 
-Internal units: x_int = (x - origin) * scale with scale a power of two (exact), so that the
-longest period is in (1/2, 1]; periods are rounded to the grid Q (a relative change < 1e-15).
+Internal units: x_int = (x - origin) * scale with scale a power of two, so that the longest
+period is in (1/2, 1]. Vertices live on a grid of step q (a power of two, at least 2^-50): q is
+chosen so that its step in input units, g = q / scale, is no finer than the spacing of doubles
+at the largest coordinate the user will receive, and the origin and the periods are multiples
+of g. Every vertex then maps to input coordinates *exactly* (origin + u / scale is a multiple
+of g within the range where doubles are g apart): what the user gets is the mesh the engine
+certified, with no rounding and no two vertices on one row.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-from .geometry import Q
+from .geometry import FLOOR_BITS, Q
+from .jit import kernel
 
 MARGIN = 1.05
 
 
+@kernel(inline="always")
+def wrap_offset(x, lo, period):
+    """x - lo reduced into [0, period). fmod is exact, so the result is within an ulp of the
+    period of the true residue however large |x| is (x - lo itself would round at the scale of
+    x: 80 units off at |x| = 1e17 with a period of 360)."""
+    r = np.fmod(x, period) - np.fmod(lo, period)
+    while r < 0.0:
+        r += period
+    while r >= period:  # also when r + period rounded up to period
+        r -= period
+    return r
+
+
+@kernel()
+def wrap_offsets(x, lo, period):
+    """``wrap_offset`` over an array: x - lo reduced into [0, period), elementwise."""
+    out = np.empty(x.shape[0])
+    for i in range(x.shape[0]):
+        out[i] = wrap_offset(x[i], lo, period)
+    return out
+
+
 def wrap(x, period):
-    """x mod period in [0, period), guarding the rounding case (-1e-17) % 1.0 == 1.0."""
-    x = np.mod(x, period)
-    return np.where(x >= period, 0.0, x)
+    """Points (n, 2) reduced into [0, period) on both axes."""
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 2)
+    return np.stack([wrap_offsets(x[:, a].copy(), 0.0, float(period[a])) for a in range(2)], 1)
+
+
+def diameter(box, periodic):
+    """The box's diameter in its own metric: half the side along periodic axes."""
+    size = np.array(box[2:], float) - np.array(box[:2], float)
+    return float(np.hypot(*np.where(np.array(periodic, bool), size / 2.0, size)))
 
 
 @dataclass(frozen=True)
 class Embedding:
     box: tuple  # (xmin, ymin, xmax, ymax), input units
     periodic: tuple  # (bool, bool)
-    origin: np.ndarray  # input coordinates of the internal origin
+    origin: np.ndarray  # input coordinates of the internal origin, multiples of grid / scale
     scale: float  # internal = (input - origin) * scale
-    period_internal: tuple  # (lx, ly), multiples of Q
+    period_internal: tuple  # (lx, ly), multiples of grid
+    grid: float  # q: the internal grid step, a power of two >= 2^-50
 
     @classmethod
-    def make(cls, box, periodic):
+    def make(cls, box, periodic, reach=None):
+        """The torus for ``box``: along non-periodic axes the side plus a margin of 1.05 x
+        ``reach``, which must bound d_{P,k} over the box (default: the box's diameter D)."""
         lo = np.array(box[:2], float)
         size = np.array(box[2:], float) - lo
         per = np.array(periodic, bool)
-        diam = float(np.hypot(*np.where(per, size / 2.0, size)))
+        diam = diameter(box, periodic) if reach is None else float(reach)
         period = np.where(per, size, size + MARGIN * diam)
         origin = np.where(per, lo, lo - (period - size) / 2.0)
         scale = 2.0 ** -int(np.ceil(np.log2(period.max())))
-        lint = tuple(float(np.rint(p * scale / Q) * Q) for p in period)
-        return cls(tuple(float(b) for b in box), tuple(bool(p) for p in per), origin, scale, lint)
+        # the user receives coordinates in [origin - L, origin + 3 L) (copies of vertices
+        # across non-periodic axes are shifted by -1 .. 2 periods)
+        biggest = float(np.max(np.maximum(np.abs(origin - period), np.abs(origin + 3 * period))))
+        g = max(Q / scale, float(np.spacing(biggest)))
+        q = g * scale
+        origin = np.rint(origin / g) * g
+        lint = tuple(float(np.rint(p * scale / q) * q) for p in period)
+        return cls(
+            tuple(float(b) for b in box), tuple(bool(p) for p in per), origin, scale, lint, q
+        )
 
     @property
     def period(self):
         """Torus periods in input units."""
         return tuple(p / self.scale for p in self.period_internal)
 
+    @property
+    def resolution(self):
+        """The engine's resolution floor in input units: 2^14 grid steps."""
+        return self.grid * 2.0**FLOOR_BITS / self.scale
+
     def to_internal(self, x):
         """Internal coordinates of input points (n, 2), wrapped into the torus (a new array)."""
         x = np.ascontiguousarray(x, dtype=np.float64)
-        return _to_internal(x, self.origin, self.scale, np.array(self.period_internal))
+        return _to_internal(
+            x, self.origin, self.scale, np.array(self.period_internal), np.array(self.periodic)
+        )
 
     def to_input(self, u):
-        u = np.asarray(u, float)
-        x = u / self.scale + self.origin
+        """Input coordinates of internal points on the grid: exact (see the module docstring).
+        Along periodic axes they are wrapped into [box low, box low + period)."""
+        x = np.asarray(u, float) / self.scale + self.origin
         for a in range(2):
             if self.periodic[a]:
-                lo, hi = self.box[a], self.box[a + 2]
-                x[:, a] = lo + wrap(u[:, a] / self.scale, hi - lo)
+                lo, period = self.box[a], self.period[a]
+                x[:, a] = np.where(x[:, a] < lo, x[:, a] + period, x[:, a])
+                x[:, a] = np.where(x[:, a] >= lo + period, x[:, a] - period, x[:, a])
         return x
 
     def box_internal(self):
@@ -78,14 +132,18 @@ class Embedding:
         return lo, hi
 
 
-@njit(cache=True)
-def _to_internal(x, origin, scale, period):
+@kernel()
+def _to_internal(x, origin, scale, period, periodic):
     out = np.empty_like(x)
     for i in range(x.shape[0]):
         for a in range(2):
-            u = (x[i, a] - origin[a]) * scale
-            u -= np.floor(u / period[a]) * period[a]
-            out[i, a] = u if u < period[a] else 0.0  # (-1e-17) % 1.0 rounds to 1.0
+            if periodic[a]:
+                u = wrap_offset(x[i, a], origin[a], period[a] / scale) * scale
+            else:
+                u = (x[i, a] - origin[a]) * scale
+            if u >= period[a]:  # the margin keeps data inside; guard rounding at the seam
+                u = 0.0
+            out[i, a] = u
     return out
 
 
@@ -114,7 +172,7 @@ def unfold(vxy, tv, to, emb):
     return out_v, out_s, pos, tri, (offsets if any(per) else None)
 
 
-@njit(cache=True)
+@kernel()
 def _unfold(vxy, tv, to, L, blo, bhi, nonper):
     m = vxy.shape[0]
     nt = tv.shape[0]

@@ -1,21 +1,26 @@
 """Small floating-point geometry shared by the kernels: circumcircles and the snapping grid."""
 
 import numpy as np
-from numba import njit
 
-# Internal coordinates live on the grid Q * Z^2 inside [0, 1): every vertex is snapped to it and
-# every period is a multiple of Q, so a translation by a period is exact and the exact
-# predicates see the same configuration from every periodic copy.
+from .jit import kernel
+
+# Internal coordinates live on a grid q Z^2 inside [0, 1): every vertex is snapped to it and
+# every period is a multiple of q, so a translation by a period is exact and the exact
+# predicates see the same configuration from every periodic copy. q is a power of two, at
+# least Q, and coarse enough that every vertex maps exactly to a double in the user's
+# coordinates (``embedding.Embedding.grid``).
 GRID_BITS = 50
 Q = 2.0**-GRID_BITS
+FLOOR_BITS = 14  # the engine's resolution floor is 2^14 q: elements below it are never split
 
 
-@njit(cache=True, inline="always")
-def snap(x):
-    return np.rint(x * (1.0 / Q)) * Q
+@kernel(inline="always")
+def snap(x, q):
+    """x rounded to the nearest multiple of the grid step q (a power of two: exact scaling)."""
+    return np.rint(x / q) * q
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def circumcircle(ax, ay, bx, by, cx, cy):
     """Circumcenter (x, y) and squared circumradius of a counter-clockwise triangle."""
     bx -= ax

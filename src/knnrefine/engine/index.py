@@ -23,13 +23,14 @@ descends while its region lies strictly on one side of the split, then counts fr
 """
 
 import numpy as np
-from numba import njit
+
+from .jit import kernel
 
 LEAF_SIZE = 32
 STACK_SIZE = 128  # > 2 * tree depth for any n that fits in memory
 
 
-@njit(cache=True)
+@kernel()
 def _select(pts, axis, lo, hi, kth):
     """Partially sort the rows pts[lo:hi] by coordinate ``axis`` so that row kth is in place."""
     left = lo
@@ -66,7 +67,7 @@ def _select(pts, axis, lo, hi, kth):
             break
 
 
-@njit(cache=True)
+@kernel()
 def _node_bound(n):
     """Nodes of the tree over n points (an upper bound when many points coincide)."""
     count = 0
@@ -84,7 +85,7 @@ def _node_bound(n):
     return count
 
 
-@njit(cache=True)
+@kernel()
 def build_index(pts):
     """Build the kd-tree over the (n, 2) array pts, which it permutes in place and keeps."""
     n = pts.shape[0]
@@ -139,7 +140,7 @@ def build_index(pts):
     return pts, box[:nnodes], node[:nnodes], split[:nnodes]
 
 
-@njit(cache=True)
+@kernel()
 def _start(node, split, cx, cy, r):
     """The deepest node whose split region strictly contains the disk (c, r): points outside
     it cannot lie in the disk."""
@@ -155,7 +156,7 @@ def _start(node, split, cx, cy, r):
     return t
 
 
-@njit(cache=True)
+@kernel()
 def _count_disk(index, cx, cy, r2, k, count, stack):
     pts, box, node, split = index
     if node[0, 1] == 0:
@@ -194,7 +195,7 @@ def _count_disk(index, cx, cy, r2, k, count, stack):
     return count
 
 
-@njit(cache=True)
+@kernel()
 def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)):
     exact when below k; otherwise the search stops early and returns some value >= k.
@@ -217,7 +218,7 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     return count
 
 
-@njit(cache=True)
+@kernel()
 def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
     pts, box, node, split = index
     if node[0, 1] == 0:
@@ -280,7 +281,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
     return count
 
 
-@njit(cache=True)
+@kernel()
 def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack):
     """Number of points of the periodic P in the closed cell {v + p : hx[j] px + hy[j] py <= hc[j]}
     contained in the disk (v, sqrt(r2)): exact when below k, otherwise some value >= k. For a
@@ -302,3 +303,71 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack):
             if count >= k:
                 return count
     return count
+
+
+@kernel(inline="always")
+def _torus_gap(c, lo, hi, period):
+    """Least and greatest torus distance from c to the interval [lo, hi] of [0, period)."""
+    a = abs(lo - c)
+    b = abs(hi - c)
+    a = min(a, period - a)
+    b = min(b, period - b)
+    near = 0.0 if lo <= c <= hi else min(a, b)
+    anti = c + 0.5 * period if c < 0.5 * period else c - 0.5 * period
+    far = 0.5 * period if lo <= anti <= hi else max(a, b)
+    return near, far
+
+
+@kernel()
+def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
+    """Number of points of P within torus distance sqrt(r2) of c, each point counted once, for
+    any radius (``count_in_disk`` counts periodic copies and needs a radius below half the
+    shorter period). Exact when below k; otherwise some value >= k. Used where a reach can
+    exceed half a period: the initial mesh's precondition."""
+    pts, box, node, split = index
+    if node[0, 1] == 0:
+        return 0
+    cx -= np.floor(cx / lx) * lx
+    cy -= np.floor(cy / ly) * ly
+    count = 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        nx, fx = _torus_gap(cx, box[t, 0], box[t, 2], lx)
+        ny, fy = _torus_gap(cy, box[t, 1], box[t, 3], ly)
+        if nx * nx + ny * ny > r2:
+            continue
+        if fx * fx + fy * fy <= r2:
+            count += node[t, 1] - node[t, 0]
+            if count >= k:
+                return count
+            continue
+        c = node[t, 2]
+        if c < 0:
+            for i in range(node[t, 0], node[t, 1]):
+                ex = abs(pts[i, 0] - cx)
+                ey = abs(pts[i, 1] - cy)
+                ex = min(ex, lx - ex)
+                ey = min(ey, ly - ey)
+                if ex * ex + ey * ey <= r2:
+                    count += 1
+                    if count >= k:
+                        return count
+            continue
+        stack[sp] = c
+        stack[sp + 1] = c + 1
+        sp += 2
+    return count
+
+
+@kernel()
+def holds_k_within(index, xy, r2, k, lx, ly):
+    """For each row of xy: does the closed torus disk of squared radius r2[i] about it hold at
+    least k points of P (that is, d_{P,k}(xy[i])^2 <= r2[i])?"""
+    out = np.zeros(xy.shape[0], np.bool_)
+    stack = np.empty(STACK_SIZE, np.int64)
+    for i in range(xy.shape[0]):
+        out[i] = count_in_torus_disk(index, xy[i, 0], xy[i, 1], r2[i], k, lx, ly, stack) >= k
+    return out

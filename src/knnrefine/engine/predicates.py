@@ -13,7 +13,8 @@ multiples of 2^-50 in [-1, 3).
 """
 
 import numpy as np
-from numba import njit
+
+from .jit import kernel
 
 _EPS = 2.0**-53  # half an ulp of 1.0: the unit roundoff
 _SPLITTER = 2.0**27 + 1.0
@@ -25,7 +26,7 @@ ICC_ERRBOUND = (10.0 + 96.0 * _EPS) * _EPS
 # --- error-free transformations -------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def two_sum(a, b):
     """x + y == a + b exactly, with x = fl(a + b)."""
     x = a + b
@@ -34,7 +35,7 @@ def two_sum(a, b):
     return x, (a - av) + (b - bv)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def two_diff(a, b):
     """x + y == a - b exactly, with x = fl(a - b)."""
     x = a - b
@@ -43,14 +44,14 @@ def two_diff(a, b):
     return x, (a - av) + (bv - b)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _split(a):
     c = _SPLITTER * a
     hi = c - (c - a)
     return hi, a - hi
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def two_product(a, b):
     """x + y == a * b exactly, with x = fl(a * b) (Dekker's product)."""
     x = a * b
@@ -65,7 +66,7 @@ def two_product(a, b):
 # --- expansions: arrays of non-overlapping doubles, increasing magnitude, zeros dropped ---------
 
 
-@njit(cache=True)
+@kernel()
 def expansion_sum(e, elen, f, flen, h):
     """h = e + f; returns the length of h (h must hold elen + flen doubles)."""
     i = 0
@@ -95,7 +96,7 @@ def expansion_sum(e, elen, f, flen, h):
     return n
 
 
-@njit(cache=True)
+@kernel()
 def expansion_scale(e, elen, b, h):
     """h = e * b for a double b; returns the length of h (h must hold 2 * elen doubles)."""
     q, t = two_product(e[0], b)
@@ -119,7 +120,7 @@ def expansion_scale(e, elen, b, h):
     return n
 
 
-@njit(cache=True)
+@kernel()
 def expansion_product(e, elen, f, flen, h):
     """h = e * f; returns the length of h (h must hold 2 * elen * flen doubles)."""
     part = np.empty(2 * elen)
@@ -138,7 +139,7 @@ def expansion_product(e, elen, f, flen, h):
     return n
 
 
-@njit(cache=True)
+@kernel()
 def expansion_sign(e, elen):
     """Sign of the exact value: the sign of its largest (last non-zero) component."""
     for i in range(elen - 1, -1, -1):
@@ -149,7 +150,7 @@ def expansion_sign(e, elen):
     return 0
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _diff_expansion(a, b, out):
     hi, lo = two_diff(a, b)
     if lo == 0.0:
@@ -163,7 +164,7 @@ def _diff_expansion(a, b, out):
 # --- orient2d ---------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@kernel()
 def _orient2d_exact(ax, ay, bx, by, cx, cy):
     acx = np.empty(2)
     bcy = np.empty(2)
@@ -184,7 +185,7 @@ def _orient2d_exact(ax, ay, bx, by, cx, cy):
     return expansion_sign(det, nd)
 
 
-@njit(cache=True)
+@kernel()
 def orient2d(ax, ay, bx, by, cx, cy):
     """Sign of the signed area of (a, b, c): +1 counter-clockwise, -1 clockwise, 0 collinear."""
     detleft = (ax - cx) * (by - cy)
@@ -201,7 +202,7 @@ def orient2d(ax, ay, bx, by, cx, cy):
 # --- incircle ---------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@kernel()
 def _lift_times_cross(px, npx, py, npy, qx, nqx, qy, nqy, rx, nrx, ry, nry, out):
     """out = (px^2 + py^2) * (qx * ry - qy * rx), all operands expansions; returns length."""
     t1 = np.empty(8)
@@ -219,7 +220,7 @@ def _lift_times_cross(px, npx, py, npy, qx, nqx, qy, nqy, rx, nrx, ry, nry, out)
     return expansion_product(lift, nl, cross, nc, out)
 
 
-@njit(cache=True)
+@kernel()
 def _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy):
     adx = np.empty(2)
     ady = np.empty(2)
@@ -246,7 +247,7 @@ def _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy):
     return expansion_sign(det, nd)
 
 
-@njit(cache=True)
+@kernel()
 def incircle(ax, ay, bx, by, cx, cy, dx, dy):
     """+1 if d lies strictly inside the circle through a, b, c (counter-clockwise), -1 if
     strictly outside, 0 if on it. For a clockwise triangle the sign is reversed."""

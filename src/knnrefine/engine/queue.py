@@ -15,7 +15,8 @@ smallest class that may be non-empty, the free-list head and the entries ever al
 """
 
 import numpy as np
-from numba import njit
+
+from .jit import kernel
 
 N_CLASSES = 256
 Q_SIZE = 0
@@ -24,7 +25,7 @@ Q_FREE = 2
 Q_USED = 3
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def size_class(r2):
     """Class of a squared radius r2 in (0, 1]: 0 for the largest, larger for smaller."""
     if r2 <= 0.0:
@@ -42,7 +43,7 @@ def new_queue(cap):
     return head, np.zeros(cap, np.int32), np.zeros(cap, np.int32), np.zeros(cap, np.int32)
 
 
-@njit(cache=True)
+@kernel()
 def queue_init(cnt, base):
     cnt[base + Q_SIZE] = 0
     cnt[base + Q_TOP] = N_CLASSES
@@ -50,7 +51,7 @@ def queue_init(cnt, base):
     cnt[base + Q_USED] = 0
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def queue_push(q, cnt, base, cls, ident, aux):
     head, ent_id, ent_aux, ent_next = q
     e = cnt[base + Q_FREE]
@@ -68,7 +69,7 @@ def queue_push(q, cnt, base, cls, ident, aux):
     cnt[base + Q_SIZE] += 1
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def queue_pop(q, cnt, base):
     """Remove an entry of the largest class; returns (class, id, aux). Must not be empty."""
     head, ent_id, ent_aux, ent_next = q

@@ -31,10 +31,9 @@ resolution. The kernel returns after ``max_steps`` insertions or when the arrays
 so the Python driver can report progress, enforce budgets and react to Ctrl-C.
 """
 
-from numba import njit
-
 from .geometry import snap
 from .index import count_in_cell, count_in_disk
+from .jit import kernel
 from .queue import Q_SIZE, Q_USED, queue_init, queue_pop, queue_push, size_class
 from .triangulation import (
     C_LAST_NB,
@@ -83,6 +82,7 @@ P_TAU2 = 2  # tau^2, lowered by a relative 1e-12
 P_FLOOR2 = 3  # min_size^2
 P_CLEAN_FLOOR2 = 4
 P_INFLATE = 5  # 1 + 1e-9: inflation of the counting regions
+P_GRID = 6  # the grid step q every vertex is snapped to
 N_PARAMS = 8
 
 # refine_steps results
@@ -95,7 +95,7 @@ STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code
 HEADROOM = 1100  # free slots required before an insertion (> MAX_CAVITY + 2)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _touch(v, tri, ver, queues, work, cnt, prm):
     """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean."""
     vcell = ver[3]
@@ -112,7 +112,7 @@ def _touch(v, tri, ver, queues, work, cnt, prm):
         vflag[v] = vflag[v] | IN_CLEAN_QUEUE
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def clean(tri, ver, queues, work, cnt, prm):
     """Choose the next Clean move: the largest cell whose aspect exceeds tau.
 
@@ -137,7 +137,7 @@ def clean(tri, ver, queues, work, cnt, prm):
     return -1, -1
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def break_(tri, ver, queues, work, cnt, prm, index):
     """Choose the next Break move: the largest circumball holding >= k points, else the largest
     Voronoi cell holding >= k points.
@@ -202,7 +202,7 @@ def break_(tri, ver, queues, work, cnt, prm, index):
     return -1, 0, -1
 
 
-@njit(cache=True)
+@kernel()
 def queue_all(tri, ver, queues, work, cnt, prm):
     """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0)."""
     tr2 = tri[4]
@@ -215,7 +215,7 @@ def queue_all(tri, ver, queues, work, cnt, prm):
         _touch(v, tri, ver, queues, work, cnt, prm)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def needs_growth(tri, ver, queues, cnt):
     """True when an array could overflow during the next insertion."""
     return (
@@ -227,7 +227,7 @@ def needs_growth(tri, ver, queues, cnt):
     )
 
 
-@njit(cache=True)
+@kernel()
 def refine_steps(tri, ver, queues, scr, work, cnt, prm, index, max_steps):
     """Run Algorithm 1 for at most max_steps insertions; returns a STATUS_* code."""
     tcc = tri[3]
@@ -254,7 +254,8 @@ def refine_steps(tri, ver, queues, scr, work, cnt, prm, index, max_steps):
             if t < -1:
                 cnt[C_ERROR] = t
                 return STATUS_ERROR
-        v = insert_vertex(snap(tcc[t, 0]), snap(tcc[t, 1]), t, kind, tri, ver, scr, cnt, prm)
+        q = prm[P_GRID]
+        v = insert_vertex(snap(tcc[t, 0], q), snap(tcc[t, 1], q), t, kind, tri, ver, scr, cnt, prm)
         if v == INSERT_NOT_IN_SEED:  # the split point rounds onto an existing vertex
             cnt[C_FAILED] += 1
             if kind == CLEAN:

@@ -7,8 +7,8 @@ opposite corner i) and an integer offset per corner ``to[t, i] = (ox, oy)``: the
 three corners is 0 on each axis. Corners are counter-clockwise. ``tcc[t]`` and ``tr2[t]`` cache
 the circumcenter (in the triangle's own frame) and the squared circumradius.
 
-Vertices ``vxy`` lie on the grid of ``geometry.Q`` inside the fundamental domain, and the
-periods are multiples of Q, so every realised corner is exact and the exact predicates give
+Vertices ``vxy`` lie on the grid q of ``geometry`` inside the fundamental domain, and the
+periods are multiples of q, so every realised corner is exact and the exact predicates give
 the same answer from every periodic copy.
 
 Insertion is Bowyer-Watson: the cavity (triangles whose open circumdisk holds the new point)
@@ -26,9 +26,9 @@ Tuple layouts passed to every kernel:
 """
 
 import numpy as np
-from numba import njit
 
 from .geometry import circumcircle
+from .jit import kernel
 from .predicates import incircle
 
 # counters (cnt)
@@ -48,14 +48,14 @@ INSERT_CAVITY_OVERFLOW = -2
 INSERT_TOPOLOGY = -3  # the cavity is not a disk: a broken invariant
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def corner(tv, to, vxy, t, i, sx, sy, lx, ly):
     """Position of corner i of triangle t, shifted by (sx, sy) periods (exact on the grid)."""
     v = tv[t, i]
     return vxy[v, 0] + (to[t, i, 0] + sx) * lx, vxy[v, 1] + (to[t, i, 1] + sy) * ly
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def set_circumcircle(tri, ver, prm, t):
     tv, tn, to, tcc, tr2, tstamp, tstate = tri
     vxy = ver[0]
@@ -70,13 +70,13 @@ def set_circumcircle(tri, ver, prm, t):
     tr2[t] = r2
 
 
-@njit(cache=True)
+@kernel()
 def set_all_circumcircles(tri, ver, prm, nt):
     for t in range(nt):
         set_circumcircle(tri, ver, prm, t)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def in_circumcircle(tri, ver, prm, t, sx, sy, px, py):
     """Exact sign: +1 if p is strictly inside the circumcircle of t shifted by (sx, sy)."""
     tv = tri[0]
@@ -90,7 +90,7 @@ def in_circumcircle(tri, ver, prm, t, sx, sy, px, py):
     return incircle(ax, ay, bx, by, cx, cy, px, py)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def mirror(tv, tn, n, t, a):
     """Index j in triangle n of the neighbour t across the edge whose head (in n) is vertex a."""
     for j in range(3):
@@ -99,7 +99,7 @@ def mirror(tv, tn, n, t, a):
     return -1
 
 
-@njit(cache=True)
+@kernel()
 def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
     """Insert the point p, given in the frame of triangle ``seed`` whose circumcircle holds it.
 
@@ -234,7 +234,7 @@ def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
     return v
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def vertex_star(v, tri, ver, prm, hx, hy):
     """Walk the triangles around vertex v: everything aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) needs.
 

@@ -1,0 +1,208 @@
+"""The initial mesh M0 and Theorem 6's precondition on it.
+
+Lemma 2 of the paper proves the lower bound by induction over the insertion order: every
+vertex v must satisfy
+
+    d_{P,k}(v) <= (K - 1) lambda_v,        lambda_v = distance to the nearest earlier vertex,
+
+with K = 2 tau / (tau - 2). Break and Clean insertions keep it (for a far-corner Break only if
+K >= 3, hence ``reach_factor``); the initial vertices must satisfy it to begin with. The
+order *among* the initial vertices is ours to choose: the first has no predecessor at all.
+``precondition_order`` finds an order that works whenever one exists, by peeling: a vertex
+that passes with lambda = its distance to the nearest other remaining vertex can go last
+(every order of the rest leaves it that far from its predecessors); remove those, repeat on
+the rest. If at some round nobody passes, nobody can be last among those vertices in any
+order, so no order exists.
+
+M0 itself is a tensor grid of the torus. Every circumradius must stay below a quarter of the
+shorter period (the triangulation must be a simplicial complex, and cavities must not wrap
+around; see ``triangulation.py``), so M0 cannot be arbitrarily coarse: with k close to n on a
+small torus, d_{P,k} at the initial vertices can exceed what any valid M0 allows, and
+``refine`` then refuses the input (``choose_initial_mesh`` returns None).
+"""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .geometry import Q
+from .index import holds_k_within
+
+# (vertices per shorter period, jitter amplitude, phase of the grid in cells): the first is
+# the default M0 (fast: its jitter keeps the exact in-circle fallback rare); the coarser grid
+# allows spacing a third of the shorter period with a jitter small enough to keep every
+# circumradius below a quarter of it; the shifted copies place the vertices differently
+# relative to the data
+GRIDS = ((4, 0.3, 0.0), (3, 0.1, 0.0), (3, 0.1, 0.5), (4, 0.3, 0.5))
+
+
+def reach_factor(tau):
+    """K - 1 of Lemma 2 with K = max(2 tau / (tau - 2), 3): the induction needs
+    K >= 2 tau / (tau - 2) for Clean and K >= 3 for a Break at a cell's far corner (the new
+    vertex is R(v) from its nearest vertex and within 2 R(v) of the cell's k points)."""
+    return max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
+
+
+def grid_shape(lx, ly, per_period=4):
+    """Columns and rows of the grid: ``per_period`` along the shorter period (at least 3),
+    the same spacing or less along the other."""
+    h = min(lx, ly) / per_period
+    return (
+        max(per_period, int(np.ceil(lx / h - 1e-9))),
+        max(per_period, int(np.ceil(ly / h - 1e-9))),
+    )
+
+
+def _jittered_positions(n, length, phase, jitter, shift, q):
+    """n positions around a circle of the given length, gaps (1 +- jitter / 2) * length / n in
+    a fixed low-discrepancy pattern, moved by ``shift`` mean gaps, snapped to the grid q."""
+    gaps = 1.0 + jitter * (((np.arange(n) + phase) * 0.6180339887498949) % 1.0 - 0.5)
+    edges = np.concatenate([[0.0], np.cumsum(gaps)]) * (length / gaps.sum())
+    x = np.sort(np.mod(0.5 * (edges[:-1] + edges[1:]) + shift * length / n, length))
+    x = np.rint(x / q) * q
+    return np.where(x >= length, 0.0, x)
+
+
+def initial_grid(lx, ly, per_period=4, jitter=0.3, shift=0.0, q=Q):
+    """M0: a tensor grid on the torus [0, lx) x [0, ly), one diagonal per cell.
+
+    Its cells are axis-aligned rectangles, so the four corners of each are exactly cocircular
+    and the triangulation is exactly Delaunay even after snapping to the grid. Column widths
+    and row heights vary by up to jitter / 2: with a perfectly regular grid the circumcenters
+    of its right triangles are the cell centres, which form a finer square lattice, and so on
+    at every level, so uniform regions would stay exactly cocircular and every in-circle test
+    would need the slow exact fallback.
+
+    Returns (vxy, tv, to, tn) or None when a circumradius would reach a quarter of the shorter
+    period (the grid is too coarse to be a valid torus triangulation)."""
+    nx, ny = grid_shape(lx, ly, per_period)
+    gx = _jittered_positions(nx, lx, 0.0, jitter, shift, q)
+    gy = _jittered_positions(ny, ly, 0.5, jitter, shift, q)
+    wx = np.diff(np.append(gx, gx[0] + lx))
+    wy = np.diff(np.append(gy, gy[0] + ly))
+    if np.hypot(wx.max(), wy.max()) / 2.0 >= min(lx, ly) / 4.0 * (1.0 - 1e-9):
+        return None
+    vxy = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="xy")
+    i = i.ravel()
+    j = j.ravel()
+    i1 = (i + 1) % nx
+    j1 = (j + 1) % ny
+    ox = (i + 1 == nx).astype(np.int8)
+    oy = (j + 1 == ny).astype(np.int8)
+    v00 = j * nx + i
+    v10 = j * nx + i1
+    v01 = j1 * nx + i
+    v11 = j1 * nx + i1
+    zero = np.zeros_like(ox)
+    # cell c = j * nx + i holds the lower triangle c = (v00, v10, v11) and the upper triangle
+    # nc + c = (v00, v11, v01); neighbour i lies across the edge opposite corner i
+    tv = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    to = np.concatenate(
+        [
+            np.stack(
+                [np.stack([zero, zero], 1), np.stack([ox, zero], 1), np.stack([ox, oy], 1)], 1
+            ),
+            np.stack(
+                [np.stack([zero, zero], 1), np.stack([ox, oy], 1), np.stack([zero, oy], 1)], 1
+            ),
+        ]
+    ).astype(np.int8)
+    nc = nx * ny
+    cell = j * nx + i
+    right = j * nx + i1
+    left = j * nx + (i - 1) % nx
+    up = j1 * nx + i
+    down = ((j - 1) % ny) * nx + i
+    tn = np.concatenate(
+        [
+            np.stack([nc + right, nc + cell, nc + down], 1),  # right edge, diagonal, bottom
+            np.stack([up, left, cell], 1),  # top edge, left edge, diagonal
+        ]
+    )
+    return vxy, tv.astype(np.int32), to, tn.astype(np.int32)
+
+
+def precondition_order(vxy, index, k, factor, lx, ly):
+    """An order of the initial vertices in which each u satisfies d_{P,k}(u) <= factor *
+    lambda_u (the distance to its nearest predecessor on the torus), by peeling (see the
+    module docstring). Returns (order, rounds) or (None, failing) with the vertices no order
+    can place."""
+    remaining = np.arange(len(vxy))
+    peeled = []
+    period = np.array([lx, ly])
+    while len(remaining) > 1:
+        xy = vxy[remaining]
+        lam = cKDTree(xy, boxsize=period).query(xy, k=2)[0][:, 1]
+        # conservative: the reach is shortened by a relative 1e-9 against rounding
+        ok = holds_k_within(index, xy, (factor * lam * (1.0 - 1e-9)) ** 2, k, lx, ly)
+        if not ok.any():
+            return None, remaining
+        peeled.append(remaining[ok])
+        remaining = remaining[~ok]
+    return np.concatenate([remaining] + peeled[::-1]), len(peeled)
+
+
+def choose_initial_mesh(index, k, factor, lx, ly, max_vertices, q=Q):
+    """The first of ``GRIDS`` (within ``max_vertices``) whose vertices can be ordered so that
+    d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition with factor = K - 1, see
+    ``reach_factor``). Returns (m0, order, grid) with m0 = (vxy, tv, to, tn), or None."""
+    for grid in GRIDS:
+        nx, ny = grid_shape(lx, ly, grid[0])
+        if nx * ny > max_vertices:
+            continue
+        m0 = initial_grid(lx, ly, *grid, q=q)
+        if m0 is None:
+            continue
+        order, _ = precondition_order(m0[0], index, k, factor, lx, ly)
+        if order is not None:
+            return m0, order, grid
+    return None
+
+
+def tau_for_factor(factor):
+    """The tau whose Lemma 2 factor K - 1 is ``factor`` (> 2): factor + 1 = 2 tau / (tau - 2)."""
+    return 2.0 * (factor + 1.0) / (factor - 1.0)
+
+
+def largest_passing(ok, k, factor):
+    """For an input refused at (k, factor), with ``ok(k, factor)`` the acceptance test: (the
+    largest k' < k accepted at this factor, 0 if none; the least factor accepted for this k,
+    to a relative 1e-6, or None beyond 1e9). Both are monotone: a larger k or a smaller factor
+    only makes the precondition harder."""
+    lo, hi = 0, k
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if ok(mid, factor):
+            lo = mid
+        else:
+            hi = mid
+    f_lo, f_hi = factor, factor * 2.0
+    while not ok(k, f_hi):
+        f_lo, f_hi = f_hi, f_hi * 2.0
+        if f_hi > 1e9:
+            return lo, None
+    while f_hi - f_lo > 1e-6 * f_hi:
+        mid = 0.5 * (f_lo + f_hi)
+        if ok(k, mid):
+            f_hi = mid
+        else:
+            f_lo = mid
+    return lo, f_hi
+
+
+def reach_bound(index, lo, hi, k, lx, ly, cells=32):
+    """An upper bound on max d_{P,k} over the box [lo, hi] (internal units; d_{P,k} in the
+    torus metric, which is the box's own where the torus is the default embedding): the
+    smallest r, to a relative 2^-30, at which every centre of a cells x cells grid holds k
+    points within r, plus the cells' half-diagonal (d_{P,k} is 1-Lipschitz)."""
+    gx = lo[0] + (np.arange(cells) + 0.5) / cells * (hi[0] - lo[0])
+    gy = lo[1] + (np.arange(cells) + 0.5) / cells * (hi[1] - lo[1])
+    centres = np.stack(np.meshgrid(gx, gy), -1).reshape(-1, 2)
+    r_lo, r_hi = 0.0, float(np.hypot(lx, ly))  # every point is within the torus' diameter
+    for _ in range(30):
+        mid = 0.5 * (r_lo + r_hi)
+        if holds_k_within(index, centres, np.full(len(centres), mid * mid), k, lx, ly).all():
+            r_hi = mid
+        else:
+            r_lo = mid
+    return r_hi + 0.5 * float(np.hypot(hi[0] - lo[0], hi[1] - lo[1])) / cells

@@ -1,0 +1,100 @@
+"""``kernel``: numba's ``njit(cache=True)``, made to work on any install.
+
+numba caches compiled kernels in the ``__pycache__`` beside the source when it can write
+there, else in the user's cache directory (``~/.cache/numba`` or ``NUMBA_CACHE_DIR``). It
+raises at import ("cannot cache function ...: no locator available") when neither is
+writable, and it never *reads* a ``__pycache__`` it cannot write, so a read-only install
+recompiles (about a minute) even when compiled kernels were shipped with it.
+
+Here:
+
+* kernels shipped in a read-only ``__pycache__`` of this package (for example by running
+  ``knnrefine demo`` once as the installing user) are loaded from there and never written;
+  a signature they lack is compiled for the process only;
+* with no usable cache at all, kernels are compiled in memory for the process, after one
+  ``KernelCacheWarning`` saying how to keep them (``NUMBA_CACHE_DIR``).
+"""
+
+import os
+import tempfile
+import warnings
+
+from numba import njit
+from numba.core.caching import FunctionCache, InTreeCacheLocator
+
+PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class KernelCacheWarning(RuntimeWarning):
+    """numba cannot cache knnrefine's kernels here: they are compiled for this process only."""
+
+
+def _writable(path):
+    try:
+        tempfile.TemporaryFile(dir=path).close()
+        return True
+    except OSError:
+        return False
+
+
+class ShippedCacheLocator(InTreeCacheLocator):
+    """Reads kernels compiled into this package's own ``__pycache__`` when that folder exists
+    but cannot be written (where it can, numba's in-tree locator serves as usual)."""
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        if not os.path.abspath(py_file).startswith(PACKAGE + os.sep):
+            return None
+        self = cls(py_func, py_file)
+        path = self.get_cache_path()
+        if not os.path.isdir(path) or _writable(path):
+            return None
+        prefix = f"{os.path.splitext(os.path.basename(py_file))[0]}.{py_func.__qualname__}-"
+        if not any(name.startswith(prefix) and name.endswith(".nbi") for name in os.listdir(path)):
+            return None
+        return self
+
+    def ensure_cache_path(self):
+        """The folder exists; nothing is ever written to it (see ``_never_save``)."""
+
+
+_locators = FunctionCache._impl_class._locator_classes
+if ShippedCacheLocator not in _locators:
+    _locators.insert(0, ShippedCacheLocator)
+
+_warned = []
+
+
+def _never_save(dispatcher):
+    """A dispatcher reading shipped kernels compiles what they lack for the process only."""
+    cache = getattr(dispatcher, "_cache", None)
+    impl = getattr(cache, "_impl", None)
+    if isinstance(getattr(impl, "locator", None), ShippedCacheLocator):
+        cache.save_overload = lambda sig, data: None
+
+
+def kernel(**options):
+    """``njit(cache=True, **options)``, falling back to an uncached ``njit`` where numba has
+    nowhere to keep compiled code."""
+
+    def wrap(func):
+        try:
+            dispatcher = njit(cache=True, **options)(func)
+        except RuntimeError as exc:
+            if "no locator available" not in str(exc):
+                raise
+            if not _warned:
+                _warned.append(True)
+                warnings.warn(
+                    "knnrefine: numba has no writable place to cache compiled kernels (the "
+                    "package folder is read-only and there is no writable cache directory), so "
+                    "they are compiled for this process only (15 s or more on first use); set "
+                    "NUMBA_CACHE_DIR to a writable folder to keep them",
+                    KernelCacheWarning,
+                    stacklevel=3,
+                )
+            return njit(cache=False, **options)(func)
+        _never_save(dispatcher)
+        return dispatcher
+
+    return wrap
