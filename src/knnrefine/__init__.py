@@ -10,7 +10,14 @@ from .api import refine
 from .certify import Certificate, certify
 from .cluster import Clustering, cluster
 from .density import KnnDensity, KnnDistance
-from .errors import BudgetError, EngineError, InputError, KnnRefineError
+from .errors import (
+    BudgetError,
+    EngineError,
+    FloorWarning,
+    InputError,
+    KnnRefineError,
+    LargeRunWarning,
+)
 from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
 
 __version__ = "0.1.0"
@@ -32,5 +39,7 @@ __all__ = [
     "InputError",
     "BudgetError",
     "EngineError",
+    "FloorWarning",
+    "LargeRunWarning",
     "__version__",
 ]

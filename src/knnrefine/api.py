@@ -1,16 +1,21 @@
 """knnrefine.refine: the public entry point."""
 
+import inspect
 import time
+import warnings
 
 import numpy as np
 
 from . import validation as V
 from .engine import refine as R
+from .engine import size
 from .engine.driver import Refinement
 from .engine.embedding import Embedding, diameter, unfold, wrap
-from .engine.index import build_index
+from .engine.geometry import FLOOR_BITS
+from .engine.index import build_index, mark_in_disks
 from .engine.initial import (
     GRIDS,
+    candidate_grids,
     choose_initial_mesh,
     grid_shape,
     largest_passing,
@@ -18,10 +23,12 @@ from .engine.initial import (
     reach_factor,
     tau_for_factor,
 )
-from .errors import BudgetError, InputError
+from .engine.interrupt import Interrupts
+from .errors import BudgetError, FloorWarning, InputError, LargeRunWarning
 from .mesh import Mesh, Torus
 
 DEFAULT_MIN_SIZE = 1e-6  # resolution floor, relative to the box's longer side
+LARGE_RUN_BYTES = 2e9  # runs expected to need more memory than this say so up front
 
 
 def refine(
@@ -73,8 +80,14 @@ def refine(
     Mesh
     """
     t_start = time.perf_counter()
+    deadline = None
+    if time_limit is not None:
+        if isinstance(time_limit, bool) or not (np.isfinite(time_limit) and time_limit > 0):
+            raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+        deadline = t_start + float(time_limit)
     pts = V.as_points(points)
-    k = V.check_k(k, len(pts))
+    n = len(pts)
+    k = V.check_k(k, n)
     tau = V.check_tau(tau)
     per = V.check_periodic(periodic)
     if box is None:
@@ -93,66 +106,156 @@ def refine(
     elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
         raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
     min_size = float(min_size)
-    if max_vertices is None:
-        max_vertices = max(10**6, 2 * len(pts))
-    elif isinstance(max_vertices, bool) or int(max_vertices) != max_vertices or max_vertices < 1:
+    if max_vertices is not None and (
+        isinstance(max_vertices, bool) or int(max_vertices) != max_vertices or max_vertices < 1
+    ):
         raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
-    if time_limit is not None and not (time_limit > 0):
-        raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
-
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
     _check_resolution(box, per)
-    _check_initial_budget(box, per, int(max_vertices))
-    start = _Start(pts, box, per, int(max_vertices))
-    found = start.find(k, reach_factor(tau))
-    if found is None:
-        raise InputError(start.refusal(k, tau))
-    emb, index, (m0, m0_order, m0_grid) = found
-    run = Refinement(
-        index,
-        k,
-        *emb.period_internal,
-        tau,
-        min_size * emb.scale,
-        int(max_vertices),
-        m0=m0,
-        grid=emb.grid,
-    )
-    run.time_index = start.seconds
-    # below the engine's resolution limit nothing is split whatever min_size says
-    min_size = max(min_size, run.floor / emb.scale)
-    status = run.run(time_limit=time_limit, progress=progress)
-    if status != R.STATUS_DONE:
-        what = (
-            f"max_vertices={max_vertices}"
-            if status == R.STATUS_MAX_VERTICES
-            else f"time_limit={time_limit} s"
+    # the initial mesh must fit whatever budget applies: the user's, else the smallest default
+    start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
+    _check_initial_budget(box, per, start_budget)
+
+    report = _Progress(progress)
+    with Interrupts() as interrupts:
+        start = _Start(pts, box, per, start_budget, interrupts, deadline)
+        found = start.find(k, reach_factor(tau))
+        if found is None:
+            raise InputError(start.refusal(k, tau))
+        emb, index, (m0, m0_order, m0_grid) = found
+        _past(deadline, "setting up", 0)
+        floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
+        lo, hi = emb.box_internal()
+        estimated, _ = size.estimate(index, k, floor, *emb.period_internal, float(np.prod(hi - lo)))
+        budget = _budget(estimated, max_vertices, len(m0_order), k, n, emb.scale, min_size)
+        run = Refinement(
+            index,
+            k,
+            *emb.period_internal,
+            tau,
+            min_size * emb.scale,
+            budget,
+            m0=m0,
+            grid=emb.grid,
         )
-        raise BudgetError(
-            f"refinement stopped at {what} with {run.vertices} vertices and {run.pending()} "
-            "candidates still queued; raise the budget, use a larger k, or a larger min_size",
-            progress={
-                "vertices": run.vertices,
-                "moves": run.counters()["moves"],
-                "seconds": time.perf_counter() - t_start,
-            },
-        )
-    res = run.result()
-    t_assemble = time.perf_counter()
-    m0_stats = {
-        "vertices": int(len(m0_order)),
-        "per_period": int(m0_grid[0]),
-        "shift": float(m0_grid[2]),
-        "reach_factor": reach_factor(tau),
-    }
-    mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats)
+        run.time_index = start.seconds
+        # below the engine's resolution limit nothing is split whatever min_size says
+        min_size = max(min_size, run.floor / emb.scale)
+        status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
+        if status != R.STATUS_DONE:
+            what = (
+                f"max_vertices={budget}"
+                if status == R.STATUS_MAX_VERTICES
+                else f"time_limit={time_limit} s"
+            )
+            raise BudgetError(
+                f"refinement stopped at {what} with {run.vertices} vertices and "
+                f"{run.pending()} candidates still queued (about {estimated:.3g} vertices were "
+                "expected); raise the budget, use a larger k, or a larger min_size",
+                progress={
+                    "vertices": run.vertices,
+                    "moves": run.counters()["moves"],
+                    "seconds": time.perf_counter() - t_start,
+                },
+            )
+        t_assemble = time.perf_counter()
+        report.assembling(run.vertices)
+        res = run.result()
+        m0_stats = {
+            "vertices": int(len(m0_order)),
+            "per_period": int(m0_grid[0]),
+            "shift": float(m0_grid[2]),
+            "reach_factor": reach_factor(tau),
+        }
+        mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts)
     stats = mesh.stats
+    stats["estimated_vertices"] = int(estimated)
+    stats["max_vertices"] = budget
     stats["time"] = {
         "index": run.time_index,
         "refine": run.time_refine,
         "assemble": time.perf_counter() - t_assemble,
         "total": time.perf_counter() - t_start,
     }
+    report.assembling(len(mesh.vertices), done=True)
     return mesh
+
+
+class _Progress:
+    """The user's progress callback: progress(vertices, pending) while refining; while the
+    mesh is assembled also, if it takes a ``phase`` argument, with phase="assembling"."""
+
+    def __init__(self, callback):
+        self.callback = callback
+        self.phases = False
+        if callback is not None:
+            try:
+                params = inspect.signature(callback).parameters.values()
+                self.phases = any(
+                    p.name == "phase" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params
+                )
+            except (TypeError, ValueError):
+                pass
+
+    def refining(self, vertices, pending):
+        if self.callback is not None:
+            self.callback(vertices, pending)
+
+    def assembling(self, vertices, done=False):
+        if self.callback is None:
+            return
+        if self.phases:
+            self.callback(vertices, 0, phase="done" if done else "assembling")
+        else:
+            self.callback(vertices, 0)
+
+
+def _past(deadline, what, vertices):
+    """BudgetError if the time limit has passed (checked between phases)."""
+    if deadline is not None and time.perf_counter() > deadline:
+        raise BudgetError(
+            f"time_limit reached while {what}, before refinement began; raise time_limit",
+            progress={"vertices": vertices, "moves": {}, "seconds": None},
+        )
+
+
+def _budget(estimated, max_vertices, m0, k, n, scale, min_size):
+    """The vertex budget: the user's max_vertices, else three times the estimate (at least
+    10^6). Refused up front: a run whose estimate exceeds four times the user's budget, or
+    (by default) the machine's memory; a large run says so (LargeRunWarning)."""
+    need = estimated * size.BYTES_PER_VERTEX
+    memory = size.memory_bytes()
+    hint = (
+        "k = 1 refines every input point down to min_size: use k >= 2 or a larger min_size"
+        if k == 1
+        else "use a larger k or a larger min_size"
+    )
+    if max_vertices is not None:
+        if estimated > 4 * max_vertices:
+            raise BudgetError(
+                f"this run needs about {estimated:.3g} vertices, far beyond "
+                f"max_vertices={max_vertices}; {hint}, or raise max_vertices",
+                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
+            )
+        budget = int(max_vertices)
+    else:
+        if need > 0.8 * memory:
+            raise BudgetError(
+                f"this run needs about {estimated:.3g} vertices, about {need / 1e9:.3g} GB, more "
+                f"than this machine's {memory / 1e9:.3g} GB; {hint}, or pass max_vertices to "
+                "insist",
+                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
+            )
+        budget = int(max(10**6, 3 * estimated, 2 * m0))
+    if need > LARGE_RUN_BYTES:
+        warnings.warn(
+            f"this run will need about {estimated:.3g} vertices and {need / 1e9:.2g} GB of memory "
+            f"(n = {n}, k = {k}, min_size = {min_size:.3g})",
+            LargeRunWarning,
+            stacklevel=3,
+        )
+    return budget
 
 
 RESOLUTION_BITS = 24  # a box must span at least 2^24 grid steps: the floor is 2^14 of them
@@ -193,10 +296,6 @@ def _check_initial_budget(box, per, max_vertices):
     )
 
 
-def _initial(emb, index, k, factor, max_vertices):
-    return choose_initial_mesh(index, k, factor, *emb.period_internal, max_vertices, emb.grid)
-
-
 class _Start:
     """Where refinement starts: the embedding torus, the counting index over the points in it,
     and an initial mesh that satisfies Theorem 6's precondition.
@@ -205,57 +304,78 @@ class _Start:
     tried first. When its initial mesh cannot be ordered to satisfy the precondition, other
     margins are tried along non-periodic axes: 1.05 x a bound on max d_Pk over the box (the
     least that keeps d_Pk exact on the box: fewer initial vertices far from the data), then
-    2, 4 and 10 diameters (initial meshes coarser relative to the box). Indexes are built once
-    per torus."""
+    2, 4 and 10 diameters (initial meshes coarser relative to the box). Indexes and candidate
+    initial meshes are built once per torus; the deadline and Ctrl-C are checked between
+    candidates."""
 
-    def __init__(self, pts, box, per, max_vertices):
+    LIMITS_EFFORT = 50_000  # initial vertices above which a refusal skips the limit search
+
+    def __init__(self, pts, box, per, max_vertices, interrupts, deadline):
         self.pts, self.box, self.per, self.max_vertices = pts, box, per, max_vertices
+        self.interrupts = interrupts
+        self.deadline = deadline
         self.tori = {}
         self.seconds = 0.0  # building indexes
 
+    def check(self):
+        self.interrupts.check()
+        _past(self.deadline, "choosing the initial mesh", 0)
+
     def torus(self, reach=None):
+        """(embedding, index, candidate initial meshes) of the torus with this margin."""
         if reach not in self.tori:
             t0 = time.perf_counter()
             emb = Embedding.make(self.box, self.per, reach)
-            self.tori[reach] = emb, build_index(emb.to_internal(self.pts))
+            index = build_index(emb.to_internal(self.pts))
             self.seconds += time.perf_counter() - t0
+            self.check()
+            grids = list(candidate_grids(*emb.period_internal, self.max_vertices, emb.grid))
+            self.tori[reach] = emb, index, grids
         return self.tori[reach]
+
+    def _try(self, reach, k, factor):
+        emb, index, grids = self.torus(reach)
+        choice = choose_initial_mesh(grids, index, k, factor, *emb.period_internal, self.check)
+        return None if choice is None else (emb, index, choice)
 
     def find(self, k, factor):
         """(embedding, index, (m0, order, grid)) for the first torus that works, or None."""
-        emb, index = self.torus()
-        choice = _initial(emb, index, k, factor, self.max_vertices)
-        if choice is not None:
-            return emb, index, choice
-        if all(self.per):
-            return None
+        found = self._try(None, k, factor)
+        if found is not None or all(self.per):
+            return found
+        emb, index, _ = self.torus()
         lo, hi = emb.box_internal()
         reach = reach_bound(index, lo, hi, k, *emb.period_internal) / emb.scale
         diam = diameter(self.box, self.per)
         for r in (reach, 2.0 * diam, 4.0 * diam, 10.0 * diam):
-            emb, index = self.torus(r)
-            choice = _initial(emb, index, k, factor, self.max_vertices)
-            if choice is not None:
-                return emb, index, choice
+            found = self._try(r, k, factor)
+            if found is not None:
+                return found
         return None
 
     def refusal(self, k, tau):
         """The message for an input no torus can start: what failed and what would work."""
         factor = reach_factor(tau)
-        k_max, f_min = largest_passing(lambda kk, f: self.find(kk, f) is not None, k, factor)
-        emb = self.torus()[0]
+        emb, _, grids = self.torus()
+        effort = sum(len(m0[0]) for _, m0 in grids)
+        k_max, f_min = (
+            largest_passing(lambda kk, f: self.find(kk, f) is not None, k, factor)
+            if effort <= self.LIMITS_EFFORT
+            else (None, None)
+        )
         mode = {(True, True): "periodic", (False, False): "ordinary"}.get(
             emb.periodic, f"periodic={emb.periodic}"
         )
         options = []
-        if k_max >= 1:
+        if k_max is not None and k_max >= 1:
             options.append(f"use k <= {k_max} (the largest k certifiable here at tau = {tau:g})")
-        if f_min is not None and tau_for_factor(f_min) > 2.0:
-            options.append(
-                f"use tau <= {np.floor(tau_for_factor(f_min) * 1000) / 1000:g} with k = {k}"
-            )
+        if f_min is not None and tau_for_factor(f_min) >= 2.01:
+            tau_max = np.floor(tau_for_factor(f_min) * 1000) / 1000
+            options.append(f"use tau <= {tau_max:g} with k = {k}")
         if any(self.per):
             options.append("make the shorter periodic side of the box longer")
+        if not options:
+            options.append("use a smaller k or a smaller tau")
         return (
             f"k = {k} cannot be certified for these {len(self.pts)} points in the {mode} box "
             f"{emb.box} at tau = {tau:g}: Theorem 6's lower bound needs d_Pk <= {factor:.3g} "
@@ -265,13 +385,36 @@ class _Start:
         )
 
 
-def _assemble(res, emb, k, tau, min_size, run, m0_stats):
+def _points_under_floor(res, run, floor_t, floor_v):
+    """How many input points lie in a floor element (a circumball, or the disk of radius R(v)
+    around a cell's vertex, that holds >= k points below the floor)."""
+    if not (floor_t.any() or floor_v.any()):
+        return 0
+    r2 = np.zeros(len(res.vxy))
+    for c in range(3):
+        np.maximum.at(r2, res.tv[:, c], res.tr2)
+    centres = np.concatenate([res.tcc[floor_t], res.vxy[floor_v]])
+    radii2 = np.concatenate([res.tr2[floor_t], r2[floor_v]]) * (1.0 + 1e-9)
+    mark = np.zeros(run.n, np.bool_)
+    return int(
+        mark_in_disks(
+            run.index, centres[:, 0].copy(), centres[:, 1].copy(), radii2, run.lx, run.ly, mark
+        )
+    )
+
+
+def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
+    """The Mesh the user receives, from the torus mesh (progress reported between steps)."""
     out_v, out_s, pos, tri, offsets = unfold(res.vxy, res.tv, res.to, emb)
+    report.assembling(run.vertices)
+    interrupts.check()
     L = np.array(emb.period_internal)
     floor_t = res.tstate == R.FLOOR
     floor_v = res.vcell == R.FLOOR
     floor_int = np.concatenate([res.tcc[floor_t], res.vxy[floor_v]])
     floor_pts = emb.to_input(wrap(floor_int, L)) if len(floor_int) else np.zeros((0, 2))
+    under = _points_under_floor(res, run, floor_t, floor_v)
+    report.assembling(run.vertices)
     stats = {
         "n": run.n,
         "m": int(len(out_v)),
@@ -281,8 +424,23 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats):
         "floor_circumballs": int(floor_t.sum()),
         "floor_cells": int(floor_v.sum()),
         "clean_floor": int(np.count_nonzero(res.vflag & R.CLEAN_FLOOR)),
+        "points_under_floor": under,
         "m0": m0_stats,
     }
+    if under > run.n / 2:
+        warnings.warn(
+            f"{under} of the {run.n} points ({100 * under / run.n:.0f}%) lie in circumballs or "
+            f"cells smaller than min_size = {min_size:.3g} that still hold k = {k} points: the "
+            "bounds are not claimed there"
+            + (
+                " (k = 1 makes every input point such a place; use k >= 2)"
+                if k == 1
+                else f"; min_size defaults to 1e-6 of the box {emb.box}, not of the data: pass a "
+                "smaller min_size or a box fitted to the data"
+            ),
+            FloorWarning,
+            stacklevel=3,
+        )
     torus = Torus(
         origin=tuple(float(o) for o in emb.origin),
         period=emb.period,

@@ -21,3 +21,12 @@ class BudgetError(KnnRefineError, RuntimeError):
 
 class EngineError(KnnRefineError, RuntimeError):
     """A broken internal invariant: a bug in knnrefine. Please report it with the input."""
+
+
+class FloorWarning(UserWarning):
+    """Most of the input lies where d_{P,k} is below the resolution floor ``min_size``, where
+    the guarantee is not claimed (the default floor is relative to the box, not the data)."""
+
+
+class LargeRunWarning(UserWarning):
+    """A run is expected to need a lot of memory (estimated before it starts)."""

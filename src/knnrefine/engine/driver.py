@@ -57,7 +57,7 @@ class Refinement:
         self.ly = ly
         self.index = index
         self.n = int(index[0].shape[0])
-        vxy, tv, to, tn = initial_grid(lx, ly, q=grid) if m0 is None else m0
+        vxy, tv, to, tn = initial_grid(lx, ly, q=grid)[:4] if m0 is None else m0
         self.grid = grid
         clean_floor = grid * 2.0**FLOOR_BITS
         m0 = vxy.shape[0]
@@ -139,12 +139,16 @@ class Refinement:
                 n = 2 * ent_id.shape[0]
                 self.queues[i] = (head, _grow(ent_id, n), _grow(ent_aux, n), _grow(ent_next, n))
 
-    def run(self, time_limit=None, progress=None):
-        """Refine to completion. Returns a STATUS_* code (DONE or MAX_VERTICES, or the time
-        limit as STATUS_STEPS)."""
+    def run(self, deadline=None, progress=None, interrupts=None):
+        """Refine to completion, in kernel calls of about 50 ms. Returns a STATUS_* code:
+        DONE, MAX_VERTICES, or STEPS when ``deadline`` (a time.perf_counter() value) passed.
+        After every call: progress(vertices, queued), then ``interrupts.check()`` (Ctrl-C),
+        then the deadline; the next call is sized not to overshoot it."""
         t0 = time.perf_counter()
         steps = 2000
+        rate = None  # insertions per second, measured
         while True:
+            before = int(self.cnt[C_NV])
             t1 = time.perf_counter()
             status = R.refine_steps(
                 self._tri(),
@@ -157,22 +161,29 @@ class Refinement:
                 self.index,
                 steps,
             )
-            dt = time.perf_counter() - t1
-            # aim at ~50 ms per call: progress stays live and Ctrl-C is answered promptly
-            steps = int(min(max(steps * 0.05 / max(dt, 1e-4), 100), 200000))
+            now = time.perf_counter()
+            done = int(self.cnt[C_NV]) - before
+            if done > 0:  # calls cut short (GROW) measure the rate too, never inflate it
+                rate = done / max(now - t1, 1e-6)
+                steps = int(min(max(rate * 0.05, 100), 200000))
             if progress is not None:
                 progress(int(self.cnt[C_NV]), self.pending())
-            if status == R.STATUS_GROW:
-                self._grow_if_needed()
-                continue
+            if interrupts is not None:
+                interrupts.check()
             if status == R.STATUS_ERROR:
                 raise EngineError(f"refinement kernel failed with code {self.cnt[R.C_ERROR]}")
             if status in (R.STATUS_DONE, R.STATUS_MAX_VERTICES):
                 self.time_refine = time.perf_counter() - t0
                 return status
-            if time_limit is not None and time.perf_counter() - t0 > time_limit:
-                self.time_refine = time.perf_counter() - t0
-                return R.STATUS_STEPS
+            if status == R.STATUS_GROW:
+                self._grow_if_needed()
+            if deadline is not None:
+                now = time.perf_counter()
+                if now >= deadline:
+                    self.time_refine = now - t0
+                    return R.STATUS_STEPS
+                if rate is not None:
+                    steps = max(1, min(steps, int(rate * (deadline - now)) + 1))
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""

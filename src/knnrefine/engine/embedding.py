@@ -172,8 +172,21 @@ def unfold(vxy, tv, to, emb):
     return out_v, out_s, pos, tri, (offsets if any(per) else None)
 
 
+@kernel(inline="always")
+def _popcount16(x):
+    x = x - ((x >> 1) & 0x5555)
+    x = (x & 0x3333) + ((x >> 2) & 0x3333)
+    x = (x + (x >> 4)) & 0x0F0F
+    return (x + (x >> 8)) & 0x1F
+
+
 @kernel()
 def _unfold(vxy, tv, to, L, blo, bhi, nonper):
+    """Copies of triangles meeting the box and of the vertices they (and r*) need.
+
+    A triangle's copies are a 9-bit mask (shift -1..1 per non-periodic axis), a vertex's a
+    16-bit mask (shift -1..2); a copy's output index is its vertex's first index plus the
+    copies before it in the mask. Memory: 2 bytes per triangle and per vertex, not 16 words."""
     m = vxy.shape[0]
     nt = tv.shape[0]
     sx_lo = -1 if nonper[0] else 0
@@ -181,7 +194,7 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
     sx_hi = 1 if nonper[0] else 0
     sy_hi = 1 if nonper[1] else 0
     # pass 1: triangle copies that meet the box along the non-periodic axes
-    keep = np.zeros((nt, 9), np.bool_)
+    keep = np.zeros(nt, np.uint16)
     nkeep = 0
     rstar2 = 0.0
     for t in range(nt):
@@ -193,25 +206,27 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
         y2 = vxy[tv[t, 2], 1] + to[t, 2, 1] * L[1]
         xlo, xhi = min(x0, x1, x2), max(x0, x1, x2)
         ylo, yhi = min(y0, y1, y2), max(y0, y1, y2)
-        e2 = max(
-            (x1 - x0) ** 2 + (y1 - y0) ** 2,
-            (x2 - x1) ** 2 + (y2 - y1) ** 2,
-            (x0 - x2) ** 2 + (y0 - y2) ** 2,
-        )
+        mask = 0
         for sx in range(sx_lo, sx_hi + 1):
+            if nonper[0] and (xhi + sx * L[0] < blo[0] or xlo + sx * L[0] > bhi[0]):
+                continue
             for sy in range(sy_lo, sy_hi + 1):
-                ok = True
-                if nonper[0] and (xhi + sx * L[0] < blo[0] or xlo + sx * L[0] > bhi[0]):
-                    ok = False
                 if nonper[1] and (yhi + sy * L[1] < blo[1] or ylo + sy * L[1] > bhi[1]):
-                    ok = False
-                if ok:
-                    keep[t, (sx + 1) * 3 + sy + 1] = True
-                    nkeep += 1
-                    rstar2 = max(rstar2, e2)
+                    continue
+                mask |= 1 << ((sx + 1) * 3 + sy + 1)
+                nkeep += 1
+        if mask:
+            keep[t] = mask
+            e2 = max(
+                (x1 - x0) ** 2 + (y1 - y0) ** 2,
+                (x2 - x1) ** 2 + (y2 - y1) ** 2,
+                (x0 - x2) ** 2 + (y0 - y2) ** 2,
+            )
+            rstar2 = max(rstar2, e2)
     # pass 2: vertex copies needed; a copy's shift per axis is in [-1, 2] (code 0..3)
-    need = np.zeros((m, 16), np.bool_)
+    need = np.zeros(m, np.uint16)
     for v in range(m):
+        mask = 0
         for sx in range(sx_lo, sx_hi + 1):
             for sy in range(sy_lo, sy_hi + 1):
                 gap2 = 0.0
@@ -221,45 +236,52 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
                         g = max(blo[a] - p, 0.0, p - bhi[a])
                         gap2 += g * g
                 if gap2 <= rstar2:
-                    need[v, (sx + 1) * 4 + sy + 1] = True
+                    mask |= 1 << ((sx + 1) * 4 + sy + 1)
+        need[v] = mask
     for t in range(nt):
+        if keep[t] == 0:
+            continue
         for c in range(9):
-            if keep[t, c]:
+            if keep[t] & (1 << c):
                 sx = c // 3 - 1
                 sy = c % 3 - 1
                 for i in range(3):
                     vx = (to[t, i, 0] + sx) if nonper[0] else 0
                     vy = (to[t, i, 1] + sy) if nonper[1] else 0
-                    need[tv[t, i], (vx + 1) * 4 + vy + 1] = True
+                    need[tv[t, i]] |= 1 << ((vx + 1) * 4 + vy + 1)
     # number the copies in (vertex, shift) order
-    index = np.full((m, 16), -1, np.int64)
-    nout = 0
+    first = np.empty(m + 1, np.int64)
+    first[0] = 0
     for v in range(m):
-        for c in range(16):
-            if need[v, c]:
-                index[v, c] = nout
-                nout += 1
+        first[v + 1] = first[v] + _popcount16(np.int64(need[v]))
+    nout = first[m]
     out_v = np.empty(nout, np.int64)
     out_s = np.empty((nout, 2), np.int64)
     for v in range(m):
+        j = first[v]
         for c in range(16):
-            if need[v, c]:
-                j = index[v, c]
+            if need[v] & (1 << c):
                 out_v[j] = v
                 out_s[j, 0] = c // 4 - 1
                 out_s[j, 1] = c % 4 - 1
+                j += 1
     tri = np.empty((nkeep, 3), np.int64)
     off = np.zeros((nkeep, 3, 2), np.int8)
     n = 0
     for t in range(nt):
+        if keep[t] == 0:
+            continue
         for c in range(9):
-            if keep[t, c]:
+            if keep[t] & (1 << c):
                 sx = c // 3 - 1
                 sy = c % 3 - 1
                 for i in range(3):
                     vx = (to[t, i, 0] + sx) if nonper[0] else 0
                     vy = (to[t, i, 1] + sy) if nonper[1] else 0
-                    tri[n, i] = index[tv[t, i], (vx + 1) * 4 + vy + 1]
+                    code = (vx + 1) * 4 + vy + 1
+                    v = tv[t, i]
+                    below = np.int64(need[v]) & ((1 << code) - 1)
+                    tri[n, i] = first[v] + _popcount16(below)
                     for a in range(2):
                         if not nonper[a]:
                             off[n, i, a] = to[t, i, a]

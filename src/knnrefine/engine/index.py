@@ -195,20 +195,36 @@ def _count_disk(index, cx, cy, r2, k, count, stack):
     return count
 
 
+@kernel(inline="always")
+def _copies(c, r, period):
+    """The periodic shifts s (an inclusive range) for which the disk (c + s period, r) meets
+    [0, period], given r < period / 2. The centre itself is never wrapped: shifting the copy
+    whose disk holds the domain by 0 keeps it exact (wrapping -1e-125 into [0, 1) gives 1.0)."""
+    s0 = -np.floor(c / period)
+    lo = s0 - 1.0
+    hi = s0 + 1.0
+    if c + lo * period + r < 0.0:
+        lo += 1.0
+    if c + hi * period - r > period:
+        hi -= 1.0
+    return int(lo), int(hi)
+
+
 @kernel()
 def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)):
     exact when below k; otherwise the search stops early and returns some value >= k.
-    Needs sqrt(r2) < min(lx, ly) / 2."""
-    cx -= np.floor(cx / lx) * lx
-    cy -= np.floor(cy / ly) * ly
+    Needs sqrt(r2) < min(lx, ly) / 2. Shifted copies of c round at the scale of the period;
+    the copy nearest the domain is c itself when c is inside it."""
     r = np.sqrt(r2)
     count = 0
-    for sx in range(-1, 2):
+    x_lo, x_hi = _copies(cx, r, lx)
+    y_lo, y_hi = _copies(cy, r, ly)
+    for sx in range(x_lo, x_hi + 1):
         ox = cx + sx * lx
         if ox + r < 0.0 or ox - r > lx:
             continue
-        for sy in range(-1, 2):
+        for sy in range(y_lo, y_hi + 1):
             oy = cy + sy * ly
             if oy + r < 0.0 or oy - r > ly:
                 continue
@@ -287,15 +303,15 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack):
     contained in the disk (v, sqrt(r2)): exact when below k, otherwise some value >= k. For a
     Voronoi cell, (hx[j], hy[j]) is the j-th neighbour minus v and hc[j] half its squared
     length."""
-    vx -= np.floor(vx / lx) * lx
-    vy -= np.floor(vy / ly) * ly
     r = np.sqrt(r2)
     count = 0
-    for sx in range(-1, 2):
+    x_lo, x_hi = _copies(vx, r, lx)
+    y_lo, y_hi = _copies(vy, r, ly)
+    for sx in range(x_lo, x_hi + 1):
         ox = vx + sx * lx
         if ox + r < 0.0 or ox - r > lx:
             continue
-        for sy in range(-1, 2):
+        for sy in range(y_lo, y_hi + 1):
             oy = vy + sy * ly
             if oy + r < 0.0 or oy - r > ly:
                 continue
@@ -303,6 +319,46 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack):
             if count >= k:
                 return count
     return count
+
+
+@kernel()
+def mark_in_disks(index, cx, cy, r2, lx, ly, mark):
+    """Set mark[i] for every point i (in the index's order) of the periodic P lying in one of
+    the closed disks (cx[d], cy[d], sqrt(r2[d])), each of radius below half a period. Returns
+    the number of points marked."""
+    pts, box, node, split = index
+    stack = np.empty(STACK_SIZE, np.int64)
+    for d in range(cx.shape[0]):
+        r = np.sqrt(r2[d])
+        x_lo, x_hi = _copies(cx[d], r, lx)
+        y_lo, y_hi = _copies(cy[d], r, ly)
+        for sx in range(x_lo, x_hi + 1):
+            ox = cx[d] + sx * lx
+            for sy in range(y_lo, y_hi + 1):
+                oy = cy[d] + sy * ly
+                if node[0, 1] == 0:
+                    continue
+                stack[0] = 0
+                sp = 1
+                while sp > 0:
+                    sp -= 1
+                    t = stack[sp]
+                    dx = max(box[t, 0] - ox, 0.0, ox - box[t, 2])
+                    dy = max(box[t, 1] - oy, 0.0, oy - box[t, 3])
+                    if dx * dx + dy * dy > r2[d]:
+                        continue
+                    c = node[t, 2]
+                    if c < 0:
+                        for i in range(node[t, 0], node[t, 1]):
+                            ex = pts[i, 0] - ox
+                            ey = pts[i, 1] - oy
+                            if ex * ex + ey * ey <= r2[d]:
+                                mark[i] = True
+                        continue
+                    stack[sp] = c
+                    stack[sp + 1] = c + 1
+                    sp += 2
+    return int(mark.sum())
 
 
 @kernel(inline="always")

@@ -72,8 +72,9 @@ def initial_grid(lx, ly, per_period=4, jitter=0.3, shift=0.0, q=Q):
     at every level, so uniform regions would stay exactly cocircular and every in-circle test
     would need the slow exact fallback.
 
-    Returns (vxy, tv, to, tn) or None when a circumradius would reach a quarter of the shorter
-    period (the grid is too coarse to be a valid torus triangulation)."""
+    Returns (vxy, tv, to, tn, lam) with lam each vertex's distance to its nearest neighbour
+    (an axis neighbour: the cells are rectangles), or None when a circumradius would reach a
+    quarter of the shorter period (too coarse to be a valid torus triangulation)."""
     nx, ny = grid_shape(lx, ly, per_period)
     gx = _jittered_positions(nx, lx, 0.0, jitter, shift, q)
     gy = _jittered_positions(ny, ly, 0.5, jitter, shift, q)
@@ -119,20 +120,24 @@ def initial_grid(lx, ly, per_period=4, jitter=0.3, shift=0.0, q=Q):
             np.stack([up, left, cell], 1),  # top edge, left edge, diagonal
         ]
     )
-    return vxy, tv.astype(np.int32), to, tn.astype(np.int32)
+    lam_x = np.minimum(wx, np.roll(wx, 1))  # gaps on either side of each column
+    lam_y = np.minimum(wy, np.roll(wy, 1))
+    lam = np.minimum(lam_x[None, :], lam_y[:, None]).ravel()
+    return vxy, tv.astype(np.int32), to, tn.astype(np.int32), lam
 
 
-def precondition_order(vxy, index, k, factor, lx, ly):
+def precondition_order(vxy, lam, index, k, factor, lx, ly):
     """An order of the initial vertices in which each u satisfies d_{P,k}(u) <= factor *
     lambda_u (the distance to its nearest predecessor on the torus), by peeling (see the
-    module docstring). Returns (order, rounds) or (None, failing) with the vertices no order
-    can place."""
+    module docstring); ``lam`` holds each vertex's distance to its nearest other vertex.
+    Returns (order, rounds) or (None, failing) with the vertices no order can place."""
     remaining = np.arange(len(vxy))
     peeled = []
     period = np.array([lx, ly])
     while len(remaining) > 1:
         xy = vxy[remaining]
-        lam = cKDTree(xy, boxsize=period).query(xy, k=2)[0][:, 1]
+        if peeled:
+            lam = cKDTree(xy, boxsize=period).query(xy, k=2)[0][:, 1]
         # conservative: the reach is shortened by a relative 1e-9 against rounding
         ok = holds_k_within(index, xy, (factor * lam * (1.0 - 1e-9)) ** 2, k, lx, ly)
         if not ok.any():
@@ -142,20 +147,29 @@ def precondition_order(vxy, index, k, factor, lx, ly):
     return np.concatenate([remaining] + peeled[::-1]), len(peeled)
 
 
-def choose_initial_mesh(index, k, factor, lx, ly, max_vertices, q=Q):
-    """The first of ``GRIDS`` (within ``max_vertices``) whose vertices can be ordered so that
-    d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition with factor = K - 1, see
-    ``reach_factor``). Returns (m0, order, grid) with m0 = (vxy, tv, to, tn), or None."""
+def candidate_grids(lx, ly, max_vertices, q=Q):
+    """The initial meshes worth trying on this torus, in order: [(grid, m0), ...] for the
+    ``GRIDS`` that are valid and fit in max_vertices (built lazily by the caller's loop)."""
     for grid in GRIDS:
         nx, ny = grid_shape(lx, ly, grid[0])
         if nx * ny > max_vertices:
             continue
         m0 = initial_grid(lx, ly, *grid, q=q)
-        if m0 is None:
-            continue
-        order, _ = precondition_order(m0[0], index, k, factor, lx, ly)
+        if m0 is not None:
+            yield grid, m0
+
+
+def choose_initial_mesh(candidates, index, k, factor, lx, ly, check=None):
+    """The first of ``candidates`` [(grid, m0), ...] whose vertices can be ordered so that
+    d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition with factor = K - 1, see
+    ``reach_factor``). ``check()`` runs between candidates (deadline, Ctrl-C). Returns
+    (m0, order, grid) with m0 = (vxy, tv, to, tn), or None."""
+    for grid, m0 in candidates:
+        order, _ = precondition_order(m0[0], m0[4], index, k, factor, lx, ly)
         if order is not None:
-            return m0, order, grid
+            return m0[:4], order, grid
+        if check is not None:
+            check()
     return None
 
 
@@ -167,7 +181,7 @@ def tau_for_factor(factor):
 def largest_passing(ok, k, factor):
     """For an input refused at (k, factor), with ``ok(k, factor)`` the acceptance test: (the
     largest k' < k accepted at this factor, 0 if none; the least factor accepted for this k,
-    to a relative 1e-6, or None beyond 1e9). Both are monotone: a larger k or a smaller factor
+    to a relative 1e-4, or None beyond 1e9). Both are monotone: a larger k or a smaller factor
     only makes the precondition harder."""
     lo, hi = 0, k
     while hi - lo > 1:
@@ -181,7 +195,7 @@ def largest_passing(ok, k, factor):
         f_lo, f_hi = f_hi, f_hi * 2.0
         if f_hi > 1e9:
             return lo, None
-    while f_hi - f_lo > 1e-6 * f_hi:
+    while f_hi - f_lo > 1e-4 * f_hi:
         mid = 0.5 * (f_lo + f_hi)
         if ok(k, mid):
             f_hi = mid

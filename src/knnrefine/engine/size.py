@@ -1,0 +1,60 @@
+"""How many vertices a run will need, before it starts: the default budget and the warnings.
+
+For points that look locally like a Poisson process of any intensity rho(x), pi rho d_{P,k}^2
+is Gamma(k, 1)-distributed, so the integral of 1 / d_{P,k}^2 over the box (the size the paper's
+open problem 3 asks about) is about pi n / (k - 1) whatever the density. Measured on uniform
+points (n = 10^4 and 10^5, default tau and floor) kNNRefine's mesh has
+
+    m / n = 2.3 / (k - 1.47)            (k >= 2, within 5% from k = 2 to 100)
+
+vertices. Where k points fall within the resolution floor (duplicates, rounded coordinates,
+and every point when k = 1) the mesh refines around them down to the floor instead: about 20
+vertices per halving from the local spacing down to min_size (measured: k = 1 on uniform
+points, 271 vertices per point at a spacing 10^4 times min_size). ``estimate`` adds both
+parts, the second from a sample of the points; it is a planning figure, typically within a
+factor 2, and is reported in ``Mesh.stats["estimated_vertices"]``.
+"""
+
+import os
+
+import numpy as np
+
+from .index import holds_k_within
+
+PER_POINT = 2.3  # vertices per point times (k - 1.47), uniform data
+K_SHIFT = 1.47
+PER_OCTAVE = 20.0  # vertices per halving around a site refined to the floor
+BYTES_PER_VERTEX = 600  # peak memory of a run per mesh vertex (measured: 530 at k = 1, n = 1e5)
+SAMPLE = 2000
+
+
+def estimate(index, k, floor, lx, ly, area, seed=0):
+    """Expected number of mesh vertices (on the torus) for the points in ``index``, and the
+    fraction of points whose k-th neighbour lies within ``floor`` (internal units). ``area``
+    is the area the points are spread over (the box's, internal units)."""
+    pts = index[0]
+    n = pts.shape[0]
+    if n == 0:
+        return 0.0, 0.0
+    rng = np.random.default_rng(seed)
+    sample = pts[rng.choice(n, SAMPLE, replace=False)] if n > SAMPLE else pts
+    under = float(np.mean(holds_k_within(index, sample, np.full(len(sample), floor**2), k, lx, ly)))
+    spacing = np.sqrt(area / n)
+    octaves = max(1.0, float(np.log2(max(spacing / floor, 2.0))))
+    regular = PER_POINT * n * (1.0 - under) / (k - K_SHIFT) if k >= 2 else 0.0
+    floored = under * n / k * PER_OCTAVE * octaves
+    return regular + floored + 64.0, float(under)
+
+
+def memory_bytes():
+    """The memory this process may use: physical memory, or the cgroup's limit if lower."""
+    total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            with open(path) as f:
+                text = f.read().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            total = min(total, int(text))
+    return int(total)
