@@ -3,6 +3,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, settings
 from scipy.spatial import cKDTree
 
 import knnrefine
@@ -12,6 +13,25 @@ SHARED_DATA = Path(
         "KNNREFINE_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
     )
 )
+
+# Property tests: CI runs a fixed, derandomized set of examples (the same every run, no
+# example database); the wide search is a separate profile run by hand:
+#     python -m pytest tests/test_properties.py tests/test_index.py --hypothesis-profile=wide
+settings.register_profile(
+    "ci",
+    max_examples=60,
+    derandomize=True,
+    database=None,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.register_profile(
+    "wide",
+    max_examples=2000,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 # achieved constants, printed at the end of the run
 ACHIEVED = []

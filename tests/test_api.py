@@ -184,15 +184,20 @@ def test_numpy_integer_k_is_fine(points):
 def test_max_vertices_budget_ends_a_runaway_refinement():
     # ten coincident points with k = 3: d_{P,k} is 0 there; without a floor this never ends
     pts = np.concatenate([np.random.default_rng(3).random((50, 2)), np.zeros((10, 2)) + 0.5])
-    with pytest.raises(BudgetError, match="max_vertices=300") as info:
+    # far below what the run needs: refused before any work
+    with pytest.raises(BudgetError, match="far beyond max_vertices=300") as info:
         knnrefine.refine(pts, 3, min_size=0.0, max_vertices=300)
-    assert info.value.progress["vertices"] >= 300
+    assert info.value.progress["vertices"] == 0
+    # somewhat below (it needs about 950): the run starts and stops at the budget
+    with pytest.raises(BudgetError, match="max_vertices=600") as info:
+        knnrefine.refine(pts, 3, min_size=0.0, max_vertices=600)
+    assert info.value.progress["vertices"] >= 600
 
 
 def test_time_limit_budget():
     pts = np.random.default_rng(4).random((200_000, 2))
     with pytest.raises(BudgetError, match="time_limit"):
-        knnrefine.refine(pts, 1, min_size=0.0, time_limit=0.05)
+        knnrefine.refine(pts, 2, time_limit=0.05)
 
 
 def test_progress_callback(points):
@@ -204,8 +209,8 @@ def test_progress_callback(points):
 def test_one_point_and_fewer_points_than_k():
     one = knnrefine.refine([[0.5, 0.5]], 1, min_size=1e-3)
     assert len(one.vertices) > 0
-    few = knnrefine.refine(np.random.default_rng(5).random((5, 2)), 10)
-    assert few.stats["moves"]["break_circumball"] == 0  # nothing holds 10 points
+    with pytest.raises(InputError, match="larger than the number of points, 5: .*k <= 5"):
+        knnrefine.refine(np.random.default_rng(5).random((5, 2)), 10)
 
 
 def test_collinear_default_box_is_widened():

@@ -168,11 +168,12 @@ def test_report_formats(case):
     assert d["passed"] is True and d["k"] == mesh.k
 
 
-def test_n_below_k():
-    points = np.random.default_rng(4).random((5, 2))
+def test_n_below_k_fails():
+    """A mesh certified against fewer points than its k: d_Pk is infinite, no lower bound."""
+    points = np.random.default_rng(4).random((50, 2))
     mesh = knnrefine.refine(points, 10)
-    c = certify(mesh, points)
-    assert c.passed and np.isnan(c.alpha_hat) and "n < k" in str(c)
+    c = certify(mesh, points[:5])
+    assert not c.passed and "n < k" in str(c)
 
 
 def test_larger_input_samples_its_probes():

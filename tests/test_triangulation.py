@@ -38,7 +38,7 @@ def seed_for(state, px, py):
 
 
 def insert(state, x, y):
-    px, py = snap(x), snap(y)
+    px, py = snap(x, Q), snap(y, Q)
     found = seed_for(state, px, py)
     if found is None:
         return INSERT_NOT_IN_SEED

@@ -46,11 +46,28 @@ def refine(
     """kNNRefine (Gardner & Sheehy, CCCG 2016): mesh vertices M with
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} everywhere in the box.
 
+    The guarantee and its conditions. Every mesh returned is tau-well-spaced, no Voronoi cell
+    and no closed circumball holds k points of P, and at every x of the box with
+    d_{P,k}(x) >= min_size (the resolution floor)
+
+        alpha d_{P,k}(x) <= d_{M,2}(x) <= beta d_{P,k}(x),
+
+    with beta of Theorem 5 and alpha = 1 / (2 K + 1), K = max(2 tau / (tau - 2), 3): Theorem
+    6's (tau - 2) / (5 tau - 2) for tau <= 6, and 1/7 for tau > 6, where the paper's proof
+    needs K >= 3 (``Mesh.alpha``, ``Mesh.beta``). The lower bound rests on Lemma 2's
+    precondition: each initial vertex u has d_{P,k}(u) <= (K - 1) lambda_u. refine chooses the
+    initial mesh (and, for non-periodic axes, the embedding torus) so that it holds; where no
+    valid initial mesh can (k close to n, or sparse data, on a small or thin torus) it raises
+    InputError naming the largest k and tau that can be certified. It also raises InputError
+    for k > n (d_{P,k} would be infinite) and for coordinates too large for their box (the
+    returned vertices are exact, never rounded). ``knnrefine.certify`` checks all of this
+    independently; a FloorWarning says when most points lie below the floor.
+
     Parameters
     ----------
     points : array-like, shape (n, 2)
         The input points P (a multiset: duplicates count with their multiplicity).
-    k : int >= 1
+    k : int, 1 <= k <= n
         Which nearest neighbour: d_{P,k}(x) is the distance from x to its k-th nearest point.
     tau : float > 2
         Well-spacedness: every Voronoi cell of the output has aspect 2 R(v) / d_{M,2}(v) <= tau.
@@ -59,25 +76,36 @@ def refine(
         ordinary box; the result is exact for the planar d_{P,k} in the box. A pair makes only
         one axis periodic.
     box : (xmin, ymin, xmax, ymax), optional
-        Required if any axis is periodic (points are wrapped into it). Defaults to the points'
-        bounding box; points outside an explicit box are an error on non-periodic axes.
+        Required if any axis is periodic (points are wrapped into it, exactly). Defaults to
+        the points' bounding box; points outside an explicit box are an error on non-periodic
+        axes.
     min_size : float, optional
         Resolution floor in input units: circumballs and cells smaller than this are not split
         even if they hold >= k points (where k or more points coincide d_{P,k} is 0 and
         refinement could not stop). Default: 1e-6 times the box's longer side. Where it acts is
-        reported in ``Mesh.floor_points``; everywhere d_{P,k} >= min_size the bounds hold.
-        Values below the engine's resolution (2^-36 of the torus period) act as that
+        reported in ``Mesh.floor_points`` and ``Mesh.stats["points_under_floor"]``. Values
+        below the engine's resolution (2^14 grid steps, the grid being 2^-50 of the torus
+        period or the spacing of doubles at the coordinates, whichever is coarser) act as that
         resolution, which ``Mesh.min_size`` then reports.
     max_vertices : int, optional
-        Budget: stop with BudgetError beyond this many vertices. Default max(10^6, 2 n).
+        Budget: stop with BudgetError beyond this many vertices. Default: three times the
+        size estimated before refining (at least 10^6); a run whose estimate exceeds the
+        machine's memory (by default) or four times max_vertices is refused before any work,
+        and one expected to need more than 2 GB says so (LargeRunWarning).
     time_limit : float, optional
-        Budget in seconds for the refinement itself; BudgetError when exceeded.
-    progress : callable(vertices, pending), optional
-        Called about every 50 ms with the number of vertices so far and the queued candidates.
+        Budget in seconds for the whole call (setup and refinement); BudgetError when
+        exceeded.
+    progress : callable(vertices, pending[, phase]), optional
+        Called about every 50 ms with the number of vertices so far and the queued candidates;
+        while the mesh is assembled, with pending = 0 and, if it accepts ``phase``,
+        phase="assembling", then phase="done".
 
     Returns
     -------
     Mesh
+
+    Ctrl-C raises KeyboardInterrupt within about 50 ms of refinement (within the current
+    kernel call during setup).
     """
     t_start = time.perf_counter()
     deadline = None

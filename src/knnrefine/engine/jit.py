@@ -38,8 +38,9 @@ def _writable(path):
 
 
 class ShippedCacheLocator(InTreeCacheLocator):
-    """Reads kernels compiled into this package's own ``__pycache__`` when that folder exists
-    but cannot be written (where it can, numba's in-tree locator serves as usual)."""
+    """Reads kernels compiled into this package's own ``__pycache__`` when that folder holds
+    compiled kernels but cannot be written (where it can, numba's in-tree locator serves as
+    usual). A kernel missing from it is compiled for the process, without a warning."""
 
     @classmethod
     def from_function(cls, py_func, py_file):
@@ -49,8 +50,7 @@ class ShippedCacheLocator(InTreeCacheLocator):
         path = self.get_cache_path()
         if not os.path.isdir(path) or _writable(path):
             return None
-        prefix = f"{os.path.splitext(os.path.basename(py_file))[0]}.{py_func.__qualname__}-"
-        if not any(name.startswith(prefix) and name.endswith(".nbi") for name in os.listdir(path)):
+        if not any(name.endswith(".nbi") for name in os.listdir(path)):
             return None
         return self
 
