@@ -42,6 +42,8 @@ def main(argv=None):
         if not name.endswith(".csv"):
             continue
         pts = np.loadtxt(os.path.join(args.data, name), delimiter=",", skiprows=1)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            continue  # not a planar data set (the torsion-angle triples are three-dimensional)
         periodic, box = SETTINGS.get(name, (False, None))
         for k in args.ks:
             if k >= len(pts):

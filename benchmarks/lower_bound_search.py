@@ -16,6 +16,7 @@ issue notes; the exit status is 1 when any run failed.
 import argparse
 import multiprocessing as mp
 import time
+import warnings
 from collections import Counter
 
 import numpy as np
@@ -65,6 +66,7 @@ def draw(seed):
 
 
 def one(job):
+    warnings.simplefilter("ignore")  # FloorWarning: duplicates put whole data sets under it
     seed, mode = job
     pts, k, tau, box, label = draw(seed)
     periodic = MODES[mode]

@@ -185,8 +185,8 @@ def test_max_vertices_budget_ends_a_runaway_refinement():
     # ten coincident points with k = 3: d_{P,k} is 0 there; without a floor this never ends
     pts = np.concatenate([np.random.default_rng(3).random((50, 2)), np.zeros((10, 2)) + 0.5])
     # far below what the run needs: refused before any work
-    with pytest.raises(BudgetError, match="far beyond max_vertices=300") as info:
-        knnrefine.refine(pts, 3, min_size=0.0, max_vertices=300)
+    with pytest.raises(BudgetError, match="far beyond max_vertices=200") as info:
+        knnrefine.refine(pts, 3, min_size=0.0, max_vertices=200)
     assert info.value.progress["vertices"] == 0
     # somewhat below (it needs about 950): the run starts and stops at the budget
     with pytest.raises(BudgetError, match="max_vertices=600") as info:

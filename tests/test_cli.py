@@ -406,3 +406,52 @@ def test_density_persistence_cluster_commands(tmp_path, capsys):
     assert run("cluster", src, "--mesh", tmp_path / "m.npz", "-k", 10) == 1  # disagrees
     out = capsys.readouterr()
     assert "disagrees with the mesh's k = 30" in out.err
+
+
+def test_warnings_and_refusals_are_one_line_each(tmp_path, capsys):
+    """A run whose data lies under the floor warns in one line after the bar is gone; a run
+    Theorem 6 cannot certify exits 1 naming what would work."""
+    points = np.random.default_rng(0).random((3000, 2))
+    path = tmp_path / "p.csv"
+    np.savetxt(path, points, delimiter=",")
+    out = tmp_path / "m.npz"
+    assert (
+        run(
+            "refine",
+            str(path),
+            "-k",
+            "10",
+            "--box",
+            "-1000000",
+            "-1000000",
+            "1000000",
+            "1000000",
+            "-o",
+            str(out),
+        )
+        == 0
+    )
+    err = capsys.readouterr().err
+    assert err.startswith("knnrefine: warning: 3000 of the 3000 points (100%)"), err
+    assert err.count("\n") == 1
+    strip = tmp_path / "strip.csv"
+    np.savetxt(strip, np.random.default_rng(0).random((1000, 2)) * [0.1, 1], delimiter=",")
+    status = run(
+        "refine",
+        str(strip),
+        "-k",
+        "900",
+        "--tau",
+        "2.5",
+        "--periodic",
+        "--box",
+        "0",
+        "0",
+        "0.1",
+        "1",
+        "-o",
+        str(tmp_path / "s.npz"),
+    )
+    err = capsys.readouterr().err
+    assert status == 1 and "cannot be certified" in err and "use k <= 570" in err, err
+    assert not (tmp_path / "s.npz").exists()

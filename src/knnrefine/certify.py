@@ -229,12 +229,13 @@ def certify(
             lo + rng.random((n_random, 2)) * (hi - lo),
         ]
     )
-    probes = np.concatenate([samples[in_box], others[_in_box(others, lo, hi, per)]])
+    others_in = _in_box(others, lo, hi, per)
+    probes = np.concatenate([samples[in_box], others[others_in]])
+    # where the sampled input points sit among the probes (they all lie in the box)
+    first_point = int(in_box.sum())
+    points_in = int(others_in[: len(point_sample)].sum())
     alpha, beta = theorem6_constants(tau)
     under_floor = 0.0
-    if len(P) >= k:
-        dpk_points = ptree.query(point_sample, k=[k], workers=workers)[0][:, 0]
-        under_floor = float(np.mean(dpk_points < min_size))
     precondition_ok, precondition_note = check_precondition(
         vertices[np.asarray(torus.kinds) == 0], ptree, k, tau, period
     )
@@ -245,6 +246,8 @@ def certify(
     if len(P) >= k:
         dm2 = vtree.query(probes, k=2, workers=workers)[0][:, 1]
         dpk = ptree.query(probes, k=[k], workers=workers)[0][:, 0]
+        if points_in:
+            under_floor = float(np.mean(dpk[first_point : first_point + points_in] < min_size))
         ok = dpk >= min_size
         ratio = dm2[ok] / dpk[ok]
         n_probes = int(ok.sum())

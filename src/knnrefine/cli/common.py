@@ -1,6 +1,7 @@
 """Options and helpers shared by the subcommands."""
 
 import time
+import warnings
 
 from ..errors import InputError
 
@@ -74,27 +75,36 @@ def refine_with_progress(points, args, quiet):
             dynamic_ncols=True,
         )
 
-    def progress(vertices, pending):
+    def progress(vertices, pending, phase="refining"):
         if bar is not None:  # update() honours the delay: short runs show no bar at all
-            bar.set_postfix_str(f"{pending} queued", refresh=False)
+            if phase == "refining":
+                bar.set_postfix_str(f"{pending} queued", refresh=False)
+            else:
+                bar.set_description_str(phase, refresh=False)
+                bar.set_postfix_str("", refresh=False)
             bar.update(vertices - bar.n)
 
     t0 = time.perf_counter()
+    caught = []
     try:
-        mesh = refine(
-            points,
-            args.k,
-            args.tau,
-            periodic=periodic_of(args),
-            box=tuple(args.box) if args.box else None,
-            min_size=args.min_size,
-            max_vertices=args.max_vertices,
-            time_limit=args.time_limit,
-            progress=progress,
-        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            mesh = refine(
+                points,
+                args.k,
+                args.tau,
+                periodic=periodic_of(args),
+                box=tuple(args.box) if args.box else None,
+                min_size=args.min_size,
+                max_vertices=args.max_vertices,
+                time_limit=args.time_limit,
+                progress=progress,
+            )
     finally:
         if bar is not None:
             bar.close()
+        for w in caught:  # after the bar is gone, so that the two do not interleave
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     return mesh, time.perf_counter() - t0
 
 

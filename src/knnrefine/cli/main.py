@@ -2,6 +2,7 @@
 
 import argparse
 import sys
+import warnings
 
 from . import certify, cluster, demo, density, persistence, plot, refine
 
@@ -67,6 +68,16 @@ def build_parser():
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """knnrefine's own warnings as one line, like its errors; others as Python shows them."""
+    from .. import errors
+
+    if category.__module__ == errors.__name__ or category.__name__ == "KernelCacheWarning":
+        print(f"knnrefine: warning: {message}".replace("\n", " "), file=sys.stderr)
+    else:
+        print(warnings.formatwarning(message, category, filename, lineno, line), file=sys.stderr)
+
+
 def main(argv=None):
     """Run the command line; returns the exit status (2 for usage errors, via SystemExit)."""
     args = build_parser().parse_args(argv)
@@ -76,7 +87,9 @@ def main(argv=None):
     from ..errors import KnnRefineError
 
     try:
-        return SUBCOMMANDS[args.command].run(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return SUBCOMMANDS[args.command].run(args)
     except KeyboardInterrupt:
         if args.debug:
             raise
