@@ -295,6 +295,12 @@ def test_time_limit_stops_promptly(limit):
     assert info.value.progress["vertices"] < 200_000
 
 
+@pytest.mark.parametrize("limit", ["soon", -1.0, float("nan"), True])
+def test_bad_time_limits_are_input_errors(limit):
+    with pytest.raises(InputError, match="time_limit must be a positive number"):
+        knnrefine.refine(rng(1).random((50, 2)), 3, time_limit=limit)
+
+
 def test_elongated_periodic_box_honours_the_time_limit():
     """(0, 0, 60000, 1) with time_limit=1 ran 31.8 s in the initial grid's Python loop."""
     P = rng(17).random((10**5, 2)) * [60000, 1]

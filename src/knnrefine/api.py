@@ -1,6 +1,7 @@
 """knnrefine.refine: the public entry point."""
 
 import inspect
+import numbers
 import time
 import warnings
 
@@ -111,7 +112,11 @@ def refine(
     t_start = time.perf_counter()
     deadline = None
     if time_limit is not None:
-        if isinstance(time_limit, bool) or not (np.isfinite(time_limit) and time_limit > 0):
+        if (
+            isinstance(time_limit, bool)
+            or not isinstance(time_limit, numbers.Real)
+            or not (np.isfinite(time_limit) and time_limit > 0)
+        ):
             raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
         deadline = t_start + float(time_limit)
     pts = V.as_points(points)
@@ -153,11 +158,11 @@ def refine(
         if found is None:
             raise InputError(start.refusal(k, tau))
         emb, index, (m0, m0_order, m0_grid) = found
-        _past(deadline, "setting up", 0)
+        _past(deadline, "setting up", t_start)
         floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
         lo, hi = emb.box_internal()
         estimated, _ = size.estimate(index, k, floor, *emb.period_internal, float(np.prod(hi - lo)))
-        budget = _budget(estimated, max_vertices, len(m0_order), k, n, emb.scale, min_size)
+        budget = _budget(estimated, max_vertices, len(m0_order), k, n, min_size)
         run = Refinement(
             index,
             k,
@@ -240,16 +245,17 @@ class _Progress:
             self.callback(vertices, 0)
 
 
-def _past(deadline, what, vertices):
-    """BudgetError if the time limit has passed (checked between phases)."""
-    if deadline is not None and time.perf_counter() > deadline:
+def _past(deadline, what, t_start):
+    """BudgetError if the time limit has passed (checked between phases before refining)."""
+    now = time.perf_counter()
+    if deadline is not None and now > deadline:
         raise BudgetError(
             f"time_limit reached while {what}, before refinement began; raise time_limit",
-            progress={"vertices": vertices, "moves": {}, "seconds": None},
+            progress={"vertices": 0, "moves": {}, "seconds": now - t_start},
         )
 
 
-def _budget(estimated, max_vertices, m0, k, n, scale, min_size):
+def _budget(estimated, max_vertices, m0, k, n, min_size):
     """The vertex budget: the user's max_vertices, else ten times the estimate (at least
     10^6), but no more than the machine's memory holds. The estimate is within 5% on uniform
     points but off by up to 8x on clustered data (benchmarks/mesh_size.py), so only a run
@@ -346,12 +352,13 @@ class _Start:
         self.pts, self.box, self.per, self.max_vertices = pts, box, per, max_vertices
         self.interrupts = interrupts
         self.deadline = deadline
+        self.t_start = time.perf_counter()
         self.tori = {}
         self.seconds = 0.0  # building indexes
 
     def check(self):
         self.interrupts.check()
-        _past(self.deadline, "choosing the initial mesh", 0)
+        _past(self.deadline, "choosing the initial mesh", self.t_start)
 
     def torus(self, reach=None):
         """(embedding, index, candidate initial meshes) of the torus with this margin."""

@@ -215,7 +215,8 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)):
     exact when below k; otherwise the search stops early and returns some value >= k.
     Needs sqrt(r2) < min(lx, ly) / 2. Shifted copies of c round at the scale of the period;
-    the copy nearest the domain is c itself when c is inside it."""
+    the copy nearest the domain is c itself when c is inside it. Coordinates are zero or of
+    magnitude >= 1e-150 (squared distances must not underflow; the engine's are far larger)."""
     r = np.sqrt(r2)
     count = 0
     x_lo, x_hi = _copies(cx, r, lx)
