@@ -66,7 +66,7 @@ class Mesh:
         torus vertex can appear as several planar copies).
     k, tau, periodic, box, min_size, alpha, beta, period
         The run's parameters and Theorem 6's constants for tau; ``min_size`` is the floor that
-        was in effect (at least the engine's resolution, 2^-36 of the torus period).
+        was in effect (at least the engine's resolution, 2^14 grid steps; see ``refine``).
     floor_points : (f, 2) float64
         Where refinement stopped at the resolution floor ``min_size``: circumcenters of
         circumballs and vertices of cells that still hold >= k points but are smaller than
