@@ -85,14 +85,39 @@ def test_refine_writes_every_format(tmp_path, csv, points, capsys):
         np.testing.assert_array_equal(m.cells_dict["triangle"], flat_tri)
         np.testing.assert_array_equal(m.point_data["vertex"], source)
         np.testing.assert_allclose(m.point_data["d_m2"], mesh.d_m2(flat_points))
-    gj = json.loads((tmp_path / "m.geojson").read_text())
-    assert gj["type"] == "FeatureCollection" and len(gj["features"]) == len(mesh.triangles)
-    ring = np.array(gj["features"][0]["geometry"]["coordinates"][0])
-    np.testing.assert_allclose(ring[:3], mesh.corners()[0])
-    assert gj["properties"]["k"] == 8
-    table = np.loadtxt(tmp_path / "m.csv", delimiter=",", skiprows=1)
-    np.testing.assert_array_equal(table[:, :2], mesh.vertices)
-    np.testing.assert_array_equal(table[:, 2], mesh.kinds)
+    assert_gis_exports_stay_in_the_box(tmp_path / "m.geojson", tmp_path / "m.csv", mesh)
+
+
+def assert_gis_exports_stay_in_the_box(geojson, csv, mesh):
+    """GeoJSON of a lon/lat mesh periodic in x: every coordinate in [-180, 180] x [-90, 90]
+    (latitudes used to reach -182 and longitudes 219), triangles across the antimeridian
+    split into two pieces, the pieces tiling the box exactly. The vertex CSV: only vertices
+    in the box, with their index in the mesh."""
+    gj = json.loads(geojson.read_text())
+    assert gj["type"] == "FeatureCollection" and gj["properties"]["k"] == mesh.k
+    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
+    area = 0.0
+    pieces_of = {}
+    for feature in gj["features"]:
+        ring = np.array(feature["geometry"]["coordinates"][0])
+        assert np.array_equal(ring[0], ring[-1])
+        assert np.all(ring >= lo) and np.all(ring <= hi), ring
+        x, y = ring[:-1, 0], ring[:-1, 1]
+        area += 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+        t = feature["properties"]["triangle"]
+        pieces_of[t] = pieces_of.get(t, 0) + 1
+    assert area == pytest.approx(float(np.prod(hi - lo)), rel=1e-9)
+    corners = mesh.corners()
+    in_lat = np.all((corners[:, :, 1] > lo[1]) & (corners[:, :, 1] < hi[1]), axis=1)
+    across = np.flatnonzero(np.any(corners[:, :, 0] > hi[0], axis=1) & in_lat)
+    assert len(across) > 0 and all(pieces_of[int(t)] == 2 for t in across)
+    table = np.loadtxt(csv, delimiter=",", skiprows=1)
+    assert open(csv).readline().strip() == "vertex,x,y,kind,order"
+    assert np.all((table[:, 1:3] >= lo) & (table[:, 1:3] <= hi))
+    inside = np.all((mesh.vertices >= lo) & (mesh.vertices <= hi), axis=1)
+    np.testing.assert_array_equal(table[:, 0], np.flatnonzero(inside))
+    np.testing.assert_array_equal(table[:, 1:3], mesh.vertices[inside])
+    assert inside.sum() < len(mesh.vertices)  # the margin's copies were left out
 
 
 def picture_is_real(path):
@@ -221,7 +246,7 @@ def test_bad_columns_and_formats(tmp_path, csv, capsys):
     assert run("refine", csv, "--columns", "lon,depth", "-k", 5, "-o", tmp_path / "m.npz") == 1
     assert "no column named 'depth'" in capsys.readouterr().err
     assert run("refine", csv, "-k", 5, "-o", tmp_path / "m.stl") == 1
-    assert "unknown mesh format" in capsys.readouterr().err
+    assert "meshes are written as .npz, .vtu" in capsys.readouterr().err
     assert run("plot", tmp_path / "missing.npz", "-o", tmp_path / "p.png") == 1
     (tmp_path / "fake.npz").write_bytes(b"not a zip file")
     assert run("plot", tmp_path / "fake.npz", "-o", tmp_path / "p.png") == 1
@@ -248,7 +273,7 @@ def test_a_failed_write_leaves_nothing(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setitem(io.WRITERS, ".npz", broken)
-    with pytest.raises(OSError):
+    with pytest.raises(knnrefine.InputError, match=r"m\.npz: could not be written \(disk full\)"):
         io.write_mesh(mesh, str(tmp_path / "m.npz"))
     assert os.listdir(tmp_path) == []
 
@@ -392,6 +417,8 @@ def test_density_persistence_cluster_commands(tmp_path, capsys):
             src,
             "--mesh",
             tmp_path / "m.npz",
+            "--n-clusters",
+            2,  # a thin ring is a curve: its arcs pass the 2-D significance test (docs/uses.md)
             "-o",
             tmp_path / "c.npy",
             "--plot",

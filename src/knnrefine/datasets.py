@@ -6,11 +6,43 @@ from importlib import resources
 import numpy as np
 
 TRP_BOX = (0.0, 0.0, 360.0, 360.0)
+QUAKES_BOX = (-180.0, -90.0, 180.0, 90.0)
+
+
+def _load(name):
+    with resources.files("knnrefine.data").joinpath(name).open("rb") as f:
+        with gzip.open(f, "rt") as text:
+            return np.loadtxt(text, delimiter=",", skiprows=1)
 
 
 def trp_chi1_chi2():
     """Tryptophan side-chain torsions (chi1, chi2) in degrees from the Top8000 set: (18748, 2),
     periodic with period 360 on both axes (box ``TRP_BOX``). CC BY 4.0, Williams et al. 2018."""
-    with resources.files("knnrefine.data").joinpath("trp_chi1_chi2.csv.gz").open("rb") as f:
-        with gzip.open(f, "rt") as text:
-            return np.loadtxt(text, delimiter=",", skiprows=1)
+    return _load("trp_chi1_chi2.csv.gz")
+
+
+def earthquakes():
+    """Epicentres (lon, lat) in degrees of the magnitude >= 5.5 earthquakes of 1965-2016:
+    (23412, 2); longitude is periodic (box ``QUAKES_BOX`` with ``periodic=(True, False)``).
+    MIT licence (plotly/datasets)."""
+    return _load("quakes_1965_2016.csv.gz")
+
+
+def ring(n=2000, outliers=0.2, seed=0):
+    """A synthetic noisy circle of radius 1 with a fraction of uniform outliers in
+    [-1.5, 1.5]^2: the persistence showcase (its loop survives the outliers at k = 30)."""
+    rng = np.random.default_rng(seed)
+    m = int(round(n * (1 - outliers)))
+    angle = rng.random(m) * 2 * np.pi
+    circle = np.column_stack([np.cos(angle), np.sin(angle)]) + rng.normal(0, 0.03, (m, 2))
+    return np.concatenate([circle, rng.uniform(-1.5, 1.5, (n - m, 2))])
+
+
+def blobs(seed=0):
+    """Synthetic clusters: four Gaussian blobs of different widths (2,000 points each) on a
+    uniform background of 2,000 points in the unit square."""
+    rng = np.random.default_rng(seed)
+    centres = np.array([[0.2, 0.2], [0.8, 0.3], [0.5, 0.8], [0.2, 0.75]])
+    widths = [0.04, 0.05, 0.03, 0.06]
+    parts = [rng.normal(c, w, (2000, 2)) for c, w in zip(centres, widths, strict=True)]
+    return np.concatenate(parts + [rng.random((2000, 2))])

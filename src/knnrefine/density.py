@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import InputError
-from .mesh import split_in_four
+from .mesh import clip_polygon, split_in_four
 from .metric import BoxMetric
 from .validation import as_points
 
@@ -127,7 +127,7 @@ class KnnDistance:
         touch = np.all((cmax >= rect[0]) & (cmin <= rect[1]), axis=1) & ~inside
         total = _quadrature(c[inside], d[inside], func).sum()
         for t in np.flatnonzero(touch):
-            poly, dv = _clip(c[t], d[t], rect)
+            poly, dv = clip_polygon(c[t], rect, d[t])
             if len(poly) >= 3:
                 fan = np.stack(
                     [
@@ -249,26 +249,3 @@ def _quadrature(corners, d, func):
     area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     dq = d @ _QP.T  # (t, 7): d at the quadrature points
     return area * (func(dq) @ _QW)
-
-
-def _clip(corners, d, rect):
-    """Sutherland-Hodgman: the triangle clipped to the rectangle, with d (linear) carried."""
-    poly = [(corners[i], d[i]) for i in range(3)]
-    for axis in (0, 1):
-        for side, bound in ((1, rect[0][axis]), (-1, rect[1][axis])):
-            if not poly:
-                break
-            out = []
-            for i in range(len(poly)):
-                (p, dp), (q, dq) = poly[i], poly[(i + 1) % len(poly)]
-                pin = side * (p[axis] - bound) >= 0
-                qin = side * (q[axis] - bound) >= 0
-                if pin:
-                    out.append((p, dp))
-                if pin != qin:
-                    s = (bound - p[axis]) / (q[axis] - p[axis])
-                    out.append((p + s * (q - p), dp + s * (dq - dp)))
-            poly = out
-    if not poly:
-        return np.zeros((0, 2)), np.zeros(0)
-    return np.array([p for p, _ in poly]), np.array([v for _, v in poly])

@@ -1,15 +1,16 @@
 """Reading point files and writing meshes.
 
 Points: CSV, TSV, semicolon- or whitespace-separated text with or without a header (pandas'
-C parser: a 10^7-row CSV reads in under a second), ``.npy``, ``.npz``, Parquet (with pyarrow),
-and ``-`` for standard input; two columns chosen by name or by index.
+C parser), ``.npy``, ``.npz``, Parquet (with pyarrow), and ``-`` for standard input; two
+columns chosen by name or by index.
 
 Meshes: one writer per extension in ``WRITERS`` (and readers in ``READERS``):
 ``.npz`` is knnrefine's own, lossless format (everything ``certify`` needs); ``.vtu``,
-``.vtk`` and ``.xdmf`` go through meshio for ParaView and friends; ``.geojson`` for GIS;
-``.csv`` lists the vertices. Writes go to a temporary file that is renamed into place, so a
-failed or interrupted write never leaves half a file; existing files are kept unless
-``force``.
+``.vtk`` and ``.xdmf`` go through meshio for ParaView and friends (the whole mesh, with the
+vertex copies beyond the box that its triangles use); ``.geojson`` for GIS (triangles cut to
+the box, split at periodic seams); ``.csv`` lists the vertices inside the box. Writes go to
+a temporary file that is renamed into place, so a failed or interrupted write never leaves
+half a file; existing files are kept unless ``force``.
 """
 
 import io as _io
@@ -34,7 +35,14 @@ def read_points(path, columns=None, delimiter=None):
 
     ``columns``: two column names (``"lon,lat"``) or zero-based indices (``"2,3"``); default:
     the first two columns. ``delimiter``: default sniffed from the first line (comma, tab,
-    semicolon, else whitespace)."""
+    semicolon, else whitespace). Lines starting with ``#`` before the data are comments; a
+    ``#`` anywhere else is data (a text field may hold one)."""
+    return read_points_named(path, columns, delimiter)[0]
+
+
+def read_points_named(path, columns=None, delimiter=None):
+    """``read_points``, and the two columns' names: the header's (or the names given),
+    else ("x", "y")."""
     cols = _parse_columns(columns)
     if path == "-":
         data = sys.stdin.buffer.read()
@@ -45,9 +53,9 @@ def read_points(path, columns=None, delimiter=None):
         raise InputError(f"{path}: is a directory, not a file of points")
     ext = os.path.splitext(path)[1].lower()
     if ext == ".npy":
-        return _select_array(_load_npy(path), path, cols)
+        return _select_array(_load_npy(path), path, cols), ("x", "y")
     if ext == ".npz":
-        return _read_npz_points(path, cols)
+        return _read_npz_points(path, cols), ("x", "y")
     if ext in (".parquet", ".pq"):
         return _read_parquet(path, cols)
     if not os.path.isfile(path):  # a pipe or a device: it can be read only once
@@ -91,11 +99,13 @@ def _read_text(head, source, name, cols, delimiter):
     import pandas as pd
 
     first = None
+    skipped = 0  # comment and blank lines before the first line of the table
     for raw in head:
         line = raw.decode("utf-8-sig", errors="replace").strip()
         if line and not line.startswith("#"):
             first = line
             break
+        skipped += 1
     if first is None:
         raise InputError(f"{name}: the file is empty: no points to read")
     sep = delimiter if delimiter else _sniff(first)
@@ -103,7 +113,12 @@ def _read_text(head, source, name, cols, delimiter):
     header = None if all(_is_number(t) for t in tokens if t) else 0
     try:
         frame = pd.read_csv(
-            source, sep=sep, header=header, comment="#", skip_blank_lines=True, encoding="utf-8-sig"
+            source,
+            sep=sep,
+            header=header,
+            skiprows=skipped,
+            skip_blank_lines=True,
+            encoding="utf-8-sig",
         )
     except pd.errors.ParserError as exc:
         raise InputError(f"{name}: malformed rows: {exc}".replace("\n", " ")) from None
@@ -113,10 +128,10 @@ def _read_text(head, source, name, cols, delimiter):
         raise InputError(f"{name}: not a text file of points (it is not UTF-8)") from None
     if len(frame) == 0:
         raise InputError(f"{name}: the file holds a header but no points")
-    return _select_frame(frame, name, cols, header is not None)
+    return _select_frame(frame, name, cols, header is not None, skipped)
 
 
-def _select_frame(frame, name, cols, has_header):
+def _select_frame(frame, name, cols, has_header, skipped=0):
     import pandas as pd
 
     if frame.shape[1] < 2:
@@ -152,13 +167,14 @@ def _select_frame(frame, name, cols, has_header):
             bad = num.isna() & col.notna()
             if bad.any():
                 row = int(np.argmax(bad.to_numpy()))
-                line = row + 1 + (1 if has_header else 0)
+                line = row + 1 + (1 if has_header else 0) + skipped
                 raise InputError(
                     f"{name}: non-numeric value {col.iloc[row]!r} in column {c!r}, line {line}"
                 )
             col = num
         out[:, j] = col.to_numpy(dtype=np.float64, na_value=np.nan)
-    return out
+    names = tuple(str(c) for c in picked) if has_header else ("x", "y")
+    return out, names
 
 
 def _load_npy(path):
@@ -243,7 +259,10 @@ def atomic_write(path, force, write):
     if not os.path.isdir(folder):
         raise InputError(f"{path}: the folder {folder} does not exist")
     ext = os.path.splitext(path)[1]
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".knnrefine-", suffix=ext)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".knnrefine-", suffix=ext)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot write in {folder} ({exc.strerror})") from None
     os.close(fd)
     try:
         write(tmp)
@@ -251,24 +270,24 @@ def atomic_write(path, force, write):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
+    except OSError as exc:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise InputError(f"{path}: could not be written ({exc.strerror or exc})") from None
     except BaseException:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
 
 
-def write_table(path, columns, rows, force=False, formats=None):
-    """A CSV file with a header line of ``columns`` and one line per row, written atomically;
-    ``formats`` per column (default: 17 significant digits, enough to round-trip)."""
-    rows = np.asarray(rows)
-    fmt = formats or ["%.17g"] * len(columns)
-    atomic_write(
-        path,
-        force,
-        lambda tmp: np.savetxt(
-            tmp, rows, delimiter=",", header=",".join(columns), comments="", fmt=fmt
-        ),
-    )
+def write_table(path, columns, force=False):
+    """A CSV file with a header line and one line per row, written atomically. ``columns``:
+    {name: array}, in order; floats are written with the fewest digits that read back to the
+    same double (pandas' default), integers as integers."""
+    import pandas as pd
+
+    frame = pd.DataFrame(dict(columns))
+    atomic_write(path, force, lambda tmp: frame.to_csv(tmp, index=False))
 
 
 def write_text(path, text, force=False):
@@ -370,11 +389,13 @@ def _meshio_writer(file_format):
 
 
 def _write_geojson(mesh, path):
-    """Triangles as Polygon features (corners across a periodic seam kept where they are),
-    with d_M2 at their centroid; parameters in the collection's properties."""
-    c = mesh.corners()
-    centroid = c.mean(axis=1)
-    d = mesh.d_m2(centroid)
+    """Triangles as Polygon features cut to the box (a triangle across a periodic seam
+    becomes its pieces on either side: longitudes stay in the box, as WGS84 wants), with
+    d_M2 at each piece's centroid and its triangle's index; parameters in the collection's
+    properties."""
+    pieces = mesh.pieces_in_box()
+    centroids = np.array([poly.mean(axis=0) for _, poly in pieces]).reshape(-1, 2)
+    d = mesh.d_m2(centroids) if len(pieces) else np.zeros(0)
     with open(path, "w") as f:
         f.write('{"type": "FeatureCollection", "properties": ')
         f.write(
@@ -390,30 +411,40 @@ def _write_geojson(mesh, path):
             )
         )
         f.write(', "features": [\n')
-        for i in range(len(c)):
-            ring = [[float(x), float(y)] for x, y in c[i]] + [
-                [float(c[i, 0, 0]), float(c[i, 0, 1])]
+        for i, (t, poly) in enumerate(pieces):
+            ring = [[float(x), float(y)] for x, y in poly] + [
+                [float(poly[0, 0]), float(poly[0, 1])]
             ]
             f.write(
                 json.dumps(
                     {
                         "type": "Feature",
                         "geometry": {"type": "Polygon", "coordinates": [ring]},
-                        "properties": {"d_m2": float(d[i])},
+                        "properties": {"d_m2": float(d[i]), "triangle": t},
                     }
                 )
             )
-            f.write(",\n" if i + 1 < len(c) else "\n")
+            f.write(",\n" if i + 1 < len(pieces) else "\n")
         f.write("]}\n")
 
 
 def _write_csv(mesh, path):
-    """One row per vertex: x, y, kind (0 initial, 1 circumball Break, 2 cell Break, 3 Clean),
-    insertion order."""
-    with open(path, "w") as f:
-        f.write("x,y,kind,order\n")
-        table = np.column_stack([mesh.vertices, mesh.kinds, mesh.order])
-        np.savetxt(f, table, delimiter=",", fmt=["%.17g", "%.17g", "%d", "%d"])
+    """One row per vertex inside the box: vertex (its index in the mesh), x, y, kind (0
+    initial, 1 circumball Break, 2 cell Break, 3 Clean), insertion order. The copies beyond
+    a non-periodic side that the mesh keeps for its triangles are left out."""
+    import pandas as pd
+
+    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
+    inside = np.flatnonzero(np.all((mesh.vertices >= lo) & (mesh.vertices <= hi), axis=1))
+    pd.DataFrame(
+        {
+            "vertex": inside,
+            "x": mesh.vertices[inside, 0],
+            "y": mesh.vertices[inside, 1],
+            "kind": mesh.kinds[inside],
+            "order": mesh.order[inside],
+        }
+    ).to_csv(path, index=False)
 
 
 WRITERS = {

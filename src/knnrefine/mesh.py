@@ -157,6 +157,29 @@ class Mesh:
         triangles = rank[inverse[len(own) :]].reshape(-1, 3).astype(np.int32)
         return points, triangles, keys // 9
 
+    def pieces_in_box(self):
+        """The triangles cut to the box, as the user's coordinates see it: along periodic
+        axes a triangle across the seam becomes its pieces on either side (the far one
+        shifted back by a period), along non-periodic axes the parts outside the box go.
+        Returns a list of (triangle index, polygon (q, 2)) with every polygon inside the box
+        (what GIS formats want: WGS84 longitudes stay in [-180, 180])."""
+        per = np.array(self.periodic, bool)
+        period = np.array(self.period, float)
+        rect = (np.array(self.box[:2], float), np.array(self.box[2:], float))
+        corners = self.corners()
+        out = []
+        for sx in (0, -1) if per[0] else (0,):
+            for sy in (0, -1) if per[1] else (0,):
+                shifted = corners + np.array([sx, sy]) * period
+                lo, hi = shifted.min(axis=1), shifted.max(axis=1)
+                meets = np.all((hi > rect[0]) & (lo < rect[1]), axis=1)
+                for t in np.flatnonzero(meets):
+                    poly, _ = clip_polygon(shifted[t], rect)
+                    if len(poly) >= 3 and _area(poly) > 0:
+                        out.append((int(t), poly))
+        out.sort(key=lambda piece: piece[0])
+        return out
+
     def covering(self):
         """A plain planar triangulation covering the box: the triangles plus, along periodic
         axes, their copies one period back that still meet the box (corners only ever reach
@@ -216,3 +239,37 @@ def split_in_four(triangles, n_nodes):
         ]
     )
     return edges, edge_of, pieces
+
+
+def clip_polygon(corners, rect, values=None):
+    """Sutherland-Hodgman: the convex polygon ``corners`` (p, 2) clipped to the rectangle
+    ``rect`` = ((x0, y0), (x1, y1)), with ``values`` at the corners (linear) carried along.
+    Returns (polygon (q, 2), values (q,) or None); q = 0 when nothing is left."""
+    vals = np.zeros(len(corners)) if values is None else np.asarray(values, float)
+    poly = [(np.asarray(corners[i], float), vals[i]) for i in range(len(corners))]
+    for axis in (0, 1):
+        for side, bound in ((1, rect[0][axis]), (-1, rect[1][axis])):
+            if not poly:
+                break
+            out = []
+            for i in range(len(poly)):
+                (p, dp), (q, dq) = poly[i], poly[(i + 1) % len(poly)]
+                pin = side * (p[axis] - bound) >= 0
+                qin = side * (q[axis] - bound) >= 0
+                if pin:
+                    out.append((p, dp))
+                if pin != qin:
+                    s = (bound - p[axis]) / (q[axis] - p[axis])
+                    cut = p + s * (q - p)
+                    cut[axis] = bound  # exactly on the side, whatever the rounding
+                    out.append((cut, dp + s * (dq - dp)))
+            poly = out
+    if not poly:
+        return np.zeros((0, 2)), (None if values is None else np.zeros(0))
+    points = np.array([p for p, _ in poly])
+    return points, (None if values is None else np.array([v for _, v in poly]))
+
+
+def _area(poly):
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))

@@ -17,14 +17,20 @@ from .metric import BoxMetric
 from .validation import as_points
 
 
-def _gudhi():
+def require_gudhi():
+    """gudhi, or an ImportError that names the extra to install."""
     try:
         import gudhi
     except ImportError:
-        raise InputError(
-            'persistent homology needs gudhi: pip install "knnrefine[topology]"'
+        raise ImportError(
+            "persistent homology and clustering need gudhi, an optional dependency: "
+            'pip install "knnrefine[topology]"',
+            name="gudhi",
         ) from None
     return gudhi
+
+
+_gudhi = require_gudhi
 
 
 def mesh_complex(mesh, subdivide=True):

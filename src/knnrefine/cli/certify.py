@@ -28,9 +28,14 @@ def add_arguments(parser):
 
 def run(args):
     from .. import certify, io
+    from .common import UsageError, check_outputs, read_input
 
+    if args.samples < 1:
+        raise UsageError(f"--samples must be a positive number of probes, got {args.samples}")
+    if args.json:
+        check_outputs([(args.json, (".json",), "certificates")], args.force)
     mesh = io.read_mesh(args.mesh)
-    points = io.read_points(args.points, args.columns, args.delimiter)
+    points, _ = read_input(args)
     cert = certify(mesh, points, samples=args.samples)
     if args.json:
         text = json.dumps(cert.to_dict(), indent=1)

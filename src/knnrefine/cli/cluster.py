@@ -6,11 +6,13 @@ from .common import add_input_options, add_mesh_option, add_refine_options, mesh
 
 HELP = "cluster the points by the modes of their kNN density (ToMATo on the mesh)"
 EXAMPLES = """examples:
-  knnrefine cluster s1.csv -k 50 -o labels.csv --plot clusters.png
+  knnrefine cluster blobs.csv -k 50 --noise -o labels.csv --plot clusters.png
   knnrefine cluster points.npy --mesh mesh.npz --n-clusters 15 -o labels.npy
 
-needs gudhi (pip install "knnrefine[topology]"). Without --n-clusters the number is chosen at
-the largest gap between the peaks' prominences. Outputs: .csv (x, y, label) or .npy (labels)"""
+needs gudhi (pip install "knnrefine[topology]"). Without --n-clusters the clusters are the
+density peaks whose prominence exceeds T = 2 sqrt(ln(n/k) / k), the largest a flat density
+gives by chance; --noise labels -1 the points not significantly above where their cluster
+meets another. Outputs: .csv (row, the two columns, label) or .npy (labels)"""
 
 
 def add_arguments(parser):
@@ -18,6 +20,7 @@ def add_arguments(parser):
     add_refine_options(parser, k_required=False, k_help="which nearest neighbour")
     add_mesh_option(parser)
     parser.add_argument("--n-clusters", type=int, help="how many clusters to keep")
+    parser.add_argument("--noise", action="store_true", help="label -1 the points between clusters")
     parser.add_argument("-o", "--output", metavar="FILE", help="write the labels (.csv, .npy)")
     parser.add_argument("--plot", metavar="PICTURE", help="draw the clusters (.png .svg .pdf)")
     parser.add_argument("--force", action="store_true", help="overwrite existing files")
@@ -28,44 +31,52 @@ def run(args):
 
     from .. import io
     from ..cluster import cluster
-    from ..errors import InputError
     from ..plot import figure_size, plot_clusters, save_figure
-    from .common import require_outputs_free
+    from ..topology import require_gudhi
+    from .common import PICTURES, check_outputs, plural, read_input, require_k_or_mesh
 
-    require_outputs_free([p for p in (args.output, args.plot) if p], args.force)
-    points = io.read_points(args.points, args.columns, args.delimiter)
+    outputs = [(args.output, (".csv", ".npy"), "labels")] if args.output else []
+    outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
+    check_outputs(outputs, args.force)
+    require_k_or_mesh(args)
+    require_gudhi()
+    points, names = read_input(args)
     mesh, _ = mesh_for(args, points)
-    cl = cluster(mesh, points, n_clusters=args.n_clusters)
+    cl = cluster(mesh, points, n_clusters=args.n_clusters, noise=args.noise)
     if args.output:
-        ext = os.path.splitext(args.output)[1].lower()
-        if ext == ".csv":
+        if os.path.splitext(args.output)[1].lower() == ".csv":
             io.write_table(
                 args.output,
-                ["x", "y", "label"],
-                np.column_stack([points, cl.labels]),
+                {
+                    "row": np.arange(len(points)),
+                    names[0]: points[:, 0],
+                    names[1]: points[:, 1],
+                    "label": cl.labels,
+                },
                 args.force,
-                ["%.17g", "%.17g", "%d"],
             )
-        elif ext == ".npy":
-            io.atomic_write(args.output, args.force, lambda tmp: np.save(tmp, cl.labels))
         else:
-            raise InputError(f"{args.output}: labels are written as .csv or .npy")
+            io.atomic_write(args.output, args.force, lambda tmp: np.save(tmp, cl.labels))
     if args.plot:
-        labels = tuple(args.columns.split(",")) if args.columns else ("x", "y")
         save_figure(
             args.plot,
             figure_size(mesh),
-            lambda ax: plot_clusters(mesh, points, cl.labels, ax, labels_xy=labels),
+            lambda ax: plot_clusters(mesh, points, cl.labels, ax, labels_xy=names),
             force=args.force,
         )
     if not args.quiet:
-        sizes = np.bincount(cl.labels)
+        sizes = np.bincount(cl.labels[cl.labels >= 0], minlength=cl.n_clusters)
         prom = ", ".join(f"{p:.3g}" for p in cl.prominence[: cl.n_clusters + 2])
         print(
-            f"{cl.n_clusters} clusters of n = {len(points):,} points from m = "
-            f"{len(mesh.vertices):,} mesh vertices (k = {mesh.k}) in {cl.seconds:.2f} s"
+            f"{plural(cl.n_clusters, 'cluster')} of n = {plural(len(points), 'point')} from "
+            f"m = {plural(len(mesh.vertices), 'mesh vertex', 'mesh vertices')} (k = {mesh.k}) "
+            f"in {cl.seconds:.2f} s"
         )
-        print(f"  sizes: {', '.join(str(s) for s in sizes)}; prominences (log density): {prom}")
+        noise = f"; noise: {plural(cl.noise, 'point')}" if args.noise else ""
+        print(
+            f"  sizes: {', '.join(f'{s:,}' for s in sizes)}{noise}; prominences (ln density): "
+            f"{prom}; significance threshold {cl.threshold:.3g}"
+        )
         written = [p for p in (args.output, args.plot) if p]
         if written:
             print("  wrote " + ", ".join(written))

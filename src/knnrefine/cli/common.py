@@ -1,9 +1,52 @@
 """Options and helpers shared by the subcommands."""
 
+import os
+import sys
 import time
 import warnings
 
-from ..errors import InputError
+from ..errors import InputError, KnnRefineError
+
+PICTURES = (".png", ".svg", ".pdf")
+MESHES = (".npz", ".vtu", ".vtk", ".xdmf", ".geojson", ".csv")
+
+
+class UsageError(KnnRefineError):
+    """The command line itself is wrong (a missing or malformed option): exit status 2."""
+
+
+def plural(count, word, words=None):
+    """'1 point', '2 points' (with thousands separators)."""
+    return f"{count:,} {word if count == 1 else (words or word + 's')}"
+
+
+def check_outputs(outputs, force):
+    """Every output, before any work: its extension, its folder (exists, writable), and no
+    existing file unless --force. ``outputs``: [(path, allowed extensions, what), ...]."""
+    seen = set()
+    for path, allowed, what in outputs:
+        ext = os.path.splitext(path)[1].lower()
+        if ext not in allowed:
+            raise InputError(f"{path}: {what} are written as {', '.join(allowed)}")
+        full = os.path.abspath(path)
+        if full in seen:
+            raise InputError(f"{path} is given twice as an output")
+        seen.add(full)
+        folder = os.path.dirname(full)
+        if not os.path.isdir(folder):
+            raise InputError(f"{path}: the folder {os.path.dirname(path) or '.'} does not exist")
+        if not os.access(folder, os.W_OK):
+            raise InputError(f"{path}: the folder {os.path.dirname(path) or '.'} is not writable")
+        if os.path.exists(path) and not force:
+            raise InputError(f"{path} exists; use --force to overwrite it")
+
+
+def read_input(args, path=None):
+    """(points, (x name, y name)) from the command's input options: the columns' names for
+    axes and output headers come from --columns or the file's header, else x and y."""
+    from .. import io
+
+    return io.read_points_named(path or args.points, args.columns, args.delimiter)
 
 
 def add_input_options(parser, positional="points"):
@@ -49,6 +92,16 @@ def add_refine_options(parser, k_required=True, k_help="which nearest neighbour 
 
 
 def periodic_of(args):
+    if getattr(args, "box", None) is None and (args.periodic or args.periodic_x or args.periodic_y):
+        flag = (
+            "--periodic"
+            if args.periodic
+            else ("--periodic-x" if args.periodic_x else "--periodic-y")
+        )
+        raise UsageError(
+            f"{flag} needs --box XMIN YMIN XMAX YMAX: the periods are its sides (for angles in "
+            "degrees, e.g. --box -180 -180 180 180)"
+        )
     if args.periodic:
         return True
     if args.periodic_x:
@@ -58,12 +111,34 @@ def periodic_of(args):
     return False
 
 
+def require_k_or_mesh(args):
+    """Before any work: -k is required unless --mesh gives a mesh (usage error, exit 2)."""
+    if args.k is None and getattr(args, "mesh", None) is None:
+        raise UsageError("the following argument is required: -k (or --mesh MESH.npz)")
+
+
+def announce_compilation(quiet):
+    """Say so when the kernels are about to be compiled (the first run: 15-60 s, once)."""
+    from ..engine.jit import is_ready
+    from ..engine.refine import refine_steps
+
+    if not quiet and not is_ready(refine_steps):
+        print(
+            "knnrefine: compiling the kernels for their first use (15-60 s, once; later runs "
+            "load them from the cache)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 def refine_with_progress(points, args, quiet):
-    """knnrefine.refine with a progress bar (shown only after a second) unless quiet."""
+    """knnrefine.refine with a progress bar (shown only after a second, and only on a
+    terminal) unless quiet."""
     from .. import refine
 
+    announce_compilation(quiet)
     bar = None
-    if not quiet:
+    if not quiet and sys.stderr.isatty():  # no carriage returns in a redirected stderr
         from tqdm import tqdm
 
         bar = tqdm(
@@ -128,14 +203,6 @@ def summary(mesh, seconds):
     return "\n".join(lines)
 
 
-def require_outputs_free(paths, force):
-    import os
-
-    for p in paths:
-        if os.path.exists(p) and not force:
-            raise InputError(f"{p} exists; use --force to overwrite it")
-
-
 def add_mesh_option(parser):
     parser.add_argument(
         "--mesh",
@@ -156,6 +223,6 @@ def mesh_for(args, points, default_k=None):
         return mesh, 0.0
     if args.k is None:
         if default_k is None:
-            raise InputError("give -k (or --mesh)")
+            raise UsageError("the following argument is required: -k (or --mesh MESH.npz)")
         args.k = default_k(len(points))
     return refine_with_progress(points, args, args.quiet)

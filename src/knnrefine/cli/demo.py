@@ -10,7 +10,9 @@ EXAMPLES = """examples:
   knnrefine demo --out /tmp/demo -k 50
 
 writes mesh.npz, mesh.vtu, mesh.png, certificate.txt and certificate.json into the folder
-(default ./knnrefine-demo), replacing what an earlier demo put there"""
+(default ./knnrefine-demo), replacing what an earlier demo put there, and the example inputs
+the README's commands use: angles.csv (chi1,chi2; CC BY 4.0), quakes.csv (lon,lat; MIT),
+ring.csv and blobs.csv (synthetic)"""
 
 DATA = (
     "Tryptophan side-chain torsion angles (chi1, chi2) of the Top8000 protein set, "
@@ -50,11 +52,23 @@ def run(args):
         f"{moves['break_cell']} cell breaks, {moves['clean']} cleans) in {seconds:.2f} s "
         f"(kernels ready in {warm:.1f} s: compiled on first use, cached afterwards)"
     )
+    if os.path.exists(args.out) and not os.path.isdir(args.out):
+        from ..errors import InputError
+
+        raise InputError(f"--out {args.out}: exists and is not a folder")
     os.makedirs(args.out, exist_ok=True)
     files = {
         name: os.path.join(args.out, name)
         for name in ("mesh.npz", "mesh.vtu", "mesh.png", "certificate.txt", "certificate.json")
     }
+    examples = {
+        "angles.csv": (points, ("chi1", "chi2")),
+        "quakes.csv": (datasets.earthquakes(), ("lon", "lat")),
+        "ring.csv": (datasets.ring(), ("x", "y")),
+        "blobs.csv": (datasets.blobs(), ("x", "y")),
+    }
+    for name, (table, (a, b)) in examples.items():
+        io.write_table(os.path.join(args.out, name), {a: table[:, 0], b: table[:, 1]}, True)
     io.write_mesh(mesh, files["mesh.npz"], force=True)
     io.write_mesh(mesh, files["mesh.vtu"], force=True)
     save_plot(
@@ -75,5 +89,6 @@ def run(args):
         f"max aspect {cert.max_aspect:.3f}: {'PASSED' if cert.passed else 'FAILED'}"
     )
     say(f"  wrote {', '.join(files.values())}")
+    say(f"  example inputs for the README's commands: {', '.join(examples)} (in {args.out})")
     say("  next: open mesh.vtu in ParaView, or try 'knnrefine refine --help'")
     return 0 if cert.passed else 3

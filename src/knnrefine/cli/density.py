@@ -46,15 +46,23 @@ def add_arguments(parser):
 def run(args):
     from .. import io
     from ..density import KnnDensity, default_k
-    from ..errors import InputError
     from ..plot import figure_size, plot_density, save_figure
-    from .common import require_outputs_free
+    from .common import PICTURES, UsageError, check_outputs, plural, read_input
 
     if not args.output and not args.plot:
-        raise InputError("nothing to write: give -o FILE and/or --plot PICTURE")
-    require_outputs_free(args.output + ([args.plot] if args.plot else []), args.force)
-    nx, ny = (args.grid * 2)[:2] if len(args.grid) == 1 else args.grid[:2]
-    points = io.read_points(args.points, args.columns, args.delimiter)
+        raise UsageError("nothing to write: give -o FILE and/or --plot PICTURE")
+    if len(args.grid) not in (1, 2) or min(args.grid) < 1:
+        raise UsageError(
+            f"--grid takes one or two positive numbers of cells (N, or NX NY), got "
+            f"{' '.join(map(str, args.grid))}"
+        )
+    check_outputs(
+        [(p, (".npz", ".csv"), "grids") for p in args.output]
+        + ([(args.plot, PICTURES, "pictures")] if args.plot else []),
+        args.force,
+    )
+    nx, ny = (args.grid * 2)[:2]
+    points, names = read_input(args)
     mesh, _ = mesh_for(args, points, default_k)
     t0 = time.perf_counter()
     density = KnnDensity(mesh, points)
@@ -79,25 +87,31 @@ def run(args):
                     periodic=np.array(mesh.periodic),
                 ),
             )
-        elif ext == ".csv":
-            gx, gy = np.meshgrid(xs, ys)
-            table = np.column_stack([gx.ravel(), gy.ravel(), f.ravel(), d.ravel()])
-            io.write_table(path, ["x", "y", "density", "d_pk"], table, args.force, ["%.10g"] * 4)
         else:
-            raise InputError(f"{path}: the grid is written as .npz or .csv")
+            gx, gy = np.meshgrid(xs, ys)
+            io.write_table(
+                path,
+                {
+                    names[0]: gx.ravel(),
+                    names[1]: gy.ravel(),
+                    "density": f.ravel(),
+                    "d_pk": d.ravel(),
+                },
+                args.force,
+            )
     if args.plot:
-        labels = tuple(args.columns.split(",")) if args.columns else ("x", "y")
         save_figure(
             args.plot,
             figure_size(mesh),
-            lambda ax: plot_density(density, ax, shape=(ny, nx), labels=labels),
+            lambda ax: plot_density(density, ax, shape=(ny, nx), labels=names),
             force=args.force,
         )
     if not args.quiet:
         err = density.distance.error()
         print(
-            f"kNN density of n = {len(points):,} points, k = {mesh.k}, on a {nx} x {ny} grid "
-            f"from m = {len(mesh.vertices):,} mesh vertices in {seconds:.2f} s"
+            f"kNN density of n = {plural(len(points), 'point')}, k = {mesh.k}, on a {nx} x {ny} "
+            f"grid from m = {plural(len(mesh.vertices), 'mesh vertex', 'mesh vertices')} in "
+            f"{seconds:.2f} s"
         )
         print(
             f"  d_Pk interpolated from exact values at {len(density.distance.nodes):,} nodes: "

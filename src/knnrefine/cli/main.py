@@ -85,6 +85,7 @@ def main(argv=None):
     args.quiet = getattr(args, "quiet", False)
     args.debug = getattr(args, "debug", False)
     from ..errors import KnnRefineError
+    from .common import UsageError
 
     try:
         with warnings.catch_warnings():
@@ -95,7 +96,12 @@ def main(argv=None):
             raise
         print("knnrefine: interrupted", file=sys.stderr)
         return 130
-    except (KnnRefineError, OSError) as exc:
+    except UsageError as exc:
+        if args.debug:
+            raise
+        print(f"knnrefine {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except (KnnRefineError, OSError, ImportError) as exc:
         if args.debug:
             raise
         print(f"knnrefine: error: {exc}".replace("\n", " "), file=sys.stderr)

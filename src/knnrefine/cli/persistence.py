@@ -9,8 +9,8 @@ EXAMPLES = """examples:
   knnrefine persistence ring.csv -k 30 -o diagram.csv --plot diagram.png
   knnrefine persistence angles.tsv -k 50 --periodic --box 0 0 360 360 --linear
 
-needs gudhi (pip install "knnrefine[topology]"). The diagram is in log d_Pk unless --linear;
-the CSV has one row per class: dimension, birth, death (inf: never dies)"""
+needs gudhi (pip install "knnrefine[topology]"). The diagram is in ln d_Pk (natural log) unless
+--linear; the CSV has one row per class: dimension, birth, death (inf: never dies)"""
 
 
 def add_arguments(parser):
@@ -27,11 +27,15 @@ def add_arguments(parser):
 def run(args):
     from .. import io
     from ..plot import plot_diagram, save_figure
-    from ..topology import Persistence
-    from .common import require_outputs_free
+    from ..topology import Persistence, require_gudhi
+    from .common import PICTURES, check_outputs, plural, read_input, require_k_or_mesh
 
-    require_outputs_free([p for p in (args.output, args.plot) if p], args.force)
-    points = io.read_points(args.points, args.columns, args.delimiter)
+    outputs = [(args.output, (".csv",), "diagrams")] if args.output else []
+    outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
+    check_outputs(outputs, args.force)
+    require_k_or_mesh(args)
+    require_gudhi()
+    points, _ = read_input(args)
     mesh, _ = mesh_for(args, points)
     ph = Persistence(mesh, points, log=not args.linear)
     if args.output:
@@ -39,24 +43,26 @@ def run(args):
             [np.column_stack([np.full(len(ph.diagram(d)), d), ph.diagram(d)]) for d in (0, 1, 2)]
         )
         io.write_table(
-            args.output, ["dimension", "birth", "death"], rows, args.force, ["%d", "%.10g", "%.10g"]
+            args.output,
+            {"dimension": rows[:, 0].astype(int), "birth": rows[:, 1], "death": rows[:, 2]},
+            args.force,
         )
     if args.plot:
         save_figure(
             args.plot, (6.5, 6), lambda ax: plot_diagram(ph, ax, dims=(0, 1, 2)), force=args.force
         )
     if not args.quiet:
-        scale = "log d_Pk" if ph.log else "d_Pk"
+        scale = "ln d_Pk" if ph.log else "d_Pk"
         print(
             f"persistence of the sublevel sets of {scale}: k = {mesh.k}, "
-            f"{len(ph.positions):,} nodes, {len(ph.triangles):,} triangles"
+            f"{plural(len(ph.positions), 'node')}, {plural(len(ph.triangles), 'triangle')}"
         )
         for d in (0, 1, 2):
             dg = ph.diagram(d)
             life = dg[:, 1] - dg[:, 0]
             order = np.argsort(-life)[: args.top]
             shown = ", ".join(f"[{dg[i, 0]:.4g}, {dg[i, 1]:.4g})" for i in order)
-            print(f"  H{d}: {len(dg)} classes; most persistent: {shown}")
+            print(f"  H{d}: {plural(len(dg), 'class', 'classes')}; most persistent: {shown}")
         written = [p for p in (args.output, args.plot) if p]
         if written:
             print("  wrote " + ", ".join(written))

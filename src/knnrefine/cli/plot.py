@@ -27,10 +27,11 @@ def add_arguments(parser):
 def run(args):
     from .. import io
     from ..plot import save_plot
+    from .common import PICTURES, check_outputs, read_input
 
+    check_outputs([(args.output, PICTURES, "pictures")], args.force)
     mesh = io.read_mesh(args.mesh)
-    points = io.read_points(args.points, args.columns, args.delimiter) if args.points else None
-    labels = tuple(args.columns.split(",")) if args.columns else ("x", "y")
+    points, labels = read_input(args, args.points) if args.points else (None, ("x", "y"))
     save_plot(
         mesh,
         args.output,

@@ -4,10 +4,15 @@ import os
 import time
 
 from .common import (
+    MESHES,
+    PICTURES,
     add_input_options,
     add_refine_options,
+    check_outputs,
+    periodic_of,
+    plural,
+    read_input,
     refine_with_progress,
-    require_outputs_free,
     summary,
 )
 
@@ -45,17 +50,24 @@ def run(args):
     from ..plot import save_plot
 
     outputs = args.output or [_default_output(args.points, args.k)]
-    require_outputs_free(outputs + ([args.plot] if args.plot else []), args.force)
+    check_outputs(
+        [(p, MESHES, "meshes") for p in outputs]
+        + ([(args.plot, PICTURES, "pictures")] if args.plot else []),
+        args.force,
+    )
+    periodic_of(args)
     t0 = time.perf_counter()
-    points = io.read_points(args.points, args.columns, args.delimiter)
+    points, names = read_input(args)
     if not args.quiet:
-        print(f"read {len(points):,} points from {args.points} in {time.perf_counter() - t0:.2f} s")
+        print(
+            f"read {plural(len(points), 'point')} from {args.points} in "
+            f"{time.perf_counter() - t0:.2f} s"
+        )
     mesh, seconds = refine_with_progress(points, args, args.quiet)
     for path in outputs:
         io.write_mesh(mesh, path, force=args.force)
     if args.plot:
-        labels = tuple(args.columns.split(",")) if args.columns else ("x", "y")
-        save_plot(mesh, args.plot, points=points, force=args.force, labels=labels)
+        save_plot(mesh, args.plot, points=points, force=args.force, labels=names)
     if not args.quiet:
         print(summary(mesh, seconds))
         print("  wrote " + ", ".join(outputs + ([args.plot] if args.plot else [])))

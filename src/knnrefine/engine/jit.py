@@ -98,3 +98,14 @@ def kernel(**options):
         return dispatcher
 
     return wrap
+
+
+def is_ready(dispatcher):
+    """Whether calling this kernel will not compile it: compiled in this process already, or
+    its index is in a cache numba reads (an index for another signature counts as ready: a
+    planning figure for the 'compiling' notice, not a promise)."""
+    if dispatcher.signatures:
+        return True
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    index = getattr(cache_file, "_index_path", None)
+    return bool(index) and os.path.exists(index)
