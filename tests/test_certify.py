@@ -100,12 +100,14 @@ def test_size_ratio_is_a_monte_carlo_integral(case):
     assert cert.size_ratio == pytest.approx(len(mesh.vertices) / cert.size_integral)
 
 
-def test_outradii_agree_with_qhull():
+@pytest.mark.parametrize("uniform, clustered", [(3000, 1000), (400, 150)])
+def test_outradii_agree_with_qhull(uniform, clustered):
     """A second, independent triangulation: scipy's Delaunay of the 3 x 3 periodic cover gives
     the same Voronoi vertices, hence the same outradii R(v) (at moderate scales: qhull is not
-    exact)."""
+    exact); on the small mesh the brute-force oracle does too (it used never to run: the only
+    mesh was over its 800-vertex limit)."""
     rng = np.random.default_rng(11)
-    points = np.concatenate([rng.random((3000, 2)), rng.normal(0.3, 0.02, (1000, 2)) % 1.0])
+    points = np.concatenate([rng.random((uniform, 2)), rng.normal(0.3, 0.02, (clustered, 2)) % 1.0])
     mesh = knnrefine.refine(points, 8, 3.0, periodic=True, box=(0, 0, 1, 1))
     V = mesh.torus.vertices
     m = len(V)
@@ -119,14 +121,16 @@ def test_outradii_agree_with_qhull():
     R_qhull = np.zeros(m)
     for c in range(3):
         np.maximum.at(R_qhull, s[:, c] % m, r)
-    facts = oracle.torus_facts(mesh.torus, np.zeros((0, 2))) if m < 800 else None
     corners = V[mesh.torus.triangles] + mesh.torus.offsets
     _, r_engine = oracle.circumcircles(corners)
     R_engine = np.zeros(m)
     for c in range(3):
         np.maximum.at(R_engine, mesh.torus.triangles[:, c], r_engine)
     np.testing.assert_allclose(R_qhull, R_engine, rtol=1e-9)
-    assert facts is None or np.allclose(facts["R"], R_engine)
+    if uniform < 1000:
+        assert m < 800
+        facts = oracle.torus_facts(mesh.torus, np.zeros((0, 2)))
+        np.testing.assert_allclose(facts["R"], R_engine, rtol=1e-9)
     assert certify(mesh, points).passed
 
 
@@ -136,9 +140,13 @@ def test_reports_failures():
     points = rng.random((2000, 2))
     mesh = knnrefine.refine(points, 10, 4.0, periodic=True, box=(0, 0, 1, 1))
     assert certify(mesh, points).passed
-    # more data than the mesh was made for: cells and circumballs overflow
+    # more data than the mesh was made for is an input error...
     more = np.concatenate([points, 0.5 + 0.01 * rng.random((500, 2))])
-    c = certify(mesh, more)
+    with pytest.raises(knnrefine.InputError, match="made from 2,000 points but 2,500"):
+        certify(mesh, more)
+    # ...and a mesh that claims those points fails: cells and circumballs overflow
+    forged = dataclasses.replace(mesh, stats={**mesh.stats, "n": len(more)})
+    c = certify(forged, more)
     assert not c.passed and c.max_cell_count >= 10 and c.max_ball_count >= 10
     assert "FAILED" in str(c)
     # a stricter tau than the mesh was made for
@@ -169,11 +177,35 @@ def test_report_formats(case):
 
 
 def test_n_below_k_fails():
-    """A mesh certified against fewer points than its k: d_Pk is infinite, no lower bound."""
+    """A mesh certified against fewer points than its k: d_Pk is infinite, no lower bound.
+    Only a mesh that claims those points gets that far (otherwise: input error)."""
     points = np.random.default_rng(4).random((50, 2))
     mesh = knnrefine.refine(points, 10)
-    c = certify(mesh, points[:5])
+    with pytest.raises(knnrefine.InputError, match="made from 50 points but 5"):
+        certify(mesh, points[:5])
+    c = certify(dataclasses.replace(mesh, stats={**mesh.stats, "n": 5}), points[:5])
     assert not c.passed and "n < k" in str(c)
+
+
+def test_points_outside_the_mesh_box_are_an_input_error():
+    """certify used to report a geometric FAIL for points that are not the mesh's."""
+    points = np.random.default_rng(5).random((300, 2))
+    mesh = knnrefine.refine(points, 5)
+    moved = points.copy()
+    moved[7] = [3.0, 0.5]
+    with pytest.raises(knnrefine.InputError, match="1 of the points lie outside the mesh's box"):
+        certify(mesh, moved)
+    torus = knnrefine.refine(points, 5, periodic=True, box=(0, 0, 1, 1))
+    assert certify(torus, points + [1.0, -2.0]).passed  # periodic axes wrap: the same points
+
+
+def test_nothing_measured_says_so():
+    """Every probe under the floor used to read 'not measured (n < k)'."""
+    points = np.random.default_rng(6).random((30, 2))
+    mesh = knnrefine.refine(points, 3, box=(0, 0, 1, 1), min_size=10.0)  # a floor above it all
+    c = certify(mesh, points)
+    assert "nothing measured: every probe lies where d_Pk < min_size" in str(c)
+    assert "n < k" not in str(c)
 
 
 def test_larger_input_samples_its_probes():

@@ -180,10 +180,16 @@ def test_certify_command(tmp_path, csv, capsys):
     out = capsys.readouterr().out
     assert "PASSED" in out
     assert json.loads((tmp_path / "c.json").read_text())["passed"] is True
-    # certifying against other data than the mesh was made for fails with status 3
+    # other data than the mesh was made for: an input error (status 1)
     other = tmp_path / "other.npy"
     np.save(other, np.random.default_rng(1).normal(0, 1, (5000, 2)))
-    assert run("certify", tmp_path / "m.npz", other, "-q") == 3
+    assert run("certify", tmp_path / "m.npz", other, "-q") == 1
+    # a mesh that fails its certificate (it claims a stricter tau): status 3
+    import dataclasses
+
+    strict = dataclasses.replace(io.read_mesh(tmp_path / "m.npz"), tau=2.2)
+    io.write_mesh(strict, str(tmp_path / "strict.npz"))
+    assert run("certify", tmp_path / "strict.npz", csv, "--columns", "lon,lat", "-q") == 3
 
 
 def test_inputs_npy_npz_parquet_tsv_whitespace_stdin(tmp_path, points):
@@ -482,3 +488,99 @@ def test_warnings_and_refusals_are_one_line_each(tmp_path, capsys):
     err = capsys.readouterr().err
     assert status == 1 and "cannot be certified" in err and "use k <= 570" in err, err
     assert not (tmp_path / "s.npz").exists()
+
+
+# -- issue 9: reading, outputs checked first, usage errors, wording ----------------------------
+
+
+def test_a_hash_inside_a_text_field_is_data(tmp_path):
+    """'name,x,y' / 'a #1,1,2' was read as a NaN row: '#' truncated the line."""
+    path = tmp_path / "named.csv"
+    path.write_text("# stations, surveyed 2024\nname,x,y\na #1,1,2\nb,3,4\nc # 3,5,6\n")
+    points, names = io.read_points_named(str(path), "x,y")
+    np.testing.assert_array_equal(points, [[1, 2], [3, 4], [5, 6]])
+    assert names == ("x", "y")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x,y\n1,2\n# not a comment here\n3,4\n")
+    with pytest.raises(knnrefine.InputError, match="line 3"):
+        io.read_points(str(bad))
+
+
+@pytest.mark.parametrize(
+    "plot, message",
+    [("missing/m.png", "the folder missing does not exist"), ("m.jpg", "pictures are written as")],
+)
+def test_outputs_are_checked_before_any_work(tmp_path, csv, capsys, plot, message, monkeypatch):
+    """--plot into a missing folder, or as .jpg, was found out after the mesh was written:
+    exit 1 with an output left behind."""
+    monkeypatch.chdir(tmp_path)
+    status = run("refine", csv, "--columns", "lon,lat", "-k", 5, "-o", "m.npz", "--plot", plot)
+    assert status == 1 and message in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
+    status = run("density", csv, "--columns", "lon,lat", "-o", "d.npz", "--plot", plot)
+    assert status == 1 and not (tmp_path / "d.npz").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["density", "{csv}", "--grid", "0", "-o", "d.npz"], "--grid takes one or two positive"),
+        (["density", "{csv}", "--grid", "10", "20", "30", "-o", "d.npz"], "--grid takes one"),
+        (["cluster", "{csv}", "-o", "l.csv"], "required: -k"),
+        (["persistence", "{csv}", "-o", "p.csv"], "required: -k"),
+        (["refine", "{csv}", "-k", "5", "--periodic"], "--periodic needs --box XMIN YMIN"),
+    ],
+)
+def test_usage_errors_exit_2_in_command_line_words(tmp_path, csv, capsys, argv, message):
+    """A missing -k exited 1 though the README says 2 for usage; messages used API words."""
+    status = run(*[str(a).replace("{csv}", str(csv)) for a in argv])
+    err = capsys.readouterr().err
+    assert status == 2 and message in err, err
+    assert "box=(" not in err and "force=True" not in err
+
+
+def test_a_read_only_folder_is_named_not_the_temporary_file(tmp_path, monkeypatch):
+    def refused(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(tmp_path / ".knnrefine-abc.npz"))
+
+    monkeypatch.setattr(io.tempfile, "mkstemp", refused)
+    with pytest.raises(knnrefine.InputError) as info:
+        io.write_text(str(tmp_path / "c.txt"), "hello")
+    assert "c.txt: cannot write in" in str(info.value) and ".knnrefine-" not in str(info.value)
+
+
+def test_plurals_and_labels_keep_their_names(tmp_path, capsys):
+    one = tmp_path / "one.csv"
+    one.write_text("lon,lat\n3.5,4.5\n")
+    assert run("refine", one, "-k", 1, "--min-size", 0.01, "-o", tmp_path / "one.npz") == 0
+    assert "read 1 point from" in capsys.readouterr().out
+    pts = knnrefine.datasets.blobs()[:3000]
+    src = tmp_path / "b.csv"
+    io.write_table(str(src), {"east": pts[:, 0], "north": pts[:, 1]})
+    assert run("cluster", src, "-k", 30, "-o", tmp_path / "l.csv") == 0
+    lines = (tmp_path / "l.csv").read_text().splitlines()
+    assert lines[0] == "row,east,north,label"
+    row, east, north, label = lines[1].split(",")
+    assert int(row) == 0 and float(east) == pts[0, 0] and len(east) <= 20  # round-trip, short
+
+
+def test_no_carriage_returns_in_a_redirected_stderr(tmp_path):
+    points = np.random.default_rng(0).random((400_000, 2))
+    src = tmp_path / "p.npy"
+    np.save(src, points)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "knnrefine.cli.main",
+            "refine",
+            str(src),
+            "-k",
+            "2",
+            "-o",
+            str(tmp_path / "m.npz"),
+        ],
+        capture_output=True,
+    )
+    assert out.returncode == 0, out.stderr
+    assert b"\r" not in out.stderr

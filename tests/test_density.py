@@ -55,6 +55,13 @@ def test_grid_covers_the_box(case):
 def test_density_integrates_to_one_and_masses_add_up(case):
     pts, mesh = case
     f = KnnDensity(mesh, pts)
+    # the normalising integral against an independent one: the exact k / (n pi d^2) (scipy's
+    # kd-tree, not the mesh) averaged on a fine grid of the box (mass() == 1 alone would hold
+    # by construction)
+    g = (np.arange(400) + 0.5) / 400
+    grid = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    exact = mesh.k / (len(pts) * np.pi * f.distance.exact(grid) ** 2)
+    assert f.raw_mass == pytest.approx(exact.mean(), rel=0.02)
     assert f.mass() == pytest.approx(1.0, rel=1e-9)
     parts = [f.mass((0, 0, 0.4, 1)), f.mass((0.4, 0, 1, 0.25)), f.mass((0.4, 0.25, 1, 1))]
     assert sum(parts) == pytest.approx(1.0, rel=1e-6)  # quadrature of 1/d^2 on clipped pieces
@@ -77,5 +84,61 @@ def test_errors():
     with pytest.raises(knnrefine.InputError, match="d_Pk is infinite"):
         KnnDistance(mesh, pts[:5])
     d = KnnDistance(mesh, pts)
-    with pytest.raises(knnrefine.InputError, match="leaves the box"):
-        d.integrate(lambda v: v, region=(0.5, 0.5, 2.0, 0.6))
+    for bad in ((0.5, 0.5, 0.5, 0.6), (0, 0, float("nan"), 1), (1, 2, 3)):
+        with pytest.raises(knnrefine.InputError, match="region"):
+            d.integrate(lambda v: v, region=bad)
+
+
+# -- issue 9: query shapes, one rule outside the box, regions clipped to the box --------------
+
+
+def test_queries_of_any_shape_come_back_in_that_shape():
+    """(2, N) in gaussian_kde's layout was silently read as N / 2 points and a (3, 4, 2) grid
+    came back flat."""
+    pts = np.random.default_rng(4).random((500, 2))
+    mesh = knnrefine.refine(pts, 10)
+    f, d = KnnDensity(mesh, pts), KnnDistance(mesh, pts)
+    q = np.random.default_rng(5).random((3, 4, 2)) * 0.8 + 0.1
+    for fn in (f, d, d.exact, mesh.d_m2):
+        out = fn(q)
+        assert out.shape == (3, 4)
+        np.testing.assert_array_equal(out.ravel(), fn(q.reshape(-1, 2)))
+        assert np.shape(fn([0.5, 0.5])) == ()
+        with pytest.raises(knnrefine.InputError, match=r"pass x\.T"):
+            fn(q.reshape(-1, 2).T)
+        with pytest.raises(knnrefine.InputError, match=r"shape \(\.\.\., 2\)"):
+            fn(np.zeros((4, 3)))
+
+
+def test_outside_the_box_is_nan_on_every_side():
+    """It was NaN past the right edge of a non-periodic box but finite past the other three."""
+    pts = np.random.default_rng(6).random((2000, 2))
+    mesh = knnrefine.refine(pts, 20)
+    f = KnnDensity(mesh, pts)
+    (x0, y0), (x1, y1) = f.distance.lo, f.distance.hi
+    eps = 1e-3
+    outside = [[x0 - eps, 0.5], [x1 + eps, 0.5], [0.5, y0 - eps], [0.5, y1 + eps]]
+    assert np.isnan(f(outside)).all() and np.isnan(f.distance.exact(outside)).all()
+    sides = [[x0, 0.5], [x1, 0.5], [0.5, y0], [0.5, y1]]
+    assert np.isfinite(f(sides)).all()
+    periodic = knnrefine.refine(pts, 20, periodic=(True, False), box=(0, 0, 1, 1))
+    g = KnnDensity(periodic, pts)
+    assert np.isfinite(g([[-0.25, 0.5], [1.25, 0.5]])).all()  # x wraps
+    assert np.isnan(g([[0.5, -0.01], [0.5, 1.01]])).all()  # y does not
+
+
+def test_mass_of_a_region_reaching_past_the_box():
+    """KnnDensity.mass((0, 0, 0.5, 0.5)) on unit-square data failed: the default box starts
+    at the data's minimum. The part in the box counts; periodic regions wrap."""
+    pts = np.random.default_rng(7).random((3000, 2))
+    f = KnnDensity(knnrefine.refine(pts, 20), pts)
+    (x0, y0), _ = f.distance.lo, f.distance.hi
+    assert x0 > 0 and y0 > 0
+    assert f.mass((0, 0, 0.5, 0.5)) == pytest.approx(f.mass((x0, y0, 0.5, 0.5)), rel=1e-12)
+    assert f.mass((-5, -5, 5, 5)) == pytest.approx(1.0, rel=1e-9)
+    assert f.mass((2, 2, 3, 3)) == 0.0
+    torus = KnnDensity(knnrefine.refine(pts, 20, periodic=True, box=(0, 0, 1, 1)), pts)
+    across = torus.mass((-0.1, 0.2, 0.1, 0.4))
+    parts = torus.mass((0.9, 0.2, 1.0, 0.4)) + torus.mass((0.0, 0.2, 0.1, 0.4))
+    assert across == pytest.approx(parts, rel=1e-12)
+    assert torus.mass((-3, 0, 7, 1)) == pytest.approx(1.0, rel=1e-9)  # a whole period or more

@@ -22,6 +22,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .errors import InputError
 from .mesh import theorem6_constants
 from .metric import BoxMetric
 from .validation import as_points
@@ -107,8 +108,9 @@ class Certificate:
         lines = [
             f"knnrefine certificate: n = {self.n}, m = {self.m}, k = {self.k}, "
             f"tau = {self.tau:g}, {mode}, box {tuple(round(b, 6) for b in self.box)}",
-            f"  triangulation      Delaunay on the torus: "
-            f"{verdict(self.triangulation_ok)}"
+            "  triangulation      Delaunay"
+            + (" on the torus" if all(self.periodic) else " (of the torus embedding the box)")
+            + f": {verdict(self.triangulation_ok)}"
             + ("" if self.triangulation_ok else f" ({'; '.join(self.triangulation_problems)})"),
             f"  returned mesh      the certified torus mesh, exactly, no repeated vertex: "
             f"{verdict(not self.mesh_problems)}"
@@ -129,7 +131,8 @@ class Certificate:
             else (
                 "  d_M2 / d_Pk        FAILED: n < k, d_Pk is infinite"
                 if self.n < self.k
-                else "  d_M2 / d_Pk        not measured (no probe above the floor)"
+                else "  d_M2 / d_Pk        nothing measured: every probe lies where d_Pk < "
+                f"min_size = {self.min_size:.3g}"
             ),
             f"  size               m / integral(1 / d_Pk^2) = {self.size_ratio:.3f} "
             f"(integral {self.size_integral:.4g} +- {self.size_integral_stderr:.2g})",
@@ -172,6 +175,7 @@ def certify(
     cores)."""
     t0 = time.perf_counter()
     pts = as_points(points)
+    _check_points_are_the_meshs(mesh, pts)
     k, tau, min_size = mesh.k, mesh.tau, mesh.min_size
     torus = mesh.torus
     period = np.asarray(torus.period, float)
@@ -307,6 +311,29 @@ def certify(
         precondition_note=precondition_note,
         seconds=time.perf_counter() - t0,
     )
+
+
+def _check_points_are_the_meshs(mesh, pts):
+    """A mesh is certified against the points it was made from: as many as it records, and
+    inside its box along non-periodic axes. Anything else is an input error, not a failed
+    certificate."""
+    made_from = mesh.stats.get("n")
+    if made_from is not None and int(made_from) != len(pts):
+        raise InputError(
+            f"the mesh was made from {int(made_from):,} points but {len(pts):,} were given: "
+            "certify a mesh against the points it was refined from"
+        )
+    for a in range(2):
+        if mesh.periodic[a]:
+            continue
+        lo, hi = mesh.box[a], mesh.box[a + 2]
+        out = (pts[:, a] < lo) | (pts[:, a] > hi)
+        if out.any():
+            raise InputError(
+                f"{int(out.sum()):,} of the points lie outside the mesh's box along "
+                f"{'xy'[a]} ([{lo:g}, {hi:g}]), the first at index {int(np.argmax(out))}: these "
+                "are not the points the mesh was refined from"
+            )
 
 
 def check_precondition(initial, ptree, k, tau, period):

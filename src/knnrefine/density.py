@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from .errors import InputError
 from .mesh import clip_polygon, split_in_four
 from .metric import BoxMetric
-from .validation import as_points
+from .validation import as_points, as_queries
 
 # Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
 _QW = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
@@ -52,6 +52,10 @@ class KnnDistance:
     subdivide : bool
         Also evaluate at edge midpoints (four linear pieces per triangle): about half the
         interpolation error for four times the (cheap) exact evaluations.
+
+    Outside the box (along a non-periodic axis, beyond any of its four sides) the estimate is
+    NaN: d_{P,k} is certified only in the box; periodic axes wrap. Queries have any shape
+    (..., 2) and the result the leading shape (...).
     """
 
     def __init__(self, mesh, points, subdivide=True):
@@ -74,21 +78,31 @@ class KnnDistance:
 
     # -- evaluation ------------------------------------------------------------------------
     def __call__(self, x):
-        """Estimated d_{P,k} at the query points (q, 2); NaN outside the box (non-periodic
-        axes); periodic axes wrap."""
-        x = self._wrap(np.atleast_2d(np.asarray(x, float)))
-        tri, bary = self._locate(x)
-        out = np.full(len(x), np.nan)
+        """Estimated d_{P,k} at the query points x, shape (..., 2): an array of shape (...).
+        NaN outside the box along non-periodic axes (on every side); periodic axes wrap."""
+        flat, shape = as_queries(x)
+        inside = self._inside(flat)
+        flat = self._wrap(flat)
+        out = np.full(len(flat), np.nan)
+        tri, bary = self._locate(flat[inside])
         ok = tri >= 0
-        out[ok] = (bary[ok] * self.values[self.triangles[tri[ok]]]).sum(axis=1)
-        return out
+        values = np.full(int(inside.sum()), np.nan)
+        values[ok] = (bary[ok] * self.values[self.triangles[tri[ok]]]).sum(axis=1)
+        out[inside] = values
+        return out.reshape(shape)
 
     def exact(self, x):
-        """Exact d_{P,k} at the query points (one kd-tree query each: the reference)."""
-        return self._exact(self._wrap(np.atleast_2d(np.asarray(x, float))))
+        """Exact d_{P,k} at the query points (..., 2), one kd-tree query each (the reference);
+        NaN outside the box along non-periodic axes, as the estimate."""
+        flat, shape = as_queries(x)
+        out = np.full(len(flat), np.nan)
+        inside = self._inside(flat)
+        out[inside] = self._exact(self._wrap(flat[inside]))
+        return out.reshape(shape)
 
     def grid(self, shape=(512, 512)):
-        """(xs, ys, values): the estimate at the centres of a ny x nx grid over the box."""
+        """(xs, ys, values): the estimate at the centres of a ny x nx grid over the box, values
+        of shape (ny, nx), row j at ys[j] (image order, origin at the lower left)."""
         ny, nx = shape
         xs = self.lo[0] + (np.arange(nx) + 0.5) * (self.hi[0] - self.lo[0]) / nx
         ys = self.lo[1] + (np.arange(ny) + 0.5) * (self.hi[1] - self.lo[1]) / ny
@@ -116,10 +130,14 @@ class KnnDistance:
 
     # -- integrals ---------------------------------------------------------------------------
     def integrate(self, func, region=None):
-        """Integral over ``region`` = (x0, y0, x1, y1) (default: the box; inside the box) of
-        func(d), d the interpolated d_{P,k}: 7-point quadrature on every linear piece, the
-        pieces clipped to the region."""
-        rect = self._region(region)
+        """Integral over ``region`` = (x0, y0, x1, y1) (default: the box) of func(d), d the
+        interpolated d_{P,k}: 7-point quadrature on every linear piece, the pieces clipped to
+        the region. The region counts only where it meets the box along non-periodic axes
+        (the estimate lives there); along periodic axes it wraps around (at most one period
+        wide)."""
+        return float(sum(self._integrate_rect(func, rect) for rect in self._region(region)))
+
+    def _integrate_rect(self, func, rect):
         c = self.nodes[self.triangles]
         d = self.values[self.triangles]
         cmin, cmax = c.min(axis=1), c.max(axis=1)
@@ -186,32 +204,58 @@ class KnnDistance:
     def _wrap(self, x):
         return self._metric.wrap(x)
 
+    def _inside(self, x):
+        """Mask of the points in the box along its non-periodic axes (sides included)."""
+        ok = np.all(np.isfinite(x), axis=1)
+        for a in range(2):
+            if not self.mesh.periodic[a]:
+                ok &= (x[:, a] >= self.lo[a]) & (x[:, a] <= self.hi[a])
+        return ok
+
     def _exact(self, x):
         return self._tree.query(self._metric.frame(x), k=[self.k], workers=-1)[0][:, 0]
 
     def _region(self, region):
+        """The rectangles, inside the box, that make up ``region``: clipped along non-periodic
+        axes, cut at the seam and wrapped along periodic ones."""
         if region is None:
-            return np.array([self.lo, self.hi])
-        x0, y0, x1, y1 = (float(r) for r in region)
-        if not (x0 < x1 and y0 < y1):
-            raise InputError(f"region {region} must satisfy x0 < x1 and y0 < y1")
-        r = np.array([[x0, y0], [x1, y1]])
-        if np.any(r[0] < self.lo - 1e-12 * (self.hi - self.lo)) or np.any(
-            r[1] > self.hi + 1e-12 * (self.hi - self.lo)
-        ):
+            return [np.array([self.lo, self.hi])]
+        try:
+            x0, y0, x1, y1 = (float(r) for r in region)
+        except (TypeError, ValueError):
             raise InputError(
-                f"region {region} leaves the box {tuple(self.mesh.box)}; split a "
-                "region across a periodic seam into two"
-            )
-        return r
+                f"region must be four numbers (x0, y0, x1, y1), got {region!r}"
+            ) from None
+        if not (np.isfinite([x0, y0, x1, y1]).all() and x0 < x1 and y0 < y1):
+            raise InputError(f"region {region} must be finite with x0 < x1 and y0 < y1")
+        spans = []
+        for a, (u0, u1) in enumerate(((x0, x1), (y0, y1))):
+            lo, hi = self.lo[a], self.hi[a]
+            if not self.mesh.periodic[a]:
+                spans.append([(max(u0, lo), min(u1, hi))] if u1 > lo and u0 < hi else [])
+                continue
+            period = hi - lo
+            if u1 - u0 >= period * (1 - 1e-12):
+                spans.append([(lo, hi)])
+                continue
+            s0 = lo + (u0 - lo) % period
+            s1 = s0 + (u1 - u0)
+            spans.append([(s0, min(s1, hi))] + ([(lo, lo + s1 - hi)] if s1 > hi else []))
+        return [
+            np.array([[ax0, ay0], [ax1, ay1]])
+            for ax0, ax1 in spans[0]
+            for ay0, ay1 in spans[1]
+            if ax1 > ax0 and ay1 > ay0
+        ]
 
 
 class KnnDensity:
     """The kNN density estimate f(x) = k / (n pi d_{P,k}(x)^2), from a mesh.
 
     ``normalized`` (default) divides by its integral over the box, so that it integrates to
-    1 there. Evaluate with ``density(x)``, on a grid with ``grid()``, and integrate over a
-    rectangle with ``mass(region)``.
+    1 there. Evaluate with ``density(x)`` (x of shape (..., 2); NaN outside the box along
+    non-periodic axes), on a grid with ``grid()``, and integrate over a rectangle with
+    ``mass(region)``. ``subdivide``: see ``KnnDistance``.
     """
 
     def __init__(self, mesh, points, normalized=True, subdivide=True):
@@ -223,14 +267,18 @@ class KnnDensity:
         self.constant = self.raw_constant / self.raw_mass if normalized else self.raw_constant
 
     def __call__(self, x):
+        """The density at the query points x, shape (..., 2): an array of shape (...)."""
         return self.constant / self.distance(x) ** 2
 
     def grid(self, shape=(512, 512)):
+        """(xs, ys, values): the density at the centres of a ny x nx grid over the box."""
         xs, ys, d = self.distance.grid(shape)
         return xs, ys, self.constant / d**2
 
     def mass(self, region=None):
-        """Integral of the estimate over the rectangle (x0, y0, x1, y1) (default: the box)."""
+        """Integral of the estimate over the rectangle (x0, y0, x1, y1) (default: the box):
+        the probability of the part of the region in the box (regions wrap across periodic
+        seams)."""
         return self.distance.integrate(lambda d: self.constant / d**2, region)
 
 

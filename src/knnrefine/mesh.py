@@ -6,6 +6,7 @@ from functools import cached_property
 import numpy as np
 
 from .metric import BoxMetric
+from .validation import as_queries
 
 KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
 
@@ -117,14 +118,13 @@ class Mesh:
         return self._metric.tree(self.vertices)
 
     def d_m2(self, x):
-        """d_{M,2}: distance from each query point to its second-nearest mesh vertex.
+        """d_{M,2}: distance from each query point (x of shape (..., 2)) to its second-nearest
+        mesh vertex, an array of shape (...).
 
         Periodic axes use the torus metric. Guaranteed to lie within
         [alpha, beta] * d_{P,k} at every point of the box (above the floor)."""
-        x = np.atleast_2d(np.asarray(x, float))
-        if x.ndim != 2 or x.shape[1] != 2:
-            raise ValueError(f"query points must have shape (q, 2), got {x.shape}")
-        return self._tree.query(self._metric.frame(x), k=2)[0][:, 1]
+        flat, shape = as_queries(x)
+        return self._tree.query(self._metric.frame(flat), k=2)[0][:, 1].reshape(shape)
 
     def corners(self):
         """(t, 3, 2) triangle corners, offsets applied (periodic triangles may reach past the

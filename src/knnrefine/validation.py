@@ -171,3 +171,24 @@ def check_inside(points, box, periodic):
                 f"[{lo}, {hi}], the first at index {first} ({points[first].tolist()}); enlarge "
                 "the box, drop those points, or make that axis periodic"
             )
+
+
+def as_queries(x):
+    """Query points of any shape (..., 2): returns (flat (q, 2) float64, the leading shape).
+    Anything else is refused (a (2, N) array in scipy's gaussian_kde layout is the classic
+    mistake: it would silently be read as N / 2 points)."""
+    arr = np.asarray(x, dtype=np.float64) if not isinstance(x, np.ndarray) else x
+    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
+        raise InputError(f"query points must be numbers, got dtype {arr.dtype}")
+    if arr.ndim == 0 or arr.shape[-1] != 2:
+        hint = (
+            "; for the (2, N) layout of scipy's gaussian_kde pass x.T"
+            if arr.ndim == 2 and arr.shape[0] == 2
+            else ""
+        )
+        raise InputError(
+            f"query points must have shape (..., 2), x and y on the last axis, got "
+            f"{arr.shape}{hint}"
+        )
+    arr = np.asarray(arr, dtype=np.float64)
+    return arr.reshape(-1, 2), arr.shape[:-1]
