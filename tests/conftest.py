@@ -23,15 +23,44 @@ settings.register_profile(
     derandomize=True,
     database=None,
     deadline=None,
-    suppress_health_check=[HealthCheck.too_slow],
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
 )
 settings.register_profile(
     "wide",
     max_examples=2000,
     deadline=None,
-    suppress_health_check=[HealthCheck.too_slow],
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+# Every mesh a test makes with knnrefine.refine (directly, or through the API and the
+# command line in this process) is certified before the test sees it, up to these sizes
+# (certify takes seconds beyond them; the big runs in tests/ check their own results).
+CERTIFY_UP_TO_POINTS = 200_000
+CERTIFY_UP_TO_VERTICES = 400_000
+CERTIFIED = {"meshes": 0, "skipped": 0}
+
+
+@pytest.fixture(autouse=True)
+def certify_every_mesh(monkeypatch):
+    original = knnrefine.api.refine
+
+    def refine_and_certify(points, k, *args, **kwargs):
+        mesh = original(points, k, *args, **kwargs)
+        if (
+            mesh.stats["n"] <= CERTIFY_UP_TO_POINTS
+            and mesh.stats["m_torus"] <= CERTIFY_UP_TO_VERTICES
+        ):
+            cert = knnrefine.certify(mesh, points, samples=5_000, n_random=1_000)
+            assert cert.passed, str(cert)
+            CERTIFIED["meshes"] += 1
+        else:
+            CERTIFIED["skipped"] += 1
+        return mesh
+
+    monkeypatch.setattr(knnrefine, "refine", refine_and_certify)
+    monkeypatch.setattr(knnrefine.api, "refine", refine_and_certify)
+
 
 # achieved constants, printed at the end of the run
 ACHIEVED = []
@@ -69,9 +98,16 @@ def assert_certified(mesh, points, label=""):
 
 
 def pytest_terminal_summary(terminalreporter):
+    tr = terminalreporter
+    if CERTIFIED["meshes"] or CERTIFIED["skipped"]:
+        tr.section("every mesh certified")
+        tr.write_line(
+            f"{CERTIFIED['meshes']} meshes made by the tests were certified; "
+            f"{CERTIFIED['skipped']} larger than {CERTIFY_UP_TO_POINTS:,} points or "
+            f"{CERTIFY_UP_TO_VERTICES:,} vertices were not"
+        )
     if not ACHIEVED:
         return
-    tr = terminalreporter
     tr.section("certified meshes: achieved d_M2 / d_Pk (alpha_hat, beta_hat) and size ratio")
     tr.write_line(
         f"{'case':34s} {'n':>7s} {'k':>4s} {'tau':>4s} {'periodic':>14s} {'m':>7s} "

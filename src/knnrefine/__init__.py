@@ -5,7 +5,7 @@ An implementation of Gardner & Sheehy, "kth Nearest Neighbor Sampling in the Pla
 everywhere in the box, whose Delaunay triangulation is tau-well-spaced.
 """
 
-from . import datasets
+from . import datasets, io
 from .api import refine
 from .certify import Certificate, certify
 from .cluster import Clustering, cluster
@@ -31,6 +31,7 @@ __all__ = [
     "Clustering",
     "KnnDensity",
     "datasets",
+    "io",
     "Mesh",
     "Torus",
     "theorem6_constants",

@@ -34,9 +34,8 @@ _QP = np.array(
 
 
 def default_k(n):
-    """A default k for density estimation from n points: sqrt(n) / 2 (at least 10). The paper
-    recommends k ~ sqrt(n) (k / n -> 0 and k / log n -> infinity); on multi-scale mixtures the
-    L1 error was lowest around 0.4 sqrt(n) (benchmarks/density_accuracy.py)."""
+    """A default k for density estimation from n points: sqrt(n) / 2 (at least 10), after the
+    paper's k ~ sqrt(n) (k / n -> 0 and k / log n -> infinity)."""
     return max(10, int(round(0.5 * np.sqrt(n))))
 
 

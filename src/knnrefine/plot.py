@@ -6,6 +6,7 @@ import os
 import numpy as np
 
 from .errors import InputError
+from .metric import BoxMetric
 
 
 def plot_mesh(
@@ -37,7 +38,6 @@ def plot_mesh(
         ax = Figure(figsize=figure_size(mesh), layout="constrained").add_subplot()
     lo = np.array(mesh.box[:2])
     hi = np.array(mesh.box[2:])
-    period = np.array(mesh.period)
     nodes, covering = mesh.covering()
     tris = nodes[covering]
     norm = None
@@ -60,8 +60,7 @@ def plot_mesh(
             rasterized=len(polys) > 20000,
         )
         ax.add_collection(coll)
-        cbar = ax.figure.colorbar(coll, ax=ax)
-        cbar.set_label("$d_{M,2}$ (distance to the second-nearest mesh vertex)")
+        colour_bar(ax, coll, f"$d_{{M,2}}$ (units of {labels[0]}, {labels[1]})")
     if show_mesh:
         edges = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
         # each edge once (neighbours and periodic copies share it): equal alpha everywhere
@@ -84,20 +83,21 @@ def plot_mesh(
         pts = np.asarray(points, float)
         n = len(pts)
         if show_points:
-            if len(pts) > max_points:
-                pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
-            for a in range(2):  # periodic axes: show the points wrapped into the box
-                if mesh.periodic[a]:
-                    pts[:, a] = lo[a] + np.mod(pts[:, a] - lo[a], period[a])
+            # at most a few points per mesh vertex, small and translucent: where the data is
+            # dense the mesh is finest, and solid dots would hide it
+            cap = min(max_points, 5 * len(mesh.vertices))
+            if len(pts) > cap:
+                pts = pts[np.random.default_rng(0).choice(len(pts), cap, replace=False)]
+            pts = BoxMetric(mesh.box, mesh.periodic).wrap(pts)
             ax.scatter(
                 pts[:, 0],
                 pts[:, 1],
-                s=1.5 if len(pts) > 5000 else 4,
-                c="black",
+                s=0.8 if len(pts) > 5000 else 3,
+                c="crimson",
                 linewidths=0,
-                alpha=0.5 if len(pts) > 5000 else 0.8,
+                alpha=0.35 if len(pts) > 5000 else 0.7,
                 rasterized=True,
-                label=f"input points{' (sample)' if n > max_points else ''}",
+                label=f"input points{f' (a sample of {len(pts):,})' if n > len(pts) else ''}",
             )
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
@@ -111,10 +111,28 @@ def plot_mesh(
             tuple(mesh.periodic), f", periodic in {'x' if mesh.periodic[0] else 'y'}"
         )
         title = (
-            f"kNNRefine: n = {n}, k = {mesh.k}, tau = {mesh.tau:g}, m = {len(mesh.vertices)}{mode}"
+            f"kNNRefine: n = {n:,}, k = {mesh.k}, tau = {mesh.tau:g}, m = {len(mesh.vertices):,}"
+            f"{mode}; colour: distance to the second-nearest mesh vertex"
         )
     ax.set_title(title)
     return ax
+
+
+def colour_bar(ax, mappable, label):
+    """A colour bar exactly as tall as the axes' drawn area (an inset, so equal-aspect axes
+    keep it), with ticks at 1, 2 and 5 times the powers of ten on log scales."""
+    from matplotlib.colors import LogNorm
+    from matplotlib.ticker import LogFormatterSciNotation, LogLocator
+
+    cax = ax.inset_axes([1.03, 0.0, 0.035, 1.0])
+    cbar = ax.figure.colorbar(mappable, cax=cax)
+    if isinstance(mappable.norm, LogNorm):
+        decades = np.log10(mappable.norm.vmax / mappable.norm.vmin)
+        cbar.locator = LogLocator(subs=(1.0, 2.0, 5.0) if decades < 4 else (1.0,))
+        cbar.formatter = LogFormatterSciNotation(labelOnlyBase=False)
+        cbar.update_ticks()
+    cbar.set_label(label)
+    return cbar
 
 
 def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
@@ -141,7 +159,12 @@ def save_figure(path, figsize, draw, force=False, dpi=150):
     fig = Figure(figsize=figsize, layout="constrained")
     FigureCanvasAgg(fig)
     draw(fig.add_subplot())
-    atomic_write(path, force, lambda tmp: fig.savefig(tmp, dpi=dpi, format=ext[1:]))
+    # tight: the colour bar inset and a long title stay in the picture
+    atomic_write(
+        path,
+        force,
+        lambda tmp: fig.savefig(tmp, dpi=dpi, format=ext[1:], bbox_inches="tight", pad_inches=0.1),
+    )
 
 
 def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma"):
@@ -160,12 +183,12 @@ def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma")
         interpolation="nearest",
         aspect="auto",
     )
-    ax.figure.colorbar(im, ax=ax).set_label("kNN density (integrates to 1 over the box)")
+    colour_bar(ax, im, f"density per unit {labels[0]} x {labels[1]}")
     ratio = (mesh.box[3] - mesh.box[1]) / (mesh.box[2] - mesh.box[0])
     ax.set_aspect("equal" if 0.05 < ratio < 20 else "auto")
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
-    ax.set_title(f"kNN density: n = {density.n}, k = {density.k}, m = {len(mesh.vertices)}")
+    ax.set_title(f"kNN density: n = {density.n:,}, k = {density.k}, m = {len(mesh.vertices):,}")
     return ax
 
 
@@ -194,7 +217,7 @@ def plot_diagram(persistence, ax, dims=(0, 1)):
             alpha=0.8,
             edgecolors="none",
         )
-    scale = "log d_Pk" if persistence.log else "d_Pk"
+    scale = "ln d_Pk (natural log)" if persistence.log else "d_Pk"
     ax.set_xlabel(f"birth ({scale})")
     ax.set_ylabel(f"death ({scale}); dashed: never dies")
     mesh = persistence.mesh
@@ -207,9 +230,13 @@ def plot_diagram(persistence, ax, dims=(0, 1)):
 
 
 def plot_clusters(mesh, points, labels, ax, max_points=200_000, labels_xy=("x", "y")):
-    """Input points coloured by cluster over the mesh's edges."""
+    """Input points coloured by cluster (noise, label -1, in grey) over the mesh's edges, with
+    a legend of the clusters and their sizes."""
     pts = np.asarray(points, float)
     lab = np.asarray(labels)
+    n_clusters = int(lab.max()) + 1 if len(lab) else 0
+    sizes = np.bincount(lab[lab >= 0], minlength=n_clusters)
+    noise = int((lab < 0).sum())
     if len(pts) > max_points:
         pick = np.random.default_rng(0).choice(len(pts), max_points, replace=False)
         pts, lab = pts[pick], lab[pick]
@@ -220,23 +247,56 @@ def plot_clusters(mesh, points, labels, ax, max_points=200_000, labels_xy=("x", 
         cells="none",
         show_points=False,
         labels=labels_xy,
-        title=f"ToMATo on the mesh: {lab.max() + 1} clusters, k = {mesh.k}, "
-        f"m = {len(mesh.vertices)}",
+        title=f"ToMATo on the mesh: {n_clusters} cluster{'s' if n_clusters != 1 else ''}"
+        + (f" and {noise:,} noise points" if noise else "")
+        + f", k = {mesh.k}, m = {len(mesh.vertices)}",
     )
-    lo = np.array(mesh.box[:2])
-    for a in range(2):
-        if mesh.periodic[a]:
-            pts[:, a] = lo[a] + np.mod(pts[:, a] - lo[a], mesh.period[a])
-    ax.scatter(
-        pts[:, 0],
-        pts[:, 1],
-        c=lab,
-        cmap="tab20",
-        s=2 if len(pts) > 5000 else 6,
-        linewidths=0,
-        rasterized=True,
+    pts = BoxMetric(mesh.box, mesh.periodic).wrap(pts)
+    size = 2 if len(pts) > 5000 else 6
+    if noise:
+        grey = lab < 0
+        ax.scatter(
+            pts[grey, 0],
+            pts[grey, 1],
+            c="0.7",
+            s=size,
+            linewidths=0,
+            rasterized=True,
+            label=f"noise ({noise:,})",
+        )
+    palette = _palette(n_clusters)
+    for c in range(n_clusters):
+        mine = lab == c
+        ax.scatter(
+            pts[mine, 0],
+            pts[mine, 1],
+            color=palette[c],
+            s=size,
+            linewidths=0,
+            rasterized=True,
+            label=f"{c} ({sizes[c]:,})" if c < 20 else None,
+        )
+    extra = f" (first 20 of {n_clusters})" if n_clusters > 20 else ""
+    ax.legend(
+        title=f"cluster (points){extra}",
+        loc="upper left",
+        bbox_to_anchor=(1.02, 1.0),
+        markerscale=8 if size < 4 else 2,
+        fontsize="small",
+        frameon=False,
     )
     return ax
+
+
+def _palette(n):
+    """n distinct, saturated colours: tab10, then tab20, then a hue wheel."""
+    from matplotlib import colormaps
+
+    if n <= 10:
+        return [colormaps["tab10"](i) for i in range(n)]
+    if n <= 20:
+        return [colormaps["tab20"](i) for i in range(n)]
+    return [colormaps["hsv"]((i * 0.618034) % 1.0) for i in range(n)]
 
 
 def figure_size(mesh, width=9.0):

@@ -1,0 +1,81 @@
+"""Every command and every Python example in README.md runs as written (issue 9).
+
+The shell block is run line by line in a temporary folder (``cd`` changes it, as in a
+shell), through the installed ``knnrefine`` console script; the two first commands' installs
+are what the test run itself stands on, so of them only ``knnrefine demo`` is run. The Python
+blocks run in order in one namespace, as a reader would paste them."""
+
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def blocks(language):
+    text = README.read_text()
+    return re.findall(rf"```{language}\n(.*?)```", text, flags=re.S)
+
+
+def shell_commands():
+    """The README's command lines: its first block's demo, then the command-line block."""
+    commands = []
+    first = blocks("")[0]
+    assert first.splitlines()[0].startswith("pip install . && knnrefine demo")
+    commands.append("knnrefine demo")
+    for block in blocks(""):
+        if block.lstrip().startswith("knnrefine demo "):
+            text = block.replace("\\\n", " ")
+            for line in text.splitlines():
+                line = line.split("  #")[0].strip()  # comments are two spaces and a hash
+                if line and line != commands[0] and not line.startswith("knnrefine demo"):
+                    commands.append(line)
+    return commands
+
+
+def test_the_readme_has_what_this_test_runs():
+    commands = shell_commands()
+    assert commands[0] == "knnrefine demo" and commands[1] == "cd knnrefine-demo"
+    names = {c.split()[1] for c in commands if c.startswith("knnrefine ")}
+    assert {"refine", "certify", "plot", "density", "persistence", "cluster"} <= names
+
+
+def test_every_readme_command_runs_as_written(tmp_path):
+    if shutil.which("knnrefine") is None:
+        pytest.skip("the knnrefine console script is not installed (pip install .)")
+    pytest.importorskip("gudhi")
+    cwd = tmp_path
+    for command in shell_commands():
+        if command.startswith("cd "):
+            cwd = cwd / command[3:].strip()
+            assert cwd.is_dir(), command
+            continue
+        out = subprocess.run(command, shell=True, cwd=cwd, capture_output=True, text=True)
+        assert out.returncode == 0, f"{command}\n{out.stdout}\n{out.stderr}"
+    for made in (
+        "quakes.npz",
+        "quakes.geojson",
+        "quakes.png",
+        "cells.svg",
+        "density.png",
+        "diagram.png",
+        "labels.csv",
+        "clusters.png",
+        "certificate-quakes.json",
+    ):
+        assert (cwd / made).stat().st_size > 0, made
+
+
+def test_every_readme_python_example_runs(tmp_path, monkeypatch):
+    pytest.importorskip("gudhi")
+    monkeypatch.chdir(tmp_path)  # the examples write torus.npz
+    namespace = {}
+    for code in blocks("python"):
+        exec(compile(code, str(README), "exec"), namespace)  # noqa: S102
+    assert namespace["cert"].passed
+    assert namespace["again"].k == namespace["torus"].k
+    assert os.path.exists(tmp_path / "torus.npz")
