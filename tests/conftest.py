@@ -1,3 +1,4 @@
+import functools
 import os
 from pathlib import Path
 
@@ -45,6 +46,7 @@ CERTIFIED = {"meshes": 0, "skipped": 0}
 def certify_every_mesh(monkeypatch):
     original = knnrefine.api.refine
 
+    @functools.wraps(original)
     def refine_and_certify(points, k, *args, **kwargs):
         mesh = original(points, k, *args, **kwargs)
         if (

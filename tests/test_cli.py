@@ -584,3 +584,77 @@ def test_no_carriage_returns_in_a_redirected_stderr(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert b"\r" not in out.stderr
+
+
+def test_first_run_says_it_compiles(capsys, monkeypatch):
+    """First run: the kernels compiled for 16-58 s with nothing on screen."""
+    from knnrefine.cli import common
+
+    monkeypatch.setattr("knnrefine.engine.jit.is_ready", lambda dispatcher: False)
+    common.announce_compilation(quiet=False)
+    assert "compiling the kernels for their first use" in capsys.readouterr().err
+    common.announce_compilation(quiet=True)
+    assert capsys.readouterr().err == ""
+    monkeypatch.undo()
+    from knnrefine.engine.jit import is_ready
+    from knnrefine.engine.refine import refine_steps
+
+    knnrefine.refine(np.random.default_rng(0).random((50, 2)), 3)
+    assert is_ready(refine_steps)  # compiled in this process now (or cached before)
+
+
+def test_colour_bar_is_as_tall_as_the_axes_and_labels_name_the_columns():
+    """The colour bar was taller than the (equal-aspect) axes, with two ticks and no unit."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from knnrefine.plot import plot_mesh
+
+    pts = np.random.default_rng(1).random((3000, 2)) * [360, 180] - [180, 90]
+    mesh = knnrefine.refine(pts, 10, periodic=(True, False), box=(-180, -90, 180, 90))
+    ax = plot_mesh(mesh, pts, labels=("lon", "lat"))
+    FigureCanvasAgg(ax.figure).draw()
+    cax = ax.child_axes[0]  # the colour bar: an inset of the axes
+    a, c = ax.get_window_extent(), cax.get_window_extent()
+    assert abs(a.height - c.height) < 0.01 * a.height and abs(a.y0 - c.y0) < 0.01 * a.height
+    assert ax.get_xlabel() == "lon" and ax.get_ylabel() == "lat"
+    assert "lon, lat" in cax.get_ylabel()
+    assert len([t for t in cax.get_yticklabels() if t.get_text()]) >= 3
+
+
+def test_certificate_wording_for_ordinary_boxes():
+    pts = np.random.default_rng(2).random((500, 2))
+    text = str(knnrefine.certify(knnrefine.refine(pts, 5), pts))
+    assert "Delaunay (of the torus embedding the box): ok" in text
+    text = str(knnrefine.certify(knnrefine.refine(pts, 5, periodic=True, box=(0, 0, 1, 1)), pts))
+    assert "Delaunay on the torus: ok" in text
+
+
+def test_missing_gudhi_is_an_import_error_naming_the_extra(monkeypatch, tmp_path, capsys):
+    import builtins
+
+    real = builtins.__import__
+
+    def no_gudhi(name, *args, **kwargs):
+        if name == "gudhi" or name.startswith("gudhi."):
+            raise ImportError("No module named 'gudhi'")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_gudhi)
+    from knnrefine.topology import require_gudhi
+
+    with pytest.raises(ImportError, match=r'pip install "knnrefine\[topology\]"'):
+        require_gudhi()
+    src = tmp_path / "p.npy"
+    np.save(src, np.random.default_rng(3).random((200, 2)))
+    assert run("cluster", src, "-k", 10) == 1
+    assert 'pip install "knnrefine[topology]"' in capsys.readouterr().err
+
+
+def test_public_methods_say_what_they_do():
+    """help() showed undocumented grid, __call__ and subdivide."""
+    from knnrefine.density import KnnDensity, KnnDistance
+
+    for cls in (KnnDensity, KnnDistance):
+        for name in ("__call__", "grid"):
+            assert getattr(cls, name).__doc__, (cls.__name__, name)
+        assert "subdivide" in cls.__doc__

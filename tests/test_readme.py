@@ -6,7 +6,6 @@ are what the test run itself stands on, so of them only ``knnrefine demo`` is ru
 blocks run in order in one namespace, as a reader would paste them."""
 
 import os
-import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -17,8 +16,20 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def blocks(language):
-    text = README.read_text()
-    return re.findall(rf"```{language}\n(.*?)```", text, flags=re.S)
+    """The fenced code blocks of README.md whose info string is ``language`` ("" for none),
+    in order."""
+    found, current, info = [], None, None
+    for line in README.read_text().splitlines(keepends=True):
+        if line.startswith("```"):
+            if current is None:
+                current, info = [], line[3:].strip()
+            else:
+                if info == language:
+                    found.append("".join(current))
+                current = None
+        elif current is not None:
+            current.append(line)
+    return found
 
 
 def shell_commands():
