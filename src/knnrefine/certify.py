@@ -354,7 +354,7 @@ def check_precondition(initial, ptree, k, tau, period):
             return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"
         remaining = remaining[~ok]
         rounds += 1
-    return True, f"{len(initial)} vertices ordered in {rounds} round(s)"
+    return True, f"{len(initial)} vertices ordered in {rounds} round{'s' if rounds != 1 else ''}"
 
 
 def verify_returned_mesh(mesh):
