@@ -658,3 +658,15 @@ def test_public_methods_say_what_they_do():
         for name in ("__call__", "grid"):
             assert getattr(cls, name).__doc__, (cls.__name__, name)
         assert "subdivide" in cls.__doc__
+
+
+@pytest.mark.parametrize("command", ["refine", "density", "cluster", "persistence"])
+def test_k_above_n_is_one_refusal_everywhere(tmp_path, capsys, command):
+    """k > n: refine returned the initial mesh with exit 0 (certify then PASSED with size nan)
+    while density, cluster and persistence refused."""
+    src = tmp_path / "five.npy"
+    np.save(src, np.random.default_rng(4).random((5, 2)))
+    out = tmp_path / ("o.npz" if command in ("refine", "density") else "o.csv")
+    assert run(command, src, "-k", 10, "-o", out) == 1
+    assert "k = 10 is larger than the number of points, 5" in capsys.readouterr().err
+    assert not out.exists()
