@@ -329,3 +329,18 @@ def test_two_points_spanning_5e_133_are_rejected_as_documented():
     (span under 1e-100) a failure: it is the documented answer."""
     with pytest.raises(InputError, match="span only"):
         knnrefine.refine([(0.0, 0.0), (0.0, 5.7e-133)], 1)
+
+
+def test_one_point_on_a_thin_x_periodic_strip():
+    """Hypothesis found it (issue 3): one point in a 1e-9-wide x-periodic box, k = 1, tau = 5,
+    gave alpha_hat 0.113 < alpha 0.130: a valid torus mesh cannot be coarser than a fraction of
+    the short period, while d_P1 spans the box. Now refused, naming a tau that works."""
+    P = np.array([[2e-10, 3e-10]])
+    box = (0.0, 0.0, 1e-9, 1e-9)
+    with pytest.raises(InputError, match=r"use tau <= ([\d.]+) with k = 1") as info:
+        knnrefine.refine(P, 1, 5.0, periodic=(True, False), box=box, min_size=1e-12)
+    tau_max = float(re.search(r"use tau <= ([\d.]+)", str(info.value)).group(1))
+    assert 2.0 < tau_max < 5.0
+    mesh = knnrefine.refine(P, 1, tau_max, periodic=(True, False), box=box, min_size=1e-12)
+    cert = certify(mesh, P)
+    assert cert.passed and cert.alpha_hat >= cert.alpha, str(cert)
