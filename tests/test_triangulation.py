@@ -11,14 +11,8 @@ from knnrefine.certify import verify_triangulation
 from knnrefine.engine import driver
 from knnrefine.engine.geometry import Q, snap
 from knnrefine.engine.index import build_index
-from knnrefine.engine.triangulation import (
-    C_NT,
-    C_NV,
-    INSERT_NOT_IN_SEED,
-    in_circumcircle,
-    insert_vertex,
-    vertex_star,
-)
+from knnrefine.engine.state import C_NT, C_NV, INSERT_NOT_IN_SEED
+from knnrefine.engine.triangulation import in_circumcircle, insert_vertex, vertex_star
 
 
 def empty_torus(lx, ly):
@@ -28,11 +22,10 @@ def empty_torus(lx, ly):
 
 def seed_for(state, px, py):
     """Brute force: a triangle (and periodic shift) whose circumcircle strictly holds p."""
-    tri, ver = state._tri(), state._ver()
     for t in range(int(state.cnt[C_NT])):
         for sx in (-1, 0, 1):
             for sy in (-1, 0, 1):
-                if in_circumcircle(tri, ver, state.prm, t, sx, sy, px, py) > 0:
+                if in_circumcircle(state.mesh, state.prm, t, sx, sy, px, py) > 0:
                     return t, px - sx * state.lx, py - sy * state.ly
     return None
 
@@ -44,14 +37,13 @@ def insert(state, x, y):
         return INSERT_NOT_IN_SEED
     t, qx, qy = found
     state._grow_if_needed()
-    return insert_vertex(
-        qx, qy, t, 0, state._tri(), state._ver(), state._scr(), state.cnt, state.prm
-    )
+    return insert_vertex(qx, qy, t, state.mesh, state.scratch, state.cnt, state.prm)
 
 
 def validate(state):
     nv, nt = int(state.cnt[C_NV]), int(state.cnt[C_NT])
-    vxy, tv, to, tn = state.vxy[:nv], state.tv[:nt], state.to[:nt], state.tn[:nt]
+    mesh = state.mesh
+    vxy, tv, to, tn = mesh.xy[:nv], mesh.corners[:nt], mesh.offsets[:nt], mesh.neighbours[:nt]
     period = np.array([state.lx, state.ly])
     problems, corners, cc, r = verify_triangulation(vxy, tv, to, tn, period)
     assert not problems, problems
@@ -62,8 +54,8 @@ def validate(state):
         assert oracle.torus_facts(torus, np.zeros((0, 2)))["empty"]
     # the cached circumcircles agree with the corners
     cc_raw, r_raw = oracle.circumcircles(corners)
-    np.testing.assert_allclose(state.tcc[:nt], cc_raw, atol=1e-12)
-    np.testing.assert_allclose(np.sqrt(state.tr2[:nt]), r_raw, rtol=1e-9)
+    np.testing.assert_allclose(mesh.centres[:nt], cc_raw, atol=1e-12)
+    np.testing.assert_allclose(np.sqrt(mesh.radius2[:nt]), r_raw, rtol=1e-9)
     # validity on the torus: every circumradius below a quarter of the shorter period
     assert r.max() < min(state.lx, state.ly) / 4
     # offsets are normalised (minimum 0 on each axis)
@@ -133,16 +125,16 @@ def test_vertex_star_gives_aspect():
     torus = SimpleNamespace(
         period=(1.0, 1.0),
         origin=(0.0, 0.0),
-        vertices=state.vxy[:nv],
-        triangles=state.tv[: 2 * nv],
-        offsets=state.to[: 2 * nv],
+        vertices=state.mesh.xy[:nv],
+        triangles=state.mesh.corners[: 2 * nv],
+        offsets=state.mesh.offsets[: 2 * nv],
     )
     facts = oracle.torus_facts(torus, np.zeros((0, 2)))
     for v in range(nv):
-        big2, far, e2, deg = vertex_star(v, state._tri(), state._ver(), state.prm, hx, hy)
-        assert np.isclose(np.sqrt(big2), facts["R"][v])
-        assert np.isclose(2 * np.sqrt(big2 / e2), facts["aspect"][v])
-        assert deg == np.count_nonzero(state.tv[: 2 * nv] == v)
+        outradius2, far_corner, d_m2_sq, degree = vertex_star(v, state.mesh, state.prm, hx, hy)
+        assert np.isclose(np.sqrt(outradius2), facts["R"][v])
+        assert np.isclose(2 * np.sqrt(outradius2 / d_m2_sq), facts["aspect"][v])
+        assert degree == np.count_nonzero(state.mesh.corners[: 2 * nv] == v)
 
 
 def test_refined_meshes_are_valid_triangulations():

@@ -462,7 +462,7 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
         **res.counters,
         "floor_circumballs": int(floor_t.sum()),
         "floor_cells": int(floor_v.sum()),
-        "clean_floor": int(np.count_nonzero(res.vflag & R.CLEAN_FLOOR)),
+        "clean_floor": int(np.count_nonzero(res.vflag & R.CLEAN_BELOW_FLOOR)),
         "points_under_floor": under,
         "m0": m0_stats,
     }

@@ -16,7 +16,39 @@ from .geometry import FLOOR_BITS, Q
 from .index import STACK_SIZE
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
-from .triangulation import C_NT, C_NV, MAX_CAVITY, P_LX, P_LY, set_all_circumcircles
+from .state import (
+    C_CELL_TESTS,
+    C_DISK_TESTS,
+    C_ERROR,
+    C_FAILED,
+    C_K,
+    C_MAX_VERTICES,
+    C_NT,
+    C_NV,
+    C_Q_BALLS,
+    C_Q_CELLS,
+    C_Q_CLEANS,
+    ERRORS,
+    N_COUNTERS,
+    N_PARAMS,
+    P_CLEAN_FLOOR2,
+    P_FLOOR2,
+    P_GRID,
+    P_INFLATE,
+    P_LX,
+    P_LY,
+    P_TAU2,
+    TRIANGLE_FIELDS,
+    VERTEX_FIELDS,
+    Bookkeeping,
+    Probe,
+    Queues,
+    Scratch,
+    TorusMesh,
+    grow,
+    grown,
+)
+from .triangulation import MAX_CAVITY, set_all_circumcircles
 
 MAX_DEGREE = 4096  # scratch for a vertex's neighbours; a well-spaced mesh has degree < 20
 
@@ -39,105 +71,99 @@ class RunResult:
     status: str = "done"
 
 
-def _grow(a, n):
-    out = np.zeros((n,) + a.shape[1:], a.dtype)
-    out[: a.shape[0]] = a
-    return out
-
-
 class Refinement:
     """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
 
     def __init__(self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q):
         """index: the counting kd-tree over P in internal coordinates (``build_index``); m0:
-        the initial mesh (vxy, tv, to, tn) on the grid step ``grid``, by default
-        ``initial.initial_grid(lx, ly)``. Elements smaller than 2^14 grid (the resolution
-        floor) or than min_size are never split."""
+        the initial mesh (xy, corners, offsets, neighbours) on the grid step ``grid``, by
+        default ``initial.initial_grid(lx, ly)``. Elements smaller than 2^14 grid (the
+        resolution floor) or than min_size are never split."""
         self.lx = lx
         self.ly = ly
         self.index = index
         self.n = int(index[0].shape[0])
-        vxy, tv, to, tn = initial_grid(lx, ly, q=grid)[:4] if m0 is None else m0
+        xy, corners, offsets, neighbours = initial_grid(lx, ly, q=grid)[:4] if m0 is None else m0
         self.grid = grid
         clean_floor = grid * 2.0**FLOOR_BITS
-        m0 = vxy.shape[0]
+        m0 = xy.shape[0]
         cap_v = max(1024, 4 * m0)
         cap_t = 2 * cap_v
-        self.vxy = _grow(vxy, cap_v)
-        self.vtri = np.zeros(cap_v, np.int32)
-        self.vtri[tv[:, 0]] = np.arange(tv.shape[0], dtype=np.int32)
-        self.vtri[tv[:, 1]] = np.arange(tv.shape[0], dtype=np.int32)
-        self.vkind = np.zeros(cap_v, np.int8)
-        self.vcell = np.zeros(cap_v, np.int8)
-        self.vflag = np.zeros(cap_v, np.int8)
-        self.tv = _grow(tv, cap_t)
-        self.tn = _grow(tn, cap_t)
-        self.to = _grow(to, cap_t)
-        self.tcc = np.zeros((cap_t, 2))
-        self.tr2 = np.zeros(cap_t)
-        self.tstamp = np.zeros(cap_t, np.int32)
-        self.tstate = np.zeros(cap_t, np.int8)
-        self.tmark = np.zeros(cap_t, np.int32)
-        self.vslot_a = np.zeros(cap_v, np.int32)
-        self.vslot_b = np.zeros(cap_v, np.int32)
-        self.queues = [new_queue(cap_t), new_queue(cap_v), new_queue(cap_v)]
-        self.cav = np.zeros(MAX_CAVITY + 2, np.int32)
-        self.cav_s = np.zeros((MAX_CAVITY + 2, 2), np.int64)
-        self.bnd = np.zeros((MAX_CAVITY + 2, 4), np.int32)
-        self.bnd_o = np.zeros((MAX_CAVITY + 2, 4), np.int64)
-        self.work = (
-            np.zeros(MAX_DEGREE),
-            np.zeros(MAX_DEGREE),
-            np.zeros(MAX_DEGREE),
-            np.zeros(STACK_SIZE, np.int64),
+        star = np.zeros(cap_v, np.int32)
+        star[corners[:, 0]] = np.arange(corners.shape[0], dtype=np.int32)
+        star[corners[:, 1]] = np.arange(corners.shape[0], dtype=np.int32)
+        self.mesh = TorusMesh(
+            corners=grown(corners, cap_t),
+            neighbours=grown(neighbours, cap_t),
+            offsets=grown(offsets, cap_t),
+            centres=np.zeros((cap_t, 2)),
+            radius2=np.zeros(cap_t),
+            xy=grown(xy, cap_v),
+            star=star,
         )
-        self.cnt = np.zeros(R.N_COUNTERS, np.int64)
+        self.book = Bookkeeping(
+            stamps=np.zeros(cap_t, np.int32),
+            ball_state=np.zeros(cap_t, np.int8),
+            kinds=np.zeros(cap_v, np.int8),
+            cell_state=np.zeros(cap_v, np.int8),
+            flags=np.zeros(cap_v, np.int8),
+        )
+        self.scratch = Scratch(
+            mark=np.zeros(cap_t, np.int32),
+            slot_a=np.zeros(cap_v, np.int32),
+            slot_b=np.zeros(cap_v, np.int32),
+            cavity=np.zeros(MAX_CAVITY + 2, np.int32),
+            cavity_shift=np.zeros((MAX_CAVITY + 2, 2), np.int64),
+            boundary=np.zeros((MAX_CAVITY + 2, 4), np.int32),
+            boundary_offsets=np.zeros((MAX_CAVITY + 2, 4), np.int64),
+        )
+        self.queues = Queues(
+            balls=new_queue(cap_t), cells=new_queue(cap_v), cleans=new_queue(cap_v)
+        )
+        self.probe = Probe(
+            hx=np.zeros(MAX_DEGREE),
+            hy=np.zeros(MAX_DEGREE),
+            hc=np.zeros(MAX_DEGREE),
+            stack=np.zeros(STACK_SIZE, np.int64),
+        )
+        self.cnt = np.zeros(N_COUNTERS, np.int64)
         self.cnt[C_NV] = m0
-        self.cnt[C_NT] = tv.shape[0]
-        self.cnt[R.C_K] = k
-        self.cnt[R.C_MAX_VERTICES] = max_vertices
-        self.prm = np.zeros(R.N_PARAMS)
+        self.cnt[C_NT] = corners.shape[0]
+        self.cnt[C_K] = k
+        self.cnt[C_MAX_VERTICES] = max_vertices
+        self.prm = np.zeros(N_PARAMS)
         self.prm[P_LX] = lx
         self.prm[P_LY] = ly
-        self.prm[R.P_TAU2] = tau * tau * (1.0 - 1e-12)
+        self.prm[P_TAU2] = tau * tau * (1.0 - 1e-12)
         self.floor = max(float(min_size), clean_floor)  # the Break floor in internal units
-        self.prm[R.P_FLOOR2] = self.floor * self.floor
-        self.prm[R.P_CLEAN_FLOOR2] = clean_floor * clean_floor
-        self.prm[R.P_GRID] = grid
-        self.prm[R.P_INFLATE] = 1.0 + 1e-9
-        tri = self._tri()
-        ver = self._ver()
-        set_all_circumcircles(tri, ver, self.prm, tv.shape[0])
-        R.queue_all(tri, ver, tuple(self.queues), self.work, self.cnt, self.prm)
-
-    # -- tuples handed to the kernels (rebuilt after growth) --
-    def _tri(self):
-        return (self.tv, self.tn, self.to, self.tcc, self.tr2, self.tstamp, self.tstate)
-
-    def _ver(self):
-        return (self.vxy, self.vtri, self.vkind, self.vcell, self.vflag)
-
-    def _scr(self):
-        return (self.tmark, self.vslot_a, self.vslot_b, self.cav, self.cav_s, self.bnd, self.bnd_o)
+        self.prm[P_FLOOR2] = self.floor * self.floor
+        self.prm[P_CLEAN_FLOOR2] = clean_floor * clean_floor
+        self.prm[P_GRID] = grid
+        self.prm[P_INFLATE] = 1.0 + 1e-9
+        set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
+        R.queue_all(self.mesh, self.book, self.queues, self.probe, self.cnt, self.prm)
 
     def _grow_if_needed(self):
-        """Double every array that could overflow during the next insertion."""
+        """Double every array that could overflow during the next insertion: the vertex and
+        triangle fields of every structure (``state.VERTEX_FIELDS``, ``TRIANGLE_FIELDS``), and
+        a queue's entries when its headroom runs out."""
         nv, nt = self.cnt[C_NV], self.cnt[C_NT]
-        cap_v = self.vxy.shape[0]
-        if nv + 1 > cap_v:
-            n = 2 * cap_v
-            for name in ("vxy", "vtri", "vkind", "vcell", "vflag", "vslot_a", "vslot_b"):
-                setattr(self, name, _grow(getattr(self, name), n))
-        cap_t = self.tv.shape[0]
-        if nt + 2 > cap_t:
-            n = 2 * cap_t
-            for name in ("tv", "tn", "to", "tcc", "tr2", "tstamp", "tstate", "tmark"):
-                setattr(self, name, _grow(getattr(self, name), n))
-        for i, base in enumerate((R.C_Q_TRI, R.C_Q_CELL, R.C_Q_CLEAN)):
-            head, ent_id, ent_aux, ent_next = self.queues[i]
-            if self.cnt[base + Q_USED] + R.HEADROOM > ent_id.shape[0]:
-                n = 2 * ent_id.shape[0]
-                self.queues[i] = (head, _grow(ent_id, n), _grow(ent_aux, n), _grow(ent_next, n))
+        structures = {"mesh": self.mesh, "book": self.book, "scratch": self.scratch}
+        if nv + 1 > self.mesh.xy.shape[0]:
+            structures = grow(structures, VERTEX_FIELDS, 2 * self.mesh.xy.shape[0])
+        if nt + 2 > self.mesh.corners.shape[0]:
+            structures = grow(structures, TRIANGLE_FIELDS, 2 * self.mesh.corners.shape[0])
+        self.mesh = structures["mesh"]
+        self.book = structures["book"]
+        self.scratch = structures["scratch"]
+        queues = {}
+        for name, base in zip(Queues._fields, (C_Q_BALLS, C_Q_CELLS, C_Q_CLEANS), strict=True):
+            q = getattr(self.queues, name)
+            if self.cnt[base + Q_USED] + R.HEADROOM > q.ident.shape[0]:
+                n = 2 * q.ident.shape[0]
+                q = q._replace(ident=grown(q.ident, n), aux=grown(q.aux, n), next=grown(q.next, n))
+            queues[name] = q
+        self.queues = Queues(**queues)
 
     def run(self, deadline=None, progress=None, interrupts=None):
         """Refine to completion, in kernel calls of about 50 ms. Returns a STATUS_* code:
@@ -151,11 +177,11 @@ class Refinement:
             before = int(self.cnt[C_NV])
             t1 = time.perf_counter()
             status = R.refine_steps(
-                self._tri(),
-                self._ver(),
-                tuple(self.queues),
-                self._scr(),
-                self.work,
+                self.mesh,
+                self.book,
+                self.queues,
+                self.scratch,
+                self.probe,
                 self.cnt,
                 self.prm,
                 self.index,
@@ -171,7 +197,12 @@ class Refinement:
             if interrupts is not None:
                 interrupts.check()
             if status == R.STATUS_ERROR:
-                raise EngineError(f"refinement kernel failed with code {self.cnt[R.C_ERROR]}")
+                code = int(self.cnt[C_ERROR])
+                raise EngineError(
+                    "refinement stopped on a broken invariant: "
+                    f"{ERRORS.get(code, f'unknown error code {code}')} (after "
+                    f"{int(self.cnt[C_NV])} vertices); please report it with the input"
+                )
             if status in (R.STATUS_DONE, R.STATUS_MAX_VERTICES):
                 self.time_refine = time.perf_counter() - t0
                 return status
@@ -187,7 +218,7 @@ class Refinement:
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""
-        return int(sum(self.cnt[b + Q_SIZE] for b in (R.C_Q_TRI, R.C_Q_CELL, R.C_Q_CLEAN)))
+        return int(sum(self.cnt[b + Q_SIZE] for b in (C_Q_BALLS, C_Q_CELLS, C_Q_CLEANS)))
 
     @property
     def vertices(self):
@@ -196,27 +227,28 @@ class Refinement:
     def counters(self):
         """Moves of each kind (from the vertices' kinds) and the counting tests so far."""
         nv = self.vertices
-        kinds = np.bincount(self.vkind[:nv], minlength=len(R.KIND_NAMES))
+        kinds = np.bincount(self.book.kinds[:nv], minlength=len(R.KIND_NAMES))
         return {
             "moves": {name: int(kinds[i]) for i, name in enumerate(R.KIND_NAMES)},
-            "disk_tests": int(self.cnt[R.C_DISK_TESTS]),
-            "cell_tests": int(self.cnt[R.C_CELL_TESTS]),
-            "failed_insertions": int(self.cnt[R.C_FAILED]),
+            "disk_tests": int(self.cnt[C_DISK_TESTS]),
+            "cell_tests": int(self.cnt[C_CELL_TESTS]),
+            "failed_insertions": int(self.cnt[C_FAILED]),
         }
 
     def result(self):
         nv, nt = self.vertices, int(self.cnt[C_NT])
         counters = self.counters()
+        mesh, book = self.mesh, self.book
         return RunResult(
-            vxy=self.vxy[:nv].copy(),
-            kind=self.vkind[:nv].copy(),
-            tv=self.tv[:nt].copy(),
-            tn=self.tn[:nt].copy(),
-            to=self.to[:nt].copy(),
-            tcc=self.tcc[:nt].copy(),
-            tr2=self.tr2[:nt].copy(),
-            tstate=self.tstate[:nt].copy(),
-            vcell=self.vcell[:nv].copy(),
-            vflag=self.vflag[:nv].copy(),
+            vxy=mesh.xy[:nv].copy(),
+            kind=book.kinds[:nv].copy(),
+            tv=mesh.corners[:nt].copy(),
+            tn=mesh.neighbours[:nt].copy(),
+            to=mesh.offsets[:nt].copy(),
+            tcc=mesh.centres[:nt].copy(),
+            tr2=mesh.radius2[:nt].copy(),
+            tstate=book.ball_state[:nt].copy(),
+            vcell=book.cell_state[:nv].copy(),
+            vflag=book.flags[:nv].copy(),
             counters=counters,
         )

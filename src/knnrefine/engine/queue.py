@@ -8,15 +8,17 @@ factor sqrt(2)), the queue pops from the largest non-empty class, and within a c
 recently pushed element first. New elements come from the insertion just made, so successive
 insertions stay close together in space and in memory.
 
-A queue is four arrays ``(head, ent_id, ent_aux, ent_next)``: ``head[c]`` is the first entry
-of class c (-1 if empty); entries form singly linked stacks and freed entries are recycled.
-Its scalars live in four consecutive slots of the counters array from ``base``: size, the
-smallest class that may be non-empty, the free-list head and the entries ever allocated.
+A queue is a ``state.Queue`` of four arrays: ``head[c]`` is the first entry of class c (-1 if
+empty); each entry has an ``ident``, an ``aux`` word and the ``next`` entry of its class;
+entries form singly linked stacks and freed entries are recycled. Its scalars live in four
+consecutive slots of the counters array from ``base`` (``state.C_Q_*``): size, the smallest
+class that may be non-empty, the free-list head and the entries ever allocated.
 """
 
 import numpy as np
 
 from .jit import kernel
+from .state import Queue
 
 N_CLASSES = 256
 Q_SIZE = 0
@@ -39,8 +41,12 @@ def size_class(r2):
 
 
 def new_queue(cap):
-    head = np.full(N_CLASSES, -1, np.int32)
-    return head, np.zeros(cap, np.int32), np.zeros(cap, np.int32), np.zeros(cap, np.int32)
+    return Queue(
+        head=np.full(N_CLASSES, -1, np.int32),
+        ident=np.zeros(cap, np.int32),
+        aux=np.zeros(cap, np.int32),
+        next=np.zeros(cap, np.int32),
+    )
 
 
 @kernel()
@@ -53,17 +59,16 @@ def queue_init(cnt, base):
 
 @kernel(inline="always")
 def queue_push(q, cnt, base, cls, ident, aux):
-    head, ent_id, ent_aux, ent_next = q
     e = cnt[base + Q_FREE]
     if e >= 0:
-        cnt[base + Q_FREE] = ent_next[e]
+        cnt[base + Q_FREE] = q.next[e]
     else:
         e = cnt[base + Q_USED]
         cnt[base + Q_USED] = e + 1
-    ent_id[e] = ident
-    ent_aux[e] = aux
-    ent_next[e] = head[cls]
-    head[cls] = e
+    q.ident[e] = ident
+    q.aux[e] = aux
+    q.next[e] = q.head[cls]
+    q.head[cls] = e
     if cls < cnt[base + Q_TOP]:
         cnt[base + Q_TOP] = cls
     cnt[base + Q_SIZE] += 1
@@ -71,15 +76,14 @@ def queue_push(q, cnt, base, cls, ident, aux):
 
 @kernel(inline="always")
 def queue_pop(q, cnt, base):
-    """Remove an entry of the largest class; returns (class, id, aux). Must not be empty."""
-    head, ent_id, ent_aux, ent_next = q
+    """Remove an entry of the largest class; returns (class, ident, aux). Must not be empty."""
     c = cnt[base + Q_TOP]
-    while head[c] < 0:
+    while q.head[c] < 0:
         c += 1
     cnt[base + Q_TOP] = c
-    e = head[c]
-    head[c] = ent_next[e]
-    ent_next[e] = cnt[base + Q_FREE]
+    e = q.head[c]
+    q.head[c] = q.next[e]
+    q.next[e] = cnt[base + Q_FREE]
     cnt[base + Q_FREE] = e
     cnt[base + Q_SIZE] -= 1
-    return c, ent_id[e], ent_aux[e]
+    return c, q.ident[e], q.aux[e]

@@ -29,22 +29,40 @@ Resolution floor: an element whose circumradius (or outradius) is below ``min_si
 split by Break; it is marked FLOOR and reported. Clean has its own floor at the grid's
 resolution. The kernel returns after ``max_steps`` insertions or when the arrays need to grow,
 so the Python driver can report progress, enforce budgets and react to Ctrl-C.
+
+The kernels take the named structures of ``state.py``: ``mesh`` (the triangulation),
+``book`` (this module's marks: ball and cell states, kinds, flags, stamps), ``queues``,
+``scratch`` (the insertion's) and ``probe`` (a star walk's and a count's scratch).
 """
 
 from .geometry import snap
 from .index import count_in_cell, count_in_disk
 from .jit import kernel
 from .queue import Q_SIZE, Q_USED, queue_init, queue_pop, queue_push, size_class
-from .triangulation import (
+from .state import (
+    C_CELL_TESTS,
+    C_DISK_TESTS,
+    C_ERROR,
+    C_FAILED,
+    C_K,
     C_LAST_NB,
+    C_MAX_VERTICES,
     C_NT,
     C_NV,
+    C_Q_BALLS,
+    C_Q_CELLS,
+    C_Q_CLEANS,
     INSERT_NOT_IN_SEED,
+    P_CLEAN_FLOOR2,
+    P_FLOOR2,
+    P_GRID,
+    P_INFLATE,
     P_LX,
     P_LY,
-    insert_vertex,
-    vertex_star,
+    P_TAU2,
+    STAR_OVERFLOW,
 )
+from .triangulation import insert_vertex, vertex_star
 
 # vertex kinds (insertion moves)
 INITIAL = 0
@@ -53,227 +71,223 @@ BREAK_CELL = 2  # Break: far corner of a Voronoi cell holding >= k points
 CLEAN = 3  # Clean: far corner of a cell with aspect > tau
 KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
 
-# states of a triangle's circumball (tstate) and of a vertex's Voronoi cell (vcell)
+# states of a triangle's circumball (book.ball_state) and of a vertex's cell (book.cell_state)
 UNTESTED = 0
 GOOD = 1  # holds < k points: settled
 FLOOR = 2  # holds >= k points but is smaller than min_size: left alone
 FAILED = 3  # its split point landed on an existing vertex (grid resolution)
 
-# vflag bits
+# book.flags bits
 IN_CELL_QUEUE = 1
 IN_CLEAN_QUEUE = 2
-CLEAN_FLOOR = 4  # aspect > tau but below the grid-resolution floor
+CLEAN_BELOW_FLOOR = 4  # aspect > tau but its cell is below the Clean floor
 CLEAN_FAILED = 8
-
-# counters (cnt); 0-3 belong to the triangulation
-C_K = 8
-C_MAX_VERTICES = 9
-C_Q_TRI = 10  # 10..13: the circumball queue's scalars
-C_Q_CELL = 14  # 14..17: the cell queue's
-C_Q_CLEAN = 18  # 18..21: the clean queue's
-C_DISK_TESTS = 26
-C_CELL_TESTS = 27
-C_FAILED = 28
-C_ERROR = 29
-N_COUNTERS = 32
-
-# parameters (prm); 0-1 belong to the triangulation
-P_TAU2 = 2  # tau^2, lowered by a relative 1e-12
-P_FLOOR2 = 3  # min_size^2
-P_CLEAN_FLOOR2 = 4
-P_INFLATE = 5  # 1 + 1e-9: inflation of the counting regions
-P_GRID = 6  # the grid step q every vertex is snapped to
-N_PARAMS = 8
 
 # refine_steps results
 STATUS_DONE = 0
 STATUS_STEPS = 1  # max_steps insertions made; call again
 STATUS_GROW = 2  # an array is nearly full; grow it and call again
 STATUS_MAX_VERTICES = 3
-STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code
+STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code (state.ERRORS)
 
 HEADROOM = 1100  # free slots required before an insertion (> MAX_CAVITY + 2)
 
 
 @kernel(inline="always")
-def _touch(v, tri, ver, queues, work, cnt, prm):
-    """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean."""
-    vcell = ver[3]
-    vflag = ver[4]
-    big2, far, d2, deg = vertex_star(v, tri, ver, prm, work[0], work[1])
-    if vcell[v] == FLOOR or vcell[v] == FAILED:
-        vcell[v] = UNTESTED
-    if vcell[v] == UNTESTED and not (vflag[v] & IN_CELL_QUEUE):
-        queue_push(queues[1], cnt, C_Q_CELL, size_class(big2), v, 0)
-        vflag[v] = vflag[v] | IN_CELL_QUEUE
-    vflag[v] = vflag[v] & ~(CLEAN_FLOOR | CLEAN_FAILED)
-    if 4.0 * big2 > prm[P_TAU2] * d2 and not (vflag[v] & IN_CLEAN_QUEUE):
-        queue_push(queues[2], cnt, C_Q_CLEAN, size_class(big2), v, 0)
-        vflag[v] = vflag[v] | IN_CLEAN_QUEUE
+def is_too_aspect(outradius2, d_m2_sq, prm):
+    """aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) > tau, from squares (tau^2 lowered by 1e-12)."""
+    return 4.0 * outradius2 > prm[P_TAU2] * d_m2_sq
 
 
 @kernel(inline="always")
-def clean(tri, ver, queues, work, cnt, prm):
+def _touch(v, mesh, book, queues, probe, cnt, prm):
+    """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean."""
+    outradius2, far_corner, d_m2_sq, degree = vertex_star(v, mesh, prm, probe.hx, probe.hy)
+    if book.cell_state[v] == FLOOR or book.cell_state[v] == FAILED:
+        book.cell_state[v] = UNTESTED
+    if book.cell_state[v] == UNTESTED and not (book.flags[v] & IN_CELL_QUEUE):
+        queue_push(queues.cells, cnt, C_Q_CELLS, size_class(outradius2), v, 0)
+        book.flags[v] = book.flags[v] | IN_CELL_QUEUE
+    book.flags[v] = book.flags[v] & ~(CLEAN_BELOW_FLOOR | CLEAN_FAILED)
+    if is_too_aspect(outradius2, d_m2_sq, prm) and not (book.flags[v] & IN_CLEAN_QUEUE):
+        queue_push(queues.cleans, cnt, C_Q_CLEANS, size_class(outradius2), v, 0)
+        book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
+
+
+@kernel(inline="always")
+def clean(mesh, book, queues, probe, cnt, prm):
     """Choose the next Clean move: the largest cell whose aspect exceeds tau.
 
     Returns (t, v): insert the circumcenter of triangle t, the far corner of vertex v's cell;
     (-1, -1) when no vertex needs cleaning."""
-    vflag = ver[4]
-    while cnt[C_Q_CLEAN + Q_SIZE] > 0:
-        cls, v, _ = queue_pop(queues[2], cnt, C_Q_CLEAN)
-        vflag[v] = vflag[v] & ~IN_CLEAN_QUEUE
-        big2, far, d2, deg = vertex_star(v, tri, ver, prm, work[0], work[1])
-        if 4.0 * big2 <= prm[P_TAU2] * d2:
+    while cnt[C_Q_CLEANS + Q_SIZE] > 0:
+        cls, v, _ = queue_pop(queues.cleans, cnt, C_Q_CLEANS)
+        book.flags[v] = book.flags[v] & ~IN_CLEAN_QUEUE
+        outradius2, far_corner, d_m2_sq, degree = vertex_star(v, mesh, prm, probe.hx, probe.hy)
+        if not is_too_aspect(outradius2, d_m2_sq, prm):
             continue
-        now = size_class(big2)
+        now = size_class(outradius2)
         if now > cls:  # outradius shrank since it was queued: requeue in its true class
-            queue_push(queues[2], cnt, C_Q_CLEAN, now, v, 0)
-            vflag[v] = vflag[v] | IN_CLEAN_QUEUE
+            queue_push(queues.cleans, cnt, C_Q_CLEANS, now, v, 0)
+            book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
             continue
-        if big2 < prm[P_CLEAN_FLOOR2]:
-            vflag[v] = vflag[v] | CLEAN_FLOOR
+        if outradius2 < prm[P_CLEAN_FLOOR2]:
+            book.flags[v] = book.flags[v] | CLEAN_BELOW_FLOOR
             continue
-        return far, v
+        return far_corner, v
     return -1, -1
 
 
 @kernel(inline="always")
-def break_(tri, ver, queues, work, cnt, prm, index):
+def break_(mesh, book, queues, probe, cnt, prm, index):
     """Choose the next Break move: the largest circumball holding >= k points, else the largest
     Voronoi cell holding >= k points.
 
     Returns (t, kind, element): insert the circumcenter of triangle t; element is the triangle
     (BREAK_BALL) or the vertex (BREAK_CELL) being split. (-1, 0, -1) when every circumball and
-    cell holds < k points or is at the floor; t < -1 on error."""
-    tcc = tri[3]
-    tr2 = tri[4]
-    tstamp = tri[5]
-    tstate = tri[6]
-    vxy = ver[0]
-    vcell = ver[3]
-    vflag = ver[4]
-    hx, hy, hc, stack = work
+    cell holds < k points or is at the floor; t < -1 is an error code (state.ERRORS)."""
     k = cnt[C_K]
     lx = prm[P_LX]
     ly = prm[P_LY]
     inflate = prm[P_INFLATE]
-    while cnt[C_Q_TRI + Q_SIZE] > 0:
-        cls, t, stamp = queue_pop(queues[0], cnt, C_Q_TRI)
-        if tstamp[t] != stamp or tstate[t] != UNTESTED:
+    centres = mesh.centres
+    radius2 = mesh.radius2
+    while cnt[C_Q_BALLS + Q_SIZE] > 0:
+        cls, t, stamp = queue_pop(queues.balls, cnt, C_Q_BALLS)
+        if book.stamps[t] != stamp or book.ball_state[t] != UNTESTED:
             continue
         cnt[C_DISK_TESTS] += 1
-        if count_in_disk(index, tcc[t, 0], tcc[t, 1], tr2[t] * inflate, k, lx, ly, stack) < k:
-            tstate[t] = GOOD
+        circumball = radius2[t] * inflate
+        if (
+            count_in_disk(index, centres[t, 0], centres[t, 1], circumball, k, lx, ly, probe.stack)
+            < k
+        ):
+            book.ball_state[t] = GOOD
             continue
-        if tr2[t] < prm[P_FLOOR2]:
-            tstate[t] = FLOOR
+        if radius2[t] < prm[P_FLOOR2]:
+            book.ball_state[t] = FLOOR
             continue
         return t, BREAK_BALL, t
-    while cnt[C_Q_CELL + Q_SIZE] > 0:
-        cls, v, _ = queue_pop(queues[1], cnt, C_Q_CELL)
-        vflag[v] = vflag[v] & ~IN_CELL_QUEUE
-        if vcell[v] != UNTESTED:
+    while cnt[C_Q_CELLS + Q_SIZE] > 0:
+        cls, v, _ = queue_pop(queues.cells, cnt, C_Q_CELLS)
+        book.flags[v] = book.flags[v] & ~IN_CELL_QUEUE
+        if book.cell_state[v] != UNTESTED:
             continue
-        big2, far, d2, deg = vertex_star(v, tri, ver, prm, hx, hy)
-        if deg < 0:
-            return -100, 0, -1
-        now = size_class(big2)
+        outradius2, far_corner, d_m2_sq, degree = vertex_star(v, mesh, prm, probe.hx, probe.hy)
+        if degree < 0:
+            return STAR_OVERFLOW, 0, -1
+        now = size_class(outradius2)
         if now > cls:
-            queue_push(queues[1], cnt, C_Q_CELL, now, v, 0)
-            vflag[v] = vflag[v] | IN_CELL_QUEUE
+            queue_push(queues.cells, cnt, C_Q_CELLS, now, v, 0)
+            book.flags[v] = book.flags[v] | IN_CELL_QUEUE
             continue
         cnt[C_CELL_TESTS] += 1
         # the cell lies in the disk of radius R(v) about v: when that disk holds < k points,
         # so does the cell, and the cheaper disk count settles it
-        c = count_in_disk(index, vxy[v, 0], vxy[v, 1], big2 * inflate, k, lx, ly, stack)
+        x = mesh.xy[v, 0]
+        y = mesh.xy[v, 1]
+        c = count_in_disk(index, x, y, outradius2 * inflate, k, lx, ly, probe.stack)
         if c >= k:
-            for j in range(deg):
-                hc[j] = 0.5 * (hx[j] * hx[j] + hy[j] * hy[j]) * inflate
+            for j in range(degree):
+                hx = probe.hx[j]
+                hy = probe.hy[j]
+                probe.hc[j] = 0.5 * (hx * hx + hy * hy) * inflate
             c = count_in_cell(
-                index, vxy[v, 0], vxy[v, 1], hx, hy, hc, deg, big2 * inflate, k, lx, ly, stack
+                index,
+                x,
+                y,
+                probe.hx,
+                probe.hy,
+                probe.hc,
+                degree,
+                outradius2 * inflate,
+                k,
+                lx,
+                ly,
+                probe.stack,
             )
         if c < k:
-            vcell[v] = GOOD
+            book.cell_state[v] = GOOD
             continue
-        if big2 < prm[P_FLOOR2]:
-            vcell[v] = FLOOR
+        if outradius2 < prm[P_FLOOR2]:
+            book.cell_state[v] = FLOOR
             continue
-        return far, BREAK_CELL, v
+        return far_corner, BREAK_CELL, v
     return -1, 0, -1
 
 
 @kernel()
-def queue_all(tri, ver, queues, work, cnt, prm):
+def queue_all(mesh, book, queues, probe, cnt, prm):
     """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0)."""
-    tr2 = tri[4]
-    tstamp = tri[5]
-    for base in (C_Q_TRI, C_Q_CELL, C_Q_CLEAN):
+    for base in (C_Q_BALLS, C_Q_CELLS, C_Q_CLEANS):
         queue_init(cnt, base)
     for t in range(cnt[C_NT]):
-        queue_push(queues[0], cnt, C_Q_TRI, size_class(tr2[t]), t, tstamp[t])
+        queue_push(queues.balls, cnt, C_Q_BALLS, size_class(mesh.radius2[t]), t, book.stamps[t])
     for v in range(cnt[C_NV]):
-        _touch(v, tri, ver, queues, work, cnt, prm)
+        _touch(v, mesh, book, queues, probe, cnt, prm)
 
 
 @kernel(inline="always")
-def needs_growth(tri, ver, queues, cnt):
+def needs_growth(mesh, queues, cnt):
     """True when an array could overflow during the next insertion."""
     return (
-        cnt[C_NV] + 1 > ver[0].shape[0]
-        or cnt[C_NT] + 2 > tri[0].shape[0]
-        or cnt[C_Q_TRI + Q_USED] + HEADROOM > queues[0][1].shape[0]
-        or cnt[C_Q_CELL + Q_USED] + HEADROOM > queues[1][1].shape[0]
-        or cnt[C_Q_CLEAN + Q_USED] + HEADROOM > queues[2][1].shape[0]
+        cnt[C_NV] + 1 > mesh.xy.shape[0]
+        or cnt[C_NT] + 2 > mesh.corners.shape[0]
+        or cnt[C_Q_BALLS + Q_USED] + HEADROOM > queues.balls.ident.shape[0]
+        or cnt[C_Q_CELLS + Q_USED] + HEADROOM > queues.cells.ident.shape[0]
+        or cnt[C_Q_CLEANS + Q_USED] + HEADROOM > queues.cleans.ident.shape[0]
     )
 
 
 @kernel()
-def refine_steps(tri, ver, queues, scr, work, cnt, prm, index, max_steps):
+def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps):
     """Run Algorithm 1 for at most max_steps insertions; returns a STATUS_* code."""
-    tcc = tri[3]
-    tr2 = tri[4]
-    tstamp = tri[5]
-    tstate = tri[6]
-    vcell = ver[3]
-    vflag = ver[4]
-    cav = scr[3]
-    bnd = scr[5]
     steps = 0
+    q = prm[P_GRID]
     while steps < max_steps:
         if cnt[C_NV] >= cnt[C_MAX_VERTICES]:
             return STATUS_MAX_VERTICES
-        if needs_growth(tri, ver, queues, cnt):
+        if needs_growth(mesh, queues, cnt):
             return STATUS_GROW
         # Clean first: after every Break, clean until every aspect is <= tau
-        t, elem = clean(tri, ver, queues, work, cnt, prm)
+        t, elem = clean(mesh, book, queues, probe, cnt, prm)
         kind = CLEAN
         if t == -1:
-            t, kind, elem = break_(tri, ver, queues, work, cnt, prm, index)
+            t, kind, elem = break_(mesh, book, queues, probe, cnt, prm, index)
             if t == -1:
                 return STATUS_DONE
             if t < -1:
                 cnt[C_ERROR] = t
                 return STATUS_ERROR
-        q = prm[P_GRID]
-        v = insert_vertex(snap(tcc[t, 0], q), snap(tcc[t, 1], q), t, kind, tri, ver, scr, cnt, prm)
+        px = snap(mesh.centres[t, 0], q)
+        py = snap(mesh.centres[t, 1], q)
+        v = insert_vertex(px, py, t, mesh, scratch, cnt, prm)
         if v == INSERT_NOT_IN_SEED:  # the split point rounds onto an existing vertex
             cnt[C_FAILED] += 1
             if kind == CLEAN:
-                vflag[elem] = vflag[elem] | CLEAN_FAILED
+                book.flags[elem] = book.flags[elem] | CLEAN_FAILED
             elif kind == BREAK_BALL:
-                tstate[elem] = FAILED
+                book.ball_state[elem] = FAILED
             else:
-                vcell[elem] = FAILED
+                book.cell_state[elem] = FAILED
             continue
         if v < 0:
             cnt[C_ERROR] = v
             return STATUS_ERROR
-        # queue what the insertion changed: the new triangles, the vertices around the cavity
+        # the refinement's own marks on what the insertion made
+        book.kinds[v] = kind
+        book.cell_state[v] = UNTESTED
+        book.flags[v] = 0
         nb = cnt[C_LAST_NB]
         for e in range(nb):
-            s = cav[e]
-            queue_push(queues[0], cnt, C_Q_TRI, size_class(tr2[s]), s, tstamp[s])
+            s = scratch.cavity[e]
+            book.stamps[s] += 1
+            book.ball_state[s] = UNTESTED
+        # queue what the insertion changed: the new triangles, the vertices around the cavity
+        for e in range(nb):
+            s = scratch.cavity[e]
+            queue_push(queues.balls, cnt, C_Q_BALLS, size_class(mesh.radius2[s]), s, book.stamps[s])
         for e in range(nb + 1):
-            _touch(bnd[e, 0] if e < nb else v, tri, ver, queues, work, cnt, prm)
+            _touch(scratch.boundary[e, 0] if e < nb else v, mesh, book, queues, probe, cnt, prm)
         steps += 1
     return STATUS_STEPS

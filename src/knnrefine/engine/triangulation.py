@@ -19,10 +19,11 @@ shorter period: then edges are shorter than half a period, the triangulation is 
 complex, and a cavity never wraps around the torus. The initial grid satisfies this and a
 Delaunay insertion never increases the largest circumradius.
 
-Tuple layouts passed to every kernel:
-``tri = (tv, tn, to, tcc, tr2, tstamp, tstate)``, ``ver = (vxy, vtri, vkind, vcell, vflag)``,
-``scr = (tmark, vslot_a, vslot_b, cav, cav_s, bnd, bnd_o)`` (scratch), ``cnt`` int64 counters,
-``prm`` float64 parameters (indices below).
+The kernels take the named structures of ``state.py``: ``mesh`` (a ``TorusMesh``: corners,
+neighbours, offsets, circumcircle cache, vertex positions and stars) and, for an insertion,
+``scratch``; counters and parameters by the slots named there. Nothing here knows about the
+refinement: ``insert_vertex`` changes the triangulation and says what it changed (the new
+vertex, the new triangles, the vertices around the cavity).
 """
 
 import numpy as np
@@ -30,99 +31,99 @@ import numpy as np
 from .geometry import circumcircle
 from .jit import kernel
 from .predicates import incircle
-
-# counters (cnt)
-C_NV = 0  # vertices in use
-C_NT = 1  # triangles in use (always 2 * C_NV on the torus)
-C_STAMP = 2  # insertion counter, stamps the cavity marks
-C_LAST_NB = 3  # boundary edges of the last cavity (= new triangles)
-# parameters (prm)
-P_LX = 0
-P_LY = 1
+from .state import (
+    C_LAST_NB,
+    C_NT,
+    C_NV,
+    C_STAMP,
+    INSERT_CAVITY_OVERFLOW,
+    INSERT_NOT_IN_SEED,
+    INSERT_TOPOLOGY,
+    P_LX,
+    P_LY,
+)
 
 MAX_CAVITY = 1024  # triangles in one cavity; far beyond anything a refinement meets
 
-# insertion results (negative: nothing was inserted)
-INSERT_NOT_IN_SEED = -1  # the point is not strictly inside the seed's circumcircle (duplicate)
-INSERT_CAVITY_OVERFLOW = -2
-INSERT_TOPOLOGY = -3  # the cavity is not a disk: a broken invariant
-
 
 @kernel(inline="always")
-def corner(tv, to, vxy, t, i, sx, sy, lx, ly):
+def corner(mesh, t, i, sx, sy, lx, ly):
     """Position of corner i of triangle t, shifted by (sx, sy) periods (exact on the grid)."""
-    v = tv[t, i]
-    return vxy[v, 0] + (to[t, i, 0] + sx) * lx, vxy[v, 1] + (to[t, i, 1] + sy) * ly
+    v = mesh.corners[t, i]
+    return (
+        mesh.xy[v, 0] + (mesh.offsets[t, i, 0] + sx) * lx,
+        mesh.xy[v, 1] + (mesh.offsets[t, i, 1] + sy) * ly,
+    )
 
 
 @kernel(inline="always")
-def set_circumcircle(tri, ver, prm, t):
-    tv, tn, to, tcc, tr2, tstamp, tstate = tri
-    vxy = ver[0]
+def set_circumcircle(mesh, prm, t):
+    """Cache triangle t's circumcentre (its own frame) and squared circumradius."""
     lx = prm[P_LX]
     ly = prm[P_LY]
-    ax, ay = corner(tv, to, vxy, t, 0, 0, 0, lx, ly)
-    bx, by = corner(tv, to, vxy, t, 1, 0, 0, lx, ly)
-    cx, cy = corner(tv, to, vxy, t, 2, 0, 0, lx, ly)
+    ax, ay = corner(mesh, t, 0, 0, 0, lx, ly)
+    bx, by = corner(mesh, t, 1, 0, 0, lx, ly)
+    cx, cy = corner(mesh, t, 2, 0, 0, lx, ly)
     ux, uy, r2 = circumcircle(ax, ay, bx, by, cx, cy)
-    tcc[t, 0] = ux
-    tcc[t, 1] = uy
-    tr2[t] = r2
+    mesh.centres[t, 0] = ux
+    mesh.centres[t, 1] = uy
+    mesh.radius2[t] = r2
 
 
 @kernel()
-def set_all_circumcircles(tri, ver, prm, nt):
+def set_all_circumcircles(mesh, prm, nt):
     for t in range(nt):
-        set_circumcircle(tri, ver, prm, t)
+        set_circumcircle(mesh, prm, t)
 
 
 @kernel(inline="always")
-def in_circumcircle(tri, ver, prm, t, sx, sy, px, py):
+def in_circumcircle(mesh, prm, t, sx, sy, px, py):
     """Exact sign: +1 if p is strictly inside the circumcircle of t shifted by (sx, sy)."""
-    tv = tri[0]
-    to = tri[2]
-    vxy = ver[0]
     lx = prm[P_LX]
     ly = prm[P_LY]
-    ax, ay = corner(tv, to, vxy, t, 0, sx, sy, lx, ly)
-    bx, by = corner(tv, to, vxy, t, 1, sx, sy, lx, ly)
-    cx, cy = corner(tv, to, vxy, t, 2, sx, sy, lx, ly)
+    ax, ay = corner(mesh, t, 0, sx, sy, lx, ly)
+    bx, by = corner(mesh, t, 1, sx, sy, lx, ly)
+    cx, cy = corner(mesh, t, 2, sx, sy, lx, ly)
     return incircle(ax, ay, bx, by, cx, cy, px, py)
 
 
 @kernel(inline="always")
-def mirror(tv, tn, n, t, a):
+def mirror(mesh, n, t, a):
     """Index j in triangle n of the neighbour t across the edge whose head (in n) is vertex a."""
     for j in range(3):
-        if tn[n, j] == t and tv[n, (j + 2) % 3] == a:
+        if mesh.neighbours[n, j] == t and mesh.corners[n, (j + 2) % 3] == a:
             return j
     return -1
 
 
 @kernel()
-def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
+def insert_vertex(px, py, seed, mesh, scratch, cnt, prm):
     """Insert the point p, given in the frame of triangle ``seed`` whose circumcircle holds it.
 
     p must lie on the grid. Returns the new vertex's index, or a negative INSERT_* code when
     nothing was inserted. Right after the call, with ``nb = cnt[C_LAST_NB]``, the new triangles
-    are ``cav[:nb]`` (the cavity's slots reused first) and the vertices around the cavity are
-    ``bnd[:nb, 0]``.
+    are ``scratch.cavity[:nb]`` (the cavity's slots reused first) and the vertices around the
+    cavity are ``scratch.boundary[:nb, 0]``.
     """
-    tv, tn, to, tcc, tr2, tstamp, tstate = tri
-    vxy, vtri, vkind, vcell, vflag = ver
-    tmark, vslot_a, vslot_b, cav, cav_s, bnd, bnd_o = scr
+    corners = mesh.corners
+    neighbours = mesh.neighbours
+    offsets = mesh.offsets
+    cav = scratch.cavity
+    cav_s = scratch.cavity_shift
+    bnd = scratch.boundary
+    bnd_o = scratch.boundary_offsets
     lx = prm[P_LX]
     ly = prm[P_LY]
-    if in_circumcircle(tri, ver, prm, seed, 0, 0, px, py) <= 0:
+    if in_circumcircle(mesh, prm, seed, 0, 0, px, py) <= 0:
         return INSERT_NOT_IN_SEED
     stamp = cnt[C_STAMP] + 1
     cnt[C_STAMP] = stamp
 
-    # grow the cavity by a breadth-first search; cav_s holds each triangle's shift (periods)
+    # grow the cavity by a breadth-first search; cavity_shift holds each triangle's shift
     cav[0] = seed
     cav_s[0, 0] = 0
     cav_s[0, 1] = 0
-    tmark[seed] = stamp
+    scratch.mark[seed] = stamp
     ncav = 1
     nb = 0
     i = 0
@@ -131,34 +132,34 @@ def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
         sx = cav_s[i, 0]
         sy = cav_s[i, 1]
         for j in range(3):
-            n = tn[t, j]
-            if tmark[n] == stamp:
+            n = neighbours[t, j]
+            if scratch.mark[n] == stamp:
                 continue
             ja = (j + 1) % 3
             jb = (j + 2) % 3
-            a = tv[t, ja]
-            jj = mirror(tv, tn, n, t, a)
+            a = corners[t, ja]
+            jj = mirror(mesh, n, t, a)
             if jj < 0:
                 return INSERT_TOPOLOGY
-            nsx = sx + to[t, ja, 0] - to[n, (jj + 2) % 3, 0]
-            nsy = sy + to[t, ja, 1] - to[n, (jj + 2) % 3, 1]
-            if in_circumcircle(tri, ver, prm, n, nsx, nsy, px, py) > 0:
+            nsx = sx + offsets[t, ja, 0] - offsets[n, (jj + 2) % 3, 0]
+            nsy = sy + offsets[t, ja, 1] - offsets[n, (jj + 2) % 3, 1]
+            if in_circumcircle(mesh, prm, n, nsx, nsy, px, py) > 0:
                 if ncav >= MAX_CAVITY:
                     return INSERT_CAVITY_OVERFLOW
-                tmark[n] = stamp
+                scratch.mark[n] = stamp
                 cav[ncav] = n
                 cav_s[ncav, 0] = nsx
                 cav_s[ncav, 1] = nsy
                 ncav += 1
             else:
                 bnd[nb, 0] = a
-                bnd[nb, 1] = tv[t, jb]
+                bnd[nb, 1] = corners[t, jb]
                 bnd[nb, 2] = n
                 bnd[nb, 3] = jj
-                bnd_o[nb, 0] = to[t, ja, 0] + sx
-                bnd_o[nb, 1] = to[t, ja, 1] + sy
-                bnd_o[nb, 2] = to[t, jb, 0] + sx
-                bnd_o[nb, 3] = to[t, jb, 1] + sy
+                bnd_o[nb, 0] = offsets[t, ja, 0] + sx
+                bnd_o[nb, 1] = offsets[t, ja, 1] + sy
+                bnd_o[nb, 2] = offsets[t, jb, 0] + sx
+                bnd_o[nb, 3] = offsets[t, jb, 1] + sy
                 nb += 1
         i += 1
     if nb != ncav + 2:
@@ -183,11 +184,8 @@ def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
         wy += 1
     v = cnt[C_NV]
     cnt[C_NV] = v + 1
-    vxy[v, 0] = qx
-    vxy[v, 1] = qy
-    vkind[v] = kind
-    vcell[v] = 0
-    vflag[v] = 0
+    mesh.xy[v, 0] = qx
+    mesh.xy[v, 1] = qy
 
     # fan of new triangles (p, a, b) over the boundary edges; reuse the cavity's slots
     for e in range(nb):
@@ -197,8 +195,6 @@ def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
             s = cnt[C_NT]
             cnt[C_NT] = s + 1
         cav[e] = s
-        tstamp[s] += 1
-        tstate[s] = 0
         a = bnd[e, 0]
         b = bnd[e, 1]
         ox0 = wx
@@ -209,76 +205,76 @@ def insert_vertex(px, py, seed, kind, tri, ver, scr, cnt, prm):
         oy2 = bnd_o[e, 3]
         mx = min(ox0, ox1, ox2)
         my = min(oy0, oy1, oy2)
-        tv[s, 0] = v
-        tv[s, 1] = a
-        tv[s, 2] = b
-        to[s, 0, 0] = ox0 - mx
-        to[s, 0, 1] = oy0 - my
-        to[s, 1, 0] = ox1 - mx
-        to[s, 1, 1] = oy1 - my
-        to[s, 2, 0] = ox2 - mx
-        to[s, 2, 1] = oy2 - my
+        corners[s, 0] = v
+        corners[s, 1] = a
+        corners[s, 2] = b
+        offsets[s, 0, 0] = ox0 - mx
+        offsets[s, 0, 1] = oy0 - my
+        offsets[s, 1, 0] = ox1 - mx
+        offsets[s, 1, 1] = oy1 - my
+        offsets[s, 2, 0] = ox2 - mx
+        offsets[s, 2, 1] = oy2 - my
         n = bnd[e, 2]
-        tn[s, 0] = n
-        tn[n, bnd[e, 3]] = s
-        vslot_a[a] = s
-        vslot_b[b] = s
-        vtri[a] = s
+        neighbours[s, 0] = n
+        neighbours[n, bnd[e, 3]] = s
+        scratch.slot_a[a] = s
+        scratch.slot_b[b] = s
+        mesh.star[a] = s
     for e in range(nb):
         s = cav[e]
-        tn[s, 1] = vslot_a[tv[s, 2]]
-        tn[s, 2] = vslot_b[tv[s, 1]]
-        set_circumcircle(tri, ver, prm, s)
-    vtri[v] = cav[0]
+        neighbours[s, 1] = scratch.slot_a[corners[s, 2]]
+        neighbours[s, 2] = scratch.slot_b[corners[s, 1]]
+        set_circumcircle(mesh, prm, s)
+    mesh.star[v] = cav[0]
     cnt[C_LAST_NB] = nb
     return v
 
 
 @kernel(inline="always")
-def vertex_star(v, tri, ver, prm, hx, hy):
+def vertex_star(v, mesh, prm, hx, hy):
     """Walk the triangles around vertex v: everything aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) needs.
 
-    Returns (R2, far, d2, deg): the squared outradius R(v)^2 (largest circumradius around v),
-    the triangle whose circumcenter is farCorner(Vor(v)), the squared length of the shortest
-    edge at v (d_{M,2}(v)^2, the nearest other vertex being a Delaunay neighbour) and the
-    degree. The neighbours, relative to v, go to hx[:deg], hy[:deg] when hx is long enough;
-    deg is -1 if it is not.
+    Returns (outradius2, far_corner, d_m2_sq, degree): R(v)^2 (the largest squared circumradius
+    around v), the triangle whose circumcentre is farCorner(Vor(v)), d_{M,2}(v)^2 (the shortest
+    edge at v squared: the nearest other vertex is a Delaunay neighbour) and the degree. The
+    neighbours, relative to v, go to hx[:degree], hy[:degree] when hx is long enough; degree
+    is -1 if it is not.
     """
-    tv, tn, to, tcc, tr2, tstamp, tstate = tri
-    vxy = ver[0]
-    vtri = ver[1]
+    corners = mesh.corners
+    offsets = mesh.offsets
+    xy = mesh.xy
     lx = prm[P_LX]
     ly = prm[P_LY]
-    t0 = vtri[v]
+    t0 = mesh.star[v]
     t = t0
-    big2 = -1.0
-    far = -1
-    d2 = np.inf
-    deg = 0
+    outradius2 = -1.0
+    far_corner = -1
+    d_m2_sq = np.inf
+    degree = 0
     cap = hx.shape[0]
     while True:
         i = 0
-        if tv[t, 1] == v:
+        if corners[t, 1] == v:
             i = 1
-        elif tv[t, 2] == v:
+        elif corners[t, 2] == v:
             i = 2
-        if tr2[t] > big2:
-            big2 = tr2[t]
-            far = t
+        if mesh.radius2[t] > outradius2:
+            outradius2 = mesh.radius2[t]
+            far_corner = t
         i1 = (i + 1) % 3
-        u = tv[t, i1]
-        ex = vxy[u, 0] - vxy[v, 0] + (to[t, i1, 0] - to[t, i, 0]) * lx
-        ey = vxy[u, 1] - vxy[v, 1] + (to[t, i1, 1] - to[t, i, 1]) * ly
+        u = corners[t, i1]
+        ex = xy[u, 0] - xy[v, 0] + (offsets[t, i1, 0] - offsets[t, i, 0]) * lx
+        ey = xy[u, 1] - xy[v, 1] + (offsets[t, i1, 1] - offsets[t, i, 1]) * ly
         e2 = ex * ex + ey * ey
-        if e2 < d2:
-            d2 = e2
-        if deg < cap:
-            hx[deg] = ex
-            hy[deg] = ey
-        deg += 1
-        t = tn[t, i1]
+        if e2 < d_m2_sq:
+            d_m2_sq = e2
+        if degree < cap:
+            hx[degree] = ex
+            hy[degree] = ey
+        degree += 1
+        t = mesh.neighbours[t, i1]
         if t == t0:
             break
-    if deg > cap:
-        deg = -1
-    return big2, far, d2, deg
+    if degree > cap:
+        degree = -1
+    return outradius2, far_corner, d_m2_sq, degree

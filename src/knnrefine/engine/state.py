@@ -1,0 +1,136 @@
+"""The engine's state, by name: what every kernel reads and writes (docs/data-structure.md).
+
+Four structures of flat arrays, each a namedtuple that the kernels receive as one argument
+and read by field (``mesh.neighbours[t, i]``):
+
+* ``TorusMesh``: the triangulation of the flat torus, what ``triangulation.py`` owns;
+* ``Bookkeeping``: the refinement's marks on it (``refine.py``): which circumballs and cells
+  were tested, how each vertex arrived, the queue flags;
+* ``Scratch``: the insertion's working space (cavity, boundary, per-triangle stamps);
+* ``Queues``: three bucket queues (``queue.py``), each a ``Queue``.
+
+Counters (int64) and parameters (float64) live in two small arrays whose slots are named
+here, in one table. Arrays grow by doubling along the vertex axis or the triangle axis;
+``VERTEX_FIELDS`` and ``TRIANGLE_FIELDS`` say which field grows along which.
+"""
+
+from collections import namedtuple
+
+import numpy as np
+
+TorusMesh = namedtuple(
+    "TorusMesh",
+    [
+        "corners",  # (T, 3) int32: the vertex at each corner, counter-clockwise
+        "neighbours",  # (T, 3) int32: the triangle across the edge opposite each corner
+        "offsets",  # (T, 3, 2) int8: each corner's periodic offset (minimum 0 per axis)
+        "centres",  # (T, 2) float64: circumcentre, in the triangle's own frame
+        "radius2",  # (T,) float64: squared circumradius
+        "xy",  # (V, 2) float64: vertex positions on the grid, in [0, lx) x [0, ly)
+        "star",  # (V,) int32: one triangle at each vertex (where a walk round it starts)
+    ],
+)
+
+Bookkeeping = namedtuple(
+    "Bookkeeping",
+    [
+        "stamps",  # (T,) int32: changes whenever a triangle slot is reused (stale queue entries)
+        "ball_state",  # (T,) int8: UNTESTED, GOOD, FLOOR or FAILED (its closed circumball)
+        "kinds",  # (V,) int8: how each vertex arrived (INITIAL ... CLEAN)
+        "cell_state",  # (V,) int8: UNTESTED, GOOD, FLOOR or FAILED (its closed Voronoi cell)
+        "flags",  # (V,) int8: IN_CELL_QUEUE, IN_CLEAN_QUEUE, CLEAN_BELOW_FLOOR, CLEAN_FAILED
+    ],
+)
+
+Scratch = namedtuple(
+    "Scratch",
+    [
+        "mark",  # (T,) int32: insertion stamp of the triangles already in the cavity
+        "slot_a",  # (V,) int32: new triangle whose edge starts at a vertex (fan linking)
+        "slot_b",  # (V,) int32: new triangle whose edge ends at a vertex
+        "cavity",  # (C,) int32: the cavity's triangles, then the new triangles' slots
+        "cavity_shift",  # (C, 2) int64: each cavity triangle's shift relative to the seed
+        "boundary",  # (C, 4) int32: boundary edges: head, tail, outer triangle, its index
+        "boundary_offsets",  # (C, 4) int64: the boundary edge's corner offsets
+    ],
+)
+
+Queue = namedtuple("Queue", ["head", "ident", "aux", "next"])
+Queues = namedtuple("Queues", ["balls", "cells", "cleans"])
+
+# the scratch of a vertex-star walk and of a counting query
+Probe = namedtuple("Probe", ["hx", "hy", "hc", "stack"])
+
+VERTEX_FIELDS = (
+    ("mesh", "xy"),
+    ("mesh", "star"),
+    ("book", "kinds"),
+    ("book", "cell_state"),
+    ("book", "flags"),
+    ("scratch", "slot_a"),
+    ("scratch", "slot_b"),
+)
+TRIANGLE_FIELDS = (
+    ("mesh", "corners"),
+    ("mesh", "neighbours"),
+    ("mesh", "offsets"),
+    ("mesh", "centres"),
+    ("mesh", "radius2"),
+    ("book", "stamps"),
+    ("book", "ball_state"),
+    ("scratch", "mark"),
+)
+
+# -- counters (int64 array ``cnt``) -----------------------------------------------------------
+C_NV = 0  # vertices in use
+C_NT = 1  # triangles in use (always 2 * C_NV on the torus)
+C_STAMP = 2  # insertions so far: stamps the cavity marks
+C_LAST_NB = 3  # boundary edges of the last cavity (= its new triangles)
+C_K = 8  # the k of d_{P,k}
+C_MAX_VERTICES = 9
+C_Q_BALLS = 10  # 10..13: the circumball queue's scalars (size, top class, free list, used)
+C_Q_CELLS = 14  # 14..17: the cell queue's
+C_Q_CLEANS = 18  # 18..21: the clean queue's
+C_DISK_TESTS = 26  # circumball counts made
+C_CELL_TESTS = 27  # cell counts made
+C_FAILED = 28  # insertions refused (the point rounds onto a vertex)
+C_ERROR = 29  # the code of a broken invariant (see ERRORS)
+N_COUNTERS = 32
+
+# -- parameters (float64 array ``prm``) -------------------------------------------------------
+P_LX = 0  # the torus' periods, internal units
+P_LY = 1
+P_TAU2 = 2  # tau^2, lowered by a relative 1e-12 (conservative aspect test)
+P_FLOOR2 = 3  # the Break floor squared: max(min_size, clean floor)^2
+P_CLEAN_FLOOR2 = 4  # the Clean floor squared: 2^14 grid steps
+P_INFLATE = 5  # 1 + 1e-9: the counting regions' inflation
+P_GRID = 6  # the grid step q every vertex is snapped to
+N_PARAMS = 8
+
+# -- insertion results and broken invariants ---------------------------------------------------
+INSERT_NOT_IN_SEED = -1  # the point is not strictly inside the seed's circumcircle
+INSERT_CAVITY_OVERFLOW = -2
+INSERT_TOPOLOGY = -3
+STAR_OVERFLOW = -100
+
+ERRORS = {
+    INSERT_CAVITY_OVERFLOW: "a cavity grew beyond its capacity of triangles (MAX_CAVITY)",
+    INSERT_TOPOLOGY: "a cavity was not a topological disk (the triangulation is broken)",
+    STAR_OVERFLOW: "a vertex has more neighbours than MAX_DEGREE (a broken well-spacing)",
+}
+
+
+def grown(array, size):
+    """``array`` copied into a zeroed array of ``size`` rows."""
+    out = np.zeros((size,) + array.shape[1:], array.dtype)
+    out[: array.shape[0]] = array
+    return out
+
+
+def grow(structures, fields, size):
+    """The structures ({name: namedtuple}) with the listed (structure, field) arrays grown
+    to ``size`` rows."""
+    out = dict(structures)
+    for name, field in fields:
+        out[name] = out[name]._replace(**{field: grown(getattr(out[name], field), size)})
+    return out
