@@ -214,3 +214,13 @@ def test_larger_input_samples_its_probes():
     mesh = knnrefine.refine(points, 100)
     c = certify(mesh, points)
     assert c.passed and c.n_probes > 100_000
+
+
+def test_the_size_integral_reads_only_its_own_samples():
+    """The integral used to be read off the front of the concatenated probe array: it must
+    not depend on how many other probes there are, or their order."""
+    points = np.random.default_rng(8).random((3000, 2))
+    mesh = knnrefine.refine(points, 10)
+    a = certify(mesh, points, n_random=0, max_point_probes=10)
+    b = certify(mesh, points, n_random=20_000, max_point_probes=3000)
+    assert a.size_integral == b.size_integral and a.size_integral_stderr == b.size_integral_stderr

@@ -14,6 +14,7 @@ box. Only probes in the box count, and only where d_{P,k} >= min_size (the floor
 """
 
 import time
+from collections import namedtuple
 from dataclasses import asdict, dataclass, field
 from fractions import Fraction
 
@@ -172,145 +173,231 @@ def certify(
     vertex, circumcenter and edge midpoint, up to ``max_point_probes`` input points and
     ``n_random`` uniform points of the box. Returns a Certificate; nothing is raised when a
     check fails (look at ``.passed``). ``workers`` is passed to cKDTree queries (-1: all
-    cores)."""
+    cores). The checks, in order: the returned points are the mesh's (else InputError), the
+    torus triangulation, the returned mesh, well-spacedness, counts, Lemma 2's precondition,
+    the achieved constants, the size integral, the floor."""
     t0 = time.perf_counter()
     pts = as_points(points)
     _check_points_are_the_meshs(mesh, pts)
-    k, tau, min_size = mesh.k, mesh.tau, mesh.min_size
-    torus = mesh.torus
-    period = np.asarray(torus.period, float)
-    origin = np.asarray(torus.origin, float)
-    vertices = np.asarray(torus.vertices, float)
-    # the torus, from its origin: wrapped by the package's one rule, exact at any magnitude
-    frame = BoxMetric((0.0, 0.0, *period), (True, True)).frame
-    P = BoxMetric((*origin, *(origin + period)), (True, True)).frame(pts)
-    rng = np.random.default_rng(seed)
-    per_triangle = max(4, -(-samples // max(len(torus.triangles), 1)))
-
-    problems, corners, cc, r = verify_triangulation(
-        vertices, torus.triangles, torus.offsets, torus.neighbors, period
-    )
-    m_t = len(vertices)
-    R = np.zeros(m_t)
-    for c in range(3):
-        np.maximum.at(R, torus.triangles[:, c], r)
-    vtree = cKDTree(vertices, boxsize=period)
-    d2 = vtree.query(vertices, k=2, workers=workers)[0][:, 1]
-    max_aspect = float(np.max(2.0 * R / d2))
-
-    ptree = cKDTree(P, boxsize=period)
-    ball = ptree.query_ball_point(cc, r, return_length=True, workers=workers)
-    floor_balls = (ball >= k) & (r < min_size)
-    above = r >= min_size
-    max_ball = int(ball[above].max()) if above.any() else 0
-    kk = min(3, m_t)
-    dd, ii = vtree.query(P, k=kk, workers=workers)
-    dd = dd.reshape(len(P), kk)
-    ii = ii.reshape(len(P), kk)
-    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
-    cell = np.bincount(ii[tie], minlength=m_t)
-    floor_cells = (cell >= k) & (R < min_size)
-    max_cell = int(cell[R >= min_size].max()) if (R >= min_size).any() else 0
-
-    # achieved constants on probes in the box; the samples inside every triangle double as
-    # the Monte Carlo samples of the size integral
-    lo = np.array(mesh.box[:2]) - origin
-    hi = np.array(mesh.box[2:]) - origin
-    per = np.array(mesh.periodic, bool)
-    samples, weights = _triangle_samples(corners, per_triangle, rng)
-    samples = frame(samples)
-    in_box = _in_box(samples, lo, hi, per)
-    point_sample = (
-        P if len(P) <= max_point_probes else P[rng.choice(len(P), max_point_probes, False)]
-    )
-    mids = 0.5 * (corners + corners[:, [1, 2, 0]]).reshape(-1, 2)
-    others = np.concatenate(
-        [
-            point_sample,
-            vertices,
-            cc,
-            frame(mids),
-            lo + rng.random((n_random, 2)) * (hi - lo),
-        ]
-    )
-    others_in = _in_box(others, lo, hi, per)
-    probes = np.concatenate([samples[in_box], others[others_in]])
-    # where the sampled input points sit among the probes (they all lie in the box)
-    first_point = int(in_box.sum())
-    points_in = int(others_in[: len(point_sample)].sum())
-    alpha, beta = theorem6_constants(tau)
-    under_floor = 0.0
+    torus = _Torus(mesh, pts, workers)
+    triangulation = check_triangulation(torus)
+    max_aspect = check_well_spaced(torus, triangulation)
+    counts = check_counts(torus, triangulation, mesh.k, mesh.min_size)
     precondition_ok, precondition_note = check_precondition(
-        vertices[np.asarray(torus.kinds) == 0], ptree, k, tau, period
+        torus.vertices[np.asarray(mesh.torus.kinds) == 0],
+        torus.point_tree,
+        mesh.k,
+        mesh.tau,
+        torus.period,
     )
-    a_hat = b_hat = float("nan")
-    a_at = b_at = (float("nan"), float("nan"))
-    n_probes = 0
-    integral = stderr = 0.0
-    if len(P) >= k:
-        dm2 = vtree.query(probes, k=2, workers=workers)[0][:, 1]
-        dpk = ptree.query(probes, k=[k], workers=workers)[0][:, 0]
-        if points_in:
-            under_floor = float(np.mean(dpk[first_point : first_point + points_in] < min_size))
-        ok = dpk >= min_size
-        ratio = dm2[ok] / dpk[ok]
-        n_probes = int(ok.sum())
-        if n_probes:
-            i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
-            a_hat, b_hat = float(ratio[i]), float(ratio[j])
-            a_at = tuple(float(x) for x in _to_input(probes[ok][i], origin, mesh))
-            b_at = tuple(float(x) for x in _to_input(probes[ok][j], origin, mesh))
-        # integral of 1 / d_Pk^2 over the box (d_Pk clipped at min_size): stratified over the
-        # triangles, each sample weighted by its share of its triangle's area
-        f = np.zeros(len(samples))
-        f[in_box] = 1.0 / np.maximum(dpk[: in_box.sum()], min_size) ** 2
-        contrib = (weights * f).reshape(len(corners), -1).sum(1)
-        integral = float(contrib.sum())
-        per_tri = (weights * f).reshape(len(corners), -1)
-        var = (
-            (per_tri.var(axis=1, ddof=1) * per_tri.shape[1]).sum() if per_tri.shape[1] > 1 else 0.0
-        )
-        stderr = float(np.sqrt(var))
-
+    rng = np.random.default_rng(seed)
+    probes = make_probes(torus, triangulation, samples, n_random, max_point_probes, rng)
+    ratio = measure_ratio(torus, probes)
+    size = measure_size(torus, probes)
+    alpha, beta = theorem6_constants(mesh.tau)
     sites = _floor_sites(
-        np.concatenate([cc[floor_balls], vertices[floor_cells]]),
-        10.0 * max(min_size, 1e-300),
-        period,
-        origin,
+        np.concatenate(
+            [triangulation.centres[counts.floor_balls], torus.vertices[counts.floor_cells]]
+        ),
+        10.0 * max(mesh.min_size, 1e-300),
+        torus.period,
+        torus.origin,
         mesh,
     )
     return Certificate(
         n=len(pts),
         m=len(mesh.vertices),
-        k=k,
-        tau=tau,
+        k=mesh.k,
+        tau=mesh.tau,
         periodic=tuple(mesh.periodic),
         box=tuple(mesh.box),
-        min_size=min_size,
-        triangulation_ok=not problems,
-        triangulation_problems=problems,
+        min_size=mesh.min_size,
+        triangulation_ok=not triangulation.problems,
+        triangulation_problems=triangulation.problems,
         max_aspect=max_aspect,
-        max_cell_count=max_cell,
-        max_ball_count=max_ball,
+        max_cell_count=counts.max_cell,
+        max_ball_count=counts.max_ball,
         alpha=alpha,
         beta=beta,
-        alpha_hat=a_hat,
-        beta_hat=b_hat,
-        alpha_hat_at=a_at,
-        beta_hat_at=b_at,
-        n_probes=n_probes,
-        size_integral=integral,
-        size_integral_stderr=stderr,
-        size_ratio=len(mesh.vertices) / integral if integral > 0 else float("nan"),
-        floor_circumballs=int(floor_balls.sum()),
-        floor_cells=int(floor_cells.sum()),
+        alpha_hat=ratio.alpha_hat,
+        beta_hat=ratio.beta_hat,
+        alpha_hat_at=ratio.alpha_hat_at,
+        beta_hat_at=ratio.beta_hat_at,
+        n_probes=ratio.n_probes,
+        size_integral=size.integral,
+        size_integral_stderr=size.stderr,
+        size_ratio=len(mesh.vertices) / size.integral if size.integral > 0 else float("nan"),
+        floor_circumballs=int(counts.floor_balls.sum()),
+        floor_cells=int(counts.floor_cells.sum()),
         floor_sites=sites,
-        under_floor=under_floor,
+        under_floor=ratio.under_floor,
         mesh_problems=verify_returned_mesh(mesh),
         precondition_ok=precondition_ok,
         precondition_note=precondition_note,
         seconds=time.perf_counter() - t0,
     )
+
+
+class _Torus:
+    """What every check reads: the mesh's torus (vertices relative to its origin), the input
+    points wrapped into it by the package's one rule, and kd-trees over both."""
+
+    def __init__(self, mesh, pts, workers):
+        self.mesh = mesh
+        self.k = mesh.k
+        self.min_size = mesh.min_size
+        self.workers = workers
+        self.period = np.asarray(mesh.torus.period, float)
+        self.origin = np.asarray(mesh.torus.origin, float)
+        self.vertices = np.asarray(mesh.torus.vertices, float)
+        self.frame = BoxMetric((0.0, 0.0, *self.period), (True, True)).frame
+        self.points = BoxMetric((*self.origin, *(self.origin + self.period)), (True, True)).frame(
+            pts
+        )
+        self.vertex_tree = cKDTree(self.vertices, boxsize=self.period)
+        self.point_tree = cKDTree(self.points, boxsize=self.period)
+        self.lo = np.array(mesh.box[:2]) - self.origin
+        self.hi = np.array(mesh.box[2:]) - self.origin
+        self.periodic = np.array(mesh.periodic, bool)
+
+    def in_box(self, x):
+        return _in_box(x, self.lo, self.hi, self.periodic)
+
+    def d_m2(self, x):
+        return self.vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
+
+    def d_pk(self, x):
+        return self.point_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
+
+
+Triangulation = namedtuple("Triangulation", ["problems", "corners", "centres", "radii", "outradii"])
+Counts = namedtuple("Counts", ["max_ball", "max_cell", "floor_balls", "floor_cells"])
+Probes = namedtuple("Probes", ["samples", "weights", "in_box", "points", "others"])
+Ratio = namedtuple(
+    "Ratio", ["alpha_hat", "beta_hat", "alpha_hat_at", "beta_hat_at", "n_probes", "under_floor"]
+)
+Size = namedtuple("Size", ["integral", "stderr"])
+
+
+def check_triangulation(torus):
+    """The torus triangulation (see ``verify_triangulation``), its circumcircles and each
+    vertex's outradius R(v) (the largest circumradius around it)."""
+    t = torus.mesh.torus
+    problems, corners, centres, radii = verify_triangulation(
+        torus.vertices, t.triangles, t.offsets, t.neighbors, torus.period
+    )
+    outradii = np.zeros(len(torus.vertices))
+    for c in range(3):
+        np.maximum.at(outradii, t.triangles[:, c], radii)
+    return Triangulation(problems, corners, centres, radii, outradii)
+
+
+def check_well_spaced(torus, triangulation):
+    """The largest aspect 2 R(v) / d_{M,2}(v) over the vertices."""
+    d_m2 = torus.vertex_tree.query(torus.vertices, k=2, workers=torus.workers)[0][:, 1]
+    return float(np.max(2.0 * triangulation.outradii / d_m2))
+
+
+def check_counts(torus, triangulation, k, min_size):
+    """The most input points in a closed circumball and in a closed Voronoi cell (points
+    equidistant to several vertices count for each), over elements at or above the floor,
+    and the floor elements (>= k points below min_size)."""
+    r = triangulation.radii
+    ball = torus.point_tree.query_ball_point(
+        triangulation.centres, r, return_length=True, workers=torus.workers
+    )
+    floor_balls = (ball >= k) & (r < min_size)
+    above = r >= min_size
+    max_ball = int(ball[above].max()) if above.any() else 0
+    m = len(torus.vertices)
+    kk = min(3, m)
+    dd, ii = torus.vertex_tree.query(torus.points, k=kk, workers=torus.workers)
+    dd = dd.reshape(len(torus.points), kk)
+    ii = ii.reshape(len(torus.points), kk)
+    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
+    cell = np.bincount(ii[tie], minlength=m)
+    R = triangulation.outradii
+    floor_cells = (cell >= k) & (R < min_size)
+    max_cell = int(cell[R >= min_size].max()) if (R >= min_size).any() else 0
+    return Counts(max_ball, max_cell, floor_balls, floor_cells)
+
+
+def make_probes(torus, triangulation, samples, n_random, max_point_probes, rng):
+    """The probes of the achieved constants, in the box: stratified samples inside every
+    triangle (with their area weights: the Monte Carlo samples of the size integral), input
+    points, and the vertices, circumcentres, edge midpoints and uniform points of the box."""
+    corners = triangulation.corners
+    per_triangle = max(4, -(-samples // max(len(corners), 1)))
+    inside, weights = _triangle_samples(corners, per_triangle, rng)
+    inside = torus.frame(inside)
+    P = torus.points
+    points = P if len(P) <= max_point_probes else P[rng.choice(len(P), max_point_probes, False)]
+    mids = 0.5 * (corners + corners[:, [1, 2, 0]]).reshape(-1, 2)
+    others = np.concatenate(
+        [
+            torus.vertices,
+            triangulation.centres,
+            torus.frame(mids),
+            torus.lo + rng.random((n_random, 2)) * (torus.hi - torus.lo),
+        ]
+    )
+    return Probes(
+        samples=inside,
+        weights=weights,
+        in_box=torus.in_box(inside),
+        points=points[torus.in_box(points)],
+        others=others[torus.in_box(others)],
+    )
+
+
+def measure_ratio(torus, probes):
+    """alpha_hat = min and beta_hat = max of d_{M,2} / d_{P,k} over the probes where
+    d_{P,k} >= min_size, where each was found, and the share of the sampled input points
+    where d_{P,k} < min_size."""
+    nan = float("nan")
+    if len(torus.points) < torus.k:
+        return Ratio(nan, nan, (nan, nan), (nan, nan), 0, 0.0)
+    dpk_points = torus.d_pk(probes.points)
+    under_floor = float(np.mean(dpk_points < torus.min_size)) if len(dpk_points) else 0.0
+    x = np.concatenate([probes.samples[probes.in_box], probes.points, probes.others])
+    dpk = np.concatenate(
+        [torus.d_pk(probes.samples[probes.in_box]), dpk_points, torus.d_pk(probes.others)]
+    )
+    ok = dpk >= torus.min_size
+    if not ok.any():
+        return Ratio(nan, nan, (nan, nan), (nan, nan), 0, under_floor)
+    ratio = torus.d_m2(x[ok]) / dpk[ok]
+    i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
+    at = _to_input(x[ok][[i, j]], torus.origin, torus.mesh)
+    return Ratio(
+        float(ratio[i]),
+        float(ratio[j]),
+        tuple(float(v) for v in at[0]),
+        tuple(float(v) for v in at[1]),
+        int(ok.sum()),
+        under_floor,
+    )
+
+
+def measure_size(torus, probes):
+    """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size), stratified
+    over the triangles: each sample weighted by its share of its triangle's area, samples
+    outside the box counting 0; with its standard error. It reads only the samples' own
+    values, so it does not depend on how the other probes are ordered."""
+    if len(torus.points) < torus.k:
+        return Size(0.0, 0.0)
+    f = np.zeros(len(probes.samples))
+    f[probes.in_box] = (
+        1.0 / np.maximum(torus.d_pk(probes.samples[probes.in_box]), torus.min_size) ** 2
+    )
+    per_triangle = (probes.weights * f).reshape(len(torus.mesh.torus.triangles), -1)
+    integral = float(per_triangle.sum())
+    var = (
+        (per_triangle.var(axis=1, ddof=1) * per_triangle.shape[1]).sum()
+        if per_triangle.shape[1] > 1
+        else 0.0
+    )
+    return Size(integral, float(np.sqrt(var)))
 
 
 def _check_points_are_the_meshs(mesh, pts):
@@ -535,12 +622,9 @@ def _in_box(x, lo, hi, per):
 
 
 def _to_input(x, origin, mesh):
-    y = np.asarray(x, float) + origin
-    for a in range(2):
-        if mesh.periodic[a]:
-            lo, hi = mesh.box[a], mesh.box[a + 2]
-            y[..., a] = lo + np.mod(y[..., a] - lo, hi - lo)
-    return y
+    """Input coordinates of points given relative to the torus origin, periodic axes wrapped
+    into the box by the package's one rule."""
+    return BoxMetric(mesh.box, mesh.periodic).wrap(np.asarray(x, float).reshape(-1, 2) + origin)
 
 
 def _triangle_samples(corners, per_triangle, rng):

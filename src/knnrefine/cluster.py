@@ -36,6 +36,7 @@ import numpy as np
 
 from .engine.superlevel import superlevel_noise
 from .errors import InputError
+from .mesh import edges
 from .metric import BoxMetric
 from .topology import _gudhi
 from .validation import as_points
@@ -97,11 +98,9 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None, noise=False):
     tri = tri.reshape(-1, 3)
     vertices = mesh.vertices[used]
     m = len(vertices)
-    edges = np.unique(
-        np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1), axis=0
-    )
+    pairs, _ = edges(tri)
     # adjacency lists, CSR-style: both directions of every edge grouped by their first vertex
-    both = np.concatenate([edges, edges[:, ::-1]])
+    both = np.concatenate([pairs, pairs[:, ::-1]])
     both = both[np.argsort(both[:, 0], kind="stable")]
     indptr = np.concatenate([[0], np.cumsum(np.bincount(both[:, 0], minlength=m))])
     neighbours = np.split(both[:, 1], indptr[1:-1])

@@ -11,6 +11,7 @@ the interpolated d over the triangles, clipped to the rectangle.
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .engine.embedding import wrap_offsets
 from .errors import InputError
 from .mesh import clip_polygon, split_in_four
 from .metric import BoxMetric
@@ -237,7 +238,7 @@ class KnnDistance:
             if u1 - u0 >= period * (1 - 1e-12):
                 spans.append([(lo, hi)])
                 continue
-            s0 = lo + (u0 - lo) % period
+            s0 = lo + float(wrap_offsets(np.array([u0]), lo, period)[0])
             s1 = s0 + (u1 - u0)
             spans.append([(s0, min(s1, hi))] + ([(lo, lo + s1 - hi)] if s1 > hi else []))
         return [

@@ -140,22 +140,20 @@ class Mesh:
         become extra copies of their vertex, so every triangle is drawn where it is."""
         if self.offsets is None:
             return self.vertices, self.triangles, np.arange(len(self.vertices))
-        # a corner is (vertex, offset); code the offset in 0..8, 4 meaning none
-        off = self.offsets.astype(np.int64)
-        code = (off[..., 0] + 1) * 3 + (off[..., 1] + 1)
-        own = np.arange(len(self.vertices), dtype=np.int64) * 9 + 4
-        keys, inverse = np.unique(
-            np.concatenate([own, (self.triangles * 9 + code).ravel()]), return_inverse=True
+        own = copy_key(np.arange(len(self.vertices), dtype=np.int64), 0, 0)
+        corners = copy_key(
+            self.triangles.astype(np.int64), self.offsets[..., 0], self.offsets[..., 1]
         )
+        keys, inverse = np.unique(np.concatenate([own, corners.ravel()]), return_inverse=True)
         # every vertex first, in its own place, then the copies across the seam
-        order = np.argsort(keys % 9 != 4, kind="stable")
+        vertex, sx, sy = copy_parts(keys)
+        order = np.argsort((sx != 0) | (sy != 0), kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(len(order))
-        keys = keys[order]
-        shift = np.stack([(keys % 9) // 3 - 1, keys % 3 - 1], axis=1)
-        points = self.vertices[keys // 9] + shift * np.array(self.period)
+        vertex, sx, sy = vertex[order], sx[order], sy[order]
+        points = self.vertices[vertex] + np.stack([sx, sy], axis=1) * np.array(self.period)
         triangles = rank[inverse[len(own) :]].reshape(-1, 3).astype(np.int32)
-        return points, triangles, keys // 9
+        return points, triangles, vertex
 
     def pieces_in_box(self):
         """The triangles cut to the box, as the user's coordinates see it: along periodic
@@ -200,11 +198,11 @@ class Mesh:
                 o = off + np.array([sx, sy])
                 c = self.vertices[tri] + o * period
                 meets = np.all((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi), axis=1)
-                keys.append((tri[meets] * 5 + (o[meets][..., 0] + 2)) * 5 + (o[meets][..., 1] + 2))
+                keys.append(copy_key(tri[meets], o[meets][..., 0], o[meets][..., 1]))
         keys = np.concatenate(keys)
         unique, inverse = np.unique(keys, return_inverse=True)
-        shift = np.stack([(unique // 5) % 5 - 2, unique % 5 - 2], axis=1)
-        return self.vertices[unique // 25] + shift * period, inverse.reshape(-1, 3)
+        vertex, sx, sy = copy_parts(unique)
+        return self.vertices[vertex] + np.stack([sx, sy], axis=1) * period, inverse.reshape(-1, 3)
 
     def __repr__(self):
         mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
@@ -216,18 +214,36 @@ class Mesh:
         )
 
 
+def copy_key(vertex, sx, sy):
+    """One integer for a vertex's copy shifted by (sx, sy) periods, shifts in [-2, 2]: the one
+    encoding of a (vertex, shift) pair (``copy_parts`` decodes it; keys sort by vertex)."""
+    return (np.asarray(vertex, np.int64) * 5 + (np.asarray(sx) + 2)) * 5 + (np.asarray(sy) + 2)
+
+
+def copy_parts(key):
+    """(vertex, sx, sy) of keys made by ``copy_key``."""
+    key = np.asarray(key, np.int64)
+    return key // 25, (key // 5) % 5 - 2, key % 5 - 2
+
+
+def edges(triangles):
+    """The edges of a triangle array: (pairs (e, 2), the distinct vertex pairs, smaller index
+    first; edge_of (t, 3), the edge opposite each corner)."""
+    triangles = np.asarray(triangles)
+    sides = np.sort(
+        np.concatenate([triangles[:, [1, 2]], triangles[:, [2, 0]], triangles[:, [0, 1]]]), axis=1
+    )
+    pairs, inverse = np.unique(sides, axis=0, return_inverse=True)
+    return pairs, inverse.reshape(3, len(triangles)).T
+
+
 def split_in_four(triangles, n_nodes):
     """Each triangle into four through its edge midpoints, shared between neighbours.
 
     Returns (edges (e, 2) sorted vertex pairs, edge_of (t, 3): the edge opposite each corner,
     triangles (4 t, 3) where midpoint j is node ``n_nodes + j``). The caller places the
     midpoints (halfway along each edge, across a periodic seam if need be)."""
-    t = len(triangles)
-    sides = np.sort(
-        np.concatenate([triangles[:, [1, 2]], triangles[:, [2, 0]], triangles[:, [0, 1]]]), axis=1
-    )
-    edges, inverse = np.unique(sides, axis=0, return_inverse=True)
-    edge_of = inverse.reshape(3, t).T
+    pairs, edge_of = edges(triangles)
     m = n_nodes + edge_of
     a, b, c = np.asarray(triangles).T
     pieces = np.concatenate(
@@ -238,7 +254,7 @@ def split_in_four(triangles, n_nodes):
             np.stack([m[:, 0], m[:, 1], m[:, 2]], 1),
         ]
     )
-    return edges, edge_of, pieces
+    return pairs, edge_of, pieces
 
 
 def clip_polygon(corners, rect, values=None):

@@ -6,6 +6,7 @@ import os
 import numpy as np
 
 from .errors import InputError
+from .mesh import edges
 from .metric import BoxMetric
 
 
@@ -62,16 +63,10 @@ def plot_mesh(
         ax.add_collection(coll)
         colour_bar(ax, coll, f"$d_{{M,2}}$ (units of {labels[0]}, {labels[1]})")
     if show_mesh:
-        edges = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-        # each edge once (neighbours and periodic copies share it): equal alpha everywhere
-        flip = (edges[:, 0, 0] > edges[:, 1, 0]) | (
-            (edges[:, 0, 0] == edges[:, 1, 0]) & (edges[:, 0, 1] > edges[:, 1, 1])
-        )
-        edges[flip] = edges[flip][:, ::-1]
-        edges = np.unique(edges.reshape(-1, 4), axis=0).reshape(-1, 2, 2)
+        pairs, _ = edges(covering)  # each edge once: equal alpha everywhere
         ax.add_collection(
             LineCollection(
-                edges,
+                nodes[pairs],
                 colors="0.1",
                 alpha=0.45,
                 linewidths=0.25 if len(tris) > 2000 else 0.5,

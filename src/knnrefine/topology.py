@@ -12,7 +12,7 @@ Persistence is computed by gudhi (``pip install "knnrefine[topology]"``).
 import numpy as np
 
 from .errors import InputError
-from .mesh import split_in_four
+from .mesh import edges, split_in_four
 from .metric import BoxMetric
 from .validation import as_points
 
@@ -36,25 +36,19 @@ _gudhi = require_gudhi
 def mesh_complex(mesh, subdivide=True):
     """The triangulated domain of the filtration: (positions (p, 2), triangles (t, 3)).
 
-    Periodic mode: the torus (or cylinder) triangulation as an abstract complex, positions in
-    the box. Non-periodic mode: the mesh triangles whose centroid lies in the box. With
+    The mesh's triangles, which are those that meet the box (the package's one rule: all of
+    the torus' in periodic mode, as an abstract complex with positions in the box). With
     ``subdivide``, every triangle is split in four through its edge midpoints. Raises
     EngineError if two edges join the same pair of vertices (the triangulation would then not
     be a simplicial complex)."""
     from .errors import EngineError
 
     corners = mesh.corners()
-    keep = np.arange(len(mesh.triangles))
-    if not any(mesh.periodic):
-        c = corners.mean(axis=1)
-        keep = np.flatnonzero(np.all((c >= mesh.box[:2]) & (c <= mesh.box[2:]), axis=1))
-    tri = mesh.triangles[keep].astype(np.int64)
-    corners = corners[keep]
-    edges = np.sort(np.concatenate([tri[:, [1, 2]], tri[:, [2, 0]], tri[:, [0, 1]]]), axis=1)
-    pairs, inv = np.unique(edges, axis=0, return_inverse=True)
+    tri = mesh.triangles.astype(np.int64)
+    pairs, edge_of = edges(tri)
     # in a triangulated surface an edge borders two triangles (one on a boundary); a vertex
     # pair used more often means two different edges join it
-    uses = np.bincount(inv.reshape(-1))
+    uses = np.bincount(edge_of.reshape(-1))
     if uses.max(initial=0) > 2 or (all(mesh.periodic) and np.any(uses != 2)):
         raise EngineError(
             "two edges join the same pair of vertices: the mesh is not a simplicial complex"
@@ -101,20 +95,8 @@ class Persistence:
         st = gudhi.SimplexTree()
         n = len(self.positions)
         st.insert_batch(np.arange(n)[None, :], self.values)
-        edges = np.unique(
-            np.sort(
-                np.concatenate(
-                    [
-                        self.triangles[:, [0, 1]],
-                        self.triangles[:, [1, 2]],
-                        self.triangles[:, [2, 0]],
-                    ]
-                ),
-                axis=1,
-            ),
-            axis=0,
-        )
-        st.insert_batch(edges.T, self.values[edges].max(axis=1))
+        pairs, _ = edges(self.triangles)
+        st.insert_batch(pairs.T, self.values[pairs].max(axis=1))
         st.insert_batch(self.triangles.T, self.values[self.triangles].max(axis=1))
         st.compute_persistence(homology_coeff_field=2, persistence_dim_max=True)
         self.simplex_tree = st
