@@ -32,9 +32,10 @@ def point_sets(rng):
     g = np.arange(20) / 20
     yield "lattice", np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     yield "clustered", np.clip(rng.normal(0.5, 1e-6, (2000, 2)), 0, 0.999)
+    yield "heaps", np.repeat(rng.random((6, 2)), 4 * LEAF_SIZE, axis=0)  # leaves > LEAF_SIZE
 
 
-@pytest.mark.parametrize("case", range(6))
+@pytest.mark.parametrize("case", range(7))
 def test_count_in_disk_matches_brute_force(case):
     rng = np.random.default_rng(case)
     name, pts = list(point_sets(rng))[case]
@@ -56,7 +57,7 @@ def test_count_in_disk_matches_brute_force(case):
             assert_count(got, lo, hi, k)
 
 
-@pytest.mark.parametrize("case", range(6))
+@pytest.mark.parametrize("case", range(7))
 def test_count_in_cell_matches_brute_force(case):
     rng = np.random.default_rng(10 + case)
     name, pts = list(point_sets(rng))[case]
@@ -86,7 +87,19 @@ def test_count_in_cell_matches_brute_force(case):
         )
         for k in (1, 5, 10**9):
             got = count_in_cell(
-                index, v[0], v[1], nb[:, 0].copy(), nb[:, 1].copy(), hc, deg, R2, k, 1.0, 1.0, stack
+                index,
+                v[0],
+                v[1],
+                nb[:, 0].copy(),
+                nb[:, 1].copy(),
+                hc,
+                deg,
+                R2,
+                k,
+                1.0,
+                1.0,
+                stack,
+                np.zeros(LEAF_SIZE, np.bool_),
             )
             assert_count(got, lo, hi, k)
 

@@ -8,6 +8,7 @@ from conftest import assert_certified, load_shared
 from scipy.spatial import cKDTree
 
 import knnrefine
+from knnrefine.engine import driver
 
 
 def uniform(rng, n=400):
@@ -162,3 +163,21 @@ def test_real_data(name):
     k = min(k, max(2, len(points) // 4))
     mesh = knnrefine.refine(points, k, 3.0, periodic=periodic, box=box)
     assert_certified(mesh, points, label=name.removesuffix(".csv"))
+
+
+@pytest.mark.parametrize("kind", ["uniform", "clustered"])
+def test_cell_sweep_leaves_the_mesh_unchanged(kind, monkeypatch):
+    """Settling cells in bulk (refine.sweep_cells) is an optimisation only: the same vertices,
+    in the same order, as counting every cell when it is popped."""
+    rng = np.random.default_rng(5)
+    if kind == "uniform":
+        points = rng.random((20000, 2))
+    else:
+        centres = rng.random((8, 2))
+        points = np.clip(centres[rng.integers(0, 8, 20000)] + rng.normal(0, 0.01, (20000, 2)), 0, 1)
+    swept = knnrefine.refine(points, 5)
+    monkeypatch.setattr(driver.Refinement, "SWEEP_MIN", 2**62)
+    unswept = knnrefine.refine(points, 5)
+    assert swept.stats["cell_tests"] != unswept.stats["cell_tests"]  # the sweep did run
+    np.testing.assert_array_equal(swept.vertices, unswept.vertices)
+    np.testing.assert_array_equal(swept.triangles, unswept.triangles)

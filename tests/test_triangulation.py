@@ -60,6 +60,12 @@ def validate(state):
     assert r.max() < min(state.lx, state.ly) / 4
     # offsets are normalised (minimum 0 on each axis)
     assert np.all(to.min(axis=1) == 0)
+    # the per-vertex caches equal a fresh walk round each vertex, bit for bit
+    hx, hy = np.zeros(64), np.zeros(64)
+    for v in range(nv):
+        outradius2, far, d_m2_sq, _ = vertex_star(v, mesh, state.prm, hx, hy)
+        assert mesh.outradius2[v] == outradius2 == mesh.radius2[far]
+        assert mesh.nearest2[v] == d_m2_sq
 
 
 @pytest.mark.parametrize("lx,ly", [(1.0, 1.0), (0.5, 1.0), (1.0, 0.125)])

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import EngineError
 from . import refine as R
 from .geometry import FLOOR_BITS, Q
-from .index import STACK_SIZE
+from .index import LEAF_SIZE, STACK_SIZE
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .state import (
@@ -28,6 +28,7 @@ from .state import (
     C_Q_BALLS,
     C_Q_CELLS,
     C_Q_CLEANS,
+    C_SWEEP_MIN,
     ERRORS,
     N_COUNTERS,
     N_PARAMS,
@@ -48,7 +49,7 @@ from .state import (
     grow,
     grown,
 )
-from .triangulation import MAX_CAVITY, set_all_circumcircles
+from .triangulation import MAX_CAVITY, set_all_circumcircles, set_vertex_caches
 
 MAX_DEGREE = 4096  # scratch for a vertex's neighbours; a well-spaced mesh has degree < 20
 
@@ -73,6 +74,8 @@ class RunResult:
 
 class Refinement:
     """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
+
+    SWEEP_MIN = 1024  # cells newly queued that make a bulk sweep worthwhile (refine.py)
 
     def __init__(self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q):
         """index: the counting kd-tree over P in internal coordinates (``build_index``); m0:
@@ -100,6 +103,8 @@ class Refinement:
             radius2=np.zeros(cap_t),
             xy=grown(xy, cap_v),
             star=star,
+            outradius2=np.zeros(cap_v),
+            nearest2=np.zeros(cap_v),
         )
         self.book = Bookkeeping(
             stamps=np.zeros(cap_t, np.int32),
@@ -125,12 +130,14 @@ class Refinement:
             hy=np.zeros(MAX_DEGREE),
             hc=np.zeros(MAX_DEGREE),
             stack=np.zeros(STACK_SIZE, np.int64),
+            mask=np.zeros(LEAF_SIZE, np.bool_),
         )
         self.cnt = np.zeros(N_COUNTERS, np.int64)
         self.cnt[C_NV] = m0
         self.cnt[C_NT] = corners.shape[0]
         self.cnt[C_K] = k
         self.cnt[C_MAX_VERTICES] = max_vertices
+        self.cnt[C_SWEEP_MIN] = self.SWEEP_MIN
         self.prm = np.zeros(N_PARAMS)
         self.prm[P_LX] = lx
         self.prm[P_LY] = ly
@@ -141,6 +148,7 @@ class Refinement:
         self.prm[P_GRID] = grid
         self.prm[P_INFLATE] = 1.0 + 1e-9
         set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
+        set_vertex_caches(self.mesh, self.prm, m0)
         R.queue_all(self.mesh, self.book, self.queues, self.probe, self.cnt, self.prm)
 
     def _grow_if_needed(self):
@@ -196,6 +204,8 @@ class Refinement:
                 progress(int(self.cnt[C_NV]), self.pending())
             if interrupts is not None:
                 interrupts.check()
+            if status == R.STATUS_SWEEP:
+                status = self._sweep(progress, interrupts, deadline)
             if status == R.STATUS_ERROR:
                 code = int(self.cnt[C_ERROR])
                 raise EngineError(
@@ -215,6 +225,31 @@ class Refinement:
                     return R.STATUS_STEPS
                 if rate is not None:
                     steps = max(1, min(steps, int(rate * (deadline - now)) + 1))
+
+    def _sweep(self, progress, interrupts, deadline, chunk=50_000):
+        """Settle the queued cells in bulk (``refine.sweep_cells``), a chunk per kernel call.
+        Returns STATUS_ERROR (with the code in the counters) or STATUS_STEPS."""
+        order = R.cells_to_sweep(self.mesh, self.book, self.queues, self.cnt, self.prm)
+        for i in range(0, len(order), chunk):
+            code = R.sweep_cells(
+                order[i : i + chunk],
+                self.mesh,
+                self.book,
+                self.probe,
+                self.cnt,
+                self.prm,
+                self.index,
+            )
+            if code < 0:
+                self.cnt[C_ERROR] = code
+                return R.STATUS_ERROR
+            if progress is not None:
+                progress(int(self.cnt[C_NV]), self.pending())
+            if interrupts is not None:
+                interrupts.check()
+            if deadline is not None and time.perf_counter() >= deadline:
+                break
+        return R.STATUS_STEPS
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""

@@ -140,7 +140,7 @@ def build_index(pts):
     return pts, box[:nnodes], node[:nnodes], split[:nnodes]
 
 
-@kernel()
+@kernel(nrt=False)
 def _start(node, split, cx, cy, r):
     """The deepest node whose split region strictly contains the disk (c, r): points outside
     it cannot lie in the disk."""
@@ -156,7 +156,7 @@ def _start(node, split, cx, cy, r):
     return t
 
 
-@kernel()
+@kernel(nrt=False)
 def _count_disk(index, cx, cy, r2, k, count, stack):
     pts, box, node, split = index
     if node[0, 1] == 0:
@@ -181,16 +181,19 @@ def _count_disk(index, cx, cy, r2, k, count, stack):
             continue
         c = node[t, 2]
         if c < 0:
+            inside = 0
             for i in range(node[t, 0], node[t, 1]):
                 ex = pts[i, 0] - cx
                 ey = pts[i, 1] - cy
-                if ex * ex + ey * ey <= r2:
-                    count += 1
-                    if count >= k:
-                        return count
+                inside += ex * ex + ey * ey <= r2
+            count += inside
+            if count >= k:
+                return count
             continue
-        stack[sp] = c
-        stack[sp + 1] = c + 1
+        # the child on the centre's side is visited first: where the points are
+        near = 0 if (cx if node[t, 3] == 0 else cy) <= split[t] else 1
+        stack[sp] = c + 1 - near
+        stack[sp + 1] = c + near
         sp += 2
     return count
 
@@ -210,7 +213,7 @@ def _copies(c, r, period):
     return int(lo), int(hi)
 
 
-@kernel()
+@kernel(nrt=False)
 def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)):
     exact when below k; otherwise the search stops early and returns some value >= k.
@@ -235,8 +238,8 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     return count
 
 
-@kernel()
-def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
+@kernel(nrt=False)
+def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack, mask):
     pts, box, node, split = index
     if node[0, 1] == 0:
         return count
@@ -277,33 +280,40 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack):
             continue
         c = node[t, 2]
         if c < 0:
-            for i in range(node[t, 0], node[t, 1]):
-                ex = pts[i, 0] - vx
-                ey = pts[i, 1] - vy
-                ok = ex * ex + ey * ey <= r2
+            # one vectorisable pass per constraint over blocks of the leaf's points (a leaf
+            # of coincident points can exceed LEAF_SIZE)
+            found = 0
+            for lo in range(node[t, 0], node[t, 1], LEAF_SIZE):
+                m = min(LEAF_SIZE, node[t, 1] - lo)
+                for i in range(m):
+                    ex = pts[lo + i, 0] - vx
+                    ey = pts[lo + i, 1] - vy
+                    mask[i] = ex * ex + ey * ey <= r2
                 for j in range(nh):
-                    if not ok:
-                        break
-                    if hx[j] * ex + hy[j] * ey > hc[j]:
-                        ok = False
-                        break
-                if ok:
-                    count += 1
-                    if count >= k:
-                        return count
+                    a = hx[j]
+                    b = hy[j]
+                    h = hc[j]
+                    for i in range(m):
+                        mask[i] &= a * (pts[lo + i, 0] - vx) + b * (pts[lo + i, 1] - vy) <= h
+                for i in range(m):
+                    found += mask[i]
+            count += found
+            if count >= k:
+                return count
             continue
-        stack[sp] = c
-        stack[sp + 1] = c + 1
+        near = 0 if (vx if node[t, 3] == 0 else vy) <= split[t] else 1
+        stack[sp] = c + 1 - near
+        stack[sp + 1] = c + near
         sp += 2
     return count
 
 
-@kernel()
-def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack):
+@kernel(nrt=False)
+def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
     """Number of points of the periodic P in the closed cell {v + p : hx[j] px + hy[j] py <= hc[j]}
     contained in the disk (v, sqrt(r2)): exact when below k, otherwise some value >= k. For a
     Voronoi cell, (hx[j], hy[j]) is the j-th neighbour minus v and hc[j] half its squared
-    length."""
+    length. ``mask`` is scratch of LEAF_SIZE booleans."""
     r = np.sqrt(r2)
     count = 0
     x_lo, x_hi = _copies(vx, r, lx)
@@ -316,7 +326,7 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack):
             oy = vy + sy * ly
             if oy + r < 0.0 or oy - r > ly:
                 continue
-            count = _count_cell(index, ox, oy, hx, hy, hc, nh, r2, k, count, stack)
+            count = _count_cell(index, ox, oy, hx, hy, hc, nh, r2, k, count, stack, mask)
             if count >= k:
                 return count
     return count
@@ -375,7 +385,7 @@ def _torus_gap(c, lo, hi, period):
     return near, far
 
 
-@kernel()
+@kernel(nrt=False)
 def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
     """Number of points of P within torus distance sqrt(r2) of c, each point counted once, for
     any radius (``count_in_disk`` counts periodic copies and needs a radius below half the

@@ -77,6 +77,10 @@ def kernel(**options):
     """``njit(cache=True, **options)``, falling back to an uncached ``njit`` where numba has
     nowhere to keep compiled code."""
 
+    # set on every kernel, never inherited: numba compiles a callee with its first caller's
+    # flags unless the callee sets its own
+    options["_nrt"] = options.pop("nrt", True)
+
     def wrap(func):
         try:
             dispatcher = njit(cache=True, **options)(func)

@@ -21,6 +21,14 @@ the largest class. That keeps successive insertions close together, in space and
 * clean: the vertices around each cavity (the only ones whose Voronoi cell changed) and the new
   vertex are re-examined after each insertion; those with aspect > tau are pushed.
 
+Cells in bulk: a cell's state is a pure function of the mesh, and a cell found to hold < k
+points stays so. So when the circumball queue runs empty with many cells newly queued, the
+driver has ``sweep_cells`` count all of them at once, in the order of their vertices along a
+space-filling curve (neighbouring cells share the points the counts read, so the sweep runs
+from cache), and mark those holding < k as settled. The refinement then pops cells as before,
+skipping the settled ones: the insertions, and the mesh, are the same as without the sweep.
+The sweep runs in chunks, so progress, Ctrl-C and deadlines are served during it too.
+
 Counting is conservative: closed disks and closed cells are inflated by a relative 1e-9 and the
 aspect threshold is lowered by a relative 1e-12, so the output satisfies the strict invariants
 when re-checked in floating point by independent code.
@@ -35,12 +43,16 @@ The kernels take the named structures of ``state.py``: ``mesh`` (the triangulati
 ``scratch`` (the insertion's) and ``probe`` (a star walk's and a count's scratch).
 """
 
-from .geometry import snap
+import numpy as np
+
+from .geometry import morton_key, snap
 from .index import count_in_cell, count_in_disk
 from .jit import kernel
-from .queue import Q_SIZE, Q_USED, queue_init, queue_pop, queue_push, size_class
+from .queue import N_CLASSES, Q_SIZE, Q_USED, queue_init, queue_pop, queue_push, size_class
 from .state import (
     C_CELL_TESTS,
+    C_CELLS_QUEUED,
+    C_CELLS_SWEPT,
     C_DISK_TESTS,
     C_ERROR,
     C_FAILED,
@@ -52,6 +64,7 @@ from .state import (
     C_Q_BALLS,
     C_Q_CELLS,
     C_Q_CLEANS,
+    C_SWEEP_MIN,
     INSERT_NOT_IN_SEED,
     P_CLEAN_FLOOR2,
     P_FLOOR2,
@@ -62,7 +75,7 @@ from .state import (
     P_TAU2,
     STAR_OVERFLOW,
 )
-from .triangulation import insert_vertex, vertex_star
+from .triangulation import far_corner, insert_vertex, vertex_star
 
 # vertex kinds (insertion moves)
 INITIAL = 0
@@ -89,6 +102,9 @@ STATUS_STEPS = 1  # max_steps insertions made; call again
 STATUS_GROW = 2  # an array is nearly full; grow it and call again
 STATUS_MAX_VERTICES = 3
 STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code (state.ERRORS)
+STATUS_SWEEP = 5  # many cells wait to be counted: call sweep_cells, then call again
+
+SWEEP_DUE = -2  # break_'s answer when a sweep should come first
 
 HEADROOM = 1100  # free slots required before an insertion (> MAX_CAVITY + 2)
 
@@ -100,16 +116,18 @@ def is_too_aspect(outradius2, d_m2_sq, prm):
 
 
 @kernel(inline="always")
-def _touch(v, mesh, book, queues, probe, cnt, prm):
-    """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean."""
-    outradius2, far_corner, d_m2_sq, degree = vertex_star(v, mesh, prm, probe.hx, probe.hy)
+def _touch(v, mesh, book, queues, cnt, prm):
+    """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean.
+    Reads the triangulation's caches of R(v)^2 and d_{M,2}(v)^2: no walk round v."""
+    outradius2 = mesh.outradius2[v]
     if book.cell_state[v] == FLOOR or book.cell_state[v] == FAILED:
         book.cell_state[v] = UNTESTED
     if book.cell_state[v] == UNTESTED and not (book.flags[v] & IN_CELL_QUEUE):
         queue_push(queues.cells, cnt, C_Q_CELLS, size_class(outradius2), v, 0)
         book.flags[v] = book.flags[v] | IN_CELL_QUEUE
+        cnt[C_CELLS_QUEUED] += 1
     book.flags[v] = book.flags[v] & ~(CLEAN_BELOW_FLOOR | CLEAN_FAILED)
-    if is_too_aspect(outradius2, d_m2_sq, prm) and not (book.flags[v] & IN_CLEAN_QUEUE):
+    if is_too_aspect(outradius2, mesh.nearest2[v], prm) and not (book.flags[v] & IN_CLEAN_QUEUE):
         queue_push(queues.cleans, cnt, C_Q_CLEANS, size_class(outradius2), v, 0)
         book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
 
@@ -123,8 +141,8 @@ def clean(mesh, book, queues, probe, cnt, prm):
     while cnt[C_Q_CLEANS + Q_SIZE] > 0:
         cls, v, _ = queue_pop(queues.cleans, cnt, C_Q_CLEANS)
         book.flags[v] = book.flags[v] & ~IN_CLEAN_QUEUE
-        outradius2, far_corner, d_m2_sq, degree = vertex_star(v, mesh, prm, probe.hx, probe.hy)
-        if not is_too_aspect(outradius2, d_m2_sq, prm):
+        outradius2 = mesh.outradius2[v]
+        if not is_too_aspect(outradius2, mesh.nearest2[v], prm):
             continue
         now = size_class(outradius2)
         if now > cls:  # outradius shrank since it was queued: requeue in its true class
@@ -134,8 +152,47 @@ def clean(mesh, book, queues, probe, cnt, prm):
         if outradius2 < prm[P_CLEAN_FLOOR2]:
             book.flags[v] = book.flags[v] | CLEAN_BELOW_FLOOR
             continue
-        return far_corner, v
+        return far_corner(v, mesh), v
     return -1, -1
+
+
+@kernel(inline="always")
+def count_cell(v, mesh, probe, cnt, prm, index):
+    """Points of P in the closed Voronoi cell of v (inflated): exact below k, else some value
+    >= k; STAR_OVERFLOW if v has more neighbours than the probe holds."""
+    k = cnt[C_K]
+    inflate = prm[P_INFLATE]
+    outradius2 = mesh.outradius2[v]
+    x = mesh.xy[v, 0]
+    y = mesh.xy[v, 1]
+    cnt[C_CELL_TESTS] += 1
+    # the cell lies in the disk of radius R(v) about v: when that disk holds < k points, so
+    # does the cell, and the cheaper disk count settles it
+    c = count_in_disk(index, x, y, outradius2 * inflate, k, prm[P_LX], prm[P_LY], probe.stack)
+    if c < k:
+        return c
+    degree = vertex_star(v, mesh, prm, probe.hx, probe.hy)[3]
+    if degree < 0:
+        return STAR_OVERFLOW
+    for j in range(degree):
+        hx = probe.hx[j]
+        hy = probe.hy[j]
+        probe.hc[j] = 0.5 * (hx * hx + hy * hy) * inflate
+    return count_in_cell(
+        index,
+        x,
+        y,
+        probe.hx,
+        probe.hy,
+        probe.hc,
+        degree,
+        outradius2 * inflate,
+        k,
+        prm[P_LX],
+        prm[P_LY],
+        probe.stack,
+        probe.mask,
+    )
 
 
 @kernel(inline="always")
@@ -168,55 +225,72 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
             book.ball_state[t] = FLOOR
             continue
         return t, BREAK_BALL, t
+    if cnt[C_CELLS_QUEUED] - cnt[C_CELLS_SWEPT] >= cnt[C_SWEEP_MIN]:
+        return SWEEP_DUE, 0, -1
     while cnt[C_Q_CELLS + Q_SIZE] > 0:
         cls, v, _ = queue_pop(queues.cells, cnt, C_Q_CELLS)
         book.flags[v] = book.flags[v] & ~IN_CELL_QUEUE
         if book.cell_state[v] != UNTESTED:
             continue
-        outradius2, far_corner, d_m2_sq, degree = vertex_star(v, mesh, prm, probe.hx, probe.hy)
-        if degree < 0:
-            return STAR_OVERFLOW, 0, -1
+        outradius2 = mesh.outradius2[v]
         now = size_class(outradius2)
         if now > cls:
             queue_push(queues.cells, cnt, C_Q_CELLS, now, v, 0)
             book.flags[v] = book.flags[v] | IN_CELL_QUEUE
             continue
-        cnt[C_CELL_TESTS] += 1
-        # the cell lies in the disk of radius R(v) about v: when that disk holds < k points,
-        # so does the cell, and the cheaper disk count settles it
-        x = mesh.xy[v, 0]
-        y = mesh.xy[v, 1]
-        c = count_in_disk(index, x, y, outradius2 * inflate, k, lx, ly, probe.stack)
-        if c >= k:
-            for j in range(degree):
-                hx = probe.hx[j]
-                hy = probe.hy[j]
-                probe.hc[j] = 0.5 * (hx * hx + hy * hy) * inflate
-            c = count_in_cell(
-                index,
-                x,
-                y,
-                probe.hx,
-                probe.hy,
-                probe.hc,
-                degree,
-                outradius2 * inflate,
-                k,
-                lx,
-                ly,
-                probe.stack,
-            )
+        c = count_cell(v, mesh, probe, cnt, prm, index)
+        if c < 0:
+            return c, 0, -1
         if c < k:
             book.cell_state[v] = GOOD
             continue
         if outradius2 < prm[P_FLOOR2]:
             book.cell_state[v] = FLOOR
             continue
-        return far_corner, BREAK_CELL, v
+        return far_corner(v, mesh), BREAK_CELL, v
     return -1, 0, -1
 
 
 @kernel()
+def cells_to_sweep(mesh, book, queues, cnt, prm):
+    """The queued vertices whose cells are untested, in Z-order of their positions (the
+    sweep's order); from now on they count as swept."""
+    q = queues.cells
+    vertices = np.empty(cnt[C_Q_CELLS + Q_SIZE], np.int32)
+    n = 0
+    for c in range(N_CLASSES):
+        e = q.head[c]
+        while e >= 0:
+            v = q.ident[e]
+            if book.cell_state[v] == UNTESTED:
+                vertices[n] = v
+                n += 1
+            e = q.next[e]
+    keys = np.empty(n, np.int64)
+    for i in range(n):
+        v = vertices[i]
+        keys[i] = morton_key(mesh.xy[v, 0] / prm[P_LX], mesh.xy[v, 1] / prm[P_LY])
+    cnt[C_CELLS_SWEPT] = cnt[C_CELLS_QUEUED]
+    return vertices[np.argsort(keys)]
+
+
+@kernel(nrt=False)
+def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
+    """Count the cells of these vertices in this order and settle those holding < k points
+    (the others stay queued and are counted again when popped). Returns 0, or STAR_OVERFLOW."""
+    for i in range(vertices.shape[0]):
+        v = vertices[i]
+        if book.cell_state[v] != UNTESTED:
+            continue
+        c = count_cell(v, mesh, probe, cnt, prm, index)
+        if c < 0:
+            return c
+        if c < cnt[C_K]:
+            book.cell_state[v] = GOOD
+    return 0
+
+
+@kernel(nrt=False)
 def queue_all(mesh, book, queues, probe, cnt, prm):
     """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0)."""
     for base in (C_Q_BALLS, C_Q_CELLS, C_Q_CLEANS):
@@ -224,7 +298,7 @@ def queue_all(mesh, book, queues, probe, cnt, prm):
     for t in range(cnt[C_NT]):
         queue_push(queues.balls, cnt, C_Q_BALLS, size_class(mesh.radius2[t]), t, book.stamps[t])
     for v in range(cnt[C_NV]):
-        _touch(v, mesh, book, queues, probe, cnt, prm)
+        _touch(v, mesh, book, queues, cnt, prm)
 
 
 @kernel(inline="always")
@@ -239,7 +313,7 @@ def needs_growth(mesh, queues, cnt):
     )
 
 
-@kernel()
+@kernel(nrt=False)
 def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps):
     """Run Algorithm 1 for at most max_steps insertions; returns a STATUS_* code."""
     steps = 0
@@ -256,6 +330,8 @@ def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps)
             t, kind, elem = break_(mesh, book, queues, probe, cnt, prm, index)
             if t == -1:
                 return STATUS_DONE
+            if t == SWEEP_DUE:
+                return STATUS_SWEEP
             if t < -1:
                 cnt[C_ERROR] = t
                 return STATUS_ERROR
@@ -288,6 +364,6 @@ def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps)
             s = scratch.cavity[e]
             queue_push(queues.balls, cnt, C_Q_BALLS, size_class(mesh.radius2[s]), s, book.stamps[s])
         for e in range(nb + 1):
-            _touch(scratch.boundary[e, 0] if e < nb else v, mesh, book, queues, probe, cnt, prm)
+            _touch(scratch.boundary[e, 0] if e < nb else v, mesh, book, queues, cnt, prm)
         steps += 1
     return STATUS_STEPS

@@ -28,6 +28,8 @@ TorusMesh = namedtuple(
         "radius2",  # (T,) float64: squared circumradius
         "xy",  # (V, 2) float64: vertex positions on the grid, in [0, lx) x [0, ly)
         "star",  # (V,) int32: one triangle at each vertex (where a walk round it starts)
+        "outradius2",  # (V,) float64: R(v)^2, the largest squared circumradius around v
+        "nearest2",  # (V,) float64: d_{M,2}(v)^2, the squared distance to the nearest vertex
     ],
 )
 
@@ -58,12 +60,14 @@ Scratch = namedtuple(
 Queue = namedtuple("Queue", ["head", "ident", "aux", "next"])
 Queues = namedtuple("Queues", ["balls", "cells", "cleans"])
 
-# the scratch of a vertex-star walk and of a counting query
-Probe = namedtuple("Probe", ["hx", "hy", "hc", "stack"])
+# the scratch of a vertex-star walk and of a counting query (its stack, a leaf's mask)
+Probe = namedtuple("Probe", ["hx", "hy", "hc", "stack", "mask"])
 
 VERTEX_FIELDS = (
     ("mesh", "xy"),
     ("mesh", "star"),
+    ("mesh", "outradius2"),
+    ("mesh", "nearest2"),
     ("book", "kinds"),
     ("book", "cell_state"),
     ("book", "flags"),
@@ -86,6 +90,7 @@ C_NV = 0  # vertices in use
 C_NT = 1  # triangles in use (always 2 * C_NV on the torus)
 C_STAMP = 2  # insertions so far: stamps the cavity marks
 C_LAST_NB = 3  # boundary edges of the last cavity (= its new triangles)
+C_SWEEP_MIN = 4  # cells newly queued that make a sweep worthwhile (refine.sweep_cells)
 C_K = 8  # the k of d_{P,k}
 C_MAX_VERTICES = 9
 C_Q_BALLS = 10  # 10..13: the circumball queue's scalars (size, top class, free list, used)
@@ -95,6 +100,8 @@ C_DISK_TESTS = 26  # circumball counts made
 C_CELL_TESTS = 27  # cell counts made
 C_FAILED = 28  # insertions refused (the point rounds onto a vertex)
 C_ERROR = 29  # the code of a broken invariant (see ERRORS)
+C_CELLS_QUEUED = 30  # cells ever queued
+C_CELLS_SWEPT = 31  # C_CELLS_QUEUED at the last sweep (refine.sweep_cells)
 N_COUNTERS = 32
 
 # -- parameters (float64 array ``prm``) -------------------------------------------------------

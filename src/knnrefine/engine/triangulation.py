@@ -11,6 +11,13 @@ Vertices ``vxy`` lie on the grid q of ``geometry`` inside the fundamental domain
 periods are multiples of q, so every realised corner is exact and the exact predicates give
 the same answer from every periodic copy.
 
+Two per-vertex caches make a vertex's Voronoi cell measurable without walking round it:
+``outradius2[v]`` = R(v)^2 (the largest squared circumradius of the triangles at v: their
+circumcentres are the corners of Vor(v)) and ``nearest2[v]`` = d_{M,2}(v)^2. An insertion keeps
+both: a Voronoi cell only shrinks, so R(v) changes only where the largest triangle at v was
+destroyed (then v's star is walked again) or through the two new triangles at v, and the
+nearest vertex can only become the new one.
+
 Insertion is Bowyer-Watson: the cavity (triangles whose open circumdisk holds the new point)
 is grown from a seed triangle whose circumdisk holds it (refinement always knows one: the
 triangle whose circumcenter is being inserted), then re-triangulated as a fan around the new
@@ -70,10 +77,68 @@ def set_circumcircle(mesh, prm, t):
     mesh.radius2[t] = r2
 
 
-@kernel()
+@kernel(nrt=False)
 def set_all_circumcircles(mesh, prm, nt):
     for t in range(nt):
         set_circumcircle(mesh, prm, t)
+
+
+@kernel(inline="always")
+def edge_to(mesh, t, i, j, lx, ly):
+    """The vector from corner i to corner j of triangle t (exact on the grid; the same from
+    every triangle that has the edge, since offset differences do not depend on the frame)."""
+    u = mesh.corners[t, j]
+    v = mesh.corners[t, i]
+    return (
+        mesh.xy[u, 0] - mesh.xy[v, 0] + (mesh.offsets[t, j, 0] - mesh.offsets[t, i, 0]) * lx,
+        mesh.xy[u, 1] - mesh.xy[v, 1] + (mesh.offsets[t, j, 1] - mesh.offsets[t, i, 1]) * ly,
+    )
+
+
+@kernel(inline="always")
+def corner_of(mesh, t, v):
+    """Index (0, 1 or 2) of vertex v among the corners of triangle t."""
+    if mesh.corners[t, 1] == v:
+        return 1
+    if mesh.corners[t, 2] == v:
+        return 2
+    return 0
+
+
+@kernel(inline="always")
+def far_corner(v, mesh):
+    """The triangle at v whose circumcentre is farCorner(Vor(v)): the largest circumradius
+    (the first met walking round v from mesh.star[v], on ties). R(v)^2 is its radius2."""
+    t0 = mesh.star[v]
+    t = t0
+    best = t0
+    while True:
+        if mesh.radius2[t] > mesh.radius2[best]:
+            best = t
+        t = mesh.neighbours[t, (corner_of(mesh, t, v) + 1) % 3]
+        if t == t0:
+            return best
+
+
+@kernel(nrt=False)
+def set_vertex_caches(mesh, prm, nv):
+    """Fill outradius2 and nearest2 for vertices 0..nv-1 by walking their stars."""
+    lx = prm[P_LX]
+    ly = prm[P_LY]
+    for v in range(nv):
+        mesh.outradius2[v] = mesh.radius2[far_corner(v, mesh)]
+        t0 = mesh.star[v]
+        t = t0
+        nearest2 = np.inf
+        while True:
+            i = corner_of(mesh, t, v)
+            i1 = (i + 1) % 3
+            ex, ey = edge_to(mesh, t, i, i1, lx, ly)
+            nearest2 = min(nearest2, ex * ex + ey * ey)
+            t = mesh.neighbours[t, i1]
+            if t == t0:
+                break
+        mesh.nearest2[v] = nearest2
 
 
 @kernel(inline="always")
@@ -96,7 +161,7 @@ def mirror(mesh, n, t, a):
     return -1
 
 
-@kernel()
+@kernel(nrt=False)
 def insert_vertex(px, py, seed, mesh, scratch, cnt, prm):
     """Insert the point p, given in the frame of triangle ``seed`` whose circumcircle holds it.
 
@@ -124,6 +189,7 @@ def insert_vertex(px, py, seed, mesh, scratch, cnt, prm):
     cav_s[0, 0] = 0
     cav_s[0, 1] = 0
     scratch.mark[seed] = stamp
+    _forget_outradius(mesh, seed)
     ncav = 1
     nb = 0
     i = 0
@@ -147,6 +213,7 @@ def insert_vertex(px, py, seed, mesh, scratch, cnt, prm):
                 if ncav >= MAX_CAVITY:
                     return INSERT_CAVITY_OVERFLOW
                 scratch.mark[n] = stamp
+                _forget_outradius(mesh, n)
                 cav[ncav] = n
                 cav_s[ncav, 0] = nsx
                 cav_s[ncav, 1] = nsy
@@ -226,8 +293,44 @@ def insert_vertex(px, py, seed, mesh, scratch, cnt, prm):
         neighbours[s, 2] = scratch.slot_b[corners[s, 1]]
         set_circumcircle(mesh, prm, s)
     mesh.star[v] = cav[0]
+    _update_vertex_caches(v, mesh, scratch, nb, lx, ly)
     cnt[C_LAST_NB] = nb
     return v
+
+
+@kernel(inline="always")
+def _forget_outradius(mesh, t):
+    """Triangle t leaves the triangulation: a corner whose R(v) it realised loses its cached
+    value (marked -1, walked again after the insertion)."""
+    for i in range(3):
+        c = mesh.corners[t, i]
+        if mesh.radius2[t] >= mesh.outradius2[c]:
+            mesh.outradius2[c] = -1.0
+
+
+@kernel(inline="always")
+def _update_vertex_caches(v, mesh, scratch, nb, lx, ly):
+    """The caches after inserting v, whose new triangles (v, a, b) are scratch.cavity[:nb]."""
+    outradius2 = -1.0
+    nearest2 = np.inf
+    for e in range(nb):
+        a = scratch.boundary[e, 0]
+        if mesh.outradius2[a] < 0.0:
+            mesh.outradius2[a] = mesh.radius2[far_corner(a, mesh)]
+    for e in range(nb):
+        s = scratch.cavity[e]
+        r2 = mesh.radius2[s]
+        outradius2 = max(outradius2, r2)
+        a = mesh.corners[s, 1]
+        b = mesh.corners[s, 2]
+        mesh.outradius2[a] = max(mesh.outradius2[a], r2)
+        mesh.outradius2[b] = max(mesh.outradius2[b], r2)
+        ex, ey = edge_to(mesh, s, 0, 1, lx, ly)
+        e2 = ex * ex + ey * ey
+        mesh.nearest2[a] = min(mesh.nearest2[a], e2)
+        nearest2 = min(nearest2, e2)
+    mesh.outradius2[v] = outradius2
+    mesh.nearest2[v] = nearest2
 
 
 @kernel(inline="always")
@@ -240,9 +343,6 @@ def vertex_star(v, mesh, prm, hx, hy):
     neighbours, relative to v, go to hx[:degree], hy[:degree] when hx is long enough; degree
     is -1 if it is not.
     """
-    corners = mesh.corners
-    offsets = mesh.offsets
-    xy = mesh.xy
     lx = prm[P_LX]
     ly = prm[P_LY]
     t0 = mesh.star[v]
@@ -253,18 +353,12 @@ def vertex_star(v, mesh, prm, hx, hy):
     degree = 0
     cap = hx.shape[0]
     while True:
-        i = 0
-        if corners[t, 1] == v:
-            i = 1
-        elif corners[t, 2] == v:
-            i = 2
+        i = corner_of(mesh, t, v)
         if mesh.radius2[t] > outradius2:
             outradius2 = mesh.radius2[t]
             far_corner = t
         i1 = (i + 1) % 3
-        u = corners[t, i1]
-        ex = xy[u, 0] - xy[v, 0] + (offsets[t, i1, 0] - offsets[t, i, 0]) * lx
-        ey = xy[u, 1] - xy[v, 1] + (offsets[t, i1, 1] - offsets[t, i, 1]) * ly
+        ex, ey = edge_to(mesh, t, i, i1, lx, ly)
         e2 = ex * ex + ey * ey
         if e2 < d_m2_sq:
             d_m2_sq = e2
