@@ -25,9 +25,6 @@ from .state import (
     C_MAX_VERTICES,
     C_NT,
     C_NV,
-    C_Q_BALLS,
-    C_Q_CELLS,
-    C_Q_CLEANS,
     C_SWEEP_MIN,
     ERRORS,
     N_COUNTERS,
@@ -165,9 +162,9 @@ class Refinement:
         self.book = structures["book"]
         self.scratch = structures["scratch"]
         queues = {}
-        for name, base in zip(Queues._fields, (C_Q_BALLS, C_Q_CELLS, C_Q_CLEANS), strict=True):
+        for name in Queues._fields:
             q = getattr(self.queues, name)
-            if self.cnt[base + Q_USED] + R.HEADROOM > q.ident.shape[0]:
+            if q.scalars[Q_USED] + R.HEADROOM > q.ident.shape[0]:
                 n = 2 * q.ident.shape[0]
                 q = q._replace(ident=grown(q.ident, n), aux=grown(q.aux, n), next=grown(q.next, n))
             queues[name] = q
@@ -253,7 +250,7 @@ class Refinement:
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""
-        return int(sum(self.cnt[b + Q_SIZE] for b in (C_Q_BALLS, C_Q_CELLS, C_Q_CLEANS)))
+        return int(sum(q.scalars[Q_SIZE] for q in self.queues))
 
     @property
     def vertices(self):

@@ -157,7 +157,9 @@ def _start(node, split, cx, cy, r):
 
 
 @kernel(nrt=False)
-def _count_disk(index, cx, cy, r2, k, count, stack):
+def _count_disk(index, cx, cy, r2, k, stack):
+    """Points of P in the closed disk (c, sqrt(r2)), counting up to at least k."""
+    count = 0
     pts, box, node, split = index
     if node[0, 1] == 0:
         return count
@@ -232,14 +234,16 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
             oy = cy + sy * ly
             if oy + r < 0.0 or oy - r > ly:
                 continue
-            count = _count_disk(index, ox, oy, r2, k, count, stack)
+            count += _count_disk(index, ox, oy, r2, k - count, stack)
             if count >= k:
                 return count
     return count
 
 
 @kernel(nrt=False)
-def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, count, stack, mask):
+def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
+    """Points of P in the closed cell (see count_in_cell), counting up to at least k."""
+    count = 0
     pts, box, node, split = index
     if node[0, 1] == 0:
         return count
@@ -326,7 +330,7 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
             oy = vy + sy * ly
             if oy + r < 0.0 or oy - r > ly:
                 continue
-            count = _count_cell(index, ox, oy, hx, hy, hc, nh, r2, k, count, stack, mask)
+            count += _count_cell(index, ox, oy, hx, hy, hc, nh, r2, k - count, stack, mask)
             if count >= k:
                 return count
     return count

@@ -125,17 +125,12 @@ def expansion_product(e, elen, f, flen, h):
     """h = e * f; returns the length of h (h must hold 2 * elen * flen doubles)."""
     part = np.empty(2 * elen)
     acc = np.empty(2 * elen * flen)
-    n = 0
-    for j in range(flen):
+    n = expansion_scale(e, elen, f[0], h)
+    for j in range(1, flen):
         m = expansion_scale(e, elen, f[j], part)
-        if n == 0:
-            for i in range(m):
-                h[i] = part[i]
-            n = m
-        else:
-            n = expansion_sum(h, n, part, m, acc)
-            for i in range(n):
-                h[i] = acc[i]
+        n = expansion_sum(h, n, part, m, acc)
+        for i in range(n):
+            h[i] = acc[i]
     return n
 
 

@@ -8,11 +8,11 @@ factor sqrt(2)), the queue pops from the largest non-empty class, and within a c
 recently pushed element first. New elements come from the insertion just made, so successive
 insertions stay close together in space and in memory.
 
-A queue is a ``state.Queue`` of four arrays: ``head[c]`` is the first entry of class c (-1 if
+A queue is a ``state.Queue`` of five arrays: ``head[c]`` is the first entry of class c (-1 if
 empty); each entry has an ``ident``, an ``aux`` word and the ``next`` entry of its class;
-entries form singly linked stacks and freed entries are recycled. Its scalars live in four
-consecutive slots of the counters array from ``base`` (``state.C_Q_*``): size, the smallest
-class that may be non-empty, the free-list head and the entries ever allocated.
+entries form singly linked stacks and freed entries are recycled. ``scalars`` holds the
+queue's size, the smallest class that may be non-empty, the free-list head and the entries
+ever allocated (slots Q_SIZE, Q_TOP, Q_FREE, Q_USED).
 """
 
 import numpy as np
@@ -41,49 +41,59 @@ def size_class(r2):
 
 
 def new_queue(cap):
+    """An empty queue with room for cap entries."""
     return Queue(
         head=np.full(N_CLASSES, -1, np.int32),
         ident=np.zeros(cap, np.int32),
         aux=np.zeros(cap, np.int32),
         next=np.zeros(cap, np.int32),
+        scalars=np.array([0, N_CLASSES, -1, 0], np.int64),
     )
 
 
-@kernel()
-def queue_init(cnt, base):
-    cnt[base + Q_SIZE] = 0
-    cnt[base + Q_TOP] = N_CLASSES
-    cnt[base + Q_FREE] = -1
-    cnt[base + Q_USED] = 0
+@kernel(nrt=False)
+def queue_clear(q):
+    """Empty the queue (its arrays keep their size)."""
+    q.head[:] = -1
+    q.scalars[Q_SIZE] = 0
+    q.scalars[Q_TOP] = N_CLASSES
+    q.scalars[Q_FREE] = -1
+    q.scalars[Q_USED] = 0
 
 
 @kernel(inline="always")
-def queue_push(q, cnt, base, cls, ident, aux):
-    e = cnt[base + Q_FREE]
+def queue_size(q):
+    return q.scalars[Q_SIZE]
+
+
+@kernel(nrt=False)
+def queue_push(q, cls, ident, aux):
+    """Add (ident, aux) to class cls."""
+    e = q.scalars[Q_FREE]
     if e >= 0:
-        cnt[base + Q_FREE] = q.next[e]
+        q.scalars[Q_FREE] = q.next[e]
     else:
-        e = cnt[base + Q_USED]
-        cnt[base + Q_USED] = e + 1
+        e = q.scalars[Q_USED]
+        q.scalars[Q_USED] = e + 1
     q.ident[e] = ident
     q.aux[e] = aux
     q.next[e] = q.head[cls]
     q.head[cls] = e
-    if cls < cnt[base + Q_TOP]:
-        cnt[base + Q_TOP] = cls
-    cnt[base + Q_SIZE] += 1
+    if cls < q.scalars[Q_TOP]:
+        q.scalars[Q_TOP] = cls
+    q.scalars[Q_SIZE] += 1
 
 
-@kernel(inline="always")
-def queue_pop(q, cnt, base):
+@kernel(nrt=False)
+def queue_pop(q):
     """Remove an entry of the largest class; returns (class, ident, aux). Must not be empty."""
-    c = cnt[base + Q_TOP]
+    c = q.scalars[Q_TOP]
     while q.head[c] < 0:
         c += 1
-    cnt[base + Q_TOP] = c
+    q.scalars[Q_TOP] = c
     e = q.head[c]
     q.head[c] = q.next[e]
-    q.next[e] = cnt[base + Q_FREE]
-    cnt[base + Q_FREE] = e
-    cnt[base + Q_SIZE] -= 1
+    q.next[e] = q.scalars[Q_FREE]
+    q.scalars[Q_FREE] = e
+    q.scalars[Q_SIZE] -= 1
     return c, q.ident[e], q.aux[e]

@@ -48,7 +48,7 @@ import numpy as np
 from .geometry import morton_key, snap
 from .index import count_in_cell, count_in_disk
 from .jit import kernel
-from .queue import N_CLASSES, Q_SIZE, Q_USED, queue_init, queue_pop, queue_push, size_class
+from .queue import N_CLASSES, Q_USED, queue_clear, queue_pop, queue_push, queue_size, size_class
 from .state import (
     C_CELL_TESTS,
     C_CELLS_QUEUED,
@@ -61,9 +61,6 @@ from .state import (
     C_MAX_VERTICES,
     C_NT,
     C_NV,
-    C_Q_BALLS,
-    C_Q_CELLS,
-    C_Q_CLEANS,
     C_SWEEP_MIN,
     INSERT_NOT_IN_SEED,
     P_CLEAN_FLOOR2,
@@ -115,7 +112,7 @@ def is_too_aspect(outradius2, d_m2_sq, prm):
     return 4.0 * outradius2 > prm[P_TAU2] * d_m2_sq
 
 
-@kernel(inline="always")
+@kernel(nrt=False)
 def _touch(v, mesh, book, queues, cnt, prm):
     """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean.
     Reads the triangulation's caches of R(v)^2 and d_{M,2}(v)^2: no walk round v."""
@@ -123,12 +120,12 @@ def _touch(v, mesh, book, queues, cnt, prm):
     if book.cell_state[v] == FLOOR or book.cell_state[v] == FAILED:
         book.cell_state[v] = UNTESTED
     if book.cell_state[v] == UNTESTED and not (book.flags[v] & IN_CELL_QUEUE):
-        queue_push(queues.cells, cnt, C_Q_CELLS, size_class(outradius2), v, 0)
+        queue_push(queues.cells, size_class(outradius2), v, 0)
         book.flags[v] = book.flags[v] | IN_CELL_QUEUE
         cnt[C_CELLS_QUEUED] += 1
     book.flags[v] = book.flags[v] & ~(CLEAN_BELOW_FLOOR | CLEAN_FAILED)
     if is_too_aspect(outradius2, mesh.nearest2[v], prm) and not (book.flags[v] & IN_CLEAN_QUEUE):
-        queue_push(queues.cleans, cnt, C_Q_CLEANS, size_class(outradius2), v, 0)
+        queue_push(queues.cleans, size_class(outradius2), v, 0)
         book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
 
 
@@ -138,15 +135,15 @@ def clean(mesh, book, queues, probe, cnt, prm):
 
     Returns (t, v): insert the circumcenter of triangle t, the far corner of vertex v's cell;
     (-1, -1) when no vertex needs cleaning."""
-    while cnt[C_Q_CLEANS + Q_SIZE] > 0:
-        cls, v, _ = queue_pop(queues.cleans, cnt, C_Q_CLEANS)
+    while queue_size(queues.cleans) > 0:
+        cls, v, _ = queue_pop(queues.cleans)
         book.flags[v] = book.flags[v] & ~IN_CLEAN_QUEUE
         outradius2 = mesh.outradius2[v]
         if not is_too_aspect(outradius2, mesh.nearest2[v], prm):
             continue
         now = size_class(outradius2)
         if now > cls:  # outradius shrank since it was queued: requeue in its true class
-            queue_push(queues.cleans, cnt, C_Q_CLEANS, now, v, 0)
+            queue_push(queues.cleans, now, v, 0)
             book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
             continue
         if outradius2 < prm[P_CLEAN_FLOOR2]:
@@ -156,7 +153,7 @@ def clean(mesh, book, queues, probe, cnt, prm):
     return -1, -1
 
 
-@kernel(inline="always")
+@kernel(nrt=False)
 def count_cell(v, mesh, probe, cnt, prm, index):
     """Points of P in the closed Voronoi cell of v (inflated): exact below k, else some value
     >= k; STAR_OVERFLOW if v has more neighbours than the probe holds."""
@@ -209,8 +206,8 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
     inflate = prm[P_INFLATE]
     centres = mesh.centres
     radius2 = mesh.radius2
-    while cnt[C_Q_BALLS + Q_SIZE] > 0:
-        cls, t, stamp = queue_pop(queues.balls, cnt, C_Q_BALLS)
+    while queue_size(queues.balls) > 0:
+        cls, t, stamp = queue_pop(queues.balls)
         if book.stamps[t] != stamp or book.ball_state[t] != UNTESTED:
             continue
         cnt[C_DISK_TESTS] += 1
@@ -227,15 +224,15 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
         return t, BREAK_BALL, t
     if cnt[C_CELLS_QUEUED] - cnt[C_CELLS_SWEPT] >= cnt[C_SWEEP_MIN]:
         return SWEEP_DUE, 0, -1
-    while cnt[C_Q_CELLS + Q_SIZE] > 0:
-        cls, v, _ = queue_pop(queues.cells, cnt, C_Q_CELLS)
+    while queue_size(queues.cells) > 0:
+        cls, v, _ = queue_pop(queues.cells)
         book.flags[v] = book.flags[v] & ~IN_CELL_QUEUE
         if book.cell_state[v] != UNTESTED:
             continue
         outradius2 = mesh.outradius2[v]
         now = size_class(outradius2)
         if now > cls:
-            queue_push(queues.cells, cnt, C_Q_CELLS, now, v, 0)
+            queue_push(queues.cells, now, v, 0)
             book.flags[v] = book.flags[v] | IN_CELL_QUEUE
             continue
         c = count_cell(v, mesh, probe, cnt, prm, index)
@@ -256,7 +253,7 @@ def cells_to_sweep(mesh, book, queues, cnt, prm):
     """The queued vertices whose cells are untested, in Z-order of their positions (the
     sweep's order); from now on they count as swept."""
     q = queues.cells
-    vertices = np.empty(cnt[C_Q_CELLS + Q_SIZE], np.int32)
+    vertices = np.empty(queue_size(queues.cells), np.int32)
     n = 0
     for c in range(N_CLASSES):
         e = q.head[c]
@@ -293,10 +290,11 @@ def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
 @kernel(nrt=False)
 def queue_all(mesh, book, queues, probe, cnt, prm):
     """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0)."""
-    for base in (C_Q_BALLS, C_Q_CELLS, C_Q_CLEANS):
-        queue_init(cnt, base)
+    queue_clear(queues.balls)
+    queue_clear(queues.cells)
+    queue_clear(queues.cleans)
     for t in range(cnt[C_NT]):
-        queue_push(queues.balls, cnt, C_Q_BALLS, size_class(mesh.radius2[t]), t, book.stamps[t])
+        queue_push(queues.balls, size_class(mesh.radius2[t]), t, book.stamps[t])
     for v in range(cnt[C_NV]):
         _touch(v, mesh, book, queues, cnt, prm)
 
@@ -307,9 +305,9 @@ def needs_growth(mesh, queues, cnt):
     return (
         cnt[C_NV] + 1 > mesh.xy.shape[0]
         or cnt[C_NT] + 2 > mesh.corners.shape[0]
-        or cnt[C_Q_BALLS + Q_USED] + HEADROOM > queues.balls.ident.shape[0]
-        or cnt[C_Q_CELLS + Q_USED] + HEADROOM > queues.cells.ident.shape[0]
-        or cnt[C_Q_CLEANS + Q_USED] + HEADROOM > queues.cleans.ident.shape[0]
+        or queues.balls.scalars[Q_USED] + HEADROOM > queues.balls.ident.shape[0]
+        or queues.cells.scalars[Q_USED] + HEADROOM > queues.cells.ident.shape[0]
+        or queues.cleans.scalars[Q_USED] + HEADROOM > queues.cleans.ident.shape[0]
     )
 
 
@@ -362,7 +360,7 @@ def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps)
         # queue what the insertion changed: the new triangles, the vertices around the cavity
         for e in range(nb):
             s = scratch.cavity[e]
-            queue_push(queues.balls, cnt, C_Q_BALLS, size_class(mesh.radius2[s]), s, book.stamps[s])
+            queue_push(queues.balls, size_class(mesh.radius2[s]), s, book.stamps[s])
         for e in range(nb + 1):
             _touch(scratch.boundary[e, 0] if e < nb else v, mesh, book, queues, cnt, prm)
         steps += 1

@@ -57,7 +57,7 @@ Scratch = namedtuple(
     ],
 )
 
-Queue = namedtuple("Queue", ["head", "ident", "aux", "next"])
+Queue = namedtuple("Queue", ["head", "ident", "aux", "next", "scalars"])
 Queues = namedtuple("Queues", ["balls", "cells", "cleans"])
 
 # the scratch of a vertex-star walk and of a counting query (its stack, a leaf's mask)
@@ -93,9 +93,6 @@ C_LAST_NB = 3  # boundary edges of the last cavity (= its new triangles)
 C_SWEEP_MIN = 4  # cells newly queued that make a sweep worthwhile (refine.sweep_cells)
 C_K = 8  # the k of d_{P,k}
 C_MAX_VERTICES = 9
-C_Q_BALLS = 10  # 10..13: the circumball queue's scalars (size, top class, free list, used)
-C_Q_CELLS = 14  # 14..17: the cell queue's
-C_Q_CLEANS = 18  # 18..21: the clean queue's
 C_DISK_TESTS = 26  # circumball counts made
 C_CELL_TESTS = 27  # cell counts made
 C_FAILED = 28  # insertions refused (the point rounds onto a vertex)

@@ -333,7 +333,7 @@ def _update_vertex_caches(v, mesh, scratch, nb, lx, ly):
     mesh.nearest2[v] = nearest2
 
 
-@kernel(inline="always")
+@kernel(nrt=False)
 def vertex_star(v, mesh, prm, hx, hy):
     """Walk the triangles around vertex v: everything aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) needs.
 
