@@ -12,7 +12,12 @@ from knnrefine.engine import driver
 from knnrefine.engine.geometry import Q, snap
 from knnrefine.engine.index import build_index
 from knnrefine.engine.state import C_NT, C_NV, INSERT_NOT_IN_SEED
-from knnrefine.engine.triangulation import in_circumcircle, insert_vertex, vertex_star
+from knnrefine.engine.triangulation import (
+    circumcentres,
+    in_circumcircle,
+    insert_vertex,
+    vertex_star,
+)
 
 
 def empty_torus(lx, ly):
@@ -54,7 +59,9 @@ def validate(state):
         assert oracle.torus_facts(torus, np.zeros((0, 2)))["empty"]
     # the cached circumcircles agree with the corners
     cc_raw, r_raw = oracle.circumcircles(corners)
-    np.testing.assert_allclose(mesh.centres[:nt], cc_raw, atol=1e-12)
+    centres = circumcentres(mesh, state.prm, np.arange(nt))
+    np.testing.assert_allclose(centres[:, :2], cc_raw, atol=1e-12)
+    np.testing.assert_array_equal(centres[:, 2], mesh.radius2[:nt])
     np.testing.assert_allclose(np.sqrt(mesh.radius2[:nt]), r_raw, rtol=1e-9)
     # validity on the torus: every circumradius below a quarter of the shorter period
     assert r.max() < min(state.lx, state.ly) / 4

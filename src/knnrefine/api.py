@@ -172,6 +172,7 @@ def refine(
             budget,
             m0=m0,
             grid=emb.grid,
+            expected_vertices=min(estimated, budget),
         )
         run.time_index = start.seconds
         # below the engine's resolution limit nothing is split whatever min_size says
@@ -424,20 +425,21 @@ class _Start:
         )
 
 
-def _points_under_floor(res, run, floor_t, floor_v):
+def _points_under_floor(res, run):
     """How many input points lie in a floor element (a circumball, or the disk of radius R(v)
     around a cell's vertex, that holds >= k points below the floor)."""
-    if not (floor_t.any() or floor_v.any()):
+    if not len(res.floor_radii2):
         return 0
-    r2 = np.zeros(len(res.vxy))
-    for c in range(3):
-        np.maximum.at(r2, res.tv[:, c], res.tr2)
-    centres = np.concatenate([res.tcc[floor_t], res.vxy[floor_v]])
-    radii2 = np.concatenate([res.tr2[floor_t], r2[floor_v]]) * (1.0 + 1e-9)
     mark = np.zeros(run.n, np.bool_)
     return int(
         mark_in_disks(
-            run.index, centres[:, 0].copy(), centres[:, 1].copy(), radii2, run.lx, run.ly, mark
+            run.index,
+            res.floor_centres[:, 0].copy(),
+            res.floor_centres[:, 1].copy(),
+            res.floor_radii2 * (1.0 + 1e-9),
+            run.lx,
+            run.ly,
+            mark,
         )
     )
 
@@ -448,11 +450,9 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
     report.assembling(run.vertices)
     interrupts.check()
     L = np.array(emb.period_internal)
-    floor_t = res.tstate == R.FLOOR
-    floor_v = res.vcell == R.FLOOR
-    floor_int = np.concatenate([res.tcc[floor_t], res.vxy[floor_v]])
+    floor_int = res.floor_centres
     floor_pts = emb.to_input(wrap(floor_int, L)) if len(floor_int) else np.zeros((0, 2))
-    under = _points_under_floor(res, run, floor_t, floor_v)
+    under = _points_under_floor(res, run)
     report.assembling(run.vertices)
     stats = {
         "n": run.n,
@@ -460,9 +460,9 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
         "m_torus": int(res.vxy.shape[0]),
         "triangles": int(len(tri)),
         **res.counters,
-        "floor_circumballs": int(floor_t.sum()),
-        "floor_cells": int(floor_v.sum()),
-        "clean_floor": int(np.count_nonzero(res.vflag & R.CLEAN_BELOW_FLOOR)),
+        "floor_circumballs": res.floor_balls,
+        "floor_cells": len(res.floor_radii2) - res.floor_balls,
+        "clean_floor": res.clean_floor,
         "points_under_floor": under,
         "m0": m0_stats,
     }

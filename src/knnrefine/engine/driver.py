@@ -46,25 +46,30 @@ from .state import (
     grow,
     grown,
 )
-from .triangulation import MAX_CAVITY, set_all_circumcircles, set_vertex_caches
+from .triangulation import (
+    LINK_SIZE,
+    MAX_CAVITY,
+    circumcentres,
+    set_all_circumcircles,
+    set_vertex_caches,
+)
 
 MAX_DEGREE = 4096  # scratch for a vertex's neighbours; a well-spaced mesh has degree < 20
 
 
 @dataclass
 class RunResult:
-    """What a refinement produced, in internal coordinates."""
+    """What a refinement produced, in internal coordinates (views of the engine's arrays)."""
 
     vxy: np.ndarray  # (m, 2) vertices
     kind: np.ndarray  # (m,) int8, refine.INITIAL ... refine.CLEAN
     tv: np.ndarray  # (2m, 3) triangle corners
     tn: np.ndarray  # (2m, 3) neighbours
     to: np.ndarray  # (2m, 3, 2) corner offsets
-    tcc: np.ndarray  # (2m, 2) circumcenters (triangle frame)
-    tr2: np.ndarray  # (2m,) squared circumradii
-    tstate: np.ndarray  # (2m,) circumball states
-    vcell: np.ndarray  # (m,) cell states
-    vflag: np.ndarray  # (m,) flags (Clean floor)
+    floor_centres: np.ndarray  # (f, 2) centres of the floor circumballs, then floor cells' vertices
+    floor_radii2: np.ndarray  # (f,) their squared radii (circumradius; R(v) for a cell)
+    floor_balls: int  # how many of them are circumballs
+    clean_floor: int  # vertices whose Clean was below the Clean floor
     counters: dict = field(default_factory=dict)
     status: str = "done"
 
@@ -74,10 +79,13 @@ class Refinement:
 
     SWEEP_MIN = 1024  # cells newly queued that make a bulk sweep worthwhile (refine.py)
 
-    def __init__(self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q):
+    def __init__(
+        self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q, expected_vertices=0
+    ):
         """index: the counting kd-tree over P in internal coordinates (``build_index``); m0:
         the initial mesh (xy, corners, offsets, neighbours) on the grid step ``grid``, by
-        default ``initial.initial_grid(lx, ly)``. Elements smaller than 2^14 grid (the
+        default ``initial.initial_grid(lx, ly)``; expected_vertices: the size estimate, which
+        sizes the arrays (``size.estimate``). Elements smaller than 2^14 grid (the
         resolution floor) or than min_size are never split."""
         self.lx = lx
         self.ly = ly
@@ -87,7 +95,9 @@ class Refinement:
         self.grid = grid
         clean_floor = grid * 2.0**FLOOR_BITS
         m0 = xy.shape[0]
-        cap_v = max(1024, 4 * m0)
+        # first sizes: 0.6 of the estimate (an overestimate of up to 1.7x costs nothing),
+        # then growth by a quarter
+        cap_v = max(1024, 4 * m0, int(0.6 * expected_vertices))
         cap_t = 2 * cap_v
         star = np.zeros(cap_v, np.int32)
         star[corners[:, 0]] = np.arange(corners.shape[0], dtype=np.int32)
@@ -96,7 +106,6 @@ class Refinement:
             corners=grown(corners, cap_t),
             neighbours=grown(neighbours, cap_t),
             offsets=grown(offsets, cap_t),
-            centres=np.zeros((cap_t, 2)),
             radius2=np.zeros(cap_t),
             xy=grown(xy, cap_v),
             star=star,
@@ -104,7 +113,6 @@ class Refinement:
             nearest2=np.zeros(cap_v),
         )
         self.book = Bookkeeping(
-            stamps=np.zeros(cap_t, np.int32),
             ball_state=np.zeros(cap_t, np.int8),
             kinds=np.zeros(cap_v, np.int8),
             cell_state=np.zeros(cap_v, np.int8),
@@ -112,16 +120,13 @@ class Refinement:
         )
         self.scratch = Scratch(
             mark=np.zeros(cap_t, np.int32),
-            slot_a=np.zeros(cap_v, np.int32),
-            slot_b=np.zeros(cap_v, np.int32),
             cavity=np.zeros(MAX_CAVITY + 2, np.int32),
             cavity_shift=np.zeros((MAX_CAVITY + 2, 2), np.int64),
             boundary=np.zeros((MAX_CAVITY + 2, 4), np.int32),
             boundary_offsets=np.zeros((MAX_CAVITY + 2, 4), np.int64),
+            link=np.zeros((LINK_SIZE, 2), np.int64),
         )
-        self.queues = Queues(
-            balls=new_queue(cap_t), cells=new_queue(cap_v), cleans=new_queue(cap_v)
-        )
+        self.queues = Queues(balls=new_queue(cap_v), cells=new_queue(cap_v), cleans=new_queue(1024))
         self.probe = Probe(
             hx=np.zeros(MAX_DEGREE),
             hy=np.zeros(MAX_DEGREE),
@@ -148,25 +153,25 @@ class Refinement:
         set_vertex_caches(self.mesh, self.prm, m0)
         R.queue_all(self.mesh, self.book, self.queues, self.probe, self.cnt, self.prm)
 
+    GROWTH = 1.25  # capacity factor when an array runs full
+
     def _grow_if_needed(self):
-        """Double every array that could overflow during the next insertion: the vertex and
-        triangle fields of every structure (``state.VERTEX_FIELDS``, ``TRIANGLE_FIELDS``), and
-        a queue's entries when its headroom runs out."""
+        """Grow, by GROWTH, every array that could overflow during the next insertion: the
+        vertex and triangle fields of every structure (``state.VERTEX_FIELDS``,
+        ``TRIANGLE_FIELDS``), and a queue's entries when its headroom runs out."""
         nv, nt = self.cnt[C_NV], self.cnt[C_NT]
-        structures = {"mesh": self.mesh, "book": self.book, "scratch": self.scratch}
-        if nv + 1 > self.mesh.xy.shape[0]:
-            structures = grow(structures, VERTEX_FIELDS, 2 * self.mesh.xy.shape[0])
+        cap_v = self.mesh.xy.shape[0]
+        if nv + 1 > cap_v:
+            grow(self, VERTEX_FIELDS, int(self.GROWTH * cap_v) + 1)
         if nt + 2 > self.mesh.corners.shape[0]:
-            structures = grow(structures, TRIANGLE_FIELDS, 2 * self.mesh.corners.shape[0])
-        self.mesh = structures["mesh"]
-        self.book = structures["book"]
-        self.scratch = structures["scratch"]
+            grow(self, TRIANGLE_FIELDS, 2 * self.mesh.xy.shape[0])
         queues = {}
         for name in Queues._fields:
             q = getattr(self.queues, name)
             if q.scalars[Q_USED] + R.HEADROOM > q.ident.shape[0]:
-                n = 2 * q.ident.shape[0]
-                q = q._replace(ident=grown(q.ident, n), aux=grown(q.aux, n), next=grown(q.next, n))
+                n = int(self.GROWTH * q.ident.shape[0]) + R.HEADROOM
+                for part in ("ident", "aux", "next"):
+                    q = q._replace(**{part: grown(getattr(q, part), n)})
             queues[name] = q
         self.queues = Queues(**queues)
 
@@ -268,19 +273,25 @@ class Refinement:
         }
 
     def result(self):
+        """The mesh as views of the engine's arrays, which are given up: the queues, scratch
+        and caches are freed here, before the caller assembles its copies."""
         nv, nt = self.vertices, int(self.cnt[C_NT])
         counters = self.counters()
         mesh, book = self.mesh, self.book
-        return RunResult(
-            vxy=mesh.xy[:nv].copy(),
-            kind=book.kinds[:nv].copy(),
-            tv=mesh.corners[:nt].copy(),
-            tn=mesh.neighbours[:nt].copy(),
-            to=mesh.offsets[:nt].copy(),
-            tcc=mesh.centres[:nt].copy(),
-            tr2=mesh.radius2[:nt].copy(),
-            tstate=book.ball_state[:nt].copy(),
-            vcell=book.cell_state[:nv].copy(),
-            vflag=book.flags[:nv].copy(),
+        floor_t = np.flatnonzero(book.ball_state[:nt] == R.FLOOR)
+        floor_v = np.flatnonzero(book.cell_state[:nv] == R.FLOOR)
+        centres = circumcentres(mesh, self.prm, floor_t)
+        res = RunResult(
+            vxy=mesh.xy[:nv],
+            kind=book.kinds[:nv],
+            tv=mesh.corners[:nt],
+            tn=mesh.neighbours[:nt],
+            to=mesh.offsets[:nt],
+            floor_centres=np.concatenate([centres[:, :2], mesh.xy[floor_v]]),
+            floor_radii2=np.concatenate([centres[:, 2], mesh.outradius2[floor_v]]),
+            floor_balls=len(floor_t),
+            clean_floor=int(np.count_nonzero(book.flags[:nv] & R.CLEAN_BELOW_FLOOR)),
             counters=counters,
         )
+        self.mesh = self.book = self.queues = self.scratch = self.probe = None
+        return res

@@ -14,7 +14,8 @@ the largest class. That keeps successive insertions close together, in space and
 
 * circumballs: every triangle is pushed once, when it is created, and tested when popped. A
   triangle never changes, so a tested one is settled for good (stale entries of triangles
-  destroyed meanwhile are recognised by their stamp and dropped).
+  destroyed meanwhile are recognised by their apex, the vertex whose insertion made them,
+  and dropped).
 * cells: a vertex is pushed when created; a Voronoi cell only shrinks as vertices are added, so
   a cell found to hold < k points is settled for good. R(v) never grows either, so an entry
   whose class is out of date is pushed back in its current class when popped.
@@ -39,7 +40,7 @@ resolution. The kernel returns after ``max_steps`` insertions or when the arrays
 so the Python driver can report progress, enforce budgets and react to Ctrl-C.
 
 The kernels take the named structures of ``state.py``: ``mesh`` (the triangulation),
-``book`` (this module's marks: ball and cell states, kinds, flags, stamps), ``queues``,
+``book`` (this module's marks: ball and cell states, kinds, flags), ``queues``,
 ``scratch`` (the insertion's) and ``probe`` (a star walk's and a count's scratch).
 """
 
@@ -72,7 +73,7 @@ from .state import (
     P_TAU2,
     STAR_OVERFLOW,
 )
-from .triangulation import far_corner, insert_vertex, vertex_star
+from .triangulation import circumcentre, far_corner, insert_vertex, vertex_star
 
 # vertex kinds (insertion moves)
 INITIAL = 0
@@ -204,18 +205,14 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
     lx = prm[P_LX]
     ly = prm[P_LY]
     inflate = prm[P_INFLATE]
-    centres = mesh.centres
     radius2 = mesh.radius2
     while queue_size(queues.balls) > 0:
-        cls, t, stamp = queue_pop(queues.balls)
-        if book.stamps[t] != stamp or book.ball_state[t] != UNTESTED:
-            continue
+        cls, t, apex = queue_pop(queues.balls)
+        if mesh.corners[t, 0] != apex or book.ball_state[t] != UNTESTED:
+            continue  # a stale entry: slot t holds another triangle now, or was tested
         cnt[C_DISK_TESTS] += 1
-        circumball = radius2[t] * inflate
-        if (
-            count_in_disk(index, centres[t, 0], centres[t, 1], circumball, k, lx, ly, probe.stack)
-            < k
-        ):
+        cx, cy, r2 = circumcentre(mesh, prm, t)
+        if count_in_disk(index, cx, cy, radius2[t] * inflate, k, lx, ly, probe.stack) < k:
             book.ball_state[t] = GOOD
             continue
         if radius2[t] < prm[P_FLOOR2]:
@@ -294,7 +291,7 @@ def queue_all(mesh, book, queues, probe, cnt, prm):
     queue_clear(queues.cells)
     queue_clear(queues.cleans)
     for t in range(cnt[C_NT]):
-        queue_push(queues.balls, size_class(mesh.radius2[t]), t, book.stamps[t])
+        queue_push(queues.balls, size_class(mesh.radius2[t]), t, mesh.corners[t, 0])
     for v in range(cnt[C_NV]):
         _touch(v, mesh, book, queues, cnt, prm)
 
@@ -333,8 +330,9 @@ def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps)
             if t < -1:
                 cnt[C_ERROR] = t
                 return STATUS_ERROR
-        px = snap(mesh.centres[t, 0], q)
-        py = snap(mesh.centres[t, 1], q)
+        cx, cy, r2 = circumcentre(mesh, prm, t)
+        px = snap(cx, q)
+        py = snap(cy, q)
         v = insert_vertex(px, py, t, mesh, scratch, cnt, prm)
         if v == INSERT_NOT_IN_SEED:  # the split point rounds onto an existing vertex
             cnt[C_FAILED] += 1
@@ -353,14 +351,12 @@ def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps)
         book.cell_state[v] = UNTESTED
         book.flags[v] = 0
         nb = cnt[C_LAST_NB]
+        # queue what the insertion changed: the new triangles (identified by their apex v:
+        # a slot reused later gets another apex), the vertices around the cavity
         for e in range(nb):
             s = scratch.cavity[e]
-            book.stamps[s] += 1
             book.ball_state[s] = UNTESTED
-        # queue what the insertion changed: the new triangles, the vertices around the cavity
-        for e in range(nb):
-            s = scratch.cavity[e]
-            queue_push(queues.balls, size_class(mesh.radius2[s]), s, book.stamps[s])
+            queue_push(queues.balls, size_class(mesh.radius2[s]), s, mesh.corners[s, 0])
         for e in range(nb + 1):
             _touch(scratch.boundary[e, 0] if e < nb else v, mesh, book, queues, cnt, prm)
         steps += 1

@@ -10,8 +10,9 @@ and read by field (``mesh.neighbours[t, i]``):
 * ``Queues``: three bucket queues (``queue.py``), each a ``Queue``.
 
 Counters (int64) and parameters (float64) live in two small arrays whose slots are named
-here, in one table. Arrays grow by doubling along the vertex axis or the triangle axis;
-``VERTEX_FIELDS`` and ``TRIANGLE_FIELDS`` say which field grows along which.
+here, in one table. Arrays grow along the vertex axis or the triangle axis, by a quarter at a
+time from a first size taken from the size estimate; ``VERTEX_FIELDS`` and
+``TRIANGLE_FIELDS`` say which field grows along which.
 """
 
 from collections import namedtuple
@@ -24,7 +25,6 @@ TorusMesh = namedtuple(
         "corners",  # (T, 3) int32: the vertex at each corner, counter-clockwise
         "neighbours",  # (T, 3) int32: the triangle across the edge opposite each corner
         "offsets",  # (T, 3, 2) int8: each corner's periodic offset (minimum 0 per axis)
-        "centres",  # (T, 2) float64: circumcentre, in the triangle's own frame
         "radius2",  # (T,) float64: squared circumradius
         "xy",  # (V, 2) float64: vertex positions on the grid, in [0, lx) x [0, ly)
         "star",  # (V,) int32: one triangle at each vertex (where a walk round it starts)
@@ -36,7 +36,6 @@ TorusMesh = namedtuple(
 Bookkeeping = namedtuple(
     "Bookkeeping",
     [
-        "stamps",  # (T,) int32: changes whenever a triangle slot is reused (stale queue entries)
         "ball_state",  # (T,) int8: UNTESTED, GOOD, FLOOR or FAILED (its closed circumball)
         "kinds",  # (V,) int8: how each vertex arrived (INITIAL ... CLEAN)
         "cell_state",  # (V,) int8: UNTESTED, GOOD, FLOOR or FAILED (its closed Voronoi cell)
@@ -48,12 +47,11 @@ Scratch = namedtuple(
     "Scratch",
     [
         "mark",  # (T,) int32: insertion stamp of the triangles already in the cavity
-        "slot_a",  # (V,) int32: new triangle whose edge starts at a vertex (fan linking)
-        "slot_b",  # (V,) int32: new triangle whose edge ends at a vertex
         "cavity",  # (C,) int32: the cavity's triangles, then the new triangles' slots
         "cavity_shift",  # (C, 2) int64: each cavity triangle's shift relative to the seed
         "boundary",  # (C, 4) int32: boundary edges: head, tail, outer triangle, its index
         "boundary_offsets",  # (C, 4) int64: the boundary edge's corner offsets
+        "link",  # (L, 2) int64: the fan's boundary edges by first vertex (a hash table)
     ],
 )
 
@@ -71,16 +69,12 @@ VERTEX_FIELDS = (
     ("book", "kinds"),
     ("book", "cell_state"),
     ("book", "flags"),
-    ("scratch", "slot_a"),
-    ("scratch", "slot_b"),
 )
 TRIANGLE_FIELDS = (
     ("mesh", "corners"),
     ("mesh", "neighbours"),
     ("mesh", "offsets"),
-    ("mesh", "centres"),
     ("mesh", "radius2"),
-    ("book", "stamps"),
     ("book", "ball_state"),
     ("scratch", "mark"),
 )
@@ -131,10 +125,11 @@ def grown(array, size):
     return out
 
 
-def grow(structures, fields, size):
-    """The structures ({name: namedtuple}) with the listed (structure, field) arrays grown
-    to ``size`` rows."""
-    out = dict(structures)
+def grow(owner, fields, size):
+    """Grow the listed (structure, field) arrays of ``owner`` (an object whose attributes are
+    the structures) to ``size`` rows, one at a time: each old array is freed before the next
+    is copied, so growing costs one array's worth of extra memory, not the structures'."""
     for name, field in fields:
-        out[name] = out[name]._replace(**{field: grown(getattr(out[name], field), size)})
-    return out
+        structure = getattr(owner, name)
+        setattr(owner, name, structure._replace(**{field: grown(getattr(structure, field), size)}))
+        del structure

@@ -4,8 +4,10 @@ Data structure (CGAL's periodic design, see ``docs/data-structure.md``): triangl
 vertices ``tv[t, i]``, three neighbours ``tn[t, i]`` (neighbour i lies across the edge
 opposite corner i) and an integer offset per corner ``to[t, i] = (ox, oy)``: the corner sits at
 ``vxy[tv[t, i]] + (ox * lx, oy * ly)``. Offsets are normalised so that their minimum over the
-three corners is 0 on each axis. Corners are counter-clockwise. ``tcc[t]`` and ``tr2[t]`` cache
-the circumcenter (in the triangle's own frame) and the squared circumradius.
+three corners is 0 on each axis. Corners are counter-clockwise. ``radius2[t]`` caches the squared
+circumradius; the circumcentre is recomputed from the corners where it is needed
+(``circumcentre``, in the triangle's own frame), which costs less than its 16 bytes per
+triangle of memory traffic.
 
 Vertices ``vxy`` lie on the grid q of ``geometry`` inside the fundamental domain, and the
 periods are multiples of q, so every realised corner is exact and the exact predicates give
@@ -51,6 +53,7 @@ from .state import (
 )
 
 MAX_CAVITY = 1024  # triangles in one cavity; far beyond anything a refinement meets
+LINK_SIZE = 4096  # the fan's link table: a power of two above twice the largest boundary
 
 
 @kernel(inline="always")
@@ -64,17 +67,30 @@ def corner(mesh, t, i, sx, sy, lx, ly):
 
 
 @kernel(inline="always")
-def set_circumcircle(mesh, prm, t):
-    """Cache triangle t's circumcentre (its own frame) and squared circumradius."""
+def circumcentre(mesh, prm, t):
+    """Circumcentre (x, y) of triangle t, in its own frame, and its squared circumradius."""
     lx = prm[P_LX]
     ly = prm[P_LY]
     ax, ay = corner(mesh, t, 0, 0, 0, lx, ly)
     bx, by = corner(mesh, t, 1, 0, 0, lx, ly)
     cx, cy = corner(mesh, t, 2, 0, 0, lx, ly)
-    ux, uy, r2 = circumcircle(ax, ay, bx, by, cx, cy)
-    mesh.centres[t, 0] = ux
-    mesh.centres[t, 1] = uy
-    mesh.radius2[t] = r2
+    return circumcircle(ax, ay, bx, by, cx, cy)
+
+
+@kernel(inline="always")
+def set_circumcircle(mesh, prm, t):
+    """Cache triangle t's squared circumradius."""
+    mesh.radius2[t] = circumcentre(mesh, prm, t)[2]
+
+
+@kernel()
+def circumcentres(mesh, prm, triangles):
+    """(len(triangles), 3): the circumcentre (x, y) of each listed triangle, in its own frame,
+    and its squared circumradius."""
+    out = np.empty((triangles.shape[0], 3))
+    for i in range(triangles.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = circumcentre(mesh, prm, triangles[i])
+    return out
 
 
 @kernel(nrt=False)
@@ -284,18 +300,43 @@ def insert_vertex(px, py, seed, mesh, scratch, cnt, prm):
         n = bnd[e, 2]
         neighbours[s, 0] = n
         neighbours[n, bnd[e, 3]] = s
-        scratch.slot_a[a] = s
-        scratch.slot_b[b] = s
+        _link_put(scratch.link, stamp, a, e)
         mesh.star[a] = s
+    # the new triangle over edge (a, b) meets, across (v, b), the one over the edge from b
     for e in range(nb):
         s = cav[e]
-        neighbours[s, 1] = scratch.slot_a[corners[s, 2]]
-        neighbours[s, 2] = scratch.slot_b[corners[s, 1]]
+        f = cav[_link_get(scratch.link, stamp, corners[s, 2])]
+        neighbours[s, 1] = f
+        neighbours[f, 2] = s
         set_circumcircle(mesh, prm, s)
     mesh.star[v] = cav[0]
     _update_vertex_caches(v, mesh, scratch, nb, lx, ly)
     cnt[C_LAST_NB] = nb
     return v
+
+
+@kernel(inline="always")
+def _link_slot(link, stamp, a):
+    """Slot of vertex a in the link table for this insertion (open addressing; entries of
+    earlier insertions count as free)."""
+    size = link.shape[0]
+    h = (a * 2654435761) & (size - 1)
+    key = (stamp << 32) | a
+    while link[h, 0] >> 32 == stamp and link[h, 0] != key:
+        h = (h + 1) & (size - 1)
+    return h, key
+
+
+@kernel(inline="always")
+def _link_put(link, stamp, a, e):
+    h, key = _link_slot(link, stamp, a)
+    link[h, 0] = key
+    link[h, 1] = e
+
+
+@kernel(inline="always")
+def _link_get(link, stamp, a):
+    return link[_link_slot(link, stamp, a)[0], 1]
 
 
 @kernel(inline="always")
