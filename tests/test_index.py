@@ -165,3 +165,38 @@ def test_tree_is_a_partition():
             assert left.max() <= split[t] <= right.min()
         else:
             assert hi - lo <= LEAF_SIZE or np.all(inside == inside[0])
+
+
+def _preorder(index):
+    """The tree as a list of (rows, box, split, axis) in depth-first order: what a query sees,
+    whatever the nodes' numbering."""
+    _, box, node, split = index
+    out, stack = [], [0]
+    while stack:
+        t = stack.pop()
+        lo, hi, c, axis = node[t]
+        if c >= 0:
+            out.append((lo, hi, tuple(box[t]), split[t], axis))
+            stack += [c + 1, c]
+        else:
+            out.append((lo, hi, tuple(box[t]), None, None))
+    return out
+
+
+@pytest.mark.parametrize("workers", [2, 3, 4, 8])
+def test_parallel_build_is_the_one_thread_tree(workers, monkeypatch):
+    """Subtrees built by threads give the same permutation and nodes as one thread, also where
+    coincident points stop splitting early (gaps in the node blocks, closed afterwards)."""
+    import knnrefine.engine.index as I
+
+    monkeypatch.setattr(I, "PARALLEL_MIN", 0)
+    rng = np.random.default_rng(workers)
+    sets = list(point_sets(rng))[2:] + [("big", rng.random((150_000, 2)))]
+    for name, pts in sets:
+        one = build_index(pts.copy(), workers=1)
+        many = build_index(pts.copy(), workers=workers)
+        assert np.array_equal(one[0], many[0]), name
+        assert len(one[2]) == len(many[2]), name
+        assert _preorder(one) == _preorder(many), name
+        # every node reachable exactly once: no stale block left behind
+        assert len(_preorder(many)) == len(many[2]), name

@@ -181,3 +181,33 @@ def test_cell_sweep_leaves_the_mesh_unchanged(kind, monkeypatch):
     assert swept.stats["cell_tests"] != unswept.stats["cell_tests"]  # the sweep did run
     np.testing.assert_array_equal(swept.vertices, unswept.vertices)
     np.testing.assert_array_equal(swept.triangles, unswept.triangles)
+
+
+@pytest.mark.parametrize("threads", ["1", "3"])
+def test_threads_leave_the_mesh_unchanged(threads, monkeypatch):
+    """The index is built and cells are swept by threads (engine.threads): any number of them
+    gives the same mesh and the same counts as the default."""
+    import knnrefine.engine.index as I
+
+    rng = np.random.default_rng(6)
+    centres = rng.random((8, 2))
+    points = np.clip(centres[rng.integers(0, 8, 20000)] + rng.normal(0, 0.01, (20000, 2)), 0, 1)
+    monkeypatch.setattr(I, "PARALLEL_MIN", 0)
+    monkeypatch.setattr(driver.Refinement, "SWEEP_PER_THREAD", 16)
+    default = knnrefine.refine(points, 5)
+    monkeypatch.setenv("KNNREFINE_THREADS", threads)
+    other = knnrefine.refine(points, 5)
+    np.testing.assert_array_equal(default.vertices, other.vertices)
+    np.testing.assert_array_equal(default.triangles, other.triangles)
+    for key in ("disk_tests", "cell_tests", "moves"):
+        assert default.stats[key] == other.stats[key], key
+
+
+def test_knnrefine_threads_must_be_a_number(monkeypatch):
+    from knnrefine.engine.threads import workers
+
+    monkeypatch.setenv("KNNREFINE_THREADS", "two")
+    with pytest.raises(ValueError, match="KNNREFINE_THREADS"):
+        workers()
+    monkeypatch.setenv("KNNREFINE_THREADS", "0")
+    assert workers() == 1

@@ -46,6 +46,8 @@ from .state import (
     grow,
     grown,
 )
+from .threads import run_all
+from .threads import workers as thread_count
 from .triangulation import (
     LINK_SIZE,
     MAX_CAVITY,
@@ -72,6 +74,17 @@ class RunResult:
     clean_floor: int  # vertices whose Clean was below the Clean floor
     counters: dict = field(default_factory=dict)
     status: str = "done"
+
+
+def new_probe():
+    """A counting query's working arrays (one per thread that counts)."""
+    return Probe(
+        hx=np.zeros(MAX_DEGREE),
+        hy=np.zeros(MAX_DEGREE),
+        hc=np.zeros(MAX_DEGREE),
+        stack=np.zeros(STACK_SIZE, np.int64),
+        mask=np.zeros(LEAF_SIZE, np.bool_),
+    )
 
 
 class Refinement:
@@ -127,13 +140,7 @@ class Refinement:
             link=np.zeros((LINK_SIZE, 2), np.int64),
         )
         self.queues = Queues(balls=new_queue(cap_v), cells=new_queue(cap_v), cleans=new_queue(1024))
-        self.probe = Probe(
-            hx=np.zeros(MAX_DEGREE),
-            hy=np.zeros(MAX_DEGREE),
-            hc=np.zeros(MAX_DEGREE),
-            stack=np.zeros(STACK_SIZE, np.int64),
-            mask=np.zeros(LEAF_SIZE, np.bool_),
-        )
+        self.probe = new_probe()
         self.cnt = np.zeros(N_COUNTERS, np.int64)
         self.cnt[C_NV] = m0
         self.cnt[C_NT] = corners.shape[0]
@@ -154,6 +161,7 @@ class Refinement:
         R.queue_all(self.mesh, self.book, self.queues, self.probe, self.cnt, self.prm)
 
     GROWTH = 1.25  # capacity factor when an array runs full
+    SWEEP_PER_THREAD = 4096  # fewer cells than this per thread are swept by one
 
     def _grow_if_needed(self):
         """Grow, by GROWTH, every array that could overflow during the next insertion: the
@@ -229,19 +237,27 @@ class Refinement:
                     steps = max(1, min(steps, int(rate * (deadline - now)) + 1))
 
     def _sweep(self, progress, interrupts, deadline, chunk=50_000):
-        """Settle the queued cells in bulk (``refine.sweep_cells``), a chunk per kernel call.
-        Returns STATUS_ERROR (with the code in the counters) or STATUS_STEPS."""
+        """Settle the queued cells in bulk (``refine.sweep_cells``), a chunk per kernel call,
+        each chunk split between the engine's threads (``threads.workers()``): the sweep only
+        reads the mesh, so the result is the same with any number of threads. Returns
+        STATUS_ERROR (with the code in the counters) or STATUS_STEPS."""
         order = R.cells_to_sweep(self.mesh, self.book, self.queues, self.cnt, self.prm)
+        threads = min(thread_count(), max(1, len(order) // self.SWEEP_PER_THREAD))
+        probes = [self.probe] + [new_probe() for _ in range(threads - 1)]
         for i in range(0, len(order), chunk):
-            code = R.sweep_cells(
-                order[i : i + chunk],
-                self.mesh,
-                self.book,
-                self.probe,
-                self.cnt,
-                self.prm,
-                self.index,
-            )
+            parts = np.array_split(order[i : i + chunk], threads)
+            before = self.cnt.copy()
+            counts = [before.copy() for _ in range(threads)]
+
+            def sweep(j, parts=parts, counts=counts):
+                return R.sweep_cells(
+                    parts[j], self.mesh, self.book, probes[j], counts[j], self.prm, self.index
+                )
+
+            codes = run_all(sweep, threads)
+            for c in counts:  # what each thread added to the counters
+                self.cnt += c - before
+            code = min(codes)
             if code < 0:
                 self.cnt[C_ERROR] = code
                 return R.STATUS_ERROR

@@ -25,6 +25,8 @@ descends while its region lies strictly on one side of the split, then counts fr
 import numpy as np
 
 from .jit import kernel
+from .threads import run_all
+from .threads import workers as thread_count
 
 LEAF_SIZE = 32
 STACK_SIZE = 128  # > 2 * tree depth for any n that fits in memory
@@ -85,25 +87,27 @@ def _node_bound(n):
     return count
 
 
-@kernel()
-def build_index(pts):
-    """Build the kd-tree over the (n, 2) array pts, which it permutes in place and keeps."""
-    n = pts.shape[0]
-    cap = _node_bound(n)
-    box = np.empty((cap, 4))
-    node = np.empty((cap, 4), np.int64)
-    split = np.zeros(cap)
-    node[0, 0] = 0
-    node[0, 1] = n
-    nnodes = 1
+@kernel(nogil=True)
+def _build(pts, box, node, split, root, free, levels, frontier):
+    """Split node ``root`` (its row range set) and its descendants, numbering new nodes from
+    ``free``. Nodes ``levels`` below the root are not split but listed in ``frontier`` (their
+    subtrees are built separately, possibly in parallel). Returns (next free node, frontier
+    length)."""
     stack = np.empty(STACK_SIZE, np.int64)
-    stack[0] = 0
+    depth = np.empty(STACK_SIZE, np.int64)
+    stack[0] = root
+    depth[0] = 0
     sp = 1
+    nf = 0
     while sp > 0:
         sp -= 1
         t = stack[sp]
         a = node[t, 0]
         b = node[t, 1]
+        if depth[sp] == levels and b - a > LEAF_SIZE:
+            frontier[nf] = t
+            nf += 1
+            continue
         x0 = np.inf
         y0 = np.inf
         x1 = -np.inf
@@ -125,8 +129,8 @@ def build_index(pts):
         mid = (a + b) >> 1
         axis = 0 if x1 - x0 >= y1 - y0 else 1
         _select(pts, axis, a, b, mid)
-        c = nnodes
-        nnodes += 2
+        c = free
+        free += 2
         node[t, 2] = c
         node[t, 3] = axis
         split[t] = pts[mid, axis]
@@ -134,9 +138,81 @@ def build_index(pts):
         node[c, 1] = mid
         node[c + 1, 0] = mid
         node[c + 1, 1] = b
+        below = depth[sp] + 1
         stack[sp] = c
         stack[sp + 1] = c + 1
+        depth[sp] = below
+        depth[sp + 1] = below
         sp += 2
+    return free, nf
+
+
+@kernel()
+def _close_gaps(box, node, split, starts, ends):
+    """Move the node blocks [starts[j], ends[j]) (ascending, disjoint) down so that each
+    follows the previous one, and renumber the child links into them. Returns the node
+    count."""
+    nb = starts.shape[0]
+    shift = np.zeros(nb, np.int64)
+    to = starts[0]
+    for j in range(nb):
+        shift[j] = starts[j] - to
+        for t in range(starts[j], ends[j]):
+            u = t - shift[j]
+            for c in range(4):
+                box[u, c] = box[t, c]
+                node[u, c] = node[t, c]
+            split[u] = split[t]
+        to += ends[j] - starts[j]
+    for u in range(to):
+        c = node[u, 2]
+        if c < 0:
+            continue
+        for j in range(nb):
+            if starts[j] <= c < ends[j]:
+                node[u, 2] = c - shift[j]
+    return to
+
+
+PARALLEL_MIN = 100_000  # points; below this one thread builds faster than two start
+
+
+def build_index(pts, workers=None):
+    """Build the kd-tree over the (n, 2) array pts, which it permutes in place and keeps.
+
+    The top levels are split here; the subtrees below them are built by ``workers`` threads
+    (default: ``threads.workers()``) when there are at least PARALLEL_MIN points.
+    The permutation and every node's rows, box and split are those of a one-thread build;
+    only the nodes' numbering differs."""
+    n = pts.shape[0]
+    workers = max(1, thread_count() if workers is None else int(workers))
+    levels = workers.bit_length() - 1 if n >= PARALLEL_MIN else 0
+    cap = _node_bound(n)
+    box = np.empty((cap, 4))
+    node = np.empty((cap, 4), np.int64)
+    split = np.zeros(cap)
+    node[0, 0] = 0
+    node[0, 1] = n
+    frontier = np.empty(max(1, 1 << levels), np.int64)
+    if levels == 0:
+        nnodes, _ = _build(pts, box, node, split, 0, 1, -1, frontier)
+        return pts, box[:nnodes], node[:nnodes], split[:nnodes]
+    top, nf = _build(pts, box, node, split, 0, 1, levels, frontier)
+    roots = frontier[:nf]
+    starts = np.empty(nf + 1, np.int64)
+    starts[0] = 0
+    base = top
+    for j, r in enumerate(roots):
+        starts[j + 1] = base
+        base += _node_bound(int(node[r, 1] - node[r, 0])) - 1
+    ends = np.empty(nf + 1, np.int64)
+    ends[0] = top
+
+    def subtree(j):
+        return _build(pts, box, node, split, roots[j], starts[j + 1], -1, frontier[:0])[0]
+
+    ends[1:] = run_all(subtree, nf)
+    nnodes = _close_gaps(box, node, split, starts, ends)
     return pts, box[:nnodes], node[:nnodes], split[:nnodes]
 
 

@@ -268,10 +268,12 @@ def cells_to_sweep(mesh, book, queues, cnt, prm):
     return vertices[np.argsort(keys)]
 
 
-@kernel(nrt=False)
+@kernel(nrt=False, nogil=True)
 def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
     """Count the cells of these vertices in this order and settle those holding < k points
-    (the others stay queued and are counted again when popped). Returns 0, or STAR_OVERFLOW."""
+    (the others stay queued and are counted again when popped). Returns 0, or STAR_OVERFLOW.
+    It reads the mesh and writes only the vertices' own cell states and ``cnt``'s counters:
+    threads may sweep disjoint vertex sets at once, each with its own probe and ``cnt``."""
     for i in range(vertices.shape[0]):
         v = vertices[i]
         if book.cell_state[v] != UNTESTED:

@@ -1,0 +1,39 @@
+"""Threads for the engine's read-only bulk work (building the index, sweeping cells).
+
+Kernels that only read shared state and write disjoint slots run with numba's ``nogil`` in a
+pool of Python threads. The count comes from ``KNNREFINE_THREADS`` when set (1 turns threads
+off, as a Dask worker that runs one task per core wants), else from the cores this process
+may use, at most MAX_THREADS.
+"""
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+MAX_THREADS = 8
+_pool = []
+
+
+def workers():
+    """How many threads the engine may use."""
+    env = os.environ.get("KNNREFINE_THREADS", "").strip()
+    if env:
+        try:
+            return max(1, min(int(env), MAX_THREADS))
+        except ValueError:
+            raise ValueError(
+                f"KNNREFINE_THREADS must be a whole number of threads, got {env!r}"
+            ) from None
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_THREADS))
+
+
+def run_all(task, count):
+    """[task(0), ..., task(count - 1)], on the pool's threads when count > 1."""
+    if count <= 1:
+        return [task(j) for j in range(count)]
+    if not _pool:
+        _pool.append(ThreadPoolExecutor(MAX_THREADS, thread_name_prefix="knnrefine"))
+    return list(_pool[0].map(task, range(count)))
