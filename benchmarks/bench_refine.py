@@ -1,21 +1,24 @@
 """Benchmark: knnrefine.refine against scipy's cKDTree k-th neighbour distances.
 
-Each configuration runs in a fresh subprocess (so that its peak memory is its own), after a
-warm-up call on a small input (so JIT compilation is excluded); the time reported is the
-median wall time over --repeat runs. In the same subprocess scipy's cKDTree computes what a
-user would compute instead: the exact k-th-neighbour distance at the n input points (tree
-build + ``query(points, k=[k], workers=-1)``, both cores). Where n * k > --ckdtree-budget the
+Each configuration runs in a fresh subprocess (so that its peak memory is its own), after one
+untimed warm-up call on the same input (so loading compiled kernels and starting threads are
+excluded); the time reported is the median wall time over --repeat runs, the memory the median
+peak resident set above what the process held when the call started. In the same subprocess
+scipy's cKDTree computes what a user would compute instead: the exact k-th-neighbour
+distance at the n input points (tree build + ``query(points, k=[k], workers=-1)``, both
+cores). Where n * k > --ckdtree-budget the
 query runs on a random sample of 10^5 points and its time is scaled to n (marked "~").
 
 Compile time is measured separately: once with an empty numba cache (first-ever compile) and
 once more with that cache (what every later process pays).
 
-    python benchmarks/bench_refine.py                       # the full grid (about 15 minutes)
+    python benchmarks/bench_refine.py                       # the full grid (about 25 minutes)
     python benchmarks/bench_refine.py --sizes 1e4 1e5 --ks 10 100 --repeat 3
     python benchmarks/bench_refine.py --markdown results.json   # print the table again
 """
 
 import argparse
+import ctypes
 import json
 import os
 import platform
@@ -54,6 +57,14 @@ def _status_mb(field):
     return float("nan")
 
 
+def _trim():
+    """Return freed heap memory to the system (glibc), so that RSS counts live memory only."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def reset_peak():
     """Reset VmHWM to the current RSS (Linux >= 4.0: write 5 to clear_refs)."""
     try:
@@ -69,13 +80,17 @@ def worker(kind, n, k, tau, repeat, ckdtree_budget):
 
     import knnrefine
 
-    knnrefine.refine(make_points(kind, 2000, seed=1), min(k, 50), tau)  # warm-up (JIT cache)
     pts = make_points(kind, n)
-    base = _status_mb("VmRSS")
+    knnrefine.refine(pts, k, tau)  # warm-up: loads every kernel this input needs, the threads
+    first = _status_mb("VmRSS")
     times = []
     peaks = []
     totals = []
     for _ in range(repeat):
+        # working memory: the peak above what the process holds when the call starts, after
+        # the allocator has handed back what the previous call freed
+        _trim()
+        base = _status_mb("VmRSS")
         ok = reset_peak()
         t0 = time.perf_counter()
         mesh = knnrefine.refine(pts, k, tau)
@@ -101,8 +116,10 @@ def worker(kind, n, k, tau, repeat, ckdtree_budget):
         "refine_s": float(np.median(times)),
         "refine_all_s": times,
         "peak_mb": float(np.median(peaks)),
+        # issue 10's budget for working memory: 24 bytes per input point, 300 per mesh vertex
+        "budget_mb": (24 * n + 300 * m) / 2**20,
         "peak_total_mb": float(np.median(totals)),
-        "base_rss_mb": base,
+        "base_rss_mb": first,
         "m": m,
         "m_torus": stats["m_torus"],
         "moves": stats["moves"],
@@ -170,16 +187,16 @@ def markdown(results):
     )
     lines.append("")
     lines.append(
-        "| input | n | k | refine (median) | memory: refine / process peak | m "
-        "| cKDTree k-th NN | cKDTree / refine |"
+        "| input | n | k | refine (median) | memory: refine / budget / process peak | m "
+        "| cKDTree k-th NN | refine / cKDTree |"
     )
     lines.append("|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in results["runs"]:
         ck = ("~" if r["ckdtree_sampled"] else "") + f"{r['ckdtree_s']:.2f} s"
         lines.append(
             f"| {r['kind']} | {r['n']:.0e} | {r['k']} | {r['refine_s']:.3f} s | "
-            f"{r['peak_mb']:.0f} / {r['peak_total_mb']:.0f} MB | {r['m']} | {ck} | "
-            f"{r['ckdtree_s'] / r['refine_s']:.1f}x |"
+            f"{r['peak_mb']:.1f} / {r['budget_mb']:.1f} / {r['peak_total_mb']:.0f} MiB | "
+            f"{r['m']} | {ck} | {r['refine_s'] / r['ckdtree_s']:.2f} |"
         )
     return "\n".join(lines)
 
@@ -187,7 +204,7 @@ def markdown(results):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", nargs="+", type=float, default=[1e4, 1e5, 1e6, 1e7])
-    ap.add_argument("--ks", nargs="+", type=int, default=[10, 100, 1000])
+    ap.add_argument("--ks", nargs="+", type=int, default=[10, 30, 100, 1000])
     ap.add_argument("--kinds", nargs="+", default=["uniform", "clustered"])
     ap.add_argument("--tau", type=float, default=3.0)
     ap.add_argument("--repeat", type=int, default=5, help="runs per configuration (n < 1e7)")
@@ -242,7 +259,8 @@ def main(argv=None):
                 results["runs"].append(res)
                 print(
                     f"{kind:9s} n={n:.0e} k={k:5d} refine {res['refine_s']:.3f} s "
-                    f"peak {res['peak_mb']:.0f} MB m={res['m']} cKDTree "
+                    f"peak {res['peak_mb']:.1f} MiB (budget {res['budget_mb']:.1f}) m={res['m']} "
+                    "cKDTree "
                     f"{'~' if res['ckdtree_sampled'] else ''}{res['ckdtree_s']:.2f} s",
                     flush=True,
                 )

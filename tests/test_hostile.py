@@ -30,6 +30,8 @@ def refine_certified(pts, k, **kw):
         (np.random.default_rng(1).random((50, 2)) * 1e300, None, "coordinates reach"),
         (np.random.default_rng(1).random((50, 2)) * 1e-300, None, "span only"),
         (np.array([[-1.7e308, 0.0], [1.7e308, 1.0]]), None, "coordinates reach"),
+        # finite coordinates whose sum overflows (the first, cheap, finiteness check)
+        (np.full((4, 2), 1.7e308), None, "coordinates reach"),
         (np.zeros((3, 2)), (0, 0, 1e-200, 1e-200), "out of range"),
         (np.zeros((3, 2)), (0, 0, 1e200, 1e200), "out of range"),
     ],
