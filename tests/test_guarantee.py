@@ -275,9 +275,29 @@ def test_progress_stays_alive_through_assembly():
     def progress(vertices, pending, phase="refining"):
         seen.append(phase)
 
+    knnrefine.refine(rng(15).random((100, 2)), 3)  # compiled: no "compiling" phase below
     knnrefine.refine(rng(15).random((20_000, 2)), 3, progress=progress)
     assert seen[0] == "refining" and seen[-1] == "done"
     assert seen.count("assembling") >= 3
+
+
+def test_progress_says_compiling_before_a_first_compilation(monkeypatch):
+    """Issue 10: a first compilation (10-60 s) shows in progress, not only on the CLI."""
+    from knnrefine.engine import jit
+
+    seen = []
+
+    def progress(vertices, pending, phase="refining"):
+        seen.append((vertices, pending, phase))
+
+    monkeypatch.setattr(jit, "is_ready", lambda dispatcher: False)
+    knnrefine.refine(rng(16).random((2000, 2)), 5, progress=progress)
+    assert seen[0] == (0, 0, "compiling") and seen[-1][2] == "done"
+    assert [p for _, _, p in seen].count("compiling") == 1
+    seen.clear()
+    knnrefine.refine(rng(16).random((2000, 2)), 5, progress=lambda v, p: seen.append((v, p)))
+    # a two-argument callback is not told about phases (nor called with a phase keyword)
+    assert seen and seen[0] != (0, 0)
 
 
 # -- 7. time limits and small budgets ----------------------------------------------------------

@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 
 from . import validation as V
+from .engine import jit, size
 from .engine import refine as R
-from .engine import size
 from .engine.driver import Refinement
 from .engine.embedding import Embedding, diameter, unfold, wrap
 from .engine.geometry import FLOOR_BITS
@@ -100,7 +100,9 @@ def refine(
     progress : callable(vertices, pending[, phase]), optional
         Called about every 50 ms with the number of vertices so far and the queued candidates;
         while the mesh is assembled, with pending = 0 and, if it accepts ``phase``,
-        phase="assembling", then phase="done".
+        phase="assembling", then phase="done". If it accepts ``phase`` and the kernels were
+        never compiled in this environment, it is first called once with (0, 0,
+        phase="compiling"): the compilation that follows takes 10-60 s, once.
 
     Returns
     -------
@@ -152,6 +154,8 @@ def refine(
     _check_initial_budget(box, per, start_budget)
 
     report = _Progress(progress)
+    if not jit.is_ready(R.refine_steps):
+        report.compiling()
     with Interrupts() as interrupts:
         start = _Start(pts, box, per, start_budget, interrupts, deadline)
         found = start.find(k, reach_factor(tau))
@@ -218,8 +222,9 @@ def refine(
 
 
 class _Progress:
-    """The user's progress callback: progress(vertices, pending) while refining; while the
-    mesh is assembled also, if it takes a ``phase`` argument, with phase="assembling"."""
+    """The user's progress callback: progress(vertices, pending) while refining; if it takes
+    a ``phase`` argument, also phase="compiling" before a first compilation and
+    phase="assembling" / "done" while the mesh is assembled."""
 
     def __init__(self, callback):
         self.callback = callback
@@ -232,6 +237,10 @@ class _Progress:
                 )
             except (TypeError, ValueError):
                 pass
+
+    def compiling(self):
+        if self.phases:
+            self.callback(0, 0, phase="compiling")
 
     def refining(self, vertices, pending):
         if self.callback is not None:
