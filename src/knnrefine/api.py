@@ -455,7 +455,7 @@ def _points_under_floor(res, run):
 
 def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
     """The Mesh the user receives, from the torus mesh (progress reported between steps)."""
-    out_v, out_s, pos, tri, offsets = unfold(res.vxy, res.tv, res.to, emb)
+    out_v, pos, tri, offsets = unfold(res.vxy, res.tv, res.to, emb)
     report.assembling(run.vertices)
     interrupts.check()
     L = np.array(emb.period_internal)
@@ -499,11 +499,11 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
         kinds=res.kind,
     )
     return Mesh(
-        vertices=emb.to_input(pos),
-        triangles=tri.astype(np.int32),
-        offsets=None if offsets is None else offsets.astype(np.int8),
+        vertices=emb.to_input(pos, copy=False),  # unfold's arrays are new: no copies
+        triangles=tri,
+        offsets=offsets,
         kinds=res.kind[out_v],
-        order=out_v.astype(np.int64),
+        order=out_v,
         k=k,
         tau=tau,
         periodic=emb.periodic,

@@ -115,10 +115,13 @@ class Embedding:
             x, self.origin, self.scale, np.array(self.period_internal), np.array(self.periodic)
         )
 
-    def to_input(self, u):
+    def to_input(self, u, copy=True):
         """Input coordinates of internal points on the grid: exact (see the module docstring).
-        Along periodic axes they are wrapped into [box low, box low + period)."""
-        x = np.asarray(u, float) / self.scale + self.origin
+        Along periodic axes they are wrapped into [box low, box low + period). copy=False
+        converts a float64 array of the caller's in place."""
+        x = np.array(u, float) if copy else u
+        x /= self.scale
+        x += self.origin
         for a in range(2):
             if self.periodic[a]:
                 lo, period = self.box[a], self.period[a]
@@ -157,19 +160,21 @@ def unfold(vxy, tv, to, emb):
     that can be one of the two nearest to a point x of the box: x lies in a kept triangle, whose
     three corners are within its longest edge of x.
 
-    Returns (vertex ids (m',), vertex shifts (m', 2) in periods, positions (m', 2) internal,
-    triangles (t', 3) into the returned vertices, offsets (t', 3, 2) or None).
+    Returns (vertex ids (m',) int64, positions (m', 2) internal, triangles (t', 3) int32 into
+    the returned vertices, offsets (t', 3, 2) int8 or None), all new arrays.
     """
     per = emb.periodic
     if all(per):
-        m = vxy.shape[0]
-        return np.arange(m), np.zeros((m, 2), np.int64), vxy, tv, to
+        return np.arange(vxy.shape[0]), vxy.copy(), tv.copy(), to.copy()
     blo, bhi = emb.box_internal()
     L = np.array(emb.period_internal)
     nonper = np.array([not p for p in per])
     out_v, out_s, tri, offsets = _unfold(vxy, tv, to, L, blo, bhi, nonper)
-    pos = vxy[out_v] + out_s * L
-    return out_v, out_s, pos, tri, (offsets if any(per) else None)
+    pos = vxy[out_v]
+    for a in range(2):
+        pos[:, a] += out_s[:, a] * L[a]
+    del out_s
+    return out_v, pos, tri, (offsets if any(per) else None)
 
 
 @kernel(inline="always")
@@ -256,7 +261,7 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
         first[v + 1] = first[v] + _popcount16(np.int64(need[v]))
     nout = first[m]
     out_v = np.empty(nout, np.int64)
-    out_s = np.empty((nout, 2), np.int64)
+    out_s = np.empty((nout, 2), np.int8)
     for v in range(m):
         j = first[v]
         for c in range(16):
@@ -265,7 +270,7 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
                 out_s[j, 0] = c // 4 - 1
                 out_s[j, 1] = c % 4 - 1
                 j += 1
-    tri = np.empty((nkeep, 3), np.int64)
+    tri = np.empty((nkeep, 3), np.int32)
     off = np.zeros((nkeep, 3, 2), np.int8)
     n = 0
     for t in range(nt):
