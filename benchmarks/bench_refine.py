@@ -196,7 +196,7 @@ def markdown(results):
         lines.append(
             f"| {r['kind']} | {r['n']:.0e} | {r['k']} | {r['refine_s']:.3f} s | "
             f"{r['peak_mb']:.1f} / {r['budget_mb']:.1f} / {r['peak_total_mb']:.0f} MiB | "
-            f"{r['m']} | {ck} | {r['refine_s'] / r['ckdtree_s']:.2f} |"
+            f"{r['m']} | {ck} | {r['refine_s'] / r['ckdtree_s']:.2g} |"
         )
     return "\n".join(lines)
 
