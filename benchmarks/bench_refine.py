@@ -12,7 +12,7 @@ query runs on a random sample of 10^5 points and its time is scaled to n (marked
 Compile time is measured separately: once with an empty numba cache (first-ever compile) and
 once more with that cache (what every later process pays).
 
-    python benchmarks/bench_refine.py                       # the full grid (about 25 minutes)
+    python benchmarks/bench_refine.py                       # the full grid (about 15 minutes)
     python benchmarks/bench_refine.py --sizes 1e4 1e5 --ks 10 100 --repeat 3
     python benchmarks/bench_refine.py --markdown results.json   # print the table again
 """

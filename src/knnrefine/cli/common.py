@@ -118,13 +118,13 @@ def require_k_or_mesh(args):
 
 
 def announce_compilation(quiet):
-    """Say so when the kernels are about to be compiled (the first run: 15-60 s, once)."""
+    """Say so when the kernels are about to be compiled (the first run: 10-60 s, once)."""
     from ..engine.jit import is_ready
     from ..engine.refine import refine_steps
 
     if not quiet and not is_ready(refine_steps):
         print(
-            "knnrefine: compiling the kernels for their first use (15-60 s, once; later runs "
+            "knnrefine: compiling the kernels for their first use (10-60 s, once; later runs "
             "load them from the cache)",
             file=sys.stderr,
             flush=True,

@@ -92,7 +92,7 @@ def kernel(**options):
                 warnings.warn(
                     "knnrefine: numba has no writable place to cache compiled kernels (the "
                     "package folder is read-only and there is no writable cache directory), so "
-                    "they are compiled for this process only (15 s or more on first use); set "
+                    "they are compiled for this process only (10 s or more on first use); set "
                     "NUMBA_CACHE_DIR to a writable folder to keep them",
                     KernelCacheWarning,
                     stacklevel=3,
