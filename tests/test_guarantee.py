@@ -14,8 +14,12 @@ from numpy.random import default_rng as rng
 
 import knnrefine
 from knnrefine import BudgetError, InputError, certify
+from knnrefine.engine import index as engine_index
 from knnrefine.engine.embedding import wrap_offsets
-from knnrefine.engine.index import STACK_SIZE, build_index, count_in_torus_disk
+from knnrefine.engine.index import STACK_SIZE, build_index
+from knnrefine.engine.jit import python_entry
+
+count_in_torus_disk = python_entry(engine_index.count_in_torus_disk)
 
 STRIP = (0, 0, 0.1, 1)
 

@@ -5,7 +5,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from knnrefine.engine.index import LEAF_SIZE, STACK_SIZE, build_index, count_in_cell, count_in_disk
+from knnrefine.engine import index as engine_index
+from knnrefine.engine.index import LEAF_SIZE, STACK_SIZE, build_index
+from knnrefine.engine.jit import python_entry
+
+count_in_cell = python_entry(engine_index.count_in_cell)
+count_in_disk = python_entry(engine_index.count_in_disk)
 
 
 def periodic_copies(points, lx, ly):

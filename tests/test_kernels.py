@@ -46,10 +46,26 @@ def own_refcounts(dispatcher, **options):
     return calls
 
 
+def type_callees():
+    """Type the internal kernels here: a refinement loaded from numba's cache does not."""
+    from knnrefine.engine.jit import python_entry
+
+    own_refcounts(refine.refine_steps)  # a fresh compile types its direct callees
+
+    idx = index.build_index(np.random.default_rng(0).random((200, 2)))
+    stack = np.zeros(index.STACK_SIZE, np.int64)
+    python_entry(index.count_in_disk)(idx, 0.5, 0.5, 0.01, 5, 1.0, 1.0, stack)
+    h = np.array([1.0, -1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0, -1.0]), np.full(4, 0.01)
+    mask = np.zeros(index.LEAF_SIZE, np.bool_)
+    python_entry(index.count_in_cell)(idx, 0.5, 0.5, *h, 4, 0.02, 5, 1.0, 1.0, stack, mask)
+
+
 @pytest.mark.parametrize("dispatcher", HOT, ids=lambda d: d.py_func.__name__)
 def test_hot_kernels_do_no_reference_counting(dispatcher):
     if not dispatcher.signatures:
-        knnrefine.refine(np.random.default_rng(0).random((3000, 2)), 5)  # compiles them all
+        knnrefine.refine(np.random.default_rng(0).random((3000, 2)), 5)  # the entry points
+    if not dispatcher.signatures:
+        type_callees()
     assert dispatcher.targetoptions.get("_nrt") is False
     assert own_refcounts(dispatcher) == 0
 
@@ -60,3 +76,16 @@ def test_the_option_matters():
     if not refine.refine_steps.signatures:
         knnrefine.refine(np.random.default_rng(0).random((3000, 2)), 5)
     assert own_refcounts(refine.refine_steps, _nrt=True) > 0
+
+
+def test_internal_kernels_refuse_python_calls():
+    """Kernels compiled without numba's Python wrapper (all but the entry points) would crash
+    the interpreter if called from Python; they raise instead, and python_entry calls them."""
+    from knnrefine.engine import predicates
+    from knnrefine.engine.jit import InternalKernel, python_entry
+
+    assert isinstance(predicates.orient2d, InternalKernel)
+    with pytest.raises(TypeError, match="internal engine kernel"):
+        predicates.orient2d(0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
+    assert python_entry(predicates.orient2d)(0.0, 0.0, 1.0, 0.0, 0.0, 1.0) == 1
+    assert not isinstance(refine.refine_steps, InternalKernel)

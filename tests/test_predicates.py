@@ -7,14 +7,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from knnrefine.engine.predicates import (
-    expansion_product,
-    expansion_sum,
-    incircle,
-    orient2d,
-    two_product,
-    two_sum,
-)
+from knnrefine.engine import predicates
+from knnrefine.engine.jit import python_entry
+
+# internal kernels, called from Python through jitted entries
+expansion_product = python_entry(predicates.expansion_product)
+expansion_sum = python_entry(predicates.expansion_sum)
+incircle = python_entry(predicates.incircle)
+orient2d = python_entry(predicates.orient2d)
+two_product = python_entry(predicates.two_product)
+two_sum = python_entry(predicates.two_sum)
 
 
 def sign(x):

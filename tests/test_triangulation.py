@@ -8,16 +8,17 @@ import pytest
 
 import knnrefine
 from knnrefine.certify import verify_triangulation
-from knnrefine.engine import driver
-from knnrefine.engine.geometry import Q, snap
+from knnrefine.engine import driver, geometry, triangulation
+from knnrefine.engine.geometry import Q
 from knnrefine.engine.index import build_index
+from knnrefine.engine.jit import python_entry
 from knnrefine.engine.state import C_NT, C_NV, INSERT_NOT_IN_SEED
-from knnrefine.engine.triangulation import (
-    circumcentres,
-    in_circumcircle,
-    insert_vertex,
-    vertex_star,
-)
+from knnrefine.engine.triangulation import circumcentres
+
+snap = python_entry(geometry.snap)
+in_circumcircle = python_entry(triangulation.in_circumcircle)
+insert_vertex = python_entry(triangulation.insert_vertex)
+vertex_star = python_entry(triangulation.vertex_star)
 
 
 def empty_torus(lx, ly):

@@ -46,7 +46,7 @@ def wrap_offset(x, lo, period):
     return r
 
 
-@kernel()
+@kernel(entry=True)
 def wrap_offsets(x, lo, period):
     """``wrap_offset`` over an array: x - lo reduced into [0, period), elementwise."""
     out = np.empty(x.shape[0])
@@ -135,7 +135,7 @@ class Embedding:
         return lo, hi
 
 
-@kernel()
+@kernel(entry=True)
 def _to_internal(x, origin, scale, period, periodic):
     out = np.empty_like(x)
     for i in range(x.shape[0]):
@@ -185,7 +185,7 @@ def _popcount16(x):
     return (x + (x >> 8)) & 0x1F
 
 
-@kernel()
+@kernel(entry=True)
 def _unfold(vxy, tv, to, L, blo, bhi, nonper):
     """Copies of triangles meeting the box and of the vertices they (and r*) need.
 

@@ -69,7 +69,7 @@ def _select(pts, axis, lo, hi, kth):
             break
 
 
-@kernel()
+@kernel(entry=True)
 def _node_bound(n):
     """Nodes of the tree over n points (an upper bound when many points coincide)."""
     count = 0
@@ -87,7 +87,7 @@ def _node_bound(n):
     return count
 
 
-@kernel(nogil=True)
+@kernel(entry=True, nogil=True)
 def _build(pts, box, node, split, root, free, levels, frontier):
     """Split node ``root`` (its row range set) and its descendants, numbering new nodes from
     ``free``. Nodes ``levels`` below the root are not split but listed in ``frontier`` (their
@@ -147,7 +147,7 @@ def _build(pts, box, node, split, root, free, levels, frontier):
     return free, nf
 
 
-@kernel()
+@kernel(entry=True)
 def _close_gaps(box, node, split, starts, ends):
     """Move the node blocks [starts[j], ends[j]) (ascending, disjoint) down so that each
     follows the previous one, and renumber the child links into them. Returns the node
@@ -412,7 +412,7 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
     return count
 
 
-@kernel()
+@kernel(entry=True)
 def mark_in_disks(index, cx, cy, r2, lx, ly, mark):
     """Set mark[i] for every point i (in the index's order) of the periodic P lying in one of
     the closed disks (cx[d], cy[d], sqrt(r2[d])), each of radius below half a period. Returns
@@ -509,7 +509,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
     return count
 
 
-@kernel()
+@kernel(entry=True)
 def holds_k_within(index, xy, r2, k, lx, ly):
     """For each row of xy: does the closed torus disk of squared radius r2[i] about it hold at
     least k points of P (that is, d_{P,k}(xy[i])^2 <= r2[i])?"""

@@ -13,14 +13,23 @@ Here:
   a signature they lack is compiled for the process only;
 * with no usable cache at all, kernels are compiled in memory for the process, after one
   ``KernelCacheWarning`` saying how to keep them (``NUMBA_CACHE_DIR``).
+
+Entry points: only the kernels the Python layer calls (``kernel(entry=True)``) get numba's
+CPython wrapper, the code that unboxes Python arguments; the others are called from kernels
+only and are compiled without it (a third less code for the engine's first compile: a wrapper
+that unboxes a named tuple of ten arrays is larger than most kernels). Calling one of them
+from Python raises ``TypeError`` (not numba's crash); ``python_entry`` makes a callable for
+tests and debugging.
 """
 
+import inspect
 import os
 import tempfile
 import warnings
 
 from numba import njit
 from numba.core.caching import FunctionCache, InTreeCacheLocator
+from numba.core.registry import CPUDispatcher
 
 PACKAGE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -73,35 +82,68 @@ def _never_save(dispatcher):
         cache.save_overload = lambda sig, data: None
 
 
-def kernel(**options):
+class InternalKernel(CPUDispatcher):
+    """A kernel compiled without a Python entry: callable from other kernels only."""
+
+    def __call__(self, *args, **kwargs):
+        raise TypeError(
+            f"{self.py_func.__module__}.{self.py_func.__name__} is an internal engine kernel, "
+            "compiled to be called from other kernels only; call it through "
+            "knnrefine.engine.jit.python_entry(kernel) from Python"
+        )
+
+
+def python_entry(dispatcher):
+    """A Python-callable (uncached) jitted function that calls the internal kernel
+    ``dispatcher`` with the same arguments: for tests and debugging."""
+    names = list(inspect.signature(dispatcher.py_func).parameters)
+    args = ", ".join(names)
+    scope = {"target": dispatcher}
+    exec(f"def entry({args}):\n    return target({args})\n", scope)
+    return njit(cache=False)(scope["entry"])
+
+
+def kernel(entry=False, **options):
     """``njit(cache=True, **options)``, falling back to an uncached ``njit`` where numba has
-    nowhere to keep compiled code."""
+    nowhere to keep compiled code. ``entry``: the kernel is called from Python (see the module
+    docstring); otherwise only from other kernels."""
 
     # set on every kernel, never inherited: numba compiles a callee with its first caller's
     # flags unless the callee sets its own
     options["_nrt"] = options.pop("nrt", True)
+    options["no_cfunc_wrapper"] = True  # nothing here calls kernels through C pointers
+    if not entry:
+        options["no_cpython_wrapper"] = True
 
     def wrap(func):
-        try:
-            dispatcher = njit(cache=True, **options)(func)
-        except RuntimeError as exc:
-            if "no locator available" not in str(exc):
-                raise
-            if not _warned:
-                _warned.append(True)
-                warnings.warn(
-                    "knnrefine: numba has no writable place to cache compiled kernels (the "
-                    "package folder is read-only and there is no writable cache directory), so "
-                    "they are compiled for this process only (10 s or more on first use); set "
-                    "NUMBA_CACHE_DIR to a writable folder to keep them",
-                    KernelCacheWarning,
-                    stacklevel=3,
-                )
-            return njit(cache=False, **options)(func)
-        _never_save(dispatcher)
+        dispatcher = _dispatcher(func, options)
+        if not entry:
+            dispatcher.__class__ = InternalKernel
         return dispatcher
 
     return wrap
+
+
+def _dispatcher(func, options):
+    """The cached dispatcher, or an uncached one where numba cannot cache."""
+    try:
+        dispatcher = njit(cache=True, **options)(func)
+    except RuntimeError as exc:
+        if "no locator available" not in str(exc):
+            raise
+        if not _warned:
+            _warned.append(True)
+            warnings.warn(
+                "knnrefine: numba has no writable place to cache compiled kernels (the "
+                "package folder is read-only and there is no writable cache directory), so "
+                "they are compiled for this process only (10 s or more on first use); set "
+                "NUMBA_CACHE_DIR to a writable folder to keep them",
+                KernelCacheWarning,
+                stacklevel=4,
+            )
+        return njit(cache=False, **options)(func)
+    _never_save(dispatcher)
+    return dispatcher
 
 
 def is_ready(dispatcher):

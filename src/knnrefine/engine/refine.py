@@ -245,7 +245,7 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
     return -1, 0, -1
 
 
-@kernel()
+@kernel(entry=True)
 def cells_to_sweep(mesh, book, queues, cnt, prm):
     """The queued vertices whose cells are untested, in Z-order of their positions (the
     sweep's order); from now on they count as swept."""
@@ -268,7 +268,7 @@ def cells_to_sweep(mesh, book, queues, cnt, prm):
     return vertices[np.argsort(keys)]
 
 
-@kernel(nrt=False, nogil=True)
+@kernel(entry=True, nrt=False, nogil=True)
 def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
     """Count the cells of these vertices in this order and settle those holding < k points
     (the others stay queued and are counted again when popped). Returns 0, or STAR_OVERFLOW.
@@ -286,7 +286,7 @@ def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
     return 0
 
 
-@kernel(nrt=False)
+@kernel(entry=True, nrt=False)
 def queue_all(mesh, book, queues, probe, cnt, prm):
     """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0)."""
     queue_clear(queues.balls)
@@ -310,7 +310,7 @@ def needs_growth(mesh, queues, cnt):
     )
 
 
-@kernel(nrt=False)
+@kernel(entry=True, nrt=False)
 def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps):
     """Run Algorithm 1 for at most max_steps insertions; returns a STATUS_* code."""
     steps = 0

@@ -23,7 +23,7 @@ def _find(parent, v):
     return root
 
 
-@kernel()
+@kernel(entry=True)
 def superlevel_noise(order, indptr, indices, values, significant, peak_of, margin):
     """Noise among the vertices of a graph carrying ``values``.
 

@@ -83,7 +83,7 @@ def set_circumcircle(mesh, prm, t):
     mesh.radius2[t] = circumcentre(mesh, prm, t)[2]
 
 
-@kernel()
+@kernel(entry=True)
 def circumcentres(mesh, prm, triangles):
     """(len(triangles), 3): the circumcentre (x, y) of each listed triangle, in its own frame,
     and its squared circumradius."""
@@ -93,7 +93,7 @@ def circumcentres(mesh, prm, triangles):
     return out
 
 
-@kernel(nrt=False)
+@kernel(entry=True, nrt=False)
 def set_all_circumcircles(mesh, prm, nt):
     for t in range(nt):
         set_circumcircle(mesh, prm, t)
@@ -136,7 +136,7 @@ def far_corner(v, mesh):
             return best
 
 
-@kernel(nrt=False)
+@kernel(entry=True, nrt=False)
 def set_vertex_caches(mesh, prm, nv):
     """Fill outradius2 and nearest2 for vertices 0..nv-1 by walking their stars."""
     lx = prm[P_LX]
