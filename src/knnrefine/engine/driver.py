@@ -90,6 +90,7 @@ def new_probe():
 class Refinement:
     """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
 
+    MIN_CAPACITY = 128  # vertices the arrays have room for at first, at least
     SWEEP_MIN = 1024  # cells newly queued that make a bulk sweep worthwhile (refine.py)
 
     def __init__(
@@ -109,8 +110,8 @@ class Refinement:
         clean_floor = grid * 2.0**FLOOR_BITS
         m0 = xy.shape[0]
         # first sizes: 0.6 of the estimate (an overestimate of up to 1.7x costs nothing),
-        # then growth by a quarter
-        cap_v = max(1024, 4 * m0, int(0.6 * expected_vertices))
+        # then growth by a quarter; small first sizes keep small runs small
+        cap_v = max(self.MIN_CAPACITY, 4 * m0, int(0.6 * expected_vertices))
         cap_t = 2 * cap_v
         star = np.zeros(cap_v, np.int32)
         star[corners[:, 0]] = np.arange(corners.shape[0], dtype=np.int32)
@@ -139,7 +140,12 @@ class Refinement:
             boundary_offsets=np.zeros((MAX_CAVITY + 2, 4), np.int64),
             link=np.zeros((LINK_SIZE, 2), np.int64),
         )
-        self.queues = Queues(balls=new_queue(cap_v), cells=new_queue(cap_v), cleans=new_queue(1024))
+        # a queue keeps room for one insertion's pushes (R.HEADROOM) beyond its entries
+        self.queues = Queues(
+            balls=new_queue(cap_v + R.HEADROOM),
+            cells=new_queue(cap_v + R.HEADROOM),
+            cleans=new_queue(R.HEADROOM + 256),
+        )
         self.probe = new_probe()
         self.cnt = np.zeros(N_COUNTERS, np.int64)
         self.cnt[C_NV] = m0
