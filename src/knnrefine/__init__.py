@@ -9,7 +9,7 @@ from . import datasets, io
 from .api import refine
 from .certify import Certificate, certify
 from .cluster import Clustering, cluster
-from .density import KnnDensity, KnnDistance
+from .density import KnnDensity, KnnDensityEstimator, KnnDistance
 from .errors import (
     BudgetError,
     EngineError,
@@ -30,6 +30,7 @@ __all__ = [
     "cluster",
     "Clustering",
     "KnnDensity",
+    "KnnDensityEstimator",
     "datasets",
     "io",
     "Mesh",

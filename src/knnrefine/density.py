@@ -297,3 +297,237 @@ def _quadrature(corners, d, func):
     area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     dq = d @ _QP.T  # (t, 7): d at the quadrature points
     return area * (func(dq) @ _QW)
+
+
+class KnnDensityEstimator:
+    """The kNN density estimate as a scikit-learn estimator (scikit-learn itself is optional).
+
+    ``fit(X)`` refines a mesh of X and builds the normalised estimate ``KnnDensity``;
+    ``score_samples`` gives log-densities, ``score`` the total log-likelihood, ``sample``
+    draws from the estimate. ``get_params``/``set_params`` follow scikit-learn's rules, so
+    ``clone``, ``GridSearchCV(est, {"k": [...]})`` and ``cross_val_score`` work.
+
+    Parameters
+    ----------
+    k : int, optional
+        Which neighbour (the smoothing: larger is smoother). Default ``default_k(n)``.
+    tau : float > 2
+        Well-spacedness of the mesh (``refine``).
+    periodic : bool or (bool, bool)
+        Flat torus along these axes (``box`` then required).
+    box : (xmin, ymin, xmax, ymax), optional
+        Where the estimate lives: it integrates to 1 over the box and is 0 outside it along
+        non-periodic axes (log-density -inf there); periodic axes wrap. Default: the data's
+        bounding box widened by ``margin`` of its sides on every side, so that held-out points
+        near the sample's edge score finitely.
+    margin : float >= 0
+        See ``box`` (ignored when a box is given).
+    min_size : float, optional
+        The resolution floor (``refine``).
+    subdivide : bool
+        Evaluate exactly at edge midpoints too (``KnnDistance``).
+
+    Attributes after ``fit``: ``k_``, ``box_``, ``n_samples_`` (weights counted),
+    ``n_features_in_`` (2), ``mesh_`` (the ``Mesh``), ``density_`` (the ``KnnDensity``).
+    """
+
+    def __init__(
+        self, k=None, *, tau=3.0, periodic=False, box=None, margin=0.1, min_size=None,
+        subdivide=True,
+    ):  # fmt: skip
+        self.k = k
+        self.tau = tau
+        self.periodic = periodic
+        self.box = box
+        self.margin = margin
+        self.min_size = min_size
+        self.subdivide = subdivide
+
+    # -- scikit-learn's parameter protocol ---------------------------------------------------
+    @classmethod
+    def _param_names(cls):
+        import inspect
+
+        params = inspect.signature(cls.__init__).parameters
+        return sorted(p for p in params if p != "self")
+
+    def get_params(self, deep=True):
+        """The constructor's parameters as a dict (scikit-learn's protocol)."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params):
+        """Set constructor parameters (scikit-learn's protocol); returns self."""
+        valid = self._param_names()
+        for name, value in params.items():
+            if name not in valid:
+                raise ValueError(
+                    f"invalid parameter {name!r} for KnnDensityEstimator; valid ones: "
+                    f"{', '.join(valid)}"
+                )
+            setattr(self, name, value)
+        return self
+
+    def __sklearn_tags__(self):
+        """scikit-learn >= 1.6 asks estimators for their tags (imported only then)."""
+        from sklearn.utils import Tags, TargetTags
+
+        return Tags(estimator_type="DensityEstimator", target_tags=TargetTags(required=False))
+
+    def __repr__(self):
+        defaults = type(self)().get_params()
+        changed = [
+            f"{name}={value!r}"
+            for name, value in self.get_params().items()
+            if value is not defaults[name] and not _same(value, defaults[name])
+        ]
+        return f"KnnDensityEstimator({', '.join(changed)})"
+
+    # -- fitting -----------------------------------------------------------------------------
+    def fit(self, X, y=None, sample_weight=None):
+        """Refine a mesh of X (n, 2) and build the estimate. ``sample_weight``: non-negative
+        integer weights, a point of weight w counting as w copies (real-valued weights are not
+        supported yet: InputError). ``y`` is ignored. Returns self."""
+        from .api import refine
+
+        pts = as_points(X)
+        if sample_weight is not None:
+            pts = pts.repeat(_integer_weights(sample_weight, len(pts)), axis=0)
+            if len(pts) == 0:
+                raise InputError("sample_weight is zero everywhere: nothing to estimate")
+        n = len(pts)
+        k = default_k(n) if self.k is None else self.k
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
+            raise InputError(f"k must be an integer in [1, n = {n}], got {k!r}")
+        box = self.box
+        if box is None:
+            margin = self.margin
+            if isinstance(margin, bool) or not isinstance(margin, (int, float, np.floating)):
+                raise InputError(f"margin must be a number >= 0, got {margin!r}")
+            if not 0 <= margin < np.inf:
+                raise InputError(f"margin must be a finite number >= 0, got {margin!r}")
+            lo, hi = pts.min(axis=0), pts.max(axis=0)
+            pad = margin * (hi - lo)
+            if (pad > 0).all():  # else refine's default box (it handles points on a line)
+                box = (*(lo - pad), *(hi + pad))
+        mesh = refine(
+            pts, int(k), self.tau, periodic=self.periodic, box=box, min_size=self.min_size
+        )
+        self.mesh_ = mesh
+        self.density_ = KnnDensity(mesh, pts, normalized=True, subdivide=self.subdivide)
+        self.k_ = int(k)
+        self.box_ = tuple(float(b) for b in mesh.box)
+        self.n_samples_ = n
+        self.n_features_in_ = 2
+        return self
+
+    def _fitted(self):
+        if not hasattr(self, "density_"):
+            raise _not_fitted()
+        return self.density_
+
+    # -- evaluation ----------------------------------------------------------------------------
+    def score_samples(self, X):
+        """Log-density at the points X, shape (..., 2): an array of shape (...). -inf outside
+        the box along non-periodic axes (the estimate is 0 there); periodic axes wrap."""
+        density = self._fitted()
+        flat, shape = as_queries(X)
+        if not np.isfinite(flat).all():
+            raise InputError("X holds NaN or infinite coordinates; give finite points")
+        f = density(flat)
+        with np.errstate(divide="ignore"):
+            out = np.where(np.isnan(f), -np.inf, np.log(np.where(np.isnan(f), 1.0, f)))
+        return out.reshape(shape)
+
+    def score(self, X, y=None):
+        """Total log-likelihood of the points X (n, 2) under the estimate (-inf if one lies
+        outside the box)."""
+        return float(self.score_samples(X).sum())
+
+    def sample(self, n_samples=1, random_state=None):
+        """n_samples points (n_samples, 2) drawn from the estimate: a piece of the mesh chosen
+        by an upper bound of its mass, a uniform point in it, kept with probability density /
+        bound (exact rejection sampling of the piecewise estimate; the pieces are well shaped,
+        so most proposals are kept). ``random_state``: None, an int, a numpy Generator or
+        RandomState."""
+        density = self._fitted()
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)):
+            raise InputError(f"n_samples must be an integer >= 0, got {n_samples!r}")
+        if n_samples < 0:
+            raise InputError(f"n_samples must be >= 0, got {n_samples}")
+        rng = _generator(random_state)
+        dist = density.distance
+        corners = dist.nodes[dist.triangles]
+        d = dist.values[dist.triangles]
+        e1 = corners[:, 1] - corners[:, 0]
+        e2 = corners[:, 2] - corners[:, 0]
+        area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        dmin = d.min(axis=1)  # d is linear on a piece: its density peaks at a corner
+        bound = area / dmin**2
+        cdf = np.cumsum(bound)
+        out = np.empty((int(n_samples), 2))
+        filled = 0
+        while filled < n_samples:
+            m = int(1.5 * (n_samples - filled)) + 64
+            t = np.minimum(
+                np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1
+            )
+            u, v = rng.random(m), rng.random(m)
+            flip = u + v > 1.0
+            u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+            x = corners[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
+            dx = d[t, 0] * (1.0 - u - v) + d[t, 1] * u + d[t, 2] * v
+            keep = rng.random(m) * dx**2 <= dmin[t] ** 2
+            # pieces reach past the box; each point of the box lies in exactly one of them
+            keep &= np.all((x >= dist.lo) & (x <= dist.hi), axis=1)
+            x = x[keep][: n_samples - filled]
+            out[filled : filled + len(x)] = x
+            filled += len(x)
+        return out
+
+
+def _same(a, b):
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):
+        return False
+
+
+def _integer_weights(sample_weight, n):
+    """Counts per point from sample_weight: non-negative integers, one per point."""
+    w = np.asarray(sample_weight)
+    if w.shape != (n,):
+        raise InputError(f"sample_weight must have shape ({n},), one per point, got {w.shape}")
+    if not np.issubdtype(w.dtype, np.number) or np.iscomplexobj(w):
+        raise InputError(f"sample_weight must be numbers, got dtype {w.dtype}")
+    if not np.isfinite(w).all() or (w < 0).any():
+        raise InputError("sample_weight must be finite and >= 0")
+    counts = np.rint(w)
+    if not np.array_equal(counts, w):
+        raise InputError(
+            "sample_weight must be whole numbers for now (a point of weight w counts as w "
+            "copies); real-valued weights are not supported yet: round or scale them"
+        )
+    return counts.astype(np.int64)
+
+
+def _generator(random_state):
+    """A numpy Generator from scikit-learn-style random_state values."""
+    if isinstance(random_state, np.random.RandomState):
+        return np.random.default_rng(random_state.randint(0, 2**63 - 1, dtype=np.int64))
+    try:
+        return np.random.default_rng(random_state)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"random_state must be None, an int, a numpy Generator or RandomState, got "
+            f"{random_state!r}"
+        ) from None
+
+
+def _not_fitted():
+    """scikit-learn's NotFittedError when scikit-learn is installed, else an InputError."""
+    message = "this KnnDensityEstimator is not fitted yet: call fit(X) first"
+    try:
+        from sklearn.exceptions import NotFittedError
+    except ImportError:
+        return InputError(message)
+    return NotFittedError(message)
