@@ -1,7 +1,10 @@
-"""k by held-out likelihood: scikit-learn's GridSearchCV over KnnDensityEstimator's k.
+"""k by held-out likelihood: scikit-learn's GridSearchCV over KnnDensityEstimator's k, and
+the estimator's own k="cv".
 
 Times the whole search (5-fold, shuffled) on n points of a Gaussian mixture (widths 0.1 and
 0.02) and prints the cross-validation curve: mean held-out log-likelihood per point for each k.
+Then times KnnDensityEstimator(k="cv") (5 folds, its default grid of 10 values) on the same
+points and prints its curve.
 
     python benchmarks/grid_search.py [--n 100000] [--ks 10 30 100 300]
 """
@@ -46,6 +49,17 @@ def main():
     print("|---:|---:|")
     for k, score in zip(args.ks, search.cv_results_["mean_test_score"], strict=True):
         print(f"| {k} | {score / n_test:.4f} |")
+    t0 = time.perf_counter()
+    est = KnnDensityEstimator(k="cv", cv=args.folds).fit(X)
+    seconds = time.perf_counter() - t0
+    print(
+        f'\nKnnDensityEstimator(k="cv"), default grid: {seconds:.1f} s (final fit included); '
+        f"k = {est.k_}"
+    )
+    print("| k | mean held-out log-likelihood per point |")
+    print("|---:|---:|")
+    for k, score in zip(est.cv_ks_, est.cv_scores_, strict=True):
+        print(f"| {k} | {score:.4f} |")
 
 
 if __name__ == "__main__":

@@ -213,3 +213,49 @@ def test_real_data_old_faithful():
     assert ((s >= lo) & (s <= hi)).all()
     # two modes (short and long eruptions): both get samples
     assert (s[:, 0] < 3).mean() > 0.2 and (s[:, 0] > 3.5).mean() > 0.4
+
+
+def test_k_by_cross_validation_is_the_best_of_its_curve():
+    """k="cv": the curve is the mean held-out log-likelihood per point over the folds,
+    recomputed here by hand with the same folds and box; k_ is its argmax."""
+    from knnrefine.density import _folds
+
+    X = mixture(2000, seed=9)
+    est = KnnDensityEstimator(k="cv", cv=4, k_grid=[3, 10, 30, 100], random_state=1).fit(X)
+    by_hand = []
+    for k in est.cv_ks_:
+        total = 0.0
+        for test in _folds(len(X), 4, 1):
+            train = np.setdiff1d(np.arange(len(X)), test)
+            fold = KnnDensityEstimator(k=int(k), box=est.box_).fit(X[train])
+            total += fold.score(X[test])
+        by_hand.append(total / len(X))
+    np.testing.assert_allclose(est.cv_scores_, by_hand, rtol=1e-12)
+    assert est.k_ == est.cv_ks_[int(np.argmax(by_hand))]
+    assert est.k_ not in (3, 100)  # an interior optimum on this mixture
+    # the default grid: geometric, from 4 up to a twentieth of a training fold
+    auto = KnnDensityEstimator(k="cv", cv=3).fit(X)
+    assert auto.cv_ks_[0] == 4 and auto.cv_ks_[-1] == round(2000 * 2 / 3 / 20)
+    assert len(auto.cv_ks_) == len(auto.cv_scores_) and np.isfinite(auto.cv_scores_).all()
+
+
+def test_cross_validation_keeps_copies_in_one_fold():
+    """With integer weights a point's copies are held out together: otherwise a held-out
+    point would have a copy at distance 0 in its training fold, and k = 1 would win."""
+    X = mixture(600, seed=10)
+    w = np.full(len(X), 3)
+    est = KnnDensityEstimator(k="cv", k_grid=[1, 5, 20], cv=3).fit(X, sample_weight=w)
+    assert est.k_ != 1 and np.isfinite(est.cv_scores_).all()
+    assert est.n_samples_ == 1800
+
+
+def test_cross_validation_parameters_are_checked():
+    X = mixture(200)
+    with pytest.raises(InputError, match="cv must be"):
+        KnnDensityEstimator(k="cv", cv=1).fit(X)
+    with pytest.raises(InputError, match="k_grid"):
+        KnnDensityEstimator(k="cv", k_grid=[0, 5]).fit(X)
+    with pytest.raises(InputError, match="smallest training fold"):
+        KnnDensityEstimator(k="cv", k_grid=[500]).fit(X)
+    with pytest.raises(InputError, match='"cv"'):
+        KnnDensityEstimator(k="auto").fit(X)

@@ -309,8 +309,10 @@ class KnnDensityEstimator:
 
     Parameters
     ----------
-    k : int, optional
+    k : int or "cv", optional
         Which neighbour (the smoothing: larger is smoother). Default ``default_k(n)``.
+        ``"cv"``: the k of ``k_grid`` with the best held-out log-likelihood in ``cv``-fold
+        cross-validation (folds shuffled by ``random_state``; every fold in the same box).
     tau : float > 2
         Well-spacedness of the mesh (``refine``).
     periodic : bool or (bool, bool)
@@ -326,14 +328,20 @@ class KnnDensityEstimator:
         The resolution floor (``refine``).
     subdivide : bool
         Evaluate exactly at edge midpoints too (``KnnDistance``).
+    cv, k_grid, random_state
+        For ``k="cv"``: the number of folds, the candidate values of k (default: 10 values
+        spaced geometrically from 4 to a twentieth of a fold's training points), the seed of
+        the fold assignment (an int or None).
 
     Attributes after ``fit``: ``k_``, ``box_``, ``n_samples_`` (weights counted),
-    ``n_features_in_`` (2), ``mesh_`` (the ``Mesh``), ``density_`` (the ``KnnDensity``).
+    ``n_features_in_`` (2), ``mesh_`` (the ``Mesh``), ``density_`` (the ``KnnDensity``);
+    with ``k="cv"`` also ``cv_ks_`` and ``cv_scores_`` (mean held-out log-likelihood per
+    point of each candidate: the curve).
     """
 
     def __init__(
         self, k=None, *, tau=3.0, periodic=False, box=None, margin=0.1, min_size=None,
-        subdivide=True,
+        subdivide=True, cv=5, k_grid=None, random_state=0,
     ):  # fmt: skip
         self.k = k
         self.tau = tau
@@ -342,6 +350,9 @@ class KnnDensityEstimator:
         self.margin = margin
         self.min_size = min_size
         self.subdivide = subdivide
+        self.cv = cv
+        self.k_grid = k_grid
+        self.random_state = random_state
 
     # -- scikit-learn's parameter protocol ---------------------------------------------------
     @classmethod
@@ -390,35 +401,78 @@ class KnnDensityEstimator:
         from .api import refine
 
         pts = as_points(X)
+        counts = None
         if sample_weight is not None:
-            pts = pts.repeat(_integer_weights(sample_weight, len(pts)), axis=0)
-            if len(pts) == 0:
+            counts = _integer_weights(sample_weight, len(pts))
+            if counts.sum() == 0:
                 raise InputError("sample_weight is zero everywhere: nothing to estimate")
-        n = len(pts)
-        k = default_k(n) if self.k is None else self.k
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
-            raise InputError(f"k must be an integer in [1, n = {n}], got {k!r}")
-        box = self.box
-        if box is None:
-            margin = self.margin
-            if isinstance(margin, bool) or not isinstance(margin, (int, float, np.floating)):
-                raise InputError(f"margin must be a number >= 0, got {margin!r}")
-            if not 0 <= margin < np.inf:
-                raise InputError(f"margin must be a finite number >= 0, got {margin!r}")
-            lo, hi = pts.min(axis=0), pts.max(axis=0)
-            pad = margin * (hi - lo)
-            if (pad > 0).all():  # else refine's default box (it handles points on a line)
-                box = (*(lo - pad), *(hi + pad))
+            pts, counts = pts[counts > 0], counts[counts > 0]
+        n = len(pts) if counts is None else int(counts.sum())
+        box = self._box(pts)
+        if isinstance(self.k, str):
+            if self.k != "cv":
+                raise InputError(f'k must be an integer, None or "cv", got {self.k!r}')
+            self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, counts, box)
+            k = int(self.cv_ks_[int(np.argmax(self.cv_scores_))])
+        else:
+            k = default_k(n) if self.k is None else self.k
+            if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
+                raise InputError(f"k must be an integer in [1, n = {n}], got {k!r}")
+        data = pts if counts is None else pts.repeat(counts, axis=0)
         mesh = refine(
-            pts, int(k), self.tau, periodic=self.periodic, box=box, min_size=self.min_size
+            data, int(k), self.tau, periodic=self.periodic, box=box, min_size=self.min_size
         )
         self.mesh_ = mesh
-        self.density_ = KnnDensity(mesh, pts, normalized=True, subdivide=self.subdivide)
+        self.density_ = KnnDensity(mesh, data, normalized=True, subdivide=self.subdivide)
         self.k_ = int(k)
         self.box_ = tuple(float(b) for b in mesh.box)
         self.n_samples_ = n
         self.n_features_in_ = 2
         return self
+
+    def _box(self, pts):
+        """The box to refine in: the user's, else the points' widened by ``margin`` (None,
+        refine's default, where the points span no area)."""
+        if self.box is not None:
+            return self.box
+        margin = self.margin
+        if isinstance(margin, bool) or not isinstance(margin, (int, float, np.floating)):
+            raise InputError(f"margin must be a number >= 0, got {margin!r}")
+        if not 0 <= margin < np.inf:
+            raise InputError(f"margin must be a finite number >= 0, got {margin!r}")
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        if not (hi > lo).all():  # refine's default box handles points on a line
+            return None
+        pad = margin * (hi - lo)
+        return (*(lo - pad), *(hi + pad))
+
+    def _cross_validate(self, pts, counts, box):
+        """(candidate ks, mean held-out log-likelihood per point of each): every fold refined
+        in the same box, so that held-out points are in it; a point's copies (weights) stay
+        in one fold."""
+        folds = _folds(len(pts), self.cv, self.random_state)
+        weight = np.ones(len(pts), np.int64) if counts is None else counts
+        n = int(weight.sum())
+        n_train = n - max(int(weight[f].sum()) for f in folds)
+        if self.k_grid is None:
+            ks = np.unique(np.round(np.geomspace(4, max(8, n_train / 20), 10)).astype(int))
+        else:
+            ks = np.unique(np.asarray(self.k_grid))
+            if ks.size == 0 or not np.issubdtype(ks.dtype, np.integer) or ks[0] < 1:
+                raise InputError(f"k_grid must hold integers >= 1, got {self.k_grid!r}")
+        ks = ks[ks <= n_train]
+        if ks.size == 0:
+            raise InputError(f"no k of k_grid fits the smallest training fold ({n_train} points)")
+        params = {**self.get_params(), "box": box}
+        scores = np.zeros(len(ks))
+        for test in folds:
+            train = np.ones(len(pts), bool)
+            train[test] = False
+            data = pts[train].repeat(weight[train], axis=0)
+            for i, k in enumerate(ks):
+                fold = type(self)(**{**params, "k": int(k)}).fit(data)
+                scores[i] += (fold.score_samples(pts[test]) * weight[test]).sum()
+        return ks, scores / n
 
     def _fitted(self):
         if not hasattr(self, "density_"):
@@ -490,6 +544,14 @@ def _same(a, b):
         return bool(a == b)
     except (TypeError, ValueError):
         return False
+
+
+def _folds(n, cv, random_state):
+    """The test indices of each of ``cv`` folds of n points, shuffled by random_state."""
+    if isinstance(cv, bool) or not isinstance(cv, (int, np.integer)) or not 2 <= cv <= n:
+        raise InputError(f"cv must be an integer in [2, n = {n}], got {cv!r}")
+    order = _generator(random_state).permutation(n)
+    return np.array_split(order, int(cv))
 
 
 def _integer_weights(sample_weight, n):
