@@ -259,3 +259,9 @@ def test_cross_validation_parameters_are_checked():
         KnnDensityEstimator(k="cv", k_grid=[500]).fit(X)
     with pytest.raises(InputError, match='"cv"'):
         KnnDensityEstimator(k="auto").fit(X)
+
+
+def test_periodic_without_a_box_is_refused():
+    """regression: the default widened box must not become a torus's period."""
+    with pytest.raises(InputError, match="box"):
+        KnnDensityEstimator(k=10, periodic=True).fit(mixture(300))

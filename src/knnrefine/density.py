@@ -435,6 +435,8 @@ class KnnDensityEstimator:
         refine's default, where the points span no area)."""
         if self.box is not None:
             return self.box
+        if np.any(self.periodic):  # a torus needs its period: refine says so
+            return None
         margin = self.margin
         if isinstance(margin, bool) or not isinstance(margin, (int, float, np.floating)):
             raise InputError(f"margin must be a number >= 0, got {margin!r}")
