@@ -424,6 +424,7 @@ class KnnDensityEstimator:
         )
         self.mesh_ = mesh
         self.density_ = KnnDensity(mesh, data, normalized=True, subdivide=self.subdivide)
+        self._train = (pts, np.ones(len(pts), np.int64) if counts is None else counts)
         self.k_ = int(k)
         self.box_ = tuple(float(b) for b in mesh.box)
         self.n_samples_ = n
@@ -475,6 +476,36 @@ class KnnDensityEstimator:
                 fold = type(self)(**{**params, "k": int(k)}).fit(data)
                 scores[i] += (fold.score_samples(pts[test]) * weight[test]).sum()
         return ks, scores / n
+
+    # -- uncertainty -------------------------------------------------------------------------
+    def standard_error(self, X):
+        """Pointwise standard error of the density at X, shape (..., 2) -> (...): f(x) /
+        sqrt(k). The kNN estimate's relative error is about 1 / sqrt(k): the ball of radius
+        d_{P,k}(x) holds k points, whose count fluctuates like a Poisson variable's."""
+        return np.exp(self.score_samples(X)) / np.sqrt(self.k_)
+
+    def bootstrap(self, X, n_boot=100, level=0.9, random_state=None):
+        """Percentile bands (lower, upper) of the density at X, shape (..., 2) -> two arrays
+        (...): the estimate refitted (same k and box) on n_boot resamples of the training
+        points with replacement (as integer weights: no copies are made), and the
+        (1 - level) / 2 and (1 + level) / 2 quantiles of its values at each point."""
+        self._fitted()
+        if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 2:
+            raise InputError(f"n_boot must be an integer >= 2, got {n_boot!r}")
+        if not 0 < level < 1:
+            raise InputError(f"level must lie in (0, 1), got {level!r}")
+        flat, shape = as_queries(X)
+        pts, counts = self._train
+        rng = _generator(random_state)
+        p = counts / counts.sum()
+        params = {**self.get_params(), "k": self.k_, "box": self.box_}
+        values = np.empty((int(n_boot), len(flat)))
+        for b in range(int(n_boot)):
+            weights = rng.multinomial(int(counts.sum()), p)
+            refit = type(self)(**params).fit(pts, sample_weight=weights)
+            values[b] = np.exp(refit.score_samples(flat))
+        lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2], axis=0)
+        return lo.reshape(shape), hi.reshape(shape)
 
     def _fitted(self):
         if not hasattr(self, "density_"):
