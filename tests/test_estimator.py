@@ -285,7 +285,7 @@ def replicates():
 
 def test_standard_error_matches_the_sampling_distribution(replicates):
     """f / sqrt(k) against the spread of the estimate over independent samples (Monte Carlo
-    gives 0.90 of it here: normalising over the box takes a little variance out)."""
+    gives 0.93 of it here: normalising over the box takes a little variance out)."""
     q, values = replicates
     est = KnnDensityEstimator(k=30, box=(0, 0, 1, 1)).fit(
         np.random.default_rng(5).random((3000, 2))
