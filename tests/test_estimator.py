@@ -314,3 +314,25 @@ def test_bootstrap_bands_match_the_sampling_distribution(replicates):
         est.bootstrap(q, n_boot=1)
     with pytest.raises(InputError, match="level"):
         est.bootstrap(q, level=1.5)
+
+
+def test_default_box_is_refines_widened_by_margin():
+    X = mixture(500, seed=11)
+    box = np.array(knnrefine.refine(X, 10).box)
+    np.testing.assert_array_equal(KnnDensityEstimator(k=10, margin=0).fit(X).box_, box)
+    wide = np.array(KnnDensityEstimator(k=10, margin=0.1).fit(X).box_)
+    side = np.tile(box[2:] - box[:2], 2)
+    np.testing.assert_allclose(wide, box + 0.1 * side * [-1, -1, 1, 1])
+    # points on a line: refine's default box gives the flat side a width, the margin widens it
+    line = np.column_stack([np.linspace(0, 1, 300), np.full(300, 0.5)])
+    est = KnnDensityEstimator(k=10).fit(line)
+    assert est.box_[3] - est.box_[1] > 0 and np.isfinite(est.score_samples(line)).all()
+
+
+def test_refit_without_cv_drops_the_curve():
+    """regression: a refit with a fixed k kept the curve of an earlier k="cv" fit."""
+    X = mixture(600, seed=12)
+    est = KnnDensityEstimator(k="cv", k_grid=[5, 20], cv=3).fit(X)
+    assert hasattr(est, "cv_scores_")
+    est.set_params(k=10).fit(X)
+    assert est.k_ == 10 and not hasattr(est, "cv_scores_") and not hasattr(est, "cv_ks_")

@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import InputError
-from .mesh import theorem6_constants
+from .mesh import theorem6_constants, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric
 from .validation import as_points
 
@@ -272,7 +272,7 @@ class _Torus:
 
 Triangulation = namedtuple("Triangulation", ["problems", "corners", "centres", "radii", "outradii"])
 Counts = namedtuple("Counts", ["max_ball", "max_cell", "floor_balls", "floor_cells"])
-Probes = namedtuple("Probes", ["samples", "weights", "in_box", "points", "others"])
+Probes = namedtuple("Probes", ["samples", "weights", "in_box", "sample_dpk", "points", "others"])
 Ratio = namedtuple(
     "Ratio", ["alpha_hat", "beta_hat", "alpha_hat_at", "beta_hat_at", "n_probes", "under_floor"]
 )
@@ -325,7 +325,9 @@ def check_counts(torus, triangulation, k, min_size):
 def make_probes(torus, triangulation, samples, n_random, max_point_probes, rng):
     """The probes of the achieved constants, in the box: stratified samples inside every
     triangle (with their area weights: the Monte Carlo samples of the size integral), input
-    points, and the vertices, circumcentres, edge midpoints and uniform points of the box."""
+    points, and the vertices, circumcentres, edge midpoints and uniform points of the box.
+    ``sample_dpk``: d_{P,k} at the samples in the box, measured once for both uses (empty
+    when there are fewer than k points)."""
     corners = triangulation.corners
     per_triangle = max(4, -(-samples // max(len(corners), 1)))
     inside, weights = _triangle_samples(corners, per_triangle, rng)
@@ -341,10 +343,12 @@ def make_probes(torus, triangulation, samples, n_random, max_point_probes, rng):
             torus.lo + rng.random((n_random, 2)) * (torus.hi - torus.lo),
         ]
     )
+    in_box = torus.in_box(inside)
     return Probes(
         samples=inside,
         weights=weights,
-        in_box=torus.in_box(inside),
+        in_box=in_box,
+        sample_dpk=torus.d_pk(inside[in_box]) if len(P) >= torus.k else np.zeros(0),
         points=points[torus.in_box(points)],
         others=others[torus.in_box(others)],
     )
@@ -360,9 +364,7 @@ def measure_ratio(torus, probes):
     dpk_points = torus.d_pk(probes.points)
     under_floor = float(np.mean(dpk_points < torus.min_size)) if len(dpk_points) else 0.0
     x = np.concatenate([probes.samples[probes.in_box], probes.points, probes.others])
-    dpk = np.concatenate(
-        [torus.d_pk(probes.samples[probes.in_box]), dpk_points, torus.d_pk(probes.others)]
-    )
+    dpk = np.concatenate([probes.sample_dpk, dpk_points, torus.d_pk(probes.others)])
     ok = dpk >= torus.min_size
     if not ok.any():
         return Ratio(nan, nan, (nan, nan), (nan, nan), 0, under_floor)
@@ -387,9 +389,7 @@ def measure_size(torus, probes):
     if len(torus.points) < torus.k:
         return Size(0.0, 0.0)
     f = np.zeros(len(probes.samples))
-    f[probes.in_box] = (
-        1.0 / np.maximum(torus.d_pk(probes.samples[probes.in_box]), torus.min_size) ** 2
-    )
+    f[probes.in_box] = 1.0 / np.maximum(probes.sample_dpk, torus.min_size) ** 2
     per_triangle = (probes.weights * f).reshape(len(torus.mesh.torus.triangles), -1)
     integral = float(per_triangle.sum())
     var = (
@@ -562,9 +562,7 @@ def verify_triangulation(vertices, triangles, offsets, neighbors, period):
     if m - n_edges + t != 0:
         problems.append(f"Euler characteristic {m - n_edges + t} (a torus has 0)")
     corners = vertices[tri] + off * period
-    e1 = corners[:, 1] - corners[:, 0]
-    e2 = corners[:, 2] - corners[:, 0]
-    area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    area = triangle_areas(corners)
     if np.any(area <= 0):
         problems.append(f"{int((area <= 0).sum())} triangles are not counter-clockwise")
     if abs(area.sum() - period.prod()) > 1e-9 * period.prod():
@@ -631,15 +629,8 @@ def _triangle_samples(corners, per_triangle, rng):
     """per_triangle uniform points in every triangle (triangle-major order) and the weight of
     each: its triangle's area / per_triangle, so that sum(weight * f) estimates the integral
     of f. The mesh is graded like d_{P,k}, so samples are dense where d_{P,k} is small."""
-    t = len(corners)
-    u = rng.random((t, per_triangle, 2))
-    flip = u.sum(-1) > 1
-    u[flip] = 1 - u[flip]
-    a = corners[:, None, 0]
-    e1 = corners[:, 1] - corners[:, 0]
-    e2 = corners[:, 2] - corners[:, 0]
-    x = a + u[..., :1] * e1[:, None] + u[..., 1:] * e2[:, None]
-    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    x, _ = uniform_in_triangles(corners[:, None], rng.random((len(corners), per_triangle, 2)))
+    area = np.abs(triangle_areas(corners))
     return x.reshape(-1, 2), np.repeat(area / per_triangle, per_triangle)
 
 

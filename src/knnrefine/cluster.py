@@ -38,7 +38,7 @@ from .engine.superlevel import superlevel_noise
 from .errors import InputError
 from .mesh import edges
 from .metric import BoxMetric
-from .topology import _gudhi
+from .topology import require_gudhi
 from .validation import as_points
 
 
@@ -77,7 +77,7 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None, noise=False):
     prominent than this (natural-log density); noise: label -1 the points not significantly
     above the level where their cluster meets another (see the module docstring)."""
     t0 = time.perf_counter()
-    gudhi = _gudhi()
+    gudhi = require_gudhi()
     from gudhi.clustering.tomato import Tomato
 
     pts = as_points(points)

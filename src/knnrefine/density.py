@@ -8,14 +8,16 @@ its integral over the box; integrals over the box or any rectangle are exact qua
 the interpolated d over the triangles, clipped to the rectangle.
 """
 
+import inspect
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .engine.embedding import wrap_offsets
 from .errors import InputError
-from .mesh import clip_polygon, split_in_four
+from .mesh import clip_polygon, split_in_four, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric
-from .validation import as_points, as_queries
+from .validation import as_points, as_queries, default_box
 
 # Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
 _QW = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
@@ -292,9 +294,7 @@ def _quadrature(corners, d, func):
     """Per triangle: integral of func(d) with d linear (values d at the corners)."""
     if len(corners) == 0:
         return np.zeros(0)
-    e1 = corners[:, 1] - corners[:, 0]
-    e2 = corners[:, 2] - corners[:, 0]
-    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    area = np.abs(triangle_areas(corners))
     dq = d @ _QP.T  # (t, 7): d at the quadrature points
     return area * (func(dq) @ _QW)
 
@@ -357,8 +357,6 @@ class KnnDensityEstimator:
     # -- scikit-learn's parameter protocol ---------------------------------------------------
     @classmethod
     def _param_names(cls):
-        import inspect
-
         params = inspect.signature(cls.__init__).parameters
         return sorted(p for p in params if p != "self")
 
@@ -409,6 +407,8 @@ class KnnDensityEstimator:
             pts, counts = pts[counts > 0], counts[counts > 0]
         n = len(pts) if counts is None else int(counts.sum())
         box = self._box(pts)
+        for stale in ("cv_ks_", "cv_scores_"):  # from an earlier fit with k="cv"
+            self.__dict__.pop(stale, None)
         if isinstance(self.k, str):
             if self.k != "cv":
                 raise InputError(f'k must be an integer, None or "cv", got {self.k!r}')
@@ -432,8 +432,8 @@ class KnnDensityEstimator:
         return self
 
     def _box(self, pts):
-        """The box to refine in: the user's, else the points' widened by ``margin`` (None,
-        refine's default, where the points span no area)."""
+        """The box to refine in: the user's, else refine's default box of the points
+        (``validation.default_box``) widened by ``margin``."""
         if self.box is not None:
             return self.box
         if np.any(self.periodic):  # a torus needs its period: refine says so
@@ -443,11 +443,9 @@ class KnnDensityEstimator:
             raise InputError(f"margin must be a number >= 0, got {margin!r}")
         if not 0 <= margin < np.inf:
             raise InputError(f"margin must be a finite number >= 0, got {margin!r}")
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        if not (hi > lo).all():  # refine's default box handles points on a line
-            return None
-        pad = margin * (hi - lo)
-        return (*(lo - pad), *(hi + pad))
+        x0, y0, x1, y1 = default_box(pts)
+        px, py = margin * (x1 - x0), margin * (y1 - y0)
+        return (x0 - px, y0 - py, x1 + px, y1 + py)
 
     def _cross_validate(self, pts, counts, box):
         """(candidate ks, mean held-out log-likelihood per point of each): every fold refined
@@ -545,9 +543,7 @@ class KnnDensityEstimator:
         dist = density.distance
         corners = dist.nodes[dist.triangles]
         d = dist.values[dist.triangles]
-        e1 = corners[:, 1] - corners[:, 0]
-        e2 = corners[:, 2] - corners[:, 0]
-        area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        area = np.abs(triangle_areas(corners))
         dmin = d.min(axis=1)  # d is linear on a piece: its density peaks at a corner
         bound = area / dmin**2
         cdf = np.cumsum(bound)
@@ -558,11 +554,8 @@ class KnnDensityEstimator:
             t = np.minimum(
                 np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1
             )
-            u, v = rng.random(m), rng.random(m)
-            flip = u + v > 1.0
-            u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
-            x = corners[t, 0] + u[:, None] * e1[t] + v[:, None] * e2[t]
-            dx = d[t, 0] * (1.0 - u - v) + d[t, 1] * u + d[t, 2] * v
+            x, u = uniform_in_triangles(corners[t], rng.random((m, 2)))
+            dx = d[t, 0] * (1.0 - u[:, 0] - u[:, 1]) + d[t, 1] * u[:, 0] + d[t, 2] * u[:, 1]
             keep = rng.random(m) * dx**2 <= dmin[t] ** 2
             # pieces reach past the box; each point of the box lies in exactly one of them
             keep &= np.all((x >= dist.lo) & (x <= dist.hi), axis=1)

@@ -257,6 +257,24 @@ def split_in_four(triangles, n_nodes):
     return pairs, edge_of, pieces
 
 
+def triangle_areas(corners):
+    """Signed areas of the triangles (t, 3, 2): positive when counter-clockwise."""
+    e1 = corners[:, 1] - corners[:, 0]
+    e2 = corners[:, 2] - corners[:, 0]
+    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
+def uniform_in_triangles(corners, u):
+    """Points uniform in triangles (..., 3, 2) from numbers u (..., 2) uniform in the unit
+    square, folded onto the triangle along the square's diagonal. Returns (points (..., 2),
+    the folded u: a point is corner 0 + u0 (corner 1 - corner 0) + u1 (corner 2 - corner 0))."""
+    u = np.array(u, dtype=float)
+    flip = u.sum(-1) > 1
+    u[flip] = 1.0 - u[flip]
+    a = corners[..., 0, :]
+    return a + u[..., :1] * (corners[..., 1, :] - a) + u[..., 1:] * (corners[..., 2, :] - a), u
+
+
 def clip_polygon(corners, rect, values=None):
     """Sutherland-Hodgman: the convex polygon ``corners`` (p, 2) clipped to the rectangle
     ``rect`` = ((x0, y0), (x1, y1)), with ``values`` at the corners (linear) carried along.

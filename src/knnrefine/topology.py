@@ -30,9 +30,6 @@ def require_gudhi():
     return gudhi
 
 
-_gudhi = require_gudhi
-
-
 def mesh_complex(mesh, subdivide=True):
     """The triangulated domain of the filtration: (positions (p, 2), triangles (t, 3)).
 
@@ -78,7 +75,7 @@ class Persistence:
     scale-free (features of a tight cluster and of a wide ring compare by ratios)."""
 
     def __init__(self, mesh, points, log=True, subdivide=True, function="d_pk"):
-        gudhi = _gudhi()
+        gudhi = require_gudhi()
         pts = as_points(points)
         if len(pts) < mesh.k:
             raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
@@ -122,7 +119,7 @@ class Persistence:
 def grid_persistence(points, k, box, periodic=(False, False), shape=(512, 512), log=True):
     """The reference: cubical sublevel-set persistence of exact d_{P,k} on a grid of cell
     centres over the box (periodic where asked), from gudhi. Returns {dim: (q, 2) array}."""
-    gudhi = _gudhi()
+    gudhi = require_gudhi()
     pts = as_points(points)
     ny, nx = shape
     xs = box[0] + (np.arange(nx) + 0.5) * (box[2] - box[0]) / nx
@@ -146,7 +143,7 @@ def grid_persistence(points, k, box, periodic=(False, False), shape=(512, 512), 
 def bottleneck(a, b):
     """Bottleneck distance between two diagrams (infinite classes matched separately: their
     births' largest difference when the counts agree, inf otherwise)."""
-    gudhi = _gudhi()
+    gudhi = require_gudhi()
     fa, fb = a[np.isfinite(a[:, 1])], b[np.isfinite(b[:, 1])]
     ia, ib = np.sort(a[~np.isfinite(a[:, 1]), 0]), np.sort(b[~np.isfinite(b[:, 1]), 0])
     if len(ia) != len(ib):

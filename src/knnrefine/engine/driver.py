@@ -91,7 +91,9 @@ class Refinement:
     """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
 
     MIN_CAPACITY = 128  # vertices the arrays have room for at first, at least
+    GROWTH = 1.25  # capacity factor when an array runs full
     SWEEP_MIN = 1024  # cells newly queued that make a bulk sweep worthwhile (refine.py)
+    SWEEP_PER_THREAD = 4096  # fewer cells than this per thread are swept by one
 
     def __init__(
         self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q, expected_vertices=0
@@ -147,6 +149,7 @@ class Refinement:
             cleans=new_queue(R.HEADROOM + 256),
         )
         self.probe = new_probe()
+        self.sweep_probes = []  # the other sweeping threads' probes, made on first use
         self.cnt = np.zeros(N_COUNTERS, np.int64)
         self.cnt[C_NV] = m0
         self.cnt[C_NT] = corners.shape[0]
@@ -163,11 +166,8 @@ class Refinement:
         self.prm[P_GRID] = grid
         self.prm[P_INFLATE] = 1.0 + 1e-9
         set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
-        set_vertex_caches(self.mesh, self.prm, m0)
-        R.queue_all(self.mesh, self.book, self.queues, self.probe, self.cnt, self.prm)
-
-    GROWTH = 1.25  # capacity factor when an array runs full
-    SWEEP_PER_THREAD = 4096  # fewer cells than this per thread are swept by one
+        set_vertex_caches(self.mesh, self.prm, m0, self.probe.hx, self.probe.hy)
+        R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
     def _grow_if_needed(self):
         """Grow, by GROWTH, every array that could overflow during the next insertion: the
@@ -249,7 +249,9 @@ class Refinement:
         STATUS_ERROR (with the code in the counters) or STATUS_STEPS."""
         order = R.cells_to_sweep(self.mesh, self.book, self.queues, self.cnt, self.prm)
         threads = min(thread_count(), max(1, len(order) // self.SWEEP_PER_THREAD))
-        probes = [self.probe] + [new_probe() for _ in range(threads - 1)]
+        while len(self.sweep_probes) < threads - 1:
+            self.sweep_probes.append(new_probe())
+        probes = [self.probe] + self.sweep_probes
         for i in range(0, len(order), chunk):
             parts = np.array_split(order[i : i + chunk], threads)
             before = self.cnt.copy()
@@ -316,4 +318,5 @@ class Refinement:
             counters=counters,
         )
         self.mesh = self.book = self.queues = self.scratch = self.probe = None
+        self.sweep_probes = []
         return res

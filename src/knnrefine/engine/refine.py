@@ -131,7 +131,7 @@ def _touch(v, mesh, book, queues, cnt, prm):
 
 
 @kernel(inline="always")
-def clean(mesh, book, queues, probe, cnt, prm):
+def clean(mesh, book, queues, prm):
     """Choose the next Clean move: the largest cell whose aspect exceeds tau.
 
     Returns (t, v): insert the circumcenter of triangle t, the far corner of vertex v's cell;
@@ -211,7 +211,7 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
         if mesh.corners[t, 0] != apex or book.ball_state[t] != UNTESTED:
             continue  # a stale entry: slot t holds another triangle now, or was tested
         cnt[C_DISK_TESTS] += 1
-        cx, cy, r2 = circumcentre(mesh, prm, t)
+        cx, cy, _ = circumcentre(mesh, prm, t)
         if count_in_disk(index, cx, cy, radius2[t] * inflate, k, lx, ly, probe.stack) < k:
             book.ball_state[t] = GOOD
             continue
@@ -287,7 +287,7 @@ def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
 
 
 @kernel(entry=True, nrt=False)
-def queue_all(mesh, book, queues, probe, cnt, prm):
+def queue_all(mesh, book, queues, cnt, prm):
     """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0)."""
     queue_clear(queues.balls)
     queue_clear(queues.cells)
@@ -321,7 +321,7 @@ def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps)
         if needs_growth(mesh, queues, cnt):
             return STATUS_GROW
         # Clean first: after every Break, clean until every aspect is <= tau
-        t, elem = clean(mesh, book, queues, probe, cnt, prm)
+        t, elem = clean(mesh, book, queues, prm)
         kind = CLEAN
         if t == -1:
             t, kind, elem = break_(mesh, book, queues, probe, cnt, prm, index)
@@ -332,7 +332,7 @@ def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps)
             if t < -1:
                 cnt[C_ERROR] = t
                 return STATUS_ERROR
-        cx, cy, r2 = circumcentre(mesh, prm, t)
+        cx, cy, _ = circumcentre(mesh, prm, t)
         px = snap(cx, q)
         py = snap(cy, q)
         v = insert_vertex(px, py, t, mesh, scratch, cnt, prm)

@@ -137,24 +137,13 @@ def far_corner(v, mesh):
 
 
 @kernel(entry=True, nrt=False)
-def set_vertex_caches(mesh, prm, nv):
-    """Fill outradius2 and nearest2 for vertices 0..nv-1 by walking their stars."""
-    lx = prm[P_LX]
-    ly = prm[P_LY]
+def set_vertex_caches(mesh, prm, nv, hx, hy):
+    """Fill outradius2 and nearest2 for vertices 0..nv-1 by walking their stars
+    (``vertex_star``; hx, hy: its scratch)."""
     for v in range(nv):
-        mesh.outradius2[v] = mesh.radius2[far_corner(v, mesh)]
-        t0 = mesh.star[v]
-        t = t0
-        nearest2 = np.inf
-        while True:
-            i = corner_of(mesh, t, v)
-            i1 = (i + 1) % 3
-            ex, ey = edge_to(mesh, t, i, i1, lx, ly)
-            nearest2 = min(nearest2, ex * ex + ey * ey)
-            t = mesh.neighbours[t, i1]
-            if t == t0:
-                break
-        mesh.nearest2[v] = nearest2
+        outradius2, _, d_m2_sq, _ = vertex_star(v, mesh, prm, hx, hy)
+        mesh.outradius2[v] = outradius2
+        mesh.nearest2[v] = d_m2_sq
 
 
 @kernel(inline="always")
