@@ -142,3 +142,86 @@ def test_mass_of_a_region_reaching_past_the_box():
     parts = torus.mass((0.9, 0.2, 1.0, 0.4)) + torus.mass((0.0, 0.2, 0.1, 0.4))
     assert across == pytest.approx(parts, rel=1e-12)
     assert torus.mass((-3, 0, 7, 1)) == pytest.approx(1.0, rel=1e-9)  # a whole period or more
+
+
+# -- issue 11: the grid job without a second tree or point location ---------------------------
+
+
+def test_grid_is_the_interpolant_at_the_grid_centres(case):
+    # rasterising the pieces gives what locating each centre gives, for odd shapes too
+    pts, mesh = case
+    d = KnnDistance(mesh, pts)
+    for shape in ((97, 131), (1, 1), (3, 500)):
+        xs, ys, g = d.grid(shape)
+        gx, gy = np.meshgrid(xs, ys)
+        located = d(np.stack([gx, gy], -1))
+        np.testing.assert_allclose(g, located, rtol=1e-12)
+    with pytest.raises(knnrefine.InputError, match="shape"):
+        d.grid((0, 5))
+    with pytest.raises(knnrefine.InputError, match="shape"):
+        d.grid((2.5, 5))
+
+
+def test_node_values_reuse_the_engine_index_and_never_trust_other_points():
+    rng = np.random.default_rng(8)
+    pts = np.concatenate([rng.random((2000, 2)), rng.normal(0.5, 0.01, (1000, 2))])
+    mesh = knnrefine.refine(pts, 15)
+    d = KnnDistance(mesh, pts)
+    assert d.index is mesh.index  # no second tree
+    np.testing.assert_allclose(d.values, oracle.kth(d.nodes, pts, 15, (0, 0)), rtol=1e-12)
+    # other points of the same number: a new index over them, their own distances
+    other = pts.copy()
+    other[0] += 0.25
+    d2 = KnnDistance(mesh, other)
+    assert d2.index is not mesh.index
+    np.testing.assert_allclose(d2.values, oracle.kth(d2.nodes, other, 15, (0, 0)), rtol=1e-12)
+    # a mesh without its index (as read from a file) builds one
+    import dataclasses
+
+    bare = dataclasses.replace(mesh, index=None)
+    np.testing.assert_array_equal(KnnDistance(bare, pts).values, d.values)
+
+
+def test_clip_triangles_partitions_the_rectangle_and_carries_values():
+    # the pieces of a triangulated square clipped to a rectangle tile the rectangle exactly;
+    # values at every clipped corner are the plane through the triangle's corners
+    from knnrefine.engine.raster import clip_triangles, fans
+    from knnrefine.mesh import triangle_areas
+
+    rng = np.random.default_rng(9)
+    g = np.linspace(0, 1, 9)
+    nodes = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + rng.uniform(-0.02, 0.02, (81, 2))
+    from scipy.spatial import Delaunay
+
+    tri = Delaunay(nodes).simplices
+    corners = nodes[tri]
+    plane = rng.normal(size=3)
+
+    def f(x):
+        return plane[0] + plane[1] * x[..., 0] + plane[2] * x[..., 1]
+
+    for rect in ((0.2, 0.3, 0.7, 0.55), (0.1, 0.1, 0.9, 0.9), (0.5, 0.5, 0.5001, 0.6)):
+        poly, vals, count = clip_triangles(corners, f(corners), *rect)
+        pieces, dv = fans(poly, vals, count)
+        area = np.abs(triangle_areas(pieces)).sum()
+        assert area == pytest.approx((rect[2] - rect[0]) * (rect[3] - rect[1]), rel=1e-9)
+        np.testing.assert_allclose(dv, f(pieces), rtol=1e-9, atol=1e-12)
+        assert (pieces[..., 0] >= rect[0]).all() and (pieces[..., 0] <= rect[2]).all()
+        assert (pieces[..., 1] >= rect[1]).all() and (pieces[..., 1] <= rect[3]).all()
+    # nothing left outside, and a triangle inside stays itself
+    assert clip_triangles(corners, f(corners), 2.0, 2.0, 3.0, 3.0)[2].sum() == 0
+    one = np.array([[[0.1, 0.1], [0.3, 0.1], [0.1, 0.3]]])
+    poly, _, count = clip_triangles(one, np.zeros((1, 3)), 0.0, 0.0, 1.0, 1.0)
+    assert count[0] == 3 and np.array_equal(poly[0, :3], one[0])
+
+
+def test_edges_are_the_distinct_sorted_pairs():
+    from knnrefine.mesh import edges
+
+    rng = np.random.default_rng(10)
+    t = rng.integers(0, 300, (1000, 3)).astype(np.int32)
+    pairs, edge_of = edges(t)
+    sides = np.sort(np.concatenate([t[:, [1, 2]], t[:, [2, 0]], t[:, [0, 1]]]), axis=1)
+    ref, inverse = np.unique(sides, axis=0, return_inverse=True)
+    assert np.array_equal(pairs, ref) and pairs.dtype == t.dtype
+    assert np.array_equal(edge_of, inverse.reshape(3, -1).T)

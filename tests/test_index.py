@@ -205,3 +205,91 @@ def test_parallel_build_is_the_one_thread_tree(workers, monkeypatch):
         assert _preorder(one) == _preorder(many), name
         # every node reachable exactly once: no stale block left behind
         assert len(_preorder(many)) == len(many[2]), name
+
+
+# -- the k-th nearest distance (PointIndex.kth): evaluating d_{P,k}, not refining ------------
+
+
+def _kth_brute(q, pts, k, periodic, period):
+    """d_{P,k} by brute force: per axis the circle's distance (periodic) or the line's."""
+    e = np.abs(q[:, None, :] - pts[None, :, :])
+    for a in range(2):
+        if periodic[a]:
+            e[..., a] = np.minimum(e[..., a], period[a] - e[..., a])
+    return np.sqrt(np.partition((e**2).sum(-1), k - 1, axis=1)[:, k - 1])
+
+
+@pytest.mark.parametrize("periodic", [(False, False), (True, True), (True, False)])
+@pytest.mark.parametrize("case", range(1, 7))
+def test_kth_distance_matches_brute_force(case, periodic):
+    rng = np.random.default_rng(case)
+    name, pts = list(point_sets(rng))[case]
+    index = engine_index.PointIndex.build(pts, (0.0, 0.0, 1.0, 1.0), periodic)
+    q = np.concatenate([rng.random((150, 2)), pts[rng.integers(0, len(pts), 50)]])
+    if not all(periodic):  # planar axes answer outside the box too
+        q = np.concatenate([q, rng.random((30, 2)) * 3 - 1])
+        q[-30:, [a for a in range(2) if periodic[a]]] %= 1.0
+    for k in sorted({1, 2, 7, 100, len(pts)}):
+        if k > len(pts):
+            continue
+        ref = _kth_brute(q, pts, k, periodic, (1.0, 1.0))
+        np.testing.assert_allclose(index.kth(q, k), ref, rtol=1e-12, atol=1e-15)
+        # any window: too low, too high, too narrow, empty; the bounds hold
+        for r_in, r_out in ((0.01 * ref, 0.02 * ref), (3 * ref, 9 * ref), (ref, ref), (0, 0)):
+            got = index.kth(q, k, r_in, r_out, workers=2)
+            np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
+        got = index.kth(q, k, 0.5 * ref, 2 * ref, low=0.9 * ref, high=1.1 * ref)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
+
+
+def test_kth_distance_with_more_ties_than_the_window_holds():
+    # 3,000 copies of one point at the same distance from every query: no window can split
+    # them (the buffer holds 4 k + 1024), so the kernel gives up and brute force answers
+    rng = np.random.default_rng(5)
+    pts = np.concatenate([np.repeat([[0.5, 0.5]], 3000, axis=0), rng.random((500, 2))])
+    index = engine_index.PointIndex.build(pts, (0.0, 0.0, 1.0, 1.0), (False, False))
+    q = np.concatenate([rng.random((20, 2)), [[0.5, 0.5]]])
+    for k in (5, 200, 3400):
+        ref = _kth_brute(q, pts, k, (False, False), (1.0, 1.0))
+        np.testing.assert_allclose(index.kth(q, k), ref, rtol=1e-12, atol=0)
+
+
+def test_kth_distance_is_the_same_on_a_refined_mesh_index():
+    # the index refine keeps (internal units, embedded box) answers as one built for the data
+    import knnrefine
+
+    rng = np.random.default_rng(2)
+    pts = np.concatenate([rng.normal([2.0, -1.0], [0.5, 0.01], (3000, 2)), rng.random((300, 2))])
+    mesh = knnrefine.refine(pts, 30)
+    assert mesh.index.indexes(pts) and not mesh.index.indexes(pts[::-1] + 1e-9)
+    q = rng.random((400, 2)) * 6 - [1.0, 3.0]  # inside and far outside the box
+    ref = _kth_brute(q, pts, 30, (False, False), (0.0, 0.0))
+    np.testing.assert_allclose(mesh.index.kth(q, 30), ref, rtol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["uniform", "ties", "sorted", "reversed"])
+def test_select_puts_the_kth_row_in_place(kind):
+    # Floyd-Rivest on long ranges, quickselect on short ones: rows move whole, the kth is the
+    # sorted order's, nothing outside [lo, hi) moves
+    select = python_entry(engine_index._select)
+    rng = np.random.default_rng(len(kind))
+    for n in (1, 2, 33, 601, 602, 5000, 70000):
+        p = {
+            "uniform": rng.random((n, 2)),
+            "ties": rng.integers(0, 3, (n, 2)).astype(float),
+            "sorted": np.sort(rng.random((n, 2)), axis=0),
+            "reversed": np.sort(rng.random((n, 2)), axis=0)[::-1].copy(),
+        }[kind]
+        for _ in range(4):
+            lo = int(rng.integers(0, n))
+            hi = int(rng.integers(lo + 1, n + 1))
+            kth = int(rng.integers(lo, hi))
+            axis = int(rng.integers(0, 2))
+            q = p.copy()
+            select(q, axis, lo, hi, kth)
+            assert np.array_equal(q[:lo], p[:lo]) and np.array_equal(q[hi:], p[hi:])
+            assert q[kth, axis] == np.sort(p[lo:hi, axis])[kth - lo]
+            assert (q[lo:kth, axis] <= q[kth, axis]).all()
+            assert (q[kth + 1 : hi, axis] >= q[kth, axis]).all()
+            rows = np.lexsort(q[lo:hi].T), np.lexsort(p[lo:hi].T)
+            assert np.array_equal(q[lo:hi][rows[0]], p[lo:hi][rows[1]])

@@ -13,7 +13,7 @@ from .engine import refine as R
 from .engine.driver import Refinement
 from .engine.embedding import Embedding, diameter, unfold, wrap
 from .engine.geometry import FLOOR_BITS
-from .engine.index import build_index, mark_in_disks
+from .engine.index import PointIndex, build_index, mark_in_disks
 from .engine.initial import (
     GRIDS,
     candidate_grids,
@@ -207,7 +207,8 @@ def refine(
             "shift": float(m0_grid[2]),
             "reach_factor": reach_factor(tau),
         }
-        mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts)
+        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts))
+        mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, kept)
     stats = mesh.stats
     stats["estimated_vertices"] = int(estimated)
     stats["max_vertices"] = budget
@@ -453,7 +454,7 @@ def _points_under_floor(res, run):
     )
 
 
-def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
+def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, index=None):
     """The Mesh the user receives, from the torus mesh (progress reported between steps)."""
     out_v, pos, tri, offsets = unfold(res.vxy, res.tv, res.to, emb)
     report.assembling(run.vertices)
@@ -512,4 +513,5 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts):
         floor_points=floor_pts,
         stats=stats,
         torus=torus,
+        index=index,
     )

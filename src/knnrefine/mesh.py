@@ -5,6 +5,7 @@ from functools import cached_property
 
 import numpy as np
 
+from .engine.raster import clip_triangles
 from .metric import BoxMetric
 from .validation import as_queries
 
@@ -74,6 +75,11 @@ class Mesh:
         ``min_size``. Empty when the guarantee holds everywhere.
     stats : dict
         Moves of each kind, counting tests, timings (seconds), sizes.
+    index : PointIndex or None
+        The engine's counting kd-tree over P, kept by ``refine`` so that d_{P,k} can be
+        evaluated exactly without a second tree (``KnnDistance``, the density estimate);
+        about 20 bytes per input point. None for a mesh read from a file;
+        ``dataclasses.replace(mesh, index=None)`` gives a copy without it.
     """
 
     vertices: np.ndarray
@@ -89,6 +95,7 @@ class Mesh:
     floor_points: np.ndarray
     stats: dict = field(default_factory=dict)
     torus: Torus | None = None
+    index: object = field(default=None, repr=False)
 
     @property
     def alpha(self):
@@ -170,11 +177,18 @@ class Mesh:
             for sy in (0, -1) if per[1] else (0,):
                 shifted = corners + np.array([sx, sy]) * period
                 lo, hi = shifted.min(axis=1), shifted.max(axis=1)
-                meets = np.all((hi > rect[0]) & (lo < rect[1]), axis=1)
-                for t in np.flatnonzero(meets):
-                    poly, _ = clip_polygon(shifted[t], rect)
-                    if len(poly) >= 3 and _area(poly) > 0:
-                        out.append((int(t), poly))
+                meets = np.flatnonzero(np.all((hi > rect[0]) & (lo < rect[1]), axis=1))
+                poly, _, count = clip_triangles(
+                    shifted[meets], np.zeros((len(meets), 3)), *rect[0], *rect[1]
+                )
+                # shoelace over each polygon's first count corners
+                j = np.arange(poly.shape[1])
+                nxt = (j + 1) % np.maximum(count, 1)[:, None]
+                x, y = poly[..., 0], poly[..., 1]
+                cross = x * np.take_along_axis(y, nxt, 1) - y * np.take_along_axis(x, nxt, 1)
+                area = np.where(j < count[:, None], cross, 0.0).sum(axis=1)
+                for i in np.flatnonzero((count >= 3) & (area != 0)):
+                    out.append((int(meets[i]), poly[i, : count[i]].copy()))
         out.sort(key=lambda piece: piece[0])
         return out
 
@@ -230,20 +244,23 @@ def edges(triangles):
     """The edges of a triangle array: (pairs (e, 2), the distinct vertex pairs, smaller index
     first; edge_of (t, 3), the edge opposite each corner)."""
     triangles = np.asarray(triangles)
-    sides = np.sort(
-        np.concatenate([triangles[:, [1, 2]], triangles[:, [2, 0]], triangles[:, [0, 1]]]), axis=1
-    )
-    pairs, inverse = np.unique(sides, axis=0, return_inverse=True)
+    a = np.concatenate([triangles[:, 1], triangles[:, 2], triangles[:, 0]]).astype(np.int64)
+    b = np.concatenate([triangles[:, 2], triangles[:, 0], triangles[:, 1]]).astype(np.int64)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    base = int(hi.max()) + 1 if len(hi) else 1
+    keys, inverse = np.unique(lo * base + hi, return_inverse=True)  # sorted as (lo, hi) pairs
+    pairs = np.stack([keys // base, keys % base], axis=1).astype(triangles.dtype, copy=False)
     return pairs, inverse.reshape(3, len(triangles)).T
 
 
-def split_in_four(triangles, n_nodes):
+def split_in_four(triangles, n_nodes, known_edges=None):
     """Each triangle into four through its edge midpoints, shared between neighbours.
 
     Returns (edges (e, 2) sorted vertex pairs, edge_of (t, 3): the edge opposite each corner,
     triangles (4 t, 3) where midpoint j is node ``n_nodes + j``). The caller places the
-    midpoints (halfway along each edge, across a periodic seam if need be)."""
-    pairs, edge_of = edges(triangles)
+    midpoints (halfway along each edge, across a periodic seam if need be). known_edges:
+    ``edges(triangles)`` when the caller has it already."""
+    pairs, edge_of = edges(triangles) if known_edges is None else known_edges
     m = n_nodes + edge_of
     a, b, c = np.asarray(triangles).T
     pieces = np.concatenate(
@@ -273,37 +290,3 @@ def uniform_in_triangles(corners, u):
     u[flip] = 1.0 - u[flip]
     a = corners[..., 0, :]
     return a + u[..., :1] * (corners[..., 1, :] - a) + u[..., 1:] * (corners[..., 2, :] - a), u
-
-
-def clip_polygon(corners, rect, values=None):
-    """Sutherland-Hodgman: the convex polygon ``corners`` (p, 2) clipped to the rectangle
-    ``rect`` = ((x0, y0), (x1, y1)), with ``values`` at the corners (linear) carried along.
-    Returns (polygon (q, 2), values (q,) or None); q = 0 when nothing is left."""
-    vals = np.zeros(len(corners)) if values is None else np.asarray(values, float)
-    poly = [(np.asarray(corners[i], float), vals[i]) for i in range(len(corners))]
-    for axis in (0, 1):
-        for side, bound in ((1, rect[0][axis]), (-1, rect[1][axis])):
-            if not poly:
-                break
-            out = []
-            for i in range(len(poly)):
-                (p, dp), (q, dq) = poly[i], poly[(i + 1) % len(poly)]
-                pin = side * (p[axis] - bound) >= 0
-                qin = side * (q[axis] - bound) >= 0
-                if pin:
-                    out.append((p, dp))
-                if pin != qin:
-                    s = (bound - p[axis]) / (q[axis] - p[axis])
-                    cut = p + s * (q - p)
-                    cut[axis] = bound  # exactly on the side, whatever the rounding
-                    out.append((cut, dp + s * (dq - dp)))
-            poly = out
-    if not poly:
-        return np.zeros((0, 2)), (None if values is None else np.zeros(0))
-    points = np.array([p for p, _ in poly])
-    return points, (None if values is None else np.array([v for _, v in poly]))
-
-
-def _area(poly):
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))

@@ -129,6 +129,20 @@ class Embedding:
                 x[:, a] = np.where(x[:, a] >= lo + period, x[:, a] - period, x[:, a])
         return x
 
+    def to_query(self, x):
+        """Internal coordinates of any points (n, 2) for distance queries: wrapped into the
+        torus along periodic axes, unwrapped (planar, possibly outside [0, L)) along the
+        others, where the index answers in the plane (``index.PointIndex``)."""
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 2)
+        out = (x - self.origin) * self.scale
+        for a in range(2):
+            if self.periodic[a]:
+                u = wrap_offsets(x[:, a].copy(), float(self.origin[a]), self.period[a])
+                u *= self.scale
+                u[u >= self.period_internal[a]] = 0.0  # rounding at the seam
+                out[:, a] = u
+        return out
+
     def box_internal(self):
         lo = (np.array(self.box[:2]) - self.origin) * self.scale
         hi = (np.array(self.box[2:]) - self.origin) * self.scale

@@ -32,9 +32,60 @@ LEAF_SIZE = 32
 STACK_SIZE = 128  # > 2 * tree depth for any n that fits in memory
 
 
+@kernel(inline="always")
+def _swap_rows(pts, i, j):
+    for a in range(2):
+        pts[i, a], pts[j, a] = pts[j, a], pts[i, a]
+
+
 @kernel()
 def _select(pts, axis, lo, hi, kth):
-    """Partially sort the rows pts[lo:hi] by coordinate ``axis`` so that row kth is in place."""
+    """Partially sort the rows pts[lo:hi] by coordinate ``axis`` so that row kth is in place.
+
+    Floyd and Rivest's selection (1975): on a long range, first put in place the kth row of
+    a sample range around it (about n^(2/3) rows), then partition the whole range once about
+    that row's value, which lies close to the answer, so that what is left is short: about
+    1.5 n comparisons instead of quickselect's 3 n."""
+    left = lo
+    right = hi - 1
+    while right - left > 600:
+        n = right - left + 1
+        i = kth - left + 1
+        z = np.log(n)
+        s = 0.5 * np.exp(2.0 * z / 3.0)
+        sd = 0.5 * np.sqrt(z * s * (n - s) / n) * (-1.0 if i < n / 2 else 1.0)
+        sample_lo = max(left, int(kth - i * s / n + sd))
+        sample_hi = min(right, int(kth + (n - i) * s / n + sd))
+        _quickselect(pts, axis, sample_lo, sample_hi + 1, kth)
+        t = pts[kth, axis]
+        a = left
+        b = right
+        _swap_rows(pts, left, kth)
+        if pts[right, axis] > t:
+            _swap_rows(pts, right, left)
+        while a < b:
+            _swap_rows(pts, a, b)
+            a += 1
+            b -= 1
+            while pts[a, axis] < t:
+                a += 1
+            while pts[b, axis] > t:
+                b -= 1
+        if pts[left, axis] == t:
+            _swap_rows(pts, left, b)
+        else:
+            b += 1
+            _swap_rows(pts, b, right)
+        if b <= kth:
+            left = b + 1
+        if kth <= b:
+            right = b - 1
+    _quickselect(pts, axis, left, right + 1, kth)
+
+
+@kernel()
+def _quickselect(pts, axis, lo, hi, kth):
+    """``_select`` by quickselect with a median-of-three pivot (for short ranges)."""
     left = lo
     right = hi - 1
     while right > left:
@@ -518,3 +569,250 @@ def holds_k_within(index, xy, r2, k, lx, ly):
     for i in range(xy.shape[0]):
         out[i] = count_in_torus_disk(index, xy[i, 0], xy[i, 1], r2[i], k, lx, ly, stack) >= k
     return out
+
+
+# -- the k-th nearest distance itself (for evaluating d_{P,k}, not for refining) ---------------
+
+
+@kernel(inline="always")
+def _gap(c, lo, hi, period, periodic):
+    """Least and greatest distance along one axis from c to the interval [lo, hi]: on the
+    circle of length ``period`` (c in [0, period)) when periodic, on the line otherwise."""
+    if periodic:
+        return _torus_gap(c, lo, hi, period)
+    return max(lo - c, 0.0, c - hi), max(abs(c - lo), abs(c - hi))
+
+
+@kernel(nrt=False)
+def _kth_smallest(buf, n, j):
+    """The j-th smallest (from 0) of buf[:n], which it reorders (quickselect, median of 3)."""
+    lo = 0
+    hi = n - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        a, b, c = buf[lo], buf[mid], buf[hi]
+        pivot = max(min(a, b), min(max(a, b), c))
+        i = lo
+        e = hi
+        while i <= e:
+            while buf[i] < pivot:
+                i += 1
+            while buf[e] > pivot:
+                e -= 1
+            if i <= e:
+                buf[i], buf[e] = buf[e], buf[i]
+                i += 1
+                e -= 1
+        if j <= e:
+            hi = e
+        elif j >= i:
+            lo = i
+        else:
+            return buf[j]
+    return buf[j]
+
+
+WINDOW_LOW = -1  # the inner radius already holds k points
+WINDOW_HIGH = -2  # the outer radius holds fewer than k
+WINDOW_FULL = -3  # more points between the radii than the buffer holds
+
+
+@kernel(nrt=False)
+def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf):
+    """The squared distance from c to its k-th nearest point of P if it lies in (r_in, r_out]
+    (one traversal: nodes inside the inner disk are counted whole, points between the radii
+    are kept in buf, then the one needed is selected), else WINDOW_LOW, WINDOW_HIGH or
+    WINDOW_FULL. Periodic axes (px, py) use the distance of the circle, each point counted
+    once whatever the radius; the others are planar."""
+    pts, box, node, split = index
+    rin2 = r_in * r_in
+    rout2 = r_out * r_out
+    inner = 0
+    kept = 0
+    cap = buf.shape[0]
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        nx, fx = _gap(cx, box[t, 0], box[t, 2], lx, px)
+        ny, fy = _gap(cy, box[t, 1], box[t, 3], ly, py)
+        if nx * nx + ny * ny > rout2:
+            continue
+        if fx * fx + fy * fy <= rin2:
+            inner += node[t, 1] - node[t, 0]
+            if inner >= k:
+                return WINDOW_LOW
+            continue
+        c = node[t, 2]
+        if c >= 0:
+            stack[sp] = c
+            stack[sp + 1] = c + 1
+            sp += 2
+            continue
+        for i in range(node[t, 0], node[t, 1]):
+            ex = abs(pts[i, 0] - cx)
+            ey = abs(pts[i, 1] - cy)
+            if px:
+                ex = min(ex, lx - ex)
+            if py:
+                ey = min(ey, ly - ey)
+            d2 = ex * ex + ey * ey
+            if d2 <= rin2:
+                inner += 1
+                if inner >= k:
+                    return WINDOW_LOW
+            elif d2 <= rout2:
+                if kept == cap:
+                    return WINDOW_FULL
+                buf[kept] = d2
+                kept += 1
+    if inner + kept < k:
+        return WINDOW_HIGH
+    return _kth_smallest(buf, kept, k - inner - 1)
+
+
+@kernel(entry=True, nogil=True)
+def kth_distances(index, qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, out, start, stop):
+    """out[i] = d_{P,k}(q_i) for i in [start, stop), internal units. (r_in[i], r_out[i]] is a
+    guess that should hold it: a wrong one is moved outwards or inwards (by twice its width,
+    then four times, ...) until it brackets the answer, never past the bounds low[i] <= d <=
+    high[i], which must hold. NaN where no window settles it within 200 tries (thousands of
+    points at one distance); the caller answers those another way. Query coordinates along
+    periodic axes must lie in [0, period)."""
+    pts, box, node, split = index
+    stack = np.empty(STACK_SIZE, np.int64)
+    buf = np.empty(4 * k + 1024)
+    for i in range(start, stop):
+        known_low = max(low[i], 0.0)  # the ball of this radius holds fewer than k points
+        known_high = high[i]  # the ball of this radius holds at least k points
+        a = min(max(r_in[i], known_low), known_high)
+        b = max(min(r_out[i], known_high), a)
+        if not b > a:
+            b = a + max(a, 1e-300)
+        width = b - a
+        out[i] = np.nan
+        for _ in range(200):
+            d2 = _kth_in_window(index, qx[i], qy[i], k, a, b, lx, ly, px, py, stack, buf)
+            if d2 >= 0.0:
+                out[i] = np.sqrt(d2)
+                break
+            if d2 == WINDOW_LOW:
+                if a == 0.0:  # k points at distance 0
+                    out[i] = 0.0
+                    break
+                known_high = a
+                width *= 2.0
+                b = a
+                a = max(known_low, a - width, 0.0)
+            elif d2 == WINDOW_HIGH:
+                known_low = b
+                width *= 2.0
+                a = b
+                b = min(b + width, known_high)
+            else:
+                width *= 0.5
+                b = a + width
+            if not b > a:
+                break
+    return 0
+
+
+class PointIndex:
+    """The counting kd-tree over P with the embedding that maps input coordinates into its
+    frame: exact d_{P,k} at any points, periodic axes by the distance of the circle, the others
+    in the plane. ``refine`` keeps the one it refined with on the Mesh (``Mesh.index``), so
+    that evaluating d_{P,k} needs no second tree; ``build`` makes one for points alone."""
+
+    def __init__(self, embedding, index, fingerprint):
+        self.embedding = embedding
+        self.index = index
+        self.fingerprint = fingerprint
+        self.n = int(index[0].shape[0])
+
+    @classmethod
+    def build(cls, points, box, periodic):
+        """The index of the (n, 2) float64 points (already checked to lie in the box along
+        non-periodic axes) for the box and its periodic axes."""
+        from .embedding import Embedding
+
+        emb = Embedding.make(box, periodic)
+        return cls(emb, build_index(emb.to_internal(points)), cls.fingerprint_of(points))
+
+    @staticmethod
+    def fingerprint_of(points):
+        """What tells the indexed points from others: their number and coordinate sums (per
+        column: numpy's axis-0 sum of an (n, 2) array is 30 times slower)."""
+        return (len(points), float(points[:, 0].sum()), float(points[:, 1].sum()))
+
+    def indexes(self, points):
+        """Whether ``points`` (n, 2) float64 are the points indexed (by fingerprint)."""
+        return self.fingerprint == self.fingerprint_of(points)
+
+    def kth(self, x, k, r_in=None, r_out=None, low=None, high=None, workers=None):
+        """Exact d_{P,k} at the points x (q, 2) in input units. r_in, r_out: a window per
+        point that should hold the answer (input units): a good one makes the search cheap
+        (it collects the points between the radii), a bad one only costs retries; default:
+        the distance at which a uniform density would hold k points, halved and doubled.
+        low, high: bounds known to hold (default 0 and infinity)."""
+        emb = self.embedding
+        q = emb.to_query(x)
+        m = len(q)
+        k = int(k)
+
+        def internal(r, default):
+            if r is None:
+                return np.full(m, default)
+            return np.broadcast_to(np.asarray(r, np.float64) * emb.scale, (m,)).copy()
+
+        lx, ly = emb.period_internal
+        guess = np.sqrt(k * lx * ly / (np.pi * max(self.n, 1)))
+        r_in = internal(r_in, 0.5 * guess)
+        r_out = internal(r_out, 2.0 * guess)
+        low = internal(low, 0.0)
+        high = internal(high, np.inf)
+        out = np.empty(m)
+        qx, qy = q[:, 0].copy(), q[:, 1].copy()
+        px, py = (bool(p) for p in emb.periodic)
+        lx, ly = emb.period_internal
+        chunks = max(1, min(thread_count() if workers is None else int(workers), m // 256))
+        edges = np.linspace(0, m, chunks + 1).astype(np.int64)
+
+        def chunk(j):
+            return kth_distances(
+                self.index,
+                qx,
+                qy,
+                k,
+                r_in,
+                r_out,
+                low,
+                high,
+                lx,
+                ly,
+                px,
+                py,
+                out,
+                edges[j],
+                edges[j + 1],
+            )
+
+        run_all(chunk, chunks)
+        lost = np.flatnonzero(np.isnan(out))
+        if len(lost):  # ties beyond the window buffer: by brute force (rare)
+            out[lost] = self._brute_kth(q[lost], k)
+        return out / emb.scale
+
+    def _brute_kth(self, q, k):
+        pts = self.index[0]
+        lx, ly = self.embedding.period_internal
+        res = np.empty(len(q))
+        for i, (x, y) in enumerate(q):
+            ex = np.abs(pts[:, 0] - x)
+            ey = np.abs(pts[:, 1] - y)
+            if self.embedding.periodic[0]:
+                ex = np.minimum(ex, lx - ex)
+            if self.embedding.periodic[1]:
+                ey = np.minimum(ey, ly - ey)
+            res[i] = np.sqrt(np.partition(ex * ex + ey * ey, k - 1)[k - 1])
+        return res

@@ -1,0 +1,142 @@
+"""Piecewise-linear functions on triangles: sampled on a regular grid, clipped to rectangles.
+
+``rasterise``: each triangle visits only the grid centres in its bounding box and writes the
+linear interpolant at those inside it; for well-shaped triangles (bounded aspect, Theorem 6)
+the bounding boxes cover the grid about twice, so a grid costs O(pixels + triangles), with no
+point location. ``clip_triangles``: Sutherland-Hodgman against the rectangle's four sides,
+the function's values carried along (integrals over a region, pieces cut to a box).
+"""
+
+import numpy as np
+
+from .jit import kernel
+
+
+@kernel(entry=True, nogil=True)
+def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out):
+    """out[j, i] = the linear interpolant of ``values`` (given at ``nodes``) over the triangle
+    holding the grid centre (x0 + (i + 1/2) dx, y0 + (j + 1/2) dy). Centres on no triangle
+    keep their value. Along a periodic axis (px, py) a triangle reaching past the grid writes
+    the centres it covers there wrapped round (index modulo the grid's size); along the
+    others the part past the grid is skipped. Centres on a shared edge take either side's
+    value (the interpolant is continuous)."""
+    ny, nx = out.shape
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        ax, ay = nodes[a, 0], nodes[a, 1]
+        bx, by = nodes[b, 0], nodes[b, 1]
+        cx, cy = nodes[c, 0], nodes[c, 1]
+        det = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+        if det == 0.0:
+            continue
+        tol = -1e-12 * abs(det)
+        i0 = int(np.ceil((min(ax, bx, cx) - x0) / dx - 0.5))
+        i1 = int(np.floor((max(ax, bx, cx) - x0) / dx - 0.5))
+        j0 = int(np.ceil((min(ay, by, cy) - y0) / dy - 0.5))
+        j1 = int(np.floor((max(ay, by, cy) - y0) / dy - 0.5))
+        if not px:
+            i0 = max(i0, 0)
+            i1 = min(i1, nx - 1)
+        if not py:
+            j0 = max(j0, 0)
+            j1 = min(j1, ny - 1)
+        va, vb, vc = values[a], values[b], values[c]
+        for j in range(j0, j1 + 1):
+            y = y0 + (j + 0.5) * dy
+            jj = j % ny
+            for i in range(i0, i1 + 1):
+                x = x0 + (i + 0.5) * dx
+                # twice the signed areas of the sub-triangles opposite a, b and c
+                wa = (bx - x) * (cy - y) - (by - y) * (cx - x)
+                wb = (cx - x) * (ay - y) - (cy - y) * (ax - x)
+                wc = det - wa - wb
+                if det > 0.0:
+                    inside = wa >= tol and wb >= tol and wc >= tol
+                else:
+                    inside = wa <= -tol and wb <= -tol and wc <= -tol
+                if inside:
+                    out[jj, i % nx] = (wa * va + wb * vb + wc * vc) / det
+    return 0
+
+
+MAX_CLIPPED = 7  # a triangle cut by a rectangle's four sides has at most 7 corners
+
+
+@kernel(entry=True)
+def clip_triangles(corners, values, x0, y0, x1, y1):
+    """Each triangle (t, 3, 2) clipped to the rectangle [x0, x1] x [y0, y1], with the linear
+    function's ``values`` (t, 3) at its corners carried along. Returns (polygons (t, 7, 2),
+    their values (t, 7), corner counts (t,)): polygon i is the first count[i] rows, in the
+    triangle's orientation; count 0 when nothing is left. Cuts lie exactly on the side."""
+    t = corners.shape[0]
+    poly = np.zeros((t, MAX_CLIPPED, 2))
+    vals = np.zeros((t, MAX_CLIPPED))
+    count = np.zeros(t, np.int64)
+    px = np.empty(MAX_CLIPPED + 1)
+    py = np.empty(MAX_CLIPPED + 1)
+    pv = np.empty(MAX_CLIPPED + 1)
+    qx = np.empty(MAX_CLIPPED + 1)
+    qy = np.empty(MAX_CLIPPED + 1)
+    qv = np.empty(MAX_CLIPPED + 1)
+    for i in range(t):
+        m = 3
+        for j in range(3):
+            px[j] = corners[i, j, 0]
+            py[j] = corners[i, j, 1]
+            pv[j] = values[i, j]
+        for side in range(4):
+            axis = side // 2
+            sign = 1.0 if side % 2 == 0 else -1.0
+            bound = (x0 if axis == 0 else y0) if side % 2 == 0 else (x1 if axis == 0 else y1)
+            q = 0
+            for j in range(m):
+                e = j + 1 if j + 1 < m else 0
+                a = px[j] if axis == 0 else py[j]
+                b = px[e] if axis == 0 else py[e]
+                ain = sign * (a - bound) >= 0.0
+                bin_ = sign * (b - bound) >= 0.0
+                if ain:
+                    qx[q] = px[j]
+                    qy[q] = py[j]
+                    qv[q] = pv[j]
+                    q += 1
+                if ain != bin_:
+                    s = (bound - a) / (b - a)
+                    cx = px[j] + s * (px[e] - px[j])
+                    cy = py[j] + s * (py[e] - py[j])
+                    if axis == 0:
+                        cx = bound  # exactly on the side, whatever the rounding
+                    else:
+                        cy = bound
+                    qx[q] = cx
+                    qy[q] = cy
+                    qv[q] = pv[j] + s * (pv[e] - pv[j])
+                    q += 1
+            m = q
+            for j in range(m):
+                px[j] = qx[j]
+                py[j] = qy[j]
+                pv[j] = qv[j]
+            if m == 0:
+                break
+        count[i] = m
+        for j in range(m):
+            poly[i, j, 0] = px[j]
+            poly[i, j, 1] = py[j]
+            vals[i, j] = pv[j]
+    return poly, vals, count
+
+
+def fans(poly, vals, count):
+    """The clipped polygons of ``clip_triangles`` as triangles fanned from their first corner:
+    (corners (f, 3, 2), values (f, 3))."""
+    tri, fv = [], []
+    for j in range(1, MAX_CLIPPED - 1):
+        has = count >= j + 2
+        if not has.any():
+            break
+        tri.append(poly[has][:, [0, j, j + 1]])
+        fv.append(vals[has][:, [0, j, j + 1]])
+    if not tri:
+        return np.zeros((0, 3, 2)), np.zeros((0, 3))
+    return np.concatenate(tri), np.concatenate(fv)
