@@ -53,7 +53,9 @@ def certify_every_mesh(monkeypatch):
             mesh.stats["n"] <= CERTIFY_UP_TO_POINTS
             and mesh.stats["m_torus"] <= CERTIFY_UP_TO_VERTICES
         ):
-            cert = knnrefine.certify(mesh, points, samples=5_000, n_random=1_000)
+            cert = knnrefine.certify(
+                mesh, points, samples=5_000, n_random=1_000, weights=kwargs.get("weights")
+            )
             assert cert.passed, str(cert)
             CERTIFIED["meshes"] += 1
         else:

@@ -140,8 +140,8 @@ def test_integer_weights_are_copies():
     probes = mixture(300, seed=6)
     np.testing.assert_array_equal(a.score_samples(probes), b.score_samples(probes))
     assert a.n_samples_ == w.sum()
-    with pytest.raises(InputError, match="whole numbers"):
-        KnnDensityEstimator(k=15).fit(X, sample_weight=np.full(len(X), 0.5))
+    with pytest.raises(InputError, match="sum to 0"):
+        KnnDensityEstimator(k=15).fit(X, sample_weight=np.zeros(len(X)))
     with pytest.raises(InputError, match="shape"):
         KnnDensityEstimator(k=15).fit(X, sample_weight=w[:-1])
     with pytest.raises(InputError, match=">= 0"):
@@ -336,3 +336,35 @@ def test_refit_without_cv_drops_the_curve():
     assert hasattr(est, "cv_scores_")
     est.set_params(k=10).fit(X)
     assert est.k_ == 10 and not hasattr(est, "cv_scores_") and not hasattr(est, "cv_ks_")
+
+
+def test_real_weights_are_counted_by_the_engine():
+    """Issue 11: real-valued sample_weight (it raised InputError). Halving every weight and k
+    is the same estimate (sums of halves are exact); against brute force the estimate at the
+    mesh's nodes is k / (W pi d^2) with d the least radius holding weight k."""
+    X = mixture(1500, seed=11)
+    half = KnnDensityEstimator(k=15).fit(X, sample_weight=np.full(len(X), 0.5))
+    assert half.n_samples_ == 750.0
+    whole = KnnDensityEstimator(k=30).fit(X)
+    probes = mixture(300, seed=13)
+    np.testing.assert_array_equal(half.score_samples(probes), whole.score_samples(probes))
+    w = np.random.default_rng(12).gamma(2.0, 1.0, len(X))
+    est = KnnDensityEstimator(k=20).fit(X, sample_weight=w)
+    dist = est.density_.distance
+    lo, hi = np.array(est.box_[:2]), np.array(est.box_[2:])
+    nodes = dist.nodes[np.all((dist.nodes >= lo) & (dist.nodes <= hi), axis=1)][:400]
+    d = np.hypot(*(nodes[:, None, :] - X[None, :, :]).transpose(2, 0, 1))
+    order = np.argsort(d, axis=1)
+    held = np.cumsum(w[order], axis=1)
+    ref = np.take_along_axis(d, order, 1)[np.arange(len(nodes)), np.argmax(held >= 20, axis=1)]
+    np.testing.assert_allclose(dist.exact(nodes), ref, rtol=1e-12)
+    raw = 20 / (w.sum() * np.pi * ref**2)
+    np.testing.assert_allclose(
+        np.exp(est.score_samples(nodes)), raw / est.density_.raw_mass, rtol=1e-9
+    )
+    # the weighted estimate follows the weights: points weighted up in one half pull mass
+    left = X[:, 0] < np.median(X[:, 0])
+    tilted = KnnDensityEstimator(k=20).fit(X, sample_weight=np.where(left, 3.0, 1.0))
+    box = tilted.box_
+    mid = np.median(X[:, 0])
+    assert tilted.density_.mass((box[0], box[1], mid, box[3])) > 0.65

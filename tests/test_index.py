@@ -157,7 +157,7 @@ def test_centre_a_hair_below_the_seam_is_not_wrapped_onto_a_point():
 def test_tree_is_a_partition():
     rng = np.random.default_rng(2)
     pts = rng.random((5000, 2))
-    sorted_pts, box, node, split = make(pts)
+    sorted_pts, box, node, split, _ = make(pts)
     assert sorted(map(tuple, sorted_pts)) == sorted(map(tuple, pts))
     for t in range(len(node)):
         lo, hi, c, axis = node[t]
@@ -175,7 +175,7 @@ def test_tree_is_a_partition():
 def _preorder(index):
     """The tree as a list of (rows, box, split, axis) in depth-first order: what a query sees,
     whatever the nodes' numbering."""
-    _, box, node, split = index
+    _, box, node, split, _ = index
     out, stack = [], [0]
     while stack:
         t = stack.pop()

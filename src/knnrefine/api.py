@@ -39,6 +39,7 @@ def refine(
     *,
     periodic=False,
     box=None,
+    weights=None,
     min_size=None,
     max_vertices=None,
     time_limit=None,
@@ -76,6 +77,13 @@ def refine(
         True: the box is a flat torus (the paper's setting, e.g. angles). False (default): an
         ordinary box; the result is exact for the planar d_{P,k} in the box. A pair makes only
         one axis periodic.
+    weights : array-like, shape (n,), optional
+        Point weights (finite, >= 0): a region "holds k points" when the weights of the points
+        in it sum to k or more, and d_{P,k}(x) is the least radius whose closed disk about x
+        holds weight >= k. k may then be any positive number up to the total weight. Whole
+        weights are repeated points (the same mesh); aggregated counts and survey weights are
+        the real-valued uses. Sums of real weights are rounded: a disk whose weight is k to
+        within rounding may count either way.
     box : (xmin, ymin, xmax, ymax), optional
         Required if any axis is periodic (points are wrapped into it, exactly). Defaults to
         the points' bounding box; points outside an explicit box are an error on non-periodic
@@ -123,7 +131,11 @@ def refine(
         deadline = t_start + float(time_limit)
     pts = V.as_points(points)
     n = len(pts)
-    k = V.check_k(k, n)
+    if weights is None:
+        k = V.check_k(k, n)
+    else:
+        weights = V.check_weights(weights, n)
+        k = V.check_weighted_k(k, float(weights.sum()))
     tau = V.check_tau(tau)
     per = V.check_periodic(periodic)
     if box is None:
@@ -157,7 +169,7 @@ def refine(
     if not jit.is_ready(R.refine_steps):
         report.compiling()
     with Interrupts() as interrupts:
-        start = _Start(pts, box, per, start_budget, interrupts, deadline)
+        start = _Start(pts, box, per, start_budget, interrupts, deadline, weights)
         found = start.find(k, reach_factor(tau))
         if found is None:
             raise InputError(start.refusal(k, tau))
@@ -207,9 +219,11 @@ def refine(
             "shift": float(m0_grid[2]),
             "reach_factor": reach_factor(tau),
         }
-        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts))
+        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, weights))
         mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, kept)
     stats = mesh.stats
+    if weights is not None:
+        stats["weight"] = float(weights.sum())
     stats["estimated_vertices"] = int(estimated)
     stats["max_vertices"] = budget
     stats["time"] = {
@@ -359,8 +373,9 @@ class _Start:
 
     LIMITS_EFFORT = 50_000  # initial vertices above which a refusal skips the limit search
 
-    def __init__(self, pts, box, per, max_vertices, interrupts, deadline):
+    def __init__(self, pts, box, per, max_vertices, interrupts, deadline, weights=None):
         self.pts, self.box, self.per, self.max_vertices = pts, box, per, max_vertices
+        self.weights = weights
         self.interrupts = interrupts
         self.deadline = deadline
         self.t_start = time.perf_counter()
@@ -376,7 +391,7 @@ class _Start:
         if reach not in self.tori:
             t0 = time.perf_counter()
             emb = Embedding.make(self.box, self.per, reach)
-            index = build_index(emb.to_internal(self.pts))
+            index = build_index(emb.to_internal(self.pts), weights=self.weights)
             self.seconds += time.perf_counter() - t0
             self.check()
             grids = list(candidate_grids(*emb.period_internal, self.max_vertices, emb.grid))

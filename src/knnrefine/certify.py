@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from .errors import InputError
 from .mesh import theorem6_constants, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric
-from .validation import as_points
+from .validation import as_points, check_weights
 
 
 @dataclass
@@ -43,8 +43,8 @@ class Certificate:
     triangulation_ok: bool
     triangulation_problems: list
     max_aspect: float
-    max_cell_count: int  # over cells with outradius >= min_size
-    max_ball_count: int  # over circumballs with radius >= min_size
+    max_cell_count: int  # over cells with outradius >= min_size (a weight if weighted)
+    max_ball_count: int  # over circumballs with radius >= min_size (a weight if weighted)
     alpha: float
     beta: float
     alpha_hat: float
@@ -63,6 +63,12 @@ class Certificate:
     precondition_ok: bool = True  # Lemma 2's precondition on the initial vertices
     precondition_note: str = ""
     seconds: float = 0.0
+    weight: float | None = None  # the points' total weight, for a weighted run
+
+    @property
+    def total(self):
+        """What the points hold in all: their number, or their total weight."""
+        return self.n if self.weight is None else self.weight
 
     @property
     def passed(self):
@@ -70,7 +76,7 @@ class Certificate:
             self.triangulation_ok
             and not self.mesh_problems
             and self.precondition_ok
-            and self.n >= self.k
+            and self.total >= self.k
             and self.max_aspect <= self.tau
             and self.max_cell_count < self.k
             and self.max_ball_count < self.k
@@ -106,8 +112,11 @@ class Certificate:
         mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
             tuple(self.periodic), f"periodic={tuple(self.periodic)}"
         )
+        held = "count" if self.weight is None else "weight"
         lines = [
-            f"knnrefine certificate: n = {self.n}, m = {self.m}, k = {self.k}, "
+            f"knnrefine certificate: n = {self.n}"
+            + ("" if self.weight is None else f" (total weight {self.weight:.6g})")
+            + f", m = {self.m}, k = {self.k}, "
             f"tau = {self.tau:g}, {mode}, box {tuple(round(b, 6) for b in self.box)}",
             "  triangulation      Delaunay"
             + (" on the torus" if all(self.periodic) else " (of the torus embedding the box)")
@@ -121,17 +130,17 @@ class Certificate:
             + (f" ({self.precondition_note})" if self.precondition_note else ""),
             f"  well-spaced        max aspect {self.max_aspect:.4f} <= tau {self.tau:g}: "
             f"{verdict(self.max_aspect <= self.tau)}",
-            f"  Voronoi cells      max count {self.max_cell_count} < k: "
+            f"  Voronoi cells      max {held} {self.max_cell_count:.8g} < k: "
             f"{verdict(self.max_cell_count < self.k)}",
-            f"  circumballs        max count {self.max_ball_count} < k: "
+            f"  circumballs        max {held} {self.max_ball_count:.8g} < k: "
             f"{verdict(self.max_ball_count < self.k)}",
             f"  d_M2 / d_Pk        in [{self.alpha_hat:.4f}, {self.beta_hat:.4f}] over "
             f"{self.n_probes} probes; Theorem 6 allows [{self.alpha:.4f}, {self.beta:.2f}]: "
             f"{verdict(self.alpha <= self.alpha_hat and self.beta_hat <= self.beta)}"
-            if self.n >= self.k and not np.isnan(self.alpha_hat)
+            if self.total >= self.k and not np.isnan(self.alpha_hat)
             else (
                 "  d_M2 / d_Pk        FAILED: n < k, d_Pk is infinite"
-                if self.n < self.k
+                if self.total < self.k
                 else "  d_M2 / d_Pk        nothing measured: every probe lies where d_Pk < "
                 f"min_size = {self.min_size:.3g}"
             ),
@@ -165,8 +174,11 @@ def certify(
     max_point_probes=100_000,
     seed=0,
     workers=-1,
+    weights=None,
 ):
-    """Check ``mesh`` (from ``knnrefine.refine``) against ``points`` (the same P).
+    """Check ``mesh`` (from ``knnrefine.refine``) against ``points`` (the same P, with the
+    same ``weights`` for a weighted run: counts are then sums of weights, d_{P,k} the least
+    radius holding weight k, all from scipy's cKDTree, never the engine).
 
     Probes: ``samples`` stratified random points inside the mesh triangles (at least 4 per
     triangle: dense where d_{P,k} is small, which is where the ratio has its extremes), every
@@ -178,17 +190,13 @@ def certify(
     the achieved constants, the size integral, the floor."""
     t0 = time.perf_counter()
     pts = as_points(points)
-    _check_points_are_the_meshs(mesh, pts)
-    torus = _Torus(mesh, pts, workers)
+    weights = _check_points_are_the_meshs(mesh, pts, weights)
+    torus = _Torus(mesh, pts, workers, weights)
     triangulation = check_triangulation(torus)
     max_aspect = check_well_spaced(torus, triangulation)
     counts = check_counts(torus, triangulation, mesh.k, mesh.min_size)
     precondition_ok, precondition_note = check_precondition(
-        torus.vertices[np.asarray(mesh.torus.kinds) == 0],
-        torus.point_tree,
-        mesh.k,
-        mesh.tau,
-        torus.period,
+        torus.vertices[np.asarray(mesh.torus.kinds) == 0], torus, mesh.k, mesh.tau, torus.period
     )
     rng = np.random.default_rng(seed)
     probes = make_probes(torus, triangulation, samples, n_random, max_point_probes, rng)
@@ -235,6 +243,7 @@ def certify(
         precondition_ok=precondition_ok,
         precondition_note=precondition_note,
         seconds=time.perf_counter() - t0,
+        weight=None if weights is None else torus.total,
     )
 
 
@@ -242,8 +251,10 @@ class _Torus:
     """What every check reads: the mesh's torus (vertices relative to its origin), the input
     points wrapped into it by the package's one rule, and kd-trees over both."""
 
-    def __init__(self, mesh, pts, workers):
+    def __init__(self, mesh, pts, workers, weights=None):
         self.mesh = mesh
+        self.weights = weights
+        self.total = float(len(pts)) if weights is None else float(weights.sum())
         self.k = mesh.k
         self.min_size = mesh.min_size
         self.workers = workers
@@ -267,7 +278,59 @@ class _Torus:
         return self.vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
 
     def d_pk(self, x):
-        return self.point_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
+        """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
+        if self.weights is None:
+            return self.point_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
+        return _weighted_kth(self.point_tree, self.weights, x, self.k, self.workers)
+
+    def held(self, centres, radii):
+        """What each closed disk (centre, radius) holds: its number of points, or their
+        weight."""
+        if self.weights is None:
+            return self.point_tree.query_ball_point(
+                centres, radii, return_length=True, workers=self.workers
+            )
+        out = np.zeros(len(centres))
+        for lo in range(0, len(centres), 10_000):
+            lists = self.point_tree.query_ball_point(
+                centres[lo : lo + 10_000], np.broadcast_to(radii, len(centres))[lo : lo + 10_000]
+            )
+            sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
+            if sizes.sum():
+                members = np.concatenate([np.asarray(a, np.int64) for a in lists])
+                rows = np.repeat(np.arange(len(lists)), sizes)
+                out[lo : lo + len(lists)] = np.bincount(
+                    rows, weights=self.weights[members], minlength=len(lists)
+                )
+        return out
+
+
+def _weighted_kth(tree, weights, x, k, workers, chunk=20_000):
+    """The least r whose closed disk about each x holds weight >= k: the nearest points in
+    order, their weights summed, more of them fetched where the first ones fall short."""
+    out = np.empty(len(x))
+    n = tree.n
+    first = int(min(n, 2 * np.ceil(k / max(weights.mean(), 1e-300)) + 16))
+    for lo in range(0, len(x), chunk):
+        q = x[lo : lo + chunk]
+        res = np.full(len(q), np.nan)
+        todo = np.arange(len(q))
+        kk = first
+        while len(todo):
+            d, i = tree.query(q[todo], k=kk, workers=workers)
+            d = d.reshape(len(todo), kk)
+            i = i.reshape(len(todo), kk)
+            held = np.cumsum(weights[np.minimum(i, n - 1)] * (i < n), axis=1)
+            enough = held[:, -1] >= k
+            at = np.argmax(held >= k, axis=1)
+            res[todo[enough]] = d[enough, at[enough]]
+            todo = todo[~enough]
+            if kk >= n:
+                res[todo] = np.inf
+                break
+            kk = min(n, 4 * kk)
+        out[lo : lo + chunk] = res
+    return out
 
 
 Triangulation = namedtuple("Triangulation", ["problems", "corners", "centres", "radii", "outradii"])
@@ -303,22 +366,22 @@ def check_counts(torus, triangulation, k, min_size):
     equidistant to several vertices count for each), over elements at or above the floor,
     and the floor elements (>= k points below min_size)."""
     r = triangulation.radii
-    ball = torus.point_tree.query_ball_point(
-        triangulation.centres, r, return_length=True, workers=torus.workers
-    )
+    ball = torus.held(triangulation.centres, r)
     floor_balls = (ball >= k) & (r < min_size)
     above = r >= min_size
-    max_ball = int(ball[above].max()) if above.any() else 0
+    exact = int if torus.weights is None else float
+    max_ball = exact(ball[above].max()) if above.any() else 0
     m = len(torus.vertices)
     kk = min(3, m)
     dd, ii = torus.vertex_tree.query(torus.points, k=kk, workers=torus.workers)
     dd = dd.reshape(len(torus.points), kk)
     ii = ii.reshape(len(torus.points), kk)
     tie = dd <= dd[:, :1] * (1.0 + 1e-12)
-    cell = np.bincount(ii[tie], minlength=m)
+    w = None if torus.weights is None else np.broadcast_to(torus.weights[:, None], tie.shape)[tie]
+    cell = np.bincount(ii[tie], weights=w, minlength=m)
     R = triangulation.outradii
     floor_cells = (cell >= k) & (R < min_size)
-    max_cell = int(cell[R >= min_size].max()) if (R >= min_size).any() else 0
+    max_cell = exact(cell[R >= min_size].max()) if (R >= min_size).any() else 0
     return Counts(max_ball, max_cell, floor_balls, floor_cells)
 
 
@@ -348,7 +411,7 @@ def make_probes(torus, triangulation, samples, n_random, max_point_probes, rng):
         samples=inside,
         weights=weights,
         in_box=in_box,
-        sample_dpk=torus.d_pk(inside[in_box]) if len(P) >= torus.k else np.zeros(0),
+        sample_dpk=torus.d_pk(inside[in_box]) if torus.total >= torus.k else np.zeros(0),
         points=points[torus.in_box(points)],
         others=others[torus.in_box(others)],
     )
@@ -359,7 +422,7 @@ def measure_ratio(torus, probes):
     d_{P,k} >= min_size, where each was found, and the share of the sampled input points
     where d_{P,k} < min_size."""
     nan = float("nan")
-    if len(torus.points) < torus.k:
+    if torus.total < torus.k:
         return Ratio(nan, nan, (nan, nan), (nan, nan), 0, 0.0)
     dpk_points = torus.d_pk(probes.points)
     under_floor = float(np.mean(dpk_points < torus.min_size)) if len(dpk_points) else 0.0
@@ -386,7 +449,7 @@ def measure_size(torus, probes):
     over the triangles: each sample weighted by its share of its triangle's area, samples
     outside the box counting 0; with its standard error. It reads only the samples' own
     values, so it does not depend on how the other probes are ordered."""
-    if len(torus.points) < torus.k:
+    if torus.total < torus.k:
         return Size(0.0, 0.0)
     f = np.zeros(len(probes.samples))
     f[probes.in_box] = 1.0 / np.maximum(probes.sample_dpk, torus.min_size) ** 2
@@ -400,16 +463,34 @@ def measure_size(torus, probes):
     return Size(integral, float(np.sqrt(var)))
 
 
-def _check_points_are_the_meshs(mesh, pts):
-    """A mesh is certified against the points it was made from: as many as it records, and
-    inside its box along non-periodic axes. Anything else is an input error, not a failed
-    certificate."""
+def _check_points_are_the_meshs(mesh, pts, weights=None):
+    """A mesh is certified against the points it was made from: as many as it records, inside
+    its box along non-periodic axes, with weights exactly when it was refined with weights
+    (of the total it records). Anything else is an input error, not a failed certificate.
+    Returns the weights as float64, or None."""
     made_from = mesh.stats.get("n")
     if made_from is not None and int(made_from) != len(pts):
         raise InputError(
             f"the mesh was made from {int(made_from):,} points but {len(pts):,} were given: "
             "certify a mesh against the points it was refined from"
         )
+    total = mesh.stats.get("weight")
+    if weights is None and total is not None:
+        raise InputError(
+            f"the mesh was refined with weights (total {total:.6g}): pass the same weights"
+        )
+    if weights is not None:
+        if total is None and made_from is not None:
+            raise InputError(
+                "the mesh was refined without weights: certify it without them (or refine "
+                "with weights=...)"
+            )
+        weights = check_weights(weights, len(pts))
+        if total is not None and not np.isclose(weights.sum(), total, rtol=1e-9, atol=0):
+            raise InputError(
+                f"the weights sum to {weights.sum():.6g} but the mesh was refined with a total "
+                f"weight of {total:.6g}: pass the weights it was refined with"
+            )
     for a in range(2):
         if mesh.periodic[a]:
             continue
@@ -421,9 +502,10 @@ def _check_points_are_the_meshs(mesh, pts):
                 f"{'xy'[a]} ([{lo:g}, {hi:g}]), the first at index {int(np.argmax(out))}: these "
                 "are not the points the mesh was refined from"
             )
+    return weights
 
 
-def check_precondition(initial, ptree, k, tau, period):
+def check_precondition(initial, torus, k, tau, period):
     """Lemma 2's base case, checked here independently of the engine: can the initial vertices
     be ordered so that each u has d_Pk(u) <= (K - 1) lambda_u, lambda_u its distance to the
     nearest earlier one (K = max(2 tau / (tau - 2), 3))? Peel: a vertex whose disk of radius
@@ -431,12 +513,12 @@ def check_precondition(initial, ptree, k, tau, period):
     Returns (ok, note)."""
     factor = max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
     remaining = np.asarray(initial, float)
-    if ptree.n < k:
+    if torus.total < k:
         return False, "n < k"
     rounds = 0
     while len(remaining) > 1:
         lam = cKDTree(remaining, boxsize=period).query(remaining, k=2)[0][:, 1]
-        ok = ptree.query_ball_point(remaining, factor * lam, return_length=True) >= k
+        ok = torus.held(remaining, factor * lam) >= k
         if not ok.any():
             return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"
         remaining = remaining[~ok]

@@ -19,7 +19,7 @@ from .engine.raster import clip_triangles, fans, rasterise
 from .errors import InputError
 from .mesh import edges, split_in_four, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric
-from .validation import as_points, as_queries, default_box
+from .validation import as_points, as_queries, check_weights, default_box
 
 # Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
 _QW = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
@@ -56,24 +56,31 @@ class KnnDistance:
     subdivide : bool
         Also evaluate at edge midpoints (four linear pieces per triangle): about half the
         interpolation error for four times the (cheap) exact evaluations.
+    weights : array-like (n,), optional
+        The weights the mesh was refined with (required for a weighted mesh, refused for
+        another): d_{P,k} is then the least radius holding weight k.
 
     Outside the box (along a non-periodic axis, beyond any of its four sides) the estimate is
     NaN: d_{P,k} is certified only in the box; periodic axes wrap. Queries have any shape
     (..., 2) and the result the leading shape (...).
     """
 
-    def __init__(self, mesh, points, subdivide=True):
+    def __init__(self, mesh, points, subdivide=True, weights=None):
         pts = as_points(points)
-        if len(pts) < mesh.k:
-            raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
+        weights = _weights_for(mesh, pts, weights)
+        total = len(pts) if weights is None else float(weights.sum())
+        if total < mesh.k:
+            what = f"{len(pts)} points" if weights is None else f"a total weight of {total:.6g}"
+            raise InputError(f"{what} but k = {mesh.k}: d_Pk is infinite")
         self.mesh = mesh
         self.k = mesh.k
         self.n = len(pts)
+        self.total = total  # the points' number, or their total weight
         self.lo = np.array(mesh.box[:2], float)
         self.hi = np.array(mesh.box[2:], float)
         self._metric = BoxMetric(mesh.box, mesh.periodic)
         self._points = pts
-        self.index = self._point_index(mesh, pts)
+        self.index = self._point_index(mesh, pts, weights)
         nodes, triangles = mesh.covering()
         pairs, edge_of = edges(triangles)
         length = np.linalg.norm(nodes[pairs[:, 0]] - nodes[pairs[:, 1]], axis=1)
@@ -97,18 +104,19 @@ class KnnDistance:
         self.values = values
 
     @staticmethod
-    def _point_index(mesh, pts):
-        """The engine's index that refined the mesh when it indexes these points, else a new
-        one over them (a box wide enough for them along non-periodic axes)."""
+    def _point_index(mesh, pts, weights):
+        """The engine's index that refined the mesh when it indexes these points (and
+        weights), else a new one over them (a box wide enough for them along non-periodic
+        axes)."""
         kept = getattr(mesh, "index", None)
-        if kept is not None and kept.indexes(pts):
+        if kept is not None and kept.indexes(pts, weights):
             return kept
         box = np.array(mesh.box, float)
         per = np.array(mesh.periodic, bool)
         if len(pts):
             box[:2] = np.where(per, box[:2], np.minimum(box[:2], pts.min(axis=0)))
             box[2:] = np.where(per, box[2:], np.maximum(box[2:], pts.max(axis=0)))
-        return PointIndex.build(pts, tuple(box), mesh.periodic)
+        return PointIndex.build(pts, tuple(box), mesh.periodic, weights)
 
     def _vertex_values(self, nodes, pairs, length):
         """Exact d_{P,k} at the mesh's nodes. Each node's guess is its shortest edge e (about
@@ -303,13 +311,14 @@ class KnnDensity:
     ``normalized`` (default) divides by its integral over the box, so that it integrates to
     1 there. Evaluate with ``density(x)`` (x of shape (..., 2); NaN outside the box along
     non-periodic axes), on a grid with ``grid()``, and integrate over a rectangle with
-    ``mass(region)``. ``subdivide``: see ``KnnDistance``.
+    ``mass(region)``. ``subdivide``, ``weights``: see ``KnnDistance``; with weights n is
+    their total, so that a weighted point is that many points.
     """
 
-    def __init__(self, mesh, points, normalized=True, subdivide=True):
-        self.distance = KnnDistance(mesh, points, subdivide=subdivide)
+    def __init__(self, mesh, points, normalized=True, subdivide=True, weights=None):
+        self.distance = KnnDistance(mesh, points, subdivide=subdivide, weights=weights)
         self.k = mesh.k
-        self.n = self.distance.n
+        self.n = self.distance.total
         self.raw_constant = self.k / (self.n * np.pi)
         self.raw_mass = self.distance.integrate(lambda d: self.raw_constant / d**2)
         self.constant = self.raw_constant / self.raw_mass if normalized else self.raw_constant
@@ -328,6 +337,21 @@ class KnnDensity:
         the probability of the part of the region in the box (regions wrap across periodic
         seams)."""
         return self.distance.integrate(lambda d: self.constant / d**2, region)
+
+
+def _weights_for(mesh, pts, weights):
+    """The weights to evaluate a mesh with: those it was refined with (required for a
+    weighted mesh; refused for a mesh refined without)."""
+    total = mesh.stats.get("weight")
+    if weights is None:
+        if total is not None:
+            raise InputError(
+                f"the mesh was refined with weights (total {total:.6g}): pass the same weights"
+            )
+        return None
+    if total is None and "n" in mesh.stats:
+        raise InputError("the mesh was refined without weights: evaluate it without them")
+    return check_weights(weights, len(pts))
 
 
 def _grid_shape(shape):
@@ -445,38 +469,46 @@ class KnnDensityEstimator:
 
     # -- fitting -----------------------------------------------------------------------------
     def fit(self, X, y=None, sample_weight=None):
-        """Refine a mesh of X (n, 2) and build the estimate. ``sample_weight``: non-negative
-        integer weights, a point of weight w counting as w copies (real-valued weights are not
-        supported yet: InputError). ``y`` is ignored. Returns self."""
+        """Refine a mesh of X (n, 2) and build the estimate. ``sample_weight``: weights >= 0
+        (the engine counts them: a point of whole weight w is w copies, real weights are
+        survey or aggregation weights; the estimate is then k / (W pi d_{P,k}^2), W their
+        total). ``y`` is ignored. Returns self."""
         from .api import refine
 
         pts = as_points(X)
-        counts = None
+        weights = None
         if sample_weight is not None:
-            counts = _integer_weights(sample_weight, len(pts))
-            if counts.sum() == 0:
-                raise InputError("sample_weight is zero everywhere: nothing to estimate")
-            pts, counts = pts[counts > 0], counts[counts > 0]
-        n = len(pts) if counts is None else int(counts.sum())
+            weights = check_weights(sample_weight, len(pts))
+            pts, weights = pts[weights > 0], weights[weights > 0]
+            if np.all(weights == 1.0):
+                weights = None
+        n = len(pts) if weights is None else float(weights.sum())
         box = self._box(pts)
         for stale in ("cv_ks_", "cv_scores_"):  # from an earlier fit with k="cv"
             self.__dict__.pop(stale, None)
         if isinstance(self.k, str):
             if self.k != "cv":
                 raise InputError(f'k must be an integer, None or "cv", got {self.k!r}')
-            self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, counts, box)
+            self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, weights, box)
             k = int(self.cv_ks_[int(np.argmax(self.cv_scores_))])
         else:
             k = default_k(n) if self.k is None else self.k
             if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
-                raise InputError(f"k must be an integer in [1, n = {n}], got {k!r}")
-        data = pts if counts is None else pts.repeat(counts, axis=0)
+                raise InputError(f"k must be an integer in [1, n = {n:g}], got {k!r}")
         mesh = refine(
-            data, int(k), self.tau, periodic=self.periodic, box=box, min_size=self.min_size
+            pts,
+            int(k),
+            self.tau,
+            periodic=self.periodic,
+            box=box,
+            min_size=self.min_size,
+            weights=weights,
         )
         self.mesh_ = mesh
-        self.density_ = KnnDensity(mesh, data, normalized=True, subdivide=self.subdivide)
-        self._train = (pts, np.ones(len(pts), np.int64) if counts is None else counts)
+        self.density_ = KnnDensity(
+            mesh, pts, normalized=True, subdivide=self.subdivide, weights=weights
+        )
+        self._train = (pts, np.ones(len(pts)) if weights is None else weights)
         self.k_ = int(k)
         self.box_ = tuple(float(b) for b in mesh.box)
         self.n_samples_ = n
@@ -499,14 +531,14 @@ class KnnDensityEstimator:
         px, py = margin * (x1 - x0), margin * (y1 - y0)
         return (x0 - px, y0 - py, x1 + px, y1 + py)
 
-    def _cross_validate(self, pts, counts, box):
-        """(candidate ks, mean held-out log-likelihood per point of each): every fold refined
-        in the same box, so that held-out points are in it; a point's copies (weights) stay
-        in one fold."""
+    def _cross_validate(self, pts, weights, box):
+        """(candidate ks, mean held-out log-likelihood per unit of weight of each): every fold
+        refined in the same box, so that held-out points are in it; folds split points, so a
+        point of weight w (w copies) is held out whole."""
         folds = _folds(len(pts), self.cv, self.random_state)
-        weight = np.ones(len(pts), np.int64) if counts is None else counts
-        n = int(weight.sum())
-        n_train = n - max(int(weight[f].sum()) for f in folds)
+        weight = np.ones(len(pts)) if weights is None else weights
+        n = float(weight.sum())
+        n_train = n - max(float(weight[f].sum()) for f in folds)
         if self.k_grid is None:
             ks = np.unique(np.round(np.geomspace(4, max(8, n_train / 20), 10)).astype(int))
         else:
@@ -515,15 +547,16 @@ class KnnDensityEstimator:
                 raise InputError(f"k_grid must hold integers >= 1, got {self.k_grid!r}")
         ks = ks[ks <= n_train]
         if ks.size == 0:
-            raise InputError(f"no k of k_grid fits the smallest training fold ({n_train} points)")
+            raise InputError(f"no k of k_grid fits the smallest training fold ({n_train:g} points)")
         params = {**self.get_params(), "box": box}
         scores = np.zeros(len(ks))
         for test in folds:
             train = np.ones(len(pts), bool)
             train[test] = False
-            data = pts[train].repeat(weight[train], axis=0)
+            fold_weight = None if weights is None else weight[train]
             for i, k in enumerate(ks):
-                fold = type(self)(**{**params, "k": int(k)}).fit(data)
+                fold = type(self)(**{**params, "k": int(k)})
+                fold.fit(pts[train], sample_weight=fold_weight)
                 scores[i] += (fold.score_samples(pts[test]) * weight[test]).sum()
         return ks, scores / n
 
@@ -537,22 +570,28 @@ class KnnDensityEstimator:
     def bootstrap(self, X, n_boot=100, level=0.9, random_state=None):
         """Percentile bands (lower, upper) of the density at X, shape (..., 2) -> two arrays
         (...): the estimate refitted (same k and box) on n_boot resamples of the training
-        points with replacement (as integer weights: no copies are made), and the
-        (1 - level) / 2 and (1 + level) / 2 quantiles of its values at each point."""
+        points with replacement (as weights: no copies are made), and the (1 - level) / 2 and
+        (1 + level) / 2 quantiles of its values at each point. Whole-number weights are
+        copies and the copies are resampled; real weights stay with their points, which are
+        resampled (the bootstrap of a weighted sample)."""
         self._fitted()
         if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 2:
             raise InputError(f"n_boot must be an integer >= 2, got {n_boot!r}")
         if not 0 < level < 1:
             raise InputError(f"level must lie in (0, 1), got {level!r}")
         flat, shape = as_queries(X)
-        pts, counts = self._train
+        pts, weight = self._train
         rng = _generator(random_state)
-        p = counts / counts.sum()
+        whole = bool(np.all(weight == np.rint(weight)))
         params = {**self.get_params(), "k": self.k_, "box": self.box_}
         values = np.empty((int(n_boot), len(flat)))
         for b in range(int(n_boot)):
-            weights = rng.multinomial(int(counts.sum()), p)
-            refit = type(self)(**params).fit(pts, sample_weight=weights)
+            if whole:  # the copies, resampled
+                draw = rng.multinomial(int(weight.sum()), weight / weight.sum())
+            else:  # the points, resampled, each with its weight
+                draw = rng.multinomial(len(weight), np.full(len(weight), 1.0 / len(weight)))
+                draw = draw * weight
+            refit = type(self)(**params).fit(pts, sample_weight=draw)
             values[b] = np.exp(refit.score_samples(flat))
         lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2], axis=0)
         return lo.reshape(shape), hi.reshape(shape)
@@ -630,24 +669,6 @@ def _folds(n, cv, random_state):
         raise InputError(f"cv must be an integer in [2, n = {n}], got {cv!r}")
     order = _generator(random_state).permutation(n)
     return np.array_split(order, int(cv))
-
-
-def _integer_weights(sample_weight, n):
-    """Counts per point from sample_weight: non-negative integers, one per point."""
-    w = np.asarray(sample_weight)
-    if w.shape != (n,):
-        raise InputError(f"sample_weight must have shape ({n},), one per point, got {w.shape}")
-    if not np.issubdtype(w.dtype, np.number) or np.iscomplexobj(w):
-        raise InputError(f"sample_weight must be numbers, got dtype {w.dtype}")
-    if not np.isfinite(w).all() or (w < 0).any():
-        raise InputError("sample_weight must be finite and >= 0")
-    counts = np.rint(w)
-    if not np.array_equal(counts, w):
-        raise InputError(
-            "sample_weight must be whole numbers for now (a point of weight w counts as w "
-            "copies); real-valued weights are not supported yet: round or scale them"
-        )
-    return counts.astype(np.int64)
 
 
 def _generator(random_state):

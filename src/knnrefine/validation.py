@@ -64,6 +64,37 @@ def check_k(k, n=None):
     return int(k)
 
 
+def check_weights(weights, n):
+    """Point weights: n finite numbers >= 0 with a positive total, as float64 (n,)."""
+    try:
+        w = np.asarray(weights, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"weights must be {n} numbers, one per point") from None
+    if w.shape != (n,):
+        raise InputError(f"weights must have shape ({n},), one per point; got {w.shape}")
+    if not np.isfinite(w).all() or (w < 0).any():
+        bad = int(np.flatnonzero(~np.isfinite(w) | (w < 0))[0])
+        raise InputError(
+            f"weights must be finite and >= 0; weight {bad} is {w[bad]!r} (drop such points "
+            "or set their weight to 0)"
+        )
+    if n and not w.sum() > 0:
+        raise InputError("the weights sum to 0: no point counts")
+    return np.ascontiguousarray(w)
+
+
+def check_weighted_k(k, total):
+    """With weights, k is a weight: a positive number, at most the total weight."""
+    if isinstance(k, bool) or not isinstance(k, numbers.Real) or not np.isfinite(k) or k <= 0:
+        raise InputError(f"k must be a positive number (a weight), got {k!r}")
+    if k > total:
+        raise InputError(
+            f"k = {k} is larger than the total weight, {total:.6g}: d_Pk would be infinite "
+            f"everywhere; use k <= {total:.6g}"
+        )
+    return int(k) if float(k).is_integer() else float(k)
+
+
 def check_tau(tau):
     if isinstance(tau, bool) or not isinstance(tau, numbers.Real) or not np.isfinite(tau):
         raise InputError(f"tau must be a finite number > 2, got {tau!r}")

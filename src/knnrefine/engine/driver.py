@@ -21,7 +21,6 @@ from .state import (
     C_DISK_TESTS,
     C_ERROR,
     C_FAILED,
-    C_K,
     C_MAX_VERTICES,
     C_NT,
     C_NV,
@@ -33,6 +32,7 @@ from .state import (
     P_FLOOR2,
     P_GRID,
     P_INFLATE,
+    P_K,
     P_LX,
     P_LY,
     P_TAU2,
@@ -153,7 +153,6 @@ class Refinement:
         self.cnt = np.zeros(N_COUNTERS, np.int64)
         self.cnt[C_NV] = m0
         self.cnt[C_NT] = corners.shape[0]
-        self.cnt[C_K] = k
         self.cnt[C_MAX_VERTICES] = max_vertices
         self.cnt[C_SWEEP_MIN] = self.SWEEP_MIN
         self.prm = np.zeros(N_PARAMS)
@@ -164,6 +163,7 @@ class Refinement:
         self.prm[P_FLOOR2] = self.floor * self.floor
         self.prm[P_CLEAN_FLOOR2] = clean_floor * clean_floor
         self.prm[P_GRID] = grid
+        self.prm[P_K] = k
         self.prm[P_INFLATE] = 1.0 + 1e-9
         set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
         set_vertex_caches(self.mesh, self.prm, m0, self.probe.hx, self.probe.hy)

@@ -14,12 +14,19 @@ that miss it, tests the points of boundary leaves one by one, and stops as soon 
 reaches k. On the torus a query is repeated for each periodic copy of the region that meets
 the fundamental domain (regions are smaller than half a period).
 
+Weighted points (``build_index(..., weights=w)``) count with their weights: a region "holds
+k points" when their weights sum to k or more; whole nodes add their weight total, points of
+boundary leaves their own weight. Without weights every point weighs 1 and the counts are
+the integer counts (the same code, a branch on whether ``weight`` is empty).
+
 Layout, chosen for the cache (a query visits both children of a node, whose boxes share one
-64-byte line): ``pts`` (n, 2) float64, permuted; ``box`` (nodes, 4) float64 tight bounding
+64-byte line): ``pts`` (n, 2) float64, permuted, or (n, 3) with each point's weight in the
+third column; ``box`` (nodes, 4) float64 tight bounding
 boxes (x0, y0, x1, y1); ``node`` (nodes, 4) int64: lo, hi, the first child (the second is
 next to it; -1 at a leaf) and the split axis; ``split`` (nodes,) float64: the split value
-(points of the first child are <= it, of the second >= it, along the axis). A query first
-descends while its region lies strictly on one side of the split, then counts from there.
+(points of the first child are <= it, of the second >= it, along the axis); ``weight``
+(nodes,) float64: each node's weight total (empty without weights). A query first descends
+while its region lies strictly on one side of the split, then counts from there.
 """
 
 import numpy as np
@@ -34,7 +41,7 @@ STACK_SIZE = 128  # > 2 * tree depth for any n that fits in memory
 
 @kernel(inline="always")
 def _swap_rows(pts, i, j):
-    for a in range(2):
+    for a in range(pts.shape[1]):
         pts[i, a], pts[j, a] = pts[j, a], pts[i, a]
 
 
@@ -108,8 +115,7 @@ def _quickselect(pts, axis, lo, hi, kth):
             while pts[j, axis] > pivot:
                 j -= 1
             if i <= j:
-                for a in range(2):
-                    pts[i, a], pts[j, a] = pts[j, a], pts[i, a]
+                _swap_rows(pts, i, j)
                 i += 1
                 j -= 1
         if kth <= j:
@@ -228,13 +234,36 @@ def _close_gaps(box, node, split, starts, ends):
 PARALLEL_MIN = 100_000  # points; below this one thread builds faster than two start
 
 
-def build_index(pts, workers=None):
-    """Build the kd-tree over the (n, 2) array pts, which it permutes in place and keeps.
+def build_index(pts, workers=None, weights=None):
+    """Build the kd-tree over the (n, 2) array pts, which it permutes in place and keeps
+    (with ``weights``, (n,) finite and >= 0, it keeps a new (n, 3) array of both instead).
+    Returns the index (pts, box, node, split, weight).
 
     The top levels are split here; the subtrees below them are built by ``workers`` threads
     (default: ``threads.workers()``) when there are at least PARALLEL_MIN points.
     The permutation and every node's rows, box and split are those of a one-thread build;
     only the nodes' numbering differs."""
+    if weights is not None:
+        pts = np.column_stack([pts[:, 0], pts[:, 1], np.asarray(weights, np.float64)])
+    pts, box, node, split = _build_tree(pts, workers)
+    weight = np.zeros(0)
+    if weights is not None:
+        weight = np.empty(node.shape[0])
+        _node_weights(pts, node, weight)
+    return pts, box, node, split, weight
+
+
+@kernel(entry=True)
+def _node_weights(pts, node, weight):
+    """weight[t] = the sum of node t's points' weights, in row order."""
+    for t in range(node.shape[0]):
+        total = 0.0
+        for i in range(node[t, 0], node[t, 1]):
+            total += pts[i, 2]
+        weight[t] = total
+
+
+def _build_tree(pts, workers):
     n = pts.shape[0]
     workers = max(1, thread_count() if workers is None else int(workers))
     levels = workers.bit_length() - 1 if n >= PARALLEL_MIN else 0
@@ -267,6 +296,14 @@ def build_index(pts, workers=None):
     return pts, box[:nnodes], node[:nnodes], split[:nnodes]
 
 
+@kernel(inline="always")
+def _held(node, weight, t):
+    """What node t holds: its number of points, or its weight total for weighted points."""
+    if weight.shape[0] == 0:
+        return float(node[t, 1] - node[t, 0])
+    return weight[t]
+
+
 @kernel(nrt=False)
 def _start(node, split, cx, cy, r):
     """The deepest node whose split region strictly contains the disk (c, r): points outside
@@ -285,9 +322,10 @@ def _start(node, split, cx, cy, r):
 
 @kernel(nrt=False)
 def _count_disk(index, cx, cy, r2, k, stack):
-    """Points of P in the closed disk (c, sqrt(r2)), counting up to at least k."""
-    count = 0
-    pts, box, node, split = index
+    """Points of P in the closed disk (c, sqrt(r2)), counting (their weight) up to at least
+    k."""
+    count = 0.0
+    pts, box, node, split, weight = index
     if node[0, 1] == 0:
         return count
     stack[0] = _start(node, split, cx, cy, np.sqrt(r2))
@@ -304,18 +342,25 @@ def _count_disk(index, cx, cy, r2, k, stack):
         fx = max(cx - box[t, 0], box[t, 2] - cx)
         fy = max(cy - box[t, 1], box[t, 3] - cy)
         if fx * fx + fy * fy <= r2:
-            count += node[t, 1] - node[t, 0]
+            count += _held(node, weight, t)
             if count >= k:
                 return count
             continue
         c = node[t, 2]
         if c < 0:
-            inside = 0
-            for i in range(node[t, 0], node[t, 1]):
-                ex = pts[i, 0] - cx
-                ey = pts[i, 1] - cy
-                inside += ex * ex + ey * ey <= r2
-            count += inside
+            if weight.shape[0] == 0:
+                inside = 0
+                for i in range(node[t, 0], node[t, 1]):
+                    ex = pts[i, 0] - cx
+                    ey = pts[i, 1] - cy
+                    inside += ex * ex + ey * ey <= r2
+                count += inside
+            else:
+                for i in range(node[t, 0], node[t, 1]):
+                    ex = pts[i, 0] - cx
+                    ey = pts[i, 1] - cy
+                    if ex * ex + ey * ey <= r2:
+                        count += pts[i, 2]
             if count >= k:
                 return count
             continue
@@ -350,7 +395,7 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     the copy nearest the domain is c itself when c is inside it. Coordinates are zero or of
     magnitude >= 1e-150 (squared distances must not underflow; the engine's are far larger)."""
     r = np.sqrt(r2)
-    count = 0
+    count = 0.0
     x_lo, x_hi = _copies(cx, r, lx)
     y_lo, y_hi = _copies(cy, r, ly)
     for sx in range(x_lo, x_hi + 1):
@@ -369,9 +414,10 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
 
 @kernel(nrt=False)
 def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
-    """Points of P in the closed cell (see count_in_cell), counting up to at least k."""
-    count = 0
-    pts, box, node, split = index
+    """Points of P in the closed cell (see count_in_cell), counting (their weight) up to at
+    least k."""
+    count = 0.0
+    pts, box, node, split, weight = index
     if node[0, 1] == 0:
         return count
     stack[0] = _start(node, split, vx, vy, np.sqrt(r2))
@@ -405,7 +451,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
         if outside:
             continue
         if inside:
-            count += node[t, 1] - node[t, 0]
+            count += _held(node, weight, t)
             if count >= k:
                 return count
             continue
@@ -414,6 +460,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
             # one vectorisable pass per constraint over blocks of the leaf's points (a leaf
             # of coincident points can exceed LEAF_SIZE)
             found = 0
+            held = 0.0
             for lo in range(node[t, 0], node[t, 1], LEAF_SIZE):
                 m = min(LEAF_SIZE, node[t, 1] - lo)
                 for i in range(m):
@@ -426,9 +473,14 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
                     h = hc[j]
                     for i in range(m):
                         mask[i] &= a * (pts[lo + i, 0] - vx) + b * (pts[lo + i, 1] - vy) <= h
-                for i in range(m):
-                    found += mask[i]
-            count += found
+                if weight.shape[0] == 0:
+                    for i in range(m):
+                        found += mask[i]
+                else:
+                    for i in range(m):
+                        if mask[i]:
+                            held += pts[lo + i, 2]
+            count += found + held
             if count >= k:
                 return count
             continue
@@ -444,9 +496,9 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
     """Number of points of the periodic P in the closed cell {v + p : hx[j] px + hy[j] py <= hc[j]}
     contained in the disk (v, sqrt(r2)): exact when below k, otherwise some value >= k. For a
     Voronoi cell, (hx[j], hy[j]) is the j-th neighbour minus v and hc[j] half its squared
-    length. ``mask`` is scratch of LEAF_SIZE booleans."""
+    length. ``mask`` is scratch of LEAF_SIZE booleans. Weighted points count their weight."""
     r = np.sqrt(r2)
-    count = 0
+    count = 0.0
     x_lo, x_hi = _copies(vx, r, lx)
     y_lo, y_hi = _copies(vy, r, ly)
     for sx in range(x_lo, x_hi + 1):
@@ -467,8 +519,8 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
 def mark_in_disks(index, cx, cy, r2, lx, ly, mark):
     """Set mark[i] for every point i (in the index's order) of the periodic P lying in one of
     the closed disks (cx[d], cy[d], sqrt(r2[d])), each of radius below half a period. Returns
-    the number of points marked."""
-    pts, box, node, split = index
+    the number of points marked (weights play no part)."""
+    pts, box, node, split, weight = index
     stack = np.empty(STACK_SIZE, np.int64)
     for d in range(cx.shape[0]):
         r = np.sqrt(r2[d])
@@ -521,13 +573,14 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
     """Number of points of P within torus distance sqrt(r2) of c, each point counted once, for
     any radius (``count_in_disk`` counts periodic copies and needs a radius below half the
     shorter period). Exact when below k; otherwise some value >= k. Used where a reach can
-    exceed half a period: the initial mesh's precondition."""
-    pts, box, node, split = index
+    exceed half a period: the initial mesh's precondition. Weighted points count their
+    weight."""
+    pts, box, node, split, weight = index
     if node[0, 1] == 0:
-        return 0
+        return 0.0
     cx -= np.floor(cx / lx) * lx
     cy -= np.floor(cy / ly) * ly
-    count = 0
+    count = 0.0
     stack[0] = 0
     sp = 1
     while sp > 0:
@@ -538,7 +591,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
         if nx * nx + ny * ny > r2:
             continue
         if fx * fx + fy * fy <= r2:
-            count += node[t, 1] - node[t, 0]
+            count += _held(node, weight, t)
             if count >= k:
                 return count
             continue
@@ -550,7 +603,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
                 ex = min(ex, lx - ex)
                 ey = min(ey, ly - ey)
                 if ex * ex + ey * ey <= r2:
-                    count += 1
+                    count += 1.0 if weight.shape[0] == 0 else pts[i, 2]
                     if count >= k:
                         return count
             continue
@@ -618,16 +671,63 @@ WINDOW_FULL = -3  # more points between the radii than the buffer holds
 
 
 @kernel(nrt=False)
-def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf):
-    """The squared distance from c to its k-th nearest point of P if it lies in (r_in, r_out]
-    (one traversal: nodes inside the inner disk are counted whole, points between the radii
-    are kept in buf, then the one needed is selected), else WINDOW_LOW, WINDOW_HIGH or
-    WINDOW_FULL. Periodic axes (px, py) use the distance of the circle, each point counted
-    once whatever the radius; the others are planar."""
-    pts, box, node, split = index
+def _weighted_kth(buf, wbuf, n, target):
+    """The smallest value d of buf[:n] such that the weights wbuf of the values <= d sum to
+    at least ``target`` (> 0, and at most their total): a weighted quickselect with a
+    three-way partition (ties move together). Reorders both arrays alike."""
+    lo = 0
+    hi = n - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        a, b, c = buf[lo], buf[mid], buf[hi]
+        pivot = max(min(a, b), min(max(a, b), c))
+        # [lo, lt) < pivot, [lt, i) == pivot, (gt, hi] > pivot
+        lt = lo
+        i = lo
+        gt = hi
+        while i <= gt:
+            v = buf[i]
+            if v < pivot:
+                buf[i], buf[lt] = buf[lt], buf[i]
+                wbuf[i], wbuf[lt] = wbuf[lt], wbuf[i]
+                lt += 1
+                i += 1
+            elif v > pivot:
+                buf[i], buf[gt] = buf[gt], buf[i]
+                wbuf[i], wbuf[gt] = wbuf[gt], wbuf[i]
+                gt -= 1
+            else:
+                i += 1
+        below = 0.0
+        for e in range(lo, lt):
+            below += wbuf[e]
+        if below >= target:
+            hi = lt - 1
+            continue
+        at = 0.0
+        for e in range(lt, gt + 1):
+            at += wbuf[e]
+        if below + at >= target:
+            return pivot
+        target -= below + at
+        lo = gt + 1
+    return buf[lo]
+
+
+@kernel(nrt=False)
+def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wbuf):
+    """The squared distance from c to its k-th nearest point of P (for weighted P: the least
+    radius whose closed disk holds weight >= k) if it lies in (r_in, r_out] (one traversal:
+    nodes inside the inner disk are counted whole, points between the radii are kept in buf,
+    with their weights in wbuf, then the one needed is selected), else WINDOW_LOW,
+    WINDOW_HIGH or WINDOW_FULL. Periodic axes (px, py) use the distance of the circle, each
+    point counted once whatever the radius; the others are planar."""
+    pts, box, node, split, weight = index
+    weighted = weight.shape[0] > 0
     rin2 = r_in * r_in
     rout2 = r_out * r_out
-    inner = 0
+    inner = 0.0
+    between = 0.0
     kept = 0
     cap = buf.shape[0]
     stack[0] = 0
@@ -640,7 +740,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf):
         if nx * nx + ny * ny > rout2:
             continue
         if fx * fx + fy * fy <= rin2:
-            inner += node[t, 1] - node[t, 0]
+            inner += _held(node, weight, t)
             if inner >= k:
                 return WINDOW_LOW
             continue
@@ -658,34 +758,40 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf):
             if py:
                 ey = min(ey, ly - ey)
             d2 = ex * ex + ey * ey
+            w = pts[i, 2] if weighted else 1.0
             if d2 <= rin2:
-                inner += 1
+                inner += w
                 if inner >= k:
                     return WINDOW_LOW
             elif d2 <= rout2:
                 if kept == cap:
                     return WINDOW_FULL
                 buf[kept] = d2
+                wbuf[kept] = w
+                between += w
                 kept += 1
-    if inner + kept < k:
+    if inner + between < k:
         return WINDOW_HIGH
-    return _kth_smallest(buf, kept, k - inner - 1)
+    if not weighted:
+        return _kth_smallest(buf, kept, int(np.ceil(k - inner)) - 1)
+    return _weighted_kth(buf, wbuf, kept, k - inner)
 
 
 @kernel(entry=True, nogil=True)
-def kth_distances(index, qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, out, start, stop):
+def kth_distances(index, qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, cap, out, start, stop):
     """out[i] = d_{P,k}(q_i) for i in [start, stop), internal units. (r_in[i], r_out[i]] is a
     guess that should hold it: a wrong one is moved outwards or inwards (by twice its width,
     then four times, ...) until it brackets the answer, never past the bounds low[i] <= d <=
-    high[i], which must hold. NaN where no window settles it within 200 tries (thousands of
-    points at one distance); the caller answers those another way. Query coordinates along
-    periodic axes must lie in [0, period)."""
-    pts, box, node, split = index
+    high[i], which must hold. ``cap``: the most points a window may hold. NaN where no window
+    settles it within 200 tries (more points at one distance than ``cap``); the caller
+    answers those another way. Query coordinates along periodic axes must lie in
+    [0, period)."""
     stack = np.empty(STACK_SIZE, np.int64)
-    buf = np.empty(4 * k + 1024)
+    buf = np.empty(cap)
+    wbuf = np.empty(cap)
     for i in range(start, stop):
-        known_low = max(low[i], 0.0)  # the ball of this radius holds fewer than k points
-        known_high = high[i]  # the ball of this radius holds at least k points
+        known_low = max(low[i], 0.0)  # the ball of this radius holds less than k
+        known_high = high[i]  # the ball of this radius holds k or more
         a = min(max(r_in[i], known_low), known_high)
         b = max(min(r_out[i], known_high), a)
         if not b > a:
@@ -693,12 +799,12 @@ def kth_distances(index, qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, out,
         width = b - a
         out[i] = np.nan
         for _ in range(200):
-            d2 = _kth_in_window(index, qx[i], qy[i], k, a, b, lx, ly, px, py, stack, buf)
+            d2 = _kth_in_window(index, qx[i], qy[i], k, a, b, lx, ly, px, py, stack, buf, wbuf)
             if d2 >= 0.0:
                 out[i] = np.sqrt(d2)
                 break
             if d2 == WINDOW_LOW:
-                if a == 0.0:  # k points at distance 0
+                if a == 0.0:  # weight k at distance 0
                     out[i] = 0.0
                     break
                 known_high = a
@@ -721,44 +827,51 @@ def kth_distances(index, qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, out,
 class PointIndex:
     """The counting kd-tree over P with the embedding that maps input coordinates into its
     frame: exact d_{P,k} at any points, periodic axes by the distance of the circle, the others
-    in the plane. ``refine`` keeps the one it refined with on the Mesh (``Mesh.index``), so
-    that evaluating d_{P,k} needs no second tree; ``build`` makes one for points alone."""
+    in the plane; weighted P counts weights. ``refine`` keeps the one it refined with on the
+    Mesh (``Mesh.index``), so that evaluating d_{P,k} needs no second tree; ``build`` makes
+    one for points alone."""
 
     def __init__(self, embedding, index, fingerprint):
         self.embedding = embedding
         self.index = index
         self.fingerprint = fingerprint
         self.n = int(index[0].shape[0])
+        self.weighted = index[4].shape[0] > 0
+        self.total = float(index[4][0]) if self.weighted and self.n else float(self.n)
 
     @classmethod
-    def build(cls, points, box, periodic):
+    def build(cls, points, box, periodic, weights=None):
         """The index of the (n, 2) float64 points (already checked to lie in the box along
-        non-periodic axes) for the box and its periodic axes."""
+        non-periodic axes) for the box and its periodic axes; ``weights`` (n,) or None."""
         from .embedding import Embedding
 
         emb = Embedding.make(box, periodic)
-        return cls(emb, build_index(emb.to_internal(points)), cls.fingerprint_of(points))
+        index = build_index(emb.to_internal(points), weights=weights)
+        return cls(emb, index, cls.fingerprint_of(points, weights))
 
     @staticmethod
-    def fingerprint_of(points):
-        """What tells the indexed points from others: their number and coordinate sums (per
-        column: numpy's axis-0 sum of an (n, 2) array is 30 times slower)."""
-        return (len(points), float(points[:, 0].sum()), float(points[:, 1].sum()))
+    def fingerprint_of(points, weights=None):
+        """What tells the indexed points (and weights) from others: their number and column
+        sums (per column: numpy's axis-0 sum of an (n, 2) array is 30 times slower)."""
+        w = None if weights is None else float(np.sum(weights))
+        return (len(points), float(points[:, 0].sum()), float(points[:, 1].sum()), w)
 
-    def indexes(self, points):
-        """Whether ``points`` (n, 2) float64 are the points indexed (by fingerprint)."""
-        return self.fingerprint == self.fingerprint_of(points)
+    def indexes(self, points, weights=None):
+        """Whether ``points`` (n, 2) float64 with ``weights`` are the ones indexed (by
+        fingerprint)."""
+        return self.fingerprint == self.fingerprint_of(points, weights)
 
     def kth(self, x, k, r_in=None, r_out=None, low=None, high=None, workers=None):
-        """Exact d_{P,k} at the points x (q, 2) in input units. r_in, r_out: a window per
-        point that should hold the answer (input units): a good one makes the search cheap
-        (it collects the points between the radii), a bad one only costs retries; default:
-        the distance at which a uniform density would hold k points, halved and doubled.
-        low, high: bounds known to hold (default 0 and infinity)."""
+        """Exact d_{P,k} at the points x (q, 2) in input units (weighted P: the least radius
+        whose closed disk holds weight >= k). r_in, r_out: a window per point that should
+        hold the answer (input units): a good one makes the search cheap (it collects the
+        points between the radii), a bad one only costs retries; default: the distance at
+        which a uniform density would hold k points, halved and doubled. low, high: bounds
+        known to hold (default 0 and infinity)."""
         emb = self.embedding
         q = emb.to_query(x)
         m = len(q)
-        k = int(k)
+        k = float(k)
 
         def internal(r, default):
             if r is None:
@@ -766,40 +879,28 @@ class PointIndex:
             return np.broadcast_to(np.asarray(r, np.float64) * emb.scale, (m,)).copy()
 
         lx, ly = emb.period_internal
-        guess = np.sqrt(k * lx * ly / (np.pi * max(self.n, 1)))
+        guess = np.sqrt(k * lx * ly / (np.pi * max(self.total, 1e-300)))
         r_in = internal(r_in, 0.5 * guess)
         r_out = internal(r_out, 2.0 * guess)
         low = internal(low, 0.0)
         high = internal(high, np.inf)
+        # room for the points of a window: about k of them (k / the mean weight if weighted)
+        per_point = self.total / max(self.n, 1) if self.weighted else 1.0
+        cap = int(min(self.n, 4.0 * k / max(per_point, 1e-300) + 1024)) + 1
         out = np.empty(m)
         qx, qy = q[:, 0].copy(), q[:, 1].copy()
         px, py = (bool(p) for p in emb.periodic)
-        lx, ly = emb.period_internal
         chunks = max(1, min(thread_count() if workers is None else int(workers), m // 256))
         edges = np.linspace(0, m, chunks + 1).astype(np.int64)
 
         def chunk(j):
-            return kth_distances(
-                self.index,
-                qx,
-                qy,
-                k,
-                r_in,
-                r_out,
-                low,
-                high,
-                lx,
-                ly,
-                px,
-                py,
-                out,
-                edges[j],
-                edges[j + 1],
-            )
+            a, b = edges[j], edges[j + 1]
+            args = (qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, cap, out, a, b)
+            return kth_distances(self.index, *args)
 
         run_all(chunk, chunks)
         lost = np.flatnonzero(np.isnan(out))
-        if len(lost):  # ties beyond the window buffer: by brute force (rare)
+        if len(lost):  # more ties than a window holds: by brute force (rare)
             out[lost] = self._brute_kth(q[lost], k)
         return out / emb.scale
 
@@ -814,5 +915,8 @@ class PointIndex:
                 ex = np.minimum(ex, lx - ex)
             if self.embedding.periodic[1]:
                 ey = np.minimum(ey, ly - ey)
-            res[i] = np.sqrt(np.partition(ex * ex + ey * ey, k - 1)[k - 1])
+            d2 = ex * ex + ey * ey
+            order = np.argsort(d2, kind="stable")
+            w = pts[order, 2] if self.weighted else np.ones(len(order))
+            res[i] = np.sqrt(d2[order[np.searchsorted(np.cumsum(w), k)]])
         return res

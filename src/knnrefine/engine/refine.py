@@ -57,7 +57,6 @@ from .state import (
     C_DISK_TESTS,
     C_ERROR,
     C_FAILED,
-    C_K,
     C_LAST_NB,
     C_MAX_VERTICES,
     C_NT,
@@ -68,6 +67,7 @@ from .state import (
     P_FLOOR2,
     P_GRID,
     P_INFLATE,
+    P_K,
     P_LX,
     P_LY,
     P_TAU2,
@@ -156,9 +156,10 @@ def clean(mesh, book, queues, prm):
 
 @kernel(nrt=False)
 def count_cell(v, mesh, probe, cnt, prm, index):
-    """Points of P in the closed Voronoi cell of v (inflated): exact below k, else some value
-    >= k; STAR_OVERFLOW if v has more neighbours than the probe holds."""
-    k = cnt[C_K]
+    """Points of P in the closed Voronoi cell of v (inflated), their weight for weighted P:
+    exact below k, else some value >= k; STAR_OVERFLOW if v has more neighbours than the
+    probe holds (the only negative value)."""
+    k = prm[P_K]
     inflate = prm[P_INFLATE]
     outradius2 = mesh.outradius2[v]
     x = mesh.xy[v, 0]
@@ -201,7 +202,7 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
     Returns (t, kind, element): insert the circumcenter of triangle t; element is the triangle
     (BREAK_BALL) or the vertex (BREAK_CELL) being split. (-1, 0, -1) when every circumball and
     cell holds < k points or is at the floor; t < -1 is an error code (state.ERRORS)."""
-    k = cnt[C_K]
+    k = prm[P_K]
     lx = prm[P_LX]
     ly = prm[P_LY]
     inflate = prm[P_INFLATE]
@@ -234,7 +235,7 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
             continue
         c = count_cell(v, mesh, probe, cnt, prm, index)
         if c < 0:
-            return c, 0, -1
+            return STAR_OVERFLOW, 0, -1
         if c < k:
             book.cell_state[v] = GOOD
             continue
@@ -280,8 +281,8 @@ def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
             continue
         c = count_cell(v, mesh, probe, cnt, prm, index)
         if c < 0:
-            return c
-        if c < cnt[C_K]:
+            return STAR_OVERFLOW
+        if c < prm[P_K]:
             book.cell_state[v] = GOOD
     return 0
 

@@ -33,13 +33,15 @@ SAMPLE = 2000
 def estimate(index, k, floor, lx, ly, area, seed=0):
     """Expected number of mesh vertices (on the torus) for the points in ``index``, and the
     fraction of points whose k-th neighbour lies within ``floor`` (internal units). ``area``
-    is the area the points are spread over (the box's, internal units)."""
+    is the area the points are spread over (the box's, internal units). Weighted points
+    count as their total weight (whole weights are repeated points)."""
     pts = index[0]
-    n = pts.shape[0]
-    if n == 0:
+    if pts.shape[0] == 0:
         return 0.0, 0.0
+    n = float(index[4][0]) if index[4].shape[0] else pts.shape[0]
     rng = np.random.default_rng(seed)
-    sample = pts[rng.choice(n, SAMPLE, replace=False)] if n > SAMPLE else pts
+    sample = pts[rng.choice(pts.shape[0], SAMPLE, replace=False)] if pts.shape[0] > SAMPLE else pts
+    sample = np.ascontiguousarray(sample[:, :2])
     under = float(np.mean(holds_k_within(index, sample, np.full(len(sample), floor**2), k, lx, ly)))
     spacing = np.sqrt(area / n)
     octaves = max(1.0, float(np.log2(max(spacing / floor, 2.0))))

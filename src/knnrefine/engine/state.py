@@ -85,7 +85,6 @@ C_NT = 1  # triangles in use (always 2 * C_NV on the torus)
 C_STAMP = 2  # insertions so far: stamps the cavity marks
 C_LAST_NB = 3  # boundary edges of the last cavity (= its new triangles)
 C_SWEEP_MIN = 4  # cells newly queued that make a sweep worthwhile (refine.sweep_cells)
-C_K = 8  # the k of d_{P,k}
 C_MAX_VERTICES = 9
 C_DISK_TESTS = 26  # circumball counts made
 C_CELL_TESTS = 27  # cell counts made
@@ -103,6 +102,7 @@ P_FLOOR2 = 3  # the Break floor squared: max(min_size, clean floor)^2
 P_CLEAN_FLOOR2 = 4  # the Clean floor squared: 2^14 grid steps
 P_INFLATE = 5  # 1 + 1e-9: the counting regions' inflation
 P_GRID = 6  # the grid step q every vertex is snapped to
+P_K = 7  # the k of d_{P,k}: a count, or a weight for weighted points
 N_PARAMS = 8
 
 # -- insertion results and broken invariants ---------------------------------------------------
