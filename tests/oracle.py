@@ -107,3 +107,20 @@ def torus_facts(torus, points):
         "cell": cell,
         "cc": cc,
     }
+
+
+def random_cell(rng):
+    """A Voronoi-like convex cell about the origin: half-planes {p : nb_j . p <= hc_j} towards
+    a ring of 3 to 8 neighbours nb (hc_j half of |nb_j|^2), inside the disk of squared radius
+    R2. Returns (nb (d, 2), hc (d,), R2)."""
+    deg = rng.integers(3, 9)
+    ang = np.sort(rng.random(deg)) * 2 * np.pi
+    nb = 0.2 * rng.random() * np.stack([np.cos(ang), np.sin(ang)], 1) + 1e-3
+    hc = 0.5 * (nb**2).sum(1)
+    return nb, hc, float((4 * hc).max())
+
+
+def in_cell(rel, nb, hc, R2, slack=1.0):
+    """Mask of the points rel (relative to the cell's centre) in the cell of ``random_cell``,
+    every constraint scaled by ``slack`` (1 -+ 1e-12 brackets the rounding)."""
+    return np.all(rel @ nb.T <= hc * slack, axis=1) & ((rel**2).sum(1) <= R2 * slack)

@@ -175,6 +175,11 @@ def test_node_values_reuse_the_engine_index_and_never_trust_other_points():
     d2 = KnnDistance(mesh, other)
     assert d2.index is not mesh.index
     np.testing.assert_allclose(d2.values, oracle.kth(d2.nodes, other, 15, (0, 0)), rtol=1e-12)
+    # what the kept index costs (docs: about 20 bytes per input point; unweighted: the
+    # permuted points, 16 bytes, and the nodes)
+    big = np.random.default_rng(11).random((100_000, 2))
+    kept = knnrefine.refine(big, 100).index
+    assert sum(a.nbytes for a in kept.index) / len(big) < 24
     # a mesh without its index (as read from a file) builds one
     import dataclasses
 

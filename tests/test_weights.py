@@ -3,6 +3,7 @@ weight k. Oracles: brute force over weights, repeated points (whole weights), an
 rescaling (weights and k halved: sums of halves are exact)."""
 
 import numpy as np
+import oracle
 import pytest
 
 import knnrefine
@@ -57,15 +58,12 @@ def test_weighted_counts_match_brute_force(case):
             torus = count_in_torus_disk(index, c[0], c[1], r * r, k, 1.0, 1.0, stack)
             assert_weight(torus, lo, hi, k)
         # a cell: half-planes towards a ring of neighbours
-        deg = rng.integers(3, 9)
-        ang = np.sort(rng.random(deg)) * 2 * np.pi
-        nb = 0.2 * rng.random() * np.stack([np.cos(ang), np.sin(ang)], 1) + 1e-3
-        hc = 0.5 * (nb**2).sum(1)
-        R2 = float((4 * hc).max())
+        nb, hc, R2 = oracle.random_cell(rng)
+        deg = len(hc)
         rel = cover - c
 
         def held(s, rel=rel, nb=nb, hc=hc, R2=R2):
-            return cw[np.all(rel @ nb.T <= hc * s, axis=1) & ((rel**2).sum(1) <= R2 * s)].sum()
+            return cw[oracle.in_cell(rel, nb, hc, R2, s)].sum()
 
         for k in (0.5, 5.0, 1e9):
             got = count_in_cell(
@@ -155,6 +153,7 @@ def test_weighted_certificate_is_independent_and_catches_wrong_weights():
         (np.full(100, 0.1), 10.5, "total weight"),
         (np.ones(100), 0, "positive"),
         (np.ones(100), "5", "positive"),
+        (np.ones(100) + 1j, 5, "real"),
     ],
 )
 def test_bad_weights_are_refused_before_work(weights, k, match):

@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from .errors import InputError
 from .mesh import theorem6_constants, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric
-from .validation import as_points, check_weights
+from .validation import as_points, weights_of_run
 
 
 @dataclass
@@ -474,23 +474,7 @@ def _check_points_are_the_meshs(mesh, pts, weights=None):
             f"the mesh was made from {int(made_from):,} points but {len(pts):,} were given: "
             "certify a mesh against the points it was refined from"
         )
-    total = mesh.stats.get("weight")
-    if weights is None and total is not None:
-        raise InputError(
-            f"the mesh was refined with weights (total {total:.6g}): pass the same weights"
-        )
-    if weights is not None:
-        if total is None and made_from is not None:
-            raise InputError(
-                "the mesh was refined without weights: certify it without them (or refine "
-                "with weights=...)"
-            )
-        weights = check_weights(weights, len(pts))
-        if total is not None and not np.isclose(weights.sum(), total, rtol=1e-9, atol=0):
-            raise InputError(
-                f"the weights sum to {weights.sum():.6g} but the mesh was refined with a total "
-                f"weight of {total:.6g}: pass the weights it was refined with"
-            )
+    weights = weights_of_run(mesh.stats, len(pts), weights)
     for a in range(2):
         if mesh.periodic[a]:
             continue

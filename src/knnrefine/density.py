@@ -19,7 +19,7 @@ from .engine.raster import clip_triangles, fans, rasterise
 from .errors import InputError
 from .mesh import edges, split_in_four, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric
-from .validation import as_points, as_queries, check_weights, default_box
+from .validation import as_points, as_queries, check_weights, default_box, weights_of_run
 
 # Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
 _QW = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
@@ -67,7 +67,7 @@ class KnnDistance:
 
     def __init__(self, mesh, points, subdivide=True, weights=None):
         pts = as_points(points)
-        weights = _weights_for(mesh, pts, weights)
+        weights = weights_of_run(mesh.stats, len(pts), weights)
         total = len(pts) if weights is None else float(weights.sum())
         if total < mesh.k:
             what = f"{len(pts)} points" if weights is None else f"a total weight of {total:.6g}"
@@ -337,21 +337,6 @@ class KnnDensity:
         the probability of the part of the region in the box (regions wrap across periodic
         seams)."""
         return self.distance.integrate(lambda d: self.constant / d**2, region)
-
-
-def _weights_for(mesh, pts, weights):
-    """The weights to evaluate a mesh with: those it was refined with (required for a
-    weighted mesh; refused for a mesh refined without)."""
-    total = mesh.stats.get("weight")
-    if weights is None:
-        if total is not None:
-            raise InputError(
-                f"the mesh was refined with weights (total {total:.6g}): pass the same weights"
-            )
-        return None
-    if total is None and "n" in mesh.stats:
-        raise InputError("the mesh was refined without weights: evaluate it without them")
-    return check_weights(weights, len(pts))
 
 
 def _grid_shape(shape):

@@ -66,6 +66,8 @@ def check_k(k, n=None):
 
 def check_weights(weights, n):
     """Point weights: n finite numbers >= 0 with a positive total, as float64 (n,)."""
+    if np.iscomplexobj(weights):
+        raise InputError(f"weights must be {n} real numbers, one per point; got complex ones")
     try:
         w = np.asarray(weights, dtype=np.float64)
     except (TypeError, ValueError):
@@ -81,6 +83,30 @@ def check_weights(weights, n):
     if n and not w.sum() > 0:
         raise InputError("the weights sum to 0: no point counts")
     return np.ascontiguousarray(w)
+
+
+def weights_of_run(stats, n, weights):
+    """The weights to use the points of a run again with (certify, evaluation): those it was
+    refined with. A weighted run (``stats["weight"]``, the total) needs them and a run
+    without weights refuses them; the total must match. Returns float64 (n,) or None."""
+    total = stats.get("weight")
+    if weights is None:
+        if total is not None:
+            raise InputError(
+                f"the mesh was refined with weights (total {total:.6g}): pass the same weights"
+            )
+        return None
+    if total is None and "n" in stats:
+        raise InputError(
+            "the mesh was refined without weights: use it without them (or refine with weights=...)"
+        )
+    weights = check_weights(weights, n)
+    if total is not None and not np.isclose(weights.sum(), total, rtol=1e-9, atol=0):
+        raise InputError(
+            f"the weights sum to {weights.sum():.6g} but the mesh was refined with a total "
+            f"weight of {total:.6g}: pass the weights it was refined with"
+        )
+    return weights
 
 
 def check_weighted_k(k, total):

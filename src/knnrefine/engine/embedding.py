@@ -112,7 +112,12 @@ class Embedding:
         """Internal coordinates of input points (n, 2), wrapped into the torus (a new array)."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         return _to_internal(
-            x, self.origin, self.scale, np.array(self.period_internal), np.array(self.periodic)
+            x,
+            self.origin,
+            self.scale,
+            np.array(self.period_internal),
+            np.array(self.periodic),
+            True,
         )
 
     def to_input(self, u, copy=True):
@@ -134,14 +139,14 @@ class Embedding:
         torus along periodic axes, unwrapped (planar, possibly outside [0, L)) along the
         others, where the index answers in the plane (``index.PointIndex``)."""
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 2)
-        out = (x - self.origin) * self.scale
-        for a in range(2):
-            if self.periodic[a]:
-                u = wrap_offsets(x[:, a].copy(), float(self.origin[a]), self.period[a])
-                u *= self.scale
-                u[u >= self.period_internal[a]] = 0.0  # rounding at the seam
-                out[:, a] = u
-        return out
+        return _to_internal(
+            x,
+            self.origin,
+            self.scale,
+            np.array(self.period_internal),
+            np.array(self.periodic),
+            False,
+        )
 
     def box_internal(self):
         lo = (np.array(self.box[:2]) - self.origin) * self.scale
@@ -150,7 +155,10 @@ class Embedding:
 
 
 @kernel(entry=True)
-def _to_internal(x, origin, scale, period, periodic):
+def _to_internal(x, origin, scale, period, periodic, into_torus):
+    """(x - origin) * scale, wrapped into [0, period) along periodic axes; along the others
+    too when ``into_torus`` (data, which the margin keeps inside: only rounding at the seam
+    is guarded), else left planar (queries)."""
     out = np.empty_like(x)
     for i in range(x.shape[0]):
         for a in range(2):
@@ -158,7 +166,7 @@ def _to_internal(x, origin, scale, period, periodic):
                 u = wrap_offset(x[i, a], origin[a], period[a] / scale) * scale
             else:
                 u = (x[i, a] - origin[a]) * scale
-            if u >= period[a]:  # the margin keeps data inside; guard rounding at the seam
+            if u >= period[a] and (periodic[a] or into_torus):  # rounding at the seam
                 u = 0.0
             out[i, a] = u
     return out

@@ -304,6 +304,12 @@ def _held(node, weight, t):
     return weight[t]
 
 
+@kernel(inline="always")
+def _weight_of(pts, weight, i):
+    """Point i's weight: 1 unless the points are weighted (a third column)."""
+    return 1.0 if weight.shape[0] == 0 else pts[i, 2]
+
+
 @kernel(nrt=False)
 def _start(node, split, cx, cy, r):
     """The deepest node whose split region strictly contains the disk (c, r): points outside
@@ -603,7 +609,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
                 ex = min(ex, lx - ex)
                 ey = min(ey, ly - ey)
                 if ex * ex + ey * ey <= r2:
-                    count += 1.0 if weight.shape[0] == 0 else pts[i, 2]
+                    count += _weight_of(pts, weight, i)
                     if count >= k:
                         return count
             continue
@@ -636,45 +642,17 @@ def _gap(c, lo, hi, period, periodic):
     return max(lo - c, 0.0, c - hi), max(abs(c - lo), abs(c - hi))
 
 
-@kernel(nrt=False)
-def _kth_smallest(buf, n, j):
-    """The j-th smallest (from 0) of buf[:n], which it reorders (quickselect, median of 3)."""
-    lo = 0
-    hi = n - 1
-    while hi > lo:
-        mid = (lo + hi) // 2
-        a, b, c = buf[lo], buf[mid], buf[hi]
-        pivot = max(min(a, b), min(max(a, b), c))
-        i = lo
-        e = hi
-        while i <= e:
-            while buf[i] < pivot:
-                i += 1
-            while buf[e] > pivot:
-                e -= 1
-            if i <= e:
-                buf[i], buf[e] = buf[e], buf[i]
-                i += 1
-                e -= 1
-        if j <= e:
-            hi = e
-        elif j >= i:
-            lo = i
-        else:
-            return buf[j]
-    return buf[j]
-
-
 WINDOW_LOW = -1  # the inner radius already holds k points
 WINDOW_HIGH = -2  # the outer radius holds fewer than k
 WINDOW_FULL = -3  # more points between the radii than the buffer holds
 
 
 @kernel(nrt=False)
-def _weighted_kth(buf, wbuf, n, target):
-    """The smallest value d of buf[:n] such that the weights wbuf of the values <= d sum to
-    at least ``target`` (> 0, and at most their total): a weighted quickselect with a
-    three-way partition (ties move together). Reorders both arrays alike."""
+def _select_held(buf, wbuf, n, target, unit):
+    """The smallest value d of buf[:n] such that the values <= d hold at least ``target``
+    (> 0, at most what all of them hold): their weights wbuf, or their number when ``unit``
+    (wbuf is then neither read nor moved). A quickselect with a three-way partition, so that
+    ties move together; reorders buf (and wbuf) in place."""
     lo = 0
     hi = n - 1
     while hi > lo:
@@ -689,28 +667,33 @@ def _weighted_kth(buf, wbuf, n, target):
             v = buf[i]
             if v < pivot:
                 buf[i], buf[lt] = buf[lt], buf[i]
-                wbuf[i], wbuf[lt] = wbuf[lt], wbuf[i]
+                if not unit:
+                    wbuf[i], wbuf[lt] = wbuf[lt], wbuf[i]
                 lt += 1
                 i += 1
             elif v > pivot:
                 buf[i], buf[gt] = buf[gt], buf[i]
-                wbuf[i], wbuf[gt] = wbuf[gt], wbuf[i]
+                if not unit:
+                    wbuf[i], wbuf[gt] = wbuf[gt], wbuf[i]
                 gt -= 1
             else:
                 i += 1
-        below = 0.0
-        for e in range(lo, lt):
-            below += wbuf[e]
+        below = float(lt - lo)
+        at = float(gt + 1 - lt)
+        if not unit:
+            below = 0.0
+            for e in range(lo, lt):
+                below += wbuf[e]
+            at = 0.0
+            for e in range(lt, gt + 1):
+                at += wbuf[e]
         if below >= target:
             hi = lt - 1
-            continue
-        at = 0.0
-        for e in range(lt, gt + 1):
-            at += wbuf[e]
-        if below + at >= target:
+        elif below + at >= target:
             return pivot
-        target -= below + at
-        lo = gt + 1
+        else:
+            target -= below + at
+            lo = gt + 1
     return buf[lo]
 
 
@@ -723,7 +706,6 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
     WINDOW_HIGH or WINDOW_FULL. Periodic axes (px, py) use the distance of the circle, each
     point counted once whatever the radius; the others are planar."""
     pts, box, node, split, weight = index
-    weighted = weight.shape[0] > 0
     rin2 = r_in * r_in
     rout2 = r_out * r_out
     inner = 0.0
@@ -758,7 +740,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
             if py:
                 ey = min(ey, ly - ey)
             d2 = ex * ex + ey * ey
-            w = pts[i, 2] if weighted else 1.0
+            w = _weight_of(pts, weight, i)
             if d2 <= rin2:
                 inner += w
                 if inner >= k:
@@ -772,9 +754,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
                 kept += 1
     if inner + between < k:
         return WINDOW_HIGH
-    if not weighted:
-        return _kth_smallest(buf, kept, int(np.ceil(k - inner)) - 1)
-    return _weighted_kth(buf, wbuf, kept, k - inner)
+    return _select_held(buf, wbuf, kept, k - inner, weight.shape[0] == 0)
 
 
 @kernel(entry=True, nogil=True)
