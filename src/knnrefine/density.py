@@ -15,6 +15,22 @@ from scipy.spatial import cKDTree
 
 from .engine.embedding import wrap_offsets
 from .engine.index import PointIndex
+from .engine.kernelsum import (
+    AMP,
+    Q11,
+    Q12,
+    Q22,
+    ROW,
+    R,
+    W,
+    X,
+    Y,
+    ball_moments,
+    build_centres,
+    in_chunks,
+    kernel_sums,
+    node_extents,
+)
 from .engine.raster import clip_triangles, fans, rasterise
 from .errors import InputError
 from .mesh import edges, split_in_four, triangle_areas, uniform_in_triangles
@@ -135,15 +151,21 @@ class KnnDistance:
         """Estimated d_{P,k} at the query points x, shape (..., 2): an array of shape (...).
         NaN outside the box along non-periodic axes (on every side); periodic axes wrap."""
         flat, shape = as_queries(x)
-        inside = self._inside(flat)
-        flat = self._wrap(flat)
-        out = np.full(len(flat), np.nan)
-        tri, bary = self._locate(flat[inside])
+        return self.interpolate(flat, self.values).reshape(shape)
+
+    def interpolate(self, x, values):
+        """Any node values (nodes, ...) linearly interpolated over the pieces at the points
+        x (q, 2): shape (q, ...), NaN outside the box along non-periodic axes."""
+        values = np.asarray(values, float)
+        inside = self._inside(x)
+        out = np.full((len(x), *values.shape[1:]), np.nan)
+        tri, bary = self._locate(self._wrap(x[inside]))
         ok = tri >= 0
-        values = np.full(int(inside.sum()), np.nan)
-        values[ok] = (bary[ok] * self.values[self.triangles[tri[ok]]]).sum(axis=1)
-        out[inside] = values
-        return out.reshape(shape)
+        found = np.full((int(inside.sum()), *values.shape[1:]), np.nan)
+        corner = values[self.triangles[tri[ok]]]  # (q, 3, ...)
+        found[ok] = np.einsum("qc,qc...->q...", bary[ok], corner)
+        out[inside] = found
+        return out
 
     def exact(self, x):
         """Exact d_{P,k} at the query points (..., 2), one kd-tree query each (the reference);
@@ -337,6 +359,283 @@ class KnnDensity:
         the probability of the part of the region in the box (regions wrap across periodic
         seams)."""
         return self.distance.integrate(lambda d: self.constant / d**2, region)
+
+    def sample(self, n, rng):
+        """n points (n, 2) drawn from the normalised estimate with the numpy Generator rng: a
+        piece of the mesh chosen by an upper bound of its mass, a uniform point in it, kept
+        with probability density / bound (exact rejection sampling of the piecewise
+        estimate; the pieces are well shaped, so most proposals are kept)."""
+        dist = self.distance
+        corners = dist.nodes[dist.triangles]
+        d = dist.values[dist.triangles]
+        area = np.abs(triangle_areas(corners))
+        dmin = d.min(axis=1)  # d is linear on a piece: its density peaks at a corner
+        bound = area / dmin**2
+        cdf = np.cumsum(bound)
+        out = np.empty((n, 2))
+        filled = 0
+        while filled < n:
+            m = int(1.5 * (n - filled)) + 64
+            t = np.minimum(
+                np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1
+            )
+            x, u = uniform_in_triangles(corners[t], rng.random((m, 2)))
+            dx = d[t, 0] * (1.0 - u[:, 0] - u[:, 1]) + d[t, 1] * u[:, 0] + d[t, 2] * u[:, 1]
+            keep = rng.random(m) * dx**2 <= dmin[t] ** 2
+            # pieces reach past the box; each point of the box lies in exactly one of them
+            keep &= np.all((x >= dist.lo) & (x <= dist.hi), axis=1)
+            x = x[keep][: n - filled]
+            out[filled : filled + len(x)] = x
+            filled += len(x)
+        return out
+
+
+class AdaptiveDensity:
+    """The adaptive (sample-point) kernel estimate with local bandwidths from d_{P,k}.
+
+    f(x) = (1 - eps) sum_i (w_i / W) K_i(x) + eps f_kNN(x): one kernel per point, of extent
+    h_i = bandwidth * d_{P,k}(X_i). With the kNN estimate f ~ 1 / d_{P,k}^2 as the pilot,
+    this is Abramson's square-root law h_i ~ f(X_i)^(-1/2) (1982) in the plane: narrow
+    kernels where the points are dense, wide ones in the tails. The mesh gives d_{P,k} at
+    every point at once (linear interpolation over its pieces).
+
+    K_i is the triweight profile (1 - u)^3, u = (x - X_i)^T Q_i (x - X_i) < 1, normalised to
+    mass 1: smooth, compactly supported (sums visit only the kernels that reach x).
+    ``shape="isotropic"`` makes it a disk of radius h_i; ``shape="local"`` an ellipse of the
+    same area shaped like the covariance of the points within d_{P,k} of X_i (measured at the
+    mesh's nodes and interpolated; axes ratio at most ``max_ratio``): long along a ridge,
+    narrow across it. Kernels stay in the box: periodic axes wrap, the others fold the mass
+    beyond a side back into the box (reflection), so the estimate integrates to 1 there.
+    eps = 1 / W (one point's worth, W the total weight) of the kNN estimate keeps the
+    estimate positive where no kernel reaches (far tails): a finite log-likelihood.
+
+    Parameters: ``mesh``, ``points``, ``subdivide``, ``weights`` as for ``KnnDensity``;
+    ``bandwidth`` > 0, the factor c (``set_bandwidth`` changes it cheaply, ``loo_curve``
+    scores candidates by leave-one-out likelihood).
+    """
+
+    def __init__(
+        self, mesh, points, bandwidth=1.0, shape="isotropic", weights=None, subdivide=True,
+        max_ratio=10.0, knn=None,
+    ):  # fmt: skip
+        if shape not in ("isotropic", "local"):
+            raise InputError(f'shape must be "isotropic" or "local", got {shape!r}')
+        if not (isinstance(max_ratio, (int, float)) and 1 <= max_ratio < np.inf):
+            raise InputError(f"max_ratio must be a number >= 1, got {max_ratio!r}")
+        pts = as_points(points)
+        if knn is None:
+            knn = KnnDensity(mesh, pts, subdivide=subdivide, weights=weights)
+        self.knn = knn
+        dist = knn.distance
+        weights = weights_of_run(mesh.stats, len(pts), weights)
+        w = np.ones(len(pts)) if weights is None else weights
+        self.k, self.shape = mesh.k, shape
+        self.total = float(w.sum())
+        self.eps = 1.0 / self.total
+        self.n_eff = self.total**2 / float((w * w).sum())
+        self._metric = dist._metric
+        self.lo, self.hi = dist.lo, dist.hi
+        self.periodic = tuple(bool(p) for p in mesh.periodic)
+        frame = self._metric.frame(pts)
+        self._rows, self._box, self._node = build_centres(frame, w)
+        order = self._rows[:, ROW].astype(np.int64)
+        self._row_of = np.empty(len(pts), np.int64)
+        self._row_of[order] = np.arange(len(pts))
+        self._extent = np.zeros(len(self._node))
+        # the pilot: d_{P,k} at every point, and the local covariance for shape="local"
+        if shape == "local":
+            cov = self._node_covariance(dist)
+            pilot = dist.interpolate(pts, np.column_stack([dist.values, cov]))
+            d, cov = pilot[:, 0], pilot[:, 1:]
+        else:
+            d, cov = dist.interpolate(pts, dist.values), None
+        lost = ~np.isfinite(d)
+        if lost.any():  # on no piece by rounding: exact
+            d[lost] = dist.exact(pts[lost])
+        unit = _unit_shapes(cov, len(pts), max_ratio)  # (n, 3): s11, s12, s22, det 1
+        # per unit bandwidth: Q = S^-1 / d^2, extent d sqrt(lambda_max(S)), amp
+        # w / W * 4 sqrt(det Q) / pi (the triweight's mass is pi / (4 sqrt(det Q)))
+        d2 = d * d
+        self._q = np.column_stack([unit[:, 2], -unit[:, 1], unit[:, 0]])[order] / d2[order, None]
+        tr = unit[:, 0] + unit[:, 2]
+        lmax = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - 1.0, 0.0))
+        self._r = (d * np.sqrt(lmax))[order]
+        self._amp = (w / self.total * 4.0 / (np.pi * d2))[order]
+        self.pilot = d
+        # kernels no wider than the box along any axis (wrapping and folding stay exact)
+        self._cap = float(np.min(self.hi - self.lo))
+        self.set_bandwidth(bandwidth)
+
+    def _node_covariance(self, dist):
+        """Covariance (xx, xy, yy) of the points within d_{P,k} of each node of the mesh."""
+        q = self._metric.frame(dist.nodes)
+        out = np.empty((len(q), 6))
+        lx, ly = self.hi - self.lo
+        px, py = self.periodic
+        qx, qy = q[:, 0].copy(), q[:, 1].copy()
+        rows, box, node = self._rows, self._box, self._node
+        radius = np.asarray(dist.values, float)
+        in_chunks(
+            lambda a, b: ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, a, b),
+            len(q),
+        )
+        w = np.maximum(out[:, 0], 1e-300)
+        mx, my = out[:, 1] / w, out[:, 2] / w
+        return np.column_stack(
+            [out[:, 3] / w - mx * mx, out[:, 4] / w - mx * my, out[:, 5] / w - my * my]
+        )
+
+    def set_bandwidth(self, bandwidth):
+        """Make the kernels' extents bandwidth * (their unit extents); returns self."""
+        c = bandwidth
+        if isinstance(c, bool) or not isinstance(c, (int, float, np.floating)) or not c > 0:
+            raise InputError(f"bandwidth must be a number > 0, got {bandwidth!r}")
+        if not np.isfinite(c):
+            raise InputError(f"bandwidth must be finite, got {bandwidth!r}")
+        self.bandwidth = float(c)
+        r = self._r * c
+        shrink = np.maximum(r / self._cap, 1.0) ** 2  # kernels wider than the box: narrowed
+        scale = shrink / (c * c)
+        rows = self._rows
+        rows[:, Q11 : Q22 + 1] = self._q * scale[:, None]
+        rows[:, AMP] = self._amp * scale
+        rows[:, R] = r / np.sqrt(shrink)
+        node_extents(rows, self._node, self._extent)
+        return self
+
+    def _sums(self, frame, own=None):
+        """Kernel sums (and sums of squares) at points in frame coordinates."""
+        m = len(frame)
+        out, out2 = np.empty(m), np.empty(m)
+        qx, qy = frame[:, 0].copy(), frame[:, 1].copy()
+        own = np.zeros(0, np.int64) if own is None else own
+        lx, ly = self.hi - self.lo
+        px, py = self.periodic
+        rows, box, node, extent = self._rows, self._box, self._node, self._extent
+
+        def call(a, b):
+            kernel_sums(rows, box, node, extent, qx, qy, own, lx, ly, px, py, out, out2, a, b)
+
+        in_chunks(call, m)
+        return out, out2
+
+    def _at(self, flat):
+        """(kernel sums, their squares, the kNN estimate) at points (q, 2); NaN outside."""
+        knn = self.knn(flat)
+        inside = np.isfinite(knn)
+        s, s2 = np.full(len(flat), np.nan), np.full(len(flat), np.nan)
+        s[inside], s2[inside] = self._sums(self._metric.frame(flat[inside]))
+        return s, s2, knn
+
+    def __call__(self, x):
+        """The density at points x (..., 2): shape (...); NaN outside the box along
+        non-periodic axes."""
+        flat, shape = as_queries(x)
+        s, _, knn = self._at(flat)
+        return ((1.0 - self.eps) * s + self.eps * knn).reshape(shape)
+
+    def standard_error(self, x):
+        """Pointwise standard error at x (..., 2) -> (...): the sample-point estimate's
+        variance, (sum of squared kernel terms) - f^2 / n (bandwidths held fixed)."""
+        flat, shape = as_queries(x)
+        s, s2, _ = self._at(flat)
+        var = np.maximum(s2 - s * s / self.n_eff, 0.0)
+        return ((1.0 - self.eps) * np.sqrt(var)).reshape(shape)
+
+    def grid(self, shape=(512, 512)):
+        """(xs, ys, values): the density at the centres of a ny x nx grid over the box."""
+        xs, ys, knn = self.knn.grid(shape)
+        gx, gy = np.meshgrid(xs, ys)
+        frame = self._metric.frame(np.column_stack([gx.ravel(), gy.ravel()]))
+        s = self._sums(frame)[0].reshape(knn.shape)
+        return xs, ys, (1.0 - self.eps) * s + self.eps * knn
+
+    def loo(self, sample=None):
+        """Leave-one-out log-density at the points ``sample`` (indices into the points; all
+        by default): each point's own kernel left out (W - w_i the total then); the
+        pilot bandwidths and the eps part keep it (they are smooth in one point)."""
+        idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
+        rows = self._row_of[idx]
+        s, _ = self._sums(self._rows[rows, X : Y + 1], own=rows)
+        w = self._rows[rows, W]
+        rest = np.maximum(self.total - w, 1e-300)
+        knn = self.knn.constant / self.pilot[idx] ** 2
+        f = (1.0 - self.eps) * s * self.total / rest + self.eps * knn
+        with np.errstate(divide="ignore"):
+            return np.log(f)
+
+    def loo_curve(self, bandwidths, sample=None):
+        """Mean leave-one-out log-likelihood (per unit weight) of each candidate bandwidth at
+        the points ``sample`` (default: all); the bandwidth is left at the last one."""
+        idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
+        w = self._rows[self._row_of[idx], W]
+        scores = []
+        for c in bandwidths:
+            self.set_bandwidth(float(c))
+            scores.append(float((self.loo(idx) * w).sum() / w.sum()))
+        return np.array(scores)
+
+    def sample(self, n, rng):
+        """n points (n, 2) drawn from the estimate: a kernel chosen by weight, a point from
+        it (u = |z|^2 ~ Beta(1, 4) for the triweight), folded or wrapped into the box; with
+        probability eps from the kNN part instead."""
+        rows = self._rows
+        out = np.empty((n, 2))
+        from_knn = rng.random(n) < self.eps
+        m = int(n - from_knn.sum())
+        i = rng.choice(len(rows), m, p=rows[:, W] / rows[:, W].sum())
+        u = rng.beta(1.0, 4.0, m)
+        theta = rng.random(m) * 2 * np.pi
+        z = np.sqrt(u)[:, None] * np.column_stack([np.cos(theta), np.sin(theta)])
+        # x = X_i + L z with L L^T = Q^-1 (Cholesky of the 2 x 2 inverse)
+        q11, q12, q22 = rows[i, Q11], rows[i, Q12], rows[i, Q22]
+        det = q11 * q22 - q12 * q12
+        a, b, c = q22 / det, -q12 / det, q11 / det  # Q^-1
+        l11 = np.sqrt(a)
+        l21 = b / l11
+        l22 = np.sqrt(np.maximum(c - l21 * l21, 0.0))
+        x = rows[i, X] + l11 * z[:, 0]
+        y = rows[i, Y] + l21 * z[:, 0] + l22 * z[:, 1]
+        out[~from_knn] = self._into_box(np.column_stack([x, y])) + self.lo
+        if from_knn.any():
+            out[from_knn] = self.knn.sample(int(from_knn.sum()), rng)
+        return out
+
+    def _into_box(self, frame):
+        """Frame coordinates of kernel draws, wrapped (periodic) or folded into the box."""
+        period = self.hi - self.lo
+        for a in range(2):
+            v = frame[:, a]
+            if self.periodic[a]:
+                frame[:, a] = np.mod(v, period[a])
+            else:
+                v = np.abs(v)  # the mirror in the lower side
+                frame[:, a] = np.where(v > period[a], 2 * period[a] - v, v)
+        return frame
+
+
+def _unit_shapes(cov, n, max_ratio):
+    """Unit-determinant shapes (s11, s12, s22) per point: the identity without ``cov``,
+    else cov scaled to determinant 1 with its axes ratio sqrt(l1 / l2) at most max_ratio."""
+    if cov is None:
+        return np.tile([1.0, 0.0, 1.0], (n, 1))
+    a, b, c = cov[:, 0], cov[:, 1], cov[:, 2]
+    half = 0.5 * (a + c)
+    gap = np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    l1 = np.maximum(half + gap, 1e-300)
+    l2 = np.maximum(half - gap, l1 / max_ratio**2)
+    # eigenvector of l1: (b, l1 - a) or, when b == 0, the axis of the larger variance
+    vx = np.where(np.abs(b) > 0, b, np.where(a >= c, 1.0, 0.0))
+    vy = np.where(np.abs(b) > 0, l1 - a, np.where(a >= c, 0.0, 1.0))
+    norm = np.hypot(vx, vy)
+    vx, vy = vx / norm, vy / norm
+    bad = ~(np.isfinite(l1) & np.isfinite(vx) & np.isfinite(vy))
+    s1, s2 = np.sqrt(l1 / l2), np.sqrt(l2 / l1)  # determinant 1
+    out = np.column_stack(
+        [s1 * vx * vx + s2 * vy * vy, (s1 - s2) * vx * vy, s1 * vy * vy + s2 * vx * vx]
+    )
+    out[bad] = (1.0, 0.0, 1.0)
+    return out
 
 
 def _grid_shape(shape):
@@ -615,30 +914,7 @@ class KnnDensityEstimator:
             raise InputError(f"n_samples must be an integer >= 0, got {n_samples!r}")
         if n_samples < 0:
             raise InputError(f"n_samples must be >= 0, got {n_samples}")
-        rng = _generator(random_state)
-        dist = density.distance
-        corners = dist.nodes[dist.triangles]
-        d = dist.values[dist.triangles]
-        area = np.abs(triangle_areas(corners))
-        dmin = d.min(axis=1)  # d is linear on a piece: its density peaks at a corner
-        bound = area / dmin**2
-        cdf = np.cumsum(bound)
-        out = np.empty((int(n_samples), 2))
-        filled = 0
-        while filled < n_samples:
-            m = int(1.5 * (n_samples - filled)) + 64
-            t = np.minimum(
-                np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1
-            )
-            x, u = uniform_in_triangles(corners[t], rng.random((m, 2)))
-            dx = d[t, 0] * (1.0 - u[:, 0] - u[:, 1]) + d[t, 1] * u[:, 0] + d[t, 2] * u[:, 1]
-            keep = rng.random(m) * dx**2 <= dmin[t] ** 2
-            # pieces reach past the box; each point of the box lies in exactly one of them
-            keep &= np.all((x >= dist.lo) & (x <= dist.hi), axis=1)
-            x = x[keep][: n_samples - filled]
-            out[filled : filled + len(x)] = x
-            filled += len(x)
-        return out
+        return density.sample(int(n_samples), _generator(random_state))
 
 
 def _same(a, b):

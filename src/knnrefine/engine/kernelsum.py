@@ -1,0 +1,184 @@
+"""Sums of compactly supported kernels with one bandwidth (and shape) per centre.
+
+The adaptive density estimate is sum_i amp_i K(u_i(x)), where K(u) = (1 - u)^3 for u < 1
+(the triweight profile, 0 beyond) and u_i(x) = (x - c_i)^T Q_i (x - c_i): centre i's kernel
+is supported on an ellipse of extent r_i (isotropic: a disk, Q_i = I / r_i^2). The centres
+live in a kd-tree built by the counting index's builder (``index._build_tree``, which
+permutes whole rows), one row per centre:
+
+    x, y, weight, amp, q11, q12, q22, r, original row
+
+and every node knows the largest extent below it, so that a query visits only the nodes
+whose bounding box, grown by that extent, holds it; a query costs about the number of
+kernels that cover it.
+
+The box bounds the estimate. Periodic axes wrap: centre and query images one period apart.
+Non-periodic axes fold: a kernel's mass beyond a side is reflected back into the box
+(evaluating the kernel at the query's mirror image), so every kernel keeps mass exactly
+amp_i * pi / (4 sqrt(det Q_i)) in the box; both need extents no larger than the box's width
+along the axis, which the caller keeps. Coordinates are relative to the box's lower corner
+(``BoxMetric.frame``).
+"""
+
+import numpy as np
+
+from .index import STACK_SIZE, _build_tree
+from .jit import kernel
+from .threads import run_all
+from .threads import workers as thread_count
+
+X, Y, W, AMP, Q11, Q12, Q22, R, ROW = range(9)
+COLUMNS = 9
+
+
+def build_centres(points, weights, workers=None):
+    """The kd-tree over the kernel centres (n, 2) (frame coordinates) with weights (n,):
+    (rows, box, node), rows (n, COLUMNS) permuted, the kernel columns still zero."""
+    n = len(points)
+    rows = np.zeros((n, COLUMNS))
+    rows[:, X] = points[:, 0]
+    rows[:, Y] = points[:, 1]
+    rows[:, W] = weights
+    rows[:, ROW] = np.arange(n)
+    rows, box, node, _ = _build_tree(rows, workers)
+    return rows, box, node
+
+
+@kernel(entry=True)
+def node_extents(rows, node, extent):
+    """extent[t] = the largest kernel extent among node t's centres (children before
+    parents: nodes are numbered parents first, so a reverse sweep sees children first)."""
+    for t in range(node.shape[0] - 1, -1, -1):
+        c = node[t, 2]
+        if c >= 0:
+            extent[t] = max(extent[c], extent[c + 1])
+        else:
+            r = 0.0
+            for i in range(node[t, 0], node[t, 1]):
+                r = max(r, rows[i, R])
+            extent[t] = r
+
+
+@kernel(inline="always")
+def _image(q, j, period, periodic):
+    """The query's j-th image along one axis of the box [0, period]: itself, then one
+    period down and up (periodic) or its mirror images in the two sides (folded)."""
+    if j == 0:
+        return q
+    if periodic:
+        return q - period if j == 1 else q + period
+    return -q if j == 1 else 2.0 * period - q
+
+
+@kernel(inline="always")
+def _gap(q, lo, hi):
+    if q < lo:
+        return lo - q
+    if q > hi:
+        return q - hi
+    return 0.0
+
+
+@kernel(entry=True, nogil=True)
+def kernel_sums(rows, box, node, extent, qx, qy, own, lx, ly, px, py, out, out2, start, stop):
+    """out[j] = sum of the kernels at query j (frame coordinates, in the box), out2[j] the
+    sum of their squares; ``own[j]`` (when ``own`` is not empty) is a row left out of query
+    j's sum (leave-one-out at a centre), -1 for none."""
+    stack = np.empty(STACK_SIZE, np.int64)
+    reach = extent[0]
+    for j in range(start, stop):
+        s = 0.0
+        s2 = 0.0
+        skip = own[j] if own.shape[0] > 0 else -1
+        for a in range(3):
+            x = _image(qx[j], a, lx, px)
+            gx = _gap(x, box[0, 0], box[0, 2])
+            if gx > reach:
+                continue
+            for b in range(3):
+                y = _image(qy[j], b, ly, py)
+                gy = _gap(y, box[0, 1], box[0, 3])
+                if gx * gx + gy * gy > reach * reach:
+                    continue
+                stack[0] = 0
+                sp = 1
+                while sp > 0:
+                    sp -= 1
+                    t = stack[sp]
+                    dx = _gap(x, box[t, 0], box[t, 2])
+                    dy = _gap(y, box[t, 1], box[t, 3])
+                    r = extent[t]
+                    if dx * dx + dy * dy > r * r:
+                        continue
+                    c = node[t, 2]
+                    if c >= 0:
+                        stack[sp] = c
+                        stack[sp + 1] = c + 1
+                        sp += 2
+                        continue
+                    for i in range(node[t, 0], node[t, 1]):
+                        if i == skip:
+                            continue
+                        ex = x - rows[i, X]
+                        ey = y - rows[i, Y]
+                        u = rows[i, Q11] * ex * ex + rows[i, Q22] * ey * ey
+                        u += 2.0 * rows[i, Q12] * ex * ey
+                        if u < 1.0:
+                            v = 1.0 - u
+                            v = rows[i, AMP] * v * v * v
+                            s += v
+                            s2 += v * v
+        out[j] = s
+        out2[j] = s2
+    return 0
+
+
+@kernel(entry=True, nogil=True)
+def ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, start, stop):
+    """Weighted moments of the centres within ``radius[j]`` of query j (closed disk;
+    periodic axes wrap, the others do not fold): out[j] = (w, wx, wy, wxx, wxy, wyy), with
+    x, y relative to the query."""
+    stack = np.empty(STACK_SIZE, np.int64)
+    for j in range(start, stop):
+        for m in range(6):
+            out[j, m] = 0.0
+        r = radius[j]
+        r2 = r * r
+        for a in range(3 if px else 1):
+            x = _image(qx[j], a, lx, True)
+            for b in range(3 if py else 1):
+                y = _image(qy[j], b, ly, True)
+                stack[0] = 0
+                sp = 1
+                while sp > 0:
+                    sp -= 1
+                    t = stack[sp]
+                    dx = _gap(x, box[t, 0], box[t, 2])
+                    dy = _gap(y, box[t, 1], box[t, 3])
+                    if dx * dx + dy * dy > r2:
+                        continue
+                    c = node[t, 2]
+                    if c >= 0:
+                        stack[sp] = c
+                        stack[sp + 1] = c + 1
+                        sp += 2
+                        continue
+                    for i in range(node[t, 0], node[t, 1]):
+                        ex = rows[i, X] - x
+                        ey = rows[i, Y] - y
+                        if ex * ex + ey * ey <= r2:
+                            w = rows[i, W]
+                            out[j, 0] += w
+                            out[j, 1] += w * ex
+                            out[j, 2] += w * ey
+                            out[j, 3] += w * ex * ex
+                            out[j, 4] += w * ex * ey
+                            out[j, 5] += w * ey * ey
+    return 0
+
+
+def in_chunks(call, m, workers=None):
+    """call(start, stop) over [0, m) in one chunk per thread (at least 256 queries each)."""
+    chunks = max(1, min(thread_count() if workers is None else int(workers), m // 256))
+    edges = np.linspace(0, m, chunks + 1).astype(np.int64)
+    run_all(lambda j: call(edges[j], edges[j + 1]), chunks)
