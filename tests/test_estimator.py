@@ -24,7 +24,7 @@ def mixture(n, seed=0):
 @pytest.fixture(scope="module")
 def fitted():
     X = mixture(4000)
-    return X, KnnDensityEstimator(k=30).fit(X)
+    return X, KnnDensityEstimator(k=30, method="knn").fit(X)
 
 
 def grid_mean(f, lo, hi, n=400):
@@ -89,7 +89,7 @@ def test_outside_the_box_and_shapes(fitted):
 def test_periodic_estimate_wraps():
     rng = np.random.default_rng(2)
     X = np.concatenate([rng.normal(0.02, 0.05, (1500, 2)) % 1, rng.random((500, 2))])
-    est = KnnDensityEstimator(k=20, periodic=True, box=(0, 0, 1, 1)).fit(X)
+    est = KnnDensityEstimator(k=20, method="knn", periodic=True, box=(0, 0, 1, 1)).fit(X)
     x = rng.random((200, 2))
     np.testing.assert_allclose(est.score_samples(x + [1.0, -3.0]), est.score_samples(x))
     mass = grid_mean(lambda q: np.exp(est.score_samples(q)), (0, 0), (1, 1), n=500)
@@ -135,8 +135,8 @@ def test_sampling_is_reproducible_and_in_the_box(fitted):
 def test_integer_weights_are_copies():
     X = mixture(800, seed=4)
     w = np.random.default_rng(5).integers(0, 4, len(X))
-    a = KnnDensityEstimator(k=15).fit(X, sample_weight=w)
-    b = KnnDensityEstimator(k=15).fit(np.repeat(X, w, axis=0))
+    a = KnnDensityEstimator(k=15, method="knn").fit(X, sample_weight=w)
+    b = KnnDensityEstimator(k=15, method="knn").fit(np.repeat(X, w, axis=0))
     probes = mixture(300, seed=6)
     np.testing.assert_array_equal(a.score_samples(probes), b.score_samples(probes))
     assert a.n_samples_ == w.sum()
@@ -170,7 +170,7 @@ def test_scikit_learn_protocol(fitted):
     assert twin.get_params() == est.get_params() and twin is not est
     assert est.set_params(k=50) is est and est.k == 50
     with pytest.raises(ValueError, match="invalid parameter"):
-        est.set_params(bandwidth=1.0)
+        est.set_params(bandwith=1.0)
     assert repr(est) == "KnnDensityEstimator(k=50, tau=4.0)"
     with pytest.raises(NotFittedError):
         est.score_samples(np.zeros((1, 2)))
@@ -187,9 +187,11 @@ def test_grid_search_chooses_k_by_held_out_likelihood():
     X = mixture(3000, seed=8)
     cv = KFold(3, shuffle=True, random_state=0)
     ks = [4, 15, 40, 150]
-    search = GridSearchCV(KnnDensityEstimator(), {"k": ks}, cv=cv).fit(X)
+    search = GridSearchCV(KnnDensityEstimator(method="knn"), {"k": ks}, cv=cv).fit(X)
     by_hand = [
-        np.mean([KnnDensityEstimator(k=k).fit(X[a]).score(X[b]) for a, b in cv.split(X)])
+        np.mean(
+            [KnnDensityEstimator(k=k, method="knn").fit(X[a]).score(X[b]) for a, b in cv.split(X)]
+        )
         for k in ks
     ]
     np.testing.assert_allclose(search.cv_results_["mean_test_score"], by_hand)
@@ -221,20 +223,22 @@ def test_k_by_cross_validation_is_the_best_of_its_curve():
     from knnrefine.density import _folds
 
     X = mixture(2000, seed=9)
-    est = KnnDensityEstimator(k="cv", cv=4, k_grid=[3, 10, 30, 100], random_state=1).fit(X)
+    est = KnnDensityEstimator(
+        k="cv", method="knn", cv=4, k_grid=[3, 10, 30, 100], random_state=1
+    ).fit(X)
     by_hand = []
     for k in est.cv_ks_:
         total = 0.0
         for test in _folds(len(X), 4, 1):
             train = np.setdiff1d(np.arange(len(X)), test)
-            fold = KnnDensityEstimator(k=int(k), box=est.box_).fit(X[train])
+            fold = KnnDensityEstimator(k=int(k), method="knn", box=est.box_).fit(X[train])
             total += fold.score(X[test])
         by_hand.append(total / len(X))
     np.testing.assert_allclose(est.cv_scores_, by_hand, rtol=1e-12)
     assert est.k_ == est.cv_ks_[int(np.argmax(by_hand))]
     assert est.k_ not in (3, 100)  # an interior optimum on this mixture
     # the default grid: geometric, from 4 up to a twentieth of a training fold
-    auto = KnnDensityEstimator(k="cv", cv=3).fit(X)
+    auto = KnnDensityEstimator(k="cv", method="knn", cv=3).fit(X)
     assert auto.cv_ks_[0] == 4 and auto.cv_ks_[-1] == round(2000 * 2 / 3 / 20)
     assert len(auto.cv_ks_) == len(auto.cv_scores_) and np.isfinite(auto.cv_scores_).all()
 
@@ -244,7 +248,8 @@ def test_cross_validation_keeps_copies_in_one_fold():
     point would have a copy at distance 0 in its training fold, and k = 1 would win."""
     X = mixture(600, seed=10)
     w = np.full(len(X), 3)
-    est = KnnDensityEstimator(k="cv", k_grid=[1, 5, 20], cv=3).fit(X, sample_weight=w)
+    est = KnnDensityEstimator(k="cv", method="knn", k_grid=[1, 5, 20], cv=3)
+    est.fit(X, sample_weight=w)
     assert est.k_ != 1 and np.isfinite(est.cv_scores_).all()
     assert est.n_samples_ == 1800
 
@@ -256,7 +261,7 @@ def test_cross_validation_parameters_are_checked():
     with pytest.raises(InputError, match="k_grid"):
         KnnDensityEstimator(k="cv", k_grid=[0, 5]).fit(X)
     with pytest.raises(InputError, match="smallest training fold"):
-        KnnDensityEstimator(k="cv", k_grid=[500]).fit(X)
+        KnnDensityEstimator(k="cv", method="knn", k_grid=[500]).fit(X)
     with pytest.raises(InputError, match='"cv"'):
         KnnDensityEstimator(k="auto").fit(X)
 
@@ -274,7 +279,7 @@ def replicates():
     q = 0.2 + 0.6 * np.random.default_rng(0).random((50, 2))
     values = [
         np.exp(
-            KnnDensityEstimator(k=30, box=(0, 0, 1, 1))
+            KnnDensityEstimator(k=30, method="knn", box=(0, 0, 1, 1))
             .fit(np.random.default_rng(100 + r).random((3000, 2)))
             .score_samples(q)
         )
@@ -287,7 +292,7 @@ def test_standard_error_matches_the_sampling_distribution(replicates):
     """f / sqrt(k) against the spread of the estimate over independent samples (Monte Carlo
     gives 0.93 of it here: normalising over the box takes a little variance out)."""
     q, values = replicates
-    est = KnnDensityEstimator(k=30, box=(0, 0, 1, 1)).fit(
+    est = KnnDensityEstimator(k=30, method="knn", box=(0, 0, 1, 1)).fit(
         np.random.default_rng(5).random((3000, 2))
     )
     se = est.standard_error(q)
@@ -300,7 +305,7 @@ def test_bootstrap_bands_match_the_sampling_distribution(replicates):
     """The 90% band's half-width, read as 1.645 standard deviations, against the Monte Carlo
     spread; it covers the true density (1) at most probes; reproducible with random_state."""
     q, values = replicates
-    est = KnnDensityEstimator(k=30, box=(0, 0, 1, 1)).fit(
+    est = KnnDensityEstimator(k=30, method="knn", box=(0, 0, 1, 1)).fit(
         np.random.default_rng(5).random((3000, 2))
     )
     lo, hi = est.bootstrap(q, n_boot=60, level=0.9, random_state=0)
@@ -343,13 +348,13 @@ def test_real_weights_are_counted_by_the_engine():
     is the same estimate (sums of halves are exact); against brute force the estimate at the
     mesh's nodes is k / (W pi d^2) with d the least radius holding weight k."""
     X = mixture(1500, seed=11)
-    half = KnnDensityEstimator(k=15).fit(X, sample_weight=np.full(len(X), 0.5))
+    half = KnnDensityEstimator(k=15, method="knn").fit(X, sample_weight=np.full(len(X), 0.5))
     assert half.n_samples_ == 750.0
-    whole = KnnDensityEstimator(k=30).fit(X)
+    whole = KnnDensityEstimator(k=30, method="knn").fit(X)
     probes = mixture(300, seed=13)
     np.testing.assert_array_equal(half.score_samples(probes), whole.score_samples(probes))
     w = np.random.default_rng(12).gamma(2.0, 1.0, len(X))
-    est = KnnDensityEstimator(k=20).fit(X, sample_weight=w)
+    est = KnnDensityEstimator(k=20, method="knn").fit(X, sample_weight=w)
     dist = est.density_.distance
     lo, hi = np.array(est.box_[:2]), np.array(est.box_[2:])
     nodes = dist.nodes[np.all((dist.nodes >= lo) & (dist.nodes <= hi), axis=1)][:400]
@@ -364,7 +369,8 @@ def test_real_weights_are_counted_by_the_engine():
     )
     # the weighted estimate follows the weights: points weighted up in one half pull mass
     left = X[:, 0] < np.median(X[:, 0])
-    tilted = KnnDensityEstimator(k=20).fit(X, sample_weight=np.where(left, 3.0, 1.0))
+    tilted = KnnDensityEstimator(k=20, method="knn")
+    tilted.fit(X, sample_weight=np.where(left, 3.0, 1.0))
     box = tilted.box_
     mid = np.median(X[:, 0])
     assert tilted.density_.mass((box[0], box[1], mid, box[3])) > 0.65

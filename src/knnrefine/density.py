@@ -503,18 +503,19 @@ class AdaptiveDensity:
         node_extents(rows, self._node, self._extent)
         return self
 
-    def _sums(self, frame, own=None):
-        """Kernel sums (and sums of squares) at points in frame coordinates."""
+    def _sums(self, frame, loo=False):
+        """Kernel sums at points in frame coordinates, and the sums of their squares (with
+        ``loo``, at centres: each sum without the centres at that place, and their weight;
+        ``kernelsum.kernel_sums``)."""
         m = len(frame)
         out, out2 = np.empty(m), np.empty(m)
         qx, qy = frame[:, 0].copy(), frame[:, 1].copy()
-        own = np.zeros(0, np.int64) if own is None else own
         lx, ly = self.hi - self.lo
         px, py = self.periodic
         rows, box, node, extent = self._rows, self._box, self._node, self._extent
 
         def call(a, b):
-            kernel_sums(rows, box, node, extent, qx, qy, own, lx, ly, px, py, out, out2, a, b)
+            kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2, a, b)
 
         in_chunks(call, m)
         return out, out2
@@ -552,12 +553,13 @@ class AdaptiveDensity:
 
     def loo(self, sample=None):
         """Leave-one-out log-density at the points ``sample`` (indices into the points; all
-        by default): each point's own kernel left out (W - w_i the total then); the
-        pilot bandwidths and the eps part keep it (they are smooth in one point)."""
+        by default): the kernels of the point and of its copies at the same place left out
+        (W - their weight the total then: copies are one observation, as a point of whole
+        weight is, or ties would pull the bandwidth to 0); the pilot bandwidths and the eps
+        part keep them (they are smooth in one point)."""
         idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
         rows = self._row_of[idx]
-        s, _ = self._sums(self._rows[rows, X : Y + 1], own=rows)
-        w = self._rows[rows, W]
+        s, w = self._sums(self._rows[rows, X : Y + 1], loo=True)
         rest = np.maximum(self.total - w, 1e-300)
         knn = self.knn.constant / self.pilot[idx] ** 2
         f = (1.0 - self.eps) * s * self.total / rest + self.eps * knn
@@ -568,7 +570,7 @@ class AdaptiveDensity:
         """Mean leave-one-out log-likelihood (per unit weight) of each candidate bandwidth at
         the points ``sample`` (default: all); the bandwidth is left at the last one."""
         idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
-        w = self._rows[self._row_of[idx], W]
+        w = self._rows[self._row_of[idx], W]  # each point's weight: its share of the score
         scores = []
         for c in bandwidths:
             self.set_bandwidth(float(c))
@@ -660,9 +662,12 @@ def _quadrature(corners, d, func):
 
 
 class KnnDensityEstimator:
-    """The kNN density estimate as a scikit-learn estimator (scikit-learn itself is optional).
+    """knnrefine's density estimate as a scikit-learn estimator (scikit-learn itself is
+    optional).
 
-    ``fit(X)`` refines a mesh of X and builds the normalised estimate ``KnnDensity``;
+    ``fit(X)`` refines a mesh of X and builds the estimate: by default the adaptive kernel
+    estimate ``AdaptiveDensity`` (bandwidths from d_{P,k}, the factor chosen by leave-one-out
+    likelihood), or the plain kNN estimate ``KnnDensity`` (``method="knn"``).
     ``score_samples`` gives log-densities, ``score`` the total log-likelihood, ``sample``
     draws from the estimate. ``get_params``/``set_params`` follow scikit-learn's rules, so
     ``clone``, ``GridSearchCV(est, {"k": [...]})`` and ``cross_val_score`` work.
@@ -670,9 +675,25 @@ class KnnDensityEstimator:
     Parameters
     ----------
     k : int or "cv", optional
-        Which neighbour (the smoothing: larger is smoother). Default ``default_k(n)``.
-        ``"cv"``: the k of ``k_grid`` with the best held-out log-likelihood in ``cv``-fold
-        cross-validation (folds shuffled by ``random_state``; every fold in the same box).
+        Which neighbour (the smoothing of the kNN estimate, the pilot's of the adaptive one:
+        larger is smoother). Default ``default_k(n)``. ``"cv"``: the k of ``k_grid`` with the
+        best held-out log-likelihood (``method="knn"``: ``cv``-fold cross-validation, folds
+        shuffled by ``random_state``, every fold in the same box; ``"adaptive"``: the
+        leave-one-out likelihood of each k at its best bandwidth).
+    method : "adaptive" or "knn"
+        The estimate (see above). The default won the held-out likelihood on every truth of
+        the project's study (``benchmarks/density_accuracy.py``, docs/uses.md).
+    bandwidth : float > 0 or "cv"
+        The adaptive estimate's factor c: kernel extents c d_{P,k}(X_i). ``"cv"``: the best
+        of ``BANDWIDTHS`` by leave-one-out log-likelihood at up to ``loo_points`` training
+        points (chosen by ``random_state``). Ignored by ``method="knn"``.
+    shape : "isotropic" or "local"
+        The adaptive estimate's kernels: disks, or ellipses shaped like the local covariance
+        of the points (thin ridges, curved structure).
+    whiten : bool
+        Work in coordinates divided by each axis' standard deviation (data whose axes have
+        different units: millimetres against grams); densities are returned in the data's
+        units. The mesh ``mesh_`` is then in the scaled coordinates.
     tau : float > 2
         Well-spacedness of the mesh (``refine``).
     periodic : bool or (bool, bool)
@@ -688,22 +709,32 @@ class KnnDensityEstimator:
         The resolution floor (``refine``).
     subdivide : bool
         Evaluate exactly at edge midpoints too (``KnnDistance``).
-    cv, k_grid, random_state
+    cv, k_grid, random_state, loo_points
         For ``k="cv"``: the number of folds, the candidate values of k (default: 10 values
         spaced geometrically from 4 to a twentieth of a fold's training points), the seed of
-        the fold assignment (an int or None).
+        the fold assignment and of the leave-one-out subsample (an int or None); the size of
+        that subsample.
 
-    Attributes after ``fit``: ``k_``, ``box_``, ``n_samples_`` (weights counted),
-    ``n_features_in_`` (2), ``mesh_`` (the ``Mesh``), ``density_`` (the ``KnnDensity``);
-    with ``k="cv"`` also ``cv_ks_`` and ``cv_scores_`` (mean held-out log-likelihood per
-    point of each candidate: the curve).
+    Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
+    ``scale_`` (the whitening divisors, (1, 1) without), ``n_samples_`` (weights counted),
+    ``n_features_in_`` (2), ``mesh_`` (the ``Mesh``), ``density_`` (the ``AdaptiveDensity`` or
+    ``KnnDensity``); with ``bandwidth="cv"`` ``bandwidths_`` and ``bandwidth_scores_`` (the
+    leave-one-out curve), with ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (mean held-out
+    log-likelihood per point of each candidate: the curve).
     """
 
+    BANDWIDTHS = tuple(2.0 ** (np.arange(-4, 5) / 2))  # 0.25 to 4, steps of sqrt(2)
+
     def __init__(
-        self, k=None, *, tau=3.0, periodic=False, box=None, margin=0.1, min_size=None,
-        subdivide=True, cv=5, k_grid=None, random_state=0,
+        self, k=None, *, method="adaptive", bandwidth="cv", shape="isotropic", whiten=False,
+        tau=3.0, periodic=False, box=None, margin=0.1, min_size=None, subdivide=True, cv=5,
+        k_grid=None, random_state=0, loo_points=20000,
     ):  # fmt: skip
         self.k = k
+        self.method = method
+        self.bandwidth = bandwidth
+        self.shape = shape
+        self.whiten = whiten
         self.tau = tau
         self.periodic = periodic
         self.box = box
@@ -713,6 +744,7 @@ class KnnDensityEstimator:
         self.cv = cv
         self.k_grid = k_grid
         self.random_state = random_state
+        self.loo_points = loo_points
 
     # -- scikit-learn's parameter protocol ---------------------------------------------------
     @classmethod
@@ -755,10 +787,8 @@ class KnnDensityEstimator:
     def fit(self, X, y=None, sample_weight=None):
         """Refine a mesh of X (n, 2) and build the estimate. ``sample_weight``: weights >= 0
         (the engine counts them: a point of whole weight w is w copies, real weights are
-        survey or aggregation weights; the estimate is then k / (W pi d_{P,k}^2), W their
-        total). ``y`` is ignored. Returns self."""
-        from .api import refine
-
+        survey or aggregation weights; n is then their total W). ``y`` is ignored. Returns
+        self."""
         pts = as_points(X)
         weights = None
         if sample_weight is not None:
@@ -766,44 +796,148 @@ class KnnDensityEstimator:
             pts, weights = pts[weights > 0], weights[weights > 0]
             if np.all(weights == 1.0):
                 weights = None
+        self._check_options()
         n = len(pts) if weights is None else float(weights.sum())
-        box = self._box(pts)
-        for stale in ("cv_ks_", "cv_scores_"):  # from an earlier fit with k="cv"
-            self.__dict__.pop(stale, None)
+        scale = self._scale(pts, weights)
+        pts = pts / scale
+        box = self._box(pts, scale)
+        for stale in ("cv_ks_", "cv_scores_", "bandwidths_", "bandwidth_scores_", "bandwidth_"):
+            self.__dict__.pop(stale, None)  # from an earlier fit
         if isinstance(self.k, str):
             if self.k != "cv":
                 raise InputError(f'k must be an integer, None or "cv", got {self.k!r}')
-            self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, weights, box)
-            k = int(self.cv_ks_[int(np.argmax(self.cv_scores_))])
+            if self.method == "knn":
+                self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, weights, box)
+                k = int(self.cv_ks_[int(np.argmax(self.cv_scores_))])
+            else:
+                k = self._cross_validate_adaptive(pts, weights, box)
         else:
             k = default_k(n) if self.k is None else self.k
             if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
                 raise InputError(f"k must be an integer in [1, n = {n:g}], got {k!r}")
-        mesh = refine(
-            pts,
-            int(k),
-            self.tau,
-            periodic=self.periodic,
-            box=box,
-            min_size=self.min_size,
-            weights=weights,
-        )
-        self.mesh_ = mesh
-        self.density_ = KnnDensity(
-            mesh, pts, normalized=True, subdivide=self.subdivide, weights=weights
-        )
+        self.density_, self.mesh_ = self._estimate(pts, weights, box, int(k))
+        if self.method == "adaptive":
+            self.bandwidth_ = self.density_.bandwidth
         self._train = (pts, np.ones(len(pts)) if weights is None else weights)
         self.k_ = int(k)
-        self.box_ = tuple(float(b) for b in mesh.box)
+        self.scale_ = tuple(float(v) for v in scale)
+        self.box_ = tuple(float(b) for b in np.array(self.mesh_.box) * np.tile(scale, 2))
         self.n_samples_ = n
         self.n_features_in_ = 2
         return self
 
-    def _box(self, pts):
-        """The box to refine in: the user's, else refine's default box of the points
-        (``validation.default_box``) widened by ``margin``."""
+    def _check_options(self):
+        if self.method not in ("adaptive", "knn"):
+            raise InputError(f'method must be "adaptive" or "knn", got {self.method!r}')
+        if self.shape not in ("isotropic", "local"):
+            raise InputError(f'shape must be "isotropic" or "local", got {self.shape!r}')
+        if not isinstance(self.whiten, (bool, np.bool_)):
+            raise InputError(f"whiten must be True or False, got {self.whiten!r}")
+        c = self.bandwidth
+        if isinstance(c, str):
+            if c != "cv":
+                raise InputError(f'bandwidth must be a number > 0 or "cv", got {c!r}')
+        elif isinstance(c, bool) or not isinstance(c, (int, float, np.number)) or not c > 0:
+            raise InputError(f'bandwidth must be a number > 0 or "cv", got {c!r}')
+        cv = self.cv
+        if isinstance(cv, bool) or not isinstance(cv, (int, np.integer)) or cv < 2:
+            raise InputError(f"cv must be an integer >= 2, got {cv!r}")
+        m = self.loo_points
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
+            raise InputError(f"loo_points must be an integer >= 1, got {m!r}")
+
+    def _scale(self, pts, weights):
+        """Per-axis divisors: the (weighted) standard deviations with ``whiten``, else 1."""
+        if not self.whiten:
+            return np.ones(2)
+        w = np.ones(len(pts)) if weights is None else weights
+        mean = (pts * w[:, None]).sum(axis=0) / w.sum()
+        sd = np.sqrt((((pts - mean) ** 2) * w[:, None]).sum(axis=0) / w.sum())
+        if not np.all(sd > 0):
+            raise InputError(
+                "whiten needs points spread along both axes (a standard deviation is 0)"
+            )
+        return sd
+
+    def _estimate(self, pts, weights, box, k):
+        """(density, mesh) at this k: the kNN estimate, or the adaptive one with its
+        bandwidth given or chosen by leave-one-out likelihood (recording the curve)."""
+        from .api import refine
+
+        mesh = refine(
+            pts, k, self.tau, periodic=self.periodic, box=box, min_size=self.min_size,
+            weights=weights,
+        )  # fmt: skip
+        knn = KnnDensity(mesh, pts, normalized=True, subdivide=self.subdivide, weights=weights)
+        if self.method == "knn":
+            return knn, mesh
+        fixed = self.bandwidth != "cv"
+        density = AdaptiveDensity(
+            mesh, pts, float(self.bandwidth) if fixed else 1.0, self.shape, weights=weights,
+            knn=knn,
+        )  # fmt: skip
+        if not fixed:
+            self.bandwidths_, self.bandwidth_scores_ = self._loo_curve(density)
+            density.set_bandwidth(float(self.bandwidths_[int(np.argmax(self.bandwidth_scores_))]))
+        return density, mesh
+
+    def _loo_curve(self, density):
+        """Leave-one-out scores of BANDWIDTHS at up to ``loo_points`` points, from the
+        smallest up, stopping two steps after the scores start falling (kernels widen with
+        the bandwidth, and so does the cost)."""
+        sample = self._loo_sample(len(density.pilot))
+        cs, scores = [], []
+        for c in self.BANDWIDTHS:
+            cs.append(c)
+            scores.extend(density.loo_curve([c], sample))
+            if len(scores) >= 3 and scores[-1] < scores[-2] < scores[-3]:
+                break
+        return np.array(cs), np.array(scores)
+
+    def _cross_validate_adaptive(self, pts, weights, box):
+        """The k of the grid whose adaptive estimate (at its best bandwidth) has the best
+        leave-one-out likelihood; records cv_ks_, cv_scores_. Returns that k."""
+        n = len(pts) if weights is None else float(weights.sum())
+        ks = self._k_candidates(n)
+        scores = []
+        for k in ks:
+            density, _ = self._estimate(pts, weights, box, int(k))
+            if self.bandwidth == "cv":
+                scores.append(float(np.max(self.bandwidth_scores_)))
+            else:
+                scores.append(float(self._loo_fixed(density)))
+        self.cv_ks_, self.cv_scores_ = ks, np.array(scores)
+        return int(ks[int(np.argmax(scores))])
+
+    def _loo_sample(self, n):
+        """Indices of the points the leave-one-out likelihood is taken at (None: all)."""
+        m = min(n, int(self.loo_points))
+        return None if m == n else np.sort(_generator(self.random_state).choice(n, m, False))
+
+    def _loo_fixed(self, density):
+        return density.loo_curve([density.bandwidth], self._loo_sample(len(density.pilot)))[0]
+
+    def _k_candidates(self, n_train):
+        """The candidate ks: ``k_grid`` or 10 geometric steps from 4 to n_train / 20."""
+        if self.k_grid is None:
+            return np.unique(np.round(np.geomspace(4, max(8, n_train / 20), 10)).astype(int))
+        ks = np.unique(np.asarray(self.k_grid))
+        if ks.size == 0 or not np.issubdtype(ks.dtype, np.integer) or ks[0] < 1:
+            raise InputError(f"k_grid must hold integers >= 1, got {self.k_grid!r}")
+        ks = ks[ks <= n_train]
+        if ks.size == 0:
+            raise InputError(f"no k of k_grid fits the smallest training fold ({n_train:g} points)")
+        return ks
+
+    def _box(self, pts, scale):
+        """The box to refine in (scaled coordinates): the user's, else refine's default box
+        of the points (``validation.default_box``) widened by ``margin``."""
         if self.box is not None:
-            return self.box
+            try:
+                box = np.asarray(self.box, float)
+            except (TypeError, ValueError):
+                return self.box  # refine says what is wrong with it
+            return tuple(box / np.tile(scale, 2)) if box.shape == (4,) else self.box
         if np.any(self.periodic):  # a torus needs its period: refine says so
             return None
         margin = self.margin
@@ -822,17 +956,8 @@ class KnnDensityEstimator:
         folds = _folds(len(pts), self.cv, self.random_state)
         weight = np.ones(len(pts)) if weights is None else weights
         n = float(weight.sum())
-        n_train = n - max(float(weight[f].sum()) for f in folds)
-        if self.k_grid is None:
-            ks = np.unique(np.round(np.geomspace(4, max(8, n_train / 20), 10)).astype(int))
-        else:
-            ks = np.unique(np.asarray(self.k_grid))
-            if ks.size == 0 or not np.issubdtype(ks.dtype, np.integer) or ks[0] < 1:
-                raise InputError(f"k_grid must hold integers >= 1, got {self.k_grid!r}")
-        ks = ks[ks <= n_train]
-        if ks.size == 0:
-            raise InputError(f"no k of k_grid fits the smallest training fold ({n_train:g} points)")
-        params = {**self.get_params(), "box": box}
+        ks = self._k_candidates(n - max(float(weight[f].sum()) for f in folds))
+        params = {**self.get_params(), "box": box, "whiten": False}
         scores = np.zeros(len(ks))
         for test in folds:
             train = np.ones(len(pts), bool)
@@ -846,10 +971,15 @@ class KnnDensityEstimator:
 
     # -- uncertainty -------------------------------------------------------------------------
     def standard_error(self, X):
-        """Pointwise standard error of the density at X, shape (..., 2) -> (...): f(x) /
-        sqrt(k). The kNN estimate's relative error is about 1 / sqrt(k): the ball of radius
-        d_{P,k}(x) holds k points, whose count fluctuates like a Poisson variable's."""
-        return np.exp(self.score_samples(X)) / np.sqrt(self.k_)
+        """Pointwise standard error of the density at X, shape (..., 2) -> (...). kNN: f(x) /
+        sqrt(k) (its relative error is about 1 / sqrt(k): the ball of radius d_{P,k}(x) holds
+        k points, whose count fluctuates like a Poisson variable's); adaptive: the
+        sample-point estimate's variance (``AdaptiveDensity.standard_error``)."""
+        density = self._fitted()
+        if self.method == "knn":
+            return np.exp(self.score_samples(X)) / np.sqrt(self.k_)
+        flat, shape = self._queries(X)
+        return (density.standard_error(flat) / self._jacobian()).reshape(shape)
 
     def bootstrap(self, X, n_boot=100, level=0.9, random_state=None):
         """Percentile bands (lower, upper) of the density at X, shape (..., 2) -> two arrays
@@ -858,16 +988,18 @@ class KnnDensityEstimator:
         (1 + level) / 2 quantiles of its values at each point. Whole-number weights are
         copies and the copies are resampled; real weights stay with their points, which are
         resampled (the bootstrap of a weighted sample)."""
-        self._fitted()
+        density = self._fitted()
         if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 2:
             raise InputError(f"n_boot must be an integer >= 2, got {n_boot!r}")
         if not 0 < level < 1:
             raise InputError(f"level must lie in (0, 1), got {level!r}")
-        flat, shape = as_queries(X)
-        pts, weight = self._train
+        flat, shape = self._queries(X)
+        pts, weight = self._train  # in the fitted (scaled) coordinates
         rng = _generator(random_state)
         whole = bool(np.all(weight == np.rint(weight)))
-        params = {**self.get_params(), "k": self.k_, "box": self.box_}
+        params = {**self.get_params(), "k": self.k_, "box": self.mesh_.box, "whiten": False}
+        if self.method == "adaptive":
+            params["bandwidth"] = density.bandwidth
         values = np.empty((int(n_boot), len(flat)))
         for b in range(int(n_boot)):
             if whole:  # the copies, resampled
@@ -876,7 +1008,7 @@ class KnnDensityEstimator:
                 draw = rng.multinomial(len(weight), np.full(len(weight), 1.0 / len(weight)))
                 draw = draw * weight
             refit = type(self)(**params).fit(pts, sample_weight=draw)
-            values[b] = np.exp(refit.score_samples(flat))
+            values[b] = np.exp(refit.score_samples(flat)) / self._jacobian()
         lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2], axis=0)
         return lo.reshape(shape), hi.reshape(shape)
 
@@ -890,10 +1022,8 @@ class KnnDensityEstimator:
         """Log-density at the points X, shape (..., 2): an array of shape (...). -inf outside
         the box along non-periodic axes (the estimate is 0 there); periodic axes wrap."""
         density = self._fitted()
-        flat, shape = as_queries(X)
-        if not np.isfinite(flat).all():
-            raise InputError("X holds NaN or infinite coordinates; give finite points")
-        f = density(flat)
+        flat, shape = self._queries(X)
+        f = density(flat) / self._jacobian()
         with np.errstate(divide="ignore"):
             out = np.where(np.isnan(f), -np.inf, np.log(np.where(np.isnan(f), 1.0, f)))
         return out.reshape(shape)
@@ -904,17 +1034,28 @@ class KnnDensityEstimator:
         return float(self.score_samples(X).sum())
 
     def sample(self, n_samples=1, random_state=None):
-        """n_samples points (n_samples, 2) drawn from the estimate: a piece of the mesh chosen
-        by an upper bound of its mass, a uniform point in it, kept with probability density /
-        bound (exact rejection sampling of the piecewise estimate; the pieces are well shaped,
-        so most proposals are kept). ``random_state``: None, an int, a numpy Generator or
-        RandomState."""
+        """n_samples points (n_samples, 2) drawn exactly from the estimate
+        (``AdaptiveDensity.sample``, ``KnnDensity.sample``). ``random_state``: None, an int,
+        a numpy Generator or RandomState."""
         density = self._fitted()
         if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)):
             raise InputError(f"n_samples must be an integer >= 0, got {n_samples!r}")
         if n_samples < 0:
             raise InputError(f"n_samples must be >= 0, got {n_samples}")
-        return density.sample(int(n_samples), _generator(random_state))
+        return density.sample(int(n_samples), _generator(random_state)) * self.scale_
+
+    def _queries(self, X):
+        """Query points (..., 2) as flat (q, 2) in the fitted (scaled) coordinates, and the
+        leading shape; non-finite coordinates refused."""
+        self._fitted()
+        flat, shape = as_queries(X)
+        if not np.isfinite(flat).all():
+            raise InputError("X holds NaN or infinite coordinates; give finite points")
+        return flat / np.asarray(self.scale_), shape
+
+    def _jacobian(self):
+        """Density in scaled coordinates / density in the data's: the scales' product."""
+        return float(np.prod(self.scale_))
 
 
 def _same(a, b):

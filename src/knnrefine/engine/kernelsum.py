@@ -80,16 +80,16 @@ def _gap(q, lo, hi):
 
 
 @kernel(entry=True, nogil=True)
-def kernel_sums(rows, box, node, extent, qx, qy, own, lx, ly, px, py, out, out2, start, stop):
+def kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2, start, stop):
     """out[j] = sum of the kernels at query j (frame coordinates, in the box), out2[j] the
-    sum of their squares; ``own[j]`` (when ``own`` is not empty) is a row left out of query
-    j's sum (leave-one-out at a centre), -1 for none."""
+    sum of their squares. With ``loo`` (leave one out; the queries are centres) the centres
+    at exactly the query's place are left out of its sum, all images of them (copies of a
+    point leave together, as a point of whole weight would), and out2[j] is their weight."""
     stack = np.empty(STACK_SIZE, np.int64)
     reach = extent[0]
     for j in range(start, stop):
         s = 0.0
         s2 = 0.0
-        skip = own[j] if own.shape[0] > 0 else -1
         for a in range(3):
             x = _image(qx[j], a, lx, px)
             gx = _gap(x, box[0, 0], box[0, 2])
@@ -117,7 +117,9 @@ def kernel_sums(rows, box, node, extent, qx, qy, own, lx, ly, px, py, out, out2,
                         sp += 2
                         continue
                     for i in range(node[t, 0], node[t, 1]):
-                        if i == skip:
+                        if loo and rows[i, X] == qx[j] and rows[i, Y] == qy[j]:
+                            if a == 0 and b == 0:
+                                s2 += rows[i, W]
                             continue
                         ex = x - rows[i, X]
                         ey = y - rows[i, Y]
@@ -127,7 +129,8 @@ def kernel_sums(rows, box, node, extent, qx, qy, own, lx, ly, px, py, out, out2,
                             v = 1.0 - u
                             v = rows[i, AMP] * v * v * v
                             s += v
-                            s2 += v * v
+                            if not loo:
+                                s2 += v * v
         out[j] = s
         out2[j] = s2
     return 0
