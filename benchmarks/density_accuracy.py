@@ -1,31 +1,41 @@
-"""Density estimation: knnrefine's kNN density against the truth and the usual tools.
+"""Density estimation: knnrefine's estimates against the truth and the usual tools.
 
-    python benchmarks/density_accuracy.py              # n = 1e4, 1e5, 1e6 (about 15 minutes)
-    python benchmarks/density_accuracy.py --sizes 1e4 1e5
+    python benchmarks/density_accuracy.py                    # n = 1e4, 1e5, 1e6 (about an hour)
+    python benchmarks/density_accuracy.py --sizes 1e4 1e5    # about 15 minutes
+    python benchmarks/density_accuracy.py --truths ridge edge --sizes 1e5
 
-Truths: a Gaussian mixture whose components have widths 0.12, 0.02 and 0.003 (restricted to
-the unit square), a uniform density on the unit square with a hole of radius 0.25, and a
-mixture of two von Mises products on the torus [-pi, pi)^2.
+Truths (each restricted to its box, normalised there):
+* multiscale: a Gaussian mixture with widths 0.12, 0.02 and 0.003;
+* hole: uniform on the unit square with a hole of radius 0.25;
+* torus: two von Mises products on the torus [-pi, pi)^2;
+* heavy: a product of two Student t marginals (3 degrees of freedom) on [-20, 20]^2;
+* ridge: 90% on a circular arc (radius 0.3) with a Gaussian cross-section 0.002 wide, 10%
+  uniform background;
+* edge: half uniform on a disk of radius 0.2 (a jump of 4x the background at its rim), half
+  uniform on the unit square.
 
-L1 error: the integral of |estimate - truth| over the box, by importance-sampled Monte Carlo
-(20,000 points drawn from 1/2 truth + 1/2 uniform, the same for every method), which resolves
-the narrow component whatever the method's own grid.
+Scores, the same evaluation points for every method:
+* L1 error, the integral of |estimate - truth| over the box, and the Hellinger distance
+  sqrt(1/2 integral (sqrt(estimate) - sqrt(truth))^2), both by importance-sampled Monte
+  Carlo (20,000 points drawn from 1/2 truth + 1/2 uniform), which resolves narrow features
+  whatever a method's own grid;
+* held-out log-likelihood: the mean log-density at 20,000 fresh points from the truth (-inf
+  when a method gives one of them density 0).
 
-Methods, each with its automatic bandwidth, in the same run on the same points:
-* knnrefine: refine(points, k) then KnnDensity (normalised over the box); k = sqrt(n) / 2
-  (``knnrefine.density.default_k``); periodic on the torus truth.
-* scipy gaussian_kde (Scott's rule). Where n * evaluations > 2e9 it is evaluated on a random
-  subset of the L1 sample (marked ~).
-* KDEpy FFTKDE on a grid of step bw / 2 (at most 4096 x 4096), interpolated: KDEpy's
-  automatic bandwidths are 1-D, so the isotropic bandwidth is the mean of the two marginals'
-  bandwidths, by ISJ (Improved Sheather-Jones) and by Silverman's rule.
-* scikit-learn KernelDensity with Scott's rule in data units (its bandwidth="scott" is the
-  bare factor n^(-1/6), meant for standardised data), rtol 1e-4; subsampled like
-  gaussian_kde.
-None of the peers knows about the torus.
-
-Then the time each takes to produce a 512 x 512 grid from n = 1e5 points (gaussian_kde and
-KernelDensity timed on 16 rows and scaled to 512, marked ~).
+Methods, each with its automatic smoothing, in the same run on the same points:
+* knnrefine: ``KnnDensityEstimator`` with its defaults (the adaptive estimate, k = sqrt(n) / 2,
+  bandwidth by leave-one-out likelihood) and the truth's box; "knnrefine local" the same with
+  shape="local"; "knnrefine kNN" the plain kNN estimate (method="knn"). Periodic on the torus.
+* scipy gaussian_kde (Scott's rule);
+* KDEpy FFTKDE on a grid of step bw / 2 (at most 4096 x 4096), interpolated (0 off the grid):
+  KDEpy's automatic bandwidths are 1-D, so the isotropic bandwidth is the mean of the two
+  marginals' bandwidths, by ISJ (Improved Sheather-Jones) and by Silverman's rule;
+* scikit-learn KernelDensity (Gaussian, rtol 1e-4) with its bandwidth cross-validated:
+  GridSearchCV (3 folds) over 13 bandwidths from 1/8 to 2 times Scott's rule, on at most
+  20,000 of the points, the winner scaled by (20,000 / n)^(1/6) (the rule's rate) for the
+  full sample.
+gaussian_kde and KernelDensity are evaluated on a random subset of the points where n times
+the evaluations exceeds 2e9 (marked ~). None of the peers knows about the box or the torus.
 """
 
 import argparse
@@ -36,9 +46,9 @@ import time
 import numpy as np
 from scipy.special import erf, i0
 from scipy.stats import gaussian_kde
+from scipy.stats import t as student
 
 import knnrefine
-from knnrefine.density import default_k
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -116,7 +126,88 @@ class VonMises:
         return (x + np.pi) % (2 * np.pi) - np.pi
 
 
-def l1_sample(truth, rng, size=20000):
+class Heavy:
+    name = "Student t (3 dof) product, heavy tails"
+    box = (-20.0, -20.0, 20.0, 20.0)
+    periodic = False
+    DOF = 3
+
+    def __init__(self):
+        self.Z = (student.cdf(20, self.DOF) - student.cdf(-20, self.DOF)) ** 2
+
+    def pdf(self, x):
+        return student.pdf(x[:, 0], self.DOF) * student.pdf(x[:, 1], self.DOF) / self.Z
+
+    def sample(self, n, rng):
+        out, got = [], 0
+        while got < n:
+            x = rng.standard_t(self.DOF, (n, 2))
+            x = x[(np.abs(x) <= 20).all(1)]
+            out.append(x)
+            got += len(x)
+        return np.concatenate(out)[:n]
+
+
+class Ridge:
+    name = "thin curved ridge (width 0.002) over a background"
+    box = (0.0, 0.0, 1.0, 1.0)
+    periodic = False
+    C = np.array([0.5, 0.3])
+    RADIUS, WIDTH, T0, T1, ON = 0.3, 0.002, 0.2, 2.8, 0.9
+
+    def pdf(self, x):
+        d = x - self.C
+        r = np.hypot(d[:, 0], d[:, 1])
+        t = np.arctan2(d[:, 1], d[:, 0])
+        across = np.exp(-0.5 * ((r - self.RADIUS) / self.WIDTH) ** 2)
+        across /= np.sqrt(2 * np.pi) * self.WIDTH
+        # uniform angle, Gaussian radius: density in the plane is that over r (polar area)
+        arc = ((t >= self.T0) & (t <= self.T1)) * across / ((self.T1 - self.T0) * r)
+        return self.ON * arc + (1 - self.ON)
+
+    def sample(self, n, rng):
+        on = rng.random(n) < self.ON
+        m = int(on.sum())
+        t = rng.uniform(self.T0, self.T1, m)
+        r = self.RADIUS + self.WIDTH * rng.normal(size=m)
+        x = rng.random((n, 2))
+        x[on] = self.C + r[:, None] * np.column_stack([np.cos(t), np.sin(t)])
+        return x
+
+
+class Edge:
+    name = "uniform disk (sharp edge) over a background"
+    box = (0.0, 0.0, 1.0, 1.0)
+    periodic = False
+    R = 0.2
+
+    def pdf(self, x):
+        inside = ((x - 0.5) ** 2).sum(1) <= self.R**2
+        return 0.5 * inside / (np.pi * self.R**2) + 0.5
+
+    def sample(self, n, rng):
+        on = rng.random(n) < 0.5
+        m = int(on.sum())
+        r = self.R * np.sqrt(rng.random(m))
+        t = rng.random(m) * 2 * np.pi
+        x = rng.random((n, 2))
+        x[on] = 0.5 + r[:, None] * np.column_stack([np.cos(t), np.sin(t)])
+        return x
+
+
+TRUTHS = {
+    "multiscale": Multiscale,
+    "hole": Hole,
+    "torus": VonMises,
+    "heavy": Heavy,
+    "ridge": Ridge,
+    "edge": Edge,
+}
+
+
+def evaluation_points(truth, rng, size=20000):
+    """(points, truth's pdf there, proposal density q) for the importance-sampled integrals:
+    half from the truth, half uniform on the box."""
     lo, hi = np.array(truth.box[:2]), np.array(truth.box[2:])
     half = rng.random(size) < 0.5
     x = np.where(half[:, None], truth.sample(size, rng), lo + rng.random((size, 2)) * (hi - lo))
@@ -124,10 +215,13 @@ def l1_sample(truth, rng, size=20000):
     return x, truth.pdf(x), q
 
 
-def knnrefine_estimate(points, truth, ev):
-    k = default_k(len(points))
-    mesh = knnrefine.refine(points, k, periodic=truth.periodic, box=truth.box)
-    return knnrefine.KnnDensity(mesh, points)(ev), f"k = {k}, m = {len(mesh.vertices)}"
+def knnrefine_estimate(points, truth, ev, **options):
+    est = knnrefine.KnnDensityEstimator(box=truth.box, periodic=truth.periodic, **options)
+    est.fit(points)
+    info = f"k = {est.k_}, m = {len(est.mesh_.vertices)}"
+    if getattr(est, "bandwidth_", None) is not None:
+        info += f", c = {est.bandwidth_:.3g}"
+    return np.exp(est.score_samples(ev)), info
 
 
 def scipy_estimate(points, truth, ev):
@@ -152,7 +246,7 @@ def fftkde_estimate(points, truth, ev, rule="ISJ"):
     f = RegularGridInterpolator(
         (xs, ys), v.reshape(len(xs), len(ys)), bounds_error=False, fill_value=0.0
     )
-    return f(ev), f"bw = {bw:.3g}, grid {grid}^2"
+    return np.maximum(f(ev), 0.0), f"bw = {bw:.3g}, grid {grid}^2"
 
 
 def scott_bandwidth(points):
@@ -161,140 +255,138 @@ def scott_bandwidth(points):
     return len(points) ** (-1 / 6) * float(points.std(axis=0).mean())
 
 
-def sklearn_estimate(points, truth, ev):
+def sklearn_estimate(points, truth, ev, cv_points=20000):
+    """KernelDensity with its bandwidth chosen by 3-fold GridSearchCV on at most cv_points
+    points, scaled to the full sample by the n^(-1/6) rate."""
+    from sklearn.model_selection import GridSearchCV
     from sklearn.neighbors import KernelDensity
 
-    bw = scott_bandwidth(points)
+    rng = np.random.default_rng(0)
+    sub = points if len(points) <= cv_points else points[rng.choice(len(points), cv_points)]
+    grid = scott_bandwidth(sub) * np.geomspace(1 / 8, 2, 13)
+    search = GridSearchCV(KernelDensity(rtol=1e-4), {"bandwidth": grid}, cv=3).fit(sub)
+    bw = search.best_params_["bandwidth"] * (len(sub) / len(points)) ** (1 / 6)
     kd = KernelDensity(bandwidth=bw, rtol=1e-4).fit(points)
     return np.exp(kd.score_samples(ev)), f"bw = {bw:.3g}"
 
 
+def knn_plain(points, truth, ev):
+    return knnrefine_estimate(points, truth, ev, method="knn")
+
+
+def knn_local(points, truth, ev):
+    return knnrefine_estimate(points, truth, ev, shape="local")
+
+
 METHODS = {
     "knnrefine": knnrefine_estimate,
+    "knnrefine local": knn_local,
+    "knnrefine kNN": knn_plain,
     "gaussian_kde": scipy_estimate,
     "FFTKDE (ISJ)": fftkde_estimate,
     "FFTKDE (Silverman)": lambda p, t, e: fftkde_estimate(p, t, e, rule="Silverman"),
-    "KernelDensity": sklearn_estimate,
+    "KernelDensity (CV)": sklearn_estimate,
 }
+SUBSAMPLED = ("gaussian_kde", "KernelDensity (CV)")
 
 
-def accuracy(sizes, seed=0):
+def accuracy(truths, sizes, seed=0, out=None):
     rows = []
-    for truth in (Multiscale(), Hole(), VonMises()):
+    for key in truths:
+        truth = TRUTHS[key]()
         rng = np.random.default_rng(seed)
-        ev, f, q = l1_sample(truth, rng)
+        ev, f, q = evaluation_points(truth, rng)
+        test = truth.sample(len(ev), np.random.default_rng(seed + 3))
+        both = np.concatenate([ev, test])
         for n in sizes:
             pts = truth.sample(n, np.random.default_rng(seed + 1))
             for name, method in METHODS.items():
-                sub = np.arange(len(ev))
-                if name in ("gaussian_kde", "KernelDensity") and n * len(ev) > 2e9:
-                    sub = np.random.default_rng(seed + 2).choice(len(ev), int(2e9 // n), False)
+                sub = np.arange(len(both))
+                if name in SUBSAMPLED and n * len(both) > 2e9:
+                    half = int(1e9 // n)
+                    pick = np.random.default_rng(seed + 2)
+                    sub = np.concatenate(
+                        [
+                            pick.choice(len(ev), half, False),
+                            len(ev) + pick.choice(len(ev), half, False),
+                        ]
+                    )
                 t0 = time.perf_counter()
-                est, info = method(pts, truth, ev[sub])
+                est, info = method(pts, truth, both[sub])
                 seconds = time.perf_counter() - t0
-                l1 = float(np.mean(np.abs(est - f[sub]) / q[sub]))
-                rows.append(
-                    {
-                        "truth": truth.name,
-                        "n": n,
-                        "method": name,
-                        "L1": l1,
-                        "seconds": seconds,
-                        "info": info,
-                        "sampled": len(sub) < len(ev),
-                    }
-                )
+                on_ev = sub < len(ev)
+                e, fe, qe = est[on_ev], f[sub[on_ev]], q[sub[on_ev]]
+                l1 = float(np.mean(np.abs(e - fe) / qe))
+                hellinger = float(np.sqrt(0.5 * np.mean((np.sqrt(e) - np.sqrt(fe)) ** 2 / qe)))
+                with np.errstate(divide="ignore"):
+                    ll = float(np.mean(np.log(est[~on_ev])))
+                row = {
+                    "truth": truth.name, "key": key, "n": n, "method": name, "L1": l1,
+                    "hellinger": hellinger, "loglik": ll, "seconds": seconds, "info": info,
+                    "sampled": len(sub) < len(both),
+                }  # fmt: skip
+                rows.append(row)
                 print(
-                    f"{truth.name[:34]:34s} n={n:.0e} {name:14s} L1 = {l1:.4f} "
-                    f"{'~' if len(sub) < len(ev) else ' '} {seconds:7.2f} s  ({info})",
+                    f"{key:10s} n={n:.0e} {name:18s} L1 {l1:.4f} H {hellinger:.4f} "
+                    f"LL {ll:9.4f} {'~' if row['sampled'] else ' '} {seconds:7.2f} s  ({info})",
                     flush=True,
                 )
+                if out:  # keep what is done (a long run can be stopped)
+                    with open(out, "w") as fh:
+                        json.dump({"rows": rows}, fh, indent=1)
     return rows
 
 
-def grid_timing(n=100_000, shape=(512, 512), seed=0):
-    truth = Multiscale()
-    pts = truth.sample(n, np.random.default_rng(seed))
-    ny, nx = shape
-    xs = (np.arange(nx) + 0.5) / nx
-    ys = (np.arange(ny) + 0.5) / ny
-    gx, gy = np.meshgrid(xs, ys)
-    grid = np.column_stack([gx.ravel(), gy.ravel()])
-    rows_part = grid[: 16 * nx]
-    out = {}
-    t0 = time.perf_counter()
-    mesh = knnrefine.refine(pts, default_k(n))
-    knnrefine.KnnDensity(mesh, pts).grid(shape)
-    out["knnrefine"] = (time.perf_counter() - t0, False)
-    t0 = time.perf_counter()
-    gaussian_kde(pts.T)(rows_part.T)
-    out["gaussian_kde"] = ((time.perf_counter() - t0) * ny / 16, True)
-    t0 = time.perf_counter()
-    from KDEpy import FFTKDE
-    from KDEpy.bw_selection import improved_sheather_jones
-
-    bw = float(np.mean([improved_sheather_jones(pts[:, [a]]) for a in range(2)]))
-    FFTKDE(bw=bw).fit(pts).evaluate(shape)  # the grid asked for, whatever the bandwidth
-    out["FFTKDE (ISJ)"] = (time.perf_counter() - t0, False)
-    from sklearn.neighbors import KernelDensity
-
-    t0 = time.perf_counter()
-    KernelDensity(bandwidth=scott_bandwidth(pts), rtol=1e-4).fit(pts).score_samples(rows_part)
-    out["KernelDensity"] = ((time.perf_counter() - t0) * ny / 16, True)
-    for name, (s, scaled) in out.items():
-        print(f"512 x 512 grid from n = {n:.0e}: {name:14s} {'~' if scaled else ' '}{s:8.2f} s")
-    return out
-
-
-def markdown(rows, timing):
-    lines = ["| truth | n | " + " | ".join(METHODS) + " |", "|---|---:|" + "---:|" * len(METHODS)]
-    keys = sorted({(r["truth"], r["n"]) for r in rows}, key=lambda t: (t[0], t[1]))
-    order = [Multiscale.name, Hole.name, VonMises.name]
-    keys.sort(key=lambda t: (order.index(t[0]), t[1]))
-    for truth, n in keys:
-        cells = []
-        best = min(r["L1"] for r in rows if r["truth"] == truth and r["n"] == n)
-        for name in METHODS:
-            r = next(r for r in rows if r["truth"] == truth and r["n"] == n and r["method"] == name)
-            cell = f"{r['L1']:.3f}{'~' if r['sampled'] else ''} ({r['seconds']:.2f} s)"
-            cells.append(f"**{cell}**" if r["L1"] == best else cell)
-        lines.append(f"| {truth} | {n:.0e} | " + " | ".join(cells) + " |")
-    lines.append("")
-    lines.append("| 512 x 512 grid, n = 1e5 | " + " | ".join(timing) + " |")
-    lines.append("|---|" + "---:|" * len(timing))
-    lines.append(
-        "| seconds | "
-        + " | ".join(f"{'~' if scaled else ''}{s:.2f}" for s, scaled in timing.values())
-        + " |"
-    )
-    lines.append("")
-    lines.append("~: timed on part of the work and scaled (an extrapolation, not a measurement).")
-    for name, (seconds, scaled) in timing.items():
-        if name == "knnrefine":
-            continue
-        ratio = seconds / timing["knnrefine"][0]
-        faster = f"{ratio:.1f}x slower" if ratio > 1 else f"{1 / ratio:.1f}x faster"
-        lines.append(
-            f"{name} is {faster} than knnrefine on the 512 x 512 grid"
-            + (" (extrapolated)" if scaled else "")
-            + "."
-        )
-    return "\n".join(lines)
+def markdown(rows):
+    """One table per score: rows (truth, n), a column per method, the best in bold."""
+    out = []
+    keys = []
+    for r in rows:
+        if (r["key"], r["n"]) not in keys:
+            keys.append((r["key"], r["n"]))
+    for score, label, better in (
+        ("L1", "L1 error (lower is better)", min),
+        ("hellinger", "Hellinger distance (lower is better)", min),
+        ("loglik", "held-out log-likelihood per point (higher is better)", max),
+    ):
+        out += [f"{label}:", ""]
+        out.append("| truth | n | " + " | ".join(METHODS) + " |")
+        out.append("|---|---:|" + "---:|" * len(METHODS))
+        for key, n in keys:
+            got = {r["method"]: r for r in rows if r["key"] == key and r["n"] == n}
+            best = better(r[score] for r in got.values())
+            cells = []
+            for name in METHODS:
+                if name not in got:
+                    cells.append("")
+                    continue
+                r = got[name]
+                cell = f"{r[score]:.3f}{'~' if r['sampled'] else ''}"
+                cells.append(f"**{cell}**" if r[score] == best else cell)
+            out.append(f"| {key} | {n:.0e} | " + " | ".join(cells) + " |")
+        out.append("")
+    out.append("| seconds (fit + evaluate 40,000 points) | n | " + " | ".join(METHODS) + " |")
+    out.append("|---|---:|" + "---:|" * len(METHODS))
+    for key, n in keys:
+        got = {r["method"]: r for r in rows if r["key"] == key and r["n"] == n}
+        cells = [f"{got[m]['seconds']:.2f}" if m in got else "" for m in METHODS]
+        out.append(f"| {key} | {n:.0e} | " + " | ".join(cells) + " |")
+    out.append("")
+    out.append("~: evaluated on a random subset of the points (n times evaluations > 2e9).")
+    return "\n".join(out)
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", nargs="+", type=float, default=[1e4, 1e5, 1e6])
+    ap.add_argument("--truths", nargs="+", choices=list(TRUTHS), default=list(TRUTHS))
     ap.add_argument("--out", default=os.path.join(HERE, "results", "density_accuracy.json"))
     args = ap.parse_args(argv)
-    knnrefine.refine(np.random.default_rng(0).random((500, 2)), 10)  # warm the kernels
-    rows = accuracy([int(n) for n in args.sizes])
-    timing = grid_timing()
+    knnrefine.KnnDensityEstimator(k=10).fit(np.random.default_rng(0).random((500, 2)))  # warm
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump({"rows": rows, "grid_timing": timing}, f, indent=1)
+    rows = accuracy(args.truths, [int(n) for n in args.sizes], out=args.out)
     print()
-    print(markdown(rows, timing))
+    print(markdown(rows))
 
 
 if __name__ == "__main__":
