@@ -53,6 +53,17 @@ import knnrefine
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
+def rejection(n, draw, keep):
+    """n points from batches draw() (n, 2), keeping the rows where keep(batch) holds."""
+    out, got = [], 0
+    while got < n:
+        x = draw()
+        x = x[keep(x)]
+        out.append(x)
+        got += len(x)
+    return np.concatenate(out)[:n]
+
+
 class Multiscale:
     name = "Gaussian mixture, widths 0.12 / 0.02 / 0.003"
     box = (0.0, 0.0, 1.0, 1.0)
@@ -77,14 +88,11 @@ class Multiscale:
         return out / self.Z
 
     def sample(self, n, rng):
-        out, got = [], 0
-        while got < n:
+        def draw():
             c = rng.choice(3, n, p=self.W)
-            x = self.MU[c] + rng.normal(size=(n, 2)) * self.S[c][:, None]
-            x = x[(x >= 0).all(1) & (x <= 1).all(1)]
-            out.append(x)
-            got += len(x)
-        return np.concatenate(out)[:n]
+            return self.MU[c] + rng.normal(size=(n, 2)) * self.S[c][:, None]
+
+        return rejection(n, draw, lambda x: (x >= 0).all(1) & (x <= 1).all(1))
 
 
 class Hole:
@@ -97,13 +105,9 @@ class Hole:
         return outside / (1 - np.pi * 0.25**2)
 
     def sample(self, n, rng):
-        out, got = [], 0
-        while got < n:
-            x = rng.random((2 * n, 2))
-            x = x[((x - 0.5) ** 2).sum(1) > 0.25**2]
-            out.append(x)
-            got += len(x)
-        return np.concatenate(out)[:n]
+        return rejection(
+            n, lambda: rng.random((2 * n, 2)), lambda x: ((x - 0.5) ** 2).sum(1) > 0.25**2
+        )
 
 
 class VonMises:
@@ -139,13 +143,8 @@ class Heavy:
         return student.pdf(x[:, 0], self.DOF) * student.pdf(x[:, 1], self.DOF) / self.Z
 
     def sample(self, n, rng):
-        out, got = [], 0
-        while got < n:
-            x = rng.standard_t(self.DOF, (n, 2))
-            x = x[(np.abs(x) <= 20).all(1)]
-            out.append(x)
-            got += len(x)
-        return np.concatenate(out)[:n]
+        draw = lambda: rng.standard_t(self.DOF, (n, 2))  # noqa: E731
+        return rejection(n, draw, lambda x: (np.abs(x) <= 20).all(1))
 
 
 class Ridge:

@@ -98,7 +98,6 @@ def test_pilot_is_the_mesh_estimate_of_d_pk(planar):
 def test_sums_match_brute_force_periodic(periodic):
     rng = np.random.default_rng(2)
     X = np.concatenate([rng.normal(0.02, 0.06, (1200, 2)) % 1, rng.random((300, 2))])
-    mesh = knnrefine.refine(X, 20, box=(0, 0, 1, 1), periodic=periodic)
     w = rng.gamma(2.0, 1.0, len(X))
     mesh = knnrefine.refine(X, 20, box=(0, 0, 1, 1), periodic=periodic, weights=w)
     ad = AdaptiveDensity(mesh, X, bandwidth=2.0, weights=w)
@@ -292,6 +291,8 @@ def test_bad_options_are_refused_before_work():
         ({"shape": "round"}, "shape"),
         ({"bandwidth": 0}, "bandwidth"),
         ({"bandwidth": "auto"}, "bandwidth"),
+        ({"bandwidth": np.inf}, "finite"),
+        ({"bandwidth": 1 + 1j}, "bandwidth"),
         ({"whiten": "yes"}, "whiten"),
         ({"loo_points": 0}, "loo_points"),
         ({"cv": 1}, "cv must be"),
@@ -300,6 +301,19 @@ def test_bad_options_are_refused_before_work():
             KnnDensityEstimator(k=10, **bad).fit(X)
     with pytest.raises(InputError, match="whiten"):
         KnnDensityEstimator(k=10, whiten=True).fit(np.column_stack([X[:, 0], np.ones(len(X))]))
+
+
+def test_infinite_bandwidth_is_refused_before_work(monkeypatch):
+    """regression: bandwidth=inf passed the estimator's check (inf > 0) and failed only after
+    refinement, in set_bandwidth."""
+    import knnrefine.api
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("refine ran before the options were checked")
+
+    monkeypatch.setattr(knnrefine.api, "refine", no_work)
+    with pytest.raises(InputError, match="finite"):
+        KnnDensityEstimator(k=10, bandwidth=float("inf")).fit(mixture(300))
 
 
 def test_real_data_old_faithful_whitened():

@@ -27,11 +27,11 @@ from .engine.kernelsum import (
     Y,
     ball_moments,
     build_centres,
-    in_chunks,
     kernel_sums,
     node_extents,
 )
 from .engine.raster import clip_triangles, fans, rasterise
+from .engine.threads import in_chunks
 from .errors import InputError
 from .mesh import edges, split_in_four, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric
@@ -427,8 +427,7 @@ class AdaptiveDensity:
         self, mesh, points, bandwidth=1.0, shape="isotropic", weights=None, subdivide=True,
         max_ratio=10.0, knn=None,
     ):  # fmt: skip
-        if shape not in ("isotropic", "local"):
-            raise InputError(f'shape must be "isotropic" or "local", got {shape!r}')
+        _check_shape(shape)
         if not (isinstance(max_ratio, (int, float)) and 1 <= max_ratio < np.inf):
             raise InputError(f"max_ratio must be a number >= 1, got {max_ratio!r}")
         pts = as_points(points)
@@ -496,12 +495,8 @@ class AdaptiveDensity:
 
     def set_bandwidth(self, bandwidth):
         """Make the kernels' extents bandwidth * (their unit extents); returns self."""
-        c = bandwidth
-        if isinstance(c, bool) or not isinstance(c, (int, float, np.floating)) or not c > 0:
-            raise InputError(f"bandwidth must be a number > 0, got {bandwidth!r}")
-        if not np.isfinite(c):
-            raise InputError(f"bandwidth must be finite, got {bandwidth!r}")
-        self.bandwidth = float(c)
+        c = _check_bandwidth(bandwidth)
+        self.bandwidth = c
         r = self._r * c
         shrink = np.maximum(r / self._cap, 1.0) ** 2  # kernels wider than the box: narrowed
         scale = shrink / (c * c)
@@ -607,22 +602,21 @@ class AdaptiveDensity:
         l22 = np.sqrt(np.maximum(c - l21 * l21, 0.0))
         x = rows[i, X] + l11 * z[:, 0]
         y = rows[i, Y] + l21 * z[:, 0] + l22 * z[:, 1]
-        out[~from_knn] = self._into_box(np.column_stack([x, y])) + self.lo
+        out[~from_knn] = self._into_box(np.column_stack([x, y]))
         if from_knn.any():
             out[from_knn] = self.knn.sample(int(from_knn.sum()), rng)
         return out
 
     def _into_box(self, frame):
-        """Frame coordinates of kernel draws, wrapped (periodic) or folded into the box."""
+        """Kernel draws (frame coordinates) as points of the box: folded back along
+        non-periodic axes (mirrored in the sides, as the sums fold), wrapped along periodic
+        ones (``BoxMetric.wrap``, the one wrapping rule)."""
         period = self.hi - self.lo
         for a in range(2):
-            v = frame[:, a]
-            if self.periodic[a]:
-                frame[:, a] = np.mod(v, period[a])
-            else:
-                v = np.abs(v)  # the mirror in the lower side
+            if not self.periodic[a]:
+                v = np.abs(frame[:, a])  # the mirror in the lower side
                 frame[:, a] = np.where(v > period[a], 2 * period[a] - v, v)
-        return frame
+        return self._metric.wrap(frame + self.lo)
 
 
 def _unit_shapes(cov, n, max_ratio):
@@ -691,8 +685,9 @@ class KnnDensityEstimator:
         ``random_state``, every fold in the same box; adaptive: each fold with its own
         bandwidth by leave-one-out).
     method : "adaptive" or "knn"
-        The estimate (see above). The default won the held-out likelihood on every truth of
-        the project's study (``benchmarks/density_accuracy.py``, docs/uses.md).
+        The estimate (see above). The adaptive one had the best held-out likelihood on every
+        truth of the project's study at n = 1e4 and 1e5 (``benchmarks/density_accuracy.py``,
+        docs/uses.md; at 1e6 peers won on two of six).
     bandwidth : float > 0 or "cv"
         The adaptive estimate's factor c: kernel extents c d_{P,k}(X_i). ``"cv"``: the best
         of ``BANDWIDTHS`` by leave-one-out log-likelihood at up to ``loo_points`` training
@@ -838,19 +833,12 @@ class KnnDensityEstimator:
     def _check_options(self):
         if self.method not in ("adaptive", "knn"):
             raise InputError(f'method must be "adaptive" or "knn", got {self.method!r}')
-        if self.shape not in ("isotropic", "local"):
-            raise InputError(f'shape must be "isotropic" or "local", got {self.shape!r}')
+        _check_shape(self.shape)
         if not isinstance(self.whiten, (bool, np.bool_)):
             raise InputError(f"whiten must be True or False, got {self.whiten!r}")
-        c = self.bandwidth
-        if isinstance(c, str):
-            if c != "cv":
-                raise InputError(f'bandwidth must be a number > 0 or "cv", got {c!r}')
-        elif isinstance(c, bool) or not isinstance(c, (int, float, np.number)) or not c > 0:
-            raise InputError(f'bandwidth must be a number > 0 or "cv", got {c!r}')
-        cv = self.cv
-        if isinstance(cv, bool) or not isinstance(cv, (int, np.integer)) or cv < 2:
-            raise InputError(f"cv must be an integer >= 2, got {cv!r}")
+        if not (isinstance(self.bandwidth, str) and self.bandwidth == "cv"):
+            _check_bandwidth(self.bandwidth, '"cv" or ')
+        _check_cv(self.cv)
         m = self.loo_points
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
             raise InputError(f"loo_points must be an integer >= 1, got {m!r}")
@@ -907,9 +895,6 @@ class KnnDensityEstimator:
         """Indices of the points the leave-one-out likelihood is taken at (None: all)."""
         m = min(n, int(self.loo_points))
         return None if m == n else np.sort(_generator(self.random_state).choice(n, m, False))
-
-    def _loo_fixed(self, density):
-        return density.loo_curve([density.bandwidth], self._loo_sample(len(density.pilot)))[0]
 
     def _k_candidates(self, n_train):
         """The candidate ks: ``k_grid`` or 10 geometric steps from 4 to n_train / 20."""
@@ -1052,6 +1037,25 @@ class KnnDensityEstimator:
         return float(np.prod(self.scale_))
 
 
+def _check_shape(shape):
+    if shape not in ("isotropic", "local"):
+        raise InputError(f'shape must be "isotropic" or "local", got {shape!r}')
+
+
+def _check_bandwidth(c, alternative=""):
+    """The adaptive estimate's factor c: a finite number > 0, as a float."""
+    real = (int, float, np.integer, np.floating)
+    ok = not isinstance(c, (bool, np.bool_)) and isinstance(c, real)
+    if not (ok and 0 < c < np.inf):
+        raise InputError(f"bandwidth must be {alternative}a finite number > 0, got {c!r}")
+    return float(c)
+
+
+def _check_cv(cv):
+    if isinstance(cv, bool) or not isinstance(cv, (int, np.integer)) or cv < 2:
+        raise InputError(f"cv must be an integer >= 2, got {cv!r}")
+
+
 def _same(a, b):
     try:
         return bool(a == b)
@@ -1061,7 +1065,8 @@ def _same(a, b):
 
 def _folds(n, cv, random_state):
     """The test indices of each of ``cv`` folds of n points, shuffled by random_state."""
-    if isinstance(cv, bool) or not isinstance(cv, (int, np.integer)) or not 2 <= cv <= n:
+    _check_cv(cv)
+    if cv > n:
         raise InputError(f"cv must be an integer in [2, n = {n}], got {cv!r}")
     order = _generator(random_state).permutation(n)
     return np.array_split(order, int(cv))

@@ -32,7 +32,7 @@ while its region lies strictly on one side of the split, then counts from there.
 import numpy as np
 
 from .jit import kernel
-from .threads import run_all
+from .threads import in_chunks, run_all
 from .threads import workers as thread_count
 
 LEAF_SIZE = 32
@@ -870,15 +870,12 @@ class PointIndex:
         out = np.empty(m)
         qx, qy = q[:, 0].copy(), q[:, 1].copy()
         px, py = (bool(p) for p in emb.periodic)
-        chunks = max(1, min(thread_count() if workers is None else int(workers), m // 256))
-        edges = np.linspace(0, m, chunks + 1).astype(np.int64)
 
-        def chunk(j):
-            a, b = edges[j], edges[j + 1]
+        def chunk(a, b):
             args = (qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, cap, out, a, b)
             return kth_distances(self.index, *args)
 
-        run_all(chunk, chunks)
+        in_chunks(chunk, m, workers)
         lost = np.flatnonzero(np.isnan(out))
         if len(lost):  # more ties than a window holds: by brute force (rare)
             out[lost] = self._brute_kth(q[lost], k)

@@ -24,8 +24,6 @@ import numpy as np
 
 from .index import STACK_SIZE, _build_tree
 from .jit import kernel
-from .threads import run_all
-from .threads import workers as thread_count
 
 X, Y, W, AMP, Q11, Q12, Q22, R, ROW = range(9)
 COLUMNS = 9
@@ -71,12 +69,30 @@ def _image(q, j, period, periodic):
 
 
 @kernel(inline="always")
-def _gap(q, lo, hi):
-    if q < lo:
-        return lo - q
-    if q > hi:
-        return q - hi
-    return 0.0
+def _leaves_near(box, node, extent, r, x, y, stack, leaves):
+    """The leaves whose bounding box lies within r + extent[t] of (x, y) (extent empty: r
+    alone), into ``leaves``; returns how many. extent[t] is the widest kernel below node t,
+    so these are the leaves that may hold a kernel reaching (x, y)."""
+    found = 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        dx = max(box[t, 0] - x, 0.0, x - box[t, 2])
+        dy = max(box[t, 1] - y, 0.0, y - box[t, 3])
+        reach = r + extent[t] if extent.shape[0] > 0 else r
+        if dx * dx + dy * dy > reach * reach:
+            continue
+        c = node[t, 2]
+        if c >= 0:
+            stack[sp] = c
+            stack[sp + 1] = c + 1
+            sp += 2
+        else:
+            leaves[found] = t
+            found += 1
+    return found
 
 
 @kernel(entry=True, nogil=True)
@@ -86,36 +102,16 @@ def kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2,
     at exactly the query's place are left out of its sum, all images of them (copies of a
     point leave together, as a point of whole weight would), and out2[j] is their weight."""
     stack = np.empty(STACK_SIZE, np.int64)
-    reach = extent[0]
+    leaves = np.empty(node.shape[0], np.int64)
     for j in range(start, stop):
         s = 0.0
         s2 = 0.0
         for a in range(3):
             x = _image(qx[j], a, lx, px)
-            gx = _gap(x, box[0, 0], box[0, 2])
-            if gx > reach:
-                continue
             for b in range(3):
                 y = _image(qy[j], b, ly, py)
-                gy = _gap(y, box[0, 1], box[0, 3])
-                if gx * gx + gy * gy > reach * reach:
-                    continue
-                stack[0] = 0
-                sp = 1
-                while sp > 0:
-                    sp -= 1
-                    t = stack[sp]
-                    dx = _gap(x, box[t, 0], box[t, 2])
-                    dy = _gap(y, box[t, 1], box[t, 3])
-                    r = extent[t]
-                    if dx * dx + dy * dy > r * r:
-                        continue
-                    c = node[t, 2]
-                    if c >= 0:
-                        stack[sp] = c
-                        stack[sp + 1] = c + 1
-                        sp += 2
-                        continue
+                for f in range(_leaves_near(box, node, extent, 0.0, x, y, stack, leaves)):
+                    t = leaves[f]
                     for i in range(node[t, 0], node[t, 1]):
                         if loo and rows[i, X] == qx[j] and rows[i, Y] == qy[j]:
                             if a == 0 and b == 0:
@@ -142,6 +138,8 @@ def ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, start, st
     periodic axes wrap, the others do not fold): out[j] = (w, wx, wy, wxx, wxy, wyy), with
     x, y relative to the query."""
     stack = np.empty(STACK_SIZE, np.int64)
+    leaves = np.empty(node.shape[0], np.int64)
+    none = np.empty(0)
     for j in range(start, stop):
         for m in range(6):
             out[j, m] = 0.0
@@ -151,21 +149,8 @@ def ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, start, st
             x = _image(qx[j], a, lx, True)
             for b in range(3 if py else 1):
                 y = _image(qy[j], b, ly, True)
-                stack[0] = 0
-                sp = 1
-                while sp > 0:
-                    sp -= 1
-                    t = stack[sp]
-                    dx = _gap(x, box[t, 0], box[t, 2])
-                    dy = _gap(y, box[t, 1], box[t, 3])
-                    if dx * dx + dy * dy > r2:
-                        continue
-                    c = node[t, 2]
-                    if c >= 0:
-                        stack[sp] = c
-                        stack[sp + 1] = c + 1
-                        sp += 2
-                        continue
+                for f in range(_leaves_near(box, node, none, r, x, y, stack, leaves)):
+                    t = leaves[f]
                     for i in range(node[t, 0], node[t, 1]):
                         ex = rows[i, X] - x
                         ey = rows[i, Y] - y
@@ -178,10 +163,3 @@ def ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, start, st
                             out[j, 4] += w * ex * ey
                             out[j, 5] += w * ey * ey
     return 0
-
-
-def in_chunks(call, m, workers=None):
-    """call(start, stop) over [0, m) in one chunk per thread (at least 256 queries each)."""
-    chunks = max(1, min(thread_count() if workers is None else int(workers), m // 256))
-    edges = np.linspace(0, m, chunks + 1).astype(np.int64)
-    run_all(lambda j: call(edges[j], edges[j + 1]), chunks)

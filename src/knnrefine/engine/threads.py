@@ -9,6 +9,8 @@ may use, at most MAX_THREADS.
 import os
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
+
 MAX_THREADS = 8
 _pool = []
 
@@ -37,3 +39,11 @@ def run_all(task, count):
     if not _pool:
         _pool.append(ThreadPoolExecutor(MAX_THREADS, thread_name_prefix="knnrefine"))
     return list(_pool[0].map(task, range(count)))
+
+
+def in_chunks(call, m, threads=None, least=256):
+    """call(start, stop) over ranges that split [0, m) evenly among ``threads`` (default
+    ``workers()``), each at least ``least`` long (one range when m is small)."""
+    chunks = max(1, min(workers() if threads is None else int(threads), m // least))
+    edges = np.linspace(0, m, chunks + 1).astype(np.int64)
+    return run_all(lambda j: call(edges[j], edges[j + 1]), chunks)
