@@ -403,10 +403,13 @@ class AdaptiveDensity:
     """The adaptive (sample-point) kernel estimate with local bandwidths from d_{P,k}.
 
     f(x) = (1 - eps) sum_i (w_i / W) K_i(x) + eps f_kNN(x): one kernel per point, of extent
-    h_i = bandwidth * d_{P,k}(X_i). With the kNN estimate f ~ 1 / d_{P,k}^2 as the pilot,
-    this is Abramson's square-root law h_i ~ f(X_i)^(-1/2) (1982) in the plane: narrow
-    kernels where the points are dense, wide ones in the tails. The mesh gives d_{P,k} at
-    every point at once (linear interpolation over its pieces).
+    h_i = c G (d_i / G)^(2 alpha), d_i = d_{P,k}(X_i), G their geometric mean. The kNN
+    estimate f ~ 1 / d_{P,k}^2 is the pilot, so h_i ~ f(X_i)^(-alpha): the sensitivity
+    alpha = 1/2 is Abramson's square-root law (1982), narrow kernels where the points are
+    dense and wide ones in the tails; alpha = 0 is the fixed-bandwidth estimate (bandwidth
+    c G everywhere); in between, what heavy tails and flat regions prefer (Silverman 1986,
+    5.3). The mesh gives d_{P,k} at every point at once (linear interpolation over its
+    pieces).
 
     K_i is the triweight profile (1 - u)^3, u = (x - X_i)^T Q_i (x - X_i) < 1, normalised to
     mass 1: smooth, compactly supported (sums visit only the kernels that reach x).
@@ -419,13 +422,14 @@ class AdaptiveDensity:
     estimate positive where no kernel reaches (far tails): a finite log-likelihood.
 
     Parameters: ``mesh``, ``points``, ``subdivide``, ``weights`` as for ``KnnDensity``;
-    ``bandwidth`` > 0, the factor c (``set_bandwidth`` changes it cheaply, ``loo_curve``
-    scores candidates by leave-one-out likelihood).
+    ``bandwidth`` > 0, the factor c, and ``sensitivity`` alpha in [0, 1]
+    (``set_bandwidth`` changes both cheaply, ``loo_curve`` scores candidates by leave-one-out
+    likelihood).
     """
 
     def __init__(
         self, mesh, points, bandwidth=1.0, shape="isotropic", weights=None, subdivide=True,
-        max_ratio=10.0, knn=None,
+        max_ratio=10.0, knn=None, sensitivity=0.5,
     ):  # fmt: skip
         _check_shape(shape)
         if not (isinstance(max_ratio, (int, float)) and 1 <= max_ratio < np.inf):
@@ -470,9 +474,14 @@ class AdaptiveDensity:
         self._r = (d * np.sqrt(lmax))[order]
         self._amp = (w / self.total * 4.0 / (np.pi * d2))[order]
         self.pilot = d
+        # the sensitivity rescales d around its (weighted) geometric mean G: G (d / G)^(2 alpha)
+        pos = d > 0
+        log_g = float((w[pos] * np.log(d[pos])).sum() / max(w[pos].sum(), 1e-300))
+        self._log_ratio = np.where(pos, np.log(np.where(pos, d, 1.0)) - log_g, 0.0)[order]
         # kernels no wider than the box along any axis (wrapping and folding stay exact)
         self._cap = float(np.min(self.hi - self.lo))
-        self.set_bandwidth(bandwidth)
+        self.sensitivity = 0.5
+        self.set_bandwidth(bandwidth, sensitivity)
 
     def _node_covariance(self, dist):
         """Covariance (xx, xy, yy) of the points within d_{P,k} of each node of the mesh."""
@@ -493,19 +502,29 @@ class AdaptiveDensity:
             [out[:, 3] / w - mx * mx, out[:, 4] / w - mx * my, out[:, 5] / w - my * my]
         )
 
-    def set_bandwidth(self, bandwidth):
-        """Make the kernels' extents bandwidth * (their unit extents); returns self."""
+    def set_bandwidth(self, bandwidth, sensitivity=None):
+        """Make the kernels' extents bandwidth * (their unit extents) at this sensitivity
+        (None: as it is); O(n), no new tree. Returns self."""
         c = _check_bandwidth(bandwidth)
-        self.bandwidth = c
-        r = self._r * c
+        alpha = self.sensitivity if sensitivity is None else _check_sensitivity(sensitivity)
+        self.bandwidth, self.sensitivity = c, alpha
+        rho = np.exp((2.0 * alpha - 1.0) * self._log_ratio) * c  # extent / unit extent at 1/2
+        r = self._r * rho
         shrink = np.maximum(r / self._cap, 1.0) ** 2  # kernels wider than the box: narrowed
-        scale = shrink / (c * c)
+        scale = shrink / (rho * rho)
         rows = self._rows
         rows[:, Q11 : Q22 + 1] = self._q * scale[:, None]
         rows[:, AMP] = self._amp * scale
         rows[:, R] = r / np.sqrt(shrink)
         node_extents(rows, self._node, self._extent)
         return self
+
+    @property
+    def unit_extents(self):
+        """Each point's kernel extent per unit bandwidth (its h_i / c), in input order: the
+        pilot d_{P,k}(X_i) at sensitivity 1/2, G (d / G)^(2 alpha) otherwise."""
+        rho = np.exp((2.0 * self.sensitivity - 1.0) * self._log_ratio)
+        return self.pilot * rho[self._row_of]
 
     def _sums(self, frame, loo=False):
         """Kernel sums at points in frame coordinates, and the sums of their squares (with
@@ -570,14 +589,15 @@ class AdaptiveDensity:
         with np.errstate(divide="ignore"):
             return np.log(f)
 
-    def loo_curve(self, bandwidths, sample=None):
+    def loo_curve(self, bandwidths, sample=None, sensitivity=None):
         """Mean leave-one-out log-likelihood (per unit weight) of each candidate bandwidth at
-        the points ``sample`` (default: all); the bandwidth is left at the last one."""
+        the points ``sample`` (default: all), at this sensitivity (None: as it is); the
+        bandwidth is left at the last one."""
         idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
         w = self._rows[self._row_of[idx], W]  # each point's weight: its share of the score
         scores = []
         for c in bandwidths:
-            self.set_bandwidth(float(c))
+            self.set_bandwidth(float(c), sensitivity)
             scores.append(float((self.loo(idx) * w).sum() / w.sum()))
         return np.array(scores)
 
@@ -617,6 +637,26 @@ class AdaptiveDensity:
                 v = np.abs(frame[:, a])  # the mirror in the lower side
                 frame[:, a] = np.where(v > period[a], 2 * period[a] - v, v)
         return self._metric.wrap(frame + self.lo)
+
+
+def _climb(density, alphas, cs, sample, i, j):
+    """Hill-climb of the leave-one-out likelihood over the grid alphas x cs from (i, j):
+    (i, j) of the best pair found, {(i, j): score} of every pair scored."""
+    scored = {}
+
+    def score(a, b):
+        if (a, b) not in scored:
+            scored[a, b] = density.loo_curve([cs[b]], sample, alphas[a])[0]
+        return scored[a, b]
+
+    best = score(i, j)
+    while True:
+        steps = [(i + a, j + b) for a, b in ((-1, 0), (1, 0), (0, -1), (0, 1))]
+        steps = [(a, b) for a, b in steps if 0 <= a < len(alphas) and 0 <= b < len(cs)]
+        top = max(steps, key=lambda ab: score(*ab))
+        if not score(*top) > best:
+            return i, j, scored
+        (i, j), best = top, score(*top)
 
 
 def _unit_shapes(cov, n, max_ratio):
@@ -689,9 +729,16 @@ class KnnDensityEstimator:
         truth of the project's study at n = 1e4 and 1e5 (``benchmarks/density_accuracy.py``,
         docs/uses.md; at 1e6 peers won on two of six).
     bandwidth : float > 0 or "cv"
-        The adaptive estimate's factor c: kernel extents c d_{P,k}(X_i). ``"cv"``: the best
-        of ``BANDWIDTHS`` by leave-one-out log-likelihood at up to ``loo_points`` training
-        points (chosen by ``random_state``). Ignored by ``method="knn"``.
+        The adaptive estimate's factor c: kernel extents c G (d_i / G)^(2 alpha), d_i =
+        d_{P,k}(X_i), G their geometric mean (c d_i at alpha = 1/2). ``"cv"``: chosen from
+        ``BANDWIDTHS`` by leave-one-out log-likelihood at up to ``loo_points`` training
+        points (chosen by ``random_state``), jointly with the sensitivity when that is
+        ``"cv"`` too. Ignored by ``method="knn"``.
+    sensitivity : float in [0, 1] or "cv"
+        The adaptive estimate's alpha: kernels ~ f^(-alpha). 1/2 is Abramson's law, 0 a
+        fixed bandwidth; ``"cv"`` (default) chooses from ``SENSITIVITIES`` (0 to 0.6) with
+        the bandwidth. Heavy tails and flat regions choose less than 1/2, narrow peaks 1/2
+        (docs/uses.md).
     shape : "isotropic" or "local"
         The adaptive estimate's kernels: disks, or ellipses shaped like the local covariance
         of the points (thin ridges, curved structure).
@@ -723,21 +770,27 @@ class KnnDensityEstimator:
     Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
     ``scale_`` (the whitening divisors, (1, 1) without), ``n_samples_`` (weights counted),
     ``n_features_in_`` (2), ``mesh_`` (the ``Mesh``), ``density_`` (the ``AdaptiveDensity`` or
-    ``KnnDensity``); with ``bandwidth="cv"`` ``bandwidths_`` and ``bandwidth_scores_`` (the
-    leave-one-out curve), with ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (mean held-out
+    ``KnnDensity``), ``sensitivity_`` (adaptive); when either is ``"cv"``, ``loo_scores_``
+    (a row (alpha, c, leave-one-out log-likelihood per point) for every pair the search
+    scored) and ``bandwidths_``, ``bandwidth_scores_`` (the curve over c at the chosen
+    alpha), with ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (mean held-out
     log-likelihood per point of each candidate: the curve).
     """
 
-    BANDWIDTHS = tuple(2.0 ** (np.arange(-4, 5) / 2))  # 0.25 to 4, steps of sqrt(2)
+    BANDWIDTHS = tuple(2.0 ** (np.arange(-6, 7) / 2))  # 1/8 to 8, steps of sqrt(2)
+    SENSITIVITIES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+    COARSE = 4000  # the first climb's points, when loo_points allows more than twice as many
 
     def __init__(
-        self, k=None, *, method="adaptive", bandwidth="cv", shape="isotropic", whiten=False,
+        self, k=None, *, method="adaptive", bandwidth="cv", sensitivity="cv", shape="isotropic",
+        whiten=False,
         tau=3.0, periodic=False, box=None, margin=0.1, min_size=None, subdivide=True, cv=5,
         k_grid=None, random_state=0, loo_points=20000,
     ):  # fmt: skip
         self.k = k
         self.method = method
         self.bandwidth = bandwidth
+        self.sensitivity = sensitivity
         self.shape = shape
         self.whiten = whiten
         self.tau = tau
@@ -806,7 +859,11 @@ class KnnDensityEstimator:
         scale = self._scale(pts, weights)
         pts = pts / scale
         box = self._box(pts, scale)
-        for stale in ("cv_ks_", "cv_scores_", "bandwidths_", "bandwidth_scores_", "bandwidth_"):
+        stale_attrs = (
+            "cv_ks_", "cv_scores_", "bandwidths_", "bandwidth_scores_", "bandwidth_",
+            "sensitivity_", "loo_scores_",
+        )  # fmt: skip
+        for stale in stale_attrs:
             self.__dict__.pop(stale, None)  # from an earlier fit
         if isinstance(self.k, str):
             if self.k != "cv":
@@ -822,6 +879,7 @@ class KnnDensityEstimator:
         self.density_, self.mesh_ = self._estimate(pts, weights, box, int(k))
         if self.method == "adaptive":
             self.bandwidth_ = self.density_.bandwidth
+            self.sensitivity_ = self.density_.sensitivity
         self._train = (pts, np.ones(len(pts)) if weights is None else weights)
         self.k_ = int(k)
         self.scale_ = tuple(float(v) for v in scale)
@@ -838,6 +896,8 @@ class KnnDensityEstimator:
             raise InputError(f"whiten must be True or False, got {self.whiten!r}")
         if not (isinstance(self.bandwidth, str) and self.bandwidth == "cv"):
             _check_bandwidth(self.bandwidth, '"cv" or ')
+        if not (isinstance(self.sensitivity, str) and self.sensitivity == "cv"):
+            _check_sensitivity(self.sensitivity, '"cv" or ')
         _check_cv(self.cv)
         m = self.loo_points
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
@@ -868,28 +928,39 @@ class KnnDensityEstimator:
         knn = KnnDensity(mesh, pts, normalized=True, subdivide=self.subdivide, weights=weights)
         if self.method == "knn":
             return knn, mesh
-        fixed = self.bandwidth != "cv"
+        cs = self.BANDWIDTHS if self.bandwidth == "cv" else (float(self.bandwidth),)
+        alphas = self.SENSITIVITIES if self.sensitivity == "cv" else (float(self.sensitivity),)
         density = AdaptiveDensity(
-            mesh, pts, float(self.bandwidth) if fixed else 1.0, self.shape, weights=weights,
-            knn=knn,
-        )  # fmt: skip
-        if not fixed:
-            self.bandwidths_, self.bandwidth_scores_ = self._loo_curve(density)
-            density.set_bandwidth(float(self.bandwidths_[int(np.argmax(self.bandwidth_scores_))]))
+            mesh, pts, cs[0], self.shape, weights=weights, knn=knn, sensitivity=alphas[0]
+        )
+        if len(cs) > 1 or len(alphas) > 1:
+            alpha, c, self.loo_scores_ = self._loo_search(density, alphas, cs)
+            at = self.loo_scores_[self.loo_scores_[:, 0] == alpha]
+            at = at[np.argsort(at[:, 1])]
+            self.bandwidths_, self.bandwidth_scores_ = at[:, 1], at[:, 2]
+            density.set_bandwidth(c, alpha)
         return density, mesh
 
-    def _loo_curve(self, density):
-        """Leave-one-out scores of BANDWIDTHS at up to ``loo_points`` points, from the
-        smallest up, stopping two steps after the scores start falling (kernels widen with
-        the bandwidth, and so does the cost)."""
+    def _loo_search(self, density, alphas, cs):
+        """(sensitivity, bandwidth, table): the pair of the grid alphas x cs with the best
+        leave-one-out likelihood at up to ``loo_points`` points, by climbing from the
+        candidates nearest (1/2, 1) to the best neighbour on the grid until none is better
+        (the likelihood is smooth in both; a climb scores a few of the pairs, not all). Over
+        COARSE points, a first climb on a fifth of them (at least COARSE) finds the region
+        at a fifth of the cost; the second climb starts there. The table holds a row
+        (alpha, c, score) per pair the last climb scored, in the order scored."""
         sample = self._loo_sample(len(density.pilot))
-        cs, scores = [], []
-        for c in self.BANDWIDTHS:
-            cs.append(c)
-            scores.extend(density.loo_curve([c], sample))
-            if len(scores) >= 3 and scores[-1] < scores[-2] < scores[-3]:
-                break
-        return np.array(cs), np.array(scores)
+        size = len(density.pilot) if sample is None else len(sample)
+        i = int(np.argmin(np.abs(np.asarray(alphas) - 0.5)))
+        j = int(np.argmin(np.abs(np.log(cs))))
+        if size > 2 * self.COARSE:
+            pool = np.arange(size) if sample is None else sample
+            m = max(self.COARSE, size // 5)
+            coarse = np.sort(_generator(self.random_state).choice(pool, m, False))
+            i, j, _ = _climb(density, alphas, cs, coarse, i, j)
+        i, j, scored = _climb(density, alphas, cs, sample, i, j)
+        table = np.array([(alphas[a], cs[b], v) for (a, b), v in scored.items()])
+        return float(alphas[i]), float(cs[j]), table
 
     def _loo_sample(self, n):
         """Indices of the points the leave-one-out likelihood is taken at (None: all)."""
@@ -1040,6 +1111,15 @@ class KnnDensityEstimator:
 def _check_shape(shape):
     if shape not in ("isotropic", "local"):
         raise InputError(f'shape must be "isotropic" or "local", got {shape!r}')
+
+
+def _check_sensitivity(alpha, alternative=""):
+    """alpha: a number in [0, 1] (float), else a clear error."""
+    real = (int, float, np.integer, np.floating)
+    ok = not isinstance(alpha, (bool, np.bool_)) and isinstance(alpha, real)
+    if not ok or not 0.0 <= float(alpha) <= 1.0:
+        raise InputError(f"sensitivity must be {alternative}a number in [0, 1], got {alpha!r}")
+    return float(alpha)
 
 
 def _check_bandwidth(c, alternative=""):
