@@ -24,8 +24,9 @@ Scores, the same evaluation points for every method:
 
 Methods, each with its automatic smoothing, in the same run on the same points:
 * knnrefine: ``KnnDensityEstimator`` with its defaults (the adaptive estimate, pilot
-  k = 2 sqrt(n), sensitivity and bandwidth by leave-one-out likelihood) and the truth's box; "knnrefine local" the same with
-  shape="local"; "knnrefine kNN" the plain kNN estimate (method="knn"). Periodic on the torus.
+  k = 2 sqrt(n), sensitivity and bandwidth by leave-one-out likelihood) and the truth's
+  box; "knnrefine local" the same with shape="local"; "knnrefine kNN" the plain kNN
+  estimate (method="knn"). Periodic on the torus.
 * scipy gaussian_kde (Scott's rule);
 * KDEpy FFTKDE on a grid of step bw / 2 (at most 4096 x 4096), interpolated (0 off the grid):
   KDEpy's automatic bandwidths are 1-D, so the isotropic bandwidth is the mean of the two

@@ -390,7 +390,8 @@ def test_density_persistence_cluster_commands(tmp_path, capsys):
         == 0
     )
     g = np.load(tmp_path / "d.npz")
-    assert g["density"].shape == (48, 64) and int(g["k"]) == round(0.5 * np.sqrt(len(ring)))
+    assert g["density"].shape == (48, 64) and int(g["k"]) == round(2 * np.sqrt(len(ring)))
+    assert str(g["method"]) == "adaptive" and 0 <= float(g["sensitivity"]) <= 1
     cell = np.diff(g["xs"])[0] * np.diff(g["ys"])[0]
     assert g["density"].sum() * cell == pytest.approx(1.0, rel=0.05)
     assert np.loadtxt(tmp_path / "d.csv", delimiter=",", skiprows=1).shape == (48 * 64, 4)
@@ -521,9 +522,47 @@ def test_outputs_are_checked_before_any_work(tmp_path, csv, capsys, plot, messag
     assert status == 1 and not (tmp_path / "d.npz").exists()
 
 
+def test_density_weights_column_counts_like_copies(tmp_path, points):
+    """--weights COLUMN: a point of weight w is w points (both methods, the smoothing chosen
+    by leave-one-out in the adaptive one), and the grids are the library's."""
+    from knnrefine.density import AdaptiveDensity, KnnDensity
+
+    w = np.random.default_rng(8).integers(0, 4, len(points))
+    weighted, copies = tmp_path / "w.csv", tmp_path / "c.csv"
+    np.savetxt(weighted, np.column_stack([points, w]), delimiter=",", header="x,y,n", comments="")
+    np.savetxt(copies, np.repeat(points, w, axis=0), delimiter=",", header="x,y", comments="")
+    box = ["--box", -181, -91, 181, 91]
+    for method in ("adaptive", "knn"):
+        a, b = tmp_path / f"a_{method}.npz", tmp_path / f"b_{method}.npz"
+        assert run("density", weighted, "--weights", "n", "--method", method, *box, "-o", a) == 0
+        assert run("density", copies, "--method", method, *box, "-o", b) == 0
+        ga, gb = np.load(a), np.load(b)
+        assert int(ga["k"]) == int(gb["k"]) and float(ga["n"]) == w.sum()
+        np.testing.assert_allclose(ga["density"], gb["density"], rtol=1e-9)
+    # the adaptive grid with given smoothing is the library's estimate
+    out = tmp_path / "given.npz"
+    given = ["--bandwidth", 1.2, "--sensitivity", 0.3, "-k", 30, *box, "-o", out]
+    assert run("density", weighted, "--weights", 2, *given) == 0
+    keep = w > 0
+    mesh = knnrefine.refine(points[keep], 30, box=(-181, -91, 181, 91), weights=w[keep])
+    ref = AdaptiveDensity(mesh, points[keep], 1.2, weights=w[keep], sensitivity=0.3)
+    g = np.load(out)
+    np.testing.assert_allclose(g["density"], ref.grid((512, 512))[2], rtol=1e-12)
+    knn = KnnDensity(mesh, points[keep], weights=w[keep])
+    np.testing.assert_allclose(g["d_pk"] ** -2 * knn.constant, knn.grid((512, 512))[2])
+    # a negative weight: refused before any work, nothing written
+    w[3] = -1
+    np.savetxt(weighted, np.column_stack([points, w]), delimiter=",", header="x,y,n", comments="")
+    assert run("density", weighted, "--weights", "n", "-o", tmp_path / "bad.npz") == 1
+    assert not (tmp_path / "bad.npz").exists()
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
+        (["density", "{csv}", "--method", "knn", "--bandwidth", "2", "-o", "d.npz"], "belong to"),
+        (["density", "{csv}", "--sensitivity", "1.5", "-o", "d.npz"], "sensitivity must be"),
+        (["density", "{csv}", "--bandwidth", "0", "-o", "d.npz"], "bandwidth must be"),
         (["density", "{csv}", "--grid", "0", "-o", "d.npz"], "--grid takes one or two positive"),
         (["density", "{csv}", "--grid", "10", "20", "30", "-o", "d.npz"], "--grid takes one"),
         (["cluster", "{csv}", "-o", "l.csv"], "required: -k"),

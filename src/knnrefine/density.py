@@ -639,6 +639,37 @@ class AdaptiveDensity:
         return self._metric.wrap(frame + self.lo)
 
 
+BANDWIDTHS = tuple(2.0 ** (np.arange(-6, 7) / 2))  # 1/8 to 8, steps of sqrt(2)
+SENSITIVITIES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+COARSE = 4000  # a first climb's points, when there are more than twice as many
+
+
+def choose_smoothing(
+    density, alphas=SENSITIVITIES, bandwidths=BANDWIDTHS, loo_points=20000, random_state=0
+):
+    """(sensitivity, bandwidth, table): the pair of the grid alphas x bandwidths with the
+    best leave-one-out likelihood of the ``AdaptiveDensity`` at up to ``loo_points`` of its
+    points (chosen by ``random_state``), by climbing from the candidates nearest (1/2, 1) to
+    the best grid neighbour until none is better: the likelihood is smooth in both, so a
+    climb scores a few pairs, not all. Over 2 COARSE points, a first climb on a fifth of them
+    (at least COARSE) finds the region at a fifth of the cost, and the second starts there.
+    The table has a row (alpha, c, score) per pair the last climb scored, in that order.
+    The density is left at the chosen pair."""
+    n = len(density.pilot)
+    m = min(n, int(loo_points))
+    sample = None if m == n else np.sort(_generator(random_state).choice(n, m, False))
+    i = int(np.argmin(np.abs(np.asarray(alphas) - 0.5)))
+    j = int(np.argmin(np.abs(np.log(bandwidths))))
+    if m > 2 * COARSE:
+        pool = np.arange(n) if sample is None else sample
+        coarse = np.sort(_generator(random_state).choice(pool, max(COARSE, m // 5), False))
+        i, j, _ = _climb(density, alphas, bandwidths, coarse, i, j)
+    i, j, scored = _climb(density, alphas, bandwidths, sample, i, j)
+    table = np.array([(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()])
+    density.set_bandwidth(bandwidths[j], alphas[i])
+    return float(alphas[i]), float(bandwidths[j]), table
+
+
 def _climb(density, alphas, cs, sample, i, j):
     """Hill-climb of the leave-one-out likelihood over the grid alphas x cs from (i, j):
     (i, j) of the best pair found, {(i, j): score} of every pair scored."""
@@ -777,9 +808,8 @@ class KnnDensityEstimator:
     log-likelihood per point of each candidate: the curve).
     """
 
-    BANDWIDTHS = tuple(2.0 ** (np.arange(-6, 7) / 2))  # 1/8 to 8, steps of sqrt(2)
-    SENSITIVITIES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
-    COARSE = 4000  # the first climb's points, when loo_points allows more than twice as many
+    BANDWIDTHS = BANDWIDTHS
+    SENSITIVITIES = SENSITIVITIES
 
     def __init__(
         self, k=None, *, method="adaptive", bandwidth="cv", sensitivity="cv", shape="isotropic",
@@ -934,38 +964,14 @@ class KnnDensityEstimator:
             mesh, pts, cs[0], self.shape, weights=weights, knn=knn, sensitivity=alphas[0]
         )
         if len(cs) > 1 or len(alphas) > 1:
-            alpha, c, self.loo_scores_ = self._loo_search(density, alphas, cs)
+            alpha, c, self.loo_scores_ = choose_smoothing(
+                density, alphas, cs, self.loo_points, self.random_state
+            )
             at = self.loo_scores_[self.loo_scores_[:, 0] == alpha]
             at = at[np.argsort(at[:, 1])]
             self.bandwidths_, self.bandwidth_scores_ = at[:, 1], at[:, 2]
             density.set_bandwidth(c, alpha)
         return density, mesh
-
-    def _loo_search(self, density, alphas, cs):
-        """(sensitivity, bandwidth, table): the pair of the grid alphas x cs with the best
-        leave-one-out likelihood at up to ``loo_points`` points, by climbing from the
-        candidates nearest (1/2, 1) to the best neighbour on the grid until none is better
-        (the likelihood is smooth in both; a climb scores a few of the pairs, not all). Over
-        COARSE points, a first climb on a fifth of them (at least COARSE) finds the region
-        at a fifth of the cost; the second climb starts there. The table holds a row
-        (alpha, c, score) per pair the last climb scored, in the order scored."""
-        sample = self._loo_sample(len(density.pilot))
-        size = len(density.pilot) if sample is None else len(sample)
-        i = int(np.argmin(np.abs(np.asarray(alphas) - 0.5)))
-        j = int(np.argmin(np.abs(np.log(cs))))
-        if size > 2 * self.COARSE:
-            pool = np.arange(size) if sample is None else sample
-            m = max(self.COARSE, size // 5)
-            coarse = np.sort(_generator(self.random_state).choice(pool, m, False))
-            i, j, _ = _climb(density, alphas, cs, coarse, i, j)
-        i, j, scored = _climb(density, alphas, cs, sample, i, j)
-        table = np.array([(alphas[a], cs[b], v) for (a, b), v in scored.items()])
-        return float(alphas[i]), float(cs[j]), table
-
-    def _loo_sample(self, n):
-        """Indices of the points the leave-one-out likelihood is taken at (None: all)."""
-        m = min(n, int(self.loo_points))
-        return None if m == n else np.sort(_generator(self.random_state).choice(n, m, False))
 
     def _k_candidates(self, n_train):
         """The candidate ks: ``k_grid`` or 10 geometric steps from 4 to n_train / 20."""

@@ -43,7 +43,28 @@ def read_points(path, columns=None, delimiter=None):
 def read_points_named(path, columns=None, delimiter=None):
     """``read_points``, and the two columns' names: the header's (or the names given),
     else ("x", "y")."""
+    return _read_columns(path, _parse_columns(columns), delimiter)
+
+
+def read_weighted_points(path, columns=None, weights=None, delimiter=None):
+    """(points (n, 2), weights (n,) or None, the two columns' names): ``read_points_named``
+    and, with ``weights`` (a column's name or zero-based index), that column, read with the
+    points (the weights' checks are the engine's)."""
     cols = _parse_columns(columns)
+    if weights is None:
+        points, names = _read_columns(path, cols, delimiter)
+        return points, None, names
+    spec = str(weights).strip()
+    if not spec or "," in spec:
+        raise InputError(f"--weights needs one column, by name or index; got {weights!r}")
+    spec = int(spec) if spec.lstrip("-").isdigit() else spec
+    table, names = _read_columns(path, (cols or [0, 1]) + [spec], delimiter)
+    return np.ascontiguousarray(table[:, :2]), table[:, 2].copy(), names[:2]
+
+
+def _read_columns(path, cols, delimiter):
+    """(array (n, len(cols)), the columns' names) of the file's columns ``cols`` (None: the
+    first two)."""
     if path == "-":
         data = sys.stdin.buffer.read()
         return _read_text(_io.BytesIO(data), _io.BytesIO(data), "<stdin>", cols, delimiter)
@@ -159,7 +180,7 @@ def _select_frame(frame, name, cols, has_header, skipped=0):
                     f"{', '.join(map(str, frame.columns))}"
                 )
             picked.append(c)
-    out = np.empty((len(frame), 2))
+    out = np.empty((len(frame), len(picked)))
     for j, c in enumerate(picked):
         col = frame[c]
         if not pd.api.types.is_numeric_dtype(col):
@@ -173,7 +194,7 @@ def _select_frame(frame, name, cols, has_header, skipped=0):
                 )
             col = num
         out[:, j] = col.to_numpy(dtype=np.float64, na_value=np.nan)
-    names = tuple(str(c) for c in picked) if has_header else ("x", "y")
+    names = tuple(str(c) for c in picked) if has_header else ("x", "y", "w")[: len(picked)]
     return out, names
 
 

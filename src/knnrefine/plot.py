@@ -162,12 +162,14 @@ def save_figure(path, figsize, draw, force=False, dpi=150):
     )
 
 
-def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma"):
-    """The kNN density estimate on a grid over the box, log colour scale."""
+def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma", grid=None):
+    """A density estimate (``KnnDensity`` or ``AdaptiveDensity``) on a grid over the box, log
+    colour scale; ``grid``: its (xs, ys, values) when already computed."""
     from matplotlib.colors import LogNorm
 
-    xs, ys, f = density.grid(shape)
-    mesh = density.distance.mesh
+    xs, ys, f = density.grid(shape) if grid is None else grid
+    knn = getattr(density, "knn", density)  # the adaptive estimate's pilot
+    mesh = knn.distance.mesh
     positive = f[np.isfinite(f) & (f > 0)]
     im = ax.imshow(
         f,
@@ -183,7 +185,9 @@ def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma")
     ax.set_aspect("equal" if 0.05 < ratio < 20 else "auto")
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
-    ax.set_title(f"kNN density: n = {density.n:,}, k = {density.k}, m = {len(mesh.vertices):,}")
+    n = knn.n if not float(knn.n).is_integer() else int(knn.n)
+    what = "kNN density" if knn is density else "adaptive kernel density"
+    ax.set_title(f"{what}: n = {n:,}, k = {density.k}, m = {len(mesh.vertices):,}")
     return ax
 
 

@@ -131,7 +131,7 @@ def announce_compilation(quiet):
         )
 
 
-def refine_with_progress(points, args, quiet):
+def refine_with_progress(points, args, quiet, weights=None):
     """knnrefine.refine with a progress bar (shown only after a second, and only on a
     terminal) unless quiet."""
     from .. import refine
@@ -174,6 +174,7 @@ def refine_with_progress(points, args, quiet):
                 max_vertices=args.max_vertices,
                 time_limit=args.time_limit,
                 progress=progress,
+                weights=weights,
             )
     finally:
         if bar is not None:
@@ -212,8 +213,9 @@ def add_mesh_option(parser):
     )
 
 
-def mesh_for(args, points, default_k=None):
-    """The mesh of the points: --mesh if given, else a refinement with the options."""
+def mesh_for(args, points, default_k=None, weights=None):
+    """The mesh of the points: --mesh if given, else a refinement with the options (counting
+    ``weights``; default_k of their total)."""
     from .. import io
 
     if args.mesh:
@@ -224,5 +226,5 @@ def mesh_for(args, points, default_k=None):
     if args.k is None:
         if default_k is None:
             raise UsageError("the following argument is required: -k (or --mesh MESH.npz)")
-        args.k = default_k(len(points))
-    return refine_with_progress(points, args, args.quiet)
+        args.k = default_k(len(points) if weights is None else float(weights.sum()))
+    return refine_with_progress(points, args, args.quiet, weights)

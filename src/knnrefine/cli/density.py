@@ -1,4 +1,4 @@
-"""knnrefine density: the kNN density estimate on a grid, and its picture."""
+"""knnrefine density: the density estimate on a grid, and its picture."""
 
 import os
 import time
@@ -7,22 +7,59 @@ import numpy as np
 
 from .common import add_input_options, add_mesh_option, add_refine_options, mesh_for
 
-HELP = "estimate the kNN density k / (n pi d_Pk^2) on a grid"
+HELP = "estimate the density (adaptive kernel, or kNN k / (n pi d_Pk^2)) on a grid"
 EXAMPLES = """examples:
   knnrefine density quakes.csv --columns lon,lat --periodic-x --box -180 -90 180 90 \\
       -o density.npz --plot density.png
-  knnrefine density points.npy --mesh mesh.npz --grid 1024 -o density.csv
+  knnrefine density counts.csv --columns x,y --weights count -o density.csv
+  knnrefine density points.npy --method knn --mesh mesh.npz --grid 1024 -o density.csv
 
-the density integrates to 1 over the box; -k defaults to sqrt(n) / 2. Outputs: .npz (xs, ys,
-density, d_pk on the grid), .csv (x, y, density, d_pk per grid cell), pictures (.png .svg .pdf)"""
+the density integrates to 1 over the box. --method adaptive (default): one kernel per point,
+of extent c G (d_Pk / G)^(2 alpha), c and alpha by leave-one-out likelihood unless given;
+-k defaults to 2 sqrt(n). --method knn: k / (n pi d_Pk^2), -k defaults to sqrt(n) / 2.
+Outputs: .npz (xs, ys, density, d_pk on the grid), .csv (x, y, density, d_pk per grid cell),
+pictures (.png .svg .pdf)"""
 
 
 def add_arguments(parser):
     add_input_options(parser)
     add_refine_options(
-        parser, k_required=False, k_help="which nearest neighbour (default sqrt(n) / 2)"
+        parser,
+        k_required=False,
+        k_help="which nearest neighbour (default 2 sqrt(n) adaptive, sqrt(n) / 2 knn)",
     )
     add_mesh_option(parser)
+    parser.add_argument(
+        "--weights",
+        metavar="COLUMN",
+        help="a column of weights >= 0 (counts, survey weights), by name or index; "
+        "a point of weight w counts as w points",
+    )
+    parser.add_argument(
+        "--method",
+        choices=("adaptive", "knn"),
+        default="adaptive",
+        help="adaptive kernel estimate (default) or the kNN estimate",
+    )
+    parser.add_argument(
+        "--bandwidth",
+        type=float,
+        metavar="C",
+        help="adaptive: the kernels' factor c > 0 (default: by leave-one-out likelihood)",
+    )
+    parser.add_argument(
+        "--sensitivity",
+        type=float,
+        metavar="ALPHA",
+        help="adaptive: kernels ~ f^-alpha, alpha in [0, 1]; 0.5 is Abramson's law, 0 a fixed "
+        "bandwidth (default: by leave-one-out likelihood)",
+    )
+    parser.add_argument(
+        "--shape",
+        choices=("isotropic", "local"),
+        default="isotropic",
+        help="adaptive: disks, or ellipses shaped like the points nearby (thin ridges)",
+    )
     parser.add_argument(
         "--grid",
         type=int,
@@ -43,11 +80,42 @@ def add_arguments(parser):
     parser.add_argument("--force", action="store_true", help="overwrite existing files")
 
 
+def _check_smoothing(args):
+    """The adaptive options, before any work (usage errors, exit 2)."""
+    from ..density import _check_bandwidth, _check_sensitivity
+    from ..errors import InputError
+    from .common import UsageError
+
+    if args.method == "knn":
+        given = [f for f, v in (("--bandwidth", args.bandwidth), ("--sensitivity",
+                 args.sensitivity)) if v is not None] + (["--shape"] if args.shape != "isotropic"
+                 else [])  # fmt: skip
+        if given:
+            raise UsageError(f"{', '.join(given)} belong to --method adaptive, not knn")
+        return
+    try:
+        if args.bandwidth is not None:
+            _check_bandwidth(args.bandwidth)
+        if args.sensitivity is not None:
+            _check_sensitivity(args.sensitivity)
+    except InputError as exc:
+        raise UsageError(f"--{exc}") from None
+
+
 def run(args):
     from .. import io
-    from ..density import KnnDensity, default_k
+    from ..density import (
+        BANDWIDTHS,
+        SENSITIVITIES,
+        AdaptiveDensity,
+        KnnDensity,
+        choose_smoothing,
+        default_k,
+        default_pilot_k,
+    )
     from ..plot import figure_size, plot_density, save_figure
-    from .common import PICTURES, UsageError, check_outputs, plural, read_input
+    from ..validation import check_weights
+    from .common import PICTURES, UsageError, check_outputs, plural
 
     if not args.output and not args.plot:
         raise UsageError("nothing to write: give -o FILE and/or --plot PICTURE")
@@ -56,19 +124,47 @@ def run(args):
             f"--grid takes one or two positive numbers of cells (N, or NX NY), got "
             f"{' '.join(map(str, args.grid))}"
         )
+    _check_smoothing(args)
     check_outputs(
         [(p, (".npz", ".csv"), "grids") for p in args.output]
         + ([(args.plot, PICTURES, "pictures")] if args.plot else []),
         args.force,
     )
     nx, ny = (args.grid * 2)[:2]
-    points, names = read_input(args)
-    mesh, _ = mesh_for(args, points, default_k)
+    points, weights, names = io.read_weighted_points(
+        args.points, args.columns, args.weights, args.delimiter
+    )
+    if weights is not None:
+        weights = check_weights(weights, len(points))
+        points, weights = points[weights > 0], weights[weights > 0]
+    adaptive = args.method == "adaptive"
+
+    def pilot_k(n):
+        return min(default_pilot_k(n), int(n))
+
+    mesh, _ = mesh_for(args, points, pilot_k if adaptive else default_k, weights)
     t0 = time.perf_counter()
-    density = KnnDensity(mesh, points)
-    xs, ys, d = density.distance.grid((ny, nx))
-    f = density.constant / d**2
+    knn = KnnDensity(mesh, points, weights=weights)
+    xs, ys, d = knn.distance.grid((ny, nx))
+    if adaptive:
+        alphas = SENSITIVITIES if args.sensitivity is None else (args.sensitivity,)
+        cs = BANDWIDTHS if args.bandwidth is None else (args.bandwidth,)
+        density = AdaptiveDensity(
+            mesh, points, cs[0], args.shape, weights=weights, knn=knn, sensitivity=alphas[0]
+        )
+        scored = 0
+        if len(alphas) > 1 or len(cs) > 1:
+            scored = len(choose_smoothing(density, alphas, cs)[2])
+        f = density.grid((ny, nx))[2]
+    else:
+        density = knn
+        f = knn.constant / d**2
     seconds = time.perf_counter() - t0
+    n = len(points) if weights is None else float(weights.sum())
+    n = int(n) if float(n).is_integer() else n
+    extra = {}
+    if adaptive:
+        extra = {"bandwidth": density.bandwidth, "sensitivity": density.sensitivity}
     for path in args.output:
         ext = os.path.splitext(path)[1].lower()
         if ext == ".npz":
@@ -82,9 +178,11 @@ def run(args):
                     density=f,
                     d_pk=d,
                     k=mesh.k,
-                    n=len(points),
+                    n=n,
                     box=np.array(mesh.box),
                     periodic=np.array(mesh.periodic),
+                    method=args.method,
+                    **extra,
                 ),
             )
         else:
@@ -103,18 +201,25 @@ def run(args):
         save_figure(
             args.plot,
             figure_size(mesh),
-            lambda ax: plot_density(density, ax, shape=(ny, nx), labels=names),
+            lambda ax: plot_density(density, ax, labels=names, grid=(xs, ys, f)),
             force=args.force,
         )
     if not args.quiet:
-        err = density.distance.error()
+        err = knn.distance.error()
+        what = "adaptive kernel density" if adaptive else "kNN density"
         print(
-            f"kNN density of n = {plural(len(points), 'point')}, k = {mesh.k}, on a {nx} x {ny} "
+            f"{what} of n = {plural(n, 'point')}, k = {mesh.k}, on a {nx} x {ny} "
             f"grid from m = {plural(len(mesh.vertices), 'mesh vertex', 'mesh vertices')} in "
             f"{seconds:.2f} s"
         )
+        if adaptive:
+            how = f" (by leave-one-out likelihood, {scored} pairs scored)" if scored else ""
+            print(
+                f"  kernels: {args.shape}, bandwidth c = {density.bandwidth:.3g}, sensitivity "
+                f"alpha = {density.sensitivity:.2g}{how}"
+            )
         print(
-            f"  d_Pk interpolated from exact values at {len(density.distance.nodes):,} nodes: "
+            f"  d_Pk interpolated from exact values at {len(knn.distance.nodes):,} nodes: "
             f"relative error median {err['median']:.4f}, worst {err['worst']:.3f} "
             f"({err['probes']:,} probes)"
         )
