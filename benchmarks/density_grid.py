@@ -9,6 +9,11 @@ d_{P,k} at the mesh's nodes from the engine's own index, the normalising integra
 rules, as ``density_accuracy.py``) + fit + evaluate on the grid asked for. Prints each
 repeat, the medians, the ratio, and knnrefine's phases (median).
 
+The adaptive estimate (``KnnDensityEstimator``'s default) is timed in the same repeats,
+twice: with its smoothing chosen by leave-one-out likelihood (the default), and with the
+chosen pair given (``bandwidth``, ``sensitivity``: a refit of known smoothing), each fit +
+the same grid.
+
     python benchmarks/density_grid.py                 # n = 10^6, 3 repeats
     python benchmarks/density_grid.py --n 100000 --repeat 5
 """
@@ -44,6 +49,16 @@ def knnrefine_job(pts, shape):
     return t3 - t0, phases
 
 
+def adaptive_job(pts, shape, given=None):
+    """KnnDensityEstimator (adaptive) fit + grid; given: (bandwidth, sensitivity) or None
+    (chosen by leave-one-out). Returns (seconds, (bandwidth, sensitivity))."""
+    t0 = time.perf_counter()
+    options = {} if given is None else {"bandwidth": given[0], "sensitivity": given[1]}
+    est = knnrefine.KnnDensityEstimator(**options).fit(pts)
+    est.density_.grid(shape)
+    return time.perf_counter() - t0, (est.bandwidth_, est.sensitivity_)
+
+
 def fftkde_job(pts, shape, rule):
     from KDEpy import FFTKDE
     from KDEpy.bw_selection import improved_sheather_jones, silvermans_rule
@@ -66,12 +81,16 @@ def main(argv=None):
     pts = Multiscale().sample(n, np.random.default_rng(0))
     # warm up: compile (cached) kernels, import KDEpy
     knnrefine_job(pts[:20000], (64, 64))
+    adaptive_job(pts[:20000], (64, 64))
     fftkde_job(pts[:20000], (64, 64), "ISJ")
     print(
         f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; n = {n:,}, "
         f"k = {default_k(n)}, grid {shape[0]} x {shape[1]}"
     )
-    times = {"knnrefine": [], "FFTKDE (ISJ)": [], "FFTKDE (Silverman)": []}
+    times = {
+        "knnrefine": [], "FFTKDE (ISJ)": [], "FFTKDE (Silverman)": [],
+        "adaptive (cv)": [], "adaptive (given)": [],
+    }  # fmt: skip
     phases = []
     for r in range(args.repeat):
         s, ph = knnrefine_job(pts, shape)
@@ -79,6 +98,9 @@ def main(argv=None):
         phases.append(ph)
         times["FFTKDE (ISJ)"].append(fftkde_job(pts, shape, "ISJ"))
         times["FFTKDE (Silverman)"].append(fftkde_job(pts, shape, "Silverman"))
+        seconds, chosen = adaptive_job(pts, shape)
+        times["adaptive (cv)"].append(seconds)
+        times["adaptive (given)"].append(adaptive_job(pts, shape, chosen)[0])
         print(
             f"repeat {r + 1}: " + ", ".join(f"{k} {v[-1]:.3f} s" for k, v in times.items()),
             flush=True,
@@ -89,6 +111,9 @@ def main(argv=None):
         print(f"  {name:20s} {s:7.3f} s")
     fastest = min(med["FFTKDE (ISJ)"], med["FFTKDE (Silverman)"])
     print(f"  knnrefine / faster FFTKDE = {med['knnrefine'] / fastest:.2f} (target <= 2)")
+    for name in ("adaptive (cv)", "adaptive (given)"):
+        print(f"  {name} / faster FFTKDE = {med[name] / fastest:.1f}")
+    print(f"  adaptive smoothing chosen: bandwidth {chosen[0]:.3g}, sensitivity {chosen[1]:.2g}")
     print("knnrefine's phases (median):")
     for name in phases[0]:
         print(f"  {name:24s} {np.median([p[name] for p in phases]):7.3f} s")
