@@ -1,13 +1,13 @@
 """The adaptive estimate's pilot k: L1 error and held-out log-likelihood against k.
 
-    python benchmarks/pilot_k.py --sizes 1e4 1e5     # about 5 minutes
+    python benchmarks/pilot_k.py --sizes 1e4 1e5     # about 10 minutes
 
 For each truth of ``density_accuracy.py`` and each n, KnnDensityEstimator (adaptive, its
-bandwidth by leave-one-out likelihood, the truth's box) with k = m sqrt(n) / 2 for m in 0.5,
-1, 2, 4, 8: the L1 error (importance-sampled, as the study), the mean log-density at 20,000
-held-out points, the bandwidth chosen and its leave-one-out score (which, unlike the held-out
-score, does not rise with k: the pilot includes the left-out point). Chose the default pilot
-k = 2 sqrt(n) (m = 4).
+bandwidth and sensitivity by leave-one-out likelihood, the truth's box) with
+k = m sqrt(n) / 2 for m in 0.5, 1, 2, 4, 8: the L1 error (importance-sampled, as the study),
+the mean log-density at 20,000 held-out points, the bandwidth and sensitivity chosen and
+their leave-one-out score (which, unlike the held-out score, does not rise with k: the pilot
+includes the left-out point). Chose the default pilot k = 2 sqrt(n) (m = 4).
 """
 
 import argparse
@@ -44,7 +44,10 @@ def main(argv=None):
                 l1 = np.mean(np.abs(np.exp(est.score_samples(ev)) - f) / q)
                 ll = est.score(test) / len(test)
                 loo = float(np.max(est.bandwidth_scores_))
-                cells.append(f"L1 {l1:.3f}, LL {ll:.3f} (c {est.bandwidth_:.2f}, LOO {loo:.3f})")
+                cells.append(
+                    f"L1 {l1:.3f}, LL {ll:.3f} (c {est.bandwidth_:.2f}, alpha "
+                    f"{est.sensitivity_:.1f}, LOO {loo:.3f})"
+                )
             print(f"| {key} | {n:.0e} | " + " | ".join(cells) + " |", flush=True)
 
 
