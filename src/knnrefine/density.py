@@ -62,10 +62,10 @@ def default_k(n):
 
 def default_pilot_k(n):
     """The default k of the adaptive estimate's pilot: 2 sqrt(n) (at least 10). A smoother
-    pilot than the kNN estimate's own default: with the bandwidth factor chosen by
+    pilot than the kNN estimate's own default: with the bandwidth and sensitivity chosen by
     leave-one-out likelihood, 2 sqrt(n) had lower L1 error than sqrt(n) / 2 on five of the
-    study's six truths at n = 1e4 and 1e5, and a held-out likelihood as good or better on
-    four at 1e4 and all six at 1e5 (``benchmarks/pilot_k.py``, docs/uses.md)."""
+    study's six truths at n = 1e4 and all six at 1e5, and a held-out likelihood as good or
+    better on five and six (``benchmarks/pilot_k.py``, docs/uses.md)."""
     return max(10, int(round(2.0 * np.sqrt(n))))
 
 
