@@ -9,7 +9,7 @@ from conftest import load_shared
 
 import knnrefine
 from knnrefine import InputError, KnnDensityEstimator
-from knnrefine.density import AdaptiveDensity, KnnDensity
+from knnrefine.density import AdaptiveDensity, KnnDensity, default_pilot_k
 
 
 def mixture(n, seed=0):
@@ -346,6 +346,9 @@ def test_default_pilot_k_is_two_root_n():
     X = mixture(2500, seed=14)
     assert KnnDensityEstimator().fit(X).k_ == round(2 * np.sqrt(len(X)))
     assert KnnDensityEstimator(method="knn").fit(X).k_ == round(0.5 * np.sqrt(len(X)))
+    # never above n, the points' number or total weight (k counts weight)
+    assert [default_pilot_k(n) for n in (5, 7.5, 100, 1e6)] == [5, 7, 20, 2000]
+    assert KnnDensityEstimator().fit(X[:6]).k_ == 6
 
 
 def test_standard_error_matches_the_sampling_distribution():

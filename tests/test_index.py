@@ -280,3 +280,26 @@ def test_select_puts_the_kth_row_in_place(kind):
             assert (q[kth + 1 : hi, axis] >= q[kth, axis]).all()
             rows = np.lexsort(q[lo:hi].T), np.lexsort(p[lo:hi].T)
             assert np.array_equal(q[lo:hi][rows[0]], p[lo:hi][rows[1]])
+
+
+def test_mark_in_disks_matches_brute_force():
+    """mark_in_disks (the floor's point count, through the planar leaf walk it shares with
+    the kernel sums) marks exactly the points within a closed disk's periodic distance."""
+    rng = np.random.default_rng(31)
+    lx, ly = 2.0, 1.0
+    for name, pts in point_sets(rng):
+        pts = pts * [lx, ly]
+        index = make(pts)
+        ordered = index[0]  # the index's order
+        cx, cy = rng.random(7) * lx, rng.random(7) * ly
+        r2 = (rng.random(7) * 0.3) ** 2
+        r2[0] = 0.0  # a disk of radius 0 marks only points at its centre
+        if len(ordered):
+            cx[0], cy[0] = ordered[0]
+        mark = np.zeros(len(ordered), np.bool_)
+        got = engine_index.mark_in_disks(index, cx, cy, r2, lx, ly, mark)
+        ex = np.abs(ordered[:, None, 0] - cx)
+        ey = np.abs(ordered[:, None, 1] - cy)
+        ex, ey = np.minimum(ex, lx - ex), np.minimum(ey, ly - ey)
+        want = (ex * ex + ey * ey <= r2).any(axis=1)
+        assert got == want.sum() and (mark == want).all(), name

@@ -61,12 +61,13 @@ def default_k(n):
 
 
 def default_pilot_k(n):
-    """The default k of the adaptive estimate's pilot: 2 sqrt(n) (at least 10). A smoother
+    """The default k of the adaptive estimate's pilot: 2 sqrt(n) (at least 10, at most n,
+    the points' number or total weight: k counts weight). A smoother
     pilot than the kNN estimate's own default: with the bandwidth and sensitivity chosen by
     leave-one-out likelihood, 2 sqrt(n) had lower L1 error than sqrt(n) / 2 on five of the
     study's six truths at n = 1e4 and all six at 1e5, and a held-out likelihood as good or
     better on five and six (``benchmarks/pilot_k.py``, docs/uses.md)."""
-    return max(10, int(round(2.0 * np.sqrt(n))))
+    return min(max(10, int(round(2.0 * np.sqrt(n)))), int(n))
 
 
 class KnnDistance:
@@ -904,7 +905,7 @@ class KnnDensityEstimator:
         else:
             k = self.k
             if k is None:
-                k = default_k(n) if self.method == "knn" else min(default_pilot_k(n), int(n))
+                k = default_k(n) if self.method == "knn" else default_pilot_k(n)
             if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
                 raise InputError(f"k must be an integer in [1, n = {n:g}], got {k!r}")
         self.density_, self.mesh_ = self._estimate(pts, weights, box, int(k))
@@ -965,13 +966,12 @@ class KnnDensityEstimator:
             mesh, pts, cs[0], self.shape, weights=weights, knn=knn, sensitivity=alphas[0]
         )
         if len(cs) > 1 or len(alphas) > 1:
-            alpha, c, self.loo_scores_ = choose_smoothing(
+            alpha, _, self.loo_scores_ = choose_smoothing(
                 density, alphas, cs, self.loo_points, self.random_state
-            )
+            )  # leaves the density at the chosen pair
             at = self.loo_scores_[self.loo_scores_[:, 0] == alpha]
             at = at[np.argsort(at[:, 1])]
             self.bandwidths_, self.bandwidth_scores_ = at[:, 1], at[:, 2]
-            density.set_bandwidth(c, alpha)
         return density, mesh
 
     def _k_candidates(self, n_train):

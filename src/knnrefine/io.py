@@ -57,8 +57,7 @@ def read_weighted_points(path, columns=None, weights=None, delimiter=None):
     spec = str(weights).strip()
     if not spec or "," in spec:
         raise InputError(f"--weights needs one column, by name or index; got {weights!r}")
-    spec = int(spec) if spec.lstrip("-").isdigit() else spec
-    table, names = _read_columns(path, (cols or [0, 1]) + [spec], delimiter)
+    table, names = _read_columns(path, (cols or [0, 1]) + [_column(spec)], delimiter)
     return np.ascontiguousarray(table[:, :2]), table[:, 2].copy(), names[:2]
 
 
@@ -96,7 +95,12 @@ def _parse_columns(columns):
         parts = list(columns)
     if len(parts) != 2 or not all(str(p) for p in parts):
         raise InputError(f"--columns needs two columns, like lon,lat or 0,1; got {columns!r}")
-    return [int(p) if str(p).lstrip("-").isdigit() else str(p) for p in parts]
+    return [_column(p) for p in parts]
+
+
+def _column(spec):
+    """A column given by zero-based index (an int, "2", "-1") or by name."""
+    return int(spec) if str(spec).lstrip("-").isdigit() else str(spec)
 
 
 def _sniff(first_line):

@@ -16,7 +16,10 @@ class UsageError(KnnRefineError):
 
 
 def plural(count, word, words=None):
-    """'1 point', '2 points' (with thousands separators)."""
+    """'1 point', '2 points', '2.5 points' (with thousands separators; a whole total of
+    weights as a whole number)."""
+    if float(count).is_integer():
+        count = int(count)
     return f"{count:,} {word if count == 1 else (words or word + 's')}"
 
 

@@ -87,9 +87,12 @@ def _check_smoothing(args):
     from .common import UsageError
 
     if args.method == "knn":
-        given = [f for f, v in (("--bandwidth", args.bandwidth), ("--sensitivity",
-                 args.sensitivity)) if v is not None] + (["--shape"] if args.shape != "isotropic"
-                 else [])  # fmt: skip
+        set_ = {
+            "--bandwidth": args.bandwidth is not None,
+            "--sensitivity": args.sensitivity is not None,
+            "--shape": args.shape != "isotropic",
+        }
+        given = [flag for flag, is_set in set_.items() if is_set]
         if given:
             raise UsageError(f"{', '.join(given)} belong to --method adaptive, not knn")
         return
@@ -138,11 +141,7 @@ def run(args):
         weights = check_weights(weights, len(points))
         points, weights = points[weights > 0], weights[weights > 0]
     adaptive = args.method == "adaptive"
-
-    def pilot_k(n):
-        return min(default_pilot_k(n), int(n))
-
-    mesh, _ = mesh_for(args, points, pilot_k if adaptive else default_k, weights)
+    mesh, _ = mesh_for(args, points, default_pilot_k if adaptive else default_k, weights)
     t0 = time.perf_counter()
     knn = KnnDensity(mesh, points, weights=weights)
     xs, ys, d = knn.distance.grid((ny, nx))
@@ -161,7 +160,6 @@ def run(args):
         f = knn.constant / d**2
     seconds = time.perf_counter() - t0
     n = len(points) if weights is None else float(weights.sum())
-    n = int(n) if float(n).is_integer() else n
     extra = {}
     if adaptive:
         extra = {"bandwidth": density.bandwidth, "sensitivity": density.sensitivity}

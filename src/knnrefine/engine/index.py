@@ -528,6 +528,8 @@ def mark_in_disks(index, cx, cy, r2, lx, ly, mark):
     the number of points marked (weights play no part)."""
     pts, box, node, split, weight = index
     stack = np.empty(STACK_SIZE, np.int64)
+    leaves = np.empty(node.shape[0], np.int64)
+    none = np.empty(0)
     for d in range(cx.shape[0]):
         r = np.sqrt(r2[d])
         x_lo, x_hi = _copies(cx[d], r, lx)
@@ -538,27 +540,42 @@ def mark_in_disks(index, cx, cy, r2, lx, ly, mark):
                 oy = cy[d] + sy * ly
                 if node[0, 1] == 0:
                     continue
-                stack[0] = 0
-                sp = 1
-                while sp > 0:
-                    sp -= 1
-                    t = stack[sp]
-                    dx = max(box[t, 0] - ox, 0.0, ox - box[t, 2])
-                    dy = max(box[t, 1] - oy, 0.0, oy - box[t, 3])
-                    if dx * dx + dy * dy > r2[d]:
-                        continue
-                    c = node[t, 2]
-                    if c < 0:
-                        for i in range(node[t, 0], node[t, 1]):
-                            ex = pts[i, 0] - ox
-                            ey = pts[i, 1] - oy
-                            if ex * ex + ey * ey <= r2[d]:
-                                mark[i] = True
-                        continue
-                    stack[sp] = c
-                    stack[sp + 1] = c + 1
-                    sp += 2
+                for f in range(_leaves_near(box, node, none, r, ox, oy, stack, leaves)):
+                    t = leaves[f]
+                    for i in range(node[t, 0], node[t, 1]):
+                        ex = pts[i, 0] - ox
+                        ey = pts[i, 1] - oy
+                        if ex * ex + ey * ey <= r2[d]:
+                            mark[i] = True
     return int(mark.sum())
+
+
+@kernel(inline="always")
+def _leaves_near(box, node, extent, r, x, y, stack, leaves):
+    """The leaves whose bounding box lies within r + extent[t] of (x, y) (extent empty: r
+    alone), into ``leaves``; returns how many. The planar walk of the tree: points within r
+    (mark_in_disks, kernelsum.ball_moments), or, with extent[t] the widest kernel below node
+    t, the leaves that may hold a kernel reaching (x, y) (kernelsum.kernel_sums)."""
+    found = 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        dx = max(box[t, 0] - x, 0.0, x - box[t, 2])
+        dy = max(box[t, 1] - y, 0.0, y - box[t, 3])
+        reach = r + extent[t] if extent.shape[0] > 0 else r
+        if dx * dx + dy * dy > reach * reach:
+            continue
+        c = node[t, 2]
+        if c >= 0:
+            stack[sp] = c
+            stack[sp + 1] = c + 1
+            sp += 2
+        else:
+            leaves[found] = t
+            found += 1
+    return found
 
 
 @kernel(inline="always")

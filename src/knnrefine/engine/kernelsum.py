@@ -22,7 +22,7 @@ along the axis, which the caller keeps. Coordinates are relative to the box's lo
 
 import numpy as np
 
-from .index import STACK_SIZE, _build_tree
+from .index import STACK_SIZE, _build_tree, _leaves_near
 from .jit import kernel
 
 X, Y, W, AMP, Q11, Q12, Q22, R, ROW = range(9)
@@ -66,33 +66,6 @@ def _image(q, j, period, periodic):
     if periodic:
         return q - period if j == 1 else q + period
     return -q if j == 1 else 2.0 * period - q
-
-
-@kernel(inline="always")
-def _leaves_near(box, node, extent, r, x, y, stack, leaves):
-    """The leaves whose bounding box lies within r + extent[t] of (x, y) (extent empty: r
-    alone), into ``leaves``; returns how many. extent[t] is the widest kernel below node t,
-    so these are the leaves that may hold a kernel reaching (x, y)."""
-    found = 0
-    stack[0] = 0
-    sp = 1
-    while sp > 0:
-        sp -= 1
-        t = stack[sp]
-        dx = max(box[t, 0] - x, 0.0, x - box[t, 2])
-        dy = max(box[t, 1] - y, 0.0, y - box[t, 3])
-        reach = r + extent[t] if extent.shape[0] > 0 else r
-        if dx * dx + dy * dy > reach * reach:
-            continue
-        c = node[t, 2]
-        if c >= 0:
-            stack[sp] = c
-            stack[sp + 1] = c + 1
-            sp += 2
-        else:
-            leaves[found] = t
-            found += 1
-    return found
 
 
 @kernel(entry=True, nogil=True)
