@@ -557,10 +557,35 @@ def test_density_weights_column_counts_like_copies(tmp_path, points):
     assert not (tmp_path / "bad.npz").exists()
 
 
+def test_density_criterion_least_squares_is_the_librarys_choice(tmp_path, points, capsys):
+    """--criterion least-squares chooses c and alpha as choose_smoothing does with it (the
+    grid is then the library's estimate at that pair), and says so."""
+    from knnrefine.density import AdaptiveDensity, choose_smoothing
+
+    src = tmp_path / "p.csv"
+    np.savetxt(src, points, delimiter=",", header="x,y", comments="")
+    out = tmp_path / "ls.npz"
+    box = (-181, -91, 181, 91)
+    assert run("density", src, "--criterion", "least-squares", "-k", 30, "--box", *box,
+               "-o", out) == 0  # fmt: skip
+    assert "(by least squares," in capsys.readouterr().out
+    mesh = knnrefine.refine(points, 30, box=box)
+    ref = AdaptiveDensity(mesh, points)
+    alpha, c, _ = choose_smoothing(ref, criterion="least-squares")
+    g = np.load(out)
+    assert (float(g["sensitivity"]), float(g["bandwidth"])) == (alpha, c)
+    assert str(g["criterion"]) == "least-squares"
+    np.testing.assert_allclose(g["density"], ref.grid((512, 512))[2], rtol=1e-12)
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["density", "{csv}", "--method", "knn", "--bandwidth", "2", "-o", "d.npz"], "belong to"),
+        (["density", "{csv}", "--method", "knn", "--bandwidth", "2", "-o", "d.npz"], "belongs to"),
+        (
+            ["density", "{csv}", "--method", "knn", "--criterion", "least-squares", "-o", "d.npz"],
+            "--criterion belongs to",
+        ),  # fmt: skip
         (["density", "{csv}", "--sensitivity", "1.5", "-o", "d.npz"], "sensitivity must be"),
         (["density", "{csv}", "--bandwidth", "0", "-o", "d.npz"], "bandwidth must be"),
         (["density", "{csv}", "--grid", "0", "-o", "d.npz"], "--grid takes one or two positive"),

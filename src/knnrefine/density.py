@@ -602,6 +602,19 @@ class AdaptiveDensity:
             scores.append(float((self.loo(idx) * w).sum() / w.sum()))
         return np.array(scores)
 
+    def least_squares(self, sample=None, draws=None, seed=0):
+        """The least-squares cross-validation score (Rudemo 1982, Bowman 1984) at this
+        smoothing: integral f^2 - 2 (mean leave-one-out density at the points ``sample``),
+        which is the integrated squared error less the constant integral of the truth^2, so
+        lower is better. The integral of f^2 is the mean of f at ``draws`` points drawn from
+        f (default: as many as the sample), with the generator seeded by ``seed``: the same
+        draws move with the kernels from one smoothing to the next (common random numbers),
+        so that scores of neighbouring candidates compare with little noise."""
+        idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
+        w = self._rows[self._row_of[idx], W]
+        loo = float((np.exp(self.loo(idx)) * w).sum() / w.sum())
+        return square_integral(self, len(idx) if draws is None else int(draws), seed) - 2 * loo
+
     def sample(self, n, rng):
         """n points (n, 2) drawn from the estimate: a kernel chosen by weight, a point from
         it (u = |z|^2 ~ Beta(1, 4) for the triweight), folded or wrapped into the box; with
@@ -640,22 +653,36 @@ class AdaptiveDensity:
         return self._metric.wrap(frame + self.lo)
 
 
+def square_integral(density, draws, seed=0):
+    """Monte Carlo integral of f^2 over the box for a density with ``sample`` and a call:
+    the mean of f at ``draws`` points drawn from f (seeded, so repeatable)."""
+    y = density.sample(int(draws), np.random.default_rng(seed))
+    return float(np.mean(density(y)))
+
+
+CRITERIA = ("likelihood", "least-squares")
 BANDWIDTHS = tuple(2.0 ** (np.arange(-6, 7) / 2))  # 1/8 to 8, steps of sqrt(2)
 SENSITIVITIES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 COARSE = 4000  # a first climb's points, when there are more than twice as many
 
 
 def choose_smoothing(
-    density, alphas=SENSITIVITIES, bandwidths=BANDWIDTHS, loo_points=20000, random_state=0
-):
+    density, alphas=SENSITIVITIES, bandwidths=BANDWIDTHS, loo_points=20000, random_state=0,
+    criterion="likelihood",
+):  # fmt: skip
     """(sensitivity, bandwidth, table): the pair of the grid alphas x bandwidths with the
-    best leave-one-out likelihood of the ``AdaptiveDensity`` at up to ``loo_points`` of its
+    best cross-validation score of the ``AdaptiveDensity`` at up to ``loo_points`` of its
     points (chosen by ``random_state``), by climbing from the candidates nearest (1/2, 1) to
-    the best grid neighbour until none is better: the likelihood is smooth in both, so a
-    climb scores a few pairs, not all. Over 2 COARSE points, a first climb on a fifth of them
+    the best grid neighbour until none is better: the score is smooth in both, so a climb
+    scores a few pairs, not all. Over 2 COARSE points, a first climb on a fifth of them
     (at least COARSE) finds the region at a fifth of the cost, and the second starts there.
-    The table has a row (alpha, c, score) per pair the last climb scored, in that order.
-    The density is left at the chosen pair."""
+    ``criterion``: "likelihood" (mean leave-one-out log-density, higher is better: what
+    held-out likelihood rewards) or "least-squares" (``AdaptiveDensity.least_squares``,
+    lower is better: an unbiased estimate of the integrated squared error less a constant,
+    which favours the wider kernels that L1 and L2 errors reward). The table has a row
+    (alpha, c, score) per pair the last climb scored, in that order (the score as defined
+    above for the criterion). The density is left at the chosen pair."""
+    criterion = _check_criterion(criterion)
     n = len(density.pilot)
     m = min(n, int(loo_points))
     sample = None if m == n else np.sort(_generator(random_state).choice(n, m, False))
@@ -664,21 +691,27 @@ def choose_smoothing(
     if m > 2 * COARSE:
         pool = np.arange(n) if sample is None else sample
         coarse = np.sort(_generator(random_state).choice(pool, max(COARSE, m // 5), False))
-        i, j, _ = _climb(density, alphas, bandwidths, coarse, i, j)
-    i, j, scored = _climb(density, alphas, bandwidths, sample, i, j)
-    table = np.array([(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()])
+        i, j, _ = _climb(density, alphas, bandwidths, coarse, i, j, criterion)
+    i, j, scored = _climb(density, alphas, bandwidths, sample, i, j, criterion)
+    sign = 1.0 if criterion == "likelihood" else -1.0  # the table has the scores as defined
+    table = np.array([(alphas[a], bandwidths[b], sign * v) for (a, b), v in scored.items()])
     density.set_bandwidth(bandwidths[j], alphas[i])
     return float(alphas[i]), float(bandwidths[j]), table
 
 
-def _climb(density, alphas, cs, sample, i, j):
-    """Hill-climb of the leave-one-out likelihood over the grid alphas x cs from (i, j):
-    (i, j) of the best pair found, {(i, j): score} of every pair scored."""
+def _climb(density, alphas, cs, sample, i, j, criterion="likelihood"):
+    """Hill-climb of a cross-validation score over the grid alphas x cs from (i, j):
+    (i, j) of the best pair found, {(i, j): score} of every pair scored (the
+    least-squares score negated, so that higher is better for both criteria)."""
     scored = {}
 
     def score(a, b):
         if (a, b) not in scored:
-            scored[a, b] = density.loo_curve([cs[b]], sample, alphas[a])[0]
+            if criterion == "likelihood":
+                scored[a, b] = density.loo_curve([cs[b]], sample, alphas[a])[0]
+            else:
+                density.set_bandwidth(cs[b], alphas[a])
+                scored[a, b] = -density.least_squares(sample)
         return scored[a, b]
 
     best = score(i, j)
@@ -799,15 +832,22 @@ class KnnDensityEstimator:
         spaced geometrically from 4 to a twentieth of a fold's training points), the seed of
         the fold assignment and of the leave-one-out subsample (an int or None); the size of
         that subsample.
+    criterion : "likelihood" or "least-squares"
+        What the searches ("cv" above) optimise: held-out log-likelihood (default; its
+        choice wins held-out likelihood and Hellinger distance), or least-squares
+        cross-validation, an estimate of the integrated squared error (``choose_smoothing``):
+        it picks wider kernels, and won L1 error where likelihood's choice lost it in the
+        project's study at 1e6 (docs/uses.md). ``score`` stays the log-likelihood.
 
     Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
     ``scale_`` (the whitening divisors, (1, 1) without), ``n_samples_`` (weights counted),
     ``n_features_in_`` (2), ``mesh_`` (the ``Mesh``), ``density_`` (the ``AdaptiveDensity`` or
     ``KnnDensity``), ``sensitivity_`` (adaptive); when either is ``"cv"``, ``loo_scores_``
-    (a row (alpha, c, leave-one-out log-likelihood per point) for every pair the search
-    scored) and ``bandwidths_``, ``bandwidth_scores_`` (the curve over c at the chosen
-    alpha), with ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (mean held-out
-    log-likelihood per point of each candidate: the curve).
+    (a row (alpha, c, score) for every pair the search scored: the leave-one-out
+    log-likelihood per point, or the least-squares score, by ``criterion``) and
+    ``bandwidths_``, ``bandwidth_scores_`` (the curve over c at the chosen alpha), with
+    ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (each candidate's score: the mean held-out
+    log-likelihood per point, or the least-squares score: the curve).
     """
 
     BANDWIDTHS = BANDWIDTHS
@@ -817,7 +857,7 @@ class KnnDensityEstimator:
         self, k=None, *, method="adaptive", bandwidth="cv", sensitivity="cv", shape="isotropic",
         whiten=False,
         tau=3.0, periodic=False, box=None, margin=0.1, min_size=None, subdivide=True, cv=5,
-        k_grid=None, random_state=0, loo_points=20000,
+        k_grid=None, random_state=0, loo_points=20000, criterion="likelihood",
     ):  # fmt: skip
         self.k = k
         self.method = method
@@ -835,6 +875,7 @@ class KnnDensityEstimator:
         self.k_grid = k_grid
         self.random_state = random_state
         self.loo_points = loo_points
+        self.criterion = criterion
 
     # -- scikit-learn's parameter protocol ---------------------------------------------------
     @classmethod
@@ -901,7 +942,8 @@ class KnnDensityEstimator:
             if self.k != "cv":
                 raise InputError(f'k must be an integer, None or "cv", got {self.k!r}')
             self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, weights, box)
-            k = int(self.cv_ks_[int(np.argmax(self.cv_scores_))])
+            pick = np.argmax if self.criterion == "likelihood" else np.argmin
+            k = int(self.cv_ks_[int(pick(self.cv_scores_))])
         else:
             k = self.k
             if k is None:
@@ -931,6 +973,7 @@ class KnnDensityEstimator:
         if not (isinstance(self.sensitivity, str) and self.sensitivity == "cv"):
             _check_sensitivity(self.sensitivity, '"cv" or ')
         _check_cv(self.cv)
+        _check_criterion(self.criterion)
         m = self.loo_points
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
             raise InputError(f"loo_points must be an integer >= 1, got {m!r}")
@@ -967,7 +1010,7 @@ class KnnDensityEstimator:
         )
         if len(cs) > 1 or len(alphas) > 1:
             alpha, _, self.loo_scores_ = choose_smoothing(
-                density, alphas, cs, self.loo_points, self.random_state
+                density, alphas, cs, self.loo_points, self.random_state, self.criterion
             )  # leaves the density at the chosen pair
             at = self.loo_scores_[self.loo_scores_[:, 0] == alpha]
             at = at[np.argsort(at[:, 1])]
@@ -1007,9 +1050,12 @@ class KnnDensityEstimator:
         return (x0 - px, y0 - py, x1 + px, y1 + py)
 
     def _cross_validate(self, pts, weights, box):
-        """(candidate ks, mean held-out log-likelihood per unit of weight of each): every fold
-        refined in the same box, so that held-out points are in it; folds split points, so a
-        point of weight w (w copies) is held out whole."""
+        """(candidate ks, the score of each): by ``criterion``, the mean held-out
+        log-likelihood per unit of weight (higher is better), or the mean over folds of the
+        least-squares score integral f^2 - 2 (weighted mean of f at the held-out points),
+        lower is better (``square_integral``). Every fold is refined in the same box, so
+        that held-out points are in it; folds split points, so a point of weight w (w
+        copies) is held out whole."""
         folds = _folds(len(pts), self.cv, self.random_state)
         weight = np.ones(len(pts)) if weights is None else weights
         n = float(weight.sum())
@@ -1023,8 +1069,15 @@ class KnnDensityEstimator:
             for i, k in enumerate(ks):
                 fold = type(self)(**{**params, "k": int(k)})
                 fold.fit(pts[train], sample_weight=fold_weight)
-                scores[i] += (fold.score_samples(pts[test]) * weight[test]).sum()
-        return ks, scores / n
+                if self.criterion == "likelihood":
+                    scores[i] += (fold.score_samples(pts[test]) * weight[test]).sum() / n
+                else:
+                    held = np.exp(fold.score_samples(pts[test]))
+                    mean = (held * weight[test]).sum() / weight[test].sum()
+                    draws = min(self.loo_points, 20000)
+                    square = square_integral(fold.density_, draws)
+                    scores[i] += (square - 2 * mean) / len(folds)
+        return ks, scores
 
     # -- uncertainty -------------------------------------------------------------------------
     def standard_error(self, X):
@@ -1057,6 +1110,7 @@ class KnnDensityEstimator:
         params = {**self.get_params(), "k": self.k_, "box": self.mesh_.box, "whiten": False}
         if self.method == "adaptive":
             params["bandwidth"] = density.bandwidth
+            params["sensitivity"] = density.sensitivity
         values = np.empty((int(n_boot), len(flat)))
         for b in range(int(n_boot)):
             if whole:  # the copies, resampled
@@ -1136,6 +1190,12 @@ def _check_bandwidth(c, alternative=""):
     if not (ok and 0 < c < np.inf):
         raise InputError(f"bandwidth must be {alternative}a finite number > 0, got {c!r}")
     return float(c)
+
+
+def _check_criterion(criterion):
+    if not (isinstance(criterion, str) and criterion in CRITERIA):
+        raise InputError(f'criterion must be "likelihood" or "least-squares", got {criterion!r}')
+    return criterion
 
 
 def _check_cv(cv):

@@ -15,7 +15,8 @@ EXAMPLES = """examples:
   knnrefine density points.npy --method knn --mesh mesh.npz --grid 1024 -o density.csv
 
 the density integrates to 1 over the box. --method adaptive (default): one kernel per point,
-of extent c G (d_Pk / G)^(2 alpha), c and alpha by leave-one-out likelihood unless given;
+of extent c G (d_Pk / G)^(2 alpha), c and alpha by leave-one-out likelihood (or
+--criterion least-squares) unless given;
 -k defaults to 2 sqrt(n). --method knn: k / (n pi d_Pk^2), -k defaults to sqrt(n) / 2.
 Outputs: .npz (xs, ys, density, d_pk on the grid), .csv (x, y, density, d_pk per grid cell),
 pictures (.png .svg .pdf)"""
@@ -55,6 +56,13 @@ def add_arguments(parser):
         "bandwidth (default: by leave-one-out likelihood)",
     )
     parser.add_argument(
+        "--criterion",
+        choices=("likelihood", "least-squares"),
+        default="likelihood",
+        help="adaptive: what chooses c and alpha when not given: leave-one-out likelihood "
+        "(default), or least-squares cross-validation (wider kernels, lower L1 error)",
+    )
+    parser.add_argument(
         "--shape",
         choices=("isotropic", "local"),
         default="isotropic",
@@ -91,10 +99,12 @@ def _check_smoothing(args):
             "--bandwidth": args.bandwidth is not None,
             "--sensitivity": args.sensitivity is not None,
             "--shape": args.shape != "isotropic",
+            "--criterion": args.criterion != "likelihood",
         }
         given = [flag for flag, is_set in set_.items() if is_set]
         if given:
-            raise UsageError(f"{', '.join(given)} belong to --method adaptive, not knn")
+            verb = "belongs" if len(given) == 1 else "belong"
+            raise UsageError(f"{', '.join(given)} {verb} to --method adaptive, not knn")
         return
     try:
         if args.bandwidth is not None:
@@ -153,7 +163,7 @@ def run(args):
         )
         scored = 0
         if len(alphas) > 1 or len(cs) > 1:
-            scored = len(choose_smoothing(density, alphas, cs)[2])
+            scored = len(choose_smoothing(density, alphas, cs, criterion=args.criterion)[2])
         f = density.grid((ny, nx))[2]
     else:
         density = knn
@@ -163,6 +173,8 @@ def run(args):
     extra = {}
     if adaptive:
         extra = {"bandwidth": density.bandwidth, "sensitivity": density.sensitivity}
+        if scored:
+            extra["criterion"] = args.criterion
     for path in args.output:
         ext = os.path.splitext(path)[1].lower()
         if ext == ".npz":
@@ -211,7 +223,8 @@ def run(args):
             f"{seconds:.2f} s"
         )
         if adaptive:
-            how = f" (by leave-one-out likelihood, {scored} pairs scored)" if scored else ""
+            by = {"likelihood": "leave-one-out likelihood", "least-squares": "least squares"}
+            how = f" (by {by[args.criterion]}, {scored} pairs scored)" if scored else ""
             print(
                 f"  kernels: {args.shape}, bandwidth c = {density.bandwidth:.3g}, sensitivity "
                 f"alpha = {density.sensitivity:.2g}{how}"
