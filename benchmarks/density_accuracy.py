@@ -3,6 +3,7 @@
     python benchmarks/density_accuracy.py                    # n = 1e4, 1e5, 1e6 (over an hour)
     python benchmarks/density_accuracy.py --sizes 1e4 1e5    # about 15 minutes
     python benchmarks/density_accuracy.py --truths ridge edge --sizes 1e5
+    python benchmarks/density_accuracy.py --methods "knnrefine LSCV" --merge   # one method
 
 Truths (each restricted to its box, normalised there):
 * multiscale: a Gaussian mixture with widths 0.12, 0.02 and 0.003;
@@ -299,8 +300,23 @@ METHODS = {
 BUDGET = 1.2e10  # n times evaluations above which every method is scored on a subset
 
 
-def accuracy(truths, sizes, seed=0, out=None):
+def accuracy(truths, sizes, seed=0, out=None, methods=None, merge=False):
+    """Score ``methods`` (default: all) on each truth and size; with ``merge``, the rows are
+    added to those already in ``out`` (replacing rows of the same truth, n and method), so a
+    method or a size can be re-run alone."""
+    methods = list(METHODS) if methods is None else methods
+    kept = []
+    if merge and out and os.path.exists(out):
+        with open(out) as fh:
+            kept = json.load(fh)["rows"]
     rows = []
+
+    def save():
+        done = {(r["key"], r["n"], r["method"]) for r in rows}
+        old = [r for r in kept if (r["key"], r["n"], r["method"]) not in done]
+        with open(out, "w") as fh:
+            json.dump({"rows": old + rows}, fh, indent=1)
+
     for key in truths:
         truth = TRUTHS[key]()
         rng = np.random.default_rng(seed)
@@ -316,7 +332,8 @@ def accuracy(truths, sizes, seed=0, out=None):
                 sub = np.concatenate(
                     [pick.choice(len(ev), half, False), len(ev) + pick.choice(len(ev), half, False)]
                 )
-            for name, method in METHODS.items():
+            for name in methods:
+                method = METHODS[name]
                 t0 = time.perf_counter()
                 est, info = method(pts, truth, both[sub])
                 seconds = time.perf_counter() - t0
@@ -338,18 +355,19 @@ def accuracy(truths, sizes, seed=0, out=None):
                     flush=True,
                 )
                 if out:  # keep what is done (a long run can be stopped)
-                    with open(out, "w") as fh:
-                        json.dump({"rows": rows}, fh, indent=1)
+                    save()
+    if out and merge:
+        with open(out) as fh:
+            return json.load(fh)["rows"]
     return rows
 
 
 def markdown(rows):
     """One table per score: rows (truth, n), a column per method, the best in bold."""
     out = []
-    keys = []
-    for r in rows:
-        if (r["key"], r["n"]) not in keys:
-            keys.append((r["key"], r["n"]))
+    keys = sorted(
+        {(r["key"], r["n"]) for r in rows}, key=lambda kn: (list(TRUTHS).index(kn[0]), kn[1])
+    )
     for score, label, better in (
         ("L1", "L1 error (lower is better)", min),
         ("hellinger", "Hellinger distance (lower is better)", min),
@@ -389,11 +407,17 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", nargs="+", type=float, default=[1e4, 1e5, 1e6])
     ap.add_argument("--truths", nargs="+", choices=list(TRUTHS), default=list(TRUTHS))
+    ap.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     ap.add_argument("--out", default=os.path.join(HERE, "results", "density_accuracy.json"))
+    ap.add_argument(
+        "--merge", action="store_true", help="add to the rows already in --out (same truth, n "
+        "and method replaced) instead of starting afresh",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     knnrefine.KnnDensityEstimator(k=10).fit(np.random.default_rng(0).random((500, 2)))  # warm
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    rows = accuracy(args.truths, [int(n) for n in args.sizes], out=args.out)
+    sizes = [int(n) for n in args.sizes]
+    rows = accuracy(args.truths, sizes, out=args.out, methods=args.methods, merge=args.merge)
     print()
     print(markdown(rows))
 
