@@ -44,6 +44,7 @@ def refine(
     max_vertices=None,
     time_limit=None,
     progress=None,
+    workers=None,
 ):
     """kNNRefine (Gardner & Sheehy, CCCG 2016): mesh vertices M with
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} everywhere in the box.
@@ -111,6 +112,16 @@ def refine(
         phase="assembling", then phase="done". If it accepts ``phase`` and the kernels were
         never compiled in this environment, it is first called once with (0, 0,
         phase="compiling"): the compilation that follows takes 10-60 s, once.
+    workers : int, optional
+        None or 1: refine in this process. N > 1: in N local processes (forked on Linux;
+        elsewhere the calling script needs the ``if __name__ == "__main__":`` guard): a
+        coarse pass on a sample, then rounds of N strips of the torus, balanced by point
+        count, each refining only what lies inside it, alternating with strips shifted by
+        half, then this process finishes whatever crosses both (``engine/tiles.py`` says why
+        the result is a kNNRefine run: the same guarantees, certified by ``certify``). The
+        mesh differs from a one-process run's in the order of its moves, and its size by a
+        few percent. ``stats["rounds"]`` reports each round. Not yet faster than one process
+        (docs/benchmarks.md): the rounds rebuild their indexes.
 
     Returns
     -------
@@ -158,6 +169,7 @@ def refine(
         isinstance(max_vertices, bool) or int(max_vertices) != max_vertices or max_vertices < 1
     ):
         raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
+    workers = V.check_workers(workers)
     if progress is not None and not callable(progress):
         raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
     _check_resolution(box, per)
@@ -179,21 +191,34 @@ def refine(
         lo, hi = emb.box_internal()
         estimated, _ = size.estimate(index, k, floor, *emb.period_internal, float(np.prod(hi - lo)))
         budget = _budget(estimated, max_vertices, len(m0_order), k, n, min_size)
-        run = Refinement(
-            index,
-            k,
-            *emb.period_internal,
-            tau,
-            min_size * emb.scale,
-            budget,
-            m0=m0,
-            grid=emb.grid,
-            expected_vertices=min(estimated, budget),
-        )
+        rounds = None
+        if workers > 1:
+            from .engine.partition import refine_tiled
+
+            t_tiled = time.perf_counter()
+            run, status, rounds = refine_tiled(
+                emb.to_internal(pts), weights, k, *emb.period_internal, tau,
+                min_size * emb.scale, budget, m0, emb.grid, min(estimated, budget), index,
+                workers, report.refining, interrupts,
+            )  # fmt: skip
+            run.time_refine = time.perf_counter() - t_tiled
+        else:
+            run = Refinement(
+                index,
+                k,
+                *emb.period_internal,
+                tau,
+                min_size * emb.scale,
+                budget,
+                m0=m0,
+                grid=emb.grid,
+                expected_vertices=min(estimated, budget),
+            )
         run.time_index = start.seconds
         # below the engine's resolution limit nothing is split whatever min_size says
         min_size = max(min_size, run.floor / emb.scale)
-        status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
+        if rounds is None:
+            status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
         if status != R.STATUS_DONE:
             what = (
                 f"max_vertices={budget}"
@@ -225,6 +250,8 @@ def refine(
     if weights is not None:
         stats["weight"] = float(weights.sum())
     stats["estimated_vertices"] = int(estimated)
+    if rounds is not None:
+        stats["rounds"] = rounds
     stats["max_vertices"] = budget
     stats["time"] = {
         "index": run.time_index,

@@ -132,6 +132,15 @@ def check_tau(tau):
     return float(tau)
 
 
+def check_workers(workers):
+    """None or 1 (this process), or a number of local processes for a tiled run."""
+    if workers is None:
+        return 1
+    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:
+        raise InputError(f"workers must be a positive integer (processes), got {workers!r}")
+    return int(workers)
+
+
 def check_periodic(periodic):
     if isinstance(periodic, (bool, np.bool_)):
         return (bool(periodic), bool(periodic))

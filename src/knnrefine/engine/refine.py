@@ -54,6 +54,7 @@ from .state import (
     C_CELL_TESTS,
     C_CELLS_QUEUED,
     C_CELLS_SWEPT,
+    C_DEFERRED,
     C_DISK_TESTS,
     C_ERROR,
     C_FAILED,
@@ -70,6 +71,10 @@ from .state import (
     P_K,
     P_LX,
     P_LY,
+    P_REGION_H,
+    P_REGION_W,
+    P_REGION_X0,
+    P_REGION_Y0,
     P_TAU2,
     STAR_OVERFLOW,
 )
@@ -87,6 +92,7 @@ UNTESTED = 0
 GOOD = 1  # holds < k points: settled
 FLOOR = 2  # holds >= k points but is smaller than min_size: left alone
 FAILED = 3  # its split point landed on an existing vertex (grid resolution)
+DEFERRED = 4  # not inside the tile's region (tiles.py): another tile, or a later pass, decides
 
 # book.flags bits
 IN_CELL_QUEUE = 1
@@ -108,6 +114,31 @@ HEADROOM = 1100  # free slots required before an insertion (> MAX_CAVITY + 2)
 
 
 @kernel(inline="always")
+def _inside(lo, extent, start, width, period):
+    """The interval [lo, lo + extent] of a periodic axis lies in [start, start + width]."""
+    if width >= period:  # the region spans the axis
+        return extent < period
+    d = np.fmod(lo - start, period)
+    if d < 0.0:
+        d += period
+    return d + extent <= width
+
+
+@kernel(inline="always")
+def in_region(cx, cy, r, prm):
+    """True when the closed disk (cx, cy, r), slightly inflated, lies in the tile's region
+    (``tiles.py``): a tile decides only elements whose every count and every neighbour it
+    knows. Always true without a region (a whole run)."""
+    w = prm[P_REGION_W]
+    if w <= 0.0:
+        return True
+    r = r * (1.0 + 1e-6) + prm[P_GRID]
+    return _inside(cx - r, 2.0 * r, prm[P_REGION_X0], w, prm[P_LX]) and _inside(
+        cy - r, 2.0 * r, prm[P_REGION_Y0], prm[P_REGION_H], prm[P_LY]
+    )
+
+
+@kernel(inline="always")
 def is_too_aspect(outradius2, d_m2_sq, prm):
     """aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) > tau, from squares (tau^2 lowered by 1e-12)."""
     return 4.0 * outradius2 > prm[P_TAU2] * d_m2_sq
@@ -118,7 +149,7 @@ def _touch(v, mesh, book, queues, cnt, prm):
     """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean.
     Reads the triangulation's caches of R(v)^2 and d_{M,2}(v)^2: no walk round v."""
     outradius2 = mesh.outradius2[v]
-    if book.cell_state[v] == FLOOR or book.cell_state[v] == FAILED:
+    if book.cell_state[v] >= FLOOR:  # FLOOR, FAILED, DEFERRED: its cell changed, look again
         book.cell_state[v] = UNTESTED
     if book.cell_state[v] == UNTESTED and not (book.flags[v] & IN_CELL_QUEUE):
         queue_push(queues.cells, size_class(outradius2), v, 0)
@@ -150,6 +181,8 @@ def clean(mesh, book, queues, prm):
         if outradius2 < prm[P_CLEAN_FLOOR2]:
             book.flags[v] = book.flags[v] | CLEAN_BELOW_FLOOR
             continue
+        if not in_region(mesh.xy[v, 0], mesh.xy[v, 1], 2.0 * np.sqrt(outradius2), prm):
+            continue  # far corner and neighbours not all the tile's: left for later
         return far_corner(v, mesh), v
     return -1, -1
 
@@ -211,8 +244,12 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
         cls, t, apex = queue_pop(queues.balls)
         if mesh.corners[t, 0] != apex or book.ball_state[t] != UNTESTED:
             continue  # a stale entry: slot t holds another triangle now, or was tested
-        cnt[C_DISK_TESTS] += 1
         cx, cy, _ = circumcentre(mesh, prm, t)
+        if not in_region(cx, cy, np.sqrt(radius2[t]), prm):
+            book.ball_state[t] = DEFERRED
+            cnt[C_DEFERRED] += 1
+            continue
+        cnt[C_DISK_TESTS] += 1
         if count_in_disk(index, cx, cy, radius2[t] * inflate, k, lx, ly, probe.stack) < k:
             book.ball_state[t] = GOOD
             continue
@@ -232,6 +269,10 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
         if now > cls:
             queue_push(queues.cells, now, v, 0)
             book.flags[v] = book.flags[v] | IN_CELL_QUEUE
+            continue
+        if not in_region(mesh.xy[v, 0], mesh.xy[v, 1], 2.0 * np.sqrt(outradius2), prm):
+            book.cell_state[v] = DEFERRED
+            cnt[C_DEFERRED] += 1
             continue
         c = count_cell(v, mesh, probe, cnt, prm, index)
         if c < 0:

@@ -92,7 +92,8 @@ C_FAILED = 28  # insertions refused (the point rounds onto a vertex)
 C_ERROR = 29  # the code of a broken invariant (see ERRORS)
 C_CELLS_QUEUED = 30  # cells ever queued
 C_CELLS_SWEPT = 31  # C_CELLS_QUEUED at the last sweep (refine.sweep_cells)
-N_COUNTERS = 32
+C_DEFERRED = 32  # elements popped outside the region (``tiles.py``): left for another tile
+N_COUNTERS = 33
 
 # -- parameters (float64 array ``prm``) -------------------------------------------------------
 P_LX = 0  # the torus' periods, internal units
@@ -103,7 +104,13 @@ P_CLEAN_FLOOR2 = 4  # the Clean floor squared: 2^14 grid steps
 P_INFLATE = 5  # 1 + 1e-9: the counting regions' inflation
 P_GRID = 6  # the grid step q every vertex is snapped to
 P_K = 7  # the k of d_{P,k}: a count, or a weight for weighted points
-N_PARAMS = 8
+# a tile's region (``tiles.py``): moves only for elements inside the rectangle
+# [x0, x0 + w] x [y0, y0 + h] of the torus (wrapping); w <= 0: no region (the whole torus)
+P_REGION_X0 = 8
+P_REGION_Y0 = 9
+P_REGION_W = 10
+P_REGION_H = 11
+N_PARAMS = 12
 
 # -- insertion results and broken invariants ---------------------------------------------------
 INSERT_NOT_IN_SEED = -1  # the point is not strictly inside the seed's circumcircle

@@ -13,6 +13,8 @@ import numpy as np
 
 MAX_THREADS = 8
 _pool = []
+# a forked child has the pool object but none of its threads: it makes its own
+os.register_at_fork(after_in_child=_pool.clear)
 
 
 def workers():
