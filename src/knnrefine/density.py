@@ -791,9 +791,9 @@ class KnnDensityEstimator:
         bandwidth by leave-one-out).
     method : "adaptive" or "knn"
         The estimate (see above). The adaptive one (default or ``shape="local"``) had the
-        lowest L1 error and the best held-out likelihood on every truth of the project's
-        study at n = 1e4 and 1e5 (``benchmarks/density_accuracy.py``, docs/uses.md; at 1e6
-        three losses, two in L1 and one in likelihood).
+        best held-out likelihood on every truth of the project's study at n = 1e4 to 1e6,
+        and the lowest L1 error with it or with ``criterion="least-squares"`` but for the
+        sharp edge at 1e6 (``benchmarks/density_accuracy.py``, docs/uses.md).
     bandwidth : float > 0 or "cv"
         The adaptive estimate's factor c: kernel extents c G (d_i / G)^(2 alpha), d_i =
         d_{P,k}(X_i), G their geometric mean (c d_i at alpha = 1/2). ``"cv"``: chosen from
