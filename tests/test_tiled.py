@@ -55,7 +55,9 @@ def test_tiled_mesh_is_certified_and_the_size_of_a_single_run(name, make, k, per
     rounds = tiled.stats["rounds"]
     in_rounds = sum(r["new_vertices"] for r in rounds if r["round"] != "final")
     assert rounds[-1]["round"] == "final" and rounds[-1]["new_vertices"] < 0.05 * in_rounds
-    assert sum(tiled.stats["moves"].values()) == len(tiled.torus.vertices)
+    # the tiles' moves are carried to the mesh: only the initial mesh counts as initial
+    assert tiled.stats["moves"]["initial"] == tiled.stats["m0"]["vertices"]
+    assert tiled.stats["moves"]["break_circumball"] > 0
 
 
 def test_three_workers_on_a_weighted_input():
@@ -89,3 +91,27 @@ def test_strips_interleave_and_balance_the_points():
 def test_bad_workers_are_refused_before_work(bad):
     with pytest.raises(knnrefine.InputError, match="workers"):
         knnrefine.refine(uniform(100), 5, workers=bad)
+
+
+def test_tiled_time_limit_is_kept():
+    """regression: a tiled run ignored time_limit (the rounds and the last pass ran without
+    the deadline). A progress callback that sleeps past the limit after the first round:
+    BudgetError, as for a run in one process."""
+    import time
+
+    calls = []
+
+    def slow(vertices, pending):
+        calls.append(vertices)
+        if len(calls) == 1:
+            time.sleep(3.0)
+
+    X = uniform(60000)
+    with pytest.raises(knnrefine.BudgetError, match="time_limit"):
+        knnrefine.refine(X, 10, box=(0, 0, 1, 1), workers=2, time_limit=2.0, progress=slow)
+
+
+def test_tiled_budget_stops_with_budget_error():
+    X = uniform(60000)
+    with pytest.raises(knnrefine.BudgetError, match="max_vertices"):
+        knnrefine.refine(X, 10, box=(0, 0, 1, 1), workers=2, max_vertices=3000)

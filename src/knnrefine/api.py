@@ -120,8 +120,9 @@ def refine(
         half, then this process finishes whatever crosses both (``engine/tiles.py`` says why
         the result is a kNNRefine run: the same guarantees, certified by ``certify``). The
         mesh differs from a one-process run's in the order of its moves, and its size by a
-        few percent. ``stats["rounds"]`` reports each round. Not yet faster than one process
-        (docs/benchmarks.md): the rounds rebuild their indexes.
+        few percent. ``stats["rounds"]`` reports each round; ``time_limit`` and
+        ``max_vertices`` hold in every tile. Not yet faster than one process: the rounds
+        rebuild their indexes.
 
     Returns
     -------
@@ -199,7 +200,7 @@ def refine(
             run, status, rounds = refine_tiled(
                 emb.to_internal(pts), weights, k, *emb.period_internal, tau,
                 min_size * emb.scale, budget, m0, emb.grid, min(estimated, budget), index,
-                workers, report.refining, interrupts,
+                workers, report.refining, interrupts, deadline,
             )  # fmt: skip
             run.time_refine = time.perf_counter() - t_tiled
         else:

@@ -1074,8 +1074,7 @@ class KnnDensityEstimator:
                 else:
                     held = np.exp(fold.score_samples(pts[test]))
                     mean = (held * weight[test]).sum() / weight[test].sum()
-                    draws = min(self.loo_points, 20000)
-                    square = square_integral(fold.density_, draws)
+                    square = square_integral(fold.density_, self.loo_points)
                     scores[i] += (square - 2 * mean) / len(folds)
         return ks, scores
 

@@ -179,11 +179,18 @@ class Refinement:
             grow(self, VERTEX_FIELDS, int(self.GROWTH * cap_v) + 1)
         if nt + 2 > self.mesh.corners.shape[0]:
             grow(self, TRIANGLE_FIELDS, 2 * self.mesh.xy.shape[0])
+        self.reserve_queues(R.HEADROOM)
+
+    def reserve_queues(self, entries):
+        """Room in every queue for ``entries`` more pushes: a queue short of it grows by
+        GROWTH plus HEADROOM, or to what it needs if that is more (a requeue of a whole
+        mesh, ``partition.seed``)."""
         queues = {}
         for name in Queues._fields:
             q = getattr(self.queues, name)
-            if q.scalars[Q_USED] + R.HEADROOM > q.ident.shape[0]:
-                n = int(self.GROWTH * q.ident.shape[0]) + R.HEADROOM
+            used, size = int(q.scalars[Q_USED]), q.ident.shape[0]
+            if used + entries > size:
+                n = max(int(self.GROWTH * size) + R.HEADROOM, used + entries)
                 for part in ("ident", "aux", "next"):
                     q = q._replace(**{part: grown(getattr(q, part), n)})
             queues[name] = q

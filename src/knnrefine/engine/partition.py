@@ -19,8 +19,7 @@ from ..errors import EngineError
 from . import refine as R
 from .driver import Refinement
 from .index import build_index
-from .queue import Q_USED
-from .state import C_NV, ERRORS, P_REGION_H, P_REGION_W, P_REGION_X0, P_REGION_Y0, Queues
+from .state import C_NV, ERRORS, P_REGION_H, P_REGION_W, P_REGION_X0, P_REGION_Y0
 from .tiles import WALK_LOST, in_rectangle, insert_points, mark_settled, spatial_order
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
@@ -47,22 +46,6 @@ def strips(xy, lx, ly, tiles):
     return sets
 
 
-def _grow_queues(run, entries):
-    """Give every queue room for ``entries`` pushes beyond what it holds."""
-    queues = {}
-    for name in Queues._fields:
-        q = getattr(run.queues, name)
-        need = int(q.scalars[Q_USED]) + entries + R.HEADROOM
-        if need > q.ident.shape[0]:
-            for part in ("ident", "aux", "next"):
-                arr = getattr(q, part)
-                bigger = np.zeros(need, arr.dtype)
-                bigger[: arr.shape[0]] = arr
-                q = q._replace(**{part: bigger})
-        queues[name] = q
-    run.queues = Queues(**queues)
-
-
 def seed(run, xy, kinds, stamps, regions):
     """Insert the vertices xy (with their kinds and rounds) into the run's initial mesh, mark
     what earlier rounds settled (regions (Q, T, 4)), and queue the rest."""
@@ -82,7 +65,7 @@ def seed(run, xy, kinds, stamps, regions):
     placed = ids >= 0
     all_stamps[ids[placed]] = stamps[order][placed]
     run.book.kinds[ids[placed]] = kinds[order][placed]
-    _grow_queues(run, 3 * nv)
+    run.reserve_queues(3 * nv + R.HEADROOM)  # queue_all pushes every triangle and vertex
     mark_settled(run.mesh, run.book, run.cnt, run.prm, all_stamps, regions)
     R.queue_all(run.mesh, run.book, run.queues, run.cnt, run.prm)
     return nv
@@ -103,7 +86,7 @@ def run_tile(task):
     x0, y0, w, h = task["region"]
     run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = x0, y0
     run.prm[P_REGION_W], run.prm[P_REGION_H] = w, h
-    status = run.run()
+    status = run.run(deadline=task["deadline"])
     nv = int(run.cnt[C_NV])
     return {
         "xy": run.mesh.xy[start:nv].copy(),
@@ -150,11 +133,14 @@ def _context():
 
 def refine_tiled(
     points, weights, k, lx, ly, tau, min_size, max_vertices, m0, grid, expected, index,
-    workers, progress=None, interrupts=None,
+    workers, progress=None, interrupts=None, deadline=None,
 ):  # fmt: skip
     """kNNRefine in rounds of ``workers`` strips in as many processes, then the final pass
     on ``index`` (the full counting index) in this one. points: internal coordinates.
-    Returns (the final Refinement, its status, a per-round report)."""
+    Returns (the final Refinement, its status, a per-round report). A tile stopped by the
+    budget or the deadline (``deadline``, a time.perf_counter() value, holds in the tiles
+    too) ends the run with that status: what it left inside its strip is not settled, so
+    no later round or pass may treat it as settled."""
     sets = strips(points, lx, ly, workers)
     masks = [
         [in_rectangle(points, *region, 4 * grid, lx, ly) for region in regions] for regions in sets
@@ -166,8 +152,9 @@ def refine_tiled(
     report = []
     common = {
         "k": k, "lx": lx, "ly": ly, "tau": tau, "min_size": min_size,
-        "max_vertices": max_vertices, "m0": m0, "grid": grid,
+        "max_vertices": max_vertices, "m0": m0, "grid": grid, "deadline": deadline,
     }  # fmt: skip
+    stopped = None
     context = _context()
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_one_thread) as pool:
         for r in range(1, MAX_ROUNDS + 1):
@@ -199,16 +186,23 @@ def refine_tiled(
                 progress(len(m0[0]) + len(xy), 0)
             if interrupts is not None:
                 interrupts.check()
-            if r >= 2 and len(new) == 0:
+            stopped = next(
+                (res["status"] for res in results if res["status"] != R.STATUS_DONE), None
+            )
+            if stopped is None and deadline is not None and time.perf_counter() >= deadline:
+                stopped = R.STATUS_STEPS
+            if stopped is not None or (r >= 2 and len(new) == 0):
                 break
     final = Refinement(
         index, k, lx, ly, tau, min_size, max_vertices, m0=m0, grid=grid,
         expected_vertices=len(m0[0]) + len(xy),
     )  # fmt: skip
     seed(final, xy, kinds, stamps, history)
+    if stopped is not None:
+        return final, stopped, report
     t0 = time.perf_counter()
     before = int(final.cnt[C_NV])
-    status = final.run(progress=progress, interrupts=interrupts)
+    status = final.run(deadline=deadline, progress=progress, interrupts=interrupts)
     report.append({
         "round": "final", "new_vertices": int(final.cnt[C_NV]) - before,
         "seconds": time.perf_counter() - t0,

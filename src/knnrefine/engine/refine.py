@@ -125,17 +125,22 @@ def _inside(lo, extent, start, width, period):
 
 
 @kernel(inline="always")
+def disk_in_rectangle(cx, cy, r, x0, y0, w, h, prm):
+    """The closed disk (cx, cy, r), inflated by a relative 1e-6 and a grid step (beyond the
+    counts' own inflation), lies in the rectangle [x0, x0 + w] x [y0, y0 + h] of the torus."""
+    r = r * (1.0 + 1e-6) + prm[P_GRID]
+    return _inside(cx - r, 2.0 * r, x0, w, prm[P_LX]) and _inside(cy - r, 2.0 * r, y0, h, prm[P_LY])
+
+
+@kernel(inline="always")
 def in_region(cx, cy, r, prm):
-    """True when the closed disk (cx, cy, r), slightly inflated, lies in the tile's region
-    (``tiles.py``): a tile decides only elements whose every count and every neighbour it
-    knows. Always true without a region (a whole run)."""
+    """True when the closed disk (cx, cy, r) lies in the tile's region (``tiles.py``): a
+    tile decides only elements whose every count and every neighbour it knows. Always true
+    without a region (a whole run)."""
     w = prm[P_REGION_W]
     if w <= 0.0:
         return True
-    r = r * (1.0 + 1e-6) + prm[P_GRID]
-    return _inside(cx - r, 2.0 * r, prm[P_REGION_X0], w, prm[P_LX]) and _inside(
-        cy - r, 2.0 * r, prm[P_REGION_Y0], prm[P_REGION_H], prm[P_LY]
-    )
+    return disk_in_rectangle(cx, cy, r, prm[P_REGION_X0], prm[P_REGION_Y0], w, prm[P_REGION_H], prm)
 
 
 @kernel(inline="always")

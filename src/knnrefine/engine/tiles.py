@@ -28,8 +28,8 @@ import numpy as np
 from .geometry import morton_key
 from .jit import kernel
 from .predicates import orient2d
-from .refine import GOOD, _inside
-from .state import C_LAST_NB, C_NT, C_NV, INSERT_NOT_IN_SEED, P_FLOOR2, P_GRID, P_LX, P_LY
+from .refine import GOOD, _inside, disk_in_rectangle
+from .state import C_LAST_NB, C_NT, C_NV, INSERT_NOT_IN_SEED, P_FLOOR2, P_LX, P_LY
 from .triangulation import circumcentre, corner, corner_of, insert_vertex
 
 WALK_LIMIT = 1 << 22  # steps of one walk: far beyond any mesh's, a broken mesh's guard
@@ -105,15 +105,10 @@ def insert_points(xy, ids, start, mesh, book, scratch, cnt, prm):
 def _settled_by(cx, cy, r, newest, rounds, regions, prm):
     """The disk (cx, cy, r) lay inside a region of a round q >= newest: regions (Q, T, 4)
     holds each round's regions (x0, y0, w, h), rows with w <= 0 unused; rounds = Q."""
-    r = r * (1.0 + 1e-6) + prm[P_GRID]
     for q in range(max(newest, 1), rounds + 1):
         for j in range(regions.shape[1]):
-            w = regions[q - 1, j, 2]
-            if w <= 0.0:
-                continue
-            if _inside(cx - r, 2.0 * r, regions[q - 1, j, 0], w, prm[P_LX]) and _inside(
-                cy - r, 2.0 * r, regions[q - 1, j, 1], regions[q - 1, j, 3], prm[P_LY]
-            ):
+            g = regions[q - 1, j]
+            if g[2] > 0.0 and disk_in_rectangle(cx, cy, r, g[0], g[1], g[2], g[3], prm):
                 return True
     return False
 
