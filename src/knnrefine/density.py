@@ -590,12 +590,16 @@ class AdaptiveDensity:
         with np.errstate(divide="ignore"):
             return np.log(f)
 
+    def weights_of(self, idx):
+        """The weights of the points ``idx`` (indices into the points)."""
+        return self._rows[self._row_of[idx], W]
+
     def loo_curve(self, bandwidths, sample=None, sensitivity=None):
         """Mean leave-one-out log-likelihood (per unit weight) of each candidate bandwidth at
         the points ``sample`` (default: all), at this sensitivity (None: as it is); the
         bandwidth is left at the last one."""
         idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
-        w = self._rows[self._row_of[idx], W]  # each point's weight: its share of the score
+        w = self.weights_of(idx)  # each point's weight: its share of the score
         scores = []
         for c in bandwidths:
             self.set_bandwidth(float(c), sensitivity)
@@ -611,7 +615,7 @@ class AdaptiveDensity:
         draws move with the kernels from one smoothing to the next (common random numbers),
         so that scores of neighbouring candidates compare with little noise."""
         idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
-        w = self._rows[self._row_of[idx], W]
+        w = self.weights_of(idx)
         loo = float((np.exp(self.loo(idx)) * w).sum() / w.sum())
         return square_integral(self, len(idx) if draws is None else int(draws), seed) - 2 * loo
 
@@ -656,14 +660,19 @@ class AdaptiveDensity:
 def square_integral(density, draws, seed=0):
     """Monte Carlo integral of f^2 over the box for a density with ``sample`` and a call:
     the mean of f at ``draws`` points drawn from f (seeded, so repeatable)."""
-    y = density.sample(int(draws), np.random.default_rng(seed))
-    return float(np.mean(density(y)))
+    return float(np.mean(_at_own_draws(density, draws, seed)))
+
+
+def _at_own_draws(density, draws, seed):
+    """f at ``draws`` points drawn from f with the generator seeded by ``seed``."""
+    return density(density.sample(int(draws), np.random.default_rng(seed)))
 
 
 CRITERIA = ("likelihood", "least-squares")
 BANDWIDTHS = tuple(2.0 ** (np.arange(-6, 7) / 2))  # 1/8 to 8, steps of sqrt(2)
 SENSITIVITIES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 COARSE = 4000  # a first climb's points, when there are more than twice as many
+HALF_STEP = 2.0**0.25  # the last search's step in c: half the grid's
 
 
 def choose_smoothing(
@@ -679,9 +688,12 @@ def choose_smoothing(
     ``criterion``: "likelihood" (mean leave-one-out log-density, higher is better: what
     held-out likelihood rewards) or "least-squares" (``AdaptiveDensity.least_squares``,
     lower is better: an unbiased estimate of the integrated squared error less a constant,
-    which favours the wider kernels that L1 and L2 errors reward). The table has a row
-    (alpha, c, score) per pair the last climb scored, in that order (the score as defined
-    above for the criterion). The density is left at the chosen pair."""
+    which favours the wider kernels that L1 and L2 errors reward). The climb ends on the
+    grid's half steps in c at its alpha (``_widest_within_one_se``): the widest c whose
+    score is within one standard error of the best, so the choice may lie between grid
+    values. The table has a row (alpha, c, score) per pair the last climb scored, in that
+    order, then the half steps (the score as defined above for the criterion). The density
+    is left at the chosen pair."""
     criterion = _check_criterion(criterion)
     n = len(density.pilot)
     m = min(n, int(loo_points))
@@ -693,10 +705,71 @@ def choose_smoothing(
         coarse = np.sort(_generator(random_state).choice(pool, max(COARSE, m // 5), False))
         i, j, _ = _climb(density, alphas, bandwidths, coarse, i, j, criterion)
     i, j, scored = _climb(density, alphas, bandwidths, sample, i, j, criterion)
+    alpha, c = float(alphas[i]), float(bandwidths[j])
+    rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
+    if len(bandwidths) > 1:
+        c, settled = _widest_within_one_se(
+            density, alpha, c, sample, criterion, max(bandwidths)
+        )
+        near = [b for a, b, _ in rows if a == alpha]
+        rows += [(alpha, b, v) for b, v in settled.items() if not np.isclose(near, b).any()]
     sign = 1.0 if criterion == "likelihood" else -1.0  # the table has the scores as defined
-    table = np.array([(alphas[a], bandwidths[b], sign * v) for (a, b), v in scored.items()])
-    density.set_bandwidth(bandwidths[j], alphas[i])
-    return float(alphas[i]), float(bandwidths[j]), table
+    table = np.array([(a, b, sign * v) for a, b, v in rows])
+    density.set_bandwidth(c, alpha)
+    return alpha, c, table
+
+
+def _score_terms(density, c, alpha, sample, criterion):
+    """The cross-validation score at (alpha, c) as terms (values, weights, factor): the score
+    (higher is better) is the sum of factor * (weighted mean of values), and two smoothings'
+    values pair item by item (the same points; the same seeded draws), so the standard error
+    of a difference of scores comes from the differences of values."""
+    density.set_bandwidth(c, alpha)
+    idx = np.arange(len(density.pilot)) if sample is None else np.asarray(sample)
+    w = density.weights_of(idx)
+    if criterion == "likelihood":
+        return [(density.loo(idx), w, 1.0)]
+    return [(_at_own_draws(density, len(idx), 0), np.ones(len(idx)), -1.0),
+            (np.exp(density.loo(idx)), w, 2.0)]  # fmt: skip
+
+
+def _score_of(terms):
+    return float(sum(f * (v * w).sum() / w.sum() for v, w, f in terms))
+
+
+def _difference_se(terms, base):
+    """Standard error of the score difference between two smoothings' paired terms."""
+    var = 0.0
+    for (v, w, f), (v0, _, _) in zip(terms, base):
+        d = v - v0
+        mean = (d * w).sum() / w.sum()
+        var += f * f * ((w * (d - mean)) ** 2).sum() / w.sum() ** 2
+    return float(np.sqrt(var))
+
+
+def _widest_within_one_se(density, alpha, c, sample, criterion, widest):
+    """The last step of the search, on the grid's half steps in c at the climb's alpha: the
+    best of c / HALF_STEP, c, c * HALF_STEP, then the widest c above it, step by step up to
+    ``widest``, whose score is within one standard error of the best's (the one-standard-
+    error rule of cross-validation: where the score is flat within its noise, the smoother
+    estimate; at large n the likelihood's optimum is such a flat top, and L1 errors reward
+    its wide side). Returns (c, {c: score} of the candidates scored here but c itself,
+    higher is better)."""
+    terms, scores = {}, {}
+
+    def score(j):
+        if j not in terms:
+            terms[j] = _score_terms(density, c * HALF_STEP**j, alpha, sample, criterion)
+            scores[j] = _score_of(terms[j])
+        return scores[j]
+
+    best = max((j for j in (-1, 0, 1) if c * HALF_STEP**j <= widest), key=score)
+    chosen = best
+    while c * HALF_STEP ** (chosen + 1) <= widest * (1 + 1e-9):
+        if score(chosen + 1) < score(best) - _difference_se(terms[chosen + 1], terms[best]):
+            break
+        chosen += 1
+    return c * HALF_STEP**chosen, {c * HALF_STEP**j: v for j, v in scores.items() if j}
 
 
 def _climb(density, alphas, cs, sample, i, j, criterion="likelihood"):
