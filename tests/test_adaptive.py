@@ -276,6 +276,7 @@ def test_search_ends_at_the_widest_half_step_within_one_standard_error():
     assert l1 < 0.97 * l1_best
     assert ll > ll_best - 1e-3
 
+
 def test_least_squares_table_holds_each_pairs_score():
     """With criterion="least-squares" every row of the table, the half steps of the last
     search included, is least_squares at its pair, recomputed on a fresh estimate."""

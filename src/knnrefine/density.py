@@ -708,9 +708,7 @@ def choose_smoothing(
     alpha, c = float(alphas[i]), float(bandwidths[j])
     rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
     if len(bandwidths) > 1:
-        c, settled = _widest_within_one_se(
-            density, alpha, c, sample, criterion, max(bandwidths)
-        )
+        c, settled = _widest_within_one_se(density, alpha, c, sample, criterion, max(bandwidths))
         near = [b for a, b, _ in rows if a == alpha]
         rows += [(alpha, b, v) for b, v in settled.items() if not np.isclose(near, b).any()]
     sign = 1.0 if criterion == "likelihood" else -1.0  # the table has the scores as defined
@@ -740,7 +738,7 @@ def _score_of(terms):
 def _difference_se(terms, base):
     """Standard error of the score difference between two smoothings' paired terms."""
     var = 0.0
-    for (v, w, f), (v0, _, _) in zip(terms, base):
+    for (v, w, f), (v0, _, _) in zip(terms, base, strict=True):
         d = v - v0
         mean = (d * w).sum() / w.sum()
         var += f * f * ((w * (d - mean)) ** 2).sum() / w.sum() ** 2
