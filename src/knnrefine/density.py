@@ -862,15 +862,15 @@ class KnnDensityEstimator:
         bandwidth by leave-one-out).
     method : "adaptive" or "knn"
         The estimate (see above). The adaptive one (default or ``shape="local"``) had the
-        best held-out likelihood on every truth of the project's study at n = 1e4 to 1e6,
-        and the lowest L1 error with it or with ``criterion="least-squares"`` but for the
-        sharp edge at 1e6 (``benchmarks/density_accuracy.py``, docs/uses.md).
+        best held-out likelihood and the lowest L1 error on every truth of the project's
+        study at n = 1e4 to 1e6 (``benchmarks/density_accuracy.py``, docs/uses.md).
     bandwidth : float > 0 or "cv"
         The adaptive estimate's factor c: kernel extents c G (d_i / G)^(2 alpha), d_i =
         d_{P,k}(X_i), G their geometric mean (c d_i at alpha = 1/2). ``"cv"``: chosen from
         ``BANDWIDTHS`` by leave-one-out log-likelihood at up to ``loo_points`` training
         points (chosen by ``random_state``), jointly with the sensitivity when that is
-        ``"cv"`` too. Ignored by ``method="knn"``.
+        ``"cv"`` too, then on half steps the widest within one standard error of the best
+        (``choose_smoothing``). Ignored by ``method="knn"``.
     sensitivity : float in [0, 1] or "cv"
         The adaptive estimate's alpha: kernels ~ f^(-alpha). 1/2 is Abramson's law, 0 a
         fixed bandwidth; ``"cv"`` (default) chooses from ``SENSITIVITIES`` (0 to 0.6) with
