@@ -45,6 +45,7 @@ def refine(
     time_limit=None,
     progress=None,
     workers=None,
+    executor=None,
 ):
     """kNNRefine (Gardner & Sheehy, CCCG 2016): mesh vertices M with
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} everywhere in the box.
@@ -123,6 +124,10 @@ def refine(
         few percent. ``stats["rounds"]`` reports each round; ``time_limit`` and
         ``max_vertices`` hold in every tile. Not yet faster than one process: the rounds
         rebuild their indexes.
+    executor : concurrent.futures.Executor, optional
+        Where the tiles of a run with ``workers`` > 1 run: its ``map`` is called once per
+        round with that round's tiles (a Dask client's ``get_executor()``:
+        ``knnrefine.distributed.refine``). None: a pool of ``workers`` local processes.
 
     Returns
     -------
@@ -171,6 +176,12 @@ def refine(
     ):
         raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
     workers = V.check_workers(workers)
+    if executor is not None and not callable(getattr(executor, "map", None)):
+        raise InputError(
+            f"executor must be a concurrent.futures.Executor (with a map method), got {executor!r}"
+        )
+    if executor is not None and workers < 2:
+        raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
     if progress is not None and not callable(progress):
         raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
     _check_resolution(box, per)
@@ -200,7 +211,7 @@ def refine(
             run, status, rounds = refine_tiled(
                 emb.to_internal(pts), weights, k, *emb.period_internal, tau,
                 min_size * emb.scale, budget, m0, emb.grid, min(estimated, budget), index,
-                workers, report.refining, interrupts, deadline,
+                workers, report.refining, interrupts, deadline, executor,
             )  # fmt: skip
             run.time_refine = time.perf_counter() - t_tiled
         else:

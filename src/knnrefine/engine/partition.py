@@ -76,6 +76,7 @@ def run_tile(task):
     the earlier rounds' regions; returns the vertices it inserted (xy, kinds) and its
     counters."""
     t0 = time.perf_counter()
+    os.environ["KNNREFINE_THREADS"] = "1"  # one of many tiles at once: one engine thread
     index = build_index(task["points"], weights=task["weights"])
     run = Refinement(
         index, task["k"], task["lx"], task["ly"], task["tau"], task["min_size"],
@@ -117,11 +118,6 @@ def coarse_pass(points, weights, k, lx, ly, tau, min_size, max_vertices, m0, gri
     return run.mesh.xy[start:nv].copy(), run.book.kinds[start:nv].copy()
 
 
-def _one_thread():
-    """A worker process is one of ``workers``: its engine uses one thread."""
-    os.environ["KNNREFINE_THREADS"] = "1"
-
-
 def _context():
     """fork where the platform has it (no re-import of the caller's script, workers start in
     milliseconds; the engine's threads are all joined between kernel calls), else spawn
@@ -133,10 +129,12 @@ def _context():
 
 def refine_tiled(
     points, weights, k, lx, ly, tau, min_size, max_vertices, m0, grid, expected, index,
-    workers, progress=None, interrupts=None, deadline=None,
+    workers, progress=None, interrupts=None, deadline=None, executor=None,
 ):  # fmt: skip
     """kNNRefine in rounds of ``workers`` strips in as many processes, then the final pass
     on ``index`` (the full counting index) in this one. points: internal coordinates.
+    ``executor``: a ``concurrent.futures.Executor`` whose ``map`` runs the tiles (a Dask
+    client's ``get_executor()``, for one); None: a pool of ``workers`` local processes.
     Returns (the final Refinement, its status, a per-round report). A tile stopped by the
     budget or the deadline (``deadline``, a time.perf_counter() value, holds in the tiles
     too) ends the run with that status: what it left inside its strip is not settled, so
@@ -155,8 +153,9 @@ def refine_tiled(
         "max_vertices": max_vertices, "m0": m0, "grid": grid, "deadline": deadline,
     }  # fmt: skip
     stopped = None
-    context = _context()
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_one_thread) as pool:
+    own = executor is None
+    pool = ProcessPoolExecutor(workers, mp_context=_context()) if own else executor
+    try:
         for r in range(1, MAX_ROUNDS + 1):
             regions = sets[(r - 1) % 2]
             tasks = []
@@ -193,6 +192,9 @@ def refine_tiled(
                 stopped = R.STATUS_STEPS
             if stopped is not None or (r >= 2 and len(new) == 0):
                 break
+    finally:
+        if own:
+            pool.shutdown(cancel_futures=True)
     final = Refinement(
         index, k, lx, ly, tau, min_size, max_vertices, m0=m0, grid=grid,
         expected_vertices=len(m0[0]) + len(xy),

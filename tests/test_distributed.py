@@ -1,0 +1,146 @@
+"""Tiles on a Dask cluster (knnrefine.distributed): the same guarantees as one process,
+sources read partition-wise, a worker killed mid-run. Skipped without Dask."""
+
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import knnrefine
+from knnrefine.errors import InputError
+
+pytest.importorskip("distributed")
+from distributed import Client, LocalCluster  # noqa: E402
+
+from knnrefine import distributed  # noqa: E402
+
+
+def _cluster(n=2):
+    return LocalCluster(
+        n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+        env={"KNNREFINE_THREADS": "1"},
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def client():
+    with _cluster() as cluster, Client(cluster) as c:
+        yield c
+
+
+def clustered(n, seed):
+    rng = np.random.default_rng(seed)
+    centres = rng.random((6, 2))
+    pts = centres[rng.integers(0, 6, n)] + 0.03 * rng.standard_normal((n, 2))
+    return np.mod(pts, 1.0)
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_dask_tiles_certify_and_match_one_process_in_size(client, periodic):
+    pts = clustered(60000, 1)
+    box = (0, 0, 1, 1)
+    mesh = distributed.refine(pts, 20, client=client, periodic=periodic, box=box)
+    one = knnrefine.refine(pts, 20, periodic=periodic, box=box)
+    assert knnrefine.certify(mesh, pts).passed
+    assert abs(len(mesh.vertices) - len(one.vertices)) <= 0.05 * len(one.vertices)
+    assert mesh.stats["rounds"][0]["new_vertices"] > 0  # the tiles did the work
+    assert len(mesh.stats["rounds"][0]["tiles"]) == 2
+
+
+def test_sources_give_the_same_mesh(client, tmp_path):
+    """A NumPy array, a Dask array, a pandas and a Dask DataFrame and a Parquet dataset of
+    the same points (and weights) give the same mesh, vertex for vertex."""
+    import dask.array as da
+    import dask.dataframe as dd
+    import pandas as pd
+
+    rng = np.random.default_rng(3)
+    pts = rng.random((30000, 2))
+    w = rng.integers(1, 4, len(pts)).astype(float)
+    options = {"client": client, "periodic": True, "box": (0, 0, 1, 1)}
+    ref = distributed.refine(pts, 25, weights=w, **options)
+    assert knnrefine.certify(ref, pts, weights=w).passed
+    frame = pd.DataFrame({"lon": pts[:, 0], "lat": pts[:, 1], "w": w})
+    frame.to_parquet(tmp_path / "part.0.parquet")  # a dataset of two files
+    frame.iloc[:0].to_parquet(tmp_path / "part.1.parquet")
+    cols = {"columns": ("lon", "lat"), "weights": "w"}
+    sources = [
+        (da.from_array(pts, chunks=(7000, 2)), {"weights": w}),
+        (frame, cols),
+        (dd.from_pandas(frame, npartitions=3), cols),
+        (str(tmp_path), cols),
+    ]
+    for source, extra in sources:
+        got = distributed.refine(source, 25, **extra, **options)
+        np.testing.assert_array_equal(got.vertices, ref.vertices)
+
+
+def test_bad_sources_and_options_are_refused_before_work(client, tmp_path):
+    import pandas as pd
+
+    pts = np.random.default_rng(0).random((100, 2))
+    frame = pd.DataFrame({"x": pts[:, 0], "y": pts[:, 1]})
+    with pytest.raises(InputError, match="no column 'lon'"):
+        distributed.refine(frame, 5, client=client, columns=("lon", "y"))
+    with pytest.raises(InputError, match="no weight column"):
+        distributed.refine(frame, 5, client=client, weights="w")
+    with pytest.raises(InputError, match="needs a DataFrame"):
+        distributed.refine(pts, 5, client=client, weights="w")
+    with pytest.raises(InputError, match="no Parquet dataset"):
+        distributed.refine(str(tmp_path / "missing"), 5, client=client)
+    with pytest.raises(InputError, match="workers must be an integer >= 2"):
+        distributed.refine(pts, 5, client=client, workers=1)
+    with pytest.raises(InputError, match="client must be"):
+        distributed.refine(pts, 5, client=object())
+    with pytest.raises(InputError, match="executor must be"):
+        knnrefine.refine(pts, 5, workers=2, executor=object())
+    with pytest.raises(InputError, match="workers >= 2"):
+        knnrefine.refine(pts, 5, executor=client.get_executor())
+
+
+def test_any_executor_runs_the_tiles():
+    """refine(workers=N, executor=...) takes any concurrent.futures executor: here threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pts = clustered(20000, 5)
+    with ThreadPoolExecutor(2) as pool:
+        mesh = knnrefine.refine(pts, 10, workers=2, executor=pool)
+        assert not pool._shutdown  # the caller's executor stays the caller's
+    assert knnrefine.certify(mesh, pts).passed
+    assert mesh.stats["rounds"][0]["new_vertices"] > 0
+
+
+def test_a_killed_worker_still_gives_a_complete_certified_mesh():
+    """A worker process killed (SIGKILL) while it runs a tile: Dask runs the tile again on
+    a live worker, and the mesh is whole and certified, the same as without the kill."""
+    pts = clustered(400000, 7)
+    options = {"periodic": True, "box": (0, 0, 1, 1)}
+    with _cluster() as cluster, Client(cluster) as c:
+        pids = c.run(os.getpid)
+        c.run(lambda: __import__("knnrefine.engine.partition"))  # warm the imports
+        out = {}
+
+        def go():
+            out["mesh"] = distributed.refine(pts, 30, client=c, **options)
+
+        runner = threading.Thread(target=go)
+        runner.start()
+        killed = None
+        deadline = time.monotonic() + 120
+        while killed is None and runner.is_alive() and time.monotonic() < deadline:
+            busy = [addr for addr, tasks in c.processing().items() if tasks]
+            if busy:
+                killed = pids[busy[0]]
+                time.sleep(0.05)  # inside the tile
+                os.kill(killed, signal.SIGKILL)
+            time.sleep(0.005)
+        runner.join(300)
+        assert killed is not None, "no tile was seen running"
+        assert killed not in c.run(os.getpid).values()  # that worker died and was replaced
+    mesh = out["mesh"]
+    assert knnrefine.certify(mesh, pts).passed
+    clean = knnrefine.refine(pts, 30, workers=2, **options)
+    np.testing.assert_array_equal(mesh.vertices, clean.vertices)
