@@ -38,20 +38,11 @@ def main(argv=None):
     args = ap.parse_args(argv)
     import dask
     import dask.array as da
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     print(f"{platform.node()}: {os.cpu_count()} cores, {args.workers} Dask workers, k = {args.k}")
     rows = []
-    with (
-        LocalCluster(
-            n_workers=args.workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=":0",
-            env={"KNNREFINE_THREADS": "1"},
-        ) as cluster,  # fmt: skip
-        Client(cluster) as client,
-    ):
+    with distributed.local_cluster(args.workers) as cluster, Client(cluster) as client:
         warm = np.random.default_rng(0).random((20000, 2))
         opts = {"periodic": True, "box": (0, 0, 1, 1)}
         knnrefine.refine(warm, 10, **opts)

@@ -12,6 +12,7 @@ them; tiles receive only their strip's points. Partitioned output and per-tile c
 are not built yet.
 """
 
+import contextlib
 import os
 
 import numpy as np
@@ -90,7 +91,7 @@ def refine(
         How often Dask runs a failed tile again.
     """
     _dask()
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if workers is not None and (
         isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 2
@@ -99,20 +100,22 @@ def refine(
     if client is not None and not hasattr(client, "get_executor"):
         raise InputError(f"client must be a dask.distributed.Client, got {client!r}")
     points, w = read_source(source, columns, weights)
-    if client is not None:
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            cluster = local_cluster(workers or max(2, os.cpu_count() or 1))
+            client = stack.enter_context(Client(stack.enter_context(cluster)))
         tiles = workers or max(2, sum(client.nthreads().values()))
         executor = client.get_executor(pure=False, retries=int(retries))
         return _refine(points, k, tau, weights=w, workers=tiles, executor=executor, **options)
-    tiles = workers or max(2, os.cpu_count() or 1)
-    with (
-        LocalCluster(
-            n_workers=tiles,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=":0",
-            env={"KNNREFINE_THREADS": "1"},
-        ) as cluster,  # fmt: skip
-        Client(cluster) as own,
-    ):
-        executor = own.get_executor(pure=False, retries=int(retries))
-        return _refine(points, k, tau, weights=w, workers=tiles, executor=executor, **options)
+
+
+def local_cluster(workers):
+    """A Dask LocalCluster for tiles: ``workers`` processes of one thread, each engine on
+    one thread (KNNREFINE_THREADS=1), the dashboard on any free port."""
+    _dask()
+    from distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=":0",
+        env={"KNNREFINE_THREADS": "1"},
+    )  # fmt: skip
