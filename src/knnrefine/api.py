@@ -189,6 +189,15 @@ def refine(
     start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
     _check_initial_budget(box, per, start_budget)
 
+    if workers > 1:
+        from .engine.partition import LocalStore
+
+        store = LocalStore(pts, weights, workers, executor)
+        try:
+            return refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
+                                deadline, progress, workers, t_start)  # fmt: skip
+        finally:
+            store.close()
     report = _Progress(progress)
     if not jit.is_ready(R.refine_steps):
         report.compiling()
@@ -203,64 +212,132 @@ def refine(
         lo, hi = emb.box_internal()
         estimated, _ = size.estimate(index, k, floor, *emb.period_internal, float(np.prod(hi - lo)))
         budget = _budget(estimated, max_vertices, len(m0_order), k, n, min_size)
-        rounds = None
-        if workers > 1:
-            from .engine.partition import refine_tiled
-
-            t_tiled = time.perf_counter()
-            run, status, rounds = refine_tiled(
-                emb.to_internal(pts), weights, k, *emb.period_internal, tau,
-                min_size * emb.scale, budget, m0, emb.grid, min(estimated, budget), index,
-                workers, report.refining, interrupts, deadline, executor,
-            )  # fmt: skip
-            run.time_refine = time.perf_counter() - t_tiled
-        else:
-            run = Refinement(
-                index,
-                k,
-                *emb.period_internal,
-                tau,
-                min_size * emb.scale,
-                budget,
-                m0=m0,
-                grid=emb.grid,
-                expected_vertices=min(estimated, budget),
-            )
+        run = Refinement(
+            index, k, *emb.period_internal, tau, min_size * emb.scale, budget, m0=m0,
+            grid=emb.grid, expected_vertices=min(estimated, budget),
+        )  # fmt: skip
         run.time_index = start.seconds
-        # below the engine's resolution limit nothing is split whatever min_size says
-        min_size = max(min_size, run.floor / emb.scale)
-        if rounds is None:
-            status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
-        if status != R.STATUS_DONE:
-            what = (
-                f"max_vertices={budget}"
-                if status == R.STATUS_MAX_VERTICES
-                else f"time_limit={time_limit} s"
-            )
-            raise BudgetError(
-                f"refinement stopped at {what} with {run.vertices} vertices and "
-                f"{run.pending()} candidates still queued (about {estimated:.3g} vertices were "
-                "expected); raise the budget, use a larger k, or a larger min_size",
-                progress={
-                    "vertices": run.vertices,
-                    "moves": run.counters()["moves"],
-                    "seconds": time.perf_counter() - t_start,
-                },
-            )
-        t_assemble = time.perf_counter()
-        report.assembling(run.vertices)
-        res = run.result()
-        m0_stats = {
-            "vertices": int(len(m0_order)),
-            "per_period": int(m0_grid[0]),
-            "shift": float(m0_grid[2]),
-            "reach_factor": reach_factor(tau),
-        }
+        status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
         kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, weights))
-        mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, kept)
+        return _finish(
+            run, status, emb, k, tau, min_size, m0_order, m0_grid, estimated, budget,
+            time_limit, report, interrupts, kept, None if weights is None else weights.sum(),
+            None, t_start,
+        )  # fmt: skip
+
+
+def refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit, deadline,
+                 progress, workers, t_start):  # fmt: skip
+    """A tiled run (``engine/partition.py``) on the points of ``store`` (``LocalStore``, or
+    ``distributed.DaskStore``), its options checked by the caller: the plan from a sample of
+    the points (initial mesh, size, strips), a coarse pass on part of it, rounds of tiles,
+    then whatever no round settled on the index of all points, fetched only then."""
+    from .engine import partition as T
+
+    n = store.n
+    start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
+    report = _Progress(progress)
+    if not jit.is_ready(R.refine_steps):
+        report.compiling()
+    with Interrupts() as interrupts:
+        t0 = time.perf_counter()
+        coarse_f = min(1.0 / (T.COARSE_SHARE * workers), T.COARSE_MAX / n)
+        sx, sw, keys = store.sample(max(coarse_f, min(1.0, T.SAMPLE_MIN / n)))
+        share = len(sx) / n if sw is None else float(sw.sum()) / store.weight
+        factor = reach_factor(tau)
+        # d_{S,k} >= d_{P,k} for a subset S: an initial mesh the sample accepts is accepted
+        start = _Start(sx, box, per, start_budget, interrupts, deadline, sw)
+        found = start.find(k, factor)
+        if found is None and len(sx) < n:  # the sample may be too sparse: ask all points
+            every, w_every = store.points()
+            start = _Start(every, box, per, start_budget, interrupts, deadline, w_every)
+            found = start.find(k, factor)
+        if found is None:
+            raise InputError(start.refusal(k, tau))
+        emb, s_index, (m0, m0_order, m0_grid) = found
+        _past(deadline, "setting up", t_start)
+        lx, ly = emb.period_internal
+        floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
+        lo, hi = emb.box_internal()
+        estimated = size.estimate(s_index, k, floor, lx, ly, float(np.prod(hi - lo)))[0] / share
+        budget = _budget(estimated, max_vertices, len(m0_order), k, n, min_size)
+        internal = emb.to_internal(sx)
+        sets = T.strips(internal, lx, ly, workers)
+        common = {
+            "k": k, "lx": lx, "ly": ly, "tau": tau, "min_size": min_size * emb.scale,
+            "max_vertices": budget, "m0": m0, "grid": emb.grid, "deadline": deadline,
+        }  # fmt: skip
+        coarse = keys < coarse_f
+        xy, kinds = T.coarse_pass(
+            internal[coarse], None if sw is None else sw[coarse], k, lx, ly, tau,
+            min_size * emb.scale, budget, m0, emb.grid,
+        )  # fmt: skip
+        store.prepare(emb, sets, 4 * emb.grid)
+        setup = time.perf_counter() - t0
+        xy, kinds, stamps, history, rounds, stopped = T.run_rounds(
+            store, sets, xy, kinds, common, min(estimated, budget), len(m0[0]), report.refining,
+            interrupts, deadline,
+        )  # fmt: skip
+        t1 = time.perf_counter()
+        args = (xy, kinds, stamps, history, k, lx, ly, tau, min_size * emb.scale, budget, m0,
+                emb.grid)  # fmt: skip
+        bands = T.margin_bands(emb, *store.bounds)
+        run, status, unsettled = T.settle(s_index, *args, bands=bands, deadline=deadline)
+        before, fetched = len(m0[0]) + len(xy), False
+        if stopped is not None:
+            status = stopped
+        elif status == R.STATUS_DONE and unsettled:
+            pts, w = store.points()  # what is left needs the counts of all points
+            fetched = True
+            run, _, unsettled = T.settle(build_index(emb.to_internal(pts), weights=w), *args)
+            status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
+        run.n = n
+        rounds.append({
+            "round": "final", "new_vertices": run.vertices - before,
+            "seconds": time.perf_counter() - t1, "unsettled": unsettled, "fetched_points": fetched,
+        })  # fmt: skip
+        run.time_index = setup
+        run.time_refine = time.perf_counter() - t0 - setup
+        return _finish(
+            run, status, emb, k, tau, min_size, m0_order, m0_grid, estimated, budget,
+            time_limit, report, interrupts, None, store.weight, rounds, t_start,
+        )  # fmt: skip
+
+
+def _finish(run, status, emb, k, tau, min_size, m0_order, m0_grid, estimated, budget,
+            time_limit, report, interrupts, kept, weight, rounds, t_start):  # fmt: skip
+    """The Mesh of a finished run, or BudgetError for one stopped by a budget."""
+    # below the engine's resolution limit nothing is split whatever min_size says
+    min_size = max(min_size, run.floor / emb.scale)
+    if status != R.STATUS_DONE:
+        what = (
+            f"max_vertices={budget}"
+            if status == R.STATUS_MAX_VERTICES
+            else f"time_limit={time_limit} s"
+        )
+        raise BudgetError(
+            f"refinement stopped at {what} with {run.vertices} vertices and "
+            f"{run.pending()} candidates still queued (about {estimated:.3g} vertices were "
+            "expected); raise the budget, use a larger k, or a larger min_size",
+            progress={
+                "vertices": run.vertices,
+                "moves": run.counters()["moves"],
+                "seconds": time.perf_counter() - t_start,
+            },
+        )
+    t_assemble = time.perf_counter()
+    report.assembling(run.vertices)
+    res = run.result()
+    m0_stats = {
+        "vertices": int(len(m0_order)),
+        "per_period": int(m0_grid[0]),
+        "shift": float(m0_grid[2]),
+        "reach_factor": reach_factor(tau),
+    }
+    mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, kept)
     stats = mesh.stats
-    if weights is not None:
-        stats["weight"] = float(weights.sum())
+    if weight is not None:
+        stats["weight"] = float(weight)
     stats["estimated_vertices"] = int(estimated)
     if rounds is not None:
         stats["rounds"] = rounds

@@ -1,11 +1,24 @@
-"""Rounds of tiles in local processes, then the final pass (the rule is ``tiles.py``'s).
+"""A tiled run: its plan from a sample, its rounds of strips, and the last step (the rule
+that makes the union of the tiles' moves a kNNRefine run is ``tiles.py``'s).
 
-``refine_tiled`` plans two interleaved sets of strips balanced by point count, runs rounds
-alternating between them (every strip of a round in its own process, with only its points
-and the vertices in it), and ends with the whole torus in this process: the vertices of all
-rounds triangulated (``tiles.insert_points``), what the rounds settled marked so
-(``tiles.mark_settled``), and the engine's loop run on the rest. It returns that last
-``Refinement``, so the caller assembles the mesh as for a run in one process.
+* The sample: the points whose key (``sample_keys``, a hash of their coordinates' bits) is
+  below a fraction. It is the same set whatever the partitioning of the input (a NumPy
+  array, Dask chunks, Parquet files), so a run's mesh does not depend on it.
+* ``strips``: two sets of strips balanced by the sample's quantiles, borders interleaved.
+* ``coarse_pass``: a refinement of the sample's coarsest part (a ball holding k of a subset
+  holds k of all, so its moves are moves of the whole run).
+* ``run_rounds``: rounds alternating between the two sets; every strip of a round is a
+  tile (``run_tile``) that refines what lies inside it, given its points (or their index
+  kept from an earlier round) and the vertices in it.
+* ``settle``: all vertices triangulated, what the rounds settled marked so; what is left
+  (elements crossing a border of both sets, or below the floor) needs the counts of all the
+  points: the caller's final pass.
+
+Where the points live is a store's business: ``LocalStore`` (this process; tiles in local
+processes or on any executor) and ``knnrefine.distributed.DaskStore`` (partitions and strip
+indexes on Dask workers). A store has ``n``, ``weight`` (the total, or None),
+``bounds`` (the points' extent: lows, highs), ``sample``, ``prepare``, ``run_round``,
+``points`` and ``close``.
 """
 
 import multiprocessing
@@ -19,18 +32,59 @@ from ..errors import EngineError
 from . import refine as R
 from .driver import Refinement
 from .index import build_index
-from .state import C_NV, ERRORS, P_REGION_H, P_REGION_W, P_REGION_X0, P_REGION_Y0
+from .jit import kernel
+from .state import C_NT, C_NV, ERRORS, P_REGION_H, P_REGION_W, P_REGION_X0, P_REGION_Y0, P_TAU2
 from .tiles import WALK_LOST, in_rectangle, insert_points, mark_settled, spatial_order
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
+COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the points ...
+COARSE_MAX = 2_000_000  # ... but no more than this many (it runs in the calling process)
+SAMPLE_MIN = 100_000  # the plan's sample (strips, initial mesh, size) has at least this many
+
+
+@kernel(inline="always")
+def _mix(z):
+    """SplitMix64's finaliser: a bijection of 64-bit words that scatters every input bit."""
+    z = z + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@kernel(entry=True)
+def _keys(bits, out):
+    for i in range(bits.shape[0]):
+        h = _mix(bits[i, 0] ^ _mix(bits[i, 1]))
+        out[i] = np.float64(h >> np.uint64(11)) * 1.1102230246251565e-16  # 2^-53
+
+
+def sample_keys(xy):
+    """A key in [0, 1) for each point (n, 2) that depends only on its two coordinates (0.0
+    and -0.0 alike): the points with key < f are a sample of about f n, the same one
+    however the points are split or ordered."""
+    bits = np.ascontiguousarray(xy, dtype=np.float64) + 0.0  # a copy, -0.0 made 0.0
+    out = np.empty(len(bits))
+    _keys(bits.view(np.uint64), out)
+    return out
+
+
+def canonical(xy, weights, keys):
+    """The sample in an order that depends only on its points: by key, then x, then y."""
+    order = np.lexsort((xy[:, 1], xy[:, 0], keys))
+    return xy[order], None if weights is None else weights[order], keys[order]
+
+
+def strip_axis(lx, ly):
+    """Strips run across the longer period."""
+    return 0 if lx >= ly else 1
 
 
 def strips(xy, lx, ly, tiles):
     """Two sets of ``tiles`` strips (tiles, 4) as regions (x0, y0, w, h) of the torus, across
-    the longer period, each holding about 1 / tiles of the points: the first cut at the
-    quantiles j / tiles, the second at (j + 1/2) / tiles, so that each border of one lies
-    inside a strip of the other."""
-    axis = 0 if lx >= ly else 1
+    the longer period, each holding about 1 / tiles of the points xy (a sample will do):
+    the first cut at the quantiles j / tiles, the second at (j + 1/2) / tiles, so that each
+    border of one lies inside a strip of the other."""
+    axis = strip_axis(lx, ly)
     period = (lx, ly)[axis]
     coord = np.sort(xy[:, axis])
     sets = []
@@ -46,9 +100,31 @@ def strips(xy, lx, ly, tiles):
     return sets
 
 
+def split_strips(xy, regions, pad, lx, ly):
+    """The rows of xy (torus coordinates) in each strip of one set widened by ``pad`` on
+    both sides: (rows, bounds), strip j's rows being rows[bounds[j]:bounds[j + 1]]. A point
+    within pad of a border is in both strips (and in every strip narrower than 2 pad that
+    lies between them). One sort, whatever the number of strips."""
+    axis = strip_axis(lx, ly)
+    period = (lx, ly)[axis]
+    cuts = np.ascontiguousarray(regions[:, axis])
+    tiles = len(cuts)
+    c = xy[:, axis]
+    lo = (np.searchsorted(cuts, np.mod(c - pad, period), "right") - 1) % tiles
+    hi = (np.searchsorted(cuts, np.mod(c + pad, period), "right") - 1) % tiles
+    span = (hi - lo) % tiles + 1
+    rows = np.repeat(np.arange(len(xy)), span)
+    first = np.repeat(np.cumsum(span) - span, span)
+    strip = (np.repeat(lo, span) + np.arange(len(rows)) - first) % tiles
+    order = np.argsort(strip, kind="stable")
+    bounds = np.searchsorted(strip[order], np.arange(tiles + 1))
+    return rows[order], bounds
+
+
 def seed(run, xy, kinds, stamps, regions):
     """Insert the vertices xy (with their kinds and rounds) into the run's initial mesh, mark
-    what earlier rounds settled (regions (Q, T, 4)), and queue the rest."""
+    what earlier rounds settled (regions (Q, T, 4)), and queue the rest. Returns (the number
+    of vertices, the number of elements not settled: circumballs and cells)."""
     order = spatial_order(np.ascontiguousarray(xy), run.lx, run.ly)
     pts = np.ascontiguousarray(xy[order])
     ids = np.full(len(pts), -1, np.int64)
@@ -66,24 +142,30 @@ def seed(run, xy, kinds, stamps, regions):
     all_stamps[ids[placed]] = stamps[order][placed]
     run.book.kinds[ids[placed]] = kinds[order][placed]
     run.reserve_queues(3 * nv + R.HEADROOM)  # queue_all pushes every triangle and vertex
-    mark_settled(run.mesh, run.book, run.cnt, run.prm, all_stamps, regions)
+    balls, cells = mark_settled(run.mesh, run.book, run.cnt, run.prm, all_stamps, regions)
     R.queue_all(run.mesh, run.book, run.queues, run.cnt, run.prm)
-    return nv
+    return nv, int(run.cnt[C_NT]) - balls + nv - cells
 
 
-def run_tile(task):
-    """One tile of one round (in a worker process): its points, the vertices in its region,
-    the earlier rounds' regions; returns the vertices it inserted (xy, kinds) and its
-    counters."""
+def tile_index(points, weights):
+    """A strip's counting index, built on one thread (one of many tiles at once)."""
+    return build_index(points, workers=1, weights=weights)
+
+
+def run_tile(task, index=None):
+    """One tile of one round: its points' index (``index``, else built from task["points"]),
+    the vertices in its region, the earlier rounds' regions; returns the vertices it
+    inserted (xy, kinds) and its counters."""
     t0 = time.perf_counter()
     os.environ["KNNREFINE_THREADS"] = "1"  # one of many tiles at once: one engine thread
-    index = build_index(task["points"], weights=task["weights"])
+    if index is None:
+        index = tile_index(task["points"], task["weights"])
     run = Refinement(
         index, task["k"], task["lx"], task["ly"], task["tau"], task["min_size"],
         task["max_vertices"], m0=task["m0"], grid=task["grid"],
         expected_vertices=task["expected"],
     )  # fmt: skip
-    start = seed(run, task["xy"], task["kinds"], task["stamps"], task["history"])
+    start, _ = seed(run, task["xy"], task["kinds"], task["stamps"], task["history"])
     x0, y0, w, h = task["region"]
     run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = x0, y0
     run.prm[P_REGION_W], run.prm[P_REGION_H] = w, h
@@ -98,24 +180,139 @@ def run_tile(task):
     }
 
 
-COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * workers) of the points
-
-
-def coarse_pass(points, weights, k, lx, ly, tau, min_size, max_vertices, m0, grid, workers):
-    """The vertices (xy, kinds) of a refinement of a random subset of the points, in this
-    process: a ball holding k of the subset holds k of all, so every move it makes is a move
-    of the whole run, and the strips start from a mesh whose elements are a few times the
-    final ones (from the initial mesh's, a first round could split almost nothing inside a
-    strip). Nothing when the subset would hold fewer than 4 k points."""
-    m = len(points) // (COARSE_SHARE * workers)
-    if m < 4 * k:
+def coarse_pass(points, weights, k, lx, ly, tau, min_size, max_vertices, m0, grid):
+    """The vertices (xy, kinds) of a refinement of ``points``, a subset of the input (the
+    sample's coarsest part), in this process: the strips then start from a mesh whose
+    elements are a few times the final ones (from the initial mesh's, a first round could
+    split almost nothing inside a strip). Nothing when the subset holds fewer than 4 k."""
+    if len(points) < 4 * k:
         return np.zeros((0, 2)), np.zeros(0, np.int8)
-    pick = np.sort(np.random.default_rng(0).choice(len(points), m, replace=False))
-    index = build_index(points[pick], weights=None if weights is None else weights[pick])
+    index = build_index(np.array(points), weights=weights)
     run = Refinement(index, k, lx, ly, tau, min_size, max_vertices, m0=m0, grid=grid)
     run.run()
     start, nv = len(m0[0]), int(run.cnt[C_NV])
     return run.mesh.xy[start:nv].copy(), run.book.kinds[start:nv].copy()
+
+
+def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, interrupts, deadline):
+    """Rounds alternating between the two sets of strips, each strip a tile run by
+    ``store.run_round``, until a round after the first inserts nothing (or MAX_ROUNDS).
+    Returns (xy, kinds, stamps, history, report, stopped): all vertices beyond the initial
+    mesh, the round that inserted each, every round's regions, a report per round, and the
+    status of a tile stopped by the budget or the deadline (None if none was). Such a tile's
+    strip is not settled, so nothing after it may treat it as settled: the run ends."""
+    tiles = len(sets[0])
+    stamps = np.zeros(len(xy), np.int32)
+    history = np.zeros((0, tiles, 4))
+    report = []
+    lx, ly, grid = common["lx"], common["ly"], common["grid"]
+    stopped = None
+    for r in range(1, MAX_ROUNDS + 1):
+        s = (r - 1) % 2
+        tasks = []
+        for region in sets[s]:
+            inside = in_rectangle(xy, *region, 4 * grid, lx, ly)
+            tasks.append({
+                **common, "xy": xy[inside], "kinds": kinds[inside], "stamps": stamps[inside],
+                "history": history, "region": region,
+                "expected": int(expected / tiles + inside.sum()),
+            })  # fmt: skip
+        t0 = time.perf_counter()
+        results = store.run_round(s, tasks)
+        new = np.concatenate([res["xy"] for res in results])
+        report.append({
+            "round": r, "new_vertices": len(new), "seconds": time.perf_counter() - t0,
+            "tiles": [res["seconds"] for res in results],
+            "tile_vertices": [len(res["xy"]) for res in results],
+        })  # fmt: skip
+        xy = np.concatenate([xy, new])
+        kinds = np.concatenate([kinds] + [res["kinds"] for res in results])
+        stamps = np.concatenate([stamps, np.full(len(new), r, np.int32)])
+        history = np.concatenate([history, sets[s][None]])
+        if progress is not None:
+            progress(m0_count + len(xy), 0)
+        if interrupts is not None:
+            interrupts.check()
+        stopped = next((res["status"] for res in results if res["status"] != R.STATUS_DONE), None)
+        if stopped is None and deadline is not None and time.perf_counter() >= deadline:
+            stopped = R.STATUS_STEPS
+        if stopped is not None or (r >= 2 and len(new) == 0):
+            break
+    return xy, kinds, stamps, history, report, stopped
+
+
+def margin_bands(emb, lo, hi):
+    """Regions (B, 4) of the torus that hold no input point: along each non-periodic axis,
+    the band between the far side of the points' extent [lo, hi] (input units) and its near
+    side one period on, a grid step off each. Counts inside them are 0 whatever the index,
+    so the plan's sample index decides their elements exactly."""
+    a = emb.to_internal(np.array([lo, hi], float))
+    lx, ly = emb.period_internal
+    bands = []
+    for axis in range(2):
+        if emb.periodic[axis]:
+            continue
+        period = (lx, ly)[axis]
+        width = period - (a[1, axis] - a[0, axis]) - 2 * emb.grid
+        if width <= 0:
+            continue
+        region = [0.0, 0.0, lx, ly]
+        region[axis] = a[1, axis] + emb.grid
+        region[2 + axis] = width
+        bands.append(region)
+    return np.array(bands).reshape(-1, 4)
+
+
+def unsettled_count(run):
+    """Elements of a run's mesh not known to be settled: circumballs and cells not GOOD,
+    and cells whose aspect exceeds tau."""
+    nt, nv = int(run.cnt[C_NT]), int(run.cnt[C_NV])
+    aspect = 4.0 * run.mesh.outradius2[:nv] > run.prm[P_TAU2] * run.mesh.nearest2[:nv]
+    return int(
+        (run.book.ball_state[:nt] != R.GOOD).sum()
+        + (run.book.cell_state[:nv] != R.GOOD).sum()
+        + aspect.sum()
+    )
+
+
+def settle_bands(run, bands, deadline=None):
+    """Run the mesh in each point-free band as a tile (its region), the bands in turn until
+    a pass inserts nothing. Returns (status, elements still not settled)."""
+    for _ in range(MAX_ROUNDS):
+        before = run.vertices
+        for band in bands:
+            run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = band[0], band[1]
+            run.prm[P_REGION_W], run.prm[P_REGION_H] = band[2], band[3]
+            balls = run.book.ball_state[: int(run.cnt[C_NT])]
+            balls[balls == R.DEFERRED] = R.UNTESTED  # deferred by the last band: look again
+            run.reserve_queues(3 * run.vertices + R.HEADROOM)
+            R.queue_all(run.mesh, run.book, run.queues, run.cnt, run.prm)
+            status = run.run(deadline=deadline)
+            if status != R.STATUS_DONE:
+                return status, None
+        if run.vertices == before:
+            break
+    run.prm[P_REGION_W] = 0.0  # the whole torus again
+    return R.STATUS_DONE, unsettled_count(run)
+
+
+def settle(index, xy, kinds, stamps, history, k, lx, ly, tau, min_size, max_vertices, m0, grid,
+           bands=None, deadline=None):  # fmt: skip
+    """The Refinement of the whole torus holding the initial mesh and every vertex of the
+    rounds, what the rounds settled marked so and the rest queued; then the point-free
+    ``bands`` (``margin_bands``) settled as tiles. Returns (run, status, elements not
+    settled). With none, the mesh is final and ``index`` was asked only counts in the bands
+    (the plan's sample index will do); otherwise the caller runs it on the index of all
+    points."""
+    final = Refinement(
+        index, k, lx, ly, tau, min_size, max_vertices, m0=m0, grid=grid,
+        expected_vertices=len(m0[0]) + len(xy),
+    )  # fmt: skip
+    _, unsettled = seed(final, xy, kinds, stamps, history)
+    status = R.STATUS_DONE
+    if unsettled and bands is not None and len(bands):
+        status, unsettled = settle_bands(final, bands, deadline)
+    return final, status, unsettled
 
 
 def _context():
@@ -127,86 +324,46 @@ def _context():
     return multiprocessing.get_context("fork" if "fork" in methods else "spawn")
 
 
-def refine_tiled(
-    points, weights, k, lx, ly, tau, min_size, max_vertices, m0, grid, expected, index,
-    workers, progress=None, interrupts=None, deadline=None, executor=None,
-):  # fmt: skip
-    """kNNRefine in rounds of ``workers`` strips in as many processes, then the final pass
-    on ``index`` (the full counting index) in this one. points: internal coordinates.
-    ``executor``: a ``concurrent.futures.Executor`` whose ``map`` runs the tiles (a Dask
-    client's ``get_executor()``, for one); None: a pool of ``workers`` local processes.
-    Returns (the final Refinement, its status, a per-round report). A tile stopped by the
-    budget or the deadline (``deadline``, a time.perf_counter() value, holds in the tiles
-    too) ends the run with that status: what it left inside its strip is not settled, so
-    no later round or pass may treat it as settled."""
-    sets = strips(points, lx, ly, workers)
-    masks = [
-        [in_rectangle(points, *region, 4 * grid, lx, ly) for region in regions] for regions in sets
-    ]
-    xy, kinds = coarse_pass(points, weights, k, lx, ly, tau, min_size, max_vertices, m0, grid,
-                            workers)  # fmt: skip
-    stamps = np.zeros(len(xy), np.int32)
-    history = np.zeros((0, workers, 4))
-    report = []
-    common = {
-        "k": k, "lx": lx, "ly": ly, "tau": tau, "min_size": min_size,
-        "max_vertices": max_vertices, "m0": m0, "grid": grid, "deadline": deadline,
-    }  # fmt: skip
-    stopped = None
-    own = executor is None
-    pool = ProcessPoolExecutor(workers, mp_context=_context()) if own else executor
-    try:
-        for r in range(1, MAX_ROUNDS + 1):
-            regions = sets[(r - 1) % 2]
-            tasks = []
-            for j, region in enumerate(regions):
-                inside = in_rectangle(xy, *region, 4 * grid, lx, ly)
-                mask = masks[(r - 1) % 2][j]
-                tasks.append({
-                    **common, "points": points[mask],
-                    "weights": None if weights is None else weights[mask],
-                    "xy": xy[inside], "kinds": kinds[inside], "stamps": stamps[inside],
-                    "history": history, "region": region,
-                    "expected": int(expected / workers + inside.sum()),
-                })  # fmt: skip
-            t0 = time.perf_counter()
-            results = list(pool.map(run_tile, tasks))
-            new = np.concatenate([res["xy"] for res in results])
-            report.append({
-                "round": r, "new_vertices": len(new), "seconds": time.perf_counter() - t0,
-                "tiles": [res["seconds"] for res in results],
-                "tile_vertices": [len(res["xy"]) for res in results],
-            })  # fmt: skip
-            xy = np.concatenate([xy, new])
-            kinds = np.concatenate([kinds] + [res["kinds"] for res in results])
-            stamps = np.concatenate([stamps, np.full(len(new), r, np.int32)])
-            history = np.concatenate([history, regions[None]])
-            if progress is not None:
-                progress(len(m0[0]) + len(xy), 0)
-            if interrupts is not None:
-                interrupts.check()
-            stopped = next(
-                (res["status"] for res in results if res["status"] != R.STATUS_DONE), None
-            )
-            if stopped is None and deadline is not None and time.perf_counter() >= deadline:
-                stopped = R.STATUS_STEPS
-            if stopped is not None or (r >= 2 and len(new) == 0):
-                break
-    finally:
-        if own:
-            pool.shutdown(cancel_futures=True)
-    final = Refinement(
-        index, k, lx, ly, tau, min_size, max_vertices, m0=m0, grid=grid,
-        expected_vertices=len(m0[0]) + len(xy),
-    )  # fmt: skip
-    seed(final, xy, kinds, stamps, history)
-    if stopped is not None:
-        return final, stopped, report
-    t0 = time.perf_counter()
-    before = int(final.cnt[C_NV])
-    status = final.run(deadline=deadline, progress=progress, interrupts=interrupts)
-    report.append({
-        "round": "final", "new_vertices": int(final.cnt[C_NV]) - before,
-        "seconds": time.perf_counter() - t0,
-    })  # fmt: skip
-    return final, status, report
+class LocalStore:
+    """The points in this process. Each round's tiles receive copies of their strip's points
+    and run on ``executor`` (its ``map``; None: a pool of ``workers`` local processes, shut
+    down by ``close``)."""
+
+    def __init__(self, points, weights, workers, executor=None):
+        self.pts, self.weights, self.workers = points, weights, workers
+        self.n = len(points)
+        self.weight = None if weights is None else float(weights.sum())
+        lo = [float(points[:, a].min()) for a in range(2)]
+        self.bounds = (lo, [float(points[:, a].max()) for a in range(2)])  # the points' extent
+        self.executor = executor
+        self.own = None
+
+    def sample(self, fraction):
+        keys = sample_keys(self.pts)
+        pick = keys < fraction
+        w = None if self.weights is None else self.weights[pick]
+        return canonical(self.pts[pick], w, keys[pick])
+
+    def prepare(self, emb, sets, pad):
+        """The points in torus coordinates and each set's rows per strip."""
+        self.internal = emb.to_internal(self.pts)
+        lx, ly = emb.period_internal
+        self.rows = [split_strips(self.internal, regions, pad, lx, ly) for regions in sets]
+
+    def run_round(self, s, tasks):
+        rows, bounds = self.rows[s]
+        for j, task in enumerate(tasks):
+            mine = rows[bounds[j] : bounds[j + 1]]
+            task["points"] = self.internal[mine]
+            task["weights"] = None if self.weights is None else self.weights[mine]
+        if self.executor is None and self.own is None:
+            self.own = ProcessPoolExecutor(self.workers, mp_context=_context())
+        return list((self.executor or self.own).map(run_tile, tasks))
+
+    def points(self):
+        return self.pts, self.weights
+
+    def close(self):
+        if self.own is not None:
+            self.own.shutdown(cancel_futures=True)
+            self.own = None

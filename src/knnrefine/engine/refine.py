@@ -335,13 +335,16 @@ def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
 
 @kernel(entry=True, nrt=False)
 def queue_all(mesh, book, queues, cnt, prm):
-    """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0)."""
+    """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0), or of
+    one seeded with settled elements (``partition.seed``): the queues start empty, so no
+    vertex is marked as queued before its cell is looked at."""
     queue_clear(queues.balls)
     queue_clear(queues.cells)
     queue_clear(queues.cleans)
     for t in range(cnt[C_NT]):
         queue_push(queues.balls, size_class(mesh.radius2[t]), t, mesh.corners[t, 0])
     for v in range(cnt[C_NV]):
+        book.flags[v] = book.flags[v] & ~(IN_CELL_QUEUE | IN_CLEAN_QUEUE)
         _touch(v, mesh, book, queues, cnt, prm)
 
 
