@@ -1,11 +1,14 @@
 """Tiled refinement on a Dask LocalCluster against one process, interleaved in one run.
 
-For each n: uniform points on the unit torus (a Dask array generated chunk by chunk on the
-workers, then read into this process: the final pass needs them all), k = 100; per repeat
-one single-process ``knnrefine.refine`` and one ``knnrefine.distributed.refine`` on the same
-cluster, alternating. Prints medians, the speed-up, the share of the rounds and of the final
-pass (the seam work left to one process), and peak resident memory of this process and of
-each worker (ru_maxrss, which only grows: the largest n dominates).
+For each n: uniform points on the unit torus, a Dask array generated chunk by chunk on the
+workers and kept there (persisted); ``knnrefine.distributed.refine`` reads it partition by
+partition where it lies. The single-process run gets the same points computed into this
+process (its input; the tiled run never reads them here). k = 100; per repeat one
+single-process ``knnrefine.refine`` and one ``knnrefine.distributed.refine`` on the same
+cluster, alternating. Prints medians, the speed-up, the share of setup (sample, plan,
+strips and their indexes), rounds and the last step, and peak resident memory of this
+process and of each worker (ru_maxrss, which only grows: the largest n dominates).
+``--no-single`` skips the single-process runs (for n beyond this machine's memory).
 
     python benchmarks/bench_distributed.py --sizes 1e6 1e7 --repeat 3
 """
@@ -35,6 +38,7 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", default=None, help="JSON file for the rows")
+    ap.add_argument("--no-single", action="store_true", help="only the tiled runs")
     args = ap.parse_args(argv)
     import dask
     import dask.array as da
@@ -50,18 +54,24 @@ def main(argv=None):
         for n in (int(s) for s in args.sizes):
             chunk = min(n, 2_000_000)
             with dask.config.set(scheduler=client):
-                pts = da.random.RandomState(1).random_sample((n, 2), chunks=(chunk, 2))
-                pts = pts.compute()
-            single, tiled, reports, sizes = [], [], [], []
+                source = da.random.RandomState(1).random_sample((n, 2), chunks=(chunk, 2))
+            source = client.persist(source)
+            pts = None if args.no_single else source.compute()
+            single, tiled, reports, sizes, times = [], [], [], [], []
             for _ in range(args.repeat):
+                m_one = 0
+                if pts is not None:
+                    t = time.perf_counter()
+                    m_one = len(knnrefine.refine(pts, args.k, **opts).vertices)
+                    single.append(time.perf_counter() - t)
                 t = time.perf_counter()
-                one = knnrefine.refine(pts, args.k, **opts)
-                single.append(time.perf_counter() - t)
-                t = time.perf_counter()
-                mesh = distributed.refine(pts, args.k, client=client, **opts)
+                mesh = distributed.refine(source, args.k, client=client, **opts)
                 tiled.append(time.perf_counter() - t)
                 reports.append(mesh.stats["rounds"])
-                sizes.append((len(one.vertices), len(mesh.vertices)))
+                times.append(mesh.stats["time"])
+                sizes.append((m_one, len(mesh.vertices)))
+            del source
+            setup = [t["index"] for t in times]
             rounds = [sum(r["seconds"] for r in rep if r["round"] != "final") for rep in reports]
             final = [sum(r["seconds"] for r in rep if r["round"] == "final") for rep in reports]
             final_new = [
@@ -70,19 +80,25 @@ def main(argv=None):
             workers_gb = client.run(peak_gb)
             row = {
                 "n": n, "k": args.k, "workers": args.workers,
-                "single_s": statistics.median(single), "tiled_s": statistics.median(tiled),
-                "speedup": statistics.median(single) / statistics.median(tiled),
+                "single_s": statistics.median(single) if single else None,
+                "tiled_s": statistics.median(tiled),
+                "speedup": statistics.median(single) / statistics.median(tiled) if single else None,
+                "setup_s": statistics.median(setup),
                 "rounds_s": statistics.median(rounds), "final_s": statistics.median(final),
+                "fetched_points": any(r[-1]["fetched_points"] for r in reports),
+                "tiles_s": [r["tiles"] for r in reports[0] if r["round"] != "final"],
                 "final_vertices": int(statistics.median(final_new)),
                 "m_single": sizes[0][0], "m_tiled": sizes[0][1],
                 "client_peak_gb": peak_gb(), "worker_peak_gb": max(workers_gb.values()),
                 "single_all": single, "tiled_all": tiled,
             }  # fmt: skip
             rows.append(row)
+            one = "-" if row["single_s"] is None else f"{row['single_s']:.2f} s"
+            speedup = "-" if row["speedup"] is None else f"{row['speedup']:.2f}"
             print(
-                f"n = {n:.0e}: one process {row['single_s']:.2f} s, {args.workers} workers "
-                f"{row['tiled_s']:.2f} s (speed-up {row['speedup']:.2f}); rounds "
-                f"{row['rounds_s']:.2f} s, final pass {row['final_s']:.2f} s "
+                f"n = {n:.0e}: one process {one}, {args.workers} workers "
+                f"{row['tiled_s']:.2f} s (speed-up {speedup}); setup {row['setup_s']:.2f} s, "
+                f"rounds {row['rounds_s']:.2f} s, last step {row['final_s']:.2f} s "
                 f"({row['final_vertices']} vertices); m {row['m_single']} / {row['m_tiled']}; "
                 f"peak RSS client {row['client_peak_gb']:.2f} GB, worker "
                 f"{row['worker_peak_gb']:.2f} GB",

@@ -115,3 +115,79 @@ def test_tiled_budget_stops_with_budget_error():
     X = uniform(60000)
     with pytest.raises(knnrefine.BudgetError, match="max_vertices"):
         knnrefine.refine(X, 10, box=(0, 0, 1, 1), workers=2, max_vertices=3000)
+
+
+def test_split_strips_holds_every_point_of_each_padded_strip():
+    """split_strips (a counting sort on the strip cuts) against in_rectangle on each strip:
+    every point of a strip widened by pad is among its rows, and no more than a few points
+    beyond it; duplicates on a cut and cuts that coincide included."""
+    from knnrefine.engine.partition import split_strips
+
+    rng = np.random.default_rng(4)
+    xy = rng.random((50000, 2)) * [0.8, 0.5]
+    xy[:3000] = [0.31, 0.2]  # a heavy duplicate: several quantile cuts fall on it
+    pad = 1e-3
+    for tiles in (2, 5, 11):
+        for regions in strips(xy, 0.8, 0.5, tiles):
+            rows, bounds = split_strips(xy, regions, pad, 0.8, 0.5)
+            for j, region in enumerate(regions):
+                want = np.flatnonzero(in_rectangle(xy, *region, pad, 0.8, 0.5))
+                got = rows[bounds[j] : bounds[j + 1]]
+                assert np.all(np.diff(got) > 0)
+                assert np.isin(want, got).all()
+                assert len(got) <= len(want) + 3000  # coinciding cuts: the duplicate twice
+
+
+def test_sample_is_the_same_however_the_points_are_split():
+    """sample_keys depends on a point's coordinates only: the sample of a shuffled, split
+    input is the same set, and about the requested fraction."""
+    from knnrefine.engine.partition import canonical, sample_keys
+
+    rng = np.random.default_rng(5)
+    xy = rng.random((40000, 2))
+    keys = sample_keys(xy)
+    a = canonical(xy[keys < 0.1], None, keys[keys < 0.1])[0]
+    perm = rng.permutation(len(xy))
+    parts = np.array_split(xy[perm], 7)
+    got = [(p[sample_keys(p) < 0.1], sample_keys(p)[sample_keys(p) < 0.1]) for p in parts]
+    b = canonical(np.concatenate([g[0] for g in got]), None, np.concatenate([g[1] for g in got]))
+    np.testing.assert_array_equal(a, b[0])
+    assert abs(len(a) / len(xy) - 0.1) < 0.01
+    assert sample_keys(np.array([[0.0, 1.0]]))[0] == sample_keys(np.array([[-0.0, 1.0]]))[0]
+
+
+def test_margin_bands_hold_no_point_and_settle_the_margin():
+    """regression (tiled non-periodic runs fetched every point for the last step): the bands
+    outside the points' extent hold none of them, and a uniform periodic-in-x run settles
+    everything without the points (the last step inserts nothing and fetches nothing)."""
+    from knnrefine.engine.embedding import Embedding
+    from knnrefine.engine.partition import margin_bands
+
+    X = uniform(60000)
+    emb = Embedding.make((0, 0, 1, 1), (True, False))
+    bands = margin_bands(emb, X.min(axis=0), X.max(axis=0))
+    assert len(bands) == 1  # only the non-periodic axis has a margin
+    inside = emb.to_internal(X)
+    for band in bands:
+        assert not in_rectangle(inside, *band, 0.0, *emb.period_internal).any()
+    mesh = knnrefine.refine(X, 100, box=(0, 0, 1, 1), periodic=(True, False), workers=2)
+    last = mesh.stats["rounds"][-1]
+    assert last["unsettled"] == 0 and not last["fetched_points"]
+
+
+def test_seeded_vertices_are_queued_again():
+    """regression: queue_all kept the 'queued' flags of the initial mesh's vertices while it
+    emptied the queues, so a seeded run (a tile, the last step) never looked at their cells
+    again. After seeding and running, every cell has been tested."""
+    from knnrefine.engine import refine as R
+    from knnrefine.engine.driver import Refinement
+    from knnrefine.engine.index import build_index
+    from knnrefine.engine.partition import seed
+
+    X = uniform(20000)
+    run = Refinement(build_index(X.copy()), 10, 1.0, 1.0, 3.0, 0.0, 10**6)
+    xy = np.random.default_rng(1).random((500, 2))
+    seed(run, xy, np.full(500, 1, np.int8), np.zeros(500, np.int32), np.zeros((0, 2, 4)))
+    assert (run.book.cell_state[: run.vertices] != R.GOOD).all()  # no round settled any
+    assert run.run() == R.STATUS_DONE
+    assert (run.book.cell_state[: run.vertices] == R.GOOD).all()  # every cell was looked at

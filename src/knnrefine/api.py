@@ -136,45 +136,15 @@ def refine(
     Ctrl-C raises KeyboardInterrupt within about 50 ms of refinement (within the current
     kernel call during setup).
     """
-    t_start = time.perf_counter()
-    deadline = None
-    if time_limit is not None:
-        if (
-            isinstance(time_limit, bool)
-            or not isinstance(time_limit, numbers.Real)
-            or not (np.isfinite(time_limit) and time_limit > 0)
-        ):
-            raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
-        deadline = t_start + float(time_limit)
     pts = V.as_points(points)
     n = len(pts)
-    if weights is None:
-        k = V.check_k(k, n)
-    else:
+    if weights is not None:
         weights = V.check_weights(weights, n)
-        k = V.check_weighted_k(k, float(weights.sum()))
-    tau = V.check_tau(tau)
-    per = V.check_periodic(periodic)
-    if box is None:
-        if any(per):
-            raise InputError(
-                "a periodic run needs box=(xmin, ymin, xmax, ymax): the periods are its sides "
-                "(for angles in degrees, e.g. box=(-180, -180, 180, 180))"
-            )
-        box = V.default_box(pts)
-    else:
-        box = V.check_box(box)
-        V.check_inside(pts, box, per)
-    side = max(box[2] - box[0], box[3] - box[1])
-    if min_size is None:
-        min_size = DEFAULT_MIN_SIZE * side
-    elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
-        raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
-    min_size = float(min_size)
-    if max_vertices is not None and (
-        isinstance(max_vertices, bool) or int(max_vertices) != max_vertices or max_vertices < 1
-    ):
-        raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
+    total = None if weights is None else float(weights.sum())
+    k, tau, per, box, min_size, deadline, t_start = check_options(
+        n, total, lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p), k, tau,
+        periodic, box, min_size, max_vertices, time_limit, progress,
+    )  # fmt: skip
     workers = V.check_workers(workers)
     if executor is not None and not callable(getattr(executor, "map", None)):
         raise InputError(
@@ -182,13 +152,7 @@ def refine(
         )
     if executor is not None and workers < 2:
         raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
-    if progress is not None and not callable(progress):
-        raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
-    _check_resolution(box, per)
-    # the initial mesh must fit whatever budget applies: the user's, else the smallest default
     start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
-    _check_initial_budget(box, per, start_budget)
-
     if workers > 1:
         from .engine.partition import LocalStore
 
@@ -224,6 +188,54 @@ def refine(
             time_limit, report, interrupts, kept, None if weights is None else weights.sum(),
             None, t_start,
         )  # fmt: skip
+
+
+def check_options(n, total, bounds, check_inside, k, tau, periodic, box, min_size,
+                  max_vertices, time_limit, progress):  # fmt: skip
+    """The options of a run on n points (weights summing to ``total``, or None), checked
+    before any work; ``bounds()`` gives the points' default box, ``check_inside(box, per)``
+    refuses points outside an explicit one. Returns (k, tau, per, box, min_size, deadline,
+    t_start)."""
+    t_start = time.perf_counter()
+    deadline = None
+    if time_limit is not None:
+        if (
+            isinstance(time_limit, bool)
+            or not isinstance(time_limit, numbers.Real)
+            or not (np.isfinite(time_limit) and time_limit > 0)
+        ):
+            raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+        deadline = t_start + float(time_limit)
+    k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
+    tau = V.check_tau(tau)
+    per = V.check_periodic(periodic)
+    if box is None:
+        if any(per):
+            raise InputError(
+                "a periodic run needs box=(xmin, ymin, xmax, ymax): the periods are its sides "
+                "(for angles in degrees, e.g. box=(-180, -180, 180, 180))"
+            )
+        box = bounds()
+    else:
+        box = V.check_box(box)
+        check_inside(box, per)
+    side = max(box[2] - box[0], box[3] - box[1])
+    if min_size is None:
+        min_size = DEFAULT_MIN_SIZE * side
+    elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
+        raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
+    min_size = float(min_size)
+    if max_vertices is not None and (
+        isinstance(max_vertices, bool) or int(max_vertices) != max_vertices or max_vertices < 1
+    ):
+        raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
+    _check_resolution(box, per)
+    # the initial mesh must fit whatever budget applies: the user's, else the smallest default
+    start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
+    _check_initial_budget(box, per, start_budget)
+    return k, tau, per, box, min_size, deadline, t_start
 
 
 def refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit, deadline,
@@ -265,7 +277,7 @@ def refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit, de
         sets = T.strips(internal, lx, ly, workers)
         common = {
             "k": k, "lx": lx, "ly": ly, "tau": tau, "min_size": min_size * emb.scale,
-            "max_vertices": budget, "m0": m0, "grid": emb.grid, "deadline": deadline,
+            "max_vertices": budget, "m0": m0, "grid": emb.grid,
         }  # fmt: skip
         coarse = keys < coarse_f
         xy, kinds = T.coarse_pass(

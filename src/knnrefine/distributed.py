@@ -1,15 +1,17 @@
-"""kNNRefine with its tiles on a Dask cluster (``pip install "knnrefine[dask]"``).
+"""kNNRefine on a Dask cluster (``pip install "knnrefine[dask]"``): the points stay on the
+workers, partition by partition.
 
-``refine`` runs the tiled refinement of ``api.refine(..., workers=N)`` with every round's
-tiles as Dask tasks (``Client.get_executor``): a tile is a pure function of its inputs, so a
-task lost with its worker is run again (``retries``, and Dask's rescheduling of the tasks of
-a dead worker) and nothing is half-applied; the rounds, the final pass and the mesh are
-assembled in the calling process. The result is an ordinary ``Mesh``, certified like any.
-
-Where it stands: the points are read into the calling process (a Dask array or DataFrame is
-computed, a Parquet dataset read), because the final pass counts with an index of all of
-them; tiles receive only their strip's points. Partitioned output and per-tile certification
-are not built yet.
+``refine`` runs the tiled refinement of ``api.refine(..., workers=N)`` with ``DaskStore``
+holding the points: the source's partitions are read and checked on the workers; only a
+sample (the plan: initial mesh, strips, coarse pass) comes to the calling process. Each
+strip's points are cut from the partitions once, where they lie, and its counting index is
+built once on the worker that runs that strip's tiles, and kept there for every round.
+Rounds send a tile only the vertices in its strip. A tile is a pure function of its inputs,
+so one lost with its worker runs again (``retries``, and Dask's rescheduling; a lost strip
+index is rebuilt from its partitions), and nothing is half-applied. The points come to the
+calling process only when the rounds leave elements that no strip settled (``stats["rounds"]``
+says so: ``fetched_points``), as where elements of a non-periodic box straddle the data's
+edge wider than the strips overlap.
 """
 
 import contextlib
@@ -17,9 +19,10 @@ import os
 
 import numpy as np
 
-from .api import refine as _refine
+from . import validation as V
+from .api import check_options, refine_store
+from .engine.partition import canonical, run_tile, sample_keys, split_strips, tile_index
 from .errors import InputError
-from .validation import as_points
 
 DEFAULT_COLUMNS = ("x", "y")
 
@@ -34,14 +37,18 @@ def _dask():
         ) from None
 
 
-def read_source(source, columns=DEFAULT_COLUMNS, weights=None):
-    """(points (n, 2), weights or None) from a NumPy array, a Dask array, a pandas or Dask
-    DataFrame (``columns`` hold x and y, ``weights`` may name a column), or the path of a
-    Parquet dataset (read with Dask, only ``columns`` and the weight column)."""
-    if isinstance(source, (str, os.PathLike)):
-        _dask()
-        import dask.dataframe as dd
+def partitions(source, columns=DEFAULT_COLUMNS, weights=None, chunk=1_000_000):
+    """The source as a list of (Dask delayed partition, its weights): the partition an
+    (n_i, 2) array or a pandas DataFrame, its weights an array slice, a column's name, or
+    None. Sources: a NumPy array (cut into ``chunk`` rows), a Dask array, a pandas or Dask
+    DataFrame (``columns`` hold x and y; ``weights`` names a column), or the path of a
+    Parquet dataset (read with Dask, only the columns needed). Nothing is computed here."""
+    _dask()
+    import dask
+    import dask.array as da
+    import dask.dataframe as dd
 
+    if isinstance(source, (str, os.PathLike)):
         if not os.path.exists(source):
             raise InputError(f"no Parquet dataset at {os.fspath(source)!r}")
         wanted = list(columns) + ([weights] if isinstance(weights, str) else [])
@@ -56,39 +63,188 @@ def read_source(source, columns=DEFAULT_COLUMNS, weights=None):
                 f"the DataFrame has no column {missing[0]!r} (columns {list(source.columns)}): "
                 "name the coordinates with columns=(x, y)"
             )
+        wanted = list(columns)
         if isinstance(weights, str):
             if weights not in source.columns:
                 raise InputError(f"the DataFrame has no weight column {weights!r}")
-            frame = source[list(columns) + [weights]]
-            frame = frame.compute() if hasattr(frame, "compute") else frame
-            return as_points(frame[list(columns)].to_numpy()), frame[weights].to_numpy()
-        source = source[list(columns)]
+            wanted.append(weights)
+        elif weights is not None:
+            raise InputError("with a DataFrame source, weights names one of its columns")
+        frame = source[wanted]
+        if not isinstance(frame, dd.DataFrame):
+            frame = dd.from_pandas(frame, chunksize=chunk, sort=False)
+        return [(part, weights) for part in frame.to_delayed()]
     if isinstance(weights, str):
         raise InputError("a weight column name needs a DataFrame or Parquet source")
-    if hasattr(source, "compute"):  # Dask array or DataFrame
-        source = source.compute()
-    if hasattr(source, "to_numpy"):
-        source = source.to_numpy()
-    return as_points(source), weights
+    if isinstance(source, da.Array):
+        if source.ndim != 2 or source.shape[1] != 2:
+            raise InputError(f"points must have shape (n, 2), got {source.shape}")
+        parts = list(source.rechunk({1: 2}).to_delayed().ravel())
+        rows = source.chunks[0]
+        if weights is not None and any(np.isnan(r) for r in rows):
+            raise InputError(
+                "weights need a Dask array with known chunk sizes (compute_chunk_sizes)"
+            )
+    else:
+        arr = V.as_points(source)
+        parts = [dask.delayed(arr[a : a + chunk]) for a in range(0, len(arr), chunk)]
+        rows = [min(chunk, len(arr) - a) for a in range(0, len(arr), chunk)]
+    if weights is None:
+        return [(part, None) for part in parts]
+    weights = V.check_weights(weights, int(sum(rows)))
+    ends = np.cumsum(rows).astype(int)
+    return [(p, weights[e - r : e]) for p, r, e in zip(parts, rows, ends, strict=True)]
+
+
+def _arrays(part, columns, weights):
+    """(xy float64 (n, 2), weights (n,) or None) of one partition, checked."""
+    if hasattr(part, "columns"):
+        w = part[weights].to_numpy(np.float64) if isinstance(weights, str) else None
+        part = part[list(columns)].to_numpy()
+    else:
+        w = weights
+    if len(part) == 0:
+        return np.zeros((0, 2)), None if w is None else np.zeros(0)
+    xy = V.as_points(part)
+    if w is not None:
+        w = np.ascontiguousarray(w, np.float64)
+        if not (np.isfinite(w).all() and (w >= 0).all()):
+            raise InputError("weights must be finite and >= 0 (drop such points or weigh them 0)")
+    return xy, w
+
+
+def _stats(part):
+    xy, w = part
+    if len(xy) == 0:
+        return 0, None, None, 0.0
+    lo = [float(xy[:, a].min()) for a in range(2)]
+    hi = [float(xy[:, a].max()) for a in range(2)]
+    return len(xy), lo, hi, 0.0 if w is None else float(w.sum())
+
+
+def _inside(part, box, per):
+    if len(part[0]):
+        V.check_inside(part[0], box, per)
+
+
+def _sample(part, fraction):
+    xy, w = part
+    keys = sample_keys(xy)
+    pick = keys < fraction
+    return xy[pick], None if w is None else w[pick], keys[pick]
+
+
+def _cut(part, emb, sets, pad):
+    """One partition's points in torus coordinates, cut into the strips of both sets."""
+    xy, w = part
+    internal = emb.to_internal(xy)
+    lx, ly = emb.period_internal
+    out = []
+    for regions in sets:
+        rows, bounds = split_strips(internal, regions, pad, lx, ly)
+        mine = [rows[bounds[j] : bounds[j + 1]] for j in range(len(regions))]
+        out.append([(internal[r], None if w is None else w[r]) for r in mine])
+    return out
+
+
+def _piece(cut, s, j):
+    return cut[s][j]
+
+
+def _strip_index(*pieces):
+    xy = np.concatenate([p[0] for p in pieces])
+    w = None if pieces[0][1] is None else np.concatenate([p[1] for p in pieces])
+    return tile_index(xy, w)
+
+
+class DaskStore:
+    """The points of a tiled run on a Dask cluster (``partition.py`` says what a store
+    does): partitions and strip indexes live on the workers; strip j of either set is
+    built on, and its tiles sent to, worker j mod W (another if that one is gone)."""
+
+    def __init__(self, client, parts, columns=DEFAULT_COLUMNS, retries=2):
+        import dask
+
+        self.client, self.retries = client, int(retries)
+        arrays = [dask.delayed(_arrays)(p, columns, w) for p, w in parts]
+        self.parts = client.compute(arrays, retries=self.retries)
+        stats = client.gather(client.map(_stats, self.parts, pure=False))
+        self.n = int(sum(s[0] for s in stats))
+        if self.n == 0:
+            raise InputError("points is empty: give at least one point")
+        weighted = any(w is not None for _, w in parts)
+        self.weight = float(sum(s[3] for s in stats)) if weighted else None
+        full = [s for s in stats if s[0]]
+        lo = [min(s[1][a] for s in full) for a in range(2)]
+        self.bounds = (lo, [max(s[2][a] for s in full) for a in range(2)])
+        self.index = None
+
+    def check_inside(self, box, per):
+        self.client.gather(self.client.map(_inside, self.parts, box=box, per=per, pure=False))
+
+    def sample(self, fraction):
+        got = self.client.gather(self.client.map(_sample, self.parts, fraction=fraction))
+        xy = np.concatenate([g[0] for g in got])
+        w = None if self.weight is None else np.concatenate([g[1] for g in got])
+        return canonical(xy, w, np.concatenate([g[2] for g in got]))
+
+    def prepare(self, emb, sets, pad):
+        """Cut every partition into strips where it lies; build each strip's index once."""
+        c = self.client
+        self.workers = sorted(c.scheduler_info()["workers"])
+        cuts = [c.submit(_cut, p, emb, sets, pad, pure=False) for p in self.parts]
+        self.index = []
+        for s, regions in enumerate(sets):
+            row = []
+            for j in range(len(regions)):
+                pieces = [c.submit(_piece, cut, s, j, pure=False) for cut in cuts]
+                row.append(c.submit(_strip_index, *pieces, pure=False, **self._on(j)))
+            self.index.append(row)
+
+    def _on(self, j):
+        return {
+            "workers": [self.workers[j % len(self.workers)]],
+            "allow_other_workers": True,
+            "retries": self.retries,
+        }
+
+    def run_round(self, s, tasks):
+        c = self.client
+        futures = [
+            c.submit(run_tile, task, index, pure=False, **self._on(j))
+            for j, (task, index) in enumerate(zip(tasks, self.index[s], strict=True))
+        ]
+        return c.gather(futures)
+
+    def points(self):
+        got = self.client.gather(self.parts)
+        xy = np.concatenate([g[0] for g in got])
+        return xy, None if self.weight is None else np.concatenate([g[1] for g in got])
+
+    def close(self):
+        for f in self.parts + [i for row in self.index or [] for i in row]:
+            f.release()
+        self.parts, self.index = [], None
 
 
 def refine(
     source, k, tau=3.0, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
-    retries=2, **options,
+    retries=2, periodic=False, box=None, min_size=None, max_vertices=None, time_limit=None,
+    progress=None,
 ):  # fmt: skip
-    """kNNRefine of ``source`` with its tiles as tasks of a Dask cluster; the same result
-    type and guarantees as ``knnrefine.refine`` (``options``: its keyword arguments,
-    periodic, box, min_size, max_vertices, time_limit, progress).
+    """kNNRefine of ``source`` on a Dask cluster, the points never gathered in this process
+    (module docstring); the same result type and guarantees as ``knnrefine.refine``
+    (periodic, box, min_size, max_vertices, time_limit, progress: as there).
 
     source : NumPy array (n, 2), Dask array, pandas or Dask DataFrame, or a Parquet path
-        See ``read_source`` (``columns``, ``weights``: a weight array, or a column's name).
+        See ``partitions`` (``columns``; ``weights``: an array, or a column's name).
     client : dask.distributed.Client, optional
         Where the tiles run; None: a LocalCluster of ``workers`` processes (default: this
         machine's cores, at least 2) with one thread each, closed afterwards.
     workers : int, optional
-        Tiles per round (default: the client's worker threads, at least 2).
+        Strips per round (default: the client's worker threads, at least 2).
     retries : int
-        How often Dask runs a failed tile again.
+        How often Dask runs a failed task again.
     """
     _dask()
     from distributed import Client
@@ -99,14 +255,21 @@ def refine(
         raise InputError(f"workers must be an integer >= 2 (tiles per round), got {workers!r}")
     if client is not None and not hasattr(client, "get_executor"):
         raise InputError(f"client must be a dask.distributed.Client, got {client!r}")
-    points, w = read_source(source, columns, weights)
+    parts = partitions(source, columns, weights)
     with contextlib.ExitStack() as stack:
         if client is None:
             cluster = local_cluster(workers or max(2, os.cpu_count() or 1))
             client = stack.enter_context(Client(stack.enter_context(cluster)))
-        tiles = workers or max(2, sum(client.nthreads().values()))
-        executor = client.get_executor(pure=False, retries=int(retries))
-        return _refine(points, k, tau, weights=w, workers=tiles, executor=executor, **options)
+        tiles = int(workers or max(2, sum(client.nthreads().values())))
+        store = DaskStore(client, parts, columns, retries)
+        stack.callback(store.close)
+        k, tau, per, box, min_size, deadline, t_start = check_options(
+            store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),
+            store.check_inside, k, tau, periodic, box, min_size, max_vertices, time_limit,
+            progress,
+        )  # fmt: skip
+        return refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
+                            deadline, progress, tiles, t_start)  # fmt: skip
 
 
 def local_cluster(workers):

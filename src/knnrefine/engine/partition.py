@@ -102,23 +102,47 @@ def strips(xy, lx, ly, tiles):
 
 def split_strips(xy, regions, pad, lx, ly):
     """The rows of xy (torus coordinates) in each strip of one set widened by ``pad`` on
-    both sides: (rows, bounds), strip j's rows being rows[bounds[j]:bounds[j + 1]]. A point
-    within pad of a border is in both strips (and in every strip narrower than 2 pad that
-    lies between them). One sort, whatever the number of strips."""
+    both sides: (rows, bounds), strip j's rows being rows[bounds[j]:bounds[j + 1]] in
+    increasing order. A point within pad of a border is in both strips (and in every strip
+    narrower than 2 pad between them). A counting sort: O(n), whatever the number of
+    strips."""
     axis = strip_axis(lx, ly)
-    period = (lx, ly)[axis]
     cuts = np.ascontiguousarray(regions[:, axis])
-    tiles = len(cuts)
-    c = xy[:, axis]
-    lo = (np.searchsorted(cuts, np.mod(c - pad, period), "right") - 1) % tiles
-    hi = (np.searchsorted(cuts, np.mod(c + pad, period), "right") - 1) % tiles
-    span = (hi - lo) % tiles + 1
-    rows = np.repeat(np.arange(len(xy)), span)
-    first = np.repeat(np.cumsum(span) - span, span)
-    strip = (np.repeat(lo, span) + np.arange(len(rows)) - first) % tiles
-    order = np.argsort(strip, kind="stable")
-    bounds = np.searchsorted(strip[order], np.arange(tiles + 1))
-    return rows[order], bounds
+    return _strip_rows(np.ascontiguousarray(xy[:, axis]), cuts, float(pad), (lx, ly)[axis])
+
+
+@kernel(inline="always")
+def _strip_at(x, cuts, period):
+    """The strip whose [cut, next cut) holds x (wrapped into the period)."""
+    x = x - np.floor(x / period) * period
+    j = np.searchsorted(cuts, x, side="right") - 1
+    return j % cuts.shape[0]
+
+
+@kernel(entry=True)
+def _strip_rows(c, cuts, pad, period):
+    tiles = cuts.shape[0]
+    n = c.shape[0]
+    lo = np.empty(n, np.int64)
+    span = np.empty(n, np.int64)
+    bounds = np.zeros(tiles + 1, np.int64)
+    for i in range(n):
+        a = _strip_at(c[i] - pad, cuts, period)
+        sp = (_strip_at(c[i] + pad, cuts, period) - a) % tiles + 1
+        lo[i] = a
+        span[i] = sp
+        for q in range(sp):
+            bounds[(a + q) % tiles + 1] += 1
+    for j in range(tiles):
+        bounds[j + 1] += bounds[j]
+    fill = bounds[:tiles].copy()
+    rows = np.empty(bounds[tiles], np.int64)
+    for i in range(n):
+        for q in range(span[i]):
+            j = (lo[i] + q) % tiles
+            rows[fill[j]] = i
+            fill[j] += 1
+    return rows, bounds
 
 
 def seed(run, xy, kinds, stamps, regions):
@@ -158,6 +182,8 @@ def run_tile(task, index=None):
     inserted (xy, kinds) and its counters."""
     t0 = time.perf_counter()
     os.environ["KNNREFINE_THREADS"] = "1"  # one of many tiles at once: one engine thread
+    left = task["time_left"]  # seconds, not a clock reading: tiles may run on other machines
+    deadline = None if left is None else t0 + left
     if index is None:
         index = tile_index(task["points"], task["weights"])
     run = Refinement(
@@ -169,7 +195,7 @@ def run_tile(task, index=None):
     x0, y0, w, h = task["region"]
     run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = x0, y0
     run.prm[P_REGION_W], run.prm[P_REGION_H] = w, h
-    status = run.run(deadline=task["deadline"])
+    status = run.run(deadline=deadline)
     nv = int(run.cnt[C_NV])
     return {
         "xy": run.mesh.xy[start:nv].copy(),
@@ -218,6 +244,8 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
                 "expected": int(expected / tiles + inside.sum()),
             })  # fmt: skip
         t0 = time.perf_counter()
+        for task in tasks:
+            task["time_left"] = None if deadline is None else deadline - t0
         results = store.run_round(s, tasks)
         new = np.concatenate([res["xy"] for res in results])
         report.append({
