@@ -115,15 +115,16 @@ def refine(
         phase="compiling"): the compilation that follows takes 10-60 s, once.
     workers : int, optional
         None or 1: refine in this process. N > 1: in N local processes (forked on Linux;
-        elsewhere the calling script needs the ``if __name__ == "__main__":`` guard): a
-        coarse pass on a sample, then rounds of N strips of the torus, balanced by point
-        count, each refining only what lies inside it, alternating with strips shifted by
-        half, then this process finishes whatever crosses both (``engine/tiles.py`` says why
-        the result is a kNNRefine run: the same guarantees, certified by ``certify``). The
-        mesh differs from a one-process run's in the order of its moves, and its size by a
-        few percent. ``stats["rounds"]`` reports each round; ``time_limit`` and
-        ``max_vertices`` hold in every tile. Not yet faster than one process: the rounds
-        rebuild their indexes.
+        elsewhere the calling script needs the ``if __name__ == "__main__":`` guard): a plan
+        from a sample of the points (the same whatever their order), a coarse pass on part of
+        it, then rounds of N strips of the torus, balanced by point count, each refining only
+        what lies inside it, alternating with strips shifted by half; whatever no round
+        settled is finished here (``engine/tiles.py`` and docs/algorithm.md say why the
+        result is a kNNRefine run: the same guarantees, certified by ``certify``). The mesh
+        differs from a one-process run's in the order of its moves, and its size by a few
+        percent. ``stats["rounds"]`` reports each round and the last step; ``time_limit``
+        and ``max_vertices`` hold in every tile. Not faster than one process on 2 cores
+        (docs/benchmarks.md).
     executor : concurrent.futures.Executor, optional
         Where the tiles of a run with ``workers`` > 1 run: its ``map`` is called once per
         round with that round's tiles (a Dask client's ``get_executor()``:
