@@ -141,3 +141,24 @@ def test_a_killed_worker_still_gives_a_complete_certified_mesh():
     assert knnrefine.certify(mesh, pts).passed
     clean = knnrefine.refine(pts, 30, workers=2, **options)
     np.testing.assert_array_equal(mesh.vertices, clean.vertices)
+
+
+def test_certify_on_the_cluster_equals_certify(client):
+    """distributed.certify asks the workers where the points are: the same certificate as
+    knnrefine.certify with every point in this process; points that are not the mesh's
+    are refused before any check."""
+    import dask.array as da
+
+    pts = clustered(50000, 11)
+    mesh = distributed.refine(pts, 20, client=client, periodic=True, box=(0, 0, 1, 1))
+    a = knnrefine.certify(mesh, pts, samples=10000, n_random=2000)
+    source = da.from_array(pts, chunks=(12000, 2))
+    b = distributed.certify(mesh, source, client=client, samples=10000, n_random=2000)
+    assert a.passed and b.passed
+    for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
+        assert getattr(a, field) == getattr(b, field), field
+    with pytest.raises(InputError, match="made from 50,000 points"):
+        distributed.certify(mesh, pts[:-1], client=client)
+    flat = knnrefine.refine(pts, 20, box=(0, 0, 1, 1))
+    with pytest.raises(InputError, match="outside"):
+        distributed.certify(flat, pts * 1.5, client=client)

@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from .errors import InputError
 from .mesh import theorem6_constants, triangle_areas, uniform_in_triangles
-from .metric import BoxMetric
+from .metric import BoxMetric, TorusFrame
 from .validation import as_points, weights_of_run
 
 
@@ -175,6 +175,7 @@ def certify(
     seed=0,
     workers=-1,
     weights=None,
+    tiles=None,
 ):
     """Check ``mesh`` (from ``knnrefine.refine``) against ``points`` (the same P, with the
     same ``weights`` for a weighted run: counts are then sums of weights, d_{P,k} the least
@@ -185,13 +186,57 @@ def certify(
     vertex, circumcenter and edge midpoint, up to ``max_point_probes`` input points and
     ``n_random`` uniform points of the box. Returns a Certificate; nothing is raised when a
     check fails (look at ``.passed``). ``workers`` is passed to cKDTree queries (-1: all
-    cores). The checks, in order: the returned points are the mesh's (else InputError), the
-    torus triangulation, the returned mesh, well-spacedness, counts, Lemma 2's precondition,
-    the achieved constants, the size integral, the floor."""
+    cores). ``tiles``: ask every question about the points strip by strip in that many local
+    processes (``certify_store``; what ``distributed.certify`` does on a cluster), same
+    checks, same verdict. The checks, in order: the returned points are the mesh's (else
+    InputError), the torus triangulation, the returned mesh, well-spacedness, counts, Lemma
+    2's precondition, the achieved constants, the size integral, the floor."""
     t0 = time.perf_counter()
     pts = as_points(points)
     weights = _check_points_are_the_meshs(mesh, pts, weights)
-    torus = _Torus(mesh, pts, workers, weights)
+    options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
+                   seed=seed, t0=t0)  # fmt: skip
+    if tiles is None:
+        return _certify(mesh, _Torus(mesh, pts, workers, weights), **options)
+    if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:
+        raise InputError(f"tiles must be a positive integer (strips of points), got {tiles!r}")
+    from .engine.partition import LocalStore
+
+    store = LocalStore(pts, weights, int(tiles))
+    try:
+        return _certify(mesh, _TiledTorus(mesh, store, int(tiles), workers), **options)
+    finally:
+        store.close()
+
+
+def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
+                  max_point_probes=100_000, seed=0, workers=-1):  # fmt: skip
+    """``certify`` of a mesh against the points of ``store`` (``engine/partition.py``:
+    ``LocalStore`` or ``distributed.DaskStore``), which never come to this process: counts
+    and d_{P,k} are asked strip by strip (``tiles`` strips of equal share), each strip where
+    its points are. The caller has checked that the points lie in the mesh's box."""
+    t0 = time.perf_counter()
+    made_from, total = mesh.stats.get("n"), mesh.stats.get("weight")
+    if made_from is not None and int(made_from) != store.n:
+        raise InputError(
+            f"the mesh was made from {int(made_from):,} points but the source holds "
+            f"{store.n:,}: certify a mesh against the points it was refined from"
+        )
+    if (total is None) != (store.weight is None) or (
+        total is not None and not np.isclose(store.weight, total, rtol=1e-9, atol=0)
+    ):
+        raise InputError(
+            f"the mesh was refined with total weight {total} but the source's is "
+            f"{store.weight}: give the weights it was refined with (or none)"
+        )
+    torus = _TiledTorus(mesh, store, int(tiles), workers)
+    return _certify(mesh, torus, samples=samples, n_random=n_random,
+                    max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+
+
+def _certify(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
+    """The checks of ``certify`` on a torus that answers questions about the points."""
+
     triangulation = check_triangulation(torus)
     max_aspect = check_well_spaced(torus, triangulation)
     counts = check_counts(torus, triangulation, mesh.k, mesh.min_size)
@@ -213,7 +258,7 @@ def certify(
         mesh,
     )
     return Certificate(
-        n=len(pts),
+        n=torus.n,
         m=len(mesh.vertices),
         k=mesh.k,
         tau=mesh.tau,
@@ -243,7 +288,7 @@ def certify(
         precondition_ok=precondition_ok,
         precondition_note=precondition_note,
         seconds=time.perf_counter() - t0,
-        weight=None if weights is None else torus.total,
+        weight=torus.total if torus.weighted else None,
     )
 
 
@@ -252,9 +297,16 @@ class _Torus:
     points wrapped into it by the package's one rule, and kd-trees over both."""
 
     def __init__(self, mesh, pts, workers, weights=None):
-        self.mesh = mesh
+        self._mesh(mesh, workers)
         self.weights = weights
+        self.weighted = weights is not None
+        self.n = len(pts)
         self.total = float(len(pts)) if weights is None else float(weights.sum())
+        self.points = self.input_frame(pts)
+        self.point_tree = cKDTree(self.points, boxsize=self.period)
+
+    def _mesh(self, mesh, workers):
+        self.mesh = mesh
         self.k = mesh.k
         self.min_size = mesh.min_size
         self.workers = workers
@@ -262,11 +314,8 @@ class _Torus:
         self.origin = np.asarray(mesh.torus.origin, float)
         self.vertices = np.asarray(mesh.torus.vertices, float)
         self.frame = BoxMetric((0.0, 0.0, *self.period), (True, True)).frame
-        self.points = BoxMetric((*self.origin, *(self.origin + self.period)), (True, True)).frame(
-            pts
-        )
+        self.input_frame = TorusFrame(self.origin, self.period)
         self.vertex_tree = cKDTree(self.vertices, boxsize=self.period)
-        self.point_tree = cKDTree(self.points, boxsize=self.period)
         self.lo = np.array(mesh.box[:2]) - self.origin
         self.hi = np.array(mesh.box[2:]) - self.origin
         self.periodic = np.array(mesh.periodic, bool)
@@ -286,23 +335,178 @@ class _Torus:
     def held(self, centres, radii):
         """What each closed disk (centre, radius) holds: its number of points, or their
         weight."""
-        if self.weights is None:
-            return self.point_tree.query_ball_point(
-                centres, radii, return_length=True, workers=self.workers
+        return _held(self.point_tree, self.weights, centres, radii, self.workers)
+
+    def cell_counts(self, outradii):
+        """What each vertex's closed Voronoi cell holds (points equidistant to several
+        vertices count for each)."""
+        m = len(self.vertices)
+        dd, ii = self.vertex_tree.query(self.points, k=min(3, m), workers=self.workers)
+        return _cell_tally(dd, ii, self.weights, m)
+
+    def sample_points(self, count, rng):
+        """Up to ``count`` input points, drawn at random."""
+        P = self.points
+        return P if len(P) <= count else P[rng.choice(len(P), count, False)]
+
+
+def _held(tree, weights, centres, radii, workers=-1):
+    """What each closed disk about centres holds in the tree's points: a count, or their
+    weight."""
+    if weights is None:
+        return tree.query_ball_point(centres, radii, return_length=True, workers=workers)
+    out = np.zeros(len(centres))
+    for lo in range(0, len(centres), 10_000):
+        lists = tree.query_ball_point(
+            centres[lo : lo + 10_000], np.broadcast_to(radii, len(centres))[lo : lo + 10_000]
+        )
+        sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
+        if sizes.sum():
+            members = np.concatenate([np.asarray(a, np.int64) for a in lists])
+            rows = np.repeat(np.arange(len(lists)), sizes)
+            out[lo : lo + len(lists)] = np.bincount(
+                rows, weights=weights[members], minlength=len(lists)
             )
-        out = np.zeros(len(centres))
-        for lo in range(0, len(centres), 10_000):
-            lists = self.point_tree.query_ball_point(
-                centres[lo : lo + 10_000], np.broadcast_to(radii, len(centres))[lo : lo + 10_000]
-            )
-            sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
-            if sizes.sum():
-                members = np.concatenate([np.asarray(a, np.int64) for a in lists])
-                rows = np.repeat(np.arange(len(lists)), sizes)
-                out[lo : lo + len(lists)] = np.bincount(
-                    rows, weights=self.weights[members], minlength=len(lists)
-                )
+    return out
+
+
+def _cell_tally(dd, ii, weights, m):
+    """Points per Voronoi cell from each point's nearest vertices (dd, ii: distances and
+    indices of up to 3, nearest first): a point counts for every vertex as near as its
+    nearest (up to a relative 1e-12), weighed by ``weights`` if given."""
+    kk = dd.shape[1] if dd.ndim == 2 else 1
+    dd, ii = dd.reshape(len(dd), kk), ii.reshape(len(ii), kk)
+    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
+    w = None if weights is None else np.broadcast_to(weights[:, None], tie.shape)[tie]
+    return np.bincount(ii[tie], weights=w, minlength=m)
+
+
+class _TiledTorus(_Torus):
+    """A ``_Torus`` whose input points stay in a store: every question about them is asked
+    strip by strip where they are (``store.map_strips``, ``_certify_strip``). Strip j owns
+    the points of [cut j, cut j + 1) along the strip axis and sees the others within a pad:
+    counts in disks and cells add up the owners' (each point is owned once, a disk goes to
+    every strip it meets), d_{P,k} at x is decided by x's strip when its k-th point lies
+    within the pad, and asked again with four times the pad otherwise (the whole torus at
+    last)."""
+
+    def __init__(self, mesh, store, tiles, workers):
+        from .engine.partition import SAMPLE_MIN, strip_axis, strips
+
+        self._mesh(mesh, workers)
+        self.store = store
+        self.n = store.n
+        self.weighted = store.weight is not None
+        self.total = float(store.n) if store.weight is None else float(store.weight)
+        sx = store.sample(min(1.0, SAMPLE_MIN / store.n))[0]
+        self.regions = strips(self.input_frame(sx), *self.period, tiles)[0]
+        self.axis_period = float(self.period[strip_axis(*self.period)])
+        self.passes = 0
+
+    def _ask(self, jobs, pad):
+        common = {"regions": self.regions, "period": tuple(self.period), "k": self.k,
+                  "pad": pad, "complete": 2.0 * pad >= self.axis_period}  # fmt: skip
+        jobs = [{**common, "j": j, **job} for j, job in enumerate(jobs)]
+        self.passes += 1
+        return self.store.map_strips(_certify_strip, self.input_frame, self.regions, pad, jobs)
+
+    def _route(self, x, pad):
+        from .engine.partition import split_strips
+
+        rows, bounds = split_strips(x, self.regions, pad, *self.period)
+        return [rows[bounds[j] : bounds[j + 1]] for j in range(len(self.regions))]
+
+    def d_pk(self, x):
+        from .engine.partition import strip_owner
+
+        out = np.full(len(x), np.nan)
+        if len(x) == 0:
+            return out
+        owner = strip_owner(x, self.regions, *self.period)
+        todo = np.arange(len(x))
+        # a first pad from the mesh (a guess only: what the strips decide is exact)
+        pad = max(float(np.quantile(4.0 * self.d_m2(x), 0.99)), 1e-12 * self.axis_period)
+        while len(todo):
+            mine = [todo[owner[todo] == j] for j in range(len(self.regions))]
+            got = self._ask([{"dpk": x[r]} for r in mine], pad)
+            for r, g in zip(mine, got, strict=True):
+                out[r] = g["dpk"]
+            todo = todo[np.isnan(out[todo])]
+            pad *= 4.0
         return out
+
+    def held(self, centres, radii):
+        radii = np.broadcast_to(np.asarray(radii, float), len(centres))
+        out = np.zeros(len(centres), float if self.weighted else np.int64)
+        if len(centres) == 0:
+            return out
+        mine = self._route(centres, radii * (1.0 + 1e-9) + 1e-12 * self.axis_period)
+        got = self._ask([{"balls": (centres[r], radii[r])} for r in mine], 0.0)
+        for r, g in zip(mine, got, strict=True):
+            out[r] += g["held"]
+        return out
+
+    def cell_counts(self, outradii):
+        m = len(self.vertices)
+        out = np.zeros(m, float if self.weighted else np.int64)
+        # Voronoi cell of v lies within R(v) of v: a first vertex pad from the outradii
+        pad = max(float(np.quantile(outradii, 0.999)) * 1.01, 1e-12 * self.axis_period)
+        before = -1.0
+        while True:
+            mine = self._route(self.vertices, pad)
+            complete = 2.0 * pad >= self.axis_period
+            jobs = [{"cells": (self.vertices[r], r, pad, before, complete)} for r in mine]
+            got = self._ask(jobs, 0.0)
+            for g in got:
+                np.add.at(out, g["cell_ids"], g["cell_counts"])
+            if sum(g["undecided"] for g in got) == 0:
+                return out
+            before, pad = pad, 4.0 * pad
+
+    def sample_points(self, count, rng):
+        sx = self.store.sample(min(1.0, count / self.n))[0]
+        return self.input_frame(sx)
+
+
+def _certify_strip(points, weights, job):
+    """One strip's answers (``_TiledTorus``) from its points (the torus frame) within
+    ``job["pad"]`` of it: d_{P,k} at its queries (NaN where the k-th point may lie beyond
+    the pad), what its own points add to each disk, to each vertex's cell."""
+    from .engine.partition import strip_owner
+
+    period = np.asarray(job["period"], float)
+    out = {}
+    if "dpk" in job:
+        x, k = job["dpk"], job["k"]
+        tree = cKDTree(points, boxsize=period)
+        if weights is not None:
+            d = _weighted_kth(tree, weights, x, k, 1)
+        elif len(points) >= k and len(x):
+            d = tree.query(x, k=[k])[0][:, 0]
+        else:
+            d = np.full(len(x), np.inf)
+        if not job["complete"]:
+            d[~(d <= job["pad"])] = np.nan  # the k-th point may lie beyond the pad
+        out["dpk"] = d
+    own = strip_owner(points, job["regions"], *period) == job["j"]
+    pts, w = points[own], None if weights is None else weights[own]
+    if "balls" in job:
+        centres, radii = job["balls"]
+        out["held"] = _held(cKDTree(pts, boxsize=period), w, centres, radii, 1)
+    if "cells" in job:
+        vxy, ids, pad, before, complete = job["cells"]
+        if len(vxy) == 0:
+            out.update(cell_ids=ids, cell_counts=np.zeros(0), undecided=0 if complete else len(pts))
+            return out
+        dd, ii = cKDTree(vxy, boxsize=period).query(pts, k=min(3, len(vxy)))
+        dd, ii = dd.reshape(len(pts), -1), ii.reshape(len(pts), -1)
+        reach = dd[:, 0] * (1.0 + 1e-12)
+        now = np.ones(len(pts), bool) if complete else reach <= pad
+        new = now & (reach > before)  # decided now, not by an earlier pass
+        tally = _cell_tally(dd[new], ii[new], None if w is None else w[new], len(vxy))
+        nz = np.flatnonzero(tally)
+        out.update(cell_ids=ids[nz], cell_counts=tally[nz], undecided=int((~now).sum()))
+    return out
 
 
 def _weighted_kth(tree, weights, x, k, workers, chunk=20_000):
@@ -369,16 +573,9 @@ def check_counts(torus, triangulation, k, min_size):
     ball = torus.held(triangulation.centres, r)
     floor_balls = (ball >= k) & (r < min_size)
     above = r >= min_size
-    exact = int if torus.weights is None else float
+    exact = float if torus.weighted else int
     max_ball = exact(ball[above].max()) if above.any() else 0
-    m = len(torus.vertices)
-    kk = min(3, m)
-    dd, ii = torus.vertex_tree.query(torus.points, k=kk, workers=torus.workers)
-    dd = dd.reshape(len(torus.points), kk)
-    ii = ii.reshape(len(torus.points), kk)
-    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
-    w = None if torus.weights is None else np.broadcast_to(torus.weights[:, None], tie.shape)[tie]
-    cell = np.bincount(ii[tie], weights=w, minlength=m)
+    cell = torus.cell_counts(triangulation.outradii)
     R = triangulation.outradii
     floor_cells = (cell >= k) & (R < min_size)
     max_cell = exact(cell[R >= min_size].max()) if (R >= min_size).any() else 0
@@ -395,8 +592,7 @@ def make_probes(torus, triangulation, samples, n_random, max_point_probes, rng):
     per_triangle = max(4, -(-samples // max(len(corners), 1)))
     inside, weights = _triangle_samples(corners, per_triangle, rng)
     inside = torus.frame(inside)
-    P = torus.points
-    points = P if len(P) <= max_point_probes else P[rng.choice(len(P), max_point_probes, False)]
+    points = torus.sample_points(max_point_probes, rng)
     mids = 0.5 * (corners + corners[:, [1, 2, 0]]).reshape(-1, 2)
     others = np.concatenate(
         [

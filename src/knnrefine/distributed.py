@@ -134,14 +134,14 @@ def _sample(part, fraction):
     return xy[pick], None if w is None else w[pick], keys[pick]
 
 
-def _cut(part, emb, sets, pad):
-    """One partition's points in torus coordinates, cut into the strips of both sets."""
+def _cut(part, frame, period, sets, pad):
+    """One partition's points in the coordinates ``frame(points)`` (a torus of ``period``),
+    cut into the strips of each set of regions widened by ``pad``."""
     xy, w = part
-    internal = emb.to_internal(xy)
-    lx, ly = emb.period_internal
+    internal = frame(xy)
     out = []
     for regions in sets:
-        rows, bounds = split_strips(internal, regions, pad, lx, ly)
+        rows, bounds = split_strips(internal, regions, pad, *period)
         mine = [rows[bounds[j] : bounds[j + 1]] for j in range(len(regions))]
         out.append([(internal[r], None if w is None else w[r]) for r in mine])
     return out
@@ -151,10 +151,17 @@ def _piece(cut, s, j):
     return cut[s][j]
 
 
-def _strip_index(*pieces):
+def _join(pieces):
     xy = np.concatenate([p[0] for p in pieces])
-    w = None if pieces[0][1] is None else np.concatenate([p[1] for p in pieces])
-    return tile_index(xy, w)
+    return xy, None if pieces[0][1] is None else np.concatenate([p[1] for p in pieces])
+
+
+def _strip_index(*pieces):
+    return tile_index(*_join(pieces))
+
+
+def _strip_call(fn, payload, *pieces):
+    return fn(*_join(pieces), payload)
 
 
 class DaskStore:
@@ -178,6 +185,7 @@ class DaskStore:
         lo = [min(s[1][a] for s in full) for a in range(2)]
         self.bounds = (lo, [max(s[2][a] for s in full) for a in range(2)])
         self.index = None
+        self.workers = sorted(client.scheduler_info()["workers"])
 
     def check_inside(self, box, per):
         self.client.gather(self.client.map(_inside, self.parts, box=box, per=per, pure=False))
@@ -191,8 +199,8 @@ class DaskStore:
     def prepare(self, emb, sets, pad):
         """Cut every partition into strips where it lies; build each strip's index once."""
         c = self.client
-        self.workers = sorted(c.scheduler_info()["workers"])
-        cuts = [c.submit(_cut, p, emb, sets, pad, pure=False) for p in self.parts]
+        frame, period = emb.to_internal, emb.period_internal
+        cuts = [c.submit(_cut, p, frame, period, sets, pad, pure=False) for p in self.parts]
         self.index = []
         for s, regions in enumerate(sets):
             row = []
@@ -214,6 +222,19 @@ class DaskStore:
             c.submit(run_tile, task, index, pure=False, **self._on(j))
             for j, (task, index) in enumerate(zip(tasks, self.index[s], strict=True))
         ]
+        return c.gather(futures)
+
+    def map_strips(self, fn, frame, regions, pad, payloads):
+        """fn(points, weights, payload) for each strip of ``regions`` widened by ``pad``, on
+        the workers: each partition cut where it lies (``LocalStore.map_strips``)."""
+        c = self.client
+        cuts = [
+            c.submit(_cut, p, frame, frame.period, [regions], pad, pure=False) for p in self.parts
+        ]
+        futures = []
+        for j, payload in enumerate(payloads):
+            pieces = [c.submit(_piece, cut, 0, j, pure=False) for cut in cuts]
+            futures.append(c.submit(_strip_call, fn, payload, *pieces, pure=False, **self._on(j)))
         return c.gather(futures)
 
     def points(self):
@@ -246,6 +267,38 @@ def refine(
     retries : int
         How often Dask runs a failed task again.
     """
+    with _store(source, client, workers, columns, weights, retries) as (store, tiles):
+        k, tau, per, box, min_size, deadline, t_start = check_options(
+            store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),
+            store.check_inside, k, tau, periodic, box, min_size, max_vertices, time_limit,
+            progress,
+        )  # fmt: skip
+        return refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
+                            deadline, progress, tiles, t_start)  # fmt: skip
+
+
+def certify(
+    mesh, source, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
+    retries=2, samples=100_000, n_random=20_000, max_point_probes=100_000, seed=0,
+):  # fmt: skip
+    """``knnrefine.certify`` of ``mesh`` against the points of ``source`` on a Dask cluster,
+    the points never gathered here: every count and d_{P,k} is asked strip by strip on the
+    workers where the strips' points are (``certify.certify_store``); the mesh's own checks
+    (its triangulation, in exact arithmetic where floating point is not conclusive) run in
+    this process. source, client, workers, columns, weights, retries: as in ``refine``;
+    samples, n_random, max_point_probes, seed: as in ``knnrefine.certify``."""
+    from .certify import certify_store
+
+    with _store(source, client, workers, columns, weights, retries) as (store, tiles):
+        store.check_inside(mesh.box, mesh.periodic)
+        return certify_store(mesh, store, tiles, samples=samples, n_random=n_random,
+                             max_point_probes=max_point_probes, seed=seed)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _store(source, client, workers, columns, weights, retries):
+    """(DaskStore of the source's partitions, strips per round) on ``client`` (a LocalCluster
+    of ``workers`` processes when None, closed afterwards); options checked first."""
     _dask()
     from distributed import Client
 
@@ -263,13 +316,7 @@ def refine(
         tiles = int(workers or max(2, sum(client.nthreads().values())))
         store = DaskStore(client, parts, columns, retries)
         stack.callback(store.close)
-        k, tau, per, box, min_size, deadline, t_start = check_options(
-            store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),
-            store.check_inside, k, tau, periodic, box, min_size, max_vertices, time_limit,
-            progress,
-        )  # fmt: skip
-        return refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
-                            deadline, progress, tiles, t_start)  # fmt: skip
+        yield store, tiles
 
 
 def local_cluster(workers):

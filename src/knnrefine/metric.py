@@ -37,3 +37,18 @@ class BoxMetric:
     def kth(self, points, queries, k):
         """Exact d_{S,k} at the queries for the point set S = points."""
         return self.tree(points).query(self.frame(queries), k=[k], workers=-1)[0][:, 0]
+
+
+class TorusFrame:
+    """Coordinates on the torus [0, period) with its corner at ``origin`` (a mesh's
+    ``torus``): the box metric of that torus, both axes wrapped. A picklable function of
+    the points, for checks that run where the points are."""
+
+    def __init__(self, origin, period):
+        self.origin = tuple(float(v) for v in origin)
+        self.period = tuple(float(v) for v in period)
+        corner = np.add(self.origin, self.period)
+        self._metric = BoxMetric((*self.origin, *corner), (True, True))
+
+    def __call__(self, x):
+        return self._metric.frame(x)

@@ -102,13 +102,24 @@ def strips(xy, lx, ly, tiles):
 
 def split_strips(xy, regions, pad, lx, ly):
     """The rows of xy (torus coordinates) in each strip of one set widened by ``pad`` on
-    both sides: (rows, bounds), strip j's rows being rows[bounds[j]:bounds[j + 1]] in
-    increasing order. A point within pad of a border is in both strips (and in every strip
-    narrower than 2 pad between them). A counting sort: O(n), whatever the number of
-    strips."""
+    both sides (a number, or one per row): (rows, bounds), strip j's rows being
+    rows[bounds[j]:bounds[j + 1]] in increasing order. A point within its pad of a border
+    is in both strips (and in every strip between them; in all of them when its widened
+    interval goes round the period). A counting sort: O(n), whatever the number of strips."""
     axis = strip_axis(lx, ly)
     cuts = np.ascontiguousarray(regions[:, axis])
-    return _strip_rows(np.ascontiguousarray(xy[:, axis]), cuts, float(pad), (lx, ly)[axis])
+    pads = np.ascontiguousarray(np.atleast_1d(np.asarray(pad, np.float64)))
+    return _strip_rows(np.ascontiguousarray(xy[:, axis]), cuts, pads, (lx, ly)[axis])
+
+
+def strip_owner(xy, regions, lx, ly):
+    """The one strip of the set ``regions`` that owns each point (torus coordinates): the
+    strip whose [cut, next cut) holds it, the rule ``split_strips`` cuts by."""
+    axis = strip_axis(lx, ly)
+    out = np.empty(len(xy), np.int64)
+    _owners(np.ascontiguousarray(xy[:, axis]), np.ascontiguousarray(regions[:, axis]),
+            (lx, ly)[axis], out)  # fmt: skip
+    return out
 
 
 @kernel(inline="always")
@@ -120,15 +131,39 @@ def _strip_at(x, cuts, period):
 
 
 @kernel(entry=True)
-def _strip_rows(c, cuts, pad, period):
+def _owners(c, cuts, period, out):
+    for i in range(c.shape[0]):
+        out[i] = _strip_at(c[i], cuts, period)
+
+
+@kernel(inline="always")
+def _strip_span(c, pad, cuts, period):
+    """(first strip, number of strips) met by [c - pad, c + pad], going up from the first."""
+    tiles = cuts.shape[0]
+    if 2.0 * pad >= period:
+        return 0, tiles
+    a = _strip_at(c - pad, cuts, period)
+    span = (_strip_at(c + pad, cuts, period) - a) % tiles + 1
+    if span == 1 and tiles > 1:  # inside strip a, or round the whole period back into it
+        x = c - pad
+        x = x - np.floor(x / period) * period
+        into = x - cuts[a]
+        into = into - np.floor(into / period) * period
+        width = cuts[a + 1] - cuts[a] if a + 1 < tiles else cuts[0] + period - cuts[a]
+        if into + 2.0 * pad >= width:
+            return 0, tiles
+    return a, span
+
+
+@kernel(entry=True)
+def _strip_rows(c, cuts, pads, period):
     tiles = cuts.shape[0]
     n = c.shape[0]
     lo = np.empty(n, np.int64)
     span = np.empty(n, np.int64)
     bounds = np.zeros(tiles + 1, np.int64)
     for i in range(n):
-        a = _strip_at(c[i] - pad, cuts, period)
-        sp = (_strip_at(c[i] + pad, cuts, period) - a) % tiles + 1
+        a, sp = _strip_span(c[i], pads[i if pads.shape[0] > 1 else 0], cuts, period)
         lo[i] = a
         span[i] = sp
         for q in range(sp):
@@ -365,6 +400,7 @@ class LocalStore:
         self.bounds = (lo, [float(points[:, a].max()) for a in range(2)])  # the points' extent
         self.executor = executor
         self.own = None
+        self.framed = None
 
     def sample(self, fraction):
         keys = sample_keys(self.pts)
@@ -378,20 +414,36 @@ class LocalStore:
         lx, ly = emb.period_internal
         self.rows = [split_strips(self.internal, regions, pad, lx, ly) for regions in sets]
 
+    def _map(self, fn, *args):
+        if self.executor is None and self.own is None:
+            self.own = ProcessPoolExecutor(self.workers, mp_context=_context())
+        return list((self.executor or self.own).map(fn, *args))
+
     def run_round(self, s, tasks):
         rows, bounds = self.rows[s]
         for j, task in enumerate(tasks):
             mine = rows[bounds[j] : bounds[j + 1]]
             task["points"] = self.internal[mine]
             task["weights"] = None if self.weights is None else self.weights[mine]
-        if self.executor is None and self.own is None:
-            self.own = ProcessPoolExecutor(self.workers, mp_context=_context())
-        return list((self.executor or self.own).map(run_tile, tasks))
+        return self._map(run_tile, tasks)
+
+    def map_strips(self, fn, frame, regions, pad, payloads):
+        """fn(points, weights, payload) for each strip of ``regions`` widened by ``pad``,
+        the points in coordinates ``frame(points)`` (a picklable function, its period
+        ``frame.period``): a store's way to run checks strip by strip where the points are."""
+        if self.framed is None or self.framed[0] is not frame:
+            self.framed = (frame, frame(self.pts))
+        xy = self.framed[1]
+        rows, bounds = split_strips(xy, regions, pad, *frame.period)
+        mine = [rows[bounds[j] : bounds[j + 1]] for j in range(len(regions))]
+        w = [None if self.weights is None else self.weights[r] for r in mine]
+        return self._map(fn, [xy[r] for r in mine], w, payloads)
 
     def points(self):
         return self.pts, self.weights
 
     def close(self):
+        self.framed = None
         if self.own is not None:
             self.own.shutdown(cancel_futures=True)
             self.own = None

@@ -1,0 +1,113 @@
+"""certify strip by strip (certify(..., tiles=N), certify_store, distributed.certify):
+every answer about the points (disk counts, cell counts, d_{P,k}) equals the one-process
+certify's, which reads one cKDTree of all points; and a bad mesh fails the same way."""
+
+import numpy as np
+import pytest
+
+import knnrefine
+from knnrefine.certify import _TiledTorus, _Torus
+from knnrefine.engine.partition import LocalStore, split_strips, strip_owner, strips
+from knnrefine.errors import InputError
+
+
+def clustered(n, seed=0):
+    rng = np.random.default_rng(seed)
+    centres = rng.random((30, 2))
+    widths = 10 ** rng.uniform(-3, -1.5, 30)
+    j = rng.integers(0, 30, n)
+    return np.mod(centres[j] + rng.normal(size=(n, 2)) * widths[j, None], 1.0)
+
+
+def test_split_strips_with_a_pad_per_row_against_brute_force():
+    """Per-row pads up to past half the period: strip j holds exactly the rows within their
+    pad of it (periodic distance along the strip axis, brute force), and each row has one
+    owner, the strip whose [cut, next cut) holds it."""
+    rng = np.random.default_rng(1)
+    lx, ly = 0.8, 0.5
+    xy = rng.random((20000, 2)) * [lx, ly]
+    xy[:500] = [0.31, 0.2]  # a duplicate that several cuts fall on
+    pads = rng.random(len(xy)) ** 4 * 0.5
+    for tiles in (1, 2, 3, 7):
+        regions = strips(xy, lx, ly, tiles)[0]
+        rows, bounds = split_strips(xy, regions, pads, lx, ly)
+        owner = strip_owner(xy, regions, lx, ly)
+        for j, (x0, _, w, _) in enumerate(regions):
+            d = (xy[:, 0] - x0) % lx
+            dist = np.where(d < w, 0.0, np.minimum(d - w, lx - d))
+            got = rows[bounds[j] : bounds[j + 1]]
+            assert np.all(np.diff(got) > 0)
+            want = np.flatnonzero(dist <= pads * (1 - 1e-12))
+            maybe = np.flatnonzero(dist <= pads * (1 + 1e-12) + 1e-15)
+            assert np.isin(want, got).all() and np.isin(got, maybe).all()
+            assert np.array_equal(np.flatnonzero(owner == j), np.flatnonzero(d < w))
+
+
+def _tori(mesh, pts, tiles, weights=None):
+    store = LocalStore(pts, weights, tiles)
+    return _Torus(mesh, pts, -1, weights), _TiledTorus(mesh, store, tiles, -1), store
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("tiles", [2, 5])
+def test_strip_answers_equal_one_tree(tiles, weighted):
+    """Disks of every size (up to past the whole torus), every cell, d_{P,k} anywhere: the
+    strips' sums and decisions equal one cKDTree's answers, exactly."""
+    pts = clustered(30000, 2)
+    w = np.random.default_rng(3).integers(0, 3, len(pts)).astype(float) if weighted else None
+    k = 20.0 if weighted else 20
+    mesh = knnrefine.refine(pts, k, periodic=(True, False), box=(0, 0, 1, 1), weights=w)
+    one, tiled, store = _tori(mesh, pts, tiles, w)
+    try:
+        rng = np.random.default_rng(4)
+        centres = rng.random((3000, 2)) * one.period
+        radii = 10 ** rng.uniform(-3, 0.2, len(centres))
+        np.testing.assert_array_equal(tiled.held(centres, radii), one.held(centres, radii))
+        out = np.zeros(len(one.vertices))
+        np.testing.assert_array_equal(tiled.cell_counts(out), one.cell_counts(out))
+        x = rng.random((5000, 2)) * one.period
+        np.testing.assert_array_equal(tiled.d_pk(x), one.d_pk(x))
+    finally:
+        store.close()
+
+
+def test_a_wrong_mesh_fails_the_same_strip_by_strip():
+    """A mesh of other points (dense where these are sparse): the guesses of d_{P,k} from
+    the mesh are far too small, the strips ask again with wider pads, and the certificate
+    (failed) equals the one-process certificate in every count and ratio."""
+    rng = np.random.default_rng(5)
+    made_from = clustered(20000, 6)
+    mesh = knnrefine.refine(made_from, 10, periodic=True, box=(0, 0, 1, 1))
+    other = np.mod(rng.random((20000, 2)) * 0.3, 1.0)  # all in one corner
+    a = knnrefine.certify(mesh, other, samples=5000, n_random=1000)
+    b = knnrefine.certify(mesh, other, samples=5000, n_random=1000, tiles=3)
+    assert not a.passed and not b.passed
+    for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
+        assert getattr(a, field) == getattr(b, field), field
+    _, tiled, store = _tori(mesh, other, 3)
+    try:
+        x = np.random.default_rng(7).random((2000, 2))
+        tiled.d_pk(x)
+        assert tiled.passes > 1  # the first pad was too narrow somewhere: asked again
+    finally:
+        store.close()
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_certify_in_tiles_equals_certify(periodic):
+    pts = clustered(40000, 8)
+    mesh = knnrefine.refine(pts, 30, periodic=periodic, box=(0, 0, 1, 1))
+    a = knnrefine.certify(mesh, pts, samples=10000, n_random=2000)
+    b = knnrefine.certify(mesh, pts, samples=10000, n_random=2000, tiles=2)
+    assert a.passed and b.passed
+    for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral",
+                  "precondition_ok", "n", "m"):  # fmt: skip
+        assert getattr(a, field) == getattr(b, field), field
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_bad_tiles_are_refused(bad):
+    pts = clustered(2000, 9)
+    mesh = knnrefine.refine(pts, 10)
+    with pytest.raises(InputError, match="tiles must be a positive integer"):
+        knnrefine.certify(mesh, pts, tiles=bad)
