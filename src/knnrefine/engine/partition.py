@@ -148,10 +148,12 @@ def _strip_span(c, pad, cuts, period):
         x = c - pad
         x = x - np.floor(x / period) * period
         into = x - cuts[a]
-        into = into - np.floor(into / period) * period
+        reach = into - np.floor(into / period) * period + 2.0 * pad
         width = cuts[a + 1] - cuts[a] if a + 1 < tiles else cuts[0] + period - cuts[a]
-        if into + 2.0 * pad >= width:
+        if reach >= period:
             return 0, tiles
+        if reach >= width:  # at the next cut, up to rounding: that strip too
+            return a, 2
     return a, span
 
 
