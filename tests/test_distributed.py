@@ -162,3 +162,24 @@ def test_certify_on_the_cluster_equals_certify(client):
     flat = knnrefine.refine(pts, 20, box=(0, 0, 1, 1))
     with pytest.raises(InputError, match="outside"):
         distributed.certify(flat, pts * 1.5, client=client)
+
+
+def test_output_folder_is_the_mesh_in_parts(client, tmp_path):
+    """refine(..., output=) writes one part per strip and returns the folder's
+    PartitionedMesh; put together it is the mesh refine returns in memory; an existing
+    folder is refused before any work."""
+    from knnrefine.partitioned import PartitionedMesh
+
+    pts = clustered(40000, 12)
+    options = {"client": client, "periodic": True, "box": (0, 0, 1, 1)}
+    mesh = distributed.refine(pts, 20, **options)
+    pm = distributed.refine(pts, 20, output=tmp_path / "out", **options)
+    assert isinstance(pm, PartitionedMesh) and len(pm) == 2
+    back = pm.to_mesh()
+    np.testing.assert_array_equal(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.triangles, mesh.triangles)
+    assert knnrefine.certify(back, pts).passed
+    with pytest.raises(InputError, match="exists; use force=True"):
+        distributed.refine(np.full((10, 2), np.nan), 20, output=tmp_path / "out", **options)
+    assert len(distributed.refine(pts, 20, output=tmp_path / "out", parts=5, force=True,
+                                  **options)) == 5  # fmt: skip

@@ -19,6 +19,7 @@ from .errors import (
     LargeRunWarning,
 )
 from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
+from .partitioned import PartitionedMesh, write_partitioned
 
 __version__ = "0.1.0"
 
@@ -35,6 +36,8 @@ __all__ = [
     "io",
     "Mesh",
     "Torus",
+    "PartitionedMesh",
+    "write_partitioned",
     "theorem6_constants",
     "KIND_NAMES",
     "KnnRefineError",

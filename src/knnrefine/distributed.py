@@ -23,6 +23,7 @@ from . import validation as V
 from .api import check_options, refine_store
 from .engine.partition import canonical, run_tile, sample_keys, split_strips, tile_index
 from .errors import InputError
+from .partitioned import check_output, write_partitioned
 
 DEFAULT_COLUMNS = ("x", "y")
 
@@ -251,7 +252,7 @@ class DaskStore:
 def refine(
     source, k, tau=3.0, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
     retries=2, periodic=False, box=None, min_size=None, max_vertices=None, time_limit=None,
-    progress=None,
+    progress=None, output=None, parts=None, force=False,
 ):  # fmt: skip
     """kNNRefine of ``source`` on a Dask cluster, the points never gathered in this process
     (module docstring); the same result type and guarantees as ``knnrefine.refine``
@@ -266,15 +267,24 @@ def refine(
         Strips per round (default: the client's worker threads, at least 2).
     retries : int
         How often Dask runs a failed task again.
+    output : path, optional
+        Write the mesh as a folder of ``parts`` parts (default: one per strip) and return
+        it as a ``partitioned.PartitionedMesh`` (``partitioned.write_partitioned``: written
+        atomically, a finished marker last; ``force`` overwrites an existing folder).
     """
+    if output is not None:
+        check_output(output, parts, force)
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         k, tau, per, box, min_size, deadline, t_start = check_options(
             store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),
             store.check_inside, k, tau, periodic, box, min_size, max_vertices, time_limit,
             progress,
         )  # fmt: skip
-        return refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
+        mesh = refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
                             deadline, progress, tiles, t_start)  # fmt: skip
+    if output is None:
+        return mesh
+    return write_partitioned(mesh, output, parts or tiles, force)
 
 
 def certify(

@@ -22,11 +22,15 @@ def plot_mesh(
     cmap="viridis",
     title=None,
     labels=("x", "y"),
+    value_range=None,
+    show_colour_bar=True,
 ):
     """Draw ``mesh`` on ``ax`` (a new figure if None); returns the axes.
 
     cells: "triangles" (coloured by d_{M,2} at their centroid), "voronoi" (each vertex's cell
     coloured by d_{M,2} at the vertex, the distance to its nearest other vertex) or "none".
+    value_range: (low, high) of the colour scale (default: the values drawn), so that parts
+    drawn on one axes share it; show_colour_bar: draw its bar.
     """
     from matplotlib.collections import LineCollection, PolyCollection
     from matplotlib.colors import LogNorm
@@ -49,7 +53,8 @@ def plot_mesh(
         polys, values = _voronoi_cells(mesh, lo, hi)
     if cells != "none":
         values = np.maximum(values, np.min(values[values > 0]) if (values > 0).any() else 1.0)
-        norm = LogNorm(vmin=values.min(), vmax=max(values.max(), values.min() * 1.0001))
+        low, high = (values.min(), values.max()) if value_range is None else value_range
+        norm = LogNorm(vmin=low, vmax=max(high, low * 1.0001))
         # face-coloured hairlines close the antialiasing seams between neighbouring polygons
         coll = PolyCollection(
             polys,
@@ -61,7 +66,8 @@ def plot_mesh(
             rasterized=len(polys) > 20000,
         )
         ax.add_collection(coll)
-        colour_bar(ax, coll, f"$d_{{M,2}}$ (units of {labels[0]}, {labels[1]})")
+        if show_colour_bar:
+            colour_bar(ax, coll, f"$d_{{M,2}}$ (units of {labels[0]}, {labels[1]})")
     if show_mesh:
         pairs, _ = edges(covering)  # each edge once: equal alpha everywhere
         ax.add_collection(

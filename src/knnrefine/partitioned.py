@@ -1,0 +1,319 @@
+"""A mesh kept as a folder of parts, one per strip of the box, read part by part.
+
+``write_partitioned(mesh, path, parts)`` cuts the box into ``parts`` strips across its longer
+side, balanced by vertex count, and writes for each an ``.npz`` file: the vertices it owns
+(those in its strip), the triangles it owns (those whose first corner it owns), a halo of
+the other vertices within 4 R of the strip (R the largest circumradius of a triangle meeting
+it), and its share of the torus triangulation (the certificate's evidence). A point x of the
+strip lies in a triangle T meeting it and has its two nearest vertices within 2 R_T of x,
+and a point of one of its own triangles within 4 R_T of the strip: so a part answers d_{M,2}
+exactly there without the rest of the mesh (``PartitionedMesh.part(j).d_m2``).
+
+The folder is written under a temporary name and renamed into place with a finished marker
+(``_SUCCESS``) written last; ``PartitionedMesh(path)`` refuses a folder without it.
+``to_mesh()`` puts the parts back together into the ``Mesh`` they were cut from, array for
+array.
+"""
+
+import json
+import os
+import shutil
+import tempfile
+
+import numpy as np
+
+from .errors import InputError
+from .mesh import Mesh, Torus
+from .metric import BoxMetric
+from .validation import as_queries
+
+FORMAT_VERSION = 1
+FINISHED = "_SUCCESS"
+MANIFEST = "manifest.json"
+
+
+def _axis(box):
+    return 0 if box[2] - box[0] >= box[3] - box[1] else 1
+
+
+def _owner(coord, cuts):
+    """The strip of each coordinate (relative to the box's low side, periodic axes wrapped):
+    the last cut at or below it; beyond the box's ends, the end strips."""
+    return np.clip(np.searchsorted(cuts, coord, side="right") - 1, 0, len(cuts) - 1)
+
+
+def _circumradii(c):
+    a = np.linalg.norm(c[:, 1] - c[:, 2], axis=1)
+    b = np.linalg.norm(c[:, 2] - c[:, 0], axis=1)
+    e = np.linalg.norm(c[:, 0] - c[:, 1], axis=1)
+    area2 = np.abs(
+        (c[:, 1, 0] - c[:, 0, 0]) * (c[:, 2, 1] - c[:, 0, 1])
+        - (c[:, 1, 1] - c[:, 0, 1]) * (c[:, 2, 0] - c[:, 0, 0])
+    )
+    return a * b * e / np.maximum(2.0 * area2, 1e-300)
+
+
+def write_partitioned(mesh, path, parts, force=False):
+    """Write ``mesh`` as a folder of ``parts`` parts (module docstring); an existing ``path``
+    is kept unless ``force``. Returns the ``PartitionedMesh`` of the folder."""
+    path = check_output(path, parts, force)
+    parent = os.path.dirname(path)
+    tmp = tempfile.mkdtemp(dir=parent, prefix=".knnrefine-")
+    try:
+        manifest = _write_parts(mesh, tmp, int(parts))
+        with open(os.path.join(tmp, MANIFEST), "w") as f:
+            json.dump(manifest, f)
+        open(os.path.join(tmp, FINISHED), "w").close()
+        os.chmod(tmp, 0o777 & ~_umask())
+        if os.path.exists(path):  # force: the old folder goes only once the new one is whole
+            old = tempfile.mkdtemp(dir=parent, prefix=".knnrefine-old-")
+            os.replace(path, os.path.join(old, "x"))
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return PartitionedMesh(path)
+
+
+def check_output(path, parts, force):
+    """The absolute path of an output folder that may be written (checked before any work),
+    ``parts`` a positive integer (or None)."""
+    if parts is not None and (
+        isinstance(parts, bool) or not isinstance(parts, (int, np.integer)) or parts < 1
+    ):
+        raise InputError(f"parts must be a positive integer, got {parts!r}")
+    path = os.path.abspath(os.fspath(path))
+    if os.path.exists(path) and not force:
+        raise InputError(f"{path} exists; use force=True to overwrite it")
+    parent = os.path.dirname(path)
+    if not os.path.isdir(parent):
+        raise InputError(f"{path}: the folder {parent} does not exist")
+    return path
+
+
+def _umask():
+    u = os.umask(0)
+    os.umask(u)
+    return u
+
+
+def _write_parts(mesh, folder, parts):
+    box = np.array(mesh.box, float)
+    axis = _axis(box)
+    metric = BoxMetric(mesh.box, mesh.periodic)
+    per = bool(mesh.periodic[axis])
+    side = box[axis + 2] - box[axis]
+    coord = metric.frame(mesh.vertices)[:, axis]
+    cuts = np.quantile(coord, np.arange(parts) / parts) if len(coord) else np.zeros(parts)
+    cuts[0] = min(cuts[0], 0.0)
+    owner = _owner(coord, cuts)
+    ends = np.append(cuts[1:], side)
+
+    # the halo of each strip: 4 R over the triangles that meet it
+    corners = mesh.corners()
+    radius = _circumradii(corners)
+    c_axis = corners[..., axis] - box[axis]
+    first = _owner(c_axis.min(axis=1) % side if per else c_axis.min(axis=1), cuts)
+    last = _owner(c_axis.max(axis=1) % side if per else c_axis.max(axis=1), cuts)
+    span = (last - first) % parts + 1 if per else last - first + 1
+    span[(c_axis.max(axis=1) - c_axis.min(axis=1)) >= side / 2] = parts
+    halo = np.zeros(parts)
+    for q in range(int(span.max()) if len(span) else 0):
+        on = span > q
+        np.maximum.at(halo, (first[on] + q) % parts, 4.0 * radius[on])
+
+    tri_owner = owner[mesh.triangles[:, 0]] if len(mesh.triangles) else np.zeros(0, int)
+    torus = mesh.torus
+    t_coord = metric.frame(np.asarray(torus.vertices) + np.array(torus.origin))[:, axis]
+    t_owner = _owner(t_coord, cuts)
+    tt_owner = t_owner[torus.triangles[:, 0]]
+    f_owner = _owner(metric.frame(mesh.floor_points)[:, axis], cuts)
+    d_range = [np.inf, 0.0]
+    files = []
+    for j in range(parts):
+        lo, hi = cuts[j] - halo[j], ends[j] + halo[j]
+        near = (coord >= lo) & (coord <= hi)
+        if per:  # the halo wraps round the period
+            near |= (coord >= lo + side) | (coord <= hi - side)
+        own = np.flatnonzero(owner == j)
+        ids = np.concatenate([own, np.flatnonzero(near & (owner != j))])
+        local = np.full(len(mesh.vertices), -1, np.int64)
+        local[ids] = np.arange(len(ids))
+        tids = np.flatnonzero(tri_owner == j)
+        triangles = local[mesh.triangles[tids]]
+        if (triangles < 0).any():
+            raise AssertionError("a part's triangle reaches past its halo")
+        arrays = {
+            "format": np.array(FORMAT_VERSION),
+            "vertex_ids": ids, "owned": np.array(len(own)), "vertices": mesh.vertices[ids],
+            "kinds": mesh.kinds[ids], "order": mesh.order[ids],
+            "triangle_ids": tids, "triangles": triangles.astype(mesh.triangles.dtype),
+            "offsets": np.zeros((0, 3, 2), np.int8) if mesh.offsets is None else mesh.offsets[tids],
+            "floor_points": mesh.floor_points[f_owner == j],
+            "floor_ids": np.flatnonzero(f_owner == j),
+        }  # fmt: skip
+        tv = np.flatnonzero(t_owner == j)
+        tt = np.flatnonzero(tt_owner == j)
+        arrays.update({
+            "torus_vertex_ids": tv, "torus_vertices": torus.vertices[tv],
+            "torus_kinds": torus.kinds[tv], "torus_triangle_ids": tt,
+            "torus_triangles": torus.triangles[tt], "torus_offsets": torus.offsets[tt],
+            "torus_neighbors": torus.neighbors[tt],
+        })  # fmt: skip
+        name = f"part-{j:05d}.npz"
+        with open(os.path.join(folder, name), "wb") as f:
+            np.savez_compressed(f, **arrays)
+        part = _part_mesh(mesh, arrays, mesh.offsets is not None)
+        if len(part.triangles):
+            d = part.d_m2(part.corners().mean(axis=1))
+            d_range = [min(d_range[0], float(d.min())), max(d_range[1], float(d.max()))]
+        strip = [float(cuts[j] + box[axis]), float(ends[j] + box[axis])]
+        files.append({"file": name, "strip": strip, "halo": float(halo[j]),
+                      "vertices": int(len(own)), "halo_vertices": int(len(ids) - len(own)),
+                      "triangles": int(len(tids))})  # fmt: skip
+    return {
+        "format": FORMAT_VERSION, "k": mesh.k, "tau": mesh.tau,
+        "periodic": list(mesh.periodic), "box": list(mesh.box), "min_size": mesh.min_size,
+        "axis": axis, "cuts": [float(c) for c in cuts], "parts": files,
+        "m": len(mesh.vertices), "triangles": len(mesh.triangles),
+        "torus": {"origin": list(torus.origin), "period": list(torus.period),
+                  "m": len(torus.vertices), "triangles": len(torus.triangles)},
+        "has_offsets": mesh.offsets is not None, "d_m2_range": d_range, "stats": mesh.stats,
+    }  # fmt: skip
+
+
+def _part_mesh(mesh, arrays, has_offsets):
+    """A part as a small Mesh (no torus): its vertices with the halo, its own triangles;
+    ``mesh``: anything with the run's k, tau, periodic, box and min_size."""
+    return Mesh(
+        vertices=arrays["vertices"], triangles=arrays["triangles"],
+        offsets=arrays["offsets"] if has_offsets else None,
+        kinds=arrays["kinds"], order=arrays["order"], k=mesh.k, tau=mesh.tau,
+        periodic=tuple(mesh.periodic), box=tuple(mesh.box), min_size=mesh.min_size,
+        floor_points=arrays["floor_points"], stats={},
+    )  # fmt: skip
+
+
+class PartitionedMesh:
+    """A mesh written by ``write_partitioned`` (or ``distributed.refine(..., output=)``),
+    read part by part: ``part(j)`` is a small ``Mesh`` exact in its strip; ``d_m2`` and
+    ``plot`` go part by part; ``to_mesh()`` is the whole ``Mesh``."""
+
+    def __init__(self, path):
+        path = os.fspath(path)
+        if not os.path.isdir(path):
+            raise InputError(f"{path}: no such folder (a partitioned mesh is a folder)")
+        if not os.path.exists(os.path.join(path, FINISHED)):
+            raise InputError(
+                f"{path}: no {FINISHED} marker: the folder was not finished (a run stopped "
+                "while writing it); write it again"
+            )
+        with open(os.path.join(path, MANIFEST)) as f:
+            self.manifest = json.load(f)
+        if self.manifest["format"] > FORMAT_VERSION:
+            raise InputError(f"{path}: written by a newer knnrefine")
+        self.path = path
+        m = self.manifest
+        self.k, self.tau, self.min_size = m["k"], m["tau"], m["min_size"]
+        self.periodic, self.box = tuple(m["periodic"]), tuple(m["box"])
+        self.stats = m["stats"]
+        self._cache = {}
+
+    def __len__(self):
+        return len(self.manifest["parts"])
+
+    def __repr__(self):
+        m = self.manifest
+        return (
+            f"<PartitionedMesh {self.path!r} parts={len(self)} m={m['m']} k={self.k} "
+            f"tau={self.tau:g} periodic={self.periodic} box={self.box}>"
+        )
+
+    def _arrays(self, j):
+        with np.load(os.path.join(self.path, self.manifest["parts"][j]["file"])) as d:
+            return {key: d[key] for key in d.files}
+
+    def part(self, j):
+        """Part j as a ``Mesh``: its vertices with the halo, its own triangles (d_{M,2} exact
+        in its strip and its triangles). The last few parts read are kept."""
+        if j not in self._cache:
+            if len(self._cache) >= 4:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[j] = _part_mesh(self, self._arrays(j), self.manifest["has_offsets"])
+        return self._cache[j]
+
+    def owner(self, x):
+        """The part whose strip holds each point (x of shape (q, 2))."""
+        a = self.manifest["axis"]
+        coord = BoxMetric(self.box, self.periodic).frame(x)[:, a]
+        return _owner(coord, np.array(self.manifest["cuts"]))
+
+    def d_m2(self, x):
+        """d_{M,2} at the query points (..., 2), part by part: equal to the whole mesh's."""
+        flat, shape = as_queries(x)
+        out = np.full(len(flat), np.nan)
+        owner = self.owner(flat)
+        for j in np.unique(owner):
+            at = owner == j
+            out[at] = self.part(int(j)).d_m2(flat[at])
+        return out.reshape(shape)
+
+    def plot(self, ax=None, **kwargs):
+        """``plot.plot_mesh`` part by part on one axes, one colour scale for all."""
+        from .plot import plot_mesh
+
+        m = self.manifest
+        title = kwargs.pop("title", None) or (
+            f"kNNRefine: k = {self.k}, tau = {self.tau:g}, m = {m['m']:,} in {len(self)} parts; "
+            "colour: distance to the second-nearest mesh vertex"
+        )
+        for j in range(len(self)):
+            last = j == len(self) - 1
+            ax = plot_mesh(self.part(j), ax=ax, value_range=m["d_m2_range"],
+                           show_colour_bar=last, title=title, **kwargs)  # fmt: skip
+        return ax
+
+    def to_mesh(self):
+        """The whole ``Mesh`` again (as written: every array equal)."""
+        m = self.manifest
+        t = m["torus"]
+        rows = {"": m["m"], "triangle": m["triangles"], "torus_vertex": t["m"],
+                "torus_triangle": t["triangles"], "floor": None}  # fmt: skip
+        out = {}
+
+        def put(name, ids, values, count):
+            if name not in out:
+                out[name] = np.zeros((count, *values.shape[1:]), values.dtype)
+            out[name][ids] = values
+
+        parts = [self._arrays(j) for j in range(len(self))]
+        floor_count = sum(len(d["floor_ids"]) for d in parts)
+        for d in parts:
+            own = d["vertex_ids"][: int(d["owned"])]
+            for name in ("vertices", "kinds", "order"):
+                put(name, own, d[name][: len(own)], rows[""])
+            put("triangles", d["triangle_ids"], d["vertex_ids"][d["triangles"]].astype(
+                d["triangles"].dtype), rows["triangle"])  # fmt: skip
+            if m["has_offsets"]:
+                put("offsets", d["triangle_ids"], d["offsets"], rows["triangle"])
+            for name in ("vertices", "kinds"):
+                put(
+                    "torus_" + name, d["torus_vertex_ids"], d["torus_" + name], rows["torus_vertex"]
+                )
+            for name in ("triangles", "offsets", "neighbors"):
+                put("torus_" + name, d["torus_triangle_ids"], d["torus_" + name],
+                    rows["torus_triangle"])  # fmt: skip
+            put("floor_points", d["floor_ids"], d["floor_points"].reshape(-1, 2), floor_count)
+        torus = Torus(tuple(t["origin"]), tuple(t["period"]), out["torus_vertices"],
+                      out["torus_triangles"], out["torus_offsets"], out["torus_neighbors"],
+                      out["torus_kinds"])  # fmt: skip
+        return Mesh(
+            vertices=out["vertices"], triangles=out["triangles"],
+            offsets=out["offsets"] if m["has_offsets"] else None, kinds=out["kinds"],
+            order=out["order"], k=self.k, tau=self.tau, periodic=self.periodic, box=self.box,
+            min_size=self.min_size, floor_points=out["floor_points"], stats=self.stats,
+            torus=torus,
+        )  # fmt: skip
