@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .errors import InputError
-from .mesh import theorem6_constants, triangle_areas, uniform_in_triangles
+from .mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric, TorusFrame
 from .validation import as_points, weights_of_run
 
@@ -829,7 +829,7 @@ def verify_triangulation(vertices, triangles, offsets, neighbors, period):
         problems.append(f"{int((area <= 0).sum())} triangles are not counter-clockwise")
     if abs(area.sum() - period.prod()) > 1e-9 * period.prod():
         problems.append("the triangles do not tile the torus (areas do not add up)")
-    cc, r = _circumcircles(corners)
+    cc, r = circumcircles(corners)
     ccw = BoxMetric((0.0, 0.0, *period), (True, True)).frame(cc)
     # empty circles: floating point finds the vertices near each circle, rationals decide
     near = cKDTree(vertices, boxsize=period).query_ball_point(ccw, r * (1 + 1e-6) + 1e-9 * r.max())
@@ -857,18 +857,6 @@ def _incircle_exact(c, d):
         + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady)
     )
     return (det > 0) - (det < 0)
-
-
-def _circumcircles(corners):
-    a = corners[:, 0]
-    b = corners[:, 1] - a
-    c = corners[:, 2] - a
-    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
-    b2 = (b**2).sum(1)
-    c2 = (c**2).sum(1)
-    ux = (c[:, 1] * b2 - b[:, 1] * c2) / d
-    uy = (b[:, 0] * c2 - c[:, 0] * b2) / d
-    return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
 
 
 def _in_box(x, lo, hi, per):

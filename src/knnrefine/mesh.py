@@ -274,6 +274,19 @@ def split_in_four(triangles, n_nodes, known_edges=None):
     return pairs, edge_of, pieces
 
 
+def circumcircles(corners):
+    """(centres (t, 2), radii (t,)) of the circumcircles of the triangles (t, 3, 2)."""
+    a = corners[:, 0]
+    b = corners[:, 1] - a
+    c = corners[:, 2] - a
+    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+    b2 = (b**2).sum(1)
+    c2 = (c**2).sum(1)
+    ux = (c[:, 1] * b2 - b[:, 1] * c2) / d
+    uy = (b[:, 0] * c2 - c[:, 0] * b2) / d
+    return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
+
+
 def triangle_areas(corners):
     """Signed areas of the triangles (t, 3, 2): positive when counter-clockwise."""
     e1 = corners[:, 1] - corners[:, 0]

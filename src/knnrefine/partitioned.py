@@ -3,11 +3,12 @@
 ``write_partitioned(mesh, path, parts)`` cuts the box into ``parts`` strips across its longer
 side, balanced by vertex count, and writes for each an ``.npz`` file: the vertices it owns
 (those in its strip), the triangles it owns (those whose first corner it owns), a halo of
-the other vertices within 4 R of the strip (R the largest circumradius of a triangle meeting
-it), and its share of the torus triangulation (the certificate's evidence). A point x of the
-strip lies in a triangle T meeting it and has its two nearest vertices within 2 R_T of x,
-and a point of one of its own triangles within 4 R_T of the strip: so a part answers d_{M,2}
-exactly there without the rest of the mesh (``PartitionedMesh.part(j).d_m2``).
+the other vertices within 3 R_T of the circumcentre of some triangle T meeting the strip
+(R_T its circumradius), and its share of the torus triangulation (the certificate's
+evidence). A point x of a triangle T has its two nearest vertices within 2 R_T of x (T's
+corners are that close), so within 3 R_T of T's circumcentre; a point of the strip, or of
+one of the part's own triangles, lies in a triangle meeting the strip: so a part answers
+d_{M,2} exactly there without the rest of the mesh (``PartitionedMesh.part(j).d_m2``).
 
 The folder is written under a temporary name and renamed into place with a finished marker
 (``_SUCCESS``) written last; ``PartitionedMesh(path)`` refuses a folder without it.
@@ -23,7 +24,7 @@ import tempfile
 import numpy as np
 
 from .errors import InputError
-from .mesh import Mesh, Torus
+from .mesh import Mesh, Torus, circumcircles
 from .metric import BoxMetric
 from .validation import as_queries
 
@@ -40,17 +41,6 @@ def _owner(coord, cuts):
     """The strip of each coordinate (relative to the box's low side, periodic axes wrapped):
     the last cut at or below it; beyond the box's ends, the end strips."""
     return np.clip(np.searchsorted(cuts, coord, side="right") - 1, 0, len(cuts) - 1)
-
-
-def _circumradii(c):
-    a = np.linalg.norm(c[:, 1] - c[:, 2], axis=1)
-    b = np.linalg.norm(c[:, 2] - c[:, 0], axis=1)
-    e = np.linalg.norm(c[:, 0] - c[:, 1], axis=1)
-    area2 = np.abs(
-        (c[:, 1, 0] - c[:, 0, 0]) * (c[:, 2, 1] - c[:, 0, 1])
-        - (c[:, 1, 1] - c[:, 0, 1]) * (c[:, 2, 0] - c[:, 0, 0])
-    )
-    return a * b * e / np.maximum(2.0 * area2, 1e-300)
 
 
 def write_partitioned(mesh, path, parts, force=False):
@@ -112,18 +102,24 @@ def _write_parts(mesh, folder, parts):
     owner = _owner(coord, cuts)
     ends = np.append(cuts[1:], side)
 
-    # the halo of each strip: 4 R over the triangles that meet it
+    # each strip's halo: the vertices within 3 R_T of the circumcentre of a triangle T that
+    # meets it (T lies in its circumdisk, and a point of T has its two nearest vertices
+    # within 2 R_T: module docstring)
     corners = mesh.corners()
-    radius = _circumradii(corners)
+    centres, radius = circumcircles(corners)
     c_axis = corners[..., axis] - box[axis]
     first = _owner(c_axis.min(axis=1) % side if per else c_axis.min(axis=1), cuts)
     last = _owner(c_axis.max(axis=1) % side if per else c_axis.max(axis=1), cuts)
     span = (last - first) % parts + 1 if per else last - first + 1
     span[(c_axis.max(axis=1) - c_axis.min(axis=1)) >= side / 2] = parts
-    halo = np.zeros(parts)
+    tree = metric.tree(mesh.vertices)
+    reach = metric.frame(centres), 3.0 * radius * (1.0 + 1e-9)
+    meets = [[] for _ in range(parts)]
     for q in range(int(span.max()) if len(span) else 0):
-        on = span > q
-        np.maximum.at(halo, (first[on] + q) % parts, 4.0 * radius[on])
+        on = np.flatnonzero(span > q)
+        strip = (first[on] + q) % parts
+        for j in np.unique(strip):
+            meets[j].append(on[strip == j])
 
     tri_owner = owner[mesh.triangles[:, 0]] if len(mesh.triangles) else np.zeros(0, int)
     torus = mesh.torus
@@ -134,10 +130,11 @@ def _write_parts(mesh, folder, parts):
     d_range = [np.inf, 0.0]
     files = []
     for j in range(parts):
-        lo, hi = cuts[j] - halo[j], ends[j] + halo[j]
-        near = (coord >= lo) & (coord <= hi)
-        if per:  # the halo wraps round the period
-            near |= (coord >= lo + side) | (coord <= hi - side)
+        t = np.concatenate(meets[j]) if meets[j] else np.zeros(0, np.int64)
+        found = tree.query_ball_point(reach[0][t], reach[1][t], return_sorted=False)
+        near = np.zeros(len(mesh.vertices), bool)
+        if len(t):
+            near[np.concatenate([np.asarray(f, np.int64) for f in found])] = True
         own = np.flatnonzero(owner == j)
         ids = np.concatenate([own, np.flatnonzero(near & (owner != j))])
         local = np.full(len(mesh.vertices), -1, np.int64)
@@ -171,7 +168,7 @@ def _write_parts(mesh, folder, parts):
             d = part.d_m2(part.corners().mean(axis=1))
             d_range = [min(d_range[0], float(d.min())), max(d_range[1], float(d.max()))]
         strip = [float(cuts[j] + box[axis]), float(ends[j] + box[axis])]
-        files.append({"file": name, "strip": strip, "halo": float(halo[j]),
+        files.append({"file": name, "strip": strip,
                       "vertices": int(len(own)), "halo_vertices": int(len(ids) - len(own)),
                       "triangles": int(len(tids))})  # fmt: skip
     return {
