@@ -54,10 +54,17 @@ def test_parts_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, parts):
     lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
     on_cuts = np.zeros((200 * parts, 2))
     axis = pm.manifest["axis"]
-    on_cuts[:, axis] = np.repeat(np.array(pm.manifest["cuts"]) + lo[axis], 200)
+    cuts = np.clip(np.array(pm.manifest["cuts"]) + lo[axis], lo[axis], hi[axis])  # in the box
+    on_cuts[:, axis] = np.repeat(cuts, 200)
     on_cuts[:, 1 - axis] = lo[1 - axis] + rng.random(len(on_cuts)) * (hi - lo)[1 - axis]
     q = np.concatenate([lo + rng.random((50000, 2)) * (hi - lo), on_cuts, [lo, hi]])
     np.testing.assert_array_equal(pm.d_m2(q), mesh.d_m2(q))
+    beyond = np.array([[lo[0] - 1.0, lo[1]], [lo[0], hi[1] + 1.0]])
+    got = pm.d_m2(beyond)
+    for i, a in enumerate((0, 1)):  # beyond the box: NaN along a non-periodic axis
+        assert np.isnan(got[i]) == (not mesh.periodic[a])
+        if mesh.periodic[a]:
+            assert got[i] == mesh.d_m2(beyond[i : i + 1])[0]
     own = sum(p["vertices"] for p in pm.manifest["parts"])
     assert own == len(mesh.vertices)
 

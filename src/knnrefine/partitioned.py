@@ -249,12 +249,18 @@ class PartitionedMesh:
         return _owner(coord, np.array(self.manifest["cuts"]))
 
     def d_m2(self, x):
-        """d_{M,2} at the query points (..., 2), part by part: equal to the whole mesh's."""
+        """d_{M,2} at the query points (..., 2), part by part: equal to the whole mesh's in
+        the box; NaN beyond it along non-periodic axes (no part's halo reaches there)."""
         flat, shape = as_queries(x)
         out = np.full(len(flat), np.nan)
-        owner = self.owner(flat)
+        inside = np.ones(len(flat), bool)
+        for a in range(2):
+            if not self.periodic[a]:
+                inside &= (flat[:, a] >= self.box[a]) & (flat[:, a] <= self.box[a + 2])
+        owner = self.owner(flat[inside])
+        rows = np.flatnonzero(inside)
         for j in np.unique(owner):
-            at = owner == j
+            at = rows[owner == j]
             out[at] = self.part(int(j)).d_m2(flat[at])
         return out.reshape(shape)
 
