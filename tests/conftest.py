@@ -70,6 +70,16 @@ def certify_every_mesh(monkeypatch):
 ACHIEVED = []
 
 
+def gaussian_clusters(n, seed=0, clusters=30):
+    """Gaussian clusters with widths from 1e-3 to 3e-2 (log-uniform), wrapped into the unit
+    box: scales that differ by thirty times in one input."""
+    rng = np.random.default_rng(seed)
+    centres = rng.random((clusters, 2))
+    widths = 10 ** rng.uniform(-3, -1.5, clusters)
+    j = rng.integers(0, clusters, n)
+    return np.mod(centres[j] + rng.normal(size=(n, 2)) * widths[j, None], 1.0)
+
+
 def load_shared(name):
     path = SHARED_DATA / name
     if not path.exists():

@@ -4,19 +4,12 @@ certify's, which reads one cKDTree of all points; and a bad mesh fails the same 
 
 import numpy as np
 import pytest
+from conftest import gaussian_clusters
 
 import knnrefine
 from knnrefine.certify import _TiledTorus, _Torus
 from knnrefine.engine.partition import LocalStore, split_strips, strip_owner, strips
 from knnrefine.errors import InputError
-
-
-def clustered(n, seed=0):
-    rng = np.random.default_rng(seed)
-    centres = rng.random((30, 2))
-    widths = 10 ** rng.uniform(-3, -1.5, 30)
-    j = rng.integers(0, 30, n)
-    return np.mod(centres[j] + rng.normal(size=(n, 2)) * widths[j, None], 1.0)
 
 
 def test_split_strips_with_a_pad_per_row_against_brute_force():
@@ -53,7 +46,7 @@ def _tori(mesh, pts, tiles, weights=None):
 def test_strip_answers_equal_one_tree(tiles, weighted):
     """Disks of every size (up to past the whole torus), every cell, d_{P,k} anywhere: the
     strips' sums and decisions equal one cKDTree's answers, exactly."""
-    pts = clustered(30000, 2)
+    pts = gaussian_clusters(30000, 2)
     w = np.random.default_rng(3).integers(0, 3, len(pts)).astype(float) if weighted else None
     k = 20.0 if weighted else 20
     mesh = knnrefine.refine(pts, k, periodic=(True, False), box=(0, 0, 1, 1), weights=w)
@@ -76,7 +69,7 @@ def test_a_wrong_mesh_fails_the_same_strip_by_strip():
     the mesh are far too small, the strips ask again with wider pads, and the certificate
     (failed) equals the one-process certificate in every count and ratio."""
     rng = np.random.default_rng(5)
-    made_from = clustered(20000, 6)
+    made_from = gaussian_clusters(20000, 6)
     mesh = knnrefine.refine(made_from, 10, periodic=True, box=(0, 0, 1, 1))
     other = np.mod(rng.random((20000, 2)) * 0.3, 1.0)  # all in one corner
     a = knnrefine.certify(mesh, other, samples=5000, n_random=1000)
@@ -95,7 +88,7 @@ def test_a_wrong_mesh_fails_the_same_strip_by_strip():
 
 @pytest.mark.parametrize("periodic", [True, False])
 def test_certify_in_tiles_equals_certify(periodic):
-    pts = clustered(40000, 8)
+    pts = gaussian_clusters(40000, 8)
     mesh = knnrefine.refine(pts, 30, periodic=periodic, box=(0, 0, 1, 1))
     a = knnrefine.certify(mesh, pts, samples=10000, n_random=2000)
     b = knnrefine.certify(mesh, pts, samples=10000, n_random=2000, tiles=2)
@@ -107,7 +100,7 @@ def test_certify_in_tiles_equals_certify(periodic):
 
 @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
 def test_bad_tiles_are_refused(bad):
-    pts = clustered(2000, 9)
+    pts = gaussian_clusters(2000, 9)
     mesh = knnrefine.refine(pts, 10)
     with pytest.raises(InputError, match="tiles must be a positive integer"):
         knnrefine.certify(mesh, pts, tiles=bad)

@@ -6,18 +6,11 @@ import os
 
 import numpy as np
 import pytest
+from conftest import gaussian_clusters
 
 import knnrefine
 from knnrefine.errors import InputError
 from knnrefine.partitioned import FINISHED, PartitionedMesh, write_partitioned
-
-
-def clustered(n, seed=0):
-    rng = np.random.default_rng(seed)
-    centres = rng.random((30, 2))
-    widths = 10 ** rng.uniform(-3, -1.5, 30)
-    j = rng.integers(0, 30, n)
-    return np.mod(centres[j] + rng.normal(size=(n, 2)) * widths[j, None], 1.0)
 
 
 def assert_same_mesh(a, b):
@@ -44,7 +37,7 @@ PERIODIC = [True, False, (True, False), (False, True)]
 @pytest.mark.parametrize("periodic", PERIODIC, ids=str)
 @pytest.mark.parametrize("parts", [1, 3, 8])
 def test_parts_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, parts):
-    pts = clustered(30000, 1)
+    pts = gaussian_clusters(30000, 1)
     box = (0, 0, 1, 1) if periodic else None
     mesh = knnrefine.refine(pts, 15, periodic=periodic, box=box)
     pm = write_partitioned(mesh, tmp_path / "mesh", parts)
@@ -72,7 +65,7 @@ def test_parts_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, parts):
 def test_each_part_is_exact_in_its_own_triangles(tmp_path):
     """A part's d_{M,2} at its own triangles' centroids (where the picture colours them)
     equals the whole mesh's, also where a centroid lies in the next strip."""
-    pts = clustered(20000, 3)
+    pts = gaussian_clusters(20000, 3)
     mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
     pm = write_partitioned(mesh, tmp_path / "m", 6)
     for j in range(len(pm)):
@@ -85,7 +78,7 @@ def test_the_picture_draws_every_triangle_once(tmp_path):
     pytest.importorskip("matplotlib")
     from matplotlib.collections import PolyCollection
 
-    pts = clustered(10000, 4)
+    pts = gaussian_clusters(10000, 4)
     mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
     pm = write_partitioned(mesh, tmp_path / "m", 4)
     ax = pm.plot(show_points=False)
@@ -97,7 +90,7 @@ def test_the_picture_draws_every_triangle_once(tmp_path):
 def test_the_folder_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
     from knnrefine import partitioned
 
-    pts = clustered(5000, 5)
+    pts = gaussian_clusters(5000, 5)
     mesh = knnrefine.refine(pts, 10)
     target = tmp_path / "m"
     write_partitioned(mesh, target, 2)

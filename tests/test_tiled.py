@@ -5,7 +5,7 @@ single-process run's."""
 
 import numpy as np
 import pytest
-from conftest import assert_certified
+from conftest import assert_certified, gaussian_clusters
 
 import knnrefine
 from knnrefine.engine.partition import strips
@@ -18,11 +18,7 @@ def uniform(n, seed=0):
 
 def clustered(n, seed=0):
     """Forty Gaussian clusters with widths from 1e-3 to 3e-2, wrapped into the unit box."""
-    rng = np.random.default_rng(seed)
-    centres = rng.random((40, 2))
-    widths = 10 ** rng.uniform(-3, -1.5, 40)
-    j = rng.integers(0, 40, n)
-    return np.mod(centres[j] + rng.normal(size=(n, 2)) * widths[j, None], 1.0)
+    return gaussian_clusters(n, seed, clusters=40)
 
 
 def with_duplicates(n, seed=0):
