@@ -183,3 +183,24 @@ def test_output_folder_is_the_mesh_in_parts(client, tmp_path):
         distributed.refine(np.full((10, 2), np.nan), 20, output=tmp_path / "out", **options)
     assert len(distributed.refine(pts, 20, output=tmp_path / "out", parts=5, force=True,
                                   **options)) == 5  # fmt: skip
+
+
+def test_density_on_the_cluster_equals_part_by_part_here(client, tmp_path):
+    """distributed.density of a refine(output=) folder, d_Pk asked of a Dask array's
+    partitions on the workers, equals PartitionedMesh.density from the points here and
+    KnnDensity of the whole mesh; anything but a partitioned mesh is refused."""
+    import dask.array as da
+
+    pts = clustered(30000, 13)
+    source = da.from_array(pts, chunks=(7000, 2))
+    pm = distributed.refine(source, 20, client=client, periodic=True, box=(0, 0, 1, 1),
+                            output=tmp_path / "out", parts=3)  # fmt: skip
+    dens = distributed.density(tmp_path / "out", source, client=client)
+    q = np.random.default_rng(3).random((10000, 2))
+    np.testing.assert_allclose(dens(q), pm.density(pts)(q), rtol=1e-12)
+    np.testing.assert_allclose(dens(q), knnrefine.KnnDensity(pm.to_mesh(), pts)(q), rtol=1e-12)
+    assert dens.mass((0, 0, 0.5, 1)) == pytest.approx(pm.density(pts).mass((0, 0, 0.5, 1)))
+    with pytest.raises(InputError, match="needs a PartitionedMesh"):
+        distributed.density(pm.to_mesh(), source, client=client)
+    with pytest.raises(InputError, match="made from 30,000 points"):
+        distributed.density(pm, pts[:-1], client=client)

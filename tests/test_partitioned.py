@@ -115,3 +115,102 @@ def test_the_folder_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
     for bad in (0, 2.5, True):
         with pytest.raises(InputError, match="parts must be a positive integer"):
             write_partitioned(mesh, tmp_path / "other", bad)
+
+
+def _queries(pm, rng, count=20000):
+    """Random points of the box, points on every cut, the box's corners and points beyond
+    it on every side."""
+    lo, hi = np.array(pm.box[:2]), np.array(pm.box[2:])
+    axis = pm.manifest["axis"]
+    cuts = np.clip(np.array(pm.manifest["cuts"]) + lo[axis], lo[axis], hi[axis])
+    on_cuts = np.zeros((100 * len(cuts), 2))
+    on_cuts[:, axis] = np.repeat(cuts, 100)
+    on_cuts[:, 1 - axis] = lo[1 - axis] + rng.random(len(on_cuts)) * (hi - lo)[1 - axis]
+    beyond = (lo + hi) / 2 + np.array([[-1, 0], [1, 0], [0, -1], [0, 1]]) * (hi - lo)
+    return np.concatenate([lo + rng.random((count, 2)) * (hi - lo), on_cuts, [lo, hi], beyond])
+
+
+@pytest.mark.parametrize("periodic", PERIODIC, ids=str)
+@pytest.mark.parametrize("parts", [1, 4])
+def test_density_part_by_part_equals_the_whole_meshs(tmp_path, periodic, parts):
+    """PartitionedMesh.density answers as KnnDensity on the whole mesh (itself checked
+    against exact d_Pk in test_density): at random points, on the cuts, beyond the box
+    (NaN along non-periodic axes), its masses over the box and a region across the seam,
+    its grid."""
+    pts = gaussian_clusters(20000, 6)
+    box = (0, 0, 1, 1) if periodic else None
+    mesh = knnrefine.refine(pts, 15, periodic=periodic, box=box)
+    pm = write_partitioned(mesh, tmp_path / "m", parts)
+    got, want = pm.density(pts), knnrefine.KnnDensity(mesh, pts)
+    q = _queries(pm, np.random.default_rng(7))
+    a, b = got(q), want(q)
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    np.testing.assert_allclose(a, b, rtol=1e-12)
+    assert np.isnan(a[-4:]).tolist() == [not mesh.periodic[0]] * 2 + [not mesh.periodic[1]] * 2
+    assert got.raw_mass == pytest.approx(want.raw_mass, rel=1e-12)
+    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
+    region = (*(lo + 0.6 * (hi - lo)), *(hi + 0.3 * (hi - lo)))  # past the upper sides
+    assert got.mass(region) == pytest.approx(want.mass(region), rel=1e-12)
+    np.testing.assert_allclose(got.grid((48, 64))[2], want.grid((48, 64))[2], rtol=1e-12)
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_partitioned_d_pk_is_exact_at_every_parts_nodes(tmp_path, periodic):
+    """The value each part keeps at each node of its pieces (vertices, halo, midpoints, seam
+    copies) is the k-th distance from a brute cKDTree (periodic: boxsize), weighted too."""
+    from scipy.spatial import cKDTree
+
+    pts = gaussian_clusters(15000, 8)
+    w = np.random.default_rng(8).integers(1, 4, len(pts)).astype(float)
+    for weights, k in ((None, 12), (w, 30.0)):
+        mesh = knnrefine.refine(pts, k, periodic=periodic, box=(0, 0, 1, 1), weights=weights)
+        pm = write_partitioned(mesh, tmp_path / f"m{k}", 3)
+        dist = pm.distance(pts, weights=weights)
+        tree = cKDTree(pts, boxsize=1.0 if periodic else None)
+        for j in range(len(pm)):
+            part = dist.part(j)
+            x = part.nodes % 1.0 if periodic else part.nodes
+            if weights is None:
+                exact = tree.query(x, k=[k])[0][:, 0]
+            else:  # the least radius whose disk holds weight k
+                dd, ii = tree.query(x, k=60)
+                exact = dd[np.arange(len(x)), np.argmax(np.cumsum(w[ii], axis=1) >= k, axis=1)]
+            np.testing.assert_allclose(part.values, exact, rtol=1e-12)
+
+
+def test_partitioned_density_samples_by_mass_and_runs_in_processes(tmp_path):
+    """Samples fall in regions as often as their mass says (5 sigma); strips in two local
+    processes give the same estimate as in this process."""
+    pts = gaussian_clusters(20000, 9)
+    mesh = knnrefine.refine(pts, 20, periodic=True, box=(0, 0, 1, 1))
+    pm = write_partitioned(mesh, tmp_path / "m", 3)
+    dens = pm.density(pts)
+    draws = dens.sample(40000, np.random.default_rng(1))
+    assert draws.shape == (40000, 2) and ((draws >= 0) & (draws <= 1)).all()
+    for region in ((0, 0, 0.5, 1), (0.2, 0.1, 0.45, 0.8), (0.6, 0.55, 1, 1)):
+        p = dens.mass(region)
+        inside = np.all((draws >= region[:2]) & (draws <= region[2:]), axis=1).mean()
+        assert abs(inside - p) < 5 * np.sqrt(p * (1 - p) / len(draws))
+    q = np.random.default_rng(2).random((5000, 2))
+    np.testing.assert_allclose(pm.density(pts, tiles=2)(q), dens(q), rtol=1e-12)
+
+
+def test_partitioned_density_refuses_other_points_and_old_folders(tmp_path):
+    import json
+
+    pts = gaussian_clusters(8000, 10)
+    mesh = knnrefine.refine(pts, 10)
+    pm = write_partitioned(mesh, tmp_path / "m", 2)
+    with pytest.raises(InputError, match="8,000 points"):
+        pm.density(pts[:-1])
+    with pytest.raises(InputError, match="weights"):
+        pm.density(pts, weights=np.ones(len(pts)))
+    for bad in (0, 1.5, True):
+        with pytest.raises(InputError, match="tiles must be a positive integer"):
+            pm.density(pts, tiles=bad)
+    manifest = tmp_path / "m" / "manifest.json"
+    old = json.loads(manifest.read_text())
+    old["format"] = 1
+    manifest.write_text(json.dumps(old))
+    with pytest.raises(InputError, match="older knnrefine"):
+        PartitionedMesh(tmp_path / "m").density(pts)

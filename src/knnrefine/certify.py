@@ -216,22 +216,28 @@ def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
     and d_{P,k} are asked strip by strip (``tiles`` strips of equal share), each strip where
     its points are. The caller has checked that the points lie in the mesh's box."""
     t0 = time.perf_counter()
-    made_from, total = mesh.stats.get("n"), mesh.stats.get("weight")
-    if made_from is not None and int(made_from) != store.n:
-        raise InputError(
-            f"the mesh was made from {int(made_from):,} points but the source holds "
-            f"{store.n:,}: certify a mesh against the points it was refined from"
-        )
-    if (total is None) != (store.weight is None) or (
-        total is not None and not np.isclose(store.weight, total, rtol=1e-9, atol=0)
-    ):
-        raise InputError(
-            f"the mesh was refined with total weight {total} but the source's is "
-            f"{store.weight}: give the weights it was refined with (or none)"
-        )
+    check_source(mesh.stats, store.n, store.weight)
     torus = _TiledTorus(mesh, store, int(tiles), workers)
     return _certify(mesh, torus, samples=samples, n_random=n_random,
                     max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+
+
+def check_source(stats, n, weight):
+    """``n`` points of total ``weight`` (None: unweighted) are as many as the run with these
+    stats was refined from, else InputError."""
+    made_from, total = stats.get("n"), stats.get("weight")
+    if made_from is not None and int(made_from) != n:
+        raise InputError(
+            f"the mesh was made from {int(made_from):,} points but the source holds "
+            f"{n:,}: use the points it was refined from"
+        )
+    if (total is None) != (weight is None) or (
+        total is not None and not np.isclose(weight, total, rtol=1e-9, atol=0)
+    ):
+        raise InputError(
+            f"the mesh was refined with total weight {total} but the source's is "
+            f"{weight}: give the weights it was refined with (or none)"
+        )
 
 
 def _certify(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
@@ -381,42 +387,45 @@ def _cell_tally(dd, ii, weights, m):
     return np.bincount(ii[tie], weights=w, minlength=m)
 
 
-class _TiledTorus(_Torus):
-    """A ``_Torus`` whose input points stay in a store: every question about them is asked
-    strip by strip where they are (``store.map_strips``, ``_certify_strip``). Strip j owns
-    the points of [cut j, cut j + 1) along the strip axis and sees the others within a pad:
-    counts in disks and cells add up the owners' (each point is owned once, a disk goes to
-    every strip it meets), d_{P,k} at x is decided by x's strip when its k-th point lies
-    within the pad, and asked again with four times the pad otherwise (the whole torus at
-    last)."""
+class StripQuestions:
+    """Questions about points held in a store (``LocalStore`` or ``distributed.DaskStore``),
+    asked strip by strip where they are (``store.map_strips``, ``_certify_strip``), in the
+    frame of the torus of ``period`` with origin ``origin``: ``tiles`` strips of equal share
+    of the points. Strip j owns the points of [cut j, cut j + 1) along the strip axis and
+    sees the others within a pad: counts in disks add up the owners' (each point is owned
+    once, a disk goes to every strip it meets); d_{P,k} at x is decided by x's strip when
+    its k-th point lies within the pad, and asked again with four times the pad otherwise
+    (the whole torus at last)."""
 
-    def __init__(self, mesh, store, tiles, workers):
+    def __init__(self, store, origin, period, k, tiles):
         from .engine.partition import SAMPLE_MIN, strip_axis, strips
 
-        self._mesh(mesh, workers)
-        self.store = store
-        self.n = store.n
-        self.weighted = store.weight is not None
-        self.total = float(store.n) if store.weight is None else float(store.weight)
+        self.store, self.k = store, k
+        self.period = np.asarray(period, float)
+        self.input_frame = TorusFrame(np.asarray(origin, float), self.period)
         sx = store.sample(min(1.0, SAMPLE_MIN / store.n))[0]
-        self.regions = strips(self.input_frame(sx), *self.period, tiles)[0]
+        self.regions = strips(self.input_frame(sx), *self.period, int(tiles))[0]
         self.axis_period = float(self.period[strip_axis(*self.period)])
         self.passes = 0
 
-    def _ask(self, jobs, pad):
+    def ask(self, jobs, pad):
+        """One job per strip (a dict: ``_certify_strip``), the strips widened by ``pad``."""
         common = {"regions": self.regions, "period": tuple(self.period), "k": self.k,
                   "pad": pad, "complete": 2.0 * pad >= self.axis_period}  # fmt: skip
         jobs = [{**common, "j": j, **job} for j, job in enumerate(jobs)]
         self.passes += 1
         return self.store.map_strips(_certify_strip, self.input_frame, self.regions, pad, jobs)
 
-    def _route(self, x, pad):
+    def route(self, x, pad):
+        """The rows of x (torus frame) within ``pad`` of each strip (one pad per row)."""
         from .engine.partition import split_strips
 
         rows, bounds = split_strips(x, self.regions, pad, *self.period)
         return [rows[bounds[j] : bounds[j + 1]] for j in range(len(self.regions))]
 
-    def d_pk(self, x):
+    def d_pk(self, x, pad):
+        """Exact d_{P,k} at x (torus frame); ``pad`` a first guess of its reach (it only sets
+        how often a question is asked again)."""
         from .engine.partition import strip_owner
 
         out = np.full(len(x), np.nan)
@@ -424,11 +433,10 @@ class _TiledTorus(_Torus):
             return out
         owner = strip_owner(x, self.regions, *self.period)
         todo = np.arange(len(x))
-        # a first pad from the mesh (a guess only: what the strips decide is exact)
-        pad = max(float(np.quantile(4.0 * self.d_m2(x), 0.99)), 1e-12 * self.axis_period)
+        pad = max(float(pad), 1e-12 * self.axis_period)
         while len(todo):
             mine = [todo[owner[todo] == j] for j in range(len(self.regions))]
-            got = self._ask([{"dpk": x[r]} for r in mine], pad)
+            got = self.ask([{"dpk": x[r]} for r in mine], pad)
             for r, g in zip(mine, got, strict=True):
                 out[r] = g["dpk"]
             todo = todo[np.isnan(out[todo])]
@@ -436,27 +444,54 @@ class _TiledTorus(_Torus):
         return out
 
     def held(self, centres, radii):
+        """What each closed disk (torus frame) holds: a count, or a weight."""
         radii = np.broadcast_to(np.asarray(radii, float), len(centres))
-        out = np.zeros(len(centres), float if self.weighted else np.int64)
+        out = np.zeros(len(centres), np.int64 if self.store.weight is None else float)
         if len(centres) == 0:
             return out
-        mine = self._route(centres, radii * (1.0 + 1e-9) + 1e-12 * self.axis_period)
-        got = self._ask([{"balls": (centres[r], radii[r])} for r in mine], 0.0)
+        mine = self.route(centres, radii * (1.0 + 1e-9) + 1e-12 * self.axis_period)
+        got = self.ask([{"balls": (centres[r], radii[r])} for r in mine], 0.0)
         for r, g in zip(mine, got, strict=True):
             out[r] += g["held"]
         return out
 
+
+class _TiledTorus(_Torus):
+    """A ``_Torus`` whose input points stay in a store: every question about them is a
+    ``StripQuestions``."""
+
+    def __init__(self, mesh, store, tiles, workers):
+        self._mesh(mesh, workers)
+        self.store = store
+        self.n = store.n
+        self.weighted = store.weight is not None
+        self.total = float(store.n) if store.weight is None else float(store.weight)
+        self.questions = StripQuestions(store, self.origin, self.period, self.k, tiles)
+
+    @property
+    def passes(self):
+        return self.questions.passes
+
+    def d_pk(self, x):
+        # a first pad from the mesh (a guess only: what the strips decide is exact)
+        pad = float(np.quantile(4.0 * self.d_m2(x), 0.99)) if len(x) else 0.0
+        return self.questions.d_pk(x, pad)
+
+    def held(self, centres, radii):
+        return self.questions.held(centres, radii)
+
     def cell_counts(self, outradii):
+        q = self.questions
         m = len(self.vertices)
         out = np.zeros(m, float if self.weighted else np.int64)
         # Voronoi cell of v lies within R(v) of v: a first vertex pad from the outradii
-        pad = max(float(np.quantile(outradii, 0.999)) * 1.01, 1e-12 * self.axis_period)
+        pad = max(float(np.quantile(outradii, 0.999)) * 1.01, 1e-12 * q.axis_period)
         before = -1.0
         while True:
-            mine = self._route(self.vertices, pad)
-            complete = 2.0 * pad >= self.axis_period
+            mine = q.route(self.vertices, pad)
+            complete = 2.0 * pad >= q.axis_period
             jobs = [{"cells": (self.vertices[r], r, pad, before, complete)} for r in mine]
-            got = self._ask(jobs, 0.0)
+            got = q.ask(jobs, 0.0)
             for g in got:
                 np.add.at(out, g["cell_ids"], g["cell_counts"])
             if sum(g["undecided"] for g in got) == 0:

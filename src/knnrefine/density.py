@@ -70,6 +70,64 @@ def default_pilot_k(n):
     return min(max(10, int(round(2.0 * np.sqrt(n)))), int(n))
 
 
+def linear_pieces(nodes, triangles, vertex_values, midpoint_values, subdivide=True):
+    """(nodes, pieces (t, 3), values): the linear pieces carrying d_{P,k} over a planar
+    triangulation (nodes, triangles), exact at the nodes: ``vertex_values(nodes, near)``,
+    ``near`` each node's shortest edge (a guess); with ``subdivide`` also at the edge
+    midpoints, each triangle split in four: ``midpoint_values(mids, guess, low, high)``
+    (``midpoints``). The four pieces of triangle t are t, t + T, t + 2T and t + 3T."""
+    pairs, edge_of, length, near = node_guesses(nodes, triangles)
+    values = vertex_values(nodes, near)
+    if not subdivide:
+        return nodes, triangles, values
+    mids, guess, low, high = midpoints(nodes, pairs, length, values)
+    found = midpoint_values(mids, guess, low, high)
+    pieces = split_in_four(triangles, len(nodes), (pairs, edge_of))[2]
+    return np.concatenate([nodes, mids]), pieces, np.concatenate([values, found])
+
+
+def index_values(index, k):
+    """(vertex_values, midpoint_values) for ``linear_pieces`` from the engine's counting
+    index: exact d_{P,k} searched in a narrow window about the guess, widened where it
+    misses (``PointIndex.kth``). At a node the guess is its shortest edge e (about
+    d_{M,2}, which tracks d_{P,k} within [alpha, beta]): d_{P,k} / e has median 0.96 to 1.1
+    and 5th to 95th percentiles 0.75 to 3 over tau in [2.5, 6], k in [10, 1000], uniform
+    and clustered points."""
+
+    def vertex_values(nodes, near):
+        return index.kth(nodes, k, 0.94 * near, 1.06 * near)
+
+    def midpoint_values(mids, guess, low, high):
+        return index.kth(mids, k, 0.975 * guess, 1.025 * guess, low, high)
+
+    return vertex_values, midpoint_values
+
+
+def node_guesses(nodes, triangles):
+    """(pairs, edge_of: ``edges(triangles)``; their lengths; each node's shortest edge, a
+    guess of d_{P,k} there: ``index_values``)."""
+    pairs, edge_of = edges(triangles)
+    length = np.linalg.norm(nodes[pairs[:, 0]] - nodes[pairs[:, 1]], axis=1)
+    near = np.full(len(nodes), np.inf)
+    np.minimum.at(near, pairs[:, 0], length)
+    np.minimum.at(near, pairs[:, 1], length)
+    near[~np.isfinite(near)] = np.max(length) if len(length) else 1.0
+    return pairs, edge_of, length, near
+
+
+def midpoints(nodes, pairs, length, values):
+    """(the edges' midpoints, a guess of d_{P,k} there, and bounds [low, high] on it) from
+    its values at the ends. At a midpoint d_{P,k} is within a few percent of the mean of
+    the ends' (on a multi-scale mixture half within 1.3%, 98% within 4%), and within half
+    the edge of either end's (it is 1-Lipschitz)."""
+    half = 0.5 * length
+    da, db = values[pairs[:, 0]], values[pairs[:, 1]]
+    mids = 0.5 * (nodes[pairs[:, 0]] + nodes[pairs[:, 1]])
+    low = (np.maximum(da, db) - half) * (1 - 1e-9)
+    high = (np.minimum(da, db) + half) * (1 + 1e-9)
+    return mids, 0.5 * (da + db), low, high
+
+
 class KnnDistance:
     """d_{P,k} at any point of the box, from a mesh of P and P itself.
 
@@ -98,36 +156,36 @@ class KnnDistance:
         if total < mesh.k:
             what = f"{len(pts)} points" if weights is None else f"a total weight of {total:.6g}"
             raise InputError(f"{what} but k = {mesh.k}: d_Pk is infinite")
+        self._frame(mesh, len(pts), total)
+        self._points = pts
+        self.index = self._point_index(mesh, pts, weights)
+        nodes, triangles = mesh.covering()
+        self.nodes, self.triangles, self.values = linear_pieces(
+            nodes, triangles, *index_values(self.index, self.k), subdivide
+        )
+
+    def _frame(self, mesh, n, total):
         self.mesh = mesh
         self.k = mesh.k
-        self.n = len(pts)
+        self.n = n
         self.total = total  # the points' number, or their total weight
         self.lo = np.array(mesh.box[:2], float)
         self.hi = np.array(mesh.box[2:], float)
         self._metric = BoxMetric(mesh.box, mesh.periodic)
-        self._points = pts
-        self.index = self._point_index(mesh, pts, weights)
-        nodes, triangles = mesh.covering()
-        pairs, edge_of = edges(triangles)
-        length = np.linalg.norm(nodes[pairs[:, 0]] - nodes[pairs[:, 1]], axis=1)
-        values = self._vertex_values(nodes, pairs, length)
-        if subdivide:
-            # at a midpoint d_{P,k} is within a few percent of the mean of the edge's ends
-            # (on a multi-scale mixture half within 1.3%, 98% within 4%), and within half the
-            # edge of either end (it is 1-Lipschitz): the guess, and the bounds
-            half = 0.5 * length
-            da, db = values[pairs[:, 0]], values[pairs[:, 1]]
-            mean = 0.5 * (da + db)
-            mids = 0.5 * (nodes[pairs[:, 0]] + nodes[pairs[:, 1]])
-            low = (np.maximum(da, db) - half) * (1 - 1e-9)
-            high = (np.minimum(da, db) + half) * (1 + 1e-9)
-            found = self.index.kth(mids, self.k, 0.975 * mean, 1.025 * mean, low, high)
-            values = np.concatenate([values, found])
-            triangles = split_in_four(triangles, len(nodes), (pairs, edge_of))[2]
-            nodes = np.concatenate([nodes, mids])
-        self.nodes = nodes
-        self.triangles = triangles
-        self.values = values
+        self._located = None  # the pieces points are located in (None: all of them)
+
+    @classmethod
+    def of_pieces(cls, mesh, n, total, nodes, triangles, values, located=None):
+        """A KnnDistance from linear pieces whose node values are known already (a part of
+        a partitioned mesh, ``partitioned.PartitionedDensity``): evaluation, grids and
+        integrals over ``triangles``; points located in ``located`` (pieces over the same
+        nodes; default: ``triangles``). Without the points, no ``exact``."""
+        self = cls.__new__(cls)
+        self._frame(mesh, n, total)
+        self._points = self.index = None
+        self.nodes, self.triangles, self.values = nodes, triangles, values
+        self._located = located
+        return self
 
     @staticmethod
     def _point_index(mesh, pts, weights):
@@ -143,18 +201,6 @@ class KnnDistance:
             box[:2] = np.where(per, box[:2], np.minimum(box[:2], pts.min(axis=0)))
             box[2:] = np.where(per, box[2:], np.maximum(box[2:], pts.max(axis=0)))
         return PointIndex.build(pts, tuple(box), mesh.periodic, weights)
-
-    def _vertex_values(self, nodes, pairs, length):
-        """Exact d_{P,k} at the mesh's nodes. Each node's guess is its shortest edge e (about
-        d_{M,2}, which tracks d_{P,k} within [alpha, beta]): d_{P,k} / e has median 0.96 to
-        1.1 and 5th to 95th percentiles 0.75 to 3 over tau in [2.5, 6], k in [10, 1000],
-        uniform and clustered points; a narrow window that widens where it misses is the
-        cheapest (``PointIndex.kth``)."""
-        near = np.full(len(nodes), np.inf)
-        np.minimum.at(near, pairs[:, 0], length)
-        np.minimum.at(near, pairs[:, 1], length)
-        near[~np.isfinite(near)] = np.max(length) if len(length) else 1.0
-        return self.index.kth(nodes, self.k, 0.94 * near, 1.06 * near)
 
     # -- evaluation ------------------------------------------------------------------------
     def __call__(self, x):
@@ -172,7 +218,7 @@ class KnnDistance:
         tri, bary = self._locate(self._wrap(x[inside]))
         ok = tri >= 0
         found = np.full((int(inside.sum()), *values.shape[1:]), np.nan)
-        corner = values[self.triangles[tri[ok]]]  # (q, 3, ...)
+        corner = values[self._pieces()[tri[ok]]]  # (q, 3, ...)
         found[ok] = np.einsum("qc,qc...->q...", bary[ok], corner)
         out[inside] = found
         return out
@@ -252,8 +298,9 @@ class KnnDistance:
 
         The pieces are well shaped (bounded aspect, Theorem 6), so the one holding x is among
         the few whose centroids are nearest to x: a kd-tree on centroids finds it."""
+        located = self._pieces()
         if not hasattr(self, "_centroids"):
-            c = self.nodes[self.triangles]
+            c = self.nodes[located]
             self._centroids = cKDTree(c.mean(axis=1))
             a = c[:, 0]
             e1 = c[:, 1] - a
@@ -273,7 +320,7 @@ class KnnDistance:
         for kk in (8, 64):
             if len(todo) == 0:
                 break
-            cand = self._centroids.query(x[todo], k=min(kk, len(self.triangles)), workers=-1)[1]
+            cand = self._centroids.query(x[todo], k=min(kk, len(located)), workers=-1)[1]
             cand = cand.reshape(len(todo), -1)
             rel = x[todo, None, :] - self._origin[cand]
             l12 = np.einsum("qcij,qcj->qci", self._inv[cand], rel)
@@ -289,6 +336,13 @@ class KnnDistance:
             todo = todo[~hit]
         return tri, bary
 
+    def sample_pieces(self, n, rng):
+        """n points from the density proportional to 1 / d^2 over the box (``KnnDensity``)."""
+        return sample_pieces(self.nodes, self.triangles, self.values, self.lo, self.hi, n, rng)
+
+    def _pieces(self):
+        return self.triangles if self._located is None else self._located
+
     def _wrap(self, x):
         return self._metric.wrap(x)
 
@@ -301,6 +355,11 @@ class KnnDistance:
         return ok
 
     def _exact(self, x):
+        if self.index is None:
+            raise InputError(
+                "this d_Pk was built from node values alone (a part of a partitioned mesh): "
+                "exact values need the points; build KnnDistance(mesh, points)"
+            )
         return self.index.kth(x, self.k)
 
     def _region(self, region):
@@ -348,11 +407,23 @@ class KnnDensity:
     """
 
     def __init__(self, mesh, points, normalized=True, subdivide=True, weights=None):
-        self.distance = KnnDistance(mesh, points, subdivide=subdivide, weights=weights)
-        self.k = mesh.k
-        self.n = self.distance.total
+        self._of(KnnDistance(mesh, points, subdivide=subdivide, weights=weights), normalized)
+
+    @classmethod
+    def of_distance(cls, distance, normalized=True):
+        """The estimate from a d_{P,k} already built: a ``KnnDistance`` or anything with its
+        ``k``, ``total``, ``__call__``, ``grid``, ``integrate`` and ``sample_pieces``
+        (``partitioned.PartitionedDistance``)."""
+        self = cls.__new__(cls)
+        self._of(distance, normalized)
+        return self
+
+    def _of(self, distance, normalized):
+        self.distance = distance
+        self.k = distance.k
+        self.n = distance.total
         self.raw_constant = self.k / (self.n * np.pi)
-        self.raw_mass = self.distance.integrate(lambda d: self.raw_constant / d**2)
+        self.raw_mass = distance.integrate(lambda d: self.raw_constant / d**2)
         self.constant = self.raw_constant / self.raw_mass if normalized else self.raw_constant
 
     def __call__(self, x):
@@ -375,29 +446,32 @@ class KnnDensity:
         piece of the mesh chosen by an upper bound of its mass, a uniform point in it, kept
         with probability density / bound (exact rejection sampling of the piecewise
         estimate; the pieces are well shaped, so most proposals are kept)."""
-        dist = self.distance
-        corners = dist.nodes[dist.triangles]
-        d = dist.values[dist.triangles]
-        area = np.abs(triangle_areas(corners))
-        dmin = d.min(axis=1)  # d is linear on a piece: its density peaks at a corner
-        bound = area / dmin**2
-        cdf = np.cumsum(bound)
-        out = np.empty((n, 2))
-        filled = 0
-        while filled < n:
-            m = int(1.5 * (n - filled)) + 64
-            t = np.minimum(
-                np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1
-            )
-            x, u = uniform_in_triangles(corners[t], rng.random((m, 2)))
-            dx = d[t, 0] * (1.0 - u[:, 0] - u[:, 1]) + d[t, 1] * u[:, 0] + d[t, 2] * u[:, 1]
-            keep = rng.random(m) * dx**2 <= dmin[t] ** 2
-            # pieces reach past the box; each point of the box lies in exactly one of them
-            keep &= np.all((x >= dist.lo) & (x <= dist.hi), axis=1)
-            x = x[keep][: n - filled]
-            out[filled : filled + len(x)] = x
-            filled += len(x)
-        return out
+        return self.distance.sample_pieces(n, rng)
+
+
+def sample_pieces(nodes, triangles, values, lo, hi, n, rng):
+    """n points from the density proportional to 1 / d^2, d linear on the pieces (nodes,
+    triangles, values), restricted to the box [lo, hi] (``KnnDensity.sample``)."""
+    corners = nodes[triangles]
+    d = values[triangles]
+    area = np.abs(triangle_areas(corners))
+    dmin = d.min(axis=1)  # d is linear on a piece: its density peaks at a corner
+    bound = area / dmin**2
+    cdf = np.cumsum(bound)
+    out = np.empty((n, 2))
+    filled = 0
+    while filled < n:
+        m = int(1.5 * (n - filled)) + 64
+        t = np.minimum(np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1)
+        x, u = uniform_in_triangles(corners[t], rng.random((m, 2)))
+        dx = d[t, 0] * (1.0 - u[:, 0] - u[:, 1]) + d[t, 1] * u[:, 0] + d[t, 2] * u[:, 1]
+        keep = rng.random(m) * dx**2 <= dmin[t] ** 2
+        # pieces reach past the box; each point of the box lies in exactly one of them
+        keep &= np.all((x >= lo) & (x <= hi), axis=1)
+        x = x[keep][: n - filled]
+        out[filled : filled + len(x)] = x
+        filled += len(x)
+    return out
 
 
 class AdaptiveDensity:

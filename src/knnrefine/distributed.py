@@ -305,6 +305,30 @@ def certify(
                              max_point_probes=max_point_probes, seed=seed)  # fmt: skip
 
 
+def density(pmesh, source, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
+            retries=2, normalized=True, subdivide=True):  # fmt: skip
+    """The kNN density estimate (``KnnDensity``: evaluate, ``grid``, ``mass``, ``sample``) of
+    a partitioned mesh (``refine(..., output=)``: a ``PartitionedMesh`` or its folder),
+    answered part by part (``partitioned.PartitionedDistance``): exact d_{P,k} at every
+    part's nodes is asked strip by strip on the workers where the points of ``source`` are,
+    never gathered here. source, client, workers, columns, weights, retries: as in
+    ``refine``; normalized, subdivide: as in ``KnnDensity``."""
+    from .density import KnnDensity
+    from .partitioned import PartitionedDistance, PartitionedMesh
+
+    if isinstance(pmesh, (str, os.PathLike)):
+        pmesh = PartitionedMesh(pmesh)
+    if not isinstance(pmesh, PartitionedMesh):
+        raise InputError(
+            f"density needs a PartitionedMesh (refine(..., output=)), got {type(pmesh).__name__};"
+            " for a Mesh in memory use knnrefine.KnnDensity(mesh, points)"
+        )
+    with _store(source, client, workers, columns, weights, retries) as (store, tiles):
+        store.check_inside(pmesh.box, pmesh.periodic)
+        distance = PartitionedDistance.of_store(pmesh, store, tiles, subdivide)
+    return KnnDensity.of_distance(distance, normalized)
+
+
 @contextlib.contextmanager
 def _store(source, client, workers, columns, weights, retries):
     """(DaskStore of the source's partitions, strips per round) on ``client`` (a LocalCluster

@@ -192,11 +192,11 @@ class Mesh:
         out.sort(key=lambda piece: piece[0])
         return out
 
-    def covering(self):
+    def covering(self, sources=False):
         """A plain planar triangulation covering the box: the triangles plus, along periodic
         axes, their copies one period back that still meet the box (corners only ever reach
         past the upper side of the box), one index per distinct point. Returns (nodes (p, 2),
-        triangles (t, 3))."""
+        triangles (t, 3)), and with ``sources`` the triangle each one copies."""
         per = np.array(self.periodic, bool)
         period = np.array(self.period, float)
         lo, hi = np.array(self.box[:2]), np.array(self.box[2:])
@@ -206,17 +206,21 @@ class Mesh:
             if self.offsets is None
             else self.offsets.astype(np.int64)
         )
-        keys = []
+        keys, source = [], []
         for sx in (0, -1) if per[0] else (0,):
             for sy in (0, -1) if per[1] else (0,):
                 o = off + np.array([sx, sy])
                 c = self.vertices[tri] + o * period
                 meets = np.all((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi), axis=1)
                 keys.append(copy_key(tri[meets], o[meets][..., 0], o[meets][..., 1]))
+                source.append(np.flatnonzero(meets))
         keys = np.concatenate(keys)
         unique, inverse = np.unique(keys, return_inverse=True)
         vertex, sx, sy = copy_parts(unique)
-        return self.vertices[vertex] + np.stack([sx, sy], axis=1) * period, inverse.reshape(-1, 3)
+        nodes = self.vertices[vertex] + np.stack([sx, sy], axis=1) * period
+        if sources:
+            return nodes, inverse.reshape(-1, 3), np.concatenate(source)
+        return nodes, inverse.reshape(-1, 3)
 
     def __repr__(self):
         mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(

@@ -10,6 +10,10 @@ corners are that close), so within 3 R_T of T's circumcentre; a point of the str
 one of the part's own triangles, lies in a triangle meeting the strip: so a part answers
 d_{M,2} exactly there without the rest of the mesh (``PartitionedMesh.part(j).d_m2``).
 
+Each part also lists the other parts' triangles that meet its strip (format 2), so that
+the kNN density works part by part (``PartitionedDistance``, ``PartitionedMesh.density``):
+the piece holding a point of the strip is among them.
+
 The folder is written under a temporary name and renamed into place with a finished marker
 (``_SUCCESS``) written last; ``PartitionedMesh(path)`` refuses a folder without it.
 ``to_mesh()`` puts the parts back together into the ``Mesh`` they were cut from, array for
@@ -23,12 +27,22 @@ import tempfile
 
 import numpy as np
 
+from .density import (
+    KnnDensity,
+    KnnDistance,
+    _grid_shape,
+    index_values,
+    midpoints,
+    node_guesses,
+    sample_pieces,
+)
+from .engine.raster import rasterise
 from .errors import InputError
-from .mesh import Mesh, Torus, circumcircles
+from .mesh import Mesh, Torus, circumcircles, split_in_four
 from .metric import BoxMetric
-from .validation import as_queries
+from .validation import as_points, as_queries, weights_of_run
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: each part also lists the others' triangles meeting its strip
 FINISHED = "_SUCCESS"
 MANIFEST = "manifest.json"
 
@@ -140,15 +154,20 @@ def _write_parts(mesh, folder, parts):
         local = np.full(len(mesh.vertices), -1, np.int64)
         local[ids] = np.arange(len(ids))
         tids = np.flatnonzero(tri_owner == j)
+        cover = np.setdiff1d(t, tids)  # the others' triangles that meet the strip
         triangles = local[mesh.triangles[tids]]
-        if (triangles < 0).any():
+        cover_triangles = local[mesh.triangles[cover]]
+        if (triangles < 0).any() or (cover_triangles < 0).any():
             raise AssertionError("a part's triangle reaches past its halo")
+        no_offsets = np.zeros((0, 3, 2), np.int8)
         arrays = {
             "format": np.array(FORMAT_VERSION),
             "vertex_ids": ids, "owned": np.array(len(own)), "vertices": mesh.vertices[ids],
             "kinds": mesh.kinds[ids], "order": mesh.order[ids],
             "triangle_ids": tids, "triangles": triangles.astype(mesh.triangles.dtype),
-            "offsets": np.zeros((0, 3, 2), np.int8) if mesh.offsets is None else mesh.offsets[tids],
+            "offsets": no_offsets if mesh.offsets is None else mesh.offsets[tids],
+            "cover_ids": cover, "cover_triangles": cover_triangles.astype(mesh.triangles.dtype),
+            "cover_offsets": no_offsets if mesh.offsets is None else mesh.offsets[cover],
             "floor_points": mesh.floor_points[f_owner == j],
             "floor_ids": np.flatnonzero(f_owner == j),
         }  # fmt: skip
@@ -279,6 +298,30 @@ class PartitionedMesh:
                            show_colour_bar=last, title=title, **kwargs)  # fmt: skip
         return ax
 
+    def distance(self, points, *, weights=None, subdivide=True, tiles=None):
+        """d_{P,k} part by part (``PartitionedDistance``) from the points the mesh was refined
+        from (with its weights, for a weighted run): from one index over them in this
+        process, or with ``tiles`` asked strip by strip in that many local processes
+        (``distributed.density`` asks a Dask cluster)."""
+        if tiles is None:
+            return PartitionedDistance.of_index(self, points, weights, subdivide)
+        if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:
+            raise InputError(f"tiles must be a positive integer (local processes), got {tiles!r}")
+        from .engine.partition import LocalStore
+
+        pts = as_points(points)
+        store = LocalStore(pts, weights_of_run(self.stats, len(pts), weights), int(tiles))
+        try:
+            return PartitionedDistance.of_store(self, store, int(tiles), subdivide)
+        finally:
+            store.close()
+
+    def density(self, points, *, weights=None, normalized=True, subdivide=True, tiles=None):
+        """The kNN density estimate (``KnnDensity``: evaluate, ``grid``, ``mass``,
+        ``sample``) part by part: ``distance``'s d_{P,k}."""
+        distance = self.distance(points, weights=weights, subdivide=subdivide, tiles=tiles)
+        return KnnDensity.of_distance(distance, normalized)
+
     def to_mesh(self):
         """The whole ``Mesh`` again (as written: every array equal)."""
         m = self.manifest
@@ -320,3 +363,160 @@ class PartitionedMesh:
             min_size=self.min_size, floor_points=out["floor_points"], stats=self.stats,
             torus=torus,
         )  # fmt: skip
+
+
+class PartitionedDistance:
+    """d_{P,k} over a partitioned mesh, part by part.
+
+    Each part carries the linear pieces (``density.linear_pieces``) of the triangles that
+    meet its strip, copies across periodic seams included, exact at their nodes and edge
+    midpoints: ``vertex_values(nodes, near)`` and ``midpoint_values(mids, guess, low,
+    high)`` answer for all parts' nodes at once, then for all their midpoints (``of_index``:
+    the points in this process; ``of_store``: asked strip by strip where they are). A query
+    is answered by its strip's part (the piece holding it meets the strip); integrals, grids
+    and samples add up each part's own triangles (each triangle is one part's). So every
+    answer equals ``KnnDistance(pm.to_mesh(), points)``'s, up to rounding. Kept here: the
+    values at every part's nodes (about 40 bytes per vertex); a part's pieces are rebuilt
+    from its file when it is read."""
+
+    def __init__(self, pmesh, vertex_values, midpoint_values, n, total, subdivide=True):
+        if pmesh.manifest["format"] < 2:
+            raise InputError(
+                f"{pmesh.path}: written by an older knnrefine (format "
+                f"{pmesh.manifest['format']}), without the triangles each part needs for "
+                "d_Pk; write the mesh again (write_partitioned)"
+            )
+        if total < pmesh.k:
+            raise InputError(f"a total of {total:.6g} points but k = {pmesh.k}: d_Pk is infinite")
+        self.pmesh, self.k, self.subdivide = pmesh, pmesh.k, bool(subdivide)
+        self.n, self.total = n, float(total)
+        self.lo, self.hi = np.array(pmesh.box[:2], float), np.array(pmesh.box[2:], float)
+        shapes = [self._covering(j) for j in range(len(pmesh))]
+        guesses = [node_guesses(nodes, tri) for nodes, tri, _ in shapes]
+        nodes = np.concatenate([s[0] for s in shapes])
+        values = vertex_values(nodes, np.concatenate([g[3] for g in guesses]))
+        values = np.split(values, np.cumsum([len(s[0]) for s in shapes])[:-1])
+        if self.subdivide:
+            mid = [
+                midpoints(s[0], g[0], g[2], v)
+                for s, g, v in zip(shapes, guesses, values, strict=True)
+            ]
+            found = midpoint_values(*(np.concatenate([m[i] for m in mid]) for i in range(4)))
+            found = np.split(found, np.cumsum([len(m[0]) for m in mid])[:-1])
+            values = [np.concatenate(vf) for vf in zip(values, found, strict=True)]
+        self.values = values
+        self._cache = {}
+
+    @classmethod
+    def of_index(cls, pmesh, points, weights=None, subdivide=True):
+        """From the points (and the weights of a weighted run) in this process: one
+        counting index, as ``KnnDistance``."""
+        from .certify import check_source
+
+        pts = as_points(points)
+        weights = weights_of_run(pmesh.stats, len(pts), weights)
+        total = len(pts) if weights is None else float(weights.sum())
+        check_source(pmesh.stats, len(pts), None if weights is None else total)
+        index = KnnDistance._point_index(pmesh, pts, weights)
+        return cls(pmesh, *index_values(index, pmesh.k), len(pts), total, subdivide)
+
+    @classmethod
+    def of_store(cls, pmesh, store, tiles, subdivide=True):
+        """From points that stay in a store (``engine.partition.LocalStore`` or
+        ``distributed.DaskStore``), asked in ``tiles`` strips where they are
+        (``certify.StripQuestions``; the pads are guesses, the strips answer exactly)."""
+        from .certify import StripQuestions, check_source
+
+        check_source(pmesh.stats, store.n, store.weight)
+        t = pmesh.manifest["torus"]
+        questions = StripQuestions(store, t["origin"], t["period"], pmesh.k, tiles)
+        frame = questions.input_frame
+
+        def vertex_values(nodes, near):
+            pad = float(np.quantile(4.0 * near, 0.99)) if len(near) else 0.0
+            return questions.d_pk(frame(nodes), pad)
+
+        def midpoint_values(mids, guess, low, high):
+            pad = float(np.quantile(high, 0.999)) if len(high) else 0.0
+            return questions.d_pk(frame(mids), pad)
+
+        total = store.n if store.weight is None else store.weight
+        self = cls(pmesh, vertex_values, midpoint_values, store.n, total, subdivide)
+        self.passes = questions.passes
+        return self
+
+    def _covering(self, j):
+        """(nodes, triangles, mine): the covering (``Mesh.covering``) of part j's triangles
+        and the others' meeting its strip; ``mine`` marks the copies of its own."""
+        arrays = self.pmesh._arrays(j)
+        own = len(arrays["triangles"])
+        arrays["triangles"] = np.concatenate([arrays["triangles"], arrays["cover_triangles"]])
+        arrays["offsets"] = np.concatenate([arrays["offsets"], arrays["cover_offsets"]])
+        part = _part_mesh(self.pmesh, arrays, self.pmesh.manifest["has_offsets"])
+        nodes, triangles, source = part.covering(sources=True)
+        return nodes, triangles, source < own
+
+    def part(self, j):
+        """Part j's d_{P,k}: a ``KnnDistance`` over its own pieces, locating points in the
+        pieces of every triangle meeting its strip."""
+
+        if j not in self._cache:
+            if len(self._cache) >= 8:
+                self._cache.pop(next(iter(self._cache)))
+            nodes, triangles, mine = self._covering(j)
+            values = self.values[j]
+            if self.subdivide:
+                pairs, edge_of, pieces = split_in_four(triangles, len(nodes))
+                nodes = np.concatenate([nodes, 0.5 * (nodes[pairs[:, 0]] + nodes[pairs[:, 1]])])
+                triangles, mine = pieces, np.tile(mine, 4)
+            self._cache[j] = KnnDistance.of_pieces(
+                self.pmesh, self.n, self.total, nodes, triangles[mine], values, located=triangles
+            )
+        return self._cache[j]
+
+    def __call__(self, x):
+        """d_{P,k} at the query points (..., 2), each in its strip's part: NaN beyond the
+        box along non-periodic axes."""
+        flat, shape = as_queries(x)
+        out = np.full(len(flat), np.nan)
+        owner = self.pmesh.owner(flat)
+        for j in np.unique(owner):
+            at = np.flatnonzero(owner == j)
+            out[at] = self.part(int(j))(flat[at])
+        return out.reshape(shape)
+
+    def grid(self, shape=(512, 512)):
+        """(xs, ys, values) as ``KnnDistance.grid``: every part's own pieces drawn into one
+        grid."""
+
+        ny, nx = _grid_shape(shape)
+        dx, dy = (self.hi - self.lo) / (nx, ny)
+        xs = self.lo[0] + (np.arange(nx) + 0.5) * dx
+        ys = self.lo[1] + (np.arange(ny) + 0.5) * dy
+        out = np.full((ny, nx), np.nan)
+        px, py = (bool(p) for p in self.pmesh.periodic)
+        for j in range(len(self.pmesh)):
+            p = self.part(j)
+            rasterise(p.nodes, p.triangles, p.values, *self.lo, dx, dy, px, py, out)
+        missed = np.isnan(out)
+        if missed.any():
+            jj, ii = np.nonzero(missed)
+            out[jj, ii] = self(np.column_stack([xs[ii], ys[jj]]))
+        return xs, ys, out
+
+    def integrate(self, func, region=None):
+        """``KnnDistance.integrate``: the parts' integrals over their own pieces, added."""
+        return float(sum(self.part(j).integrate(func, region) for j in range(len(self.pmesh))))
+
+    def sample_pieces(self, n, rng):
+        """n points from the density proportional to 1 / d^2 over the box: each part's share
+        drawn by its exact mass, then from its own pieces (``density.sample_pieces``)."""
+
+        parts = [self.part(j) for j in range(len(self.pmesh))]
+        mass = np.array([p.integrate(lambda d: 1.0 / d**2) for p in parts])
+        counts = rng.multinomial(int(n), mass / mass.sum())
+        drawn = [
+            sample_pieces(p.nodes, p.triangles, p.values, self.lo, self.hi, int(c), rng)
+            for p, c in zip(parts, counts, strict=True)
+        ]
+        return np.concatenate(drawn)[rng.permutation(int(n))]
