@@ -12,8 +12,16 @@ import pytest
 from knnrefine.engine import predicates3
 from knnrefine.engine.jit import python_entry
 
-insphere = python_entry(predicates3.insphere)
-orient3d = python_entry(predicates3.orient3d)
+_insphere = python_entry(predicates3.insphere)
+_orient3d = python_entry(predicates3.orient3d)
+
+
+def orient3d(a, b, c, d):
+    return _orient3d(np.array([a, b, c, d], float))
+
+
+def insphere(a, b, c, d, e):
+    return _insphere(np.array([a, b, c, d, e], float))
 
 
 def det(rows):

@@ -52,3 +52,25 @@ def morton_key(u, v):
     i = min(max(int(u * 65536.0), 0), 65535)
     j = min(max(int(v * 65536.0), 0), 65535)
     return _spread_bits(i) | (_spread_bits(j) << 1)
+
+
+@kernel(inline="always")
+def circumsphere(p):
+    """Circumcentre (x, y, z) and squared circumradius of the tetrahedron with corners the
+    rows p[0], ..., p[3] (either orientation; infinite for a flat one)."""
+    ax, ay, az = p[0, 0], p[0, 1], p[0, 2]
+    bx, by, bz = p[1, 0] - ax, p[1, 1] - ay, p[1, 2] - az
+    cx, cy, cz = p[2, 0] - ax, p[2, 1] - ay, p[2, 2] - az
+    dx, dy, dz = p[3, 0] - ax, p[3, 1] - ay, p[3, 2] - az
+    b2 = bx * bx + by * by + bz * bz
+    c2 = cx * cx + cy * cy + cz * cz
+    d2 = dx * dx + dy * dy + dz * dz
+    # c x d, d x b, b x c
+    cdx, cdy, cdz = cy * dz - cz * dy, cz * dx - cx * dz, cx * dy - cy * dx
+    dbx, dby, dbz = dy * bz - dz * by, dz * bx - dx * bz, dx * by - dy * bx
+    bcx, bcy, bcz = by * cz - bz * cy, bz * cx - bx * cz, bx * cy - by * cx
+    den = 2.0 * (bx * cdx + by * cdy + bz * cdz)
+    ux = (b2 * cdx + c2 * dbx + d2 * bcx) / den
+    uy = (b2 * cdy + c2 * dby + d2 * bcy) / den
+    uz = (b2 * cdz + c2 * dbz + d2 * bcz) / den
+    return ax + ux, ay + uy, az + uz, ux * ux + uy * uy + uz * uz

@@ -220,3 +220,85 @@ def reach_bound(index, lo, hi, k, lx, ly, cells=32):
         else:
             r_lo = mid
     return r_hi + 0.5 * float(np.hypot(hi[0] - lo[0], hi[1] - lo[1])) / cells
+
+
+# the Kuhn subdivision of a box into six tetrahedra round its diagonal from corner 000 to
+# 111: one per order of the axes, each from 000 along the first axis, then the second, to 111
+_KUHN = np.array(
+    [
+        [(0, 0, 0), tuple(int(a == p[0]) for a in range(3)),
+         tuple(int(a in p[:2]) for a in range(3)), (1, 1, 1)]
+        for p in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+    ]
+)  # fmt: skip
+# positively oriented (orient3d > 0, det[a - d, b - d, c - d]): swap the first two corners of
+# those that are not
+_KUHN[np.linalg.det(_KUHN[:, :3] - _KUHN[:, 3:]) < 0] = _KUHN[
+    np.linalg.det(_KUHN[:, :3] - _KUHN[:, 3:]) < 0
+][:, [1, 0, 2, 3]]
+
+
+def initial_grid3(period, per_period=4, jitter=0.2, shift=0.0, q=Q):
+    """M0 in three dimensions: a tensor grid on the 3-torus of periods ``period``, each box
+    cut into the six tetrahedra of its Kuhn subdivision (round the diagonal from its lowest
+    to its highest corner; neighbouring boxes cut their shared face the same way).
+
+    A box's eight corners lie on one sphere, every other grid point strictly outside it, so
+    the subdivision is Delaunay exactly, also after snapping to the grid q. Widths vary by up
+    to jitter / 2 per axis (as ``initial_grid``: a regular grid would keep uniform regions
+    exactly cospherical at every level). Returns (xyz, corners, offsets, neighbours, lam),
+    lam each vertex's distance to its nearest neighbour (an axis neighbour), or None when a
+    circumradius would reach a quarter of the shortest period."""
+    period = np.asarray(period, float)
+    h = period.min() / per_period
+    n = np.maximum(per_period, np.ceil(period / h - 1e-9).astype(int))
+    g = [
+        _jittered_positions(n[a], period[a], (0.0, 0.5, 0.25)[a], jitter, shift, q)
+        for a in range(3)
+    ]
+    w = [np.diff(np.append(g[a], g[a][0] + period[a])) for a in range(3)]
+    if np.sqrt(sum(wa.max() ** 2 for wa in w)) / 2.0 >= period.min() / 4.0 * (1.0 - 1e-9):
+        return None
+    idx = np.stack(np.meshgrid(*[np.arange(na) for na in n], indexing="ij"), -1).reshape(-1, 3)
+    xyz = np.stack([g[a][idx[:, a]] for a in range(3)], 1)
+
+    def vid(c):
+        return (c[..., 0] * n[1] + c[..., 1]) * n[2] + c[..., 2]
+
+    cells = idx  # cell (i, j, k) has its lowest corner at grid point (i, j, k)
+    raw = cells[:, None, None, :] + _KUHN[None]  # (cells, 6, 4, 3) grid indices
+    offsets = (raw >= n).astype(np.int8)
+    corners = vid(raw % n).reshape(-1, 4).astype(np.int32)
+    offsets = offsets.reshape(-1, 4, 3)
+    neighbours = face_neighbours(corners, offsets)
+    lam = np.min(
+        np.stack([np.minimum(w[a], np.roll(w[a], 1))[idx[:, a]] for a in range(3)], 1), axis=1
+    )
+    return xyz, corners, offsets, neighbours, lam
+
+
+def face_neighbours(corners, offsets):
+    """neighbours (t, 4): the tetrahedron across the face opposite each corner, matched by
+    the face's three vertices and their offsets relative to each other (the same from either
+    side); ValueError unless every face is shared by exactly two tetrahedra."""
+    t = len(corners)
+    keys = []
+    for i in range(4):
+        other = [j for j in range(4) if j != i]
+        v = corners[:, other].astype(np.int64)
+        o = offsets[:, other].astype(np.int64)
+        o = o - o.min(axis=1, keepdims=True)
+        order = np.argsort(v, axis=1)
+        v = np.take_along_axis(v, order, 1)
+        o = np.take_along_axis(o, order[..., None], 1)
+        keys.append(np.concatenate([v, o.reshape(t, 9)], axis=1))
+    keys = np.concatenate(keys)  # row f = i * t + tet
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    if (counts != 2).any():
+        raise ValueError("a face is not shared by exactly two tetrahedra")
+    order = np.argsort(inverse, kind="stable")
+    a, b = order[0::2], order[1::2]
+    out = np.empty(4 * t, np.int64)
+    out[a] = b % t
+    out[b] = a % t
+    return out.reshape(4, t).T.astype(np.int32)

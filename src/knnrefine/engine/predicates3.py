@@ -6,7 +6,8 @@ stage-A forward error bound, else the determinant again in exact expansion arith
 compile with ``fastmath``. Exact while no intermediate product overflows or underflows
 (coordinates zero or of magnitude in [1e-30, 1e30]; the engine's lie in [-1, 3)).
 
-Conventions: ``orient3d(a, b, c, d)`` is the sign of det[a - d, b - d, c - d] (rows): +1 when
+The points come as the rows of one array (a caller's scratch: no allocation on the fast
+path). Conventions: ``orient3d(a, b, c, d)`` is the sign of det[a - d, b - d, c - d] (rows): +1 when
 d lies on the side of the plane through a, b, c from which they turn clockwise (seen from
 the other side they turn counter-clockwise), so orient3d((1, 0, 0), (0, 1, 0), (0, 0, 1),
 (0, 0, 0)) = +1; 0 when the four are coplanar. ``insphere(a, b, c, d, e)`` is +1 when e lies
@@ -76,8 +77,10 @@ def _orient3d_exact(a, b, c, d):
 
 
 @kernel()
-def orient3d(a, b, c, d):
-    """Sign of det[a - d, b - d, c - d] (module docstring); a, b, c, d arrays of 3."""
+def orient3d(p):
+    """Sign of det[a - d, b - d, c - d] for the rows a, b, c, d of p (4, 3): module
+    docstring."""
+    a, b, c, d = p[0], p[1], p[2], p[3]
     adx, ady, adz = a[0] - d[0], a[1] - d[1], a[2] - d[2]
     bdx, bdy, bdz = b[0] - d[0], b[1] - d[1], b[2] - d[2]
     cdx, cdy, cdz = c[0] - d[0], c[1] - d[1], c[2] - d[2]
@@ -190,9 +193,11 @@ def _insphere_exact(a, b, c, d, e):
 
 
 @kernel()
-def insphere(a, b, c, d, e):
-    """+1 if e lies strictly inside the sphere through a, b, c, d (orient3d(a, b, c, d) > 0),
-    -1 strictly outside, 0 on it; reversed for a negatively oriented tetrahedron."""
+def insphere(p):
+    """For the rows a, b, c, d, e of p (5, 3): +1 if e lies strictly inside the sphere through
+    a, b, c, d (orient3d > 0), -1 strictly outside, 0 on it; reversed for a negatively
+    oriented tetrahedron."""
+    a, b, c, d, e = p[0], p[1], p[2], p[3], p[4]
     aex, aey, aez = a[0] - e[0], a[1] - e[1], a[2] - e[2]
     bex, bey, bez = b[0] - e[0], b[1] - e[1], b[2] - e[2]
     cex, cey, cez = c[0] - e[0], c[1] - e[1], c[2] - e[2]

@@ -55,6 +55,38 @@ Scratch = namedtuple(
     ],
 )
 
+# -- three dimensions (``triangulation3.py``) ------------------------------------------------
+TorusMesh3 = namedtuple(
+    "TorusMesh3",
+    [
+        "corners",  # (T, 4) int32: the vertex at each corner, positively oriented (orient3d > 0)
+        "neighbours",  # (T, 4) int32: the tetrahedron across the face opposite each corner
+        "offsets",  # (T, 4, 3) int8: each corner's periodic offset (minimum 0 per axis)
+        "radius2",  # (T,) float64: squared circumradius
+        "xyz",  # (V, 3) float64: vertex positions on the grid, in [0, lx) x [0, ly) x [0, lz)
+        "star",  # (V,) int32: one tetrahedron at each vertex (where a walk round it starts)
+        "outradius2",  # (V,) float64: R(v)^2, the largest squared circumradius around v
+        "nearest2",  # (V,) float64: d_{M,2}(v)^2, the squared distance to the nearest vertex
+    ],
+)
+
+Scratch3 = namedtuple(
+    "Scratch3",
+    [
+        "mark",  # (T,) int64: stamp of the tetrahedra already met (cavity, star walks)
+        "cavity",  # (C,) int32: the cavity's tetrahedra, then the new ones' slots
+        "cavity_shift",  # (C, 3) int64: each cavity tetrahedron's shift relative to the seed
+        "boundary",  # (B, 3) int64: boundary faces: outer tetrahedron, its index, face index
+        "face_corners",  # (B, 4) int64: the cavity tetrahedron behind each boundary face
+        "face_offsets",  # (B, 4, 3) int64: its corners' offsets in the seed's frame
+        "link",  # (L, 3) int64: the new tetrahedra's inner faces by edge (a hash table)
+        "walk",  # (W,) int32: the stack of a walk round a vertex
+        "points",  # (5, 3) float64: the corners handed to a predicate
+        "shift",  # (3,) int64: the new vertex's offset in the seed's frame
+        "walk_point",  # (3,) float64: a point to insert (a circumcentre)
+    ],
+)
+
 Queue = namedtuple("Queue", ["head", "ident", "aux", "next", "scalars"])
 Queues = namedtuple("Queues", ["balls", "cells", "cleans"])
 
