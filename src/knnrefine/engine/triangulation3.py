@@ -498,3 +498,50 @@ def new_torus3(period, grid, vertices, tetrahedra):
     set_all_circumspheres(mesh, period, nt, scratch.points)
     set_vertex_caches3(mesh, scratch, cnt, period, nv)
     return mesh, scratch, cnt
+
+
+@kernel(nrt=False)
+def vertex_neighbours3(v, mesh, scratch, cnt, period, h, ids):
+    """The Delaunay neighbours of v: h[i] their positions relative to v, ids[i] their
+    indices; returns their number, -1 if h or the walk's stack is too short."""
+    stack = scratch.walk
+    stamp = cnt[C_STAMP] + 1
+    cnt[C_STAMP] = stamp
+    t0 = mesh.star[v]
+    stack[0] = t0
+    scratch.mark[t0] = stamp
+    n = 1
+    i = 0
+    nh = 0
+    while i < n:
+        t = stack[i]
+        i += 1
+        iv = corner_of3(mesh, t, v)
+        for j in range(4):
+            if j == iv:
+                continue
+            u = mesh.corners[t, j]
+            seen = False
+            for m in range(nh):
+                if ids[m] == u:
+                    seen = True
+                    break
+            if not seen:
+                if nh >= h.shape[0]:
+                    return -1
+                ids[nh] = u
+                for a in range(3):
+                    h[nh, a] = (
+                        mesh.xyz[u, a]
+                        - mesh.xyz[v, a]
+                        + (mesh.offsets[t, j, a] - mesh.offsets[t, iv, a]) * period[a]
+                    )
+                nh += 1
+            nb = mesh.neighbours[t, j]
+            if scratch.mark[nb] != stamp:
+                if n >= stack.shape[0]:
+                    return -1
+                scratch.mark[nb] = stamp
+                stack[n] = nb
+                n += 1
+    return nh

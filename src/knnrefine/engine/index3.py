@@ -1,0 +1,258 @@
+"""The counting index over the input points in three dimensions (``index.py`` in the plane).
+
+Refinement in space asks the plane's two questions: does the closed circumball of a
+tetrahedron hold at least k points of P (``count_in_ball3``), and does the closed Voronoi cell
+of a vertex, the intersection of the half-spaces of its Delaunay neighbours inside the ball
+of radius R(v) about v, hold at least k (``count_in_cell3``). A static kd-tree (median splits
+along the widest side of each node's tight box, points permuted so that each node owns a
+contiguous range) answers both, adding whole nodes inside the region, skipping nodes that
+miss it, testing the points of boundary leaves, and stopping as soon as the count reaches k.
+On the 3-torus a question is asked once per periodic copy of the region that meets the
+fundamental domain (regions are smaller than half the shortest period, so a point lies in at
+most one copy).
+
+Layout: ``pts`` (n, 3) float64, permuted; ``box`` (nodes, 6): x0, y0, z0, x1, y1, z1;
+``node`` (nodes, 4) int64: lo, hi, first child (the second follows it; -1 at a leaf), split
+axis; ``split`` (nodes,). Points are unweighted here.
+"""
+
+import numpy as np
+
+from .index import LEAF_SIZE, STACK_SIZE, _node_bound, _select
+from .jit import kernel
+
+
+@kernel(entry=True)
+def _build3(pts, box, node, split):
+    """Build the tree over pts (permuted in place) into box, node, split; returns the node
+    count."""
+    stack = np.empty(STACK_SIZE, np.int64)
+    stack[0] = 0
+    node[0, 0] = 0
+    node[0, 1] = pts.shape[0]
+    sp = 1
+    free = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        a = node[t, 0]
+        b = node[t, 1]
+        widest = 0
+        extent = -1.0
+        for ax in range(3):
+            lo = np.inf
+            hi = -np.inf
+            for i in range(a, b):
+                lo = min(lo, pts[i, ax])
+                hi = max(hi, pts[i, ax])
+            box[t, ax] = lo
+            box[t, 3 + ax] = hi
+            if hi - lo > extent:
+                extent = hi - lo
+                widest = ax
+        if b - a <= LEAF_SIZE or extent <= 0.0:
+            node[t, 2] = -1
+            continue
+        mid = (a + b) >> 1
+        _select(pts, widest, a, b, mid)
+        c = free
+        free += 2
+        node[t, 2] = c
+        node[t, 3] = widest
+        split[t] = pts[mid, widest]
+        node[c, 0] = a
+        node[c, 1] = mid
+        node[c + 1, 0] = mid
+        node[c + 1, 1] = b
+        stack[sp] = c
+        stack[sp + 1] = c + 1
+        sp += 2
+    return free
+
+
+def build_index3(points):
+    """The index (pts, box, node, split) over a copy of the (n, 3) points."""
+    pts = np.ascontiguousarray(points, np.float64).copy()
+    cap = _node_bound(len(pts))
+    box = np.empty((cap, 6))
+    node = np.empty((cap, 4), np.int64)
+    split = np.zeros(cap)
+    n = _build3(pts, box, node, split)
+    return pts, box[:n], node[:n], split[:n]
+
+
+@kernel(inline="always")
+def _box_reach(box, t, cx, cy, cz):
+    """(the least, the largest) squared distance from c to node t's box."""
+    near = 0.0
+    far = 0.0
+    for ax in range(3):
+        c = cx if ax == 0 else (cy if ax == 1 else cz)
+        lo = box[t, ax]
+        hi = box[t, 3 + ax]
+        d = max(lo - c, 0.0, c - hi)
+        near += d * d
+        f = max(c - lo, hi - c)
+        far += f * f
+    return near, far
+
+
+@kernel(nrt=False)
+def _count_ball(index, cx, cy, cz, r2, k, stack):
+    pts, box, node = index[0], index[1], index[2]
+    count = 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        near, far = _box_reach(box, t, cx, cy, cz)
+        if near > r2:
+            continue
+        if far <= r2:
+            count += node[t, 1] - node[t, 0]
+            if count >= k:
+                return count
+            continue
+        if node[t, 2] < 0:
+            for i in range(node[t, 0], node[t, 1]):
+                dx = pts[i, 0] - cx
+                dy = pts[i, 1] - cy
+                dz = pts[i, 2] - cz
+                if dx * dx + dy * dy + dz * dz <= r2:
+                    count += 1
+                    if count >= k:
+                        return count
+            continue
+        stack[sp] = node[t, 2]
+        stack[sp + 1] = node[t, 2] + 1
+        sp += 2
+    return count
+
+
+@kernel(inline="always")
+def _shifts(c, r, period):
+    """(first, last) shift s in -1..1 of the copies [c - r, c + r] + s period that meet
+    [0, period), c in [0, period), r below half the period."""
+    return (-1 if c + r >= period else 0), (1 if c - r < 0.0 else 0)
+
+
+@kernel(nrt=False)
+def count_in_ball3(index, c, r2, k, period, stack):
+    """Points of P in the closed ball (c, sqrt(r2)) of the torus, up to k (the count stops
+    there); c anywhere (wrapped here), the radius below half the shortest period."""
+    r = np.sqrt(r2)
+    w0 = c[0] - np.floor(c[0] / period[0]) * period[0]
+    w1 = c[1] - np.floor(c[1] / period[1]) * period[1]
+    w2 = c[2] - np.floor(c[2] / period[2]) * period[2]
+    a0, b0 = _shifts(w0, r, period[0])
+    a1, b1 = _shifts(w1, r, period[1])
+    a2, b2 = _shifts(w2, r, period[2])
+    count = 0
+    for s0 in range(a0, b0 + 1):
+        for s1 in range(a1, b1 + 1):
+            for s2 in range(a2, b2 + 1):
+                count += _count_ball(
+                    index,
+                    w0 + s0 * period[0],
+                    w1 + s1 * period[1],
+                    w2 + s2 * period[2],
+                    r2,
+                    k - count,
+                    stack,
+                )
+                if count >= k:
+                    return count
+    return count
+
+
+@kernel(nrt=False)
+def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
+    """Points x with |x - v|^2 <= r2 and (x - v) . h[i] <= hc[i] for every i < nh."""
+    pts, box, node = index[0], index[1], index[2]
+    count = 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        near, far = _box_reach(box, t, vx, vy, vz)
+        if near > r2:
+            continue
+        whole = far <= r2
+        missed = False
+        for i in range(nh):
+            hi_ = 0.0
+            lo_ = 0.0
+            for ax in range(3):
+                c = vx if ax == 0 else (vy if ax == 1 else vz)
+                p = h[i, ax] * (box[t, ax] - c)
+                q = h[i, ax] * (box[t, 3 + ax] - c)
+                hi_ += max(p, q)
+                lo_ += min(p, q)
+            if lo_ > hc[i]:
+                missed = True
+                break
+            if hi_ > hc[i]:
+                whole = False
+        if missed:
+            continue
+        if whole:
+            count += node[t, 1] - node[t, 0]
+            if count >= k:
+                return count
+            continue
+        if node[t, 2] < 0:
+            for j in range(node[t, 0], node[t, 1]):
+                dx = pts[j, 0] - vx
+                dy = pts[j, 1] - vy
+                dz = pts[j, 2] - vz
+                if dx * dx + dy * dy + dz * dz > r2:
+                    continue
+                ok = True
+                for i in range(nh):
+                    if dx * h[i, 0] + dy * h[i, 1] + dz * h[i, 2] > hc[i]:
+                        ok = False
+                        break
+                if ok:
+                    count += 1
+                    if count >= k:
+                        return count
+            continue
+        stack[sp] = node[t, 2]
+        stack[sp + 1] = node[t, 2] + 1
+        sp += 2
+    return count
+
+
+@kernel(nrt=False)
+def count_in_cell3(index, v, h, hc, nh, r2, k, period, stack):
+    """Points of P in the closed Voronoi cell of the vertex at v: within sqrt(r2) (R(v),
+    inflated) of v and on v's side of the bisector of each neighbour at v + h[i] (that is,
+    (x - v) . h[i] <= hc[i] = |h[i]|^2 / 2, inflated), up to k."""
+    r = np.sqrt(r2)
+    w0 = v[0] - np.floor(v[0] / period[0]) * period[0]
+    w1 = v[1] - np.floor(v[1] / period[1]) * period[1]
+    w2 = v[2] - np.floor(v[2] / period[2]) * period[2]
+    a0, b0 = _shifts(w0, r, period[0])
+    a1, b1 = _shifts(w1, r, period[1])
+    a2, b2 = _shifts(w2, r, period[2])
+    count = 0
+    for s0 in range(a0, b0 + 1):
+        for s1 in range(a1, b1 + 1):
+            for s2 in range(a2, b2 + 1):
+                count += _count_cell(
+                    index,
+                    w0 + s0 * period[0],
+                    w1 + s1 * period[1],
+                    w2 + s2 * period[2],
+                    h,
+                    hc,
+                    nh,
+                    r2,
+                    k - count,
+                    stack,
+                )
+                if count >= k:
+                    return count
+    return count
