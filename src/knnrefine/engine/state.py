@@ -84,8 +84,14 @@ Scratch3 = namedtuple(
         "points",  # (5, 3) float64: the corners handed to a predicate
         "shift",  # (3,) int64: the new vertex's offset in the seed's frame
         "walk_point",  # (3,) float64: a point to insert (a circumcentre)
+        "moved",  # (C + 1, 2) int64: row 0: the count; then (from, to) of each tetrahedron
+        # moved by the last insertion, in order
     ],
 )
+
+# the scratch of a 3-D cell count: a vertex's neighbours (relative positions, indices, the
+# half-spaces' offsets) and the tree walk's stack
+Probe3 = namedtuple("Probe3", ["h", "ids", "hc", "stack"])
 
 Queue = namedtuple("Queue", ["head", "ident", "aux", "next", "scalars"])
 Queues = namedtuple("Queues", ["balls", "cells", "cleans"])

@@ -198,7 +198,9 @@ def insert_vertex3(p, seed, mesh, scratch, cnt, period):
     """Insert the point p (3,), given in the frame of tetrahedron ``seed`` whose open
     circumball holds it; p on the grid. Returns the new vertex's index, or a negative
     INSERT_* code with nothing changed. Right after, with ``nb = cnt[C_LAST_NB]``, the new
-    tetrahedra are ``scratch.cavity[:nb]``."""
+    tetrahedra are ``scratch.cavity[:nb]`` (their final slots), and
+    ``scratch.moved[1 : 1 + scratch.moved[0, 0]]`` the (from, to) slots of the tetrahedra
+    moved down to keep the arrays dense (``_move``), in the order made."""
     corners = mesh.corners
     neighbours = mesh.neighbours
     offsets = mesh.offsets
@@ -340,6 +342,7 @@ def insert_vertex3(p, seed, mesh, scratch, cnt, period):
         set_circumsphere(mesh, cav[e], period, pts)
 
     # fewer new tetrahedra than old: move the last ones into the slots left over
+    scratch.moved[0, 0] = 0
     for e in range(nb, ncav):
         scratch.mark[cav[e]] = -1  # free
     for e in range(nb, ncav):
@@ -351,6 +354,10 @@ def insert_vertex3(p, seed, mesh, scratch, cnt, period):
         last = cnt[C_NT] - 1
         _move(mesh, scratch, last, f)
         scratch.mark[last] = -1
+        m = scratch.moved[0, 0] + 1
+        scratch.moved[0, 0] = m
+        scratch.moved[m, 0] = last
+        scratch.moved[m, 1] = f
         cnt[C_NT] = last
         for g in range(nb):
             if cav[g] == last:
@@ -491,6 +498,7 @@ def new_torus3(period, grid, vertices, tetrahedra):
         points=np.zeros((5, 3)),
         shift=np.zeros(3, np.int64),
         walk_point=np.zeros(3),
+        moved=np.zeros((MAX_CAVITY3 + 1, 2), np.int64),
     )
     cnt = np.zeros(N_COUNTERS, np.int64)
     cnt[C_NV], cnt[C_NT] = nv, nt

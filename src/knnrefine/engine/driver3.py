@@ -1,0 +1,161 @@
+"""The 3-D refinement's Python side (``driver.py`` in the plane): builds the state, calls
+``refine3.refine_steps3`` in bounded steps (progress, deadline, Ctrl-C between them), grows
+the arrays when the kernel asks, and returns the final triangulation."""
+
+import numpy as np
+
+from .geometry import FLOOR_BITS, Q
+from .index3 import build_index3
+from .initial import initial_grid3
+from .interrupt import Interrupts
+from .queue import new_queue
+from .refine import (
+    STATUS_DONE,
+    STATUS_ERROR,
+    STATUS_GROW,
+    STATUS_MAX_VERTICES,
+    STATUS_STEPS,
+)
+from .refine3 import (
+    N_PARAMS3,
+    P3_CLEAN_FLOOR2,
+    P3_FLOOR2,
+    P3_GRID,
+    P3_INFLATE,
+    P3_K,
+    P3_TAU2,
+    queue_all3,
+    refine_steps3,
+)
+from .state import (
+    C_ERROR,
+    C_MAX_VERTICES,
+    C_NT,
+    C_NV,
+    ERRORS,
+    Bookkeeping,
+    Probe3,
+    Queue,
+    Queues,
+    grown,
+)
+from .triangulation3 import new_torus3
+
+STEPS = 20_000  # insertions per kernel call
+
+
+class Refinement3:
+    """One 3-D run on the torus of ``period`` (internal units, multiples of Q) over the
+    points (internal coordinates in [0, period))."""
+
+    def __init__(self, points, period, k, tau, floor, max_vertices, grid):
+        self.period = np.asarray(period, float)
+        self.index = build_index3(points)
+        estimate = max(4096, len(grid[0]) * 4)
+        self.mesh, self.scratch, self.cnt = new_torus3(self.period, grid, estimate, 7 * estimate)
+        t_cap = self.mesh.corners.shape[0]
+        v_cap = self.mesh.xyz.shape[0]
+        self.book = Bookkeeping(
+            ball_state=np.zeros(t_cap, np.int8),
+            kinds=np.zeros(v_cap, np.int8),
+            cell_state=np.zeros(v_cap, np.int8),
+            flags=np.zeros(v_cap, np.int8),
+        )
+        self.queues = Queues(
+            balls=new_queue(4 * t_cap), cells=new_queue(2 * v_cap), cleans=new_queue(2 * v_cap)
+        )
+        self.probe = Probe3(
+            h=np.zeros((1024, 3)),
+            ids=np.zeros(1024, np.int64),
+            hc=np.zeros(1024),
+            stack=np.zeros(128, np.int64),
+        )
+        prm = np.zeros(N_PARAMS3)
+        prm[:3] = self.period
+        prm[P3_TAU2] = tau * tau * (1.0 - 1e-12)
+        prm[P3_FLOOR2] = max(floor, 2.0**FLOOR_BITS * Q) ** 2
+        prm[P3_CLEAN_FLOOR2] = (2.0**FLOOR_BITS * Q) ** 2
+        prm[P3_INFLATE] = 1.0 + 1e-9
+        prm[P3_GRID] = Q
+        prm[P3_K] = float(k)
+        self.prm = prm
+        self.cnt[C_MAX_VERTICES] = int(max_vertices)
+        queue_all3(self.mesh, self.book, self.queues, self.cnt, self.prm)
+
+    def run(self, deadline=None, progress=None):
+        """Refine until done, the vertex budget, or the deadline; returns the status."""
+        import time
+
+        with Interrupts() as interrupts:
+            while True:
+                status = refine_steps3(
+                    self.mesh, self.book, self.queues, self.scratch, self.probe, self.cnt,
+                    self.prm, self.index, STEPS,
+                )  # fmt: skip
+                if progress is not None:
+                    progress(int(self.cnt[C_NV]))
+                if status == STATUS_GROW:
+                    self._grow()
+                    continue
+                if status == STATUS_ERROR:
+                    code = int(self.cnt[C_ERROR])
+                    raise RuntimeError(ERRORS.get(code, f"engine error {code}"))
+                if status in (STATUS_DONE, STATUS_MAX_VERTICES):
+                    return status
+                assert status == STATUS_STEPS
+                interrupts.check()
+                if deadline is not None and time.monotonic() > deadline:
+                    return STATUS_STEPS
+
+    def _grow(self):
+        m, b, s = self.mesh, self.book, self.scratch
+        v_cap = m.xyz.shape[0]
+        t_cap = m.corners.shape[0]
+        if self.cnt[C_NV] + 1 > v_cap:
+            size = v_cap + v_cap // 4 + 1024
+            m = m._replace(xyz=grown(m.xyz, size), star=grown(m.star, size),
+                           outradius2=grown(m.outradius2, size), nearest2=grown(m.nearest2, size))  # fmt: skip
+            b = b._replace(kinds=grown(b.kinds, size), cell_state=grown(b.cell_state, size),
+                           flags=grown(b.flags, size))  # fmt: skip
+        if self.cnt[C_NT] + 5000 > t_cap:
+            size = t_cap + t_cap // 4 + 8192
+            m = m._replace(corners=grown(m.corners, size), neighbours=grown(m.neighbours, size),
+                           offsets=grown(m.offsets, size), radius2=grown(m.radius2, size))  # fmt: skip
+            b = b._replace(ball_state=grown(b.ball_state, size))
+            s = s._replace(mark=grown(s.mark, size))
+        queues = {}
+        for name in ("balls", "cells", "cleans"):
+            q = getattr(self.queues, name)
+            cap = q.ident.shape[0]
+            if q.scalars[3] + 10_000 > cap:
+                size = cap + cap // 2 + 16_384
+                q = Queue(head=q.head, ident=grown(q.ident, size), aux=grown(q.aux, size),
+                          next=grown(q.next, size), scalars=q.scalars)  # fmt: skip
+            queues[name] = q
+        self.queues = self.queues._replace(**queues)
+        self.mesh, self.book, self.scratch = m, b, s
+
+    def result(self):
+        """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters)."""
+        nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
+        m = self.mesh
+        return (
+            m.xyz[:nv].copy(),
+            m.corners[:nt].copy(),
+            m.offsets[:nt].copy(),
+            self.book.kinds[:nv].copy(),
+            self.cnt.copy(),
+        )
+
+
+def choose_grid3(period, lam_needed):
+    """The finest candidate M0 whose every vertex v has d_{P,k}(v) <= lambda_v (Lemma 2's
+    precondition, in any order): ``lam_needed(xyz)`` gives d_{P,k} at the grid's vertices.
+    None when no candidate passes."""
+    for per, jitter, shift in ((4, 0.2, 0.0), (4, 0.2, 0.5), (3, 0.05, 0.0), (3, 0.05, 0.5)):
+        grid = initial_grid3(period, per, jitter, shift)
+        if grid is None:
+            continue
+        if (lam_needed(grid[0]) <= grid[4]).all():
+            return grid
+    return None

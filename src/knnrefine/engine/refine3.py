@@ -1,0 +1,271 @@
+"""kNNRefine in three dimensions: the Break and Clean moves of ``refine.py``, on the periodic
+3-D triangulation (``triangulation3.py``) and the 3-D counting index (``index3.py``).
+
+The same loop and the same bookkeeping as in the plane: Clean first (a vertex with
+aspect(Vor(v)) = 2 R(v) / d_{M,2}(v) > tau: insert the circumcentre of the tetrahedron at v
+with the largest circumradius, Vor(v)'s far corner), else Break (a tetrahedron whose closed
+circumball holds >= k points: its circumcentre; else a vertex whose closed Voronoi cell
+holds >= k points: its far corner); largest first by size class (``queue.py``); counts
+inflated by a relative 1e-9 and tau^2 lowered by 1e-12, so the output passes the strict
+checks of independent code; a Break floor (``min_size``) and a Clean floor (2^14 grid steps)
+below which elements are left and reported. What differs: a tetrahedron may be moved to
+another slot by an insertion (``triangulation3._move``); its queue entry is then pushed
+again at its new slot (entries carry a corner, the apex, to recognise a slot that now holds
+another tetrahedron). Not yet here: tiles, the cell sweep, weights.
+"""
+
+import numpy as np
+
+from .geometry import circumsphere
+from .index3 import count_in_ball3, count_in_cell3
+from .jit import kernel
+from .queue import Q_USED, queue_pop, queue_push, queue_size, size_class
+from .refine import (
+    BREAK_BALL,
+    BREAK_CELL,
+    CLEAN,
+    CLEAN_BELOW_FLOOR,
+    CLEAN_FAILED,
+    FAILED,
+    FLOOR,
+    GOOD,
+    IN_CELL_QUEUE,
+    IN_CLEAN_QUEUE,
+    STATUS_DONE,
+    STATUS_ERROR,
+    STATUS_GROW,
+    STATUS_MAX_VERTICES,
+    STATUS_STEPS,
+    UNTESTED,
+)
+from .state import (
+    C_CELL_TESTS,
+    C_CELLS_QUEUED,
+    C_DISK_TESTS,
+    C_ERROR,
+    C_FAILED,
+    C_LAST_NB,
+    C_MAX_VERTICES,
+    C_NT,
+    C_NV,
+    INSERT_NOT_IN_SEED,
+    STAR_OVERFLOW,
+)
+from .triangulation3 import (
+    MAX_CAVITY3,
+    corner_of3,
+    insert_vertex3,
+    load_corners,
+    vertex_neighbours3,
+    vertex_star3,
+)
+
+# parameters (float64 array ``prm``) of a 3-D run
+P3_L0, P3_L1, P3_L2 = 0, 1, 2  # the torus' periods, internal units
+P3_TAU2 = 3  # tau^2, lowered by a relative 1e-12
+P3_FLOOR2 = 4  # the Break floor squared
+P3_CLEAN_FLOOR2 = 5  # the Clean floor squared
+P3_INFLATE = 6  # 1 + 1e-9
+P3_GRID = 7  # the grid step q
+P3_K = 8
+N_PARAMS3 = 9
+
+HEADROOM3 = MAX_CAVITY3 + 64  # free slots required before an insertion
+
+
+@kernel(inline="always")
+def is_too_aspect3(outradius2, d_m2_sq, prm):
+    """2 R(v) / d_{M,2}(v) > tau, from squares."""
+    return 4.0 * outradius2 > prm[P3_TAU2] * d_m2_sq
+
+
+@kernel(nrt=False)
+def _touch3(v, mesh, book, queues, cnt, prm):
+    """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean."""
+    if book.cell_state[v] >= FLOOR:  # its cell changed: look again
+        book.cell_state[v] = UNTESTED
+    if book.cell_state[v] == UNTESTED and not (book.flags[v] & IN_CELL_QUEUE):
+        queue_push(queues.cells, size_class(mesh.outradius2[v]), v, 0)
+        book.flags[v] = book.flags[v] | IN_CELL_QUEUE
+        cnt[C_CELLS_QUEUED] += 1
+    book.flags[v] = book.flags[v] & ~(CLEAN_BELOW_FLOOR | CLEAN_FAILED)
+    bad = is_too_aspect3(mesh.outradius2[v], mesh.nearest2[v], prm)
+    if bad and not (book.flags[v] & IN_CLEAN_QUEUE):
+        queue_push(queues.cleans, size_class(mesh.outradius2[v]), v, 0)
+        book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
+
+
+@kernel(nrt=False)
+def _push_ball(t, mesh, book, queues):
+    book.ball_state[t] = UNTESTED
+    queue_push(queues.balls, size_class(mesh.radius2[t]), t, mesh.corners[t, 0])
+
+
+@kernel(entry=True, nrt=False)
+def queue_all3(mesh, book, queues, cnt, prm):
+    """Queue every tetrahedron and vertex of a fresh triangulation."""
+    for t in range(cnt[C_NT]):
+        _push_ball(t, mesh, book, queues)
+    for v in range(cnt[C_NV]):
+        book.flags[v] = 0
+        _touch3(v, mesh, book, queues, cnt, prm)
+
+
+@kernel(nrt=False)
+def count_cell3(v, mesh, scratch, probe, cnt, prm, index):
+    """Points of P in the closed Voronoi cell of v (inflated): exact below k, else >= k;
+    STAR_OVERFLOW if v has more neighbours than the probe holds."""
+    k = prm[P3_K]
+    inflate = prm[P3_INFLATE]
+    r2 = mesh.outradius2[v] * inflate
+    period = prm[:3]
+    cnt[C_CELL_TESTS] += 1
+    # the cell lies in the ball of radius R(v) about v: the cheaper ball count may settle it
+    c = count_in_ball3(index, mesh.xyz[v], r2, k, period, probe.stack)
+    if c < k:
+        return c
+    nh = vertex_neighbours3(v, mesh, scratch, cnt, period, probe.h, probe.ids)
+    if nh < 0:
+        return STAR_OVERFLOW
+    for j in range(nh):
+        probe.hc[j] = 0.5 * (probe.h[j, 0] ** 2 + probe.h[j, 1] ** 2 + probe.h[j, 2] ** 2) * inflate
+    return count_in_cell3(index, mesh.xyz[v], probe.h, probe.hc, nh, r2, k, period, probe.stack)
+
+
+@kernel(inline="always")
+def _clean3(mesh, book, queues, scratch, cnt, prm):
+    """(t, v): insert the circumcentre of tetrahedron t, Vor(v)'s far corner, for the largest
+    cell with aspect > tau; (-1, -1) when none."""
+    while queue_size(queues.cleans) > 0:
+        cls, v, _ = queue_pop(queues.cleans)
+        book.flags[v] = book.flags[v] & ~IN_CLEAN_QUEUE
+        outradius2 = mesh.outradius2[v]
+        if not is_too_aspect3(outradius2, mesh.nearest2[v], prm):
+            continue
+        now = size_class(outradius2)
+        if now > cls:
+            queue_push(queues.cleans, now, v, 0)
+            book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
+            continue
+        if outradius2 < prm[P3_CLEAN_FLOOR2]:
+            book.flags[v] = book.flags[v] | CLEAN_BELOW_FLOOR
+            continue
+        return vertex_star3(v, mesh, scratch, cnt, prm[:3])[1], v
+    return -1, -1
+
+
+@kernel(inline="always")
+def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
+    """(t, kind, element): the next Break, or (-1, 0, -1); t < -1 an error code."""
+    k = prm[P3_K]
+    inflate = prm[P3_INFLATE]
+    period = prm[:3]
+    pts = scratch.points
+    c = scratch.walk_point
+    while queue_size(queues.balls) > 0:
+        cls, t, apex = queue_pop(queues.balls)
+        if t >= cnt[C_NT] or corner_of3(mesh, t, apex) < 0 or book.ball_state[t] != UNTESTED:
+            continue  # stale: slot t holds another tetrahedron now, or was tested
+        load_corners(mesh, t, 0, 0, 0, period, pts)
+        c[0], c[1], c[2], _ = circumsphere(pts)
+        cnt[C_DISK_TESTS] += 1
+        if count_in_ball3(index, c, mesh.radius2[t] * inflate, k, period, probe.stack) < k:
+            book.ball_state[t] = GOOD
+            continue
+        if mesh.radius2[t] < prm[P3_FLOOR2]:
+            book.ball_state[t] = FLOOR
+            continue
+        return t, BREAK_BALL, t
+    while queue_size(queues.cells) > 0:
+        cls, v, _ = queue_pop(queues.cells)
+        book.flags[v] = book.flags[v] & ~IN_CELL_QUEUE
+        if book.cell_state[v] != UNTESTED:
+            continue
+        outradius2 = mesh.outradius2[v]
+        now = size_class(outradius2)
+        if now > cls:
+            queue_push(queues.cells, now, v, 0)
+            book.flags[v] = book.flags[v] | IN_CELL_QUEUE
+            continue
+        n = count_cell3(v, mesh, scratch, probe, cnt, prm, index)
+        if n < 0:
+            return STAR_OVERFLOW, 0, -1
+        if n < k:
+            book.cell_state[v] = GOOD
+            continue
+        if outradius2 < prm[P3_FLOOR2]:
+            book.cell_state[v] = FLOOR
+            continue
+        return vertex_star3(v, mesh, scratch, cnt, period)[1], BREAK_CELL, v
+    return -1, 0, -1
+
+
+@kernel(inline="always")
+def needs_growth3(mesh, book, queues, cnt):
+    return (
+        cnt[C_NV] + 1 > mesh.xyz.shape[0]
+        or cnt[C_NT] + HEADROOM3 > mesh.corners.shape[0]
+        or queues.balls.scalars[Q_USED] + 2 * HEADROOM3 > queues.balls.ident.shape[0]
+        or queues.cells.scalars[Q_USED] + HEADROOM3 > queues.cells.ident.shape[0]
+        or queues.cleans.scalars[Q_USED] + HEADROOM3 > queues.cleans.ident.shape[0]
+    )
+
+
+@kernel(entry=True, nrt=False)
+def refine_steps3(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps):
+    """Run Algorithm 1 in space for at most max_steps insertions; returns a STATUS_* code."""
+    steps = 0
+    q = prm[P3_GRID]
+    period = prm[:3]
+    pts = scratch.points
+    p = scratch.walk_point
+    while steps < max_steps:
+        if cnt[C_NV] >= cnt[C_MAX_VERTICES]:
+            return STATUS_MAX_VERTICES
+        if needs_growth3(mesh, book, queues, cnt):
+            return STATUS_GROW
+        t, elem = _clean3(mesh, book, queues, scratch, cnt, prm)
+        kind = CLEAN
+        if t == -1:
+            t, kind, elem = _break3(mesh, book, queues, scratch, probe, cnt, prm, index)
+            if t == -1:
+                return STATUS_DONE
+            if t < -1:
+                cnt[C_ERROR] = t
+                return STATUS_ERROR
+        load_corners(mesh, t, 0, 0, 0, period, pts)
+        x, y, z, _ = circumsphere(pts)
+        p[0] = np.rint(x / q) * q
+        p[1] = np.rint(y / q) * q
+        p[2] = np.rint(z / q) * q
+        v = insert_vertex3(p, t, mesh, scratch, cnt, period)
+        if v == INSERT_NOT_IN_SEED:  # the split point rounds onto or out of the ball
+            cnt[C_FAILED] += 1
+            if kind == CLEAN:
+                book.flags[elem] = book.flags[elem] | CLEAN_FAILED
+            elif kind == BREAK_BALL:
+                book.ball_state[elem] = FAILED
+            else:
+                book.cell_state[elem] = FAILED
+            continue
+        if v < 0:
+            cnt[C_ERROR] = v
+            return STATUS_ERROR
+        book.kinds[v] = kind
+        book.cell_state[v] = UNTESTED
+        book.flags[v] = 0
+        nb = cnt[C_LAST_NB]
+        for e in range(scratch.moved[0, 0]):  # moved tetrahedra keep their state
+            src = scratch.moved[1 + e, 0]
+            dst = scratch.moved[1 + e, 1]
+            book.ball_state[dst] = book.ball_state[src]
+            if book.ball_state[dst] == UNTESTED:
+                _push_ball(dst, mesh, book, queues)
+        for e in range(nb):
+            _push_ball(scratch.cavity[e], mesh, book, queues)
+        for e in range(nb):
+            s = scratch.cavity[e]
+            for i in range(4):
+                _touch3(mesh.corners[s, i], mesh, book, queues, cnt, prm)
+        steps += 1
+    return STATUS_STEPS
