@@ -32,6 +32,17 @@ DEFAULT_MIN_SIZE = 1e-6  # resolution floor, relative to the box's longer side
 LARGE_RUN_BYTES = 2e9  # runs expected to need more memory than this say so up front
 
 
+def _is_spatial(points):
+    """Whether points are (n, 3): a run in space."""
+    shape = np.shape(points) if isinstance(points, np.ndarray) or hasattr(points, "shape") else None
+    if shape is None:
+        try:
+            shape = np.shape(np.asarray(points, dtype=object))
+        except Exception:
+            return False
+    return len(shape) == 2 and shape[1] == 3
+
+
 def refine(
     points,
     k,
@@ -136,7 +147,18 @@ def refine(
 
     Ctrl-C raises KeyboardInterrupt within about 50 ms of refinement (within the current
     kernel call during setup).
+
+    Points in space ((n, 3), a box of six numbers) are refined by ``api3.refine3`` into a
+    ``Mesh3``: periodic boxes only so far; weights, workers and executor do not apply there.
     """
+    if _is_spatial(points):
+        from .api3 import refine3
+
+        if weights is not None or workers not in (None, 1) or executor is not None:
+            raise InputError("weights, workers and executor are not built for (n, 3) points yet")
+        options = dict(periodic=periodic, box=box, min_size=min_size, max_vertices=max_vertices,
+                       time_limit=time_limit, progress=progress)  # fmt: skip
+        return refine3(points, k, tau, **options)
     pts = V.as_points(points)
     n = len(pts)
     if weights is not None:

@@ -191,6 +191,15 @@ def certify(
     checks, same verdict. The checks, in order: the returned points are the mesh's (else
     InputError), the torus triangulation, the returned mesh, well-spacedness, counts, Lemma
     2's precondition, the achieved constants, the size integral, the floor."""
+    from .mesh3 import Mesh3
+
+    if isinstance(mesh, Mesh3):  # in space: certify3's checks
+        from .certify3 import certify3
+
+        if weights is not None:
+            raise InputError("weights are not built for (n, 3) points yet")
+        return certify3(mesh, points, n_random=n_random, max_point_probes=max_point_probes,
+                        seed=seed)  # fmt: skip
     t0 = time.perf_counter()
     pts = as_points(points)
     weights = _check_points_are_the_meshs(mesh, pts, weights)

@@ -11,12 +11,12 @@ MAX_COORDINATE = 1e100
 MIN_SIDE = 1e-100
 
 
-def as_points(points):
-    """(n, 2) float64 array from lists, numpy arrays of any real dtype, pandas frames."""
+def as_points(points, dim=2):
+    """(n, dim) float64 array from lists, numpy arrays of any real dtype, pandas frames."""
     try:
         arr = np.asarray(points)
     except Exception as exc:  # ragged lists and the like
-        raise InputError(f"points could not be read as an (n, 2) array: {exc}") from None
+        raise InputError(f"points could not be read as an (n, {dim}) array: {exc}") from None
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
         raise InputError(
             f"points must be numeric, got dtype {arr.dtype}; convert the columns to numbers "
@@ -24,10 +24,11 @@ def as_points(points):
         )
     if np.iscomplexobj(arr):
         raise InputError("points must be real numbers, got complex values")
-    if arr.ndim != 2 or arr.shape[1] != 2:
+    if arr.ndim != 2 or arr.shape[1] != dim:
+        axes = "x and y" if dim == 2 else "x, y and z"
         raise InputError(
-            f"points must have shape (n, 2), got {arr.shape}; pass one row per point with its "
-            "x and y coordinates"
+            f"points must have shape (n, {dim}), got {arr.shape}; pass one row per point with "
+            f"its {axes} coordinates"
         )
     if arr.shape[0] == 0:
         raise InputError("points is empty: give at least one point")

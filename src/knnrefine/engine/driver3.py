@@ -6,9 +6,9 @@ import numpy as np
 
 from .geometry import FLOOR_BITS, Q
 from .index3 import build_index3
-from .initial import initial_grid3
+from .initial import initial_grid3, peel_order
 from .interrupt import Interrupts
-from .queue import new_queue
+from .queue import Q_USED, new_queue
 from .refine import (
     STATUS_DONE,
     STATUS_ERROR,
@@ -17,6 +17,7 @@ from .refine import (
     STATUS_STEPS,
 )
 from .refine3 import (
+    HEADROOM3,
     N_PARAMS3,
     P3_CLEAN_FLOOR2,
     P3_FLOOR2,
@@ -35,13 +36,30 @@ from .state import (
     ERRORS,
     Bookkeeping,
     Probe3,
-    Queue,
     Queues,
+    grow,
     grown,
 )
 from .triangulation3 import new_torus3
 
 STEPS = 20_000  # insertions per kernel call
+VERTEX_FIELDS3 = (
+    ("mesh", "xyz"),
+    ("mesh", "star"),
+    ("mesh", "outradius2"),
+    ("mesh", "nearest2"),
+    ("book", "kinds"),
+    ("book", "cell_state"),
+    ("book", "flags"),
+)
+TETRAHEDRON_FIELDS3 = (
+    ("mesh", "corners"),
+    ("mesh", "neighbours"),
+    ("mesh", "offsets"),
+    ("mesh", "radius2"),
+    ("book", "ball_state"),
+    ("scratch", "mark"),
+)
 
 
 class Refinement3:
@@ -108,32 +126,22 @@ class Refinement3:
                     return STATUS_STEPS
 
     def _grow(self):
-        m, b, s = self.mesh, self.book, self.scratch
-        v_cap = m.xyz.shape[0]
-        t_cap = m.corners.shape[0]
-        if self.cnt[C_NV] + 1 > v_cap:
-            size = v_cap + v_cap // 4 + 1024
-            m = m._replace(xyz=grown(m.xyz, size), star=grown(m.star, size),
-                           outradius2=grown(m.outradius2, size), nearest2=grown(m.nearest2, size))  # fmt: skip
-            b = b._replace(kinds=grown(b.kinds, size), cell_state=grown(b.cell_state, size),
-                           flags=grown(b.flags, size))  # fmt: skip
-        if self.cnt[C_NT] + 5000 > t_cap:
-            size = t_cap + t_cap // 4 + 8192
-            m = m._replace(corners=grown(m.corners, size), neighbours=grown(m.neighbours, size),
-                           offsets=grown(m.offsets, size), radius2=grown(m.radius2, size))  # fmt: skip
-            b = b._replace(ball_state=grown(b.ball_state, size))
-            s = s._replace(mark=grown(s.mark, size))
+        if self.cnt[C_NV] + 1 > self.mesh.xyz.shape[0]:
+            cap = self.mesh.xyz.shape[0]
+            grow(self, VERTEX_FIELDS3, cap + cap // 4 + 1024)
+        if self.cnt[C_NT] + 2 * HEADROOM3 > self.mesh.corners.shape[0]:
+            cap = self.mesh.corners.shape[0]
+            grow(self, TETRAHEDRON_FIELDS3, cap + cap // 4 + 8192)
         queues = {}
         for name in ("balls", "cells", "cleans"):
             q = getattr(self.queues, name)
             cap = q.ident.shape[0]
-            if q.scalars[3] + 10_000 > cap:
+            if q.scalars[Q_USED] + 4 * HEADROOM3 > cap:
                 size = cap + cap // 2 + 16_384
-                q = Queue(head=q.head, ident=grown(q.ident, size), aux=grown(q.aux, size),
-                          next=grown(q.next, size), scalars=q.scalars)  # fmt: skip
+                q = q._replace(ident=grown(q.ident, size), aux=grown(q.aux, size),
+                               next=grown(q.next, size))  # fmt: skip
             queues[name] = q
         self.queues = self.queues._replace(**queues)
-        self.mesh, self.book, self.scratch = m, b, s
 
     def result(self):
         """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters)."""
@@ -148,14 +156,19 @@ class Refinement3:
         )
 
 
-def choose_grid3(period, lam_needed):
-    """The finest candidate M0 whose every vertex v has d_{P,k}(v) <= lambda_v (Lemma 2's
-    precondition, in any order): ``lam_needed(xyz)`` gives d_{P,k} at the grid's vertices.
-    None when no candidate passes."""
+def choose_grid3(period, d_pk, factor):
+    """The first candidate M0 (finest first) whose vertices can be ordered so that each u
+    has d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition, factor = K - 1:
+    ``initial.reach_factor``; the order is found by peeling, ``initial.peel_order``):
+    ``d_pk(x)`` gives d_{P,k} at vertices x. None when no candidate passes."""
     for per, jitter, shift in ((4, 0.2, 0.0), (4, 0.2, 0.5), (3, 0.05, 0.0), (3, 0.05, 0.5)):
         grid = initial_grid3(period, per, jitter, shift)
         if grid is None:
             continue
-        if (lam_needed(grid[0]) <= grid[4]).all():
+
+        def passes(x, lam):
+            return d_pk(x) <= factor * lam * (1.0 - 1e-9)
+
+        if peel_order(grid[0], grid[4], period, passes)[0] is not None:
             return grid
     return None

@@ -131,15 +131,24 @@ def precondition_order(vxy, lam, index, k, factor, lx, ly):
     lambda_u (the distance to its nearest predecessor on the torus), by peeling (see the
     module docstring); ``lam`` holds each vertex's distance to its nearest other vertex.
     Returns (order, rounds) or (None, failing) with the vertices no order can place."""
-    remaining = np.arange(len(vxy))
+
+    def passes(xy, lam):
+        # conservative: the reach is shortened by a relative 1e-9 against rounding
+        return holds_k_within(index, xy, (factor * lam * (1.0 - 1e-9)) ** 2, k, lx, ly)
+
+    return peel_order(vxy, lam, np.array([lx, ly]), passes)
+
+
+def peel_order(x, lam, period, passes):
+    """``precondition_order`` in any dimension: ``passes(x, lam)`` says which of the vertices
+    x pass with lam their distances to the nearest other remaining vertex."""
+    remaining = np.arange(len(x))
     peeled = []
-    period = np.array([lx, ly])
     while len(remaining) > 1:
-        xy = vxy[remaining]
+        xy = x[remaining]
         if peeled:
             lam = cKDTree(xy, boxsize=period).query(xy, k=2)[0][:, 1]
-        # conservative: the reach is shortened by a relative 1e-9 against rounding
-        ok = holds_k_within(index, xy, (factor * lam * (1.0 - 1e-9)) ** 2, k, lx, ly)
+        ok = passes(xy, lam)
         if not ok.any():
             return None, remaining
         peeled.append(remaining[ok])

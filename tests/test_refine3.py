@@ -1,0 +1,159 @@
+"""kNNRefine in space (knnrefine.refine with (n, 3) points on a periodic box): the oracle
+matrix of the plane, in 3-D. Every mesh is certified by certify3 (exact tetrahedralisation
+checks, cKDTree(boxsize) counts of every circumball and cell, aspect, and the achieved
+d_M2 / d_Pk at dense probes within Theorem 6's [alpha, beta]); and the checks themselves are
+shown to fail on wrong meshes."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import knnrefine
+from knnrefine.errors import InputError
+from knnrefine.mesh3 import Mesh3
+
+BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+
+
+def uniform(n, seed):
+    return np.random.default_rng(seed).random((n, 3))
+
+
+def multiscale(n, seed):
+    """Gaussian clusters of widths 1e-3 to 1e-1, wrapped, with a uniform background."""
+    rng = np.random.default_rng(seed)
+    centres = rng.random((8, 3))
+    widths = 10.0 ** rng.uniform(-3, -1, 8)
+    j = rng.integers(0, 8, n)
+    pts = centres[j] + rng.standard_normal((n, 3)) * widths[j, None]
+    pts[: n // 10] = rng.random((n // 10, 3))
+    return np.mod(pts, 1.0)
+
+
+def lattice(n, seed):
+    m = max(2, round(n ** (1 / 3)))
+    g = np.arange(m) / m
+    return np.array(np.meshgrid(g, g, g)).reshape(3, -1).T
+
+
+def coplanar(n, seed):
+    """All points on the plane z = 0.25 (and a few on x = 0.5)."""
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n, 3))
+    pts[:, 2] = 0.25
+    pts[: n // 10, 0] = 0.5
+    return pts
+
+
+def duplicates(n, seed, k=10):
+    """Each point repeated k - 1 times (multiplicity below k)."""
+    base = uniform(n // (k - 1) + 1, seed)
+    return np.repeat(base, k - 1, axis=0)[:n]
+
+
+def on_faces(n, seed):
+    """Points on the box's faces, edges and corners (the periodic seams)."""
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n, 3))
+    face = rng.integers(0, 3, n)
+    pts[np.arange(n), face] = 0.0
+    pts[:8] = np.array(np.meshgrid([0, 0.5], [0, 0.5], [0, 0.5])).reshape(3, -1).T
+    return pts
+
+
+INPUTS = {
+    "uniform": uniform,
+    "multiscale": multiscale,
+    "lattice": lattice,
+    "coplanar": coplanar,
+    "duplicates": duplicates,
+    "faces": on_faces,
+}
+
+
+def assert_certified(mesh, pts):
+    cert = knnrefine.certify(mesh, pts)
+    assert cert.triangulation and cert.volume_ratio == pytest.approx(1.0, abs=1e-9)
+    assert cert.max_aspect <= mesh.tau * (1 + 1e-9)
+    assert cert.max_circumball_count < mesh.k and cert.max_cell_count < mesh.k
+    assert mesh.alpha <= cert.alpha_hat and cert.beta_hat <= mesh.beta
+    assert cert.passed
+    return cert
+
+
+@pytest.mark.parametrize("name", sorted(INPUTS))
+@pytest.mark.parametrize("k", [10, 100])
+def test_the_matrix_is_certified(name, k):
+    pts = INPUTS[name](6000, 1)
+    mesh = knnrefine.refine(pts, k, 3.0, periodic=True, box=BOX)
+    assert isinstance(mesh, Mesh3) and mesh.vertices.shape[1] == 3
+    assert mesh.tetrahedra.shape[1] == 4 and mesh.offsets.shape[1:] == (4, 3)
+    assert_certified(mesh, pts)
+
+
+@pytest.mark.parametrize("tau", [2.5, 4.0])
+def test_other_taus_are_certified(tau):
+    pts = multiscale(5000, 2)
+    mesh = knnrefine.refine(pts, 10, tau, periodic=True, box=BOX)
+    assert_certified(mesh, pts)
+
+
+def test_k_1_refines_down_to_the_floor_and_says_so():
+    """d_{P,1} vanishes on P: the elements round each point stop at the floor, and certify
+    exempts exactly those (counted), checking the ratio where d_Pk >= min_size."""
+    pts = uniform(150, 3)
+    mesh = knnrefine.refine(pts, 1, 3.0, periodic=True, box=BOX, min_size=1e-3)
+    cert = assert_certified(mesh, pts)
+    assert cert.floor_circumballs + cert.floor_cells > 0
+
+
+def test_a_box_of_other_sides_and_origin():
+    """A box away from the origin with three different sides: certified, d_M2 answered in
+    input units against a brute periodic kd-tree over the vertices."""
+    box = (-2.0, 10.0, 0.5, 0.0, 11.0, 3.5)
+    lo, hi = np.array(box[:3]), np.array(box[3:])
+    pts = lo + multiscale(8000, 4) * (hi - lo)
+    mesh = knnrefine.refine(pts, 20, periodic=True, box=box)
+    assert_certified(mesh, pts)
+    q = lo + np.random.default_rng(5).random((2000, 3)) * (hi - lo)
+    tree = cKDTree(mesh.vertices - lo, boxsize=hi - lo)
+    np.testing.assert_allclose(mesh.d_m2(q), tree.query(q - lo, k=2)[0][:, 1], rtol=1e-12)
+
+
+def test_certify_fails_wrong_meshes():
+    """A mesh of other points, and a mesh with one tetrahedron reoriented, fail."""
+    pts = uniform(4000, 6)
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
+    other = knnrefine.refine(multiscale(4000, 7), 10, periodic=True, box=BOX)
+    assert not knnrefine.certify(other, pts).passed
+    flipped = mesh.tetrahedra.copy()
+    flipped[0, [0, 1]] = flipped[0, [1, 0]]
+    offsets = mesh.offsets.copy()
+    offsets[0, [0, 1]] = offsets[0, [1, 0]]
+    broken = dataclasses.replace(mesh, tetrahedra=flipped, offsets=offsets)
+    cert = knnrefine.certify(broken, pts)
+    assert not cert.passed and not cert.triangulation
+
+
+def test_bad_input_is_refused_before_work():
+    pts = uniform(100, 8)
+    with pytest.raises(InputError, match="only boxes periodic on every axis"):
+        knnrefine.refine(pts, 10, periodic=False, box=BOX)
+    with pytest.raises(InputError, match="needs its box"):
+        knnrefine.refine(pts, 10, periodic=True)
+    with pytest.raises(InputError, match="six"):
+        knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
+    with pytest.raises(InputError, match="x0 < x1"):
+        knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 0, 1, -1, 1))
+    with pytest.raises(InputError, match="k"):
+        knnrefine.refine(pts, 101, periodic=True, box=BOX)
+    with pytest.raises(InputError, match="tau"):
+        knnrefine.refine(pts, 10, 2.0, periodic=True, box=BOX)
+    bad = pts.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        knnrefine.refine(bad, 10, periodic=True, box=BOX)
+    with pytest.raises(InputError, match="weights"):
+        knnrefine.refine(pts, 10, periodic=True, box=BOX, weights=np.ones(100))
