@@ -123,7 +123,7 @@ def test_deterministic_across_processes(points, tmp_path):
         ([[0.0, np.nan], [1.0, 1.0]], "NaN or infinite"),
         ([[0.0, 1.0], [np.inf, 1.0], [2.0, np.inf]], "2 row"),
         (np.zeros((0, 2)), "empty"),
-        (np.zeros((5, 3)), "shape"),
+        (np.zeros((5, 4)), "shape"),  # (n, 3) is a run in space (test_refine3)
         (np.zeros(6), "shape"),
         ([["a", "b"], ["c", "d"]], "numeric"),
         ([[1, 2], [3]], "could not be read"),

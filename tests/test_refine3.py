@@ -157,3 +157,15 @@ def test_bad_input_is_refused_before_work():
         knnrefine.refine(bad, 10, periodic=True, box=BOX)
     with pytest.raises(InputError, match="weights"):
         knnrefine.refine(pts, 10, periodic=True, box=BOX, weights=np.ones(100))
+
+
+@pytest.mark.parametrize("k", [10, 50])
+def test_methionine_torsions_on_the_3_torus(k):
+    """Real data: 18,417 methionine side-chain torsion triples (chi1, chi2, chi3) in degrees,
+    periodic with period 360 on every axis (../shared/data README: Top8000, CC BY 4.0)."""
+    from conftest import load_shared
+
+    pts = load_shared("rota_top8000_met_chi1_chi2_chi3.csv")
+    mesh = knnrefine.refine(pts, k, periodic=True, box=(0, 0, 0, 360, 360, 360))
+    cert = assert_certified(mesh, pts)
+    assert cert.beta_hat < 3.0  # far inside Theorem 6's beta = 36 (typically about 1.5)

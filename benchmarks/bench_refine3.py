@@ -1,0 +1,120 @@
+"""Benchmark in space: knnrefine.refine on (n, 3) points in the periodic unit cube against
+scipy's cKDTree(boxsize=1) exact k-th-neighbour distances at the n points.
+
+Each configuration runs in a fresh subprocess, after one untimed warm-up call on the same
+input; refine and the cKDTree (build + ``query(points, k=[k], workers=-1)``, both cores)
+alternate --repeat times and the medians are reported, with refine's peak resident memory
+above what the process held before the call (``bench_refine.py``'s method) per mesh vertex.
+Where n * k > --ckdtree-budget the query runs on 10^5 sampled points and its time is scaled
+to n (marked "~").
+
+    python benchmarks/bench_refine3.py --sizes 1e5 1e6 --ks 10 100 1000 --repeat 3 \\
+        --out benchmarks/results/bench_refine3.json
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_refine import _status_mb, _trim, machine, reset_peak  # noqa: E402
+
+
+def make_points3(kind, n, seed=0):
+    """uniform: the unit cube. clustered: 30 Gaussian clusters whose widths span three orders
+    of magnitude (1e-4 to 1e-1) over a 10% uniform background, wrapped into the cube."""
+    rng = np.random.default_rng(seed)
+    if kind == "uniform":
+        return rng.random((n, 3))
+    centres = rng.random((30, 3))
+    widths = 10 ** rng.uniform(-4, -1, 30)
+    counts = rng.multinomial(n - n // 10, rng.dirichlet(np.ones(30)))
+    parts = [rng.normal(c, w, (m, 3)) for c, w, m in zip(centres, widths, counts, strict=True)]
+    return np.mod(np.concatenate(parts + [rng.random((n // 10, 3))]), 1.0)
+
+
+def worker(kind, n, k, repeat, budget):
+    from scipy.spatial import cKDTree
+
+    import knnrefine
+
+    box = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+    pts = make_points3(kind, n)
+    knnrefine.refine(pts, k, periodic=True, box=box)  # warm-up
+    times, peaks, kd = [], [], []
+    sampled = n * k > budget
+    q = pts[np.random.default_rng(2).choice(n, 100_000, replace=False)] if sampled else pts
+    for _ in range(repeat):
+        _trim()
+        base = _status_mb("VmRSS")
+        ok = reset_peak()
+        t0 = time.perf_counter()
+        mesh = knnrefine.refine(pts, k, periodic=True, box=box)
+        times.append(time.perf_counter() - t0)
+        peaks.append((_status_mb("VmHWM") - base) if ok else float("nan"))
+        m, t = len(mesh.vertices), len(mesh.tetrahedra)
+        del mesh
+        t0 = time.perf_counter()
+        tree = cKDTree(pts, boxsize=1.0)
+        t_build = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        tree.query(q, k=[k], workers=-1)
+        kd.append(t_build + (time.perf_counter() - t0) * (n / len(q)))
+        del tree
+    peak = float(np.median(peaks))
+    return {
+        "kind": kind, "n": n, "k": k, "m": m, "tetrahedra": t,
+        "refine_s": float(np.median(times)), "refine_all_s": times,
+        "ckdtree_s": float(np.median(kd)), "ckdtree_all_s": kd, "ckdtree_sampled": sampled,
+        "ratio": float(np.median(times)) / float(np.median(kd)),
+        "peak_mb": peak, "bytes_per_vertex": peak * 2**20 / m,
+    }  # fmt: skip
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sizes", type=float, nargs="+", default=[1e5, 1e6])
+    ap.add_argument("--ks", type=int, nargs="+", default=[10, 100, 1000])
+    ap.add_argument("--kinds", nargs="+", default=["uniform", "clustered"])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--ckdtree-budget", type=float, default=2e8)
+    ap.add_argument("--out")
+    ap.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        kind, n, k, repeat, budget = args.worker
+        print(json.dumps(worker(kind, int(n), int(k), int(repeat), float(budget))))
+        return
+    rows = []
+    for kind in args.kinds:
+        for n in (int(s) for s in args.sizes):
+            for k in args.ks:
+                if k >= n:
+                    continue
+                out = subprocess.run(
+                    [sys.executable, __file__, "--worker", kind, str(n), str(k),
+                     str(args.repeat), str(args.ckdtree_budget)],
+                    capture_output=True, text=True, check=True,
+                )  # fmt: skip
+                row = json.loads(out.stdout.strip().splitlines()[-1])
+                rows.append(row)
+                mark = "~" if row["ckdtree_sampled"] else ""
+                print(
+                    f"{kind:>9} n={n:.0e} k={k:>4}: refine {row['refine_s']:.3f} s, "
+                    f"cKDTree {mark}{row['ckdtree_s']:.3f} s (ratio {row['ratio']:.2f}), "
+                    f"m = {row['m']:,}, peak {row['peak_mb']:.0f} MB = "
+                    f"{row['bytes_per_vertex']:.0f} B/vertex",
+                    flush=True,
+                )
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"machine": machine(), "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
