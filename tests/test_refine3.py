@@ -169,3 +169,29 @@ def test_methionine_torsions_on_the_3_torus(k):
     mesh = knnrefine.refine(pts, k, periodic=True, box=(0, 0, 0, 360, 360, 360))
     cert = assert_certified(mesh, pts)
     assert cert.beta_hat < 3.0  # far inside Theorem 6's beta = 36 (typically about 1.5)
+
+
+def test_the_initial_mesh_check_counts_balls_of_every_size():
+    """api3._holds (does the closed ball of radius r about x hold k points?) against a
+    periodic kd-tree, for radii below half the period (the index), up to the torus'
+    diameter (a direct count) and beyond it (every point)."""
+    from knnrefine.api3 import _holds
+    from knnrefine.engine.index3 import build_index3
+
+    period = np.array([1.0, 0.5, 2.0])
+    u = np.mod(multiscale(5000, 9) * period, period)
+    index = build_index3(u)
+    rng = np.random.default_rng(10)
+    x = rng.random((600, 3)) * period
+    reach = rng.random(600) * 1.4  # up to past the diameter, 1.15
+    tree = cKDTree(u, boxsize=period)
+    for k in (1, 37, 2500, 5000):
+        want = tree.query_ball_point(x, reach, return_length=True) >= k
+        np.testing.assert_array_equal(_holds(index, u, x, reach, k, period), want)
+
+
+def test_tau_beyond_6_is_certified():
+    """tau = 8: K = 3 (the far-corner Break's need), the initial check's first reach half a
+    period (the direct count)."""
+    pts = uniform(3000, 11)
+    assert_certified(knnrefine.refine(pts, 10, 8.0, periodic=True, box=BOX), pts)

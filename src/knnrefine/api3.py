@@ -6,11 +6,11 @@ built yet and are refused with a message."""
 import time
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from . import validation as V
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.geometry import Q
+from .engine.index3 import build_index3, holds_k_within3
 from .engine.initial import reach_factor
 from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
 from .engine.state import C_CELL_TESTS, C_DISK_TESTS, C_FAILED
@@ -29,6 +29,21 @@ def check_box3(box):
     if not all(b[a + 3] > b[a] for a in range(3)):
         raise InputError(f"box {tuple(b)} must have x0 < x1, y0 < y1 and z0 < z1")
     return tuple(b)
+
+
+def _holds(index, u, x, reach, k, period):
+    """Whether the closed ball of radius ``reach`` about each x holds >= k of the points u
+    (the index over them answers below half the shortest period; a ball reaching every
+    point of the torus holds all of them; between the two, a direct count)."""
+    reach = np.asarray(reach, float)
+    out = reach >= np.sqrt(((period / 2.0) ** 2).sum())  # the torus' diameter: every point
+    small = ~out & (reach < 0.5 * period.min() * (1.0 - 1e-9))
+    out[small] = holds_k_within3(index, x[small], reach[small] ** 2, float(k), period)
+    for i in np.flatnonzero(~out & ~small):
+        d = np.abs(u - x[i])
+        d = np.minimum(d, period - d)
+        out[i] = np.count_nonzero((d**2).sum(axis=1) <= reach[i] ** 2) >= k
+    return out
 
 
 def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_vertices=None,
@@ -69,9 +84,9 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
     u = np.mod((pts - lo) * scale, period)
     u = np.where(u >= period, u - period, u)
     floor = (1e-6 * side.max() if min_size is None else float(min_size)) * scale
-    tree = cKDTree(u, boxsize=period)
-    factor = reach_factor(tau)
-    grid = choose_grid3(period, lambda x: tree.query(x, k=[k])[0][:, 0], factor)
+    run_index = build_index3(u)
+    grid = choose_grid3(period, lambda x, reach: _holds(run_index, u, x, reach, k, period),
+                        reach_factor(tau))  # fmt: skip
     if grid is None:
         raise InputError(
             f"k = {k} is too large for {len(pts):,} points in this box: no initial mesh of the "
@@ -80,7 +95,7 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
         )
     budget = int(max_vertices) if max_vertices is not None else max(10**6, 4 * len(pts))
     deadline = None if time_limit is None else t_start + float(time_limit)
-    run = Refinement3(u, period, k, tau, floor, budget, grid)
+    run = Refinement3(run_index, period, k, tau, floor, budget, grid)
     status = run.run(deadline, None if progress is None else (lambda m: progress(m, 0)))
     if status == STATUS_MAX_VERTICES:
         raise BudgetError(f"stopped at max_vertices = {budget:,} before the mesh was done")

@@ -5,7 +5,6 @@ the arrays when the kernel asks, and returns the final triangulation."""
 import numpy as np
 
 from .geometry import FLOOR_BITS, Q
-from .index3 import build_index3
 from .initial import initial_grid3, peel_order
 from .interrupt import Interrupts
 from .queue import Q_USED, new_queue
@@ -64,11 +63,11 @@ TETRAHEDRON_FIELDS3 = (
 
 class Refinement3:
     """One 3-D run on the torus of ``period`` (internal units, multiples of Q) over the
-    points (internal coordinates in [0, period))."""
+    points of ``index`` (``index3.build_index3``, internal coordinates in [0, period))."""
 
-    def __init__(self, points, period, k, tau, floor, max_vertices, grid):
+    def __init__(self, index, period, k, tau, floor, max_vertices, grid):
         self.period = np.asarray(period, float)
-        self.index = build_index3(points)
+        self.index = index
         estimate = max(4096, len(grid[0]) * 4)
         self.mesh, self.scratch, self.cnt = new_torus3(self.period, grid, estimate, 7 * estimate)
         t_cap = self.mesh.corners.shape[0]
@@ -80,7 +79,9 @@ class Refinement3:
             flags=np.zeros(v_cap, np.int8),
         )
         self.queues = Queues(
-            balls=new_queue(4 * t_cap), cells=new_queue(2 * v_cap), cleans=new_queue(2 * v_cap)
+            balls=new_queue(t_cap // 2 + 4 * HEADROOM3),
+            cells=new_queue(v_cap // 2 + 2 * HEADROOM3),
+            cleans=new_queue(v_cap // 2 + 2 * HEADROOM3),
         )
         self.probe = Probe3(
             h=np.zeros((1024, 3)),
@@ -156,18 +157,20 @@ class Refinement3:
         )
 
 
-def choose_grid3(period, d_pk, factor):
+def choose_grid3(period, holds, factor):
     """The first candidate M0 (finest first) whose vertices can be ordered so that each u
     has d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition, factor = K - 1:
     ``initial.reach_factor``; the order is found by peeling, ``initial.peel_order``):
-    ``d_pk(x)`` gives d_{P,k} at vertices x. None when no candidate passes."""
+    ``holds(x, r)`` says whether the closed ball of radius r about each x holds k points.
+    None when no candidate passes."""
     for per, jitter, shift in ((4, 0.2, 0.0), (4, 0.2, 0.5), (3, 0.05, 0.0), (3, 0.05, 0.5)):
         grid = initial_grid3(period, per, jitter, shift)
         if grid is None:
             continue
 
         def passes(x, lam):
-            return d_pk(x) <= factor * lam * (1.0 - 1e-9)
+            # conservative: the reach is shortened by a relative 1e-9 against rounding
+            return holds(x, factor * lam * (1.0 - 1e-9))
 
         if peel_order(grid[0], grid[4], period, passes)[0] is not None:
             return grid

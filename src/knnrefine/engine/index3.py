@@ -256,3 +256,14 @@ def count_in_cell3(index, v, h, hc, nh, r2, k, period, stack):
                 if count >= k:
                     return count
     return count
+
+
+@kernel(entry=True)
+def holds_k_within3(index, x, r2, k, period):
+    """For each point x[i]: does the closed ball of squared radius r2[i] about it hold >= k
+    points of P? (Radii below half the shortest period: ``count_in_ball3``.)"""
+    out = np.zeros(x.shape[0], np.bool_)
+    stack = np.empty(STACK_SIZE, np.int64)
+    for i in range(x.shape[0]):
+        out[i] = count_in_ball3(index, x[i], r2[i], k, period, stack) >= k
+    return out
