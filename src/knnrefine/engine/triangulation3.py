@@ -104,13 +104,15 @@ def _forget_outradius(mesh, t):
 
 
 @kernel(nrt=False)
-def vertex_star3(v, mesh, scratch, cnt, period):
+def walk_star3(v, mesh, scratch, cnt, period, h, ids):
     """Walk the tetrahedra around vertex v (breadth first, across the faces through v).
 
-    Returns (outradius2, far, d_m2_sq, count): R(v)^2, the tetrahedron whose circumcentre is
-    farCorner(Vor(v)) (the first met of the largest), d_{M,2}(v)^2 (the shortest edge at v:
-    the nearest other vertex is a Delaunay neighbour) and the number of tetrahedra; count is
-    -1 when they overflow the walk's stack (scratch.walk)."""
+    Returns (outradius2, far, d_m2_sq, count, nh): R(v)^2, the tetrahedron whose circumcentre
+    is farCorner(Vor(v)) (the first met of the largest), d_{M,2}(v)^2 (the shortest edge at
+    v: the nearest other vertex is a Delaunay neighbour), the number of tetrahedra (-1 when
+    they overflow the walk's stack, scratch.walk) and of neighbours: their positions
+    relative to v go to h[:nh], their indices to ids[:nh] (nh = -1 when h is too short; an
+    empty h collects none)."""
     stack = scratch.walk
     stamp = cnt[C_STAMP] + 1
     cnt[C_STAMP] = stamp
@@ -119,6 +121,7 @@ def vertex_star3(v, mesh, scratch, cnt, period):
     scratch.mark[t0] = stamp
     n = 1
     i = 0
+    nh = 0
     outradius2 = -1.0
     far = -1
     d_m2_sq = np.inf
@@ -142,14 +145,39 @@ def vertex_star3(v, mesh, scratch, cnt, period):
                 )
                 e2 += d * d
             d_m2_sq = min(d_m2_sq, e2)
+            if h.shape[0] > 0 and nh >= 0:
+                seen = False
+                for m in range(nh):
+                    if ids[m] == u:
+                        seen = True
+                        break
+                if not seen:
+                    if nh >= h.shape[0]:
+                        nh = -1
+                    else:
+                        ids[nh] = u
+                        for a in range(3):
+                            h[nh, a] = (
+                                mesh.xyz[u, a]
+                                - mesh.xyz[v, a]
+                                + (mesh.offsets[t, j, a] - mesh.offsets[t, iv, a]) * period[a]
+                            )
+                        nh += 1
             nb = mesh.neighbours[t, j]  # across the face opposite u: it holds v
             if scratch.mark[nb] != stamp:
                 if n >= stack.shape[0]:
-                    return outradius2, far, d_m2_sq, -1
+                    return outradius2, far, d_m2_sq, -1, -1
                 scratch.mark[nb] = stamp
                 stack[n] = nb
                 n += 1
-    return outradius2, far, d_m2_sq, n
+    return outradius2, far, d_m2_sq, n, nh
+
+
+@kernel(nrt=False)
+def vertex_star3(v, mesh, scratch, cnt, period):
+    """(R(v)^2, far corner's tetrahedron, d_{M,2}(v)^2, tetrahedra at v): ``walk_star3``."""
+    r2, far, d2, n, _ = walk_star3(v, mesh, scratch, cnt, period, scratch.no_h, scratch.no_ids)
+    return r2, far, d2, n
 
 
 @kernel(entry=True, nrt=False)
@@ -499,6 +527,8 @@ def new_torus3(period, grid, vertices, tetrahedra):
         shift=np.zeros(3, np.int64),
         walk_point=np.zeros(3),
         moved=np.zeros((MAX_CAVITY3 + 1, 2), np.int64),
+        no_h=np.zeros((0, 3)),
+        no_ids=np.zeros(0, np.int64),
     )
     cnt = np.zeros(N_COUNTERS, np.int64)
     cnt[C_NV], cnt[C_NT] = nv, nt
@@ -512,44 +542,5 @@ def new_torus3(period, grid, vertices, tetrahedra):
 def vertex_neighbours3(v, mesh, scratch, cnt, period, h, ids):
     """The Delaunay neighbours of v: h[i] their positions relative to v, ids[i] their
     indices; returns their number, -1 if h or the walk's stack is too short."""
-    stack = scratch.walk
-    stamp = cnt[C_STAMP] + 1
-    cnt[C_STAMP] = stamp
-    t0 = mesh.star[v]
-    stack[0] = t0
-    scratch.mark[t0] = stamp
-    n = 1
-    i = 0
-    nh = 0
-    while i < n:
-        t = stack[i]
-        i += 1
-        iv = corner_of3(mesh, t, v)
-        for j in range(4):
-            if j == iv:
-                continue
-            u = mesh.corners[t, j]
-            seen = False
-            for m in range(nh):
-                if ids[m] == u:
-                    seen = True
-                    break
-            if not seen:
-                if nh >= h.shape[0]:
-                    return -1
-                ids[nh] = u
-                for a in range(3):
-                    h[nh, a] = (
-                        mesh.xyz[u, a]
-                        - mesh.xyz[v, a]
-                        + (mesh.offsets[t, j, a] - mesh.offsets[t, iv, a]) * period[a]
-                    )
-                nh += 1
-            nb = mesh.neighbours[t, j]
-            if scratch.mark[nb] != stamp:
-                if n >= stack.shape[0]:
-                    return -1
-                scratch.mark[nb] = stamp
-                stack[n] = nb
-                n += 1
-    return nh
+    n, nh = walk_star3(v, mesh, scratch, cnt, period, h, ids)[3:]
+    return -1 if n < 0 else nh
