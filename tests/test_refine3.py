@@ -5,6 +5,7 @@ d_M2 / d_Pk at dense probes within Theorem 6's [alpha, beta]); and the checks th
 shown to fail on wrong meshes."""
 
 import dataclasses
+import os
 
 import numpy as np
 import pytest
@@ -195,3 +196,46 @@ def test_tau_beyond_6_is_certified():
     period (the direct count)."""
     pts = uniform(3000, 11)
     assert_certified(knnrefine.refine(pts, 10, 8.0, periodic=True, box=BOX), pts)
+
+
+def test_command_line_in_space_writes_vtu_and_npz(tmp_path):
+    """knnrefine refine with three --columns and a six-number box: .vtu (ParaView: every
+    tetrahedron positively oriented where its offsets put its corners, d_M2 per point) and
+    .npz (read back array for array, certified again by 'knnrefine certify'); outputs the
+    3-D writers lack, --plot and a five-number box are refused before work."""
+    import meshio
+
+    from knnrefine import io
+    from knnrefine.cli.main import main
+
+    pts = multiscale(5000, 12) * 360.0
+    csv = tmp_path / "chi.csv"
+    np.savetxt(csv, pts, delimiter=",", header="chi1,chi2,chi3", comments="")
+    box = ["--box", "0", "0", "0", "360", "360", "360"]
+    args = ["refine", str(csv), "--columns", "chi1,chi2,chi3", "-k", "20", "--periodic", *box]
+    out = [str(tmp_path / "m.vtu"), str(tmp_path / "m.npz")]
+    assert main([*args, "-o", out[0], "-o", out[1], "--certify", "--quiet"]) == 0
+    mesh = io.read_mesh(out[1])
+    assert isinstance(mesh, Mesh3) and len(mesh.vertices) > 100
+    again = knnrefine.refine(pts, 20, periodic=True, box=(0, 0, 0, 360, 360, 360))
+    for name in ("vertices", "tetrahedra", "offsets", "kinds", "local"):
+        np.testing.assert_array_equal(getattr(mesh, name), getattr(again, name))
+    vtu = meshio.read(out[0])
+    tets = vtu.cells_dict["tetra"]
+    assert len(tets) == len(mesh.tetrahedra)
+    c = vtu.points[tets]
+    assert (np.linalg.det(c[:, :3] - c[:, 3:]) > 0).all()  # orient3d > 0 (module convention)
+    assert np.abs(c.sum(axis=1) / 4 - (mesh.corners().mean(axis=1) + mesh.origin)).max() < 1e-9
+    np.testing.assert_allclose(vtu.point_data["d_m2"], mesh.d_m2(vtu.points))
+    assert main(["certify", out[1], str(csv), "--columns", "chi1,chi2,chi3"]) == 0
+
+    def code(argv):
+        try:
+            return main(argv)
+        except SystemExit as exc:
+            return exc.code
+
+    for bad in (["-o", str(tmp_path / "m.geojson")], ["--plot", str(tmp_path / "m.png")]):
+        assert code([*args, *bad]) == 1
+        assert not os.path.exists(bad[1])
+    assert code([*args[:-6], "--box", "0", "0", "0", "360", "360"]) == 2

@@ -48,6 +48,20 @@ class Certificate3:
     def to_dict(self):
         return asdict(self)
 
+    def __str__(self):
+        verdict = "PASSED" if self.passed else "FAILED"
+        return "\n".join([
+            f"certify (3-D): {verdict} in {self.seconds:.2f} s",
+            f"  tetrahedralisation exact: {self.triangulation} (orientation failures "
+            f"{self.orientation_failures}, Delaunay failures {self.delaunay_failures}, "
+            f"volume / torus {self.volume_ratio:.12f})",
+            f"  aspect max {self.max_aspect:.4f}; points in a circumball max "
+            f"{self.max_circumball_count}, in a cell max {self.max_cell_count} (floor: "
+            f"{self.floor_circumballs} circumballs, {self.floor_cells} cells)",
+            f"  d_M2 / d_Pk at {self.probes:,} probes in [{self.alpha_hat:.4f}, "
+            f"{self.beta_hat:.4f}]; Theorem 6: [{self.alpha:.4f}, {self.beta:.2f}]",
+        ])  # fmt: skip
+
 
 @njit(cache=True)
 def _exact_faces(local, corners, offsets, neighbours, period):

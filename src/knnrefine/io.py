@@ -93,8 +93,11 @@ def _parse_columns(columns):
         parts = [c.strip() for c in columns.split(",")]
     else:
         parts = list(columns)
-    if len(parts) != 2 or not all(str(p) for p in parts):
-        raise InputError(f"--columns needs two columns, like lon,lat or 0,1; got {columns!r}")
+    if len(parts) not in (2, 3) or not all(str(p) for p in parts):
+        raise InputError(
+            f"--columns needs two columns (lon,lat or 0,1), or three for points in space "
+            f"(x,y,z); got {columns!r}"
+        )
     return [_column(p) for p in parts]
 
 
@@ -256,13 +259,16 @@ def _read_parquet(path, cols):
 
 
 def write_mesh(mesh, path, force=False):
-    """Write ``mesh`` in the format its extension names (see WRITERS)."""
+    """Write ``mesh`` in the format its extension names (see WRITERS; a ``Mesh3``:
+    WRITERS3)."""
+    from .mesh3 import Mesh3
+
+    writers = WRITERS3 if isinstance(mesh, Mesh3) else WRITERS
     ext = os.path.splitext(path)[1].lower()
-    if ext not in WRITERS:
-        raise InputError(
-            f"{path}: unknown mesh format {ext!r}; use one of {', '.join(sorted(WRITERS))}"
-        )
-    atomic_write(path, force, lambda tmp: WRITERS[ext](mesh, tmp))
+    if ext not in writers:
+        what = "a mesh in space" if writers is WRITERS3 else "a mesh"
+        raise InputError(f"{path}: {what} is written as {', '.join(sorted(writers))}, not {ext!r}")
+    atomic_write(path, force, lambda tmp: writers[ext](mesh, tmp))
 
 
 def read_mesh(path):
@@ -353,6 +359,8 @@ def _read_npz(path):
         d = np.load(path, allow_pickle=False)
         if int(d["format"]) > FORMAT_VERSION:
             raise InputError(f"{path}: written by a newer knnrefine (format {int(d['format'])})")
+        if "tetrahedra" in d.files:
+            return _mesh3_of(d)
         torus = Torus(
             origin=tuple(d["torus_origin"].tolist()),
             period=tuple(d["torus_period"].tolist()),
@@ -471,6 +479,64 @@ def _write_csv(mesh, path):
         }
     ).to_csv(path, index=False)
 
+
+def _write_npz3(mesh, path):
+    """A ``Mesh3``, losslessly (``read_mesh`` gives it back, array for array)."""
+    with open(path, "wb") as f:
+        np.savez_compressed(
+            f, format=np.array(FORMAT_VERSION), vertices=mesh.vertices,
+            tetrahedra=mesh.tetrahedra, offsets=mesh.offsets, kinds=mesh.kinds,
+            k=np.array(mesh.k), tau=np.array(mesh.tau), periodic=np.array(mesh.periodic),
+            box=np.array(mesh.box), min_size=np.array(mesh.min_size),
+            origin=np.array(mesh.origin), period=np.array(mesh.period), local=mesh.local,
+            stats=np.array(json.dumps(mesh.stats)),
+        )  # fmt: skip
+
+
+def _mesh3_of(d):
+    from .mesh3 import Mesh3
+
+    return Mesh3(
+        vertices=d["vertices"], tetrahedra=d["tetrahedra"], offsets=d["offsets"],
+        kinds=d["kinds"], k=int(d["k"]), tau=float(d["tau"]),
+        periodic=tuple(bool(p) for p in d["periodic"]),
+        box=tuple(float(b) for b in d["box"]), min_size=float(d["min_size"]),
+        origin=tuple(d["origin"].tolist()), period=tuple(d["period"].tolist()),
+        local=d["local"], stats=json.loads(str(d["stats"])),
+    )  # fmt: skip
+
+
+def _meshio_writer3(file_format):
+    """ParaView's view of a ``Mesh3``: every tetrahedron with its corners where its offsets
+    put them (vertex copies past the box's upper faces where a tetrahedron reaches there),
+    each copy once; point data: kind, d_M2, the vertex it copies."""
+
+    def write(mesh, path):
+        import meshio
+
+        o = mesh.offsets.astype(np.int64)  # 0 or 1: a tetrahedron spans under half a period
+        if o.max(initial=0) > 3:
+            raise AssertionError("a tetrahedron's offsets reach past 3 periods")
+        keys = mesh.tetrahedra.astype(np.int64) * 64 + o[..., 0] * 16 + o[..., 1] * 4 + o[..., 2]
+        unique, inverse = np.unique(keys.ravel(), return_inverse=True)
+        vertex = unique // 64
+        shift = np.stack([unique // 16 % 4, unique // 4 % 4, unique % 4], 1)
+        points = np.asarray(mesh.origin) + mesh.local[vertex] + shift * np.asarray(mesh.period)
+        out = meshio.Mesh(
+            points=points,
+            cells=[("tetra", inverse.reshape(-1, 4).astype(np.int64))],
+            point_data={
+                "kind": mesh.kinds[vertex].astype(np.int32),
+                "d_m2": mesh.d_m2(points),
+                "vertex": vertex.astype(np.int64),
+            },
+        )
+        meshio.write(path, out, file_format=file_format)
+
+    return write
+
+
+WRITERS3 = {".npz": _write_npz3, ".vtu": _meshio_writer3("vtu"), ".vtk": _meshio_writer3("vtk")}
 
 WRITERS = {
     ".npz": _write_npz,

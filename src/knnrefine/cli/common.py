@@ -58,8 +58,9 @@ def add_input_options(parser, positional="points"):
     )
     parser.add_argument(
         "--columns",
-        metavar="A,B",
+        metavar="A,B[,C]",
         help="the x and y columns, by name (lon,lat) or zero-based index (2,3); "
+        "three columns (x,y,z) for points in space ('refine' and 'certify'); "
         "default: the first two",
     )
     parser.add_argument(
@@ -81,9 +82,10 @@ def add_refine_options(parser, k_required=True, k_help="which nearest neighbour 
     parser.add_argument(
         "--box",
         type=float,
-        nargs=4,
-        metavar=("XMIN", "YMIN", "XMAX", "YMAX"),
-        help="the box; default: the points' bounding box",
+        nargs="+",
+        metavar="BOUND",
+        help="the box: XMIN YMIN XMAX YMAX, or XMIN YMIN ZMIN XMAX YMAX ZMAX for points in "
+        "space; default: the points' bounding box",
     )
     parser.add_argument(
         "--min-size", type=float, help="resolution floor (default 1e-6 of the box's longer side)"
@@ -95,6 +97,12 @@ def add_refine_options(parser, k_required=True, k_help="which nearest neighbour 
 
 
 def periodic_of(args):
+    box = getattr(args, "box", None)
+    if box is not None and len(box) not in (4, 6):
+        raise UsageError(
+            f"--box takes 4 numbers (XMIN YMIN XMAX YMAX) or 6 for points in space "
+            f"(XMIN YMIN ZMIN XMAX YMAX ZMAX), got {len(box)}"
+        )
     if getattr(args, "box", None) is None and (args.periodic or args.periodic_x or args.periodic_y):
         flag = (
             "--periodic"
@@ -188,6 +196,18 @@ def refine_with_progress(points, args, quiet, weights=None):
 
 
 def summary(mesh, seconds):
+    from ..mesh3 import Mesh3
+
+    if isinstance(mesh, Mesh3):
+        moves = mesh.kind_counts
+        return (
+            f"refined n = {mesh.stats['n']:,} points in space (k = {mesh.k}, tau = "
+            f"{mesh.tau:g}) into m = {len(mesh.vertices):,} vertices and "
+            f"{len(mesh.tetrahedra):,} tetrahedra in {seconds:.2f} s\n"
+            f"  moves: {moves['break_circumball']:,} circumball breaks, "
+            f"{moves['break_cell']:,} cell breaks, {moves['clean']:,} cleans; Theorem 6: "
+            f"alpha = {mesh.alpha:.4f}, beta = {mesh.beta:.2f}"
+        )
     t = mesh.stats["time"]
     moves = mesh.stats["moves"]
     floor = mesh.stats["floor_circumballs"] + mesh.stats["floor_cells"]

@@ -3,6 +3,7 @@
 import os
 import time
 
+from ..errors import InputError
 from .common import (
     MESHES,
     PICTURES,
@@ -22,9 +23,11 @@ EXAMPLES = """examples:
       -o quakes.npz -o quakes.vtu --plot quakes.png
   knnrefine refine angles.tsv -k 50 --periodic --box 0 0 360 360 -o angles.npz --certify
   cat points.txt | knnrefine refine - -k 10 -o mesh.geojson
+  knnrefine refine chi.csv --columns chi1,chi2,chi3 -k 20 --periodic \
+      --box 0 0 0 360 360 360 -o chi.vtu -o chi.npz --certify
 
 outputs (by extension): .npz (knnrefine's lossless format), .vtu/.vtk/.xdmf (ParaView),
-.geojson (GIS), .csv (the vertices)"""
+.geojson (GIS), .csv (the vertices); in space (three --columns): .npz, .vtu, .vtk"""
 
 
 def add_arguments(parser):
@@ -56,6 +59,16 @@ def run(args):
         args.force,
     )
     periodic_of(args)
+    if args.columns is not None and len(str(args.columns).split(",")) == 3:  # in space
+        from ..io import WRITERS3
+
+        for path in outputs:
+            if os.path.splitext(path)[1].lower() not in WRITERS3:
+                raise InputError(
+                    f"{path}: a mesh in space is written as {', '.join(sorted(WRITERS3))}"
+                )
+        if args.plot:
+            raise InputError("--plot draws planar meshes; view a mesh in space as .vtu")
     t0 = time.perf_counter()
     points, names = read_input(args)
     if not args.quiet:
