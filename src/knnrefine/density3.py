@@ -1,0 +1,188 @@
+"""d_{P,k} anywhere in a periodic box of three dimensions, the kNN density, and the kNN-CDF,
+from a ``Mesh3``.
+
+As in the plane (``density.py``): exact d_{P,k} at the mesh's vertices (one query of a
+periodic kd-tree each), carried linearly over the tetrahedra. The kNN-CDF of cosmology, the
+distribution of d_{P,k} at uniformly random points of the box, CDF(r) = vol{x : d_{P,k}(x)
+<= r} / vol(box), is integrated over the mesh exactly for the interpolant: on a tetrahedron
+whose corners carry d_0 <= d_1 <= d_2 <= d_3, the value at a uniform point has the cubic
+B-spline distribution with those knots, so the share of the tetrahedron below r is a
+piecewise cubic in r. Rigorous bounds come without any assumption on the interpolant:
+d_{P,k} is 1-Lipschitz, so on a tetrahedron of longest edge h it lies in [d_0 - h, d_3 + h];
+counting each tetrahedron whole where its upper bound is <= r gives a lower bound of the
+CDF, where its lower bound is <= r an upper bound (``cdf_bounds``).
+"""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import InputError
+from .validation import as_points
+
+
+class KnnDistance3:
+    """d_{P,k} at any point of the 3-torus, from a ``Mesh3`` and its points.
+
+    ``subdivide`` (default): also exact at the edges' midpoints, each tetrahedron cut into
+    eight (its corners' four and the central octahedron's four, split along one diagonal):
+    d_{P,k} is a distance, peaked between its nodes, and the midpoints catch much of that."""
+
+    def __init__(self, mesh, points, subdivide=True):
+        pts = as_points(points, 3)
+        if len(pts) < mesh.k:
+            raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
+        made_from = mesh.stats.get("n")
+        if made_from is not None and int(made_from) != len(pts):
+            raise InputError(
+                f"the mesh was made from {int(made_from):,} points, not {len(pts):,}: give "
+                "the points it was refined from"
+            )
+        self.mesh, self.k, self.n = mesh, mesh.k, len(pts)
+        self.period = np.asarray(mesh.period, float)
+        self._points = cKDTree(mesh.wrap(pts), boxsize=self.period)
+        self.values = self._points.query(mesh.local, k=[mesh.k])[0][:, 0]
+        corners = mesh.corners()  # relative to the origin, unwrapped
+        d = self.values[mesh.tetrahedra]
+        if subdivide:
+            corners, d = self._subdivided(corners, d)
+        self._corners = corners
+        self._d = d
+        edges = corners[:, [0, 0, 0, 1, 1, 2]] - corners[:, [1, 2, 3, 2, 3, 3]]
+        self._h = np.sqrt((edges**2).sum(axis=2)).max(axis=1)
+        self._volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
+        self._locator = None
+
+    # the eight tetrahedra of a tetrahedron cut at its edges' midpoints, as indices into its
+    # corners 0-3 and midpoints 4-9 of the edges 01, 02, 03, 12, 13, 23
+    _EIGHT = np.array([
+        [0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3],
+        [5, 8, 4, 7], [5, 8, 7, 9], [5, 8, 9, 6], [5, 8, 6, 4],
+    ])  # fmt: skip
+    _PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+
+    def _subdivided(self, corners, d):
+        mids = 0.5 * (corners[:, self._PAIRS[:, 0]] + corners[:, self._PAIRS[:, 1]])
+        dm = self._points.query(np.mod(mids.reshape(-1, 3), self.period), k=[self.k])[0][:, 0]
+        nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
+        values = np.concatenate([d, dm.reshape(-1, 6)], axis=1)
+        return nodes[:, self._EIGHT].reshape(-1, 4, 3), values[:, self._EIGHT].reshape(-1, 4)
+
+    # -- evaluation ------------------------------------------------------------------------
+    def exact(self, x):
+        """Exact d_{P,k} at the points x (..., 3) (the periodic kd-tree: the reference)."""
+        flat = as_points(np.reshape(x, (-1, 3)), 3)
+        d = self._points.query(self.mesh.wrap(flat), k=[self.k])[0][:, 0]
+        return d.reshape(np.shape(x)[:-1])
+
+    def __call__(self, x):
+        """The interpolated d_{P,k} at the points x (..., 3)."""
+        flat = as_points(np.reshape(x, (-1, 3)), 3)
+        tet, bary = self._locate(self.mesh.wrap(flat))
+        return np.einsum("qc,qc->q", bary, self._d[tet]).reshape(np.shape(x)[:-1])
+
+    def _locate(self, x):
+        """The tetrahedron (of the covering: the tetrahedra and their copies one period back
+        along each axis) holding each wrapped point, and its barycentric coordinates."""
+        if self._locator is None:
+            shifts = np.array(np.meshgrid([0, -1], [0, -1], [0, -1])).reshape(3, -1).T
+            c = self._corners[None] + (shifts * self.period)[:, None, None, :]
+            c = c.reshape(-1, 4, 3)
+            source = np.tile(np.arange(len(self._corners)), len(shifts))  # the piece
+            lo, hi = c.min(axis=1), c.max(axis=1)
+            meets = ((hi >= 0) & (lo <= self.period)).all(axis=1)
+            c, source = c[meets], source[meets]
+            inv = np.linalg.inv(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1)))
+            self._locator = (cKDTree(c.mean(axis=1)), c[:, 0], inv, source)
+        tree, origin, inv, source = self._locator
+        tet = np.full(len(x), -1)
+        bary = np.zeros((len(x), 4))
+        todo = np.arange(len(x))
+        for kk in (8, 64, 512):
+            if len(todo) == 0:
+                break
+            cand = tree.query(x[todo], k=min(kk, len(origin)))[1].reshape(len(todo), -1)
+            rel = x[todo, None, :] - origin[cand]
+            l123 = np.einsum("qcij,qcj->qci", inv[cand], rel)
+            l0 = 1.0 - l123.sum(axis=2)
+            inside = (l0 >= -1e-9) & (l123 >= -1e-9).all(axis=2)
+            hit = inside.any(axis=1)
+            j = np.argmax(inside, axis=1)[hit]
+            rows = todo[hit]
+            tet[rows] = source[cand[hit, j]]
+            bary[rows, 0] = l0[hit, j]
+            bary[rows, 1:] = l123[hit, j]
+            todo = todo[~hit]
+        if len(todo):
+            raise AssertionError(f"{len(todo)} points in no tetrahedron")
+        return tet, bary
+
+    # -- the kNN-CDF -------------------------------------------------------------------------
+    def cdf(self, r):
+        """CDF(r) = vol{x : d(x) <= r} / vol(box) for the interpolated d, at the radii r."""
+        r = np.atleast_1d(np.asarray(r, float))
+        d = np.sort(self._d, axis=1)
+        span = d[:, 3] - d[:, 0]
+        # knots kept apart by a relative 1e-7 of the span (ties would divide by zero; the
+        # share moves by about as much)
+        gap = np.maximum(1e-7 * span, 1e-12 * np.maximum(d[:, 3], 1e-300))
+        d = d + gap[:, None] * np.arange(4)
+        w = self._volume / self._volume.sum()
+        return np.array([float((w * _share_below(d, float(ri))).sum()) for ri in r])
+
+    def cdf_bounds(self, r):
+        """(lower, upper) bounds of the true kNN-CDF at the radii r: d_{P,k} on a
+        tetrahedron of longest edge h lies within [min corner value - h, max + h]."""
+        r = np.atleast_1d(np.asarray(r, float))
+        w = self._volume / self._volume.sum()
+        upper_d = self._d.max(axis=1) + self._h
+        lower_d = self._d.min(axis=1) - self._h
+        return (
+            np.array([float(w[upper_d <= ri].sum()) for ri in r]),
+            np.array([float(w[lower_d <= ri].sum()) for ri in r]),
+        )
+
+
+def _share_below(d, r):
+    """The share of each tetrahedron where the linear function with sorted corner values d
+    (t, 4), distinct, is <= r: the cubic B-spline's distribution with knots d, evaluated on
+    each knot interval from its stable side."""
+    d0, d1, d2, d3 = d.T
+    out = np.zeros(len(d))
+    a = (r > d0) & (r <= d1)
+    out[a] = (r - d0[a]) ** 3 / ((d1[a] - d0[a]) * (d2[a] - d0[a]) * (d3[a] - d0[a]))
+    b = (r > d1) & (r <= d2)
+    low = b & (d1 - d0 >= d3 - d2)
+    high = b & ~low
+    out[low] = (r - d0[low]) ** 3 / ((d1 - d0) * (d2 - d0) * (d3 - d0))[low] - (
+        r - d1[low]
+    ) ** 3 / ((d1 - d0) * (d2 - d1) * (d3 - d1))[low]
+    out[high] = 1.0 - (
+        (d3[high] - r) ** 3 / ((d3 - d0) * (d3 - d1) * (d3 - d2))[high]
+        - (d2[high] - r) ** 3 / ((d3 - d2) * (d2 - d0) * (d2 - d1))[high]
+    )
+    c = (r > d2) & (r <= d3)
+    out[c] = 1.0 - (d3[c] - r) ** 3 / ((d3[c] - d0[c]) * (d3[c] - d1[c]) * (d3[c] - d2[c]))
+    out[r > d3] = 1.0
+    return out
+
+
+# the 4-point degree-2 rule on the reference tetrahedron (barycentric points, equal weights)
+_A, _B = 0.5854101966249685, 0.1381966011250105
+_QP = np.array([[_A, _B, _B, _B], [_B, _A, _B, _B], [_B, _B, _A, _B], [_B, _B, _B, _A]])
+
+
+class KnnDensity3:
+    """The kNN density in space, f(x) = k / (n (4/3) pi d_{P,k}(x)^3), from a ``Mesh3``;
+    ``normalized`` (default) divides by its integral over the box (a 4-point rule on each
+    tetrahedron)."""
+
+    def __init__(self, mesh, points, normalized=True):
+        self.distance = KnnDistance3(mesh, points)
+        self.raw_constant = mesh.k / (self.distance.n * 4.0 / 3.0 * np.pi)
+        dq = self.distance._d @ _QP.T  # (t, 4): d at the rule's points
+        vol = self.distance._volume
+        self.raw_mass = float((vol * (self.raw_constant / dq**3).mean(axis=1)).sum())
+        self.constant = self.raw_constant / self.raw_mass if normalized else self.raw_constant
+
+    def __call__(self, x):
+        return self.constant / self.distance(x) ** 3
