@@ -239,3 +239,50 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path):
         assert code([*args, *bad]) == 1
         assert not os.path.exists(bad[1])
     assert code([*args[:-6], "--box", "0", "0", "0", "360", "360"]) == 2
+
+
+def test_purging_the_circumball_queue_keeps_every_live_entry():
+    """purge_balls3 drops exactly the entries _break3 would skip (tested, destroyed or
+    reused slots) and keeps the others in order; the run then finishes as certified."""
+    from knnrefine.api3 import _holds
+    from knnrefine.engine.driver3 import Refinement3, choose_grid3
+    from knnrefine.engine.index3 import build_index3
+    from knnrefine.engine.initial import reach_factor
+    from knnrefine.engine.queue import N_CLASSES
+    from knnrefine.engine.refine import UNTESTED
+    from knnrefine.engine.refine3 import purge_balls3, refine_steps3
+
+    pts = multiscale(20000, 13)
+    period = np.ones(3)
+    index = build_index3(pts)
+    grid = choose_grid3(period, lambda x, r: _holds(index, pts, x, r, 10, period), reach_factor(3))
+    run = Refinement3(index, period, 10, 3.0, 1e-6, 10**6, grid)
+    refine_steps3(run.mesh, run.book, run.queues, run.scratch, run.probe, run.cnt, run.prm,
+                  run.index, 3000)  # fmt: skip
+
+    def entries():
+        q = run.queues.balls
+        out = []
+        for c in range(N_CLASSES):
+            e = q.head[c]
+            while e >= 0:
+                out.append((c, int(q.ident[e]), int(q.aux[e])))
+                e = q.next[e]
+        return out
+
+    def live(entry):
+        _, t, apex = entry
+        return (t < run.cnt[1] and run.book.ball_state[t] == UNTESTED
+                and apex in run.mesh.corners[t])  # fmt: skip
+
+    before = entries()
+    assert sum(not live(e) for e in before) > 0  # there was something to purge
+    dropped = purge_balls3(run.mesh, run.book, run.queues, run.cnt)
+    assert entries() == [e for e in before if live(e)]
+    assert dropped == len(before) - len(entries())
+    assert run.run() == 0  # STATUS_DONE
+    xyz, corners, offsets, kinds, cnt = run.result()
+    mesh = Mesh3(vertices=xyz, tetrahedra=corners, offsets=offsets, kinds=kinds, k=10, tau=3.0,
+                 periodic=(True,) * 3, box=BOX, min_size=1e-6, origin=(0.0,) * 3,
+                 period=(1.0,) * 3, local=xyz, stats={"n": len(pts)})  # fmt: skip
+    assert_certified(mesh, pts)

@@ -7,7 +7,7 @@ import numpy as np
 from .geometry import FLOOR_BITS, Q
 from .initial import initial_grid3, peel_order
 from .interrupt import Interrupts
-from .queue import Q_USED, new_queue
+from .queue import Q_SIZE, new_queue
 from .refine import (
     STATUS_DONE,
     STATUS_ERROR,
@@ -24,6 +24,7 @@ from .refine3 import (
     P3_INFLATE,
     P3_K,
     P3_TAU2,
+    purge_balls3,
     queue_all3,
     refine_steps3,
 )
@@ -133,11 +134,15 @@ class Refinement3:
         if self.cnt[C_NT] + 2 * HEADROOM3 > self.mesh.corners.shape[0]:
             cap = self.mesh.corners.shape[0]
             grow(self, TETRAHEDRON_FIELDS3, cap + cap // 4 + 8192)
+        q = self.queues.balls
+        if q.scalars[Q_SIZE] + 4 * HEADROOM3 > q.ident.shape[0]:
+            # stale entries first: grow only if the live ones still fill it
+            purge_balls3(self.mesh, self.book, self.queues, self.cnt)
         queues = {}
         for name in ("balls", "cells", "cleans"):
             q = getattr(self.queues, name)
             cap = q.ident.shape[0]
-            if q.scalars[Q_USED] + 4 * HEADROOM3 > cap:
+            if q.scalars[Q_SIZE] + 4 * HEADROOM3 > cap:
                 size = cap + cap // 2 + 16_384
                 q = q._replace(ident=grown(q.ident, size), aux=grown(q.aux, size),
                                next=grown(q.next, size))  # fmt: skip

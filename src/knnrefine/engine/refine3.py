@@ -19,7 +19,7 @@ import numpy as np
 from .geometry import circumsphere
 from .index3 import count_in_ball3, count_in_cell3
 from .jit import kernel
-from .queue import Q_USED, queue_pop, queue_push, queue_size, size_class
+from .queue import N_CLASSES, Q_FREE, Q_SIZE, queue_pop, queue_push, queue_size, size_class
 from .refine import (
     BREAK_BALL,
     BREAK_CELL,
@@ -205,9 +205,10 @@ def needs_growth3(mesh, book, queues, cnt):
     return (
         cnt[C_NV] + 1 > mesh.xyz.shape[0]
         or cnt[C_NT] + HEADROOM3 > mesh.corners.shape[0]
-        or queues.balls.scalars[Q_USED] + 2 * HEADROOM3 > queues.balls.ident.shape[0]
-        or queues.cells.scalars[Q_USED] + HEADROOM3 > queues.cells.ident.shape[0]
-        or queues.cleans.scalars[Q_USED] + HEADROOM3 > queues.cleans.ident.shape[0]
+        # entries free: those never used and those on the free list (cap - size)
+        or queues.balls.scalars[Q_SIZE] + 2 * HEADROOM3 > queues.balls.ident.shape[0]
+        or queues.cells.scalars[Q_SIZE] + HEADROOM3 > queues.cells.ident.shape[0]
+        or queues.cleans.scalars[Q_SIZE] + HEADROOM3 > queues.cleans.ident.shape[0]
     )
 
 
@@ -269,3 +270,37 @@ def refine_steps3(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps
                 _touch3(mesh.corners[s, i], mesh, book, queues, cnt, prm)
         steps += 1
     return STATUS_STEPS
+
+
+@kernel(entry=True, nrt=False)
+def purge_balls3(mesh, book, queues, cnt):
+    """Drop the circumball queue's stale entries (tetrahedra tested, destroyed, or whose slot
+    now holds another: ``_break3`` would skip them when popped) onto its free list. In
+    space a queue otherwise holds nearly two entries per live tetrahedron, most of them
+    stale. Returns the entries dropped."""
+    q = queues.balls
+    dropped = 0
+    for c in range(N_CLASSES):
+        prev = -1
+        e = q.head[c]
+        while e >= 0:
+            nxt = q.next[e]
+            t = q.ident[e]
+            stale = (
+                t >= cnt[C_NT]
+                or book.ball_state[t] != UNTESTED
+                or corner_of3(mesh, t, q.aux[e]) < 0
+            )
+            if stale:
+                if prev < 0:
+                    q.head[c] = nxt
+                else:
+                    q.next[prev] = nxt
+                q.next[e] = q.scalars[Q_FREE]
+                q.scalars[Q_FREE] = e
+                q.scalars[Q_SIZE] -= 1
+                dropped += 1
+            else:
+                prev = e
+            e = nxt
+    return dropped
