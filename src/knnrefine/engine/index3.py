@@ -21,6 +21,9 @@ import numpy as np
 from .index import LEAF_SIZE, STACK_SIZE, _node_bound, _select
 from .jit import kernel
 
+_NO_H = np.zeros((0, 3))  # no half-spaces: a ball (``count_in_ball3``)
+_NO_HC = np.zeros(0)
+
 
 @kernel(entry=True)
 def _build3(pts, box, node, split):
@@ -97,39 +100,6 @@ def _box_reach(box, t, cx, cy, cz):
     return near, far
 
 
-@kernel(nrt=False)
-def _count_ball(index, cx, cy, cz, r2, k, stack):
-    pts, box, node = index[0], index[1], index[2]
-    count = 0
-    stack[0] = 0
-    sp = 1
-    while sp > 0:
-        sp -= 1
-        t = stack[sp]
-        near, far = _box_reach(box, t, cx, cy, cz)
-        if near > r2:
-            continue
-        if far <= r2:
-            count += node[t, 1] - node[t, 0]
-            if count >= k:
-                return count
-            continue
-        if node[t, 2] < 0:
-            for i in range(node[t, 0], node[t, 1]):
-                dx = pts[i, 0] - cx
-                dy = pts[i, 1] - cy
-                dz = pts[i, 2] - cz
-                if dx * dx + dy * dy + dz * dz <= r2:
-                    count += 1
-                    if count >= k:
-                        return count
-            continue
-        stack[sp] = node[t, 2]
-        stack[sp + 1] = node[t, 2] + 1
-        sp += 2
-    return count
-
-
 @kernel(inline="always")
 def _shifts(c, r, period):
     """(first, last) shift s in -1..1 of the copies [c - r, c + r] + s period that meet
@@ -140,30 +110,9 @@ def _shifts(c, r, period):
 @kernel(nrt=False)
 def count_in_ball3(index, c, r2, k, period, stack):
     """Points of P in the closed ball (c, sqrt(r2)) of the torus, up to k (the count stops
-    there); c anywhere (wrapped here), the radius below half the shortest period."""
-    r = np.sqrt(r2)
-    w0 = c[0] - np.floor(c[0] / period[0]) * period[0]
-    w1 = c[1] - np.floor(c[1] / period[1]) * period[1]
-    w2 = c[2] - np.floor(c[2] / period[2]) * period[2]
-    a0, b0 = _shifts(w0, r, period[0])
-    a1, b1 = _shifts(w1, r, period[1])
-    a2, b2 = _shifts(w2, r, period[2])
-    count = 0
-    for s0 in range(a0, b0 + 1):
-        for s1 in range(a1, b1 + 1):
-            for s2 in range(a2, b2 + 1):
-                count += _count_ball(
-                    index,
-                    w0 + s0 * period[0],
-                    w1 + s1 * period[1],
-                    w2 + s2 * period[2],
-                    r2,
-                    k - count,
-                    stack,
-                )
-                if count >= k:
-                    return count
-    return count
+    there); c anywhere (wrapped here), the radius below half the shortest period: a cell
+    with no half-spaces (``count_in_cell3``)."""
+    return count_in_cell3(index, c, _NO_H, _NO_HC, 0, r2, k, period, stack)
 
 
 @kernel(nrt=False)

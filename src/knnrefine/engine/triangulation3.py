@@ -61,6 +61,25 @@ def load_corners(mesh, t, sx, sy, sz, period, pts):
 
 
 @kernel(inline="always")
+def edge_to3(mesh, t, i, j, period):
+    """The vector from corner i to corner j of tetrahedron t (exact on the grid; the same
+    from every tetrahedron with that edge: ``triangulation.edge_to`` in the plane)."""
+    u = mesh.corners[t, j]
+    v = mesh.corners[t, i]
+    return (
+        mesh.xyz[u, 0]
+        - mesh.xyz[v, 0]
+        + (mesh.offsets[t, j, 0] - mesh.offsets[t, i, 0]) * period[0],
+        mesh.xyz[u, 1]
+        - mesh.xyz[v, 1]
+        + (mesh.offsets[t, j, 1] - mesh.offsets[t, i, 1]) * period[1],
+        mesh.xyz[u, 2]
+        - mesh.xyz[v, 2]
+        + (mesh.offsets[t, j, 2] - mesh.offsets[t, i, 2]) * period[2],
+    )
+
+
+@kernel(inline="always")
 def set_circumsphere(mesh, t, period, pts):
     """Cache tetrahedron t's squared circumradius (pts: scratch rows)."""
     load_corners(mesh, t, 0, 0, 0, period, pts)
@@ -136,15 +155,8 @@ def walk_star3(v, mesh, scratch, cnt, period, h, ids):
             if j == iv:
                 continue
             u = mesh.corners[t, j]
-            e2 = 0.0
-            for a in range(3):
-                d = (
-                    mesh.xyz[u, a]
-                    - mesh.xyz[v, a]
-                    + (mesh.offsets[t, j, a] - mesh.offsets[t, iv, a]) * period[a]
-                )
-                e2 += d * d
-            d_m2_sq = min(d_m2_sq, e2)
+            dx, dy, dz = edge_to3(mesh, t, iv, j, period)
+            d_m2_sq = min(d_m2_sq, dx * dx + dy * dy + dz * dz)
             if h.shape[0] > 0 and nh >= 0:
                 seen = False
                 for m in range(nh):
@@ -156,12 +168,9 @@ def walk_star3(v, mesh, scratch, cnt, period, h, ids):
                         nh = -1
                     else:
                         ids[nh] = u
-                        for a in range(3):
-                            h[nh, a] = (
-                                mesh.xyz[u, a]
-                                - mesh.xyz[v, a]
-                                + (mesh.offsets[t, j, a] - mesh.offsets[t, iv, a]) * period[a]
-                            )
+                        h[nh, 0] = dx
+                        h[nh, 1] = dy
+                        h[nh, 2] = dz
                         nh += 1
             nb = mesh.neighbours[t, j]  # across the face opposite u: it holds v
             if scratch.mark[nb] != stamp:
@@ -421,14 +430,8 @@ def _update_vertex_caches3(v, mesh, scratch, cnt, nb, period):
             u = mesh.corners[s, k]
             if mesh.outradius2[u] >= 0.0:
                 mesh.outradius2[u] = max(mesh.outradius2[u], r2)
-            e2 = 0.0
-            for a in range(3):
-                d = (
-                    mesh.xyz[u, a]
-                    - mesh.xyz[v, a]
-                    + (mesh.offsets[s, k, a] - mesh.offsets[s, iv, a]) * period[a]
-                )
-                e2 += d * d
+            dx, dy, dz = edge_to3(mesh, s, iv, k, period)
+            e2 = dx * dx + dy * dy + dz * dz
             mesh.nearest2[u] = min(mesh.nearest2[u], e2)
             nearest2 = min(nearest2, e2)
     mesh.outradius2[v] = outradius2
