@@ -1,5 +1,7 @@
 """Benchmark in space: knnrefine.refine on (n, 3) points in the periodic unit cube against
-scipy's cKDTree(boxsize=1) exact k-th-neighbour distances at the n points.
+scipy's cKDTree(boxsize=1) exact k-th-neighbour distances at the n points (``--box
+ordinary``: the cube not periodic, refined in its embedding torus, against a plain cKDTree;
+``mixed``: periodic in x and z).
 
 Each configuration runs in a fresh subprocess, after one untimed warm-up call on the same
 input; refine and the cKDTree (build + ``query(points, k=[k], workers=-1)``, both cores)
@@ -10,6 +12,8 @@ to n (marked "~").
 
     python benchmarks/bench_refine3.py --sizes 1e5 1e6 --ks 10 100 1000 --repeat 3 \\
         --out benchmarks/results/bench_refine3.json
+    python benchmarks/bench_refine3.py --box ordinary --sizes 1e6 --ks 10 100 --repeat 3 \\
+        --out benchmarks/results/bench_refine3_ordinary.json
 """
 
 import argparse
@@ -38,14 +42,23 @@ def make_points3(kind, n, seed=0):
     return np.mod(np.concatenate(parts + [rng.random((n // 10, 3))]), 1.0)
 
 
-def worker(kind, n, k, repeat, budget):
+BOXES = {
+    "torus": (True, True, True),
+    "ordinary": (False, False, False),
+    "mixed": (True, False, True),
+}
+
+
+def worker(kind, n, k, repeat, budget, box_kind="torus"):
     from scipy.spatial import cKDTree
 
     import knnrefine
 
     box = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+    periodic = BOXES[box_kind]
+    boxsize = np.where(periodic, 1.0, 0.0) if any(periodic) else None
     pts = make_points3(kind, n)
-    knnrefine.refine(pts, k, periodic=True, box=box)  # warm-up
+    knnrefine.refine(pts, k, periodic=periodic, box=box)  # warm-up
     times, peaks, kd = [], [], []
     sampled = n * k > budget
     q = pts[np.random.default_rng(2).choice(n, 100_000, replace=False)] if sampled else pts
@@ -54,13 +67,14 @@ def worker(kind, n, k, repeat, budget):
         base = _status_mb("VmRSS")
         ok = reset_peak()
         t0 = time.perf_counter()
-        mesh = knnrefine.refine(pts, k, periodic=True, box=box)
+        mesh = knnrefine.refine(pts, k, periodic=periodic, box=box)
         times.append(time.perf_counter() - t0)
         peaks.append((_status_mb("VmHWM") - base) if ok else float("nan"))
         m, t = len(mesh.vertices), len(mesh.tetrahedra)
+        m_torus = mesh.stats["m_torus"]
         del mesh
         t0 = time.perf_counter()
-        tree = cKDTree(pts, boxsize=1.0)
+        tree = cKDTree(pts, boxsize=boxsize)
         t_build = time.perf_counter() - t0
         t0 = time.perf_counter()
         tree.query(q, k=[k], workers=-1)
@@ -68,7 +82,8 @@ def worker(kind, n, k, repeat, budget):
         del tree
     peak = float(np.median(peaks))
     return {
-        "kind": kind, "n": n, "k": k, "m": m, "tetrahedra": t,
+        "kind": kind, "box": box_kind, "n": n, "k": k, "m": m, "m_torus": m_torus,
+        "tetrahedra": t,
         "refine_s": float(np.median(times)), "refine_all_s": times,
         "ckdtree_s": float(np.median(kd)), "ckdtree_all_s": kd, "ckdtree_sampled": sampled,
         "ratio": float(np.median(times)) / float(np.median(kd)),
@@ -83,12 +98,13 @@ def main(argv=None):
     ap.add_argument("--kinds", nargs="+", default=["uniform", "clustered"])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--ckdtree-budget", type=float, default=2e8)
+    ap.add_argument("--box", choices=sorted(BOXES), default="torus")
     ap.add_argument("--out")
-    ap.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        kind, n, k, repeat, budget = args.worker
-        print(json.dumps(worker(kind, int(n), int(k), int(repeat), float(budget))))
+        kind, n, k, repeat, budget, box_kind = args.worker
+        print(json.dumps(worker(kind, int(n), int(k), int(repeat), float(budget), box_kind)))
         return
     rows = []
     for kind in args.kinds:
@@ -98,7 +114,7 @@ def main(argv=None):
                     continue
                 out = subprocess.run(
                     [sys.executable, __file__, "--worker", kind, str(n), str(k),
-                     str(args.repeat), str(args.ckdtree_budget)],
+                     str(args.repeat), str(args.ckdtree_budget), args.box],
                     capture_output=True, text=True, check=True,
                 )  # fmt: skip
                 row = json.loads(out.stdout.strip().splitlines()[-1])
@@ -107,7 +123,7 @@ def main(argv=None):
                 print(
                     f"{kind:>9} n={n:.0e} k={k:>4}: refine {row['refine_s']:.3f} s, "
                     f"cKDTree {mark}{row['ckdtree_s']:.3f} s (ratio {row['ratio']:.2f}), "
-                    f"m = {row['m']:,}, peak {row['peak_mb']:.0f} MB = "
+                    f"m = {row['m']:,} (torus {row['m_torus']:,}), peak {row['peak_mb']:.0f} MB = "
                     f"{row['bytes_per_vertex']:.0f} B/vertex",
                     flush=True,
                 )

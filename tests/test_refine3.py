@@ -1,8 +1,8 @@
-"""kNNRefine in space (knnrefine.refine with (n, 3) points on a periodic box): the oracle
-matrix of the plane, in 3-D. Every mesh is certified by certify3 (exact tetrahedralisation
-checks, cKDTree(boxsize) counts of every circumball and cell, aspect, and the achieved
-d_M2 / d_Pk at dense probes within Theorem 6's [alpha, beta]); and the checks themselves are
-shown to fail on wrong meshes."""
+"""kNNRefine in space (knnrefine.refine with (n, 3) points in a box periodic on all, some or
+none of its axes): the oracle matrix of the plane, in 3-D. Every mesh is certified by certify3
+(exact tetrahedralisation checks, cKDTree(boxsize) counts of every circumball and cell,
+aspect, and the achieved d_M2 / d_Pk at dense probes of the box, in its own metric, within
+Theorem 6's [alpha, beta]); and the checks themselves are shown to fail on wrong meshes."""
 
 import dataclasses
 import os
@@ -55,11 +55,12 @@ def duplicates(n, seed, k=10):
 
 
 def on_faces(n, seed):
-    """Points on the box's faces, edges and corners (the periodic seams)."""
+    """Points on the box's faces, edges and corners (the periodic seams; upper and lower
+    faces, which a periodic axis identifies)."""
     rng = np.random.default_rng(seed)
     pts = rng.random((n, 3))
     face = rng.integers(0, 3, n)
-    pts[np.arange(n), face] = 0.0
+    pts[np.arange(n), face] = rng.integers(0, 2, n).astype(float)
     pts[:8] = np.array(np.meshgrid([0, 0.5], [0, 0.5], [0, 0.5])).reshape(3, -1).T
     return pts
 
@@ -84,13 +85,22 @@ def assert_certified(mesh, pts):
     return cert
 
 
+PERIODICITIES = [True, False, (True, False, True)]
+
+
+@pytest.mark.parametrize("periodic", PERIODICITIES, ids=["torus", "box", "mixed"])
 @pytest.mark.parametrize("name", sorted(INPUTS))
 @pytest.mark.parametrize("k", [10, 100])
-def test_the_matrix_is_certified(name, k):
+def test_the_matrix_is_certified(name, k, periodic):
     pts = INPUTS[name](6000, 1)
-    mesh = knnrefine.refine(pts, k, 3.0, periodic=True, box=BOX)
+    mesh = knnrefine.refine(pts, k, 3.0, periodic=periodic, box=BOX)
     assert isinstance(mesh, Mesh3) and mesh.vertices.shape[1] == 3
-    assert mesh.tetrahedra.shape[1] == 4 and mesh.offsets.shape[1:] == (4, 3)
+    assert mesh.tetrahedra.shape[1] == 4
+    if periodic is False:
+        assert mesh.offsets is None
+    else:
+        assert mesh.offsets.shape[1:] == (4, 3)
+        assert not mesh.offsets[:, :, ~np.array(mesh.periodic)].any()
     assert_certified(mesh, pts)
 
 
@@ -101,11 +111,12 @@ def test_other_taus_are_certified(tau):
     assert_certified(mesh, pts)
 
 
-def test_k_1_refines_down_to_the_floor_and_says_so():
+@pytest.mark.parametrize("periodic", PERIODICITIES, ids=["torus", "box", "mixed"])
+def test_k_1_refines_down_to_the_floor_and_says_so(periodic):
     """d_{P,1} vanishes on P: the elements round each point stop at the floor, and certify
     exempts exactly those (counted), checking the ratio where d_Pk >= min_size."""
     pts = uniform(150, 3)
-    mesh = knnrefine.refine(pts, 1, 3.0, periodic=True, box=BOX, min_size=1e-3)
+    mesh = knnrefine.refine(pts, 1, 3.0, periodic=periodic, box=BOX, min_size=1e-2)
     cert = assert_certified(mesh, pts)
     assert cert.floor_circumballs + cert.floor_cells > 0
 
@@ -140,8 +151,13 @@ def test_certify_fails_wrong_meshes():
 
 def test_bad_input_is_refused_before_work():
     pts = uniform(100, 8)
-    with pytest.raises(InputError, match="only boxes periodic on every axis"):
-        knnrefine.refine(pts, 10, periodic=False, box=BOX)
+    with pytest.raises(InputError, match="triple of bools"):
+        knnrefine.refine(pts, 10, periodic=(True, False), box=BOX)
+    outside = pts.copy()
+    outside[7, 2] = 1.5
+    with pytest.raises(InputError, match="outside the box along z"):
+        knnrefine.refine(outside, 10, periodic=(True, True, False), box=BOX)
+    knnrefine.refine(outside, 10, periodic=(False, False, True), box=BOX)  # z wraps
     with pytest.raises(InputError, match="needs its box"):
         knnrefine.refine(pts, 10, periodic=True)
     with pytest.raises(InputError, match="six"):
@@ -198,7 +214,12 @@ def test_tau_beyond_6_is_certified():
     assert_certified(knnrefine.refine(pts, 10, 8.0, periodic=True, box=BOX), pts)
 
 
-def test_command_line_in_space_writes_vtu_and_npz(tmp_path):
+@pytest.mark.parametrize(
+    "flags, periodic",
+    [(["--periodic"], True), (["--periodic-z"], (False, False, True)), ([], False)],
+    ids=["torus", "z", "box"],
+)
+def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
     """knnrefine refine with three --columns and a six-number box: .vtu (ParaView: every
     tetrahedron positively oriented where its offsets put its corners, d_M2 per point) and
     .npz (read back array for array, certified again by 'knnrefine certify'); outputs the
@@ -212,14 +233,17 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path):
     csv = tmp_path / "chi.csv"
     np.savetxt(csv, pts, delimiter=",", header="chi1,chi2,chi3", comments="")
     box = ["--box", "0", "0", "0", "360", "360", "360"]
-    args = ["refine", str(csv), "--columns", "chi1,chi2,chi3", "-k", "20", "--periodic", *box]
+    args = ["refine", str(csv), "--columns", "chi1,chi2,chi3", "-k", "20", *flags, *box]
     out = [str(tmp_path / "m.vtu"), str(tmp_path / "m.npz")]
     assert main([*args, "-o", out[0], "-o", out[1], "--certify", "--quiet"]) == 0
     mesh = io.read_mesh(out[1])
     assert isinstance(mesh, Mesh3) and len(mesh.vertices) > 100
-    again = knnrefine.refine(pts, 20, periodic=True, box=(0, 0, 0, 360, 360, 360))
-    for name in ("vertices", "tetrahedra", "offsets", "kinds", "local"):
+    again = knnrefine.refine(pts, 20, periodic=periodic, box=(0, 0, 0, 360, 360, 360))
+    assert mesh.periodic == again.periodic
+    for name in ("vertices", "tetrahedra", "offsets", "kinds", "local", "order"):
         np.testing.assert_array_equal(getattr(mesh, name), getattr(again, name))
+    for name in ("local", "tetrahedra", "offsets", "kinds"):
+        np.testing.assert_array_equal(getattr(mesh.torus, name), getattr(again.torus, name))
     vtu = meshio.read(out[0])
     tets = vtu.cells_dict["tetra"]
     assert len(tets) == len(mesh.tetrahedra)
@@ -239,6 +263,8 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path):
         assert code([*args, *bad]) == 1
         assert not os.path.exists(bad[1])
     assert code([*args[:-6], "--box", "0", "0", "0", "360", "360"]) == 2
+    plane = ["refine", str(csv), "--columns", "chi1,chi2", "-k", "5", "--box", "0", "0", "9", "9"]
+    assert code([*plane, "--periodic-z"]) == 2  # z is for points in space
 
 
 def test_purging_the_circumball_queue_keeps_every_live_entry():
@@ -286,3 +312,57 @@ def test_purging_the_circumball_queue_keeps_every_live_entry():
                  periodic=(True,) * 3, box=BOX, min_size=1e-6, origin=(0.0,) * 3,
                  period=(1.0,) * 3, local=xyz, stats={"n": len(pts)})  # fmt: skip
     assert_certified(mesh, pts)
+
+
+@pytest.mark.parametrize("periodic", [False, (False, True, False), (True, True, False)])
+def test_boxes_not_periodic_everywhere(periodic):
+    """A box away from the origin with three different sides, periodic on some or no axes:
+    certified (in the box's own metric); d_M2 in the box equals a brute kd-tree's over the
+    returned vertices (straight along non-periodic axes); the returned tetrahedra are copies
+    that meet the box, and their vertices lie on the grid (local exact)."""
+    box = (-2.0, 10.0, 0.5, 0.0, 11.0, 3.5)
+    lo, hi = np.array(box[:3]), np.array(box[3:])
+    pts = lo + multiscale(8000, 14) * (hi - lo)
+    mesh = knnrefine.refine(pts, 20, periodic=periodic, box=box)
+    assert_certified(mesh, pts)
+    per = np.array(mesh.periodic)
+    assert mesh.stats["m_torus"] == len(mesh.torus.local) < mesh.stats["m"] * 2
+    q = lo + np.random.default_rng(15).random((3000, 3)) * (hi - lo)
+    tree = cKDTree(mesh.local, boxsize=np.where(per, hi - lo, 0.0))
+    want = tree.query(mesh.wrap(q), k=2)[0][:, 1]
+    np.testing.assert_allclose(mesh.d_m2(q), want, rtol=1e-12)
+    c = mesh.corners()
+    box_lo, box_hi = lo - np.array(mesh.origin), hi - np.array(mesh.origin)
+    meets = ((c.max(axis=1) >= box_lo) & (c.min(axis=1) <= box_hi)) | per
+    assert meets.all()
+    exact = np.array(mesh.origin) + mesh.local
+    np.testing.assert_array_equal(mesh.vertices[:, ~per], exact[:, ~per])
+
+
+def test_default_box_is_the_points_bounding_box():
+    pts = multiscale(3000, 16) * [2.0, 1.0, 0.5]
+    mesh = knnrefine.refine(pts, 10)
+    np.testing.assert_array_equal(mesh.box, [*pts.min(axis=0), *pts.max(axis=0)])
+    assert mesh.periodic == (False, False, False) and mesh.offsets is None
+    assert_certified(mesh, pts)
+
+
+def test_certify_fails_a_box_mesh_missing_its_copies():
+    """The returned vertices must hold, near the box, every copy that can be among the two
+    nearest: a mesh missing one fails (the copies' check), as does a copy moved off its
+    torus vertex's place."""
+    pts = uniform(3000, 17)
+    mesh = knnrefine.refine(pts, 10, periodic=False, box=BOX)
+    assert knnrefine.certify(mesh, pts).passed
+    inside = np.flatnonzero(mesh.inside(mesh.local))
+    keep = np.ones(len(mesh.local), bool)
+    keep[inside[0]] = False
+    fewer = dataclasses.replace(mesh, local=mesh.local[keep], order=mesh.order[keep],
+                                vertices=mesh.vertices[keep], kinds=mesh.kinds[keep],
+                                tetrahedra=np.zeros((0, 4), np.int32))  # fmt: skip
+    cert = knnrefine.certify(fewer, pts)
+    assert not cert.passed and not cert.view_matches_torus
+    moved = mesh.local.copy()
+    moved[inside[1], 0] += 1e-9
+    cert = knnrefine.certify(dataclasses.replace(mesh, local=moved), pts)
+    assert not cert.passed and not cert.view_matches_torus

@@ -254,7 +254,7 @@ def check_options(n, total, bounds, check_inside, k, tau, periodic, box, min_siz
         raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
     if progress is not None and not callable(progress):
         raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
-    _check_resolution(box, per)
+    V.check_resolution(box, per)
     # the initial mesh must fit whatever budget applies: the user's, else the smallest default
     start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
     _check_initial_budget(box, per, start_budget)
@@ -470,26 +470,6 @@ def _budget(estimated, max_vertices, m0, k, n, min_size):
             stacklevel=3,
         )
     return budget
-
-
-RESOLUTION_BITS = 24  # a box must span at least 2^24 grid steps: the floor is 2^14 of them
-
-
-def _check_resolution(box, per):
-    """The box must be wide compared with the spacing of doubles at its coordinates: the
-    engine works on a grid no finer than that spacing (so that every vertex is returned
-    exactly), and its resolution floor is 2^14 grid steps."""
-    emb = Embedding.make(box, per)
-    step = emb.grid / emb.scale
-    side = max(box[2] - box[0], box[3] - box[1])
-    if side < step * 2.0**RESOLUTION_BITS:
-        big = float(np.max(np.abs(box)))
-        raise InputError(
-            f"the box {box} is too small for its coordinates' magnitude: near {big:.6g} doubles "
-            f"are {step:.3g} apart, and knnrefine needs at least 2^{RESOLUTION_BITS} such steps "
-            f"across the box (its side is {side:.3g}, about {side / step:.3g} steps); subtract "
-            "an offset first, for example points - points.min(axis=0)"
-        )
 
 
 def _check_initial_budget(box, per, max_vertices):

@@ -1,7 +1,7 @@
 """``knnrefine.refine`` for points in space ((n, 3) points, a box of six numbers): the
-engine's 3-D run (``engine/driver3.py``) behind the same options as in the plane. Periodic
-boxes first: non-periodic and mixed boxes (the plane's embedding in a larger torus) are not
-built yet and are refused with a message."""
+engine's 3-D run (``engine/driver3.py``) behind the same options as in the plane. Along
+non-periodic axes the box is embedded in a longer torus, as in the plane
+(``engine/embedding.py``), and the mesh unfolded back (``embedding.unfold3``)."""
 
 import time
 
@@ -9,26 +9,14 @@ import numpy as np
 
 from . import validation as V
 from .engine.driver3 import Refinement3, choose_grid3
-from .engine.geometry import Q
+from .engine.embedding import Embedding, diameter, unfold3
 from .engine.index3 import build_index3, holds_k_within3
 from .engine.initial import reach_factor
 from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
 from .engine.state import C_CELL_TESTS, C_DISK_TESTS, C_FAILED
 from .errors import BudgetError, InputError
-from .mesh3 import Mesh3
-
-
-def check_box3(box):
-    """(x0, y0, z0, x1, y1, z1), finite, each side positive."""
-    try:
-        b = [float(v) for v in box]
-    except (TypeError, ValueError):
-        raise InputError(f"box must be six numbers (x0, y0, z0, x1, y1, z1), got {box!r}") from None
-    if len(b) != 6 or not np.isfinite(b).all():
-        raise InputError(f"box must be six finite numbers (x0, y0, z0, x1, y1, z1), got {box!r}")
-    if not all(b[a + 3] > b[a] for a in range(3)):
-        raise InputError(f"box {tuple(b)} must have x0 < x1, y0 < y1 and z0 < z1")
-    return tuple(b)
+from .mesh3 import Mesh3, Torus3
+from .metric import BoxMetric
 
 
 def _holds(index, u, x, reach, k, period):
@@ -46,27 +34,66 @@ def _holds(index, u, x, reach, k, period):
     return out
 
 
+def _reach(pts, box, per, k):
+    """An upper bound on max d_{P,k} over the box in its own metric: d_{P,k} at the centres
+    of 16^3 cells plus half a cell's diagonal (d_{P,k} is 1-Lipschitz)."""
+    g = 16
+    lo, hi = np.array(box[:3]), np.array(box[3:])
+    cell = (hi - lo) / g
+    axes = [lo[a] + (np.arange(g) + 0.5) * cell[a] for a in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return float(BoxMetric(box, per).kth(pts, centres, k).max() + 0.5 * np.linalg.norm(cell))
+
+
+def _start(pts, box, per, k, tau):
+    """(embedding, internal points, index, M0) for the first torus whose initial mesh meets
+    Lemma 2's precondition: the default margin (1.05 x the box's diameter along
+    non-periodic axes), then, as in the plane, 1.05 x a bound on max d_Pk over the box and 2,
+    4 and 10 diameters. None when none does."""
+    reaches = [None]
+    if not all(per):
+        diam = diameter(box, per)
+        reaches += [_reach(pts, box, per, k), 2.0 * diam, 4.0 * diam, 10.0 * diam]
+    for reach in reaches:
+        emb = Embedding.make(box, per, reach)
+        u = emb.to_internal(pts)
+        index = build_index3(u)
+        period = np.array(emb.period_internal)
+
+        def holds(x, r, index=index, u=u, period=period):
+            return _holds(index, u, x, r, k, period)
+
+        grid = choose_grid3(period, holds, reach_factor(tau), emb.grid)
+        if grid is not None:
+            return emb, u, index, grid
+    return None
+
+
 def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_vertices=None,
             time_limit=None, progress=None):  # fmt: skip
-    """kNNRefine in a periodic box of three dimensions (``knnrefine.refine`` with (n, 3)
-    points): a ``Mesh3`` whose vertices M satisfy alpha d_{P,k} <= d_{M,2} <= beta d_{P,k}
-    on the 3-torus, tau-well-spaced, no Voronoi cell and no closed circumball holding k
-    points (checked by ``certify3``). box: (x0, y0, z0, x1, y1, z1), required; points are
-    wrapped into it. min_size, max_vertices, time_limit, progress: as in the plane."""
+    """kNNRefine in a box of three dimensions (``knnrefine.refine`` with (n, 3) points): a
+    ``Mesh3`` whose vertices M satisfy alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} in the box,
+    tau-well-spaced, no Voronoi cell and no closed circumball holding k points (checked by
+    ``certify3``). periodic: a bool or one per axis; box: (x0, y0, z0, x1, y1, z1), required
+    when an axis is periodic (points are wrapped into it), else the points' bounding box by
+    default. min_size, max_vertices, time_limit, progress: as in the plane."""
     t_start = time.monotonic()
     pts = V.as_points(points, 3)
     k = V.check_k(k, len(pts))
     tau = V.check_tau(tau)
-    per = (periodic,) * 3 if isinstance(periodic, (bool, np.bool_)) else tuple(periodic)
-    if len(per) != 3 or not all(bool(p) for p in per):
-        raise InputError(
-            "in three dimensions only boxes periodic on every axis are built so far "
-            "(periodic=True); non-periodic and mixed boxes are not yet supported"
-        )
+    per = V.check_periodic(periodic, 3)
     if box is None:
-        raise InputError("a periodic run needs its box: box=(x0, y0, z0, x1, y1, z1)")
-    box = check_box3(box)
-    lo, side = np.array(box[:3]), np.array(box[3:]) - np.array(box[:3])
+        if any(per):
+            raise InputError(
+                "a periodic run needs its box: box=(x0, y0, z0, x1, y1, z1) (the periods are "
+                "its sides)"
+            )
+        box = V.default_box(pts)
+    else:
+        box = V.check_box(box, 3)
+        V.check_inside(pts, box, per)
+    V.check_resolution(box, per)
+    side = max(box[a + 3] - box[a] for a in range(3))
     if min_size is not None and not (np.isfinite(min_size) and min_size >= 0):
         raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
     if max_vertices is not None and (
@@ -77,37 +104,36 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
     if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
         raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
 
-    # internal units: a power-of-two scale (exact) bringing the longest side to at most 1,
-    # periods on the grid Q
-    scale = 2.0 ** -np.ceil(np.log2(side.max()))
-    period = np.rint(side * scale / Q) * Q
-    u = np.mod((pts - lo) * scale, period)
-    u = np.where(u >= period, u - period, u)
-    floor = (1e-6 * side.max() if min_size is None else float(min_size)) * scale
-    run_index = build_index3(u)
-    grid = choose_grid3(period, lambda x, reach: _holds(run_index, u, x, reach, k, period),
-                        reach_factor(tau))  # fmt: skip
-    if grid is None:
+    found = _start(pts, box, per, k, tau)
+    if found is None:
         raise InputError(
             f"k = {k} is too large for {len(pts):,} points in this box: no initial mesh of the "
             "3-torus satisfies Lemma 2's precondition (in some order, d_Pk at each initial "
             "vertex at most (K - 1) times its distance to the earlier ones); use a smaller k"
         )
+    emb, u, run_index, grid = found
+    min_size = 1e-6 * side if min_size is None else float(min_size)
     budget = int(max_vertices) if max_vertices is not None else max(10**6, 4 * len(pts))
     deadline = None if time_limit is None else t_start + float(time_limit)
-    run = Refinement3(run_index, period, k, tau, floor, budget, grid)
+    run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
+                      grid, emb.grid)  # fmt: skip
     status = run.run(deadline, None if progress is None else (lambda m: progress(m, 0)))
     if status == STATUS_MAX_VERTICES:
         raise BudgetError(f"stopped at max_vertices = {budget:,} before the mesh was done")
     if status != STATUS_DONE:
         raise BudgetError(f"stopped at time_limit = {time_limit} s before the mesh was done")
     xyz, corners, offsets, kinds, cnt = run.result()
-    local = xyz / scale  # exact: a power of two
+    out_v, pos, tetrahedra, out_offsets = unfold3(xyz, corners, offsets, emb)
+    local = pos / emb.scale  # exact: a power of two
+    torus = None
+    if not all(per):
+        torus = Torus3(local=xyz / emb.scale, tetrahedra=corners, offsets=offsets, kinds=kinds)
     return Mesh3(
-        vertices=lo + local, tetrahedra=corners, offsets=offsets, kinds=kinds, k=k, tau=tau,
-        periodic=(True, True, True), box=box, min_size=floor / scale,
-        origin=tuple(lo), period=tuple(period / scale), local=local,
-        stats={"n": len(pts), "m_torus": len(xyz), "disk_tests": int(cnt[C_DISK_TESTS]),
-               "cell_tests": int(cnt[C_CELL_TESTS]), "failed": int(cnt[C_FAILED]),
-               "seconds": time.monotonic() - t_start},
+        vertices=emb.to_input(pos, copy=False), tetrahedra=tetrahedra, offsets=out_offsets,
+        kinds=kinds[out_v], k=k, tau=tau, periodic=per, box=box,
+        min_size=max(min_size, emb.resolution), origin=tuple(float(o) for o in emb.origin),
+        period=emb.period, local=local, order=None if torus is None else out_v, embedded=torus,
+        stats={"n": len(pts), "m": len(out_v), "m_torus": len(xyz),
+               "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
+               "failed": int(cnt[C_FAILED]), "seconds": time.monotonic() - t_start},
     )  # fmt: skip

@@ -1,5 +1,6 @@
 """``certify`` in three dimensions: every promise of a ``Mesh3`` checked without the engine's
-refinement code.
+refinement code (on the torus it refined, the box's own along periodic axes and the embedding
+torus along the others; the bounds in the box's own metric).
 
 The tetrahedralisation is checked exactly in the mesh's own frame (vertices relative to the
 box's corner, exact): its faces are matched again from the corners and offsets, every
@@ -23,6 +24,7 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from .engine.predicates3 import insphere, orient3d
+from .metric import TorusFrame
 from .validation import as_points
 
 
@@ -30,6 +32,7 @@ from .validation import as_points
 class Certificate3:
     passed: bool
     triangulation: bool
+    view_matches_torus: bool
     orientation_failures: int
     delaunay_failures: int
     volume_ratio: float
@@ -54,7 +57,8 @@ class Certificate3:
             f"certify (3-D): {verdict} in {self.seconds:.2f} s",
             f"  tetrahedralisation exact: {self.triangulation} (orientation failures "
             f"{self.orientation_failures}, Delaunay failures {self.delaunay_failures}, "
-            f"volume / torus {self.volume_ratio:.12f})",
+            f"volume / torus {self.volume_ratio:.12f}); the box's copies match the torus: "
+            f"{self.view_matches_torus}",
             f"  aspect max {self.max_aspect:.4f}; points in a circumball max "
             f"{self.max_circumball_count}, in a cell max {self.max_cell_count} (floor: "
             f"{self.floor_circumballs} circumballs, {self.floor_cells} cells)",
@@ -130,25 +134,58 @@ def _circumspheres(c):
     return a + u, (u**2).sum(axis=1)
 
 
+def _rows_within(rows, table):
+    """Whether each row of ``rows`` (sorted int64 rows) is a row of ``table``."""
+
+    def as_void(a):
+        a = np.ascontiguousarray(a, dtype=np.int64)
+        return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel()
+
+    return np.isin(as_void(rows), as_void(table))
+
+
+def _view_matches(mesh):
+    """The mesh's own arrays are copies of its torus: each vertex a torus vertex moved by
+    whole periods along non-periodic axes only (exactly), each tetrahedron a torus
+    tetrahedron (``certify3`` adds: d_{M,2} from them equals the torus' in the box)."""
+    if mesh.embedded is None:
+        return True
+    shift = (mesh.local - mesh.torus.local[mesh.order]) / np.asarray(mesh.period)
+    per = np.array(mesh.periodic)
+    if not ((shift == np.rint(shift)).all() and (shift[:, per] == 0).all()):
+        return False
+    view = np.sort(mesh.order[mesh.tetrahedra], axis=1)
+    return bool(_rows_within(view, np.sort(mesh.torus.tetrahedra, axis=1)).all())
+
+
 def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0):
     """Check ``mesh`` (from ``knnrefine.refine`` with (n, 3) points) against ``points``;
-    returns a ``Certificate3`` (nothing is raised when a check fails: see ``.passed``)."""
+    returns a ``Certificate3`` (nothing is raised when a check fails: see ``.passed``).
+
+    The torus mesh (``mesh.torus``: the box's own along periodic axes, the embedding torus
+    along the others) is checked as refined: exact tetrahedralisation, counts and aspect on
+    the torus. The promise the user reads is checked in the box's own metric (straight along
+    non-periodic axes, so the embedding's claim is tested, not assumed): d_{P,k} from the
+    points, d_{M,2} from the mesh's vertices as returned, at probes in the box."""
     t0 = time.perf_counter()
     pts = as_points(points, 3)
     period = np.asarray(mesh.period, float)
-    p = mesh.wrap(pts)
+    torus = mesh.torus
+    p = TorusFrame(mesh.origin, period)(pts)
     k = mesh.k
-    corners, offsets, local = mesh.tetrahedra, mesh.offsets.astype(np.int64), mesh.local
+    corners, offsets, local = torus.tetrahedra, torus.offsets.astype(np.int64), torus.local
     neighbours = _neighbours(corners, offsets)
     ok_faces = neighbours is not None
     bad_o = bad_d = -1
     if ok_faces:
         bad_o, bad_d = _exact_faces(local, corners.astype(np.int64), offsets, neighbours, period)
-    c = mesh.corners()
+    c = local[corners] + offsets * period
     volume = np.abs(np.linalg.det(c[:, 1:] - c[:, :1])).sum() / 6.0 / np.prod(period)
+    view = _view_matches(mesh)
     triangulation = ok_faces and bad_o == 0 and bad_d == 0 and abs(volume - 1.0) < 1e-9
 
     centres, r2 = _circumspheres(c)
+    del c
     point_tree = cKDTree(p, boxsize=period)
     held = point_tree.query_ball_point(np.mod(centres, period), np.sqrt(r2), return_length=True)
     vertex_tree = cKDTree(local, boxsize=period)
@@ -165,23 +202,37 @@ def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0)
     d_m2 = vertex_tree.query(local, k=2)[0][:, 1]
     aspect = float((2.0 * np.sqrt(outer) / d_m2).max())
 
+    # the promise in the box, in its own metric, from the returned vertices
     rng = np.random.default_rng(seed)
+    lo = np.array(mesh.box[:3]) - np.asarray(mesh.origin)
+    side = np.array(mesh.box[3:]) - np.array(mesh.box[:3])
     probes = np.concatenate([
-        rng.random((n_random, 3)) * period, local, np.mod(centres, period),
+        lo + rng.random((n_random, 3)) * side, mesh.local, np.mod(centres, period),
         p[rng.choice(len(p), min(len(p), max_point_probes), replace=False)],
     ])  # fmt: skip
-    dm2 = vertex_tree.query(probes, k=2)[0][:, 1]
-    dpk = point_tree.query(probes, k=[k])[0][:, 0]
+    probes = probes[mesh.inside(probes)]
+    if all(mesh.periodic):
+        box_points, box_vertices = point_tree, vertex_tree
+    else:
+        boxsize = np.where(mesh.periodic, period, 0.0)
+        box_points = cKDTree(mesh.wrap(pts), boxsize=boxsize)
+        box_vertices = cKDTree(mesh.local, boxsize=boxsize)
+    dm2 = box_vertices.query(probes, k=2)[0][:, 1]
+    if box_vertices is not vertex_tree:  # the copies near the box hold its two nearest
+        on_torus = vertex_tree.query(np.mod(probes, period), k=2)[0][:, 1]
+        view = view and bool(np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0))
+    dpk = box_points.query(probes, k=[k])[0][:, 0]
     use = dpk >= mesh.min_size
     ratio = dm2[use] / dpk[use]
     alpha_hat, beta_hat = float(ratio.min()), float(ratio.max())
     passed = (
-        triangulation and aspect <= mesh.tau * (1 + 1e-9) and max_held < k
+        triangulation and view and aspect <= mesh.tau * (1 + 1e-9) and max_held < k
         and max_cell < k and alpha_hat >= mesh.alpha and beta_hat <= mesh.beta
     )  # fmt: skip
     return Certificate3(
-        passed=bool(passed), triangulation=bool(triangulation), orientation_failures=int(bad_o),
-        delaunay_failures=int(bad_d), volume_ratio=float(volume), max_aspect=aspect,
+        passed=bool(passed), triangulation=bool(triangulation), view_matches_torus=bool(view),
+        orientation_failures=int(bad_o), delaunay_failures=int(bad_d),
+        volume_ratio=float(volume), max_aspect=aspect,
         max_circumball_count=max_held, max_cell_count=max_cell,
         floor_circumballs=int(floor_balls.sum()), floor_cells=int(floor_cells.sum()),
         alpha_hat=alpha_hat, beta_hat=beta_hat, alpha=mesh.alpha, beta=mesh.beta,

@@ -1,5 +1,5 @@
-"""d_{P,k} anywhere in a periodic box of three dimensions, the kNN density, and the kNN-CDF,
-from a ``Mesh3``.
+"""d_{P,k} anywhere in a box of three dimensions, the kNN density, and the kNN-CDF, from a
+``Mesh3``.
 
 As in the plane (``density.py``): exact d_{P,k} at the mesh's vertices (one query of a
 periodic kd-tree each), carried linearly over the tetrahedra. The kNN-CDF of cosmology, the
@@ -11,6 +11,10 @@ piecewise cubic in r. Rigorous bounds come without any assumption on the interpo
 d_{P,k} is 1-Lipschitz, so on a tetrahedron of longest edge h it lies in [d_0 - h, d_3 + h];
 counting each tetrahedron whole where its upper bound is <= r gives a lower bound of the
 CDF, where its lower bound is <= r an upper bound (``cdf_bounds``).
+
+Along non-periodic axes the mesh's tetrahedra are the copies that meet the box; they are cut
+at its faces (``clip_below``: a tetrahedron cut by a plane leaves a tetrahedron or a prism,
+three tetrahedra), so that the pieces tile the box exactly and every integral is over the box.
 """
 
 import numpy as np
@@ -21,7 +25,8 @@ from .validation import as_points
 
 
 class KnnDistance3:
-    """d_{P,k} at any point of the 3-torus, from a ``Mesh3`` and its points.
+    """d_{P,k} at any point of the box, from a ``Mesh3`` and its points (NaN beyond the box
+    along a non-periodic axis).
 
     ``subdivide`` (default): also exact at the edges' midpoints, each tetrahedron cut into
     eight (its corners' four and the central octahedron's four, split along one diagonal):
@@ -39,12 +44,18 @@ class KnnDistance3:
             )
         self.mesh, self.k, self.n = mesh, mesh.k, len(pts)
         self.period = np.asarray(mesh.period, float)
-        self._points = cKDTree(mesh.wrap(pts), boxsize=self.period)
+        self._periodic = np.array(mesh.periodic)
+        self._points = cKDTree(mesh.wrap(pts), boxsize=np.where(self._periodic, self.period, 0.0))
         self.values = self._points.query(mesh.local, k=[mesh.k])[0][:, 0]
         corners = mesh.corners()  # relative to the origin, unwrapped
         d = self.values[mesh.tetrahedra]
         if subdivide:
             corners, d = self._subdivided(corners, d)
+        lo = np.array(mesh.box[:3]) - np.asarray(mesh.origin)
+        hi = np.array(mesh.box[3:]) - np.asarray(mesh.origin)
+        for a in np.flatnonzero(~self._periodic):  # cut at the box's faces
+            corners, d = clip_below(-corners, d, a, -lo[a])
+            corners, d = clip_below(-corners, d, a, hi[a])
         self._corners = corners
         self._d = d
         edges = corners[:, [0, 0, 0, 1, 1, 2]] - corners[:, [1, 2, 3, 2, 3, 3]]
@@ -62,10 +73,14 @@ class KnnDistance3:
 
     def _subdivided(self, corners, d):
         mids = 0.5 * (corners[:, self._PAIRS[:, 0]] + corners[:, self._PAIRS[:, 1]])
-        dm = self._points.query(np.mod(mids.reshape(-1, 3), self.period), k=[self.k])[0][:, 0]
+        dm = self._points.query(self._wrap(mids.reshape(-1, 3)), k=[self.k])[0][:, 0]
         nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
         values = np.concatenate([d, dm.reshape(-1, 6)], axis=1)
         return nodes[:, self._EIGHT].reshape(-1, 4, 3), values[:, self._EIGHT].reshape(-1, 4)
+
+    def _wrap(self, x):
+        """Points relative to the origin, wrapped along periodic axes only."""
+        return np.where(self._periodic, np.mod(x, self.period), x)
 
     # -- evaluation ------------------------------------------------------------------------
     def exact(self, x):
@@ -75,21 +90,26 @@ class KnnDistance3:
         return d.reshape(np.shape(x)[:-1])
 
     def __call__(self, x):
-        """The interpolated d_{P,k} at the points x (..., 3)."""
-        flat = as_points(np.reshape(x, (-1, 3)), 3)
-        tet, bary = self._locate(self.mesh.wrap(flat))
-        return np.einsum("qc,qc->q", bary, self._d[tet]).reshape(np.shape(x)[:-1])
+        """The interpolated d_{P,k} at the points x (..., 3); NaN beyond the box."""
+        flat = self.mesh.wrap(as_points(np.reshape(x, (-1, 3)), 3))
+        out = np.full(len(flat), np.nan)
+        inside = self.mesh.inside(flat)
+        tet, bary = self._locate(flat[inside])
+        out[inside] = np.einsum("qc,qc->q", bary, self._d[tet])
+        return out.reshape(np.shape(x)[:-1])
 
     def _locate(self, x):
-        """The tetrahedron (of the covering: the tetrahedra and their copies one period back
-        along each axis) holding each wrapped point, and its barycentric coordinates."""
+        """The tetrahedron (of the covering: the pieces and their copies one period back
+        along each periodic axis) holding each wrapped point of the box, and its barycentric
+        coordinates."""
         if self._locator is None:
-            shifts = np.array(np.meshgrid([0, -1], [0, -1], [0, -1])).reshape(3, -1).T
+            back = [[0, -1] if p else [0] for p in self._periodic]
+            shifts = np.array(np.meshgrid(*back)).reshape(3, -1).T
             c = self._corners[None] + (shifts * self.period)[:, None, None, :]
             c = c.reshape(-1, 4, 3)
             source = np.tile(np.arange(len(self._corners)), len(shifts))  # the piece
             lo, hi = c.min(axis=1), c.max(axis=1)
-            meets = ((hi >= 0) & (lo <= self.period)).all(axis=1)
+            meets = ((hi >= 0) & (lo <= self.period) | ~self._periodic).all(axis=1)
             c, source = c[meets], source[meets]
             inv = np.linalg.inv(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1)))
             self._locator = (cKDTree(c.mean(axis=1)), c[:, 0], inv, source)
@@ -140,6 +160,45 @@ class KnnDistance3:
             np.array([float(w[upper_d <= ri].sum()) for ri in r]),
             np.array([float(w[lower_d <= ri].sum()) for ri in r]),
         )
+
+
+def clip_below(corners, values, axis, bound):
+    """The parts of tetrahedra (t, 4, 3), carrying linear functions with corner values
+    (t, 4), where coordinate ``axis`` is <= ``bound``, as tetrahedra (corners, values): a
+    tetrahedron with one corner there leaves a tetrahedron, with two or three a prism (three
+    tetrahedra, its quadrilaterals in the faces and the plane). Orientation is not kept."""
+    below = corners[:, :, axis] <= bound
+    count = below.sum(axis=1)
+    order = np.argsort(~below, axis=1, kind="stable")  # the corners below first
+    c = np.take_along_axis(corners, order[..., None], 1)
+    v = np.take_along_axis(values, order, 1)
+
+    def cut(i, j, rows):
+        """Where edge (i, j) of the tetrahedra ``rows`` meets the plane, and the value."""
+        xi, xj = c[rows, i], c[rows, j]
+        s = (bound - xi[:, axis]) / (xj[:, axis] - xi[:, axis])
+        p = xi + s[:, None] * (xj - xi)
+        p[:, axis] = bound
+        return p, v[rows, i] + s * (v[rows, j] - v[rows, i])
+
+    def prism(p, q):
+        """Three tetrahedra of the prism with triangles p and q (lists of (points, values)),
+        p[i] joined to q[i]."""
+        parts = [(p[0], p[1], p[2], q[0]), (p[1], p[2], q[0], q[1]), (p[2], q[0], q[1], q[2])]
+        return [(np.stack([x[0] for x in t], 1), np.stack([x[1] for x in t], 1)) for t in parts]
+
+    out = [(corners[count == 4], values[count == 4])]
+    rows = np.flatnonzero(count == 1)
+    a = (c[rows, 0], v[rows, 0])
+    b, cc, d = cut(0, 1, rows), cut(0, 2, rows), cut(0, 3, rows)
+    out.append((np.stack([a[0], b[0], cc[0], d[0]], 1), np.stack([a[1], b[1], cc[1], d[1]], 1)))
+    rows = np.flatnonzero(count == 2)
+    a, b = (c[rows, 0], v[rows, 0]), (c[rows, 1], v[rows, 1])
+    out += prism([a, cut(0, 2, rows), cut(0, 3, rows)], [b, cut(1, 2, rows), cut(1, 3, rows)])
+    rows = np.flatnonzero(count == 3)
+    base = [(c[rows, i], v[rows, i]) for i in range(3)]
+    out += prism(base, [cut(i, 3, rows) for i in range(3)])
+    return np.concatenate([x[0] for x in out]), np.concatenate([x[1] for x in out])
 
 
 def _share_below(d, r):

@@ -481,28 +481,42 @@ def _write_csv(mesh, path):
 
 
 def _write_npz3(mesh, path):
-    """A ``Mesh3``, losslessly (``read_mesh`` gives it back, array for array)."""
+    """A ``Mesh3``, losslessly (``read_mesh`` gives it back, array for array; when an axis
+    is not periodic, also the embedding torus's mesh)."""
+    torus = {}
+    if mesh.embedded is not None:
+        t = mesh.embedded
+        torus = dict(torus_local=t.local, torus_tetrahedra=t.tetrahedra,
+                     torus_offsets=t.offsets, torus_kinds=t.kinds, order=mesh.order)  # fmt: skip
+    offsets = mesh.offsets if mesh.offsets is not None else np.zeros((0, 4, 3), np.int8)
     with open(path, "wb") as f:
         np.savez_compressed(
             f, format=np.array(FORMAT_VERSION), vertices=mesh.vertices,
-            tetrahedra=mesh.tetrahedra, offsets=mesh.offsets, kinds=mesh.kinds,
+            tetrahedra=mesh.tetrahedra, offsets=offsets,
+            has_offsets=np.array(mesh.offsets is not None), kinds=mesh.kinds,
             k=np.array(mesh.k), tau=np.array(mesh.tau), periodic=np.array(mesh.periodic),
             box=np.array(mesh.box), min_size=np.array(mesh.min_size),
             origin=np.array(mesh.origin), period=np.array(mesh.period), local=mesh.local,
-            stats=np.array(json.dumps(mesh.stats)),
+            stats=np.array(json.dumps(mesh.stats)), **torus,
         )  # fmt: skip
 
 
 def _mesh3_of(d):
-    from .mesh3 import Mesh3
+    from .mesh3 import Mesh3, Torus3
 
+    embedded = order = None
+    if "torus_local" in d:
+        embedded = Torus3(local=d["torus_local"], tetrahedra=d["torus_tetrahedra"],
+                          offsets=d["torus_offsets"], kinds=d["torus_kinds"])  # fmt: skip
+        order = d["order"]
     return Mesh3(
-        vertices=d["vertices"], tetrahedra=d["tetrahedra"], offsets=d["offsets"],
+        vertices=d["vertices"], tetrahedra=d["tetrahedra"],
+        offsets=d["offsets"] if bool(d["has_offsets"]) else None,
         kinds=d["kinds"], k=int(d["k"]), tau=float(d["tau"]),
         periodic=tuple(bool(p) for p in d["periodic"]),
         box=tuple(float(b) for b in d["box"]), min_size=float(d["min_size"]),
         origin=tuple(d["origin"].tolist()), period=tuple(d["period"].tolist()),
-        local=d["local"], stats=json.loads(str(d["stats"])),
+        local=d["local"], stats=json.loads(str(d["stats"])), order=order, embedded=embedded,
     )  # fmt: skip
 
 
@@ -514,7 +528,11 @@ def _meshio_writer3(file_format):
     def write(mesh, path):
         import meshio
 
-        o = mesh.offsets.astype(np.int64)  # 0 or 1: a tetrahedron spans under half a period
+        o = (
+            np.zeros((len(mesh.tetrahedra), 4, 3), np.int64)
+            if mesh.offsets is None
+            else mesh.offsets.astype(np.int64)  # 0 or 1: a tetrahedron spans under half a period
+        )
         if o.max(initial=0) > 3:
             raise AssertionError("a tetrahedron's offsets reach past 3 periods")
         keys = mesh.tetrahedra.astype(np.int64) * 64 + o[..., 0] * 16 + o[..., 1] * 4 + o[..., 2]

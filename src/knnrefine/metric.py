@@ -10,17 +10,18 @@ class BoxMetric:
     """Coordinates and kd-trees in the metric of ``box`` with ``periodic`` axes."""
 
     def __init__(self, box, periodic):
-        self.lo = np.array(box[:2], float)
-        self.hi = np.array(box[2:], float)
+        self.dim = len(box) // 2
+        self.lo = np.array(box[: self.dim], float)
+        self.hi = np.array(box[self.dim :], float)
         self.periodic = np.array(periodic, bool)
         self.period = self.hi - self.lo
 
     def frame(self, x):
         """Coordinates relative to the box's lower corner, periodic axes wrapped into
         [0, period) by the engine's one wrapping rule (accurate whatever the magnitude)."""
-        x = np.array(x, float).reshape(-1, 2)
+        x = np.array(x, float).reshape(-1, self.dim)
         out = x - self.lo
-        for a in range(2):
+        for a in range(self.dim):
             if self.periodic[a]:
                 out[:, a] = wrap_offsets(x[:, a].copy(), self.lo[a], self.period[a])
         return out
@@ -48,7 +49,7 @@ class TorusFrame:
         self.origin = tuple(float(v) for v in origin)
         self.period = tuple(float(v) for v in period)
         corner = np.add(self.origin, self.period)
-        self._metric = BoxMetric((*self.origin, *corner), (True, True))
+        self._metric = BoxMetric((*self.origin, *corner), (True,) * len(self.period))
 
     def __call__(self, x):
         return self._metric.frame(x)

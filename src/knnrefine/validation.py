@@ -142,34 +142,36 @@ def check_workers(workers):
     return int(workers)
 
 
-def check_periodic(periodic):
+def check_periodic(periodic, dim=2):
+    """(bool,) * dim from a bool or one bool per axis."""
+    axes = "(x, y)" if dim == 2 else "(x, y, z)"
+    what = "a pair" if dim == 2 else "a triple"
     if isinstance(periodic, (bool, np.bool_)):
-        return (bool(periodic), bool(periodic))
+        return (bool(periodic),) * dim
     try:
-        px, py = periodic
-    except (TypeError, ValueError):
-        raise InputError(
-            f"periodic must be a bool or a pair of bools (x, y), got {periodic!r}"
-        ) from None
-    if not all(isinstance(p, (bool, np.bool_)) for p in (px, py)):
-        raise InputError(f"periodic must be a bool or a pair of bools (x, y), got {periodic!r}")
-    return (bool(px), bool(py))
+        flags = tuple(periodic)
+    except TypeError:
+        flags = ()
+    if len(flags) != dim or not all(isinstance(p, (bool, np.bool_)) for p in flags):
+        raise InputError(f"periodic must be a bool or {what} of bools {axes}, got {periodic!r}")
+    return tuple(bool(p) for p in flags)
 
 
-def check_box(box):
+def check_box(box, dim=2):
+    """(low corner, high corner) as 2 * dim finite numbers, each side positive."""
+    names = "(xmin, ymin, xmax, ymax)" if dim == 2 else "(x0, y0, z0, x1, y1, z1)"
+    count = "four" if dim == 2 else "six"
     try:
         vals = [float(b) for b in box]
     except (TypeError, ValueError):
+        raise InputError(f"box must be {count} numbers {names}, got {box!r}") from None
+    if len(vals) != 2 * dim or not np.all(np.isfinite(vals)):
+        raise InputError(f"box must be {count} finite numbers {names}, got {box!r}")
+    if not all(vals[dim + a] > vals[a] for a in range(dim)):
+        rule = "xmin < xmax and ymin < ymax" if dim == 2 else "x0 < x1, y0 < y1 and z0 < z1"
         raise InputError(
-            f"box must be four numbers (xmin, ymin, xmax, ymax), got {box!r}"
-        ) from None
-    if len(vals) != 4 or not np.all(np.isfinite(vals)):
-        raise InputError(f"box must be four finite numbers (xmin, ymin, xmax, ymax), got {box!r}")
-    xmin, ymin, xmax, ymax = vals
-    if not (xmax > xmin and ymax > ymin):
-        raise InputError(
-            f"box {tuple(vals)} has zero or negative width or height; it must satisfy "
-            "xmin < xmax and ymin < ymax"
+            f"box {tuple(vals)} has a zero or negative width, height or depth; it must "
+            f"satisfy {rule}"
         )
     check_box_scale(vals)
     return tuple(vals)
@@ -178,8 +180,9 @@ def check_box(box):
 def check_box_scale(box):
     """A box whose sides or corners leave [1e-100, 1e100] cannot be meshed in double
     precision without overflow or underflow of squared distances."""
+    dim = len(box) // 2
     big = max(abs(b) for b in box)
-    side = min(box[2] - box[0], box[3] - box[1])
+    side = min(box[dim + a] - box[a] for a in range(dim))
     if big > MAX_COORDINATE or side < MIN_SIDE:
         raise InputError(
             f"box {tuple(box)} is out of range: corners must satisfy |x| <= {MAX_COORDINATE:g} "
@@ -191,8 +194,9 @@ def default_box(points):
     """The points' bounding box; a zero side (collinear or identical points) is widened to the
     other side, or to 1 when all points coincide, centred on the data."""
     # column by column: numpy reduces an (n, 2) array along axis 0 about 50x slower
-    lo = np.array([points[:, 0].min(), points[:, 1].min()])
-    hi = np.array([points[:, 0].max(), points[:, 1].max()])
+    dim = points.shape[1]
+    lo = np.array([points[:, a].min() for a in range(dim)])
+    hi = np.array([points[:, a].max() for a in range(dim)])
     size = hi - lo
     side = size.max()
     if side == 0.0:  # all points coincide
@@ -202,12 +206,12 @@ def default_box(points):
             f"the points span only {side:.3g}; knnrefine needs a box side >= {MIN_SIDE:g}: "
             "rescale the data first"
         )
-    for a in range(2):
+    for a in range(dim):
         if size[a] == 0.0:
             mid = lo[a]
             lo[a] = mid - side / 2.0
             hi[a] = mid + side / 2.0
-    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+    return tuple(float(v) for v in lo) + tuple(float(v) for v in hi)
 
 
 PERIOD_BITS = 24  # a periodic coordinate must resolve 2^-24 of its period
@@ -217,12 +221,13 @@ def check_inside(points, box, periodic):
     """Points must lie in the box along non-periodic axes. Periodic axes wrap, exactly, but a
     coordinate so large that doubles near it are coarser than 2^-24 of the period has lost
     its position within the period."""
-    for a in range(2):
+    dim = len(box) // 2
+    for a in range(dim):
         if periodic[a]:
-            period = box[a + 2] - box[a]
+            period = box[a + dim] - box[a]
             big = max(float(points[:, a].max()), -float(points[:, a].min()))
             if np.spacing(big) > period * 2.0**-PERIOD_BITS:
-                axis = "xy"[a]
+                axis = "xyz"[a]
                 raise InputError(
                     f"coordinates along {axis} reach {big:.3g}, where doubles are "
                     f"{np.spacing(big):.3g} apart, coarser than 2^-{PERIOD_BITS} of the period "
@@ -230,13 +235,13 @@ def check_inside(points, box, periodic):
                     f"keep periodic coordinates below about {period * 2.0**28:.3g} in magnitude"
                 )
             continue
-        lo, hi = box[a], box[a + 2]
+        lo, hi = box[a], box[a + dim]
         if points[:, a].min() >= lo and points[:, a].max() <= hi:
             continue
         out = (points[:, a] < lo) | (points[:, a] > hi)
         if out.any():
             first = int(np.argmax(out))
-            axis = "xy"[a]
+            axis = "xyz"[a]
             raise InputError(
                 f"{int(out.sum())} point(s) lie outside the box along {axis} "
                 f"[{lo}, {hi}], the first at index {first} ({points[first].tolist()}); enlarge "
@@ -263,3 +268,26 @@ def as_queries(x):
         )
     arr = np.asarray(arr, dtype=np.float64)
     return arr.reshape(-1, 2), arr.shape[:-1]
+
+
+RESOLUTION_BITS = 24  # a box must span at least 2^24 grid steps: the floor is 2^14 of them
+
+
+def check_resolution(box, per):
+    """The box must be wide compared with the spacing of doubles at its coordinates: the
+    engine works on a grid no finer than that spacing (so that every vertex is returned
+    exactly), and its resolution floor is 2^14 grid steps."""
+    from .engine.embedding import Embedding
+
+    emb = Embedding.make(box, per)
+    step = emb.grid / emb.scale
+    dim = len(box) // 2
+    side = max(box[dim + a] - box[a] for a in range(dim))
+    if side < step * 2.0**RESOLUTION_BITS:
+        big = float(np.max(np.abs(box)))
+        raise InputError(
+            f"the box {box} is too small for its coordinates' magnitude: near {big:.6g} doubles "
+            f"are {step:.3g} apart, and knnrefine needs at least 2^{RESOLUTION_BITS} such steps "
+            f"across the box (its side is {side:.3g}, about {side / step:.3g} steps); subtract "
+            "an offset first, for example points - points.min(axis=0)"
+        )

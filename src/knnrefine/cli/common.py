@@ -79,6 +79,9 @@ def add_refine_options(parser, k_required=True, k_help="which nearest neighbour 
     )
     per.add_argument("--periodic-x", action="store_true", help="periodic in x only")
     per.add_argument("--periodic-y", action="store_true", help="periodic in y only")
+    per.add_argument(
+        "--periodic-z", action="store_true", help="periodic in z only (points in space)"
+    )
     parser.add_argument(
         "--box",
         type=float,
@@ -96,30 +99,40 @@ def add_refine_options(parser, k_required=True, k_help="which nearest neighbour 
     )
 
 
+def in_space(args):
+    """Whether the command reads points in space: three --columns or a six-number --box."""
+    columns = getattr(args, "columns", None)
+    box = getattr(args, "box", None)
+    return (columns is not None and len(str(columns).split(",")) == 3) or (
+        box is not None and len(box) == 6
+    )
+
+
 def periodic_of(args):
+    """The --periodic flags as refine's ``periodic``: a bool, or one bool per axis."""
     box = getattr(args, "box", None)
     if box is not None and len(box) not in (4, 6):
         raise UsageError(
             f"--box takes 4 numbers (XMIN YMIN XMAX YMAX) or 6 for points in space "
             f"(XMIN YMIN ZMIN XMAX YMAX ZMAX), got {len(box)}"
         )
-    if getattr(args, "box", None) is None and (args.periodic or args.periodic_x or args.periodic_y):
-        flag = (
-            "--periodic"
-            if args.periodic
-            else ("--periodic-x" if args.periodic_x else "--periodic-y")
-        )
+    z = getattr(args, "periodic_z", False)
+    flags = {"--periodic-x": args.periodic_x, "--periodic-y": args.periodic_y, "--periodic-z": z}
+    named = [flag for flag, on in flags.items() if on]
+    if box is None and (args.periodic or named):
+        flag = "--periodic" if args.periodic else named[0]
         raise UsageError(
-            f"{flag} needs --box XMIN YMIN XMAX YMAX: the periods are its sides (for angles in "
-            "degrees, e.g. --box -180 -180 180 180)"
+            f"{flag} needs --box XMIN YMIN XMAX YMAX (XMIN YMIN ZMIN XMAX YMAX ZMAX in space): "
+            "the periods are its sides (for angles in degrees, e.g. --box -180 -180 180 180)"
         )
     if args.periodic:
         return True
-    if args.periodic_x:
-        return (True, False)
-    if args.periodic_y:
-        return (False, True)
-    return False
+    if not named:
+        return False
+    dim = 3 if in_space(args) else 2
+    if z and dim == 2:
+        raise UsageError("--periodic-z is for points in space (three --columns)")
+    return tuple(flags[f"--periodic-{'xyz'[a]}"] for a in range(dim))
 
 
 def require_k_or_mesh(args):

@@ -10,6 +10,7 @@ from .common import (
     add_input_options,
     add_refine_options,
     check_outputs,
+    in_space,
     periodic_of,
     plural,
     read_input,
@@ -59,7 +60,7 @@ def run(args):
         args.force,
     )
     periodic_of(args)
-    if args.columns is not None and len(str(args.columns).split(",")) == 3:  # in space
+    if in_space(args):
         from ..io import WRITERS3
 
         for path in outputs:

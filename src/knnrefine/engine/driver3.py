@@ -63,10 +63,11 @@ TETRAHEDRON_FIELDS3 = (
 
 
 class Refinement3:
-    """One 3-D run on the torus of ``period`` (internal units, multiples of Q) over the
-    points of ``index`` (``index3.build_index3``, internal coordinates in [0, period))."""
+    """One 3-D run on the torus of ``period`` (internal units, multiples of the grid step q,
+    a power of two >= Q: ``embedding.Embedding.grid``) over the points of ``index``
+    (``index3.build_index3``, internal coordinates in [0, period))."""
 
-    def __init__(self, index, period, k, tau, floor, max_vertices, grid):
+    def __init__(self, index, period, k, tau, floor, max_vertices, grid, q=Q):
         self.period = np.asarray(period, float)
         self.index = index
         estimate = max(4096, len(grid[0]) * 4)
@@ -93,10 +94,10 @@ class Refinement3:
         prm = np.zeros(N_PARAMS3)
         prm[:3] = self.period
         prm[P3_TAU2] = tau * tau * (1.0 - 1e-12)
-        prm[P3_FLOOR2] = max(floor, 2.0**FLOOR_BITS * Q) ** 2
-        prm[P3_CLEAN_FLOOR2] = (2.0**FLOOR_BITS * Q) ** 2
+        prm[P3_FLOOR2] = max(floor, 2.0**FLOOR_BITS * q) ** 2
+        prm[P3_CLEAN_FLOOR2] = (2.0**FLOOR_BITS * q) ** 2
         prm[P3_INFLATE] = 1.0 + 1e-9
-        prm[P3_GRID] = Q
+        prm[P3_GRID] = q
         prm[P3_K] = float(k)
         self.prm = prm
         self.cnt[C_MAX_VERTICES] = int(max_vertices)
@@ -162,14 +163,14 @@ class Refinement3:
         )
 
 
-def choose_grid3(period, holds, factor):
+def choose_grid3(period, holds, factor, q=Q):
     """The first candidate M0 (finest first) whose vertices can be ordered so that each u
     has d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition, factor = K - 1:
     ``initial.reach_factor``; the order is found by peeling, ``initial.peel_order``):
     ``holds(x, r)`` says whether the closed ball of radius r about each x holds k points.
     None when no candidate passes."""
     for per, jitter, shift in ((4, 0.2, 0.0), (4, 0.2, 0.5), (3, 0.05, 0.0), (3, 0.05, 0.5)):
-        grid = initial_grid3(period, per, jitter, shift)
+        grid = initial_grid3(period, per, jitter, shift, q)
         if grid is None:
             continue
 

@@ -1,6 +1,7 @@
 """From the user's box to the engine's torus, and back.
 
-The engine always refines a flat torus [0, lx) x [0, ly) in internal units. Along a periodic
+The engine always refines a flat torus [0, lx) x [0, ly) (x [0, lz) in space) in internal
+units. Along a periodic
 axis the torus period is the box's side. Along a non-periodic axis the box is embedded in a
 longer period, with a margin on both sides, long enough that no periodic copy of a point can be
 among the k nearest of any point of the box:
@@ -56,32 +57,35 @@ def wrap_offsets(x, lo, period):
 
 
 def wrap(x, period):
-    """Points (n, 2) reduced into [0, period) on both axes."""
-    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 2)
-    return np.stack([wrap_offsets(x[:, a].copy(), 0.0, float(period[a])) for a in range(2)], 1)
+    """Points (n, d) reduced into [0, period) on every axis."""
+    d = len(period)
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, d)
+    return np.stack([wrap_offsets(x[:, a].copy(), 0.0, float(period[a])) for a in range(d)], 1)
 
 
 def diameter(box, periodic):
     """The box's diameter in its own metric: half the side along periodic axes."""
-    size = np.array(box[2:], float) - np.array(box[:2], float)
-    return float(np.hypot(*np.where(np.array(periodic, bool), size / 2.0, size)))
+    d = len(box) // 2
+    size = np.array(box[d:], float) - np.array(box[:d], float)
+    return float(np.sqrt((np.where(np.array(periodic, bool), size / 2.0, size) ** 2).sum()))
 
 
 @dataclass(frozen=True)
 class Embedding:
-    box: tuple  # (xmin, ymin, xmax, ymax), input units
-    periodic: tuple  # (bool, bool)
+    box: tuple  # (xmin, ymin, xmax, ymax) or (x0, y0, z0, x1, y1, z1), input units
+    periodic: tuple  # one bool per axis
     origin: np.ndarray  # input coordinates of the internal origin, multiples of grid / scale
     scale: float  # internal = (input - origin) * scale
-    period_internal: tuple  # (lx, ly), multiples of grid
+    period_internal: tuple  # (lx, ly) or (lx, ly, lz), multiples of grid
     grid: float  # q: the internal grid step, a power of two >= 2^-50
 
     @classmethod
     def make(cls, box, periodic, reach=None):
         """The torus for ``box``: along non-periodic axes the side plus a margin of 1.05 x
         ``reach``, which must bound d_{P,k} over the box (default: the box's diameter D)."""
-        lo = np.array(box[:2], float)
-        size = np.array(box[2:], float) - lo
+        d = len(box) // 2
+        lo = np.array(box[:d], float)
+        size = np.array(box[d:], float) - lo
         per = np.array(periodic, bool)
         diam = diameter(box, periodic) if reach is None else float(reach)
         period = np.where(per, size, size + MARGIN * diam)
@@ -108,8 +112,12 @@ class Embedding:
         """The engine's resolution floor in input units: 2^14 grid steps."""
         return self.grid * 2.0**FLOOR_BITS / self.scale
 
+    @property
+    def dim(self):
+        return len(self.periodic)
+
     def to_internal(self, x):
-        """Internal coordinates of input points (n, 2), wrapped into the torus (a new array)."""
+        """Internal coordinates of input points (n, d), wrapped into the torus (a new array)."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         return _to_internal(
             x,
@@ -127,7 +135,7 @@ class Embedding:
         x = np.array(u, float) if copy else u
         x /= self.scale
         x += self.origin
-        for a in range(2):
+        for a in range(self.dim):
             if self.periodic[a]:
                 lo, period = self.box[a], self.period[a]
                 x[:, a] = np.where(x[:, a] < lo, x[:, a] + period, x[:, a])
@@ -135,10 +143,10 @@ class Embedding:
         return x
 
     def to_query(self, x):
-        """Internal coordinates of any points (n, 2) for distance queries: wrapped into the
+        """Internal coordinates of any points (n, d) for distance queries: wrapped into the
         torus along periodic axes, unwrapped (planar, possibly outside [0, L)) along the
         others, where the index answers in the plane (``index.PointIndex``)."""
-        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 2)
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, self.dim)
         return _to_internal(
             x,
             self.origin,
@@ -149,8 +157,9 @@ class Embedding:
         )
 
     def box_internal(self):
-        lo = (np.array(self.box[:2]) - self.origin) * self.scale
-        hi = (np.array(self.box[2:]) - self.origin) * self.scale
+        d = self.dim
+        lo = (np.array(self.box[:d]) - self.origin) * self.scale
+        hi = (np.array(self.box[d:]) - self.origin) * self.scale
         return lo, hi
 
 
@@ -161,7 +170,7 @@ def _to_internal(x, origin, scale, period, periodic, into_torus):
     is guarded), else left planar (queries)."""
     out = np.empty_like(x)
     for i in range(x.shape[0]):
-        for a in range(2):
+        for a in range(x.shape[1]):
             if periodic[a]:
                 u = wrap_offset(x[i, a], origin[a], period[a] / scale) * scale
             else:
@@ -314,3 +323,66 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
                             off[n, i, a] = to[t, i, a]
                 n += 1
     return out_v, out_s, tri, off
+
+
+def unfold3(xyz, corners, offsets, emb):
+    """``unfold`` in space: the part of the 3-torus mesh that the box needs.
+
+    Along periodic axes nothing changes. Along non-periodic axes the tetrahedra kept are the
+    copies (shifted by -1, 0 or 1 period) that meet the box, and the vertices kept are the
+    copies within r* of the box, r* the longest edge of a kept tetrahedron (every vertex that
+    can be one of the two nearest to a point of the box). Vertex copies are numbered in
+    (vertex, shift) order.
+
+    Returns (vertex ids (m',) int64, positions (m', 3) internal, tetrahedra (t', 4) int32 into
+    the returned vertices, offsets (t', 4, 3) int8 or None when no axis is periodic)."""
+    per = emb.periodic
+    if all(per):
+        return np.arange(len(xyz)), xyz.copy(), corners.copy(), offsets.copy()
+    blo, bhi = emb.box_internal()
+    L = np.array(emb.period_internal)
+    free = [a for a in range(3) if not per[a]]
+    c = xyz[corners] + offsets * L  # (t, 4, 3) unwrapped corners
+    lo, hi = c.min(axis=1), c.max(axis=1)
+    edges = c[:, [0, 0, 0, 1, 1, 2]] - c[:, [1, 2, 3, 2, 3, 3]]
+    longest2 = (edges**2).sum(axis=2).max(axis=1)
+    del c, edges
+
+    def combos(values):
+        """Every shift vector with values along the free axes, 0 along periodic ones."""
+        grids = np.meshgrid(*[values if a in free else [0] for a in range(3)], indexing="ij")
+        return np.stack([g.ravel() for g in grids], 1)
+
+    def code(shift):  # a copy's shift per axis in [-1, 2], two bits each
+        return ((shift[..., 0] + 1) * 4 + shift[..., 1] + 1) * 4 + shift[..., 2] + 1
+
+    keep_t, keep_s = [], []
+    for s in combos([-1, 0, 1]):
+        meets = np.ones(len(corners), bool)
+        for a in free:
+            meets &= (hi[:, a] + s[a] * L[a] >= blo[a]) & (lo[:, a] + s[a] * L[a] <= bhi[a])
+        t = np.flatnonzero(meets)
+        keep_t.append(t)
+        keep_s.append(np.broadcast_to(s, (len(t), 3)))
+    keep_t = np.concatenate(keep_t)
+    keep_s = np.concatenate(keep_s)
+    rstar2 = float(longest2[keep_t].max(initial=0.0))
+    free_mask = np.array([not p for p in per])
+    shift = np.where(free_mask, offsets[keep_t].astype(np.int64) + keep_s[:, None, :], 0)
+    corner_keys = corners[keep_t].astype(np.int64) * 64 + code(shift)
+    extra = []
+    for s in combos([-1, 0, 1, 2]):
+        gap2 = np.zeros(len(xyz))
+        for a in free:
+            p = xyz[:, a] + s[a] * L[a]
+            gap2 += np.maximum(np.maximum(blo[a] - p, 0.0), p - bhi[a]) ** 2
+        extra.append(np.flatnonzero(gap2 <= rstar2) * 64 + code(s))
+    keys = np.unique(np.concatenate([corner_keys.ravel(), *extra]))
+    tetrahedra = np.searchsorted(keys, corner_keys).astype(np.int32)
+    out_v = keys // 64
+    s = np.stack([keys // 16 % 4, keys // 4 % 4, keys % 4], 1) - 1
+    pos = xyz[out_v] + s * L
+    out_offsets = None
+    if any(per):
+        out_offsets = np.where(free_mask, 0, offsets[keep_t]).astype(np.int8)
+    return out_v, pos, tetrahedra, out_offsets
