@@ -204,7 +204,7 @@ def test_the_initial_mesh_check_counts_balls_of_every_size():
     tree = cKDTree(u, boxsize=period)
     for k in (1, 37, 2500, 5000):
         want = tree.query_ball_point(x, reach, return_length=True) >= k
-        np.testing.assert_array_equal(_holds(index, u, x, reach, k, period), want)
+        np.testing.assert_array_equal(_holds(index, x, reach, k, period), want)
 
 
 def test_tau_beyond_6_is_certified():
@@ -281,7 +281,7 @@ def test_purging_the_circumball_queue_keeps_every_live_entry():
     pts = multiscale(20000, 13)
     period = np.ones(3)
     index = build_index3(pts)
-    grid = choose_grid3(period, lambda x, r: _holds(index, pts, x, r, 10, period), reach_factor(3))
+    grid = choose_grid3(period, lambda x, r: _holds(index, x, r, 10, period), reach_factor(3))
     run = Refinement3(index, period, 10, 3.0, 1e-6, 10**6, grid)
     refine_steps3(run.mesh, run.book, run.queues, run.scratch, run.probe, run.cnt, run.prm,
                   run.index, 3000)  # fmt: skip

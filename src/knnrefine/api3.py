@@ -19,10 +19,11 @@ from .mesh3 import Mesh3, Torus3
 from .metric import BoxMetric
 
 
-def _holds(index, u, x, reach, k, period):
-    """Whether the closed ball of radius ``reach`` about each x holds >= k of the points u
-    (the index over them answers below half the shortest period; a ball reaching every
-    point of the torus holds all of them; between the two, a direct count)."""
+def _holds(index, x, reach, k, period):
+    """Whether the closed ball of radius ``reach`` about each x holds >= k of the index's
+    points (the index answers below half the shortest period; a ball reaching every point
+    of the torus holds all of them; between the two, a direct count over its points)."""
+    u = index[0]
     reach = np.asarray(reach, float)
     out = reach >= np.sqrt(((period / 2.0) ** 2).sum())  # the torus' diameter: every point
     small = ~out & (reach < 0.5 * period.min() * (1.0 - 1e-9))
@@ -46,7 +47,7 @@ def _reach(pts, box, per, k):
 
 
 def _start(pts, box, per, k, tau):
-    """(embedding, internal points, index, M0) for the first torus whose initial mesh meets
+    """(embedding, index, M0) for the first torus whose initial mesh meets
     Lemma 2's precondition: the default margin (1.05 x the box's diameter along
     non-periodic axes), then, as in the plane, 1.05 x a bound on max d_Pk over the box and 2,
     4 and 10 diameters. None when none does."""
@@ -56,16 +57,15 @@ def _start(pts, box, per, k, tau):
         reaches += [_reach(pts, box, per, k), 2.0 * diam, 4.0 * diam, 10.0 * diam]
     for reach in reaches:
         emb = Embedding.make(box, per, reach)
-        u = emb.to_internal(pts)
-        index = build_index3(u)
+        index = build_index3(emb.to_internal(pts), copy=False)  # the index owns them
         period = np.array(emb.period_internal)
 
-        def holds(x, r, index=index, u=u, period=period):
-            return _holds(index, u, x, r, k, period)
+        def holds(x, r, index=index, period=period):
+            return _holds(index, x, r, k, period)
 
         grid = choose_grid3(period, holds, reach_factor(tau), emb.grid)
         if grid is not None:
-            return emb, u, index, grid
+            return emb, index, grid
     return None
 
 
@@ -111,7 +111,7 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
             "3-torus satisfies Lemma 2's precondition (in some order, d_Pk at each initial "
             "vertex at most (K - 1) times its distance to the earlier ones); use a smaller k"
         )
-    emb, u, run_index, grid = found
+    emb, run_index, grid = found
     min_size = 1e-6 * side if min_size is None else float(min_size)
     budget = int(max_vertices) if max_vertices is not None else max(10**6, 4 * len(pts))
     deadline = None if time_limit is None else t_start + float(time_limit)
@@ -122,7 +122,8 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
         raise BudgetError(f"stopped at max_vertices = {budget:,} before the mesh was done")
     if status != STATUS_DONE:
         raise BudgetError(f"stopped at time_limit = {time_limit} s before the mesh was done")
-    xyz, corners, offsets, kinds, cnt = run.result()
+    xyz, corners, offsets, kinds, cnt = run.take_result()
+    del run, run_index
     out_v, pos, tetrahedra, out_offsets = unfold3(xyz, corners, offsets, emb)
     local = pos / emb.scale  # exact: a power of two
     torus = None

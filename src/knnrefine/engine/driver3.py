@@ -150,6 +150,22 @@ class Refinement3:
             queues[name] = q
         self.queues = self.queues._replace(**queues)
 
+    def take_result(self):
+        """``result()``, consuming the run: the index, scratch, queues and bookkeeping are
+        let go first, and each mesh array as soon as its trimmed copy exists, so that the
+        copies never sit beside the whole state (the peak memory of a run)."""
+        nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
+        cnt = self.cnt.copy()
+        kinds = self.book.kinds[:nv].copy()
+        arrays = self.mesh._asdict()
+        self.mesh = self.book = self.queues = self.scratch = self.probe = self.index = None
+        for name in ("neighbours", "radius2", "star", "outradius2", "nearest2"):
+            del arrays[name]
+        xyz = arrays.pop("xyz")[:nv].copy()
+        corners = arrays.pop("corners")[:nt].copy()
+        offsets = arrays.pop("offsets")[:nt].copy()
+        return xyz, corners, offsets, kinds, cnt
+
     def result(self):
         """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters)."""
         nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])

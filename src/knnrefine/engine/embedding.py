@@ -335,10 +335,11 @@ def unfold3(xyz, corners, offsets, emb):
     (vertex, shift) order.
 
     Returns (vertex ids (m',) int64, positions (m', 3) internal, tetrahedra (t', 4) int32 into
-    the returned vertices, offsets (t', 4, 3) int8 or None when no axis is periodic)."""
+    the returned vertices, offsets (t', 4, 3) int8 or None when no axis is periodic); when
+    every axis is periodic, the arrays given (nothing to unfold, nothing copied)."""
     per = emb.periodic
-    if all(per):
-        return np.arange(len(xyz)), xyz.copy(), corners.copy(), offsets.copy()
+    if all(per):  # the arrays themselves (the caller's own)
+        return np.arange(len(xyz)), xyz, corners, offsets
     blo, bhi = emb.box_internal()
     L = np.array(emb.period_internal)
     free = [a for a in range(3) if not per[a]]

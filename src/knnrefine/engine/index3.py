@@ -73,9 +73,12 @@ def _build3(pts, box, node, split):
     return free
 
 
-def build_index3(points):
-    """The index (pts, box, node, split) over a copy of the (n, 3) points."""
-    pts = np.ascontiguousarray(points, np.float64).copy()
+def build_index3(points, copy=True):
+    """The index (pts, box, node, split) over a copy of the (n, 3) points (``copy=False``:
+    over the caller's float64 array itself, reordered in place)."""
+    pts = np.ascontiguousarray(points, np.float64)
+    if copy and pts is points:
+        pts = pts.copy()
     cap = _node_bound(len(pts))
     box = np.empty((cap, 6))
     node = np.empty((cap, 4), np.int64)
