@@ -54,11 +54,20 @@ def test_distance_density_and_cdf(k):
     np.testing.assert_allclose(dist.exact(q), exact, rtol=1e-12)
     rel = np.abs(est - exact) / exact
     assert np.median(rel) < 0.05 and np.percentile(rel, 99) < 0.3
+    piece, _ = dist._locate(q)  # each piece's rigorous bounds hold at the points in it
+    assert (dist._bounds[0][piece] <= exact * (1 + 1e-12)).all()
+    assert (exact <= dist._bounds[1][piece] * (1 + 1e-12)).all()
     # at the vertices the interpolant is exact; shifted by whole periods it is the same
     np.testing.assert_allclose(dist(mesh.vertices[:500] + [1.0, -2.0, 3.0]), dist.values[:500])
     # the mesh's CDF is its interpolant's: Monte Carlo of the interpolant agrees
     radii = np.quantile(exact, [0.05, 0.25, 0.5, 0.75, 0.95])
     mine = dist.cdf(radii)
+    # the running sums and the cut pieces add up to the B-spline share of every piece,
+    # also at radii equal to knots and beyond the extremes
+    knots, w = dist._knots()[:2]
+    every = np.concatenate([radii, knots[:3, 3], knots[:3, 0], [0.0, knots.max() * 2]])
+    direct = [float((w * _share_below(knots, float(r))).sum()) for r in every]
+    np.testing.assert_allclose(dist.cdf(every), direct, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(mine, [(est <= r).mean() for r in radii], atol=5e-3)
     # the exact kNN-CDF, by Monte Carlo at 10^6 random points, within the certified bounds
     q6 = rng.random((1_000_000, 3))
@@ -95,7 +104,12 @@ def test_clip_below_cuts_tetrahedra_exactly():
     values = rng.random((300, 4))
     for axis in range(3):
         bound = 0.5
-        pieces, pv = clip_below(corners, values, axis, bound)
+        pieces, pv, source = clip_below(corners, values, axis, bound)
+        # every piece lies in the tetrahedron it came from (its centroid does: convexity)
+        rel = pieces.mean(axis=1) - corners[source, 0]
+        lam = np.linalg.solve(np.transpose(corners[source, 1:] - corners[source, :1], (0, 2, 1)),
+                              rel[..., None])[..., 0]  # fmt: skip
+        assert (lam >= -1e-9).all() and (lam.sum(axis=1) <= 1 + 1e-9).all()
         assert (pieces[:, :, axis] <= bound + 1e-12).all()
         vol = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])).sum() / 6
         x = np.sort(corners[:, :, axis], axis=1) + 1e-12 * np.arange(4)
@@ -104,7 +118,7 @@ def test_clip_below_cuts_tetrahedra_exactly():
         assert got == pytest.approx(want.sum(), rel=1e-9) and got < vol
         # each piece carries the linear function of its tetrahedron
         for t in range(40):
-            one, ov = clip_below(corners[t : t + 1], values[t : t + 1], axis, bound)
+            one, ov, _ = clip_below(corners[t : t + 1], values[t : t + 1], axis, bound)
             coef = np.linalg.solve(np.append(corners[t], np.ones((4, 1)), 1), values[t])
             np.testing.assert_allclose(np.append(one, np.ones(one.shape[:2] + (1,)), 2) @ coef,
                                        ov, atol=1e-9)  # fmt: skip
@@ -130,6 +144,11 @@ def test_boxes_not_periodic_everywhere(periodic):
     exact = tree.query(q - lo, k=[20])[0][:, 0]
     est = dist(q)
     assert np.median(np.abs(est - exact) / exact) < 0.05
+    # each piece's rigorous bounds hold at every sampled point in it
+    piece, _ = dist._locate(mesh.wrap(q))
+    low_d, high_d = dist._bounds
+    assert (low_d[piece] <= exact * (1 + 1e-12)).all()
+    assert (exact <= high_d[piece] * (1 + 1e-12)).all()
     beyond = q[:10] + np.where(per, 0.0, hi - lo)
     assert np.isnan(dist(beyond)).all()
     radii = np.quantile(exact, [0.1, 0.5, 0.9])

@@ -8,9 +8,10 @@ distribution of d_{P,k} at uniformly random points of the box, CDF(r) = vol{x : 
 whose corners carry d_0 <= d_1 <= d_2 <= d_3, the value at a uniform point has the cubic
 B-spline distribution with those knots, so the share of the tetrahedron below r is a
 piecewise cubic in r. Rigorous bounds come without any assumption on the interpolant:
-d_{P,k} is 1-Lipschitz, so on a tetrahedron of longest edge h it lies in [d_0 - h, d_3 + h];
-counting each tetrahedron whole where its upper bound is <= r gives a lower bound of the
-CDF, where its lower bound is <= r an upper bound (``cdf_bounds``).
+d_{P,k} is 1-Lipschitz, so on a tetrahedron it lies within d_i -+ e_i for each corner i (e_i
+the distance to the farthest corner); counting each tetrahedron whole where its upper bound
+is <= r gives a lower bound of the CDF, where its lower bound is <= r an upper bound
+(``cdf_bounds``).
 
 Along non-periodic axes the mesh's tetrahedra are the copies that meet the box; they are cut
 at its faces (``clip_below``: a tetrahedron cut by a plane leaves a tetrahedron or a prism,
@@ -51,15 +52,19 @@ class KnnDistance3:
         d = self.values[mesh.tetrahedra]
         if subdivide:
             corners, d = self._subdivided(corners, d)
+        # rigorous bounds of d_{P,k} on each piece from its exact corner values (before any
+        # cut: a cut point's value is interpolated, not exact): d_{P,k} is 1-Lipschitz, so on
+        # the piece it lies within d_i -+ the distance from corner i to the farthest corner
+        far = np.sqrt(((corners[:, :, None] - corners[:, None, :]) ** 2).sum(axis=3)).max(axis=2)
+        self._bounds = (d - far).max(axis=1), (d + far).min(axis=1)
         lo = np.array(mesh.box[:3]) - np.asarray(mesh.origin)
         hi = np.array(mesh.box[3:]) - np.asarray(mesh.origin)
         for a in np.flatnonzero(~self._periodic):  # cut at the box's faces
-            corners, d = clip_below(-corners, d, a, -lo[a])
-            corners, d = clip_below(-corners, d, a, hi[a])
+            flipped, d, source = clip_below(-corners, d, a, -lo[a])  # x >= lo, mirrored
+            corners, d, again = clip_below(-flipped, d, a, hi[a])  # x <= hi
+            self._bounds = tuple(b[source][again] for b in self._bounds)
         self._corners = corners
         self._d = d
-        edges = corners[:, [0, 0, 0, 1, 1, 2]] - corners[:, [1, 2, 3, 2, 3, 3]]
-        self._h = np.sqrt((edges**2).sum(axis=2)).max(axis=1)
         self._volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
         self._locator = None
 
@@ -73,14 +78,11 @@ class KnnDistance3:
 
     def _subdivided(self, corners, d):
         mids = 0.5 * (corners[:, self._PAIRS[:, 0]] + corners[:, self._PAIRS[:, 1]])
-        dm = self._points.query(self._wrap(mids.reshape(-1, 3)), k=[self.k])[0][:, 0]
+        # the kd-tree wraps queries along its periodic axes itself
+        dm = self._points.query(mids.reshape(-1, 3), k=[self.k])[0][:, 0]
         nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
         values = np.concatenate([d, dm.reshape(-1, 6)], axis=1)
         return nodes[:, self._EIGHT].reshape(-1, 4, 3), values[:, self._EIGHT].reshape(-1, 4)
-
-    def _wrap(self, x):
-        """Points relative to the origin, wrapped along periodic axes only."""
-        return np.where(self._periodic, np.mod(x, self.period), x)
 
     # -- evaluation ------------------------------------------------------------------------
     def exact(self, x):
@@ -137,25 +139,44 @@ class KnnDistance3:
         return tet, bary
 
     # -- the kNN-CDF -------------------------------------------------------------------------
+    def _knots(self):
+        """(knots (t, 4) sorted and kept apart, weights, the pieces in order of their top
+        knot, those top knots, their weights' running sums), computed once."""
+        if getattr(self, "_knot_cache", None) is None:
+            d = np.sort(self._d, axis=1)
+            span = d[:, 3] - d[:, 0]
+            # knots kept apart by a relative 1e-7 of the span (ties would divide by zero; the
+            # share moves by about as much)
+            gap = np.maximum(1e-7 * span, 1e-12 * np.maximum(d[:, 3], 1e-300))
+            d = d + gap[:, None] * np.arange(4)
+            w = self._volume / self._volume.sum()
+            order = np.argsort(d[:, 3], kind="stable")
+            self._knot_cache = (d, w, d[order, 3], np.cumsum(w[order]))
+        return self._knot_cache
+
     def cdf(self, r):
-        """CDF(r) = vol{x : d(x) <= r} / vol(box) for the interpolated d, at the radii r."""
+        """CDF(r) = vol{x : d(x) <= r} / vol(box) for the interpolated d, at the radii r:
+        the pieces wholly below r add their weights (a running sum over the pieces in order
+        of their top knot), only those that r cuts need the B-spline share."""
         r = np.atleast_1d(np.asarray(r, float))
-        d = np.sort(self._d, axis=1)
-        span = d[:, 3] - d[:, 0]
-        # knots kept apart by a relative 1e-7 of the span (ties would divide by zero; the
-        # share moves by about as much)
-        gap = np.maximum(1e-7 * span, 1e-12 * np.maximum(d[:, 3], 1e-300))
-        d = d + gap[:, None] * np.arange(4)
-        w = self._volume / self._volume.sum()
-        return np.array([float((w * _share_below(d, float(ri))).sum()) for ri in r])
+        d, w, tops, below = self._knots()
+        out = np.empty(len(r))
+        for i, ri in enumerate(r):
+            whole = int(np.searchsorted(tops, ri, side="right"))  # top knot <= r: share 1
+            cut = np.flatnonzero((d[:, 0] < ri) & (d[:, 3] > ri))
+            part = float((w[cut] * _share_below(d[cut], float(ri))).sum())
+            out[i] = (float(below[whole - 1]) if whole else 0.0) + part
+        return out
 
     def cdf_bounds(self, r):
-        """(lower, upper) bounds of the true kNN-CDF at the radii r: d_{P,k} on a
-        tetrahedron of longest edge h lies within [min corner value - h, max + h]."""
+        """(lower, upper) bounds of the true kNN-CDF at the radii r: on a piece d_{P,k} lies
+        within [max_i (d_i - e_i), min_i (d_i + e_i)], d_i its exact corner values and e_i
+        the distance from corner i to the farthest corner (d_{P,k} is 1-Lipschitz); a piece
+        counts whole where its upper end is <= r (lower bound), where its lower end is
+        (upper bound)."""
         r = np.atleast_1d(np.asarray(r, float))
         w = self._volume / self._volume.sum()
-        upper_d = self._d.max(axis=1) + self._h
-        lower_d = self._d.min(axis=1) - self._h
+        lower_d, upper_d = self._bounds
         return (
             np.array([float(w[upper_d <= ri].sum()) for ri in r]),
             np.array([float(w[lower_d <= ri].sum()) for ri in r]),
@@ -164,9 +185,10 @@ class KnnDistance3:
 
 def clip_below(corners, values, axis, bound):
     """The parts of tetrahedra (t, 4, 3), carrying linear functions with corner values
-    (t, 4), where coordinate ``axis`` is <= ``bound``, as tetrahedra (corners, values): a
-    tetrahedron with one corner there leaves a tetrahedron, with two or three a prism (three
-    tetrahedra, its quadrilaterals in the faces and the plane). Orientation is not kept."""
+    (t, 4), where coordinate ``axis`` is <= ``bound``, as tetrahedra (corners, values, the
+    tetrahedron each came from): a tetrahedron with one corner there leaves a tetrahedron,
+    with two or three a prism (three tetrahedra, its quadrilaterals in the faces and the
+    plane). Orientation is not kept."""
     below = corners[:, :, axis] <= bound
     count = below.sum(axis=1)
     order = np.argsort(~below, axis=1, kind="stable")  # the corners below first
@@ -188,17 +210,25 @@ def clip_below(corners, values, axis, bound):
         return [(np.stack([x[0] for x in t], 1), np.stack([x[1] for x in t], 1)) for t in parts]
 
     out = [(corners[count == 4], values[count == 4])]
+    source = [np.flatnonzero(count == 4)]
     rows = np.flatnonzero(count == 1)
+    source.append(rows)
     a = (c[rows, 0], v[rows, 0])
     b, cc, d = cut(0, 1, rows), cut(0, 2, rows), cut(0, 3, rows)
     out.append((np.stack([a[0], b[0], cc[0], d[0]], 1), np.stack([a[1], b[1], cc[1], d[1]], 1)))
     rows = np.flatnonzero(count == 2)
+    source += [rows] * 3
     a, b = (c[rows, 0], v[rows, 0]), (c[rows, 1], v[rows, 1])
     out += prism([a, cut(0, 2, rows), cut(0, 3, rows)], [b, cut(1, 2, rows), cut(1, 3, rows)])
     rows = np.flatnonzero(count == 3)
+    source += [rows] * 3
     base = [(c[rows, i], v[rows, i]) for i in range(3)]
     out += prism(base, [cut(i, 3, rows) for i in range(3)])
-    return np.concatenate([x[0] for x in out]), np.concatenate([x[1] for x in out])
+    return (
+        np.concatenate([x[0] for x in out]),
+        np.concatenate([x[1] for x in out]),
+        np.concatenate(source),
+    )
 
 
 def _share_below(d, r):

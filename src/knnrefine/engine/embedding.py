@@ -342,48 +342,144 @@ def unfold3(xyz, corners, offsets, emb):
         return np.arange(len(xyz)), xyz, corners, offsets
     blo, bhi = emb.box_internal()
     L = np.array(emb.period_internal)
-    free = [a for a in range(3) if not per[a]]
-    c = xyz[corners] + offsets * L  # (t, 4, 3) unwrapped corners
-    lo, hi = c.min(axis=1), c.max(axis=1)
-    edges = c[:, [0, 0, 0, 1, 1, 2]] - c[:, [1, 2, 3, 2, 3, 3]]
-    longest2 = (edges**2).sum(axis=2).max(axis=1)
-    del c, edges
+    free = np.array([not p for p in per])
+    out_v, out_s, tetrahedra, out_offsets = _unfold3(xyz, corners, offsets, L, blo, bhi, free)
+    pos = xyz[out_v]
+    for a in range(3):
+        pos[:, a] += out_s[:, a] * L[a]
+    del out_s
+    return out_v, pos, tetrahedra, (out_offsets if any(per) else None)
 
-    def combos(values):
-        """Every shift vector with values along the free axes, 0 along periodic ones."""
-        grids = np.meshgrid(*[values if a in free else [0] for a in range(3)], indexing="ij")
-        return np.stack([g.ravel() for g in grids], 1)
 
-    def code(shift):  # a copy's shift per axis in [-1, 2], two bits each
-        return ((shift[..., 0] + 1) * 4 + shift[..., 1] + 1) * 4 + shift[..., 2] + 1
+@kernel(inline="always")
+def _popcount64(x):
+    """Set bits of a uint64."""
+    n = 0
+    while x != np.uint64(0):
+        x &= x - np.uint64(1)
+        n += 1
+    return n
 
-    keep_t, keep_s = [], []
-    for s in combos([-1, 0, 1]):
-        meets = np.ones(len(corners), bool)
-        for a in free:
-            meets &= (hi[:, a] + s[a] * L[a] >= blo[a]) & (lo[:, a] + s[a] * L[a] <= bhi[a])
-        t = np.flatnonzero(meets)
-        keep_t.append(t)
-        keep_s.append(np.broadcast_to(s, (len(t), 3)))
-    keep_t = np.concatenate(keep_t)
-    keep_s = np.concatenate(keep_s)
-    rstar2 = float(longest2[keep_t].max(initial=0.0))
-    free_mask = np.array([not p for p in per])
-    shift = np.where(free_mask, offsets[keep_t].astype(np.int64) + keep_s[:, None, :], 0)
-    corner_keys = corners[keep_t].astype(np.int64) * 64 + code(shift)
-    extra = []
-    for s in combos([-1, 0, 1, 2]):
-        gap2 = np.zeros(len(xyz))
-        for a in free:
-            p = xyz[:, a] + s[a] * L[a]
-            gap2 += np.maximum(np.maximum(blo[a] - p, 0.0), p - bhi[a]) ** 2
-        extra.append(np.flatnonzero(gap2 <= rstar2) * 64 + code(s))
-    keys = np.unique(np.concatenate([corner_keys.ravel(), *extra]))
-    tetrahedra = np.searchsorted(keys, corner_keys).astype(np.int32)
-    out_v = keys // 64
-    s = np.stack([keys // 16 % 4, keys // 4 % 4, keys % 4], 1) - 1
-    pos = xyz[out_v] + s * L
-    out_offsets = None
-    if any(per):
-        out_offsets = np.where(free_mask, 0, offsets[keep_t]).astype(np.int8)
-    return out_v, pos, tetrahedra, out_offsets
+
+@kernel(inline="always")
+def _code3(sx, sy, sz):
+    """A vertex copy's shift per axis in [-1, 2], two bits each: its bit in a uint64 mask."""
+    return np.uint64(1) << np.uint64(((sx + 1) * 4 + sy + 1) * 4 + sz + 1)
+
+
+@kernel(entry=True)
+def _unfold3(xyz, corners, offsets, L, blo, bhi, free):
+    """``_unfold`` in space: copies of tetrahedra meeting the box and of the vertices they
+    (and r*) need. A tetrahedron's copies are a 27-bit mask (shift -1..1 per non-periodic
+    axis), a vertex's a 64-bit mask (shift -1..2); a copy's output index is its vertex's
+    first index plus the copies before it in the mask: 4 bytes per tetrahedron and 16 per
+    vertex of working memory."""
+    m = xyz.shape[0]
+    nt = corners.shape[0]
+    slo = np.zeros(3, np.int64)
+    shi = np.zeros(3, np.int64)
+    for a in range(3):
+        if free[a]:
+            slo[a] = -1
+            shi[a] = 1
+    keep = np.zeros(nt, np.uint32)
+    nkeep = 0
+    rstar2 = 0.0
+    c = np.empty((4, 3))
+    lo = np.empty(3)
+    hi = np.empty(3)
+    s = np.zeros(3, np.int64)
+    # pass 1: tetrahedron copies that meet the box along the non-periodic axes
+    for t in range(nt):
+        for i in range(4):
+            for a in range(3):
+                c[i, a] = xyz[corners[t, i], a] + offsets[t, i, a] * L[a]
+        for a in range(3):
+            lo[a] = min(c[0, a], c[1, a], c[2, a], c[3, a])
+            hi[a] = max(c[0, a], c[1, a], c[2, a], c[3, a])
+        mask = 0
+        for sx in range(slo[0], shi[0] + 1):
+            for sy in range(slo[1], shi[1] + 1):
+                for sz in range(slo[2], shi[2] + 1):
+                    s[0], s[1], s[2] = sx, sy, sz
+                    meets = True
+                    for a in range(3):
+                        sh = s[a] * L[a]
+                        if free[a] and (hi[a] + sh < blo[a] or lo[a] + sh > bhi[a]):
+                            meets = False
+                    if meets:
+                        mask |= 1 << ((sx + 1) * 9 + (sy + 1) * 3 + sz + 1)
+                        nkeep += 1
+        if mask:
+            keep[t] = mask
+            for i in range(4):
+                for j in range(i + 1, 4):
+                    e2 = 0.0
+                    for a in range(3):
+                        e2 += (c[i, a] - c[j, a]) ** 2
+                    rstar2 = max(rstar2, e2)
+    # pass 2: vertex copies needed, within r* of the box or a corner of a kept copy
+    need = np.zeros(m, np.uint64)
+    vs = np.zeros(3, np.int64)
+    for v in range(m):
+        for sx in range(slo[0], shi[0] + 2):
+            for sy in range(slo[1], shi[1] + 2):
+                for sz in range(slo[2], shi[2] + 2):
+                    s[0], s[1], s[2] = sx, sy, sz
+                    gap2 = 0.0
+                    skip = False
+                    for a in range(3):
+                        if free[a]:
+                            p = xyz[v, a] + s[a] * L[a]
+                            g = max(blo[a] - p, 0.0, p - bhi[a])
+                            gap2 += g * g
+                        elif s[a] != 0:
+                            skip = True
+                    if not skip and gap2 <= rstar2:
+                        need[v] |= _code3(sx, sy, sz)
+    for t in range(nt):
+        if keep[t] == 0:
+            continue
+        for code in range(27):
+            if keep[t] & (1 << code):
+                s[0], s[1], s[2] = code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1
+                for i in range(4):
+                    for a in range(3):
+                        vs[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
+                    need[corners[t, i]] |= _code3(vs[0], vs[1], vs[2])
+    # number the copies in (vertex, shift) order
+    first = np.empty(m + 1, np.int64)
+    first[0] = 0
+    for v in range(m):
+        first[v + 1] = first[v] + _popcount64(need[v])
+    nout = first[m]
+    out_v = np.empty(nout, np.int64)
+    out_s = np.empty((nout, 3), np.int8)
+    for v in range(m):
+        j = first[v]
+        for code in range(64):
+            if need[v] & (np.uint64(1) << np.uint64(code)):
+                out_v[j] = v
+                out_s[j, 0] = code // 16 - 1
+                out_s[j, 1] = code // 4 % 4 - 1
+                out_s[j, 2] = code % 4 - 1
+                j += 1
+    tets = np.empty((nkeep, 4), np.int32)
+    offs = np.zeros((nkeep, 4, 3), np.int8)
+    n = 0
+    for t in range(nt):
+        if keep[t] == 0:
+            continue
+        for code in range(27):
+            if keep[t] & (1 << code):
+                s[0], s[1], s[2] = code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1
+                for i in range(4):
+                    for a in range(3):
+                        vs[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
+                        if not free[a]:
+                            offs[n, i, a] = offsets[t, i, a]
+                    v = corners[t, i]
+                    bit = _code3(vs[0], vs[1], vs[2])
+                    tets[n, i] = first[v] + _popcount64(need[v] & (bit - np.uint64(1)))
+                n += 1
+    return out_v, out_s, tets, offs
