@@ -157,7 +157,11 @@ def test_bad_input_is_refused_before_work():
     outside[7, 2] = 1.5
     with pytest.raises(InputError, match="outside the box along z"):
         knnrefine.refine(outside, 10, periodic=(True, True, False), box=BOX)
-    knnrefine.refine(outside, 10, periodic=(False, False, True), box=BOX)  # z wraps
+    mesh = knnrefine.refine(outside, 10, periodic=(False, False, True), box=BOX)  # z wraps
+    with pytest.raises(InputError, match="made from 100 points"):
+        knnrefine.certify(mesh, outside[:-1])
+    with pytest.raises(InputError, match="outside the box along x"):
+        knnrefine.certify(mesh, outside + [1.0, 0.0, 0.0])
     with pytest.raises(InputError, match="needs its box"):
         knnrefine.refine(pts, 10, periodic=True)
     with pytest.raises(InputError, match="six"):
@@ -369,10 +373,11 @@ def test_certify_fails_a_box_mesh_missing_its_copies():
 
 
 @pytest.mark.parametrize("periodic", [False, (True, False, True)])
-def test_unfold3_keeps_every_copy_the_box_needs(periodic):
-    """embedding.unfold3 against a brute numpy oracle on the torus mesh: the tetrahedron
-    copies (shifts -1..1 along non-periodic axes) whose bounding boxes meet the box, and
-    every vertex copy within r* (the longest kept edge) of the box, each exactly once."""
+def test_unfolding_in_space_keeps_every_copy_the_box_needs(periodic):
+    """embedding.unfold in space (its kernel _unfold3) against a brute numpy oracle on the
+    torus mesh: the tetrahedron copies (shifts -1..1 along non-periodic axes) whose bounding
+    boxes meet the box, and every vertex copy within r* (the longest kept edge) of the box,
+    each exactly once."""
     import itertools
 
     pts = multiscale(5000, 18)

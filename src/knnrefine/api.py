@@ -148,8 +148,8 @@ def refine(
     Ctrl-C raises KeyboardInterrupt within about 50 ms of refinement (within the current
     kernel call during setup).
 
-    Points in space ((n, 3), a box of six numbers) are refined by ``api3.refine3`` into a
-    ``Mesh3``: periodic boxes only so far; weights, workers and executor do not apply there.
+    Points in space ((n, 3), a box of six numbers, ``periodic`` a bool or three) are refined
+    by ``api3.refine3`` into a ``Mesh3``; weights, workers and executor do not apply there.
     """
     if _is_spatial(points):
         from .api3 import refine3

@@ -1,7 +1,7 @@
 """``knnrefine.refine`` for points in space ((n, 3) points, a box of six numbers): the
 engine's 3-D run (``engine/driver3.py``) behind the same options as in the plane. Along
 non-periodic axes the box is embedded in a longer torus, as in the plane
-(``engine/embedding.py``), and the mesh unfolded back (``embedding.unfold3``)."""
+(``engine/embedding.py``), and the mesh unfolded back (``embedding.unfold``)."""
 
 import time
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from . import validation as V
 from .engine.driver3 import Refinement3, choose_grid3
-from .engine.embedding import Embedding, diameter, unfold3
+from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
 from .engine.initial import reach_factor
 from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
@@ -124,7 +124,7 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
         raise BudgetError(f"stopped at time_limit = {time_limit} s before the mesh was done")
     xyz, corners, offsets, kinds, cnt = run.take_result()
     del run, run_index
-    out_v, pos, tetrahedra, out_offsets = unfold3(xyz, corners, offsets, emb)
+    out_v, pos, tetrahedra, out_offsets = unfold(xyz, corners, offsets, emb, copy=False)
     local = pos / emb.scale  # exact: a power of two
     torus = None
     if not all(per):

@@ -23,9 +23,10 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
+from .certify import check_source
 from .engine.predicates3 import insphere, orient3d
 from .metric import TorusFrame
-from .validation import as_points
+from .validation import as_points, check_inside
 
 
 @dataclass
@@ -169,6 +170,8 @@ def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0)
     points, d_{M,2} from the mesh's vertices as returned, at probes in the box."""
     t0 = time.perf_counter()
     pts = as_points(points, 3)
+    check_source(mesh.stats, len(pts), None)
+    check_inside(pts, mesh.box, mesh.periodic)
     period = np.asarray(mesh.period, float)
     torus = mesh.torus
     p = TorusFrame(mesh.origin, period)(pts)

@@ -21,8 +21,9 @@ three tetrahedra), so that the pieces tile the box exactly and every integral is
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .certify import check_source
 from .errors import InputError
-from .validation import as_points
+from .validation import as_points, check_inside
 
 
 class KnnDistance3:
@@ -37,12 +38,8 @@ class KnnDistance3:
         pts = as_points(points, 3)
         if len(pts) < mesh.k:
             raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
-        made_from = mesh.stats.get("n")
-        if made_from is not None and int(made_from) != len(pts):
-            raise InputError(
-                f"the mesh was made from {int(made_from):,} points, not {len(pts):,}: give "
-                "the points it was refined from"
-            )
+        check_source(mesh.stats, len(pts), None)
+        check_inside(pts, mesh.box, mesh.periodic)
         self.mesh, self.k, self.n = mesh, mesh.k, len(pts)
         self.period = np.asarray(mesh.period, float)
         self._periodic = np.array(mesh.periodic)

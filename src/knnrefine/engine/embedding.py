@@ -181,31 +181,37 @@ def _to_internal(x, origin, scale, period, periodic, into_torus):
     return out
 
 
-def unfold(vxy, tv, to, emb):
-    """The part of the torus mesh that the box needs, as the user will see it.
+def unfold(points, cells, offsets, emb, copy=True):
+    """The part of the torus mesh that the box needs, as the user will see it: triangles
+    (points (m, 2)) or tetrahedra (points (m, 3)).
 
-    Along periodic axes nothing changes: vertices stay in the fundamental domain and triangles
+    Along periodic axes nothing changes: vertices stay in the fundamental domain and cells
     keep their corner offsets. Along non-periodic axes vertices become planar copies: the
-    triangles kept are the copies that meet the box, and the vertices kept are the copies
-    within r* of the box, r* being the longest edge of a kept triangle. That is every vertex
-    that can be one of the two nearest to a point x of the box: x lies in a kept triangle, whose
-    three corners are within its longest edge of x.
+    cells kept are the copies (shifted by -1, 0 or 1 period) that meet the box, and the
+    vertices kept are the copies within r* of the box, r* being the longest edge of a kept
+    cell. That is every vertex that can be one of the two nearest to a point x of the box: x
+    lies in a kept cell, whose corners are within its longest edge of x. Vertex copies are
+    numbered in (vertex, shift) order.
 
-    Returns (vertex ids (m',) int64, positions (m', 2) internal, triangles (t', 3) int32 into
-    the returned vertices, offsets (t', 3, 2) int8 or None), all new arrays.
+    Returns (vertex ids (m',) int64, positions (m', d) internal, cells (t', d + 1) int32 into
+    the returned vertices, offsets (t', d + 1, d) int8 or None when no axis is periodic), new
+    arrays; when every axis is periodic and ``copy`` is False, the arrays given.
     """
     per = emb.periodic
     if all(per):
-        return np.arange(vxy.shape[0]), vxy.copy(), tv.copy(), to.copy()
+        if not copy:
+            return np.arange(len(points)), points, cells, offsets
+        return np.arange(len(points)), points.copy(), cells.copy(), offsets.copy()
     blo, bhi = emb.box_internal()
     L = np.array(emb.period_internal)
-    nonper = np.array([not p for p in per])
-    out_v, out_s, tri, offsets = _unfold(vxy, tv, to, L, blo, bhi, nonper)
-    pos = vxy[out_v]
-    for a in range(2):
+    free = np.array([not p for p in per])
+    copies = _unfold if emb.dim == 2 else _unfold3
+    out_v, out_s, kept, out_offsets = copies(points, cells, offsets, L, blo, bhi, free)
+    pos = points[out_v]
+    for a in range(emb.dim):
         pos[:, a] += out_s[:, a] * L[a]
     del out_s
-    return out_v, pos, tri, (offsets if any(per) else None)
+    return out_v, pos, kept, (out_offsets if any(per) else None)
 
 
 @kernel(inline="always")
@@ -323,32 +329,6 @@ def _unfold(vxy, tv, to, L, blo, bhi, nonper):
                             off[n, i, a] = to[t, i, a]
                 n += 1
     return out_v, out_s, tri, off
-
-
-def unfold3(xyz, corners, offsets, emb):
-    """``unfold`` in space: the part of the 3-torus mesh that the box needs.
-
-    Along periodic axes nothing changes. Along non-periodic axes the tetrahedra kept are the
-    copies (shifted by -1, 0 or 1 period) that meet the box, and the vertices kept are the
-    copies within r* of the box, r* the longest edge of a kept tetrahedron (every vertex that
-    can be one of the two nearest to a point of the box). Vertex copies are numbered in
-    (vertex, shift) order.
-
-    Returns (vertex ids (m',) int64, positions (m', 3) internal, tetrahedra (t', 4) int32 into
-    the returned vertices, offsets (t', 4, 3) int8 or None when no axis is periodic); when
-    every axis is periodic, the arrays given (nothing to unfold, nothing copied)."""
-    per = emb.periodic
-    if all(per):  # the arrays themselves (the caller's own)
-        return np.arange(len(xyz)), xyz, corners, offsets
-    blo, bhi = emb.box_internal()
-    L = np.array(emb.period_internal)
-    free = np.array([not p for p in per])
-    out_v, out_s, tetrahedra, out_offsets = _unfold3(xyz, corners, offsets, L, blo, bhi, free)
-    pos = xyz[out_v]
-    for a in range(3):
-        pos[:, a] += out_s[:, a] * L[a]
-    del out_s
-    return out_v, pos, tetrahedra, (out_offsets if any(per) else None)
 
 
 @kernel(inline="always")
