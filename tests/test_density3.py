@@ -161,3 +161,22 @@ def test_boxes_not_periodic_everywhere(periodic):
     many = dens.distance._d @ rng.dirichlet(np.ones(4), 64).T
     check = (dens.distance._volume * (dens.raw_constant / many**3).mean(axis=1)).sum()
     assert dens.raw_mass == pytest.approx(check, rel=0.01)
+
+
+def test_the_uses_example_in_space_runs():
+    """docs/uses.md's example in space runs as written, and its numbers mean what the text
+    says: the interpolant is near the exact value, the CDF rises and lies in its bounds."""
+    import os
+
+    path = os.path.join(os.path.dirname(__file__), "..", "docs", "uses.md")
+    text = open(path).read()
+    block = text[text.index("## In space: d_{P,k}") :]
+    block = block[block.index("```python") + len("```python") : block.index("```\n\n")]
+    env = {}
+    exec(compile(block, "docs/uses.md", "exec"), env)
+    dist, radii = env["dist"], env["radii"]
+    here = [[0.5, 0.5, 0.5]]
+    assert dist(here)[0] == pytest.approx(dist.exact(here)[0], rel=0.1)
+    cdf = dist.cdf(radii)
+    low, high = dist.cdf_bounds(radii)
+    assert (np.diff(cdf) > 0).all() and (low <= cdf).all() and (cdf <= high).all()
