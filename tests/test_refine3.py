@@ -407,3 +407,27 @@ def test_unfolding_in_space_keeps_every_copy_the_box_needs(periodic):
         gap = np.where(per, 0.0, np.maximum(np.maximum(lo - x, 0.0), x - hi))
         near |= {tuple(v) for v in np.round(x[(gap**2).sum(axis=1) <= edges], 12)}
     assert near <= {tuple(v) for v in np.round(mesh.local, 12)}
+
+
+def test_restarting_the_32_bit_stamps_changes_nothing(monkeypatch):
+    """The tetrahedra's marks are 32-bit stamps that the driver restarts past STAMP_LIMIT
+    (clearing the marks but the free slots' and the link table): restarted after every
+    call of 50 insertions, the run gives the same mesh, array for array."""
+    from knnrefine.engine import driver3
+
+    pts = multiscale(4000, 19)
+    want = knnrefine.refine(pts, 10, periodic=True, box=BOX)
+    restarts = []
+    original = driver3.Refinement3._restart_stamps
+
+    def counted(self):
+        restarts.append(int(self.cnt[driver3.C_STAMP]))
+        original(self)
+
+    monkeypatch.setattr(driver3, "STEPS", 50)
+    monkeypatch.setattr(driver3, "STAMP_LIMIT", 10)
+    monkeypatch.setattr(driver3.Refinement3, "_restart_stamps", counted)
+    got = knnrefine.refine(pts, 10, periodic=True, box=BOX)
+    assert len(restarts) > 20
+    for name in ("local", "tetrahedra", "offsets", "kinds"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))

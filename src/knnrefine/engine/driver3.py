@@ -33,6 +33,7 @@ from .state import (
     C_MAX_VERTICES,
     C_NT,
     C_NV,
+    C_STAMP,
     ERRORS,
     Bookkeeping,
     Probe3,
@@ -43,6 +44,9 @@ from .state import (
 from .triangulation3 import new_torus3
 
 STEPS = 20_000  # insertions per kernel call
+# the tetrahedra's marks are 32-bit stamps: between kernel calls, past this many stamps,
+# they start again (a call uses far fewer than 2^31 - STAMP_LIMIT)
+STAMP_LIMIT = 2**30
 VERTEX_FIELDS3 = (
     ("mesh", "xyz"),
     ("mesh", "star"),
@@ -113,6 +117,8 @@ class Refinement3:
                     self.mesh, self.book, self.queues, self.scratch, self.probe, self.cnt,
                     self.prm, self.index, STEPS,
                 )  # fmt: skip
+                if self.cnt[C_STAMP] > STAMP_LIMIT:
+                    self._restart_stamps()
                 if progress is not None:
                     progress(int(self.cnt[C_NV]))
                 if status == STATUS_GROW:
@@ -127,6 +133,14 @@ class Refinement3:
                 interrupts.check()
                 if deadline is not None and time.monotonic() > deadline:
                     return STATUS_STEPS
+
+    def _restart_stamps(self):
+        """Stamps start again at 1: every mark but the free slots' (-1) and every link
+        table entry (keyed by its insertion's stamp) cleared."""
+        mark = self.scratch.mark
+        mark[mark != -1] = 0
+        self.scratch.link[:, 0] = 0
+        self.cnt[C_STAMP] = 0
 
     def _grow(self):
         if self.cnt[C_NV] + 1 > self.mesh.xyz.shape[0]:

@@ -73,7 +73,8 @@ TorusMesh3 = namedtuple(
 Scratch3 = namedtuple(
     "Scratch3",
     [
-        "mark",  # (T,) int64: stamp of the tetrahedra already met (cavity, star walks)
+        "mark",  # (T,) int32: stamp of the tetrahedra already met (cavity, star walks;
+        # -1: a free slot); the driver restarts the stamps past driver3.STAMP_LIMIT
         "cavity",  # (C,) int32: the cavity's tetrahedra, then the new ones' slots
         "cavity_shift",  # (C, 3) int64: each cavity tetrahedron's shift relative to the seed
         "boundary",  # (B, 3) int64: boundary faces: outer tetrahedron, its index, face index

@@ -518,7 +518,7 @@ def new_torus3(period, grid, vertices, tetrahedra):
     star[corners.ravel()] = np.repeat(np.arange(nt, dtype=np.int32), 4)
     mesh.star[:nv] = star
     scratch = Scratch3(
-        mark=np.zeros(tetrahedra, np.int64),
+        mark=np.zeros(tetrahedra, np.int32),
         cavity=np.zeros(MAX_CAVITY3, np.int32),
         cavity_shift=np.zeros((MAX_CAVITY3, 3), np.int64),
         boundary=np.zeros((MAX_CAVITY3, 3), np.int64),
