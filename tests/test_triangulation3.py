@@ -19,6 +19,8 @@ from knnrefine.engine.triangulation3 import (
     insert_largest3,
     insert_points3,
     new_torus3,
+    pack_offsets,
+    unpack_offsets,
 )
 
 _orient3d = python_entry(predicates3.orient3d)
@@ -70,13 +72,14 @@ def _exact_checks(corners, neighbours, offsets, xyz, period, nt):
 def check_triangulation(mesh, cnt, period):
     nv, nt = int(cnt[0]), int(cnt[1])
     corners = mesh.corners[:nt]
-    offsets = mesh.offsets[:nt]
+    offsets = unpack_offsets(mesh.offsets[:nt])  # two bits per corner and axis
+    np.testing.assert_array_equal(pack_offsets(offsets), mesh.offsets[:nt])
     assert corners.max() < nv and corners.min() >= 0
     assert len(np.unique(corners)) == nv  # every vertex is a corner
     assert (offsets.min(axis=1) == 0).all()  # normalised
     # the faces matched again from the corners and offsets alone
     np.testing.assert_array_equal(face_neighbours(corners, offsets), mesh.neighbours[:nt])
-    assert _exact_checks(mesh.corners, mesh.neighbours, mesh.offsets, mesh.xyz, period, nt) == (
+    assert _exact_checks(mesh.corners, mesh.neighbours, offsets, mesh.xyz, period, nt) == (
         0,
         0,
         0,

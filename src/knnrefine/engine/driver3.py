@@ -41,7 +41,7 @@ from .state import (
     grow,
     grown,
 )
-from .triangulation3 import new_torus3
+from .triangulation3 import new_torus3, unpack_offsets
 
 STEPS = 20_000  # insertions per kernel call
 # the tetrahedra's marks are 32-bit stamps: between kernel calls, past this many stamps,
@@ -177,7 +177,7 @@ class Refinement3:
             del arrays[name]
         xyz = arrays.pop("xyz")[:nv].copy()
         corners = arrays.pop("corners")[:nt].copy()
-        offsets = arrays.pop("offsets")[:nt].copy()
+        offsets = unpack_offsets(arrays.pop("offsets")[:nt])
         return xyz, corners, offsets, kinds, cnt
 
     def result(self):
@@ -187,7 +187,7 @@ class Refinement3:
         return (
             m.xyz[:nv].copy(),
             m.corners[:nt].copy(),
-            m.offsets[:nt].copy(),
+            unpack_offsets(m.offsets[:nt]),
             self.book.kinds[:nv].copy(),
             self.cnt.copy(),
         )

@@ -61,7 +61,8 @@ TorusMesh3 = namedtuple(
     [
         "corners",  # (T, 4) int32: the vertex at each corner, positively oriented (orient3d > 0)
         "neighbours",  # (T, 4) int32: the tetrahedron across the face opposite each corner
-        "offsets",  # (T, 4, 3) int8: each corner's periodic offset (minimum 0 per axis)
+        "offsets",  # (T,) uint32: each corner's periodic offset per axis (minimum 0 per
+        # axis), two bits each (``triangulation3.offset3``)
         "radius2",  # (T,) float64: squared circumradius
         "xyz",  # (V, 3) float64: vertex positions on the grid, in [0, lx) x [0, ly) x [0, lz)
         "star",  # (V,) int32: one tetrahedron at each vertex (where a walk round it starts)

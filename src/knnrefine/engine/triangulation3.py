@@ -3,7 +3,7 @@
 The plane's design (``triangulation.py``) one dimension up, after CGAL's periodic 3-D
 triangulation: tetrahedron t has four vertices ``corners[t, i]``, four neighbours
 ``neighbours[t, i]`` (neighbour i lies across the face opposite corner i) and an integer
-offset per corner ``offsets[t, i] = (ox, oy, oz)``: the corner sits at ``xyz[v] + o * L``.
+offset per corner (ox, oy, oz) (packed: ``offset3``): the corner sits at ``xyz[v] + o * L``.
 Offsets are normalised to a minimum of 0 per axis; every tetrahedron is positively oriented
 (``predicates3.orient3d`` > 0). ``radius2[t]`` caches the squared circumradius.
 
@@ -50,14 +50,44 @@ MAX_CAVITY3 = 4096  # tetrahedra in one cavity
 LINK_SIZE3 = 1 << 15  # the new tetrahedra's edge table: a power of two above 2 x its edges
 
 
+OFFSET_BITS = 2  # per corner and axis in a tetrahedron's packed offsets (values 0..3)
+_SHIFTS = OFFSET_BITS * np.arange(12, dtype=np.uint32)  # corner i, axis a: bits at 3 i + a
+
+
+@kernel(inline="always")
+def offset3(offsets, t, i, a):
+    """Corner i's periodic offset along axis a in tetrahedron t: the 12 offsets of a
+    tetrahedron are packed, two bits each, in one uint32 (4 bytes, not 12)."""
+    return np.int64((offsets[t] >> np.uint32(OFFSET_BITS * (3 * i + a))) & np.uint32(3))
+
+
+def pack_offsets(offsets):
+    """(t, 4, 3) offsets in 0..3 -> (t,) uint32, as ``offset3`` reads them."""
+    o = np.asarray(offsets).reshape(-1, 12).astype(np.uint32)
+    if o.max(initial=0) > 3:
+        raise ValueError("a tetrahedron's offsets must lie in 0..3")
+    return np.bitwise_or.reduce(o << _SHIFTS, axis=1).astype(np.uint32)
+
+
+@kernel(entry=True)
+def unpack_offsets(packed):
+    """(t,) uint32 packed offsets -> (t, 4, 3) int8 (no wider temporaries)."""
+    out = np.empty((packed.shape[0], 4, 3), np.int8)
+    for t in range(packed.shape[0]):
+        for i in range(4):
+            for a in range(3):
+                out[t, i, a] = offset3(packed, t, i, a)
+    return out
+
+
 @kernel(inline="always")
 def load_corners(mesh, t, sx, sy, sz, period, pts):
     """pts[0:4] = the corners of tetrahedron t shifted by (sx, sy, sz) periods (exact)."""
     for i in range(4):
         v = mesh.corners[t, i]
-        pts[i, 0] = mesh.xyz[v, 0] + (mesh.offsets[t, i, 0] + sx) * period[0]
-        pts[i, 1] = mesh.xyz[v, 1] + (mesh.offsets[t, i, 1] + sy) * period[1]
-        pts[i, 2] = mesh.xyz[v, 2] + (mesh.offsets[t, i, 2] + sz) * period[2]
+        pts[i, 0] = mesh.xyz[v, 0] + (offset3(mesh.offsets, t, i, 0) + sx) * period[0]
+        pts[i, 1] = mesh.xyz[v, 1] + (offset3(mesh.offsets, t, i, 1) + sy) * period[1]
+        pts[i, 2] = mesh.xyz[v, 2] + (offset3(mesh.offsets, t, i, 2) + sz) * period[2]
 
 
 @kernel(inline="always")
@@ -66,16 +96,11 @@ def edge_to3(mesh, t, i, j, period):
     from every tetrahedron with that edge: ``triangulation.edge_to`` in the plane)."""
     u = mesh.corners[t, j]
     v = mesh.corners[t, i]
+    o = mesh.offsets
     return (
-        mesh.xyz[u, 0]
-        - mesh.xyz[v, 0]
-        + (mesh.offsets[t, j, 0] - mesh.offsets[t, i, 0]) * period[0],
-        mesh.xyz[u, 1]
-        - mesh.xyz[v, 1]
-        + (mesh.offsets[t, j, 1] - mesh.offsets[t, i, 1]) * period[1],
-        mesh.xyz[u, 2]
-        - mesh.xyz[v, 2]
-        + (mesh.offsets[t, j, 2] - mesh.offsets[t, i, 2]) * period[2],
+        mesh.xyz[u, 0] - mesh.xyz[v, 0] + (offset3(o, t, j, 0) - offset3(o, t, i, 0)) * period[0],
+        mesh.xyz[u, 1] - mesh.xyz[v, 1] + (offset3(o, t, j, 1) - offset3(o, t, i, 1)) * period[1],
+        mesh.xyz[u, 2] - mesh.xyz[v, 2] + (offset3(o, t, j, 2) - offset3(o, t, i, 2)) * period[2],
     )
 
 
@@ -216,8 +241,7 @@ def _move(mesh, scratch, src, dst):
     for i in range(4):
         mesh.corners[dst, i] = mesh.corners[src, i]
         mesh.neighbours[dst, i] = mesh.neighbours[src, i]
-        for a in range(3):
-            mesh.offsets[dst, i, a] = mesh.offsets[src, i, a]
+    mesh.offsets[dst] = mesh.offsets[src]
     mesh.radius2[dst] = mesh.radius2[src]
     scratch.mark[dst] = scratch.mark[src]
     for i in range(4):
@@ -274,9 +298,9 @@ def insert_vertex3(p, seed, mesh, scratch, cnt, period):
             ia = corner_of3(mesh, n, corners[t, ja])
             if ia < 0:
                 return _undo(mesh, scratch, ncav, INSERT_TOPOLOGY)
-            sx = cav_s[i, 0] + offsets[t, ja, 0] - offsets[n, ia, 0]
-            sy = cav_s[i, 1] + offsets[t, ja, 1] - offsets[n, ia, 1]
-            sz = cav_s[i, 2] + offsets[t, ja, 2] - offsets[n, ia, 2]
+            sx = cav_s[i, 0] + offset3(offsets, t, ja, 0) - offset3(offsets, n, ia, 0)
+            sy = cav_s[i, 1] + offset3(offsets, t, ja, 1) - offset3(offsets, n, ia, 1)
+            sz = cav_s[i, 2] + offset3(offsets, t, ja, 2) - offset3(offsets, n, ia, 2)
             load_corners(mesh, n, sx, sy, sz, period, pts)
             if insphere(pts) > 0:
                 if ncav >= cav.shape[0]:
@@ -299,9 +323,9 @@ def insert_vertex3(p, seed, mesh, scratch, cnt, period):
                 bnd[nb, 2] = j
                 for k in range(4):
                     fc[nb, k] = corners[t, k]
-                    fo[nb, k, 0] = offsets[t, k, 0] + cav_s[i, 0]
-                    fo[nb, k, 1] = offsets[t, k, 1] + cav_s[i, 1]
-                    fo[nb, k, 2] = offsets[t, k, 2] + cav_s[i, 2]
+                    fo[nb, k, 0] = offset3(offsets, t, k, 0) + cav_s[i, 0]
+                    fo[nb, k, 1] = offset3(offsets, t, k, 1) + cav_s[i, 1]
+                    fo[nb, k, 2] = offset3(offsets, t, k, 2) + cav_s[i, 2]
                 nb += 1
         i += 1
     for e in range(ncav):
@@ -335,10 +359,12 @@ def insert_vertex3(p, seed, mesh, scratch, cnt, period):
         j = bnd[e, 2]
         for a in range(3):
             fo[e, j, a] = w[a]
+        packed = 0
         for a in range(3):
             m = min(fo[e, 0, a], fo[e, 1, a], fo[e, 2, a], fo[e, 3, a])
-            for k in range(4):
-                offsets[s, k, a] = fo[e, k, a] - m
+            for k in range(4):  # 0 or 1: a tetrahedron spans under half a period
+                packed |= (fo[e, k, a] - m) << (OFFSET_BITS * (3 * k + a))
+        offsets[s] = packed
         for k in range(4):
             corners[s, k] = fc[e, k]
         corners[s, j] = v
@@ -507,7 +533,7 @@ def new_torus3(period, grid, vertices, tetrahedra):
     mesh = TorusMesh3(
         corners=rows(corners, tetrahedra, np.int32),
         neighbours=rows(neighbours, tetrahedra, np.int32),
-        offsets=rows(offsets, tetrahedra, np.int8),
+        offsets=rows(pack_offsets(offsets), tetrahedra, np.uint32),
         radius2=np.zeros(tetrahedra),
         xyz=rows(xyz, vertices, np.float64),
         star=np.zeros(vertices, np.int32),
