@@ -431,3 +431,22 @@ def test_restarting_the_32_bit_stamps_changes_nothing(monkeypatch):
     assert len(restarts) > 20
     for name in ("local", "tetrahedra", "offsets", "kinds"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+
+
+def test_growing_in_place_keeps_the_rows_and_zero_fills():
+    """state.resized (the 3-D run's growth: realloc, no second copy at the peak) keeps every
+    row, zero-fills the new ones, for small and large (remapped) blocks; an array that does
+    not own its data is copied instead."""
+    from knnrefine.engine.state import resized
+
+    for rows in (6, 3_000_000):
+        a = np.arange(rows * 4, dtype=np.int32).reshape(rows, 4).copy()  # owns its data
+        b = resized(a, rows + rows // 4 + 3)
+        assert b is a and b.shape == (rows + rows // 4 + 3, 4)
+        np.testing.assert_array_equal(b[:rows].ravel(), np.arange(rows * 4))
+        assert not b[rows:].any()
+    strided = np.arange(20.0)[::2]
+    c = resized(strided, 15)
+    assert c is not strided and c.shape == (15,)
+    np.testing.assert_array_equal(c[:10], np.arange(0.0, 20.0, 2.0))
+    assert not c[10:].any()

@@ -39,7 +39,7 @@ from .state import (
     Probe3,
     Queues,
     grow,
-    grown,
+    resized,
 )
 from .triangulation3 import new_torus3, unpack_offsets
 
@@ -145,10 +145,10 @@ class Refinement3:
     def _grow(self):
         if self.cnt[C_NV] + 1 > self.mesh.xyz.shape[0]:
             cap = self.mesh.xyz.shape[0]
-            grow(self, VERTEX_FIELDS3, cap + cap // 4 + 1024)
+            grow(self, VERTEX_FIELDS3, cap + cap // 4 + 1024, in_place=True)
         if self.cnt[C_NT] + 2 * HEADROOM3 > self.mesh.corners.shape[0]:
             cap = self.mesh.corners.shape[0]
-            grow(self, TETRAHEDRON_FIELDS3, cap + cap // 4 + 8192)
+            grow(self, TETRAHEDRON_FIELDS3, cap + cap // 4 + 8192, in_place=True)
         q = self.queues.balls
         if q.scalars[Q_SIZE] + 4 * HEADROOM3 > q.ident.shape[0]:
             # stale entries first: grow only if the live ones still fill it
@@ -159,8 +159,8 @@ class Refinement3:
             cap = q.ident.shape[0]
             if q.scalars[Q_SIZE] + 4 * HEADROOM3 > cap:
                 size = cap + cap // 2 + 16_384
-                q = q._replace(ident=grown(q.ident, size), aux=grown(q.aux, size),
-                               next=grown(q.next, size))  # fmt: skip
+                q = q._replace(ident=resized(q.ident, size), aux=resized(q.aux, size),
+                               next=resized(q.next, size))  # fmt: skip
             queues[name] = q
         self.queues = self.queues._replace(**queues)
 

@@ -174,11 +174,24 @@ def grown(array, size):
     return out
 
 
-def grow(owner, fields, size):
+def resized(array, size):
+    """``array`` grown to ``size`` rows in place, zero-filled (``ndarray.resize``: the C
+    library's realloc, which remaps a large block's pages rather than copying them, so that
+    growing needs no second copy at the peak). The caller must hold no view of it: a view
+    would point at freed memory. Arrays that do not own their data are copied (``grown``)."""
+    if not (array.flags.owndata and array.flags.c_contiguous and array.base is None):
+        return grown(array, size)
+    array.resize((size,) + array.shape[1:], refcheck=False)
+    return array
+
+
+def grow(owner, fields, size, in_place=False):
     """Grow the listed (structure, field) arrays of ``owner`` (an object whose attributes are
     the structures) to ``size`` rows, one at a time: each old array is freed before the next
-    is copied, so growing costs one array's worth of extra memory, not the structures'."""
+    is copied, so growing costs one array's worth of extra memory, not the structures'
+    (``in_place``: none, by ``resized``; no views of the arrays may be held)."""
+    widen = resized if in_place else grown
     for name, field in fields:
         structure = getattr(owner, name)
-        setattr(owner, name, structure._replace(**{field: grown(getattr(structure, field), size)}))
+        setattr(owner, name, structure._replace(**{field: widen(getattr(structure, field), size)}))
         del structure
