@@ -205,130 +205,12 @@ def unfold(points, cells, offsets, emb, copy=True):
     blo, bhi = emb.box_internal()
     L = np.array(emb.period_internal)
     free = np.array([not p for p in per])
-    copies = _unfold if emb.dim == 2 else _unfold3
-    out_v, out_s, kept, out_offsets = copies(points, cells, offsets, L, blo, bhi, free)
+    out_v, out_s, kept, out_offsets = _unfold(points, cells, offsets, L, blo, bhi, free)
     pos = points[out_v]
     for a in range(emb.dim):
         pos[:, a] += out_s[:, a] * L[a]
     del out_s
     return out_v, pos, kept, (out_offsets if any(per) else None)
-
-
-@kernel(inline="always")
-def _popcount16(x):
-    x = x - ((x >> 1) & 0x5555)
-    x = (x & 0x3333) + ((x >> 2) & 0x3333)
-    x = (x + (x >> 4)) & 0x0F0F
-    return (x + (x >> 8)) & 0x1F
-
-
-@kernel(entry=True)
-def _unfold(vxy, tv, to, L, blo, bhi, nonper):
-    """Copies of triangles meeting the box and of the vertices they (and r*) need.
-
-    A triangle's copies are a 9-bit mask (shift -1..1 per non-periodic axis), a vertex's a
-    16-bit mask (shift -1..2); a copy's output index is its vertex's first index plus the
-    copies before it in the mask. Memory: 2 bytes per triangle and per vertex, not 16 words."""
-    m = vxy.shape[0]
-    nt = tv.shape[0]
-    sx_lo = -1 if nonper[0] else 0
-    sy_lo = -1 if nonper[1] else 0
-    sx_hi = 1 if nonper[0] else 0
-    sy_hi = 1 if nonper[1] else 0
-    # pass 1: triangle copies that meet the box along the non-periodic axes
-    keep = np.zeros(nt, np.uint16)
-    nkeep = 0
-    rstar2 = 0.0
-    for t in range(nt):
-        x0 = vxy[tv[t, 0], 0] + to[t, 0, 0] * L[0]
-        x1 = vxy[tv[t, 1], 0] + to[t, 1, 0] * L[0]
-        x2 = vxy[tv[t, 2], 0] + to[t, 2, 0] * L[0]
-        y0 = vxy[tv[t, 0], 1] + to[t, 0, 1] * L[1]
-        y1 = vxy[tv[t, 1], 1] + to[t, 1, 1] * L[1]
-        y2 = vxy[tv[t, 2], 1] + to[t, 2, 1] * L[1]
-        xlo, xhi = min(x0, x1, x2), max(x0, x1, x2)
-        ylo, yhi = min(y0, y1, y2), max(y0, y1, y2)
-        mask = 0
-        for sx in range(sx_lo, sx_hi + 1):
-            if nonper[0] and (xhi + sx * L[0] < blo[0] or xlo + sx * L[0] > bhi[0]):
-                continue
-            for sy in range(sy_lo, sy_hi + 1):
-                if nonper[1] and (yhi + sy * L[1] < blo[1] or ylo + sy * L[1] > bhi[1]):
-                    continue
-                mask |= 1 << ((sx + 1) * 3 + sy + 1)
-                nkeep += 1
-        if mask:
-            keep[t] = mask
-            e2 = max(
-                (x1 - x0) ** 2 + (y1 - y0) ** 2,
-                (x2 - x1) ** 2 + (y2 - y1) ** 2,
-                (x0 - x2) ** 2 + (y0 - y2) ** 2,
-            )
-            rstar2 = max(rstar2, e2)
-    # pass 2: vertex copies needed; a copy's shift per axis is in [-1, 2] (code 0..3)
-    need = np.zeros(m, np.uint16)
-    for v in range(m):
-        mask = 0
-        for sx in range(sx_lo, sx_hi + 1):
-            for sy in range(sy_lo, sy_hi + 1):
-                gap2 = 0.0
-                for a in range(2):
-                    if nonper[a]:
-                        p = vxy[v, a] + (sx if a == 0 else sy) * L[a]
-                        g = max(blo[a] - p, 0.0, p - bhi[a])
-                        gap2 += g * g
-                if gap2 <= rstar2:
-                    mask |= 1 << ((sx + 1) * 4 + sy + 1)
-        need[v] = mask
-    for t in range(nt):
-        if keep[t] == 0:
-            continue
-        for c in range(9):
-            if keep[t] & (1 << c):
-                sx = c // 3 - 1
-                sy = c % 3 - 1
-                for i in range(3):
-                    vx = (to[t, i, 0] + sx) if nonper[0] else 0
-                    vy = (to[t, i, 1] + sy) if nonper[1] else 0
-                    need[tv[t, i]] |= 1 << ((vx + 1) * 4 + vy + 1)
-    # number the copies in (vertex, shift) order
-    first = np.empty(m + 1, np.int64)
-    first[0] = 0
-    for v in range(m):
-        first[v + 1] = first[v] + _popcount16(np.int64(need[v]))
-    nout = first[m]
-    out_v = np.empty(nout, np.int64)
-    out_s = np.empty((nout, 2), np.int8)
-    for v in range(m):
-        j = first[v]
-        for c in range(16):
-            if need[v] & (1 << c):
-                out_v[j] = v
-                out_s[j, 0] = c // 4 - 1
-                out_s[j, 1] = c % 4 - 1
-                j += 1
-    tri = np.empty((nkeep, 3), np.int32)
-    off = np.zeros((nkeep, 3, 2), np.int8)
-    n = 0
-    for t in range(nt):
-        if keep[t] == 0:
-            continue
-        for c in range(9):
-            if keep[t] & (1 << c):
-                sx = c // 3 - 1
-                sy = c % 3 - 1
-                for i in range(3):
-                    vx = (to[t, i, 0] + sx) if nonper[0] else 0
-                    vy = (to[t, i, 1] + sy) if nonper[1] else 0
-                    code = (vx + 1) * 4 + vy + 1
-                    v = tv[t, i]
-                    below = np.int64(need[v]) & ((1 << code) - 1)
-                    tri[n, i] = first[v] + _popcount16(below)
-                    for a in range(2):
-                        if not nonper[a]:
-                            off[n, i, a] = to[t, i, a]
-                n += 1
-    return out_v, out_s, tri, off
 
 
 @kernel(inline="always")
@@ -342,91 +224,99 @@ def _popcount64(x):
 
 
 @kernel(inline="always")
-def _code3(sx, sy, sz):
-    """A vertex copy's shift per axis in [-1, 2], two bits each: its bit in a uint64 mask."""
-    return np.uint64(1) << np.uint64(((sx + 1) * 4 + sy + 1) * 4 + sz + 1)
+def _digits(code, base, d, out):
+    """out[:d] = the digits of ``code`` in ``base``, most significant first, minus 1: a
+    copy's shift per axis (base 3: -1..1 for a cell, base 4: -1..2 for a vertex)."""
+    for a in range(d - 1, -1, -1):
+        out[a] = code % base - 1
+        code //= base
+
+
+@kernel(inline="always")
+def _vertex_bit(shift, d):
+    """A vertex copy's bit in its uint64 mask: its shift per axis in -1..2, two bits each."""
+    code = 0
+    for a in range(d):
+        code = code * 4 + shift[a] + 1
+    return np.uint64(1) << np.uint64(code)
 
 
 @kernel(entry=True)
-def _unfold3(xyz, corners, offsets, L, blo, bhi, free):
-    """``_unfold`` in space: copies of tetrahedra meeting the box and of the vertices they
-    (and r*) need. A tetrahedron's copies are a 27-bit mask (shift -1..1 per non-periodic
-    axis), a vertex's a 64-bit mask (shift -1..2); a copy's output index is its vertex's
-    first index plus the copies before it in the mask: 4 bytes per tetrahedron and 16 per
-    vertex of working memory."""
-    m = xyz.shape[0]
-    nt = corners.shape[0]
-    slo = np.zeros(3, np.int64)
-    shi = np.zeros(3, np.int64)
-    for a in range(3):
-        if free[a]:
-            slo[a] = -1
-            shi[a] = 1
+def _unfold(points, cells, offsets, L, blo, bhi, free):
+    """Copies of the cells (triangles or tetrahedra) meeting the box and of the vertices they
+    (and r*) need, in the plane or in space (d = points.shape[1]). A cell's copies are a
+    3^d-bit mask (shift -1..1 per non-periodic axis), a vertex's a 4^d-bit one (shift -1..2);
+    a copy's output index is its vertex's first index plus the copies before it in the mask:
+    4 bytes per cell and 16 per vertex of working memory, not a word per copy."""
+    m, d = points.shape
+    nt, nc = cells.shape
     keep = np.zeros(nt, np.uint32)
     nkeep = 0
     rstar2 = 0.0
-    c = np.empty((4, 3))
-    lo = np.empty(3)
-    hi = np.empty(3)
-    s = np.zeros(3, np.int64)
-    # pass 1: tetrahedron copies that meet the box along the non-periodic axes
+    c = np.empty((nc, d))
+    lo = np.empty(d)
+    hi = np.empty(d)
+    s = np.zeros(d, np.int64)
+    vs = np.zeros(d, np.int64)
+    # pass 1: cell copies that meet the box along the non-periodic axes
     for t in range(nt):
-        for i in range(4):
-            for a in range(3):
-                c[i, a] = xyz[corners[t, i], a] + offsets[t, i, a] * L[a]
-        for a in range(3):
-            lo[a] = min(c[0, a], c[1, a], c[2, a], c[3, a])
-            hi[a] = max(c[0, a], c[1, a], c[2, a], c[3, a])
+        for i in range(nc):
+            for a in range(d):
+                c[i, a] = points[cells[t, i], a] + offsets[t, i, a] * L[a]
+        for a in range(d):
+            lo[a] = c[0, a]
+            hi[a] = c[0, a]
+            for i in range(1, nc):
+                lo[a] = min(lo[a], c[i, a])
+                hi[a] = max(hi[a], c[i, a])
         mask = 0
-        for sx in range(slo[0], shi[0] + 1):
-            for sy in range(slo[1], shi[1] + 1):
-                for sz in range(slo[2], shi[2] + 1):
-                    s[0], s[1], s[2] = sx, sy, sz
-                    meets = True
-                    for a in range(3):
-                        sh = s[a] * L[a]
-                        if free[a] and (hi[a] + sh < blo[a] or lo[a] + sh > bhi[a]):
-                            meets = False
-                    if meets:
-                        mask |= 1 << ((sx + 1) * 9 + (sy + 1) * 3 + sz + 1)
-                        nkeep += 1
+        for code in range(3**d):
+            _digits(code, 3, d, s)
+            meets = True
+            for a in range(d):
+                sh = s[a] * L[a]
+                if free[a]:
+                    if hi[a] + sh < blo[a] or lo[a] + sh > bhi[a]:
+                        meets = False
+                elif s[a] != 0:
+                    meets = False
+            if meets:
+                mask |= 1 << code
+                nkeep += 1
         if mask:
             keep[t] = mask
-            for i in range(4):
-                for j in range(i + 1, 4):
+            for i in range(nc):
+                for j in range(i + 1, nc):
                     e2 = 0.0
-                    for a in range(3):
+                    for a in range(d):
                         e2 += (c[i, a] - c[j, a]) ** 2
                     rstar2 = max(rstar2, e2)
     # pass 2: vertex copies needed, within r* of the box or a corner of a kept copy
     need = np.zeros(m, np.uint64)
-    vs = np.zeros(3, np.int64)
     for v in range(m):
-        for sx in range(slo[0], shi[0] + 2):
-            for sy in range(slo[1], shi[1] + 2):
-                for sz in range(slo[2], shi[2] + 2):
-                    s[0], s[1], s[2] = sx, sy, sz
-                    gap2 = 0.0
-                    skip = False
-                    for a in range(3):
-                        if free[a]:
-                            p = xyz[v, a] + s[a] * L[a]
-                            g = max(blo[a] - p, 0.0, p - bhi[a])
-                            gap2 += g * g
-                        elif s[a] != 0:
-                            skip = True
-                    if not skip and gap2 <= rstar2:
-                        need[v] |= _code3(sx, sy, sz)
+        for code in range(4**d):
+            _digits(code, 4, d, s)
+            gap2 = 0.0
+            skip = False
+            for a in range(d):
+                if free[a]:
+                    p = points[v, a] + s[a] * L[a]
+                    g = max(blo[a] - p, 0.0, p - bhi[a])
+                    gap2 += g * g
+                elif s[a] != 0:
+                    skip = True
+            if not skip and gap2 <= rstar2:
+                need[v] |= _vertex_bit(s, d)
     for t in range(nt):
         if keep[t] == 0:
             continue
-        for code in range(27):
+        for code in range(3**d):
             if keep[t] & (1 << code):
-                s[0], s[1], s[2] = code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1
-                for i in range(4):
-                    for a in range(3):
+                _digits(code, 3, d, s)
+                for i in range(nc):
+                    for a in range(d):
                         vs[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
-                    need[corners[t, i]] |= _code3(vs[0], vs[1], vs[2])
+                    need[cells[t, i]] |= _vertex_bit(vs, d)
     # number the copies in (vertex, shift) order
     first = np.empty(m + 1, np.int64)
     first[0] = 0
@@ -434,32 +324,32 @@ def _unfold3(xyz, corners, offsets, L, blo, bhi, free):
         first[v + 1] = first[v] + _popcount64(need[v])
     nout = first[m]
     out_v = np.empty(nout, np.int64)
-    out_s = np.empty((nout, 3), np.int8)
+    out_s = np.empty((nout, d), np.int8)
     for v in range(m):
         j = first[v]
-        for code in range(64):
+        for code in range(4**d):
             if need[v] & (np.uint64(1) << np.uint64(code)):
                 out_v[j] = v
-                out_s[j, 0] = code // 16 - 1
-                out_s[j, 1] = code // 4 % 4 - 1
-                out_s[j, 2] = code % 4 - 1
+                _digits(code, 4, d, s)
+                for a in range(d):
+                    out_s[j, a] = s[a]
                 j += 1
-    tets = np.empty((nkeep, 4), np.int32)
-    offs = np.zeros((nkeep, 4, 3), np.int8)
+    kept = np.empty((nkeep, nc), np.int32)
+    off = np.zeros((nkeep, nc, d), np.int8)
     n = 0
     for t in range(nt):
         if keep[t] == 0:
             continue
-        for code in range(27):
+        for code in range(3**d):
             if keep[t] & (1 << code):
-                s[0], s[1], s[2] = code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1
-                for i in range(4):
-                    for a in range(3):
+                _digits(code, 3, d, s)
+                for i in range(nc):
+                    for a in range(d):
                         vs[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
                         if not free[a]:
-                            offs[n, i, a] = offsets[t, i, a]
-                    v = corners[t, i]
-                    bit = _code3(vs[0], vs[1], vs[2])
-                    tets[n, i] = first[v] + _popcount64(need[v] & (bit - np.uint64(1)))
+                            off[n, i, a] = offsets[t, i, a]
+                    v = cells[t, i]
+                    bit = _vertex_bit(vs, d)
+                    kept[n, i] = first[v] + _popcount64(need[v] & (bit - np.uint64(1)))
                 n += 1
-    return out_v, out_s, tets, offs
+    return out_v, out_s, kept, off
