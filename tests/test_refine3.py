@@ -311,7 +311,7 @@ def test_purging_the_circumball_queue_keeps_every_live_entry():
     assert entries() == [e for e in before if live(e)]
     assert dropped == len(before) - len(entries())
     assert run.run() == 0  # STATUS_DONE
-    xyz, corners, offsets, kinds, cnt = run.result()
+    xyz, corners, offsets, kinds, cnt = run.take_result()
     mesh = Mesh3(vertices=xyz, tetrahedra=corners, offsets=offsets, kinds=kinds, k=10, tau=3.0,
                  periodic=(True,) * 3, box=BOX, min_size=1e-6, origin=(0.0,) * 3,
                  period=(1.0,) * 3, local=xyz, stats={"n": len(pts)})  # fmt: skip
@@ -450,3 +450,35 @@ def test_growing_in_place_keeps_the_rows_and_zero_fills():
     assert c is not strided and c.shape == (15,)
     np.testing.assert_array_equal(c[:10], np.arange(0.0, 20.0, 2.0))
     assert not c[10:].any()
+
+
+def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(monkeypatch):
+    """api3._start tries the default margin first and builds the data bound on max d_Pk (a
+    kd-tree over all points) only if that torus cannot start; the bound is >= d_Pk at 20,000
+    random points of the box (a brute kd-tree, straight metric)."""
+    from knnrefine import api3
+
+    pts = multiscale(3000, 20)
+    calls = []
+    original = api3._reach
+
+    def counted(*args):
+        calls.append(original(*args))
+        return calls[-1]
+
+    monkeypatch.setattr(api3, "_reach", counted)
+    assert api3._start(pts, BOX, (False,) * 3, 10, 3.0) is not None
+    assert calls == []  # the default torus started: no kd-tree built
+    choose = api3.choose_grid3
+    tries = []
+
+    def first_fails(*args):
+        tries.append(args[0])
+        return None if len(tries) == 1 else choose(*args)
+
+    monkeypatch.setattr(api3, "choose_grid3", first_fails)
+    emb = api3._start(pts, BOX, (False,) * 3, 10, 3.0)[0]
+    assert len(calls) == 1 and len(tries) == 2
+    q = np.random.default_rng(21).random((20_000, 3))
+    assert calls[0] >= cKDTree(pts).query(q, k=[10])[0].max()
+    np.testing.assert_allclose(emb.period, 1.0 + 1.05 * calls[0], rtol=1e-6)

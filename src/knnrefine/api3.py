@@ -51,11 +51,14 @@ def _start(pts, box, per, k, tau):
     Lemma 2's precondition: the default margin (1.05 x the box's diameter along
     non-periodic axes), then, as in the plane, 1.05 x a bound on max d_Pk over the box and 2,
     4 and 10 diameters. None when none does."""
-    reaches = [None]
-    if not all(per):
-        diam = diameter(box, per)
-        reaches += [_reach(pts, box, per, k), 2.0 * diam, 4.0 * diam, 10.0 * diam]
-    for reach in reaches:
+
+    def reaches():  # the data bound costs a kd-tree: only when the default torus fails
+        yield None
+        if not all(per):
+            diam = diameter(box, per)
+            yield from (_reach(pts, box, per, k), 2.0 * diam, 4.0 * diam, 10.0 * diam)
+
+    for reach in reaches():
         emb = Embedding.make(box, per, reach)
         index = build_index3(emb.to_internal(pts), copy=False)  # the index owns them
         period = np.array(emb.period_internal)

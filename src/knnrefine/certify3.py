@@ -222,7 +222,7 @@ def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0)
         box_vertices = cKDTree(mesh.local, boxsize=boxsize)
     dm2 = box_vertices.query(probes, k=2)[0][:, 1]
     if box_vertices is not vertex_tree:  # the copies near the box hold its two nearest
-        on_torus = vertex_tree.query(np.mod(probes, period), k=2)[0][:, 1]
+        on_torus = vertex_tree.query(probes, k=2)[0][:, 1]  # the tree wraps queries
         view = view and bool(np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0))
     dpk = box_points.query(probes, k=[k])[0][:, 0]
     use = dpk >= mesh.min_size

@@ -5,6 +5,7 @@ The proofs of Theorem 6 carry to three dimensions with the same constants (docs/
 """
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -110,10 +111,13 @@ class Mesh3:
         """d_{M,2} at the points x (..., 3): the distance to the second-nearest vertex (in
         the box; beyond it along a non-periodic axis, the embedding torus's)."""
         flat = as_points(np.reshape(x, (-1, 3)), 3)
-        period = np.asarray(self.period)
-        tree = cKDTree(self.torus.local, boxsize=period)
-        d = tree.query(TorusFrame(self.origin, period)(flat), k=2)[0][:, 1]
+        d = self._torus_tree.query(TorusFrame(self.origin, self.period)(flat), k=2)[0][:, 1]
         return d.reshape(np.shape(x)[:-1])
+
+    @cached_property
+    def _torus_tree(self):
+        """The torus' vertices in a periodic kd-tree (built once per mesh)."""
+        return cKDTree(self.torus.local, boxsize=np.asarray(self.period))
 
     def __repr__(self):
         kind = (

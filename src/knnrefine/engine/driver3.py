@@ -165,9 +165,10 @@ class Refinement3:
         self.queues = self.queues._replace(**queues)
 
     def take_result(self):
-        """``result()``, consuming the run: the index, scratch, queues and bookkeeping are
-        let go first, and each mesh array as soon as its trimmed copy exists, so that the
-        copies never sit beside the whole state (the peak memory of a run)."""
+        """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters), consuming
+        the run: the index, scratch, queues and bookkeeping are let go first, and each mesh
+        array as soon as its trimmed copy exists, so that the copies never sit beside the
+        whole state (the peak memory of a run)."""
         nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
         cnt = self.cnt.copy()
         kinds = self.book.kinds[:nv].copy()
@@ -179,18 +180,6 @@ class Refinement3:
         corners = arrays.pop("corners")[:nt].copy()
         offsets = unpack_offsets(arrays.pop("offsets")[:nt])
         return xyz, corners, offsets, kinds, cnt
-
-    def result(self):
-        """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters)."""
-        nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
-        m = self.mesh
-        return (
-            m.xyz[:nv].copy(),
-            m.corners[:nt].copy(),
-            unpack_offsets(m.offsets[:nt]),
-            self.book.kinds[:nv].copy(),
-            self.cnt.copy(),
-        )
 
 
 def choose_grid3(period, holds, factor, q=Q):

@@ -241,6 +241,14 @@ def _vertex_bit(shift, d):
     return np.uint64(1) << np.uint64(code)
 
 
+@kernel(inline="always")
+def _corner_shift(offsets, t, i, s, free, out):
+    """out = the shift per axis of corner i in the copy of cell t shifted by s (its offset
+    plus s along non-periodic axes; 0 along periodic ones, where offsets stay offsets)."""
+    for a in range(out.shape[0]):
+        out[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
+
+
 @kernel(entry=True)
 def _unfold(points, cells, offsets, L, blo, bhi, free):
     """Copies of the cells (triangles or tetrahedra) meeting the box and of the vertices they
@@ -314,8 +322,7 @@ def _unfold(points, cells, offsets, L, blo, bhi, free):
             if keep[t] & (1 << code):
                 _digits(code, 3, d, s)
                 for i in range(nc):
-                    for a in range(d):
-                        vs[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
+                    _corner_shift(offsets, t, i, s, free, vs)
                     need[cells[t, i]] |= _vertex_bit(vs, d)
     # number the copies in (vertex, shift) order
     first = np.empty(m + 1, np.int64)
@@ -344,8 +351,8 @@ def _unfold(points, cells, offsets, L, blo, bhi, free):
             if keep[t] & (1 << code):
                 _digits(code, 3, d, s)
                 for i in range(nc):
+                    _corner_shift(offsets, t, i, s, free, vs)
                     for a in range(d):
-                        vs[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
                         if not free[a]:
                             off[n, i, a] = offsets[t, i, a]
                     v = cells[t, i]
