@@ -271,51 +271,85 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
     assert code([*plane, "--periodic-z"]) == 2  # z is for points in space
 
 
-def test_purging_the_circumball_queue_keeps_every_live_entry():
-    """purge_balls3 drops exactly the entries _break3 would skip (tested, destroyed or
-    reused slots) and keeps the others in order; the run then finishes as certified."""
+def _start_run(pts, k=10):
     from knnrefine.api3 import _holds
     from knnrefine.engine.driver3 import Refinement3, choose_grid3
     from knnrefine.engine.index3 import build_index3
     from knnrefine.engine.initial import reach_factor
-    from knnrefine.engine.queue import N_CLASSES
-    from knnrefine.engine.refine import UNTESTED
-    from knnrefine.engine.refine3 import purge_balls3, refine_steps3
 
-    pts = multiscale(20000, 13)
     period = np.ones(3)
     index = build_index3(pts)
-    grid = choose_grid3(period, lambda x, r: _holds(index, x, r, 10, period), reach_factor(3))
-    run = Refinement3(index, period, 10, 3.0, 1e-6, 10**6, grid)
-    refine_steps3(run.mesh, run.book, run.queues, run.scratch, run.probe, run.cnt, run.prm,
-                  run.index, 3000)  # fmt: skip
+    grid = choose_grid3(period, lambda x, r: _holds(index, x, r, k, period), reach_factor(3))
+    return Refinement3(index, period, k, 3.0, 1e-6, 10**6, grid)
 
-    def entries():
-        q = run.queues.balls
-        out = []
-        for c in range(N_CLASSES):
-            e = q.head[c]
-            while e >= 0:
-                out.append((c, int(q.ident[e]), int(q.aux[e])))
-                e = q.next[e]
-        return out
 
-    def live(entry):
-        _, t, apex = entry
-        return (t < run.cnt[1] and run.book.ball_state[t] == UNTESTED
-                and apex in run.mesh.corners[t])  # fmt: skip
-
-    before = entries()
-    assert sum(not live(e) for e in before) > 0  # there was something to purge
-    dropped = purge_balls3(run.mesh, run.book, run.queues, run.cnt)
-    assert entries() == [e for e in before if live(e)]
-    assert dropped == len(before) - len(entries())
+def _finish(run, pts, k=10):
     assert run.run() == 0  # STATUS_DONE
     xyz, corners, offsets, kinds, cnt = run.take_result()
-    mesh = Mesh3(vertices=xyz, tetrahedra=corners, offsets=offsets, kinds=kinds, k=10, tau=3.0,
+    return Mesh3(vertices=xyz, tetrahedra=corners, offsets=offsets, kinds=kinds, k=k, tau=3.0,
                  periodic=(True,) * 3, box=BOX, min_size=1e-6, origin=(0.0,) * 3,
                  period=(1.0,) * 3, local=xyz, stats={"n": len(pts)})  # fmt: skip
-    assert_certified(mesh, pts)
+
+
+@pytest.mark.parametrize("steps", [1, 700, 3000])
+def test_every_untested_circumball_is_queued_at_one_of_its_corners(steps):
+    """The circumball queue holds vertices: each untested tetrahedron has a corner queued at
+    its size class or a larger ball's, so none is forgotten; and the queue holds at most an
+    entry per vertex beyond the initial mesh's (not one per tetrahedron). Then the run
+    finishes certified."""
+    from knnrefine.engine.jit import python_entry
+    from knnrefine.engine.queue import N_CLASSES, size_class
+    from knnrefine.engine.refine import UNTESTED
+    from knnrefine.engine.refine3 import refine_steps3
+
+    classify = python_entry(size_class)
+    pts = multiscale(20000, 13)
+    run = _start_run(pts)
+    nt0 = int(run.cnt[1])
+    refine_steps3(run.mesh, run.book, run.queues, run.scratch, run.probe, run.cnt, run.prm,
+                  run.index, steps)  # fmt: skip
+    q = run.queues.balls
+    due = {}  # vertex -> the largest class it is queued at (the smallest number)
+    size = 0
+    for c in range(N_CLASSES):
+        e = q.head[c]
+        while e >= 0:
+            v = int(q.ident[e])
+            due[v] = min(due.get(v, N_CLASSES), c)
+            size += 1
+            e = q.next[e]
+    nt, nv = int(run.cnt[1]), int(run.cnt[0])
+    untested = np.flatnonzero(run.book.ball_state[:nt] == UNTESTED)
+    assert len(untested) > 0
+    for t in untested:
+        cls = classify(run.mesh.radius2[t])
+        assert min(due.get(int(v), N_CLASSES) for v in run.mesh.corners[t]) <= cls, t
+    assert size <= nt0 + nv
+    assert_certified(_finish(run, pts), pts)
+
+
+def test_mesh_independent_of_growth_policy(monkeypatch):
+    """Regression: a 3-D mesh depended on when the arrays grew (the circumball queue of
+    tetrahedra was purged of stale entries as it grew, and an entry for a reused slot could
+    test a new tetrahedron early). With a queue of vertices nothing refers to a capacity:
+    growing by 1/64 from the smallest start gives the mesh that growing by 1/8 gives."""
+    from knnrefine.engine import driver3
+
+    pts = multiscale(20000, 17)
+    meshes = []
+    for growth in (8, 64):
+        monkeypatch.setattr(driver3, "GROWTH", growth)
+        run = _start_run(pts)
+        grown = []
+        orig = run._grow
+        monkeypatch.setattr(run, "_grow", lambda g=grown, o=orig: (g.append(1), o()))
+        meshes.append(_finish(run, pts))
+        assert len(grown) > 3  # it did grow, more often with the finer step
+    a, b = meshes
+    assert len(a.vertices) == len(b.vertices) > 2000
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.tetrahedra, b.tetrahedra)
+    np.testing.assert_array_equal(a.offsets, b.offsets)
 
 
 @pytest.mark.parametrize("periodic", [False, (False, True, False), (True, True, False)])
@@ -434,22 +468,44 @@ def test_restarting_the_32_bit_stamps_changes_nothing(monkeypatch):
 
 
 def test_growing_in_place_keeps_the_rows_and_zero_fills():
-    """state.resized (the 3-D run's growth: realloc, no second copy at the peak) keeps every
-    row, zero-fills the new ones, for small and large (remapped) blocks; an array that does
-    not own its data is copied instead."""
-    from knnrefine.engine.state import resized
+    """state.grow(in_place=True) (the 3-D run's growth) keeps every row and zero-fills the
+    new ones: an array not yet in a mapping is copied into one, one in a mapping grows in
+    that same mapping (moved, not copied), and one whose view is held elsewhere is copied
+    into a new mapping, the view still reading the old rows; nested fields (a queue's)
+    too."""
+    from types import SimpleNamespace
+
+    from knnrefine.engine.state import Queue, _mapping, grow
 
     for rows in (6, 3_000_000):
-        a = np.arange(rows * 4, dtype=np.int32).reshape(rows, 4).copy()  # owns its data
-        b = resized(a, rows + rows // 4 + 3)
-        assert b is a and b.shape == (rows + rows // 4 + 3, 4)
-        np.testing.assert_array_equal(b[:rows].ravel(), np.arange(rows * 4))
-        assert not b[rows:].any()
-    strided = np.arange(20.0)[::2]
-    c = resized(strided, 15)
-    assert c is not strided and c.shape == (15,)
-    np.testing.assert_array_equal(c[:10], np.arange(0.0, 20.0, 2.0))
-    assert not c[10:].any()
+        owner = SimpleNamespace(s=Queue(head=None, ident=None, aux=None, next=None,
+                                        scalars=np.arange(rows * 4, dtype=np.int32)
+                                        .reshape(rows, 4)))  # fmt: skip
+        sizes = [rows + rows // 4 + 3, 2 * rows + 5, 3 * rows]
+        for step, size in enumerate(sizes):
+            before = _mapping(owner.s.scalars)
+            if step == 2:
+                view = owner.s.scalars[:2]
+            grow(owner, [("s", "scalars")], size, in_place=True)
+            got = owner.s.scalars
+            assert got.shape == (size, 4) and got.dtype == np.int32
+            np.testing.assert_array_equal(got[:rows].ravel(), np.arange(rows * 4))
+            assert not got[rows:].any()
+            assert _mapping(got) is not None
+            assert (_mapping(got) is before) == (step == 1)  # grown in its own mapping
+            del got  # (a view held here would make the next step copy)
+        np.testing.assert_array_equal(view.ravel(), np.arange(8))
+    holder = SimpleNamespace(
+        queues=Queue(
+            head=None,
+            ident=None,
+            aux=None,
+            next=None,
+            scalars=Queue(head=None, ident=np.arange(5.0), aux=None, next=None, scalars=None),
+        )
+    )
+    grow(holder, [("queues", "scalars", "ident")], 9, in_place=True)
+    np.testing.assert_array_equal(holder.queues.scalars.ident, [0, 1, 2, 3, 4, 0, 0, 0, 0])
 
 
 def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(monkeypatch):

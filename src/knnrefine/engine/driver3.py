@@ -24,7 +24,6 @@ from .refine3 import (
     P3_INFLATE,
     P3_K,
     P3_TAU2,
-    purge_balls3,
     queue_all3,
     refine_steps3,
 )
@@ -39,7 +38,7 @@ from .state import (
     Probe3,
     Queues,
     grow,
-    resized,
+    mapped,
 )
 from .triangulation3 import new_torus3, unpack_offsets
 
@@ -66,6 +65,13 @@ TETRAHEDRON_FIELDS3 = (
 )
 
 
+GROWTH = 8  # arrays grow by 1/GROWTH of their size (+ 4096): the slack left at the end
+
+
+def _grown(cap):
+    return cap + cap // GROWTH + 4096
+
+
 class Refinement3:
     """One 3-D run on the torus of ``period`` (internal units, multiples of the grid step q,
     a power of two >= Q: ``embedding.Embedding.grid``) over the points of ``index``
@@ -79,15 +85,16 @@ class Refinement3:
         t_cap = self.mesh.corners.shape[0]
         v_cap = self.mesh.xyz.shape[0]
         self.book = Bookkeeping(
-            ball_state=np.zeros(t_cap, np.int8),
-            kinds=np.zeros(v_cap, np.int8),
-            cell_state=np.zeros(v_cap, np.int8),
-            flags=np.zeros(v_cap, np.int8),
+            ball_state=mapped((t_cap,), np.int8),
+            kinds=mapped((v_cap,), np.int8),
+            cell_state=mapped((v_cap,), np.int8),
+            flags=mapped((v_cap,), np.int8),
         )
+        balls = int(self.cnt[C_NT]) + v_cap // 2 + 4 * HEADROOM3
         self.queues = Queues(
-            balls=new_queue(t_cap // 2 + 4 * HEADROOM3),
-            cells=new_queue(v_cap // 2 + 2 * HEADROOM3),
-            cleans=new_queue(v_cap // 2 + 2 * HEADROOM3),
+            balls=new_queue(balls, mapped),
+            cells=new_queue(v_cap // 2 + 2 * HEADROOM3, mapped),
+            cleans=new_queue(v_cap // 2 + 2 * HEADROOM3, mapped),
         )
         self.probe = Probe3(
             h=np.zeros((1024, 3)),
@@ -143,26 +150,19 @@ class Refinement3:
         self.cnt[C_STAMP] = 0
 
     def _grow(self):
+        """Each array that could overflow in the next insertion grows by ``GROWTH``; the mesh
+        made does not depend on when (nothing in the run refers to a capacity)."""
         if self.cnt[C_NV] + 1 > self.mesh.xyz.shape[0]:
-            cap = self.mesh.xyz.shape[0]
-            grow(self, VERTEX_FIELDS3, cap + cap // 4 + 1024, in_place=True)
+            grow(self, VERTEX_FIELDS3, _grown(self.mesh.xyz.shape[0]), in_place=True)
         if self.cnt[C_NT] + 2 * HEADROOM3 > self.mesh.corners.shape[0]:
-            cap = self.mesh.corners.shape[0]
-            grow(self, TETRAHEDRON_FIELDS3, cap + cap // 4 + 8192, in_place=True)
-        q = self.queues.balls
-        if q.scalars[Q_SIZE] + 4 * HEADROOM3 > q.ident.shape[0]:
-            # stale entries first: grow only if the live ones still fill it
-            purge_balls3(self.mesh, self.book, self.queues, self.cnt)
-        queues = {}
+            grow(self, TETRAHEDRON_FIELDS3, _grown(self.mesh.corners.shape[0]), in_place=True)
         for name in ("balls", "cells", "cleans"):
             q = getattr(self.queues, name)
             cap = q.ident.shape[0]
             if q.scalars[Q_SIZE] + 4 * HEADROOM3 > cap:
-                size = cap + cap // 2 + 16_384
-                q = q._replace(ident=resized(q.ident, size), aux=resized(q.aux, size),
-                               next=resized(q.next, size))  # fmt: skip
-            queues[name] = q
-        self.queues = self.queues._replace(**queues)
+                del q
+                parts = [("queues", name, part) for part in ("ident", "aux", "next")]
+                grow(self, parts, _grown(cap), in_place=True)
 
     def take_result(self):
         """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters), consuming

@@ -40,13 +40,14 @@ def size_class(r2):
     return c
 
 
-def new_queue(cap):
-    """An empty queue with room for cap entries."""
+def new_queue(cap, zeros=np.zeros):
+    """An empty queue with room for cap entries (``zeros(shape, dtype)`` makes its entry
+    arrays: ``state.mapped`` for the 3-D run's)."""
     return Queue(
         head=np.full(N_CLASSES, -1, np.int32),
-        ident=np.zeros(cap, np.int32),
-        aux=np.zeros(cap, np.int32),
-        next=np.zeros(cap, np.int32),
+        ident=zeros((cap,), np.int32),
+        aux=zeros((cap,), np.int32),
+        next=zeros((cap,), np.int32),
         scalars=np.array([0, N_CLASSES, -1, 0], np.int64),
     )
 

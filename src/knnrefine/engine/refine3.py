@@ -8,10 +8,15 @@ circumball holds >= k points: its circumcentre; else a vertex whose closed Voron
 holds >= k points: its far corner); largest first by size class (``queue.py``); counts
 inflated by a relative 1e-9 and tau^2 lowered by 1e-12, so the output passes the strict
 checks of independent code; a Break floor (``min_size``) and a Clean floor (2^14 grid steps)
-below which elements are left and reported. What differs: a tetrahedron may be moved to
-another slot by an insertion (``triangulation3._move``); its queue entry is then pushed
-again at its new slot (entries carry a corner, the apex, to recognise a slot that now holds
-another tetrahedron). Not yet here: tiles, the cell sweep, weights.
+below which elements are left and reported. What differs: the circumball queue holds
+vertices, not tetrahedra. In space a vertex has ~6.4 tetrahedra and nearly all of them wait
+in the queue at some time (largest first leaves the small ones for later), so an entry per
+tetrahedron cost more memory than the tetrahedra's circumradii. An entry (v, class) says that
+the untested tetrahedra at v of that class are due: popping it walks v's star, tests those,
+and queues v again at the class of its largest untested tetrahedron left. An insertion
+queues its new vertex once (every new tetrahedron has it as a corner); a tetrahedron moved to
+another slot (``triangulation3._move``) keeps its corners, so no entry goes stale. Not yet
+here: tiles, the cell sweep, weights.
 """
 
 import numpy as np
@@ -19,7 +24,7 @@ import numpy as np
 from .geometry import circumsphere
 from .index3 import count_in_ball3, count_in_cell3
 from .jit import kernel
-from .queue import N_CLASSES, Q_FREE, Q_SIZE, queue_pop, queue_push, queue_size, size_class
+from .queue import N_CLASSES, Q_SIZE, queue_pop, queue_push, queue_size, size_class
 from .refine import (
     BREAK_BALL,
     BREAK_CELL,
@@ -53,7 +58,6 @@ from .state import (
 )
 from .triangulation3 import (
     MAX_CAVITY3,
-    corner_of3,
     insert_vertex3,
     load_corners,
     vertex_neighbours3,
@@ -95,17 +99,12 @@ def _touch3(v, mesh, book, queues, cnt, prm):
         book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
 
 
-@kernel(nrt=False)
-def _push_ball(t, mesh, book, queues):
-    book.ball_state[t] = UNTESTED
-    queue_push(queues.balls, size_class(mesh.radius2[t]), t, mesh.corners[t, 0])
-
-
 @kernel(entry=True, nrt=False)
 def queue_all3(mesh, book, queues, cnt, prm):
-    """Queue every tetrahedron and vertex of a fresh triangulation."""
+    """Queue every tetrahedron (at its first corner) and vertex of a fresh triangulation."""
     for t in range(cnt[C_NT]):
-        _push_ball(t, mesh, book, queues)
+        book.ball_state[t] = UNTESTED
+        queue_push(queues.balls, size_class(mesh.radius2[t]), mesh.corners[t, 0], 0)
     for v in range(cnt[C_NV]):
         book.flags[v] = 0
         _touch3(v, mesh, book, queues, cnt, prm)
@@ -163,19 +162,33 @@ def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
     pts = scratch.points
     c = scratch.walk_point
     while queue_size(queues.balls) > 0:
-        cls, t, apex = queue_pop(queues.balls)
-        if t >= cnt[C_NT] or corner_of3(mesh, t, apex) < 0 or book.ball_state[t] != UNTESTED:
-            continue  # stale: slot t holds another tetrahedron now, or was tested
-        load_corners(mesh, t, 0, 0, 0, period, pts)
-        c[0], c[1], c[2], _ = circumsphere(pts)
-        cnt[C_DISK_TESTS] += 1
-        if count_in_ball3(index, c, mesh.radius2[t] * inflate, k, period, probe.stack) < k:
-            book.ball_state[t] = GOOD
-            continue
-        if mesh.radius2[t] < prm[P3_FLOOR2]:
-            book.ball_state[t] = FLOOR
-            continue
-        return t, BREAK_BALL, t
+        # an entry (v, class): the untested tetrahedra at v of this class (or larger) are due
+        cls, v, _ = queue_pop(queues.balls)
+        n = vertex_star3(v, mesh, scratch, cnt, period)[3]
+        if n < 0:
+            return STAR_OVERFLOW, 0, -1
+        later = N_CLASSES
+        for i in range(n):
+            t = scratch.walk[i]
+            if book.ball_state[t] != UNTESTED:
+                continue
+            now = size_class(mesh.radius2[t])
+            if now > cls:
+                later = min(later, now)
+                continue
+            load_corners(mesh, t, 0, 0, 0, period, pts)
+            c[0], c[1], c[2], _ = circumsphere(pts)
+            cnt[C_DISK_TESTS] += 1
+            if count_in_ball3(index, c, mesh.radius2[t] * inflate, k, period, probe.stack) < k:
+                book.ball_state[t] = GOOD
+                continue
+            if mesh.radius2[t] < prm[P3_FLOOR2]:
+                book.ball_state[t] = FLOOR
+                continue
+            queue_push(queues.balls, cls, v, 0)  # the rest of v's star: after this Break
+            return t, BREAK_BALL, t
+        if later < N_CLASSES:  # v's smaller untested tetrahedra wait for their class
+            queue_push(queues.balls, later, v, 0)
     while queue_size(queues.cells) > 0:
         cls, v, _ = queue_pop(queues.cells)
         book.flags[v] = book.flags[v] & ~IN_CELL_QUEUE
@@ -256,51 +269,20 @@ def refine_steps3(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps
         book.cell_state[v] = UNTESTED
         book.flags[v] = 0
         nb = cnt[C_LAST_NB]
-        for e in range(scratch.moved[0, 0]):  # moved tetrahedra keep their state
-            src = scratch.moved[1 + e, 0]
+        for e in range(scratch.moved[0, 0]):  # moved tetrahedra keep their state (and
+            src = scratch.moved[1 + e, 0]  # their corners, hence their queue entries)
             dst = scratch.moved[1 + e, 1]
             book.ball_state[dst] = book.ball_state[src]
-            if book.ball_state[dst] == UNTESTED:
-                _push_ball(dst, mesh, book, queues)
+        # the new tetrahedra all have corner v: one entry, at the class of the largest
+        first = N_CLASSES
         for e in range(nb):
-            _push_ball(scratch.cavity[e], mesh, book, queues)
+            s = scratch.cavity[e]
+            book.ball_state[s] = UNTESTED
+            first = min(first, size_class(mesh.radius2[s]))
+        queue_push(queues.balls, first, v, 0)
         for e in range(nb):
             s = scratch.cavity[e]
             for i in range(4):
                 _touch3(mesh.corners[s, i], mesh, book, queues, cnt, prm)
         steps += 1
     return STATUS_STEPS
-
-
-@kernel(entry=True, nrt=False)
-def purge_balls3(mesh, book, queues, cnt):
-    """Drop the circumball queue's stale entries (tetrahedra tested, destroyed, or whose slot
-    now holds another: ``_break3`` would skip them when popped) onto its free list. In
-    space a queue otherwise holds nearly two entries per live tetrahedron, most of them
-    stale. Returns the entries dropped."""
-    q = queues.balls
-    dropped = 0
-    for c in range(N_CLASSES):
-        prev = -1
-        e = q.head[c]
-        while e >= 0:
-            nxt = q.next[e]
-            t = q.ident[e]
-            stale = (
-                t >= cnt[C_NT]
-                or book.ball_state[t] != UNTESTED
-                or corner_of3(mesh, t, q.aux[e]) < 0
-            )
-            if stale:
-                if prev < 0:
-                    q.head[c] = nxt
-                else:
-                    q.next[prev] = nxt
-                q.next[e] = q.scalars[Q_FREE]
-                q.scalars[Q_FREE] = e
-                q.scalars[Q_SIZE] -= 1
-                dropped += 1
-            else:
-                prev = e
-            e = nxt
-    return dropped

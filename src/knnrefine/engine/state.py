@@ -15,6 +15,7 @@ time from a first size taken from the size estimate; ``VERTEX_FIELDS`` and
 ``TRIANGLE_FIELDS`` say which field grows along which.
 """
 
+import mmap
 from collections import namedtuple
 
 import numpy as np
@@ -174,24 +175,81 @@ def grown(array, size):
     return out
 
 
-def resized(array, size):
-    """``array`` grown to ``size`` rows in place, zero-filled (``ndarray.resize``: the C
-    library's realloc, which remaps a large block's pages rather than copying them, so that
-    growing needs no second copy at the peak). The caller must hold no view of it: a view
-    would point at freed memory. Arrays that do not own their data are copied (``grown``)."""
-    if not (array.flags.owndata and array.flags.c_contiguous and array.base is None):
-        return grown(array, size)
-    array.resize((size,) + array.shape[1:], refcheck=False)
-    return array
+_PRIVATE = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS
+
+
+def mapped(shape, dtype):
+    """A zeroed array of ``shape`` in its own anonymous private memory mapping (``mmap``):
+    its pages cost memory only once written, it can grow in place (``grow``), and freeing it
+    returns its memory to the system at once, whatever the C library's heap holds."""
+    dtype = np.dtype(dtype)
+    count = int(np.prod(shape))
+    mm = mmap.mmap(-1, max(count * dtype.itemsize, 1), flags=_PRIVATE)
+    flat = np.frombuffer(mm, dtype, count)
+    return flat.reshape(shape) if len(shape) > 1 else flat
+
+
+def _mapping(array):
+    """The mapping that ``array`` (made by ``mapped``) spans whole, or None."""
+    base = array.base
+    if isinstance(base, np.ndarray) and base.ndim == 1 and base.size == array.size:
+        base = base.base
+    if isinstance(base, memoryview):  # np.frombuffer's
+        base = base.obj
+    return base if isinstance(base, mmap.mmap) and array.flags.c_contiguous else None
+
+
+def _remapped(owner, path, size):
+    """The array at ``path`` of ``owner`` grown to ``size`` rows inside its own mapping:
+    the system moves its pages (``mremap``) instead of copying them, and the new rows are
+    zero pages, untouched until written. The owner's reference is dropped first (a mapping
+    with live views cannot move); if a view is held elsewhere, the rows are copied into a
+    new mapping instead. Arrays not made by ``mapped`` are copied into one."""
+    array = _get(owner, path)
+    mm = _mapping(array)
+    rows, tail, dtype = array.shape[0], array.shape[1:], array.dtype
+    if mm is None:
+        out = mapped((size,) + tail, dtype)
+        out[:rows] = array
+        return out
+    _set(owner, path, None)
+    del array
+    count = size * int(np.prod(tail, dtype=np.int64))
+    try:
+        mm.resize(count * dtype.itemsize)
+    except BufferError:  # a view outlives the owner's reference
+        old = np.frombuffer(mm, dtype, rows * (count // size)).reshape((rows,) + tail)
+        out = mapped((size,) + tail, dtype)
+        out[:rows] = old
+        return out
+    flat = np.frombuffer(mm, dtype, count)
+    return flat.reshape((size,) + tail) if tail else flat
+
+
+def _get(owner, path):
+    for name in path:
+        owner = getattr(owner, name)
+    return owner
+
+
+def _set(owner, path, value):
+    """Set the field at ``path`` of ``owner`` (an object, then namedtuples) to ``value``."""
+    if len(path) == 1:
+        setattr(owner, path[0], value)
+        return
+    inner = _get(owner, path[:-1])
+    _set(owner, path[:-1], inner._replace(**{path[-1]: value}))
 
 
 def grow(owner, fields, size, in_place=False):
-    """Grow the listed (structure, field) arrays of ``owner`` (an object whose attributes are
-    the structures) to ``size`` rows, one at a time: each old array is freed before the next
-    is copied, so growing costs one array's worth of extra memory, not the structures'
-    (``in_place``: none, by ``resized``; no views of the arrays may be held)."""
-    widen = resized if in_place else grown
-    for name, field in fields:
-        structure = getattr(owner, name)
-        setattr(owner, name, structure._replace(**{field: widen(getattr(structure, field), size)}))
-        del structure
+    """Grow the arrays at ``fields`` (paths: an attribute of ``owner``, then fields of the
+    namedtuples inside, such as ("mesh", "corners") or ("queues", "balls", "ident")) to
+    ``size`` rows, one at a time: each old array is freed before the next is copied, so
+    growing costs one array's worth of extra memory, not the structures' (``in_place``:
+    none, the arrays live in their own mappings and grow there: ``_remapped``)."""
+    for path in fields:
+        if in_place:
+            new = _remapped(owner, path, size)
+        else:
+            new = grown(_get(owner, path), size)
+        _set(owner, path, new)

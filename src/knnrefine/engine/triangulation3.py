@@ -519,14 +519,16 @@ def new_torus3(period, grid, vertices, tetrahedra):
     """(mesh, scratch, cnt): a ``TorusMesh3`` holding the triangulation ``grid`` =
     (xyz, corners, offsets, neighbours, ...) of ``initial.initial_grid3``, with room for
     ``vertices`` vertices and ``tetrahedra`` tetrahedra, its caches filled."""
-    from .state import N_COUNTERS, Scratch3, TorusMesh3
+    from .state import N_COUNTERS, Scratch3, TorusMesh3, mapped
 
     xyz, corners, offsets, neighbours = grid[:4]
     nv, nt = len(xyz), len(corners)
     vertices, tetrahedra = max(vertices, nv), max(tetrahedra, nt)
 
+    # the arrays sized by a capacity (and the cavity's) are mapped: the rows never written
+    # cost no memory, and they grow in place (``state.grow``)
     def rows(a, size, dtype):
-        out = np.zeros((size,) + a.shape[1:], dtype)
+        out = mapped((size,) + a.shape[1:], dtype)
         out[: len(a)] = a
         return out
 
@@ -534,24 +536,24 @@ def new_torus3(period, grid, vertices, tetrahedra):
         corners=rows(corners, tetrahedra, np.int32),
         neighbours=rows(neighbours, tetrahedra, np.int32),
         offsets=rows(pack_offsets(offsets), tetrahedra, np.uint32),
-        radius2=np.zeros(tetrahedra),
+        radius2=mapped((tetrahedra,), np.float64),
         xyz=rows(xyz, vertices, np.float64),
-        star=np.zeros(vertices, np.int32),
-        outradius2=np.zeros(vertices),
-        nearest2=np.zeros(vertices),
+        star=mapped((vertices,), np.int32),
+        outradius2=mapped((vertices,), np.float64),
+        nearest2=mapped((vertices,), np.float64),
     )
     star = np.zeros(nv, np.int32)
     star[corners.ravel()] = np.repeat(np.arange(nt, dtype=np.int32), 4)
     mesh.star[:nv] = star
     scratch = Scratch3(
-        mark=np.zeros(tetrahedra, np.int32),
-        cavity=np.zeros(MAX_CAVITY3, np.int32),
-        cavity_shift=np.zeros((MAX_CAVITY3, 3), np.int64),
-        boundary=np.zeros((MAX_CAVITY3, 3), np.int64),
-        face_corners=np.zeros((MAX_CAVITY3, 4), np.int64),
-        face_offsets=np.zeros((MAX_CAVITY3, 4, 3), np.int64),
+        mark=mapped((tetrahedra,), np.int32),
+        cavity=mapped((MAX_CAVITY3,), np.int32),
+        cavity_shift=mapped((MAX_CAVITY3, 3), np.int64),
+        boundary=mapped((MAX_CAVITY3, 3), np.int64),
+        face_corners=mapped((MAX_CAVITY3, 4), np.int64),
+        face_offsets=mapped((MAX_CAVITY3, 4, 3), np.int64),
         link=np.zeros((LINK_SIZE3, 3), np.int64),
-        walk=np.zeros(MAX_CAVITY3, np.int32),
+        walk=mapped((MAX_CAVITY3,), np.int32),
         points=np.zeros((5, 3)),
         shift=np.zeros(3, np.int64),
         walk_point=np.zeros(3),
