@@ -6,7 +6,9 @@ ordinary``: the cube not periodic, refined in its embedding torus, against a pla
 Each configuration runs in a fresh subprocess, after one untimed warm-up call on the same
 input; refine and the cKDTree (build + ``query(points, k=[k], workers=-1)``, both cores)
 alternate --repeat times and the medians are reported, with refine's peak resident memory
-above what the process held before the call (``bench_refine.py``'s method) per mesh vertex.
+above what the process held before the call (``bench_refine.py``'s method) per mesh vertex,
+and that peak less the counting index over the points (the input's copy: about 28 bytes a
+point, whatever the mesh) per mesh vertex: the mesh's own memory.
 Where n * k > --ckdtree-budget the query runs on 10^5 sampled points and its time is scaled
 to n (marked "~").
 
@@ -81,13 +83,17 @@ def worker(kind, n, k, repeat, budget, box_kind="torus"):
         kd.append(t_build + (time.perf_counter() - t0) * (n / len(q)))
         del tree
     peak = float(np.median(peaks))
+    from knnrefine.engine.index3 import build_index3
+
+    index_mb = sum(a.nbytes for a in build_index3(pts)) / 2**20
     return {
         "kind": kind, "box": box_kind, "n": n, "k": k, "m": m, "m_torus": m_torus,
         "tetrahedra": t,
         "refine_s": float(np.median(times)), "refine_all_s": times,
         "ckdtree_s": float(np.median(kd)), "ckdtree_all_s": kd, "ckdtree_sampled": sampled,
         "ratio": float(np.median(times)) / float(np.median(kd)),
-        "peak_mb": peak, "bytes_per_vertex": peak * 2**20 / m,
+        "peak_mb": peak, "bytes_per_vertex": peak * 2**20 / m, "index_mb": index_mb,
+        "mesh_bytes_per_vertex": (peak - index_mb) * 2**20 / m,
     }  # fmt: skip
 
 
@@ -124,7 +130,8 @@ def main(argv=None):
                     f"{kind:>9} n={n:.0e} k={k:>4}: refine {row['refine_s']:.3f} s, "
                     f"cKDTree {mark}{row['ckdtree_s']:.3f} s (ratio {row['ratio']:.2f}), "
                     f"m = {row['m']:,} (torus {row['m_torus']:,}), peak {row['peak_mb']:.0f} MB = "
-                    f"{row['bytes_per_vertex']:.0f} B/vertex",
+                    f"{row['bytes_per_vertex']:.0f} B/vertex ({row['mesh_bytes_per_vertex']:.0f} "
+                    f"without the index's {row['index_mb']:.0f} MB)",
                     flush=True,
                 )
     if args.out:

@@ -115,6 +115,7 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
             "vertex at most (K - 1) times its distance to the earlier ones); use a smaller k"
         )
     emb, run_index, grid = found
+    del found  # the index must go with the run (take_result), not live on in this tuple
     min_size = 1e-6 * side if min_size is None else float(min_size)
     budget = int(max_vertices) if max_vertices is not None else max(10**6, 4 * len(pts))
     deadline = None if time_limit is None else t_start + float(time_limit)
