@@ -538,3 +538,33 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
     q = np.random.default_rng(21).random((20_000, 3))
     assert calls[0] >= cKDTree(pts).query(q, k=[10])[0].max()
     np.testing.assert_allclose(emb.period, 1.0 + 1.05 * calls[0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_the_counting_index_is_freed_before_the_unfolding(monkeypatch, periodic):
+    """Regression: the tuple api3._start returned kept the counting index (28 bytes a point)
+    alive until refine3 returned, through the unfolding, where an ordinary box's run then
+    peaked. Every array of the index must be gone when the unfolding starts."""
+    import gc
+    import weakref
+
+    from knnrefine import api3
+
+    refs, dead = [], []
+    build, unfold = api3.build_index3, api3.unfold
+
+    def built(*args, **kwargs):
+        index = build(*args, **kwargs)
+        refs.extend(weakref.ref(a) for a in index)
+        return index
+
+    def unfolded(*args, **kwargs):
+        gc.collect()
+        dead.append([r() is None for r in refs])
+        return unfold(*args, **kwargs)
+
+    monkeypatch.setattr(api3, "build_index3", built)
+    monkeypatch.setattr(api3, "unfold", unfolded)
+    pts = multiscale(3000, 21)
+    knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
+    assert len(refs) == 4 and dead == [[True] * 4]
