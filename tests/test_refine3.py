@@ -508,6 +508,46 @@ def test_growing_in_place_keeps_the_rows_and_zero_fills():
     np.testing.assert_array_equal(holder.queues.scalars.ident, [0, 1, 2, 3, 4, 0, 0, 0, 0])
 
 
+def test_growing_without_mremap_or_mappings_copies(monkeypatch):
+    """Where a mapping cannot move (macOS has no mremap: resize raises SystemError) growth
+    copies the rows into a new mapping; where the system has no anonymous mappings
+    (Windows) ``mapped`` gives plain arrays and growth copies them. Either way the rows are
+    kept and a run that grows gives the same mesh."""
+    from collections import namedtuple
+    from types import SimpleNamespace
+
+    from knnrefine.engine import driver3, state
+
+    def cannot(mm, nbytes):
+        raise SystemError("mmap: resizing not available--no mremap()")
+
+    holder = namedtuple("Holder", ["a"])
+    pts = multiscale(20000, 22)
+    want = knnrefine.refine(pts, 10, box=BOX)
+    for patch in ("_resize", "_PRIVATE"):
+        with monkeypatch.context() as m:
+            m.setattr(state, patch, cannot if patch == "_resize" else None)
+            owner = SimpleNamespace(s=holder(a=state.mapped((5, 2), np.int64)))
+            owner.s.a[:] = np.arange(10).reshape(5, 2)
+            before = state._mapping(owner.s.a)
+            state.grow(owner, [("s", "a")], 8, in_place=True)
+            np.testing.assert_array_equal(owner.s.a[:5].ravel(), np.arange(10))
+            assert owner.s.a.shape == (8, 2) and not owner.s.a[5:].any()
+            assert (state._mapping(owner.s.a) is None) == (patch == "_PRIVATE")
+            assert before is None or state._mapping(owner.s.a) is not before  # copied
+            grown = []
+
+            def counted(*args, grown=grown, **kwargs):
+                grown.append(1)
+                state.grow(*args, **kwargs)
+
+            m.setattr(driver3, "grow", counted)
+            got = knnrefine.refine(pts, 10, box=BOX)
+            assert len(grown) > 2
+        np.testing.assert_array_equal(got.local, want.local)
+        np.testing.assert_array_equal(got.tetrahedra, want.tetrahedra)
+
+
 def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(monkeypatch):
     """api3._start tries the default margin first and builds the data bound on max d_Pk (a
     kd-tree over all points) only if that torus cannot start; the bound is >= d_Pk at 20,000

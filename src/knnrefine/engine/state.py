@@ -175,14 +175,19 @@ def grown(array, size):
     return out
 
 
-_PRIVATE = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS
+# private anonymous mappings: POSIX (Windows' mmap module has no flags: plain arrays there)
+_ANONYMOUS = getattr(mmap, "MAP_ANONYMOUS", getattr(mmap, "MAP_ANON", None))
+_PRIVATE = None if _ANONYMOUS is None else mmap.MAP_PRIVATE | _ANONYMOUS
 
 
 def mapped(shape, dtype):
     """A zeroed array of ``shape`` in its own anonymous private memory mapping (``mmap``):
     its pages cost memory only once written, it can grow in place (``grow``), and freeing it
-    returns its memory to the system at once, whatever the C library's heap holds."""
+    returns its memory to the system at once, whatever the C library's heap holds. Where the
+    system has no such mappings, a plain ``np.zeros``."""
     dtype = np.dtype(dtype)
+    if _PRIVATE is None:
+        return np.zeros(shape, dtype)
     count = int(np.prod(shape))
     mm = mmap.mmap(-1, max(count * dtype.itemsize, 1), flags=_PRIVATE)
     flat = np.frombuffer(mm, dtype, count)
@@ -203,8 +208,9 @@ def _remapped(owner, path, size):
     """The array at ``path`` of ``owner`` grown to ``size`` rows inside its own mapping:
     the system moves its pages (``mremap``) instead of copying them, and the new rows are
     zero pages, untouched until written. The owner's reference is dropped first (a mapping
-    with live views cannot move); if a view is held elsewhere, the rows are copied into a
-    new mapping instead. Arrays not made by ``mapped`` are copied into one."""
+    with live views cannot move); if a view is held elsewhere, or the system cannot move a
+    mapping (no ``mremap``: macOS), the rows are copied into a new mapping instead. Arrays
+    not made by ``mapped`` are copied into one."""
     array = _get(owner, path)
     mm = _mapping(array)
     rows, tail, dtype = array.shape[0], array.shape[1:], array.dtype
@@ -216,14 +222,18 @@ def _remapped(owner, path, size):
     del array
     count = size * int(np.prod(tail, dtype=np.int64))
     try:
-        mm.resize(count * dtype.itemsize)
-    except BufferError:  # a view outlives the owner's reference
+        _resize(mm, count * dtype.itemsize)
+    except (BufferError, OSError, SystemError):  # a view held elsewhere; no mremap
         old = np.frombuffer(mm, dtype, rows * (count // size)).reshape((rows,) + tail)
         out = mapped((size,) + tail, dtype)
         out[:rows] = old
         return out
     flat = np.frombuffer(mm, dtype, count)
     return flat.reshape((size,) + tail) if tail else flat
+
+
+def _resize(mm, nbytes):
+    mm.resize(nbytes)
 
 
 def _get(owner, path):
