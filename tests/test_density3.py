@@ -180,3 +180,39 @@ def test_the_uses_example_in_space_runs():
     cdf = dist.cdf(radii)
     low, high = dist.cdf_bounds(radii)
     assert (np.diff(cdf) > 0).all() and (low <= cdf).all() and (cdf <= high).all()
+
+
+@pytest.mark.parametrize("periodic", [True, False, (True, False, True)])
+def test_edge_midpoints_are_queried_once_per_edge(periodic):
+    """density3._edges names each edge once (its two vertices and the offset between
+    them): on the 3-torus there are exactly V + T of them (Euler, V - E + F - T = 0 with
+    F = 2T); in every box the count equals a brute-force set of canonical edges, every
+    occurrence maps to its own edge, and the midpoint values equal one query per
+    tetrahedron's edge."""
+    from knnrefine.density3 import _edges
+
+    pts = clustered(6000, 31)
+    mesh = knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
+    pairs = KnnDistance3._PAIRS
+    first, inverse = _edges(mesh.tetrahedra, mesh.offsets, pairs)
+    off = np.zeros(mesh.tetrahedra.shape + (3,), int) if mesh.offsets is None else mesh.offsets
+    seen, names = {}, []
+    for t in range(len(mesh.tetrahedra)):
+        for i, j in pairs:
+            a, b = int(mesh.tetrahedra[t, i]), int(mesh.tetrahedra[t, j])
+            rel = tuple(int(x) for x in off[t, j] - off[t, i])
+            key = min((a, b, rel), (b, a, tuple(-x for x in rel)))
+            names.append(seen.setdefault(key, len(seen)))
+    names = np.array(names)
+    assert len(first) == len(seen)
+    if periodic is True:
+        assert len(first) == len(mesh.vertices) + len(mesh.tetrahedra)
+    # the same partition of the occurrences: equal names <=> equal inverse
+    assert len(np.unique(np.column_stack([names, inverse]), axis=0)) == len(seen)
+    assert (inverse[first] == np.arange(len(first))).all()
+    dist = KnnDistance3(mesh, pts)
+    corners = mesh.corners()
+    mids = (0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]])).reshape(-1, 3)
+    boxsize = np.where(mesh.periodic, 1.0, 0.0)
+    each = cKDTree(mesh.wrap(pts), boxsize=boxsize).query(mids, k=[10])[0][:, 0]
+    np.testing.assert_array_equal(dist._query(mids[first])[inverse], each)

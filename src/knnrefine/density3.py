@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .certify import check_source
+from .engine.bspline import shares_below, weighted_shares
 from .errors import InputError
 from .validation import as_points, check_inside
 
@@ -44,7 +45,7 @@ class KnnDistance3:
         self.period = np.asarray(mesh.period, float)
         self._periodic = np.array(mesh.periodic)
         self._points = cKDTree(mesh.wrap(pts), boxsize=np.where(self._periodic, self.period, 0.0))
-        self.values = self._points.query(mesh.local, k=[mesh.k])[0][:, 0]
+        self.values = self._query(mesh.local)
         corners = mesh.corners()  # relative to the origin, unwrapped
         d = self.values[mesh.tetrahedra]
         if subdivide:
@@ -52,7 +53,11 @@ class KnnDistance3:
         # rigorous bounds of d_{P,k} on each piece from its exact corner values (before any
         # cut: a cut point's value is interpolated, not exact): d_{P,k} is 1-Lipschitz, so on
         # the piece it lies within d_i -+ the distance from corner i to the farthest corner
-        far = np.sqrt(((corners[:, :, None] - corners[:, None, :]) ** 2).sum(axis=3)).max(axis=2)
+        far = np.zeros(d.shape)
+        for i, j in self._PAIRS:  # pair by pair: no (pieces, 4, 4, 3) temporary
+            edge = np.sqrt(((corners[:, i] - corners[:, j]) ** 2).sum(axis=1))
+            np.maximum(far[:, i], edge, out=far[:, i])
+            np.maximum(far[:, j], edge, out=far[:, j])
         self._bounds = (d - far).max(axis=1), (d + far).min(axis=1)
         lo = np.array(mesh.box[:3]) - np.asarray(mesh.origin)
         hi = np.array(mesh.box[3:]) - np.asarray(mesh.origin)
@@ -73,10 +78,18 @@ class KnnDistance3:
     ])  # fmt: skip
     _PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
+    def _query(self, x):
+        """Exact d_{P,k} at x (q, 3) in the mesh's frame (the kd-tree wraps queries along its
+        periodic axes itself), on every core."""
+        return self._points.query(x, k=[self.k], workers=-1)[0][:, 0]
+
     def _subdivided(self, corners, d):
         mids = 0.5 * (corners[:, self._PAIRS[:, 0]] + corners[:, self._PAIRS[:, 1]])
-        # the kd-tree wraps queries along its periodic axes itself
-        dm = self._points.query(mids.reshape(-1, 3), k=[self.k])[0][:, 0]
+        # one query per edge, not per tetrahedron's edge (7.4 edges per vertex, against 38
+        # tetrahedron edges): the same edge seen from two tetrahedra may be shifted by whole
+        # periods, where the periodic kd-tree gives the same distance
+        first, inverse = _edges(self.mesh.tetrahedra, self.mesh.offsets, self._PAIRS)
+        dm = self._query(mids.reshape(-1, 3)[first])[inverse]
         nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
         values = np.concatenate([d, dm.reshape(-1, 6)], axis=1)
         return nodes[:, self._EIGHT].reshape(-1, 4, 3), values[:, self._EIGHT].reshape(-1, 4)
@@ -85,8 +98,7 @@ class KnnDistance3:
     def exact(self, x):
         """Exact d_{P,k} at the points x (..., 3) (the periodic kd-tree: the reference)."""
         flat = as_points(np.reshape(x, (-1, 3)), 3)
-        d = self._points.query(self.mesh.wrap(flat), k=[self.k])[0][:, 0]
-        return d.reshape(np.shape(x)[:-1])
+        return self._query(self.mesh.wrap(flat)).reshape(np.shape(x)[:-1])
 
     def __call__(self, x):
         """The interpolated d_{P,k} at the points x (..., 3); NaN beyond the box."""
@@ -137,8 +149,7 @@ class KnnDistance3:
 
     # -- the kNN-CDF -------------------------------------------------------------------------
     def _knots(self):
-        """(knots (t, 4) sorted and kept apart, weights, the pieces in order of their top
-        knot, those top knots, their weights' running sums), computed once."""
+        """(knots (t, 4) sorted and kept apart, weights), computed once."""
         if getattr(self, "_knot_cache", None) is None:
             d = np.sort(self._d, axis=1)
             span = d[:, 3] - d[:, 0]
@@ -146,24 +157,21 @@ class KnnDistance3:
             # share moves by about as much)
             gap = np.maximum(1e-7 * span, 1e-12 * np.maximum(d[:, 3], 1e-300))
             d = d + gap[:, None] * np.arange(4)
-            w = self._volume / self._volume.sum()
-            order = np.argsort(d[:, 3], kind="stable")
-            self._knot_cache = (d, w, d[order, 3], np.cumsum(w[order]))
+            self._knot_cache = (d, self._volume / self._volume.sum())
         return self._knot_cache
 
     def cdf(self, r):
         """CDF(r) = vol{x : d(x) <= r} / vol(box) for the interpolated d, at the radii r:
-        the pieces wholly below r add their weights (a running sum over the pieces in order
-        of their top knot), only those that r cuts need the B-spline share."""
+        every piece adds its weight from its top knot on and its B-spline share at the radii
+        that cut it (``engine.bspline.weighted_shares``, one pass over the pieces)."""
         r = np.atleast_1d(np.asarray(r, float))
-        d, w, tops, below = self._knots()
-        out = np.empty(len(r))
-        for i, ri in enumerate(r):
-            whole = int(np.searchsorted(tops, ri, side="right"))  # top knot <= r: share 1
-            cut = np.flatnonzero((d[:, 0] < ri) & (d[:, 3] > ri))
-            part = float((w[cut] * _share_below(d[cut], float(ri))).sum())
-            out[i] = (float(below[whole - 1]) if whole else 0.0) + part
-        return out
+        d, w = self._knots()
+        order = np.argsort(r, kind="stable")
+        out = np.zeros(len(r))
+        weighted_shares(d, w, r[order], out, np.zeros(len(r) + 1))
+        result = np.empty(len(r))
+        result[order] = out
+        return result
 
     def cdf_bounds(self, r):
         """(lower, upper) bounds of the true kNN-CDF at the radii r: on a piece d_{P,k} lies
@@ -178,6 +186,31 @@ class KnnDistance3:
             np.array([float(w[upper_d <= ri].sum()) for ri in r]),
             np.array([float(w[lower_d <= ri].sum()) for ri in r]),
         )
+
+
+def _edges(tetrahedra, offsets, pairs):
+    """The tetrahedra's edges (the corner pairs ``pairs`` of each, flattened tetrahedron by
+    tetrahedron) as (first, inverse): the flat index of each distinct edge's first
+    occurrence, and each occurrence's distinct edge. An edge is its two vertices and the
+    offset of one relative to the other (a vertex may meet another across several periods)."""
+    a = tetrahedra[:, pairs[:, 0]].ravel().astype(np.int64)
+    b = tetrahedra[:, pairs[:, 1]].ravel().astype(np.int64)
+    if offsets is None:
+        rel = np.zeros((len(a), 3), np.int64)
+    else:
+        rel = (offsets[:, pairs[:, 1]] - offsets[:, pairs[:, 0]]).reshape(-1, 3).astype(np.int64)
+    # the same edge from its other end: (b, a, -rel); keep the smaller of the two
+    x, y, z = rel.T
+    back = (a > b) | ((a == b) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
+    a, b = np.where(back, b, a), np.where(back, a, b)
+    rel[back] *= -1
+    if len(a) and b.max() < 2**27 and np.abs(rel).max() <= 3:  # one 63-bit key
+        key = (a << 36) | (b << 9) | ((rel[:, 0] + 3) * 49 + (rel[:, 1] + 3) * 7 + rel[:, 2] + 3)
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    else:
+        rows = np.column_stack([a, b, rel])
+        _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+    return first, inverse.ravel()
 
 
 def clip_below(corners, values, axis, bound):
@@ -230,25 +263,9 @@ def clip_below(corners, values, axis, bound):
 
 def _share_below(d, r):
     """The share of each tetrahedron where the linear function with sorted corner values d
-    (t, 4), distinct, is <= r: the cubic B-spline's distribution with knots d, evaluated on
-    each knot interval from its stable side."""
-    d0, d1, d2, d3 = d.T
-    out = np.zeros(len(d))
-    a = (r > d0) & (r <= d1)
-    out[a] = (r - d0[a]) ** 3 / ((d1[a] - d0[a]) * (d2[a] - d0[a]) * (d3[a] - d0[a]))
-    b = (r > d1) & (r <= d2)
-    low = b & (d1 - d0 >= d3 - d2)
-    high = b & ~low
-    out[low] = (r - d0[low]) ** 3 / ((d1 - d0) * (d2 - d0) * (d3 - d0))[low] - (
-        r - d1[low]
-    ) ** 3 / ((d1 - d0) * (d2 - d1) * (d3 - d1))[low]
-    out[high] = 1.0 - (
-        (d3[high] - r) ** 3 / ((d3 - d0) * (d3 - d1) * (d3 - d2))[high]
-        - (d2[high] - r) ** 3 / ((d3 - d2) * (d2 - d0) * (d2 - d1))[high]
-    )
-    c = (r > d2) & (r <= d3)
-    out[c] = 1.0 - (d3[c] - r) ** 3 / ((d3[c] - d0[c]) * (d3[c] - d1[c]) * (d3[c] - d2[c]))
-    out[r > d3] = 1.0
+    (t, 4), distinct, is <= r (``engine.bspline``)."""
+    out = np.empty(len(d))
+    shares_below(np.ascontiguousarray(d, float), float(r), out)
     return out
 
 
