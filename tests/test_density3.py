@@ -68,6 +68,13 @@ def test_distance_density_and_cdf(k):
     every = np.concatenate([radii, knots[:3, 3], knots[:3, 0], [0.0, knots.max() * 2]])
     direct = [float((w * _share_below(knots, float(r))).sum()) for r in every]
     np.testing.assert_allclose(dist.cdf(every), direct, rtol=1e-12, atol=1e-15)
+    # the bounds' running sums are the direct sums over pieces whose end is <= r, ends
+    # themselves included
+    lower_d, upper_d = dist._bounds
+    ends = np.concatenate([radii, upper_d[:3], lower_d[:3], [-1.0, upper_d.max() + 1]])
+    low, high = dist.cdf_bounds(ends)
+    np.testing.assert_allclose(low, [w[upper_d <= r].sum() for r in ends], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(high, [w[lower_d <= r].sum() for r in ends], rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(mine, [(est <= r).mean() for r in radii], atol=5e-3)
     # the exact kNN-CDF, by Monte Carlo at 10^6 random points, within the certified bounds
     q6 = rng.random((1_000_000, 3))

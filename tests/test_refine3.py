@@ -162,7 +162,7 @@ def test_bad_input_is_refused_before_work():
         knnrefine.certify(mesh, outside[:-1])
     with pytest.raises(InputError, match="outside the box along x"):
         knnrefine.certify(mesh, outside + [1.0, 0.0, 0.0])
-    with pytest.raises(InputError, match="needs its box"):
+    with pytest.raises(InputError, match=r"needs box=\(x0, y0, z0, x1, y1, z1\)"):
         knnrefine.refine(pts, 10, periodic=True)
     with pytest.raises(InputError, match="six"):
         knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
@@ -178,6 +178,44 @@ def test_bad_input_is_refused_before_work():
         knnrefine.refine(bad, 10, periodic=True, box=BOX)
     with pytest.raises(InputError, match="weights"):
         knnrefine.refine(pts, 10, periodic=True, box=BOX, weights=np.ones(100))
+    # the plane's option checks (api.check_options), not a looser copy: a bool is no time
+    # limit, a number no progress callback
+    with pytest.raises(InputError, match="time_limit"):
+        knnrefine.refine(pts, 10, periodic=True, box=BOX, time_limit=True)
+    with pytest.raises(InputError, match="progress"):
+        knnrefine.refine(pts, 10, periodic=True, box=BOX, progress=5)
+    with pytest.raises(InputError, match="min_size"):
+        knnrefine.refine(pts, 10, periodic=True, box=BOX, min_size=-1.0)
+    with pytest.raises(InputError, match="max_vertices"):
+        knnrefine.refine(pts, 10, periodic=True, box=BOX, max_vertices=2.5)
+
+
+def test_time_limit_and_budget_stop_the_run(monkeypatch):
+    """A run in space stops at its deadline, during setup or between kernel calls (the
+    driver reads the clock the options' check set the deadline on), and at its vertex
+    budget, with BudgetError and how far it got (regression: that BudgetError lacked its
+    progress and raised TypeError instead); progress reports growing vertex counts."""
+    import time
+
+    from knnrefine.engine import driver3
+    from knnrefine.engine.refine import STATUS_DONE, STATUS_STEPS
+    from knnrefine.errors import BudgetError
+
+    pts = multiscale(20000, 23)
+    with pytest.raises(BudgetError, match="time_limit reached while setting up"):
+        knnrefine.refine(pts, 10, box=BOX, time_limit=1e-6)
+    with pytest.raises(BudgetError, match="max_vertices = 3,000") as stopped:
+        knnrefine.refine(pts, 10, box=BOX, max_vertices=3000)
+    got = stopped.value.progress
+    assert got["vertices"] == 3000 == sum(got["moves"].values()) and got["seconds"] > 0
+    monkeypatch.setattr(driver3, "STEPS", 200)
+    run = _start_run(pts)
+    nv0 = int(run.cnt[0])
+    assert run.run(deadline=time.perf_counter() - 1.0) == STATUS_STEPS
+    assert nv0 < run.cnt[0] <= nv0 + 200  # one kernel call of 200 insertions, then the clock
+    seen = []
+    assert run.run(deadline=time.perf_counter() + 600, progress=seen.append) == STATUS_DONE
+    assert len(seen) > 10 and seen == sorted(seen)
 
 
 @pytest.mark.parametrize("k", [10, 50])

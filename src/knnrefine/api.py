@@ -214,11 +214,11 @@ def refine(
 
 
 def check_options(n, total, bounds, check_inside, k, tau, periodic, box, min_size,
-                  max_vertices, time_limit, progress):  # fmt: skip
-    """The options of a run on n points (weights summing to ``total``, or None), checked
-    before any work; ``bounds()`` gives the points' default box, ``check_inside(box, per)``
-    refuses points outside an explicit one. Returns (k, tau, per, box, min_size, deadline,
-    t_start)."""
+                  max_vertices, time_limit, progress, dim=2):  # fmt: skip
+    """The options of a run on n points (weights summing to ``total``, or None) in ``dim``
+    dimensions, checked before any work; ``bounds()`` gives the points' default box,
+    ``check_inside(box, per)`` refuses points outside an explicit one. Returns (k, tau, per,
+    box, min_size, deadline, t_start), the deadline a ``time.perf_counter()`` value."""
     t_start = time.perf_counter()
     deadline = None
     if time_limit is not None:
@@ -231,18 +231,20 @@ def check_options(n, total, bounds, check_inside, k, tau, periodic, box, min_siz
         deadline = t_start + float(time_limit)
     k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
     tau = V.check_tau(tau)
-    per = V.check_periodic(periodic)
+    per = V.check_periodic(periodic, dim)
     if box is None:
         if any(per):
+            corners = "xmin, ymin, xmax, ymax" if dim == 2 else "x0, y0, z0, x1, y1, z1"
+            degrees = ", ".join(["-180"] * dim + ["180"] * dim)
             raise InputError(
-                "a periodic run needs box=(xmin, ymin, xmax, ymax): the periods are its sides "
-                "(for angles in degrees, e.g. box=(-180, -180, 180, 180))"
+                f"a periodic run needs box=({corners}): the periods are its sides (for "
+                f"angles in degrees, e.g. box=({degrees}))"
             )
         box = bounds()
     else:
-        box = V.check_box(box)
+        box = V.check_box(box, dim)
         check_inside(box, per)
-    side = max(box[2] - box[0], box[3] - box[1])
+    side = max(box[dim + a] - box[a] for a in range(dim))
     if min_size is None:
         min_size = DEFAULT_MIN_SIZE * side
     elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
@@ -255,9 +257,11 @@ def check_options(n, total, bounds, check_inside, k, tau, periodic, box, min_siz
     if progress is not None and not callable(progress):
         raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
     V.check_resolution(box, per)
-    # the initial mesh must fit whatever budget applies: the user's, else the smallest default
-    start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
-    _check_initial_budget(box, per, start_budget)
+    if dim == 2:  # in space the start picks its grid from the points: a budget below it
+        # stops the run at once (BudgetError)
+        # the initial mesh must fit whatever budget applies: the user's, else the smallest
+        start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
+        _check_initial_budget(box, per, start_budget)
     return k, tau, per, box, min_size, deadline, t_start
 
 

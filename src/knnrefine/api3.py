@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from . import validation as V
+from .api import _past, check_options
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
@@ -80,32 +81,11 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
     ``certify3``). periodic: a bool or one per axis; box: (x0, y0, z0, x1, y1, z1), required
     when an axis is periodic (points are wrapped into it), else the points' bounding box by
     default. min_size, max_vertices, time_limit, progress: as in the plane."""
-    t_start = time.monotonic()
     pts = V.as_points(points, 3)
-    k = V.check_k(k, len(pts))
-    tau = V.check_tau(tau)
-    per = V.check_periodic(periodic, 3)
-    if box is None:
-        if any(per):
-            raise InputError(
-                "a periodic run needs its box: box=(x0, y0, z0, x1, y1, z1) (the periods are "
-                "its sides)"
-            )
-        box = V.default_box(pts)
-    else:
-        box = V.check_box(box, 3)
-        V.check_inside(pts, box, per)
-    V.check_resolution(box, per)
-    side = max(box[a + 3] - box[a] for a in range(3))
-    if min_size is not None and not (np.isfinite(min_size) and min_size >= 0):
-        raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
-    if max_vertices is not None and (
-        isinstance(max_vertices, bool) or not isinstance(max_vertices, (int, np.integer))
-        or max_vertices < 1
-    ):  # fmt: skip
-        raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
-    if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
-        raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+    k, tau, per, box, min_size, deadline, t_start = check_options(
+        len(pts), None, lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p), k,
+        tau, periodic, box, min_size, max_vertices, time_limit, progress, dim=3,
+    )  # fmt: skip
 
     found = _start(pts, box, per, k, tau)
     if found is None:
@@ -116,16 +96,21 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
         )
     emb, run_index, grid = found
     del found  # the index must go with the run (take_result), not live on in this tuple
-    min_size = 1e-6 * side if min_size is None else float(min_size)
+    _past(deadline, "setting up", t_start)
     budget = int(max_vertices) if max_vertices is not None else max(10**6, 4 * len(pts))
-    deadline = None if time_limit is None else t_start + float(time_limit)
     run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
                       grid, emb.grid)  # fmt: skip
     status = run.run(deadline, None if progress is None else (lambda m: progress(m, 0)))
-    if status == STATUS_MAX_VERTICES:
-        raise BudgetError(f"stopped at max_vertices = {budget:,} before the mesh was done")
     if status != STATUS_DONE:
-        raise BudgetError(f"stopped at time_limit = {time_limit} s before the mesh was done")
+        what = (
+            f"max_vertices = {budget:,}"
+            if status == STATUS_MAX_VERTICES
+            else f"time_limit = {time_limit} s"
+        )
+        raise BudgetError(
+            f"stopped at {what} before the mesh was done; raise it, or use a larger k or min_size",
+            progress={**run.progress(), "seconds": time.perf_counter() - t_start},
+        )
     xyz, corners, offsets, kinds, cnt = run.take_result()
     del run, run_index
     out_v, pos, tetrahedra, out_offsets = unfold(xyz, corners, offsets, emb, copy=False)
@@ -140,5 +125,5 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
         period=emb.period, local=local, order=None if torus is None else out_v, embedded=torus,
         stats={"n": len(pts), "m": len(out_v), "m_torus": len(xyz),
                "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
-               "failed": int(cnt[C_FAILED]), "seconds": time.monotonic() - t_start},
+               "failed": int(cnt[C_FAILED]), "seconds": time.perf_counter() - t_start},
     )  # fmt: skip

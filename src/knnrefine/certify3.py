@@ -217,9 +217,8 @@ def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0)
     if all(mesh.periodic):
         box_points, box_vertices = point_tree, vertex_tree
     else:
-        boxsize = np.where(mesh.periodic, period, 0.0)
-        box_points = cKDTree(mesh.wrap(pts), boxsize=boxsize)
-        box_vertices = cKDTree(mesh.local, boxsize=boxsize)
+        box_points = mesh.metric.tree(pts)
+        box_vertices = cKDTree(mesh.local, boxsize=np.where(mesh.periodic, period, 0.0))
     dm2 = box_vertices.query(probes, k=2)[0][:, 1]
     if box_vertices is not vertex_tree:  # the copies near the box hold its two nearest
         on_torus = vertex_tree.query(probes, k=2)[0][:, 1]  # the tree wraps queries

@@ -44,7 +44,7 @@ class KnnDistance3:
         self.mesh, self.k, self.n = mesh, mesh.k, len(pts)
         self.period = np.asarray(mesh.period, float)
         self._periodic = np.array(mesh.periodic)
-        self._points = cKDTree(mesh.wrap(pts), boxsize=np.where(self._periodic, self.period, 0.0))
+        self._points = mesh.metric.tree(pts)  # in the mesh's frame, periodic axes wrapping
         self.values = self._query(mesh.local)
         corners = mesh.corners()  # relative to the origin, unwrapped
         d = self.values[mesh.tetrahedra]
@@ -180,12 +180,15 @@ class KnnDistance3:
         counts whole where its upper end is <= r (lower bound), where its lower end is
         (upper bound)."""
         r = np.atleast_1d(np.asarray(r, float))
-        w = self._volume / self._volume.sum()
+        w = self._knots()[1]
+
+        def weight_at_most(ends):  # the pieces' weight with end <= each r: sorted once
+            order = np.argsort(ends, kind="stable")
+            total = np.concatenate([[0.0], np.cumsum(w[order])])
+            return total[np.searchsorted(ends[order], r, side="right")]
+
         lower_d, upper_d = self._bounds
-        return (
-            np.array([float(w[upper_d <= ri].sum()) for ri in r]),
-            np.array([float(w[lower_d <= ri].sum()) for ri in r]),
-        )
+        return weight_at_most(upper_d), weight_at_most(lower_d)
 
 
 def _edges(tetrahedra, offsets, pairs):

@@ -9,6 +9,7 @@ from .initial import initial_grid3, peel_order
 from .interrupt import Interrupts
 from .queue import Q_SIZE, new_queue
 from .refine import (
+    KIND_NAMES,
     STATUS_DONE,
     STATUS_ERROR,
     STATUS_GROW,
@@ -115,7 +116,8 @@ class Refinement3:
         queue_all3(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
     def run(self, deadline=None, progress=None):
-        """Refine until done, the vertex budget, or the deadline; returns the status."""
+        """Refine until done, the vertex budget, or the deadline (a ``time.perf_counter()``
+        value); returns the status."""
         import time
 
         with Interrupts() as interrupts:
@@ -138,8 +140,14 @@ class Refinement3:
                     return status
                 assert status == STATUS_STEPS
                 interrupts.check()
-                if deadline is not None and time.monotonic() > deadline:
+                if deadline is not None and time.perf_counter() > deadline:
                     return STATUS_STEPS
+
+    def progress(self):
+        """How far the run got: its vertices and how each came (``refine.KIND_NAMES``)."""
+        nv = int(self.cnt[C_NV])
+        kinds = np.bincount(self.book.kinds[:nv], minlength=len(KIND_NAMES))
+        return {"vertices": nv, "moves": {name: int(kinds[i]) for i, name in enumerate(KIND_NAMES)}}
 
     def _restart_stamps(self):
         """Stamps start again at 1: every mark but the free slots' (-1) and every link
