@@ -204,3 +204,47 @@ def test_density_on_the_cluster_equals_part_by_part_here(client, tmp_path):
         distributed.density(pm.to_mesh(), source, client=client)
     with pytest.raises(InputError, match="made from 30,000 points"):
         distributed.density(pm, pts[:-1], client=client)
+
+
+@pytest.mark.parametrize("periodic", [True, (True, False)])
+def test_dask_tiles_on_points_on_lines_certify(client, periodic):
+    """regression (issue 28): points sharing one x put the plan's cuts on one line, and the
+    Dask path, which shares the plan, returned meshes certify failed. Most points on x = 0.5
+    (and, weighted, on the seam x = 0): certified, the size of one process's mesh."""
+    rng = np.random.default_rng(7)
+    pts = rng.random((6000, 2))
+    pts[:4000, 0] = 0.5
+    pts[4000:5000, 0] = 0.0
+    w = rng.integers(1, 3, len(pts)).astype(float)
+    box = (0, 0, 1, 1)
+    for weights in (None, w):
+        mesh = distributed.refine(pts, 10, client=client, periodic=periodic, box=box,
+                                  weights=weights)  # fmt: skip
+        cert = knnrefine.certify(mesh, pts, weights=weights)
+        assert cert.passed, str(cert)
+        one = knnrefine.refine(pts, 10, periodic=periodic, box=box, weights=weights)
+        assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
+
+
+def test_readme_block_runs_as_a_script_and_from_stdin(tmp_path):
+    """regression (issue 28): Dask's workers were spawned, which imports the caller's script
+    again: the README's block pasted into a script without a main guard flooded stderr with
+    'Failed to start process', and from stdin raised 'Nanny failed to start'. Both now run
+    cleanly (the local cluster's workers are forked where the platform can)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np\nimport knnrefine\nfrom knnrefine import distributed\n"
+        "pts = np.random.default_rng(0).random((20000, 2))\n"
+        "mesh = distributed.refine(pts, 30, workers=2)\n"
+        "print(knnrefine.certify(mesh, pts).passed)\n"
+    )
+    script = tmp_path / "example.py"
+    script.write_text(code)
+    for args, stdin in (([str(script)], None), (["-"], code)):
+        run = subprocess.run([sys.executable, *args], input=stdin, capture_output=True,
+                             text=True, timeout=300, cwd=tmp_path)  # fmt: skip
+        assert run.returncode == 0, run.stderr[-2000:]
+        assert run.stdout.strip() == "True"
+        assert "Failed to start" not in run.stderr and "Traceback" not in run.stderr

@@ -6,6 +6,8 @@ single-process run's."""
 import numpy as np
 import pytest
 from conftest import assert_certified, gaussian_clusters
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import knnrefine
 from knnrefine.engine.partition import strips
@@ -189,3 +191,143 @@ def test_seeded_vertices_are_queued_again():
     assert (run.book.cell_state[: run.vertices] != R.GOOD).all()  # no round settled any
     assert run.run() == R.STATUS_DONE
     assert (run.book.cell_state[: run.vertices] == R.GOOD).all()  # every cell was looked at
+
+
+# -- degenerate inputs through the tiled path (issue 28) ---------------------------------------
+
+
+def on_lines(n, share, xs, seed=0, axis=0):
+    """Uniform points, ``share`` of them moved onto the lines {axis = x for x in xs}."""
+    rng = np.random.default_rng(seed)
+    X = rng.random((n, 2))
+    moved = int(share * n)
+    X[:moved, axis] = np.asarray(xs, float)[rng.integers(0, len(xs), moved)]
+    return X
+
+
+def test_tiled_run_with_most_points_on_one_line_certifies():
+    """regression: 60% of the points on x = 0.5 put several strip cuts on one x; a strip of
+    width 0 then meant "no region" to its tile, which refined the whole torus beside the
+    others: 17,450 vertices against 2,771, two of them 4.8e-5 apart where d_Pk = 0.035, and
+    certify failed it (alpha_hat 0.0007)."""
+    X = on_lines(4000, 0.6, [0.5])
+    box = (0, 0, 1, 1)
+    one = knnrefine.refine(X, 10, periodic=True, box=box)
+    tiled = knnrefine.refine(X, 10, periodic=True, box=box, workers=2)
+    assert_certified(tiled, X, "tiled, 60% on a line")
+    assert abs(len(tiled.vertices) / len(one.vertices) - 1) < 0.05
+    assert all(r["new_vertices"] >= 0 for r in tiled.stats["rounds"])
+
+
+def test_tiled_run_with_every_point_on_two_lines_at_four_workers_certifies():
+    """regression: every point on x = 0.3 or x = 0.7, four workers: alpha_hat 1e-13, max
+    aspect 31,949, and the last round reported new_vertices = -20,173 (the last step
+    dropped vertices that two tiles had both inserted)."""
+    X = on_lines(4000, 1.0, [0.3, 0.7], seed=1)
+    tiled = knnrefine.refine(X, 10, periodic=True, box=(0, 0, 1, 1), workers=4)
+    assert_certified(tiled, X, "tiled, two lines, 4 workers")
+    assert all(r["new_vertices"] >= 0 for r in tiled.stats["rounds"])
+
+
+def test_a_region_of_width_zero_holds_no_element():
+    """regression: the engine read a region of width 0 as "no region" (the whole torus). A
+    run whose region has width 0 inserts nothing; one without a region (NO_REGION) refines."""
+    from knnrefine.engine import refine as R
+    from knnrefine.engine.driver import Refinement
+    from knnrefine.engine.index import build_index
+    from knnrefine.engine.state import NO_REGION, P_REGION_H, P_REGION_W, P_REGION_X0
+
+    X = uniform(5000)
+    empty = Refinement(build_index(X.copy()), 10, 1.0, 1.0, 3.0, 0.0, 10**6)
+    start = empty.vertices
+    empty.prm[P_REGION_X0], empty.prm[P_REGION_W], empty.prm[P_REGION_H] = 0.5, 0.0, 1.0
+    assert empty.run() == R.STATUS_DONE and empty.vertices == start
+    whole = Refinement(build_index(X.copy()), 10, 1.0, 1.0, 3.0, 0.0, 10**6)
+    assert whole.prm[P_REGION_W] == NO_REGION
+    assert whole.run() == R.STATUS_DONE and whole.vertices > 10 * start
+
+
+@pytest.mark.parametrize("tiles", [2, 3, 4, 7])
+def test_strips_are_never_empty_when_points_share_coordinates(tiles):
+    """Whatever the points (all on a cross of two lines, all at one point, none), both sets
+    of strips tile the period with widths of at least twice the least gap, and each border
+    of one set lies inside a strip of the other, the least gap from its borders."""
+    from knnrefine.engine.partition import MIN_GAP, regions_axis
+
+    rng = np.random.default_rng(tiles)
+    cross = rng.random((3000, 2)) * [0.8, 0.5]
+    cross[:1500, 0], cross[1500:, 1] = 0.4, 0.25
+    inputs = [cross, np.full((500, 2), 0.3), np.zeros((0, 2)), on_lines(2000, 0.9, [0.0])]
+    for xy in inputs:
+        first, second = strips(xy, 0.8, 0.5, tiles)
+        axis = regions_axis(first, 0.8, 0.5)
+        assert regions_axis(second, 0.8, 0.5) == axis
+        period = (0.8, 0.5)[axis]
+        gap = MIN_GAP * period / (2 * tiles)
+        for regions in (first, second):
+            assert regions[:, 2 + axis].sum() == pytest.approx(period)
+            assert (regions[:, 2 + axis] >= 2 * gap * (1 - 1e-9)).all()
+            assert (regions[:, 3 - axis] == (0.5, 0.8)[axis]).all()
+        for x in first[:, axis]:
+            into = [((x - s[axis]) % period, s[2 + axis]) for s in second]
+            assert any(gap * (1 - 1e-9) <= d <= w - gap * (1 - 1e-9) for d, w in into)
+
+
+def test_strips_run_across_the_axis_that_balances_the_points():
+    """Points on the line x = 0.5 cannot be balanced by cuts along x: the strips are cut
+    along y (the other period), each holding about 1 / T of them."""
+    from knnrefine.engine.partition import regions_axis
+
+    xy = on_lines(20000, 1.0, [0.5], seed=2)
+    for regions in strips(xy, 1.0, 1.0, 4):
+        assert regions_axis(regions, 1.0, 1.0) == 1
+        counts = [in_rectangle(xy, *r, 0.0, 1.0, 1.0).sum() for r in regions]
+        assert max(counts) <= 1.1 * len(xy) / 4
+
+
+def test_a_round_whose_tile_moved_outside_its_strip_is_refused():
+    """The seam check: a round whose tile returned a vertex outside its strip (what a broken
+    plan produced) raises EngineError instead of becoming part of a mesh."""
+    from knnrefine.engine.partition import check_seams
+
+    regions = np.array([[0.0, 0.0, 0.5, 1.0], [0.5, 0.0, 0.5, 1.0]])
+    inside = [np.array([[0.1, 0.3], [0.5, 0.9]]), np.array([[0.75, 0.2], [0.999, 0.0]])]
+    check_seams(regions, inside, 1.0, 1.0)
+    with pytest.raises(knnrefine.EngineError, match="outside its strip"):
+        check_seams(regions, [inside[0], np.array([[0.25, 0.5]])], 1.0, 1.0)
+    with pytest.raises(knnrefine.EngineError, match="do not tile"):
+        check_seams(np.array([[0.0, 0.0, 1.0, 1.0], [0.5, 0.0, 0.0, 1.0]]), inside, 1.0, 1.0)
+
+
+DEGENERATE = {
+    "line": lambda n, rng: on_lines(n, rng.uniform(0.3, 1.0), [0.5], int(rng.integers(99))),
+    "two lines": lambda n, rng: on_lines(n, 1.0, [0.3, 0.7], int(rng.integers(99))),
+    "seam": lambda n, rng: on_lines(n, 0.5, [0.0], int(rng.integers(99))),
+    "cross": lambda n, rng: np.concatenate(
+        [on_lines(n // 2, 1.0, [0.5], 1), on_lines(n - n // 2, 1.0, [0.5], 2, axis=1)]
+    ),
+    "diagonal": lambda n, rng: np.column_stack([rng.random(n)] * 2) * [1.0, 0.5] + [0, 0.25],
+    "lattice": lambda n, rng: rng.integers(0, 6, (n, 2)) / 6.0,
+}
+
+
+@given(
+    name=st.sampled_from(sorted(DEGENERATE)),
+    workers=st.integers(2, 4),
+    periodic=st.sampled_from([True, False, (True, False)]),
+    weighted=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+@settings(max_examples=14)
+def test_tiled_runs_on_degenerate_inputs_certify(name, workers, periodic, weighted, seed):
+    """Property: points on lines, on the cuts a plan would choose, on the seam, on a
+    lattice (many coinciding), weighted or not, through 2-4 workers: every mesh returned
+    passes certify (conftest certifies each; checked here again with the weights)."""
+    rng = np.random.default_rng(seed)
+    X = DEGENERATE[name](2500, rng)
+    w = rng.integers(1, 4, len(X)).astype(float) if weighted else None
+    mesh = knnrefine.refine(X, 12, periodic=periodic, box=(0, 0, 1, 1), weights=w,
+                            workers=workers)  # fmt: skip
+    cert = knnrefine.certify(mesh, X, weights=w, samples=5_000, n_random=1_000)
+    assert cert.passed, str(cert)
+    assert all(r["new_vertices"] >= 0 for r in mesh.stats["rounds"])

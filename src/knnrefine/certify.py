@@ -407,14 +407,14 @@ class StripQuestions:
     (the whole torus at last)."""
 
     def __init__(self, store, origin, period, k, tiles):
-        from .engine.partition import SAMPLE_MIN, strip_axis, strips
+        from .engine.partition import SAMPLE_MIN, regions_axis, strips
 
         self.store, self.k = store, k
         self.period = np.asarray(period, float)
         self.input_frame = TorusFrame(np.asarray(origin, float), self.period)
         sx = store.sample(min(1.0, SAMPLE_MIN / store.n))[0]
         self.regions = strips(self.input_frame(sx), *self.period, int(tiles))[0]
-        self.axis_period = float(self.period[strip_axis(*self.period)])
+        self.axis_period = float(self.period[regions_axis(self.regions, *self.period)])
         self.passes = 0
 
     def ask(self, jobs, pad):

@@ -355,11 +355,21 @@ def _store(source, client, workers, columns, weights, retries):
 
 def local_cluster(workers):
     """A Dask LocalCluster for tiles: ``workers`` processes of one thread, each engine on
-    one thread (KNNREFINE_THREADS=1), the dashboard on any free port."""
+    one thread (KNNREFINE_THREADS=1), the dashboard on any free port. Its processes are
+    forked where the platform can (as ``refine(..., workers=N)``'s): Dask's default, spawn,
+    imports the caller's script again in every worker, so a script without the ``if
+    __name__ == "__main__":`` guard started clusters in its workers, and a script read from
+    standard input (``python -``, ``python -c``) could not start one at all. Elsewhere
+    (macOS, Windows) the guard is needed, as for any multiprocessing."""
     _dask()
+    import multiprocessing
+
+    import dask
     from distributed import LocalCluster
 
-    return LocalCluster(
-        n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=":0",
-        env={"KNNREFINE_THREADS": "1"},
-    )  # fmt: skip
+    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+        return LocalCluster(
+            n_workers=int(workers), threads_per_worker=1, processes=True,
+            dashboard_address=":0", env={"KNNREFINE_THREADS": "1"},
+        )  # fmt: skip

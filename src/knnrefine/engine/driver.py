@@ -28,6 +28,7 @@ from .state import (
     ERRORS,
     N_COUNTERS,
     N_PARAMS,
+    NO_REGION,
     P_CLEAN_FLOOR2,
     P_FLOOR2,
     P_GRID,
@@ -35,6 +36,7 @@ from .state import (
     P_K,
     P_LX,
     P_LY,
+    P_REGION_W,
     P_TAU2,
     TRIANGLE_FIELDS,
     VERTEX_FIELDS,
@@ -165,6 +167,7 @@ class Refinement:
         self.prm[P_GRID] = grid
         self.prm[P_K] = k
         self.prm[P_INFLATE] = 1.0 + 1e-9
+        self.prm[P_REGION_W] = NO_REGION
         set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
         set_vertex_caches(self.mesh, self.prm, m0, self.probe.hx, self.probe.hy)
         R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)

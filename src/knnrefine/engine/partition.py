@@ -33,7 +33,17 @@ from . import refine as R
 from .driver import Refinement
 from .index import build_index
 from .jit import kernel
-from .state import C_NT, C_NV, ERRORS, P_REGION_H, P_REGION_W, P_REGION_X0, P_REGION_Y0, P_TAU2
+from .state import (
+    C_NT,
+    C_NV,
+    ERRORS,
+    NO_REGION,
+    P_REGION_H,
+    P_REGION_W,
+    P_REGION_X0,
+    P_REGION_Y0,
+    P_TAU2,
+)
 from .tiles import WALK_LOST, in_rectangle, insert_points, mark_settled, spatial_order
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
@@ -74,30 +84,108 @@ def canonical(xy, weights, keys):
     return xy[order], None if weights is None else weights[order], keys[order]
 
 
+MIN_GAP = 0.25  # the two sets' cuts, interleaved, are at least this share of an even spacing
+# apart: a strip is never empty (an empty region would hold no element; a strip of width 0
+# once meant "no region" and let two tiles move everywhere) and never too thin to work in
+AXIS_PREFERENCE = 1.25  # strips run across the shorter period only if their heaviest strip
+# is this many times lighter than the longer period's
+
+
 def strip_axis(lx, ly):
-    """Strips run across the longer period."""
+    """The axis strips are cut along by default: across the longer period."""
     return 0 if lx >= ly else 1
 
 
+def regions_axis(regions, lx, ly):
+    """The axis a set of strips (regions (T, 4)) is cut along: the one they do not span."""
+    spans_x = bool(np.all(regions[:, 2] >= lx))
+    spans_y = bool(np.all(regions[:, 3] >= ly))
+    if spans_x != spans_y:
+        return 1 if spans_x else 0
+    return strip_axis(lx, ly)
+
+
 def strips(xy, lx, ly, tiles):
-    """Two sets of ``tiles`` strips (tiles, 4) as regions (x0, y0, w, h) of the torus, across
-    the longer period, each holding about 1 / tiles of the points xy (a sample will do):
-    the first cut at the quantiles j / tiles, the second at (j + 1/2) / tiles, so that each
-    border of one lies inside a strip of the other."""
-    axis = strip_axis(lx, ly)
-    period = (lx, ly)[axis]
-    coord = np.sort(xy[:, axis])
+    """Two sets of ``tiles`` strips (tiles, 4) as regions (x0, y0, w, h) of the torus, each
+    holding about 1 / tiles of the points xy (a sample will do): cut at the quantiles j /
+    tiles and (j + 1/2) / tiles (``_cuts``), so that each border of one set lies inside a
+    strip of the other, at least MIN_GAP of an even spacing from its borders. Across the
+    longer period, unless many points share a coordinate there (points on a line) and the
+    other axis balances them better (``AXIS_PREFERENCE``)."""
+    periods = (lx, ly)
+    first = strip_axis(lx, ly)
+    plans = []
+    for axis in (first, 1 - first):
+        cuts = _cuts(xy[:, axis], periods[axis], tiles)
+        plans.append((_heaviest(xy[:, axis], cuts, periods[axis]), axis, cuts))
+    load, axis, cuts = plans[0]
+    if tiles > 1 and plans[1][0] * AXIS_PREFERENCE < load:
+        load, axis, cuts = plans[1]
     sets = []
-    for shift in (0.0, 0.5):
-        q = (np.arange(tiles) + shift) / tiles
-        cuts = np.quantile(coord, q) if len(coord) else q * period
-        width = np.diff(np.append(cuts, cuts[0] + period))
+    for s in (0, 1):
+        x0 = np.sort(_wrap(cuts[s::2], periods[axis]))
         regions = np.zeros((tiles, 4))
-        regions[:, axis] = cuts
-        regions[:, 2 + axis] = width
-        regions[:, 3 - axis] = (ly, lx)[axis]  # the whole other period
+        regions[:, axis] = x0
+        regions[:, 2 + axis] = np.diff(np.append(x0, x0[0] + periods[axis]))
+        regions[:, 3 - axis] = periods[1 - axis]  # the whole other period
         sets.append(regions)
     return sets
+
+
+def _wrap(c, period):
+    c = c - np.floor(c / period) * period
+    return np.where(c >= period, c - period, c)
+
+
+def _cuts(coord, period, tiles):
+    """The 2 tiles cuts of both sets, interleaved (set 0 at even positions): the quantiles
+    of ``coord`` (in [0, period)) at i / (2 tiles), moved as little as possible (least
+    squares: an isotonic fit) so that consecutive ones, and the last and the first across
+    the period, are at least MIN_GAP * period / (2 tiles) apart. Where the quantiles are
+    that far apart already (no point mass), they are kept."""
+    n_cuts = 2 * tiles
+    levels = np.arange(n_cuts) / n_cuts
+    if len(coord) == 0:
+        return levels * period
+    c = np.quantile(coord, levels)
+    gap = MIN_GAP * period / n_cuts
+    steps = np.arange(n_cuts) * gap
+    c = _nondecreasing(c - steps) + steps
+    room = c[0] + period - c[-1]  # across the period's end
+    if room < gap:  # blend with even spacing from c[0] (its gaps are all period / n_cuts)
+        even = c[0] + np.arange(n_cuts) * (period / n_cuts)
+        share = (gap - room) / (period / n_cuts - room)
+        c = (1.0 - share) * c + share * even
+    return c
+
+
+def _nondecreasing(z):
+    """The least-squares nondecreasing fit of z (pool adjacent violators)."""
+    values, sizes = [], []
+    for v in z:
+        values.append(float(v))
+        sizes.append(1)
+        while len(values) > 1 and values[-2] > values[-1]:
+            w = sizes[-2] + sizes[-1]
+            values[-2] = (values[-2] * sizes[-2] + values[-1] * sizes[-1]) / w
+            sizes[-2] = w
+            values.pop()
+            sizes.pop()
+    return np.repeat(values, sizes)
+
+
+def _heaviest(coord, cuts, period):
+    """The largest share of the points in one strip of either set of these cuts."""
+    if len(coord) == 0:
+        return 0.0
+    c = np.sort(coord)
+    worst = 0
+    for s in (0, 1):
+        x0 = np.sort(_wrap(cuts[s::2], period))
+        at = np.searchsorted(c, x0, side="left")
+        counts = np.diff(np.append(at, at[0] + len(c)))  # the last strip wraps round
+        worst = max(worst, int(counts.max()))
+    return worst / len(c)
 
 
 def split_strips(xy, regions, pad, lx, ly):
@@ -106,7 +194,7 @@ def split_strips(xy, regions, pad, lx, ly):
     rows[bounds[j]:bounds[j + 1]] in increasing order. A point within its pad of a border
     is in both strips (and in every strip between them; in all of them when its widened
     interval goes round the period). A counting sort: O(n), whatever the number of strips."""
-    axis = strip_axis(lx, ly)
+    axis = regions_axis(regions, lx, ly)
     cuts = np.ascontiguousarray(regions[:, axis])
     pads = np.ascontiguousarray(np.atleast_1d(np.asarray(pad, np.float64)))
     return _strip_rows(np.ascontiguousarray(xy[:, axis]), cuts, pads, (lx, ly)[axis])
@@ -115,7 +203,7 @@ def split_strips(xy, regions, pad, lx, ly):
 def strip_owner(xy, regions, lx, ly):
     """The one strip of the set ``regions`` that owns each point (torus coordinates): the
     strip whose [cut, next cut) holds it, the rule ``split_strips`` cuts by."""
-    axis = strip_axis(lx, ly)
+    axis = regions_axis(regions, lx, ly)
     out = np.empty(len(xy), np.int64)
     _owners(np.ascontiguousarray(xy[:, axis]), np.ascontiguousarray(regions[:, axis]),
             (lx, ly)[axis], out)  # fmt: skip
@@ -197,11 +285,17 @@ def seed(run, xy, kinds, stamps, regions):
             raise EngineError(f"triangulating a tile's vertices failed: {what}")
         if done < len(pts):
             run._grow_if_needed()
+    placed = ids >= 0
+    if not placed.all():  # each was inserted at the centre of a disk empty of the others
+        raise EngineError(
+            f"{int((~placed).sum())} of the tiles' vertices coincide with others: tiles "
+            "moved outside their strips (a broken plan)"
+        )
     nv = int(run.cnt[C_NV])
     all_stamps = np.zeros(nv, np.int32)
     placed = ids >= 0
-    all_stamps[ids[placed]] = stamps[order][placed]
-    run.book.kinds[ids[placed]] = kinds[order][placed]
+    all_stamps[ids] = stamps[order]
+    run.book.kinds[ids] = kinds[order]
     run.reserve_queues(3 * nv + R.HEADROOM)  # queue_all pushes every triangle and vertex
     balls, cells = mark_settled(run.mesh, run.book, run.cnt, run.prm, all_stamps, regions)
     R.queue_all(run.mesh, run.book, run.queues, run.cnt, run.prm)
@@ -230,6 +324,8 @@ def run_tile(task, index=None):
     )  # fmt: skip
     start, _ = seed(run, task["xy"], task["kinds"], task["stamps"], task["history"])
     x0, y0, w, h = task["region"]
+    if not (w > 0.0 and h > 0.0):
+        raise EngineError(f"a tile's region {tuple(task['region'])} is empty (a broken plan)")
     run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = x0, y0
     run.prm[P_REGION_W], run.prm[P_REGION_H] = w, h
     status = run.run(deadline=deadline)
@@ -284,6 +380,7 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
         for task in tasks:
             task["time_left"] = None if deadline is None else deadline - t0
         results = store.run_round(s, tasks)
+        check_seams(sets[s], [res["xy"] for res in results], lx, ly)
         new = np.concatenate([res["xy"] for res in results])
         report.append({
             "round": r, "new_vertices": len(new), "seconds": time.perf_counter() - t0,
@@ -304,6 +401,28 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
         if stopped is not None or (r >= 2 and len(new) == 0):
             break
     return xy, kinds, stamps, history, report, stopped
+
+
+def check_seams(regions, inserted, lx, ly):
+    """The premise of a round (``tiles.py``), checked on what it returned: the strips of the
+    set tile the period (positive widths, in order, adding up to it), and every vertex a
+    tile inserted lies in its own strip (at the centre of a disk inside it, so at most
+    within rounding of its border). EngineError otherwise: no mesh is made from the round."""
+    axis = regions_axis(regions, lx, ly)
+    period = (lx, ly)[axis]
+    x0, w = regions[:, axis], regions[:, 2 + axis]
+    if not (np.all(w > 0) and np.all(np.diff(x0) > 0)) or abs(w.sum() - period) > 1e-9 * period:
+        raise EngineError(f"the strips {regions.tolist()} do not tile the period {period}")
+    slack = 1e-9 * period
+    for j, xy in enumerate(inserted):
+        into = np.mod(xy[:, axis] - x0[j], period)
+        into = np.where(into > period - slack, into - period, into)  # just below x0
+        out = (into < -slack) | (into > w[j] + slack)
+        if out.any():
+            raise EngineError(
+                f"tile {j} inserted {int(out.sum())} vertices outside its strip "
+                f"[{x0[j]:.17g}, {x0[j] + w[j]:.17g}] (a broken tile rule)"
+            )
 
 
 def margin_bands(emb, lo, hi):
@@ -357,7 +476,7 @@ def settle_bands(run, bands, deadline=None):
                 return status, None
         if run.vertices == before:
             break
-    run.prm[P_REGION_W] = 0.0  # the whole torus again
+    run.prm[P_REGION_W] = NO_REGION  # the whole torus again
     return R.STATUS_DONE, unsettled_count(run)
 
 

@@ -136,9 +136,9 @@ def disk_in_rectangle(cx, cy, r, x0, y0, w, h, prm):
 def in_region(cx, cy, r, prm):
     """True when the closed disk (cx, cy, r) lies in the tile's region (``tiles.py``): a
     tile decides only elements whose every count and every neighbour it knows. Always true
-    without a region (a whole run)."""
+    without a region (a whole run: w = NO_REGION), never for a region of width 0."""
     w = prm[P_REGION_W]
-    if w <= 0.0:
+    if w < 0.0:
         return True
     return disk_in_rectangle(cx, cy, r, prm[P_REGION_X0], prm[P_REGION_Y0], w, prm[P_REGION_H], prm)
 

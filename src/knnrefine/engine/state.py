@@ -148,12 +148,15 @@ P_INFLATE = 5  # 1 + 1e-9: the counting regions' inflation
 P_GRID = 6  # the grid step q every vertex is snapped to
 P_K = 7  # the k of d_{P,k}: a count, or a weight for weighted points
 # a tile's region (``tiles.py``): moves only for elements inside the rectangle
-# [x0, x0 + w] x [y0, y0 + h] of the torus (wrapping); w <= 0: no region (the whole torus)
+# [x0, x0 + w] x [y0, y0 + h] of the torus (wrapping); w = NO_REGION: the whole torus. A
+# region of width 0 holds no element (it never means the whole torus: two tiles would then
+# both move everywhere)
 P_REGION_X0 = 8
 P_REGION_Y0 = 9
 P_REGION_W = 10
 P_REGION_H = 11
 N_PARAMS = 12
+NO_REGION = -1.0  # P_REGION_W of a run that is not a tile
 
 # -- insertion results and broken invariants ---------------------------------------------------
 INSERT_NOT_IN_SEED = -1  # the point is not strictly inside the seed's circumcircle
