@@ -734,3 +734,42 @@ def test_k_above_n_is_one_refusal_everywhere(tmp_path, capsys, command):
     assert run(command, src, "-k", 10, "-o", out) == 1
     assert "k = 10 is larger than the number of points, 5" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_truncated_or_corrupted_npz_is_one_clear_error(tmp_path, csv, points, capsys):
+    """regression (issue 28): a truncated .npz mesh raised a bare zipfile.BadZipFile, and
+    'knnrefine certify' printed a traceback. A truncated or corrupted mesh, points file or
+    part of a partitioned mesh is one InputError naming the file; the CLI exits 1 with one
+    line."""
+    mesh_path = tmp_path / "m.npz"
+    assert run("refine", csv, "-k", 5, "-o", mesh_path, "-q") == 0
+    whole = mesh_path.read_bytes()
+    flipped = bytearray(whole)
+    flipped[len(whole) // 3 : len(whole) // 3 + 64] = bytes(64)
+    space = knnrefine.refine(np.random.default_rng(1).random((400, 3)), 10,
+                             periodic=True, box=(0, 0, 0, 1, 1, 1))  # fmt: skip
+    io.write_mesh(space, str(tmp_path / "s.npz"))
+    bad = {
+        "truncated.npz": whole[: len(whole) // 2],
+        "corrupted.npz": bytes(flipped),
+        "truncated3.npz": (tmp_path / "s.npz").read_bytes()[:-200],
+    }
+    for name, content in bad.items():
+        path = tmp_path / name
+        path.write_bytes(content)
+        with pytest.raises(knnrefine.InputError, match=f"{name}: not a readable"):
+            io.read_mesh(str(path))
+        capsys.readouterr()
+        assert run("certify", path, csv) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("knnrefine: error:") and name in err and "Traceback" not in err
+        assert len(err.strip().splitlines()) == 1
+    np.savez(tmp_path / "p.npz", points=points)
+    (tmp_path / "p.npz").write_bytes((tmp_path / "p.npz").read_bytes()[:-300])
+    with pytest.raises(knnrefine.InputError, match="p.npz: not a readable"):
+        io.read_points(str(tmp_path / "p.npz"))
+    parts = knnrefine.write_partitioned(io.read_mesh(str(mesh_path)), tmp_path / "parts", 2)
+    part = tmp_path / "parts" / parts.manifest["parts"][1]["file"]
+    part.write_bytes(part.read_bytes()[:100])
+    with pytest.raises(knnrefine.InputError, match="part-00001.npz: not a readable"):
+        knnrefine.PartitionedMesh(tmp_path / "parts").to_mesh()

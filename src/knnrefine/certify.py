@@ -196,10 +196,10 @@ def certify(
     if isinstance(mesh, Mesh3):  # in space: certify3's checks
         from .certify3 import certify3
 
-        if weights is not None:
-            raise InputError("weights are not built for (n, 3) points yet")
-        return certify3(mesh, points, n_random=n_random, max_point_probes=max_point_probes,
-                        seed=seed)  # fmt: skip
+        if weights is not None or tiles is not None:
+            raise InputError("weights and tiles are not built for (n, 3) points yet")
+        return certify3(mesh, points, samples=samples, n_random=n_random,
+                        max_point_probes=max_point_probes, seed=seed, workers=workers)  # fmt: skip
     t0 = time.perf_counter()
     pts = as_points(points)
     weights = _check_points_are_the_meshs(mesh, pts, weights)

@@ -10,20 +10,24 @@ add up to the torus' once. Counts come from scipy's cKDTree with the box as its 
 points in every closed circumball and in every closed Voronoi cell (each point counting for
 every vertex as near as its nearest), below k except for elements smaller than the
 resolution floor (``min_size``: counted and reported). Aspect 2 R(v) / d_{M,2}(v) from
-circumradii computed here and the vertices' own kd-tree. The achieved constants:
-d_{M,2} / d_{P,k} at probes (uniform random points, every vertex and circumcentre, input
-points), whose extremes alpha_hat and beta_hat must lie within [alpha, beta] where
+circumradii computed here and the vertices' own kd-tree. Lemma 2's precondition on the
+initial vertices, as in the plane (``certify.check_precondition``). What the user received
+(``vertices``, ``tetrahedra``, ``offsets``, ``local``) must be, exactly and without a repeated
+vertex, copies of the torus mesh. The achieved constants: d_{M,2}, from the returned
+vertices, over d_{P,k} at probes as dense as the plane's (stratified samples in every
+tetrahedron, every vertex, circumcentre and edge midpoint, input points, uniform points of
+the box), whose extremes alpha_hat and beta_hat must lie within [alpha, beta] where
 d_{P,k} >= min_size.
 """
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from .certify import check_source
+from .certify import check_precondition, check_source
 from .engine.predicates3 import insphere, orient3d
 from .metric import TorusFrame
 from .validation import as_points, check_inside
@@ -31,7 +35,9 @@ from .validation import as_points, check_inside
 
 @dataclass
 class Certificate3:
-    passed: bool
+    """What certify measured in space. ``passed`` is True when every guarantee holds above
+    the floor (as the plane's ``Certificate``)."""
+
     triangulation: bool
     view_matches_torus: bool
     orientation_failures: int
@@ -48,23 +54,53 @@ class Certificate3:
     beta: float
     probes: int
     seconds: float
+    k: int = 0
+    tau: float = 0.0
+    mesh_problems: list = field(default_factory=list)  # returned mesh vs the certified torus
+    precondition_ok: bool = True  # Lemma 2's precondition on the initial vertices
+    precondition_note: str = ""
+
+    @property
+    def passed(self):
+        return bool(
+            self.triangulation
+            and self.view_matches_torus
+            and not self.mesh_problems
+            and self.precondition_ok
+            and self.max_aspect <= self.tau * (1 + 1e-9)
+            and self.max_circumball_count < self.k
+            and self.max_cell_count < self.k
+            and (np.isnan(self.alpha_hat) or self.alpha <= self.alpha_hat)
+            and (np.isnan(self.beta_hat) or self.beta_hat <= self.beta)
+        )
 
     def to_dict(self):
-        return asdict(self)
+        d = asdict(self)
+        d["passed"] = self.passed
+        return d
 
     def __str__(self):
         verdict = "PASSED" if self.passed else "FAILED"
+        ratio = (
+            f"  d_M2 / d_Pk at {self.probes:,} probes in [{self.alpha_hat:.4f}, "
+            f"{self.beta_hat:.4f}]; Theorem 6: [{self.alpha:.4f}, {self.beta:.2f}]"
+            if self.probes
+            else "  d_M2 / d_Pk: nothing measured: every probe lies where d_Pk < min_size"
+        )
         return "\n".join([
             f"certify (3-D): {verdict} in {self.seconds:.2f} s",
             f"  tetrahedralisation exact: {self.triangulation} (orientation failures "
             f"{self.orientation_failures}, Delaunay failures {self.delaunay_failures}, "
             f"volume / torus {self.volume_ratio:.12f}); the box's copies match the torus: "
             f"{self.view_matches_torus}",
+            "  returned mesh: the certified torus mesh, exactly, no repeated vertex: "
+            + ("ok" if not self.mesh_problems else f"FAILED ({'; '.join(self.mesh_problems)})"),
+            f"  initial mesh: Lemma 2's precondition: {'ok' if self.precondition_ok else 'FAILED'}"
+            + (f" ({self.precondition_note})" if self.precondition_note else ""),
             f"  aspect max {self.max_aspect:.4f}; points in a circumball max "
             f"{self.max_circumball_count}, in a cell max {self.max_cell_count} (floor: "
             f"{self.floor_circumballs} circumballs, {self.floor_cells} cells)",
-            f"  d_M2 / d_Pk at {self.probes:,} probes in [{self.alpha_hat:.4f}, "
-            f"{self.beta_hat:.4f}]; Theorem 6: [{self.alpha:.4f}, {self.beta:.2f}]",
+            ratio,
         ])  # fmt: skip
 
 
@@ -159,15 +195,134 @@ def _view_matches(mesh):
     return bool(_rows_within(view, np.sort(mesh.torus.tetrahedra, axis=1)).all())
 
 
-def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0):
+class _Points:
+    """The input points on the torus, as ``certify.check_precondition`` asks about them."""
+
+    def __init__(self, tree, n):
+        self.tree, self.total = tree, float(n)
+
+    def held(self, centres, radii):
+        return self.tree.query_ball_point(centres, radii, return_length=True)
+
+
+def _parity(rows):
+    """The parity (0 even, 1 odd) of the permutation that sorts each row of 4."""
+    inversions = np.zeros(len(rows), np.int64)
+    for i in range(4):
+        for j in range(i + 1, 4):
+            inversions += rows[:, i] > rows[:, j]
+    return inversions % 2
+
+
+def verify_returned_mesh3(mesh):
+    """Problems (a list of strings) that stop what the user works with, ``vertices`` (input
+    coordinates), ``tetrahedra`` with ``offsets`` and ``local``, from being, exactly and
+    without repeated vertices, copies of the torus mesh that certify checks: each vertex a
+    torus vertex moved by whole periods, each tetrahedron a torus tetrahedron (the same
+    corners, the same orientation) moved by whole periods."""
+    torus = mesh.torus
+    v = np.asarray(mesh.vertices, float)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
+        return ["vertices are not finite (m, 3) coordinates"]
+    problems = []
+    repeated = len(v) - len(np.unique(v, axis=0))
+    if repeated:
+        problems.append(f"{repeated} repeated vertices")
+    origin, period = np.asarray(mesh.origin, float), np.asarray(mesh.period, float)
+    tl = np.asarray(torus.local, float)
+    order = np.asarray(mesh.order)
+    local = np.asarray(mesh.local, float)
+    if (
+        len(order) != len(v) or local.shape != v.shape
+        or order.min(initial=0) < 0 or order.max(initial=0) >= len(tl)
+    ):  # fmt: skip
+        return problems + ["vertex order does not index the torus vertices"]
+    shift = np.rint((v - origin - tl[order]) / period)
+    off = np.any(v != origin + (tl[order] + shift * period), axis=1)
+    if off.any():
+        problems.append(f"{int(off.sum())} vertices differ from their torus vertex")
+    moved = np.rint((local - tl[order]) / period)
+    if np.any(local != tl[order] + moved * period) or np.any(moved[:, np.array(mesh.periodic)]):
+        problems.append("local coordinates differ from the torus vertices")
+    tet = np.asarray(mesh.tetrahedra, np.int64)
+    if tet.ndim != 2 or tet.shape[1] != 4 or tet.min(initial=0) < 0 or tet.max(initial=0) >= len(v):
+        return problems + ["tetrahedra do not index the vertices"]
+    offsets = (
+        np.zeros(tet.shape + (3,)) if mesh.offsets is None else np.asarray(mesh.offsets, float)
+    )
+    user = v[tet] + offsets * period - origin  # corners in the torus frame, unwrapped
+    ids = order[tet]
+    ttet = np.asarray(torus.tetrahedra, np.int64)
+    tcorners = tl[ttet] + np.asarray(torus.offsets, float) * period
+    u_sort, t_sort = np.argsort(ids, axis=1), np.argsort(ttet, axis=1)
+    u_key = np.take_along_axis(ids, u_sort, 1)
+    t_key = np.take_along_axis(ttet, t_sort, 1)
+    pos = _find_rows(t_key, u_key)
+    hit = pos >= 0
+    if (~hit).any():
+        problems.append(f"{int((~hit).sum())} tetrahedra are not tetrahedra of the torus mesh")
+    t = pos[hit]
+    mine = np.take_along_axis(user[hit], u_sort[hit][..., None], 1)
+    target = np.take_along_axis(tcorners[t], t_sort[t][..., None], 1)
+    d = np.rint((mine - target) / period)
+    same = np.all(d == d[:, :1], axis=(1, 2)) & np.all(
+        mine == target + d * period, axis=(1, 2)
+    )  # fmt: skip
+    same &= _parity(ids[hit]) == _parity(ttet[t])
+    if (~same).any():
+        problems.append(f"{int((~same).sum())} tetrahedra have corners off their torus tetrahedron")
+    return problems
+
+
+def _find_rows(table, rows):
+    """Index of each of ``rows`` (int64 rows of 4) in ``table``, -1 if absent."""
+    if len(rows) == 0 or len(table) == 0:
+        return np.full(len(rows), -1, np.int64)
+    view = np.dtype((np.void, 8 * table.shape[1]))
+    a = np.ascontiguousarray(table, np.int64).view(view).ravel()
+    b = np.ascontiguousarray(rows, np.int64).view(view).ravel()
+    order = np.argsort(a, kind="stable")
+    i = np.minimum(np.searchsorted(a[order], b), len(a) - 1)
+    return np.where(a[order][i] == b, order[i], -1)
+
+
+def _edge_midpoints(local, corners, offsets, period):
+    """The midpoint of every edge of the torus mesh, once (edges keyed by their two
+    vertices and the periods between them)."""
+    pairs = [(i, j) for i in range(4) for j in range(i + 1, 4)]
+    a = np.concatenate([corners[:, i] for i, _ in pairs]).astype(np.int64)
+    b = np.concatenate([corners[:, j] for _, j in pairs]).astype(np.int64)
+    d = np.concatenate([offsets[:, j] - offsets[:, i] for i, j in pairs]).astype(np.int64)
+    flip = a > b
+    key = np.column_stack([np.where(flip, b, a), np.where(flip, a, b),
+                           np.where(flip[:, None], -d, d)])  # fmt: skip
+    _, first = np.unique(key, axis=0, return_index=True)
+    a, b, d = a[first], b[first], d[first]
+    return local[a] + 0.5 * (local[b] + d * period - local[a])
+
+
+def _tetrahedron_samples(c, per, rng):
+    """per uniform points in each tetrahedron with corners c (t, 4, 3): barycentric
+    weights from a flat Dirichlet (normalised exponentials)."""
+    w = rng.exponential(size=(len(c), per, 4))
+    w /= w.sum(axis=2, keepdims=True)
+    return np.einsum("tpi,tia->tpa", w, c).reshape(-1, 3)
+
+
+def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
+             seed=0, workers=-1):  # fmt: skip
     """Check ``mesh`` (from ``knnrefine.refine`` with (n, 3) points) against ``points``;
     returns a ``Certificate3`` (nothing is raised when a check fails: see ``.passed``).
 
     The torus mesh (``mesh.torus``: the box's own along periodic axes, the embedding torus
-    along the others) is checked as refined: exact tetrahedralisation, counts and aspect on
-    the torus. The promise the user reads is checked in the box's own metric (straight along
-    non-periodic axes, so the embedding's claim is tested, not assumed): d_{P,k} from the
-    points, d_{M,2} from the mesh's vertices as returned, at probes in the box."""
+    along the others) is checked as refined: exact tetrahedralisation, counts, aspect and
+    Lemma 2's precondition on the torus. What the user received is checked to be that mesh
+    (``verify_returned_mesh3``), and the promise the user reads is checked in the box's own
+    metric (straight along non-periodic axes, so the embedding's claim is tested, not
+    assumed): d_{P,k} from the points, d_{M,2} from the returned vertices, at probes in the
+    box: ``samples`` stratified points in the tetrahedra (at least 4 in each), every vertex,
+    circumcentre and edge midpoint, up to ``max_point_probes`` input points and ``n_random``
+    uniform points. ``workers``: the kd-tree queries' threads (-1: all cores)."""
     t0 = time.perf_counter()
     pts = as_points(points, 3)
     check_source(mesh.stats, len(pts), None)
@@ -188,11 +343,12 @@ def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0)
     triangulation = ok_faces and bad_o == 0 and bad_d == 0 and abs(volume - 1.0) < 1e-9
 
     centres, r2 = _circumspheres(c)
-    del c
     point_tree = cKDTree(p, boxsize=period)
-    held = point_tree.query_ball_point(np.mod(centres, period), np.sqrt(r2), return_length=True)
+    held = point_tree.query_ball_point(np.mod(centres, period), np.sqrt(r2), return_length=True,
+                                       workers=workers)  # fmt: skip
     vertex_tree = cKDTree(local, boxsize=period)
-    dd, ii = vertex_tree.query(p, k=min(3, len(local)))
+    dd, ii = vertex_tree.query(p, k=min(3, len(local)), workers=workers)
+    dd, ii = dd.reshape(len(p), -1), ii.reshape(len(p), -1)
     tie = dd <= dd[:, :1] * (1 + 1e-12)
     cells = np.bincount(ii[tie], minlength=len(local))
     outer = np.zeros(len(local))
@@ -202,41 +358,55 @@ def certify3(mesh, points, *, n_random=20_000, max_point_probes=100_000, seed=0)
     floor_cells = (cells >= k) & (np.sqrt(outer) < mesh.min_size)
     max_held = int(held[~floor_balls].max(initial=0))
     max_cell = int(cells[~floor_cells].max(initial=0))
-    d_m2 = vertex_tree.query(local, k=2)[0][:, 1]
+    d_m2 = vertex_tree.query(local, k=2, workers=workers)[0][:, 1]
     aspect = float((2.0 * np.sqrt(outer) / d_m2).max())
+    precondition = check_precondition(
+        local[np.asarray(torus.kinds) == 0], _Points(point_tree, len(p)), k, mesh.tau, period
+    )
 
     # the promise in the box, in its own metric, from the returned vertices
     rng = np.random.default_rng(seed)
+    per_tetrahedron = max(4, -(-int(samples) // max(len(c), 1)))
     lo = np.array(mesh.box[:3]) - np.asarray(mesh.origin)
     side = np.array(mesh.box[3:]) - np.array(mesh.box[:3])
     probes = np.concatenate([
-        lo + rng.random((n_random, 3)) * side, mesh.local, np.mod(centres, period),
+        np.mod(_tetrahedron_samples(c, per_tetrahedron, rng), period),
+        lo + rng.random((n_random, 3)) * side, local, np.mod(centres, period),
+        np.mod(_edge_midpoints(local, corners, offsets, period), period),
         p[rng.choice(len(p), min(len(p), max_point_probes), replace=False)],
     ])  # fmt: skip
+    del c
     probes = probes[mesh.inside(probes)]
+    mesh_problems = verify_returned_mesh3(mesh)
+    returned = np.asarray(mesh.vertices, float)
+    if returned.ndim == 2 and returned.shape[1] == 3 and np.isfinite(returned).all():
+        returned = mesh.wrap(returned)  # relative to the origin, periodic axes wrapped
+    else:  # not coordinates at all (a failed check already): the torus' own, for the ratio
+        returned = local
+    box_boxsize = np.where(mesh.periodic, period, 0.0) if any(mesh.periodic) else None
     if all(mesh.periodic):
-        box_points, box_vertices = point_tree, vertex_tree
+        box_points = point_tree
     else:
         box_points = mesh.metric.tree(pts)
-        box_vertices = cKDTree(mesh.local, boxsize=np.where(mesh.periodic, period, 0.0))
-    dm2 = box_vertices.query(probes, k=2)[0][:, 1]
-    if box_vertices is not vertex_tree:  # the copies near the box hold its two nearest
-        on_torus = vertex_tree.query(probes, k=2)[0][:, 1]  # the tree wraps queries
-        view = view and bool(np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0))
-    dpk = box_points.query(probes, k=[k])[0][:, 0]
+    box_vertices = cKDTree(returned, boxsize=box_boxsize)
+    dm2 = box_vertices.query(probes, k=min(2, len(returned)), workers=workers)[0]
+    dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(probes), np.inf)
+    if view and not mesh_problems:  # the copies near the box hold its two nearest
+        on_torus = vertex_tree.query(probes, k=2, workers=workers)[0][:, 1]  # wraps queries
+        view = bool(np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0))
+    dpk = box_points.query(probes, k=[k], workers=workers)[0][:, 0]
     use = dpk >= mesh.min_size
     ratio = dm2[use] / dpk[use]
-    alpha_hat, beta_hat = float(ratio.min()), float(ratio.max())
-    passed = (
-        triangulation and view and aspect <= mesh.tau * (1 + 1e-9) and max_held < k
-        and max_cell < k and alpha_hat >= mesh.alpha and beta_hat <= mesh.beta
-    )  # fmt: skip
+    alpha_hat = float(ratio.min()) if len(ratio) else float("nan")
+    beta_hat = float(ratio.max()) if len(ratio) else float("nan")
     return Certificate3(
-        passed=bool(passed), triangulation=bool(triangulation), view_matches_torus=bool(view),
+        triangulation=bool(triangulation), view_matches_torus=bool(view),
         orientation_failures=int(bad_o), delaunay_failures=int(bad_d),
         volume_ratio=float(volume), max_aspect=aspect,
         max_circumball_count=max_held, max_cell_count=max_cell,
         floor_circumballs=int(floor_balls.sum()), floor_cells=int(floor_cells.sum()),
         alpha_hat=alpha_hat, beta_hat=beta_hat, alpha=mesh.alpha, beta=mesh.beta,
-        probes=int(use.sum()), seconds=time.perf_counter() - t0,
+        probes=int(use.sum()), seconds=time.perf_counter() - t0, k=k, tau=mesh.tau,
+        mesh_problems=mesh_problems, precondition_ok=bool(precondition[0]),
+        precondition_note=precondition[1],
     )  # fmt: skip

@@ -18,6 +18,8 @@ import json
 import os
 import sys
 import tempfile
+import zipfile
+import zlib
 
 import numpy as np
 
@@ -25,6 +27,17 @@ from .errors import InputError
 from .mesh import Mesh, Torus
 
 FORMAT_VERSION = 1
+# what NumPy raises on a truncated or corrupted .npy / .npz (a zip of .npy members, each
+# read, decompressed and parsed only when asked for)
+UNREADABLE = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
+def unreadable(path, what, exc):
+    """The InputError for a file NumPy could not read (``UNREADABLE``)."""
+    return InputError(
+        f"{path}: not a readable {what} file: truncated or corrupted? ({type(exc).__name__}: "
+        f"{exc}); write it again"
+    )
 
 
 # --- points -------------------------------------------------------------------------------
@@ -208,8 +221,8 @@ def _select_frame(frame, name, cols, has_header, skipped=0):
 def _load_npy(path):
     try:
         return np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise InputError(f"{path}: not a readable .npy file ({exc})") from None
+    except UNREADABLE as exc:
+        raise unreadable(path, ".npy", exc) from None
 
 
 def _select_array(arr, name, cols):
@@ -231,14 +244,20 @@ def _select_array(arr, name, cols):
 
 def _read_npz_points(path, cols):
     try:
-        data = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise InputError(f"{path}: not a readable .npz file ({exc})") from None
-    if "points" in data:
-        return _select_array(data["points"], path, cols)
-    if len(data.files) == 1:
-        return _select_array(data[data.files[0]], path, cols)
-    raise InputError(f"{path}: holds {', '.join(data.files)}; store the points as 'points'")
+        with np.load(path, allow_pickle=False) as data:
+            if "points" in data:
+                arr = data["points"]
+            elif len(data.files) == 1:
+                arr = data[data.files[0]]
+            else:
+                raise InputError(
+                    f"{path}: holds {', '.join(data.files)}; store the points as 'points'"
+                )
+    except InputError:
+        raise
+    except UNREADABLE as exc:
+        raise unreadable(path, ".npz", exc) from None
+    return _select_array(arr, path, cols)
 
 
 def _read_parquet(path, cols):
@@ -356,39 +375,46 @@ def _write_npz(mesh, path):
 
 def _read_npz(path):
     try:
-        d = np.load(path, allow_pickle=False)
-        if int(d["format"]) > FORMAT_VERSION:
-            raise InputError(f"{path}: written by a newer knnrefine (format {int(d['format'])})")
-        if "tetrahedra" in d.files:
-            return _mesh3_of(d)
-        torus = Torus(
-            origin=tuple(d["torus_origin"].tolist()),
-            period=tuple(d["torus_period"].tolist()),
-            vertices=d["torus_vertices"],
-            triangles=d["torus_triangles"],
-            offsets=d["torus_offsets"],
-            neighbors=d["torus_neighbors"],
-            kinds=d["torus_kinds"],
-        )
-        return Mesh(
-            vertices=d["vertices"],
-            triangles=d["triangles"],
-            offsets=d["offsets"] if bool(d["has_offsets"]) else None,
-            kinds=d["kinds"],
-            order=d["order"],
-            k=int(d["k"]),
-            tau=float(d["tau"]),
-            periodic=tuple(bool(p) for p in d["periodic"]),
-            box=tuple(float(b) for b in d["box"]),
-            min_size=float(d["min_size"]),
-            floor_points=d["floor_points"],
-            stats=json.loads(str(d["stats"])),
-            torus=torus,
-        )
+        with np.load(path, allow_pickle=False) as d:
+            return _mesh_of_npz(d, path)
+    except InputError:
+        raise
     except KeyError as exc:
         raise InputError(f"{path}: not a knnrefine mesh (missing {exc})") from None
-    except (ValueError, OSError) as exc:
-        raise InputError(f"{path}: not a readable .npz file ({exc})") from None
+    except UNREADABLE as exc:
+        raise unreadable(path, ".npz mesh", exc) from None
+
+
+def _mesh_of_npz(d, path):
+    """The Mesh (or Mesh3) held by the open .npz ``d`` (every array read here)."""
+    if int(d["format"]) > FORMAT_VERSION:
+        raise InputError(f"{path}: written by a newer knnrefine (format {int(d['format'])})")
+    if "tetrahedra" in d.files:
+        return _mesh3_of(d)
+    torus = Torus(
+        origin=tuple(d["torus_origin"].tolist()),
+        period=tuple(d["torus_period"].tolist()),
+        vertices=d["torus_vertices"],
+        triangles=d["torus_triangles"],
+        offsets=d["torus_offsets"],
+        neighbors=d["torus_neighbors"],
+        kinds=d["torus_kinds"],
+    )
+    return Mesh(
+        vertices=d["vertices"],
+        triangles=d["triangles"],
+        offsets=d["offsets"] if bool(d["has_offsets"]) else None,
+        kinds=d["kinds"],
+        order=d["order"],
+        k=int(d["k"]),
+        tau=float(d["tau"]),
+        periodic=tuple(bool(p) for p in d["periodic"]),
+        box=tuple(float(b) for b in d["box"]),
+        min_size=float(d["min_size"]),
+        floor_points=d["floor_points"],
+        stats=json.loads(str(d["stats"])),
+        torus=torus,
+    )
 
 
 def _meshio_writer(file_format):

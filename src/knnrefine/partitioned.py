@@ -38,6 +38,7 @@ from .density import (
 )
 from .engine.raster import rasterise
 from .errors import InputError
+from .io import UNREADABLE, unreadable
 from .mesh import Mesh, Torus, circumcircles, split_in_four
 from .metric import BoxMetric
 from .validation import as_points, as_queries, weights_of_run
@@ -249,8 +250,12 @@ class PartitionedMesh:
         )
 
     def _arrays(self, j):
-        with np.load(os.path.join(self.path, self.manifest["parts"][j]["file"])) as d:
-            return {key: d[key] for key in d.files}
+        path = os.path.join(self.path, self.manifest["parts"][j]["file"])
+        try:
+            with np.load(path, allow_pickle=False) as d:
+                return {key: d[key] for key in d.files}
+        except UNREADABLE as exc:
+            raise unreadable(path, "part (.npz)", exc) from None
 
     def part(self, j):
         """Part j as a ``Mesh``: its vertices with the halo, its own triangles (d_{M,2} exact

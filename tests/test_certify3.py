@@ -1,0 +1,115 @@
+"""certify in space checks what it checks in the plane (issue 28): the vertices and
+tetrahedra the user received against the certified torus mesh, Lemma 2's precondition on
+the initial vertices, and the achieved constants at probes as dense as the plane's (edge
+midpoints and samples in every tetrahedron). Oracles: brute-force cKDTree queries."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import knnrefine
+
+BOX = (0, 0, 0, 1, 1, 1)
+PERIODICITIES = [True, False, (True, False, True)]
+
+
+@pytest.fixture(scope="module", params=PERIODICITIES, ids=["torus", "box", "mixed"])
+def case(request):
+    pts = np.random.default_rng(3).random((6000, 3))
+    return knnrefine.refine(pts, 10, periodic=request.param, box=BOX), pts
+
+
+def test_certify3_reads_the_vertices_the_user_gets(case, tmp_path):
+    """regression: a 3-D mesh written to .npz with its vertices overwritten by zeros and read
+    back PASSED (certify read ``mesh.local``, never ``vertices``). Now it fails, naming the
+    vertices; so does a vertex moved by one ulp, and a tetrahedron of the returned mesh
+    whose corners are swapped (reoriented) where the torus is not the returned mesh."""
+    mesh, pts = case
+    assert knnrefine.certify(mesh, pts).passed
+    path = tmp_path / "m.npz"
+    knnrefine.io.write_mesh(mesh, str(path))
+    with np.load(path) as d:
+        arrays = dict(d)
+    arrays["vertices"] = np.zeros_like(arrays["vertices"])
+    np.savez(path, **arrays)
+    cert = knnrefine.certify(knnrefine.io.read_mesh(str(path)), pts)
+    assert not cert.passed
+    assert any("differ from their torus vertex" in p for p in cert.mesh_problems)
+    moved = mesh.vertices.copy()
+    moved[3, 1] = np.nextafter(moved[3, 1], 2.0)
+    cert = knnrefine.certify(dataclasses.replace(mesh, vertices=moved), pts)
+    assert not cert.passed and "1 vertices differ" in "; ".join(cert.mesh_problems)
+    if mesh.embedded is not None:  # the returned tetrahedra are copies, checked as such
+        flipped = mesh.tetrahedra.copy()
+        flipped[0, [0, 1]] = flipped[0, [1, 0]]
+        cert = knnrefine.certify(dataclasses.replace(mesh, tetrahedra=flipped), pts)
+        assert not cert.passed and cert.triangulation  # the torus itself is fine
+        assert any("tetrahedra" in p for p in cert.mesh_problems)
+
+
+def test_certify3_probes_at_least_the_edge_midpoints(case):
+    """regression: certify in space probed vertices, circumcentres, points and uniform
+    points only; edge midpoints found ratios 1.38x lower. alpha_hat and beta_hat now bound
+    the ratio at every vertex, circumcentre and edge midpoint in the box (brute force)."""
+    mesh, pts = case
+    cert = knnrefine.certify(mesh, pts)
+    metric = knnrefine.metric.BoxMetric(mesh.box, mesh.periodic)
+    c = mesh.corners() + np.asarray(mesh.origin)  # the returned tetrahedra, input units
+    mids = np.concatenate([0.5 * (c[:, i] + c[:, j]) for i in range(4) for j in range(i)])
+    centres = c.mean(axis=1)
+    x = np.concatenate([mids, centres, mesh.vertices])
+    lo, hi = np.array(mesh.box[:3]), np.array(mesh.box[3:])
+    per = np.array(mesh.periodic)
+    x = x[(((x >= lo) & (x <= hi)) | per).all(axis=1)]
+    d_m2 = metric.tree(mesh.vertices).query(metric.frame(x), k=2)[0][:, 1]
+    d_pk = metric.kth(pts, x, mesh.k)
+    ratio = d_m2 / d_pk
+    assert cert.alpha_hat <= ratio.min() * (1 + 1e-12)
+    assert cert.beta_hat >= ratio.max() * (1 - 1e-12)
+    assert cert.probes >= len(np.unique(mids, axis=0)) // 2
+
+
+def test_certify3_checks_lemma_2s_precondition():
+    """regression: certify in space did not check Lemma 2's precondition. 200 points, k =
+    150: the initial mesh refine chose holds at tau = 3 (d_Pk <= 5 lambda at its vertices);
+    the same mesh claimed at tau = 8 (d_Pk <= 2 lambda) does not, and certify says so."""
+    pts = np.random.default_rng(4).random((200, 3))
+    mesh = knnrefine.refine(pts, 150, 3.0, periodic=True, box=BOX)
+    cert = knnrefine.certify(mesh, pts)
+    assert cert.passed and cert.precondition_ok
+    initial = mesh.local[mesh.kinds == 0]
+    lam = cKDTree(initial, boxsize=1.0).query(initial, k=2)[0][:, 1]
+    d_pk = cKDTree(pts, boxsize=1.0).query(initial, k=[150])[0][:, 0]
+    assert (d_pk > 2.0 * lam).all()  # no initial vertex may go last at tau = 8: none can
+    cert = knnrefine.certify(dataclasses.replace(mesh, tau=8.0), pts)
+    assert not cert.precondition_ok and not cert.passed
+    assert "initial vertices" in cert.precondition_note
+
+
+def test_certify3_with_no_probe_above_the_floor():
+    """regression: with every probe below the floor (min_size = 10 on the unit cube)
+    certify in space raised 'zero-size array to reduction'; now, as in the plane, no ratio
+    is measured (NaN) and the other checks decide."""
+    pts = np.random.default_rng(5).random((500, 3))
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX, min_size=10)
+    cert = knnrefine.certify(mesh, pts)
+    assert np.isnan(cert.alpha_hat) and np.isnan(cert.beta_hat) and cert.probes == 0
+    assert cert.passed, str(cert)
+    assert "nothing measured" in str(cert)
+
+
+def test_certify3_honours_samples_and_refuses_tiles():
+    """certify's options in space: ``samples`` sets the probes in the tetrahedra (at least
+    4 each), ``workers`` the queries' threads; ``tiles`` and ``weights`` are refused, not
+    ignored."""
+    pts = np.random.default_rng(6).random((3000, 3))
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
+    few = knnrefine.certify(mesh, pts, samples=10, workers=1)
+    many = knnrefine.certify(mesh, pts, samples=40 * len(mesh.tetrahedra))
+    assert many.probes - few.probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
+    with pytest.raises(knnrefine.InputError, match="tiles"):
+        knnrefine.certify(mesh, pts, tiles=2)
+    with pytest.raises(knnrefine.InputError, match="weights"):
+        knnrefine.certify(mesh, pts, weights=np.ones(len(pts)))
