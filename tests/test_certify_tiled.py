@@ -104,3 +104,20 @@ def test_bad_tiles_are_refused(bad):
     mesh = knnrefine.refine(pts, 10)
     with pytest.raises(InputError, match="tiles must be a positive integer"):
         knnrefine.certify(mesh, pts, tiles=bad)
+
+
+@pytest.mark.parametrize("tiles", [2, 8, 500])
+def test_tiles_that_hold_no_point(tiles):
+    """regression (issue 28): certify(mesh, points, tiles=2) crashed ('cannot reshape array
+    of size 0') when a strip held no point, as with more tiles than points. Points in a
+    third of the torus, and five points at ten tiles: the same verdict as in one process."""
+    rng = np.random.default_rng(0)
+    pts = rng.random((300, 2)) * [0.3, 1.0]
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
+    one = knnrefine.certify(mesh, pts)
+    tiled = knnrefine.certify(mesh, pts, tiles=tiles)
+    assert one.passed and tiled.passed
+    assert (tiled.max_ball_count, tiled.max_cell_count) == (one.max_ball_count, one.max_cell_count)
+    few = rng.random((5, 2))
+    small = knnrefine.refine(few, 2, periodic=True, box=(0, 0, 1, 1))
+    assert knnrefine.certify(small, few, tiles=10).passed

@@ -248,3 +248,10 @@ def test_readme_block_runs_as_a_script_and_from_stdin(tmp_path):
         assert run.returncode == 0, run.stderr[-2000:]
         assert run.stdout.strip() == "True"
         assert "Failed to start" not in run.stderr and "Traceback" not in run.stderr
+
+
+def test_certify_on_the_cluster_with_more_strips_than_points(client):
+    """regression (issue 28): distributed.certify crashed when a strip held no point."""
+    pts = np.random.default_rng(12).random((6, 2))
+    mesh = knnrefine.refine(pts, 3, periodic=True, box=(0, 0, 1, 1))
+    assert distributed.certify(mesh, pts, client=client, workers=9).passed

@@ -202,7 +202,7 @@ def test_time_limit_and_budget_stop_the_run(monkeypatch):
     from knnrefine.errors import BudgetError
 
     pts = multiscale(20000, 23)
-    with pytest.raises(BudgetError, match="time_limit reached while setting up"):
+    with pytest.raises(BudgetError, match="time_limit reached while (setting up|choosing)"):
         knnrefine.refine(pts, 10, box=BOX, time_limit=1e-6)
     with pytest.raises(BudgetError, match="max_vertices = 3,000") as stopped:
         knnrefine.refine(pts, 10, box=BOX, max_vertices=3000)
@@ -323,7 +323,7 @@ def _start_run(pts, k=10):
 
 def _finish(run, pts, k=10):
     assert run.run() == 0  # STATUS_DONE
-    xyz, corners, offsets, kinds, cnt = run.take_result()
+    xyz, corners, offsets, kinds, cnt, _ = run.take_result()
     return Mesh3(vertices=xyz, tetrahedra=corners, offsets=offsets, kinds=kinds, k=k, tau=3.0,
                  periodic=(True,) * 3, box=BOX, min_size=1e-6, origin=(0.0,) * 3,
                  period=(1.0,) * 3, local=xyz, stats={"n": len(pts)})  # fmt: skip
@@ -587,10 +587,17 @@ def test_growing_without_mremap_or_mappings_copies(monkeypatch):
 
 
 def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(monkeypatch):
-    """api3._start tries the default margin first and builds the data bound on max d_Pk (a
+    """api3._Start3 tries the default margin first and builds the data bound on max d_Pk (a
     kd-tree over all points) only if that torus cannot start; the bound is >= d_Pk at 20,000
     random points of the box (a brute kd-tree, straight metric)."""
     from knnrefine import api3
+    from knnrefine.engine.initial import reach_factor
+    from knnrefine.engine.interrupt import Interrupts
+
+    def start(pts, box, per, k, tau):
+        return api3._Start3(pts, box, per, 10**6, Interrupts(), None, 0.0).find(
+            k, reach_factor(tau)
+        )
 
     pts = multiscale(3000, 20)
     calls = []
@@ -601,7 +608,7 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
         return calls[-1]
 
     monkeypatch.setattr(api3, "_reach", counted)
-    assert api3._start(pts, BOX, (False,) * 3, 10, 3.0) is not None
+    assert start(pts, BOX, (False,) * 3, 10, 3.0) is not None
     assert calls == []  # the default torus started: no kd-tree built
     choose = api3.choose_grid3
     tries = []
@@ -611,7 +618,7 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
         return None if len(tries) == 1 else choose(*args)
 
     monkeypatch.setattr(api3, "choose_grid3", first_fails)
-    emb = api3._start(pts, BOX, (False,) * 3, 10, 3.0)[0]
+    emb = start(pts, BOX, (False,) * 3, 10, 3.0)[0]
     assert len(calls) == 1 and len(tries) == 2
     q = np.random.default_rng(21).random((20_000, 3))
     assert calls[0] >= cKDTree(pts).query(q, k=[10])[0].max()

@@ -4,35 +4,38 @@ non-periodic axes the box is embedded in a longer torus, as in the plane
 (``engine/embedding.py``), and the mesh unfolded back (``embedding.unfold``)."""
 
 import time
+import warnings
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from . import validation as V
 from .api import _past, check_options
+from .engine import size
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
-from .engine.initial import reach_factor
+from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, tau_for_factor
+from .engine.interrupt import Interrupts
 from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
 from .engine.state import C_CELL_TESTS, C_DISK_TESTS, C_FAILED
-from .errors import BudgetError, InputError
+from .errors import BudgetError, FloorWarning, InputError
 from .mesh3 import Mesh3, Torus3
 from .metric import BoxMetric
 
 
 def _holds(index, x, reach, k, period):
     """Whether the closed ball of radius ``reach`` about each x holds >= k of the index's
-    points (the index answers below half the shortest period; a ball reaching every point
-    of the torus holds all of them; between the two, a direct count over its points)."""
-    u = index[0]
+    points (the index answers below half the shortest period; beyond it, a periodic kd-tree
+    over its points, built only then, counts each point once, at its nearest image)."""
     reach = np.asarray(reach, float)
-    out = reach >= np.sqrt(((period / 2.0) ** 2).sum())  # the torus' diameter: every point
-    small = ~out & (reach < 0.5 * period.min() * (1.0 - 1e-9))
+    out = np.zeros(len(x), bool)
+    small = reach < 0.5 * period.min() * (1.0 - 1e-9)
     out[small] = holds_k_within3(index, x[small], reach[small] ** 2, float(k), period)
-    for i in np.flatnonzero(~out & ~small):
-        d = np.abs(u - x[i])
-        d = np.minimum(d, period - d)
-        out[i] = np.count_nonzero((d**2).sum(axis=1) <= reach[i] ** 2) >= k
+    if not small.all():
+        tree = cKDTree(index[0], boxsize=period)
+        far = ~small
+        out[far] = tree.query_ball_point(x[far] % period, reach[far], return_length=True) >= k
     return out
 
 
@@ -47,30 +50,156 @@ def _reach(pts, box, per, k):
     return float(BoxMetric(box, per).kth(pts, centres, k).max() + 0.5 * np.linalg.norm(cell))
 
 
-def _start(pts, box, per, k, tau):
-    """(embedding, index, M0) for the first torus whose initial mesh meets
-    Lemma 2's precondition: the default margin (1.05 x the box's diameter along
-    non-periodic axes), then, as in the plane, 1.05 x a bound on max d_Pk over the box and 2,
-    4 and 10 diameters. None when none does."""
+INITIAL_BYTES3 = 2500  # peak memory per initial vertex while an M0 is built (measured 2.3 KB)
+LIMITS_EFFORT3 = 300_000  # initial vertices above which a refusal skips the limits search
 
-    def reaches():  # the data bound costs a kd-tree: only when the default torus fails
+
+def check_initial_budget3(box, per, budget):
+    """Before any work: the smallest initial mesh of the default 3-torus must fit the vertex
+    budget and memory (a thin periodic slab needs a fine grid across its long sides: 1 x 1 x
+    0.002 needs 2,000 x 2,000 x 3 vertices)."""
+    period = Embedding.make(box, per).period_internal
+    shapes = [grid_shape3(period, g[0]) for g in GRIDS3]
+    shape = min(shapes, key=lambda s: int(np.prod(s)))
+    need = int(np.prod(shape))
+    memory = size.memory_bytes()
+    if need <= budget and need * INITIAL_BYTES3 <= memory / 2:
+        return
+    dims = " x ".join(f"{int(v):,}" for v in shape)
+    cost = f"{need:,} vertices, about {need * INITIAL_BYTES3 / 1e9:.2g} GB to build"
+    if max(shape) <= 4 * min(shape):
+        raise InputError(
+            f"max_vertices={budget:,} is too small: the initial mesh alone has {dims} = "
+            f"{cost}; raise max_vertices"
+        )
+    raise InputError(
+        f"the box {tuple(box)} is too thin for its periodic axes: the initial mesh of the "
+        f"3-torus alone needs {dims} = {cost} (budget {budget:,} vertices, this machine's "
+        f"memory {memory / 1e9:.3g} GB); rescale the coordinates, make the short axis "
+        "non-periodic, or raise max_vertices"
+    )
+
+
+class _Start3:
+    """Where a run in space starts (the plane's ``api._Start``): the embedding torus, the
+    counting index over the points in it, and an initial mesh that satisfies Lemma 2's
+    precondition. The default torus (a margin of 1.05 x the box's diameter along
+    non-periodic axes) first, then, as in the plane, 1.05 x a bound on max d_Pk over the box
+    and 2, 4 and 10 diameters; a torus whose shortest period is the default's and that is no
+    smaller is skipped (its initial meshes have the same spacing and only more vertices far
+    from the data, where d_Pk is larger). Candidates beyond the vertex budget are never
+    built; indexes and candidates are kept per torus (the refusal asks again); the deadline
+    and Ctrl-C are checked between every step."""
+
+    def __init__(self, pts, box, per, budget, interrupts, deadline, t_start):
+        self.pts, self.box, self.per, self.budget = pts, box, per, budget
+        self.interrupts, self.deadline, self.t_start = interrupts, deadline, t_start
+        self.tori = {}  # reach -> (embedding, index, candidate cache)
+        self.reach_of_k = {}
+
+    def check(self):
+        self.interrupts.check()
+        _past(self.deadline, "choosing the initial mesh", self.t_start)
+
+    def torus(self, reach=None):
+        if reach not in self.tori:
+            emb = Embedding.make(self.box, self.per, reach)
+            index = build_index3(emb.to_internal(self.pts), copy=False)  # the index owns them
+            self.check()
+            self.tori[reach] = emb, index, {}
+        return self.tori[reach]
+
+    def _reaches(self, k):
         yield None
-        if not all(per):
-            diam = diameter(box, per)
-            yield from (_reach(pts, box, per, k), 2.0 * diam, 4.0 * diam, 10.0 * diam)
+        if all(self.per):
+            return
+        if k not in self.reach_of_k:  # the data bound costs a kd-tree: only when asked
+            self.reach_of_k[k] = _reach(self.pts, self.box, self.per, k)
+            self.check()
+        diam = diameter(self.box, self.per)
+        default = np.array(Embedding.make(self.box, self.per).period_internal)
+        for reach in (self.reach_of_k[k], 2.0 * diam, 4.0 * diam, 10.0 * diam):
+            period = np.array(Embedding.make(self.box, self.per, reach).period_internal)
+            if period.min() == default.min() and (period >= default).all():
+                continue
+            yield reach
 
-    for reach in reaches():
-        emb = Embedding.make(box, per, reach)
-        index = build_index3(emb.to_internal(pts), copy=False)  # the index owns them
-        period = np.array(emb.period_internal)
+    def find(self, k, factor):
+        """(embedding, index, M0) for the first torus that works, or None."""
+        for reach in self._reaches(k):
+            emb = Embedding.make(self.box, self.per, reach)
+            if min(int(np.prod(grid_shape3(emb.period_internal, g[0]))) for g in GRIDS3) > (
+                self.budget
+            ):
+                continue
+            emb, index, cache = self.torus(reach)
+            period = np.array(emb.period_internal)
 
-        def holds(x, r, index=index, period=period):
-            return _holds(index, x, r, k, period)
+            def holds(x, r, index=index, period=period):
+                return _holds(index, x, r, k, period)
 
-        grid = choose_grid3(period, holds, reach_factor(tau), emb.grid)
-        if grid is not None:
-            return emb, index, grid
-    return None
+            grid = choose_grid3(period, holds, factor, emb.grid, self.budget, self.check, cache)
+            if grid is not None:
+                return emb, index, grid
+        return None
+
+    def release(self):
+        """Let the indexes and candidates go (the run keeps the one it uses)."""
+        self.tori = {}
+
+    def refusal(self, k, tau):
+        """The message for an input no torus can start: what failed and what would work."""
+        factor = reach_factor(tau)
+        effort = sum(
+            int(
+                np.prod(grid_shape3(Embedding.make(self.box, self.per, r).period_internal, g[0]))
+            )  # fmt: skip
+            for r in self._reaches(k)
+            for g in GRIDS3
+        )
+        k_max, f_min = (
+            largest_passing(lambda kk, f: self.find(kk, f) is not None, k, factor)
+            if effort <= LIMITS_EFFORT3
+            else (None, None)
+        )
+        emb = Embedding.make(self.box, self.per)
+        mode = {(True,) * 3: "periodic", (False,) * 3: "ordinary"}.get(
+            tuple(emb.periodic), f"periodic={tuple(emb.periodic)}"
+        )
+        options = []
+        if k_max is not None and k_max >= 1:
+            options.append(f"use k <= {k_max} (the largest k certifiable here at tau = {tau:g})")
+        if f_min is not None and tau_for_factor(f_min) >= 2.01:
+            tau_max = np.floor(tau_for_factor(f_min) * 1000) / 1000
+            options.append(f"use tau <= {tau_max:g} with k = {k}")
+        if any(self.per):
+            options.append("make the shortest periodic side of the box longer")
+        if not options:
+            options.append("use a smaller k or a smaller tau")
+        return (
+            f"k = {k} cannot be certified for these {len(self.pts):,} points in the {mode} box "
+            f"{tuple(emb.box)} at tau = {tau:g}: Theorem 6's lower bound needs d_Pk <= "
+            f"{factor:.3g} x the distance to the nearest earlier vertex at every initial mesh "
+            "vertex, and no valid initial mesh of the 3-torus meets it (its spacing cannot "
+            f"exceed about a third of the torus' shortest period, {min(emb.period) / 3.0:.3g});"
+            " " + ", or ".join(options)
+        )
+
+
+def _points_under_floor(pts, floor, emb, n):
+    """How many input points lie in a floor element (``Refinement3.take_result``): a
+    circumball, or the ball of radius R(v) about a cell's vertex, that holds >= k points
+    below the floor; 0 without any (no kd-tree is built then)."""
+    centres, radii2, _ = floor
+    if len(radii2) == 0:
+        return 0
+    period = np.array(emb.period_internal)
+    tree = cKDTree(emb.to_internal(pts) % period, boxsize=period)
+    found = tree.query_ball_point(centres % period, np.sqrt(radii2) * (1.0 + 1e-9))
+    hit = np.zeros(n, bool)
+    for f in found:
+        hit[np.asarray(f, np.int64)] = True
+    return int(hit.sum())
 
 
 def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_vertices=None,
@@ -80,27 +209,31 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
     tau-well-spaced, no Voronoi cell and no closed circumball holding k points (checked by
     ``certify3``). periodic: a bool or one per axis; box: (x0, y0, z0, x1, y1, z1), required
     when an axis is periodic (points are wrapped into it), else the points' bounding box by
-    default. min_size, max_vertices, time_limit, progress: as in the plane."""
+    default. min_size, max_vertices, time_limit, progress: as in the plane: an initial mesh
+    that cannot fit is refused before any work, time_limit and Ctrl-C hold during the setup
+    too, a refusal names the largest k and tau that would certify, and a FloorWarning says
+    when most points lie below the floor."""
     pts = V.as_points(points, 3)
     k, tau, per, box, min_size, deadline, t_start = check_options(
         len(pts), None, lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p), k,
         tau, periodic, box, min_size, max_vertices, time_limit, progress, dim=3,
     )  # fmt: skip
-
-    found = _start(pts, box, per, k, tau)
-    if found is None:
-        raise InputError(
-            f"k = {k} is too large for {len(pts):,} points in this box: no initial mesh of the "
-            "3-torus satisfies Lemma 2's precondition (in some order, d_Pk at each initial "
-            "vertex at most (K - 1) times its distance to the earlier ones); use a smaller k"
-        )
-    emb, run_index, grid = found
-    del found  # the index must go with the run (take_result), not live on in this tuple
-    _past(deadline, "setting up", t_start)
     budget = int(max_vertices) if max_vertices is not None else max(10**6, 4 * len(pts))
-    run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
-                      grid, emb.grid)  # fmt: skip
-    status = run.run(deadline, None if progress is None else (lambda m: progress(m, 0)))
+    check_initial_budget3(box, per, budget)
+    with Interrupts() as interrupts:
+        start = _Start3(pts, box, per, budget, interrupts, deadline, t_start)
+        found = start.find(k, reach_factor(tau))
+        if found is None:
+            raise InputError(start.refusal(k, tau))
+        emb, run_index, grid = found
+        del found  # the index must go with the run (take_result), not live on in this tuple
+        start.release()
+        _past(deadline, "setting up", t_start)
+        run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
+                          grid, emb.grid)  # fmt: skip
+        del run_index, grid
+        status = run.run(deadline, None if progress is None else (lambda m: progress(m, 0)),
+                         interrupts)  # fmt: skip
     if status != STATUS_DONE:
         what = (
             f"max_vertices = {budget:,}"
@@ -111,8 +244,23 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
             f"stopped at {what} before the mesh was done; raise it, or use a larger k or min_size",
             progress={**run.progress(), "seconds": time.perf_counter() - t_start},
         )
-    xyz, corners, offsets, kinds, cnt = run.take_result()
-    del run, run_index
+    xyz, corners, offsets, kinds, cnt, floor = run.take_result()
+    del run
+    under = _points_under_floor(pts, floor, emb, len(pts))
+    if under > len(pts) / 2:
+        warnings.warn(
+            f"{under} of the {len(pts)} points ({100 * under / len(pts):.0f}%) lie in "
+            f"circumballs or cells smaller than min_size = {min_size:.3g} that still hold k = "
+            f"{k} points: the bounds are not claimed there"
+            + (
+                " (k = 1 makes every input point such a place; use k >= 2)"
+                if k == 1
+                else f"; min_size defaults to 1e-6 of the box {tuple(box)}, not of the data: "
+                "pass a smaller min_size or a box fitted to the data"
+            ),
+            FloorWarning,
+            stacklevel=3,
+        )
     out_v, pos, tetrahedra, out_offsets = unfold(xyz, corners, offsets, emb, copy=False)
     local = pos / emb.scale  # exact: a power of two
     torus = None
@@ -125,5 +273,7 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
         period=emb.period, local=local, order=None if torus is None else out_v, embedded=torus,
         stats={"n": len(pts), "m": len(out_v), "m_torus": len(xyz),
                "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
-               "failed": int(cnt[C_FAILED]), "seconds": time.perf_counter() - t_start},
+               "failed": int(cnt[C_FAILED]), "floor_circumballs": int(floor[2]),
+               "floor_cells": int(len(floor[1]) - floor[2]), "points_under_floor": under,
+               "seconds": time.perf_counter() - t_start},
     )  # fmt: skip

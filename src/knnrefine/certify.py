@@ -539,8 +539,9 @@ def _certify_strip(points, weights, job):
         out["held"] = _held(cKDTree(pts, boxsize=period), w, centres, radii, 1)
     if "cells" in job:
         vxy, ids, pad, before, complete = job["cells"]
-        if len(vxy) == 0:
-            out.update(cell_ids=ids, cell_counts=np.zeros(0), undecided=0 if complete else len(pts))
+        if len(vxy) == 0 or len(pts) == 0:  # nothing to tally (a strip may hold no point)
+            undecided = 0 if complete or len(vxy) else len(pts)
+            out.update(cell_ids=ids[:0], cell_counts=np.zeros(0), undecided=undecided)
             return out
         dd, ii = cKDTree(vxy, boxsize=period).query(pts, k=min(3, len(vxy)))
         dd, ii = dd.reshape(len(pts), -1), ii.reshape(len(pts), -1)

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from .mesh import KIND_NAMES, theorem6_constants
 from .metric import BoxMetric, TorusFrame
-from .validation import as_points
+from .validation import as_queries
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,8 +95,9 @@ class Mesh3:
         return c if self.offsets is None else c + self.offsets * np.asarray(self.period)
 
     def wrap(self, x):
-        """Points (q, 3) relative to ``origin``, wrapped into [0, period) along periodic
-        axes (the package's one wrapping rule, ``metric.BoxMetric``)."""
+        """Points x (q, 3), in input coordinates, in the mesh's frame: relative to ``origin``,
+        wrapped into [0, period) along periodic axes (the package's one wrapping rule,
+        ``metric.BoxMetric``)."""
         return self.metric.frame(x)
 
     def inside(self, x):
@@ -110,9 +111,11 @@ class Mesh3:
     def d_m2(self, x):
         """d_{M,2} at the points x (..., 3): the distance to the second-nearest vertex (in
         the box; beyond it along a non-periodic axis, the embedding torus's)."""
-        flat = as_points(np.reshape(x, (-1, 3)), 3)
+        flat, shape = as_queries(x, 3)
+        if len(flat) == 0:
+            return np.zeros(shape)
         d = self._torus_tree.query(TorusFrame(self.origin, self.period)(flat), k=2)[0][:, 1]
-        return d.reshape(np.shape(x)[:-1])
+        return d.reshape(shape)
 
     @cached_property
     def _torus_tree(self):

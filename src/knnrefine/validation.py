@@ -249,25 +249,27 @@ def check_inside(points, box, periodic):
             )
 
 
-def as_queries(x):
-    """Query points of any shape (..., 2): returns (flat (q, 2) float64, the leading shape).
+def as_queries(x, dim=2):
+    """Query points of any shape (..., dim): returns (flat (q, dim) float64, the leading
+    shape); none at all, (0, dim), is a valid empty query.
     Anything else is refused (a (2, N) array in scipy's gaussian_kde layout is the classic
     mistake: it would silently be read as N / 2 points)."""
     arr = np.asarray(x, dtype=np.float64) if not isinstance(x, np.ndarray) else x
     if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
         raise InputError(f"query points must be numbers, got dtype {arr.dtype}")
-    if arr.ndim == 0 or arr.shape[-1] != 2:
+    if arr.ndim == 0 or arr.shape[-1] != dim:
         hint = (
-            "; for the (2, N) layout of scipy's gaussian_kde pass x.T"
-            if arr.ndim == 2 and arr.shape[0] == 2
+            f"; for the ({dim}, N) layout of scipy's gaussian_kde pass x.T"
+            if arr.ndim == 2 and arr.shape[0] == dim
             else ""
         )
+        axes = "x and y" if dim == 2 else "x, y and z"
         raise InputError(
-            f"query points must have shape (..., 2), x and y on the last axis, got "
+            f"query points must have shape (..., {dim}), {axes} on the last axis, got "
             f"{arr.shape}{hint}"
         )
     arr = np.asarray(arr, dtype=np.float64)
-    return arr.reshape(-1, 2), arr.shape[:-1]
+    return arr.reshape(-1, dim), arr.shape[:-1]
 
 
 RESOLUTION_BITS = 24  # a box must span at least 2^24 grid steps: the floor is 2^14 of them

@@ -4,11 +4,13 @@ the arrays when the kernel asks, and returns the final triangulation."""
 
 import numpy as np
 
+from ..errors import EngineError
 from .geometry import FLOOR_BITS, Q
-from .initial import initial_grid3, peel_order
+from .initial import GRIDS3, grid_shape3, initial_grid3, peel_order
 from .interrupt import Interrupts
 from .queue import Q_SIZE, new_queue
 from .refine import (
+    FLOOR,
     KIND_NAMES,
     STATUS_DONE,
     STATUS_ERROR,
@@ -115,31 +117,45 @@ class Refinement3:
         self.cnt[C_MAX_VERTICES] = int(max_vertices)
         queue_all3(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
-    def run(self, deadline=None, progress=None):
+    def run(self, deadline=None, progress=None, interrupts=None):
         """Refine until done, the vertex budget, or the deadline (a ``time.perf_counter()``
-        value); returns the status."""
+        value); returns the status. Kernel calls are sized to last about 50 ms; after every
+        one (growth included): progress(vertices), Ctrl-C (``interrupts``, or a handler of
+        its own), then the deadline."""
+        import contextlib
         import time
 
-        with Interrupts() as interrupts:
+        steps = min(2000, STEPS)
+        with contextlib.ExitStack() as stack:
+            if interrupts is None:
+                interrupts = stack.enter_context(Interrupts())
             while True:
+                before, t1 = int(self.cnt[C_NV]), time.perf_counter()
                 status = refine_steps3(
                     self.mesh, self.book, self.queues, self.scratch, self.probe, self.cnt,
-                    self.prm, self.index, STEPS,
+                    self.prm, self.index, steps,
                 )  # fmt: skip
+                now = time.perf_counter()
+                done = int(self.cnt[C_NV]) - before
+                if done > 0:  # calls cut short (GROW) measure the rate too
+                    rate = done / max(now - t1, 1e-6)
+                    steps = int(min(max(rate * 0.05, 100), STEPS))
                 if self.cnt[C_STAMP] > STAMP_LIMIT:
                     self._restart_stamps()
                 if progress is not None:
                     progress(int(self.cnt[C_NV]))
-                if status == STATUS_GROW:
-                    self._grow()
-                    continue
                 if status == STATUS_ERROR:
                     code = int(self.cnt[C_ERROR])
-                    raise RuntimeError(ERRORS.get(code, f"engine error {code}"))
+                    raise EngineError(
+                        "refinement in space stopped on a broken invariant: "
+                        f"{ERRORS.get(code, f'engine error {code}')} (after "
+                        f"{int(self.cnt[C_NV])} vertices); please report it with the input"
+                    )
                 if status in (STATUS_DONE, STATUS_MAX_VERTICES):
                     return status
-                assert status == STATUS_STEPS
                 interrupts.check()
+                if status == STATUS_GROW:
+                    self._grow()
                 if deadline is not None and time.perf_counter() > deadline:
                     return STATUS_STEPS
 
@@ -173,13 +189,25 @@ class Refinement3:
                 grow(self, parts, _grown(cap), in_place=True)
 
     def take_result(self):
-        """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters), consuming
-        the run: the index, scratch, queues and bookkeeping are let go first, and each mesh
-        array as soon as its trimmed copy exists, so that the copies never sit beside the
-        whole state (the peak memory of a run)."""
+        """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters, floor),
+        consuming the run: the index, scratch, queues and bookkeeping are let go first, and
+        each mesh array as soon as its trimmed copy exists, so that the copies never sit
+        beside the whole state (the peak memory of a run). ``floor``: (centres (f, 3),
+        squared radii (f,), circumballs among them) of the elements left below the floor
+        holding k points: circumballs, then the balls of radius R(v) about cells' vertices."""
         nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
         cnt = self.cnt.copy()
         kinds = self.book.kinds[:nv].copy()
+        balls = np.flatnonzero(self.book.ball_state[:nt] == FLOOR)
+        cells = np.flatnonzero(self.book.cell_state[:nv] == FLOOR)
+        c = self.mesh.xyz[self.mesh.corners[balls]] + unpack_offsets(
+            self.mesh.offsets[balls]
+        ) * self.period  # fmt: skip
+        floor = (
+            np.concatenate([circumcentres3(c), self.mesh.xyz[cells]]) % self.period,
+            np.concatenate([self.mesh.radius2[balls], self.mesh.outradius2[cells]]),
+            len(balls),
+        )
         arrays = self.mesh._asdict()
         self.mesh = self.book = self.queues = self.scratch = self.probe = self.index = None
         for name in ("neighbours", "radius2", "star", "outradius2", "nearest2"):
@@ -187,22 +215,44 @@ class Refinement3:
         xyz = arrays.pop("xyz")[:nv].copy()
         corners = arrays.pop("corners")[:nt].copy()
         offsets = unpack_offsets(arrays.pop("offsets")[:nt])
-        return xyz, corners, offsets, kinds, cnt
+        return xyz, corners, offsets, kinds, cnt, floor
 
 
-def choose_grid3(period, holds, factor, q=Q):
-    """The first candidate M0 (finest first) whose vertices can be ordered so that each u
-    has d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition, factor = K - 1:
-    ``initial.reach_factor``; the order is found by peeling, ``initial.peel_order``):
-    ``holds(x, r)`` says whether the closed ball of radius r about each x holds k points.
+def circumcentres3(c):
+    """The circumcentres of the tetrahedra with corners c (t, 4, 3)."""
+    if len(c) == 0:
+        return np.zeros((0, 3))
+    m = c[:, 1:] - c[:, :1]
+    rhs = 0.5 * (m**2).sum(axis=2)
+    return c[:, 0] + np.linalg.solve(m, rhs[..., None])[..., 0]
+
+
+def choose_grid3(period, holds, factor, q=Q, max_vertices=None, check=None, cache=None):
+    """The first candidate M0 (``initial.GRIDS3``, finest first) whose vertices can be
+    ordered so that each u has d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition,
+    factor = K - 1: ``initial.reach_factor``; the order is found by peeling,
+    ``initial.peel_order``): ``holds(x, r)`` says whether the closed ball of radius r about
+    each x holds k points. Candidates with more than ``max_vertices`` vertices are skipped
+    (never built); ``check()`` runs between candidates and peeling rounds (deadline,
+    Ctrl-C); ``cache`` (a dict) keeps the candidates built, for a caller that asks again.
     None when no candidate passes."""
-    for per, jitter, shift in ((4, 0.2, 0.0), (4, 0.2, 0.5), (3, 0.05, 0.0), (3, 0.05, 0.5)):
-        grid = initial_grid3(period, per, jitter, shift, q)
+    cache = {} if cache is None else cache
+    for per, jitter, shift in GRIDS3:
+        if max_vertices is not None and int(np.prod(grid_shape3(period, per))) > max_vertices:
+            continue
+        key = (per, jitter, shift)
+        if key not in cache:
+            cache[key] = initial_grid3(period, per, jitter, shift, q, check)
+            if check is not None:
+                check()
+        grid = cache[key]
         if grid is None:
             continue
 
         def passes(x, lam):
             # conservative: the reach is shortened by a relative 1e-9 against rounding
+            if check is not None:
+                check()
             return holds(x, factor * lam * (1.0 - 1e-9))
 
         if peel_order(grid[0], grid[4], period, passes)[0] is not None:

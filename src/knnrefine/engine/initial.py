@@ -247,7 +247,19 @@ _KUHN[np.linalg.det(_KUHN[:, :3] - _KUHN[:, 3:]) < 0] = _KUHN[
 ][:, [1, 0, 2, 3]]
 
 
-def initial_grid3(period, per_period=4, jitter=0.2, shift=0.0, q=Q):
+GRIDS3 = ((4, 0.2, 0.0), (4, 0.2, 0.5), (3, 0.05, 0.0), (3, 0.05, 0.5))  # the candidate M0s
+# in space, finest first: (grid points along the shortest period, jitter, shift)
+
+
+def grid_shape3(period, per_period):
+    """Grid points along each axis of the 3-torus of ``period`` for ``initial_grid3``:
+    ``per_period`` along the shortest, as many of that spacing along the others."""
+    period = np.asarray(period, float)
+    h = period.min() / per_period
+    return np.maximum(per_period, np.ceil(period / h - 1e-9).astype(np.int64))
+
+
+def initial_grid3(period, per_period=4, jitter=0.2, shift=0.0, q=Q, check=None):
     """M0 in three dimensions: a tensor grid on the 3-torus of periods ``period``, each box
     cut into the six tetrahedra of its Kuhn subdivision (round the diagonal from its lowest
     to its highest corner; neighbouring boxes cut their shared face the same way).
@@ -257,10 +269,11 @@ def initial_grid3(period, per_period=4, jitter=0.2, shift=0.0, q=Q):
     to jitter / 2 per axis (as ``initial_grid``: a regular grid would keep uniform regions
     exactly cospherical at every level). Returns (xyz, corners, offsets, neighbours, lam),
     lam each vertex's distance to its nearest neighbour (an axis neighbour), or None when a
-    circumradius would reach a quarter of the shortest period."""
+    circumradius would reach a quarter of the shortest period. ``check()`` runs between its
+    steps (a large grid takes seconds: deadline, Ctrl-C)."""
+    check = check or (lambda: None)
     period = np.asarray(period, float)
-    h = period.min() / per_period
-    n = np.maximum(per_period, np.ceil(period / h - 1e-9).astype(int))
+    n = grid_shape3(period, per_period)
     g = [
         _jittered_positions(n[a], period[a], (0.0, 0.5, 0.25)[a], jitter, shift, q)
         for a in range(3)
@@ -268,45 +281,63 @@ def initial_grid3(period, per_period=4, jitter=0.2, shift=0.0, q=Q):
     w = [np.diff(np.append(g[a], g[a][0] + period[a])) for a in range(3)]
     if np.sqrt(sum(wa.max() ** 2 for wa in w)) / 2.0 >= period.min() / 4.0 * (1.0 - 1e-9):
         return None
-    idx = np.stack(np.meshgrid(*[np.arange(na) for na in n], indexing="ij"), -1).reshape(-1, 3)
+    idx = np.stack(
+        np.meshgrid(*[np.arange(na, dtype=np.int32) for na in n], indexing="ij"), -1
+    ).reshape(-1, 3)
     xyz = np.stack([g[a][idx[:, a]] for a in range(3)], 1)
 
-    def vid(c):
-        return (c[..., 0] * n[1] + c[..., 1]) * n[2] + c[..., 2]
-
-    cells = idx  # cell (i, j, k) has its lowest corner at grid point (i, j, k)
-    raw = cells[:, None, None, :] + _KUHN[None]  # (cells, 6, 4, 3) grid indices
-    offsets = (raw >= n).astype(np.int8)
-    corners = vid(raw % n).reshape(-1, 4).astype(np.int32)
+    # cell (i, j, k) has its lowest corner at grid point (i, j, k); its six tetrahedra are
+    # rows 6 c .. 6 c + 5, built corner by corner (no (cells, 6, 4, 3) temporary)
+    cells = len(idx)
+    corners = np.empty((cells, 6, 4), np.int32)
+    offsets = np.empty((cells, 6, 4, 3), np.int8)
+    nn = n.astype(np.int32)
+    for t in range(6):
+        for i in range(4):
+            raw = idx + _KUHN[t, i].astype(np.int32)
+            wraps = raw >= nn
+            offsets[:, t, i] = wraps
+            raw -= wraps * nn
+            corners[:, t, i] = (raw[:, 0] * nn[1] + raw[:, 1]) * nn[2] + raw[:, 2]
+        check()
+    corners = corners.reshape(-1, 4)
     offsets = offsets.reshape(-1, 4, 3)
-    neighbours = face_neighbours(corners, offsets)
+    check()
+    neighbours = face_neighbours(corners, offsets, check)
     lam = np.min(
         np.stack([np.minimum(w[a], np.roll(w[a], 1))[idx[:, a]] for a in range(3)], 1), axis=1
     )
     return xyz, corners, offsets, neighbours, lam
 
 
-def face_neighbours(corners, offsets):
+def face_neighbours(corners, offsets, check=None):
     """neighbours (t, 4): the tetrahedron across the face opposite each corner, matched by
     the face's three vertices and their offsets relative to each other (the same from either
-    side); ValueError unless every face is shared by exactly two tetrahedra."""
+    side); ValueError unless every face is shared by exactly two tetrahedra. Each corner of
+    a face is one integer (its vertex, then its offset past the face's least, 2 bits per
+    axis); the face's three, sorted, are its key, matched by one stable sort: linear in
+    memory."""
     t = len(corners)
-    keys = []
+    m = int(corners.max(initial=0)) + 1
+    first, second = [], []
     for i in range(4):
         other = [j for j in range(4) if j != i]
-        v = corners[:, other].astype(np.int64)
         o = offsets[:, other].astype(np.int64)
-        o = o - o.min(axis=1, keepdims=True)
-        order = np.argsort(v, axis=1)
-        v = np.take_along_axis(v, order, 1)
-        o = np.take_along_axis(o, order[..., None], 1)
-        keys.append(np.concatenate([v, o.reshape(t, 9)], axis=1))
-    keys = np.concatenate(keys)  # row f = i * t + tet
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    if (counts != 2).any():
-        raise ValueError("a face is not shared by exactly two tetrahedra")
-    order = np.argsort(inverse, kind="stable")
+        o -= o.min(axis=1, keepdims=True)
+        if o.max(initial=0) >= 4:
+            raise ValueError("a tetrahedron spans more than three periods")
+        c = np.sort(corners[:, other].astype(np.int64) * 64 + o @ np.array([16, 4, 1]), axis=1)
+        first.append(c[:, 0] * (64 * m) + c[:, 1])
+        second.append(c[:, 2])
+        if check is not None:
+            check()
+    first, second = np.concatenate(first), np.concatenate(second)  # row f = i * t + tet
+    order = np.lexsort((second, first))  # stable: a face's two rows in the order of f
     a, b = order[0::2], order[1::2]
+    paired = (first[a] == first[b]) & (second[a] == second[b])
+    apart = (first[b[:-1]] != first[a[1:]]) | (second[b[:-1]] != second[a[1:]])
+    if len(order) % 2 or not (paired.all() and apart.all()):
+        raise ValueError("a face is not shared by exactly two tetrahedra")
     out = np.empty(4 * t, np.int64)
     out[a] = b % t
     out[b] = a % t
