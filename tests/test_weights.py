@@ -160,3 +160,91 @@ def test_bad_weights_are_refused_before_work(weights, k, match):
     pts = np.random.default_rng(6).random((100, 2))
     with pytest.raises(InputError, match=match):
         knnrefine.refine(pts, k, weights=weights)
+
+
+# -- extreme weights (issue 28) ------------------------------------------------------------------
+
+
+def test_a_weight_k_beyond_int64_is_a_weight():
+    """regression: k >= 2^63 (weights 1e19, k = 1e20) was kept a Python int the kernels
+    could not type (numba TypingError). It is a weight: the run is certified, the same mesh
+    as weights 1 and k = 10 (every weight is 1e19 exactly, the sums exact multiples)."""
+    pts = np.random.default_rng(0).random((500, 2))
+    big = knnrefine.refine(pts, 1e20, weights=np.full(500, 1e19))
+    assert knnrefine.certify(big, pts, weights=np.full(500, 1e19)).passed
+    unit = knnrefine.refine(pts, 10, weights=np.ones(500))
+    np.testing.assert_array_equal(big.vertices, unit.vertices)
+
+
+def test_subnormal_weights():
+    """regression: weights of 5e-324 (the least double) raised 'cannot convert float NaN to
+    integer' (the size estimate divided by their subnormal total). Weights are relative to
+    k: 5e-324 with k = 20 x 5e-324 is the mesh of weights 1 with k = 20, exactly (sums of
+    subnormals are exact)."""
+    pts = np.random.default_rng(1).random((500, 2))
+    tiny = np.full(500, 5e-324)
+    mesh = knnrefine.refine(pts, 20 * 5e-324, weights=tiny)
+    assert knnrefine.certify(mesh, pts, weights=tiny).passed
+    unit = knnrefine.refine(pts, 20, weights=np.ones(500))
+    np.testing.assert_array_equal(mesh.vertices, unit.vertices)
+
+
+def test_a_heavy_point_does_not_swallow_light_ones():
+    """regression: one point of weight 1e16 among points of weight 1, k = 1e16 + 8. Added in
+    distance order, 1e16 + 1 rounds to 1e16: certify's d_Pk never reached k (infinite,
+    alpha_hat 0) and failed the mesh, and the engine's counts lost the light points too, so
+    circumballs holding the heavy point and 8 or more light ones (exactly, by math.fsum)
+    were left unsplit. Both now sum with compensation: no circumball or cell holds k by the
+    exact sums, and certify's d_Pk is the exact one at every input point."""
+    import math
+
+    from scipy.spatial import cKDTree
+
+    from knnrefine.mesh import circumcircles
+
+    pts = np.random.default_rng(0).random((200, 2))
+    w = np.ones(200)
+    w[0] = 1e16
+    k = 1e16 + 8
+    mesh = knnrefine.refine(pts, k, weights=w)
+    cert = knnrefine.certify(mesh, pts, weights=w)
+    assert cert.passed, str(cert)
+    torus = mesh.torus
+    period = np.array(torus.period)
+    local = np.mod(pts - np.array(torus.origin), period)
+    tree = cKDTree(local, boxsize=period)
+    centres, radii = circumcircles(torus.vertices[torus.triangles] + torus.offsets * period)
+    held = [math.fsum(w[i]) for i in tree.query_ball_point(np.mod(centres, period), radii)]
+    assert max(held) < k
+    # each point's nearest vertices: its Voronoi cell (ties count for each)
+    dd, ii = cKDTree(torus.vertices, boxsize=period).query(local, k=3)
+    cells = {}
+    for p in range(len(pts)):
+        for d, v in zip(dd[p], ii[p], strict=True):
+            if d <= dd[p, 0] * (1 + 1e-12):
+                cells.setdefault(v, []).append(w[p])
+    assert max(math.fsum(c) for c in cells.values()) < k
+    # d_Pk by exact sums in distance order, against certify's (compensated) one
+    from knnrefine.certify import _Torus
+
+    d, i = tree.query(local, k=len(pts))
+    exact = [d[p][next(j for j in range(len(pts)) if math.fsum(w[i[p][: j + 1]]) >= k)]
+             for p in range(len(pts))]  # fmt: skip
+    np.testing.assert_array_equal(_Torus(mesh, pts, 1, w).d_pk(local), exact)
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, float("inf"), float("nan"), True, "10"])
+def test_max_vertices_is_checked(bad):
+    with pytest.raises(InputError, match="max_vertices"):
+        knnrefine.refine(np.random.default_rng(2).random((100, 2)), 5, max_vertices=bad)
+
+
+def test_max_vertices_beyond_int64_means_no_budget():
+    """regression: max_vertices=2**70 raised a bare OverflowError; a budget beyond 2^62 is
+    no budget (capped there), in the plane, in space and through the tiles."""
+    pts = np.random.default_rng(3).random((2000, 2))
+    mesh = knnrefine.refine(pts, 5, max_vertices=2**70)
+    assert mesh.stats["max_vertices"] == 2**62
+    assert len(knnrefine.refine(pts, 5, max_vertices=2**70, workers=2).vertices) > 0
+    space = np.random.default_rng(4).random((500, 3))
+    knnrefine.refine(space, 5, periodic=True, box=(0, 0, 0, 1, 1, 1), max_vertices=2**70)

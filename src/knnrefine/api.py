@@ -151,6 +151,7 @@ def refine(
     Points in space ((n, 3), a box of six numbers, ``periodic`` a bool or three) are refined
     by ``api3.refine3`` into a ``Mesh3``; weights, workers and executor do not apply there.
     """
+    max_vertices = V.check_max_vertices(max_vertices)
     if _is_spatial(points):
         from .api3 import refine3
 
@@ -250,10 +251,7 @@ def check_options(n, total, bounds, check_inside, k, tau, periodic, box, min_siz
     elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
         raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
     min_size = float(min_size)
-    if max_vertices is not None and (
-        isinstance(max_vertices, bool) or int(max_vertices) != max_vertices or max_vertices < 1
-    ):
-        raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
+    max_vertices = V.check_max_vertices(max_vertices)
     if progress is not None and not callable(progress):
         raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
     V.check_resolution(box, per)

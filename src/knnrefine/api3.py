@@ -214,6 +214,7 @@ def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_v
     too, a refusal names the largest k and tau that would certify, and a FloorWarning says
     when most points lie below the floor."""
     pts = V.as_points(points, 3)
+    max_vertices = V.check_max_vertices(max_vertices)
     k, tau, per, box, min_size, deadline, t_start = check_options(
         len(pts), None, lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p), k,
         tau, periodic, box, min_size, max_vertices, time_limit, progress, dim=3,

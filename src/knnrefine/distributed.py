@@ -274,6 +274,7 @@ def refine(
     """
     if output is not None:
         check_output(output, parts, force)
+    max_vertices = V.check_max_vertices(max_vertices)
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         k, tau, per, box, min_size, deadline, t_start = check_options(
             store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),

@@ -1,5 +1,6 @@
 """Checks at the public boundary: every message says what was wrong and what to do."""
 
+import math
 import numbers
 
 import numpy as np
@@ -119,7 +120,9 @@ def check_weighted_k(k, total):
             f"k = {k} is larger than the total weight, {total:.6g}: d_Pk would be infinite "
             f"everywhere; use k <= {total:.6g}"
         )
-    return int(k) if float(k).is_integer() else float(k)
+    # a whole k is kept an integer only where int64 holds it exactly (k = 1e20 with weights
+    # of 1e19 is a weight, not a count the kernels could type)
+    return int(k) if float(k).is_integer() and abs(float(k)) < 2.0**53 else float(k)
 
 
 def check_tau(tau):
@@ -131,6 +134,25 @@ def check_tau(tau):
             "(3 is the usual choice)"
         )
     return float(tau)
+
+
+MAX_VERTICES_CAP = 2**62  # a vertex budget beyond this is no budget (and beyond int64)
+
+
+def check_max_vertices(max_vertices):
+    """A vertex budget: None, or a positive whole number; one beyond 2^62 (no machine holds
+    that many vertices) means no budget and is capped there, not an OverflowError."""
+    if max_vertices is None:
+        return None
+    if (
+        isinstance(max_vertices, bool)
+        or not isinstance(max_vertices, numbers.Real)
+        or not math.isfinite(max_vertices)
+        or int(max_vertices) != max_vertices
+        or max_vertices < 1
+    ):
+        raise InputError(f"max_vertices must be a positive integer, got {max_vertices!r}")
+    return min(int(max_vertices), MAX_VERTICES_CAP)
 
 
 def check_workers(workers):

@@ -255,12 +255,13 @@ def build_index(pts, workers=None, weights=None):
 
 @kernel(entry=True)
 def _node_weights(pts, node, weight):
-    """weight[t] = the sum of node t's points' weights, in row order."""
+    """weight[t] = the sum of node t's points' weights (compensated: ``_plus``)."""
     for t in range(node.shape[0]):
         total = 0.0
+        comp = 0.0
         for i in range(node[t, 0], node[t, 1]):
-            total += pts[i, 2]
-        weight[t] = total
+            total, comp = _plus(total, comp, pts[i, 2])
+        weight[t] = total + comp
 
 
 def _build_tree(pts, workers):
@@ -310,6 +311,20 @@ def _weight_of(pts, weight, i):
     return 1.0 if weight.shape[0] == 0 else pts[i, 2]
 
 
+@kernel(inline="always")
+def _plus(s, c, x):
+    """s + x with the rounding error gathered in c (Neumaier's compensated summation): the
+    running total s + c of weights >= 0 stays within two ulps of the exact sum whatever the
+    order, where plain addition loses a weight of 1 beside one of 1e16. Counts (whole
+    numbers below 2^53) are added exactly and c stays 0."""
+    t = s + x
+    if abs(s) >= abs(x):
+        c += (s - t) + x
+    else:
+        c += (x - t) + s
+    return t, c
+
+
 @kernel(nrt=False)
 def _start(node, split, cx, cy, r):
     """The deepest node whose split region strictly contains the disk (c, r): points outside
@@ -329,8 +344,9 @@ def _start(node, split, cx, cy, r):
 @kernel(nrt=False)
 def _count_disk(index, cx, cy, r2, k, stack):
     """Points of P in the closed disk (c, sqrt(r2)), counting (their weight) up to at least
-    k."""
+    k (weights summed with ``_plus``)."""
     count = 0.0
+    comp = 0.0
     pts, box, node, split, weight = index
     if node[0, 1] == 0:
         return count
@@ -348,9 +364,9 @@ def _count_disk(index, cx, cy, r2, k, stack):
         fx = max(cx - box[t, 0], box[t, 2] - cx)
         fy = max(cy - box[t, 1], box[t, 3] - cy)
         if fx * fx + fy * fy <= r2:
-            count += _held(node, weight, t)
-            if count >= k:
-                return count
+            count, comp = _plus(count, comp, _held(node, weight, t))
+            if count + comp >= k:
+                return count + comp
             continue
         c = node[t, 2]
         if c < 0:
@@ -366,16 +382,16 @@ def _count_disk(index, cx, cy, r2, k, stack):
                     ex = pts[i, 0] - cx
                     ey = pts[i, 1] - cy
                     if ex * ex + ey * ey <= r2:
-                        count += pts[i, 2]
-            if count >= k:
-                return count
+                        count, comp = _plus(count, comp, pts[i, 2])
+            if count + comp >= k:
+                return count + comp
             continue
         # the child on the centre's side is visited first: where the points are
         near = 0 if (cx if node[t, 3] == 0 else cy) <= split[t] else 1
         stack[sp] = c + 1 - near
         stack[sp + 1] = c + near
         sp += 2
-    return count
+    return count + comp
 
 
 @kernel(inline="always")
@@ -402,6 +418,7 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
     magnitude >= 1e-150 (squared distances must not underflow; the engine's are far larger)."""
     r = np.sqrt(r2)
     count = 0.0
+    comp = 0.0
     x_lo, x_hi = _copies(cx, r, lx)
     y_lo, y_hi = _copies(cy, r, ly)
     for sx in range(x_lo, x_hi + 1):
@@ -412,17 +429,19 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
             oy = cy + sy * ly
             if oy + r < 0.0 or oy - r > ly:
                 continue
-            count += _count_disk(index, ox, oy, r2, k - count, stack)
-            if count >= k:
-                return count
-    return count
+            held = _count_disk(index, ox, oy, r2, k - (count + comp), stack)
+            count, comp = _plus(count, comp, held)
+            if count + comp >= k:
+                return count + comp
+    return count + comp
 
 
 @kernel(nrt=False)
 def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
-    """Points of P in the closed cell (see count_in_cell), counting (their weight) up to at
-    least k."""
+    """Points of P in the closed cell (see count_in_cell), counting (their weight, summed
+    with ``_plus``) up to at least k."""
     count = 0.0
+    comp = 0.0
     pts, box, node, split, weight = index
     if node[0, 1] == 0:
         return count
@@ -457,16 +476,15 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
         if outside:
             continue
         if inside:
-            count += _held(node, weight, t)
-            if count >= k:
-                return count
+            count, comp = _plus(count, comp, _held(node, weight, t))
+            if count + comp >= k:
+                return count + comp
             continue
         c = node[t, 2]
         if c < 0:
             # one vectorisable pass per constraint over blocks of the leaf's points (a leaf
             # of coincident points can exceed LEAF_SIZE)
             found = 0
-            held = 0.0
             for lo in range(node[t, 0], node[t, 1], LEAF_SIZE):
                 m = min(LEAF_SIZE, node[t, 1] - lo)
                 for i in range(m):
@@ -485,16 +503,16 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
                 else:
                     for i in range(m):
                         if mask[i]:
-                            held += pts[lo + i, 2]
-            count += found + held
-            if count >= k:
-                return count
+                            count, comp = _plus(count, comp, pts[lo + i, 2])
+            count += found
+            if count + comp >= k:
+                return count + comp
             continue
         near = 0 if (vx if node[t, 3] == 0 else vy) <= split[t] else 1
         stack[sp] = c + 1 - near
         stack[sp + 1] = c + near
         sp += 2
-    return count
+    return count + comp
 
 
 @kernel(nrt=False)
@@ -505,6 +523,7 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
     length. ``mask`` is scratch of LEAF_SIZE booleans. Weighted points count their weight."""
     r = np.sqrt(r2)
     count = 0.0
+    comp = 0.0
     x_lo, x_hi = _copies(vx, r, lx)
     y_lo, y_hi = _copies(vy, r, ly)
     for sx in range(x_lo, x_hi + 1):
@@ -515,10 +534,11 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
             oy = vy + sy * ly
             if oy + r < 0.0 or oy - r > ly:
                 continue
-            count += _count_cell(index, ox, oy, hx, hy, hc, nh, r2, k - count, stack, mask)
-            if count >= k:
-                return count
-    return count
+            held = _count_cell(index, ox, oy, hx, hy, hc, nh, r2, k - (count + comp), stack, mask)
+            count, comp = _plus(count, comp, held)
+            if count + comp >= k:
+                return count + comp
+    return count + comp
 
 
 @kernel(entry=True)
@@ -604,6 +624,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
     cx -= np.floor(cx / lx) * lx
     cy -= np.floor(cy / ly) * ly
     count = 0.0
+    comp = 0.0
     stack[0] = 0
     sp = 1
     while sp > 0:
@@ -614,9 +635,9 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
         if nx * nx + ny * ny > r2:
             continue
         if fx * fx + fy * fy <= r2:
-            count += _held(node, weight, t)
-            if count >= k:
-                return count
+            count, comp = _plus(count, comp, _held(node, weight, t))
+            if count + comp >= k:
+                return count + comp
             continue
         c = node[t, 2]
         if c < 0:
@@ -626,14 +647,14 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
                 ex = min(ex, lx - ex)
                 ey = min(ey, ly - ey)
                 if ex * ex + ey * ey <= r2:
-                    count += _weight_of(pts, weight, i)
-                    if count >= k:
-                        return count
+                    count, comp = _plus(count, comp, _weight_of(pts, weight, i))
+                    if count + comp >= k:
+                        return count + comp
             continue
         stack[sp] = c
         stack[sp + 1] = c + 1
         sp += 2
-    return count
+    return count + comp
 
 
 @kernel(entry=True)
@@ -699,11 +720,15 @@ def _select_held(buf, wbuf, n, target, unit):
         at = float(gt + 1 - lt)
         if not unit:
             below = 0.0
+            comp = 0.0
             for e in range(lo, lt):
-                below += wbuf[e]
+                below, comp = _plus(below, comp, wbuf[e])
+            below += comp
             at = 0.0
+            comp = 0.0
             for e in range(lt, gt + 1):
-                at += wbuf[e]
+                at, comp = _plus(at, comp, wbuf[e])
+            at += comp
         if below >= target:
             hi = lt - 1
         elif below + at >= target:
@@ -726,7 +751,9 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
     rin2 = r_in * r_in
     rout2 = r_out * r_out
     inner = 0.0
+    inner_c = 0.0
     between = 0.0
+    between_c = 0.0
     kept = 0
     cap = buf.shape[0]
     stack[0] = 0
@@ -739,8 +766,8 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
         if nx * nx + ny * ny > rout2:
             continue
         if fx * fx + fy * fy <= rin2:
-            inner += _held(node, weight, t)
-            if inner >= k:
+            inner, inner_c = _plus(inner, inner_c, _held(node, weight, t))
+            if inner + inner_c >= k:
                 return WINDOW_LOW
             continue
         c = node[t, 2]
@@ -759,17 +786,18 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
             d2 = ex * ex + ey * ey
             w = _weight_of(pts, weight, i)
             if d2 <= rin2:
-                inner += w
-                if inner >= k:
+                inner, inner_c = _plus(inner, inner_c, w)
+                if inner + inner_c >= k:
                     return WINDOW_LOW
             elif d2 <= rout2:
                 if kept == cap:
                     return WINDOW_FULL
                 buf[kept] = d2
                 wbuf[kept] = w
-                between += w
+                between, between_c = _plus(between, between_c, w)
                 kept += 1
-    if inner + between < k:
+    inner += inner_c
+    if inner + (between + between_c) < k:
         return WINDOW_HIGH
     return _select_held(buf, wbuf, kept, k - inner, weight.shape[0] == 0)
 

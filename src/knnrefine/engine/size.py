@@ -33,20 +33,28 @@ SAMPLE = 2000
 def estimate(index, k, floor, lx, ly, area, seed=0):
     """Expected number of mesh vertices (on the torus) for the points in ``index``, and the
     fraction of points whose k-th neighbour lies within ``floor`` (internal units). ``area``
-    is the area the points are spread over (the box's, internal units). Weighted points
-    count as their total weight (whole weights are repeated points)."""
+    is the area the points are spread over (the box's, internal units). For weighted points
+    k is taken in units of their mean weight (whole weights are repeated points; the weights'
+    scale does not matter, however small or large)."""
     pts = index[0]
     if pts.shape[0] == 0:
         return 0.0, 0.0
-    n = float(index[4][0]) if index[4].shape[0] else pts.shape[0]
+    n = pts.shape[0]
+    if index[4].shape[0]:  # weighted: k in units of the mean weight (the mesh depends on
+        # k / weight, not on the weights' scale; tiny or huge weights stay finite here)
+        total = float(index[4][0])
+        k_units = k * (n / total) if total > 0 else float(n)
+    else:
+        k_units = k
     rng = np.random.default_rng(seed)
     sample = pts[rng.choice(pts.shape[0], SAMPLE, replace=False)] if pts.shape[0] > SAMPLE else pts
     sample = np.ascontiguousarray(sample[:, :2])
     under = float(np.mean(holds_k_within(index, sample, np.full(len(sample), floor**2), k, lx, ly)))
     spacing = np.sqrt(area / n)
     octaves = max(1.0, float(np.log2(max(spacing / floor, 2.0))))
-    regular = PER_POINT * n * (1.0 - under) / (k - K_SHIFT) if k >= 2 else 0.0
-    floored = under * n / k * PER_OCTAVE * octaves
+    k_units = min(max(k_units, 1e-300), float(n))
+    regular = PER_POINT * n * (1.0 - under) / (k_units - K_SHIFT) if k_units >= 2 else 0.0
+    floored = under * n / k_units * PER_OCTAVE * octaves
     return regular + floored + 64.0, float(under)
 
 
