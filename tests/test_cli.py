@@ -773,3 +773,62 @@ def test_a_truncated_or_corrupted_npz_is_one_clear_error(tmp_path, csv, points, 
     part.write_bytes(part.read_bytes()[:100])
     with pytest.raises(knnrefine.InputError, match="part-00001.npz: not a readable"):
         knnrefine.PartitionedMesh(tmp_path / "parts").to_mesh()
+
+
+def test_every_help_example_is_well_formed():
+    """regression (issue 28): 'knnrefine refine --help' named angles.tsv (the demo writes
+    angles.csv) and lost a line continuation (a backslash-newline inside the string joined
+    the lines). Every example: continued lines end in ' \\' and go on indented, no command
+    holds a run of spaces, and every .csv it reads is one the demo writes."""
+    import re
+
+    from knnrefine.cli.main import SUBCOMMANDS
+
+    demo_inputs = {"angles.csv", "quakes.csv", "ring.csv", "blobs.csv"}
+    placeholders = {"chi.csv", "counts.csv"}  # named as templates for the user's own data
+    for name, module in SUBCOMMANDS.items():
+        lines = module.EXAMPLES.split("\n\n")[0].splitlines()[1:]
+        commands, current = [], ""
+        for line in lines:
+            assert line.startswith("  "), (name, line)
+            current += line.strip()
+            if line.endswith(" \\"):
+                current = current[:-1]
+                continue
+            commands.append(current)
+            current = ""
+        assert not current, (name, "a continuation leads nowhere")
+        for command in commands:
+            assert "knnrefine " + name in command, (name, command)
+            assert "  " not in command, (name, command)
+            for csv_name in re.findall(r"(\S+\.(?:csv|tsv)) ", command.split(" -o ")[0] + " "):
+                assert csv_name in demo_inputs | placeholders, (name, csv_name)
+
+
+def test_the_refine_help_example_on_the_demo_angles_runs(tmp_path, capsys):
+    """The refine help's example on the demo's angles.csv runs as printed."""
+    from knnrefine.cli import refine
+
+    assert run("demo", "--out", tmp_path, "-q") == 0
+    line = next(x for x in refine.EXAMPLES.splitlines() if "angles.csv" in x)
+    args = line.split()[1:]  # after "knnrefine"
+    cwd = os.getcwd()
+    try:
+        os.chdir(tmp_path)
+        assert main(args + ["--quiet", "--force"]) == 0
+    finally:
+        os.chdir(cwd)
+    assert (tmp_path / "angles.npz").exists()
+
+
+def test_a_periodic_box_smaller_than_the_data_is_reported(tmp_path, capsys):
+    """regression (issue 28): '--periodic --box 0 0 0.5 0.5' on points in [0, 1]^2 folded
+    them silently with exit 0; the folding is now reported on stderr (exit 0: it may be
+    meant, as for unwrapped phases)."""
+    path = tmp_path / "u.csv"
+    np.savetxt(path, np.random.default_rng(0).random((500, 2)), delimiter=",", header="x,y",
+               comments="")  # fmt: skip
+    out = tmp_path / "u.npz"
+    assert run("refine", path, "-k", 10, "--periodic", "--box", 0, 0, 0.5, 0.5, "-o", out) == 0
+    err = capsys.readouterr().err
+    assert "knnrefine: warning:" in err and "wrapped into it" in err and "along x" in err

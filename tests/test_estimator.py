@@ -374,3 +374,31 @@ def test_real_weights_are_counted_by_the_engine():
     box = tilted.box_
     mid = np.median(X[:, 0])
     assert tilted.density_.mass((box[0], box[1], mid, box[3])) > 0.65
+
+
+def test_the_default_k_is_at_most_n():
+    """regression (issue 28): KnnDensityEstimator(method="knn") on 5 points raised 'k must
+    be in [1, 5], got 10' though no k was given: the default is capped at n."""
+    pts = np.random.default_rng(0).random((5, 2))
+    est = KnnDensityEstimator(method="knn").fit(pts)
+    assert est.k_ == 5 and np.isfinite(est.score_samples(pts)).all()
+    assert KnnDensityEstimator().fit(pts).k_ == 5
+
+
+def test_sample_weight_from_any_array_like():
+    """regression (issue 28): sample_weight as a list or another array-like raised a
+    TypeError (np.iscomplexobj on the raw object); pandas' nullable Float64 too. Lists,
+    tuples, ranges, Series (nullable included) give the fit of the NumPy array."""
+    import pandas as pd
+
+    rng = np.random.default_rng(1)
+    pts = rng.random((400, 2))
+    w = rng.integers(1, 4, 400).astype(float)
+    ref = KnnDensityEstimator(k=20, method="knn").fit(pts, sample_weight=w)
+    for like in (list(w), tuple(w), [int(v) for v in w], pd.Series(w),
+                 pd.Series(w, dtype="Float64"), pd.array(w, dtype="Float64")):  # fmt: skip
+        est = KnnDensityEstimator(k=20, method="knn").fit(pts, sample_weight=like)
+        np.testing.assert_array_equal(est.score_samples(pts[:50]), ref.score_samples(pts[:50]))
+    with pytest.raises(knnrefine.InputError, match="finite"):
+        KnnDensityEstimator(k=20).fit(pts, sample_weight=pd.Series([1.0] * 399 + [None],
+                                                                 dtype="Float64"))  # fmt: skip

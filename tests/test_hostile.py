@@ -220,3 +220,45 @@ def test_ctrl_c_during_build_index_is_a_keyboard_interrupt():
         print(dict(seen))
     """)
     assert stdout.strip() == "{'KeyboardInterrupt': 20}", stdout + stderr
+
+
+def test_nullable_pandas_columns_are_numbers():
+    """regression (issue 28): a pandas frame of nullable Float64 (or Int64) columns was
+    refused as 'dtype object' with advice (pandas.to_numeric) that does not help. It is read
+    as the float64 frame; a missing value is a NaN, refused by name."""
+    import pandas as pd
+
+    pts = np.random.default_rng(3).random((400, 2))
+    plain = knnrefine.refine(pts, 10)
+    frame = pd.DataFrame(pts, columns=["x", "y"])
+    for nullable in (frame.astype("Float64"), (frame * 1000).round().astype("Int64") / 1000):
+        mesh = knnrefine.refine(nullable, 10)
+        np.testing.assert_array_equal(mesh.vertices, knnrefine.refine(
+            nullable.to_numpy(dtype=float), 10).vertices)  # fmt: skip
+    np.testing.assert_array_equal(knnrefine.refine(frame.astype("Float64"), 10).vertices,
+                                  plain.vertices)  # fmt: skip
+    missing = frame.astype("Float64")
+    missing.iloc[7, 1] = pd.NA
+    with pytest.raises(InputError, match="NaN or infinite coordinates, the first at index 7"):
+        knnrefine.refine(missing, 10)
+
+
+def test_a_periodic_box_smaller_than_the_data_says_so():
+    """regression (issue 28): a periodic box smaller than the data (box [0, 0.5]^2 on points
+    in [0, 1]^2) folded the points silently. A WrapWarning counts the points wrapped per
+    axis; data within one period (angles in [0, 360) with the box [-180, 180)) wrap
+    silently, as periodic data should. The CLI prints it and still exits 0."""
+    import warnings
+
+    pts = np.random.default_rng(4).random((500, 2))
+    outside = int((pts[:, 0] >= 0.5).sum())
+    with pytest.warns(knnrefine.WrapWarning, match=f"{outside:,} points lie outside the "
+                      r"periodic box along x \[0, 0.5\)"):  # fmt: skip
+        knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 0.5, 0.5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", knnrefine.WrapWarning)
+        knnrefine.refine(pts * 360, 10, periodic=True, box=(-180, -180, 180, 180))
+        knnrefine.refine(pts, 10, periodic=(True, False), box=(0, 0, 1, 1))
+    with pytest.warns(knnrefine.WrapWarning, match="along z"):
+        knnrefine.refine(np.random.default_rng(5).random((300, 3)) * [1, 1, 2], 5,
+                         periodic=True, box=(0, 0, 0, 1, 1, 1))  # fmt: skip

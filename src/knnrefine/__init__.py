@@ -17,6 +17,7 @@ from .errors import (
     InputError,
     KnnRefineError,
     LargeRunWarning,
+    WrapWarning,
 )
 from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
 from .partitioned import PartitionedMesh, write_partitioned
@@ -46,5 +47,6 @@ __all__ = [
     "EngineError",
     "FloorWarning",
     "LargeRunWarning",
+    "WrapWarning",
     "__version__",
 ]

@@ -55,9 +55,10 @@ _QP = np.array(
 
 
 def default_k(n):
-    """A default k for density estimation from n points: sqrt(n) / 2 (at least 10), after the
-    paper's k ~ sqrt(n) (k / n -> 0 and k / log n -> infinity)."""
-    return max(10, int(round(0.5 * np.sqrt(n))))
+    """A default k for density estimation from n points: sqrt(n) / 2 (at least 10, at most
+    n: on 5 points, 5), after the paper's k ~ sqrt(n) (k / n -> 0 and k / log n ->
+    infinity)."""
+    return min(max(10, int(round(0.5 * np.sqrt(n)))), max(1, int(n)))
 
 
 def default_pilot_k(n):

@@ -40,7 +40,7 @@ class KnnDistance3:
         if len(pts) < mesh.k:
             raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
         check_source(mesh.stats, len(pts), None)
-        check_inside(pts, mesh.box, mesh.periodic)
+        check_inside(pts, mesh.box, mesh.periodic, warn=False)
         self.mesh, self.k, self.n = mesh, mesh.k, len(pts)
         self.period = np.asarray(mesh.period, float)
         self._periodic = np.array(mesh.periodic)

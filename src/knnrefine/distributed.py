@@ -125,7 +125,7 @@ def _stats(part):
 
 def _inside(part, box, per):
     if len(part[0]):
-        V.check_inside(part[0], box, per)
+        V.check_inside(part[0], box, per, warn=False)
 
 
 def _sample(part, fraction):
@@ -281,6 +281,7 @@ def refine(
             store.check_inside, k, tau, periodic, box, min_size, max_vertices, time_limit,
             progress,
         )  # fmt: skip
+        V.fold_warning(*store.bounds, box, per, stacklevel=3)
         mesh = refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
                             deadline, progress, tiles, t_start)  # fmt: skip
     if output is None:

@@ -30,3 +30,8 @@ class FloorWarning(UserWarning):
 
 class LargeRunWarning(UserWarning):
     """A run is expected to need a lot of memory (estimated before it starts)."""
+
+
+class WrapWarning(UserWarning):
+    """Points span more than a period of the box along a periodic axis: wrapping them into the
+    box lays points from different periods over each other (a box smaller than the data?)."""

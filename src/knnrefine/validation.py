@@ -2,20 +2,34 @@
 
 import math
 import numbers
+import warnings
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, WrapWarning
 
 # squared distances of coordinates up to 1e100 stay far from overflow and underflow
 MAX_COORDINATE = 1e100
 MIN_SIDE = 1e-100
 
 
-def as_points(points, dim=2):
-    """(n, dim) float64 array from lists, numpy arrays of any real dtype, pandas frames."""
+def _nullable(x):
+    """A pandas object (nullable Float64 / Int64 columns included, whose NumPy array has
+    dtype object) as float64 with missing values NaN; anything else unchanged."""
+    to_numpy = getattr(x, "to_numpy", None)
+    if to_numpy is None:
+        return x
     try:
-        arr = np.asarray(points)
+        return to_numpy(dtype=np.float64, na_value=np.nan)
+    except (TypeError, ValueError):
+        return x
+
+
+def as_points(points, dim=2):
+    """(n, dim) float64 array from lists, numpy arrays of any real dtype, pandas frames
+    (nullable Float64 / Int64 columns included: a missing value is then a NaN, refused)."""
+    try:
+        arr = np.asarray(_nullable(points))
     except Exception as exc:  # ragged lists and the like
         raise InputError(f"points could not be read as an (n, {dim}) array: {exc}") from None
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
@@ -67,11 +81,16 @@ def check_k(k, n=None):
 
 
 def check_weights(weights, n):
-    """Point weights: n finite numbers >= 0 with a positive total, as float64 (n,)."""
-    if np.iscomplexobj(weights):
+    """Point weights: n finite numbers >= 0 with a positive total, as float64 (n,), from any
+    array-like (lists, tuples, NumPy arrays, pandas Series, nullable ones included)."""
+    try:
+        arr = np.asarray(_nullable(weights))
+    except Exception:
+        raise InputError(f"weights must be {n} numbers, one per point") from None
+    if np.iscomplexobj(arr):
         raise InputError(f"weights must be {n} real numbers, one per point; got complex ones")
     try:
-        w = np.asarray(weights, dtype=np.float64)
+        w = np.asarray(arr, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"weights must be {n} numbers, one per point") from None
     if w.shape != (n,):
@@ -239,11 +258,45 @@ def default_box(points):
 PERIOD_BITS = 24  # a periodic coordinate must resolve 2^-24 of its period
 
 
-def check_inside(points, box, periodic):
+def fold_warning(lo, hi, box, periodic, outside=None, stacklevel=4):
+    """Warn (WrapWarning) where the points' extent [lo, hi] along a periodic axis is longer
+    than the period: wrapping then lays points of different periods over each other (points
+    in [0, 1] with a periodic box [0, 0.5]). Within one period, wrapping is what periodic
+    data asks for (angles in [0, 360) with the box [-180, 180)) and says nothing.
+    ``outside``: how many points lie outside the box along each axis, if known."""
+    dim = len(box) // 2
+    for a in range(dim):
+        period = box[a + dim] - box[a]
+        if not periodic[a] or not hi[a] - lo[a] > period:
+            continue
+        count = "" if outside is None else f"{int(outside[a]):,} "
+        warnings.warn(
+            f"{count}points lie outside the periodic box along {'xyz'[a]} [{box[a]:g}, "
+            f"{box[a + dim]:g}) and were wrapped into it: the points span "
+            f"[{lo[a]:g}, {hi[a]:g}], more than the period {period:g}, so points from "
+            "different periods now lie on each other; if that is not meant, give the box of "
+            "the data (or make the axis non-periodic)",
+            WrapWarning,
+            stacklevel=stacklevel,
+        )
+
+
+def check_inside(points, box, periodic, warn=True):
     """Points must lie in the box along non-periodic axes. Periodic axes wrap, exactly, but a
     coordinate so large that doubles near it are coarser than 2^-24 of the period has lost
-    its position within the period."""
+    its position within the period; with ``warn``, points spanning more than a period say so
+    (``fold_warning``)."""
     dim = len(box) // 2
+    if warn and any(periodic):
+        lo = [float(points[:, a].min()) for a in range(dim)]
+        hi = [float(points[:, a].max()) for a in range(dim)]
+        outside = [
+            int(((points[:, a] < box[a]) | (points[:, a] >= box[a + dim])).sum())
+            if periodic[a] and hi[a] - lo[a] > box[a + dim] - box[a]
+            else 0
+            for a in range(dim)
+        ]
+        fold_warning(lo, hi, box, periodic, outside, stacklevel=6)
     for a in range(dim):
         if periodic[a]:
             period = box[a + dim] - box[a]

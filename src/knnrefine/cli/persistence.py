@@ -7,7 +7,7 @@ from .common import add_input_options, add_mesh_option, add_refine_options, mesh
 HELP = "persistent homology of the sublevel sets of d_Pk (robust to outliers)"
 EXAMPLES = """examples:
   knnrefine persistence ring.csv -k 30 -o diagram.csv --plot diagram.png
-  knnrefine persistence angles.tsv -k 50 --periodic --box 0 0 360 360 --linear
+  knnrefine persistence angles.csv -k 50 --periodic --box 0 0 360 360 --linear
 
 needs gudhi (pip install "knnrefine[topology]"). The diagram is in ln d_Pk (natural log) unless
 --linear; the CSV has one row per class: dimension, birth, death (inf: never dies)"""

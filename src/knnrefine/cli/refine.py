@@ -22,9 +22,9 @@ HELP = "refine a file of points into a mesh"
 EXAMPLES = """examples:
   knnrefine refine quakes.csv --columns lon,lat -k 20 --periodic-x --box -180 -90 180 90 \\
       -o quakes.npz -o quakes.vtu --plot quakes.png
-  knnrefine refine angles.tsv -k 50 --periodic --box 0 0 360 360 -o angles.npz --certify
+  knnrefine refine angles.csv -k 50 --periodic --box 0 0 360 360 -o angles.npz --certify
   cat points.txt | knnrefine refine - -k 10 -o mesh.geojson
-  knnrefine refine chi.csv --columns chi1,chi2,chi3 -k 20 --periodic \
+  knnrefine refine chi.csv --columns chi1,chi2,chi3 -k 20 --periodic \\
       --box 0 0 0 360 360 360 -o chi.vtu -o chi.npz --certify
 
 outputs (by extension): .npz (knnrefine's lossless format), .vtu/.vtk/.xdmf (ParaView),
