@@ -80,6 +80,28 @@ def gaussian_clusters(n, seed=0, clusters=30):
     return np.mod(centres[j] + rng.normal(size=(n, 2)) * widths[j, None], 1.0)
 
 
+def on_lines(n, share, xs, seed=0, axis=0):
+    """Uniform points, ``share`` of them moved onto the lines {axis = x for x in xs}."""
+    rng = np.random.default_rng(seed)
+    X = rng.random((n, 2))
+    moved = int(share * n)
+    X[:moved, axis] = np.asarray(xs, float)[rng.integers(0, len(xs), moved)]
+    return X
+
+
+# degenerate inputs for the tiled paths (points sharing coordinates): name -> f(n, rng)
+DEGENERATE = {
+    "line": lambda n, rng: on_lines(n, rng.uniform(0.3, 1.0), [0.5], int(rng.integers(99))),
+    "two lines": lambda n, rng: on_lines(n, 1.0, [0.3, 0.7], int(rng.integers(99))),
+    "seam": lambda n, rng: on_lines(n, 0.5, [0.0], int(rng.integers(99))),
+    "cross": lambda n, rng: np.concatenate(
+        [on_lines(n // 2, 1.0, [0.5], 1), on_lines(n - n // 2, 1.0, [0.5], 2, axis=1)]
+    ),
+    "diagonal": lambda n, rng: np.column_stack([rng.random(n)] * 2) * [1.0, 0.5] + [0, 0.25],
+    "lattice": lambda n, rng: rng.integers(0, 6, (n, 2)) / 6.0,
+}
+
+
 def load_shared(name):
     path = SHARED_DATA / name
     if not path.exists():

@@ -5,7 +5,7 @@ single-process run's."""
 
 import numpy as np
 import pytest
-from conftest import assert_certified, gaussian_clusters
+from conftest import DEGENERATE, assert_certified, gaussian_clusters, on_lines
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -196,15 +196,6 @@ def test_seeded_vertices_are_queued_again():
 # -- degenerate inputs through the tiled path (issue 28) ---------------------------------------
 
 
-def on_lines(n, share, xs, seed=0, axis=0):
-    """Uniform points, ``share`` of them moved onto the lines {axis = x for x in xs}."""
-    rng = np.random.default_rng(seed)
-    X = rng.random((n, 2))
-    moved = int(share * n)
-    X[:moved, axis] = np.asarray(xs, float)[rng.integers(0, len(xs), moved)]
-    return X
-
-
 def test_tiled_run_with_most_points_on_one_line_certifies():
     """regression: 60% of the points on x = 0.5 put several strip cuts on one x; a strip of
     width 0 then meant "no region" to its tile, which refined the whole torus beside the
@@ -297,18 +288,6 @@ def test_a_round_whose_tile_moved_outside_its_strip_is_refused():
         check_seams(regions, [inside[0], np.array([[0.25, 0.5]])], 1.0, 1.0)
     with pytest.raises(knnrefine.EngineError, match="do not tile"):
         check_seams(np.array([[0.0, 0.0, 1.0, 1.0], [0.5, 0.0, 0.0, 1.0]]), inside, 1.0, 1.0)
-
-
-DEGENERATE = {
-    "line": lambda n, rng: on_lines(n, rng.uniform(0.3, 1.0), [0.5], int(rng.integers(99))),
-    "two lines": lambda n, rng: on_lines(n, 1.0, [0.3, 0.7], int(rng.integers(99))),
-    "seam": lambda n, rng: on_lines(n, 0.5, [0.0], int(rng.integers(99))),
-    "cross": lambda n, rng: np.concatenate(
-        [on_lines(n // 2, 1.0, [0.5], 1), on_lines(n - n // 2, 1.0, [0.5], 2, axis=1)]
-    ),
-    "diagonal": lambda n, rng: np.column_stack([rng.random(n)] * 2) * [1.0, 0.5] + [0, 0.25],
-    "lattice": lambda n, rng: rng.integers(0, 6, (n, 2)) / 6.0,
-}
 
 
 @given(

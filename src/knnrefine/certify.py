@@ -20,11 +20,11 @@ from dataclasses import asdict, dataclass, field
 from fractions import Fraction
 
 import numpy as np
-from numba import njit
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from .errors import InputError
 from .mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
 from .metric import BoxMetric, TorusFrame
@@ -389,7 +389,7 @@ def _held(tree, weights, centres, radii, workers=-1):
     return out
 
 
-@njit(cache=True)
+@kernel(entry=True, lazy=True)
 def _sums(values, bounds):
     """values[bounds[i]:bounds[i + 1]] summed for each i by Neumaier's compensated
     summation: for weights >= 0 within two ulps of the exact sum whatever their order (plain
@@ -411,7 +411,7 @@ def _sums(values, bounds):
     return out
 
 
-@njit(cache=True)
+@kernel(entry=True, lazy=True)
 def _running_sums(values):
     """The running sums along each row of ``values`` (rows, columns), compensated as
     ``_sums``."""

@@ -24,10 +24,10 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from numba import njit
 from scipy.spatial import cKDTree
 
 from .certify import check_precondition, check_source
+from .engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from .engine.predicates3 import insphere, orient3d
 from .metric import TorusFrame
 from .validation import as_points, check_inside
@@ -104,7 +104,7 @@ class Certificate3:
         ])  # fmt: skip
 
 
-@njit(cache=True)
+@kernel(entry=True, lazy=True)
 def _exact_faces(local, corners, offsets, neighbours, period):
     """(tetrahedra not positively oriented, faces not locally Delaunay)."""
     bad_orient = 0

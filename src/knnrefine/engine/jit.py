@@ -104,10 +104,15 @@ def python_entry(dispatcher):
     return njit(cache=False)(scope["entry"])
 
 
-def kernel(entry=False, **options):
+def kernel(entry=False, lazy=False, **options):
     """``njit(cache=True, **options)``, falling back to an uncached ``njit`` where numba has
     nowhere to keep compiled code. ``entry``: the kernel is called from Python (see the module
-    docstring); otherwise only from other kernels."""
+    docstring); otherwise only from other kernels. ``lazy`` (entry kernels only): numba sees
+    the function at its first call, not at import, so that a module of rarely used kernels
+    outside ``engine/`` (whose ``__pycache__`` a read-only install may ship without them)
+    imports without a ``KernelCacheWarning``."""
+    if lazy:
+        return lambda func: _LazyKernel(func, options)
 
     # set on every kernel, never inherited: numba compiles a callee with its first caller's
     # flags unless the callee sets its own
@@ -123,6 +128,19 @@ def kernel(entry=False, **options):
         return dispatcher
 
     return wrap
+
+
+class _LazyKernel:
+    """An entry kernel compiled (or loaded from the cache) at its first call."""
+
+    def __init__(self, func, options):
+        self.func, self.options, self.dispatcher = func, options, None
+        self.__doc__, self.__name__ = func.__doc__, func.__name__
+
+    def __call__(self, *args):
+        if self.dispatcher is None:
+            self.dispatcher = kernel(entry=True, **self.options)(self.func)
+        return self.dispatcher(*args)
 
 
 def _dispatcher(func, options):
