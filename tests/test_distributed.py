@@ -233,30 +233,6 @@ def test_dask_tiles_on_degenerate_inputs_certify(client, name, periodic, weighte
     assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
 
 
-def test_readme_block_runs_as_a_script_and_from_stdin(tmp_path):
-    """regression (issue 28): Dask's workers were spawned, which imports the caller's script
-    again: the README's block pasted into a script without a main guard flooded stderr with
-    'Failed to start process', and from stdin raised 'Nanny failed to start'. Both now run
-    cleanly (the local cluster's workers are forked where the platform can)."""
-    import subprocess
-    import sys
-
-    code = (
-        "import numpy as np\nimport knnrefine\nfrom knnrefine import distributed\n"
-        "pts = np.random.default_rng(0).random((20000, 2))\n"
-        "mesh = distributed.refine(pts, 30, workers=2)\n"
-        "print(knnrefine.certify(mesh, pts).passed)\n"
-    )
-    script = tmp_path / "example.py"
-    script.write_text(code)
-    for args, stdin in (([str(script)], None), (["-"], code)):
-        run = subprocess.run([sys.executable, *args], input=stdin, capture_output=True,
-                             text=True, timeout=300, cwd=tmp_path)  # fmt: skip
-        assert run.returncode == 0, run.stderr[-2000:]
-        assert run.stdout.strip() == "True"
-        assert "Failed to start" not in run.stderr and "Traceback" not in run.stderr
-
-
 def test_certify_on_the_cluster_with_more_strips_than_points(client):
     """regression (issue 28): distributed.certify crashed when a strip held no point."""
     pts = np.random.default_rng(12).random((6, 2))

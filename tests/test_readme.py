@@ -90,3 +90,27 @@ def test_every_readme_python_example_runs(tmp_path, monkeypatch):
     assert namespace["cert"].passed
     assert namespace["again"].k == namespace["torus"].k
     assert os.path.exists(tmp_path / "torus.npz")
+
+
+def test_the_readme_workers_and_dask_block_runs_as_a_script_and_from_stdin(tmp_path):
+    """regression (issue 28): the README's workers/Dask block, pasted into a script, flooded
+    stderr with 'Failed to start process' (Dask spawned its workers, which imports the
+    script again, without a main guard), and from stdin raised 'Nanny failed to start'.
+    The block as written, on 30,000 points, runs cleanly both ways."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("distributed")
+    block = next(b for b in blocks("python") if "distributed.refine" in b)
+    code = (
+        "import numpy as np\nimport knnrefine\n"
+        "points = np.random.default_rng(0).random((30_000, 2))\n" + block
+    )
+    script = tmp_path / "example.py"
+    script.write_text(code)
+    for args, stdin in (([str(script)], None), (["-"], code)):
+        run = subprocess.run([sys.executable, *args], input=stdin, capture_output=True,
+                             text=True, timeout=600, cwd=tmp_path)  # fmt: skip
+        assert run.returncode == 0, run.stderr[-3000:]
+        assert "Failed to start" not in run.stderr and "Traceback" not in run.stderr
+        assert (tmp_path / "parts" / "_SUCCESS").exists()
