@@ -10,12 +10,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import validation as V
-from .api import _past, check_options
+from .api import _past, check_options, refusal_message
 from .engine import size
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
-from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, tau_for_factor
+from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor
 from .engine.interrupt import Interrupts
 from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
 from .engine.state import C_CELL_TESTS, C_DISK_TESTS, C_FAILED
@@ -163,27 +163,7 @@ class _Start3:
             else (None, None)
         )
         emb = Embedding.make(self.box, self.per)
-        mode = {(True,) * 3: "periodic", (False,) * 3: "ordinary"}.get(
-            tuple(emb.periodic), f"periodic={tuple(emb.periodic)}"
-        )
-        options = []
-        if k_max is not None and k_max >= 1:
-            options.append(f"use k <= {k_max} (the largest k certifiable here at tau = {tau:g})")
-        if f_min is not None and tau_for_factor(f_min) >= 2.01:
-            tau_max = np.floor(tau_for_factor(f_min) * 1000) / 1000
-            options.append(f"use tau <= {tau_max:g} with k = {k}")
-        if any(self.per):
-            options.append("make the shortest periodic side of the box longer")
-        if not options:
-            options.append("use a smaller k or a smaller tau")
-        return (
-            f"k = {k} cannot be certified for these {len(self.pts):,} points in the {mode} box "
-            f"{tuple(emb.box)} at tau = {tau:g}: Theorem 6's lower bound needs d_Pk <= "
-            f"{factor:.3g} x the distance to the nearest earlier vertex at every initial mesh "
-            "vertex, and no valid initial mesh of the 3-torus meets it (its spacing cannot "
-            f"exceed about a third of the torus' shortest period, {min(emb.period) / 3.0:.3g});"
-            " " + ", or ".join(options)
-        )
+        return refusal_message(len(self.pts), k, tau, emb, k_max, f_min)
 
 
 def _points_under_floor(pts, floor, emb, n):

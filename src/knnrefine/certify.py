@@ -24,6 +24,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from .engine.geometry import plus_compensated
 from .engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from .errors import InputError
 from .mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
@@ -391,22 +392,17 @@ def _held(tree, weights, centres, radii, workers=-1):
 
 @kernel(entry=True, lazy=True)
 def _sums(values, bounds):
-    """values[bounds[i]:bounds[i + 1]] summed for each i by Neumaier's compensated
-    summation: for weights >= 0 within two ulps of the exact sum whatever their order (plain
-    addition loses a weight of 1 beside one of 1e16: a disk holding k = 1e16 + 8 would hold
-    1e16)."""
+    """values[bounds[i]:bounds[i + 1]] summed for each i, compensated
+    (``engine.geometry.plus_compensated``, the one arithmetic primitive certify shares with
+    the engine): for weights >= 0 within two ulps of the exact sum whatever their order
+    (plain addition loses a weight of 1 beside one of 1e16: a disk holding k = 1e16 + 8
+    would hold 1e16)."""
     out = np.zeros(bounds.shape[0] - 1)
     for i in range(out.shape[0]):
         s = 0.0
         c = 0.0
         for j in range(bounds[i], bounds[i + 1]):
-            v = values[j]
-            t = s + v
-            if abs(s) >= abs(v):
-                c += (s - t) + v
-            else:
-                c += (v - t) + s
-            s = t
+            s, c = plus_compensated(s, c, values[j])
         out[i] = s + c
     return out
 
@@ -420,13 +416,7 @@ def _running_sums(values):
         s = 0.0
         c = 0.0
         for j in range(values.shape[1]):
-            v = values[i, j]
-            t = s + v
-            if abs(s) >= abs(v):
-                c += (s - t) + v
-            else:
-                c += (v - t) + s
-            s = t
+            s, c = plus_compensated(s, c, values[i, j])
             out[i, j] = s + c
     return out
 

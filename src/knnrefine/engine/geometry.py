@@ -15,6 +15,20 @@ FLOOR_BITS = 14  # the engine's resolution floor is 2^14 q: elements below it ar
 
 
 @kernel(inline="always")
+def plus_compensated(s, c, x):
+    """s + x with the rounding error gathered in c (Neumaier's compensated summation): the
+    running total s + c of weights >= 0 stays within two ulps of the exact sum whatever the
+    order, where plain addition loses a weight of 1 beside one of 1e16. Counts (whole
+    numbers below 2^53) are added exactly and c stays 0. Returns (s + x, c)."""
+    t = s + x
+    if abs(s) >= abs(x):
+        c += (s - t) + x
+    else:
+        c += (x - t) + s
+    return t, c
+
+
+@kernel(inline="always")
 def snap(x, q):
     """x rounded to the nearest multiple of the grid step q (a power of two: exact scaling)."""
     return np.rint(x / q) * q

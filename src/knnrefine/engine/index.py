@@ -31,6 +31,7 @@ while its region lies strictly on one side of the split, then counts from there.
 
 import numpy as np
 
+from .geometry import plus_compensated
 from .jit import kernel
 from .threads import in_chunks, run_all
 from .threads import workers as thread_count
@@ -255,12 +256,13 @@ def build_index(pts, workers=None, weights=None):
 
 @kernel(entry=True)
 def _node_weights(pts, node, weight):
-    """weight[t] = the sum of node t's points' weights (compensated: ``_plus``)."""
+    """weight[t] = the sum of node t's points' weights (compensated:
+    ``geometry.plus_compensated``)."""
     for t in range(node.shape[0]):
         total = 0.0
         comp = 0.0
         for i in range(node[t, 0], node[t, 1]):
-            total, comp = _plus(total, comp, pts[i, 2])
+            total, comp = plus_compensated(total, comp, pts[i, 2])
         weight[t] = total + comp
 
 
@@ -311,20 +313,6 @@ def _weight_of(pts, weight, i):
     return 1.0 if weight.shape[0] == 0 else pts[i, 2]
 
 
-@kernel(inline="always")
-def _plus(s, c, x):
-    """s + x with the rounding error gathered in c (Neumaier's compensated summation): the
-    running total s + c of weights >= 0 stays within two ulps of the exact sum whatever the
-    order, where plain addition loses a weight of 1 beside one of 1e16. Counts (whole
-    numbers below 2^53) are added exactly and c stays 0."""
-    t = s + x
-    if abs(s) >= abs(x):
-        c += (s - t) + x
-    else:
-        c += (x - t) + s
-    return t, c
-
-
 @kernel(nrt=False)
 def _start(node, split, cx, cy, r):
     """The deepest node whose split region strictly contains the disk (c, r): points outside
@@ -344,7 +332,7 @@ def _start(node, split, cx, cy, r):
 @kernel(nrt=False)
 def _count_disk(index, cx, cy, r2, k, stack):
     """Points of P in the closed disk (c, sqrt(r2)), counting (their weight) up to at least
-    k (weights summed with ``_plus``)."""
+    k (weights summed with ``geometry.plus_compensated``)."""
     count = 0.0
     comp = 0.0
     pts, box, node, split, weight = index
@@ -364,7 +352,7 @@ def _count_disk(index, cx, cy, r2, k, stack):
         fx = max(cx - box[t, 0], box[t, 2] - cx)
         fy = max(cy - box[t, 1], box[t, 3] - cy)
         if fx * fx + fy * fy <= r2:
-            count, comp = _plus(count, comp, _held(node, weight, t))
+            count, comp = plus_compensated(count, comp, _held(node, weight, t))
             if count + comp >= k:
                 return count + comp
             continue
@@ -382,7 +370,7 @@ def _count_disk(index, cx, cy, r2, k, stack):
                     ex = pts[i, 0] - cx
                     ey = pts[i, 1] - cy
                     if ex * ex + ey * ey <= r2:
-                        count, comp = _plus(count, comp, pts[i, 2])
+                        count, comp = plus_compensated(count, comp, pts[i, 2])
             if count + comp >= k:
                 return count + comp
             continue
@@ -430,7 +418,7 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
             if oy + r < 0.0 or oy - r > ly:
                 continue
             held = _count_disk(index, ox, oy, r2, k - (count + comp), stack)
-            count, comp = _plus(count, comp, held)
+            count, comp = plus_compensated(count, comp, held)
             if count + comp >= k:
                 return count + comp
     return count + comp
@@ -439,7 +427,7 @@ def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
 @kernel(nrt=False)
 def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
     """Points of P in the closed cell (see count_in_cell), counting (their weight, summed
-    with ``_plus``) up to at least k."""
+    with ``geometry.plus_compensated``) up to at least k."""
     count = 0.0
     comp = 0.0
     pts, box, node, split, weight = index
@@ -476,7 +464,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
         if outside:
             continue
         if inside:
-            count, comp = _plus(count, comp, _held(node, weight, t))
+            count, comp = plus_compensated(count, comp, _held(node, weight, t))
             if count + comp >= k:
                 return count + comp
             continue
@@ -503,7 +491,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
                 else:
                     for i in range(m):
                         if mask[i]:
-                            count, comp = _plus(count, comp, pts[lo + i, 2])
+                            count, comp = plus_compensated(count, comp, pts[lo + i, 2])
             count += found
             if count + comp >= k:
                 return count + comp
@@ -535,7 +523,7 @@ def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
             if oy + r < 0.0 or oy - r > ly:
                 continue
             held = _count_cell(index, ox, oy, hx, hy, hc, nh, r2, k - (count + comp), stack, mask)
-            count, comp = _plus(count, comp, held)
+            count, comp = plus_compensated(count, comp, held)
             if count + comp >= k:
                 return count + comp
     return count + comp
@@ -635,7 +623,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
         if nx * nx + ny * ny > r2:
             continue
         if fx * fx + fy * fy <= r2:
-            count, comp = _plus(count, comp, _held(node, weight, t))
+            count, comp = plus_compensated(count, comp, _held(node, weight, t))
             if count + comp >= k:
                 return count + comp
             continue
@@ -647,7 +635,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
                 ex = min(ex, lx - ex)
                 ey = min(ey, ly - ey)
                 if ex * ex + ey * ey <= r2:
-                    count, comp = _plus(count, comp, _weight_of(pts, weight, i))
+                    count, comp = plus_compensated(count, comp, _weight_of(pts, weight, i))
                     if count + comp >= k:
                         return count + comp
             continue
@@ -722,12 +710,12 @@ def _select_held(buf, wbuf, n, target, unit):
             below = 0.0
             comp = 0.0
             for e in range(lo, lt):
-                below, comp = _plus(below, comp, wbuf[e])
+                below, comp = plus_compensated(below, comp, wbuf[e])
             below += comp
             at = 0.0
             comp = 0.0
             for e in range(lt, gt + 1):
-                at, comp = _plus(at, comp, wbuf[e])
+                at, comp = plus_compensated(at, comp, wbuf[e])
             at += comp
         if below >= target:
             hi = lt - 1
@@ -766,7 +754,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
         if nx * nx + ny * ny > rout2:
             continue
         if fx * fx + fy * fy <= rin2:
-            inner, inner_c = _plus(inner, inner_c, _held(node, weight, t))
+            inner, inner_c = plus_compensated(inner, inner_c, _held(node, weight, t))
             if inner + inner_c >= k:
                 return WINDOW_LOW
             continue
@@ -786,7 +774,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
             d2 = ex * ex + ey * ey
             w = _weight_of(pts, weight, i)
             if d2 <= rin2:
-                inner, inner_c = _plus(inner, inner_c, w)
+                inner, inner_c = plus_compensated(inner, inner_c, w)
                 if inner + inner_c >= k:
                     return WINDOW_LOW
             elif d2 <= rout2:
@@ -794,7 +782,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
                     return WINDOW_FULL
                 buf[kept] = d2
                 wbuf[kept] = w
-                between, between_c = _plus(between, between_c, w)
+                between, between_c = plus_compensated(between, between_c, w)
                 kept += 1
     inner += inner_c
     if inner + (between + between_c) < k:
