@@ -178,7 +178,7 @@ def test_bad_input_is_refused_before_work():
         knnrefine.refine(bad, 10, periodic=True, box=BOX)
     with pytest.raises(InputError, match="weights"):
         knnrefine.refine(pts, 10, periodic=True, box=BOX, weights=np.ones(100))
-    # the plane's option checks (api.check_options), not a looser copy: a bool is no time
+    # the plane's option checks (options.RunOptions), not a looser copy: a bool is no time
     # limit, a number no progress callback
     with pytest.raises(InputError, match="time_limit"):
         knnrefine.refine(pts, 10, periodic=True, box=BOX, time_limit=True)
@@ -593,11 +593,12 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
     from knnrefine import api3
     from knnrefine.engine.initial import reach_factor
     from knnrefine.engine.interrupt import Interrupts
+    from knnrefine.options import RunOptions
 
     def start(pts, box, per, k, tau):
-        return api3._Start3(pts, box, per, 10**6, Interrupts(), None, 0.0).find(
-            k, reach_factor(tau)
-        )
+        opt = RunOptions.check(len(pts), None, lambda: box, lambda b, p: None, k=k, tau=tau,
+                               periodic=per, box=box, dim=3)  # fmt: skip
+        return api3._Start3(pts, opt, 10**6, Interrupts()).find(k, reach_factor(tau))
 
     pts = multiscale(3000, 20)
     calls = []

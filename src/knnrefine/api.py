@@ -1,7 +1,7 @@
 """knnrefine.refine: the public entry point."""
 
 import inspect
-import numbers
+import math
 import time
 import warnings
 
@@ -15,20 +15,18 @@ from .engine.embedding import Embedding, diameter, unfold, wrap
 from .engine.geometry import FLOOR_BITS
 from .engine.index import PointIndex, build_index, mark_in_disks
 from .engine.initial import (
-    GRIDS,
     candidate_grids,
     choose_initial_mesh,
-    grid_shape,
     largest_passing,
     reach_bound,
     reach_factor,
-    tau_for_factor,
+    refusal_message,
 )
 from .engine.interrupt import Interrupts
 from .errors import BudgetError, FloorWarning, InputError, LargeRunWarning
 from .mesh import Mesh, Torus
+from .options import RunOptions
 
-DEFAULT_MIN_SIZE = 1e-6  # resolution floor, relative to the box's longer side
 LARGE_RUN_BYTES = 2e9  # runs expected to need more memory than this say so up front
 
 
@@ -151,24 +149,23 @@ def refine(
     Points in space ((n, 3), a box of six numbers, ``periodic`` a bool or three) are refined
     by ``api3.refine3`` into a ``Mesh3``; weights, workers and executor do not apply there.
     """
-    max_vertices = V.check_max_vertices(max_vertices)
+    asked = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
+                 max_vertices=max_vertices, time_limit=time_limit, progress=progress)  # fmt: skip
     if _is_spatial(points):
         from .api3 import refine3
 
         if weights is not None or workers not in (None, 1) or executor is not None:
             raise InputError("weights, workers and executor are not built for (n, 3) points yet")
-        options = dict(periodic=periodic, box=box, min_size=min_size, max_vertices=max_vertices,
-                       time_limit=time_limit, progress=progress)  # fmt: skip
-        return refine3(points, k, tau, **options)
+        pts = V.as_points(points, 3)
+        bounds, inside = lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p)
+        return refine3(pts, RunOptions.check(len(pts), None, bounds, inside, **asked, dim=3))
     pts = V.as_points(points)
     n = len(pts)
     if weights is not None:
         weights = V.check_weights(weights, n)
-    total = None if weights is None else float(weights.sum())
-    k, tau, per, box, min_size, deadline, t_start = check_options(
-        n, total, lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p), k, tau,
-        periodic, box, min_size, max_vertices, time_limit, progress,
-    )  # fmt: skip
+    total = None if weights is None else math.fsum(weights)
+    bounds, inside = lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p)
+    opt = RunOptions.check(n, total, bounds, inside, **asked)
     workers = V.check_workers(workers)
     if executor is not None and not callable(getattr(executor, "map", None)):
         raise InputError(
@@ -176,104 +173,56 @@ def refine(
         )
     if executor is not None and workers < 2:
         raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
-    start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
     if workers > 1:
         from .engine.partition import LocalStore
 
         store = LocalStore(pts, weights, workers, executor)
         try:
-            return refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
-                                deadline, progress, workers, t_start)  # fmt: skip
+            return refine_store(store, opt, workers)
         finally:
             store.close()
-    report = _Progress(progress)
+    report = _Progress(opt.progress)
     if not jit.is_ready(R.refine_steps):
         report.compiling()
     with Interrupts() as interrupts:
-        start = _Start(pts, box, per, start_budget, interrupts, deadline, weights)
-        found = start.find(k, reach_factor(tau))
+        start = _Start(pts, opt, opt.start_budget(n), interrupts, weights)
+        found = start.find(opt.k, reach_factor(opt.tau))
         if found is None:
-            raise InputError(start.refusal(k, tau))
+            raise InputError(start.refusal(opt.k, opt.tau))
         emb, index, (m0, m0_order, m0_grid) = found
-        _past(deadline, "setting up", t_start)
-        floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
+        opt.past("setting up")
+        floor = max(opt.min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
         lo, hi = emb.box_internal()
-        estimated, _ = size.estimate(index, k, floor, *emb.period_internal, float(np.prod(hi - lo)))
-        budget = _budget(estimated, max_vertices, len(m0_order), k, n, min_size)
+        estimated = size.estimate(
+            index, opt.k, floor, *emb.period_internal, float(np.prod(hi - lo))
+        )[0]  # fmt: skip
+        budget = _budget(estimated, opt, len(m0_order), n)
         run = Refinement(
-            index, k, *emb.period_internal, tau, min_size * emb.scale, budget, m0=m0,
-            grid=emb.grid, expected_vertices=min(estimated, budget),
+            index, opt.k, *emb.period_internal, opt.tau, opt.min_size * emb.scale, budget,
+            m0=m0, grid=emb.grid, expected_vertices=min(estimated, budget),
         )  # fmt: skip
         run.time_index = start.seconds
-        status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
+        status = run.run(deadline=opt.deadline, progress=report.refining, interrupts=interrupts)
         kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, weights))
         return _finish(
-            run, status, emb, k, tau, min_size, m0_order, m0_grid, estimated, budget,
-            time_limit, report, interrupts, kept, None if weights is None else weights.sum(),
-            None, t_start,
+            run, status, emb, opt, (m0_order, m0_grid, estimated, budget), report, interrupts,
+            kept, total, None,
         )  # fmt: skip
 
 
-def check_options(n, total, bounds, check_inside, k, tau, periodic, box, min_size,
-                  max_vertices, time_limit, progress, dim=2):  # fmt: skip
-    """The options of a run on n points (weights summing to ``total``, or None) in ``dim``
-    dimensions, checked before any work; ``bounds()`` gives the points' default box,
-    ``check_inside(box, per)`` refuses points outside an explicit one. Returns (k, tau, per,
-    box, min_size, deadline, t_start), the deadline a ``time.perf_counter()`` value."""
-    t_start = time.perf_counter()
-    deadline = None
-    if time_limit is not None:
-        if (
-            isinstance(time_limit, bool)
-            or not isinstance(time_limit, numbers.Real)
-            or not (np.isfinite(time_limit) and time_limit > 0)
-        ):
-            raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
-        deadline = t_start + float(time_limit)
-    k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
-    tau = V.check_tau(tau)
-    per = V.check_periodic(periodic, dim)
-    if box is None:
-        if any(per):
-            corners = "xmin, ymin, xmax, ymax" if dim == 2 else "x0, y0, z0, x1, y1, z1"
-            degrees = ", ".join(["-180"] * dim + ["180"] * dim)
-            raise InputError(
-                f"a periodic run needs box=({corners}): the periods are its sides (for "
-                f"angles in degrees, e.g. box=({degrees}))"
-            )
-        box = bounds()
-    else:
-        box = V.check_box(box, dim)
-        check_inside(box, per)
-    side = max(box[dim + a] - box[a] for a in range(dim))
-    if min_size is None:
-        min_size = DEFAULT_MIN_SIZE * side
-    elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
-        raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
-    min_size = float(min_size)
-    max_vertices = V.check_max_vertices(max_vertices)
-    if progress is not None and not callable(progress):
-        raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
-    V.check_resolution(box, per)
-    if dim == 2:  # in space the start picks its grid from the points: a budget below it
-        # stops the run at once (BudgetError)
-        # the initial mesh must fit whatever budget applies: the user's, else the smallest
-        start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
-        _check_initial_budget(box, per, start_budget)
-    return k, tau, per, box, min_size, deadline, t_start
-
-
-def refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit, deadline,
-                 progress, workers, t_start):  # fmt: skip
+def refine_store(store, opt, workers):
     """A tiled run (``engine/partition.py``) on the points of ``store`` (``LocalStore``, or
-    ``distributed.DaskStore``), its options checked by the caller: the plan from a sample of
-    the points (initial mesh, size, strips), a coarse pass on part of it, rounds of tiles,
-    then whatever no round settled on the index of all points, fetched only then."""
+    ``distributed.DaskStore``) with the checked options ``opt`` (``RunOptions``) in
+    ``workers`` strips: the plan from a sample of the points (initial mesh, size, strips), a
+    coarse pass on part of it, rounds of tiles, then whatever no round settled on the index
+    of all points, fetched only then."""
     from .engine import partition as T
 
     n = store.n
-    start_budget = int(max_vertices) if max_vertices is not None else max(10**6, 2 * n)
-    report = _Progress(progress)
+    k, tau, min_size = opt.k, opt.tau, opt.min_size
+    deadline = opt.deadline
+    start_budget = opt.start_budget(n)
+    report = _Progress(opt.progress)
     if not jit.is_ready(R.refine_steps):
         report.compiling()
     with Interrupts() as interrupts:
@@ -283,21 +232,21 @@ def refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit, de
         share = len(sx) / n if sw is None else float(sw.sum()) / store.weight
         factor = reach_factor(tau)
         # d_{S,k} >= d_{P,k} for a subset S: an initial mesh the sample accepts is accepted
-        start = _Start(sx, box, per, start_budget, interrupts, deadline, sw)
+        start = _Start(sx, opt, start_budget, interrupts, sw)
         found = start.find(k, factor)
         if found is None and len(sx) < n:  # the sample may be too sparse: ask all points
             every, w_every = store.points()
-            start = _Start(every, box, per, start_budget, interrupts, deadline, w_every)
+            start = _Start(every, opt, start_budget, interrupts, w_every)
             found = start.find(k, factor)
         if found is None:
             raise InputError(start.refusal(k, tau))
         emb, s_index, (m0, m0_order, m0_grid) = found
-        _past(deadline, "setting up", t_start)
+        opt.past("setting up")
         lx, ly = emb.period_internal
         floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
         lo, hi = emb.box_internal()
         estimated = size.estimate(s_index, k, floor, lx, ly, float(np.prod(hi - lo)))[0] / share
-        budget = _budget(estimated, max_vertices, len(m0_order), k, n, min_size)
+        budget = _budget(estimated, opt, len(m0_order), n)
         internal = emb.to_internal(sx)
         sets = T.strips(internal, lx, ly, workers)
         common = {
@@ -336,21 +285,23 @@ def refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit, de
         run.time_index = setup
         run.time_refine = time.perf_counter() - t0 - setup
         return _finish(
-            run, status, emb, k, tau, min_size, m0_order, m0_grid, estimated, budget,
-            time_limit, report, interrupts, None, store.weight, rounds, t_start,
+            run, status, emb, opt, (m0_order, m0_grid, estimated, budget), report, interrupts,
+            None, store.weight, rounds,
         )  # fmt: skip
 
 
-def _finish(run, status, emb, k, tau, min_size, m0_order, m0_grid, estimated, budget,
-            time_limit, report, interrupts, kept, weight, rounds, t_start):  # fmt: skip
-    """The Mesh of a finished run, or BudgetError for one stopped by a budget."""
+def _finish(run, status, emb, opt, plan, report, interrupts, kept, weight, rounds):
+    """The Mesh of a finished run, or BudgetError for one stopped by a budget. ``plan``:
+    (the initial mesh's order and grid, the estimated size, the vertex budget)."""
+    m0_order, m0_grid, estimated, budget = plan
+    k, tau, t_start = opt.k, opt.tau, opt.t_start
     # below the engine's resolution limit nothing is split whatever min_size says
-    min_size = max(min_size, run.floor / emb.scale)
+    min_size = max(opt.min_size, run.floor / emb.scale)
     if status != R.STATUS_DONE:
         what = (
             f"max_vertices={budget}"
             if status == R.STATUS_MAX_VERTICES
-            else f"time_limit={time_limit} s"
+            else f"time_limit={opt.time_limit} s"
         )
         raise BudgetError(
             f"refinement stopped at {what} with {run.vertices} vertices and "
@@ -423,22 +374,13 @@ class _Progress:
             self.callback(vertices, 0)
 
 
-def _past(deadline, what, t_start):
-    """BudgetError if the time limit has passed (checked between phases before refining)."""
-    now = time.perf_counter()
-    if deadline is not None and now > deadline:
-        raise BudgetError(
-            f"time_limit reached while {what}, before refinement began; raise time_limit",
-            progress={"vertices": 0, "moves": {}, "seconds": now - t_start},
-        )
-
-
-def _budget(estimated, max_vertices, m0, k, n, min_size):
+def _budget(estimated, opt, m0, n):
     """The vertex budget: the user's max_vertices, else ten times the estimate (at least
     10^6), but no more than the machine's memory holds. The estimate is within 5% on uniform
     points but off by up to 8x on clustered data (benchmarks/mesh_size.py), so only a run
     whose estimate exceeds twice the memory (by default) or eight times the user's budget is
     refused before any work; one expected to need more than 2 GB says so (LargeRunWarning)."""
+    k, max_vertices, min_size = opt.k, opt.max_vertices, opt.min_size
     need = estimated * size.BYTES_PER_VERTEX
     memory = size.memory_bytes()
     hint = (
@@ -474,24 +416,6 @@ def _budget(estimated, max_vertices, m0, k, n, min_size):
     return budget
 
 
-def _check_initial_budget(box, per, max_vertices):
-    """The smallest initial mesh of the default torus must fit in max_vertices."""
-    lx, ly = Embedding.make(box, per).period_internal
-    nx, ny = min((grid_shape(lx, ly, g[0]) for g in GRIDS), key=lambda s: s[0] * s[1])
-    if nx * ny <= max_vertices:
-        return
-    if max(nx, ny) <= 4 * min(nx, ny):
-        raise InputError(
-            f"max_vertices={max_vertices} is too small: the initial mesh alone has {nx * ny} "
-            "vertices; raise max_vertices"
-        )
-    raise InputError(
-        f"the box {box} is too elongated: the initial mesh of the torus alone needs "
-        f"{nx} x {ny} vertices (max_vertices={max_vertices}); rescale the coordinates, use "
-        "a less elongated periodic box, or raise max_vertices"
-    )
-
-
 class _Start:
     """Where refinement starts: the embedding torus, the counting index over the points in it,
     and an initial mesh that satisfies Theorem 6's precondition.
@@ -506,18 +430,17 @@ class _Start:
 
     LIMITS_EFFORT = 50_000  # initial vertices above which a refusal skips the limit search
 
-    def __init__(self, pts, box, per, max_vertices, interrupts, deadline, weights=None):
-        self.pts, self.box, self.per, self.max_vertices = pts, box, per, max_vertices
+    def __init__(self, pts, opt, max_vertices, interrupts, weights=None):
+        self.pts, self.box, self.per, self.max_vertices = pts, opt.box, opt.periodic, max_vertices
+        self.opt = opt
         self.weights = weights
         self.interrupts = interrupts
-        self.deadline = deadline
-        self.t_start = time.perf_counter()
         self.tori = {}
         self.seconds = 0.0  # building indexes
 
     def check(self):
         self.interrupts.check()
-        _past(self.deadline, "choosing the initial mesh", self.t_start)
+        self.opt.past("choosing the initial mesh")
 
     def torus(self, reach=None):
         """(embedding, index, candidate initial meshes) of the torus with this margin."""
@@ -562,37 +485,6 @@ class _Start:
             else (None, None)
         )
         return refusal_message(len(self.pts), k, tau, emb, k_max, f_min)
-
-
-def refusal_message(n, k, tau, emb, k_max, f_min):
-    """Why no initial mesh of the torus ``emb`` (plane or space) can start a run of n points
-    at (k, tau), and what would: the largest k certifiable at this tau (``k_max``), the
-    largest tau for this k (from the least factor ``f_min``), a longer periodic side (None
-    where the search was not made)."""
-    dim = len(emb.periodic)
-    mode = {(True,) * dim: "periodic", (False,) * dim: "ordinary"}.get(
-        tuple(emb.periodic), f"periodic={tuple(emb.periodic)}"
-    )
-    options = []
-    if k_max is not None and k_max >= 1:
-        options.append(f"use k <= {k_max} (the largest k certifiable here at tau = {tau:g})")
-    if f_min is not None and tau_for_factor(f_min) >= 2.01:
-        tau_max = np.floor(tau_for_factor(f_min) * 1000) / 1000
-        options.append(f"use tau <= {tau_max:g} with k = {k}")
-    shortest = "shorter" if dim == 2 else "shortest"
-    if any(emb.periodic):
-        options.append(f"make the {shortest} periodic side of the box longer")
-    if not options:
-        options.append("use a smaller k or a smaller tau")
-    torus = "torus" if dim == 2 else "3-torus"
-    return (
-        f"k = {k} cannot be certified for these {n:,} points in the {mode} box "
-        f"{tuple(emb.box)} at tau = {tau:g}: Theorem 6's lower bound needs d_Pk <= "
-        f"{reach_factor(tau):.3g} x the distance to the nearest earlier vertex at every "
-        f"initial mesh vertex, and no valid initial mesh of the {torus} meets it (its spacing "
-        f"cannot exceed about a third of the torus' {shortest} period, "
-        f"{min(emb.period) / 3.0:.3g}); " + ", or ".join(options)
-    )
 
 
 def _points_under_floor(res, run):

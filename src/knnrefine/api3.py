@@ -9,13 +9,10 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import validation as V
-from .api import _past, check_options, refusal_message
-from .engine import size
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
-from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor
+from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from .engine.interrupt import Interrupts
 from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
 from .engine.state import C_CELL_TESTS, C_DISK_TESTS, C_FAILED
@@ -50,34 +47,7 @@ def _reach(pts, box, per, k):
     return float(BoxMetric(box, per).kth(pts, centres, k).max() + 0.5 * np.linalg.norm(cell))
 
 
-INITIAL_BYTES3 = 2500  # peak memory per initial vertex while an M0 is built (measured 2.3 KB)
 LIMITS_EFFORT3 = 300_000  # initial vertices above which a refusal skips the limits search
-
-
-def check_initial_budget3(box, per, budget):
-    """Before any work: the smallest initial mesh of the default 3-torus must fit the vertex
-    budget and memory (a thin periodic slab needs a fine grid across its long sides: 1 x 1 x
-    0.002 needs 2,000 x 2,000 x 3 vertices)."""
-    period = Embedding.make(box, per).period_internal
-    shapes = [grid_shape3(period, g[0]) for g in GRIDS3]
-    shape = min(shapes, key=lambda s: int(np.prod(s)))
-    need = int(np.prod(shape))
-    memory = size.memory_bytes()
-    if need <= budget and need * INITIAL_BYTES3 <= memory / 2:
-        return
-    dims = " x ".join(f"{int(v):,}" for v in shape)
-    cost = f"{need:,} vertices, about {need * INITIAL_BYTES3 / 1e9:.2g} GB to build"
-    if max(shape) <= 4 * min(shape):
-        raise InputError(
-            f"max_vertices={budget:,} is too small: the initial mesh alone has {dims} = "
-            f"{cost}; raise max_vertices"
-        )
-    raise InputError(
-        f"the box {tuple(box)} is too thin for its periodic axes: the initial mesh of the "
-        f"3-torus alone needs {dims} = {cost} (budget {budget:,} vertices, this machine's "
-        f"memory {memory / 1e9:.3g} GB); rescale the coordinates, make the short axis "
-        "non-periodic, or raise max_vertices"
-    )
 
 
 class _Start3:
@@ -91,15 +61,15 @@ class _Start3:
     built; indexes and candidates are kept per torus (the refusal asks again); the deadline
     and Ctrl-C are checked between every step."""
 
-    def __init__(self, pts, box, per, budget, interrupts, deadline, t_start):
-        self.pts, self.box, self.per, self.budget = pts, box, per, budget
-        self.interrupts, self.deadline, self.t_start = interrupts, deadline, t_start
+    def __init__(self, pts, opt, budget, interrupts):
+        self.pts, self.box, self.per, self.budget = pts, opt.box, opt.periodic, budget
+        self.opt, self.interrupts = opt, interrupts
         self.tori = {}  # reach -> (embedding, index, candidate cache)
         self.reach_of_k = {}
 
     def check(self):
         self.interrupts.check()
-        _past(self.deadline, "choosing the initial mesh", self.t_start)
+        self.opt.past("choosing the initial mesh")
 
     def torus(self, reach=None):
         if reach not in self.tori:
@@ -182,38 +152,30 @@ def _points_under_floor(pts, floor, emb, n):
     return int(hit.sum())
 
 
-def refine3(points, k, tau=3.0, *, periodic=True, box=None, min_size=None, max_vertices=None,
-            time_limit=None, progress=None):  # fmt: skip
-    """kNNRefine in a box of three dimensions (``knnrefine.refine`` with (n, 3) points): a
-    ``Mesh3`` whose vertices M satisfy alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} in the box,
-    tau-well-spaced, no Voronoi cell and no closed circumball holding k points (checked by
-    ``certify3``). periodic: a bool or one per axis; box: (x0, y0, z0, x1, y1, z1), required
-    when an axis is periodic (points are wrapped into it), else the points' bounding box by
-    default. min_size, max_vertices, time_limit, progress: as in the plane: an initial mesh
-    that cannot fit is refused before any work, time_limit and Ctrl-C hold during the setup
-    too, a refusal names the largest k and tau that would certify, and a FloorWarning says
-    when most points lie below the floor."""
-    pts = V.as_points(points, 3)
-    max_vertices = V.check_max_vertices(max_vertices)
-    k, tau, per, box, min_size, deadline, t_start = check_options(
-        len(pts), None, lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p), k,
-        tau, periodic, box, min_size, max_vertices, time_limit, progress, dim=3,
-    )  # fmt: skip
-    budget = int(max_vertices) if max_vertices is not None else max(10**6, 4 * len(pts))
-    check_initial_budget3(box, per, budget)
+def refine3(pts, opt):
+    """kNNRefine in a box of three dimensions (``knnrefine.refine`` with (n, 3) points, its
+    options checked into ``opt``, a ``RunOptions``): a ``Mesh3`` whose vertices M satisfy
+    alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} in the box, tau-well-spaced, no Voronoi cell
+    and no closed circumball holding k points (checked by ``certify3``). As in the plane:
+    an initial mesh that cannot fit is refused before any work (``RunOptions.check``),
+    time_limit and Ctrl-C hold during the setup too, a refusal names the largest k and tau
+    that would certify, and a FloorWarning says when most points lie below the floor."""
+    k, tau, per, box, min_size = opt.k, opt.tau, opt.periodic, opt.box, opt.min_size
+    t_start, time_limit, progress = opt.t_start, opt.time_limit, opt.progress
+    budget = opt.start_budget(len(pts))
     with Interrupts() as interrupts:
-        start = _Start3(pts, box, per, budget, interrupts, deadline, t_start)
+        start = _Start3(pts, opt, budget, interrupts)
         found = start.find(k, reach_factor(tau))
         if found is None:
             raise InputError(start.refusal(k, tau))
         emb, run_index, grid = found
         del found  # the index must go with the run (take_result), not live on in this tuple
         start.release()
-        _past(deadline, "setting up", t_start)
+        opt.past("setting up")
         run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
                           grid, emb.grid)  # fmt: skip
         del run_index, grid
-        status = run.run(deadline, None if progress is None else (lambda m: progress(m, 0)),
+        status = run.run(opt.deadline, None if progress is None else (lambda m: progress(m, 0)),
                          interrupts)  # fmt: skip
     if status != STATUS_DONE:
         what = (

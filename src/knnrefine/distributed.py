@@ -20,9 +20,10 @@ import os
 import numpy as np
 
 from . import validation as V
-from .api import check_options, refine_store
+from .api import refine_store
 from .engine.partition import canonical, run_tile, sample_keys, split_strips, tile_index
 from .errors import InputError
+from .options import RunOptions
 from .partitioned import check_output, write_partitioned
 
 DEFAULT_COLUMNS = ("x", "y")
@@ -274,16 +275,14 @@ def refine(
     """
     if output is not None:
         check_output(output, parts, force)
-    max_vertices = V.check_max_vertices(max_vertices)
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
-        k, tau, per, box, min_size, deadline, t_start = check_options(
+        opt = RunOptions.check(
             store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),
-            store.check_inside, k, tau, periodic, box, min_size, max_vertices, time_limit,
-            progress,
+            store.check_inside, k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
+            max_vertices=max_vertices, time_limit=time_limit, progress=progress,
         )  # fmt: skip
-        V.fold_warning(*store.bounds, box, per, stacklevel=3)
-        mesh = refine_store(store, k, tau, per, box, min_size, max_vertices, time_limit,
-                            deadline, progress, tiles, t_start)  # fmt: skip
+        V.fold_warning(*store.bounds, opt.box, opt.periodic, stacklevel=3)
+        mesh = refine_store(store, opt, tiles)
     if output is None:
         return mesh
     return write_partitioned(mesh, output, parts or tiles, force)

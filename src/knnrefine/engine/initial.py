@@ -342,3 +342,34 @@ def face_neighbours(corners, offsets, check=None):
     out[a] = b % t
     out[b] = a % t
     return out.reshape(4, t).T.astype(np.int32)
+
+
+def refusal_message(n, k, tau, emb, k_max, f_min):
+    """Why no initial mesh of the torus ``emb`` (plane or space) can start a run of n points
+    at (k, tau), and what would: the largest k certifiable at this tau (``k_max``), the
+    largest tau for this k (from the least factor ``f_min``), a longer periodic side (None
+    where the search was not made)."""
+    dim = len(emb.periodic)
+    mode = {(True,) * dim: "periodic", (False,) * dim: "ordinary"}.get(
+        tuple(emb.periodic), f"periodic={tuple(emb.periodic)}"
+    )
+    options = []
+    if k_max is not None and k_max >= 1:
+        options.append(f"use k <= {k_max} (the largest k certifiable here at tau = {tau:g})")
+    if f_min is not None and tau_for_factor(f_min) >= 2.01:
+        tau_max = np.floor(tau_for_factor(f_min) * 1000) / 1000
+        options.append(f"use tau <= {tau_max:g} with k = {k}")
+    shortest = "shorter" if dim == 2 else "shortest"
+    if any(emb.periodic):
+        options.append(f"make the {shortest} periodic side of the box longer")
+    if not options:
+        options.append("use a smaller k or a smaller tau")
+    torus = "torus" if dim == 2 else "3-torus"
+    return (
+        f"k = {k} cannot be certified for these {n:,} points in the {mode} box "
+        f"{tuple(emb.box)} at tau = {tau:g}: Theorem 6's lower bound needs d_Pk <= "
+        f"{reach_factor(tau):.3g} x the distance to the nearest earlier vertex at every "
+        f"initial mesh vertex, and no valid initial mesh of the {torus} meets it (its spacing "
+        f"cannot exceed about a third of the torus' {shortest} period, "
+        f"{min(emb.period) / 3.0:.3g}); " + ", or ".join(options)
+    )

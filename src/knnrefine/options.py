@@ -1,0 +1,178 @@
+"""The options of one run, checked once before any work: ``RunOptions``.
+
+A run in the plane or in space, in one process, in tiles or on a Dask cluster, reads its
+options from one frozen object made by ``RunOptions.check``: each option validated in one
+place, the box defaulted and the points checked against it, the deadline set from the clock
+the run's budget errors read (``past``), and what cannot fit refused up front (the initial
+mesh of the torus the box makes must fit the vertex budget and memory).
+"""
+
+import numbers
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import validation as V
+from .engine import size
+from .engine.embedding import Embedding
+from .engine.initial import GRIDS, GRIDS3, grid_shape, grid_shape3
+from .errors import BudgetError, InputError
+
+DEFAULT_MIN_SIZE = 1e-6  # resolution floor, relative to the box's longer side
+INITIAL_BYTES3 = 2500  # peak memory per initial vertex while an M0 is built in space (2.3 KB)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """What one run was asked, checked: k (a count, or a weight for weighted points), tau,
+    the periodic axes and the box (its default the points' bounding box), the resolution
+    floor ``min_size`` (input units), the vertex budget (None: chosen from the size
+    estimate), the time limit and its ``deadline`` (a ``time.perf_counter()`` value from
+    ``t_start``), and the progress callback."""
+
+    k: int | float
+    tau: float
+    periodic: tuple[bool, ...]
+    box: tuple[float, ...]
+    min_size: float
+    max_vertices: int | None
+    time_limit: float | None
+    progress: Callable | None
+    t_start: float
+    deadline: float | None
+
+    @property
+    def dim(self) -> int:
+        return len(self.periodic)
+
+    def start_budget(self, n: int) -> int:
+        """The vertex budget the initial mesh must fit: the user's, else max(10^6, 2 n) in
+        the plane and max(10^6, 4 n) in space."""
+        if self.max_vertices is not None:
+            return int(self.max_vertices)
+        return max(10**6, (2 if self.dim == 2 else 4) * n)
+
+    def past(self, what: str) -> None:
+        """BudgetError if the time limit has passed (checked between steps of the setup)."""
+        now = time.perf_counter()
+        if self.deadline is not None and now > self.deadline:
+            raise BudgetError(
+                f"time_limit reached while {what}, before refinement began; raise time_limit",
+                progress={"vertices": 0, "moves": {}, "seconds": now - self.t_start},
+            )
+
+    @classmethod
+    def check(
+        cls,
+        n: int,
+        total: float | None,
+        bounds: Callable[[], tuple],
+        check_inside: Callable[[tuple, tuple], None],
+        *,
+        k,
+        tau=3.0,
+        periodic=False,
+        box=None,
+        min_size=None,
+        max_vertices=None,
+        time_limit=None,
+        progress=None,
+        dim: int = 2,
+    ) -> "RunOptions":
+        """The options of a run on n points (weights summing to ``total``, or None) in
+        ``dim`` dimensions, each checked once, before any work.
+
+        Parameters
+        ----------
+        n, total : the number of points and their total weight (None: unweighted)
+        bounds : callable returning the points' default box (its bounding box)
+        check_inside : callable(box, periodic) refusing points outside an explicit box
+        k, tau, periodic, box, min_size, max_vertices, time_limit, progress
+            As ``knnrefine.refine``.
+        dim : 2 or 3
+
+        Returns
+        -------
+        RunOptions
+
+        Raises
+        ------
+        InputError
+            An option out of range, a periodic run without a box, points outside an explicit
+            box, an initial mesh that cannot fit the budget or memory.
+        """
+        t_start = time.perf_counter()
+        deadline = None
+        if time_limit is not None:
+            if (
+                isinstance(time_limit, bool)
+                or not isinstance(time_limit, numbers.Real)
+                or not (np.isfinite(time_limit) and time_limit > 0)
+            ):
+                raise InputError(
+                    f"time_limit must be a positive number of seconds, got {time_limit!r}"
+                )
+            time_limit = float(time_limit)
+            deadline = t_start + time_limit
+        k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
+        tau = V.check_tau(tau)
+        per = V.check_periodic(periodic, dim)
+        if box is None:
+            if any(per):
+                corners = "xmin, ymin, xmax, ymax" if dim == 2 else "x0, y0, z0, x1, y1, z1"
+                degrees = ", ".join(["-180"] * dim + ["180"] * dim)
+                raise InputError(
+                    f"a periodic run needs box=({corners}): the periods are its sides (for "
+                    f"angles in degrees, e.g. box=({degrees}))"
+                )
+            box = bounds()
+        else:
+            box = V.check_box(box, dim)
+            check_inside(box, per)
+        side = max(box[dim + a] - box[a] for a in range(dim))
+        if min_size is None:
+            min_size = DEFAULT_MIN_SIZE * side
+        elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
+            raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
+        max_vertices = V.check_max_vertices(max_vertices)
+        if progress is not None and not callable(progress):
+            raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
+        V.check_resolution(box, per)
+        options = cls(k, tau, tuple(per), tuple(box), float(min_size), max_vertices,
+                      time_limit, progress, t_start, deadline)  # fmt: skip
+        check_initial_budget(options.box, options.periodic, options.start_budget(n))
+        return options
+
+
+def check_initial_budget(box, per, budget):
+    """The smallest initial mesh of the default torus must fit the vertex budget (and, in
+    space, where building it costs INITIAL_BYTES3 a vertex, half the memory): a thin or
+    elongated periodic box needs a fine grid across its long sides (1 x 1 x 0.002 needs
+    1,500 x 1,500 x 3 vertices). InputError otherwise, before any work."""
+    period = Embedding.make(box, per).period_internal
+    if len(per) == 2:
+        shapes = [np.array(grid_shape(*period, g[0])) for g in GRIDS]
+        memory, per_vertex = np.inf, 0
+    else:
+        shapes = [grid_shape3(period, g[0]) for g in GRIDS3]
+        memory, per_vertex = size.memory_bytes(), INITIAL_BYTES3
+    shape = min(shapes, key=lambda s: int(np.prod(s)))
+    need = int(np.prod(shape))
+    if need <= budget and need * per_vertex <= memory / 2:
+        return
+    dims = " x ".join(f"{int(v):,}" for v in shape)
+    if max(shape) <= 4 * min(shape):
+        raise InputError(
+            f"max_vertices={budget:,} is too small: the initial mesh alone has {dims} = "
+            f"{need:,} vertices; raise max_vertices"
+        )
+    torus = "torus" if len(per) == 2 else "3-torus"
+    cost = "" if len(per) == 2 else f", about {need * per_vertex / 1e9:.2g} GB to build"
+    raise InputError(
+        f"the box {tuple(box)} is too elongated or thin for its periodic axes: the initial "
+        f"mesh of the {torus} alone needs {dims} = {need:,} vertices{cost} (max_vertices="
+        f"{budget:,}); rescale the coordinates, use a less elongated periodic box (or make "
+        "its short axis non-periodic), or raise max_vertices"
+    )
