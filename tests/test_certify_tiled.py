@@ -7,7 +7,7 @@ import pytest
 from conftest import gaussian_clusters
 
 import knnrefine
-from knnrefine.certify import _TiledTorus, _Torus
+from knnrefine.certify.plane import TiledTorusPoints, TorusPoints
 from knnrefine.engine.partition import LocalStore, split_strips, strip_owner, strips
 from knnrefine.errors import InputError
 
@@ -38,7 +38,7 @@ def test_split_strips_with_a_pad_per_row_against_brute_force():
 
 def _tori(mesh, pts, tiles, weights=None):
     store = LocalStore(pts, weights, tiles)
-    return _Torus(mesh, pts, -1, weights), _TiledTorus(mesh, store, tiles, -1), store
+    return TorusPoints(mesh, pts, -1, weights), TiledTorusPoints(mesh, store, tiles, -1), store
 
 
 @pytest.mark.parametrize("weighted", [False, True])

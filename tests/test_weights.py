@@ -225,12 +225,12 @@ def test_a_heavy_point_does_not_swallow_light_ones():
                 cells.setdefault(v, []).append(w[p])
     assert max(math.fsum(c) for c in cells.values()) < k
     # d_Pk by exact sums in distance order, against certify's (compensated) one
-    from knnrefine.certify import _Torus
+    from knnrefine.certify.plane import TorusPoints
 
     d, i = tree.query(local, k=len(pts))
     exact = [d[p][next(j for j in range(len(pts)) if math.fsum(w[i[p][: j + 1]]) >= k)]
              for p in range(len(pts))]  # fmt: skip
-    np.testing.assert_array_equal(_Torus(mesh, pts, 1, w).d_pk(local), exact)
+    np.testing.assert_array_equal(TorusPoints(mesh, pts, 1, w).d_pk(local), exact)
 
 
 @pytest.mark.parametrize("bad", [0, -3, 2.5, float("inf"), float("nan"), True, "10"])

@@ -26,11 +26,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .certify import check_precondition, check_source
-from .engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from .engine.predicates3 import insphere, orient3d
-from .metric import TorusFrame
-from .validation import as_points, check_inside
+from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
+from ..engine.predicates3 import insphere, orient3d
+from ..metric import TorusFrame
+from ..validation import as_points, check_inside
+from .common import check_precondition, check_source, find_rows
 
 
 @dataclass
@@ -257,7 +257,7 @@ def verify_returned_mesh3(mesh):
     u_sort, t_sort = np.argsort(ids, axis=1), np.argsort(ttet, axis=1)
     u_key = np.take_along_axis(ids, u_sort, 1)
     t_key = np.take_along_axis(ttet, t_sort, 1)
-    pos = _find_rows(t_key, u_key)
+    pos = find_rows(t_key, u_key)
     hit = pos >= 0
     if (~hit).any():
         problems.append(f"{int((~hit).sum())} tetrahedra are not tetrahedra of the torus mesh")
@@ -272,18 +272,6 @@ def verify_returned_mesh3(mesh):
     if (~same).any():
         problems.append(f"{int((~same).sum())} tetrahedra have corners off their torus tetrahedron")
     return problems
-
-
-def _find_rows(table, rows):
-    """Index of each of ``rows`` (int64 rows of 4) in ``table``, -1 if absent."""
-    if len(rows) == 0 or len(table) == 0:
-        return np.full(len(rows), -1, np.int64)
-    view = np.dtype((np.void, 8 * table.shape[1]))
-    a = np.ascontiguousarray(table, np.int64).view(view).ravel()
-    b = np.ascontiguousarray(rows, np.int64).view(view).ravel()
-    order = np.argsort(a, kind="stable")
-    i = np.minimum(np.searchsorted(a[order], b), len(a) - 1)
-    return np.where(a[order][i] == b, order[i], -1)
 
 
 def _edge_midpoints(local, corners, offsets, period):

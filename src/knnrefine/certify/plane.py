@@ -1,4 +1,4 @@
-"""certify(mesh, points): check a mesh against Theorem 6, independently of the engine.
+"""certify in the plane: check a mesh against Theorem 6, independently of the engine.
 
 Nothing here calls the refinement kernels. The torus triangulation that came with the mesh is
 first verified (so that its circumcircles and Voronoi vertices can be trusted): it must be a
@@ -24,12 +24,17 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .engine.geometry import plus_compensated
-from .engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from .errors import InputError
-from .mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
-from .metric import BoxMetric, TorusFrame
-from .validation import as_points, weights_of_run
+from ..errors import InputError
+from ..mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
+from ..metric import BoxMetric, TorusFrame
+from ..validation import weights_of_run
+from .common import (
+    check_precondition,
+    check_source,
+    compensated_sums,
+    find_rows,
+    running_sums,
+)
 
 
 @dataclass
@@ -171,59 +176,6 @@ class Certificate:
         return "\n".join(lines)
 
 
-def certify(
-    mesh,
-    points,
-    *,
-    samples=100_000,
-    n_random=20_000,
-    max_point_probes=100_000,
-    seed=0,
-    workers=-1,
-    weights=None,
-    tiles=None,
-):
-    """Check ``mesh`` (from ``knnrefine.refine``) against ``points`` (the same P, with the
-    same ``weights`` for a weighted run: counts are then sums of weights, d_{P,k} the least
-    radius holding weight k, all from scipy's cKDTree, never the engine).
-
-    Probes: ``samples`` stratified random points inside the mesh triangles (at least 4 per
-    triangle: dense where d_{P,k} is small, which is where the ratio has its extremes), every
-    vertex, circumcenter and edge midpoint, up to ``max_point_probes`` input points and
-    ``n_random`` uniform points of the box. Returns a Certificate; nothing is raised when a
-    check fails (look at ``.passed``). ``workers`` is passed to cKDTree queries (-1: all
-    cores). ``tiles``: ask every question about the points strip by strip in that many local
-    processes (``certify_store``; what ``distributed.certify`` does on a cluster), same
-    checks, same verdict. The checks, in order: the returned points are the mesh's (else
-    InputError), the torus triangulation, the returned mesh, well-spacedness, counts, Lemma
-    2's precondition, the achieved constants, the size integral, the floor."""
-    from .mesh3 import Mesh3
-
-    if isinstance(mesh, Mesh3):  # in space: certify3's checks
-        from .certify3 import certify3
-
-        if weights is not None or tiles is not None:
-            raise InputError("weights and tiles are not built for (n, 3) points yet")
-        return certify3(mesh, points, samples=samples, n_random=n_random,
-                        max_point_probes=max_point_probes, seed=seed, workers=workers)  # fmt: skip
-    t0 = time.perf_counter()
-    pts = as_points(points)
-    weights = _check_points_are_the_meshs(mesh, pts, weights)
-    options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
-                   seed=seed, t0=t0)  # fmt: skip
-    if tiles is None:
-        return _certify(mesh, _Torus(mesh, pts, workers, weights), **options)
-    if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:
-        raise InputError(f"tiles must be a positive integer (strips of points), got {tiles!r}")
-    from .engine.partition import LocalStore
-
-    store = LocalStore(pts, weights, int(tiles))
-    try:
-        return _certify(mesh, _TiledTorus(mesh, store, int(tiles), workers), **options)
-    finally:
-        store.close()
-
-
 def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
                   max_point_probes=100_000, seed=0, workers=-1):  # fmt: skip
     """``certify`` of a mesh against the points of ``store`` (``engine/partition.py``:
@@ -232,30 +184,12 @@ def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
     its points are. The caller has checked that the points lie in the mesh's box."""
     t0 = time.perf_counter()
     check_source(mesh.stats, store.n, store.weight)
-    torus = _TiledTorus(mesh, store, int(tiles), workers)
-    return _certify(mesh, torus, samples=samples, n_random=n_random,
+    torus = TiledTorusPoints(mesh, store, int(tiles), workers)
+    return run_checks(mesh, torus, samples=samples, n_random=n_random,
                     max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
 
 
-def check_source(stats, n, weight):
-    """``n`` points of total ``weight`` (None: unweighted) are as many as the run with these
-    stats was refined from, else InputError."""
-    made_from, total = stats.get("n"), stats.get("weight")
-    if made_from is not None and int(made_from) != n:
-        raise InputError(
-            f"the mesh was made from {int(made_from):,} points but the source holds "
-            f"{n:,}: use the points it was refined from"
-        )
-    if (total is None) != (weight is None) or (
-        total is not None and not np.isclose(weight, total, rtol=1e-9, atol=0)
-    ):
-        raise InputError(
-            f"the mesh was refined with total weight {total} but the source's is "
-            f"{weight}: give the weights it was refined with (or none)"
-        )
-
-
-def _certify(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
+def run_checks(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
     """The checks of ``certify`` on a torus that answers questions about the points."""
 
     triangulation = check_triangulation(torus)
@@ -314,7 +248,7 @@ def _certify(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
     )
 
 
-class _Torus:
+class TorusPoints:
     """What every check reads: the mesh's torus (vertices relative to its origin), the input
     points wrapped into it by the package's one rule, and kd-trees over both."""
 
@@ -386,38 +320,7 @@ def _held(tree, weights, centres, radii, workers=-1):
         if sizes.sum():
             members = np.concatenate([np.asarray(a, np.int64) for a in lists])
             bounds = np.concatenate([[0], np.cumsum(sizes)])
-            out[lo : lo + len(lists)] = _sums(weights[members], bounds)
-    return out
-
-
-@kernel(entry=True, lazy=True)
-def _sums(values, bounds):
-    """values[bounds[i]:bounds[i + 1]] summed for each i, compensated
-    (``engine.geometry.plus_compensated``, the one arithmetic primitive certify shares with
-    the engine): for weights >= 0 within two ulps of the exact sum whatever their order
-    (plain addition loses a weight of 1 beside one of 1e16: a disk holding k = 1e16 + 8
-    would hold 1e16)."""
-    out = np.zeros(bounds.shape[0] - 1)
-    for i in range(out.shape[0]):
-        s = 0.0
-        c = 0.0
-        for j in range(bounds[i], bounds[i + 1]):
-            s, c = plus_compensated(s, c, values[j])
-        out[i] = s + c
-    return out
-
-
-@kernel(entry=True, lazy=True)
-def _running_sums(values):
-    """The running sums along each row of ``values`` (rows, columns), compensated as
-    ``_sums``."""
-    out = np.empty_like(values)
-    for i in range(values.shape[0]):
-        s = 0.0
-        c = 0.0
-        for j in range(values.shape[1]):
-            s, c = plus_compensated(s, c, values[i, j])
-            out[i, j] = s + c
+            out[lo : lo + len(lists)] = compensated_sums(weights[members], bounds)
     return out
 
 
@@ -434,7 +337,7 @@ def _cell_tally(dd, ii, weights, m):
     cell = ii[tie]
     order = np.argsort(cell, kind="stable")
     bounds = np.searchsorted(cell[order], np.arange(m + 1))
-    return _sums(np.ascontiguousarray(w[order], dtype=np.float64), bounds)
+    return compensated_sums(np.ascontiguousarray(w[order], dtype=np.float64), bounds)
 
 
 class StripQuestions:
@@ -448,7 +351,7 @@ class StripQuestions:
     (the whole torus at last)."""
 
     def __init__(self, store, origin, period, k, tiles):
-        from .engine.partition import SAMPLE_MIN, regions_axis, strips
+        from ..engine.partition import SAMPLE_MIN, regions_axis, strips
 
         self.store, self.k = store, k
         self.period = np.asarray(period, float)
@@ -468,7 +371,7 @@ class StripQuestions:
 
     def route(self, x, pad):
         """The rows of x (torus frame) within ``pad`` of each strip (one pad per row)."""
-        from .engine.partition import split_strips
+        from ..engine.partition import split_strips
 
         rows, bounds = split_strips(x, self.regions, pad, *self.period)
         return [rows[bounds[j] : bounds[j + 1]] for j in range(len(self.regions))]
@@ -476,7 +379,7 @@ class StripQuestions:
     def d_pk(self, x, pad):
         """Exact d_{P,k} at x (torus frame); ``pad`` a first guess of its reach (it only sets
         how often a question is asked again)."""
-        from .engine.partition import strip_owner
+        from ..engine.partition import strip_owner
 
         out = np.full(len(x), np.nan)
         if len(x) == 0:
@@ -506,8 +409,8 @@ class StripQuestions:
         return out
 
 
-class _TiledTorus(_Torus):
-    """A ``_Torus`` whose input points stay in a store: every question about them is a
+class TiledTorusPoints(TorusPoints):
+    """A ``TorusPoints`` whose input points stay in a store: every question about them is a
     ``StripQuestions``."""
 
     def __init__(self, mesh, store, tiles, workers):
@@ -554,10 +457,10 @@ class _TiledTorus(_Torus):
 
 
 def _certify_strip(points, weights, job):
-    """One strip's answers (``_TiledTorus``) from its points (the torus frame) within
+    """One strip's answers (``TiledTorusPoints``) from its points (the torus frame) within
     ``job["pad"]`` of it: d_{P,k} at its queries (NaN where the k-th point may lie beyond
     the pad), what its own points add to each disk, to each vertex's cell."""
-    from .engine.partition import strip_owner
+    from ..engine.partition import strip_owner
 
     period = np.asarray(job["period"], float)
     out = {}
@@ -610,7 +513,7 @@ def _weighted_kth(tree, weights, x, k, workers, chunk=20_000):
             d, i = tree.query(q[todo], k=kk, workers=workers)
             d = d.reshape(len(todo), kk)
             i = i.reshape(len(todo), kk)
-            held = _running_sums(np.ascontiguousarray(weights[np.minimum(i, n - 1)] * (i < n)))
+            held = running_sums(np.ascontiguousarray(weights[np.minimum(i, n - 1)] * (i < n)))
             enough = held[:, -1] >= k
             at = np.argmax(held >= k, axis=1)
             res[todo[enough]] = d[enough, at[enough]]
@@ -745,7 +648,7 @@ def measure_size(torus, probes):
     return Size(integral, float(np.sqrt(var)))
 
 
-def _check_points_are_the_meshs(mesh, pts, weights=None):
+def check_points_are_the_meshs(mesh, pts, weights=None):
     """A mesh is certified against the points it was made from: as many as it records, inside
     its box along non-periodic axes, with weights exactly when it was refined with weights
     (of the total it records). Anything else is an input error, not a failed certificate.
@@ -769,27 +672,6 @@ def _check_points_are_the_meshs(mesh, pts, weights=None):
                 "are not the points the mesh was refined from"
             )
     return weights
-
-
-def check_precondition(initial, torus, k, tau, period):
-    """Lemma 2's base case, checked here independently of the engine: can the initial vertices
-    be ordered so that each u has d_Pk(u) <= (K - 1) lambda_u, lambda_u its distance to the
-    nearest earlier one (K = max(2 tau / (tau - 2), 3))? Peel: a vertex whose disk of radius
-    (K - 1) x (distance to the nearest other remaining vertex) holds k points can go last.
-    Returns (ok, note)."""
-    factor = max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
-    remaining = np.asarray(initial, float)
-    if torus.total < k:
-        return False, "n < k"
-    rounds = 0
-    while len(remaining) > 1:
-        lam = cKDTree(remaining, boxsize=period).query(remaining, k=2)[0][:, 1]
-        ok = torus.held(remaining, factor * lam) >= k
-        if not ok.any():
-            return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"
-        remaining = remaining[~ok]
-        rounds += 1
-    return True, f"{len(initial)} vertices ordered in {rounds} round{'s' if rounds != 1 else ''}"
 
 
 def verify_returned_mesh(mesh):
@@ -828,7 +710,7 @@ def verify_returned_mesh(mesh):
     u_rot = np.argmin(order[tri], axis=1) if len(tri) else np.zeros(0, np.int64)
     t_key = _rotate(ttri, t_rot)
     u_key = _rotate(order[tri], u_rot)
-    pos = _find_rows(t_key, u_key)
+    pos = find_rows(t_key, u_key)
     unmatched = int((pos < 0).sum())
     hit = pos >= 0
     t = pos[hit]
@@ -849,20 +731,6 @@ def _rotate(rows, r):
     """Each row (of 3 items) rotated left by r[i]."""
     idx = (np.arange(3)[None, :] + np.asarray(r)[:, None]) % 3
     return np.take_along_axis(rows, idx.reshape(idx.shape + (1,) * (rows.ndim - 2)), axis=1)
-
-
-def _find_rows(table, rows):
-    """Index of each of ``rows`` (int64 triples) in ``table``, -1 if absent."""
-    if len(rows) == 0:
-        return np.zeros(0, np.int64)
-    view = np.dtype((np.void, 8 * 3))
-    a = np.ascontiguousarray(table, np.int64).view(view).ravel()
-    b = np.ascontiguousarray(rows, np.int64).view(view).ravel()
-    order = np.argsort(a, kind="stable")  # byte order, consistent for both searches
-    i = np.searchsorted(a[order], b)
-    i = np.minimum(i, len(a) - 1)
-    found = a[order][i] == b
-    return np.where(found, order[i], -1)
 
 
 def verify_triangulation(vertices, triangles, offsets, neighbors, period):

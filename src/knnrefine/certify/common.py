@@ -1,0 +1,94 @@
+"""What the plane's and space's certificates share: that the points are the run's own
+(``check_source``), Lemma 2's precondition on the initial vertices (``check_precondition``),
+sums of weights that a heavy point cannot swallow (``compensated_sums``, ``running_sums``), and
+finding rows of integers in a table (``find_rows``)."""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..engine.geometry import plus_compensated
+from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
+from ..errors import InputError
+
+
+def check_source(stats, n, weight):
+    """``n`` points of total ``weight`` (None: unweighted) are as many as the run with these
+    stats was refined from, else InputError."""
+    made_from, total = stats.get("n"), stats.get("weight")
+    if made_from is not None and int(made_from) != n:
+        raise InputError(
+            f"the mesh was made from {int(made_from):,} points but the source holds "
+            f"{n:,}: use the points it was refined from"
+        )
+    if (total is None) != (weight is None) or (
+        total is not None and not np.isclose(weight, total, rtol=1e-9, atol=0)
+    ):
+        raise InputError(
+            f"the mesh was refined with total weight {total} but the source's is "
+            f"{weight}: give the weights it was refined with (or none)"
+        )
+
+
+def check_precondition(initial, torus, k, tau, period):
+    """Lemma 2's base case, checked here independently of the engine: can the initial vertices
+    be ordered so that each u has d_Pk(u) <= (K - 1) lambda_u, lambda_u its distance to the
+    nearest earlier one (K = max(2 tau / (tau - 2), 3))? Peel: a vertex whose disk of radius
+    (K - 1) x (distance to the nearest other remaining vertex) holds k points can go last.
+    Returns (ok, note)."""
+    factor = max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
+    remaining = np.asarray(initial, float)
+    if torus.total < k:
+        return False, "n < k"
+    rounds = 0
+    while len(remaining) > 1:
+        lam = cKDTree(remaining, boxsize=period).query(remaining, k=2)[0][:, 1]
+        ok = torus.held(remaining, factor * lam) >= k
+        if not ok.any():
+            return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"
+        remaining = remaining[~ok]
+        rounds += 1
+    return True, f"{len(initial)} vertices ordered in {rounds} round{'s' if rounds != 1 else ''}"
+
+
+@kernel(entry=True, lazy=True)
+def compensated_sums(values, bounds):
+    """values[bounds[i]:bounds[i + 1]] summed for each i, compensated
+    (``engine.geometry.plus_compensated``, the one arithmetic primitive certify shares with
+    the engine): for weights >= 0 within two ulps of the exact sum whatever their order
+    (plain addition loses a weight of 1 beside one of 1e16: a disk holding k = 1e16 + 8
+    would hold 1e16)."""
+    out = np.zeros(bounds.shape[0] - 1)
+    for i in range(out.shape[0]):
+        s = 0.0
+        c = 0.0
+        for j in range(bounds[i], bounds[i + 1]):
+            s, c = plus_compensated(s, c, values[j])
+        out[i] = s + c
+    return out
+
+
+@kernel(entry=True, lazy=True)
+def running_sums(values):
+    """The running sums along each row of ``values`` (rows, columns), compensated as
+    ``compensated_sums``."""
+    out = np.empty_like(values)
+    for i in range(values.shape[0]):
+        s = 0.0
+        c = 0.0
+        for j in range(values.shape[1]):
+            s, c = plus_compensated(s, c, values[i, j])
+            out[i, j] = s + c
+    return out
+
+
+def find_rows(table, rows):
+    """Index of each of ``rows`` (rows of integers, as wide as ``table``'s) in ``table``, -1
+    if absent: rows compared as bytes, one sort of the table."""
+    if len(rows) == 0 or len(table) == 0:
+        return np.full(len(rows), -1, np.int64)
+    view = np.dtype((np.void, 8 * np.shape(table)[1]))
+    a = np.ascontiguousarray(table, np.int64).view(view).ravel()
+    b = np.ascontiguousarray(rows, np.int64).view(view).ravel()
+    order = np.argsort(a, kind="stable")  # byte order, consistent for both searches
+    i = np.minimum(np.searchsorted(a[order], b), len(a) - 1)
+    return np.where(a[order][i] == b, order[i], -1)
