@@ -83,6 +83,7 @@ def test_achieved_constants_are_what_they_claim(case):
     assert cert.alpha_hat <= ratio.min() * 1.05 and cert.beta_hat >= ratio.max() / 1.05
 
 
+@pytest.mark.slow
 def test_size_ratio_is_a_monte_carlo_integral(case):
     name, points, mesh, cert = case
     per = box_metric(mesh)

@@ -326,6 +326,7 @@ def cli():
     return [exe] if exe else [sys.executable, "-m", "knnrefine.cli.main"]
 
 
+@pytest.mark.slow
 def test_every_subcommand_through_a_subprocess(tmp_path, csv):
     def call(*argv):
         return subprocess.run(
@@ -628,6 +629,7 @@ def test_plurals_and_labels_keep_their_names(tmp_path, capsys):
     assert int(row) == 0 and float(east) == pts[0, 0] and len(east) <= 20  # round-trip, short
 
 
+@pytest.mark.slow
 def test_no_carriage_returns_in_a_redirected_stderr(tmp_path):
     points = np.random.default_rng(0).random((400_000, 2))
     src = tmp_path / "p.npy"

@@ -40,6 +40,7 @@ def test_share_below_matches_sampled_points():
             assert got == pytest.approx((values <= r).mean(), abs=4e-3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [10, 50])
 def test_distance_density_and_cdf(k):
     pts = clustered(30000, 1)
@@ -131,6 +132,7 @@ def test_clip_below_cuts_tetrahedra_exactly():
                                        ov, atol=1e-9)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("periodic", [False, (True, False, True)])
 def test_boxes_not_periodic_everywhere(periodic):
     """In a box not periodic on every axis the pieces are cut at its faces: they tile the box
@@ -170,6 +172,7 @@ def test_boxes_not_periodic_everywhere(periodic):
     assert dens.raw_mass == pytest.approx(check, rel=0.01)
 
 
+@pytest.mark.slow
 def test_the_uses_example_in_space_runs():
     """docs/uses.md's example in space runs as written, and its numbers mean what the text
     says: the interpolant is near the exact value, the CDF rises and lies in its bounds."""

@@ -243,6 +243,7 @@ def test_k_by_cross_validation_is_the_best_of_its_curve():
     assert len(auto.cv_ks_) == len(auto.cv_scores_) and np.isfinite(auto.cv_scores_).all()
 
 
+@pytest.mark.slow
 def test_cross_validation_keeps_copies_in_one_fold():
     """With integer weights a point's copies are held out together: otherwise a held-out
     point would have a copy at distance 0 in its training fold, and k = 1 would win."""

@@ -226,6 +226,7 @@ def test_a_few_floor_sites_do_not_warn():
 # -- 6. budgets from what the input needs ------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name, points, k",
     [
@@ -243,6 +244,7 @@ def test_size_estimate_is_within_a_factor_of_two(name, points, k):
     assert mesh.stats["max_vertices"] >= 5 * m  # the default budget: 10 x the estimate
 
 
+@pytest.mark.slow
 def test_k2_on_many_points_fits_the_default_budget():
     """k = 2 needs about 4.3 n vertices; the default budget was 2 n (BudgetError after 9 s
     at n = 10^6). n = 3 x 10^5 needs 1.3 x 10^6 > the old default of 10^6."""

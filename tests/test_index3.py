@@ -56,6 +56,7 @@ def test_ball_counts_match_a_periodic_kd_tree(period):
             assert (got[want >= k] >= k).all()
 
 
+@pytest.mark.slow
 def test_cell_counts_match_each_points_nearest_vertices():
     """The closed cell of every vertex of a refined triangulation of the unit 3-torus counts
     the points whose nearest vertex it is (ties: every nearest one), as a kd-tree over the

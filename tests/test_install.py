@@ -104,6 +104,7 @@ def _copy_package(tmp_path):
     return site
 
 
+@pytest.mark.slow
 def test_read_only_install_without_a_cache_imports_and_says_so(tmp_path, read_only):
     """Used to raise at import: "cannot cache function 'snap': no locator available"."""
     site = _copy_package(tmp_path)
@@ -113,6 +114,7 @@ def test_read_only_install_without_a_cache_imports_and_says_so(tmp_path, read_on
     assert "KernelCacheWarning" in result["warnings"]
 
 
+@pytest.mark.slow
 def test_read_only_install_uses_the_kernels_shipped_with_it(tmp_path, read_only):
     """Used to recompile from scratch (55 s), ignoring the shipped __pycache__."""
     site = _copy_package(tmp_path)

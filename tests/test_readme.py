@@ -55,6 +55,7 @@ def test_the_readme_has_what_this_test_runs():
     assert {"refine", "certify", "plot", "density", "persistence", "cluster"} <= names
 
 
+@pytest.mark.slow
 def test_every_readme_command_runs_as_written(tmp_path):
     if shutil.which("knnrefine") is None:
         pytest.skip("the knnrefine console script is not installed (pip install .)")
@@ -81,6 +82,7 @@ def test_every_readme_command_runs_as_written(tmp_path):
         assert (cwd / made).stat().st_size > 0, made
 
 
+@pytest.mark.slow
 def test_every_readme_python_example_runs(tmp_path, monkeypatch):
     pytest.importorskip("gudhi")
     monkeypatch.chdir(tmp_path)  # the examples write torus.npz
@@ -92,6 +94,7 @@ def test_every_readme_python_example_runs(tmp_path, monkeypatch):
     assert os.path.exists(tmp_path / "torus.npz")
 
 
+@pytest.mark.slow
 def test_the_readme_workers_and_dask_block_runs_as_a_script_and_from_stdin(tmp_path):
     """regression (issue 28): the README's workers/Dask block, pasted into a script, flooded
     stderr with 'Failed to start process' (Dask spawned its workers, which imports the

@@ -155,6 +155,7 @@ REAL = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(REAL))
 def test_real_data(name):
     points = load_shared(name)

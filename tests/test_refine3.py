@@ -88,6 +88,7 @@ def assert_certified(mesh, pts):
 PERIODICITIES = [True, False, (True, False, True)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("periodic", PERIODICITIES, ids=["torus", "box", "mixed"])
 @pytest.mark.parametrize("name", sorted(INPUTS))
 @pytest.mark.parametrize("k", [10, 100])
@@ -111,6 +112,7 @@ def test_other_taus_are_certified(tau):
     assert_certified(mesh, pts)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("periodic", PERIODICITIES, ids=["torus", "box", "mixed"])
 def test_k_1_refines_down_to_the_floor_and_says_so(periodic):
     """d_{P,1} vanishes on P: the elements round each point stop at the floor, and certify
@@ -218,6 +220,7 @@ def test_time_limit_and_budget_stop_the_run(monkeypatch):
     assert len(seen) > 10 and seen == sorted(seen)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [10, 50])
 def test_methionine_torsions_on_the_3_torus(k):
     """Real data: 18,417 methionine side-chain torsion triples (chi1, chi2, chi3) in degrees,
@@ -256,6 +259,7 @@ def test_tau_beyond_6_is_certified():
     assert_certified(knnrefine.refine(pts, 10, 8.0, periodic=True, box=BOX), pts)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "flags, periodic",
     [(["--periodic"], True), (["--periodic-z"], (False, False, True)), ([], False)],
@@ -546,6 +550,7 @@ def test_growing_in_place_keeps_the_rows_and_zero_fills():
     np.testing.assert_array_equal(holder.queues.scalars.ident, [0, 1, 2, 3, 4, 0, 0, 0, 0])
 
 
+@pytest.mark.slow
 def test_growing_without_mremap_or_mappings_copies(monkeypatch):
     """Where a mapping cannot move (macOS has no mremap: resize raises SystemError) growth
     copies the rows into a new mapping; where the system has no anonymous mappings

@@ -39,6 +39,7 @@ CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, make, k, periodic", CASES, ids=[c[0] + str(c[2]) for c in CASES])
 def test_tiled_mesh_is_certified_and_the_size_of_a_single_run(name, make, k, periodic):
     """Two workers: the mesh passes certify (the triangulation across the strips' borders is
