@@ -49,7 +49,7 @@ def main(argv=None):
                 rows.append({"input": name, "box": kind, "n": len(pts), "k": k, "tau": tau,
                              "m": len(mesh.vertices), "passed": c.passed,
                              "alpha_hat": c.alpha_hat, "beta_hat": c.beta_hat,
-                             "alpha": c.alpha, "beta": c.beta, "probes": c.probes})  # fmt: skip
+                             "alpha": c.alpha, "beta": c.beta, "probes": c.n_probes})  # fmt: skip
                 m = len(mesh.vertices)
                 print(f"{name:>10} {kind:>8} n={len(pts):>6} k={k:>3} tau={tau:g}: m = {m:>6,}"
                       f" passed={c.passed} alpha_hat {c.alpha_hat:.3f} (alpha {c.alpha:.3f}), "

@@ -1,5 +1,5 @@
 """The kNN-CDF in space: CDF_k(r), the share of the periodic box where d_{P,k} <= r,
-integrated over a mesh (``density3.KnnDistance3.cdf``, with rigorous bounds) against Monte
+integrated over a mesh (``KnnDistance.cdf``, with rigorous bounds) against Monte
 Carlo at 10^6 uniform random points with scipy's cKDTree(boxsize), the way cosmologists
 compute it today, in the same run.
 
@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import knnrefine
-from knnrefine.density3 import KnnDistance3
+from knnrefine import KnnDistance
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DATA = os.path.join(HERE, "..", "..", "shared", "data", "rota_top8000_met_chi1_chi2_chi3.csv")
@@ -48,7 +48,7 @@ def main(argv=None):
         for k in args.ks:
             t0 = time.perf_counter()
             mesh = knnrefine.refine(pts, k, periodic=True, box=(0, 0, 0, side, side, side))
-            dist = KnnDistance3(mesh, pts)
+            dist = KnnDistance(mesh, pts)
             t_mesh = time.perf_counter() - t0
             t0 = time.perf_counter()
             tree = cKDTree(pts, boxsize=side)

@@ -124,6 +124,16 @@ DEGENERATE = {
 }
 
 
+def torus_frame(mesh):
+    """Points in input coordinates -> the frame of the mesh's torus: relative to its origin,
+    periodic axes wrapped into [0, period) (where the torus' vertices and the mesh's offsets
+    live)."""
+    from knnrefine.metric import BoxMetric
+
+    origin, period = np.asarray(mesh.torus.origin), np.asarray(mesh.torus.period)
+    return BoxMetric((*origin, *(origin + period)), mesh.periodic).frame
+
+
 def load_shared(name):
     path = SHARED_DATA / name
     if not path.exists():

@@ -356,7 +356,8 @@ def test_least_squares_k_by_cross_validation():
     """k="cv" with criterion="least-squares": each candidate's score is the mean over folds
     of (integral of the fold's f^2) - 2 (mean of f at the held-out points), recomputed by
     hand; the smallest wins."""
-    from knnrefine.density import _folds, square_integral
+    from knnrefine.density import square_integral
+    from knnrefine.density.estimator import cv_folds
 
     X = mixture(1500, seed=13)
     options = {"criterion": "least-squares", "method": "knn", "random_state": 2}
@@ -364,7 +365,7 @@ def test_least_squares_k_by_cross_validation():
     by_hand = []
     for k in est.cv_ks_:
         total = 0.0
-        for test in _folds(len(X), 3, 2):
+        for test in cv_folds(len(X), 3, 2):
             train = np.setdiff1d(np.arange(len(X)), test)
             fold = KnnDensityEstimator(k=int(k), box=est.box_, **options).fit(X[train])
             held = np.mean(np.exp(fold.score_samples(X[test])))
@@ -512,14 +513,14 @@ def test_adaptive_k_by_cross_validation():
     """k="cv" with the adaptive estimate: held-out folds, each fold's bandwidth by its own
     leave-one-out curve, recomputed by hand. (Leave-one-out alone cannot choose the pilot's
     k: the pilot is computed with the left-out point, which favours small k.)"""
-    from knnrefine.density import _folds
+    from knnrefine.density.estimator import cv_folds
 
     X = mixture(1500, seed=13)
     est = KnnDensityEstimator(k="cv", k_grid=[5, 20, 80], cv=3, random_state=2).fit(X)
     by_hand = []
     for k in est.cv_ks_:
         total = 0.0
-        for test in _folds(len(X), 3, 2):
+        for test in cv_folds(len(X), 3, 2):
             train = np.setdiff1d(np.arange(len(X)), test)
             total += KnnDensityEstimator(k=int(k), box=est.box_).fit(X[train]).score(X[test])
         by_hand.append(total / len(X))

@@ -23,8 +23,8 @@ def case(request):
 
 def test_certify3_reads_the_vertices_the_user_gets(case, tmp_path):
     """regression: a 3-D mesh written to .npz with its vertices overwritten by zeros and read
-    back PASSED (certify read ``mesh.local``, never ``vertices``). Now it fails, naming the
-    vertices; so does a vertex moved by one ulp, and a tetrahedron of the returned mesh
+    back PASSED (certify read a copy in the torus' frame, never ``vertices``). Now it fails,
+    naming the vertices; so does a vertex moved by one ulp, and a tetrahedron of the returned mesh
     whose corners are swapped (reoriented) where the torus is not the returned mesh."""
     mesh, pts = case
     assert knnrefine.certify(mesh, pts).passed
@@ -41,11 +41,11 @@ def test_certify3_reads_the_vertices_the_user_gets(case, tmp_path):
     moved[3, 1] = np.nextafter(moved[3, 1], 2.0)
     cert = knnrefine.certify(dataclasses.replace(mesh, vertices=moved), pts)
     assert not cert.passed and "1 vertices differ" in "; ".join(cert.mesh_problems)
-    if mesh.embedded is not None:  # the returned tetrahedra are copies, checked as such
+    if not all(mesh.periodic):  # the returned tetrahedra are copies, checked as such
         flipped = mesh.tetrahedra.copy()
         flipped[0, [0, 1]] = flipped[0, [1, 0]]
-        cert = knnrefine.certify(dataclasses.replace(mesh, tetrahedra=flipped), pts)
-        assert not cert.passed and cert.triangulation  # the torus itself is fine
+        cert = knnrefine.certify(dataclasses.replace(mesh, cells=flipped), pts)
+        assert not cert.passed and cert.triangulation_ok  # the torus itself is fine
         assert any("tetrahedra" in p for p in cert.mesh_problems)
 
 
@@ -56,7 +56,7 @@ def test_certify3_probes_at_least_the_edge_midpoints(case):
     mesh, pts = case
     cert = knnrefine.certify(mesh, pts)
     metric = knnrefine.metric.BoxMetric(mesh.box, mesh.periodic)
-    c = mesh.corners() + np.asarray(mesh.origin)  # the returned tetrahedra, input units
+    c = mesh.corners()  # the returned tetrahedra, input units
     mids = np.concatenate([0.5 * (c[:, i] + c[:, j]) for i in range(4) for j in range(i)])
     centres = c.mean(axis=1)
     x = np.concatenate([mids, centres, mesh.vertices])
@@ -68,7 +68,7 @@ def test_certify3_probes_at_least_the_edge_midpoints(case):
     ratio = d_m2 / d_pk
     assert cert.alpha_hat <= ratio.min() * (1 + 1e-12)
     assert cert.beta_hat >= ratio.max() * (1 - 1e-12)
-    assert cert.probes >= len(np.unique(mids, axis=0)) // 2
+    assert cert.n_probes >= len(np.unique(mids, axis=0)) // 2
 
 
 def test_certify3_checks_lemma_2s_precondition():
@@ -79,7 +79,7 @@ def test_certify3_checks_lemma_2s_precondition():
     mesh = knnrefine.refine(pts, 150, 3.0, periodic=True, box=BOX)
     cert = knnrefine.certify(mesh, pts)
     assert cert.passed and cert.precondition_ok
-    initial = mesh.local[mesh.kinds == 0]
+    initial = mesh.torus.vertices[mesh.torus.kinds == 0]
     lam = cKDTree(initial, boxsize=1.0).query(initial, k=2)[0][:, 1]
     d_pk = cKDTree(pts, boxsize=1.0).query(initial, k=[150])[0][:, 0]
     assert (d_pk > 2.0 * lam).all()  # no initial vertex may go last at tau = 8: none can
@@ -95,7 +95,7 @@ def test_certify3_with_no_probe_above_the_floor():
     pts = np.random.default_rng(5).random((500, 3))
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX, min_size=10)
     cert = knnrefine.certify(mesh, pts)
-    assert np.isnan(cert.alpha_hat) and np.isnan(cert.beta_hat) and cert.probes == 0
+    assert np.isnan(cert.alpha_hat) and np.isnan(cert.beta_hat) and cert.n_probes == 0
     assert cert.passed, str(cert)
     assert "nothing measured" in str(cert)
 
@@ -108,7 +108,7 @@ def test_certify3_honours_samples_and_refuses_tiles():
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
     few = knnrefine.certify(mesh, pts, samples=10, workers=1)
     many = knnrefine.certify(mesh, pts, samples=40 * len(mesh.tetrahedra))
-    assert many.probes - few.probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
+    assert many.n_probes - few.n_probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
     with pytest.raises(knnrefine.InputError, match="tiles"):
         knnrefine.certify(mesh, pts, tiles=2)
     with pytest.raises(knnrefine.InputError, match="weights"):

@@ -1,4 +1,4 @@
-"""d_{P,k}, the kNN density and the kNN-CDF in space (knnrefine.density3), against a
+"""d_{P,k}, the kNN density and the kNN-CDF in space (knnrefine.density), against a
 periodic cKDTree: exact at the vertices, interpolation close to exact at random points, the
 per-tetrahedron CDF formula against sampled points, the mesh's CDF against Monte Carlo of its
 own interpolant, and the exact kNN-CDF (Monte Carlo at 10^6 random points with cKDTree)
@@ -6,10 +6,12 @@ inside the certified bounds."""
 
 import numpy as np
 import pytest
+from conftest import torus_frame
 from scipy.spatial import cKDTree
 
 import knnrefine
-from knnrefine.density3 import KnnDensity3, KnnDistance3, _share_below, clip_below
+from knnrefine import KnnDensity, KnnDistance
+from knnrefine.density.space import SpacePieces, clip_below, share_below
 from knnrefine.errors import InputError
 
 BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
@@ -36,7 +38,7 @@ def test_share_below_matches_sampled_points():
     for row in d:
         values = lam @ row
         for r in np.linspace(row[0] - 0.01, row[3] + 0.01, 9):
-            got = _share_below(row[None] + 1e-9 * np.arange(4), r)[0]
+            got = share_below(row[None] + 1e-9 * np.arange(4), r)[0]
             assert got == pytest.approx((values <= r).mean(), abs=4e-3)
 
 
@@ -45,9 +47,11 @@ def test_share_below_matches_sampled_points():
 def test_distance_density_and_cdf(k):
     pts = clustered(30000, 1)
     mesh = knnrefine.refine(pts, k, periodic=True, box=BOX)
-    dist = KnnDistance3(mesh, pts)
+    dist = KnnDistance(mesh, pts)
     tree = cKDTree(pts, boxsize=1.0)
-    np.testing.assert_allclose(dist.values, tree.query(mesh.local, k=[k])[0][:, 0], rtol=1e-12)
+    np.testing.assert_allclose(
+        dist.values, tree.query(torus_frame(mesh)(mesh.vertices), k=[k])[0][:, 0], rtol=1e-12
+    )
     rng = np.random.default_rng(2)
     q = rng.random((100_000, 3))
     exact = tree.query(q, k=[k])[0][:, 0]
@@ -55,9 +59,9 @@ def test_distance_density_and_cdf(k):
     np.testing.assert_allclose(dist.exact(q), exact, rtol=1e-12)
     rel = np.abs(est - exact) / exact
     assert np.median(rel) < 0.05 and np.percentile(rel, 99) < 0.3
-    piece, _ = dist._locate(q)  # each piece's rigorous bounds hold at the points in it
-    assert (dist._bounds[0][piece] <= exact * (1 + 1e-12)).all()
-    assert (exact <= dist._bounds[1][piece] * (1 + 1e-12)).all()
+    piece, _ = dist.pieces.locate(q)  # each piece's rigorous bounds hold at the points in it
+    assert (dist.pieces.bounds[0][piece] <= exact * (1 + 1e-12)).all()
+    assert (exact <= dist.pieces.bounds[1][piece] * (1 + 1e-12)).all()
     # at the vertices the interpolant is exact; shifted by whole periods it is the same
     np.testing.assert_allclose(dist(mesh.vertices[:500] + [1.0, -2.0, 3.0]), dist.values[:500])
     # the mesh's CDF is its interpolant's: Monte Carlo of the interpolant agrees
@@ -65,13 +69,13 @@ def test_distance_density_and_cdf(k):
     mine = dist.cdf(radii)
     # the running sums and the cut pieces add up to the B-spline share of every piece,
     # also at radii equal to knots and beyond the extremes
-    knots, w = dist._knots()[:2]
+    knots, w = dist.pieces.knots()[:2]
     every = np.concatenate([radii, knots[:3, 3], knots[:3, 0], [0.0, knots.max() * 2]])
-    direct = [float((w * _share_below(knots, float(r))).sum()) for r in every]
+    direct = [float((w * share_below(knots, float(r))).sum()) for r in every]
     np.testing.assert_allclose(dist.cdf(every), direct, rtol=1e-12, atol=1e-15)
     # the bounds' running sums are the direct sums over pieces whose end is <= r, ends
     # themselves included
-    lower_d, upper_d = dist._bounds
+    lower_d, upper_d = dist.pieces.bounds
     ends = np.concatenate([radii, upper_d[:3], lower_d[:3], [-1.0, upper_d.max() + 1]])
     low, high = dist.cdf_bounds(ends)
     np.testing.assert_allclose(low, [w[upper_d <= r].sum() for r in ends], rtol=1e-12, atol=1e-15)
@@ -87,8 +91,8 @@ def test_distance_density_and_cdf(k):
     assert np.abs(mine - truth).max() < 0.05  # interpolation, not noise: 0.033 at k = 10
     # the density's mass: its 4-point rule against 64 random points in every piece (Monte
     # Carlo over the box needs millions of points: 1/d^3 is heavy where the clusters are)
-    dens = KnnDensity3(mesh, pts)
-    d, vol = dens.distance._d, dens.distance._volume
+    dens = KnnDensity(mesh, pts)
+    d, vol = dens.distance.pieces.d, dens.distance.pieces.volume
     many = d @ rng.dirichlet(np.ones(4), 64).T
     check = (vol * (dens.raw_constant / many**3).mean(axis=1)).sum()
     assert dens.raw_mass == pytest.approx(check, rel=0.01)
@@ -100,7 +104,7 @@ def test_other_points_are_refused():
     pts = clustered(3000, 3)
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
     with pytest.raises(InputError, match="3,000"):
-        KnnDistance3(mesh, pts[:-1])
+        KnnDistance(mesh, pts[:-1])
 
 
 def test_clip_below_cuts_tetrahedra_exactly():
@@ -121,7 +125,7 @@ def test_clip_below_cuts_tetrahedra_exactly():
         assert (pieces[:, :, axis] <= bound + 1e-12).all()
         vol = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])).sum() / 6
         x = np.sort(corners[:, :, axis], axis=1) + 1e-12 * np.arange(4)
-        want = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6 * _share_below(x, bound)
+        want = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6 * share_below(x, bound)
         got = np.abs(np.linalg.det(pieces[:, 1:] - pieces[:, :1])).sum() / 6
         assert got == pytest.approx(want.sum(), rel=1e-9) and got < vol
         # each piece carries the linear function of its tetrahedron
@@ -143,8 +147,8 @@ def test_boxes_not_periodic_everywhere(periodic):
     lo, hi = np.array(box[:3]), np.array(box[3:])
     pts = lo + clustered(20000, 5) * (hi - lo)
     mesh = knnrefine.refine(pts, 20, periodic=periodic, box=box)
-    dist = KnnDistance3(mesh, pts)
-    assert dist._volume.sum() == pytest.approx(np.prod(hi - lo), rel=1e-12)
+    dist = KnnDistance(mesh, pts)
+    assert dist.pieces.volume.sum() == pytest.approx(np.prod(hi - lo), rel=1e-12)
     per = np.array(mesh.periodic)
     tree = cKDTree(pts - lo, boxsize=np.where(per, hi - lo, 0.0))
     np.testing.assert_allclose(dist.values, tree.query(mesh.vertices - lo, k=[20])[0][:, 0])
@@ -154,8 +158,8 @@ def test_boxes_not_periodic_everywhere(periodic):
     est = dist(q)
     assert np.median(np.abs(est - exact) / exact) < 0.05
     # each piece's rigorous bounds hold at every sampled point in it
-    piece, _ = dist._locate(mesh.wrap(q))
-    low_d, high_d = dist._bounds
+    piece, _ = dist.pieces.locate(torus_frame(mesh)(q))
+    low_d, high_d = dist.pieces.bounds
     assert (low_d[piece] <= exact * (1 + 1e-12)).all()
     assert (exact <= high_d[piece] * (1 + 1e-12)).all()
     beyond = q[:10] + np.where(per, 0.0, hi - lo)
@@ -166,9 +170,9 @@ def test_boxes_not_periodic_everywhere(periodic):
     low, high = dist.cdf_bounds(radii)
     truth = np.array([(exact <= r).mean() for r in radii])
     assert (low <= truth + 3e-3).all() and (truth <= high + 3e-3).all()
-    dens = KnnDensity3(mesh, pts)
-    many = dens.distance._d @ rng.dirichlet(np.ones(4), 64).T
-    check = (dens.distance._volume * (dens.raw_constant / many**3).mean(axis=1)).sum()
+    dens = KnnDensity(mesh, pts)
+    many = dens.distance.pieces.d @ rng.dirichlet(np.ones(4), 64).T
+    check = (dens.distance.pieces.volume * (dens.raw_constant / many**3).mean(axis=1)).sum()
     assert dens.raw_mass == pytest.approx(check, rel=0.01)
 
 
@@ -194,17 +198,17 @@ def test_the_uses_example_in_space_runs():
 
 @pytest.mark.parametrize("periodic", [True, False, (True, False, True)])
 def test_edge_midpoints_are_queried_once_per_edge(periodic):
-    """density3._edges names each edge once (its two vertices and the offset between
+    """density.space.edges3 names each edge once (its two vertices and the offset between
     them): on the 3-torus there are exactly V + T of them (Euler, V - E + F - T = 0 with
     F = 2T); in every box the count equals a brute-force set of canonical edges, every
     occurrence maps to its own edge, and the midpoint values equal one query per
     tetrahedron's edge."""
-    from knnrefine.density3 import _edges
+    from knnrefine.density.space import edges3
 
     pts = clustered(6000, 31)
     mesh = knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
-    pairs = KnnDistance3._PAIRS
-    first, inverse = _edges(mesh.tetrahedra, mesh.offsets, pairs)
+    pairs = SpacePieces.PAIRS
+    first, inverse = edges3(mesh.tetrahedra, mesh.offsets, pairs)
     off = np.zeros(mesh.tetrahedra.shape + (3,), int) if mesh.offsets is None else mesh.offsets
     seen, names = {}, []
     for t in range(len(mesh.tetrahedra)):
@@ -220,9 +224,9 @@ def test_edge_midpoints_are_queried_once_per_edge(periodic):
     # the same partition of the occurrences: equal names <=> equal inverse
     assert len(np.unique(np.column_stack([names, inverse]), axis=0)) == len(seen)
     assert (inverse[first] == np.arange(len(first))).all()
-    dist = KnnDistance3(mesh, pts)
+    dist = KnnDistance(mesh, pts)
     corners = mesh.corners()
     mids = (0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]])).reshape(-1, 3)
     boxsize = np.where(mesh.periodic, 1.0, 0.0)
-    each = cKDTree(mesh.wrap(pts), boxsize=boxsize).query(mids, k=[10])[0][:, 0]
-    np.testing.assert_array_equal(dist._query(mids[first])[inverse], each)
+    each = cKDTree(torus_frame(mesh)(pts), boxsize=boxsize).query(mids, k=[10])[0][:, 0]
+    np.testing.assert_array_equal(dist.index.kth_local(mids[first])[inverse], each)

@@ -220,7 +220,7 @@ def test_real_data_old_faithful():
 def test_k_by_cross_validation_is_the_best_of_its_curve():
     """k="cv": the curve is the mean held-out log-likelihood per point over the folds,
     recomputed here by hand with the same folds and box; k_ is its argmax."""
-    from knnrefine.density import _folds
+    from knnrefine.density.estimator import cv_folds
 
     X = mixture(2000, seed=9)
     est = KnnDensityEstimator(
@@ -229,7 +229,7 @@ def test_k_by_cross_validation_is_the_best_of_its_curve():
     by_hand = []
     for k in est.cv_ks_:
         total = 0.0
-        for test in _folds(len(X), 4, 1):
+        for test in cv_folds(len(X), 4, 1):
             train = np.setdiff1d(np.arange(len(X)), test)
             fold = KnnDensityEstimator(k=int(k), method="knn", box=est.box_).fit(X[train])
             total += fold.score(X[test])

@@ -9,11 +9,12 @@ import os
 
 import numpy as np
 import pytest
+from conftest import torus_frame
 from scipy.spatial import cKDTree
 
 import knnrefine
 from knnrefine.errors import InputError
-from knnrefine.mesh3 import Mesh3
+from knnrefine.mesh import Mesh, Torus
 
 BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
 
@@ -77,9 +78,9 @@ INPUTS = {
 
 def assert_certified(mesh, pts):
     cert = knnrefine.certify(mesh, pts)
-    assert cert.triangulation and cert.volume_ratio == pytest.approx(1.0, abs=1e-9)
+    assert cert.triangulation_ok and not cert.triangulation_problems
     assert cert.max_aspect <= mesh.tau * (1 + 1e-9)
-    assert cert.max_circumball_count < mesh.k and cert.max_cell_count < mesh.k
+    assert cert.max_ball_count < mesh.k and cert.max_cell_count < mesh.k
     assert mesh.alpha <= cert.alpha_hat and cert.beta_hat <= mesh.beta
     assert cert.passed
     return cert
@@ -95,7 +96,7 @@ PERIODICITIES = [True, False, (True, False, True)]
 def test_the_matrix_is_certified(name, k, periodic):
     pts = INPUTS[name](6000, 1)
     mesh = knnrefine.refine(pts, k, 3.0, periodic=periodic, box=BOX)
-    assert isinstance(mesh, Mesh3) and mesh.vertices.shape[1] == 3
+    assert isinstance(mesh, Mesh) and mesh.dim == 3 and mesh.vertices.shape[1] == 3
     assert mesh.tetrahedra.shape[1] == 4
     if periodic is False:
         assert mesh.offsets is None
@@ -137,7 +138,9 @@ def test_a_box_of_other_sides_and_origin():
 
 
 def test_certify_fails_wrong_meshes():
-    """A mesh of other points, and a mesh with one tetrahedron reoriented, fail."""
+    """A mesh of other points fails; so does a mesh with one tetrahedron reoriented, in the
+    returned tetrahedra (they are no longer the torus' copies) or in the torus itself (its
+    orientation check)."""
     pts = uniform(4000, 6)
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
     other = knnrefine.refine(multiscale(4000, 7), 10, periodic=True, box=BOX)
@@ -146,9 +149,13 @@ def test_certify_fails_wrong_meshes():
     flipped[0, [0, 1]] = flipped[0, [1, 0]]
     offsets = mesh.offsets.copy()
     offsets[0, [0, 1]] = offsets[0, [1, 0]]
-    broken = dataclasses.replace(mesh, tetrahedra=flipped, offsets=offsets)
-    cert = knnrefine.certify(broken, pts)
-    assert not cert.passed and not cert.triangulation
+    returned = dataclasses.replace(mesh, cells=flipped, offsets=offsets)
+    cert = knnrefine.certify(returned, pts)
+    assert not cert.passed and cert.triangulation_ok
+    assert any("tetrahedra" in p for p in cert.mesh_problems)
+    torus = dataclasses.replace(mesh.torus, cells=flipped, offsets=offsets)
+    cert = knnrefine.certify(dataclasses.replace(returned, torus=torus), pts)
+    assert not cert.passed and not cert.triangulation_ok
 
 
 def test_bad_input_is_refused_before_work():
@@ -283,19 +290,19 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
     out = [str(tmp_path / "m.vtu"), str(tmp_path / "m.npz")]
     assert main([*args, "-o", out[0], "-o", out[1], "--certify", "--quiet"]) == 0
     mesh = io.read_mesh(out[1])
-    assert isinstance(mesh, Mesh3) and len(mesh.vertices) > 100
+    assert isinstance(mesh, Mesh) and mesh.dim == 3 and len(mesh.vertices) > 100
     again = knnrefine.refine(pts, 20, periodic=periodic, box=(0, 0, 0, 360, 360, 360))
     assert mesh.periodic == again.periodic
-    for name in ("vertices", "tetrahedra", "offsets", "kinds", "local", "order"):
+    for name in ("vertices", "tetrahedra", "offsets", "kinds", "order"):
         np.testing.assert_array_equal(getattr(mesh, name), getattr(again, name))
-    for name in ("local", "tetrahedra", "offsets", "kinds"):
+    for name in ("vertices", "tetrahedra", "offsets", "kinds"):
         np.testing.assert_array_equal(getattr(mesh.torus, name), getattr(again.torus, name))
     vtu = meshio.read(out[0])
     tets = vtu.cells_dict["tetra"]
     assert len(tets) == len(mesh.tetrahedra)
     c = vtu.points[tets]
     assert (np.linalg.det(c[:, :3] - c[:, 3:]) > 0).all()  # orient3d > 0 (module convention)
-    assert np.abs(c.sum(axis=1) / 4 - (mesh.corners().mean(axis=1) + mesh.origin)).max() < 1e-9
+    assert np.abs(c.sum(axis=1) / 4 - mesh.corners().mean(axis=1)).max() < 1e-9
     np.testing.assert_allclose(vtu.point_data["d_m2"], mesh.d_m2(vtu.points))
     assert main(["certify", out[1], str(csv), "--columns", "chi1,chi2,chi3"]) == 0
 
@@ -328,9 +335,12 @@ def _start_run(pts, k=10):
 def _finish(run, pts, k=10):
     assert run.run() == 0  # STATUS_DONE
     xyz, corners, offsets, kinds, cnt, _ = run.take_result()
-    return Mesh3(vertices=xyz, tetrahedra=corners, offsets=offsets, kinds=kinds, k=k, tau=3.0,
-                 periodic=(True,) * 3, box=BOX, min_size=1e-6, origin=(0.0,) * 3,
-                 period=(1.0,) * 3, local=xyz, stats={"n": len(pts)})  # fmt: skip
+    torus = Torus(origin=(0.0,) * 3, period=(1.0,) * 3, vertices=xyz, cells=corners,
+                  offsets=offsets, kinds=kinds)  # fmt: skip
+    return Mesh(vertices=xyz, cells=corners, offsets=offsets, kinds=kinds,
+                order=np.arange(len(xyz)), k=k, tau=3.0, periodic=(True,) * 3, box=BOX,
+                min_size=1e-6, floor_points=np.zeros((0, 3)), stats={"n": len(pts)},
+                torus=torus)  # fmt: skip
 
 
 @pytest.mark.parametrize("steps", [1, 700, 3000])
@@ -406,17 +416,20 @@ def test_boxes_not_periodic_everywhere(periodic):
     mesh = knnrefine.refine(pts, 20, periodic=periodic, box=box)
     assert_certified(mesh, pts)
     per = np.array(mesh.periodic)
-    assert mesh.stats["m_torus"] == len(mesh.torus.local) < mesh.stats["m"] * 2
+    t = mesh.torus
+    assert mesh.stats["m_torus"] == len(t.vertices) < mesh.stats["m"] * 2
     q = lo + np.random.default_rng(15).random((3000, 3)) * (hi - lo)
-    tree = cKDTree(mesh.local, boxsize=np.where(per, hi - lo, 0.0))
-    want = tree.query(mesh.wrap(q), k=2)[0][:, 1]
+    frame = torus_frame(mesh)
+    tree = cKDTree(frame(mesh.vertices), boxsize=np.where(per, hi - lo, 0.0))
+    want = tree.query(frame(q), k=2)[0][:, 1]
     np.testing.assert_allclose(mesh.d_m2(q), want, rtol=1e-12)
     c = mesh.corners()
-    box_lo, box_hi = lo - np.array(mesh.origin), hi - np.array(mesh.origin)
-    meets = ((c.max(axis=1) >= box_lo) & (c.min(axis=1) <= box_hi)) | per
+    meets = ((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi)) | per
     assert meets.all()
-    exact = np.array(mesh.origin) + mesh.local
-    np.testing.assert_array_equal(mesh.vertices[:, ~per], exact[:, ~per])
+    # each vertex a torus vertex moved by whole periods, exactly (on the engine's grid)
+    origin, period = np.array(t.origin), np.array(t.period)
+    shift = (mesh.vertices - origin - t.vertices[mesh.order]) / period
+    np.testing.assert_array_equal(shift, np.rint(shift))
 
 
 def test_default_box_is_the_points_bounding_box():
@@ -434,18 +447,19 @@ def test_certify_fails_a_box_mesh_missing_its_copies():
     pts = uniform(3000, 17)
     mesh = knnrefine.refine(pts, 10, periodic=False, box=BOX)
     assert knnrefine.certify(mesh, pts).passed
-    inside = np.flatnonzero(mesh.inside(mesh.local))
-    keep = np.ones(len(mesh.local), bool)
+    v = mesh.vertices
+    inside = np.flatnonzero(((v >= 0) & (v <= 1)).all(axis=1))
+    keep = np.ones(len(v), bool)
     keep[inside[0]] = False
-    fewer = dataclasses.replace(mesh, local=mesh.local[keep], order=mesh.order[keep],
-                                vertices=mesh.vertices[keep], kinds=mesh.kinds[keep],
-                                tetrahedra=np.zeros((0, 4), np.int32))  # fmt: skip
+    no_cells = np.zeros((0, 4), np.int32)
+    fewer = dataclasses.replace(mesh, order=mesh.order[keep], vertices=v[keep],
+                                kinds=mesh.kinds[keep], cells=no_cells)  # fmt: skip
     cert = knnrefine.certify(fewer, pts)
-    assert not cert.passed and not cert.view_matches_torus
-    moved = mesh.local.copy()
+    assert not cert.passed and any("d_M2" in p for p in cert.mesh_problems)
+    moved = v.copy()
     moved[inside[1], 0] += 1e-9
-    cert = knnrefine.certify(dataclasses.replace(mesh, local=moved), pts)
-    assert not cert.passed and not cert.view_matches_torus
+    cert = knnrefine.certify(dataclasses.replace(mesh, vertices=moved), pts)
+    assert not cert.passed and "1 vertices differ from their torus vertex" in cert.mesh_problems
 
 
 @pytest.mark.parametrize("periodic", [False, (True, False, True)])
@@ -459,11 +473,11 @@ def test_unfolding_in_space_keeps_every_copy_the_box_needs(periodic):
     pts = multiscale(5000, 18)
     mesh = knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
     t = mesh.torus
-    period = np.array(mesh.period)
+    period = np.array(t.period)
     per = np.array(mesh.periodic)
-    lo = np.array(BOX[:3]) - mesh.origin
-    hi = np.array(BOX[3:]) - mesh.origin
-    c = t.local[t.tetrahedra] + t.offsets * period
+    lo = np.array(BOX[:3]) - t.origin
+    hi = np.array(BOX[3:]) - t.origin
+    c = t.vertices[t.tetrahedra] + t.offsets * period
     want, edges = set(), 0.0
     for s in itertools.product(*[[0] if p else [-1, 0, 1] for p in per]):
         cs = c + np.array(s) * period
@@ -473,16 +487,17 @@ def test_unfolding_in_space_keeps_every_copy_the_box_needs(periodic):
             edges = max(
                 edges, max(np.sum((tet[i] - tet[j]) ** 2) for i in range(4) for j in range(i))
             )
-    got = mesh.corners()
+    got = mesh.corners() - np.array(t.origin)
     assert len(got) == len(want)
     assert {tuple(np.round(x, 12)) for x in got.mean(axis=1)} == want
-    assert len({tuple(x) for x in np.round(mesh.local, 12)}) == len(mesh.local)  # no repeats
+    local = torus_frame(mesh)(mesh.vertices)
+    assert len({tuple(x) for x in np.round(local, 12)}) == len(local)  # no repeats
     near = set()
     for s in itertools.product(*[[0] if p else [-1, 0, 1, 2] for p in per]):
-        x = t.local + np.array(s) * period
+        x = t.vertices + np.array(s) * period
         gap = np.where(per, 0.0, np.maximum(np.maximum(lo - x, 0.0), x - hi))
         near |= {tuple(v) for v in np.round(x[(gap**2).sum(axis=1) <= edges], 12)}
-    assert near <= {tuple(v) for v in np.round(mesh.local, 12)}
+    assert near <= {tuple(v) for v in np.round(local, 12)}
 
 
 def test_restarting_the_32_bit_stamps_changes_nothing(monkeypatch):
@@ -505,7 +520,7 @@ def test_restarting_the_32_bit_stamps_changes_nothing(monkeypatch):
     monkeypatch.setattr(driver3.Refinement3, "_restart_stamps", counted)
     got = knnrefine.refine(pts, 10, periodic=True, box=BOX)
     assert len(restarts) > 20
-    for name in ("local", "tetrahedra", "offsets", "kinds"):
+    for name in ("vertices", "tetrahedra", "offsets", "kinds"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
 
 
@@ -587,7 +602,7 @@ def test_growing_without_mremap_or_mappings_copies(monkeypatch):
             m.setattr(driver3, "grow", counted)
             got = knnrefine.refine(pts, 10, box=BOX)
             assert len(grown) > 2
-        np.testing.assert_array_equal(got.local, want.local)
+        np.testing.assert_array_equal(got.vertices, want.vertices)
         np.testing.assert_array_equal(got.tetrahedra, want.tetrahedra)
 
 

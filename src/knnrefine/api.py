@@ -147,7 +147,8 @@ def refine(
     kernel call during setup).
 
     Points in space ((n, 3), a box of six numbers, ``periodic`` a bool or three) are refined
-    by ``api3.refine3`` into a ``Mesh3``; weights, workers and executor do not apply there.
+    by ``api3.refine3`` into the same ``Mesh`` type; weights, workers and executor do not
+    apply there yet.
     """
     asked = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
                  max_vertices=max_vertices, time_limit=time_limit, progress=progress)  # fmt: skip
@@ -546,14 +547,14 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, ind
         origin=tuple(float(o) for o in emb.origin),
         period=emb.period,
         vertices=res.vxy / emb.scale,
-        triangles=res.tv,
+        cells=res.tv,
         offsets=res.to,
         neighbors=res.tn,
         kinds=res.kind,
     )
     return Mesh(
         vertices=emb.to_input(pos, copy=False),  # unfold's arrays are new: no copies
-        triangles=tri,
+        cells=tri,
         offsets=offsets,
         kinds=res.kind[out_v],
         order=out_v,

@@ -17,7 +17,7 @@ from .engine.interrupt import Interrupts
 from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
 from .engine.state import C_CELL_TESTS, C_DISK_TESTS, C_FAILED
 from .errors import BudgetError, FloorWarning, InputError
-from .mesh3 import Mesh3, Torus3
+from .mesh import Mesh, Torus
 from .metric import BoxMetric
 
 
@@ -154,9 +154,9 @@ def _points_under_floor(pts, floor, emb, n):
 
 def refine3(pts, opt):
     """kNNRefine in a box of three dimensions (``knnrefine.refine`` with (n, 3) points, its
-    options checked into ``opt``, a ``RunOptions``): a ``Mesh3`` whose vertices M satisfy
+    options checked into ``opt``, a ``RunOptions``): a ``Mesh`` whose vertices M satisfy
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} in the box, tau-well-spaced, no Voronoi cell
-    and no closed circumball holding k points (checked by ``certify3``). As in the plane:
+    and no closed circumball holding k points (checked by ``certify``). As in the plane:
     an initial mesh that cannot fit is refused before any work (``RunOptions.check``),
     time_limit and Ctrl-C hold during the setup too, a refusal names the largest k and tau
     that would certify, and a FloorWarning says when most points lie below the floor."""
@@ -205,15 +205,16 @@ def refine3(pts, opt):
             stacklevel=3,
         )
     out_v, pos, tetrahedra, out_offsets = unfold(xyz, corners, offsets, emb, copy=False)
-    local = pos / emb.scale  # exact: a power of two
-    torus = None
-    if not all(per):
-        torus = Torus3(local=xyz / emb.scale, tetrahedra=corners, offsets=offsets, kinds=kinds)
-    return Mesh3(
-        vertices=emb.to_input(pos, copy=False), tetrahedra=tetrahedra, offsets=out_offsets,
-        kinds=kinds[out_v], k=k, tau=tau, periodic=per, box=box,
-        min_size=max(min_size, emb.resolution), origin=tuple(float(o) for o in emb.origin),
-        period=emb.period, local=local, order=None if torus is None else out_v, embedded=torus,
+    # the torus' vertices first: when every axis is periodic pos is xyz, converted in place
+    torus = Torus(
+        origin=tuple(float(o) for o in emb.origin), period=emb.period,
+        vertices=xyz / emb.scale, cells=corners, offsets=offsets, kinds=kinds,
+    )  # fmt: skip
+    floor_points = emb.to_input(floor[0]) if len(floor[0]) else np.zeros((0, 3))
+    return Mesh(
+        vertices=emb.to_input(pos, copy=False), cells=tetrahedra, offsets=out_offsets,
+        kinds=kinds[out_v], order=out_v, k=k, tau=tau, periodic=per, box=box,
+        min_size=max(min_size, emb.resolution), floor_points=floor_points, torus=torus,
         stats={"n": len(pts), "m": len(out_v), "m_torus": len(xyz),
                "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
                "failed": int(cnt[C_FAILED]), "floor_circumballs": int(floor[2]),

@@ -19,7 +19,9 @@ Measured on 20,000 uniform points and on one Gaussian blob (k = 20 to 200, five 
 largest spurious prominence was at most 0.86 T (uniform, k = 20) and the rule found 1 cluster
 every time; see ``benchmarks/cluster_compare.py`` for unequal blobs, moons, S1 and Birch1.
 
-The rule assumes points spread in two dimensions. Along a curve (a thin ring, a filament)
+The same holds in space (V d_{P,k}^3 rho is Gamma(k, 1) too, so the log-density's standard
+error is again about 1/sqrt(k)). The rule assumes the points spread in the full dimension of
+their space. Along a curve (a thin ring, a filament)
 the count within r grows like r, not r^2, and the log-density noise is twice as large,
 2 / sqrt(k): a noisy circle of 1,200 points at k = 30 splits into arcs whose prominences reach
 1.9 T. Pass n_clusters there (or look at its loop with ``topology.Persistence``).
@@ -34,12 +36,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .density.distance import point_index
+from .density.estimate import unit_ball_volume
 from .engine.superlevel import superlevel_noise
 from .errors import InputError
-from .mesh import edges
+from .mesh import cell_edges
 from .metric import BoxMetric
 from .topology import require_gudhi
-from .validation import as_points
+from .validation import points_of_run
 
 
 @dataclass
@@ -69,20 +73,47 @@ def significance_threshold(n, k):
     return 2.0 * float(np.sqrt(np.log(max(n / k, np.e)) / k))
 
 
-def cluster(mesh, points, n_clusters=None, merge_threshold=None, noise=False):
-    """ToMATo clusters of ``points`` on the mesh graph (see the module docstring).
+def cluster(
+    mesh, points, n_clusters: int | None = None, merge_threshold: float | None = None,
+    noise: bool = False, weights=None,
+) -> Clustering:  # fmt: skip
+    """ToMATo clusters of ``points`` on the mesh graph (see the module docstring), in the
+    plane or in space.
 
-    n_clusters: how many to keep (default: the peaks more prominent than the significance
-    threshold ``significance_threshold(n, k)``); merge_threshold: or keep the peaks more
-    prominent than this (natural-log density); noise: label -1 the points not significantly
-    above the level where their cluster meets another (see the module docstring)."""
+    Parameters
+    ----------
+    mesh : Mesh
+        From ``knnrefine.refine(points, k, ...)``.
+    points : array-like (n, d)
+        The points it was refined from.
+    n_clusters : int, optional
+        How many to keep (default: the peaks more prominent than the significance threshold
+        ``significance_threshold(n, k)``).
+    merge_threshold : float, optional
+        Or keep the peaks more prominent than this (natural-log density).
+    noise : bool
+        Label -1 the points not significantly above the level where their cluster meets
+        another (see the module docstring).
+    weights : array-like (n,), optional
+        The weights of a weighted run (required for one, refused otherwise): the density is
+        then the weighted kNN estimate, n the total weight.
+
+    Returns
+    -------
+    Clustering
+
+    Raises
+    ------
+    InputError
+        Points or weights that are not the mesh's, bad options.
+    ImportError
+        Without gudhi (``pip install "knnrefine[topology]"``).
+    """
     t0 = time.perf_counter()
     gudhi = require_gudhi()
     from gudhi.clustering.tomato import Tomato
 
-    pts = as_points(points)
-    if len(pts) < mesh.k:
-        raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
+    pts, weights, total = points_of_run(mesh, points, weights)
     if n_clusters is not None and (
         isinstance(n_clusters, bool) or int(n_clusters) != n_clusters or n_clusters < 1
     ):
@@ -92,21 +123,22 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None, noise=False):
     if n_clusters is not None and merge_threshold is not None:
         raise InputError("give n_clusters or merge_threshold, not both")
     del gudhi
-    # the graph: the vertices of the triangles (a non-periodic mesh also returns vertex copies
-    # near the box that no kept triangle uses) and the triangles' edges
-    used, tri = np.unique(mesh.triangles.astype(np.int64), return_inverse=True)
-    tri = tri.reshape(-1, 3)
+    # the graph: the vertices of the cells (a non-periodic mesh also returns vertex copies
+    # near the box that no kept cell uses) and the cells' edges
+    used, cells = np.unique(mesh.cells.astype(np.int64), return_inverse=True)
+    cells = cells.reshape(mesh.cells.shape)
     vertices = mesh.vertices[used]
     m = len(vertices)
-    pairs, _ = edges(tri)
+    pairs = cell_edges(cells)
     # adjacency lists, CSR-style: both directions of every edge grouped by their first vertex
     both = np.concatenate([pairs, pairs[:, ::-1]])
     both = both[np.argsort(both[:, 0], kind="stable")]
     indptr = np.concatenate([[0], np.cumsum(np.bincount(both[:, 0], minlength=m))])
     neighbours = np.split(both[:, 1], indptr[1:-1])
     metric = BoxMetric(mesh.box, mesh.periodic)
-    d = metric.kth(pts, vertices, mesh.k)
-    log_density = np.log(mesh.k / (len(pts) * np.pi)) - 2.0 * np.log(d)
+    d = point_index(mesh, pts, weights).kth(metric.wrap(vertices), mesh.k)
+    dim = mesh.dim
+    log_density = np.log(mesh.k / (total * unit_ball_volume(dim))) - dim * np.log(d)
     tomato = Tomato(graph_type="manual", density_type="manual")
     tomato.fit(neighbours, weights=log_density)
     # gudhi's diagram lists the peaks that merge; the highest peak of each connected piece
@@ -115,7 +147,7 @@ def cluster(mesh, points, n_clusters=None, merge_threshold=None, noise=False):
     finite = np.sort(diagram[:, 0] - diagram[:, 1])[::-1]
     essential = len(tomato.max_weight_per_cc_)
     prominence = np.concatenate([np.full(essential, np.inf), finite])
-    threshold = significance_threshold(len(pts), mesh.k)
+    threshold = significance_threshold(total, mesh.k)
     if n_clusters is None and merge_threshold is None:
         n_clusters = essential + int(np.count_nonzero(finite > threshold))
     if n_clusters is not None:

@@ -26,7 +26,7 @@ import numpy as np
 from .errors import InputError
 from .mesh import Mesh, Torus
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: one layout for the plane and space (cells); 1 is still read
 # what NumPy raises on a truncated or corrupted .npy / .npz (a zip of .npy members, each
 # read, decompressed and parsed only when asked for)
 UNREADABLE = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
@@ -60,7 +60,7 @@ def read_points_named(path, columns=None, delimiter=None):
 
 
 def read_weighted_points(path, columns=None, weights=None, delimiter=None):
-    """(points (n, 2), weights (n,) or None, the two columns' names): ``read_points_named``
+    """(points (n, d), weights (n,) or None, the d columns' names): ``read_points_named``
     and, with ``weights`` (a column's name or zero-based index), that column, read with the
     points (the weights' checks are the engine's)."""
     cols = _parse_columns(columns)
@@ -70,8 +70,14 @@ def read_weighted_points(path, columns=None, weights=None, delimiter=None):
     spec = str(weights).strip()
     if not spec or "," in spec:
         raise InputError(f"--weights needs one column, by name or index; got {weights!r}")
-    table, names = _read_columns(path, (cols or [0, 1]) + [_column(spec)], delimiter)
-    return np.ascontiguousarray(table[:, :2]), table[:, 2].copy(), names[:2]
+    cols = cols or [0, 1]
+    dim = len(cols)
+    table, names = _read_columns(path, cols + [_column(spec)], delimiter)
+    return np.ascontiguousarray(table[:, :dim]), table[:, dim].copy(), names[:dim]
+
+
+#: the columns' names where a file has none (the last stands for a weights column)
+AXIS_NAMES = ("x", "y", "z", "w")
 
 
 def _read_columns(path, cols, delimiter):
@@ -86,9 +92,11 @@ def _read_columns(path, cols, delimiter):
         raise InputError(f"{path}: is a directory, not a file of points")
     ext = os.path.splitext(path)[1].lower()
     if ext == ".npy":
-        return _select_array(_load_npy(path), path, cols), ("x", "y")
+        points = _select_array(_load_npy(path), path, cols)
+        return points, AXIS_NAMES[: points.shape[1]]
     if ext == ".npz":
-        return _read_npz_points(path, cols), ("x", "y")
+        points = _read_npz_points(path, cols)
+        return points, AXIS_NAMES[: points.shape[1]]
     if ext in (".parquet", ".pq"):
         return _read_parquet(path, cols)
     if not os.path.isfile(path):  # a pipe or a device: it can be read only once
@@ -214,7 +222,7 @@ def _select_frame(frame, name, cols, has_header, skipped=0):
                 )
             col = num
         out[:, j] = col.to_numpy(dtype=np.float64, na_value=np.nan)
-    names = tuple(str(c) for c in picked) if has_header else ("x", "y", "w")[: len(picked)]
+    names = tuple(str(c) for c in picked) if has_header else AXIS_NAMES[: len(picked)]
     return out, names
 
 
@@ -278,11 +286,8 @@ def _read_parquet(path, cols):
 
 
 def write_mesh(mesh, path, force=False):
-    """Write ``mesh`` in the format its extension names (see WRITERS; a ``Mesh3``:
-    WRITERS3)."""
-    from .mesh3 import Mesh3
-
-    writers = WRITERS3 if isinstance(mesh, Mesh3) else WRITERS
+    """Write ``mesh`` in the format its extension names (see WRITERS; in space: WRITERS3)."""
+    writers = WRITERS3 if mesh.dim == 3 else WRITERS
     ext = os.path.splitext(path)[1].lower()
     if ext not in writers:
         what = "a mesh in space" if writers is WRITERS3 else "a mesh"
@@ -345,14 +350,18 @@ def write_text(path, text, force=False):
 
 
 def _write_npz(mesh, path):
+    """A mesh in the plane or in space, losslessly (``read_mesh`` gives it back, array for
+    array, with the torus mesh ``certify`` checks)."""
     t = mesh.torus
+    d = mesh.dim
+    neighbors = {} if t.neighbors is None else {"torus_neighbors": t.neighbors}
     with open(path, "wb") as f:
         np.savez_compressed(
             f,
             format=np.array(FORMAT_VERSION),
             vertices=mesh.vertices,
-            triangles=mesh.triangles,
-            offsets=mesh.offsets if mesh.offsets is not None else np.zeros((0, 3, 2), np.int8),
+            cells=mesh.cells,
+            offsets=mesh.offsets if mesh.offsets is not None else np.zeros((0, d + 1, d), np.int8),
             has_offsets=np.array(mesh.offsets is not None),
             kinds=mesh.kinds,
             order=mesh.order,
@@ -366,10 +375,10 @@ def _write_npz(mesh, path):
             torus_origin=np.array(t.origin),
             torus_period=np.array(t.period),
             torus_vertices=t.vertices,
-            torus_triangles=t.triangles,
+            torus_cells=t.cells,
             torus_offsets=t.offsets,
-            torus_neighbors=t.neighbors,
             torus_kinds=t.kinds,
+            **neighbors,
         )
 
 
@@ -386,27 +395,29 @@ def _read_npz(path):
 
 
 def _mesh_of_npz(d, path):
-    """The Mesh (or Mesh3) held by the open .npz ``d`` (every array read here)."""
+    """The Mesh held by the open .npz ``d`` (every array read here): format 2 (one layout
+    for both dimensions), or format 1 (the plane's, or space's ``Mesh3``)."""
     if int(d["format"]) > FORMAT_VERSION:
         raise InputError(f"{path}: written by a newer knnrefine (format {int(d['format'])})")
     if "tetrahedra" in d.files:
-        return _mesh3_of(d)
+        return _mesh_of_space_format1(d)
+    cells = "cells" if "cells" in d.files else "triangles"  # format 1: the plane's names
     torus = Torus(
         origin=tuple(d["torus_origin"].tolist()),
         period=tuple(d["torus_period"].tolist()),
         vertices=d["torus_vertices"],
-        triangles=d["torus_triangles"],
+        cells=d["torus_" + cells],
         offsets=d["torus_offsets"],
-        neighbors=d["torus_neighbors"],
         kinds=d["torus_kinds"],
+        neighbors=d["torus_neighbors"] if "torus_neighbors" in d.files else None,
     )
     return Mesh(
         vertices=d["vertices"],
-        triangles=d["triangles"],
+        cells=d[cells],
         offsets=d["offsets"] if bool(d["has_offsets"]) else None,
         kinds=d["kinds"],
         order=d["order"],
-        k=int(d["k"]),
+        k=d["k"].item(),
         tau=float(d["tau"]),
         periodic=tuple(bool(p) for p in d["periodic"]),
         box=tuple(float(b) for b in d["box"]),
@@ -415,6 +426,29 @@ def _mesh_of_npz(d, path):
         stats=json.loads(str(d["stats"])),
         torus=torus,
     )
+
+
+def _mesh_of_space_format1(d):
+    """A mesh in space written as format 1 (``Mesh3``: ``local`` vertices relative to
+    ``origin``; the torus stored only when an axis was not periodic)."""
+    offsets = d["offsets"] if bool(d["has_offsets"]) else None
+    origin, period = tuple(d["origin"].tolist()), tuple(d["period"].tolist())
+    if "torus_local" in d.files:
+        torus = Torus(origin=origin, period=period, vertices=d["torus_local"],
+                      cells=d["torus_tetrahedra"], offsets=d["torus_offsets"],
+                      kinds=d["torus_kinds"])  # fmt: skip
+        order = d["order"]
+    else:
+        torus = Torus(origin=origin, period=period, vertices=d["local"], cells=d["tetrahedra"],
+                      offsets=offsets, kinds=d["kinds"])  # fmt: skip
+        order = np.arange(len(d["vertices"]))
+    return Mesh(
+        vertices=d["vertices"], cells=d["tetrahedra"], offsets=offsets, kinds=d["kinds"],
+        order=order, k=d["k"].item(), tau=float(d["tau"]),
+        periodic=tuple(bool(p) for p in d["periodic"]),
+        box=tuple(float(b) for b in d["box"]), min_size=float(d["min_size"]),
+        floor_points=np.zeros((0, 3)), stats=json.loads(str(d["stats"])), torus=torus,
+    )  # fmt: skip
 
 
 def _meshio_writer(file_format):
@@ -506,50 +540,10 @@ def _write_csv(mesh, path):
     ).to_csv(path, index=False)
 
 
-def _write_npz3(mesh, path):
-    """A ``Mesh3``, losslessly (``read_mesh`` gives it back, array for array; when an axis
-    is not periodic, also the embedding torus's mesh)."""
-    torus = {}
-    if mesh.embedded is not None:
-        t = mesh.embedded
-        torus = dict(torus_local=t.local, torus_tetrahedra=t.tetrahedra,
-                     torus_offsets=t.offsets, torus_kinds=t.kinds, order=mesh.order)  # fmt: skip
-    offsets = mesh.offsets if mesh.offsets is not None else np.zeros((0, 4, 3), np.int8)
-    with open(path, "wb") as f:
-        np.savez_compressed(
-            f, format=np.array(FORMAT_VERSION), vertices=mesh.vertices,
-            tetrahedra=mesh.tetrahedra, offsets=offsets,
-            has_offsets=np.array(mesh.offsets is not None), kinds=mesh.kinds,
-            k=np.array(mesh.k), tau=np.array(mesh.tau), periodic=np.array(mesh.periodic),
-            box=np.array(mesh.box), min_size=np.array(mesh.min_size),
-            origin=np.array(mesh.origin), period=np.array(mesh.period), local=mesh.local,
-            stats=np.array(json.dumps(mesh.stats)), **torus,
-        )  # fmt: skip
-
-
-def _mesh3_of(d):
-    from .mesh3 import Mesh3, Torus3
-
-    embedded = order = None
-    if "torus_local" in d:
-        embedded = Torus3(local=d["torus_local"], tetrahedra=d["torus_tetrahedra"],
-                          offsets=d["torus_offsets"], kinds=d["torus_kinds"])  # fmt: skip
-        order = d["order"]
-    return Mesh3(
-        vertices=d["vertices"], tetrahedra=d["tetrahedra"],
-        offsets=d["offsets"] if bool(d["has_offsets"]) else None,
-        kinds=d["kinds"], k=int(d["k"]), tau=float(d["tau"]),
-        periodic=tuple(bool(p) for p in d["periodic"]),
-        box=tuple(float(b) for b in d["box"]), min_size=float(d["min_size"]),
-        origin=tuple(d["origin"].tolist()), period=tuple(d["period"].tolist()),
-        local=d["local"], stats=json.loads(str(d["stats"])), order=order, embedded=embedded,
-    )  # fmt: skip
-
-
 def _meshio_writer3(file_format):
-    """ParaView's view of a ``Mesh3``: every tetrahedron with its corners where its offsets
-    put them (vertex copies past the box's upper faces where a tetrahedron reaches there),
-    each copy once; point data: kind, d_M2, the vertex it copies."""
+    """ParaView's view of a mesh in space: every tetrahedron with its corners where its
+    offsets put them (vertex copies past the box's upper faces where a tetrahedron reaches
+    there), each copy once; point data: kind, d_M2, the vertex it copies."""
 
     def write(mesh, path):
         import meshio
@@ -565,7 +559,7 @@ def _meshio_writer3(file_format):
         unique, inverse = np.unique(keys.ravel(), return_inverse=True)
         vertex = unique // 64
         shift = np.stack([unique // 16 % 4, unique // 4 % 4, unique % 4], 1)
-        points = np.asarray(mesh.origin) + mesh.local[vertex] + shift * np.asarray(mesh.period)
+        points = mesh.vertices[vertex] + shift * np.asarray(mesh.period)
         out = meshio.Mesh(
             points=points,
             cells=[("tetra", inverse.reshape(-1, 4).astype(np.int64))],
@@ -580,7 +574,7 @@ def _meshio_writer3(file_format):
     return write
 
 
-WRITERS3 = {".npz": _write_npz3, ".vtu": _meshio_writer3("vtu"), ".vtk": _meshio_writer3("vtk")}
+WRITERS3 = {".npz": _write_npz, ".vtu": _meshio_writer3("vtu"), ".vtk": _meshio_writer3("vtk")}
 
 WRITERS = {
     ".npz": _write_npz,

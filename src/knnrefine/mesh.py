@@ -6,6 +6,7 @@ from functools import cached_property
 import numpy as np
 
 from .engine.raster import clip_triangles
+from .errors import InputError
 from .metric import BoxMetric
 from .validation import as_queries
 
@@ -26,68 +27,97 @@ def theorem6_constants(tau):
 
 @dataclass(frozen=True, eq=False)
 class Torus:
-    """The triangulation of the flat torus that the engine refined, in input units.
+    """The triangulation of the flat torus that the engine refined, in input units, in the
+    plane or in space (the dimension is ``vertices.shape[1]``).
 
-    In periodic mode it is the mesh itself; in non-periodic mode the data box sits inside it
+    In a periodic box it is the mesh itself; along non-periodic axes the box sits inside it
     with a margin (see ``knnrefine.engine.embedding``). ``vertices`` are relative to
-    ``origin`` (in [0, period), so that they keep full precision whatever the offset of the
-    data); corner i of triangle t sits at ``origin + vertices[triangles[t, i]] +
-    offsets[t, i] * period``, and ``neighbors[t, i]`` is the triangle across the edge
-    opposite corner i.
+    ``origin`` (in [0, period), exact, so that they keep full precision whatever the offset
+    of the data); corner i of cell t sits at ``origin + vertices[cells[t, i]] + offsets[t, i]
+    * period``, and ``neighbors[t, i]`` (kept in the plane, None in space) is the cell across
+    the facet opposite corner i. ``triangles`` (plane) and ``tetrahedra`` (space) name the
+    cells.
     """
 
     origin: tuple
     period: tuple
     vertices: np.ndarray
-    triangles: np.ndarray
+    cells: np.ndarray
     offsets: np.ndarray
-    neighbors: np.ndarray
     kinds: np.ndarray
+    neighbors: np.ndarray | None = None
+
+    @property
+    def dim(self) -> int:
+        return int(np.shape(self.vertices)[1])
+
+    @property
+    def triangles(self) -> np.ndarray:
+        return _cells_named(self, "triangles", 2)
+
+    @property
+    def tetrahedra(self) -> np.ndarray:
+        return _cells_named(self, "tetrahedra", 3)
+
+
+def _cells_named(mesh, name, dim):
+    """The cells under their name in ``dim`` dimensions (AttributeError in the other)."""
+    if mesh.dim != dim:
+        other = "triangles" if name == "tetrahedra" else "tetrahedra"
+        raise AttributeError(
+            f"a mesh in {mesh.dim} dimensions has {other}, not {name} (its cells: .cells)"
+        )
+    return mesh.cells
 
 
 @dataclass(frozen=True, eq=False)
 class Mesh:
-    """Mesh vertices M whose second-nearest-neighbour distance approximates d_{P,k}.
+    """Mesh vertices M whose second-nearest-neighbour distance approximates d_{P,k}: one
+    type in the plane and in space (its dimension is ``vertices.shape[1]``).
 
     Attributes
     ----------
-    vertices : (m, 2) float64
+    vertices : (m, d) float64
         In input coordinates. Periodic axes: wrapped into the box. Non-periodic axes: every
         vertex that is one of the two nearest mesh vertices of some point of the box.
-    triangles : (t, 3) int32
-        Counter-clockwise Delaunay triangles. Periodic mode: all triangles of the torus.
-        Non-periodic mode: those that meet the box.
-    offsets : (t, 3, 2) int8 or None
-        Corner i of triangle t is ``vertices[triangles[t, i]] + offsets[t, i] * period``
+    cells : (t, d + 1) int32
+        Positively oriented Delaunay cells: triangles in the plane (``triangles``),
+        tetrahedra in space (``tetrahedra``). Periodic box: all cells of the torus. Along
+        non-periodic axes: those that meet the box.
+    offsets : (t, d + 1, d) int8 or None
+        Corner i of cell t is ``vertices[cells[t, i]] + offsets[t, i] * period``
         (periodic axes only; None when no axis is periodic).
     kinds : (m,) int8
         How each vertex arrived: 0 initial, 1 Break (circumcenter of a circumball holding
         >= k points), 2 Break (far corner of a cell holding >= k points), 3 Clean.
     order : (m,) int64
-        Insertion index of each vertex (vertices are sorted by it; in non-periodic mode one
-        torus vertex can appear as several planar copies).
+        The torus vertex each vertex is (along non-periodic axes one torus vertex can appear
+        as several copies); in the plane also the insertion order.
     k, tau, periodic, box, min_size, alpha, beta, period
         The run's parameters and Theorem 6's constants for tau; ``min_size`` is the floor that
-        was in effect (at least the engine's resolution, 2^14 grid steps; see ``refine``).
-    floor_points : (f, 2) float64
+        was in effect (at least the engine's resolution, 2^14 grid steps; see ``refine``);
+        ``period`` is the box's side along periodic axes and 0 along the others.
+    floor_points : (f, d) float64
         Where refinement stopped at the resolution floor ``min_size``: circumcenters of
         circumballs and vertices of cells that still hold >= k points but are smaller than
         ``min_size``. Empty when the guarantee holds everywhere.
     stats : dict
         Moves of each kind, counting tests, timings (seconds), sizes.
+    torus : Torus
+        The triangulation of the whole torus that the engine refined (``certify`` checks it).
     index : PointIndex or None
-        The engine's counting kd-tree over P, kept by ``refine`` so that d_{P,k} can be
-        evaluated exactly without a second tree (``KnnDistance``, the density estimate);
+        The engine's counting kd-tree over P (plane), kept by ``refine`` so that d_{P,k} can
+        be evaluated exactly without a second tree (``KnnDistance``, the density estimate);
         about 20 bytes per input point. None for a mesh read from a file;
         ``dataclasses.replace(mesh, index=None)`` gives a copy without it.
     """
 
     vertices: np.ndarray
-    triangles: np.ndarray
+    cells: np.ndarray
     offsets: np.ndarray | None
     kinds: np.ndarray
     order: np.ndarray
-    k: int
+    k: int | float
     tau: float
     periodic: tuple
     box: tuple
@@ -98,23 +128,44 @@ class Mesh:
     index: object = field(default=None, repr=False)
 
     @property
-    def alpha(self):
+    def dim(self) -> int:
+        """2 in the plane, 3 in space."""
+        return int(np.shape(self.vertices)[1])
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """The cells of a mesh in the plane."""
+        return _cells_named(self, "triangles", 2)
+
+    @property
+    def tetrahedra(self) -> np.ndarray:
+        """The cells of a mesh in space."""
+        return _cells_named(self, "tetrahedra", 3)
+
+    @property
+    def alpha(self) -> float:
         return theorem6_constants(self.tau)[0]
 
     @property
-    def beta(self):
+    def beta(self) -> float:
         return theorem6_constants(self.tau)[1]
 
     @property
-    def period(self):
-        """Periods along (x, y) in input units, 0 along non-periodic axes: the torus' period,
-        which is the box's side rounded to the engine's grid (a relative 2^-51 at most)."""
+    def kind_counts(self) -> dict:
+        """How many vertices came by each move (``KIND_NAMES``)."""
+        return {name: int((self.kinds == i).sum()) for i, name in enumerate(KIND_NAMES)}
+
+    @property
+    def period(self) -> tuple:
+        """Periods in input units, 0 along non-periodic axes: the torus' period, which is the
+        box's side rounded to the engine's grid (a relative 2^-51 at most)."""
+        d = len(self.periodic)
         sides = (
             self.torus.period
             if self.torus is not None
-            else (self.box[2] - self.box[0], self.box[3] - self.box[1])
+            else tuple(self.box[a + d] - self.box[a] for a in range(d))
         )
-        return tuple(float(sides[a]) if self.periodic[a] else 0.0 for a in range(2))
+        return tuple(float(sides[a]) if self.periodic[a] else 0.0 for a in range(d))
 
     @cached_property
     def _metric(self):
@@ -125,18 +176,20 @@ class Mesh:
         return self._metric.tree(self.vertices)
 
     def d_m2(self, x):
-        """d_{M,2}: distance from each query point (x of shape (..., 2)) to its second-nearest
-        mesh vertex, an array of shape (...).
+        """d_{M,2}: distance from each query point (x of shape (..., d)) to its
+        second-nearest mesh vertex, an array of shape (...).
 
         Periodic axes use the torus metric. Guaranteed to lie within
         [alpha, beta] * d_{P,k} at every point of the box (above the floor)."""
-        flat, shape = as_queries(x)
+        flat, shape = as_queries(x, self.dim)
+        if len(flat) == 0:
+            return np.zeros(shape)
         return self._tree.query(self._metric.frame(flat), k=2)[0][:, 1].reshape(shape)
 
     def corners(self):
-        """(t, 3, 2) triangle corners, offsets applied (periodic triangles may reach past the
-        box across the seam)."""
-        c = self.vertices[self.triangles]
+        """(t, d + 1, d) cell corners in input units, offsets applied (periodic cells may
+        reach past the box across the seam)."""
+        c = self.vertices[self.cells]
         if self.offsets is not None:
             c = c + self.offsets * np.array(self.period)
         return c
@@ -144,7 +197,9 @@ class Mesh:
     def flat(self):
         """A plain planar triangulation for drawing and mesh files: (points (p, 2), triangles
         (t, 3), source (p,) index into ``vertices``). Corners that sit across a periodic seam
-        become extra copies of their vertex, so every triangle is drawn where it is."""
+        become extra copies of their vertex, so every triangle is drawn where it is. In the
+        plane only (in space: ``io``'s writers place each tetrahedron's corners)."""
+        self._plane_only("flat")
         if self.offsets is None:
             return self.vertices, self.triangles, np.arange(len(self.vertices))
         own = copy_key(np.arange(len(self.vertices), dtype=np.int64), 0, 0)
@@ -167,7 +222,8 @@ class Mesh:
         axes a triangle across the seam becomes its pieces on either side (the far one
         shifted back by a period), along non-periodic axes the parts outside the box go.
         Returns a list of (triangle index, polygon (q, 2)) with every polygon inside the box
-        (what GIS formats want: WGS84 longitudes stay in [-180, 180])."""
+        (what GIS formats want: WGS84 longitudes stay in [-180, 180]). In the plane only."""
+        self._plane_only("pieces_in_box")
         per = np.array(self.periodic, bool)
         period = np.array(self.period, float)
         rect = (np.array(self.box[:2], float), np.array(self.box[2:], float))
@@ -196,7 +252,9 @@ class Mesh:
         """A plain planar triangulation covering the box: the triangles plus, along periodic
         axes, their copies one period back that still meet the box (corners only ever reach
         past the upper side of the box), one index per distinct point. Returns (nodes (p, 2),
-        triangles (t, 3)), and with ``sources`` the triangle each one copies."""
+        triangles (t, 3)), and with ``sources`` the triangle each one copies. In the plane
+        only."""
+        self._plane_only("covering")
         per = np.array(self.periodic, bool)
         period = np.array(self.period, float)
         lo, hi = np.array(self.box[:2]), np.array(self.box[2:])
@@ -222,12 +280,21 @@ class Mesh:
             return nodes, inverse.reshape(-1, 3), np.concatenate(source)
         return nodes, inverse.reshape(-1, 3)
 
+    def _plane_only(self, what):
+        if self.dim != 2:
+            raise InputError(
+                f"Mesh.{what} is built for meshes in the plane; this one is in {self.dim} "
+                "dimensions"
+            )
+
     def __repr__(self):
-        mode = {(True, True): "periodic", (False, False): "non-periodic"}.get(
-            self.periodic, f"periodic={self.periodic}"
+        d = self.dim
+        mode = {(True,) * d: "periodic", (False,) * d: "non-periodic"}.get(
+            tuple(self.periodic), f"periodic={self.periodic}"
         )
+        cells = "triangles" if d == 2 else "tetrahedra"
         return (
-            f"<Mesh m={len(self.vertices)} triangles={len(self.triangles)} k={self.k} "
+            f"<Mesh m={len(self.vertices)} {cells}={len(self.cells)} k={self.k} "
             f"tau={self.tau:g} {mode} box={self.box}>"
         )
 
@@ -255,6 +322,19 @@ def edges(triangles):
     keys, inverse = np.unique(lo * base + hi, return_inverse=True)  # sorted as (lo, hi) pairs
     pairs = np.stack([keys // base, keys % base], axis=1).astype(triangles.dtype, copy=False)
     return pairs, inverse.reshape(3, len(triangles)).T
+
+
+def cell_edges(cells):
+    """The distinct vertex pairs (e, 2), smaller index first, joined by an edge of the cells
+    (t, d + 1): triangles or tetrahedra."""
+    cells = np.asarray(cells, np.int64)
+    corners = cells.shape[1]
+    a = np.concatenate([cells[:, i] for i in range(corners) for j in range(i + 1, corners)])
+    b = np.concatenate([cells[:, j] for i in range(corners) for j in range(i + 1, corners)])
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    base = int(hi.max()) + 1 if len(hi) else 1
+    keys = np.unique(lo * base + hi)
+    return np.stack([keys // base, keys % base], axis=1)
 
 
 def split_in_four(triangles, n_nodes, known_edges=None):

@@ -27,15 +27,9 @@ import tempfile
 
 import numpy as np
 
-from .density import (
-    KnnDensity,
-    KnnDistance,
-    _grid_shape,
-    index_values,
-    midpoints,
-    node_guesses,
-    sample_pieces,
-)
+from .density.distance import KnnDistance, grid_shape, point_index
+from .density.estimate import KnnDensity
+from .density.plane import index_values, midpoints, node_guesses, sample_pieces
 from .engine.raster import rasterise
 from .errors import InputError
 from .io import UNREADABLE, unreadable
@@ -206,7 +200,7 @@ def _part_mesh(mesh, arrays, has_offsets):
     """A part as a small Mesh (no torus): its vertices with the halo, its own triangles;
     ``mesh``: anything with the run's k, tau, periodic, box and min_size."""
     return Mesh(
-        vertices=arrays["vertices"], triangles=arrays["triangles"],
+        vertices=arrays["vertices"], cells=arrays["triangles"],
         offsets=arrays["offsets"] if has_offsets else None,
         kinds=arrays["kinds"], order=arrays["order"], k=mesh.k, tau=mesh.tau,
         periodic=tuple(mesh.periodic), box=tuple(mesh.box), min_size=mesh.min_size,
@@ -238,6 +232,11 @@ class PartitionedMesh:
         self.periodic, self.box = tuple(m["periodic"]), tuple(m["box"])
         self.stats = m["stats"]
         self._cache = {}
+
+    @property
+    def dim(self) -> int:
+        """2: meshes in parts are built in the plane."""
+        return 2
 
     def __len__(self):
         return len(self.manifest["parts"])
@@ -358,11 +357,12 @@ class PartitionedMesh:
                 put("torus_" + name, d["torus_triangle_ids"], d["torus_" + name],
                     rows["torus_triangle"])  # fmt: skip
             put("floor_points", d["floor_ids"], d["floor_points"].reshape(-1, 2), floor_count)
-        torus = Torus(tuple(t["origin"]), tuple(t["period"]), out["torus_vertices"],
-                      out["torus_triangles"], out["torus_offsets"], out["torus_neighbors"],
-                      out["torus_kinds"])  # fmt: skip
+        torus = Torus(origin=tuple(t["origin"]), period=tuple(t["period"]),
+                      vertices=out["torus_vertices"], cells=out["torus_triangles"],
+                      offsets=out["torus_offsets"], kinds=out["torus_kinds"],
+                      neighbors=out["torus_neighbors"])  # fmt: skip
         return Mesh(
-            vertices=out["vertices"], triangles=out["triangles"],
+            vertices=out["vertices"], cells=out["triangles"],
             offsets=out["offsets"] if m["has_offsets"] else None, kinds=out["kinds"],
             order=out["order"], k=self.k, tau=self.tau, periodic=self.periodic, box=self.box,
             min_size=self.min_size, floor_points=out["floor_points"], stats=self.stats,
@@ -422,7 +422,7 @@ class PartitionedDistance:
         weights = weights_of_run(pmesh.stats, len(pts), weights)
         total = len(pts) if weights is None else float(weights.sum())
         check_source(pmesh.stats, len(pts), None if weights is None else total)
-        index = KnnDistance._point_index(pmesh, pts, weights)
+        index = point_index(pmesh, pts, weights)
         return cls(pmesh, *index_values(index, pmesh.k), len(pts), total, subdivide)
 
     @classmethod
@@ -494,7 +494,7 @@ class PartitionedDistance:
         """(xs, ys, values) as ``KnnDistance.grid``: every part's own pieces drawn into one
         grid."""
 
-        ny, nx = _grid_shape(shape)
+        ny, nx = grid_shape(shape)
         dx, dy = (self.hi - self.lo) / (nx, ny)
         xs = self.lo[0] + (np.arange(nx) + 0.5) * dx
         ys = self.lo[1] + (np.arange(ny) + 0.5) * dy

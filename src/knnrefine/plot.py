@@ -147,8 +147,9 @@ def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
     )
 
 
-def save_figure(path, figsize, draw, force=False, dpi=150):
-    """Make a figure, let ``draw(ax)`` fill it, write it atomically (PNG, SVG or PDF)."""
+def save_figure(path, figsize, draw, force=False, dpi=150, panels=1):
+    """Make a figure, let ``draw(ax)`` fill it (``draw(axes)`` with a row of ``panels`` axes
+    when more than one), write it atomically (PNG, SVG or PDF)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -159,7 +160,7 @@ def save_figure(path, figsize, draw, force=False, dpi=150):
         raise InputError(f"{path}: pictures are written as .png, .svg or .pdf")
     fig = Figure(figsize=figsize, layout="constrained")
     FigureCanvasAgg(fig)
-    draw(fig.add_subplot())
+    draw(fig.add_subplot() if panels == 1 else list(fig.subplots(1, panels)))
     # tight: the colour bar inset and a long title stay in the picture
     atomic_write(
         path,
@@ -200,7 +201,7 @@ def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma",
 def plot_diagram(persistence, ax, dims=(0, 1)):
     """Persistence diagram: birth against death per dimension; classes that never die on a
     line at the top."""
-    colours = {0: "tab:blue", 1: "tab:orange", 2: "tab:green"}
+    colours = {0: "tab:blue", 1: "tab:orange", 2: "tab:green", 3: "tab:red"}
     finite = np.concatenate([persistence.diagram(d)[:, :2].ravel() for d in dims])
     finite = finite[np.isfinite(finite)]
     lo, hi = (finite.min(), finite.max()) if len(finite) else (0.0, 1.0)
@@ -340,3 +341,158 @@ def _voronoi_cells(mesh, lo, hi):
         polys.append(poly)
         values.append(spacing[own[i]])
     return polys, np.array(values)
+
+
+# -- pictures of meshes in space: three views, one per pair of axes ---------------------------
+
+#: the three views of a box in space: (horizontal axis, vertical axis, the axis across)
+VIEWS = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
+
+
+def save_slices(mesh, path, points=None, force=False, dpi=150):
+    """A mesh in space as three slices through the box's centre coloured by d_{M,2}, with
+    the points near each (``plot_slices``); PNG, SVG or PDF by the extension."""
+    save_figure(
+        path,
+        space_figure_size(),
+        lambda axes: plot_slices(
+            mesh.d_m2,
+            mesh,
+            axes,
+            "d_M2 (distance to the second-nearest vertex)",
+            points=points,
+            title=f"mesh in space: m = {len(mesh.vertices):,} vertices, "
+            f"{len(mesh.cells):,} tetrahedra, k = {mesh.k}, tau = {mesh.tau:g}",
+        ),
+        force=force,
+        dpi=dpi,
+        panels=3,
+    )
+
+
+def space_figure_size(width=15.0):
+    """Inches for three square views side by side, with room for colour bars."""
+    return width, width / 3.0 + 0.6
+
+
+def _view_extent(box, view):
+    a, b, _ = view
+    return (box[a], box[a + 3], box[b], box[b + 3])
+
+
+def _points_near(points, box, periodic, axis, at, slab):
+    """The points within ``slab`` of the plane ``x[axis] = at`` (in the box's metric)."""
+    pts = BoxMetric(box, periodic).wrap(np.asarray(points, float))
+    gap = np.abs(pts[:, axis] - at)
+    if periodic[axis]:
+        side = box[axis + 3] - box[axis]
+        gap = np.minimum(gap, side - gap)
+    return pts[gap <= slab]
+
+
+def plot_slices(field, mesh, axes, label, points=None, shape=256, cmap="viridis", title=""):
+    """Three slices of ``field`` (values at points (q, 3)) through the box's centre, one
+    per pair of axes, log colour scale shared by the three, with the ``points`` (if given)
+    within a slab of 1/50 of the box around each plane drawn as dots."""
+    from matplotlib.colors import LogNorm
+
+    box = np.asarray(mesh.box, float)
+    centre = 0.5 * (box[:3] + box[3:])
+    images = []
+    for a, b, c in VIEWS:
+        us = box[a] + (np.arange(shape) + 0.5) * (box[a + 3] - box[a]) / shape
+        vs = box[b] + (np.arange(shape) + 0.5) * (box[b + 3] - box[b]) / shape
+        q = np.empty((shape * shape, 3))
+        q[:, a] = np.tile(us, shape)
+        q[:, b] = np.repeat(vs, shape)
+        q[:, c] = centre[c]
+        images.append(np.asarray(field(q), float).reshape(shape, shape))
+    finite = np.concatenate([im[np.isfinite(im) & (im > 0)] for im in images])
+    norm = LogNorm(vmin=finite.min(), vmax=finite.max()) if len(finite) else None
+    names = ("x", "y", "z")
+    for ax, view, image in zip(axes, VIEWS, images, strict=True):
+        a, b, c = view
+        im = ax.imshow(image, origin="lower", extent=_view_extent(box, view), cmap=cmap,
+                       norm=norm, interpolation="nearest", aspect="equal")  # fmt: skip
+        if points is not None and len(points):
+            slab = (box[c + 3] - box[c]) / 50.0
+            near = _points_near(points, box, mesh.periodic, c, centre[c], slab)
+            ax.scatter(near[:, a], near[:, b], s=2, c="white", linewidths=0, alpha=0.7,
+                       rasterized=True)  # fmt: skip
+        ax.set_xlabel(names[a])
+        ax.set_ylabel(names[b])
+        ax.set_title(f"{names[c]} = {centre[c]:.4g}", fontsize="small")
+    colour_bar(axes[-1], im, label)
+    if title:
+        axes[0].figure.suptitle(title)
+    return axes
+
+
+def plot_projections(density, axes, grid=None, points=None, max_points=20_000, cmap="magma"):
+    """A density in space (``KnnDensity``) projected along each axis: the marginal density of
+    each pair of axes (the grid summed across the third times its cell), log colour scale
+    shared by the three, with up to ``max_points`` of the points as dots. ``grid``: (xs, ys,
+    zs, values (nz, ny, nx)) when already computed."""
+    from matplotlib.colors import LogNorm
+
+    xs, ys, zs, f = density.grid() if grid is None else grid
+    mesh = density.distance.mesh
+    box = np.asarray(mesh.box, float)
+    cell = (box[3:] - box[:3]) / (len(xs), len(ys), len(zs))
+    # f is (z, y, x): the marginal of (x, y) sums over z, of (x, z) over y, of (y, z) over x
+    marginals = [f.sum(axis=0) * cell[2], f.sum(axis=1) * cell[1], f.sum(axis=2) * cell[0]]
+    finite = np.concatenate([m[np.isfinite(m) & (m > 0)] for m in marginals])
+    norm = LogNorm(vmin=max(finite.min(), finite.max() * 1e-6), vmax=finite.max())
+    if points is not None and len(points) > max_points:
+        pick = np.random.default_rng(0).choice(len(points), max_points, replace=False)
+        points = np.asarray(points)[pick]
+    names = ("x", "y", "z")
+    for ax, view, image in zip(axes, VIEWS, marginals, strict=True):
+        a, b, _ = view
+        im = ax.imshow(image, origin="lower", extent=_view_extent(box, view), cmap=cmap,
+                       norm=norm, interpolation="nearest", aspect="equal")  # fmt: skip
+        if points is not None:
+            pts = BoxMetric(mesh.box, mesh.periodic).wrap(np.asarray(points, float))
+            ax.scatter(pts[:, a], pts[:, b], s=1, c="white", linewidths=0, alpha=0.3,
+                       rasterized=True)  # fmt: skip
+        ax.set_xlabel(names[a])
+        ax.set_ylabel(names[b])
+    colour_bar(axes[-1], im, "marginal density")
+    n = density.n if not float(density.n).is_integer() else int(density.n)
+    axes[0].figure.suptitle(
+        f"kNN density projected along each axis: n = {n:,}, k = {density.k}, "
+        f"m = {len(mesh.vertices):,}"
+    )
+    return axes
+
+
+def plot_clusters_projected(mesh, points, labels, axes, max_points=200_000):
+    """Points in space coloured by cluster (noise in grey) in the three views of the box."""
+    pts = BoxMetric(mesh.box, mesh.periodic).wrap(np.asarray(points, float))
+    lab = np.asarray(labels)
+    n_clusters = int(lab.max()) + 1 if len(lab) else 0
+    if len(pts) > max_points:
+        pick = np.random.default_rng(0).choice(len(pts), max_points, replace=False)
+        pts, lab = pts[pick], lab[pick]
+    palette = _palette(max(n_clusters, 1))
+    colours = np.array(
+        [palette[c] if c >= 0 else (0.7, 0.7, 0.7, 1.0) for c in range(-1, n_clusters)]
+    )
+    names = ("x", "y", "z")
+    box = np.asarray(mesh.box, float)
+    size = 1 if len(pts) > 5000 else 4
+    for ax, (a, b, _) in zip(axes, VIEWS, strict=True):
+        ax.scatter(pts[:, a], pts[:, b], c=colours[lab + 1], s=size, linewidths=0,
+                   rasterized=True)  # fmt: skip
+        ax.set_xlim(box[a], box[a + 3])
+        ax.set_ylim(box[b], box[b + 3])
+        ax.set_aspect("equal")
+        ax.set_xlabel(names[a])
+        ax.set_ylabel(names[b])
+    noise = int((lab < 0).sum())
+    axes[0].figure.suptitle(
+        f"ToMATo on the mesh: {n_clusters} cluster{'s' if n_clusters != 1 else ''}"
+        + (f" and {noise:,} noise points" if noise else "")
+        + f", k = {mesh.k}, m = {len(mesh.vertices):,}"
+    )
+    return axes

@@ -9,12 +9,16 @@ is the combinatorial one (offsets dropped), checked to be a simplicial complex f
 Persistence is computed by gudhi (``pip install "knnrefine[topology]"``).
 """
 
+from itertools import combinations
+
 import numpy as np
 
+from .density.distance import point_index
+from .density.space import SpacePieces, edges3
 from .errors import InputError
 from .mesh import edges, split_in_four
 from .metric import BoxMetric
-from .validation import as_points
+from .validation import as_points, points_of_run
 
 
 def require_gudhi():
@@ -31,15 +35,28 @@ def require_gudhi():
 
 
 def mesh_complex(mesh, subdivide=True):
-    """The triangulated domain of the filtration: (positions (p, 2), triangles (t, 3)).
+    """The triangulated domain of the filtration: (positions (p, d), cells (t, d + 1)).
 
-    The mesh's triangles, which are those that meet the box (the package's one rule: all of
-    the torus' in periodic mode, as an abstract complex with positions in the box). With
-    ``subdivide``, every triangle is split in four through its edge midpoints. Raises
-    EngineError if two edges join the same pair of vertices (the triangulation would then not
-    be a simplicial complex)."""
+    The mesh's cells, which are those that meet the box (the package's one rule: all of the
+    torus' in periodic mode, as an abstract complex with positions in the box). With
+    ``subdivide``, every triangle is split in four (every tetrahedron in eight) through its
+    edge midpoints. Raises EngineError if two edges join the same pair of vertices, or an
+    edge a vertex to itself (the complex would then not be simplicial: only on a torus a few
+    cells across)."""
+    if mesh.dim == 2:
+        return _plane_complex(mesh, subdivide)
+    return _space_complex(mesh, subdivide)
+
+
+def _not_simplicial():
     from .errors import EngineError
 
+    return EngineError(
+        "two edges join the same pair of vertices: the mesh is not a simplicial complex"
+    )
+
+
+def _plane_complex(mesh, subdivide):
     corners = mesh.corners()
     tri = mesh.triangles.astype(np.int64)
     pairs, edge_of = edges(tri)
@@ -47,9 +64,7 @@ def mesh_complex(mesh, subdivide=True):
     # pair used more often means two different edges join it
     uses = np.bincount(edge_of.reshape(-1))
     if uses.max(initial=0) > 2 or (all(mesh.periodic) and np.any(uses != 2)):
-        raise EngineError(
-            "two edges join the same pair of vertices: the mesh is not a simplicial complex"
-        )
+        raise _not_simplicial()
     if not subdivide:
         used = np.unique(tri)
         return mesh.vertices[used], np.searchsorted(used, tri)
@@ -64,49 +79,106 @@ def mesh_complex(mesh, subdivide=True):
     return positions[used], np.searchsorted(used, tri)
 
 
+def _space_complex(mesh, subdivide):
+    tets = mesh.tetrahedra.astype(np.int64)
+    pairs = SpacePieces.PAIRS
+    # a geometric edge is its two vertices and the offset between them; the complex is
+    # simplicial when no two of them join the same vertex pair and none a vertex to itself
+    first, inverse = edges3(tets, mesh.offsets, pairs)
+    a = tets[:, pairs[:, 0]].ravel()[first]
+    b = tets[:, pairs[:, 1]].ravel()[first]
+    if np.any(a == b) or len(
+        np.unique(np.minimum(a, b) * len(mesh.vertices) + np.maximum(a, b))
+    ) < len(first):
+        raise _not_simplicial()
+    if not subdivide:
+        used = np.unique(tets)
+        return mesh.vertices[used], np.searchsorted(used, tets)
+    corners = mesh.corners()
+    mids = 0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]]).reshape(-1, 3)[first]
+    mid_ids = len(mesh.vertices) + inverse.reshape(len(tets), 6)
+    nodes = np.concatenate([tets, mid_ids], axis=1)  # corners 0-3, midpoints 4-9
+    cells = nodes[:, SpacePieces.EIGHT].reshape(-1, 4)
+    positions = np.concatenate([mesh.vertices, BoxMetric(mesh.box, mesh.periodic).wrap(mids)])
+    used = np.unique(cells)
+    return positions[used], np.searchsorted(used, cells)
+
+
 class Persistence:
-    """Sublevel-set persistence of d_{P,k} (log scale by default) on the mesh.
+    """Sublevel-set persistence of d_{P,k} (log scale by default) on the mesh, in the plane
+    (classes in dimensions 0-2) or in space (0-3).
 
-    ``function="d_m2"`` filters by the mesh's own d_{M,2} instead (no query of P at all; by
-    Theorem 6 it is within the factors [alpha, beta] of d_{P,k}).
+    Parameters
+    ----------
+    mesh : Mesh
+        From ``knnrefine.refine(points, k, ...)``.
+    points : array-like (n, d)
+        The points it was refined from.
+    log : bool
+        Filter by log d_{P,k}, which makes the diagram scale-free (features of a tight
+        cluster and of a wide ring compare by ratios).
+    subdivide : bool
+        Split the cells through their edge midpoints (exact values there too).
+    function : "d_pk" or "d_m2"
+        ``"d_m2"`` filters by the mesh's own d_{M,2} instead (no query of P at all; by
+        Theorem 6 it is within the factors [alpha, beta] of d_{P,k}).
+    weights : array-like (n,), optional
+        The weights of a weighted run (required for one, refused otherwise).
 
+    Notes
+    -----
     ``diagram(dim)``: (q, 2) birth and death of the classes in dimension dim (death inf for
-    the classes that never die). ``log``: filtration by log d_{P,k}, which makes the diagram
-    scale-free (features of a tight cluster and of a wide ring compare by ratios)."""
+    the classes that never die). ``cells`` are the filtered complex's top cells (triangles
+    or tetrahedra) over ``positions``.
+    """
 
-    def __init__(self, mesh, points, log=True, subdivide=True, function="d_pk"):
+    def __init__(self, mesh, points, log=True, subdivide=True, function="d_pk", weights=None):
         gudhi = require_gudhi()
-        pts = as_points(points)
-        if len(pts) < mesh.k:
-            raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
+        if function not in ("d_pk", "d_m2"):
+            raise InputError(f"function must be 'd_pk' or 'd_m2', got {function!r}")
+        pts, weights, _ = points_of_run(mesh, points, weights)
         self.mesh = mesh
         self.log = log
-        self.positions, self.triangles = mesh_complex(mesh, subdivide)
+        self.positions, self.cells = mesh_complex(mesh, subdivide)
         if function == "d_pk":
-            d = BoxMetric(mesh.box, mesh.periodic).kth(pts, self.positions, mesh.k)
-        elif function == "d_m2":  # the mesh's own sizing: within [alpha, beta] d_Pk, free
+            index = point_index(mesh, pts, weights)
+            d = index.kth(BoxMetric(mesh.box, mesh.periodic).wrap(self.positions), mesh.k)
+        else:  # the mesh's own sizing: within [alpha, beta] d_Pk, free
             d = mesh.d_m2(self.positions)
-        else:
-            raise InputError(f"function must be 'd_pk' or 'd_m2', got {function!r}")
         self.values = np.log(d) if log else d
         st = gudhi.SimplexTree()
         n = len(self.positions)
         st.insert_batch(np.arange(n)[None, :], self.values)
-        pairs, _ = edges(self.triangles)
-        st.insert_batch(pairs.T, self.values[pairs].max(axis=1))
-        st.insert_batch(self.triangles.T, self.values[self.triangles].max(axis=1))
+        corners = self.cells.shape[1]
+        for size in range(2, corners + 1):  # every face, with the largest of its values
+            faces = np.unique(
+                np.sort(
+                    np.concatenate(
+                        [self.cells[:, list(c)] for c in combinations(range(corners), size)]
+                    ),
+                    axis=1,
+                ),
+                axis=0,
+            )
+            st.insert_batch(faces.T, self.values[faces].max(axis=1))
         st.compute_persistence(homology_coeff_field=2, persistence_dim_max=True)
         self.simplex_tree = st
+
+    @property
+    def triangles(self):
+        """The complex's cells in the plane (its name there before space)."""
+        return self.cells
 
     def diagram(self, dim):
         d = np.asarray(self.simplex_tree.persistence_intervals_in_dimension(dim), float)
         return d.reshape(-1, 2)
 
     def betti(self, threshold):
-        """Betti numbers (b0, b1, b2) of the sublevel set at ``threshold`` (same scale)."""
+        """Betti numbers (b0, b1, ..., b_d) of the sublevel set at ``threshold`` (same
+        scale)."""
         return tuple(
             int(((dg[:, 0] <= threshold) & (dg[:, 1] > threshold)).sum())
-            for dg in (self.diagram(0), self.diagram(1), self.diagram(2))
+            for dg in (self.diagram(i) for i in range(self.mesh.dim + 1))
         )
 
     def most_persistent(self, dim, count=3):

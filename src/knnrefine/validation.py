@@ -130,6 +130,26 @@ def weights_of_run(stats, n, weights):
     return weights
 
 
+def points_of_run(mesh, points, weights=None):
+    """The points (and weights) a mesh was refined from, to use them again (evaluation,
+    clustering, persistence): (pts (n, d) float64, weights or None, total: n or the total
+    weight). Refused with an InputError: points of another dimension or number than the
+    run's, weights that are not the run's (``weights_of_run``), less than k in all."""
+    pts = as_points(points, mesh.dim)
+    made_from = mesh.stats.get("n")
+    if made_from is not None and int(made_from) != len(pts):
+        raise InputError(
+            f"the mesh was made from {int(made_from):,} points but {len(pts):,} were "
+            "given: use a mesh with the points it was refined from"
+        )
+    weights = weights_of_run(mesh.stats, len(pts), weights)
+    total = len(pts) if weights is None else float(weights.sum())
+    if total < mesh.k:
+        what = f"{len(pts)} points" if weights is None else f"a total weight of {total:.6g}"
+        raise InputError(f"{what} but k = {mesh.k}: d_Pk is infinite")
+    return pts, weights, total
+
+
 def check_weighted_k(k, total):
     """With weights, k is a weight: a positive number, at most the total weight."""
     if isinstance(k, bool) or not isinstance(k, numbers.Real) or not np.isfinite(k) or k <= 0:

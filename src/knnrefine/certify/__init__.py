@@ -8,11 +8,10 @@ import time
 import numpy as np
 
 from ..errors import InputError
-from ..mesh3 import Mesh3
 from ..validation import as_points
+from .certificate import Certificate
 from .common import check_precondition, check_source
 from .plane import (
-    Certificate,
     StripQuestions,
     TiledTorusPoints,
     TorusPoints,
@@ -20,13 +19,12 @@ from .plane import (
     check_points_are_the_meshs,
     run_checks,
 )
-from .space import Certificate3, certify3
+from .space import certify3
 
 __all__ = [
     "certify",
     "certify_store",
     "Certificate",
-    "Certificate3",
     "StripQuestions",
     "check_source",
     "check_precondition",
@@ -59,9 +57,12 @@ def certify(
     checks, same verdict. The checks, in order: the returned points are the mesh's (else
     InputError), the torus triangulation, the returned mesh, well-spacedness, counts, Lemma
     2's precondition, the achieved constants, the size integral, the floor."""
-    if isinstance(mesh, Mesh3):  # in space: space.certify3's checks
+    if mesh.dim == 3:  # in space: space.certify3's checks
         if weights is not None or tiles is not None:
-            raise InputError("weights and tiles are not built for (n, 3) points yet")
+            raise InputError(
+                "weights and tiles are not built for (n, 3) points yet: certify a 3-D mesh "
+                "without them (refine in space takes no weights either)"
+            )
         return certify3(mesh, points, samples=samples, n_random=n_random,
                         max_point_probes=max_point_probes, seed=seed, workers=workers)  # fmt: skip
     t0 = time.perf_counter()

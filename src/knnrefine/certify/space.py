@@ -1,6 +1,6 @@
-"""``certify`` in three dimensions: every promise of a ``Mesh3`` checked without the engine's
-refinement code (on the torus it refined, the box's own along periodic axes and the embedding
-torus along the others; the bounds in the box's own metric).
+"""``certify`` in three dimensions: every promise of a ``Mesh`` in space checked without the
+engine's refinement code (on the torus it refined, the box's own along periodic axes and the
+embedding torus along the others; the bounds in the box's own metric).
 
 The tetrahedralisation is checked exactly in the mesh's own frame (vertices relative to the
 box's corner, exact): its faces are matched again from the corners and offsets, every
@@ -21,87 +21,17 @@ d_{P,k} >= min_size.
 """
 
 import time
-from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..engine.predicates3 import insphere, orient3d
-from ..metric import TorusFrame
+from ..mesh import theorem6_constants
+from ..metric import BoxMetric, TorusFrame
 from ..validation import as_points, check_inside
+from .certificate import Certificate, floor_sites, to_input
 from .common import check_precondition, check_source, find_rows
-
-
-@dataclass
-class Certificate3:
-    """What certify measured in space. ``passed`` is True when every guarantee holds above
-    the floor (as the plane's ``Certificate``)."""
-
-    triangulation: bool
-    view_matches_torus: bool
-    orientation_failures: int
-    delaunay_failures: int
-    volume_ratio: float
-    max_aspect: float
-    max_circumball_count: int
-    max_cell_count: int
-    floor_circumballs: int
-    floor_cells: int
-    alpha_hat: float
-    beta_hat: float
-    alpha: float
-    beta: float
-    probes: int
-    seconds: float
-    k: int = 0
-    tau: float = 0.0
-    mesh_problems: list = field(default_factory=list)  # returned mesh vs the certified torus
-    precondition_ok: bool = True  # Lemma 2's precondition on the initial vertices
-    precondition_note: str = ""
-
-    @property
-    def passed(self):
-        return bool(
-            self.triangulation
-            and self.view_matches_torus
-            and not self.mesh_problems
-            and self.precondition_ok
-            and self.max_aspect <= self.tau * (1 + 1e-9)
-            and self.max_circumball_count < self.k
-            and self.max_cell_count < self.k
-            and (np.isnan(self.alpha_hat) or self.alpha <= self.alpha_hat)
-            and (np.isnan(self.beta_hat) or self.beta_hat <= self.beta)
-        )
-
-    def to_dict(self):
-        d = asdict(self)
-        d["passed"] = self.passed
-        return d
-
-    def __str__(self):
-        verdict = "PASSED" if self.passed else "FAILED"
-        ratio = (
-            f"  d_M2 / d_Pk at {self.probes:,} probes in [{self.alpha_hat:.4f}, "
-            f"{self.beta_hat:.4f}]; Theorem 6: [{self.alpha:.4f}, {self.beta:.2f}]"
-            if self.probes
-            else "  d_M2 / d_Pk: nothing measured: every probe lies where d_Pk < min_size"
-        )
-        return "\n".join([
-            f"certify (3-D): {verdict} in {self.seconds:.2f} s",
-            f"  tetrahedralisation exact: {self.triangulation} (orientation failures "
-            f"{self.orientation_failures}, Delaunay failures {self.delaunay_failures}, "
-            f"volume / torus {self.volume_ratio:.12f}); the box's copies match the torus: "
-            f"{self.view_matches_torus}",
-            "  returned mesh: the certified torus mesh, exactly, no repeated vertex: "
-            + ("ok" if not self.mesh_problems else f"FAILED ({'; '.join(self.mesh_problems)})"),
-            f"  initial mesh: Lemma 2's precondition: {'ok' if self.precondition_ok else 'FAILED'}"
-            + (f" ({self.precondition_note})" if self.precondition_note else ""),
-            f"  aspect max {self.max_aspect:.4f}; points in a circumball max "
-            f"{self.max_circumball_count}, in a cell max {self.max_cell_count} (floor: "
-            f"{self.floor_circumballs} circumballs, {self.floor_cells} cells)",
-            ratio,
-        ])  # fmt: skip
 
 
 @kernel(entry=True, lazy=True)
@@ -171,30 +101,6 @@ def _circumspheres(c):
     return a + u, (u**2).sum(axis=1)
 
 
-def _rows_within(rows, table):
-    """Whether each row of ``rows`` (sorted int64 rows) is a row of ``table``."""
-
-    def as_void(a):
-        a = np.ascontiguousarray(a, dtype=np.int64)
-        return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel()
-
-    return np.isin(as_void(rows), as_void(table))
-
-
-def _view_matches(mesh):
-    """The mesh's own arrays are copies of its torus: each vertex a torus vertex moved by
-    whole periods along non-periodic axes only (exactly), each tetrahedron a torus
-    tetrahedron (``certify3`` adds: d_{M,2} from them equals the torus' in the box)."""
-    if mesh.embedded is None:
-        return True
-    shift = (mesh.local - mesh.torus.local[mesh.order]) / np.asarray(mesh.period)
-    per = np.array(mesh.periodic)
-    if not ((shift == np.rint(shift)).all() and (shift[:, per] == 0).all()):
-        return False
-    view = np.sort(mesh.order[mesh.tetrahedra], axis=1)
-    return bool(_rows_within(view, np.sort(mesh.torus.tetrahedra, axis=1)).all())
-
-
 class _Points:
     """The input points on the torus, as ``certify.check_precondition`` asks about them."""
 
@@ -216,10 +122,10 @@ def _parity(rows):
 
 def verify_returned_mesh3(mesh):
     """Problems (a list of strings) that stop what the user works with, ``vertices`` (input
-    coordinates), ``tetrahedra`` with ``offsets`` and ``local``, from being, exactly and
-    without repeated vertices, copies of the torus mesh that certify checks: each vertex a
-    torus vertex moved by whole periods, each tetrahedron a torus tetrahedron (the same
-    corners, the same orientation) moved by whole periods."""
+    coordinates) and ``tetrahedra`` with ``offsets``, from being, exactly and without
+    repeated vertices, copies of the torus mesh that certify checks: each vertex a torus
+    vertex moved by whole periods, each tetrahedron a torus tetrahedron (the same corners,
+    the same orientation) moved by whole periods."""
     torus = mesh.torus
     v = np.asarray(mesh.vertices, float)
     if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
@@ -228,23 +134,16 @@ def verify_returned_mesh3(mesh):
     repeated = len(v) - len(np.unique(v, axis=0))
     if repeated:
         problems.append(f"{repeated} repeated vertices")
-    origin, period = np.asarray(mesh.origin, float), np.asarray(mesh.period, float)
-    tl = np.asarray(torus.local, float)
+    origin, period = np.asarray(torus.origin, float), np.asarray(torus.period, float)
+    tl = np.asarray(torus.vertices, float)
     order = np.asarray(mesh.order)
-    local = np.asarray(mesh.local, float)
-    if (
-        len(order) != len(v) or local.shape != v.shape
-        or order.min(initial=0) < 0 or order.max(initial=0) >= len(tl)
-    ):  # fmt: skip
+    if len(order) != len(v) or order.min(initial=0) < 0 or order.max(initial=0) >= len(tl):
         return problems + ["vertex order does not index the torus vertices"]
     shift = np.rint((v - origin - tl[order]) / period)
     off = np.any(v != origin + (tl[order] + shift * period), axis=1)
     if off.any():
         problems.append(f"{int(off.sum())} vertices differ from their torus vertex")
-    moved = np.rint((local - tl[order]) / period)
-    if np.any(local != tl[order] + moved * period) or np.any(moved[:, np.array(mesh.periodic)]):
-        problems.append("local coordinates differ from the torus vertices")
-    tet = np.asarray(mesh.tetrahedra, np.int64)
+    tet = np.asarray(mesh.cells, np.int64)
     if tet.ndim != 2 or tet.shape[1] != 4 or tet.min(initial=0) < 0 or tet.max(initial=0) >= len(v):
         return problems + ["tetrahedra do not index the vertices"]
     offsets = (
@@ -252,7 +151,7 @@ def verify_returned_mesh3(mesh):
     )
     user = v[tet] + offsets * period - origin  # corners in the torus frame, unwrapped
     ids = order[tet]
-    ttet = np.asarray(torus.tetrahedra, np.int64)
+    ttet = np.asarray(torus.cells, np.int64)
     tcorners = tl[ttet] + np.asarray(torus.offsets, float) * period
     u_sort, t_sort = np.argsort(ids, axis=1), np.argsort(ttet, axis=1)
     u_key = np.take_along_axis(ids, u_sort, 1)
@@ -300,7 +199,7 @@ def _tetrahedron_samples(c, per, rng):
 def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
              seed=0, workers=-1):  # fmt: skip
     """Check ``mesh`` (from ``knnrefine.refine`` with (n, 3) points) against ``points``;
-    returns a ``Certificate3`` (nothing is raised when a check fails: see ``.passed``).
+    returns a ``Certificate`` (nothing is raised when a check fails: see ``.passed``).
 
     The torus mesh (``mesh.torus``: the box's own along periodic axes, the embedding torus
     along the others) is checked as refined: exact tetrahedralisation, counts, aspect and
@@ -315,11 +214,12 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     pts = as_points(points, 3)
     check_source(mesh.stats, len(pts), None)
     check_inside(pts, mesh.box, mesh.periodic, warn=False)
-    period = np.asarray(mesh.period, float)
     torus = mesh.torus
-    p = TorusFrame(mesh.origin, period)(pts)
+    origin, period = np.asarray(torus.origin, float), np.asarray(torus.period, float)
+    metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)  # the torus' frame
+    p = TorusFrame(origin, period)(pts)
     k = mesh.k
-    corners, offsets, local = torus.tetrahedra, torus.offsets.astype(np.int64), torus.local
+    corners, offsets, local = torus.cells, torus.offsets.astype(np.int64), torus.vertices
     neighbours = _neighbours(corners, offsets)
     ok_faces = neighbours is not None
     bad_o = bad_d = -1
@@ -327,7 +227,6 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
         bad_o, bad_d = _exact_faces(local, corners.astype(np.int64), offsets, neighbours, period)
     c = local[corners] + offsets * period
     volume = np.abs(np.linalg.det(c[:, 1:] - c[:, :1])).sum() / 6.0 / np.prod(period)
-    view = _view_matches(mesh)
     triangulation = ok_faces and bad_o == 0 and bad_d == 0 and abs(volume - 1.0) < 1e-9
 
     centres, r2 = _circumspheres(c)
@@ -355,46 +254,90 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     # the promise in the box, in its own metric, from the returned vertices
     rng = np.random.default_rng(seed)
     per_tetrahedron = max(4, -(-int(samples) // max(len(c), 1)))
-    lo = np.array(mesh.box[:3]) - np.asarray(mesh.origin)
+    lo = np.array(mesh.box[:3]) - origin
+    hi = np.array(mesh.box[3:]) - origin
     side = np.array(mesh.box[3:]) - np.array(mesh.box[:3])
+    samples_at = np.mod(_tetrahedron_samples(c, per_tetrahedron, rng), period)
+    sample_weight = np.repeat(
+        np.abs(np.linalg.det(c[:, 1:] - c[:, :1])) / 6.0 / per_tetrahedron, per_tetrahedron
+    )
     probes = np.concatenate([
-        np.mod(_tetrahedron_samples(c, per_tetrahedron, rng), period),
-        lo + rng.random((n_random, 3)) * side, local, np.mod(centres, period),
+        samples_at, lo + rng.random((n_random, 3)) * side, local, np.mod(centres, period),
         np.mod(_edge_midpoints(local, corners, offsets, period), period),
         p[rng.choice(len(p), min(len(p), max_point_probes), replace=False)],
     ])  # fmt: skip
     del c
-    probes = probes[mesh.inside(probes)]
+    free = ~np.array(mesh.periodic)
+    in_box = (((probes >= lo) & (probes <= hi)) | ~free).all(axis=1)
+    sample_in_box = in_box[: len(samples_at)]
+    point_probes = np.zeros(len(probes), bool)
+    point_probes[len(probes) - min(len(p), max_point_probes) :] = True
+    probes, point_probes = probes[in_box], point_probes[in_box]
     mesh_problems = verify_returned_mesh3(mesh)
     returned = np.asarray(mesh.vertices, float)
     if returned.ndim == 2 and returned.shape[1] == 3 and np.isfinite(returned).all():
-        returned = mesh.wrap(returned)  # relative to the origin, periodic axes wrapped
+        returned = metric.frame(returned)  # relative to the origin, periodic axes wrapped
     else:  # not coordinates at all (a failed check already): the torus' own, for the ratio
         returned = local
     box_boxsize = np.where(mesh.periodic, period, 0.0) if any(mesh.periodic) else None
-    if all(mesh.periodic):
-        box_points = point_tree
-    else:
-        box_points = mesh.metric.tree(pts)
+    box_points = point_tree if all(mesh.periodic) else metric.tree(pts)
     box_vertices = cKDTree(returned, boxsize=box_boxsize)
     dm2 = box_vertices.query(probes, k=min(2, len(returned)), workers=workers)[0]
     dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(probes), np.inf)
-    if view and not mesh_problems:  # the copies near the box hold its two nearest
+    if not mesh_problems:  # the copies near the box hold its two nearest
         on_torus = vertex_tree.query(probes, k=2, workers=workers)[0][:, 1]  # wraps queries
-        view = bool(np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0))
+        if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
+            mesh_problems.append(
+                "d_M2 from the returned vertices differs from the torus mesh's in the box"
+            )
     dpk = box_points.query(probes, k=[k], workers=workers)[0][:, 0]
     use = dpk >= mesh.min_size
     ratio = dm2[use] / dpk[use]
-    alpha_hat = float(ratio.min()) if len(ratio) else float("nan")
-    beta_hat = float(ratio.max()) if len(ratio) else float("nan")
-    return Certificate3(
-        triangulation=bool(triangulation), view_matches_torus=bool(view),
-        orientation_failures=int(bad_o), delaunay_failures=int(bad_d),
-        volume_ratio=float(volume), max_aspect=aspect,
-        max_circumball_count=max_held, max_cell_count=max_cell,
+    nan = float("nan")
+    alpha_hat = beta_hat = nan
+    alpha_hat_at = beta_hat_at = (nan, nan, nan)
+    if len(ratio):
+        i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
+        alpha_hat, beta_hat = float(ratio[i]), float(ratio[j])
+        at = to_input(probes[use][[i, j]], origin, mesh)
+        alpha_hat_at, beta_hat_at = (tuple(float(v) for v in x) for x in at)
+    # the integral of 1 / d_Pk^3 over the box, stratified over the tetrahedra (d_Pk clipped
+    # at min_size), with its standard error
+    f = np.zeros(len(samples_at))
+    f[sample_in_box] = 1.0 / np.maximum(dpk[: int(sample_in_box.sum())], mesh.min_size) ** 3
+    per_tet = (sample_weight * f).reshape(len(corners), -1)
+    size = float(per_tet.sum())
+    stderr = (
+        float(np.sqrt((per_tet.var(axis=1, ddof=1) * per_tet.shape[1]).sum()))
+        if per_tet.shape[1] > 1
+        else 0.0
+    )
+    problems = []
+    if not ok_faces:
+        problems.append("the tetrahedra's faces do not pair up")
+    if bad_o > 0:
+        problems.append(f"{bad_o} tetrahedra not positively oriented")
+    if bad_d > 0:
+        problems.append(f"{bad_d} faces not locally Delaunay")
+    if abs(volume - 1.0) >= 1e-9:
+        problems.append(f"the volumes add up to {volume:.12g} tori")
+    alpha, beta = theorem6_constants(mesh.tau)
+    point_dpk = dpk[point_probes]
+    sites = floor_sites(
+        np.concatenate([np.mod(centres[floor_balls], period), local[floor_cells]]),
+        10.0 * max(mesh.min_size, 1e-300), period, origin, mesh,
+    )  # fmt: skip
+    return Certificate(
+        n=len(pts), m=len(mesh.vertices), k=k, tau=mesh.tau, periodic=tuple(mesh.periodic),
+        box=tuple(mesh.box), min_size=mesh.min_size, triangulation_ok=triangulation,
+        triangulation_problems=problems, max_aspect=aspect, max_cell_count=max_cell,
+        max_ball_count=max_held, alpha=alpha, beta=beta, alpha_hat=alpha_hat,
+        beta_hat=beta_hat, alpha_hat_at=alpha_hat_at, beta_hat_at=beta_hat_at,
+        n_probes=int(use.sum()), size_integral=size, size_integral_stderr=stderr,
+        size_ratio=len(mesh.vertices) / size if size > 0 else nan,
         floor_circumballs=int(floor_balls.sum()), floor_cells=int(floor_cells.sum()),
-        alpha_hat=alpha_hat, beta_hat=beta_hat, alpha=mesh.alpha, beta=mesh.beta,
-        probes=int(use.sum()), seconds=time.perf_counter() - t0, k=k, tau=mesh.tau,
+        floor_sites=sites,
+        under_floor=float(np.mean(point_dpk < mesh.min_size)) if len(point_dpk) else 0.0,
         mesh_problems=mesh_problems, precondition_ok=bool(precondition[0]),
-        precondition_note=precondition[1],
+        precondition_note=precondition[1], seconds=time.perf_counter() - t0,
     )  # fmt: skip

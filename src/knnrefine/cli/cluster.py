@@ -8,11 +8,14 @@ HELP = "cluster the points by the modes of their kNN density (ToMATo on the mesh
 EXAMPLES = """examples:
   knnrefine cluster blobs.csv -k 50 --noise -o labels.csv --plot clusters.png
   knnrefine cluster points.npy --mesh mesh.npz --n-clusters 15 -o labels.npy
+  knnrefine cluster chi.csv --columns chi1,chi2,chi3 --periodic --box 0 0 0 360 360 360 \\
+      -k 30 -o labels.csv --plot views.png
 
 needs gudhi (pip install "knnrefine[topology]"). Without --n-clusters the clusters are the
 density peaks whose prominence exceeds T = 2 sqrt(ln(n/k) / k), the largest a flat density
 gives by chance; --noise labels -1 the points not significantly above where their cluster
-meets another. Outputs: .csv (row, the two columns, label) or .npy (labels)"""
+meets another. Points in space (three --columns, a six-number --box or a --mesh in space)
+are drawn in three views. Outputs: .csv (row, the columns, label) or .npy (labels)"""
 
 
 def add_arguments(parser):
@@ -31,16 +34,22 @@ def run(args):
 
     from .. import io
     from ..cluster import cluster
-    from ..plot import figure_size, plot_clusters, save_figure
+    from ..plot import (
+        figure_size,
+        plot_clusters,
+        plot_clusters_projected,
+        save_figure,
+        space_figure_size,
+    )
     from ..topology import require_gudhi
-    from .common import PICTURES, check_outputs, plural, read_input, require_k_or_mesh
+    from .common import PICTURES, check_outputs, dim_of, plural, read_input, require_k_or_mesh
 
     outputs = [(args.output, (".csv", ".npy"), "labels")] if args.output else []
     outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
     check_outputs(outputs, args.force)
     require_k_or_mesh(args)
     require_gudhi()
-    points, names = read_input(args)
+    points, names = read_input(args, dim=dim_of(args))
     mesh, _ = mesh_for(args, points)
     cl = cluster(mesh, points, n_clusters=args.n_clusters, noise=args.noise)
     if args.output:
@@ -49,15 +58,22 @@ def run(args):
                 args.output,
                 {
                     "row": np.arange(len(points)),
-                    names[0]: points[:, 0],
-                    names[1]: points[:, 1],
+                    **{name: points[:, a] for a, name in enumerate(names)},
                     "label": cl.labels,
                 },
                 args.force,
             )
         else:
             io.atomic_write(args.output, args.force, lambda tmp: np.save(tmp, cl.labels))
-    if args.plot:
+    if args.plot and mesh.dim == 3:  # the three views of the box
+        save_figure(
+            args.plot,
+            space_figure_size(),
+            lambda axes: plot_clusters_projected(mesh, points, cl.labels, axes),
+            force=args.force,
+            panels=3,
+        )
+    elif args.plot:
         save_figure(
             args.plot,
             figure_size(mesh),

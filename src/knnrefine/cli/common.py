@@ -44,12 +44,22 @@ def check_outputs(outputs, force):
             raise InputError(f"{path} exists; use --force to overwrite it")
 
 
-def read_input(args, path=None):
-    """(points, (x name, y name)) from the command's input options: the columns' names for
-    axes and output headers come from --columns or the file's header, else x and y."""
+def read_input(args, path=None, dim=None):
+    """(points, the columns' names) from the command's input options: the columns' names for
+    axes and output headers come from --columns or the file's header, else x, y (and z).
+    Three columns (the first three unless --columns names them) for points in space: three
+    --columns, a six-number --box, or ``dim`` = 3 (a mesh in space)."""
     from .. import io
 
-    return io.read_points_named(path or args.points, args.columns, args.delimiter)
+    return io.read_points_named(path or args.points, space_columns(args, dim), args.delimiter)
+
+
+def space_columns(args, dim=None):
+    """--columns as given, or the first three columns for points in space (see
+    ``read_input``)."""
+    if args.columns is None and (dim == 3 or in_space(args)):
+        return "0,1,2"
+    return args.columns
 
 
 def add_input_options(parser, positional="points"):
@@ -60,8 +70,8 @@ def add_input_options(parser, positional="points"):
         "--columns",
         metavar="A,B[,C]",
         help="the x and y columns, by name (lon,lat) or zero-based index (2,3); "
-        "three columns (x,y,z) for points in space ('refine' and 'certify'); "
-        "default: the first two",
+        "three columns (x,y,z) for points in space; default: the first two (three with a "
+        "six-number --box or a mesh in space)",
     )
     parser.add_argument(
         "--delimiter",
@@ -209,9 +219,7 @@ def refine_with_progress(points, args, quiet, weights=None):
 
 
 def summary(mesh, seconds):
-    from ..mesh3 import Mesh3
-
-    if isinstance(mesh, Mesh3):
+    if mesh.dim == 3:
         moves = mesh.kind_counts
         return (
             f"refined n = {mesh.stats['n']:,} points in space (k = {mesh.k}, tau = "
@@ -249,13 +257,31 @@ def add_mesh_option(parser):
     )
 
 
+def given_mesh(args):
+    """The mesh of --mesh (read once), or None."""
+    from .. import io
+
+    if not getattr(args, "mesh", None):
+        return None
+    if getattr(args, "_given_mesh", None) is None:
+        args._given_mesh = io.read_mesh(args.mesh)
+    return args._given_mesh
+
+
+def dim_of(args):
+    """3 for points in space (a mesh in space from --mesh, three --columns or a six-number
+    --box), else 2."""
+    mesh = given_mesh(args)
+    if mesh is not None:
+        return mesh.dim
+    return 3 if in_space(args) else 2
+
+
 def mesh_for(args, points, default_k=None, weights=None):
     """The mesh of the points: --mesh if given, else a refinement with the options (counting
     ``weights``; default_k of their total)."""
-    from .. import io
-
     if args.mesh:
-        mesh = io.read_mesh(args.mesh)
+        mesh = given_mesh(args)
         if args.k is not None and args.k != mesh.k:
             raise InputError(f"-k {args.k} disagrees with the mesh's k = {mesh.k}")
         return mesh, 0.0

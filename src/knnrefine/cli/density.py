@@ -7,19 +7,24 @@ import numpy as np
 
 from .common import add_input_options, add_mesh_option, add_refine_options, mesh_for
 
-HELP = "estimate the density (adaptive kernel, or kNN k / (n pi d_Pk^2)) on a grid"
+HELP = "estimate the density (adaptive kernel, or kNN k / (n V_d d_Pk^d)) on a grid"
 EXAMPLES = """examples:
   knnrefine density quakes.csv --columns lon,lat --periodic-x --box -180 -90 180 90 \\
       -o density.npz --plot density.png
   knnrefine density counts.csv --columns x,y --weights count -o density.csv
   knnrefine density points.npy --method knn --mesh mesh.npz --grid 1024 -o density.csv
+  knnrefine density chi.csv --columns chi1,chi2,chi3 --periodic --box 0 0 0 360 360 360 \\
+      -o density.npz --plot projections.png
 
 the density integrates to 1 over the box. --method adaptive (default): one kernel per point,
 of extent c G (d_Pk / G)^(2 alpha), c and alpha by leave-one-out likelihood (or
 --criterion least-squares) unless given;
 -k defaults to 2 sqrt(n). --method knn: k / (n pi d_Pk^2), -k defaults to sqrt(n) / 2.
-Outputs: .npz (xs, ys, density, d_pk on the grid), .csv (x, y, density, d_pk per grid cell),
-pictures (.png .svg .pdf)"""
+Points in space (three --columns, a six-number --box or a --mesh in space) get the kNN
+estimate k / (n (4/3) pi d_Pk^3) (the default there; the adaptive one is built in the plane)
+on a 64^3 grid by default, drawn as its projections along each axis.
+Outputs: .npz (xs, ys[, zs], density, d_pk on the grid), .csv (x, y[, z], density, d_pk per
+grid cell), pictures (.png .svg .pdf)"""
 
 
 def add_arguments(parser):
@@ -39,8 +44,8 @@ def add_arguments(parser):
     parser.add_argument(
         "--method",
         choices=("adaptive", "knn"),
-        default="adaptive",
-        help="adaptive kernel estimate (default) or the kNN estimate",
+        help="adaptive kernel estimate (default in the plane) or the kNN estimate (default "
+        "and the only one in space)",
     )
     parser.add_argument(
         "--bandwidth",
@@ -72,9 +77,9 @@ def add_arguments(parser):
         "--grid",
         type=int,
         nargs="+",
-        default=[512],
         metavar="N",
-        help="grid cells per axis (one number, or nx ny; default 512)",
+        help="grid cells per axis (one number, or nx ny, or nx ny nz in space; default 512 "
+        "in the plane, 64 in space)",
     )
     parser.add_argument(
         "-o",
@@ -90,10 +95,17 @@ def add_arguments(parser):
 
 def _check_smoothing(args):
     """The adaptive options, before any work (usage errors, exit 2)."""
-    from ..density import _check_bandwidth, _check_sensitivity
+    from ..density.adaptive import check_bandwidth, check_sensitivity
     from ..errors import InputError
     from .common import UsageError
 
+    if args.method is None:
+        args.method = "knn" if args.dim == 3 else "adaptive"
+    if args.method == "adaptive" and args.dim == 3:
+        raise UsageError(
+            "--method adaptive is built for points in the plane; in space use --method knn "
+            "(the default there)"
+        )
     if args.method == "knn":
         set_ = {
             "--bandwidth": args.bandwidth is not None,
@@ -108,9 +120,9 @@ def _check_smoothing(args):
         return
     try:
         if args.bandwidth is not None:
-            _check_bandwidth(args.bandwidth)
+            check_bandwidth(args.bandwidth)
         if args.sensitivity is not None:
-            _check_sensitivity(args.sensitivity)
+            check_sensitivity(args.sensitivity)
     except InputError as exc:
         raise UsageError(f"--{exc}") from None
 
@@ -126,16 +138,26 @@ def run(args):
         default_k,
         default_pilot_k,
     )
-    from ..plot import figure_size, plot_density, save_figure
+    from ..plot import (
+        figure_size,
+        plot_density,
+        plot_projections,
+        save_figure,
+        space_figure_size,
+    )
     from ..validation import check_weights
-    from .common import PICTURES, UsageError, check_outputs, plural
+    from .common import PICTURES, UsageError, check_outputs, dim_of, plural, space_columns
 
     if not args.output and not args.plot:
         raise UsageError("nothing to write: give -o FILE and/or --plot PICTURE")
-    if len(args.grid) not in (1, 2) or min(args.grid) < 1:
+    args.dim = dim = dim_of(args)
+    grid = [512 if dim == 2 else 64] if args.grid is None else args.grid
+    if len(grid) not in (1, dim) or min(grid) < 1:
+        shapes = "N, or NX NY" if dim == 2 else "N, or NX NY NZ"
         raise UsageError(
-            f"--grid takes one or two positive numbers of cells (N, or NX NY), got "
-            f"{' '.join(map(str, args.grid))}"
+            f"--grid takes one or {('two', 'three')[dim - 2]} positive numbers of cells "
+            f"({shapes}), got "
+            f"{' '.join(map(str, grid))}"
         )
     _check_smoothing(args)
     check_outputs(
@@ -143,9 +165,9 @@ def run(args):
         + ([(args.plot, PICTURES, "pictures")] if args.plot else []),
         args.force,
     )
-    nx, ny = (args.grid * 2)[:2]
+    cells = (grid * dim)[:dim]  # nx, ny[, nz]
     points, weights, names = io.read_weighted_points(
-        args.points, args.columns, args.weights, args.delimiter
+        args.points, space_columns(args, dim), args.weights, args.delimiter
     )
     if weights is not None:
         weights = check_weights(weights, len(points))
@@ -154,7 +176,7 @@ def run(args):
     mesh, _ = mesh_for(args, points, default_pilot_k if adaptive else default_k, weights)
     t0 = time.perf_counter()
     knn = KnnDensity(mesh, points, weights=weights)
-    xs, ys, d = knn.distance.grid((ny, nx))
+    *axes, d = knn.distance.grid(tuple(cells[::-1]))
     if adaptive:
         alphas = SENSITIVITIES if args.sensitivity is None else (args.sensitivity,)
         cs = BANDWIDTHS if args.bandwidth is None else (args.bandwidth,)
@@ -164,10 +186,10 @@ def run(args):
         scored = 0
         if len(alphas) > 1 or len(cs) > 1:
             scored = len(choose_smoothing(density, alphas, cs, criterion=args.criterion)[2])
-        f = density.grid((ny, nx))[2]
+        f = density.grid(tuple(cells[::-1]))[2]
     else:
         density = knn
-        f = knn.constant / d**2
+        f = knn.constant / d**dim
     seconds = time.perf_counter() - t0
     n = len(points) if weights is None else float(weights.sum())
     extra = {}
@@ -183,8 +205,7 @@ def run(args):
                 args.force,
                 lambda tmp: np.savez_compressed(
                     tmp,
-                    xs=xs,
-                    ys=ys,
+                    **dict(zip(("xs", "ys", "zs"), axes, strict=False)),
                     density=f,
                     d_pk=d,
                     k=mesh.k,
@@ -196,31 +217,39 @@ def run(args):
                 ),
             )
         else:
-            gx, gy = np.meshgrid(xs, ys)
+            # grid order: the last axis (x) fastest, as the arrays are laid out
+            at = np.meshgrid(*axes[::-1], indexing="ij")[::-1]
             io.write_table(
                 path,
                 {
-                    names[0]: gx.ravel(),
-                    names[1]: gy.ravel(),
+                    **{name: at[a].ravel() for a, name in enumerate(names)},
                     "density": f.ravel(),
                     "d_pk": d.ravel(),
                 },
                 args.force,
             )
-    if args.plot:
+    if args.plot and dim == 3:  # projections along each axis, with the points
+        save_figure(
+            args.plot,
+            space_figure_size(),
+            lambda axs: plot_projections(density, axs, grid=(*axes, f), points=points),
+            force=args.force,
+            panels=3,
+        )
+    elif args.plot:
         save_figure(
             args.plot,
             figure_size(mesh),
-            lambda ax: plot_density(density, ax, labels=names, grid=(xs, ys, f)),
+            lambda ax: plot_density(density, ax, labels=names, grid=(*axes, f)),
             force=args.force,
         )
     if not args.quiet:
         err = knn.distance.error()
         what = "adaptive kernel density" if adaptive else "kNN density"
         print(
-            f"{what} of n = {plural(n, 'point')}, k = {mesh.k}, on a {nx} x {ny} "
-            f"grid from m = {plural(len(mesh.vertices), 'mesh vertex', 'mesh vertices')} in "
-            f"{seconds:.2f} s"
+            f"{what} of n = {plural(n, 'point')}, k = {mesh.k}, on a "
+            f"{' x '.join(map(str, cells))} grid from "
+            f"m = {plural(len(mesh.vertices), 'mesh vertex', 'mesh vertices')} in {seconds:.2f} s"
         )
         if adaptive:
             by = {"likelihood": "leave-one-out likelihood", "least-squares": "least squares"}
@@ -230,7 +259,7 @@ def run(args):
                 f"alpha = {density.sensitivity:.2g}{how}"
             )
         print(
-            f"  d_Pk interpolated from exact values at {len(knn.distance.nodes):,} nodes: "
+            f"  d_Pk interpolated from exact values at {len(knn.distance.values):,} nodes: "
             f"relative error median {err['median']:.4f}, worst {err['worst']:.3f} "
             f"({err['probes']:,} probes)"
         )

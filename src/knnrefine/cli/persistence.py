@@ -8,9 +8,12 @@ HELP = "persistent homology of the sublevel sets of d_Pk (robust to outliers)"
 EXAMPLES = """examples:
   knnrefine persistence ring.csv -k 30 -o diagram.csv --plot diagram.png
   knnrefine persistence angles.csv -k 50 --periodic --box 0 0 360 360 --linear
+  knnrefine persistence chi.csv --columns chi1,chi2,chi3 --periodic \\
+      --box 0 0 0 360 360 360 -k 20 -o diagram.csv
 
 needs gudhi (pip install "knnrefine[topology]"). The diagram is in ln d_Pk (natural log) unless
---linear; the CSV has one row per class: dimension, birth, death (inf: never dies)"""
+--linear; the CSV has one row per class: dimension, birth, death (inf: never dies). Points in
+space (three --columns, a six-number --box or a --mesh in space) give classes H0-H3"""
 
 
 def add_arguments(parser):
@@ -28,19 +31,20 @@ def run(args):
     from .. import io
     from ..plot import plot_diagram, save_figure
     from ..topology import Persistence, require_gudhi
-    from .common import PICTURES, check_outputs, plural, read_input, require_k_or_mesh
+    from .common import PICTURES, check_outputs, dim_of, plural, read_input, require_k_or_mesh
 
     outputs = [(args.output, (".csv",), "diagrams")] if args.output else []
     outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
     check_outputs(outputs, args.force)
     require_k_or_mesh(args)
     require_gudhi()
-    points, _ = read_input(args)
+    points, _ = read_input(args, dim=dim_of(args))
     mesh, _ = mesh_for(args, points)
     ph = Persistence(mesh, points, log=not args.linear)
+    dims = tuple(range(mesh.dim + 1))  # classes up to the top dimension: H0-H2, or H0-H3
     if args.output:
         rows = np.concatenate(
-            [np.column_stack([np.full(len(ph.diagram(d)), d), ph.diagram(d)]) for d in (0, 1, 2)]
+            [np.column_stack([np.full(len(ph.diagram(d)), d), ph.diagram(d)]) for d in dims]
         )
         io.write_table(
             args.output,
@@ -49,15 +53,16 @@ def run(args):
         )
     if args.plot:
         save_figure(
-            args.plot, (6.5, 6), lambda ax: plot_diagram(ph, ax, dims=(0, 1, 2)), force=args.force
+            args.plot, (6.5, 6), lambda ax: plot_diagram(ph, ax, dims=dims), force=args.force
         )
     if not args.quiet:
         scale = "ln d_Pk" if ph.log else "d_Pk"
+        cell, cells = ("triangle", "triangles") if mesh.dim == 2 else ("tetrahedron", "tetrahedra")
         print(
             f"persistence of the sublevel sets of {scale}: k = {mesh.k}, "
-            f"{plural(len(ph.positions), 'node')}, {plural(len(ph.triangles), 'triangle')}"
+            f"{plural(len(ph.positions), 'node')}, {plural(len(ph.cells), cell, cells)}"
         )
-        for d in (0, 1, 2):
+        for d in dims:
             dg = ph.diagram(d)
             life = dg[:, 1] - dg[:, 0]
             order = np.argsort(-life)[: args.top]

@@ -3,7 +3,11 @@
 HELP = "draw a mesh (.npz) as a picture (.png, .svg, .pdf)"
 EXAMPLES = """examples:
   knnrefine plot quakes.npz -o quakes.png --points quakes.csv --columns lon,lat
-  knnrefine plot angles.npz -o cells.pdf --cells voronoi --no-mesh"""
+  knnrefine plot angles.npz -o cells.pdf --cells voronoi --no-mesh
+  knnrefine plot chi.npz -o slices.png --points chi.csv --columns chi1,chi2,chi3
+
+a mesh in space is drawn as three slices through the box's centre (one per pair of axes),
+coloured by d_M2 (log scale), with the points near each slice as dots"""
 
 
 def add_arguments(parser):
@@ -12,7 +16,9 @@ def add_arguments(parser):
         "-o", "--output", required=True, metavar="PICTURE", help="the picture: .png, .svg or .pdf"
     )
     parser.add_argument("--points", help="the input points, drawn as dots")
-    parser.add_argument("--columns", metavar="A,B", help="columns of --points (names or indices)")
+    parser.add_argument(
+        "--columns", metavar="A,B[,C]", help="columns of --points (names or indices)"
+    )
     parser.add_argument("--delimiter", metavar="D", help="text field separator of --points")
     parser.add_argument(
         "--cells",
@@ -27,11 +33,23 @@ def add_arguments(parser):
 def run(args):
     from .. import io
     from ..plot import save_plot
-    from .common import PICTURES, check_outputs, read_input
+    from .common import PICTURES, UsageError, check_outputs, read_input
 
     check_outputs([(args.output, PICTURES, "pictures")], args.force)
     mesh = io.read_mesh(args.mesh)
-    points, labels = read_input(args, args.points) if args.points else (None, ("x", "y"))
+    if mesh.dim == 3 and (args.cells != "triangles" or args.no_mesh):
+        raise UsageError(
+            "--cells and --no-mesh draw planar meshes; a mesh in space is drawn as slices "
+            "coloured by d_M2"
+        )
+    points, labels = read_input(args, args.points, mesh.dim) if args.points else (None, None)
+    if mesh.dim == 3:
+        from ..plot import save_slices
+
+        save_slices(mesh, args.output, points=points, force=args.force)
+        if not args.quiet:
+            print(f"wrote {args.output}")
+        return 0
     save_plot(
         mesh,
         args.output,
@@ -39,7 +57,7 @@ def run(args):
         force=args.force,
         cells=args.cells,
         show_mesh=not args.no_mesh,
-        labels=labels,
+        labels=labels or ("x", "y"),
     )
     if not args.quiet:
         print(f"wrote {args.output}")

@@ -51,7 +51,7 @@ def add_arguments(parser):
 
 def run(args):
     from .. import certify, io
-    from ..plot import save_plot
+    from ..plot import save_plot, save_slices
 
     outputs = args.output or [_default_output(args.points, args.k)]
     check_outputs(
@@ -68,8 +68,6 @@ def run(args):
                 raise InputError(
                     f"{path}: a mesh in space is written as {', '.join(sorted(WRITERS3))}"
                 )
-        if args.plot:
-            raise InputError("--plot draws planar meshes; view a mesh in space as .vtu")
     t0 = time.perf_counter()
     points, names = read_input(args)
     if not args.quiet:
@@ -80,7 +78,9 @@ def run(args):
     mesh, seconds = refine_with_progress(points, args, args.quiet)
     for path in outputs:
         io.write_mesh(mesh, path, force=args.force)
-    if args.plot:
+    if args.plot and mesh.dim == 3:
+        save_slices(mesh, args.plot, points=points, force=args.force)
+    elif args.plot:
         save_plot(mesh, args.plot, points=points, force=args.force, labels=names)
     if not args.quiet:
         print(summary(mesh, seconds))

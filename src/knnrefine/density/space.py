@@ -1,7 +1,7 @@
-"""d_{P,k} anywhere in a box of three dimensions, the kNN density, and the kNN-CDF, from a
-``Mesh3``.
+"""d_{P,k} in space as linear pieces (``SpacePieces``), what ``KnnDistance`` builds for a
+``Mesh`` in space, and the kNN-CDF over them.
 
-As in the plane (``density.py``): exact d_{P,k} at the mesh's vertices (one query of a
+As in the plane (``plane.py``): exact d_{P,k} at the mesh's vertices (one query of a
 periodic kd-tree each), carried linearly over the tetrahedra. The kNN-CDF of cosmology, the
 distribution of d_{P,k} at uniformly random points of the box, CDF(r) = vol{x : d_{P,k}(x)
 <= r} / vol(box), is integrated over the mesh exactly for the interpolant: on a tetrahedron
@@ -21,32 +21,40 @@ three tetrahedra), so that the pieces tile the box exactly and every integral is
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .certify import check_source
-from .engine.bspline import shares_below, weighted_shares
-from .errors import InputError
-from .validation import as_points, check_inside
+from ..engine.bspline import shares_below, weighted_shares
+from ..errors import InputError
+from ..metric import BoxMetric
 
 
-class KnnDistance3:
-    """d_{P,k} at any point of the box, from a ``Mesh3`` and its points (NaN beyond the box
-    along a non-periodic axis).
+class SpacePieces:
+    """Linear pieces over the box in space, from a ``Mesh`` in space and exact d_{P,k}
+    (``kth(x)``: at points given relative to the torus origin). It works in the frame of the
+    mesh's torus: relative to its origin, periodic axes wrapped (``metric.BoxMetric``), where
+    the mesh's offsets apply; the pieces are cut at the box's faces along non-periodic axes,
+    so that they tile the box exactly.
 
-    ``subdivide`` (default): also exact at the edges' midpoints, each tetrahedron cut into
-    eight (its corners' four and the central octahedron's four, split along one diagonal):
-    d_{P,k} is a distance, peaked between its nodes, and the midpoints catch much of that."""
+    ``subdivide``: also exact at the edges' midpoints, each tetrahedron cut into eight (its
+    corners' four and the central octahedron's four, split along one diagonal): d_{P,k} is a
+    distance, peaked between its nodes, and the midpoints catch much of that.
+    ``values``: d_{P,k} at the mesh's vertices; ``corners`` (t, 4, 3), ``d`` (t, 4) and
+    ``volume`` (t,) the pieces; ``bounds`` rigorous lower and upper bounds of d_{P,k} on
+    each."""
 
-    def __init__(self, mesh, points, subdivide=True):
-        pts = as_points(points, 3)
-        if len(pts) < mesh.k:
-            raise InputError(f"{len(pts)} points but k = {mesh.k}: d_Pk is infinite")
-        check_source(mesh.stats, len(pts), None)
-        check_inside(pts, mesh.box, mesh.periodic, warn=False)
-        self.mesh, self.k, self.n = mesh, mesh.k, len(pts)
-        self.period = np.asarray(mesh.period, float)
+    dim = 3
+
+    def __init__(self, mesh, kth, subdivide=True):
+        self.mesh = mesh
+        self._kth = kth
+        origin = np.asarray(mesh.torus.origin, float)
+        self.origin = origin
+        self.period = np.asarray(mesh.torus.period, float)
         self._periodic = np.array(mesh.periodic)
-        self._points = mesh.metric.tree(pts)  # in the mesh's frame, periodic axes wrapping
-        self.values = self._query(mesh.local)
-        corners = mesh.corners()  # relative to the origin, unwrapped
+        self.metric = BoxMetric((*origin, *(origin + self.period)), mesh.periodic)
+        local = self.metric.frame(mesh.vertices)  # exact: the engine's grid
+        self.values = kth(local)
+        corners = local[mesh.tetrahedra]  # relative to the origin, unwrapped
+        if mesh.offsets is not None:
+            corners = corners + mesh.offsets * self.period
         d = self.values[mesh.tetrahedra]
         if subdivide:
             corners, d = self._subdivided(corners, d)
@@ -54,71 +62,130 @@ class KnnDistance3:
         # cut: a cut point's value is interpolated, not exact): d_{P,k} is 1-Lipschitz, so on
         # the piece it lies within d_i -+ the distance from corner i to the farthest corner
         far = np.zeros(d.shape)
-        for i, j in self._PAIRS:  # pair by pair: no (pieces, 4, 4, 3) temporary
+        for i, j in self.PAIRS:  # pair by pair: no (pieces, 4, 4, 3) temporary
             edge = np.sqrt(((corners[:, i] - corners[:, j]) ** 2).sum(axis=1))
             np.maximum(far[:, i], edge, out=far[:, i])
             np.maximum(far[:, j], edge, out=far[:, j])
-        self._bounds = (d - far).max(axis=1), (d + far).min(axis=1)
-        lo = np.array(mesh.box[:3]) - np.asarray(mesh.origin)
-        hi = np.array(mesh.box[3:]) - np.asarray(mesh.origin)
+        self.bounds = (d - far).max(axis=1), (d + far).min(axis=1)
+        lo = np.array(mesh.box[:3]) - origin
+        hi = np.array(mesh.box[3:]) - origin
+        self._box = lo, hi
         for a in np.flatnonzero(~self._periodic):  # cut at the box's faces
             flipped, d, source = clip_below(-corners, d, a, -lo[a])  # x >= lo, mirrored
             corners, d, again = clip_below(-flipped, d, a, hi[a])  # x <= hi
-            self._bounds = tuple(b[source][again] for b in self._bounds)
-        self._corners = corners
-        self._d = d
-        self._volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
+            self.bounds = tuple(b[source][again] for b in self.bounds)
+        self.corners = corners
+        self.d = d
+        self.volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
         self._locator = None
 
     # the eight tetrahedra of a tetrahedron cut at its edges' midpoints, as indices into its
     # corners 0-3 and midpoints 4-9 of the edges 01, 02, 03, 12, 13, 23
-    _EIGHT = np.array([
+    EIGHT = np.array([
         [0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3],
         [5, 8, 4, 7], [5, 8, 7, 9], [5, 8, 9, 6], [5, 8, 6, 4],
     ])  # fmt: skip
-    _PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-
-    def _query(self, x):
-        """Exact d_{P,k} at x (q, 3) in the mesh's frame (the kd-tree wraps queries along its
-        periodic axes itself), on every core."""
-        return self._points.query(x, k=[self.k], workers=-1)[0][:, 0]
+    PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
     def _subdivided(self, corners, d):
-        mids = 0.5 * (corners[:, self._PAIRS[:, 0]] + corners[:, self._PAIRS[:, 1]])
+        mids = 0.5 * (corners[:, self.PAIRS[:, 0]] + corners[:, self.PAIRS[:, 1]])
         # one query per edge, not per tetrahedron's edge (7.4 edges per vertex, against 38
         # tetrahedron edges): the same edge seen from two tetrahedra may be shifted by whole
         # periods, where the periodic kd-tree gives the same distance
-        first, inverse = _edges(self.mesh.tetrahedra, self.mesh.offsets, self._PAIRS)
-        dm = self._query(mids.reshape(-1, 3)[first])[inverse]
+        first, inverse = edges3(self.mesh.tetrahedra, self.mesh.offsets, self.PAIRS)
+        dm = self._kth(mids.reshape(-1, 3)[first])[inverse]
         nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
         values = np.concatenate([d, dm.reshape(-1, 6)], axis=1)
-        return nodes[:, self._EIGHT].reshape(-1, 4, 3), values[:, self._EIGHT].reshape(-1, 4)
+        return nodes[:, self.EIGHT].reshape(-1, 4, 3), values[:, self.EIGHT].reshape(-1, 4)
 
-    # -- evaluation ------------------------------------------------------------------------
-    def exact(self, x):
-        """Exact d_{P,k} at the points x (..., 3) (the periodic kd-tree: the reference)."""
-        flat = as_points(np.reshape(x, (-1, 3)), 3)
-        return self._query(self.mesh.wrap(flat)).reshape(np.shape(x)[:-1])
+    # -- evaluation ----------------------------------------------------------------------
+    def interpolate(self, x, values=None):
+        """The interpolated d_{P,k} at the points x (q, 3) of the box (input coordinates,
+        periodic axes wrapped)."""
+        if values is not None:
+            raise InputError(
+                "interpolating other node values is built in the plane only: in space "
+                "KnnDistance interpolates d_Pk itself"
+            )
+        tet, bary = self.locate(self.metric.frame(x))
+        return np.einsum("qc,qc->q", bary, self.d[tet])
 
-    def __call__(self, x):
-        """The interpolated d_{P,k} at the points x (..., 3); NaN beyond the box."""
-        flat = self.mesh.wrap(as_points(np.reshape(x, (-1, 3)), 3))
-        out = np.full(len(flat), np.nan)
-        inside = self.mesh.inside(flat)
-        tet, bary = self._locate(flat[inside])
-        out[inside] = np.einsum("qc,qc->q", bary, self._d[tet])
-        return out.reshape(np.shape(x)[:-1])
+    def grid(self, shape):
+        """(xs, ys, zs, values (nz, ny, nx)) at the centres of a grid over the box."""
+        nz, ny, nx = shape
+        lo = np.array(self.mesh.box[:3], float)
+        hi = np.array(self.mesh.box[3:], float)
+        axes = [
+            lo[a] + (np.arange(n) + 0.5) * (hi[a] - lo[a]) / n for a, n in enumerate((nx, ny, nz))
+        ]
+        out = np.empty(nz * ny * nx)
+        plane = np.column_stack([np.tile(axes[0], ny), np.repeat(axes[1], nx)])
+        for z in range(nz):  # a slice at a time: memory of one slice
+            x = np.column_stack([plane, np.full(len(plane), axes[2][z])])
+            out[z * ny * nx : (z + 1) * ny * nx] = self.interpolate(x)
+        return (*axes, out.reshape(nz, ny, nx))
 
-    def _locate(self, x):
+    def integrate(self, func, rect):
+        """Integral of func(d) over the box rect = [[x0, y0, z0], [x1, y1, z1]] (in the box,
+        input coordinates): the pieces and their copies a period away along periodic axes
+        (which tile space once), cut at the rect's faces, by a 4-point rule each."""
+        lo = np.asarray(rect[0], float) - self.origin
+        hi = np.asarray(rect[1], float) - self.origin
+        c, d = self.corners, self.d
+        cmin, cmax = c.min(axis=1), c.max(axis=1)
+        total = 0.0
+        shifts = [[-1, 0, 1] if p else [0] for p in self._periodic]
+        for shift in np.array(np.meshgrid(*shifts, indexing="ij")).reshape(3, -1).T:
+            move = shift * self.period
+            meets = ((cmax + move >= lo) & (cmin + move <= hi)).all(axis=1)
+            if not meets.any():
+                continue
+            within = ((cmin + move >= lo) & (cmax + move <= hi)).all(axis=1)
+            total += quadrature3(c[within] + move, d[within], func).sum()
+            cut = meets & ~within
+            if cut.any():
+                cc, dd = c[cut] + move, d[cut]
+                for a in range(3):
+                    flipped, dd, _ = clip_below(-cc, dd, a, -lo[a])
+                    cc, dd, _ = clip_below(-flipped, dd, a, hi[a])
+                total += quadrature3(cc, dd, func).sum()
+        return float(total)
+
+    def sample(self, n, rng):
+        """n points (input coordinates) from the density proportional to 1 / d^3 over the
+        box: a piece chosen by an upper bound of its mass (d is linear on a piece, so its
+        density peaks at a corner), a uniform point in it, kept with probability density /
+        bound: exact rejection sampling of the piecewise estimate."""
+        dmin = self.d.min(axis=1)
+        cdf = np.cumsum(self.volume / dmin**3)
+        out = np.empty((n, 3))
+        filled = 0
+        while filled < n:
+            m = int(1.5 * (n - filled)) + 64
+            t = np.minimum(
+                np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1
+            )
+            w = rng.exponential(size=(m, 4))
+            w /= w.sum(axis=1, keepdims=True)
+            x = np.einsum("qi,qia->qa", w, self.corners[t])
+            dx = np.einsum("qi,qi->q", w, self.d[t])
+            keep = rng.random(m) * dx**3 <= dmin[t] ** 3
+            x = x[keep][: n - filled]
+            out[filled : filled + len(x)] = x
+            filled += len(x)
+        box = BoxMetric(self.mesh.box, self.mesh.periodic)
+        return box.wrap(out + self.origin)
+
+    def locate(self, x):
         """The tetrahedron (of the covering: the pieces and their copies one period back
         along each periodic axis) holding each wrapped point of the box, and its barycentric
         coordinates."""
         if self._locator is None:
             back = [[0, -1] if p else [0] for p in self._periodic]
             shifts = np.array(np.meshgrid(*back)).reshape(3, -1).T
-            c = self._corners[None] + (shifts * self.period)[:, None, None, :]
+            c = self.corners[None] + (shifts * self.period)[:, None, None, :]
             c = c.reshape(-1, 4, 3)
-            source = np.tile(np.arange(len(self._corners)), len(shifts))  # the piece
+            source = np.tile(np.arange(len(self.corners)), len(shifts))  # the piece
             lo, hi = c.min(axis=1), c.max(axis=1)
             meets = ((hi >= 0) & (lo <= self.period) | ~self._periodic).all(axis=1)
             c, source = c[meets], source[meets]
@@ -148,16 +215,16 @@ class KnnDistance3:
         return tet, bary
 
     # -- the kNN-CDF -------------------------------------------------------------------------
-    def _knots(self):
+    def knots(self):
         """(knots (t, 4) sorted and kept apart, weights), computed once."""
         if getattr(self, "_knot_cache", None) is None:
-            d = np.sort(self._d, axis=1)
+            d = np.sort(self.d, axis=1)
             span = d[:, 3] - d[:, 0]
             # knots kept apart by a relative 1e-7 of the span (ties would divide by zero; the
             # share moves by about as much)
             gap = np.maximum(1e-7 * span, 1e-12 * np.maximum(d[:, 3], 1e-300))
             d = d + gap[:, None] * np.arange(4)
-            self._knot_cache = (d, self._volume / self._volume.sum())
+            self._knot_cache = (d, self.volume / self.volume.sum())
         return self._knot_cache
 
     def cdf(self, r):
@@ -165,7 +232,7 @@ class KnnDistance3:
         every piece adds its weight from its top knot on and its B-spline share at the radii
         that cut it (``engine.bspline.weighted_shares``, one pass over the pieces)."""
         r = np.atleast_1d(np.asarray(r, float))
-        d, w = self._knots()
+        d, w = self.knots()
         order = np.argsort(r, kind="stable")
         out = np.zeros(len(r))
         weighted_shares(d, w, r[order], out, np.zeros(len(r) + 1))
@@ -180,18 +247,18 @@ class KnnDistance3:
         counts whole where its upper end is <= r (lower bound), where its lower end is
         (upper bound)."""
         r = np.atleast_1d(np.asarray(r, float))
-        w = self._knots()[1]
+        w = self.knots()[1]
 
         def weight_at_most(ends):  # the pieces' weight with end <= each r: sorted once
             order = np.argsort(ends, kind="stable")
             total = np.concatenate([[0.0], np.cumsum(w[order])])
             return total[np.searchsorted(ends[order], r, side="right")]
 
-        lower_d, upper_d = self._bounds
+        lower_d, upper_d = self.bounds
         return weight_at_most(upper_d), weight_at_most(lower_d)
 
 
-def _edges(tetrahedra, offsets, pairs):
+def edges3(tetrahedra, offsets, pairs):
     """The tetrahedra's edges (the corner pairs ``pairs`` of each, flattened tetrahedron by
     tetrahedron) as (first, inverse): the flat index of each distinct edge's first
     occurrence, and each occurrence's distinct edge. An edge is its two vertices and the
@@ -264,7 +331,7 @@ def clip_below(corners, values, axis, bound):
     )
 
 
-def _share_below(d, r):
+def share_below(d, r):
     """The share of each tetrahedron where the linear function with sorted corner values d
     (t, 4), distinct, is <= r (``engine.bspline``)."""
     out = np.empty(len(d))
@@ -277,18 +344,10 @@ _A, _B = 0.5854101966249685, 0.1381966011250105
 _QP = np.array([[_A, _B, _B, _B], [_B, _A, _B, _B], [_B, _B, _A, _B], [_B, _B, _B, _A]])
 
 
-class KnnDensity3:
-    """The kNN density in space, f(x) = k / (n (4/3) pi d_{P,k}(x)^3), from a ``Mesh3``;
-    ``normalized`` (default) divides by its integral over the box (a 4-point rule on each
-    tetrahedron)."""
-
-    def __init__(self, mesh, points, normalized=True):
-        self.distance = KnnDistance3(mesh, points)
-        self.raw_constant = mesh.k / (self.distance.n * 4.0 / 3.0 * np.pi)
-        dq = self.distance._d @ _QP.T  # (t, 4): d at the rule's points
-        vol = self.distance._volume
-        self.raw_mass = float((vol * (self.raw_constant / dq**3).mean(axis=1)).sum())
-        self.constant = self.raw_constant / self.raw_mass if normalized else self.raw_constant
-
-    def __call__(self, x):
-        return self.constant / self.distance(x) ** 3
+def quadrature3(corners, d, func):
+    """Per tetrahedron: integral of func(d) with d linear (values d at the corners), by the
+    4-point rule of degree 2."""
+    if len(corners) == 0:
+        return np.zeros(0)
+    volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
+    return volume * func(d @ _QP.T).mean(axis=1)

@@ -1,0 +1,491 @@
+"""The adaptive (sample-point) kernel estimate with local bandwidths from d_{P,k}
+(``AdaptiveDensity``, in the plane), and the choice of its bandwidth and sensitivity by
+cross-validation (``choose_smoothing``)."""
+
+import numpy as np
+
+from ..engine.kernelsum import (
+    AMP,
+    Q11,
+    Q12,
+    Q22,
+    ROW,
+    R,
+    W,
+    X,
+    Y,
+    ball_moments,
+    build_centres,
+    kernel_sums,
+    node_extents,
+)
+from ..engine.threads import in_chunks
+from ..errors import InputError
+from ..validation import as_points, as_queries, weights_of_run
+from .estimate import KnnDensity
+
+
+class AdaptiveDensity:
+    """The adaptive (sample-point) kernel estimate with local bandwidths from d_{P,k}.
+
+    f(x) = (1 - eps) sum_i (w_i / W) K_i(x) + eps f_kNN(x): one kernel per point, of extent
+    h_i = c G (d_i / G)^(2 alpha), d_i = d_{P,k}(X_i), G their geometric mean. The kNN
+    estimate f ~ 1 / d_{P,k}^2 is the pilot, so h_i ~ f(X_i)^(-alpha): the sensitivity
+    alpha = 1/2 is Abramson's square-root law (1982), narrow kernels where the points are
+    dense and wide ones in the tails; alpha = 0 is the fixed-bandwidth estimate (bandwidth
+    c G everywhere); in between, what heavy tails and flat regions prefer (Silverman 1986,
+    5.3). The mesh gives d_{P,k} at every point at once (linear interpolation over its
+    pieces).
+
+    K_i is the triweight profile (1 - u)^3, u = (x - X_i)^T Q_i (x - X_i) < 1, normalised to
+    mass 1: smooth, compactly supported (sums visit only the kernels that reach x).
+    ``shape="isotropic"`` makes it a disk of radius h_i; ``shape="local"`` an ellipse of the
+    same area shaped like the covariance of the points within d_{P,k} of X_i (measured at the
+    mesh's nodes and interpolated; axes ratio at most ``max_ratio``): long along a ridge,
+    narrow across it. Kernels stay in the box: periodic axes wrap, the others fold the mass
+    beyond a side back into the box (reflection), so the estimate integrates to 1 there.
+    eps = 1 / W (one point's worth, W the total weight) of the kNN estimate keeps the
+    estimate positive where no kernel reaches (far tails): a finite log-likelihood.
+
+    Parameters: ``mesh``, ``points``, ``subdivide``, ``weights`` as for ``KnnDensity``;
+    ``bandwidth`` > 0, the factor c, and ``sensitivity`` alpha in [0, 1]
+    (``set_bandwidth`` changes both cheaply, ``loo_curve`` scores candidates by leave-one-out
+    likelihood).
+    """
+
+    def __init__(
+        self, mesh, points, bandwidth=1.0, shape="isotropic", weights=None, subdivide=True,
+        max_ratio=10.0, knn=None, sensitivity=0.5,
+    ):  # fmt: skip
+        check_shape(shape)
+        if not (isinstance(max_ratio, (int, float)) and 1 <= max_ratio < np.inf):
+            raise InputError(f"max_ratio must be a number >= 1, got {max_ratio!r}")
+        pts = as_points(points)
+        if knn is None:
+            knn = KnnDensity(mesh, pts, subdivide=subdivide, weights=weights)
+        self.knn = knn
+        dist = knn.distance
+        weights = weights_of_run(mesh.stats, len(pts), weights)
+        w = np.ones(len(pts)) if weights is None else weights
+        self.k, self.shape = mesh.k, shape
+        self.total = float(w.sum())
+        self.eps = 1.0 / self.total
+        self.n_eff = self.total**2 / float((w * w).sum())
+        self._metric = dist._metric
+        self.lo, self.hi = dist.lo, dist.hi
+        self.periodic = tuple(bool(p) for p in mesh.periodic)
+        frame = self._metric.frame(pts)
+        self._rows, self._box, self._node = build_centres(frame, w)
+        order = self._rows[:, ROW].astype(np.int64)
+        self._row_of = np.empty(len(pts), np.int64)
+        self._row_of[order] = np.arange(len(pts))
+        self._extent = np.zeros(len(self._node))
+        # the pilot: d_{P,k} at every point, and the local covariance for shape="local"
+        if shape == "local":
+            cov = self._node_covariance(dist)
+            pilot = dist.interpolate(pts, np.column_stack([dist.values, cov]))
+            d, cov = pilot[:, 0], pilot[:, 1:]
+        else:
+            d, cov = dist.interpolate(pts, dist.values), None
+        lost = ~np.isfinite(d)
+        if lost.any():  # on no piece by rounding: exact
+            d[lost] = dist.exact(pts[lost])
+        unit = unit_shapes(cov, len(pts), max_ratio)  # (n, 3): s11, s12, s22, det 1
+        # per unit bandwidth: Q = S^-1 / d^2, extent d sqrt(lambda_max(S)), amp
+        # w / W * 4 sqrt(det Q) / pi (the triweight's mass is pi / (4 sqrt(det Q)))
+        d2 = d * d
+        self._q = np.column_stack([unit[:, 2], -unit[:, 1], unit[:, 0]])[order] / d2[order, None]
+        tr = unit[:, 0] + unit[:, 2]
+        lmax = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - 1.0, 0.0))
+        self._r = (d * np.sqrt(lmax))[order]
+        self._amp = (w / self.total * 4.0 / (np.pi * d2))[order]
+        self.pilot = d
+        # the sensitivity rescales d around its (weighted) geometric mean G: G (d / G)^(2 alpha)
+        pos = d > 0
+        log_g = float((w[pos] * np.log(d[pos])).sum() / max(w[pos].sum(), 1e-300))
+        self._log_ratio = np.where(pos, np.log(np.where(pos, d, 1.0)) - log_g, 0.0)[order]
+        # kernels no wider than the box along any axis (wrapping and folding stay exact)
+        self._cap = float(np.min(self.hi - self.lo))
+        self.sensitivity = 0.5
+        self.set_bandwidth(bandwidth, sensitivity)
+
+    def _node_covariance(self, dist):
+        """Covariance (xx, xy, yy) of the points within d_{P,k} of each node of the mesh."""
+        q = self._metric.frame(dist.nodes)
+        out = np.empty((len(q), 6))
+        lx, ly = self.hi - self.lo
+        px, py = self.periodic
+        qx, qy = q[:, 0].copy(), q[:, 1].copy()
+        rows, box, node = self._rows, self._box, self._node
+        radius = np.asarray(dist.values, float)
+        in_chunks(
+            lambda a, b: ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, a, b),
+            len(q),
+        )
+        w = np.maximum(out[:, 0], 1e-300)
+        mx, my = out[:, 1] / w, out[:, 2] / w
+        return np.column_stack(
+            [out[:, 3] / w - mx * mx, out[:, 4] / w - mx * my, out[:, 5] / w - my * my]
+        )
+
+    def set_bandwidth(self, bandwidth, sensitivity=None):
+        """Make the kernels' extents bandwidth * (their unit extents) at this sensitivity
+        (None: as it is); O(n), no new tree. Returns self."""
+        c = check_bandwidth(bandwidth)
+        alpha = self.sensitivity if sensitivity is None else check_sensitivity(sensitivity)
+        self.bandwidth, self.sensitivity = c, alpha
+        rho = np.exp((2.0 * alpha - 1.0) * self._log_ratio) * c  # extent / unit extent at 1/2
+        r = self._r * rho
+        shrink = np.maximum(r / self._cap, 1.0) ** 2  # kernels wider than the box: narrowed
+        scale = shrink / (rho * rho)
+        rows = self._rows
+        rows[:, Q11 : Q22 + 1] = self._q * scale[:, None]
+        rows[:, AMP] = self._amp * scale
+        rows[:, R] = r / np.sqrt(shrink)
+        node_extents(rows, self._node, self._extent)
+        return self
+
+    @property
+    def unit_extents(self):
+        """Each point's kernel extent per unit bandwidth (its h_i / c), in input order: the
+        pilot d_{P,k}(X_i) at sensitivity 1/2, G (d / G)^(2 alpha) otherwise."""
+        rho = np.exp((2.0 * self.sensitivity - 1.0) * self._log_ratio)
+        return self.pilot * rho[self._row_of]
+
+    def _sums(self, frame, loo=False):
+        """Kernel sums at points in frame coordinates, and the sums of their squares (with
+        ``loo``, at centres: each sum without the centres at that place, and their weight;
+        ``kernelsum.kernel_sums``)."""
+        m = len(frame)
+        out, out2 = np.empty(m), np.empty(m)
+        qx, qy = frame[:, 0].copy(), frame[:, 1].copy()
+        lx, ly = self.hi - self.lo
+        px, py = self.periodic
+        rows, box, node, extent = self._rows, self._box, self._node, self._extent
+
+        def call(a, b):
+            kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2, a, b)
+
+        in_chunks(call, m)
+        return out, out2
+
+    def _at(self, flat):
+        """(kernel sums, their squares, the kNN estimate) at points (q, 2); NaN outside."""
+        knn = self.knn(flat)
+        inside = np.isfinite(knn)
+        s, s2 = np.full(len(flat), np.nan), np.full(len(flat), np.nan)
+        s[inside], s2[inside] = self._sums(self._metric.frame(flat[inside]))
+        return s, s2, knn
+
+    def __call__(self, x):
+        """The density at points x (..., 2): shape (...); NaN outside the box along
+        non-periodic axes."""
+        flat, shape = as_queries(x)
+        s, _, knn = self._at(flat)
+        return ((1.0 - self.eps) * s + self.eps * knn).reshape(shape)
+
+    def standard_error(self, x):
+        """Pointwise standard error at x (..., 2) -> (...): the sample-point estimate's
+        variance, (sum of squared kernel terms) - f^2 / n (bandwidths held fixed)."""
+        flat, shape = as_queries(x)
+        s, s2, _ = self._at(flat)
+        var = np.maximum(s2 - s * s / self.n_eff, 0.0)
+        return ((1.0 - self.eps) * np.sqrt(var)).reshape(shape)
+
+    def grid(self, shape=(512, 512)):
+        """(xs, ys, values): the density at the centres of a ny x nx grid over the box."""
+        xs, ys, knn = self.knn.grid(shape)
+        gx, gy = np.meshgrid(xs, ys)
+        frame = self._metric.frame(np.column_stack([gx.ravel(), gy.ravel()]))
+        s = self._sums(frame)[0].reshape(knn.shape)
+        return xs, ys, (1.0 - self.eps) * s + self.eps * knn
+
+    def loo(self, sample=None):
+        """Leave-one-out log-density at the points ``sample`` (indices into the points; all
+        by default): the kernels of the point and of its copies at the same place left out
+        (W - their weight the total then: copies are one observation, as a point of whole
+        weight is, or ties would pull the bandwidth to 0); the pilot bandwidths and the eps
+        part keep them (they are smooth in one point)."""
+        idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
+        rows = self._row_of[idx]
+        s, w = self._sums(self._rows[rows, X : Y + 1], loo=True)
+        rest = np.maximum(self.total - w, 1e-300)
+        knn = self.knn.constant / self.pilot[idx] ** 2
+        f = (1.0 - self.eps) * s * self.total / rest + self.eps * knn
+        with np.errstate(divide="ignore"):
+            return np.log(f)
+
+    def weights_of(self, idx):
+        """The weights of the points ``idx`` (indices into the points)."""
+        return self._rows[self._row_of[idx], W]
+
+    def loo_curve(self, bandwidths, sample=None, sensitivity=None):
+        """Mean leave-one-out log-likelihood (per unit weight) of each candidate bandwidth at
+        the points ``sample`` (default: all), at this sensitivity (None: as it is); the
+        bandwidth is left at the last one."""
+        idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
+        w = self.weights_of(idx)  # each point's weight: its share of the score
+        scores = []
+        for c in bandwidths:
+            self.set_bandwidth(float(c), sensitivity)
+            scores.append(float((self.loo(idx) * w).sum() / w.sum()))
+        return np.array(scores)
+
+    def least_squares(self, sample=None, draws=None, seed=0):
+        """The least-squares cross-validation score (Rudemo 1982, Bowman 1984) at this
+        smoothing: integral f^2 - 2 (mean leave-one-out density at the points ``sample``),
+        which is the integrated squared error less the constant integral of the truth^2, so
+        lower is better. The integral of f^2 is the mean of f at ``draws`` points drawn from
+        f (default: as many as the sample), with the generator seeded by ``seed``: the same
+        draws move with the kernels from one smoothing to the next (common random numbers),
+        so that scores of neighbouring candidates compare with little noise."""
+        idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
+        w = self.weights_of(idx)
+        loo = float((np.exp(self.loo(idx)) * w).sum() / w.sum())
+        return square_integral(self, len(idx) if draws is None else int(draws), seed) - 2 * loo
+
+    def sample(self, n, rng):
+        """n points (n, 2) drawn from the estimate: a kernel chosen by weight, a point from
+        it (u = |z|^2 ~ Beta(1, 4) for the triweight), folded or wrapped into the box; with
+        probability eps from the kNN part instead."""
+        rows = self._rows
+        out = np.empty((n, 2))
+        from_knn = rng.random(n) < self.eps
+        m = int(n - from_knn.sum())
+        i = rng.choice(len(rows), m, p=rows[:, W] / rows[:, W].sum())
+        u = rng.beta(1.0, 4.0, m)
+        theta = rng.random(m) * 2 * np.pi
+        z = np.sqrt(u)[:, None] * np.column_stack([np.cos(theta), np.sin(theta)])
+        # x = X_i + L z with L L^T = Q^-1 (Cholesky of the 2 x 2 inverse)
+        q11, q12, q22 = rows[i, Q11], rows[i, Q12], rows[i, Q22]
+        det = q11 * q22 - q12 * q12
+        a, b, c = q22 / det, -q12 / det, q11 / det  # Q^-1
+        l11 = np.sqrt(a)
+        l21 = b / l11
+        l22 = np.sqrt(np.maximum(c - l21 * l21, 0.0))
+        x = rows[i, X] + l11 * z[:, 0]
+        y = rows[i, Y] + l21 * z[:, 0] + l22 * z[:, 1]
+        out[~from_knn] = self._into_box(np.column_stack([x, y]))
+        if from_knn.any():
+            out[from_knn] = self.knn.sample(int(from_knn.sum()), rng)
+        return out
+
+    def _into_box(self, frame):
+        """Kernel draws (frame coordinates) as points of the box: folded back along
+        non-periodic axes (mirrored in the sides, as the sums fold), wrapped along periodic
+        ones (``BoxMetric.wrap``, the one wrapping rule)."""
+        period = self.hi - self.lo
+        for a in range(2):
+            if not self.periodic[a]:
+                v = np.abs(frame[:, a])  # the mirror in the lower side
+                frame[:, a] = np.where(v > period[a], 2 * period[a] - v, v)
+        return self._metric.wrap(frame + self.lo)
+
+
+def square_integral(density, draws, seed=0):
+    """Monte Carlo integral of f^2 over the box for a density with ``sample`` and a call:
+    the mean of f at ``draws`` points drawn from f (seeded, so repeatable)."""
+    return float(np.mean(_at_own_draws(density, draws, seed)))
+
+
+def _at_own_draws(density, draws, seed):
+    """f at ``draws`` points drawn from f with the generator seeded by ``seed``."""
+    return density(density.sample(int(draws), np.random.default_rng(seed)))
+
+
+CRITERIA = ("likelihood", "least-squares")
+BANDWIDTHS = tuple(2.0 ** (np.arange(-6, 7) / 2))  # 1/8 to 8, steps of sqrt(2)
+SENSITIVITIES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+COARSE = 4000  # a first climb's points, when there are more than twice as many
+HALF_STEP = 2.0**0.25  # the last search's step in c: half the grid's
+
+
+def choose_smoothing(
+    density, alphas=SENSITIVITIES, bandwidths=BANDWIDTHS, loo_points=20000, random_state=0,
+    criterion="likelihood",
+):  # fmt: skip
+    """(sensitivity, bandwidth, table): the pair of the grid alphas x bandwidths with the
+    best cross-validation score of the ``AdaptiveDensity`` at up to ``loo_points`` of its
+    points (chosen by ``random_state``), by climbing from the candidates nearest (1/2, 1) to
+    the best grid neighbour until none is better: the score is smooth in both, so a climb
+    scores a few pairs, not all. Over 2 COARSE points, a first climb on a fifth of them
+    (at least COARSE) finds the region at a fifth of the cost, and the second starts there.
+    ``criterion``: "likelihood" (mean leave-one-out log-density, higher is better: what
+    held-out likelihood rewards) or "least-squares" (``AdaptiveDensity.least_squares``,
+    lower is better: an unbiased estimate of the integrated squared error less a constant,
+    which favours the wider kernels that L1 and L2 errors reward). The climb ends on the
+    grid's half steps in c at its alpha (``_widest_within_one_se``): the widest c whose
+    score is within one standard error of the best, so the choice may lie between grid
+    values. The table has a row (alpha, c, score) per pair the last climb scored, in that
+    order, then the half steps (the score as defined above for the criterion). The density
+    is left at the chosen pair."""
+    criterion = check_criterion(criterion)
+    n = len(density.pilot)
+    m = min(n, int(loo_points))
+    sample = None if m == n else np.sort(generator(random_state).choice(n, m, False))
+    i = int(np.argmin(np.abs(np.asarray(alphas) - 0.5)))
+    j = int(np.argmin(np.abs(np.log(bandwidths))))
+    if m > 2 * COARSE:
+        pool = np.arange(n) if sample is None else sample
+        coarse = np.sort(generator(random_state).choice(pool, max(COARSE, m // 5), False))
+        i, j, _ = _climb(density, alphas, bandwidths, coarse, i, j, criterion)
+    i, j, scored = _climb(density, alphas, bandwidths, sample, i, j, criterion)
+    alpha, c = float(alphas[i]), float(bandwidths[j])
+    rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
+    if len(bandwidths) > 1:
+        c, settled = _widest_within_one_se(density, alpha, c, sample, criterion, max(bandwidths))
+        near = [b for a, b, _ in rows if a == alpha]
+        rows += [(alpha, b, v) for b, v in settled.items() if not np.isclose(near, b).any()]
+    sign = 1.0 if criterion == "likelihood" else -1.0  # the table has the scores as defined
+    table = np.array([(a, b, sign * v) for a, b, v in rows])
+    density.set_bandwidth(c, alpha)
+    return alpha, c, table
+
+
+def _score_terms(density, c, alpha, sample, criterion):
+    """The cross-validation score at (alpha, c) as terms (values, weights, factor): the score
+    (higher is better) is the sum of factor * (weighted mean of values), and two smoothings'
+    values pair item by item (the same points; the same seeded draws), so the standard error
+    of a difference of scores comes from the differences of values."""
+    density.set_bandwidth(c, alpha)
+    idx = np.arange(len(density.pilot)) if sample is None else np.asarray(sample)
+    w = density.weights_of(idx)
+    if criterion == "likelihood":
+        return [(density.loo(idx), w, 1.0)]
+    return [(_at_own_draws(density, len(idx), 0), np.ones(len(idx)), -1.0),
+            (np.exp(density.loo(idx)), w, 2.0)]  # fmt: skip
+
+
+def _score_of(terms):
+    return float(sum(f * (v * w).sum() / w.sum() for v, w, f in terms))
+
+
+def _difference_se(terms, base):
+    """Standard error of the score difference between two smoothings' paired terms."""
+    var = 0.0
+    for (v, w, f), (v0, _, _) in zip(terms, base, strict=True):
+        d = v - v0
+        mean = (d * w).sum() / w.sum()
+        var += f * f * ((w * (d - mean)) ** 2).sum() / w.sum() ** 2
+    return float(np.sqrt(var))
+
+
+def _widest_within_one_se(density, alpha, c, sample, criterion, widest):
+    """The last step of the search, on the grid's half steps in c at the climb's alpha: the
+    best of c / HALF_STEP, c, c * HALF_STEP, then the widest c above it, step by step up to
+    ``widest``, whose score is within one standard error of the best's (the one-standard-
+    error rule of cross-validation: where the score is flat within its noise, the smoother
+    estimate; at large n the likelihood's optimum is such a flat top, and L1 errors reward
+    its wide side). Returns (c, {c: score} of the candidates scored here but c itself,
+    higher is better)."""
+    terms, scores = {}, {}
+
+    def score(j):
+        if j not in terms:
+            terms[j] = _score_terms(density, c * HALF_STEP**j, alpha, sample, criterion)
+            scores[j] = _score_of(terms[j])
+        return scores[j]
+
+    best = max((j for j in (-1, 0, 1) if c * HALF_STEP**j <= widest), key=score)
+    chosen = best
+    while c * HALF_STEP ** (chosen + 1) <= widest * (1 + 1e-9):
+        if score(chosen + 1) < score(best) - _difference_se(terms[chosen + 1], terms[best]):
+            break
+        chosen += 1
+    return c * HALF_STEP**chosen, {c * HALF_STEP**j: v for j, v in scores.items() if j}
+
+
+def _climb(density, alphas, cs, sample, i, j, criterion="likelihood"):
+    """Hill-climb of a cross-validation score over the grid alphas x cs from (i, j):
+    (i, j) of the best pair found, {(i, j): score} of every pair scored (the
+    least-squares score negated, so that higher is better for both criteria)."""
+    scored = {}
+
+    def score(a, b):
+        if (a, b) not in scored:
+            if criterion == "likelihood":
+                scored[a, b] = density.loo_curve([cs[b]], sample, alphas[a])[0]
+            else:
+                density.set_bandwidth(cs[b], alphas[a])
+                scored[a, b] = -density.least_squares(sample)
+        return scored[a, b]
+
+    best = score(i, j)
+    while True:
+        steps = [(i + a, j + b) for a, b in ((-1, 0), (1, 0), (0, -1), (0, 1))]
+        steps = [(a, b) for a, b in steps if 0 <= a < len(alphas) and 0 <= b < len(cs)]
+        top = max(steps, key=lambda ab: score(*ab))
+        if not score(*top) > best:
+            return i, j, scored
+        (i, j), best = top, score(*top)
+
+
+def unit_shapes(cov, n, max_ratio):
+    """Unit-determinant shapes (s11, s12, s22) per point: the identity without ``cov``,
+    else cov scaled to determinant 1 with its axes ratio sqrt(l1 / l2) at most max_ratio."""
+    if cov is None:
+        return np.tile([1.0, 0.0, 1.0], (n, 1))
+    a, b, c = cov[:, 0], cov[:, 1], cov[:, 2]
+    half = 0.5 * (a + c)
+    gap = np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    l1 = np.maximum(half + gap, 1e-300)
+    l2 = np.maximum(half - gap, l1 / max_ratio**2)
+    # eigenvector of l1: (b, l1 - a) or, when b == 0, the axis of the larger variance
+    vx = np.where(np.abs(b) > 0, b, np.where(a >= c, 1.0, 0.0))
+    vy = np.where(np.abs(b) > 0, l1 - a, np.where(a >= c, 0.0, 1.0))
+    norm = np.hypot(vx, vy)
+    vx, vy = vx / norm, vy / norm
+    bad = ~(np.isfinite(l1) & np.isfinite(vx) & np.isfinite(vy))
+    s1, s2 = np.sqrt(l1 / l2), np.sqrt(l2 / l1)  # determinant 1
+    out = np.column_stack(
+        [s1 * vx * vx + s2 * vy * vy, (s1 - s2) * vx * vy, s1 * vy * vy + s2 * vx * vx]
+    )
+    out[bad] = (1.0, 0.0, 1.0)
+    return out
+
+
+def check_shape(shape):
+    if shape not in ("isotropic", "local"):
+        raise InputError(f'shape must be "isotropic" or "local", got {shape!r}')
+
+
+def check_sensitivity(alpha, alternative=""):
+    """alpha: a number in [0, 1] (float), else a clear error."""
+    real = (int, float, np.integer, np.floating)
+    ok = not isinstance(alpha, (bool, np.bool_)) and isinstance(alpha, real)
+    if not ok or not 0.0 <= float(alpha) <= 1.0:
+        raise InputError(f"sensitivity must be {alternative}a number in [0, 1], got {alpha!r}")
+    return float(alpha)
+
+
+def check_bandwidth(c, alternative=""):
+    """The adaptive estimate's factor c: a finite number > 0, as a float."""
+    real = (int, float, np.integer, np.floating)
+    ok = not isinstance(c, (bool, np.bool_)) and isinstance(c, real)
+    if not (ok and 0 < c < np.inf):
+        raise InputError(f"bandwidth must be {alternative}a finite number > 0, got {c!r}")
+    return float(c)
+
+
+def check_criterion(criterion):
+    if not (isinstance(criterion, str) and criterion in CRITERIA):
+        raise InputError(f'criterion must be "likelihood" or "least-squares", got {criterion!r}')
+    return criterion
+
+
+def check_cv(cv):
+    if isinstance(cv, bool) or not isinstance(cv, (int, np.integer)) or cv < 2:
+        raise InputError(f"cv must be an integer >= 2, got {cv!r}")
+
+
+def generator(random_state):
+    """A numpy Generator from scikit-learn-style random_state values."""
+    if isinstance(random_state, np.random.RandomState):
+        return np.random.default_rng(random_state.randint(0, 2**63 - 1, dtype=np.int64))
+    try:
+        return np.random.default_rng(random_state)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"random_state must be None, an int, a numpy Generator or RandomState, got "
+            f"{random_state!r}"
+        ) from None

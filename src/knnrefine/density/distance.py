@@ -1,0 +1,300 @@
+"""d_{P,k} everywhere in the box, from a mesh of P and P: ``KnnDistance``, the same in the
+plane and in space.
+
+The mesh is graded like d_{P,k} (Theorem 6), so a few exact evaluations per cell carry
+d_{P,k} across the whole box: exact values at the vertices and edge midpoints, then linear
+interpolation over the pieces (``plane.PlanePieces``: triangles split in four;
+``space.SpacePieces``: tetrahedra split in eight). Evaluation, grids, integrals over boxes
+(wrapping across periodic seams), sampling and the error against exact values are the same
+calls in both dimensions.
+"""
+
+import numpy as np
+
+from ..engine.embedding import wrap_offsets
+from ..engine.index import PointIndex
+from ..errors import InputError
+from ..metric import BoxMetric
+from ..validation import as_queries, check_inside, points_of_run
+from .plane import PlanePieces, index_values, linear_pieces
+from .space import SpacePieces
+
+#: a grid's default cells along each axis, by dimension
+DEFAULT_GRID = {2: 512, 3: 64}
+
+
+class KnnDistance:
+    """d_{P,k} at any point of the box, from a mesh of P and P itself, in the plane or in
+    space (the mesh's dimension).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        From ``knnrefine.refine(points, k, ...)``; its k is the one estimated.
+    points : array-like (n, d)
+        The same points.
+    subdivide : bool
+        Also evaluate at edge midpoints (four linear pieces per triangle, eight per
+        tetrahedron): about half the interpolation error for a few times the (cheap) exact
+        evaluations.
+    weights : array-like (n,), optional
+        The weights the mesh was refined with (required for a weighted mesh, refused for
+        another): d_{P,k} is then the least radius holding weight k.
+
+    Raises
+    ------
+    InputError
+        Points of another dimension or number than the mesh's, weights that are not the
+        run's, fewer points (or less weight) than k.
+
+    Notes
+    -----
+    Outside the box (along a non-periodic axis, beyond any of its sides) the estimate is NaN:
+    d_{P,k} is certified only in the box; periodic axes wrap. Queries have any shape (..., d)
+    and the result the leading shape (...). ``values`` are the exact values at the pieces'
+    nodes (the plane) or at the mesh's vertices (space).
+    """
+
+    def __init__(self, mesh, points, subdivide: bool = True, weights=None):
+        dim = mesh.dim
+        pts, weights, total = points_of_run(mesh, points, weights)
+        self._frame(mesh, len(pts), total)
+        self._points = pts
+        self.index = point_index(mesh, pts, weights)
+        if dim == 2:
+            nodes, triangles = mesh.covering()
+            pieces = linear_pieces(nodes, triangles, *index_values(self.index, self.k), subdivide)
+            self.pieces = PlanePieces(*pieces, mesh.box, mesh.periodic)
+        else:
+            self.pieces = SpacePieces(mesh, self.index.kth_local, subdivide)
+        self.values = self.pieces.values
+
+    def _frame(self, mesh, n, total):
+        self.mesh = mesh
+        self.dim = mesh.dim
+        self.k = mesh.k
+        self.n = n
+        self.total = total  # the points' number, or their total weight
+        self.lo = np.array(mesh.box[: self.dim], float)
+        self.hi = np.array(mesh.box[self.dim :], float)
+        self._metric = BoxMetric(mesh.box, mesh.periodic)
+
+    @classmethod
+    def of_pieces(cls, mesh, n, total, nodes, triangles, values, located=None):
+        """A KnnDistance in the plane from linear pieces whose node values are known already
+        (a part of a partitioned mesh, ``partitioned.PartitionedDensity``): evaluation, grids
+        and integrals over ``triangles``; points located in ``located`` (pieces over the same
+        nodes; default: ``triangles``). Without the points, no ``exact``."""
+        self = cls.__new__(cls)
+        self._frame(mesh, n, total)
+        self._points = self.index = None
+        self.pieces = PlanePieces(nodes, triangles, values, mesh.box, mesh.periodic, located)
+        self.values = values
+        return self
+
+    # the plane's pieces, named as before (``partitioned`` and the plots read them)
+    @property
+    def nodes(self):
+        return self.pieces.nodes
+
+    @property
+    def triangles(self):
+        return self.pieces.triangles
+
+    # -- evaluation ------------------------------------------------------------------------
+    def __call__(self, x):
+        """Estimated d_{P,k} at the query points x, shape (..., d): an array of shape (...).
+        NaN outside the box along non-periodic axes (on every side); periodic axes wrap."""
+        flat, shape = as_queries(x, self.dim)
+        out = np.full(len(flat), np.nan)
+        inside = self._inside(flat)
+        out[inside] = self.pieces.interpolate(self._metric.wrap(flat[inside]))
+        return out.reshape(shape)
+
+    def interpolate(self, x, values):
+        """Any node values (nodes, ...) linearly interpolated over the pieces at the points
+        x (q, 2): shape (q, ...), NaN outside the box along non-periodic axes (the plane)."""
+        values = np.asarray(values, float)
+        inside = self._inside(x)
+        out = np.full((len(x), *values.shape[1:]), np.nan)
+        out[inside] = self.pieces.interpolate(self._metric.wrap(x[inside]), values)
+        return out
+
+    def exact(self, x):
+        """Exact d_{P,k} at the query points (..., d), one kd-tree query each (the
+        reference); NaN outside the box along non-periodic axes, as the estimate."""
+        flat, shape = as_queries(x, self.dim)
+        out = np.full(len(flat), np.nan)
+        inside = self._inside(flat)
+        if self.index is None:
+            raise InputError(
+                "this d_Pk was built from node values alone (a part of a partitioned mesh): "
+                "exact values need the points; build KnnDistance(mesh, points)"
+            )
+        out[inside] = self.index.kth(self._metric.wrap(flat[inside]), self.k)
+        return out.reshape(shape)
+
+    def grid(self, shape=None):
+        """The estimate at the centres of a grid over the box: (xs, ys, values (ny, nx)) in
+        the plane, row j at ys[j] (image order, origin at the lower left); (xs, ys, zs,
+        values (nz, ny, nx)) in space. ``shape``: cells per axis, slowest first ((ny, nx) or
+        (nz, ny, nx)); default 512 per axis in the plane, 64 in space."""
+        shape = grid_shape(shape, self.dim)
+        *axes, out = self.pieces.grid(shape)
+        missed = np.isnan(out)  # centres on no piece by rounding (none expected): located
+        if missed.any():
+            at = np.nonzero(missed)  # slowest axis first
+            x = np.column_stack([axes[a][at[self.dim - 1 - a]] for a in range(self.dim)])
+            out[missed] = self(x)
+        return (*axes, out)
+
+    def error(self, probes=None, n_random=20000, seed=0):
+        """Relative error of the estimate against exact d_{P,k}: a dict with the median, the
+        99th percentile and the worst over the probes (default: random points of the box and
+        as many input points)."""
+        if probes is None:
+            rng = np.random.default_rng(seed)
+            uniform = self.lo + rng.random((n_random, self.dim)) * (self.hi - self.lo)
+            data = self._points[rng.choice(self.n, min(n_random, self.n), replace=False)]
+            probes = np.concatenate([uniform, data])
+        est = self(probes)
+        ref = self.exact(probes)
+        rel = np.abs(est - ref) / ref
+        return {
+            "median": float(np.nanmedian(rel)),
+            "p99": float(np.nanpercentile(rel, 99)),
+            "worst": float(np.nanmax(rel)),
+            "probes": int(np.isfinite(rel).sum()),
+        }
+
+    # -- integrals ---------------------------------------------------------------------------
+    def integrate(self, func, region=None):
+        """Integral over ``region`` of func(d), d the interpolated d_{P,k}: a quadrature on
+        every linear piece, the pieces clipped to the region. ``region``: (x0, y0, x1, y1) in
+        the plane, (x0, y0, z0, x1, y1, z1) in space; default the box. The region counts only
+        where it meets the box along non-periodic axes (the estimate lives there); along
+        periodic axes it wraps around (at most one period wide)."""
+        return float(sum(self.pieces.integrate(func, rect) for rect in self._region(region)))
+
+    def sample_pieces(self, n, rng):
+        """n points from the density proportional to 1 / d^dim over the box (``KnnDensity``)."""
+        return self.pieces.sample(n, rng)
+
+    # -- the kNN-CDF (space) -----------------------------------------------------------------
+    def cdf(self, r):
+        """CDF(r) = vol{x : d(x) <= r} / vol(box) for the interpolated d at the radii r (the
+        kNN-CDF of cosmology; built in space: ``space.SpacePieces.cdf``)."""
+        return self._space_only("cdf")(r)
+
+    def cdf_bounds(self, r):
+        """(lower, upper) rigorous bounds of the true kNN-CDF at the radii r (space)."""
+        return self._space_only("cdf_bounds")(r)
+
+    def _space_only(self, what):
+        if self.dim != 3:
+            raise InputError(f"{what} (the kNN-CDF) is built for meshes in space (3 columns)")
+        return getattr(self.pieces, what)
+
+    # -- helpers -----------------------------------------------------------------------------
+    def _inside(self, x):
+        """Mask of the points in the box along its non-periodic axes (sides included)."""
+        ok = np.all(np.isfinite(x), axis=1)
+        for a in range(self.dim):
+            if not self.mesh.periodic[a]:
+                ok &= (x[:, a] >= self.lo[a]) & (x[:, a] <= self.hi[a])
+        return ok
+
+    def _region(self, region):
+        """The boxes, inside the box, that make up ``region``: clipped along non-periodic
+        axes, cut at the seam and wrapped along periodic ones."""
+        dim = self.dim
+        if region is None:
+            return [np.array([self.lo, self.hi])]
+        names = "(x0, y0, x1, y1)" if dim == 2 else "(x0, y0, z0, x1, y1, z1)"
+        try:
+            bounds = [float(r) for r in region]
+        except (TypeError, ValueError):
+            bounds = []
+        if len(bounds) != 2 * dim:
+            raise InputError(f"region must be {2 * dim} numbers {names}, got {region!r}")
+        low, high = bounds[:dim], bounds[dim:]
+        if not (np.isfinite(bounds).all() and all(a < b for a, b in zip(low, high, strict=True))):
+            raise InputError(f"region {region} must be finite with each lower end below its upper")
+        spans = []
+        for a, (u0, u1) in enumerate(zip(low, high, strict=True)):
+            lo, hi = self.lo[a], self.hi[a]
+            if not self.mesh.periodic[a]:
+                spans.append([(max(u0, lo), min(u1, hi))] if u1 > lo and u0 < hi else [])
+                continue
+            period = hi - lo
+            if u1 - u0 >= period * (1 - 1e-12):
+                spans.append([(lo, hi)])
+                continue
+            s0 = lo + float(wrap_offsets(np.array([u0]), lo, period)[0])
+            s1 = s0 + (u1 - u0)
+            spans.append([(s0, min(s1, hi))] + ([(lo, lo + s1 - hi)] if s1 > hi else []))
+        boxes = [[]]
+        for axis_spans in spans:
+            boxes = [b + [s] for b in boxes for s in axis_spans if s[1] > s[0]]
+        return [np.array(b).T for b in boxes]
+
+
+def point_index(mesh, pts, weights=None):
+    """Exact d_{P,k} for the mesh's points: an index with ``kth(x, k)`` at points x in the
+    box (input coordinates, periodic axes wrapped). In the plane the engine's counting index
+    that refined the mesh when it indexes these points (and weights), else a new one over
+    them (a box wide enough for them along non-periodic axes); in space a periodic kd-tree
+    (``TreeIndex``; the points must lie in the box along non-periodic axes)."""
+    if mesh.dim == 3:
+        check_inside(pts, mesh.box, mesh.periodic, warn=False)
+        return TreeIndex(mesh, pts)
+    kept = getattr(mesh, "index", None)
+    if kept is not None and kept.indexes(pts, weights):
+        return kept
+    box = np.array(mesh.box, float)
+    per = np.array(mesh.periodic, bool)
+    if len(pts):
+        box[:2] = np.where(per, box[:2], np.minimum(box[:2], pts.min(axis=0)))
+        box[2:] = np.where(per, box[2:], np.maximum(box[2:], pts.max(axis=0)))
+    return PointIndex.build(pts, tuple(box), mesh.periodic, weights)
+
+
+class TreeIndex:
+    """Exact d_{P,k} in space from a periodic kd-tree over the points in the frame of the
+    mesh's torus (relative to its origin, periodic axes wrapping): ``kth`` at input
+    coordinates, ``kth_local`` at torus-frame ones (the pieces')."""
+
+    def __init__(self, mesh, pts):
+        origin = np.asarray(mesh.torus.origin, float)
+        period = np.asarray(mesh.torus.period, float)
+        self.k = mesh.k
+        self._metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)
+        self._tree = self._metric.tree(pts)
+
+    def kth(self, x, k):
+        """d_{P,k} at points x (q, 3) in input coordinates."""
+        return self.kth_local(self._metric.frame(x), k)
+
+    def kth_local(self, x, k=None):
+        """d_{P,k} at points x (q, 3) relative to the torus origin (the kd-tree wraps queries
+        along its periodic axes itself), on every core."""
+        k = self.k if k is None else k
+        return self._tree.query(x, k=[k], workers=-1)[0][:, 0]
+
+
+def grid_shape(shape, dim=2):
+    """Cells per axis (slowest first) from a grid shape: ``dim`` positive whole numbers, one
+    number for every axis, or None for the default."""
+    if shape is None:
+        return (DEFAULT_GRID[dim],) * dim
+    if isinstance(shape, (int, np.integer)) and not isinstance(shape, bool):
+        shape = (shape,) * dim
+    try:
+        out = tuple(int(s) for s in shape)
+        ok = len(out) == dim and all(int(s) == s for s in shape)
+    except (TypeError, ValueError):
+        ok = False
+    names = "(ny, nx)" if dim == 2 else "(nz, ny, nx)"
+    if not ok or min(out) < 1:
+        raise InputError(f"shape must be {dim} positive whole numbers {names}, got {shape!r}")
+    return out

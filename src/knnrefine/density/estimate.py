@@ -1,0 +1,98 @@
+"""The kNN density estimate f(x) = k / (n V_d d_{P,k}(x)^d) from a mesh (V_d the volume of
+the unit ball: pi in the plane, 4 pi / 3 in space), and the default choices of k."""
+
+import math
+
+import numpy as np
+
+from .distance import KnnDistance
+
+
+def default_k(n):
+    """A default k for density estimation from n points: sqrt(n) / 2 (at least 10, at most
+    n: on 5 points, 5), after the paper's k ~ sqrt(n) (k / n -> 0 and k / log n ->
+    infinity)."""
+    return min(max(10, int(round(0.5 * np.sqrt(n)))), max(1, int(n)))
+
+
+def default_pilot_k(n):
+    """The default k of the adaptive estimate's pilot: 2 sqrt(n) (at least 10, at most n,
+    the points' number or total weight: k counts weight). A smoother
+    pilot than the kNN estimate's own default: with the bandwidth and sensitivity chosen by
+    leave-one-out likelihood, 2 sqrt(n) had lower L1 error than sqrt(n) / 2 on five of the
+    study's six truths at n = 1e4 and all six at 1e5, and a held-out likelihood as good or
+    better on five and six (``benchmarks/pilot_k.py``, docs/uses.md)."""
+    return min(max(10, int(round(2.0 * np.sqrt(n)))), int(n))
+
+
+def unit_ball_volume(dim):
+    """V_d = pi^(d/2) / Gamma(d/2 + 1): pi in the plane, 4 pi / 3 in space."""
+    return math.pi ** (dim / 2) / math.gamma(dim / 2 + 1)
+
+
+class KnnDensity:
+    """The kNN density estimate f(x) = k / (n V_d d_{P,k}(x)^d), from a mesh in the plane
+    (V_2 = pi) or in space (V_3 = 4 pi / 3).
+
+    Parameters
+    ----------
+    mesh, points, subdivide, weights
+        As for ``KnnDistance``; with weights n is their total, so that a weighted point is
+        that many points.
+    normalized : bool
+        Divide by the estimate's integral over the box, so that it integrates to 1 there.
+
+    Notes
+    -----
+    Evaluate with ``density(x)`` (x of shape (..., d); NaN outside the box along
+    non-periodic axes), on a grid with ``grid()``, integrate over a box with
+    ``mass(region)``, draw from it with ``sample(n, rng)``.
+    """
+
+    def __init__(self, mesh, points, normalized=True, subdivide=True, weights=None):
+        self._of(KnnDistance(mesh, points, subdivide=subdivide, weights=weights), normalized)
+
+    @classmethod
+    def of_distance(cls, distance, normalized=True):
+        """The estimate from a d_{P,k} already built: a ``KnnDistance`` or anything with its
+        ``k``, ``total``, ``__call__``, ``grid``, ``integrate`` and ``sample_pieces``
+        (``partitioned.PartitionedDistance``)."""
+        self = cls.__new__(cls)
+        self._of(distance, normalized)
+        return self
+
+    def _of(self, distance, normalized):
+        self.distance = distance
+        self.k = distance.k
+        self.n = distance.total
+        self.dim = getattr(distance, "dim", 2)
+        self.raw_constant = self.k / (self.n * unit_ball_volume(self.dim))
+        self.raw_mass = distance.integrate(self._of_d(self.raw_constant))
+        self.constant = self.raw_constant / self.raw_mass if normalized else self.raw_constant
+
+    def _of_d(self, constant):
+        dim = self.dim
+        return lambda d: constant / d**dim
+
+    def __call__(self, x):
+        """The density at the query points x, shape (..., d): an array of shape (...)."""
+        return self.constant / self.distance(x) ** self.dim
+
+    def grid(self, shape=None):
+        """The density at the centres of a grid over the box: (xs, ys, values) in the
+        plane, (xs, ys, zs, values) in space (``KnnDistance.grid``)."""
+        *axes, d = self.distance.grid(shape)
+        return (*axes, self.constant / d**self.dim)
+
+    def mass(self, region=None):
+        """Integral of the estimate over the box ``region`` ((x0, y0, x1, y1) in the plane,
+        (x0, y0, z0, x1, y1, z1) in space; default the whole box): the probability of the
+        part of the region in the box (regions wrap across periodic seams)."""
+        return self.distance.integrate(self._of_d(self.constant), region)
+
+    def sample(self, n, rng):
+        """n points (n, d) drawn from the normalised estimate with the numpy Generator rng: a
+        piece of the mesh chosen by an upper bound of its mass, a uniform point in it, kept
+        with probability density / bound (exact rejection sampling of the piecewise
+        estimate; the pieces are well shaped, so most proposals are kept)."""
+        return self.distance.sample_pieces(n, rng)

@@ -1,0 +1,461 @@
+"""knnrefine's density estimate as a scikit-learn estimator (``KnnDensityEstimator``)."""
+
+import inspect
+
+import numpy as np
+
+from ..errors import InputError
+from ..validation import as_points, as_queries, check_weights, default_box
+from .adaptive import (
+    BANDWIDTHS,
+    SENSITIVITIES,
+    AdaptiveDensity,
+    check_bandwidth,
+    check_criterion,
+    check_cv,
+    check_sensitivity,
+    check_shape,
+    choose_smoothing,
+    generator,
+    square_integral,
+)
+from .estimate import KnnDensity, default_k, default_pilot_k
+
+
+class KnnDensityEstimator:
+    """knnrefine's density estimate as a scikit-learn estimator (scikit-learn itself is
+    optional).
+
+    ``fit(X)`` refines a mesh of X and builds the estimate: by default the adaptive kernel
+    estimate ``AdaptiveDensity`` (bandwidths from d_{P,k}, the factor chosen by leave-one-out
+    likelihood), or the plain kNN estimate ``KnnDensity`` (``method="knn"``).
+    ``score_samples`` gives log-densities, ``score`` the total log-likelihood, ``sample``
+    draws from the estimate. ``get_params``/``set_params`` follow scikit-learn's rules, so
+    ``clone``, ``GridSearchCV(est, {"k": [...]})`` and ``cross_val_score`` work.
+
+    Parameters
+    ----------
+    k : int or "cv", optional
+        Which neighbour (the smoothing of the kNN estimate, the pilot's of the adaptive one:
+        larger is smoother). Default ``default_pilot_k(n)`` = 2 sqrt(n) (adaptive),
+        ``default_k(n)`` = sqrt(n) / 2 (kNN). ``"cv"``: the k of ``k_grid`` with the best
+        held-out log-likelihood in ``cv``-fold cross-validation (folds shuffled by
+        ``random_state``, every fold in the same box; adaptive: each fold with its own
+        bandwidth by leave-one-out).
+    method : None, "adaptive" or "knn"
+        The estimate (see above). None (default): the adaptive one for points in the plane,
+        the kNN one in space (the adaptive kernels are built in the plane; asked for in
+        space they are refused). The adaptive one (default or ``shape="local"``) had the
+        best held-out likelihood and the lowest L1 error on every truth of the project's
+        study at n = 1e4 to 1e6 (``benchmarks/density_accuracy.py``, docs/uses.md).
+    bandwidth : float > 0 or "cv"
+        The adaptive estimate's factor c: kernel extents c G (d_i / G)^(2 alpha), d_i =
+        d_{P,k}(X_i), G their geometric mean (c d_i at alpha = 1/2). ``"cv"``: chosen from
+        ``BANDWIDTHS`` by leave-one-out log-likelihood at up to ``loo_points`` training
+        points (chosen by ``random_state``), jointly with the sensitivity when that is
+        ``"cv"`` too, then on half steps the widest within one standard error of the best
+        (``choose_smoothing``). Ignored by ``method="knn"``.
+    sensitivity : float in [0, 1] or "cv"
+        The adaptive estimate's alpha: kernels ~ f^(-alpha). 1/2 is Abramson's law, 0 a
+        fixed bandwidth; ``"cv"`` (default) chooses from ``SENSITIVITIES`` (0 to 0.6) with
+        the bandwidth. Heavy tails and flat regions choose less than 1/2, narrow peaks 1/2
+        (docs/uses.md).
+    shape : "isotropic" or "local"
+        The adaptive estimate's kernels: disks, or ellipses shaped like the local covariance
+        of the points (thin ridges, curved structure).
+    whiten : bool
+        Work in coordinates divided by each axis' standard deviation (data whose axes have
+        different units: millimetres against grams); densities are returned in the data's
+        units. The mesh ``mesh_`` is then in the scaled coordinates.
+    tau : float > 2
+        Well-spacedness of the mesh (``refine``).
+    periodic : bool or (bool, bool)
+        Flat torus along these axes (``box`` then required).
+    box : (xmin, ymin, xmax, ymax), optional
+        Where the estimate lives: it integrates to 1 over the box and is 0 outside it along
+        non-periodic axes (log-density -inf there); periodic axes wrap. Default: the data's
+        bounding box widened by ``margin`` of its sides on every side, so that held-out points
+        near the sample's edge score finitely.
+    margin : float >= 0
+        See ``box`` (ignored when a box is given).
+    min_size : float, optional
+        The resolution floor (``refine``).
+    subdivide : bool
+        Evaluate exactly at edge midpoints too (``KnnDistance``).
+    cv, k_grid, random_state, loo_points
+        For ``k="cv"``: the number of folds, the candidate values of k (default: 10 values
+        spaced geometrically from 4 to a twentieth of a fold's training points), the seed of
+        the fold assignment and of the leave-one-out subsample (an int or None); the size of
+        that subsample.
+    criterion : "likelihood" or "least-squares"
+        What the searches ("cv" above) optimise: held-out log-likelihood (default; its
+        choice wins held-out likelihood and Hellinger distance), or least-squares
+        cross-validation, an estimate of the integrated squared error (``choose_smoothing``):
+        it picks wider kernels, and won L1 error where likelihood's choice lost it in the
+        project's study at 1e6 (docs/uses.md). ``score`` stays the log-likelihood.
+
+    Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
+    ``scale_`` (the whitening divisors, ones without), ``method_`` (the estimate used),
+    ``n_samples_`` (weights counted), ``n_features_in_`` (2 or 3), ``mesh_`` (the ``Mesh``),
+    ``density_`` (the ``AdaptiveDensity`` or ``KnnDensity``), ``sensitivity_`` (adaptive); when
+    either is ``"cv"``, ``loo_scores_`` (a row (alpha, c, score) for every pair the search
+    scored: the leave-one-out log-likelihood per point, or the least-squares score, by
+    ``criterion``) and ``bandwidths_``, ``bandwidth_scores_`` (the curve over c at the chosen
+    alpha), with ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (each candidate's score: the mean
+    held-out log-likelihood per point, or the least-squares score: the curve).
+    """
+
+    BANDWIDTHS = BANDWIDTHS
+    SENSITIVITIES = SENSITIVITIES
+
+    def __init__(
+        self, k=None, *, method=None, bandwidth="cv", sensitivity="cv", shape="isotropic",
+        whiten=False,
+        tau=3.0, periodic=False, box=None, margin=0.1, min_size=None, subdivide=True, cv=5,
+        k_grid=None, random_state=0, loo_points=20000, criterion="likelihood",
+    ):  # fmt: skip
+        self.k = k
+        self.method = method
+        self.bandwidth = bandwidth
+        self.sensitivity = sensitivity
+        self.shape = shape
+        self.whiten = whiten
+        self.tau = tau
+        self.periodic = periodic
+        self.box = box
+        self.margin = margin
+        self.min_size = min_size
+        self.subdivide = subdivide
+        self.cv = cv
+        self.k_grid = k_grid
+        self.random_state = random_state
+        self.loo_points = loo_points
+        self.criterion = criterion
+
+    # -- scikit-learn's parameter protocol ---------------------------------------------------
+    @classmethod
+    def _param_names(cls):
+        params = inspect.signature(cls.__init__).parameters
+        return sorted(p for p in params if p != "self")
+
+    def get_params(self, deep=True):
+        """The constructor's parameters as a dict (scikit-learn's protocol)."""
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params):
+        """Set constructor parameters (scikit-learn's protocol); returns self."""
+        valid = self._param_names()
+        for name, value in params.items():
+            if name not in valid:
+                raise ValueError(
+                    f"invalid parameter {name!r} for KnnDensityEstimator; valid ones: "
+                    f"{', '.join(valid)}"
+                )
+            setattr(self, name, value)
+        return self
+
+    def __sklearn_tags__(self):
+        """scikit-learn >= 1.6 asks estimators for their tags (imported only then)."""
+        from sklearn.utils import Tags, TargetTags
+
+        return Tags(estimator_type="DensityEstimator", target_tags=TargetTags(required=False))
+
+    def __repr__(self):
+        defaults = type(self)().get_params()
+        changed = [
+            f"{name}={value!r}"
+            for name, value in self.get_params().items()
+            if value is not defaults[name] and not _same(value, defaults[name])
+        ]
+        return f"KnnDensityEstimator({', '.join(changed)})"
+
+    # -- fitting -----------------------------------------------------------------------------
+    def fit(self, X, y=None, sample_weight=None):
+        """Refine a mesh of X (n, 2) or (n, 3) and build the estimate. ``sample_weight``:
+        weights >= 0 (the engine counts them: a point of whole weight w is w copies, real
+        weights are survey or aggregation weights; n is then their total W). ``y`` is
+        ignored. Returns self."""
+        dim = 3 if np.ndim(X) == 2 and np.shape(X)[1] == 3 else 2
+        pts = as_points(X, dim)
+        self._check_options()
+        if self.method is None:  # the adaptive estimate in the plane, the kNN one in space
+            self.method_ = "adaptive" if dim == 2 else "knn"
+        elif self.method == "adaptive" and dim == 3:
+            raise InputError(
+                'method="adaptive" is built for points in the plane; for points in space use '
+                'method="knn" (the default there: method=None)'
+            )
+        else:
+            self.method_ = self.method
+        weights = None
+        if sample_weight is not None:
+            weights = check_weights(sample_weight, len(pts))
+            pts, weights = pts[weights > 0], weights[weights > 0]
+            if np.all(weights == 1.0):
+                weights = None
+        n = len(pts) if weights is None else float(weights.sum())
+        scale = self._scale(pts, weights)
+        pts = pts / scale
+        box = self._box(pts, scale)
+        stale_attrs = (
+            "cv_ks_", "cv_scores_", "bandwidths_", "bandwidth_scores_", "bandwidth_",
+            "sensitivity_", "loo_scores_",
+        )  # fmt: skip
+        for stale in stale_attrs:
+            self.__dict__.pop(stale, None)  # from an earlier fit
+        if isinstance(self.k, str):
+            if self.k != "cv":
+                raise InputError(f'k must be an integer, None or "cv", got {self.k!r}')
+            self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, weights, box)
+            pick = np.argmax if self.criterion == "likelihood" else np.argmin
+            k = int(self.cv_ks_[int(pick(self.cv_scores_))])
+        else:
+            k = self.k
+            if k is None:
+                k = default_k(n) if self.method_ == "knn" else default_pilot_k(n)
+            if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
+                raise InputError(f"k must be an integer in [1, n = {n:g}], got {k!r}")
+        self.density_, self.mesh_ = self._estimate(pts, weights, box, int(k))
+        if self.method_ == "adaptive":
+            self.bandwidth_ = self.density_.bandwidth
+            self.sensitivity_ = self.density_.sensitivity
+        self._train = (pts, np.ones(len(pts)) if weights is None else weights)
+        self.k_ = int(k)
+        self.scale_ = tuple(float(v) for v in scale)
+        self.box_ = tuple(float(b) for b in np.array(self.mesh_.box) * np.tile(scale, 2))
+        self.n_samples_ = n
+        self.n_features_in_ = dim
+        return self
+
+    def _check_options(self):
+        if self.method not in (None, "adaptive", "knn"):
+            raise InputError(f'method must be None, "adaptive" or "knn", got {self.method!r}')
+        check_shape(self.shape)
+        if not isinstance(self.whiten, (bool, np.bool_)):
+            raise InputError(f"whiten must be True or False, got {self.whiten!r}")
+        if not (isinstance(self.bandwidth, str) and self.bandwidth == "cv"):
+            check_bandwidth(self.bandwidth, '"cv" or ')
+        if not (isinstance(self.sensitivity, str) and self.sensitivity == "cv"):
+            check_sensitivity(self.sensitivity, '"cv" or ')
+        check_cv(self.cv)
+        check_criterion(self.criterion)
+        m = self.loo_points
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
+            raise InputError(f"loo_points must be an integer >= 1, got {m!r}")
+
+    def _scale(self, pts, weights):
+        """Per-axis divisors: the (weighted) standard deviations with ``whiten``, else 1."""
+        if not self.whiten:
+            return np.ones(pts.shape[1])
+        w = np.ones(len(pts)) if weights is None else weights
+        mean = (pts * w[:, None]).sum(axis=0) / w.sum()
+        sd = np.sqrt((((pts - mean) ** 2) * w[:, None]).sum(axis=0) / w.sum())
+        if not np.all(sd > 0):
+            raise InputError(
+                "whiten needs points spread along every axis (a standard deviation is 0)"
+            )
+        return sd
+
+    def _estimate(self, pts, weights, box, k):
+        """(density, mesh) at this k: the kNN estimate, or the adaptive one with its
+        bandwidth given or chosen by leave-one-out likelihood (recording the curve)."""
+        from ..api import refine
+
+        mesh = refine(
+            pts, k, self.tau, periodic=self.periodic, box=box, min_size=self.min_size,
+            weights=weights,
+        )  # fmt: skip
+        knn = KnnDensity(mesh, pts, normalized=True, subdivide=self.subdivide, weights=weights)
+        if self.method_ == "knn":
+            return knn, mesh
+        cs = self.BANDWIDTHS if self.bandwidth == "cv" else (float(self.bandwidth),)
+        alphas = self.SENSITIVITIES if self.sensitivity == "cv" else (float(self.sensitivity),)
+        density = AdaptiveDensity(
+            mesh, pts, cs[0], self.shape, weights=weights, knn=knn, sensitivity=alphas[0]
+        )
+        if len(cs) > 1 or len(alphas) > 1:
+            alpha, _, self.loo_scores_ = choose_smoothing(
+                density, alphas, cs, self.loo_points, self.random_state, self.criterion
+            )  # leaves the density at the chosen pair
+            at = self.loo_scores_[self.loo_scores_[:, 0] == alpha]
+            at = at[np.argsort(at[:, 1])]
+            self.bandwidths_, self.bandwidth_scores_ = at[:, 1], at[:, 2]
+        return density, mesh
+
+    def _k_candidates(self, n_train):
+        """The candidate ks: ``k_grid`` or 10 geometric steps from 4 to n_train / 20."""
+        if self.k_grid is None:
+            return np.unique(np.round(np.geomspace(4, max(8, n_train / 20), 10)).astype(int))
+        ks = np.unique(np.asarray(self.k_grid))
+        if ks.size == 0 or not np.issubdtype(ks.dtype, np.integer) or ks[0] < 1:
+            raise InputError(f"k_grid must hold integers >= 1, got {self.k_grid!r}")
+        ks = ks[ks <= n_train]
+        if ks.size == 0:
+            raise InputError(f"no k of k_grid fits the smallest training fold ({n_train:g} points)")
+        return ks
+
+    def _box(self, pts, scale):
+        """The box to refine in (scaled coordinates): the user's, else refine's default box
+        of the points (``validation.default_box``) widened by ``margin``."""
+        if self.box is not None:
+            try:
+                box = np.asarray(self.box, float)
+            except (TypeError, ValueError):
+                return self.box  # refine says what is wrong with it
+            return tuple(box / np.tile(scale, 2)) if box.shape == (2 * len(scale),) else self.box
+        if np.any(self.periodic):  # a torus needs its period: refine says so
+            return None
+        margin = self.margin
+        if isinstance(margin, bool) or not isinstance(margin, (int, float, np.floating)):
+            raise InputError(f"margin must be a number >= 0, got {margin!r}")
+        if not 0 <= margin < np.inf:
+            raise InputError(f"margin must be a finite number >= 0, got {margin!r}")
+        dim = pts.shape[1]
+        bounds = np.array(default_box(pts))
+        lo, hi = bounds[:dim], bounds[dim:]
+        pad = margin * (hi - lo)
+        return tuple(float(v) for v in (*(lo - pad), *(hi + pad)))
+
+    def _cross_validate(self, pts, weights, box):
+        """(candidate ks, the score of each): by ``criterion``, the mean held-out
+        log-likelihood per unit of weight (higher is better), or the mean over folds of the
+        least-squares score integral f^2 - 2 (weighted mean of f at the held-out points),
+        lower is better (``square_integral``). Every fold is refined in the same box, so
+        that held-out points are in it; folds split points, so a point of weight w (w
+        copies) is held out whole."""
+        folds = cv_folds(len(pts), self.cv, self.random_state)
+        weight = np.ones(len(pts)) if weights is None else weights
+        n = float(weight.sum())
+        ks = self._k_candidates(n - max(float(weight[f].sum()) for f in folds))
+        params = {**self.get_params(), "box": box, "whiten": False}
+        scores = np.zeros(len(ks))
+        for test in folds:
+            train = np.ones(len(pts), bool)
+            train[test] = False
+            fold_weight = None if weights is None else weight[train]
+            for i, k in enumerate(ks):
+                fold = type(self)(**{**params, "k": int(k)})
+                fold.fit(pts[train], sample_weight=fold_weight)
+                if self.criterion == "likelihood":
+                    scores[i] += (fold.score_samples(pts[test]) * weight[test]).sum() / n
+                else:
+                    held = np.exp(fold.score_samples(pts[test]))
+                    mean = (held * weight[test]).sum() / weight[test].sum()
+                    square = square_integral(fold.density_, self.loo_points)
+                    scores[i] += (square - 2 * mean) / len(folds)
+        return ks, scores
+
+    # -- uncertainty -------------------------------------------------------------------------
+    def standard_error(self, X):
+        """Pointwise standard error of the density at X, shape (..., d) -> (...). kNN: f(x) /
+        sqrt(k) (its relative error is about 1 / sqrt(k): the ball of radius d_{P,k}(x) holds
+        k points, whose count fluctuates like a Poisson variable's); adaptive: the
+        sample-point estimate's variance (``AdaptiveDensity.standard_error``)."""
+        density = self._fitted()
+        if self.method_ == "knn":
+            return np.exp(self.score_samples(X)) / np.sqrt(self.k_)
+        flat, shape = self._queries(X)
+        return (density.standard_error(flat) / self._jacobian()).reshape(shape)
+
+    def bootstrap(self, X, n_boot=100, level=0.9, random_state=None):
+        """Percentile bands (lower, upper) of the density at X, shape (..., d) -> two arrays
+        (...): the estimate refitted (same k and box) on n_boot resamples of the training
+        points with replacement (as weights: no copies are made), and the (1 - level) / 2 and
+        (1 + level) / 2 quantiles of its values at each point. Whole-number weights are
+        copies and the copies are resampled; real weights stay with their points, which are
+        resampled (the bootstrap of a weighted sample)."""
+        density = self._fitted()
+        if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 2:
+            raise InputError(f"n_boot must be an integer >= 2, got {n_boot!r}")
+        if not 0 < level < 1:
+            raise InputError(f"level must lie in (0, 1), got {level!r}")
+        flat, shape = self._queries(X)
+        pts, weight = self._train  # in the fitted (scaled) coordinates
+        rng = generator(random_state)
+        whole = bool(np.all(weight == np.rint(weight)))
+        params = {**self.get_params(), "k": self.k_, "box": self.mesh_.box, "whiten": False}
+        if self.method_ == "adaptive":
+            params["bandwidth"] = density.bandwidth
+            params["sensitivity"] = density.sensitivity
+        values = np.empty((int(n_boot), len(flat)))
+        for b in range(int(n_boot)):
+            if whole:  # the copies, resampled
+                draw = rng.multinomial(int(weight.sum()), weight / weight.sum())
+            else:  # the points, resampled, each with its weight
+                draw = rng.multinomial(len(weight), np.full(len(weight), 1.0 / len(weight)))
+                draw = draw * weight
+            refit = type(self)(**params).fit(pts, sample_weight=draw)
+            values[b] = np.exp(refit.score_samples(flat)) / self._jacobian()
+        lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2], axis=0)
+        return lo.reshape(shape), hi.reshape(shape)
+
+    def _fitted(self):
+        if not hasattr(self, "density_"):
+            raise _not_fitted()
+        return self.density_
+
+    # -- evaluation ----------------------------------------------------------------------------
+    def score_samples(self, X):
+        """Log-density at the points X, shape (..., d): an array of shape (...). -inf outside
+        the box along non-periodic axes (the estimate is 0 there); periodic axes wrap."""
+        density = self._fitted()
+        flat, shape = self._queries(X)
+        f = density(flat) / self._jacobian()
+        with np.errstate(divide="ignore"):
+            out = np.where(np.isnan(f), -np.inf, np.log(np.where(np.isnan(f), 1.0, f)))
+        return out.reshape(shape)
+
+    def score(self, X, y=None):
+        """Total log-likelihood of the points X (n, d) under the estimate (-inf if one lies
+        outside the box)."""
+        return float(self.score_samples(X).sum())
+
+    def sample(self, n_samples=1, random_state=None):
+        """n_samples points (n_samples, d) drawn exactly from the estimate
+        (``AdaptiveDensity.sample``, ``KnnDensity.sample``). ``random_state``: None, an int,
+        a numpy Generator or RandomState."""
+        density = self._fitted()
+        if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)):
+            raise InputError(f"n_samples must be an integer >= 0, got {n_samples!r}")
+        if n_samples < 0:
+            raise InputError(f"n_samples must be >= 0, got {n_samples}")
+        return density.sample(int(n_samples), generator(random_state)) * self.scale_
+
+    def _queries(self, X):
+        """Query points (..., d) as flat (q, d) in the fitted (scaled) coordinates, and the
+        leading shape; non-finite coordinates refused."""
+        self._fitted()
+        flat, shape = as_queries(X, self.n_features_in_)
+        if not np.isfinite(flat).all():
+            raise InputError("X holds NaN or infinite coordinates; give finite points")
+        return flat / np.asarray(self.scale_), shape
+
+    def _jacobian(self):
+        """Density in scaled coordinates / density in the data's: the scales' product."""
+        return float(np.prod(self.scale_))
+
+
+def _same(a, b):
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):
+        return False
+
+
+def cv_folds(n, cv, random_state):
+    """The test indices of each of ``cv`` folds of n points, shuffled by random_state."""
+    check_cv(cv)
+    if cv > n:
+        raise InputError(f"cv must be an integer in [2, n = {n}], got {cv!r}")
+    order = generator(random_state).permutation(n)
+    return np.array_split(order, int(cv))
+
+
+def _not_fitted():
+    """scikit-learn's NotFittedError when scikit-learn is installed, else an InputError."""
+    message = "this KnnDensityEstimator is not fitted yet: call fit(X) first"
+    try:
+        from sklearn.exceptions import NotFittedError
+    except ImportError:
+        return InputError(message)
+    return NotFittedError(message)

@@ -1,0 +1,155 @@
+"""Every use of a mesh in space, with the plane's names: ToMATo clusters, persistence (H0-H3),
+and the command line's density, cluster, persistence and plot on three columns. Oracles:
+the truth of synthetic clusters, the homology of a sphere shell and of the 3-torus, the
+files the commands write read back and checked against the library."""
+
+import numpy as np
+import pytest
+
+import knnrefine
+from knnrefine import InputError, KnnDensity
+from knnrefine.cli.main import main
+
+gudhi = pytest.importorskip("gudhi")
+from sklearn.metrics import adjusted_rand_score  # noqa: E402
+
+from knnrefine.cluster import cluster  # noqa: E402
+from knnrefine.topology import Persistence  # noqa: E402
+
+BOX3 = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+
+
+def blobs3(seed, n=1500, noise=600):
+    rng = np.random.default_rng(seed)
+    centres = np.array([[0.25, 0.25, 0.3], [0.75, 0.3, 0.7], [0.4, 0.75, 0.6]])
+    pts = np.concatenate([rng.normal(c, 0.05, (n, 3)) for c in centres] + [rng.random((noise, 3))])
+    truth = np.concatenate([np.full(n, i) for i in range(3)] + [np.full(noise, -1)])
+    return np.clip(pts, 0.0, 1.0 - 1e-12), truth
+
+
+def shell(n, seed, radius=0.3, width=0.01):
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    return 0.5 + radius * v + width * rng.normal(size=(n, 3))
+
+
+def test_cluster_in_space_finds_the_blobs():
+    pts, truth = blobs3(0)
+    mesh = knnrefine.refine(pts, 30, box=BOX3)
+    cl = cluster(mesh, pts)
+    assert cl.n_clusters == 3
+    core = truth >= 0
+    assert adjusted_rand_score(truth[core], cl.labels[core]) > 0.97
+    assert cl.vertex_labels.shape == (len(mesh.vertices),)
+
+
+def test_cluster_in_space_across_the_periodic_seams_is_one_cluster():
+    rng = np.random.default_rng(1)
+    across = rng.normal([0.0, 0.0, 0.5], 0.05, (2000, 3)) % 1.0  # split by two seams
+    other = rng.normal([0.5, 0.5, 0.5], 0.05, (2000, 3))
+    pts = np.concatenate([across, other, rng.random((300, 3))])
+    mesh = knnrefine.refine(pts, 30, periodic=True, box=BOX3)
+    cl = cluster(mesh, pts)
+    assert cl.n_clusters == 2
+    assert adjusted_rand_score(np.repeat([0, 1], 2000), cl.labels[:4000]) > 0.97
+
+
+def test_cluster_checks_the_points_are_the_meshs():
+    """cluster() took any points, and a weighted mesh's points without their weights."""
+    pts, _ = blobs3(2, n=300, noise=100)
+    mesh = knnrefine.refine(pts, 20, box=BOX3)
+    with pytest.raises(InputError, match="made from 1,000 points but 999"):
+        cluster(mesh, pts[:-1])
+    with pytest.raises(InputError, match="shape \\(n, 3\\)"):
+        cluster(mesh, pts[:, :2])
+    plane = np.random.default_rng(3).random((800, 2))
+    weighted = knnrefine.refine(plane, 20, weights=np.full(len(plane), 2.0))
+    with pytest.raises(InputError, match="refined with weights"):
+        cluster(weighted, plane)
+    # with its weights, the weighted mesh of copies clusters as the copies do
+    doubled = knnrefine.refine(np.repeat(plane, 2, axis=0), 20)
+    a = cluster(weighted, plane, weights=np.full(len(plane), 2.0))
+    b = cluster(doubled, np.repeat(plane, 2, axis=0))
+    assert a.threshold == pytest.approx(b.threshold)
+
+
+def test_persistence_of_a_sphere_shell_has_one_void():
+    pts = np.clip(shell(6000, 4), 0.0, 1.0 - 1e-12)
+    mesh = knnrefine.refine(pts, 10, box=BOX3)
+    ph = Persistence(mesh, pts)
+    life = ph.most_persistent(2, 2)
+    assert life[0] > 1.0 and life[1] < 0.3 * life[0]  # one void, far above the rest
+    assert len(ph.betti(np.inf)) == 4 and ph.cells.shape[1] == 4
+
+
+def test_persistence_on_the_3_torus_has_its_betti_numbers():
+    pts = np.random.default_rng(5).random((3000, 3))
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX3)
+    ph = Persistence(mesh, pts)
+    essential = [int(np.isinf(ph.diagram(d)[:, 1]).sum()) for d in range(4)]
+    assert essential == [1, 3, 3, 1]  # the 3-torus: 1, 3, 3, 1
+    d_m2 = Persistence(mesh, pts, function="d_m2", subdivide=False)
+    assert [int(np.isinf(d_m2.diagram(d)[:, 1]).sum()) for d in range(4)] == [1, 3, 3, 1]
+
+
+# -- the command line on three columns ---------------------------------------------------
+
+
+@pytest.fixture()
+def csv3(tmp_path):
+    pts, _ = blobs3(6, n=800, noise=300)
+    path = tmp_path / "halos.csv"
+    header = "id,px,py,pz\n"
+    rows = "".join(f"{i},{x!r},{y!r},{z!r}\n" for i, (x, y, z) in enumerate(pts.tolist()))
+    path.write_text(header + rows)
+    return path, pts
+
+
+def run(*argv):
+    return main([str(a) for a in argv])
+
+
+def test_cli_density_cluster_persistence_plot_in_space(tmp_path, csv3, capsys):
+    path, pts = csv3
+    box = ["--box", 0, 0, 0, 1, 1, 1]
+    assert run("refine", path, "--columns", "px,py,pz", "-k", 20, *box,
+               "-o", tmp_path / "m.npz", "--plot", tmp_path / "m.png") == 0  # fmt: skip
+    mesh = knnrefine.io.read_mesh(tmp_path / "m.npz")
+    assert mesh.dim == 3
+    # density: the kNN estimate (the default in space), its grid as the library's
+    assert run("density", path, "--columns", "px,py,pz", "--mesh", tmp_path / "m.npz",
+               "--grid", 6, 5, 4, "-o", tmp_path / "d.npz", "-o", tmp_path / "d.csv",
+               "--plot", tmp_path / "d.png") == 0  # fmt: skip
+    with np.load(tmp_path / "d.npz") as z:
+        assert z["density"].shape == (4, 5, 6) and len(z["zs"]) == 4
+        expected = KnnDensity(mesh, pts).grid((4, 5, 6))
+        np.testing.assert_allclose(z["density"], expected[3], rtol=1e-9)
+        np.testing.assert_allclose(z["xs"], expected[0])
+    table = knnrefine.io.read_points_named(tmp_path / "d.csv", "px,py,pz")[0]
+    assert len(table) == 120 and np.allclose(table[:6, 0], expected[0])
+    # cluster and persistence with the mesh in space: three columns read without --columns
+    assert run("cluster", path, "--mesh", tmp_path / "m.npz", "--columns", "px,py,pz",
+               "-o", tmp_path / "l.csv", "--plot", tmp_path / "l.png") == 0  # fmt: skip
+    assert "3 clusters" in capsys.readouterr().out
+    assert run("persistence", path, "--columns", "px,py,pz", "--mesh", tmp_path / "m.npz",
+               "-o", tmp_path / "p.csv", "--plot", tmp_path / "p.png") == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "H3:" in out and "tetrahedra" in out
+    assert run("plot", tmp_path / "m.npz", "-o", tmp_path / "s.png", "--points", path,
+               "--columns", "px,py,pz") == 0  # fmt: skip
+    for picture in "m.png", "d.png", "l.png", "p.png", "s.png":
+        assert (tmp_path / picture).stat().st_size > 10_000
+
+
+def test_cli_in_space_refuses_what_is_built_for_the_plane(tmp_path, csv3, capsys):
+    path, _ = csv3
+    box = ["--box", 0, 0, 0, 1, 1, 1]
+    assert run("density", path, "--columns", "px,py,pz", *box, "-k", 20,
+               "--method", "adaptive", "-o", tmp_path / "d.npz") == 2  # fmt: skip
+    assert "--method adaptive is built for points in the plane" in capsys.readouterr().err
+    assert run("refine", path, "--columns", "px,py,pz", "-k", 20, *box,
+               "-o", tmp_path / "m.npz") == 0  # fmt: skip
+    assert run("plot", tmp_path / "m.npz", "-o", tmp_path / "s.png", "--cells", "voronoi") == 2
+    assert "a mesh in space is drawn as slices" in capsys.readouterr().err
+    assert not (tmp_path / "s.png").exists()
