@@ -1,10 +1,10 @@
 """Tiled refinement on a Dask LocalCluster against one process, interleaved in one run.
 
 For each n: uniform points on the unit torus, a Dask array generated chunk by chunk on the
-workers and kept there (persisted); ``knnrefine.distributed.refine`` reads it partition by
+workers and kept there (persisted); ``knnrefine.scale.distributed.refine`` reads it partition by
 partition where it lies. The single-process run gets the same points computed into this
 process (its input; the tiled run never reads them here). k = 100; per repeat one
-single-process ``knnrefine.refine`` and one ``knnrefine.distributed.refine`` on the same
+single-process ``knnrefine.refine`` and one ``knnrefine.scale.distributed.refine`` on the same
 cluster, alternating. Prints medians, the speed-up, the share of setup (sample, plan,
 strips and their indexes), rounds and the last step, and peak resident memory of this
 process and of each worker (ru_maxrss, which only grows: the largest n dominates).
@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 import knnrefine
-from knnrefine import distributed
+from knnrefine.scale import distributed
 
 
 def peak_gb():

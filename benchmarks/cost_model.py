@@ -52,10 +52,10 @@ def measure(n, workers, repeat, tasks, k):
     import dask.array as da
     from distributed import Client
 
-    from knnrefine import distributed
-    from knnrefine.distributed import _cut
     from knnrefine.engine.embedding import Embedding
-    from knnrefine.engine.partition import strips, tile_index
+    from knnrefine.scale import distributed
+    from knnrefine.scale.distributed import _cut
+    from knnrefine.scale.tiled import strips, tile_index
 
     rng = np.random.default_rng(0)
     pts = rng.random((n, 2))

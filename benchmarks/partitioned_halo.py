@@ -3,7 +3,7 @@ part holds beyond its own (``write_partitioned``), as a multiple of the vertices
 the time to write and read the folder back, and the kNN density part by part
 (``PartitionedMesh.density``, strips in this process) against ``KnnDensity`` of the whole
 mesh (a new index over the points), and part by part with d_{P,k} asked in two local
-processes' strips (``tiles=2``: what ``distributed.density`` does on a cluster); medians of
+processes' strips (``workers=2``: what ``distributed.density`` does on a cluster); medians of
 ``--repeat`` interleaved runs.
 
     python benchmarks/partitioned_halo.py --n 1e6 --k 100 --parts 4 16
@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 import knnrefine
-from knnrefine.partitioned import write_partitioned
+from knnrefine.scale.parts import write_partitioned
 
 
 def clustered(n, seed=0):
@@ -62,7 +62,7 @@ def main(argv=None):
                     grid_parts = got.grid((512, 512))[2]
                     parted.append(time.perf_counter() - t)
                     t = time.perf_counter()
-                    strips = pm.density(pts, tiles=2)
+                    strips = pm.density(pts, workers=2)
                     strips.grid((512, 512))
                     stripped.append(time.perf_counter() - t)
                 worst = float(np.max(np.abs(grid_parts - grid) / grid))

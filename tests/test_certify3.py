@@ -102,14 +102,14 @@ def test_certify3_with_no_probe_above_the_floor():
 
 def test_certify3_honours_samples_and_refuses_tiles():
     """certify's options in space: ``samples`` sets the probes in the tetrahedra (at least
-    4 each), ``workers`` the queries' threads; ``tiles`` and ``weights`` are refused, not
-    ignored."""
+    4 each), ``threads`` the queries' threads; ``workers`` > 1 and ``weights`` are refused,
+    not ignored."""
     pts = np.random.default_rng(6).random((3000, 3))
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
-    few = knnrefine.certify(mesh, pts, samples=10, workers=1)
+    few = knnrefine.certify(mesh, pts, samples=10, threads=1)
     many = knnrefine.certify(mesh, pts, samples=40 * len(mesh.tetrahedra))
     assert many.n_probes - few.n_probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
-    with pytest.raises(knnrefine.InputError, match="tiles"):
-        knnrefine.certify(mesh, pts, tiles=2)
+    with pytest.raises(knnrefine.InputError, match="workers > 1"):
+        knnrefine.certify(mesh, pts, workers=2)
     with pytest.raises(knnrefine.InputError, match="weights"):
         knnrefine.certify(mesh, pts, weights=np.ones(len(pts)))

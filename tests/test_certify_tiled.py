@@ -1,4 +1,4 @@
-"""certify strip by strip (certify(..., tiles=N), certify_store, distributed.certify):
+"""certify strip by strip (certify(..., workers=N), certify_store, distributed.certify):
 every answer about the points (disk counts, cell counts, d_{P,k}) equals the one-process
 certify's, which reads one cKDTree of all points; and a bad mesh fails the same way."""
 
@@ -8,8 +8,8 @@ from conftest import gaussian_clusters
 
 import knnrefine
 from knnrefine.certify.plane import TiledTorusPoints, TorusPoints
-from knnrefine.engine.partition import LocalStore, split_strips, strip_owner, strips
 from knnrefine.errors import InputError
+from knnrefine.scale.tiled import LocalStore, split_strips, strip_owner, strips
 
 
 def test_split_strips_with_a_pad_per_row_against_brute_force():
@@ -73,7 +73,7 @@ def test_a_wrong_mesh_fails_the_same_strip_by_strip():
     mesh = knnrefine.refine(made_from, 10, periodic=True, box=(0, 0, 1, 1))
     other = np.mod(rng.random((20000, 2)) * 0.3, 1.0)  # all in one corner
     a = knnrefine.certify(mesh, other, samples=5000, n_random=1000)
-    b = knnrefine.certify(mesh, other, samples=5000, n_random=1000, tiles=3)
+    b = knnrefine.certify(mesh, other, samples=5000, n_random=1000, workers=3)
     assert not a.passed and not b.passed
     for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
         assert getattr(a, field) == getattr(b, field), field
@@ -91,7 +91,7 @@ def test_certify_in_tiles_equals_certify(periodic):
     pts = gaussian_clusters(40000, 8)
     mesh = knnrefine.refine(pts, 30, periodic=periodic, box=(0, 0, 1, 1))
     a = knnrefine.certify(mesh, pts, samples=10000, n_random=2000)
-    b = knnrefine.certify(mesh, pts, samples=10000, n_random=2000, tiles=2)
+    b = knnrefine.certify(mesh, pts, samples=10000, n_random=2000, workers=2)
     assert a.passed and b.passed
     for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral",
                   "precondition_ok", "n", "m"):  # fmt: skip
@@ -99,25 +99,27 @@ def test_certify_in_tiles_equals_certify(periodic):
 
 
 @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
-def test_bad_tiles_are_refused(bad):
+def test_bad_workers_are_refused(bad):
     pts = gaussian_clusters(2000, 9)
     mesh = knnrefine.refine(pts, 10)
-    with pytest.raises(InputError, match="tiles must be a positive integer"):
-        knnrefine.certify(mesh, pts, tiles=bad)
+    with pytest.raises(InputError, match="workers must be a positive integer"):
+        knnrefine.certify(mesh, pts, workers=bad)
+    with pytest.raises(InputError, match="threads must be -1"):
+        knnrefine.certify(mesh, pts, threads=0)
 
 
-@pytest.mark.parametrize("tiles", [2, 8])
-def test_tiles_that_hold_no_point(tiles):
-    """regression (issue 28): certify(mesh, points, tiles=2) crashed ('cannot reshape array
-    of size 0') when a strip held no point, as with more tiles than points. Points in a
-    third of the torus, and five points at ten tiles: the same verdict as in one process."""
+@pytest.mark.parametrize("workers", [2, 8])
+def test_strips_that_hold_no_point(workers):
+    """regression (issue 28): certify(mesh, points, workers=2) crashed ('cannot reshape array
+    of size 0') when a strip held no point, as with more strips than points. Points in a
+    third of the torus, and five points at ten workers: the same verdict as in one process."""
     rng = np.random.default_rng(0)
     pts = rng.random((300, 2)) * [0.3, 1.0]
     mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
     one = knnrefine.certify(mesh, pts)
-    tiled = knnrefine.certify(mesh, pts, tiles=tiles)
+    tiled = knnrefine.certify(mesh, pts, workers=workers)
     assert one.passed and tiled.passed
     assert (tiled.max_ball_count, tiled.max_cell_count) == (one.max_ball_count, one.max_cell_count)
     few = rng.random((5, 2))
     small = knnrefine.refine(few, 2, periodic=True, box=(0, 0, 1, 1))
-    assert knnrefine.certify(small, few, tiles=10).passed
+    assert knnrefine.certify(small, few, workers=10).passed

@@ -1,4 +1,4 @@
-"""Tiles on a Dask cluster (knnrefine.distributed): the same guarantees as one process,
+"""Tiles on a Dask cluster (knnrefine.scale.distributed): the same guarantees as one process,
 sources read partition-wise, a worker killed mid-run. Skipped without Dask."""
 
 import os
@@ -18,7 +18,7 @@ from knnrefine.errors import InputError
 pytest.importorskip("distributed")
 from distributed import Client  # noqa: E402
 
-from knnrefine import distributed  # noqa: E402
+from knnrefine.scale import distributed  # noqa: E402
 
 
 def _cluster(n=2):
@@ -120,7 +120,7 @@ def test_a_killed_worker_still_gives_a_complete_certified_mesh():
     options = {"periodic": True, "box": (0, 0, 1, 1)}
     with _cluster() as cluster, Client(cluster) as c:
         pids = c.run(os.getpid)
-        c.run(lambda: __import__("knnrefine.engine.partition"))  # warm the imports
+        c.run(lambda: __import__("knnrefine.scale.tiled"))  # warm the imports
         out = {}
 
         def go():
@@ -171,7 +171,7 @@ def test_output_folder_is_the_mesh_in_parts(client, tmp_path):
     """refine(..., output=) writes one part per strip and returns the folder's
     PartitionedMesh; put together it is the mesh refine returns in memory; an existing
     folder is refused before any work."""
-    from knnrefine.partitioned import PartitionedMesh
+    from knnrefine.scale.parts import PartitionedMesh
 
     pts = clustered(40000, 12)
     options = {"client": client, "periodic": True, "box": (0, 0, 1, 1)}

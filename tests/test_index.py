@@ -258,7 +258,7 @@ def test_kth_distance_is_the_same_on_a_refined_mesh_index():
 def test_select_puts_the_kth_row_in_place(kind):
     # Floyd-Rivest on long ranges, quickselect on short ones: rows move whole, the kth is the
     # sorted order's, nothing outside [lo, hi) moves
-    select = python_entry(engine_index._select)
+    select = python_entry(engine_index.select_kth)
     rng = np.random.default_rng(len(kind))
     for n in (1, 2, 33, 601, 602, 5000, 70000):
         p = {

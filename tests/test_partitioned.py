@@ -1,4 +1,4 @@
-"""A mesh as a folder of parts (knnrefine.partitioned): put back together it is the same
+"""A mesh as a folder of parts (knnrefine.scale.parts): put back together it is the same
 Mesh, array for array; part by part its d_{M,2} equals the whole mesh's (cKDTree over all
 vertices) at random points and on the strips' borders; written atomically."""
 
@@ -10,7 +10,7 @@ from conftest import gaussian_clusters
 
 import knnrefine
 from knnrefine.errors import InputError
-from knnrefine.partitioned import FINISHED, PartitionedMesh, write_partitioned
+from knnrefine.scale.parts import FINISHED, PartitionedMesh, write_partitioned
 
 
 def assert_same_mesh(a, b):
@@ -88,7 +88,7 @@ def test_the_picture_draws_every_triangle_once(tmp_path):
 
 
 def test_the_folder_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
-    from knnrefine import partitioned
+    from knnrefine.scale import parts as partitioned
 
     pts = gaussian_clusters(5000, 5)
     mesh = knnrefine.refine(pts, 10)
@@ -192,7 +192,7 @@ def test_partitioned_density_samples_by_mass_and_runs_in_processes(tmp_path):
         inside = np.all((draws >= region[:2]) & (draws <= region[2:]), axis=1).mean()
         assert abs(inside - p) < 5 * np.sqrt(p * (1 - p) / len(draws))
     q = np.random.default_rng(2).random((5000, 2))
-    np.testing.assert_allclose(pm.density(pts, tiles=2)(q), dens(q), rtol=1e-12)
+    np.testing.assert_allclose(pm.density(pts, workers=2)(q), dens(q), rtol=1e-12)
 
 
 def test_partitioned_density_refuses_other_points_and_old_folders(tmp_path):
@@ -206,8 +206,8 @@ def test_partitioned_density_refuses_other_points_and_old_folders(tmp_path):
     with pytest.raises(InputError, match="weights"):
         pm.density(pts, weights=np.ones(len(pts)))
     for bad in (0, 1.5, True):
-        with pytest.raises(InputError, match="tiles must be a positive integer"):
-            pm.density(pts, tiles=bad)
+        with pytest.raises(InputError, match="workers must be a positive integer"):
+            pm.density(pts, workers=bad)
     manifest = tmp_path / "m" / "manifest.json"
     old = json.loads(manifest.read_text())
     old["format"] = 1

@@ -673,4 +673,4 @@ def test_the_counting_index_is_freed_before_the_unfolding(monkeypatch, periodic)
     monkeypatch.setattr(api3, "unfold", unfolded)
     pts = multiscale(3000, 21)
     knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
-    assert len(refs) == 4 and dead == [[True] * 4]
+    assert len(refs) == 5 and dead == [[True] * 5]  # the PointTree's five arrays

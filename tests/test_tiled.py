@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import knnrefine
-from knnrefine.engine.partition import strips
-from knnrefine.engine.tiles import in_rectangle
+from knnrefine.engine.region import in_rectangle
+from knnrefine.scale.tiled import strips
 
 
 def uniform(n, seed=0):
@@ -122,7 +122,7 @@ def test_split_strips_holds_every_point_of_each_padded_strip():
     """split_strips (a counting sort on the strip cuts) against in_rectangle on each strip:
     every point of a strip widened by pad is among its rows, and no more than a few points
     beyond it; duplicates on a cut and cuts that coincide included."""
-    from knnrefine.engine.partition import split_strips
+    from knnrefine.scale.tiled import split_strips
 
     rng = np.random.default_rng(4)
     xy = rng.random((50000, 2)) * [0.8, 0.5]
@@ -142,7 +142,7 @@ def test_split_strips_holds_every_point_of_each_padded_strip():
 def test_sample_is_the_same_however_the_points_are_split():
     """sample_keys depends on a point's coordinates only: the sample of a shuffled, split
     input is the same set, and about the requested fraction."""
-    from knnrefine.engine.partition import canonical, sample_keys
+    from knnrefine.scale.tiled import canonical, sample_keys
 
     rng = np.random.default_rng(5)
     xy = rng.random((40000, 2))
@@ -162,7 +162,7 @@ def test_margin_bands_hold_no_point_and_settle_the_margin():
     outside the points' extent hold none of them, and a uniform periodic-in-x run settles
     everything without the points (the last step inserts nothing and fetches nothing)."""
     from knnrefine.engine.embedding import Embedding
-    from knnrefine.engine.partition import margin_bands
+    from knnrefine.scale.tiled import margin_bands
 
     X = uniform(60000)
     emb = Embedding.make((0, 0, 1, 1), (True, False))
@@ -183,7 +183,7 @@ def test_seeded_vertices_are_queued_again():
     from knnrefine.engine import refine as R
     from knnrefine.engine.driver import Refinement
     from knnrefine.engine.index import build_index
-    from knnrefine.engine.partition import seed
+    from knnrefine.scale.tiled import seed
 
     X = uniform(20000)
     run = Refinement(build_index(X.copy()), 10, 1.0, 1.0, 3.0, 0.0, 10**6)
@@ -244,7 +244,7 @@ def test_strips_are_never_empty_when_points_share_coordinates(tiles):
     """Whatever the points (all on a cross of two lines, all at one point, none), both sets
     of strips tile the period with widths of at least twice the least gap, and each border
     of one set lies inside a strip of the other, the least gap from its borders."""
-    from knnrefine.engine.partition import MIN_GAP, regions_axis
+    from knnrefine.scale.tiled import MIN_GAP, regions_axis
 
     rng = np.random.default_rng(tiles)
     cross = rng.random((3000, 2)) * [0.8, 0.5]
@@ -268,7 +268,7 @@ def test_strips_are_never_empty_when_points_share_coordinates(tiles):
 def test_strips_run_across_the_axis_that_balances_the_points():
     """Points on the line x = 0.5 cannot be balanced by cuts along x: the strips are cut
     along y (the other period), each holding about 1 / T of them."""
-    from knnrefine.engine.partition import regions_axis
+    from knnrefine.scale.tiled import regions_axis
 
     xy = on_lines(20000, 1.0, [0.5], seed=2)
     for regions in strips(xy, 1.0, 1.0, 4):
@@ -280,7 +280,7 @@ def test_strips_run_across_the_axis_that_balances_the_points():
 def test_a_round_whose_tile_moved_outside_its_strip_is_refused():
     """The seam check: a round whose tile returned a vertex outside its strip (what a broken
     plan produced) raises EngineError instead of becoming part of a mesh."""
-    from knnrefine.engine.partition import check_seams
+    from knnrefine.scale.tiled import check_seams
 
     regions = np.array([[0.0, 0.0, 0.5, 1.0], [0.5, 0.0, 0.5, 1.0]])
     inside = [np.array([[0.1, 0.3], [0.5, 0.9]]), np.array([[0.75, 0.2], [0.999, 0.0]])]

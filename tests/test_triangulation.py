@@ -42,7 +42,7 @@ def insert(state, x, y):
     if found is None:
         return INSERT_NOT_IN_SEED
     t, qx, qy = found
-    state._grow_if_needed()
+    state.grow_if_needed()
     return insert_vertex(qx, qy, t, state.mesh, state.scratch, state.cnt, state.prm)
 
 

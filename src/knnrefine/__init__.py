@@ -20,7 +20,7 @@ from .errors import (
     WrapWarning,
 )
 from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
-from .partitioned import PartitionedMesh, write_partitioned
+from .scale.parts import PartitionedMesh, write_partitioned
 
 __version__ = "0.1.0"
 

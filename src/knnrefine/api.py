@@ -4,12 +4,17 @@ import inspect
 import math
 import time
 import warnings
+from collections.abc import Callable
+from concurrent.futures import Executor
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import validation as V
 from .engine import jit, size
 from .engine import refine as R
+from .engine import state as S
 from .engine.driver import Refinement
 from .engine.embedding import Embedding, diameter, unfold, wrap
 from .engine.geometry import FLOOR_BITS
@@ -42,20 +47,20 @@ def _is_spatial(points):
 
 
 def refine(
-    points,
-    k,
-    tau=3.0,
+    points: ArrayLike,
+    k: float,
+    tau: float = 3.0,
     *,
-    periodic=False,
-    box=None,
-    weights=None,
-    min_size=None,
-    max_vertices=None,
-    time_limit=None,
-    progress=None,
-    workers=None,
-    executor=None,
-):
+    periodic: bool | tuple = False,
+    box: tuple | None = None,
+    weights: ArrayLike | None = None,
+    min_size: float | None = None,
+    max_vertices: int | None = None,
+    time_limit: float | None = None,
+    progress: Callable | None = None,
+    workers: int | None = None,
+    executor: Executor | None = None,
+) -> Mesh:
     """kNNRefine (Gardner & Sheehy, CCCG 2016): mesh vertices M with
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} everywhere in the box.
 
@@ -128,7 +133,7 @@ def refine(
         from a sample of the points (the same whatever their order), a coarse pass on part of
         it, then rounds of N strips of the torus, balanced by point count, each refining only
         what lies inside it, alternating with strips shifted by half; whatever no round
-        settled is finished here (``engine/tiles.py`` and docs/algorithm.md say why the
+        settled is finished here (``engine/region.py`` and docs/algorithm.md say why the
         result is a kNNRefine run: the same guarantees, certified by ``certify``). The mesh
         differs from a one-process run's in the order of its moves, and its size by a few
         percent. ``stats["rounds"]`` reports each round and the last step; ``time_limit``
@@ -137,7 +142,7 @@ def refine(
     executor : concurrent.futures.Executor, optional
         Where the tiles of a run with ``workers`` > 1 run: its ``map`` is called once per
         round with that round's tiles (a Dask client's ``get_executor()``:
-        ``knnrefine.distributed.refine``). None: a pool of ``workers`` local processes.
+        ``knnrefine.scale.distributed.refine``). None: a pool of ``workers`` local processes.
 
     Returns
     -------
@@ -150,7 +155,7 @@ def refine(
     by ``api3.refine3`` into the same ``Mesh`` type; weights, workers and executor do not
     apply there yet.
     """
-    asked = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
+    asked: dict[str, Any] = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
                  max_vertices=max_vertices, time_limit=time_limit, progress=progress)  # fmt: skip
     if _is_spatial(points):
         from .api3 import refine3
@@ -162,9 +167,8 @@ def refine(
         return refine3(pts, RunOptions.check(len(pts), None, bounds, inside, **asked, dim=3))
     pts = V.as_points(points)
     n = len(pts)
-    if weights is not None:
-        weights = V.check_weights(weights, n)
-    total = None if weights is None else math.fsum(weights)
+    w = None if weights is None else V.check_weights(weights, n)
+    total = None if w is None else math.fsum(w)
     bounds, inside = lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p)
     opt = RunOptions.check(n, total, bounds, inside, **asked)
     workers = V.check_workers(workers)
@@ -175,9 +179,9 @@ def refine(
     if executor is not None and workers < 2:
         raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
     if workers > 1:
-        from .engine.partition import LocalStore
+        from .scale.tiled import LocalStore
 
-        store = LocalStore(pts, weights, workers, executor)
+        store = LocalStore(pts, w, workers, executor)
         try:
             return refine_store(store, opt, workers)
         finally:
@@ -186,7 +190,7 @@ def refine(
     if not jit.is_ready(R.refine_steps):
         report.compiling()
     with Interrupts() as interrupts:
-        start = _Start(pts, opt, opt.start_budget(n), interrupts, weights)
+        start = _Start(pts, opt, opt.start_budget(n), interrupts, w)
         found = start.find(opt.k, reach_factor(opt.tau))
         if found is None:
             raise InputError(start.refusal(opt.k, opt.tau))
@@ -194,17 +198,16 @@ def refine(
         opt.past("setting up")
         floor = max(opt.min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
         lo, hi = emb.box_internal()
-        estimated = size.estimate(
-            index, opt.k, floor, *emb.period_internal, float(np.prod(hi - lo))
-        )[0]  # fmt: skip
+        lx, ly = emb.period_internal
+        estimated = size.estimate(index, opt.k, floor, lx, ly, float(np.prod(hi - lo)))[0]
         budget = _budget(estimated, opt, len(m0_order), n)
         run = Refinement(
-            index, opt.k, *emb.period_internal, opt.tau, opt.min_size * emb.scale, budget,
-            m0=m0, grid=emb.grid, expected_vertices=min(estimated, budget),
+            index, opt.k, lx, ly, opt.tau, opt.min_size * emb.scale, budget, m0=m0,
+            grid=emb.grid, expected_vertices=min(estimated, budget),
         )  # fmt: skip
         run.time_index = start.seconds
         status = run.run(deadline=opt.deadline, progress=report.refining, interrupts=interrupts)
-        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, weights))
+        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, w))
         return _finish(
             run, status, emb, opt, (m0_order, m0_grid, estimated, budget), report, interrupts,
             kept, total, None,
@@ -212,12 +215,12 @@ def refine(
 
 
 def refine_store(store, opt, workers):
-    """A tiled run (``engine/partition.py``) on the points of ``store`` (``LocalStore``, or
+    """A tiled run (``scale/tiled.py``) on the points of ``store`` (``LocalStore``, or
     ``distributed.DaskStore``) with the checked options ``opt`` (``RunOptions``) in
     ``workers`` strips: the plan from a sample of the points (initial mesh, size, strips), a
     coarse pass on part of it, rounds of tiles, then whatever no round settled on the index
     of all points, fetched only then."""
-    from .engine import partition as T
+    from .scale import tiled as T
 
     n = store.n
     k, tau, min_size = opt.k, opt.tau, opt.min_size
@@ -273,7 +276,7 @@ def refine_store(store, opt, workers):
         before, fetched = len(m0[0]) + len(xy), False
         if stopped is not None:
             status = stopped
-        elif status == R.STATUS_DONE and unsettled:
+        elif status == S.STATUS_DONE and unsettled:
             pts, w = store.points()  # what is left needs the counts of all points
             fetched = True
             run, _, unsettled = T.settle(build_index(emb.to_internal(pts), weights=w), *args)
@@ -298,10 +301,10 @@ def _finish(run, status, emb, opt, plan, report, interrupts, kept, weight, round
     k, tau, t_start = opt.k, opt.tau, opt.t_start
     # below the engine's resolution limit nothing is split whatever min_size says
     min_size = max(opt.min_size, run.floor / emb.scale)
-    if status != R.STATUS_DONE:
+    if status != S.STATUS_DONE:
         what = (
             f"max_vertices={budget}"
-            if status == R.STATUS_MAX_VERTICES
+            if status == S.STATUS_MAX_VERTICES
             else f"time_limit={opt.time_limit} s"
         )
         raise BudgetError(

@@ -14,8 +14,13 @@ from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
 from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from .engine.interrupt import Interrupts
-from .engine.refine import STATUS_DONE, STATUS_MAX_VERTICES
-from .engine.state import C_CELL_TESTS, C_DISK_TESTS, C_FAILED
+from .engine.state import (
+    C_CELL_TESTS,
+    C_DISK_TESTS,
+    C_FAILED,
+    STATUS_DONE,
+    STATUS_MAX_VERTICES,
+)
 from .errors import BudgetError, FloorWarning, InputError
 from .mesh import Mesh, Torus
 from .metric import BoxMetric
@@ -30,7 +35,7 @@ def _holds(index, x, reach, k, period):
     small = reach < 0.5 * period.min() * (1.0 - 1e-9)
     out[small] = holds_k_within3(index, x[small], reach[small] ** 2, float(k), period)
     if not small.all():
-        tree = cKDTree(index[0], boxsize=period)
+        tree = cKDTree(index.pts, boxsize=period)
         far = ~small
         out[far] = tree.query_ball_point(x[far] % period, reach[far], return_length=True) >= k
     return out

@@ -48,11 +48,23 @@ from .validation import points_of_run
 
 @dataclass
 class Clustering:
-    """labels (n,): cluster of each input point (0 .. n_clusters - 1, by decreasing peak
-    density; -1 for noise when asked for); vertex_labels (m,): of each mesh vertex (-1 also
-    for vertex copies outside every triangle); prominence: of every peak found, by decreasing
-    value, in natural-log density (the n_clusters first were kept); threshold: the
-    significance threshold T of the module docstring; seconds."""
+    """What ``cluster`` found.
+
+    Attributes
+    ----------
+    labels : ndarray (n,)
+        The cluster of each input point, 0 .. n_clusters - 1 by decreasing peak density; -1
+        for noise when asked for.
+    vertex_labels : ndarray (m,)
+        The cluster of each mesh vertex (-1 also for vertex copies outside every cell).
+    n_clusters : int
+    prominence : ndarray
+        Of every peak found, by decreasing value, in natural-log density (the n_clusters
+        first were kept).
+    threshold : float
+        The significance threshold T of the module docstring.
+    seconds : float
+    """
 
     labels: np.ndarray
     vertex_labels: np.ndarray
@@ -153,7 +165,7 @@ def cluster(
     if n_clusters is not None:
         tomato.n_clusters_ = min(int(n_clusters), tomato.n_leaves_)
     else:
-        tomato.merge_threshold_ = float(merge_threshold)
+        tomato.merge_threshold_ = float(merge_threshold or 0.0)
     vertex_labels = np.asarray(tomato.labels_)
     if noise:
         # the kept clusters' peaks; a vertex is noise when its superlevel component holds none

@@ -15,22 +15,45 @@ def _load(name):
             return np.loadtxt(text, delimiter=",", skiprows=1)
 
 
-def trp_chi1_chi2():
-    """Tryptophan side-chain torsions (chi1, chi2) in degrees from the Top8000 set: (18748, 2),
-    periodic with period 360 on both axes (box ``TRP_BOX``). CC BY 4.0, Williams et al. 2018."""
+def trp_chi1_chi2() -> np.ndarray:
+    """Tryptophan side-chain torsions (chi1, chi2) in degrees from the Top8000 set, periodic
+    with period 360 on both axes (box ``TRP_BOX``). CC BY 4.0, Williams et al. 2018.
+
+    Returns
+    -------
+    ndarray (18748, 2)
+    """
     return _load("trp_chi1_chi2.csv.gz")
 
 
-def earthquakes():
-    """Epicentres (lon, lat) in degrees of the magnitude >= 5.5 earthquakes of 1965-2016:
-    (23412, 2); longitude is periodic (box ``QUAKES_BOX`` with ``periodic=(True, False)``).
-    MIT licence (plotly/datasets)."""
+def earthquakes() -> np.ndarray:
+    """Epicentres (lon, lat) in degrees of the magnitude >= 5.5 earthquakes of 1965-2016;
+    longitude is periodic (box ``QUAKES_BOX`` with ``periodic=(True, False)``). MIT licence
+    (plotly/datasets).
+
+    Returns
+    -------
+    ndarray (23412, 2)
+    """
     return _load("quakes_1965_2016.csv.gz")
 
 
-def ring(n=2000, outliers=0.2, seed=0):
+def ring(n: int = 2000, outliers: float = 0.2, seed: int = 0) -> np.ndarray:
     """A synthetic noisy circle of radius 1 with a fraction of uniform outliers in
-    [-1.5, 1.5]^2: the persistence showcase (its loop survives the outliers at k = 30)."""
+    [-1.5, 1.5]^2: the persistence showcase (its loop survives the outliers at k = 30).
+
+    Parameters
+    ----------
+    n : int
+        Points in all.
+    outliers : float
+        Their share that is uniform.
+    seed : int
+
+    Returns
+    -------
+    ndarray (n, 2)
+    """
     rng = np.random.default_rng(seed)
     m = int(round(n * (1 - outliers)))
     angle = rng.random(m) * 2 * np.pi
@@ -38,9 +61,18 @@ def ring(n=2000, outliers=0.2, seed=0):
     return np.concatenate([circle, rng.uniform(-1.5, 1.5, (n - m, 2))])
 
 
-def blobs(seed=0):
+def blobs(seed: int = 0) -> np.ndarray:
     """Synthetic clusters: four Gaussian blobs of different widths (2,000 points each) on a
-    uniform background of 2,000 points in the unit square."""
+    uniform background of 2,000 points in the unit square.
+
+    Parameters
+    ----------
+    seed : int
+
+    Returns
+    -------
+    ndarray (10000, 2)
+    """
     rng = np.random.default_rng(seed)
     centres = np.array([[0.2, 0.2], [0.8, 0.3], [0.5, 0.8], [0.2, 0.75]])
     widths = [0.04, 0.05, 0.03, 0.06]

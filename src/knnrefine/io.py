@@ -32,8 +32,21 @@ FORMAT_VERSION = 2  # 2: one layout for the plane and space (cells); 1 is still 
 UNREADABLE = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
 
 
-def unreadable(path, what, exc):
-    """The InputError for a file NumPy could not read (``UNREADABLE``)."""
+def unreadable(path, what: str, exc: BaseException) -> InputError:
+    """The InputError for a file NumPy could not read (``UNREADABLE``).
+
+    Parameters
+    ----------
+    path : str or PathLike
+    what : str
+        The format (".npz").
+    exc : BaseException
+        What NumPy raised.
+
+    Returns
+    -------
+    InputError
+    """
     return InputError(
         f"{path}: not a readable {what} file: truncated or corrupted? ({type(exc).__name__}: "
         f"{exc}); write it again"
@@ -43,26 +56,70 @@ def unreadable(path, what, exc):
 # --- points -------------------------------------------------------------------------------
 
 
-def read_points(path, columns=None, delimiter=None):
-    """Read an (n, 2) float64 array of points.
+def read_points(path, columns: str | None = None, delimiter: str | None = None) -> np.ndarray:
+    """Read points from CSV/TSV/text, .npy, .npz, .parquet or standard input ("-").
 
-    ``columns``: two column names (``"lon,lat"``) or zero-based indices (``"2,3"``); default:
-    the first two columns. ``delimiter``: default sniffed from the first line (comma, tab,
-    semicolon, else whitespace). Lines starting with ``#`` before the data are comments; a
-    ``#`` anywhere else is data (a text field may hold one)."""
+    Lines starting with ``#`` before the data are comments; a ``#`` anywhere else is data (a
+    text field may hold one).
+
+    Parameters
+    ----------
+    path : str or PathLike
+    columns : str, optional
+        Column names (``"lon,lat"``) or zero-based indices (``"2,3"``), two or three of them;
+        default: the first two columns.
+    delimiter : str, optional
+        Default: sniffed from the first line (comma, tab, semicolon, else whitespace).
+
+    Returns
+    -------
+    ndarray (n, d) float64
+
+    Raises
+    ------
+    InputError
+        A missing, unreadable or non-numeric file or column.
+    """
     return read_points_named(path, columns, delimiter)[0]
 
 
-def read_points_named(path, columns=None, delimiter=None):
-    """``read_points``, and the two columns' names: the header's (or the names given),
-    else ("x", "y")."""
+def read_points_named(path, columns: str | None = None,
+                      delimiter: str | None = None) -> tuple[np.ndarray, tuple]:  # fmt: skip
+    """``read_points``, and the columns' names.
+
+    Parameters
+    ----------
+    path, columns, delimiter
+        As for ``read_points``.
+
+    Returns
+    -------
+    points : ndarray (n, d) float64
+    names : tuple of str
+        The header's (or the names given), else ("x", "y"[, "z"]).
+    """
     return _read_columns(path, _parse_columns(columns), delimiter)
 
 
-def read_weighted_points(path, columns=None, weights=None, delimiter=None):
-    """(points (n, d), weights (n,) or None, the d columns' names): ``read_points_named``
-    and, with ``weights`` (a column's name or zero-based index), that column, read with the
-    points (the weights' checks are the engine's)."""
+def read_weighted_points(path, columns: str | None = None, weights: str | None = None,
+                         delimiter: str | None = None) -> tuple:  # fmt: skip
+    """``read_points_named`` and a column of weights, read with the points (the weights'
+    checks are the engine's).
+
+    Parameters
+    ----------
+    path, columns, delimiter
+        As for ``read_points``.
+    weights : str, optional
+        The weights' column, by name or zero-based index.
+
+    Returns
+    -------
+    points : ndarray (n, d) float64
+    weights : ndarray (n,) or None
+    names : tuple of str
+        The d columns' names.
+    """
     cols = _parse_columns(columns)
     if weights is None:
         points, names = _read_columns(path, cols, delimiter)
@@ -285,8 +342,23 @@ def _read_parquet(path, cols):
 # --- meshes -------------------------------------------------------------------------------
 
 
-def write_mesh(mesh, path, force=False):
-    """Write ``mesh`` in the format its extension names (see WRITERS; in space: WRITERS3)."""
+def write_mesh(mesh, path, force: bool = False) -> None:
+    """Write a mesh in the format its extension names (``WRITERS``; in space ``WRITERS3``),
+    atomically.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    path : str or PathLike
+    force : bool
+        Overwrite an existing file.
+
+    Raises
+    ------
+    InputError
+        An extension the mesh's dimension is not written as, an existing file without
+        ``force``, a folder that cannot be written.
+    """
     writers = WRITERS3 if mesh.dim == 3 else WRITERS
     ext = os.path.splitext(path)[1].lower()
     if ext not in writers:
@@ -295,8 +367,23 @@ def write_mesh(mesh, path, force=False):
     atomic_write(path, force, lambda tmp: writers[ext](mesh, tmp))
 
 
-def read_mesh(path):
-    """Read a mesh written by ``write_mesh`` as ``.npz`` (the lossless format)."""
+def read_mesh(path) -> "Mesh":
+    """Read a mesh written by ``write_mesh`` as ``.npz`` (the lossless format), in the plane
+    or in space, format 2 or 1.
+
+    Parameters
+    ----------
+    path : str or PathLike
+
+    Returns
+    -------
+    Mesh
+
+    Raises
+    ------
+    InputError
+        A missing, truncated or foreign file.
+    """
     ext = os.path.splitext(path)[1].lower()
     if ext not in READERS:
         raise InputError(f"{path}: knnrefine reads meshes from {', '.join(READERS)} files")
@@ -305,9 +392,23 @@ def read_mesh(path):
     return READERS[ext](path)
 
 
-def atomic_write(path, force, write):
-    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it into place; an
-    existing ``path`` is kept unless ``force``."""
+def atomic_write(path, force: bool, write) -> None:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it into place, so
+    that a failed write leaves nothing behind.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    force : bool
+        Overwrite an existing ``path``.
+    write : callable
+        Of the temporary file's path.
+
+    Raises
+    ------
+    InputError
+        An existing file without ``force``, a missing or read-only folder.
+    """
     if os.path.exists(path) and not force:
         raise InputError(f"{path} exists; use --force (force=True) to overwrite it")
     folder = os.path.dirname(os.path.abspath(path))
@@ -335,17 +436,35 @@ def atomic_write(path, force, write):
         raise
 
 
-def write_table(path, columns, force=False):
-    """A CSV file with a header line and one line per row, written atomically. ``columns``:
-    {name: array}, in order; floats are written with the fewest digits that read back to the
-    same double (pandas' default), integers as integers."""
+def write_table(path, columns: dict, force: bool = False) -> None:
+    """A CSV file with a header line and one line per row, written atomically; floats with
+    the fewest digits that read back to the same double (pandas' default), integers as
+    integers.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    columns : dict
+        {name: array}, in order.
+    force : bool
+        Overwrite an existing file.
+    """
     import pandas as pd
 
     frame = pd.DataFrame(dict(columns))
     atomic_write(path, force, lambda tmp: frame.to_csv(tmp, index=False))
 
 
-def write_text(path, text, force=False):
+def write_text(path, text: str, force: bool = False) -> None:
+    """A text file, written atomically.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    text : str
+    force : bool
+        Overwrite an existing file.
+    """
     atomic_write(path, force, lambda tmp: open(tmp, "w").write(text))
 
 

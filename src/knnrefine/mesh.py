@@ -6,20 +6,30 @@ from functools import cached_property
 import numpy as np
 
 from .engine.raster import clip_triangles
+from .engine.state import KIND_NAMES  # how each vertex came: the insertion moves
 from .errors import InputError
 from .metric import BoxMetric
 from .validation import as_queries
 
-KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
 
-
-def theorem6_constants(tau):
-    """(alpha, beta) with alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} for a refinement at tau.
+def theorem6_constants(tau: float) -> tuple[float, float]:
+    """Theorem 6's constants for a refinement at tau.
 
     beta = (3 - theta) / (1 - theta), theta = sqrt(1 - 1 / tau^2) (Theorem 5). alpha =
     1 / (2 K + 1) with K = max(2 tau / (tau - 2), 3) (Lemma 2 and Theorem 3): for tau <= 6 this
     is Theorem 6's (tau - 2) / (5 tau - 2); beyond, the induction step for a Break at a cell's
-    far corner needs K >= 3 (the paper's alpha is not proven there), so alpha stays 1/7."""
+    far corner needs K >= 3 (the paper's alpha is not proven there), so alpha stays 1/7.
+
+    Parameters
+    ----------
+    tau : float
+        The well-spacedness bound, > 2.
+
+    Returns
+    -------
+    (alpha, beta) : tuple of float
+        alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} everywhere in the box (above the floor).
+    """
     theta = np.sqrt(1.0 - 1.0 / tau**2)
     big_k = max(2.0 * tau / (tau - 2.0), 3.0)
     return 1.0 / (2.0 * big_k + 1.0), float((3.0 - theta) / (1.0 - theta))
@@ -37,6 +47,18 @@ class Torus:
     * period``, and ``neighbors[t, i]`` (kept in the plane, None in space) is the cell across
     the facet opposite corner i. ``triangles`` (plane) and ``tetrahedra`` (space) name the
     cells.
+
+    Attributes
+    ----------
+    origin, period : tuple of float
+        The torus' corner and sides, input units.
+    vertices : ndarray (m, d)
+        Relative to ``origin``, in [0, period).
+    cells : ndarray (t, d + 1)
+    offsets : ndarray (t, d + 1, d) int8
+    kinds : ndarray (m,) int8
+        How each vertex came (``KIND_NAMES``).
+    neighbors : ndarray (t, d + 1) or None
     """
 
     origin: tuple
@@ -175,30 +197,52 @@ class Mesh:
     def _tree(self):
         return self._metric.tree(self.vertices)
 
-    def d_m2(self, x):
-        """d_{M,2}: distance from each query point (x of shape (..., d)) to its
-        second-nearest mesh vertex, an array of shape (...).
+    def d_m2(self, x) -> np.ndarray:
+        """d_{M,2}: the distance to the second-nearest mesh vertex.
 
-        Periodic axes use the torus metric. Guaranteed to lie within
-        [alpha, beta] * d_{P,k} at every point of the box (above the floor)."""
+        Periodic axes use the torus metric. Guaranteed to lie within [alpha, beta] d_{P,k}
+        at every point of the box (above the floor).
+
+        Parameters
+        ----------
+        x : array-like (..., d)
+            Query points.
+
+        Returns
+        -------
+        ndarray (...)
+        """
         flat, shape = as_queries(x, self.dim)
         if len(flat) == 0:
             return np.zeros(shape)
         return self._tree.query(self._metric.frame(flat), k=2)[0][:, 1].reshape(shape)
 
-    def corners(self):
-        """(t, d + 1, d) cell corners in input units, offsets applied (periodic cells may
-        reach past the box across the seam)."""
+    def corners(self) -> np.ndarray:
+        """The cells' corners in input units, offsets applied (periodic cells may reach past
+        the box across the seam).
+
+        Returns
+        -------
+        ndarray (t, d + 1, d)
+        """
         c = self.vertices[self.cells]
         if self.offsets is not None:
             c = c + self.offsets * np.array(self.period)
         return c
 
-    def flat(self):
-        """A plain planar triangulation for drawing and mesh files: (points (p, 2), triangles
-        (t, 3), source (p,) index into ``vertices``). Corners that sit across a periodic seam
-        become extra copies of their vertex, so every triangle is drawn where it is. In the
-        plane only (in space: ``io``'s writers place each tetrahedron's corners)."""
+    def flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A plain planar triangulation for drawing and mesh files (the plane only; in space
+        ``io``'s writers place each tetrahedron's corners). Corners that sit across a
+        periodic seam become extra copies of their vertex, so every triangle is drawn where it
+        is.
+
+        Returns
+        -------
+        points : ndarray (p, 2)
+        triangles : ndarray (t, 3)
+        source : ndarray (p,)
+            The vertex of ``vertices`` each point copies.
+        """
         self._plane_only("flat")
         if self.offsets is None:
             return self.vertices, self.triangles, np.arange(len(self.vertices))
@@ -217,12 +261,17 @@ class Mesh:
         triangles = rank[inverse[len(own) :]].reshape(-1, 3).astype(np.int32)
         return points, triangles, vertex
 
-    def pieces_in_box(self):
-        """The triangles cut to the box, as the user's coordinates see it: along periodic
-        axes a triangle across the seam becomes its pieces on either side (the far one
-        shifted back by a period), along non-periodic axes the parts outside the box go.
-        Returns a list of (triangle index, polygon (q, 2)) with every polygon inside the box
-        (what GIS formats want: WGS84 longitudes stay in [-180, 180]). In the plane only."""
+    def pieces_in_box(self) -> list[tuple[int, np.ndarray]]:
+        """The triangles cut to the box, as the user's coordinates see it (the plane only):
+        along periodic axes a triangle across the seam becomes its pieces on either side (the
+        far one shifted back by a period), along non-periodic axes the parts outside the box
+        go; what GIS formats want (WGS84 longitudes stay in [-180, 180]).
+
+        Returns
+        -------
+        list of (int, ndarray (q, 2))
+            (triangle index, polygon inside the box), by triangle.
+        """
         self._plane_only("pieces_in_box")
         per = np.array(self.periodic, bool)
         period = np.array(self.period, float)
@@ -248,12 +297,24 @@ class Mesh:
         out.sort(key=lambda piece: piece[0])
         return out
 
-    def covering(self, sources=False):
-        """A plain planar triangulation covering the box: the triangles plus, along periodic
-        axes, their copies one period back that still meet the box (corners only ever reach
-        past the upper side of the box), one index per distinct point. Returns (nodes (p, 2),
-        triangles (t, 3)), and with ``sources`` the triangle each one copies. In the plane
-        only."""
+    def covering(self, sources: bool = False) -> tuple:
+        """A plain planar triangulation covering the box (the plane only): the triangles
+        plus, along periodic axes, their copies one period back that still meet the box
+        (corners only ever reach past the upper side of the box), one index per distinct
+        point.
+
+        Parameters
+        ----------
+        sources : bool
+            Also return the triangle each one copies.
+
+        Returns
+        -------
+        nodes : ndarray (p, 2)
+        triangles : ndarray (t, 3)
+        sources : ndarray (t,)
+            Only with ``sources``.
+        """
         self._plane_only("covering")
         per = np.array(self.periodic, bool)
         period = np.array(self.period, float)
@@ -264,15 +325,15 @@ class Mesh:
             if self.offsets is None
             else self.offsets.astype(np.int64)
         )
-        keys, source = [], []
+        key_parts, source = [], []
         for sx in (0, -1) if per[0] else (0,):
             for sy in (0, -1) if per[1] else (0,):
                 o = off + np.array([sx, sy])
                 c = self.vertices[tri] + o * period
                 meets = np.all((c.max(axis=1) >= lo) & (c.min(axis=1) <= hi), axis=1)
-                keys.append(copy_key(tri[meets], o[meets][..., 0], o[meets][..., 1]))
+                key_parts.append(copy_key(tri[meets], o[meets][..., 0], o[meets][..., 1]))
                 source.append(np.flatnonzero(meets))
-        keys = np.concatenate(keys)
+        keys = np.concatenate(key_parts)
         unique, inverse = np.unique(keys, return_inverse=True)
         vertex, sx, sy = copy_parts(unique)
         nodes = self.vertices[vertex] + np.stack([sx, sy], axis=1) * period

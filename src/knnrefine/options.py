@@ -109,7 +109,7 @@ class RunOptions:
             if (
                 isinstance(time_limit, bool)
                 or not isinstance(time_limit, numbers.Real)
-                or not (np.isfinite(time_limit) and time_limit > 0)
+                or not (np.isfinite(float(time_limit)) and float(time_limit) > 0)
             ):
                 raise InputError(
                     f"time_limit must be a positive number of seconds, got {time_limit!r}"

@@ -132,7 +132,9 @@ class Persistence:
     or tetrahedra) over ``positions``.
     """
 
-    def __init__(self, mesh, points, log=True, subdivide=True, function="d_pk", weights=None):
+    def __init__(self, mesh, points, log: bool = True, subdivide: bool = True,
+                 function: str = "d_pk", weights=None) -> None:  # fmt: skip
+        """See the class docstring."""
         gudhi = require_gudhi()
         if function not in ("d_pk", "d_m2"):
             raise InputError(f"function must be 'd_pk' or 'd_m2', got {function!r}")
@@ -169,20 +171,53 @@ class Persistence:
         """The complex's cells in the plane (its name there before space)."""
         return self.cells
 
-    def diagram(self, dim):
+    def diagram(self, dim: int) -> np.ndarray:
+        """The persistence diagram in one dimension.
+
+        Parameters
+        ----------
+        dim : int
+            0 to 2 in the plane, 0 to 3 in space.
+
+        Returns
+        -------
+        ndarray (q, 2)
+            Birth and death of each class (death inf for the classes that never die).
+        """
         d = np.asarray(self.simplex_tree.persistence_intervals_in_dimension(dim), float)
         return d.reshape(-1, 2)
 
-    def betti(self, threshold):
-        """Betti numbers (b0, b1, ..., b_d) of the sublevel set at ``threshold`` (same
-        scale)."""
+    def betti(self, threshold: float) -> tuple:
+        """Betti numbers of the sublevel set at a threshold.
+
+        Parameters
+        ----------
+        threshold : float
+            On the filtration's scale (log d_{P,k} by default).
+
+        Returns
+        -------
+        tuple of int
+            (b0, b1, ..., b_d).
+        """
         return tuple(
             int(((dg[:, 0] <= threshold) & (dg[:, 1] > threshold)).sum())
             for dg in (self.diagram(i) for i in range(self.mesh.dim + 1))
         )
 
-    def most_persistent(self, dim, count=3):
-        """Persistence (death - birth) of the ``count`` longest finite classes, longest first."""
+    def most_persistent(self, dim: int, count: int = 3) -> np.ndarray:
+        """The longest-lived finite classes in one dimension.
+
+        Parameters
+        ----------
+        dim : int
+        count : int
+
+        Returns
+        -------
+        ndarray (<= count,)
+            Their persistence (death - birth), longest first.
+        """
         d = self.diagram(dim)
         life = d[:, 1] - d[:, 0]
         return np.sort(life[np.isfinite(life)])[::-1][:count]

@@ -20,8 +20,31 @@ class Certificate:
     it (``mesh_problems`` empty), Lemma 2's precondition holds, the aspect is at most tau, no
     Voronoi cell or circumball holds k points (or weight k), and the achieved constants
     ``alpha_hat``/``beta_hat`` of d_{M,2} / d_{P,k} lie within Theorem 6's [alpha, beta].
-    ``size_integral`` estimates the integral of 1 / d_{P,k}^dim over the box, ``floor_sites``
-    are (coordinates..., elements) of the floor's sites, largest first."""
+    ``str(certificate)`` is the report; ``to_dict()`` the fields as plain Python.
+
+    Attributes
+    ----------
+    n, m, k, tau, periodic, box, min_size
+        The points' number, the mesh's vertices, and the run's options.
+    triangulation_ok, triangulation_problems
+        The torus mesh verified exactly, and what failed.
+    max_aspect : float
+        The largest 2 R(v) / d_{M,2}(v); at most tau.
+    max_cell_count, max_ball_count
+        The most points (weight) in a Voronoi cell and a circumball above the floor; < k.
+    alpha, beta, alpha_hat, beta_hat, alpha_hat_at, beta_hat_at, n_probes
+        Theorem 6's constants, the extremes of d_{M,2} / d_{P,k} measured at ``n_probes``
+        probes and where they were found.
+    size_integral, size_integral_stderr, size_ratio
+        The integral of 1 / d_{P,k}^dim over the box (Monte Carlo) and m over it.
+    floor_circumballs, floor_cells, floor_sites, under_floor
+        Elements left holding k points below ``min_size``, their sites ((coordinates...,
+        elements), largest first), the share of the points where d_{P,k} < min_size.
+    mesh_problems, precondition_ok, precondition_note
+        The returned mesh against the torus mesh; Lemma 2's precondition.
+    seconds, weight, count_slack
+        Time taken; the total weight of a weighted run and the rounding allowed its sums.
+    """
 
     n: int
     m: int
@@ -98,7 +121,13 @@ class Certificate:
             )
         return out
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
+        """The fields and ``passed`` as plain Python (for JSON).
+
+        Returns
+        -------
+        dict
+        """
         d = asdict(self)
         d["passed"] = self.passed
         return {key: plain(v) for key, v in d.items()}

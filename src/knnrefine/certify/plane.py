@@ -36,14 +36,14 @@ from .common import (
 
 
 def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
-                  max_point_probes=100_000, seed=0, workers=-1):  # fmt: skip
-    """``certify`` of a mesh against the points of ``store`` (``engine/partition.py``:
+                  max_point_probes=100_000, seed=0, threads=-1):  # fmt: skip
+    """``certify`` of a mesh against the points of ``store`` (``scale/tiled.py``:
     ``LocalStore`` or ``distributed.DaskStore``), which never come to this process: counts
     and d_{P,k} are asked strip by strip (``tiles`` strips of equal share), each strip where
     its points are. The caller has checked that the points lie in the mesh's box."""
     t0 = time.perf_counter()
     check_source(mesh.stats, store.n, store.weight)
-    torus = TiledTorusPoints(mesh, store, int(tiles), workers)
+    torus = TiledTorusPoints(mesh, store, int(tiles), threads)
     return run_checks(mesh, torus, samples=samples, n_random=n_random,
                     max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
 
@@ -111,8 +111,8 @@ class TorusPoints:
     """What every check reads: the mesh's torus (vertices relative to its origin), the input
     points wrapped into it by the package's one rule, and kd-trees over both."""
 
-    def __init__(self, mesh, pts, workers, weights=None):
-        self._mesh(mesh, workers)
+    def __init__(self, mesh, pts, threads, weights=None):
+        self._mesh(mesh, threads)
         self.weights = weights
         self.weighted = weights is not None
         self.n = len(pts)
@@ -120,11 +120,11 @@ class TorusPoints:
         self.points = self.input_frame(pts)
         self.point_tree = cKDTree(self.points, boxsize=self.period)
 
-    def _mesh(self, mesh, workers):
+    def _mesh(self, mesh, threads):
         self.mesh = mesh
         self.k = mesh.k
         self.min_size = mesh.min_size
-        self.workers = workers
+        self.threads = threads
         self.period = np.asarray(mesh.torus.period, float)
         self.origin = np.asarray(mesh.torus.origin, float)
         self.vertices = np.asarray(mesh.torus.vertices, float)
@@ -139,24 +139,24 @@ class TorusPoints:
         return _in_box(x, self.lo, self.hi, self.periodic)
 
     def d_m2(self, x):
-        return self.vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
+        return self.vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
 
     def d_pk(self, x):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
         if self.weights is None:
-            return self.point_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
-        return _weighted_kth(self.point_tree, self.weights, x, self.k, self.workers)
+            return self.point_tree.query(x, k=[self.k], workers=self.threads)[0][:, 0]
+        return _weighted_kth(self.point_tree, self.weights, x, self.k, self.threads)
 
     def held(self, centres, radii):
         """What each closed disk (centre, radius) holds: its number of points, or their
         weight."""
-        return _held(self.point_tree, self.weights, centres, radii, self.workers)
+        return _held(self.point_tree, self.weights, centres, radii, self.threads)
 
     def cell_counts(self, outradii):
         """What each vertex's closed Voronoi cell holds (points equidistant to several
         vertices count for each)."""
         m = len(self.vertices)
-        dd, ii = self.vertex_tree.query(self.points, k=min(3, m), workers=self.workers)
+        dd, ii = self.vertex_tree.query(self.points, k=min(3, m), workers=self.threads)
         return _cell_tally(dd, ii, self.weights, m)
 
     def sample_points(self, count, rng):
@@ -165,11 +165,11 @@ class TorusPoints:
         return P if len(P) <= count else P[rng.choice(len(P), count, False)]
 
 
-def _held(tree, weights, centres, radii, workers=-1):
+def _held(tree, weights, centres, radii, threads=-1):
     """What each closed disk about centres holds in the tree's points: a count, or their
     weight (summed by ``_sums``: a heavy point does not swallow light ones)."""
     if weights is None:
-        return tree.query_ball_point(centres, radii, return_length=True, workers=workers)
+        return tree.query_ball_point(centres, radii, return_length=True, workers=threads)
     out = np.zeros(len(centres))
     for lo in range(0, len(centres), 10_000):
         lists = tree.query_ball_point(
@@ -210,7 +210,7 @@ class StripQuestions:
     (the whole torus at last)."""
 
     def __init__(self, store, origin, period, k, tiles):
-        from ..engine.partition import SAMPLE_MIN, regions_axis, strips
+        from ..scale.tiled import SAMPLE_MIN, regions_axis, strips
 
         self.store, self.k = store, k
         self.period = np.asarray(period, float)
@@ -230,7 +230,7 @@ class StripQuestions:
 
     def route(self, x, pad):
         """The rows of x (torus frame) within ``pad`` of each strip (one pad per row)."""
-        from ..engine.partition import split_strips
+        from ..scale.tiled import split_strips
 
         rows, bounds = split_strips(x, self.regions, pad, *self.period)
         return [rows[bounds[j] : bounds[j + 1]] for j in range(len(self.regions))]
@@ -238,7 +238,7 @@ class StripQuestions:
     def d_pk(self, x, pad):
         """Exact d_{P,k} at x (torus frame); ``pad`` a first guess of its reach (it only sets
         how often a question is asked again)."""
-        from ..engine.partition import strip_owner
+        from ..scale.tiled import strip_owner
 
         out = np.full(len(x), np.nan)
         if len(x) == 0:
@@ -272,8 +272,8 @@ class TiledTorusPoints(TorusPoints):
     """A ``TorusPoints`` whose input points stay in a store: every question about them is a
     ``StripQuestions``."""
 
-    def __init__(self, mesh, store, tiles, workers):
-        self._mesh(mesh, workers)
+    def __init__(self, mesh, store, tiles, threads):
+        self._mesh(mesh, threads)
         self.store = store
         self.n = store.n
         self.weighted = store.weight is not None
@@ -319,7 +319,7 @@ def _certify_strip(points, weights, job):
     """One strip's answers (``TiledTorusPoints``) from its points (the torus frame) within
     ``job["pad"]`` of it: d_{P,k} at its queries (NaN where the k-th point may lie beyond
     the pad), what its own points add to each disk, to each vertex's cell."""
-    from ..engine.partition import strip_owner
+    from ..scale.tiled import strip_owner
 
     period = np.asarray(job["period"], float)
     out = {}
@@ -357,7 +357,7 @@ def _certify_strip(points, weights, job):
     return out
 
 
-def _weighted_kth(tree, weights, x, k, workers, chunk=20_000):
+def _weighted_kth(tree, weights, x, k, threads, chunk=20_000):
     """The least r whose closed disk about each x holds weight >= k: the nearest points in
     order, their weights summed, more of them fetched where the first ones fall short."""
     out = np.empty(len(x))
@@ -369,7 +369,7 @@ def _weighted_kth(tree, weights, x, k, workers, chunk=20_000):
         todo = np.arange(len(q))
         kk = first
         while len(todo):
-            d, i = tree.query(q[todo], k=kk, workers=workers)
+            d, i = tree.query(q[todo], k=kk, workers=threads)
             d = d.reshape(len(todo), kk)
             i = i.reshape(len(todo), kk)
             held = running_sums(np.ascontiguousarray(weights[np.minimum(i, n - 1)] * (i < n)))
@@ -409,7 +409,7 @@ def check_triangulation(torus):
 
 def check_well_spaced(torus, triangulation):
     """The largest aspect 2 R(v) / d_{M,2}(v) over the vertices."""
-    d_m2 = torus.vertex_tree.query(torus.vertices, k=2, workers=torus.workers)[0][:, 1]
+    d_m2 = torus.vertex_tree.query(torus.vertices, k=2, workers=torus.threads)[0][:, 1]
     return float(np.max(2.0 * triangulation.outradii / d_m2))
 
 

@@ -197,7 +197,7 @@ def _tetrahedron_samples(c, per, rng):
 
 
 def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
-             seed=0, workers=-1):  # fmt: skip
+             seed=0, threads=-1):  # fmt: skip
     """Check ``mesh`` (from ``knnrefine.refine`` with (n, 3) points) against ``points``;
     returns a ``Certificate`` (nothing is raised when a check fails: see ``.passed``).
 
@@ -209,7 +209,7 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     assumed): d_{P,k} from the points, d_{M,2} from the returned vertices, at probes in the
     box: ``samples`` stratified points in the tetrahedra (at least 4 in each), every vertex,
     circumcentre and edge midpoint, up to ``max_point_probes`` input points and ``n_random``
-    uniform points. ``workers``: the kd-tree queries' threads (-1: all cores)."""
+    uniform points. ``threads``: the kd-tree queries' threads (-1: all cores)."""
     t0 = time.perf_counter()
     pts = as_points(points, 3)
     check_source(mesh.stats, len(pts), None)
@@ -232,9 +232,9 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     centres, r2 = _circumspheres(c)
     point_tree = cKDTree(p, boxsize=period)
     held = point_tree.query_ball_point(np.mod(centres, period), np.sqrt(r2), return_length=True,
-                                       workers=workers)  # fmt: skip
+                                       workers=threads)  # fmt: skip
     vertex_tree = cKDTree(local, boxsize=period)
-    dd, ii = vertex_tree.query(p, k=min(3, len(local)), workers=workers)
+    dd, ii = vertex_tree.query(p, k=min(3, len(local)), workers=threads)
     dd, ii = dd.reshape(len(p), -1), ii.reshape(len(p), -1)
     tie = dd <= dd[:, :1] * (1 + 1e-12)
     cells = np.bincount(ii[tie], minlength=len(local))
@@ -245,7 +245,7 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     floor_cells = (cells >= k) & (np.sqrt(outer) < mesh.min_size)
     max_held = int(held[~floor_balls].max(initial=0))
     max_cell = int(cells[~floor_cells].max(initial=0))
-    d_m2 = vertex_tree.query(local, k=2, workers=workers)[0][:, 1]
+    d_m2 = vertex_tree.query(local, k=2, workers=threads)[0][:, 1]
     aspect = float((2.0 * np.sqrt(outer) / d_m2).max())
     precondition = check_precondition(
         local[np.asarray(torus.kinds) == 0], _Points(point_tree, len(p)), k, mesh.tau, period
@@ -282,15 +282,15 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     box_boxsize = np.where(mesh.periodic, period, 0.0) if any(mesh.periodic) else None
     box_points = point_tree if all(mesh.periodic) else metric.tree(pts)
     box_vertices = cKDTree(returned, boxsize=box_boxsize)
-    dm2 = box_vertices.query(probes, k=min(2, len(returned)), workers=workers)[0]
+    dm2 = box_vertices.query(probes, k=min(2, len(returned)), workers=threads)[0]
     dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(probes), np.inf)
     if not mesh_problems:  # the copies near the box hold its two nearest
-        on_torus = vertex_tree.query(probes, k=2, workers=workers)[0][:, 1]  # wraps queries
+        on_torus = vertex_tree.query(probes, k=2, workers=threads)[0][:, 1]  # wraps queries
         if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
             mesh_problems.append(
                 "d_M2 from the returned vertices differs from the torus mesh's in the box"
             )
-    dpk = box_points.query(probes, k=[k], workers=workers)[0][:, 0]
+    dpk = box_points.query(probes, k=[k], workers=threads)[0][:, 0]
     use = dpk >= mesh.min_size
     ratio = dm2[use] / dpk[use]
     nan = float("nan")

@@ -55,7 +55,8 @@ class KnnDistance:
     nodes (the plane) or at the mesh's vertices (space).
     """
 
-    def __init__(self, mesh, points, subdivide: bool = True, weights=None):
+    def __init__(self, mesh, points, subdivide: bool = True, weights=None) -> None:
+        """See the class docstring."""
         dim = mesh.dim
         pts, weights, total = points_of_run(mesh, points, weights)
         self._frame(mesh, len(pts), total)
@@ -63,8 +64,13 @@ class KnnDistance:
         self.index = point_index(mesh, pts, weights)
         if dim == 2:
             nodes, triangles = mesh.covering()
-            pieces = linear_pieces(nodes, triangles, *index_values(self.index, self.k), subdivide)
-            self.pieces = PlanePieces(*pieces, mesh.box, mesh.periodic)
+            at_vertices, at_midpoints = index_values(self.index, self.k)
+            nodes, triangles, values = linear_pieces(
+                nodes, triangles, at_vertices, at_midpoints, subdivide
+            )
+            self.pieces: PlanePieces | SpacePieces = PlanePieces(
+                nodes, triangles, values, mesh.box, mesh.periodic
+            )
         else:
             self.pieces = SpacePieces(mesh, self.index.kth_local, subdivide)
         self.values = self.pieces.values
@@ -80,11 +86,29 @@ class KnnDistance:
         self._metric = BoxMetric(mesh.box, mesh.periodic)
 
     @classmethod
-    def of_pieces(cls, mesh, n, total, nodes, triangles, values, located=None):
+    def of_pieces(cls, mesh, n, total, nodes, triangles, values, located=None) -> "KnnDistance":
         """A KnnDistance in the plane from linear pieces whose node values are known already
-        (a part of a partitioned mesh, ``partitioned.PartitionedDensity``): evaluation, grids
-        and integrals over ``triangles``; points located in ``located`` (pieces over the same
-        nodes; default: ``triangles``). Without the points, no ``exact``."""
+        (a part of a partitioned mesh, ``scale.parts.PartitionedDistance``). Without the
+        points, no ``exact``.
+
+        Parameters
+        ----------
+        mesh : Mesh or PartitionedMesh
+            Its k, box and periodic axes.
+        n, total : int, float
+            The points' number and their total weight (n unweighted).
+        nodes : ndarray (p, 2)
+        triangles : ndarray (t, 3)
+            The pieces that evaluation, grids and integrals use.
+        values : ndarray (p,)
+            d_{P,k} at the nodes.
+        located : ndarray (s, 3), optional
+            Pieces over the same nodes where points are located (default: ``triangles``).
+
+        Returns
+        -------
+        KnnDistance
+        """
         self = cls.__new__(cls)
         self._frame(mesh, n, total)
         self._points = self.index = None
@@ -92,7 +116,7 @@ class KnnDistance:
         self.values = values
         return self
 
-    # the plane's pieces, named as before (``partitioned`` and the plots read them)
+    # the plane's pieces, named as before (``scale.parts`` and the plots read them)
     @property
     def nodes(self):
         return self.pieces.nodes
@@ -102,27 +126,62 @@ class KnnDistance:
         return self.pieces.triangles
 
     # -- evaluation ------------------------------------------------------------------------
-    def __call__(self, x):
-        """Estimated d_{P,k} at the query points x, shape (..., d): an array of shape (...).
-        NaN outside the box along non-periodic axes (on every side); periodic axes wrap."""
+    def __call__(self, x) -> np.ndarray:
+        """The interpolated d_{P,k} at query points; NaN outside the box along non-periodic
+        axes (on every side), periodic axes wrap.
+
+        Parameters
+        ----------
+        x : array-like (..., d)
+
+        Returns
+        -------
+        ndarray (...)
+        """
         flat, shape = as_queries(x, self.dim)
         out = np.full(len(flat), np.nan)
         inside = self._inside(flat)
         out[inside] = self.pieces.interpolate(self._metric.wrap(flat[inside]))
         return out.reshape(shape)
 
-    def interpolate(self, x, values):
-        """Any node values (nodes, ...) linearly interpolated over the pieces at the points
-        x (q, 2): shape (q, ...), NaN outside the box along non-periodic axes (the plane)."""
+    def interpolate(self, x, values) -> np.ndarray:
+        """Any node values linearly interpolated over the pieces (the plane).
+
+        Parameters
+        ----------
+        x : ndarray (q, 2)
+            Query points.
+        values : array-like (nodes, ...)
+            One value (or row) per node of the pieces.
+
+        Returns
+        -------
+        ndarray (q, ...)
+            NaN outside the box along non-periodic axes.
+        """
         values = np.asarray(values, float)
         inside = self._inside(x)
         out = np.full((len(x), *values.shape[1:]), np.nan)
         out[inside] = self.pieces.interpolate(self._metric.wrap(x[inside]), values)
         return out
 
-    def exact(self, x):
-        """Exact d_{P,k} at the query points (..., d), one kd-tree query each (the
-        reference); NaN outside the box along non-periodic axes, as the estimate."""
+    def exact(self, x) -> np.ndarray:
+        """Exact d_{P,k}, one kd-tree query per point (the reference).
+
+        Parameters
+        ----------
+        x : array-like (..., d)
+
+        Returns
+        -------
+        ndarray (...)
+            NaN outside the box along non-periodic axes, as the estimate.
+
+        Raises
+        ------
+        InputError
+            For a d_{P,k} built from node values alone (``of_pieces``).
+        """
         flat, shape = as_queries(x, self.dim)
         out = np.full(len(flat), np.nan)
         inside = self._inside(flat)
@@ -134,11 +193,22 @@ class KnnDistance:
         out[inside] = self.index.kth(self._metric.wrap(flat[inside]), self.k)
         return out.reshape(shape)
 
-    def grid(self, shape=None):
-        """The estimate at the centres of a grid over the box: (xs, ys, values (ny, nx)) in
-        the plane, row j at ys[j] (image order, origin at the lower left); (xs, ys, zs,
-        values (nz, ny, nx)) in space. ``shape``: cells per axis, slowest first ((ny, nx) or
-        (nz, ny, nx)); default 512 per axis in the plane, 64 in space."""
+    def grid(self, shape=None) -> tuple:
+        """The estimate at the centres of a grid over the box.
+
+        Parameters
+        ----------
+        shape : int or tuple of int, optional
+            Cells per axis, slowest first: (ny, nx) in the plane, (nz, ny, nx) in space; one
+            number for all axes; default 512 per axis in the plane, 64 in space.
+
+        Returns
+        -------
+        xs, ys[, zs] : ndarray
+            The cells' centres along each axis.
+        values : ndarray (ny, nx) or (nz, ny, nx)
+            Row j at ys[j] (image order, origin at the lower left).
+        """
         shape = grid_shape(shape, self.dim)
         *axes, out = self.pieces.grid(shape)
         missed = np.isnan(out)  # centres on no piece by rounding (none expected): located
@@ -148,10 +218,22 @@ class KnnDistance:
             out[missed] = self(x)
         return (*axes, out)
 
-    def error(self, probes=None, n_random=20000, seed=0):
-        """Relative error of the estimate against exact d_{P,k}: a dict with the median, the
-        99th percentile and the worst over the probes (default: random points of the box and
-        as many input points)."""
+    def error(self, probes=None, n_random: int = 20000, seed: int = 0) -> dict:
+        """Relative error of the estimate against exact d_{P,k}.
+
+        Parameters
+        ----------
+        probes : array-like (q, d), optional
+            Where to compare (default: ``n_random`` uniform points of the box and as many of
+            the input points).
+        n_random, seed : int
+            The default probes' number and seed.
+
+        Returns
+        -------
+        dict
+            ``median``, ``p99`` (99th percentile), ``worst``, ``probes`` (how many counted).
+        """
         if probes is None:
             rng = np.random.default_rng(seed)
             uniform = self.lo + rng.random((n_random, self.dim)) * (self.hi - self.lo)
@@ -168,26 +250,72 @@ class KnnDistance:
         }
 
     # -- integrals ---------------------------------------------------------------------------
-    def integrate(self, func, region=None):
-        """Integral over ``region`` of func(d), d the interpolated d_{P,k}: a quadrature on
-        every linear piece, the pieces clipped to the region. ``region``: (x0, y0, x1, y1) in
-        the plane, (x0, y0, z0, x1, y1, z1) in space; default the box. The region counts only
-        where it meets the box along non-periodic axes (the estimate lives there); along
-        periodic axes it wraps around (at most one period wide)."""
+    def integrate(self, func, region=None) -> float:
+        """Integral of func(d) over a region, d the interpolated d_{P,k}: a quadrature on
+        every linear piece, the pieces clipped to the region.
+
+        Parameters
+        ----------
+        func : callable
+            Of an array of d values (vectorised).
+        region : sequence of float, optional
+            (x0, y0, x1, y1) in the plane, (x0, y0, z0, x1, y1, z1) in space; default the
+            box. It counts only where it meets the box along non-periodic axes; along
+            periodic axes it wraps around (at most one period wide).
+
+        Returns
+        -------
+        float
+        """
         return float(sum(self.pieces.integrate(func, rect) for rect in self._region(region)))
 
-    def sample_pieces(self, n, rng):
-        """n points from the density proportional to 1 / d^dim over the box (``KnnDensity``)."""
+    def sample_pieces(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """Points from the density proportional to 1 / d^dim over the box (``KnnDensity``).
+
+        Parameters
+        ----------
+        n : int
+        rng : numpy.random.Generator
+
+        Returns
+        -------
+        ndarray (n, d)
+        """
         return self.pieces.sample(n, rng)
 
     # -- the kNN-CDF (space) -----------------------------------------------------------------
-    def cdf(self, r):
-        """CDF(r) = vol{x : d(x) <= r} / vol(box) for the interpolated d at the radii r (the
-        kNN-CDF of cosmology; built in space: ``space.SpacePieces.cdf``)."""
+    def cdf(self, r) -> np.ndarray:
+        """The kNN-CDF of cosmology, CDF(r) = vol{x : d(x) <= r} / vol(box), exact for the
+        interpolated d (space: ``space.SpacePieces.cdf``).
+
+        Parameters
+        ----------
+        r : array-like (q,)
+            Radii.
+
+        Returns
+        -------
+        ndarray (q,)
+
+        Raises
+        ------
+        InputError
+            In the plane.
+        """
         return self._space_only("cdf")(r)
 
-    def cdf_bounds(self, r):
-        """(lower, upper) rigorous bounds of the true kNN-CDF at the radii r (space)."""
+    def cdf_bounds(self, r) -> tuple[np.ndarray, np.ndarray]:
+        """Rigorous bounds of the true kNN-CDF (space).
+
+        Parameters
+        ----------
+        r : array-like (q,)
+            Radii.
+
+        Returns
+        -------
+        lower, upper : ndarray (q,)
+        """
         return self._space_only("cdf_bounds")(r)
 
     def _space_only(self, what):

@@ -8,25 +8,53 @@ import numpy as np
 from .distance import KnnDistance
 
 
-def default_k(n):
-    """A default k for density estimation from n points: sqrt(n) / 2 (at least 10, at most
-    n: on 5 points, 5), after the paper's k ~ sqrt(n) (k / n -> 0 and k / log n ->
-    infinity)."""
+def default_k(n: float) -> int:
+    """A default k for density estimation from n points: sqrt(n) / 2, at least 10 and at most
+    n (on 5 points, 5), after the paper's k ~ sqrt(n) (k / n -> 0 and k / log n -> infinity).
+
+    Parameters
+    ----------
+    n : float
+        The points' number or total weight.
+
+    Returns
+    -------
+    int
+    """
     return min(max(10, int(round(0.5 * np.sqrt(n)))), max(1, int(n)))
 
 
-def default_pilot_k(n):
-    """The default k of the adaptive estimate's pilot: 2 sqrt(n) (at least 10, at most n,
-    the points' number or total weight: k counts weight). A smoother
-    pilot than the kNN estimate's own default: with the bandwidth and sensitivity chosen by
-    leave-one-out likelihood, 2 sqrt(n) had lower L1 error than sqrt(n) / 2 on five of the
-    study's six truths at n = 1e4 and all six at 1e5, and a held-out likelihood as good or
-    better on five and six (``benchmarks/pilot_k.py``, docs/uses.md)."""
+def default_pilot_k(n: float) -> int:
+    """The default k of the adaptive estimate's pilot: 2 sqrt(n), at least 10 and at most n
+    (k counts weight). A smoother pilot than the kNN estimate's own default: with the
+    bandwidth and sensitivity chosen by leave-one-out likelihood, 2 sqrt(n) had lower L1 error
+    than sqrt(n) / 2 on five of the study's six truths at n = 1e4 and all six at 1e5, and a
+    held-out likelihood as good or better on five and six (``benchmarks/pilot_k.py``,
+    docs/uses.md).
+
+    Parameters
+    ----------
+    n : float
+        The points' number or total weight.
+
+    Returns
+    -------
+    int
+    """
     return min(max(10, int(round(2.0 * np.sqrt(n)))), int(n))
 
 
-def unit_ball_volume(dim):
-    """V_d = pi^(d/2) / Gamma(d/2 + 1): pi in the plane, 4 pi / 3 in space."""
+def unit_ball_volume(dim: int) -> float:
+    """V_d = pi^(d/2) / Gamma(d/2 + 1): pi in the plane, 4 pi / 3 in space.
+
+    Parameters
+    ----------
+    dim : int
+
+    Returns
+    -------
+    float
+    """
     return math.pi ** (dim / 2) / math.gamma(dim / 2 + 1)
 
 
@@ -49,14 +77,27 @@ class KnnDensity:
     ``mass(region)``, draw from it with ``sample(n, rng)``.
     """
 
-    def __init__(self, mesh, points, normalized=True, subdivide=True, weights=None):
+    def __init__(self, mesh, points, normalized: bool = True, subdivide: bool = True,
+                 weights=None) -> None:  # fmt: skip
+        """See the class docstring."""
         self._of(KnnDistance(mesh, points, subdivide=subdivide, weights=weights), normalized)
 
     @classmethod
-    def of_distance(cls, distance, normalized=True):
-        """The estimate from a d_{P,k} already built: a ``KnnDistance`` or anything with its
-        ``k``, ``total``, ``__call__``, ``grid``, ``integrate`` and ``sample_pieces``
-        (``partitioned.PartitionedDistance``)."""
+    def of_distance(cls, distance, normalized: bool = True) -> "KnnDensity":
+        """The estimate from a d_{P,k} already built.
+
+        Parameters
+        ----------
+        distance : KnnDistance or PartitionedDistance
+            Anything with ``k``, ``total``, ``__call__``, ``grid``, ``integrate`` and
+            ``sample_pieces``.
+        normalized : bool
+            As for the class.
+
+        Returns
+        -------
+        KnnDensity
+        """
         self = cls.__new__(cls)
         self._of(distance, normalized)
         return self
@@ -74,25 +115,64 @@ class KnnDensity:
         dim = self.dim
         return lambda d: constant / d**dim
 
-    def __call__(self, x):
-        """The density at the query points x, shape (..., d): an array of shape (...)."""
+    def __call__(self, x) -> np.ndarray:
+        """The density at query points (NaN outside the box along non-periodic axes).
+
+        Parameters
+        ----------
+        x : array-like (..., d)
+
+        Returns
+        -------
+        ndarray (...)
+        """
         return self.constant / self.distance(x) ** self.dim
 
-    def grid(self, shape=None):
-        """The density at the centres of a grid over the box: (xs, ys, values) in the
-        plane, (xs, ys, zs, values) in space (``KnnDistance.grid``)."""
+    def grid(self, shape=None) -> tuple:
+        """The density at the centres of a grid over the box (``KnnDistance.grid``).
+
+        Parameters
+        ----------
+        shape : int or tuple of int, optional
+            Cells per axis, slowest first; default 512 per axis in the plane, 64 in space.
+
+        Returns
+        -------
+        xs, ys[, zs] : ndarray
+        values : ndarray (ny, nx) or (nz, ny, nx)
+        """
         *axes, d = self.distance.grid(shape)
         return (*axes, self.constant / d**self.dim)
 
-    def mass(self, region=None):
-        """Integral of the estimate over the box ``region`` ((x0, y0, x1, y1) in the plane,
-        (x0, y0, z0, x1, y1, z1) in space; default the whole box): the probability of the
-        part of the region in the box (regions wrap across periodic seams)."""
+    def mass(self, region=None) -> float:
+        """The estimate's integral over a region: the probability of the part of the region
+        in the box (regions wrap across periodic seams).
+
+        Parameters
+        ----------
+        region : sequence of float, optional
+            (x0, y0, x1, y1) in the plane, (x0, y0, z0, x1, y1, z1) in space; default the
+            box.
+
+        Returns
+        -------
+        float
+        """
         return self.distance.integrate(self._of_d(self.constant), region)
 
-    def sample(self, n, rng):
-        """n points (n, d) drawn from the normalised estimate with the numpy Generator rng: a
-        piece of the mesh chosen by an upper bound of its mass, a uniform point in it, kept
-        with probability density / bound (exact rejection sampling of the piecewise
-        estimate; the pieces are well shaped, so most proposals are kept)."""
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """Points drawn from the normalised estimate: a piece of the mesh chosen by an upper
+        bound of its mass, a uniform point in it, kept with probability density / bound
+        (exact rejection sampling of the piecewise estimate; the pieces are well shaped, so
+        most proposals are kept).
+
+        Parameters
+        ----------
+        n : int
+        rng : numpy.random.Generator
+
+        Returns
+        -------
+        ndarray (n, d)
+        """
         return self.distance.sample_pieces(n, rng)

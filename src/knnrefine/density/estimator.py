@@ -113,7 +113,7 @@ class KnnDensityEstimator:
         whiten=False,
         tau=3.0, periodic=False, box=None, margin=0.1, min_size=None, subdivide=True, cv=5,
         k_grid=None, random_state=0, loo_points=20000, criterion="likelihood",
-    ):  # fmt: skip
+    ) -> None:  # fmt: skip
         self.k = k
         self.method = method
         self.bandwidth = bandwidth
@@ -138,12 +138,37 @@ class KnnDensityEstimator:
         params = inspect.signature(cls.__init__).parameters
         return sorted(p for p in params if p != "self")
 
-    def get_params(self, deep=True):
-        """The constructor's parameters as a dict (scikit-learn's protocol)."""
+    def get_params(self, deep: bool = True) -> dict:
+        """The constructor's parameters (scikit-learn's protocol).
+
+        Parameters
+        ----------
+        deep : bool
+            Ignored (no parameter is an estimator).
+
+        Returns
+        -------
+        dict
+        """
         return {name: getattr(self, name) for name in self._param_names()}
 
-    def set_params(self, **params):
-        """Set constructor parameters (scikit-learn's protocol); returns self."""
+    def set_params(self, **params) -> "KnnDensityEstimator":
+        """Set constructor parameters (scikit-learn's protocol).
+
+        Parameters
+        ----------
+        **params
+            Constructor parameters by name.
+
+        Returns
+        -------
+        self
+
+        Raises
+        ------
+        InputError
+            An unknown parameter.
+        """
         valid = self._param_names()
         for name, value in params.items():
             if name not in valid:
@@ -170,11 +195,28 @@ class KnnDensityEstimator:
         return f"KnnDensityEstimator({', '.join(changed)})"
 
     # -- fitting -----------------------------------------------------------------------------
-    def fit(self, X, y=None, sample_weight=None):
-        """Refine a mesh of X (n, 2) or (n, 3) and build the estimate. ``sample_weight``:
-        weights >= 0 (the engine counts them: a point of whole weight w is w copies, real
-        weights are survey or aggregation weights; n is then their total W). ``y`` is
-        ignored. Returns self."""
+    def fit(self, X, y=None, sample_weight=None) -> "KnnDensityEstimator":
+        """Refine a mesh of X and build the estimate.
+
+        Parameters
+        ----------
+        X : array-like (n, 2) or (n, 3)
+            The points (pandas frames too).
+        y : ignored
+        sample_weight : array-like (n,), optional
+            Weights >= 0 (the engine counts them: a point of whole weight w is w copies, real
+            weights are survey or aggregation weights; n is then their total W). The plane
+            only (refined in space, weights are refused).
+
+        Returns
+        -------
+        self
+
+        Raises
+        ------
+        InputError
+            Bad points, weights or options (``method="adaptive"`` for points in space).
+        """
         dim = 3 if np.ndim(X) == 2 and np.shape(X)[1] == 3 else 2
         pts = as_points(X, dim)
         self._check_options()
@@ -346,24 +388,47 @@ class KnnDensityEstimator:
         return ks, scores
 
     # -- uncertainty -------------------------------------------------------------------------
-    def standard_error(self, X):
-        """Pointwise standard error of the density at X, shape (..., d) -> (...). kNN: f(x) /
-        sqrt(k) (its relative error is about 1 / sqrt(k): the ball of radius d_{P,k}(x) holds
-        k points, whose count fluctuates like a Poisson variable's); adaptive: the
-        sample-point estimate's variance (``AdaptiveDensity.standard_error``)."""
+    def standard_error(self, X) -> np.ndarray:
+        """Pointwise standard error of the density. kNN: f(x) / sqrt(k) (its relative error
+        is about 1 / sqrt(k): the ball of radius d_{P,k}(x) holds k points, whose count
+        fluctuates like a Poisson variable's); adaptive: the sample-point estimate's variance
+        (``AdaptiveDensity.standard_error``).
+
+        Parameters
+        ----------
+        X : array-like (..., d)
+
+        Returns
+        -------
+        ndarray (...)
+        """
         density = self._fitted()
         if self.method_ == "knn":
             return np.exp(self.score_samples(X)) / np.sqrt(self.k_)
         flat, shape = self._queries(X)
         return (density.standard_error(flat) / self._jacobian()).reshape(shape)
 
-    def bootstrap(self, X, n_boot=100, level=0.9, random_state=None):
-        """Percentile bands (lower, upper) of the density at X, shape (..., d) -> two arrays
-        (...): the estimate refitted (same k and box) on n_boot resamples of the training
-        points with replacement (as weights: no copies are made), and the (1 - level) / 2 and
-        (1 + level) / 2 quantiles of its values at each point. Whole-number weights are
-        copies and the copies are resampled; real weights stay with their points, which are
-        resampled (the bootstrap of a weighted sample)."""
+    def bootstrap(self, X, n_boot: int = 100, level: float = 0.9,
+                  random_state=None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """Percentile bands of the density: the estimate refitted (same k and box) on n_boot
+        resamples of the training points with replacement (as weights: no copies are made),
+        and the (1 - level) / 2 and (1 + level) / 2 quantiles of its values at each point.
+        Whole-number weights are copies and the copies are resampled; real weights stay with
+        their points, which are resampled (the bootstrap of a weighted sample).
+
+        Parameters
+        ----------
+        X : array-like (..., d)
+        n_boot : int
+            Resamples, >= 2.
+        level : float
+            In (0, 1).
+        random_state : None, int, numpy Generator or RandomState
+
+        Returns
+        -------
+        lower, upper : ndarray (...)
+        """
         density = self._fitted()
         if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 2:
             raise InputError(f"n_boot must be an integer >= 2, got {n_boot!r}")
@@ -395,9 +460,18 @@ class KnnDensityEstimator:
         return self.density_
 
     # -- evaluation ----------------------------------------------------------------------------
-    def score_samples(self, X):
-        """Log-density at the points X, shape (..., d): an array of shape (...). -inf outside
-        the box along non-periodic axes (the estimate is 0 there); periodic axes wrap."""
+    def score_samples(self, X) -> np.ndarray:
+        """Log-density at points: -inf outside the box along non-periodic axes (the estimate
+        is 0 there); periodic axes wrap.
+
+        Parameters
+        ----------
+        X : array-like (..., d)
+
+        Returns
+        -------
+        ndarray (...)
+        """
         density = self._fitted()
         flat, shape = self._queries(X)
         f = density(flat) / self._jacobian()
@@ -405,15 +479,34 @@ class KnnDensityEstimator:
             out = np.where(np.isnan(f), -np.inf, np.log(np.where(np.isnan(f), 1.0, f)))
         return out.reshape(shape)
 
-    def score(self, X, y=None):
-        """Total log-likelihood of the points X (n, d) under the estimate (-inf if one lies
-        outside the box)."""
+    def score(self, X, y=None) -> float:
+        """Total log-likelihood of points under the estimate (-inf if one lies outside the
+        box).
+
+        Parameters
+        ----------
+        X : array-like (n, d)
+        y : ignored
+
+        Returns
+        -------
+        float
+        """
         return float(self.score_samples(X).sum())
 
-    def sample(self, n_samples=1, random_state=None):
-        """n_samples points (n_samples, d) drawn exactly from the estimate
-        (``AdaptiveDensity.sample``, ``KnnDensity.sample``). ``random_state``: None, an int,
-        a numpy Generator or RandomState."""
+    def sample(self, n_samples: int = 1, random_state=None) -> np.ndarray:
+        """Points drawn exactly from the estimate (``AdaptiveDensity.sample``,
+        ``KnnDensity.sample``).
+
+        Parameters
+        ----------
+        n_samples : int
+        random_state : None, int, numpy Generator or RandomState
+
+        Returns
+        -------
+        ndarray (n_samples, d)
+        """
         density = self._fitted()
         if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)):
             raise InputError(f"n_samples must be an integer >= 0, got {n_samples!r}")

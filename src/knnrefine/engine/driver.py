@@ -12,6 +12,7 @@ import numpy as np
 
 from ..errors import EngineError
 from . import refine as R
+from . import state as S
 from .geometry import FLOOR_BITS, Q
 from .index import LEAF_SIZE, STACK_SIZE
 from .initial import initial_grid
@@ -108,7 +109,8 @@ class Refinement:
         self.lx = lx
         self.ly = ly
         self.index = index
-        self.n = int(index[0].shape[0])
+        self.time_index = 0.0  # seconds building the index (set by the caller)
+        self.n = int(index.pts.shape[0])
         xy, corners, offsets, neighbours = initial_grid(lx, ly, q=grid)[:4] if m0 is None else m0
         self.grid = grid
         clean_floor = grid * 2.0**FLOOR_BITS
@@ -172,7 +174,7 @@ class Refinement:
         set_vertex_caches(self.mesh, self.prm, m0, self.probe.hx, self.probe.hy)
         R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
-    def _grow_if_needed(self):
+    def grow_if_needed(self):
         """Grow, by GROWTH, every array that could overflow during the next insertion: the
         vertex and triangle fields of every structure (``state.VERTEX_FIELDS``,
         ``TRIANGLE_FIELDS``), and a queue's entries when its headroom runs out."""
@@ -230,25 +232,25 @@ class Refinement:
                 progress(int(self.cnt[C_NV]), self.pending())
             if interrupts is not None:
                 interrupts.check()
-            if status == R.STATUS_SWEEP:
+            if status == S.STATUS_SWEEP:
                 status = self._sweep(progress, interrupts, deadline)
-            if status == R.STATUS_ERROR:
+            if status == S.STATUS_ERROR:
                 code = int(self.cnt[C_ERROR])
                 raise EngineError(
                     "refinement stopped on a broken invariant: "
                     f"{ERRORS.get(code, f'unknown error code {code}')} (after "
                     f"{int(self.cnt[C_NV])} vertices); please report it with the input"
                 )
-            if status in (R.STATUS_DONE, R.STATUS_MAX_VERTICES):
+            if status in (S.STATUS_DONE, S.STATUS_MAX_VERTICES):
                 self.time_refine = time.perf_counter() - t0
                 return status
-            if status == R.STATUS_GROW:
-                self._grow_if_needed()
+            if status == S.STATUS_GROW:
+                self.grow_if_needed()
             if deadline is not None:
                 now = time.perf_counter()
                 if now >= deadline:
                     self.time_refine = now - t0
-                    return R.STATUS_STEPS
+                    return S.STATUS_STEPS
                 if rate is not None:
                     steps = max(1, min(steps, int(rate * (deadline - now)) + 1))
 
@@ -278,14 +280,14 @@ class Refinement:
             code = min(codes)
             if code < 0:
                 self.cnt[C_ERROR] = code
-                return R.STATUS_ERROR
+                return S.STATUS_ERROR
             if progress is not None:
                 progress(int(self.cnt[C_NV]), self.pending())
             if interrupts is not None:
                 interrupts.check()
             if deadline is not None and time.perf_counter() >= deadline:
                 break
-        return R.STATUS_STEPS
+        return S.STATUS_STEPS
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""
@@ -298,9 +300,9 @@ class Refinement:
     def counters(self):
         """Moves of each kind (from the vertices' kinds) and the counting tests so far."""
         nv = self.vertices
-        kinds = np.bincount(self.book.kinds[:nv], minlength=len(R.KIND_NAMES))
+        kinds = np.bincount(self.book.kinds[:nv], minlength=len(S.KIND_NAMES))
         return {
-            "moves": {name: int(kinds[i]) for i, name in enumerate(R.KIND_NAMES)},
+            "moves": {name: int(kinds[i]) for i, name in enumerate(S.KIND_NAMES)},
             "disk_tests": int(self.cnt[C_DISK_TESTS]),
             "cell_tests": int(self.cnt[C_CELL_TESTS]),
             "failed_insertions": int(self.cnt[C_FAILED]),
@@ -312,8 +314,8 @@ class Refinement:
         nv, nt = self.vertices, int(self.cnt[C_NT])
         counters = self.counters()
         mesh, book = self.mesh, self.book
-        floor_t = np.flatnonzero(book.ball_state[:nt] == R.FLOOR)
-        floor_v = np.flatnonzero(book.cell_state[:nv] == R.FLOOR)
+        floor_t = np.flatnonzero(book.ball_state[:nt] == S.FLOOR)
+        floor_v = np.flatnonzero(book.cell_state[:nv] == S.FLOOR)
         centres = circumcentres(mesh, self.prm, floor_t)
         res = RunResult(
             vxy=mesh.xy[:nv],
@@ -324,7 +326,7 @@ class Refinement:
             floor_centres=np.concatenate([centres[:, :2], mesh.xy[floor_v]]),
             floor_radii2=np.concatenate([centres[:, 2], mesh.outradius2[floor_v]]),
             floor_balls=len(floor_t),
-            clean_floor=int(np.count_nonzero(book.flags[:nv] & R.CLEAN_BELOW_FLOOR)),
+            clean_floor=int(np.count_nonzero(book.flags[:nv] & S.CLEAN_BELOW_FLOOR)),
             counters=counters,
         )
         self.mesh = self.book = self.queues = self.scratch = self.probe = None

@@ -9,15 +9,6 @@ from .geometry import FLOOR_BITS, Q
 from .initial import GRIDS3, grid_shape3, initial_grid3, peel_order
 from .interrupt import Interrupts
 from .queue import Q_SIZE, new_queue
-from .refine import (
-    FLOOR,
-    KIND_NAMES,
-    STATUS_DONE,
-    STATUS_ERROR,
-    STATUS_GROW,
-    STATUS_MAX_VERTICES,
-    STATUS_STEPS,
-)
 from .refine3 import (
     HEADROOM3,
     N_PARAMS3,
@@ -37,6 +28,13 @@ from .state import (
     C_NV,
     C_STAMP,
     ERRORS,
+    FLOOR,
+    KIND_NAMES,
+    STATUS_DONE,
+    STATUS_ERROR,
+    STATUS_GROW,
+    STATUS_MAX_VERTICES,
+    STATUS_STEPS,
     Bookkeeping,
     Probe3,
     Queues,

@@ -33,6 +33,7 @@ import numpy as np
 
 from .geometry import plus_compensated
 from .jit import kernel
+from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
 from .threads import in_chunks, run_all
 from .threads import workers as thread_count
 
@@ -47,7 +48,7 @@ def _swap_rows(pts, i, j):
 
 
 @kernel()
-def _select(pts, axis, lo, hi, kth):
+def select_kth(pts, axis, lo, hi, kth):
     """Partially sort the rows pts[lo:hi] by coordinate ``axis`` so that row kth is in place.
 
     Floyd and Rivest's selection (1975): on a long range, first put in place the kth row of
@@ -93,7 +94,7 @@ def _select(pts, axis, lo, hi, kth):
 
 @kernel()
 def _quickselect(pts, axis, lo, hi, kth):
-    """``_select`` by quickselect with a median-of-three pivot (for short ranges)."""
+    """``select_kth`` by quickselect with a median-of-three pivot (for short ranges)."""
     left = lo
     right = hi - 1
     while right > left:
@@ -128,7 +129,7 @@ def _quickselect(pts, axis, lo, hi, kth):
 
 
 @kernel(entry=True)
-def _node_bound(n):
+def node_bound(n):
     """Nodes of the tree over n points (an upper bound when many points coincide)."""
     count = 0
     sizes = np.empty(STACK_SIZE, np.int64)
@@ -160,8 +161,8 @@ def _build(pts, box, node, split, root, free, levels, frontier):
     while sp > 0:
         sp -= 1
         t = stack[sp]
-        a = node[t, 0]
-        b = node[t, 1]
+        a = node[t, NODE_LO]
+        b = node[t, NODE_HI]
         if depth[sp] == levels and b - a > LEAF_SIZE:
             frontier[nf] = t
             nf += 1
@@ -182,20 +183,20 @@ def _build(pts, box, node, split, root, free, levels, frontier):
         box[t, 2] = x1
         box[t, 3] = y1
         if b - a <= LEAF_SIZE or (x1 == x0 and y1 == y0):
-            node[t, 2] = -1
+            node[t, NODE_CHILD] = -1
             continue
         mid = (a + b) >> 1
         axis = 0 if x1 - x0 >= y1 - y0 else 1
-        _select(pts, axis, a, b, mid)
+        select_kth(pts, axis, a, b, mid)
         c = free
         free += 2
-        node[t, 2] = c
-        node[t, 3] = axis
+        node[t, NODE_CHILD] = c
+        node[t, NODE_AXIS] = axis
         split[t] = pts[mid, axis]
-        node[c, 0] = a
-        node[c, 1] = mid
-        node[c + 1, 0] = mid
-        node[c + 1, 1] = b
+        node[c, NODE_LO] = a
+        node[c, NODE_HI] = mid
+        node[c + 1, NODE_LO] = mid
+        node[c + 1, NODE_HI] = b
         below = depth[sp] + 1
         stack[sp] = c
         stack[sp + 1] = c + 1
@@ -223,12 +224,12 @@ def _close_gaps(box, node, split, starts, ends):
             split[u] = split[t]
         to += ends[j] - starts[j]
     for u in range(to):
-        c = node[u, 2]
+        c = node[u, NODE_CHILD]
         if c < 0:
             continue
         for j in range(nb):
             if starts[j] <= c < ends[j]:
-                node[u, 2] = c - shift[j]
+                node[u, NODE_CHILD] = c - shift[j]
     return to
 
 
@@ -238,7 +239,7 @@ PARALLEL_MIN = 100_000  # points; below this one thread builds faster than two s
 def build_index(pts, workers=None, weights=None):
     """Build the kd-tree over the (n, 2) array pts, which it permutes in place and keeps
     (with ``weights``, (n,) finite and >= 0, it keeps a new (n, 3) array of both instead).
-    Returns the index (pts, box, node, split, weight).
+    Returns the index, a ``state.PointTree``.
 
     The top levels are split here; the subtrees below them are built by ``workers`` threads
     (default: ``threads.workers()``) when there are at least PARALLEL_MIN points.
@@ -246,12 +247,12 @@ def build_index(pts, workers=None, weights=None):
     only the nodes' numbering differs."""
     if weights is not None:
         pts = np.column_stack([pts[:, 0], pts[:, 1], np.asarray(weights, np.float64)])
-    pts, box, node, split = _build_tree(pts, workers)
+    pts, box, node, split = build_tree(pts, workers)
     weight = np.zeros(0)
     if weights is not None:
         weight = np.empty(node.shape[0])
         _node_weights(pts, node, weight)
-    return pts, box, node, split, weight
+    return PointTree(pts, box, node, split, weight)
 
 
 @kernel(entry=True)
@@ -261,21 +262,21 @@ def _node_weights(pts, node, weight):
     for t in range(node.shape[0]):
         total = 0.0
         comp = 0.0
-        for i in range(node[t, 0], node[t, 1]):
+        for i in range(node[t, NODE_LO], node[t, NODE_HI]):
             total, comp = plus_compensated(total, comp, pts[i, 2])
         weight[t] = total + comp
 
 
-def _build_tree(pts, workers):
+def build_tree(pts, workers):
     n = pts.shape[0]
     workers = max(1, thread_count() if workers is None else int(workers))
     levels = workers.bit_length() - 1 if n >= PARALLEL_MIN else 0
-    cap = _node_bound(n)
+    cap = node_bound(n)
     box = np.empty((cap, 4))
     node = np.empty((cap, 4), np.int64)
     split = np.zeros(cap)
-    node[0, 0] = 0
-    node[0, 1] = n
+    node[0, NODE_LO] = 0
+    node[0, NODE_HI] = n
     frontier = np.empty(max(1, 1 << levels), np.int64)
     if levels == 0:
         nnodes, _ = _build(pts, box, node, split, 0, 1, -1, frontier)
@@ -287,7 +288,7 @@ def _build_tree(pts, workers):
     base = top
     for j, r in enumerate(roots):
         starts[j + 1] = base
-        base += _node_bound(int(node[r, 1] - node[r, 0])) - 1
+        base += node_bound(int(node[r, NODE_HI] - node[r, NODE_LO])) - 1
     ends = np.empty(nf + 1, np.int64)
     ends[0] = top
 
@@ -303,7 +304,7 @@ def _build_tree(pts, workers):
 def _held(node, weight, t):
     """What node t holds: its number of points, or its weight total for weighted points."""
     if weight.shape[0] == 0:
-        return float(node[t, 1] - node[t, 0])
+        return float(node[t, NODE_HI] - node[t, NODE_LO])
     return weight[t]
 
 
@@ -318,12 +319,12 @@ def _start(node, split, cx, cy, r):
     """The deepest node whose split region strictly contains the disk (c, r): points outside
     it cannot lie in the disk."""
     t = 0
-    while node[t, 2] >= 0:
-        c = cx if node[t, 3] == 0 else cy
+    while node[t, NODE_CHILD] >= 0:
+        c = cx if node[t, NODE_AXIS] == 0 else cy
         if c + r < split[t]:
-            t = node[t, 2]
+            t = node[t, NODE_CHILD]
         elif c - r > split[t]:
-            t = node[t, 2] + 1
+            t = node[t, NODE_CHILD] + 1
         else:
             break
     return t
@@ -336,7 +337,7 @@ def _count_disk(index, cx, cy, r2, k, stack):
     count = 0.0
     comp = 0.0
     pts, box, node, split, weight = index
-    if node[0, 1] == 0:
+    if node[0, NODE_HI] == 0:
         return count
     stack[0] = _start(node, split, cx, cy, np.sqrt(r2))
     sp = 1
@@ -356,17 +357,17 @@ def _count_disk(index, cx, cy, r2, k, stack):
             if count + comp >= k:
                 return count + comp
             continue
-        c = node[t, 2]
+        c = node[t, NODE_CHILD]
         if c < 0:
             if weight.shape[0] == 0:
                 inside = 0
-                for i in range(node[t, 0], node[t, 1]):
+                for i in range(node[t, NODE_LO], node[t, NODE_HI]):
                     ex = pts[i, 0] - cx
                     ey = pts[i, 1] - cy
                     inside += ex * ex + ey * ey <= r2
                 count += inside
             else:
-                for i in range(node[t, 0], node[t, 1]):
+                for i in range(node[t, NODE_LO], node[t, NODE_HI]):
                     ex = pts[i, 0] - cx
                     ey = pts[i, 1] - cy
                     if ex * ex + ey * ey <= r2:
@@ -375,7 +376,7 @@ def _count_disk(index, cx, cy, r2, k, stack):
                 return count + comp
             continue
         # the child on the centre's side is visited first: where the points are
-        near = 0 if (cx if node[t, 3] == 0 else cy) <= split[t] else 1
+        near = 0 if (cx if node[t, NODE_AXIS] == 0 else cy) <= split[t] else 1
         stack[sp] = c + 1 - near
         stack[sp + 1] = c + near
         sp += 2
@@ -431,7 +432,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
     count = 0.0
     comp = 0.0
     pts, box, node, split, weight = index
-    if node[0, 1] == 0:
+    if node[0, NODE_HI] == 0:
         return count
     stack[0] = _start(node, split, vx, vy, np.sqrt(r2))
     sp = 1
@@ -468,13 +469,13 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
             if count + comp >= k:
                 return count + comp
             continue
-        c = node[t, 2]
+        c = node[t, NODE_CHILD]
         if c < 0:
             # one vectorisable pass per constraint over blocks of the leaf's points (a leaf
             # of coincident points can exceed LEAF_SIZE)
             found = 0
-            for lo in range(node[t, 0], node[t, 1], LEAF_SIZE):
-                m = min(LEAF_SIZE, node[t, 1] - lo)
+            for lo in range(node[t, NODE_LO], node[t, NODE_HI], LEAF_SIZE):
+                m = min(LEAF_SIZE, node[t, NODE_HI] - lo)
                 for i in range(m):
                     ex = pts[lo + i, 0] - vx
                     ey = pts[lo + i, 1] - vy
@@ -496,7 +497,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
             if count + comp >= k:
                 return count + comp
             continue
-        near = 0 if (vx if node[t, 3] == 0 else vy) <= split[t] else 1
+        near = 0 if (vx if node[t, NODE_AXIS] == 0 else vy) <= split[t] else 1
         stack[sp] = c + 1 - near
         stack[sp + 1] = c + near
         sp += 2
@@ -546,11 +547,11 @@ def mark_in_disks(index, cx, cy, r2, lx, ly, mark):
             ox = cx[d] + sx * lx
             for sy in range(y_lo, y_hi + 1):
                 oy = cy[d] + sy * ly
-                if node[0, 1] == 0:
+                if node[0, NODE_HI] == 0:
                     continue
-                for f in range(_leaves_near(box, node, none, r, ox, oy, stack, leaves)):
+                for f in range(leaves_near(box, node, none, r, ox, oy, stack, leaves)):
                     t = leaves[f]
-                    for i in range(node[t, 0], node[t, 1]):
+                    for i in range(node[t, NODE_LO], node[t, NODE_HI]):
                         ex = pts[i, 0] - ox
                         ey = pts[i, 1] - oy
                         if ex * ex + ey * ey <= r2[d]:
@@ -559,7 +560,7 @@ def mark_in_disks(index, cx, cy, r2, lx, ly, mark):
 
 
 @kernel(inline="always")
-def _leaves_near(box, node, extent, r, x, y, stack, leaves):
+def leaves_near(box, node, extent, r, x, y, stack, leaves):
     """The leaves whose bounding box lies within r + extent[t] of (x, y) (extent empty: r
     alone), into ``leaves``; returns how many. The planar walk of the tree: points within r
     (mark_in_disks, kernelsum.ball_moments), or, with extent[t] the widest kernel below node
@@ -575,7 +576,7 @@ def _leaves_near(box, node, extent, r, x, y, stack, leaves):
         reach = r + extent[t] if extent.shape[0] > 0 else r
         if dx * dx + dy * dy > reach * reach:
             continue
-        c = node[t, 2]
+        c = node[t, NODE_CHILD]
         if c >= 0:
             stack[sp] = c
             stack[sp + 1] = c + 1
@@ -607,7 +608,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
     exceed half a period: the initial mesh's precondition. Weighted points count their
     weight."""
     pts, box, node, split, weight = index
-    if node[0, 1] == 0:
+    if node[0, NODE_HI] == 0:
         return 0.0
     cx -= np.floor(cx / lx) * lx
     cy -= np.floor(cy / ly) * ly
@@ -627,9 +628,9 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
             if count + comp >= k:
                 return count + comp
             continue
-        c = node[t, 2]
+        c = node[t, NODE_CHILD]
         if c < 0:
-            for i in range(node[t, 0], node[t, 1]):
+            for i in range(node[t, NODE_LO], node[t, NODE_HI]):
                 ex = abs(pts[i, 0] - cx)
                 ey = abs(pts[i, 1] - cy)
                 ex = min(ex, lx - ex)
@@ -758,13 +759,13 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
             if inner + inner_c >= k:
                 return WINDOW_LOW
             continue
-        c = node[t, 2]
+        c = node[t, NODE_CHILD]
         if c >= 0:
             stack[sp] = c
             stack[sp + 1] = c + 1
             sp += 2
             continue
-        for i in range(node[t, 0], node[t, 1]):
+        for i in range(node[t, NODE_LO], node[t, NODE_HI]):
             ex = abs(pts[i, 0] - cx)
             ey = abs(pts[i, 1] - cy)
             if px:
@@ -848,9 +849,9 @@ class PointIndex:
         self.embedding = embedding
         self.index = index
         self.fingerprint = fingerprint
-        self.n = int(index[0].shape[0])
-        self.weighted = index[4].shape[0] > 0
-        self.total = float(index[4][0]) if self.weighted and self.n else float(self.n)
+        self.n = int(index.pts.shape[0])
+        self.weighted = index.weight.shape[0] > 0
+        self.total = float(index.weight[0]) if self.weighted and self.n else float(self.n)
 
     @classmethod
     def build(cls, points, box, periodic, weights=None):
@@ -915,7 +916,7 @@ class PointIndex:
         return out / emb.scale
 
     def _brute_kth(self, q, k):
-        pts = self.index[0]
+        pts = self.index.pts
         lx, ly = self.embedding.period_internal
         res = np.empty(len(q))
         for i, (x, y) in enumerate(q):

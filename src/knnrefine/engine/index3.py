@@ -12,14 +12,15 @@ fundamental domain (regions are smaller than half the shortest period, so a poin
 most one copy).
 
 Layout: ``pts`` (n, 3) float64, permuted; ``box`` (nodes, 6): x0, y0, z0, x1, y1, z1;
-``node`` (nodes, 4) int64: lo, hi, first child (the second follows it; -1 at a leaf), split
-axis; ``split`` (nodes,). Points are unweighted here.
+``node`` (nodes, 4) int64: the ``state.NODE_*`` columns (lo, hi, first child, the second
+following it, -1 at a leaf, split axis); ``split`` (nodes,). Points are unweighted here.
 """
 
 import numpy as np
 
-from .index import LEAF_SIZE, STACK_SIZE, _node_bound, _select
+from .index import LEAF_SIZE, STACK_SIZE, node_bound, select_kth
 from .jit import kernel
+from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
 
 _NO_H = np.zeros((0, 3))  # no half-spaces: a ball (``count_in_ball3``)
 _NO_HC = np.zeros(0)
@@ -31,15 +32,15 @@ def _build3(pts, box, node, split):
     count."""
     stack = np.empty(STACK_SIZE, np.int64)
     stack[0] = 0
-    node[0, 0] = 0
-    node[0, 1] = pts.shape[0]
+    node[0, NODE_LO] = 0
+    node[0, NODE_HI] = pts.shape[0]
     sp = 1
     free = 1
     while sp > 0:
         sp -= 1
         t = stack[sp]
-        a = node[t, 0]
-        b = node[t, 1]
+        a = node[t, NODE_LO]
+        b = node[t, NODE_HI]
         widest = 0
         extent = -1.0
         for ax in range(3):
@@ -54,19 +55,19 @@ def _build3(pts, box, node, split):
                 extent = hi - lo
                 widest = ax
         if b - a <= LEAF_SIZE or extent <= 0.0:
-            node[t, 2] = -1
+            node[t, NODE_CHILD] = -1
             continue
         mid = (a + b) >> 1
-        _select(pts, widest, a, b, mid)
+        select_kth(pts, widest, a, b, mid)
         c = free
         free += 2
-        node[t, 2] = c
-        node[t, 3] = widest
+        node[t, NODE_CHILD] = c
+        node[t, NODE_AXIS] = widest
         split[t] = pts[mid, widest]
-        node[c, 0] = a
-        node[c, 1] = mid
-        node[c + 1, 0] = mid
-        node[c + 1, 1] = b
+        node[c, NODE_LO] = a
+        node[c, NODE_HI] = mid
+        node[c + 1, NODE_LO] = mid
+        node[c + 1, NODE_HI] = b
         stack[sp] = c
         stack[sp + 1] = c + 1
         sp += 2
@@ -74,17 +75,17 @@ def _build3(pts, box, node, split):
 
 
 def build_index3(points, copy=True):
-    """The index (pts, box, node, split) over a copy of the (n, 3) points (``copy=False``:
-    over the caller's float64 array itself, reordered in place)."""
+    """The index (a ``state.PointTree``, unweighted) over a copy of the (n, 3) points
+    (``copy=False``: over the caller's float64 array itself, reordered in place)."""
     pts = np.ascontiguousarray(points, np.float64)
     if copy and pts is points:
         pts = pts.copy()
-    cap = _node_bound(len(pts))
+    cap = node_bound(len(pts))
     box = np.empty((cap, 6))
     node = np.empty((cap, 4), np.int64)
     split = np.zeros(cap)
     n = _build3(pts, box, node, split)
-    return pts, box[:n], node[:n], split[:n]
+    return PointTree(pts, box[:n], node[:n], split[:n], np.zeros(0))
 
 
 @kernel(inline="always")
@@ -121,7 +122,7 @@ def count_in_ball3(index, c, r2, k, period, stack):
 @kernel(nrt=False)
 def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
     """Points x with |x - v|^2 <= r2 and (x - v) . h[i] <= hc[i] for every i < nh."""
-    pts, box, node = index[0], index[1], index[2]
+    pts, box, node = index.pts, index.box, index.node
     count = 0
     stack[0] = 0
     sp = 1
@@ -150,12 +151,12 @@ def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
         if missed:
             continue
         if whole:
-            count += node[t, 1] - node[t, 0]
+            count += node[t, NODE_HI] - node[t, NODE_LO]
             if count >= k:
                 return count
             continue
-        if node[t, 2] < 0:
-            for j in range(node[t, 0], node[t, 1]):
+        if node[t, NODE_CHILD] < 0:
+            for j in range(node[t, NODE_LO], node[t, NODE_HI]):
                 dx = pts[j, 0] - vx
                 dy = pts[j, 1] - vy
                 dz = pts[j, 2] - vz
@@ -171,8 +172,8 @@ def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
                     if count >= k:
                         return count
             continue
-        stack[sp] = node[t, 2]
-        stack[sp + 1] = node[t, 2] + 1
+        stack[sp] = node[t, NODE_CHILD]
+        stack[sp + 1] = node[t, NODE_CHILD] + 1
         sp += 2
     return count
 

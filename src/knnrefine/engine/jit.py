@@ -72,7 +72,7 @@ _locators = FunctionCache._impl_class._locator_classes
 if ShippedCacheLocator not in _locators:
     _locators.insert(0, ShippedCacheLocator)
 
-_warned = []
+_warned: list = []
 
 
 def _never_save(dispatcher):

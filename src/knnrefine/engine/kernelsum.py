@@ -3,7 +3,7 @@
 The adaptive density estimate is sum_i amp_i K(u_i(x)), where K(u) = (1 - u)^3 for u < 1
 (the triweight profile, 0 beyond) and u_i(x) = (x - c_i)^T Q_i (x - c_i): centre i's kernel
 is supported on an ellipse of extent r_i (isotropic: a disk, Q_i = I / r_i^2). The centres
-live in a kd-tree built by the counting index's builder (``index._build_tree``, which
+live in a kd-tree built by the counting index's builder (``index.build_tree``, which
 permutes whole rows), one row per centre:
 
     x, y, weight, amp, q11, q12, q22, r, original row
@@ -22,8 +22,9 @@ along the axis, which the caller keeps. Coordinates are relative to the box's lo
 
 import numpy as np
 
-from .index import STACK_SIZE, _build_tree, _leaves_near
+from .index import STACK_SIZE, build_tree, leaves_near
 from .jit import kernel
+from .state import NODE_CHILD, NODE_HI, NODE_LO
 
 X, Y, W, AMP, Q11, Q12, Q22, R, ROW = range(9)
 COLUMNS = 9
@@ -38,7 +39,7 @@ def build_centres(points, weights, workers=None):
     rows[:, Y] = points[:, 1]
     rows[:, W] = weights
     rows[:, ROW] = np.arange(n)
-    rows, box, node, _ = _build_tree(rows, workers)
+    rows, box, node, _ = build_tree(rows, workers)
     return rows, box, node
 
 
@@ -47,12 +48,12 @@ def node_extents(rows, node, extent):
     """extent[t] = the largest kernel extent among node t's centres (children before
     parents: nodes are numbered parents first, so a reverse sweep sees children first)."""
     for t in range(node.shape[0] - 1, -1, -1):
-        c = node[t, 2]
+        c = node[t, NODE_CHILD]
         if c >= 0:
             extent[t] = max(extent[c], extent[c + 1])
         else:
             r = 0.0
-            for i in range(node[t, 0], node[t, 1]):
+            for i in range(node[t, NODE_LO], node[t, NODE_HI]):
                 r = max(r, rows[i, R])
             extent[t] = r
 
@@ -83,9 +84,9 @@ def kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2,
             x = _image(qx[j], a, lx, px)
             for b in range(3):
                 y = _image(qy[j], b, ly, py)
-                for f in range(_leaves_near(box, node, extent, 0.0, x, y, stack, leaves)):
+                for f in range(leaves_near(box, node, extent, 0.0, x, y, stack, leaves)):
                     t = leaves[f]
-                    for i in range(node[t, 0], node[t, 1]):
+                    for i in range(node[t, NODE_LO], node[t, NODE_HI]):
                         if loo and rows[i, X] == qx[j] and rows[i, Y] == qy[j]:
                             if a == 0 and b == 0:
                                 s2 += rows[i, W]
@@ -122,9 +123,9 @@ def ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, start, st
             x = _image(qx[j], a, lx, True)
             for b in range(3 if py else 1):
                 y = _image(qy[j], b, ly, True)
-                for f in range(_leaves_near(box, node, none, r, x, y, stack, leaves)):
+                for f in range(leaves_near(box, node, none, r, x, y, stack, leaves)):
                     t = leaves[f]
-                    for i in range(node[t, 0], node[t, 1]):
+                    for i in range(node[t, NODE_LO], node[t, NODE_HI]):
                         ex = rows[i, X] - x
                         ey = rows[i, Y] - y
                         if ex * ex + ey * ey <= r2:

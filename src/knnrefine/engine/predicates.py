@@ -16,11 +16,11 @@ import numpy as np
 
 from .jit import kernel
 
-_EPS = 2.0**-53  # half an ulp of 1.0: the unit roundoff
+EPS = 2.0**-53  # half an ulp of 1.0: the unit roundoff
 _SPLITTER = 2.0**27 + 1.0
 # Forward error bounds of the floating-point determinants (Shewchuk 1997, stage A).
-CCW_ERRBOUND = (3.0 + 16.0 * _EPS) * _EPS
-ICC_ERRBOUND = (10.0 + 96.0 * _EPS) * _EPS
+CCW_ERRBOUND = (3.0 + 16.0 * EPS) * EPS
+ICC_ERRBOUND = (10.0 + 96.0 * EPS) * EPS
 
 
 # --- error-free transformations -------------------------------------------------------------
@@ -146,7 +146,7 @@ def expansion_sign(e, elen):
 
 
 @kernel(inline="always")
-def _diff_expansion(a, b, out):
+def diff_expansion(a, b, out):
     hi, lo = two_diff(a, b)
     if lo == 0.0:
         out[0] = hi
@@ -165,10 +165,10 @@ def _orient2d_exact(ax, ay, bx, by, cx, cy):
     bcy = np.empty(2)
     acy = np.empty(2)
     bcx = np.empty(2)
-    n1 = _diff_expansion(ax, cx, acx)
-    n2 = _diff_expansion(by, cy, bcy)
-    n3 = _diff_expansion(ay, cy, acy)
-    n4 = _diff_expansion(bx, cx, bcx)
+    n1 = diff_expansion(ax, cx, acx)
+    n2 = diff_expansion(by, cy, bcy)
+    n3 = diff_expansion(ay, cy, acy)
+    n4 = diff_expansion(bx, cx, bcx)
     left = np.empty(8)
     right = np.empty(8)
     nl = expansion_product(acx, n1, bcy, n2, left)
@@ -223,12 +223,12 @@ def _incircle_exact(ax, ay, bx, by, cx, cy, dx, dy):
     bdy = np.empty(2)
     cdx = np.empty(2)
     cdy = np.empty(2)
-    nax = _diff_expansion(ax, dx, adx)
-    nay = _diff_expansion(ay, dy, ady)
-    nbx = _diff_expansion(bx, dx, bdx)
-    nby = _diff_expansion(by, dy, bdy)
-    ncx = _diff_expansion(cx, dx, cdx)
-    ncy = _diff_expansion(cy, dy, cdy)
+    nax = diff_expansion(ax, dx, adx)
+    nay = diff_expansion(ay, dy, ady)
+    nbx = diff_expansion(bx, dx, bdx)
+    nby = diff_expansion(by, dy, bdy)
+    ncx = diff_expansion(cx, dx, cdx)
+    ncy = diff_expansion(cy, dy, cdy)
     ta = np.empty(512)
     tb = np.empty(512)
     tc = np.empty(512)

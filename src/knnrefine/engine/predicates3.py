@@ -19,11 +19,11 @@ strictly inside the sphere through a, b, c, d for a tetrahedron with orient3d(a,
 import numpy as np
 
 from .jit import kernel
-from .predicates import _EPS, _diff_expansion, expansion_product, expansion_sign, expansion_sum
+from .predicates import EPS, diff_expansion, expansion_product, expansion_sign, expansion_sum
 
 # Forward error bounds of the floating-point determinants (Shewchuk 1997, stage A).
-O3D_ERRBOUND = (7.0 + 56.0 * _EPS) * _EPS
-ISP_ERRBOUND = (16.0 + 224.0 * _EPS) * _EPS
+O3D_ERRBOUND = (7.0 + 56.0 * EPS) * EPS
+ISP_ERRBOUND = (16.0 + 224.0 * EPS) * EPS
 
 
 @kernel()
@@ -48,7 +48,7 @@ def _diffs(p, q, out):
     """out[a] = p[a] - q[a] for the three axes as expansions (rows of 2); lengths returned."""
     n = np.empty(3, np.int64)
     for a in range(3):
-        n[a] = _diff_expansion(p[a], q[a], out[a])
+        n[a] = diff_expansion(p[a], q[a], out[a])
     return n
 
 

@@ -50,7 +50,9 @@ from .geometry import morton_key, snap
 from .index import count_in_cell, count_in_disk
 from .jit import kernel
 from .queue import N_CLASSES, Q_USED, queue_clear, queue_pop, queue_push, queue_size, size_class
-from .state import (
+from .state import (  # the named states, kinds and statuses (re-exported: refine.X)
+    BREAK_BALL,
+    BREAK_CELL,
     C_CELL_TESTS,
     C_CELLS_QUEUED,
     C_CELLS_SWEPT,
@@ -63,6 +65,15 @@ from .state import (
     C_NT,
     C_NV,
     C_SWEEP_MIN,
+    CLEAN,
+    CLEAN_BELOW_FLOOR,
+    CLEAN_FAILED,
+    DEFERRED,
+    FAILED,
+    FLOOR,
+    GOOD,
+    IN_CELL_QUEUE,
+    IN_CLEAN_QUEUE,
     INSERT_NOT_IN_SEED,
     P_CLEAN_FLOOR2,
     P_FLOOR2,
@@ -77,36 +88,15 @@ from .state import (
     P_REGION_Y0,
     P_TAU2,
     STAR_OVERFLOW,
+    STATUS_DONE,
+    STATUS_ERROR,
+    STATUS_GROW,
+    STATUS_MAX_VERTICES,
+    STATUS_STEPS,
+    STATUS_SWEEP,
+    UNTESTED,
 )
 from .triangulation import circumcentre, far_corner, insert_vertex, vertex_star
-
-# vertex kinds (insertion moves)
-INITIAL = 0
-BREAK_BALL = 1  # Break: circumcenter of a triangle whose circumball holds >= k points
-BREAK_CELL = 2  # Break: far corner of a Voronoi cell holding >= k points
-CLEAN = 3  # Clean: far corner of a cell with aspect > tau
-KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
-
-# states of a triangle's circumball (book.ball_state) and of a vertex's cell (book.cell_state)
-UNTESTED = 0
-GOOD = 1  # holds < k points: settled
-FLOOR = 2  # holds >= k points but is smaller than min_size: left alone
-FAILED = 3  # its split point landed on an existing vertex (grid resolution)
-DEFERRED = 4  # not inside the tile's region (tiles.py): another tile, or a later pass, decides
-
-# book.flags bits
-IN_CELL_QUEUE = 1
-IN_CLEAN_QUEUE = 2
-CLEAN_BELOW_FLOOR = 4  # aspect > tau but its cell is below the Clean floor
-CLEAN_FAILED = 8
-
-# refine_steps results
-STATUS_DONE = 0
-STATUS_STEPS = 1  # max_steps insertions made; call again
-STATUS_GROW = 2  # an array is nearly full; grow it and call again
-STATUS_MAX_VERTICES = 3
-STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code (state.ERRORS)
-STATUS_SWEEP = 5  # many cells wait to be counted: call sweep_cells, then call again
 
 SWEEP_DUE = -2  # break_'s answer when a sweep should come first
 
@@ -114,7 +104,7 @@ HEADROOM = 1100  # free slots required before an insertion (> MAX_CAVITY + 2)
 
 
 @kernel(inline="always")
-def _inside(lo, extent, start, width, period):
+def interval_within(lo, extent, start, width, period):
     """The interval [lo, lo + extent] of a periodic axis lies in [start, start + width]."""
     if width >= period:  # the region spans the axis
         return extent < period
@@ -129,12 +119,14 @@ def disk_in_rectangle(cx, cy, r, x0, y0, w, h, prm):
     """The closed disk (cx, cy, r), inflated by a relative 1e-6 and a grid step (beyond the
     counts' own inflation), lies in the rectangle [x0, x0 + w] x [y0, y0 + h] of the torus."""
     r = r * (1.0 + 1e-6) + prm[P_GRID]
-    return _inside(cx - r, 2.0 * r, x0, w, prm[P_LX]) and _inside(cy - r, 2.0 * r, y0, h, prm[P_LY])
+    return interval_within(cx - r, 2.0 * r, x0, w, prm[P_LX]) and interval_within(
+        cy - r, 2.0 * r, y0, h, prm[P_LY]
+    )
 
 
 @kernel(inline="always")
 def in_region(cx, cy, r, prm):
-    """True when the closed disk (cx, cy, r) lies in the tile's region (``tiles.py``): a
+    """True when the closed disk (cx, cy, r) lies in the tile's region (``engine/region.py``): a
     tile decides only elements whose every count and every neighbour it knows. Always true
     without a region (a whole run: w = NO_REGION), never for a region of width 0."""
     w = prm[P_REGION_W]

@@ -25,25 +25,9 @@ from .geometry import circumsphere
 from .index3 import count_in_ball3, count_in_cell3
 from .jit import kernel
 from .queue import N_CLASSES, Q_SIZE, queue_pop, queue_push, queue_size, size_class
-from .refine import (
+from .state import (
     BREAK_BALL,
     BREAK_CELL,
-    CLEAN,
-    CLEAN_BELOW_FLOOR,
-    CLEAN_FAILED,
-    FAILED,
-    FLOOR,
-    GOOD,
-    IN_CELL_QUEUE,
-    IN_CLEAN_QUEUE,
-    STATUS_DONE,
-    STATUS_ERROR,
-    STATUS_GROW,
-    STATUS_MAX_VERTICES,
-    STATUS_STEPS,
-    UNTESTED,
-)
-from .state import (
     C_CELL_TESTS,
     C_CELLS_QUEUED,
     C_DISK_TESTS,
@@ -53,8 +37,22 @@ from .state import (
     C_MAX_VERTICES,
     C_NT,
     C_NV,
+    CLEAN,
+    CLEAN_BELOW_FLOOR,
+    CLEAN_FAILED,
+    FAILED,
+    FLOOR,
+    GOOD,
+    IN_CELL_QUEUE,
+    IN_CLEAN_QUEUE,
     INSERT_NOT_IN_SEED,
     STAR_OVERFLOW,
+    STATUS_DONE,
+    STATUS_ERROR,
+    STATUS_GROW,
+    STATUS_MAX_VERTICES,
+    STATUS_STEPS,
+    UNTESTED,
 )
 from .triangulation3 import (
     MAX_CAVITY3,

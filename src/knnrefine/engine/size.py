@@ -36,13 +36,13 @@ def estimate(index, k, floor, lx, ly, area, seed=0):
     is the area the points are spread over (the box's, internal units). For weighted points
     k is taken in units of their mean weight (whole weights are repeated points; the weights'
     scale does not matter, however small or large)."""
-    pts = index[0]
+    pts = index.pts
     if pts.shape[0] == 0:
         return 0.0, 0.0
     n = pts.shape[0]
-    if index[4].shape[0]:  # weighted: k in units of the mean weight (the mesh depends on
+    if index.weight.shape[0]:  # weighted: k in units of the mean weight (the mesh depends on
         # k / weight, not on the weights' scale; tiny or huge weights stay finite here)
-        total = float(index[4][0])
+        total = float(index.weight[0])
         k_units = k * (n / total) if total > 0 else float(n)
     else:
         k_units = k

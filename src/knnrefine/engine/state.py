@@ -135,7 +135,7 @@ C_FAILED = 28  # insertions refused (the point rounds onto a vertex)
 C_ERROR = 29  # the code of a broken invariant (see ERRORS)
 C_CELLS_QUEUED = 30  # cells ever queued
 C_CELLS_SWEPT = 31  # C_CELLS_QUEUED at the last sweep (refine.sweep_cells)
-C_DEFERRED = 32  # elements popped outside the region (``tiles.py``): left for another tile
+C_DEFERRED = 32  # elements popped outside the region (``engine/region.py``): left for another tile
 N_COUNTERS = 33
 
 # -- parameters (float64 array ``prm``) -------------------------------------------------------
@@ -147,7 +147,7 @@ P_CLEAN_FLOOR2 = 4  # the Clean floor squared: 2^14 grid steps
 P_INFLATE = 5  # 1 + 1e-9: the counting regions' inflation
 P_GRID = 6  # the grid step q every vertex is snapped to
 P_K = 7  # the k of d_{P,k}: a count, or a weight for weighted points
-# a tile's region (``tiles.py``): moves only for elements inside the rectangle
+# a tile's region (``engine/region.py``): moves only for elements inside the rectangle
 # [x0, x0 + w] x [y0, y0 + h] of the torus (wrapping); w = NO_REGION: the whole torus. A
 # region of width 0 holds no element (it never means the whole torus: two tiles would then
 # both move everywhere)
@@ -266,3 +266,50 @@ def grow(owner, fields, size, in_place=False):
         else:
             new = grown(_get(owner, path), size)
         _set(owner, path, new)
+
+
+# vertex kinds (insertion moves)
+INITIAL = 0
+BREAK_BALL = 1  # Break: circumcenter of a triangle whose circumball holds >= k points
+BREAK_CELL = 2  # Break: far corner of a Voronoi cell holding >= k points
+CLEAN = 3  # Clean: far corner of a cell with aspect > tau
+KIND_NAMES = ("initial", "break_circumball", "break_cell", "clean")
+
+# states of a triangle's circumball (book.ball_state) and of a vertex's cell (book.cell_state)
+UNTESTED = 0
+GOOD = 1  # holds < k points: settled
+FLOOR = 2  # holds >= k points but is smaller than min_size: left alone
+FAILED = 3  # its split point landed on an existing vertex (grid resolution)
+DEFERRED = 4  # outside the tile's region (engine/region.py): left to another tile or pass
+
+# book.flags bits
+IN_CELL_QUEUE = 1
+IN_CLEAN_QUEUE = 2
+CLEAN_BELOW_FLOOR = 4  # aspect > tau but its cell is below the Clean floor
+CLEAN_FAILED = 8
+
+# refine_steps results
+STATUS_DONE = 0
+STATUS_STEPS = 1  # max_steps insertions made; call again
+STATUS_GROW = 2  # an array is nearly full; grow it and call again
+STATUS_MAX_VERTICES = 3
+STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code (state.ERRORS)
+STATUS_SWEEP = 5  # many cells wait to be counted: call sweep_cells, then call again
+
+
+# the counting index over P (``index.py``, ``index3.py``): a static kd-tree whose nodes own
+# contiguous ranges of the permuted points
+PointTree = namedtuple(
+    "PointTree",
+    [
+        "pts",  # (n, d) float64 permuted (weighted, plane: (n, 3), the weight last)
+        "box",  # (nodes, 2 d) float64: each node's tight box, lower corner then upper
+        "node",  # (nodes, 4) int64: the NODE_* columns
+        "split",  # (nodes,) float64: the split coordinate
+        "weight",  # (nodes,) float64: each node's total weight; (0,) unweighted
+    ],
+)
+NODE_LO = 0  # the node's first point
+NODE_HI = 1  # one past its last point
+NODE_CHILD = 2  # its first child (the second follows it); -1 at a leaf
+NODE_AXIS = 3  # the split axis

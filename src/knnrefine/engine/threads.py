@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 MAX_THREADS = 8
-_pool = []
+_pool: list = []
 # a forked child has the pool object but none of its threads: it makes its own
 os.register_at_fork(after_in_child=_pool.clear)
 

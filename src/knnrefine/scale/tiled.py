@@ -1,5 +1,5 @@
 """A tiled run: its plan from a sample, its rounds of strips, and the last step (the rule
-that makes the union of the tiles' moves a kNNRefine run is ``tiles.py``'s).
+that makes the union of the tiles' moves a kNNRefine run is ``engine/region.py``'s).
 
 * The sample: the points whose key (``sample_keys``, a hash of their coordinates' bits) is
   below a fraction. It is the same set whatever the partitioning of the input (a NumPy
@@ -15,7 +15,7 @@ that makes the union of the tiles' moves a kNNRefine run is ``tiles.py``'s).
   points: the caller's final pass.
 
 Where the points live is a store's business: ``LocalStore`` (this process; tiles in local
-processes or on any executor) and ``knnrefine.distributed.DaskStore`` (partitions and strip
+processes or on any executor) and ``knnrefine.scale.distributed.DaskStore`` (partitions and strip
 indexes on Dask workers). A store has ``n``, ``weight`` (the total, or None),
 ``bounds`` (the points' extent: lows, highs), ``sample``, ``prepare``, ``run_round``,
 ``points`` and ``close``.
@@ -28,12 +28,13 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from ..errors import EngineError
-from . import refine as R
-from .driver import Refinement
-from .index import build_index
-from .jit import kernel
-from .state import (
+from ..engine import refine as R
+from ..engine import state as S
+from ..engine.driver import Refinement
+from ..engine.index import build_index
+from ..engine.jit import kernel
+from ..engine.region import WALK_LOST, in_rectangle, insert_points, mark_settled, spatial_order
+from ..engine.state import (
     C_NT,
     C_NV,
     ERRORS,
@@ -44,7 +45,7 @@ from .state import (
     P_REGION_Y0,
     P_TAU2,
 )
-from .tiles import WALK_LOST, in_rectangle, insert_points, mark_settled, spatial_order
+from ..errors import EngineError
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
 COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the points ...
@@ -284,7 +285,7 @@ def seed(run, xy, kinds, stamps, regions):
             what = "a walk got lost" if done == WALK_LOST else ERRORS.get(done, str(done))
             raise EngineError(f"triangulating a tile's vertices failed: {what}")
         if done < len(pts):
-            run._grow_if_needed()
+            run.grow_if_needed()
     placed = ids >= 0
     if not placed.all():  # each was inserted at the centre of a disk empty of the others
         raise EngineError(
@@ -395,16 +396,16 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
             progress(m0_count + len(xy), 0)
         if interrupts is not None:
             interrupts.check()
-        stopped = next((res["status"] for res in results if res["status"] != R.STATUS_DONE), None)
+        stopped = next((res["status"] for res in results if res["status"] != S.STATUS_DONE), None)
         if stopped is None and deadline is not None and time.perf_counter() >= deadline:
-            stopped = R.STATUS_STEPS
+            stopped = S.STATUS_STEPS
         if stopped is not None or (r >= 2 and len(new) == 0):
             break
     return xy, kinds, stamps, history, report, stopped
 
 
 def check_seams(regions, inserted, lx, ly):
-    """The premise of a round (``tiles.py``), checked on what it returned: the strips of the
+    """The premise of a round (``engine/region.py``), checked on what it returned: the strips of the
     set tile the period (positive widths, in order, adding up to it), and every vertex a
     tile inserted lies in its own strip (at the centre of a disk inside it, so at most
     within rounding of its border). EngineError otherwise: no mesh is made from the round."""
@@ -453,8 +454,8 @@ def unsettled_count(run):
     nt, nv = int(run.cnt[C_NT]), int(run.cnt[C_NV])
     aspect = 4.0 * run.mesh.outradius2[:nv] > run.prm[P_TAU2] * run.mesh.nearest2[:nv]
     return int(
-        (run.book.ball_state[:nt] != R.GOOD).sum()
-        + (run.book.cell_state[:nv] != R.GOOD).sum()
+        (run.book.ball_state[:nt] != S.GOOD).sum()
+        + (run.book.cell_state[:nv] != S.GOOD).sum()
         + aspect.sum()
     )
 
@@ -468,16 +469,16 @@ def settle_bands(run, bands, deadline=None):
             run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = band[0], band[1]
             run.prm[P_REGION_W], run.prm[P_REGION_H] = band[2], band[3]
             balls = run.book.ball_state[: int(run.cnt[C_NT])]
-            balls[balls == R.DEFERRED] = R.UNTESTED  # deferred by the last band: look again
+            balls[balls == S.DEFERRED] = S.UNTESTED  # deferred by the last band: look again
             run.reserve_queues(3 * run.vertices + R.HEADROOM)
             R.queue_all(run.mesh, run.book, run.queues, run.cnt, run.prm)
             status = run.run(deadline=deadline)
-            if status != R.STATUS_DONE:
+            if status != S.STATUS_DONE:
                 return status, None
         if run.vertices == before:
             break
     run.prm[P_REGION_W] = NO_REGION  # the whole torus again
-    return R.STATUS_DONE, unsettled_count(run)
+    return S.STATUS_DONE, unsettled_count(run)
 
 
 def settle(index, xy, kinds, stamps, history, k, lx, ly, tau, min_size, max_vertices, m0, grid,
@@ -493,7 +494,7 @@ def settle(index, xy, kinds, stamps, history, k, lx, ly, tau, min_size, max_vert
         expected_vertices=len(m0[0]) + len(xy),
     )  # fmt: skip
     _, unsettled = seed(final, xy, kinds, stamps, history)
-    status = R.STATUS_DONE
+    status = S.STATUS_DONE
     if unsettled and bands is not None and len(bands):
         status, unsettled = settle_bands(final, bands, deadline)
     return final, status, unsettled

@@ -14,17 +14,26 @@ says so: ``fetched_points``), as where elements of a non-periodic box straddle t
 edge wider than the strips overlap.
 """
 
+from __future__ import annotations
+
 import contextlib
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import validation as V
-from .api import refine_store
-from .engine.partition import canonical, run_tile, sample_keys, split_strips, tile_index
-from .errors import InputError
-from .options import RunOptions
-from .partitioned import check_output, write_partitioned
+from .. import validation as V
+from ..api import refine_store
+from ..errors import InputError
+from ..options import RunOptions
+from .parts import check_output, write_partitioned
+from .tiled import canonical, run_tile, sample_keys, split_strips, tile_index
+
+if TYPE_CHECKING:  # the annotations' types only
+    from ..certify.certificate import Certificate
+    from ..density.estimate import KnnDensity
+    from ..mesh import Mesh
+    from .parts import PartitionedMesh
 
 DEFAULT_COLUMNS = ("x", "y")
 
@@ -35,16 +44,31 @@ def _dask():
         import distributed  # noqa: F401
     except ImportError:
         raise ImportError(
-            'knnrefine.distributed needs Dask: pip install "knnrefine[dask]"'
+            'knnrefine.scale.distributed needs Dask: pip install "knnrefine[dask]"'
         ) from None
 
 
-def partitions(source, columns=DEFAULT_COLUMNS, weights=None, chunk=1_000_000):
-    """The source as a list of (Dask delayed partition, its weights): the partition an
-    (n_i, 2) array or a pandas DataFrame, its weights an array slice, a column's name, or
-    None. Sources: a NumPy array (cut into ``chunk`` rows), a Dask array, a pandas or Dask
-    DataFrame (``columns`` hold x and y; ``weights`` names a column), or the path of a
-    Parquet dataset (read with Dask, only the columns needed). Nothing is computed here."""
+def partitions(source, columns=DEFAULT_COLUMNS, weights=None, chunk: int = 1_000_000) -> list:
+    """The source as Dask partitions; nothing is computed here.
+
+    Parameters
+    ----------
+    source : NumPy array (n, 2), Dask array, pandas or Dask DataFrame, or a Parquet path
+        A NumPy array is cut into ``chunk`` rows; a Parquet dataset is read with Dask, only
+        the columns needed.
+    columns : pair of str
+        The x and y columns of a DataFrame or Parquet dataset.
+    weights : array-like, str or None
+        An array, or a column's name.
+    chunk : int
+        Rows per partition of a NumPy array.
+
+    Returns
+    -------
+    list of (Dask delayed partition, its weights)
+        The partition an (n_i, 2) array or a pandas DataFrame, its weights an array slice,
+        a column's name, or None.
+    """
     _dask()
     import dask
     import dask.array as da
@@ -167,7 +191,7 @@ def _strip_call(fn, payload, *pieces):
 
 
 class DaskStore:
-    """The points of a tiled run on a Dask cluster (``partition.py`` says what a store
+    """The points of a tiled run on a Dask cluster (``scale/tiled.py`` says what a store
     does): partitions and strip indexes live on the workers; strip j of either set is
     built on, and its tiles sent to, worker j mod W (another if that one is gone)."""
 
@@ -254,24 +278,31 @@ def refine(
     source, k, tau=3.0, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
     retries=2, periodic=False, box=None, min_size=None, max_vertices=None, time_limit=None,
     progress=None, output=None, parts=None, force=False,
-):  # fmt: skip
+) -> Mesh | PartitionedMesh:  # fmt: skip
     """kNNRefine of ``source`` on a Dask cluster, the points never gathered in this process
-    (module docstring); the same result type and guarantees as ``knnrefine.refine``
-    (periodic, box, min_size, max_vertices, time_limit, progress: as there).
+    (module docstring); the same result type and guarantees as ``knnrefine.refine``.
 
+    Parameters
+    ----------
     source : NumPy array (n, 2), Dask array, pandas or Dask DataFrame, or a Parquet path
         See ``partitions`` (``columns``; ``weights``: an array, or a column's name).
+    k, tau, periodic, box, min_size, max_vertices, time_limit, progress
+        As for ``knnrefine.refine``.
     client : dask.distributed.Client, optional
-        Where the tiles run; None: a LocalCluster of ``workers`` processes (default: this
+        Where the strips run; None: a LocalCluster of ``workers`` processes (default: this
         machine's cores, at least 2) with one thread each, closed afterwards.
     workers : int, optional
-        Strips per round (default: the client's worker threads, at least 2).
+        Workers, one strip each per round (default: the client's worker threads, at least 2).
     retries : int
         How often Dask runs a failed task again.
     output : path, optional
-        Write the mesh as a folder of ``parts`` parts (default: one per strip) and return
-        it as a ``partitioned.PartitionedMesh`` (``partitioned.write_partitioned``: written
-        atomically, a finished marker last; ``force`` overwrites an existing folder).
+        Write the mesh as a folder of ``parts`` parts (default: one per worker) and return it
+        as a ``PartitionedMesh`` (``write_partitioned``: written atomically, a finished marker
+        last; ``force`` overwrites an existing folder).
+
+    Returns
+    -------
+    Mesh or PartitionedMesh
     """
     if output is not None:
         check_output(output, parts, force)
@@ -281,7 +312,8 @@ def refine(
             store.check_inside, k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
             max_vertices=max_vertices, time_limit=time_limit, progress=progress,
         )  # fmt: skip
-        V.fold_warning(*store.bounds, opt.box, opt.periodic, stacklevel=3)
+        lo, hi = store.bounds
+        V.fold_warning(lo, hi, opt.box, opt.periodic, stacklevel=3)
         mesh = refine_store(store, opt, tiles)
     if output is None:
         return mesh
@@ -291,14 +323,26 @@ def refine(
 def certify(
     mesh, source, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
     retries=2, samples=100_000, n_random=20_000, max_point_probes=100_000, seed=0,
-):  # fmt: skip
-    """``knnrefine.certify`` of ``mesh`` against the points of ``source`` on a Dask cluster,
+) -> Certificate:  # fmt: skip
+    """``knnrefine.certify`` of a mesh against the points of ``source`` on a Dask cluster,
     the points never gathered here: every count and d_{P,k} is asked strip by strip on the
     workers where the strips' points are (``certify.certify_store``); the mesh's own checks
     (its triangulation, in exact arithmetic where floating point is not conclusive) run in
-    this process. source, client, workers, columns, weights, retries: as in ``refine``;
-    samples, n_random, max_point_probes, seed: as in ``knnrefine.certify``."""
-    from .certify import certify_store
+    this process.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    source, client, workers, columns, weights, retries
+        As for ``refine``.
+    samples, n_random, max_point_probes, seed
+        As for ``knnrefine.certify``.
+
+    Returns
+    -------
+    Certificate
+    """
+    from ..certify import certify_store
 
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         store.check_inside(mesh.box, mesh.periodic)
@@ -307,15 +351,27 @@ def certify(
 
 
 def density(pmesh, source, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
-            retries=2, normalized=True, subdivide=True):  # fmt: skip
-    """The kNN density estimate (``KnnDensity``: evaluate, ``grid``, ``mass``, ``sample``) of
-    a partitioned mesh (``refine(..., output=)``: a ``PartitionedMesh`` or its folder),
-    answered part by part (``partitioned.PartitionedDistance``): exact d_{P,k} at every
-    part's nodes is asked strip by strip on the workers where the points of ``source`` are,
-    never gathered here. source, client, workers, columns, weights, retries: as in
-    ``refine``; normalized, subdivide: as in ``KnnDensity``."""
-    from .density import KnnDensity
-    from .partitioned import PartitionedDistance, PartitionedMesh
+            retries=2, normalized=True, subdivide=True) -> KnnDensity:  # fmt: skip
+    """The kNN density estimate of a partitioned mesh, answered part by part
+    (``scale.parts.PartitionedDistance``): exact d_{P,k} at every part's nodes is asked strip
+    by strip on the workers where the points of ``source`` are, never gathered here.
+
+    Parameters
+    ----------
+    pmesh : PartitionedMesh or path
+        From ``refine(..., output=)``.
+    source, client, workers, columns, weights, retries
+        As for ``refine``.
+    normalized, subdivide
+        As for ``KnnDensity``.
+
+    Returns
+    -------
+    KnnDensity
+        Evaluate, ``grid``, ``mass``, ``sample``.
+    """
+    from ..density import KnnDensity
+    from .parts import PartitionedDistance, PartitionedMesh
 
     if isinstance(pmesh, (str, os.PathLike)):
         pmesh = PartitionedMesh(pmesh)

@@ -28,8 +28,20 @@ import numpy as np
 from .geometry import morton_key
 from .jit import kernel
 from .predicates import orient2d
-from .refine import GOOD, _inside, disk_in_rectangle
-from .state import C_LAST_NB, C_NT, C_NV, INSERT_NOT_IN_SEED, P_FLOOR2, P_LX, P_LY
+from .refine import (
+    disk_in_rectangle,
+    interval_within,
+)
+from .state import (
+    C_LAST_NB,
+    C_NT,
+    C_NV,
+    GOOD,
+    INSERT_NOT_IN_SEED,
+    P_FLOOR2,
+    P_LX,
+    P_LY,
+)
 from .triangulation import circumcentre, corner, corner_of, insert_vertex
 
 WALK_LIMIT = 1 << 22  # steps of one walk: far beyond any mesh's, a broken mesh's guard
@@ -168,7 +180,7 @@ def in_rectangle(xy, x0, y0, w, h, pad, lx, ly):
     [y0 - pad, y0 + h + pad] (wrapping; w >= lx or h >= ly: the whole axis)."""
     out = np.zeros(xy.shape[0], np.bool_)
     for i in range(xy.shape[0]):
-        out[i] = _inside(xy[i, 0], 0.0, x0 - pad, w + 2 * pad, lx) and _inside(
+        out[i] = interval_within(xy[i, 0], 0.0, x0 - pad, w + 2 * pad, lx) and interval_within(
             xy[i, 1], 0.0, y0 - pad, h + 2 * pad, ly
         )
     return out

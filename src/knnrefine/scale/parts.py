@@ -20,22 +20,28 @@ The folder is written under a temporary name and renamed into place with a finis
 array.
 """
 
+from __future__ import annotations
+
 import json
 import os
 import shutil
 import tempfile
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .density.distance import KnnDistance, grid_shape, point_index
-from .density.estimate import KnnDensity
-from .density.plane import index_values, midpoints, node_guesses, sample_pieces
-from .engine.raster import rasterise
-from .errors import InputError
-from .io import UNREADABLE, unreadable
-from .mesh import Mesh, Torus, circumcircles, split_in_four
-from .metric import BoxMetric
-from .validation import as_points, as_queries, weights_of_run
+from ..density.distance import KnnDistance, grid_shape, point_index
+from ..density.estimate import KnnDensity
+from ..density.plane import index_values, midpoints, node_guesses, sample_pieces
+from ..engine.raster import rasterise
+from ..errors import InputError
+from ..io import UNREADABLE, unreadable
+from ..mesh import Mesh, Torus, circumcircles, split_in_four
+from ..metric import BoxMetric
+from ..validation import as_points, as_queries, check_workers, weights_of_run
+
+if TYPE_CHECKING:  # the annotations' types only
+    from matplotlib.axes import Axes
 
 FORMAT_VERSION = 2  # 2: each part also lists the others' triangles meeting its strip
 FINISHED = "_SUCCESS"
@@ -52,9 +58,26 @@ def _owner(coord, cuts):
     return np.clip(np.searchsorted(cuts, coord, side="right") - 1, 0, len(cuts) - 1)
 
 
-def write_partitioned(mesh, path, parts, force=False):
-    """Write ``mesh`` as a folder of ``parts`` parts (module docstring); an existing ``path``
-    is kept unless ``force``. Returns the ``PartitionedMesh`` of the folder."""
+def write_partitioned(mesh, path, parts: int, force: bool = False) -> PartitionedMesh:
+    """Write a mesh as a folder of parts (module docstring), atomically (a finished marker
+    last).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        In the plane.
+    path : str or PathLike
+        The folder.
+    parts : int
+        Strips across the box's longer periodic (else longer) axis, one file each.
+    force : bool
+        Replace an existing folder (the old one goes only once the new one is whole).
+
+    Returns
+    -------
+    PartitionedMesh
+        The folder, read back.
+    """
     path = check_output(path, parts, force)
     parent = os.path.dirname(path)
     tmp = tempfile.mkdtemp(dir=parent, prefix=".knnrefine-")
@@ -211,9 +234,26 @@ def _part_mesh(mesh, arrays, has_offsets):
 class PartitionedMesh:
     """A mesh written by ``write_partitioned`` (or ``distributed.refine(..., output=)``),
     read part by part: ``part(j)`` is a small ``Mesh`` exact in its strip; ``d_m2`` and
-    ``plot`` go part by part; ``to_mesh()`` is the whole ``Mesh``."""
+    ``plot`` go part by part; ``to_mesh()`` is the whole ``Mesh``.
 
-    def __init__(self, path):
+    Parameters
+    ----------
+    path : str or PathLike
+        The folder.
+    """
+
+    def __init__(self, path) -> None:
+        """Open a folder written by ``write_partitioned``.
+
+        Parameters
+        ----------
+        path : str or PathLike
+
+        Raises
+        ------
+        InputError
+            No such folder, an unfinished one, or one written by a newer knnrefine.
+        """
         path = os.fspath(path)
         if not os.path.isdir(path):
             raise InputError(f"{path}: no such folder (a partitioned mesh is a folder)")
@@ -231,7 +271,7 @@ class PartitionedMesh:
         self.k, self.tau, self.min_size = m["k"], m["tau"], m["min_size"]
         self.periodic, self.box = tuple(m["periodic"]), tuple(m["box"])
         self.stats = m["stats"]
-        self._cache = {}
+        self._cache: dict = {}
 
     @property
     def dim(self) -> int:
@@ -256,24 +296,51 @@ class PartitionedMesh:
         except UNREADABLE as exc:
             raise unreadable(path, "part (.npz)", exc) from None
 
-    def part(self, j):
+    def part(self, j: int) -> Mesh:
         """Part j as a ``Mesh``: its vertices with the halo, its own triangles (d_{M,2} exact
-        in its strip and its triangles). The last few parts read are kept."""
+        in its strip and its triangles). The last few parts read are kept.
+
+        Parameters
+        ----------
+        j : int
+
+        Returns
+        -------
+        Mesh
+        """
         if j not in self._cache:
             if len(self._cache) >= 4:
                 self._cache.pop(next(iter(self._cache)))
             self._cache[j] = _part_mesh(self, self._arrays(j), self.manifest["has_offsets"])
         return self._cache[j]
 
-    def owner(self, x):
-        """The part whose strip holds each point (x of shape (q, 2))."""
+    def owner(self, x) -> np.ndarray:
+        """The part whose strip holds each point.
+
+        Parameters
+        ----------
+        x : ndarray (q, 2)
+
+        Returns
+        -------
+        ndarray (q,) int
+        """
         a = self.manifest["axis"]
         coord = BoxMetric(self.box, self.periodic).frame(x)[:, a]
         return _owner(coord, np.array(self.manifest["cuts"]))
 
-    def d_m2(self, x):
-        """d_{M,2} at the query points (..., 2), part by part: equal to the whole mesh's in
-        the box; NaN beyond it along non-periodic axes (no part's halo reaches there)."""
+    def d_m2(self, x) -> np.ndarray:
+        """d_{M,2} part by part: equal to the whole mesh's in the box; NaN beyond it along
+        non-periodic axes (no part's halo reaches there).
+
+        Parameters
+        ----------
+        x : array-like (..., 2)
+
+        Returns
+        -------
+        ndarray (...)
+        """
         flat, shape = as_queries(x)
         out = np.full(len(flat), np.nan)
         inside = np.ones(len(flat), bool)
@@ -287,9 +354,20 @@ class PartitionedMesh:
             out[at] = self.part(int(j)).d_m2(flat[at])
         return out.reshape(shape)
 
-    def plot(self, ax=None, **kwargs):
-        """``plot.plot_mesh`` part by part on one axes, one colour scale for all."""
-        from .plot import plot_mesh
+    def plot(self, ax=None, **kwargs) -> Axes:
+        """``plot.plot_mesh`` part by part on one axes, one colour scale for all.
+
+        Parameters
+        ----------
+        ax : matplotlib Axes, optional
+        **kwargs
+            As for ``plot.plot_mesh``.
+
+        Returns
+        -------
+        matplotlib Axes
+        """
+        from ..plot import plot_mesh
 
         m = self.manifest
         title = kwargs.pop("title", None) or (
@@ -302,32 +380,63 @@ class PartitionedMesh:
                            show_colour_bar=last, title=title, **kwargs)  # fmt: skip
         return ax
 
-    def distance(self, points, *, weights=None, subdivide=True, tiles=None):
-        """d_{P,k} part by part (``PartitionedDistance``) from the points the mesh was refined
-        from (with its weights, for a weighted run): from one index over them in this
-        process, or with ``tiles`` asked strip by strip in that many local processes
-        (``distributed.density`` asks a Dask cluster)."""
-        if tiles is None:
+    def distance(self, points, *, weights=None, subdivide: bool = True,
+                 workers: int | None = None) -> PartitionedDistance:  # fmt: skip
+        """d_{P,k} part by part from the points the mesh was refined from.
+
+        Parameters
+        ----------
+        points : array-like (n, 2)
+        weights : array-like (n,), optional
+            The weights of a weighted run.
+        subdivide : bool
+            As for ``KnnDistance``.
+        workers : int, optional
+            None or 1: one index over the points in this process; N > 1: asked strip by
+            strip in N local processes (``distributed.density`` asks a Dask cluster).
+
+        Returns
+        -------
+        PartitionedDistance
+        """
+        workers = check_workers(workers)
+        if workers == 1:
             return PartitionedDistance.of_index(self, points, weights, subdivide)
-        if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles < 1:
-            raise InputError(f"tiles must be a positive integer (local processes), got {tiles!r}")
-        from .engine.partition import LocalStore
+        from .tiled import LocalStore
 
         pts = as_points(points)
-        store = LocalStore(pts, weights_of_run(self.stats, len(pts), weights), int(tiles))
+        store = LocalStore(pts, weights_of_run(self.stats, len(pts), weights), workers)
         try:
-            return PartitionedDistance.of_store(self, store, int(tiles), subdivide)
+            return PartitionedDistance.of_store(self, store, workers, subdivide)
         finally:
             store.close()
 
-    def density(self, points, *, weights=None, normalized=True, subdivide=True, tiles=None):
-        """The kNN density estimate (``KnnDensity``: evaluate, ``grid``, ``mass``,
-        ``sample``) part by part: ``distance``'s d_{P,k}."""
-        distance = self.distance(points, weights=weights, subdivide=subdivide, tiles=tiles)
+    def density(self, points, *, weights=None, normalized: bool = True, subdivide: bool = True,
+                workers: int | None = None) -> KnnDensity:  # fmt: skip
+        """The kNN density estimate part by part (``KnnDensity``: evaluate, ``grid``,
+        ``mass``, ``sample``) from ``distance``'s d_{P,k}.
+
+        Parameters
+        ----------
+        points, weights, subdivide, workers
+            As for ``distance``.
+        normalized : bool
+            As for ``KnnDensity``.
+
+        Returns
+        -------
+        KnnDensity
+        """
+        distance = self.distance(points, weights=weights, subdivide=subdivide, workers=workers)
         return KnnDensity.of_distance(distance, normalized)
 
-    def to_mesh(self):
-        """The whole ``Mesh`` again (as written: every array equal)."""
+    def to_mesh(self) -> Mesh:
+        """The whole mesh again, as written (every array equal).
+
+        Returns
+        -------
+        Mesh
+        """
         m = self.manifest
         t = m["torus"]
         rows = {"": m["m"], "triangle": m["triangles"], "torus_vertex": t["m"],
@@ -416,7 +525,7 @@ class PartitionedDistance:
     def of_index(cls, pmesh, points, weights=None, subdivide=True):
         """From the points (and the weights of a weighted run) in this process: one
         counting index, as ``KnnDistance``."""
-        from .certify import check_source
+        from ..certify import check_source
 
         pts = as_points(points)
         weights = weights_of_run(pmesh.stats, len(pts), weights)
@@ -427,10 +536,10 @@ class PartitionedDistance:
 
     @classmethod
     def of_store(cls, pmesh, store, tiles, subdivide=True):
-        """From points that stay in a store (``engine.partition.LocalStore`` or
+        """From points that stay in a store (``scale.tiled.LocalStore`` or
         ``distributed.DaskStore``), asked in ``tiles`` strips where they are
         (``certify.StripQuestions``; the pads are guesses, the strips answer exactly)."""
-        from .certify import StripQuestions, check_source
+        from ..certify import StripQuestions, check_source
 
         check_source(pmesh.stats, store.n, store.weight)
         t = pmesh.manifest["torus"]
