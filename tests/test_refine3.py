@@ -276,7 +276,8 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
     """knnrefine refine with three --columns and a six-number box: .vtu (ParaView: every
     tetrahedron positively oriented where its offsets put its corners, d_M2 per point) and
     .npz (read back array for array, certified again by 'knnrefine certify'); outputs the
-    3-D writers lack, --plot and a five-number box are refused before work."""
+    3-D writers lack and a five-number box are refused before work; --plot draws three
+    slices of the mesh (refused before issue 29)."""
     import meshio
 
     from knnrefine import io
@@ -312,9 +313,12 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
         except SystemExit as exc:
             return exc.code
 
-    for bad in (["-o", str(tmp_path / "m.geojson")], ["--plot", str(tmp_path / "m.png")]):
-        assert code([*args, *bad]) == 1
-        assert not os.path.exists(bad[1])
+    bad = ["-o", str(tmp_path / "m.geojson")]
+    assert code([*args, *bad]) == 1
+    assert not os.path.exists(bad[1])
+    picture = tmp_path / "m.png"
+    assert code([*args, "-o", str(tmp_path / "again.npz"), "--plot", str(picture)]) == 0
+    assert picture.stat().st_size > 10_000
     assert code([*args[:-6], "--box", "0", "0", "0", "360", "360"]) == 2
     plane = ["refine", str(csv), "--columns", "chi1,chi2", "-k", "5", "--box", "0", "0", "9", "9"]
     assert code([*plane, "--periodic-z"]) == 2  # z is for points in space
