@@ -52,9 +52,7 @@ def certify_every_mesh(monkeypatch):
     package = sys.modules["knnrefine.certify"]  # the entry's own names, read at each call
     made, seen = [], set()
 
-    @functools.wraps(original)
-    def refine_and_register(points, k, *args, **kwargs):
-        mesh = original(points, k, *args, **kwargs)
+    def register(mesh, points, kwargs):
         if (
             mesh.stats["n"] <= CERTIFY_UP_TO_POINTS
             and mesh.stats["m_torus"] <= CERTIFY_UP_TO_VERTICES
@@ -66,6 +64,10 @@ def certify_every_mesh(monkeypatch):
             CERTIFIED["skipped"] += 1
         return mesh
 
+    @functools.wraps(original)
+    def refine_and_register(points, k, *args, **kwargs):
+        return register(original(points, k, *args, **kwargs), points, kwargs)
+
     def seen_by(check):
         @functools.wraps(check)
         def wrapped(mesh, *args, **kwargs):
@@ -76,7 +78,18 @@ def certify_every_mesh(monkeypatch):
 
     monkeypatch.setattr(knnrefine, "refine", refine_and_register)
     monkeypatch.setattr(knnrefine.api, "refine", refine_and_register)
+    # the applications (the density estimator) refine in this process through run.refine
+    in_process = knnrefine.run.refine
+
+    @functools.wraps(in_process)
+    def in_process_and_register(points, k, *args, **kwargs):
+        return register(in_process(points, k, *args, **kwargs), points, kwargs)
+
+    monkeypatch.setattr(knnrefine.run, "refine", in_process_and_register)
     monkeypatch.setattr(package, "run_checks", seen_by(package.run_checks))
+    checks = sys.modules.get("knnrefine.scale.checks")  # strip by strip: its own binding
+    if checks is not None:
+        monkeypatch.setattr(checks, "run_checks", seen_by(checks.run_checks))
     monkeypatch.setattr(package, "certify3", seen_by(package.certify3))
     yield
     for mesh, points, weights in made:

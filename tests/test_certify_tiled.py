@@ -7,8 +7,9 @@ import pytest
 from conftest import gaussian_clusters
 
 import knnrefine
-from knnrefine.certify.plane import TiledTorusPoints, TorusPoints
+from knnrefine.certify.plane import TorusPoints
 from knnrefine.errors import InputError
+from knnrefine.scale.checks import TiledTorusPoints
 from knnrefine.scale.tiled import LocalStore, split_strips, strip_owner, strips
 
 

@@ -241,11 +241,11 @@ def test_methionine_torsions_on_the_3_torus(k):
 
 
 def test_the_initial_mesh_check_counts_balls_of_every_size():
-    """api3._holds (does the closed ball of radius r about x hold k points?) against a
+    """run3._holds (does the closed ball of radius r about x hold k points?) against a
     periodic kd-tree, for radii below half the period (the index), up to the torus'
     diameter (a direct count) and beyond it (every point)."""
-    from knnrefine.api3 import _holds
     from knnrefine.engine.index3 import build_index3
+    from knnrefine.run3 import _holds
 
     period = np.array([1.0, 0.5, 2.0])
     u = np.mod(multiscale(5000, 9) * period, period)
@@ -325,10 +325,10 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
 
 
 def _start_run(pts, k=10):
-    from knnrefine.api3 import _holds
     from knnrefine.engine.driver3 import Refinement3, choose_grid3
     from knnrefine.engine.index3 import build_index3
     from knnrefine.engine.initial import reach_factor
+    from knnrefine.run3 import _holds
 
     period = np.ones(3)
     index = build_index3(pts)
@@ -611,10 +611,10 @@ def test_growing_without_mremap_or_mappings_copies(monkeypatch):
 
 
 def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(monkeypatch):
-    """api3._Start3 tries the default margin first and builds the data bound on max d_Pk (a
+    """run3._Start3 tries the default margin first and builds the data bound on max d_Pk (a
     kd-tree over all points) only if that torus cannot start; the bound is >= d_Pk at 20,000
     random points of the box (a brute kd-tree, straight metric)."""
-    from knnrefine import api3
+    from knnrefine import run3 as api3
     from knnrefine.engine.initial import reach_factor
     from knnrefine.engine.interrupt import Interrupts
     from knnrefine.options import RunOptions
@@ -652,13 +652,13 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
 
 @pytest.mark.parametrize("periodic", [True, False])
 def test_the_counting_index_is_freed_before_the_unfolding(monkeypatch, periodic):
-    """Regression: the tuple api3._start returned kept the counting index (28 bytes a point)
+    """Regression: the tuple run3's start returned kept the counting index (28 bytes a point)
     alive until refine3 returned, through the unfolding, where an ordinary box's run then
     peaked. Every array of the index must be gone when the unfolding starts."""
     import gc
     import weakref
 
-    from knnrefine import api3
+    from knnrefine import run3 as api3
 
     refs, dead = [], []
     build, unfold = api3.build_index3, api3.unfold

@@ -6,8 +6,8 @@ everywhere in the box, whose Delaunay triangulation is tau-well-spaced.
 """
 
 from . import datasets, io
-from .api import refine
-from .certify import Certificate, certify
+from .api import certify, refine
+from .certify import Certificate
 from .cluster import Clustering, cluster
 from .density import KnnDensity, KnnDensityEstimator, KnnDistance
 from .errors import (

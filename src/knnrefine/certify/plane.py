@@ -28,24 +28,10 @@ from ..validation import weights_of_run
 from .certificate import Certificate, floor_sites, to_input
 from .common import (
     check_precondition,
-    check_source,
     compensated_sums,
     find_rows,
     running_sums,
 )
-
-
-def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
-                  max_point_probes=100_000, seed=0, threads=-1):  # fmt: skip
-    """``certify`` of a mesh against the points of ``store`` (``scale/tiled.py``:
-    ``LocalStore`` or ``distributed.DaskStore``), which never come to this process: counts
-    and d_{P,k} are asked strip by strip (``tiles`` strips of equal share), each strip where
-    its points are. The caller has checked that the points lie in the mesh's box."""
-    t0 = time.perf_counter()
-    check_source(mesh.stats, store.n, store.weight)
-    torus = TiledTorusPoints(mesh, store, int(tiles), threads)
-    return run_checks(mesh, torus, samples=samples, n_random=n_random,
-                    max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
 
 
 def run_checks(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
@@ -145,19 +131,19 @@ class TorusPoints:
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
         if self.weights is None:
             return self.point_tree.query(x, k=[self.k], workers=self.threads)[0][:, 0]
-        return _weighted_kth(self.point_tree, self.weights, x, self.k, self.threads)
+        return weighted_kth(self.point_tree, self.weights, x, self.k, self.threads)
 
     def held(self, centres, radii):
         """What each closed disk (centre, radius) holds: its number of points, or their
         weight."""
-        return _held(self.point_tree, self.weights, centres, radii, self.threads)
+        return held_in_disks(self.point_tree, self.weights, centres, radii, self.threads)
 
     def cell_counts(self, outradii):
         """What each vertex's closed Voronoi cell holds (points equidistant to several
         vertices count for each)."""
         m = len(self.vertices)
         dd, ii = self.vertex_tree.query(self.points, k=min(3, m), workers=self.threads)
-        return _cell_tally(dd, ii, self.weights, m)
+        return cell_tally(dd, ii, self.weights, m)
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points, drawn at random."""
@@ -165,7 +151,7 @@ class TorusPoints:
         return P if len(P) <= count else P[rng.choice(len(P), count, False)]
 
 
-def _held(tree, weights, centres, radii, threads=-1):
+def held_in_disks(tree, weights, centres, radii, threads=-1):
     """What each closed disk about centres holds in the tree's points: a count, or their
     weight (summed by ``_sums``: a heavy point does not swallow light ones)."""
     if weights is None:
@@ -183,7 +169,7 @@ def _held(tree, weights, centres, radii, threads=-1):
     return out
 
 
-def _cell_tally(dd, ii, weights, m):
+def cell_tally(dd, ii, weights, m):
     """Points per Voronoi cell from each point's nearest vertices (dd, ii: distances and
     indices of up to 3, nearest first): a point counts for every vertex as near as its
     nearest (up to a relative 1e-12), weighed by ``weights`` if given (compensated sums)."""
@@ -199,165 +185,7 @@ def _cell_tally(dd, ii, weights, m):
     return compensated_sums(np.ascontiguousarray(w[order], dtype=np.float64), bounds)
 
 
-class StripQuestions:
-    """Questions about points held in a store (``LocalStore`` or ``distributed.DaskStore``),
-    asked strip by strip where they are (``store.map_strips``, ``_certify_strip``), in the
-    frame of the torus of ``period`` with origin ``origin``: ``tiles`` strips of equal share
-    of the points. Strip j owns the points of [cut j, cut j + 1) along the strip axis and
-    sees the others within a pad: counts in disks add up the owners' (each point is owned
-    once, a disk goes to every strip it meets); d_{P,k} at x is decided by x's strip when
-    its k-th point lies within the pad, and asked again with four times the pad otherwise
-    (the whole torus at last)."""
-
-    def __init__(self, store, origin, period, k, tiles):
-        from ..scale.tiled import SAMPLE_MIN, regions_axis, strips
-
-        self.store, self.k = store, k
-        self.period = np.asarray(period, float)
-        self.input_frame = TorusFrame(np.asarray(origin, float), self.period)
-        sx = store.sample(min(1.0, SAMPLE_MIN / store.n))[0]
-        self.regions = strips(self.input_frame(sx), *self.period, int(tiles))[0]
-        self.axis_period = float(self.period[regions_axis(self.regions, *self.period)])
-        self.passes = 0
-
-    def ask(self, jobs, pad):
-        """One job per strip (a dict: ``_certify_strip``), the strips widened by ``pad``."""
-        common = {"regions": self.regions, "period": tuple(self.period), "k": self.k,
-                  "pad": pad, "complete": 2.0 * pad >= self.axis_period}  # fmt: skip
-        jobs = [{**common, "j": j, **job} for j, job in enumerate(jobs)]
-        self.passes += 1
-        return self.store.map_strips(_certify_strip, self.input_frame, self.regions, pad, jobs)
-
-    def route(self, x, pad):
-        """The rows of x (torus frame) within ``pad`` of each strip (one pad per row)."""
-        from ..scale.tiled import split_strips
-
-        rows, bounds = split_strips(x, self.regions, pad, *self.period)
-        return [rows[bounds[j] : bounds[j + 1]] for j in range(len(self.regions))]
-
-    def d_pk(self, x, pad):
-        """Exact d_{P,k} at x (torus frame); ``pad`` a first guess of its reach (it only sets
-        how often a question is asked again)."""
-        from ..scale.tiled import strip_owner
-
-        out = np.full(len(x), np.nan)
-        if len(x) == 0:
-            return out
-        owner = strip_owner(x, self.regions, *self.period)
-        todo = np.arange(len(x))
-        pad = max(float(pad), 1e-12 * self.axis_period)
-        while len(todo):
-            mine = [todo[owner[todo] == j] for j in range(len(self.regions))]
-            got = self.ask([{"dpk": x[r]} for r in mine], pad)
-            for r, g in zip(mine, got, strict=True):
-                out[r] = g["dpk"]
-            todo = todo[np.isnan(out[todo])]
-            pad *= 4.0
-        return out
-
-    def held(self, centres, radii):
-        """What each closed disk (torus frame) holds: a count, or a weight."""
-        radii = np.broadcast_to(np.asarray(radii, float), len(centres))
-        out = np.zeros(len(centres), np.int64 if self.store.weight is None else float)
-        if len(centres) == 0:
-            return out
-        mine = self.route(centres, radii * (1.0 + 1e-9) + 1e-12 * self.axis_period)
-        got = self.ask([{"balls": (centres[r], radii[r])} for r in mine], 0.0)
-        for r, g in zip(mine, got, strict=True):
-            out[r] += g["held"]
-        return out
-
-
-class TiledTorusPoints(TorusPoints):
-    """A ``TorusPoints`` whose input points stay in a store: every question about them is a
-    ``StripQuestions``."""
-
-    def __init__(self, mesh, store, tiles, threads):
-        self._mesh(mesh, threads)
-        self.store = store
-        self.n = store.n
-        self.weighted = store.weight is not None
-        self.total = float(store.n) if store.weight is None else float(store.weight)
-        self.questions = StripQuestions(store, self.origin, self.period, self.k, tiles)
-
-    @property
-    def passes(self):
-        return self.questions.passes
-
-    def d_pk(self, x):
-        # a first pad from the mesh (a guess only: what the strips decide is exact)
-        pad = float(np.quantile(4.0 * self.d_m2(x), 0.99)) if len(x) else 0.0
-        return self.questions.d_pk(x, pad)
-
-    def held(self, centres, radii):
-        return self.questions.held(centres, radii)
-
-    def cell_counts(self, outradii):
-        q = self.questions
-        m = len(self.vertices)
-        out = np.zeros(m, float if self.weighted else np.int64)
-        # Voronoi cell of v lies within R(v) of v: a first vertex pad from the outradii
-        pad = max(float(np.quantile(outradii, 0.999)) * 1.01, 1e-12 * q.axis_period)
-        before = -1.0
-        while True:
-            mine = q.route(self.vertices, pad)
-            complete = 2.0 * pad >= q.axis_period
-            jobs = [{"cells": (self.vertices[r], r, pad, before, complete)} for r in mine]
-            got = q.ask(jobs, 0.0)
-            for g in got:
-                np.add.at(out, g["cell_ids"], g["cell_counts"])
-            if sum(g["undecided"] for g in got) == 0:
-                return out
-            before, pad = pad, 4.0 * pad
-
-    def sample_points(self, count, rng):
-        sx = self.store.sample(min(1.0, count / self.n))[0]
-        return self.input_frame(sx)
-
-
-def _certify_strip(points, weights, job):
-    """One strip's answers (``TiledTorusPoints``) from its points (the torus frame) within
-    ``job["pad"]`` of it: d_{P,k} at its queries (NaN where the k-th point may lie beyond
-    the pad), what its own points add to each disk, to each vertex's cell."""
-    from ..scale.tiled import strip_owner
-
-    period = np.asarray(job["period"], float)
-    out = {}
-    if "dpk" in job:
-        x, k = job["dpk"], job["k"]
-        tree = cKDTree(points, boxsize=period)
-        if weights is not None:
-            d = _weighted_kth(tree, weights, x, k, 1)
-        elif len(points) >= k and len(x):
-            d = tree.query(x, k=[k])[0][:, 0]
-        else:
-            d = np.full(len(x), np.inf)
-        if not job["complete"]:
-            d[~(d <= job["pad"])] = np.nan  # the k-th point may lie beyond the pad
-        out["dpk"] = d
-    own = strip_owner(points, job["regions"], *period) == job["j"]
-    pts, w = points[own], None if weights is None else weights[own]
-    if "balls" in job:
-        centres, radii = job["balls"]
-        out["held"] = _held(cKDTree(pts, boxsize=period), w, centres, radii, 1)
-    if "cells" in job:
-        vxy, ids, pad, before, complete = job["cells"]
-        if len(vxy) == 0 or len(pts) == 0:  # nothing to tally (a strip may hold no point)
-            undecided = 0 if complete or len(vxy) else len(pts)
-            out.update(cell_ids=ids[:0], cell_counts=np.zeros(0), undecided=undecided)
-            return out
-        dd, ii = cKDTree(vxy, boxsize=period).query(pts, k=min(3, len(vxy)))
-        dd, ii = dd.reshape(len(pts), -1), ii.reshape(len(pts), -1)
-        reach = dd[:, 0] * (1.0 + 1e-12)
-        now = np.ones(len(pts), bool) if complete else reach <= pad
-        new = now & (reach > before)  # decided now, not by an earlier pass
-        tally = _cell_tally(dd[new], ii[new], None if w is None else w[new], len(vxy))
-        nz = np.flatnonzero(tally)
-        out.update(cell_ids=ids[nz], cell_counts=tally[nz], undecided=int((~now).sum()))
-    return out
-
-
-def _weighted_kth(tree, weights, x, k, threads, chunk=20_000):
+def weighted_kth(tree, weights, x, k, threads, chunk=20_000):
     """The least r whose closed disk about each x holds weight >= k: the nearest points in
     order, their weights summed, more of them fetched where the first ones fall short."""
     out = np.empty(len(x))

@@ -301,7 +301,7 @@ class KnnDensityEstimator:
     def _estimate(self, pts, weights, box, k):
         """(density, mesh) at this k: the kNN estimate, or the adaptive one with its
         bandwidth given or chosen by leave-one-out likelihood (recording the curve)."""
-        from ..api import refine
+        from ..run import refine
 
         mesh = refine(
             pts, k, self.tau, periodic=self.periodic, box=box, min_size=self.min_size,

@@ -23,11 +23,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import validation as V
-from ..api import refine_store
 from ..errors import InputError
 from ..options import RunOptions
 from .parts import check_output, write_partitioned
-from .tiled import canonical, run_tile, sample_keys, split_strips, tile_index
+from .tiled import canonical, refine_store, run_tile, sample_keys, split_strips, tile_index
 
 if TYPE_CHECKING:  # the annotations' types only
     from ..certify.certificate import Certificate
@@ -326,7 +325,7 @@ def certify(
 ) -> Certificate:  # fmt: skip
     """``knnrefine.certify`` of a mesh against the points of ``source`` on a Dask cluster,
     the points never gathered here: every count and d_{P,k} is asked strip by strip on the
-    workers where the strips' points are (``certify.certify_store``); the mesh's own checks
+    workers where the strips' points are (``scale.checks.certify_store``); the mesh's own checks
     (its triangulation, in exact arithmetic where floating point is not conclusive) run in
     this process.
 
@@ -342,7 +341,7 @@ def certify(
     -------
     Certificate
     """
-    from ..certify import certify_store
+    from .checks import certify_store
 
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         store.check_inside(mesh.box, mesh.periodic)

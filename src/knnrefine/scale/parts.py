@@ -538,8 +538,9 @@ class PartitionedDistance:
     def of_store(cls, pmesh, store, tiles, subdivide=True):
         """From points that stay in a store (``scale.tiled.LocalStore`` or
         ``distributed.DaskStore``), asked in ``tiles`` strips where they are
-        (``certify.StripQuestions``; the pads are guesses, the strips answer exactly)."""
-        from ..certify import StripQuestions, check_source
+        (``scale.checks.StripQuestions``; the pads are guesses, the strips answer exactly)."""
+        from ..certify import check_source
+        from .checks import StripQuestions
 
         check_source(pmesh.stats, store.n, store.weight)
         t = pmesh.manifest["torus"]

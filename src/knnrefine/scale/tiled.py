@@ -28,10 +28,14 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+from ..engine import jit, size
 from ..engine import refine as R
 from ..engine import state as S
 from ..engine.driver import Refinement
+from ..engine.geometry import FLOOR_BITS
 from ..engine.index import build_index
+from ..engine.initial import reach_factor
+from ..engine.interrupt import Interrupts
 from ..engine.jit import kernel
 from ..engine.region import WALK_LOST, in_rectangle, insert_points, mark_settled, spatial_order
 from ..engine.state import (
@@ -45,7 +49,9 @@ from ..engine.state import (
     P_REGION_Y0,
     P_TAU2,
 )
-from ..errors import EngineError
+from ..errors import EngineError, InputError
+from ..mesh import Mesh
+from ..run import Progress, Start, finish, vertex_budget
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
 COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the points ...
@@ -569,3 +575,108 @@ class LocalStore:
         if self.own is not None:
             self.own.shutdown(cancel_futures=True)
             self.own = None
+
+
+# -- a tiled run ------------------------------------------------------------------------------
+
+
+def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
+    """``knnrefine.refine`` with ``workers`` > 1: the points in that many local processes
+    (or on ``executor``), refined in strips (``refine_store``).
+
+    Parameters
+    ----------
+    pts : ndarray (n, 2)
+    w : ndarray (n,) or None
+    opt : RunOptions
+        Checked (``run.checked``).
+    workers : int
+    executor : concurrent.futures.Executor, optional
+
+    Returns
+    -------
+    Mesh
+    """
+    store = LocalStore(pts, w, workers, executor)
+    try:
+        return refine_store(store, opt, workers)
+    finally:
+        store.close()
+
+
+def refine_store(store, opt, workers) -> Mesh:
+    """A tiled run (``scale/tiled.py``) on the points of ``store`` (``LocalStore``, or
+    ``distributed.DaskStore``) with the checked options ``opt`` (``RunOptions``) in
+    ``workers`` strips: the plan from a sample of the points (initial mesh, size, strips), a
+    coarse pass on part of it, rounds of tiles, then whatever no round settled on the index
+    of all points, fetched only then."""
+    n = store.n
+    k, tau, min_size = opt.k, opt.tau, opt.min_size
+    deadline = opt.deadline
+    start_budget = opt.start_budget(n)
+    report = Progress(opt.progress)
+    if not jit.is_ready(R.refine_steps):
+        report.compiling()
+    with Interrupts() as interrupts:
+        t0 = time.perf_counter()
+        coarse_f = min(1.0 / (COARSE_SHARE * workers), COARSE_MAX / n)
+        sx, sw, keys = store.sample(max(coarse_f, min(1.0, SAMPLE_MIN / n)))
+        share = len(sx) / n if sw is None else float(sw.sum()) / store.weight
+        factor = reach_factor(tau)
+        # d_{S,k} >= d_{P,k} for a subset S: an initial mesh the sample accepts is accepted
+        start = Start(sx, opt, start_budget, interrupts, sw)
+        found = start.find(k, factor)
+        if found is None and len(sx) < n:  # the sample may be too sparse: ask all points
+            every, w_every = store.points()
+            start = Start(every, opt, start_budget, interrupts, w_every)
+            found = start.find(k, factor)
+        if found is None:
+            raise InputError(start.refusal(k, tau))
+        emb, s_index, (m0, m0_order, m0_grid) = found
+        opt.past("setting up")
+        lx, ly = emb.period_internal
+        floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
+        lo, hi = emb.box_internal()
+        estimated = size.estimate(s_index, k, floor, lx, ly, float(np.prod(hi - lo)))[0] / share
+        budget = vertex_budget(estimated, opt, len(m0_order), n)
+        internal = emb.to_internal(sx)
+        sets = strips(internal, lx, ly, workers)
+        common = {
+            "k": k, "lx": lx, "ly": ly, "tau": tau, "min_size": min_size * emb.scale,
+            "max_vertices": budget, "m0": m0, "grid": emb.grid,
+        }  # fmt: skip
+        coarse = keys < coarse_f
+        xy, kinds = coarse_pass(
+            internal[coarse], None if sw is None else sw[coarse], k, lx, ly, tau,
+            min_size * emb.scale, budget, m0, emb.grid,
+        )  # fmt: skip
+        store.prepare(emb, sets, 4 * emb.grid)
+        setup = time.perf_counter() - t0
+        xy, kinds, stamps, history, rounds, stopped = run_rounds(
+            store, sets, xy, kinds, common, min(estimated, budget), len(m0[0]), report.refining,
+            interrupts, deadline,
+        )  # fmt: skip
+        t1 = time.perf_counter()
+        args = (xy, kinds, stamps, history, k, lx, ly, tau, min_size * emb.scale, budget, m0,
+                emb.grid)  # fmt: skip
+        bands = margin_bands(emb, *store.bounds)
+        run, status, unsettled = settle(s_index, *args, bands=bands, deadline=deadline)
+        before, fetched = len(m0[0]) + len(xy), False
+        if stopped is not None:
+            status = stopped
+        elif status == S.STATUS_DONE and unsettled:
+            pts, w = store.points()  # what is left needs the counts of all points
+            fetched = True
+            run, _, unsettled = settle(build_index(emb.to_internal(pts), weights=w), *args)
+            status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
+        run.n = n
+        rounds.append({
+            "round": "final", "new_vertices": run.vertices - before,
+            "seconds": time.perf_counter() - t1, "unsettled": unsettled, "fetched_points": fetched,
+        })  # fmt: skip
+        run.time_index = setup
+        run.time_refine = time.perf_counter() - t0 - setup
+        return finish(
+            run, status, emb, opt, (m0_order, m0_grid, estimated, budget), report, interrupts,
+            None, store.weight, rounds,
+        )  # fmt: skip

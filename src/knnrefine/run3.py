@@ -56,7 +56,7 @@ LIMITS_EFFORT3 = 300_000  # initial vertices above which a refusal skips the lim
 
 
 class _Start3:
-    """Where a run in space starts (the plane's ``api._Start``): the embedding torus, the
+    """Where a run in space starts (the plane's ``run.Start``): the embedding torus, the
     counting index over the points in it, and an initial mesh that satisfies Lemma 2's
     precondition. The default torus (a margin of 1.05 x the box's diameter along
     non-periodic axes) first, then, as in the plane, 1.05 x a bound on max d_Pk over the box
