@@ -1,8 +1,8 @@
 """The public API is typed and documented: every public function and method (the package's
-``__all__``, their classes' public methods, ``Persistence``, the Dask functions) has a
-return annotation and a numpy-style docstring with a Parameters section when it takes any
-and a Returns section when it returns something; each class documents its constructor.
-mypy checks the annotations themselves (``.ci/run``)."""
+``__all__``, their classes' public methods, ``Persistence``, the Dask functions) has type
+hints on every parameter and its return, and a numpy-style docstring with a Parameters
+section when it takes any and a Returns section when it returns something; each class
+documents its constructor. mypy checks the annotations themselves (``.ci/run``)."""
 
 import inspect
 
@@ -68,9 +68,19 @@ def test_public_callable_is_typed_and_documented(name, obj):
         cls_doc = inspect.getdoc(getattr(knnrefine, name.split(".")[0], None) or Persistence)
         if obj.__qualname__.endswith("__init__") and "<" not in obj.__qualname__:
             assert "return" in obj.__annotations__, f"{name} has no return annotation"
+            bare = [p for p in params_of(obj) if p not in obj.__annotations__]
+            bare = [p for p in bare if not p.startswith("*")]
+            assert not bare, f"{name}: parameters without a type hint: {', '.join(bare)}"
         assert cls_doc, f"{name}'s class has no docstring"
         return
     assert "return" in obj.__annotations__, f"{name} has no return annotation"
+    plain = [
+        p.name
+        for p in inspect.signature(obj).parameters.values()
+        if p.name not in ("self", "cls") and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
+    bare = [p for p in plain if p not in obj.__annotations__]
+    assert not bare, f"{name}: parameters without a type hint: {', '.join(bare)}"
     assert doc, f"{name} has no docstring"
     if params_of(obj):
         assert "Parameters\n----------" in doc, f"{name}'s docstring has no Parameters section"

@@ -1,6 +1,8 @@
 """knnrefine's two entry points, ``refine`` and ``certify``: each checks what it is given,
 then runs in this process (``run``, ``certify``) or over worker processes (``scale``)."""
 
+from __future__ import annotations
+
 from collections.abc import Callable
 from concurrent.futures import Executor
 
@@ -145,14 +147,14 @@ def refine(
 
 
 def certify(
-    mesh,
-    points,
+    mesh: Mesh,
+    points: ArrayLike,
     *,
     samples: int = 100_000,
     n_random: int = 20_000,
     max_point_probes: int = 100_000,
     seed: int = 0,
-    weights=None,
+    weights: ArrayLike | None = None,
     workers: int | None = None,
     threads: int = -1,
 ) -> Certificate:

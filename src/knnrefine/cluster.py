@@ -31,6 +31,15 @@ tree, cut at significance): the background between clusters is noise, a cluster'
 not, and a lone cluster (one blob, uniform data) has no noise.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:  # the annotations' types only
+    from .mesh import Mesh
+
 import time
 from dataclasses import dataclass
 
@@ -86,9 +95,13 @@ def significance_threshold(n, k):
 
 
 def cluster(
-    mesh, points, n_clusters: int | None = None, merge_threshold: float | None = None,
-    noise: bool = False, weights=None,
-) -> Clustering:  # fmt: skip
+    mesh: Mesh,
+    points: ArrayLike,
+    n_clusters: int | None = None,
+    merge_threshold: float | None = None,
+    noise: bool = False,
+    weights: ArrayLike | None = None,
+) -> Clustering:
     """ToMATo clusters of ``points`` on the mesh graph (see the module docstring), in the
     plane or in space.
 

@@ -13,6 +13,8 @@ a temporary file that is renamed into place, so a failed or interrupted write ne
 half a file; existing files are kept unless ``force``.
 """
 
+from __future__ import annotations
+
 import io as _io
 import json
 import os
@@ -20,6 +22,7 @@ import sys
 import tempfile
 import zipfile
 import zlib
+from collections.abc import Callable
 
 import numpy as np
 
@@ -32,7 +35,7 @@ FORMAT_VERSION = 2  # 2: one layout for the plane and space (cells); 1 is still 
 UNREADABLE = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
 
 
-def unreadable(path, what: str, exc: BaseException) -> InputError:
+def unreadable(path: str | os.PathLike, what: str, exc: BaseException) -> InputError:
     """The InputError for a file NumPy could not read (``UNREADABLE``).
 
     Parameters
@@ -56,7 +59,9 @@ def unreadable(path, what: str, exc: BaseException) -> InputError:
 # --- points -------------------------------------------------------------------------------
 
 
-def read_points(path, columns: str | None = None, delimiter: str | None = None) -> np.ndarray:
+def read_points(
+    path: str | os.PathLike, columns: str | None = None, delimiter: str | None = None
+) -> np.ndarray:
     """Read points from CSV/TSV/text, .npy, .npz, .parquet or standard input ("-").
 
     Lines starting with ``#`` before the data are comments; a ``#`` anywhere else is data (a
@@ -83,8 +88,9 @@ def read_points(path, columns: str | None = None, delimiter: str | None = None) 
     return read_points_named(path, columns, delimiter)[0]
 
 
-def read_points_named(path, columns: str | None = None,
-                      delimiter: str | None = None) -> tuple[np.ndarray, tuple]:  # fmt: skip
+def read_points_named(
+    path: str | os.PathLike, columns: str | None = None, delimiter: str | None = None
+) -> tuple[np.ndarray, tuple]:
     """``read_points``, and the columns' names.
 
     Parameters
@@ -101,8 +107,12 @@ def read_points_named(path, columns: str | None = None,
     return _read_columns(path, _parse_columns(columns), delimiter)
 
 
-def read_weighted_points(path, columns: str | None = None, weights: str | None = None,
-                         delimiter: str | None = None) -> tuple:  # fmt: skip
+def read_weighted_points(
+    path: str | os.PathLike,
+    columns: str | None = None,
+    weights: str | None = None,
+    delimiter: str | None = None,
+) -> tuple:
     """``read_points_named`` and a column of weights, read with the points (the weights'
     checks are the engine's).
 
@@ -342,7 +352,7 @@ def _read_parquet(path, cols):
 # --- meshes -------------------------------------------------------------------------------
 
 
-def write_mesh(mesh, path, force: bool = False) -> None:
+def write_mesh(mesh: Mesh, path: str | os.PathLike, force: bool = False) -> None:
     """Write a mesh in the format its extension names (``WRITERS``; in space ``WRITERS3``),
     atomically.
 
@@ -367,7 +377,7 @@ def write_mesh(mesh, path, force: bool = False) -> None:
     atomic_write(path, force, lambda tmp: writers[ext](mesh, tmp))
 
 
-def read_mesh(path) -> "Mesh":
+def read_mesh(path: str | os.PathLike) -> Mesh:
     """Read a mesh written by ``write_mesh`` as ``.npz`` (the lossless format), in the plane
     or in space, format 2 or 1.
 
@@ -392,7 +402,7 @@ def read_mesh(path) -> "Mesh":
     return READERS[ext](path)
 
 
-def atomic_write(path, force: bool, write) -> None:
+def atomic_write(path: str | os.PathLike, force: bool, write: Callable) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it into place, so
     that a failed write leaves nothing behind.
 
@@ -436,7 +446,7 @@ def atomic_write(path, force: bool, write) -> None:
         raise
 
 
-def write_table(path, columns: dict, force: bool = False) -> None:
+def write_table(path: str | os.PathLike, columns: dict, force: bool = False) -> None:
     """A CSV file with a header line and one line per row, written atomically; floats with
     the fewest digits that read back to the same double (pandas' default), integers as
     integers.
@@ -455,7 +465,7 @@ def write_table(path, columns: dict, force: bool = False) -> None:
     atomic_write(path, force, lambda tmp: frame.to_csv(tmp, index=False))
 
 
-def write_text(path, text: str, force: bool = False) -> None:
+def write_text(path: str | os.PathLike, text: str, force: bool = False) -> None:
     """A text file, written atomically.
 
     Parameters

@@ -1,9 +1,12 @@
 """The result of a refinement: the mesh M and what it promises (Theorem 6)."""
 
+from __future__ import annotations
+
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .engine.raster import clip_triangles
 from .engine.state import KIND_NAMES  # how each vertex came: the insertion moves
@@ -197,7 +200,7 @@ class Mesh:
     def _tree(self):
         return self._metric.tree(self.vertices)
 
-    def d_m2(self, x) -> np.ndarray:
+    def d_m2(self, x: ArrayLike) -> np.ndarray:
         """d_{M,2}: the distance to the second-nearest mesh vertex.
 
         Periodic axes use the torus metric. Guaranteed to lie within [alpha, beta] d_{P,k}

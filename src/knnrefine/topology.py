@@ -9,6 +9,15 @@ is the combinatorial one (offsets dropped), checked to be a simplicial complex f
 Persistence is computed by gudhi (``pip install "knnrefine[topology]"``).
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:  # the annotations' types only
+    from .mesh import Mesh
+
 from itertools import combinations
 
 import numpy as np
@@ -132,8 +141,15 @@ class Persistence:
     or tetrahedra) over ``positions``.
     """
 
-    def __init__(self, mesh, points, log: bool = True, subdivide: bool = True,
-                 function: str = "d_pk", weights=None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        mesh: Mesh,
+        points: ArrayLike,
+        log: bool = True,
+        subdivide: bool = True,
+        function: str = "d_pk",
+        weights: ArrayLike | None = None,
+    ) -> None:
         """See the class docstring."""
         gudhi = require_gudhi()
         if function not in ("d_pk", "d_m2"):

@@ -130,18 +130,24 @@ def weights_of_run(stats, n, weights):
     return weights
 
 
+def check_made_from(stats, n, advice):
+    """InputError unless ``n`` points are as many as the run with these stats was refined
+    from; ``advice`` ends the message ("use a mesh with", "certify a mesh against")."""
+    made_from = stats.get("n")
+    if made_from is not None and int(made_from) != n:
+        raise InputError(
+            f"the mesh was made from {int(made_from):,} points but {n:,} were given: "
+            f"{advice} the points it was refined from"
+        )
+
+
 def points_of_run(mesh, points, weights=None):
     """The points (and weights) a mesh was refined from, to use them again (evaluation,
     clustering, persistence): (pts (n, d) float64, weights or None, total: n or the total
     weight). Refused with an InputError: points of another dimension or number than the
     run's, weights that are not the run's (``weights_of_run``), less than k in all."""
     pts = as_points(points, mesh.dim)
-    made_from = mesh.stats.get("n")
-    if made_from is not None and int(made_from) != len(pts):
-        raise InputError(
-            f"the mesh was made from {int(made_from):,} points but {len(pts):,} were "
-            "given: use a mesh with the points it was refined from"
-        )
+    check_made_from(mesh.stats, len(pts), "use a mesh with")
     weights = weights_of_run(mesh.stats, len(pts), weights)
     total = len(pts) if weights is None else float(weights.sum())
     if total < mesh.k:

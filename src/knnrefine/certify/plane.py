@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from ..errors import InputError
 from ..mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
 from ..metric import BoxMetric, TorusFrame
-from ..validation import weights_of_run
+from ..validation import check_made_from, weights_of_run
 from .certificate import Certificate, floor_sites, to_input
 from .common import (
     check_precondition,
@@ -340,12 +340,7 @@ def check_points_are_the_meshs(mesh, pts, weights=None):
     its box along non-periodic axes, with weights exactly when it was refined with weights
     (of the total it records). Anything else is an input error, not a failed certificate.
     Returns the weights as float64, or None."""
-    made_from = mesh.stats.get("n")
-    if made_from is not None and int(made_from) != len(pts):
-        raise InputError(
-            f"the mesh was made from {int(made_from):,} points but {len(pts):,} were given: "
-            "certify a mesh against the points it was refined from"
-        )
+    check_made_from(mesh.stats, len(pts), "certify a mesh against")
     weights = weights_of_run(mesh.stats, len(pts), weights)
     for a in range(2):
         if mesh.periodic[a]:

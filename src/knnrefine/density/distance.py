@@ -9,6 +9,17 @@ interpolation over the pieces (``plane.PlanePieces``: triangles split in four;
 calls in both dimensions.
 """
 
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:  # the annotations' types only
+    from ..mesh import Mesh
+    from ..scale.parts import PartitionedMesh
+
 import numpy as np
 
 from ..engine.embedding import wrap_offsets
@@ -55,7 +66,13 @@ class KnnDistance:
     nodes (the plane) or at the mesh's vertices (space).
     """
 
-    def __init__(self, mesh, points, subdivide: bool = True, weights=None) -> None:
+    def __init__(
+        self,
+        mesh: Mesh,
+        points: ArrayLike,
+        subdivide: bool = True,
+        weights: ArrayLike | None = None,
+    ) -> None:
         """See the class docstring."""
         dim = mesh.dim
         pts, weights, total = points_of_run(mesh, points, weights)
@@ -86,7 +103,16 @@ class KnnDistance:
         self._metric = BoxMetric(mesh.box, mesh.periodic)
 
     @classmethod
-    def of_pieces(cls, mesh, n, total, nodes, triangles, values, located=None) -> "KnnDistance":
+    def of_pieces(
+        cls,
+        mesh: Mesh | PartitionedMesh,
+        n: int,
+        total: float,
+        nodes: np.ndarray,
+        triangles: np.ndarray,
+        values: np.ndarray,
+        located: np.ndarray | None = None,
+    ) -> KnnDistance:
         """A KnnDistance in the plane from linear pieces whose node values are known already
         (a part of a partitioned mesh, ``scale.parts.PartitionedDistance``). Without the
         points, no ``exact``.
@@ -126,7 +152,7 @@ class KnnDistance:
         return self.pieces.triangles
 
     # -- evaluation ------------------------------------------------------------------------
-    def __call__(self, x) -> np.ndarray:
+    def __call__(self, x: ArrayLike) -> np.ndarray:
         """The interpolated d_{P,k} at query points; NaN outside the box along non-periodic
         axes (on every side), periodic axes wrap.
 
@@ -144,7 +170,7 @@ class KnnDistance:
         out[inside] = self.pieces.interpolate(self._metric.wrap(flat[inside]))
         return out.reshape(shape)
 
-    def interpolate(self, x, values) -> np.ndarray:
+    def interpolate(self, x: np.ndarray, values: ArrayLike) -> np.ndarray:
         """Any node values linearly interpolated over the pieces (the plane).
 
         Parameters
@@ -165,7 +191,7 @@ class KnnDistance:
         out[inside] = self.pieces.interpolate(self._metric.wrap(x[inside]), values)
         return out
 
-    def exact(self, x) -> np.ndarray:
+    def exact(self, x: ArrayLike) -> np.ndarray:
         """Exact d_{P,k}, one kd-tree query per point (the reference).
 
         Parameters
@@ -193,7 +219,7 @@ class KnnDistance:
         out[inside] = self.index.kth(self._metric.wrap(flat[inside]), self.k)
         return out.reshape(shape)
 
-    def grid(self, shape=None) -> tuple:
+    def grid(self, shape: int | tuple | None = None) -> tuple:
         """The estimate at the centres of a grid over the box.
 
         Parameters
@@ -218,7 +244,7 @@ class KnnDistance:
             out[missed] = self(x)
         return (*axes, out)
 
-    def error(self, probes=None, n_random: int = 20000, seed: int = 0) -> dict:
+    def error(self, probes: ArrayLike | None = None, n_random: int = 20000, seed: int = 0) -> dict:
         """Relative error of the estimate against exact d_{P,k}.
 
         Parameters
@@ -250,7 +276,7 @@ class KnnDistance:
         }
 
     # -- integrals ---------------------------------------------------------------------------
-    def integrate(self, func, region=None) -> float:
+    def integrate(self, func: Callable, region: Sequence[float] | None = None) -> float:
         """Integral of func(d) over a region, d the interpolated d_{P,k}: a quadrature on
         every linear piece, the pieces clipped to the region.
 
@@ -284,7 +310,7 @@ class KnnDistance:
         return self.pieces.sample(n, rng)
 
     # -- the kNN-CDF (space) -----------------------------------------------------------------
-    def cdf(self, r) -> np.ndarray:
+    def cdf(self, r: ArrayLike) -> np.ndarray:
         """The kNN-CDF of cosmology, CDF(r) = vol{x : d(x) <= r} / vol(box), exact for the
         interpolated d (space: ``space.SpacePieces.cdf``).
 
@@ -304,7 +330,7 @@ class KnnDistance:
         """
         return self._space_only("cdf")(r)
 
-    def cdf_bounds(self, r) -> tuple[np.ndarray, np.ndarray]:
+    def cdf_bounds(self, r: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Rigorous bounds of the true kNN-CDF (space).
 
         Parameters

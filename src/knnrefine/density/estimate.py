@@ -1,6 +1,17 @@
 """The kNN density estimate f(x) = k / (n V_d d_{P,k}(x)^d) from a mesh (V_d the volume of
 the unit ball: pi in the plane, 4 pi / 3 in space), and the default choices of k."""
 
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:  # the annotations' types only
+    from ..mesh import Mesh
+    from ..scale.parts import PartitionedDistance
+
 import math
 
 import numpy as np
@@ -77,13 +88,21 @@ class KnnDensity:
     ``mass(region)``, draw from it with ``sample(n, rng)``.
     """
 
-    def __init__(self, mesh, points, normalized: bool = True, subdivide: bool = True,
-                 weights=None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        mesh: Mesh,
+        points: ArrayLike,
+        normalized: bool = True,
+        subdivide: bool = True,
+        weights: ArrayLike | None = None,
+    ) -> None:
         """See the class docstring."""
         self._of(KnnDistance(mesh, points, subdivide=subdivide, weights=weights), normalized)
 
     @classmethod
-    def of_distance(cls, distance, normalized: bool = True) -> "KnnDensity":
+    def of_distance(
+        cls, distance: KnnDistance | PartitionedDistance, normalized: bool = True
+    ) -> KnnDensity:
         """The estimate from a d_{P,k} already built.
 
         Parameters
@@ -115,7 +134,7 @@ class KnnDensity:
         dim = self.dim
         return lambda d: constant / d**dim
 
-    def __call__(self, x) -> np.ndarray:
+    def __call__(self, x: ArrayLike) -> np.ndarray:
         """The density at query points (NaN outside the box along non-periodic axes).
 
         Parameters
@@ -128,7 +147,7 @@ class KnnDensity:
         """
         return self.constant / self.distance(x) ** self.dim
 
-    def grid(self, shape=None) -> tuple:
+    def grid(self, shape: int | tuple | None = None) -> tuple:
         """The density at the centres of a grid over the box (``KnnDistance.grid``).
 
         Parameters
@@ -144,7 +163,7 @@ class KnnDensity:
         *axes, d = self.distance.grid(shape)
         return (*axes, self.constant / d**self.dim)
 
-    def mass(self, region=None) -> float:
+    def mass(self, region: Sequence[float] | None = None) -> float:
         """The estimate's integral over a region: the probability of the part of the region
         in the box (regions wrap across periodic seams).
 

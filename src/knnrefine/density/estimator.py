@@ -1,8 +1,12 @@
 """knnrefine's density estimate as a scikit-learn estimator (``KnnDensityEstimator``)."""
 
+from __future__ import annotations
+
 import inspect
+from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import InputError
 from ..validation import as_points, as_queries, check_weights, default_box
@@ -109,11 +113,26 @@ class KnnDensityEstimator:
     SENSITIVITIES = SENSITIVITIES
 
     def __init__(
-        self, k=None, *, method=None, bandwidth="cv", sensitivity="cv", shape="isotropic",
-        whiten=False,
-        tau=3.0, periodic=False, box=None, margin=0.1, min_size=None, subdivide=True, cv=5,
-        k_grid=None, random_state=0, loo_points=20000, criterion="likelihood",
-    ) -> None:  # fmt: skip
+        self,
+        k: int | str | None = None,
+        *,
+        method: str | None = None,
+        bandwidth: float | str = "cv",
+        sensitivity: float | str = "cv",
+        shape: str = "isotropic",
+        whiten: bool = False,
+        tau: float = 3.0,
+        periodic: bool | tuple = False,
+        box: tuple | None = None,
+        margin: float = 0.1,
+        min_size: float | None = None,
+        subdivide: bool = True,
+        cv: int = 5,
+        k_grid: Sequence[int] | None = None,
+        random_state: int | np.random.Generator | np.random.RandomState | None = 0,
+        loo_points: int = 20000,
+        criterion: str = "likelihood",
+    ) -> None:
         self.k = k
         self.method = method
         self.bandwidth = bandwidth
@@ -152,7 +171,7 @@ class KnnDensityEstimator:
         """
         return {name: getattr(self, name) for name in self._param_names()}
 
-    def set_params(self, **params) -> "KnnDensityEstimator":
+    def set_params(self, **params) -> KnnDensityEstimator:
         """Set constructor parameters (scikit-learn's protocol).
 
         Parameters
@@ -195,7 +214,9 @@ class KnnDensityEstimator:
         return f"KnnDensityEstimator({', '.join(changed)})"
 
     # -- fitting -----------------------------------------------------------------------------
-    def fit(self, X, y=None, sample_weight=None) -> "KnnDensityEstimator":
+    def fit(
+        self, X: ArrayLike, y: None = None, sample_weight: ArrayLike | None = None
+    ) -> KnnDensityEstimator:
         """Refine a mesh of X and build the estimate.
 
         Parameters
@@ -252,9 +273,12 @@ class KnnDensityEstimator:
             pick = np.argmax if self.criterion == "likelihood" else np.argmin
             k = int(self.cv_ks_[int(pick(self.cv_scores_))])
         else:
-            k = self.k
-            if k is None:
-                k = default_k(n) if self.method_ == "knn" else default_pilot_k(n)
+            given = self.k
+            k = (
+                given
+                if given is not None
+                else (default_k(n) if self.method_ == "knn" else default_pilot_k(n))
+            )
             if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
                 raise InputError(f"k must be an integer in [1, n = {n:g}], got {k!r}")
         self.density_, self.mesh_ = self._estimate(pts, weights, box, int(k))
@@ -388,7 +412,7 @@ class KnnDensityEstimator:
         return ks, scores
 
     # -- uncertainty -------------------------------------------------------------------------
-    def standard_error(self, X) -> np.ndarray:
+    def standard_error(self, X: ArrayLike) -> np.ndarray:
         """Pointwise standard error of the density. kNN: f(x) / sqrt(k) (its relative error
         is about 1 / sqrt(k): the ball of radius d_{P,k}(x) holds k points, whose count
         fluctuates like a Poisson variable's); adaptive: the sample-point estimate's variance
@@ -408,8 +432,13 @@ class KnnDensityEstimator:
         flat, shape = self._queries(X)
         return (density.standard_error(flat) / self._jacobian()).reshape(shape)
 
-    def bootstrap(self, X, n_boot: int = 100, level: float = 0.9,
-                  random_state=None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    def bootstrap(
+        self,
+        X: ArrayLike,
+        n_boot: int = 100,
+        level: float = 0.9,
+        random_state: int | np.random.Generator | np.random.RandomState | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Percentile bands of the density: the estimate refitted (same k and box) on n_boot
         resamples of the training points with replacement (as weights: no copies are made),
         and the (1 - level) / 2 and (1 + level) / 2 quantiles of its values at each point.
@@ -460,7 +489,7 @@ class KnnDensityEstimator:
         return self.density_
 
     # -- evaluation ----------------------------------------------------------------------------
-    def score_samples(self, X) -> np.ndarray:
+    def score_samples(self, X: ArrayLike) -> np.ndarray:
         """Log-density at points: -inf outside the box along non-periodic axes (the estimate
         is 0 there); periodic axes wrap.
 
@@ -479,7 +508,7 @@ class KnnDensityEstimator:
             out = np.where(np.isnan(f), -np.inf, np.log(np.where(np.isnan(f), 1.0, f)))
         return out.reshape(shape)
 
-    def score(self, X, y=None) -> float:
+    def score(self, X: ArrayLike, y: None = None) -> float:
         """Total log-likelihood of points under the estimate (-inf if one lies outside the
         box).
 
@@ -494,7 +523,11 @@ class KnnDensityEstimator:
         """
         return float(self.score_samples(X).sum())
 
-    def sample(self, n_samples: int = 1, random_state=None) -> np.ndarray:
+    def sample(
+        self,
+        n_samples: int = 1,
+        random_state: int | np.random.Generator | np.random.RandomState | None = None,
+    ) -> np.ndarray:
         """Points drawn exactly from the estimate (``AdaptiveDensity.sample``,
         ``KnnDensity.sample``).
 

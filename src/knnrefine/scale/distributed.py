@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import contextlib
 import os
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,7 +48,12 @@ def _dask():
         ) from None
 
 
-def partitions(source, columns=DEFAULT_COLUMNS, weights=None, chunk: int = 1_000_000) -> list:
+def partitions(
+    source: Any,
+    columns: Sequence[str] = DEFAULT_COLUMNS,
+    weights: Any = None,
+    chunk: int = 1_000_000,
+) -> list:
     """The source as Dask partitions; nothing is computed here.
 
     Parameters
@@ -274,10 +280,25 @@ class DaskStore:
 
 
 def refine(
-    source, k, tau=3.0, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
-    retries=2, periodic=False, box=None, min_size=None, max_vertices=None, time_limit=None,
-    progress=None, output=None, parts=None, force=False,
-) -> Mesh | PartitionedMesh:  # fmt: skip
+    source: Any,
+    k: float,
+    tau: float = 3.0,
+    *,
+    client: Any = None,
+    workers: int | None = None,
+    columns: Sequence[str] = DEFAULT_COLUMNS,
+    weights: Any = None,
+    retries: int = 2,
+    periodic: bool | tuple = False,
+    box: tuple | None = None,
+    min_size: float | None = None,
+    max_vertices: int | None = None,
+    time_limit: float | None = None,
+    progress: Callable | None = None,
+    output: str | os.PathLike | None = None,
+    parts: int | None = None,
+    force: bool = False,
+) -> Mesh | PartitionedMesh:
     """kNNRefine of ``source`` on a Dask cluster, the points never gathered in this process
     (module docstring); the same result type and guarantees as ``knnrefine.refine``.
 
@@ -320,9 +341,19 @@ def refine(
 
 
 def certify(
-    mesh, source, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
-    retries=2, samples=100_000, n_random=20_000, max_point_probes=100_000, seed=0,
-) -> Certificate:  # fmt: skip
+    mesh: Mesh,
+    source: Any,
+    *,
+    client: Any = None,
+    workers: int | None = None,
+    columns: Sequence[str] = DEFAULT_COLUMNS,
+    weights: Any = None,
+    retries: int = 2,
+    samples: int = 100_000,
+    n_random: int = 20_000,
+    max_point_probes: int = 100_000,
+    seed: int = 0,
+) -> Certificate:
     """``knnrefine.certify`` of a mesh against the points of ``source`` on a Dask cluster,
     the points never gathered here: every count and d_{P,k} is asked strip by strip on the
     workers where the strips' points are (``scale.checks.certify_store``); the mesh's own checks
@@ -349,8 +380,18 @@ def certify(
                              max_point_probes=max_point_probes, seed=seed)  # fmt: skip
 
 
-def density(pmesh, source, *, client=None, workers=None, columns=DEFAULT_COLUMNS, weights=None,
-            retries=2, normalized=True, subdivide=True) -> KnnDensity:  # fmt: skip
+def density(
+    pmesh: PartitionedMesh | str | os.PathLike,
+    source: Any,
+    *,
+    client: Any = None,
+    workers: int | None = None,
+    columns: Sequence[str] = DEFAULT_COLUMNS,
+    weights: Any = None,
+    retries: int = 2,
+    normalized: bool = True,
+    subdivide: bool = True,
+) -> KnnDensity:
     """The kNN density estimate of a partitioned mesh, answered part by part
     (``scale.parts.PartitionedDistance``): exact d_{P,k} at every part's nodes is asked strip
     by strip on the workers where the points of ``source`` are, never gathered here.

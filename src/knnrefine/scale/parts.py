@@ -29,6 +29,7 @@ import tempfile
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..density.distance import KnnDistance, grid_shape, point_index
 from ..density.estimate import KnnDensity
@@ -58,7 +59,9 @@ def _owner(coord, cuts):
     return np.clip(np.searchsorted(cuts, coord, side="right") - 1, 0, len(cuts) - 1)
 
 
-def write_partitioned(mesh, path, parts: int, force: bool = False) -> PartitionedMesh:
+def write_partitioned(
+    mesh: Mesh, path: str | os.PathLike, parts: int, force: bool = False
+) -> PartitionedMesh:
     """Write a mesh as a folder of parts (module docstring), atomically (a finished marker
     last).
 
@@ -242,7 +245,7 @@ class PartitionedMesh:
         The folder.
     """
 
-    def __init__(self, path) -> None:
+    def __init__(self, path: str | os.PathLike) -> None:
         """Open a folder written by ``write_partitioned``.
 
         Parameters
@@ -314,7 +317,7 @@ class PartitionedMesh:
             self._cache[j] = _part_mesh(self, self._arrays(j), self.manifest["has_offsets"])
         return self._cache[j]
 
-    def owner(self, x) -> np.ndarray:
+    def owner(self, x: np.ndarray) -> np.ndarray:
         """The part whose strip holds each point.
 
         Parameters
@@ -329,7 +332,7 @@ class PartitionedMesh:
         coord = BoxMetric(self.box, self.periodic).frame(x)[:, a]
         return _owner(coord, np.array(self.manifest["cuts"]))
 
-    def d_m2(self, x) -> np.ndarray:
+    def d_m2(self, x: ArrayLike) -> np.ndarray:
         """d_{M,2} part by part: equal to the whole mesh's in the box; NaN beyond it along
         non-periodic axes (no part's halo reaches there).
 
@@ -354,7 +357,7 @@ class PartitionedMesh:
             out[at] = self.part(int(j)).d_m2(flat[at])
         return out.reshape(shape)
 
-    def plot(self, ax=None, **kwargs) -> Axes:
+    def plot(self, ax: Axes | None = None, **kwargs) -> Axes:
         """``plot.plot_mesh`` part by part on one axes, one colour scale for all.
 
         Parameters
@@ -378,10 +381,17 @@ class PartitionedMesh:
             last = j == len(self) - 1
             ax = plot_mesh(self.part(j), ax=ax, value_range=m["d_m2_range"],
                            show_colour_bar=last, title=title, **kwargs)  # fmt: skip
+        assert ax is not None  # drawn on the first part's axes
         return ax
 
-    def distance(self, points, *, weights=None, subdivide: bool = True,
-                 workers: int | None = None) -> PartitionedDistance:  # fmt: skip
+    def distance(
+        self,
+        points: ArrayLike,
+        *,
+        weights: ArrayLike | None = None,
+        subdivide: bool = True,
+        workers: int | None = None,
+    ) -> PartitionedDistance:
         """d_{P,k} part by part from the points the mesh was refined from.
 
         Parameters
@@ -411,8 +421,15 @@ class PartitionedMesh:
         finally:
             store.close()
 
-    def density(self, points, *, weights=None, normalized: bool = True, subdivide: bool = True,
-                workers: int | None = None) -> KnnDensity:  # fmt: skip
+    def density(
+        self,
+        points: ArrayLike,
+        *,
+        weights: ArrayLike | None = None,
+        normalized: bool = True,
+        subdivide: bool = True,
+        workers: int | None = None,
+    ) -> KnnDensity:
         """The kNN density estimate part by part (``KnnDensity``: evaluate, ``grid``,
         ``mass``, ``sample``) from ``distance``'s d_{P,k}.
 
