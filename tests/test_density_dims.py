@@ -77,9 +77,9 @@ def test_density_integrates_to_one_and_masses_agree_with_monte_carlo(case):
     assert f.raw_mass == pytest.approx(1.0, rel=0.35)  # the raw kNN estimate's mass is near 1
     rng = np.random.default_rng(3)
     region = (0.2,) * dim + (0.6,) * dim
-    u = 0.2 + 0.4 * rng.random((400_000, dim))
+    u = 0.2 + 0.4 * rng.random((100_000, dim))
     monte_carlo = f(u).mean() * 0.4**dim
-    assert f.mass(region) == pytest.approx(monte_carlo, rel=0.01)
+    assert f.mass(region) == pytest.approx(monte_carlo, rel=0.02)
     # a region across the seam is the sum of its parts when periodic, clipped to the box if not
     across = (0.8,) * dim + (1.3,) * dim
     if periodic:
@@ -135,14 +135,15 @@ def test_estimator_in_both_dimensions(dim):
 
     from knnrefine import KnnDensityEstimator
 
-    X = blobs(dim, 2000, 7)
+    X = blobs(dim, 1200, 7)
     est = KnnDensityEstimator(k=20, method="knn", box=unit_box(dim)).fit(X)
     assert est.n_features_in_ == dim and est.method_ == "knn" and est.mesh_.dim == dim
     reference = KnnDensity(est.mesh_, X)
     np.testing.assert_allclose(np.exp(est.score_samples(X[:50])), reference(X[:50]), rtol=1e-9)
     assert est.score(X[:50]) == pytest.approx(np.log(reference(X[:50])).sum())
     assert est.sample(7, random_state=0).shape == (7, dim)
-    cv = KnnDensityEstimator(k="cv", method="knn", k_grid=[5, 20, 80], box=unit_box(dim)).fit(X)
+    cv = KnnDensityEstimator(k="cv", method="knn", k_grid=[5, 40], cv=3, box=unit_box(dim))
+    cv.fit(X)
     assert cv.k_ == cv.cv_ks_[np.argmax(cv.cv_scores_)]
     search = GridSearchCV(
         KnnDensityEstimator(method="knn", box=unit_box(dim)), {"k": [5, 40]}, cv=3

@@ -74,6 +74,7 @@ def test_cluster_checks_the_points_are_the_meshs():
     assert a.threshold == pytest.approx(b.threshold)
 
 
+@pytest.mark.slow
 def test_persistence_of_a_sphere_shell_has_one_void():
     pts = np.clip(shell(6000, 4), 0.0, 1.0 - 1e-12)
     mesh = knnrefine.refine(pts, 10, box=BOX3)

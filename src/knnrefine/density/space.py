@@ -78,6 +78,7 @@ class SpacePieces:
         self.d = d
         self.volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
         self._locator = None
+        self._extent = None
 
     # the eight tetrahedra of a tetrahedron cut at its edges' midpoints, as indices into its
     # corners 0-3 and midpoints 4-9 of the edges 01, 02, 03, 12, 13, 23
@@ -132,23 +133,43 @@ class SpacePieces:
         lo = np.asarray(rect[0], float) - self.origin
         hi = np.asarray(rect[1], float) - self.origin
         c, d = self.corners, self.d
-        cmin, cmax = c.min(axis=1), c.max(axis=1)
+        if self._extent is None:  # the pieces' bounding boxes, once
+            self._extent = (
+                np.minimum(np.minimum(c[:, 0], c[:, 1]), np.minimum(c[:, 2], c[:, 3])),
+                np.maximum(np.maximum(c[:, 0], c[:, 1]), np.maximum(c[:, 2], c[:, 3])),
+            )
+        cmin, cmax = self._extent
         total = 0.0
-        shifts = [[-1, 0, 1] if p else [0] for p in self._periodic]
-        for shift in np.array(np.meshgrid(*shifts, indexing="ij")).reshape(3, -1).T:
-            move = shift * self.period
-            meets = ((cmax + move >= lo) & (cmin + move <= hi)).all(axis=1)
-            if not meets.any():
-                continue
-            within = ((cmin + move >= lo) & (cmax + move <= hi)).all(axis=1)
-            total += quadrature3(c[within] + move, d[within], func).sum()
-            cut = meets & ~within
-            if cut.any():
-                cc, dd = c[cut] + move, d[cut]
-                for a in range(3):
-                    flipped, dd, _ = clip_below(-cc, dd, a, -lo[a])
-                    cc, dd, _ = clip_below(-flipped, dd, a, hi[a])
-                total += quadrature3(cc, dd, func).sum()
+        # per axis and shift: which pieces meet the rect's slab, and which lie within it
+        slabs = []
+        for a in range(3):
+            options = []
+            for s in (-1, 0, 1) if self._periodic[a] else (0,):
+                move = s * self.period[a]
+                meets = (cmax[:, a] + move >= lo[a]) & (cmin[:, a] + move <= hi[a])
+                if meets.any():
+                    within = (cmin[:, a] + move >= lo[a]) & (cmax[:, a] + move <= hi[a])
+                    options.append((s, meets, within))
+            slabs.append(options)
+        for sx, mx, wx in slabs[0]:
+            for sy, my, wy in slabs[1]:
+                mxy = mx & my
+                if not mxy.any():
+                    continue
+                for sz, mz, wz in slabs[2]:
+                    meets = mxy & mz
+                    if not meets.any():
+                        continue
+                    move = np.array([sx, sy, sz]) * self.period
+                    within = meets & wx & wy & wz
+                    total += quadrature3(c[within] + move, d[within], func).sum()
+                    cut = meets & ~within
+                    if cut.any():
+                        cc, dd = c[cut] + move, d[cut]
+                        for axis in range(3):
+                            flipped, dd, _ = clip_below(-cc, dd, axis, -lo[axis])
+                            cc, dd, _ = clip_below(-flipped, dd, axis, hi[axis])
+                        total += quadrature3(cc, dd, func).sum()
         return float(total)
 
     def sample(self, n, rng):
