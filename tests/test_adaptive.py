@@ -320,6 +320,7 @@ def test_square_integral_matches_a_fine_grid(planar):
     assert score == pytest.approx(got - 2 * loo, rel=1e-12)
 
 
+@pytest.mark.slow
 def test_least_squares_tracks_the_integrated_squared_error():
     """Uniform density on the unit square with a hole (a sharp edge): least-squares
     cross-validation plus the constant integral of the truth^2 follows the integrated squared

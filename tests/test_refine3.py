@@ -106,6 +106,7 @@ def test_the_matrix_is_certified(name, k, periodic):
     assert_certified(mesh, pts)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tau", [2.5, 4.0])
 def test_other_taus_are_certified(tau):
     pts = multiscale(5000, 2)
@@ -347,6 +348,7 @@ def _finish(run, pts, k=10):
                 torus=torus)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("steps", [1, 700, 3000])
 def test_every_untested_circumball_is_queued_at_one_of_its_corners(steps):
     """The circumball queue holds vertices: each untested tetrahedron has a corner queued at
