@@ -124,7 +124,10 @@ def test_a_killed_worker_still_gives_a_complete_certified_mesh():
         out = {}
 
         def go():
-            out["mesh"] = distributed.refine(pts, 30, client=c, **options)
+            try:
+                out["mesh"] = distributed.refine(pts, 30, client=c, **options)
+            except BaseException as exc:  # surfaced below: a thread's error is otherwise lost
+                out["error"] = exc
 
         runner = threading.Thread(target=go)
         runner.start()
@@ -140,6 +143,9 @@ def test_a_killed_worker_still_gives_a_complete_certified_mesh():
         runner.join(300)
         assert killed is not None, "no tile was seen running"
         assert killed not in c.run(os.getpid).values()  # that worker died and was replaced
+    assert not runner.is_alive(), "the run did not finish within 300 s of the kill"
+    if "error" in out:
+        raise out["error"]
     mesh = out["mesh"]
     assert knnrefine.certify(mesh, pts).passed
     clean = knnrefine.refine(pts, 30, workers=2, **options)
