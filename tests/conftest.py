@@ -105,6 +105,53 @@ def certify_every_mesh(monkeypatch):
 ACHIEVED = []
 
 
+# -- generators of points, defined once (the plane's and space's tests share them) ---------
+
+
+def uniform(n, seed=0, dim=2):
+    """n uniform points in the unit box."""
+    return np.random.default_rng(seed).random((n, dim))
+
+
+def multiscale(n, seed, dim=3):
+    """Gaussian clusters of widths 1e-3 to 1e-1, wrapped, with a uniform background."""
+    rng = np.random.default_rng(seed)
+    centres = rng.random((8, dim))
+    widths = 10.0 ** rng.uniform(-3, -1, 8)
+    j = rng.integers(0, 8, n)
+    pts = centres[j] + rng.standard_normal((n, dim)) * widths[j, None]
+    pts[: n // 10] = rng.random((n // 10, dim))
+    return np.mod(pts, 1.0)
+
+
+def background_clusters(n, seed, dim=3):
+    """Six clusters of widths 1e-2 to 1e-1, wrapped, a fifth of the points uniform."""
+    rng = np.random.default_rng(seed)
+    centres = rng.random((6, dim))
+    widths = 10.0 ** rng.uniform(-2, -1, 6)
+    j = rng.integers(0, 6, n)
+    pts = centres[j] + rng.standard_normal((n, dim)) * widths[j, None]
+    pts[: n // 5] = rng.random((n // 5, dim))
+    return np.mod(pts, 1.0)
+
+
+def two_blobs(dim, n, seed):
+    """Two Gaussian blobs and a uniform background in the unit box (clipped into it)."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(0.3, 0.06, (n // 3, dim))
+    b = rng.normal(0.7, 0.1, (n // 3, dim))
+    c = rng.random((n - 2 * (n // 3), dim))
+    return np.clip(np.concatenate([a, b, c]), 0.0, 1.0 - 1e-12)
+
+
+def sphere_shell(n, seed, radius=0.3, width=0.01):
+    """A noisy sphere of ``radius`` about the unit cube's centre."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    return 0.5 + radius * v + width * rng.normal(size=(n, 3))
+
+
 def gaussian_clusters(n, seed=0, clusters=30):
     """Gaussian clusters with widths from 1e-3 to 3e-2 (log-uniform), wrapped into the unit
     box: scales that differ by thirty times in one input."""

@@ -6,6 +6,7 @@ inside the certified bounds."""
 
 import numpy as np
 import pytest
+from conftest import background_clusters as clustered
 from conftest import torus_frame
 from scipy.spatial import cKDTree
 
@@ -15,16 +16,6 @@ from knnrefine.density.space import SpacePieces, clip_below, share_below
 from knnrefine.errors import InputError
 
 BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
-
-
-def clustered(n, seed):
-    rng = np.random.default_rng(seed)
-    centres = rng.random((6, 3))
-    widths = 10.0 ** rng.uniform(-2, -1, 6)
-    j = rng.integers(0, 6, n)
-    pts = centres[j] + rng.standard_normal((n, 3)) * widths[j, None]
-    pts[: n // 5] = rng.random((n // 5, 3))
-    return np.mod(pts, 1.0)
 
 
 def test_share_below_matches_sampled_points():

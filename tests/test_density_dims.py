@@ -4,6 +4,7 @@ d_{P,k}, Monte Carlo for integrals and samples)."""
 
 import numpy as np
 import pytest
+from conftest import two_blobs as blobs
 from scipy.spatial import cKDTree
 
 import knnrefine
@@ -16,15 +17,6 @@ K = 10
 @pytest.fixture(params=[2, 3], ids=["plane", "space"])
 def dim(request):
     return request.param
-
-
-def blobs(dim, n, seed):
-    """Two Gaussian blobs and a uniform background in the unit box (clipped into it)."""
-    rng = np.random.default_rng(seed)
-    a = rng.normal(0.3, 0.06, (n // 3, dim))
-    b = rng.normal(0.7, 0.1, (n // 3, dim))
-    c = rng.random((n - 2 * (n // 3), dim))
-    return np.clip(np.concatenate([a, b, c]), 0.0, 1.0 - 1e-12)
 
 
 def unit_box(dim):

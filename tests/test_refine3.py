@@ -9,7 +9,8 @@ import os
 
 import numpy as np
 import pytest
-from conftest import torus_frame
+from conftest import multiscale, torus_frame
+from conftest import uniform as uniform_in
 from scipy.spatial import cKDTree
 
 import knnrefine
@@ -20,18 +21,7 @@ BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
 
 
 def uniform(n, seed):
-    return np.random.default_rng(seed).random((n, 3))
-
-
-def multiscale(n, seed):
-    """Gaussian clusters of widths 1e-3 to 1e-1, wrapped, with a uniform background."""
-    rng = np.random.default_rng(seed)
-    centres = rng.random((8, 3))
-    widths = 10.0 ** rng.uniform(-3, -1, 8)
-    j = rng.integers(0, 8, n)
-    pts = centres[j] + rng.standard_normal((n, 3)) * widths[j, None]
-    pts[: n // 10] = rng.random((n // 10, 3))
-    return np.mod(pts, 1.0)
+    return uniform_in(n, seed, dim=3)
 
 
 def lattice(n, seed):

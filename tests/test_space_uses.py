@@ -5,6 +5,7 @@ files the commands write read back and checked against the library."""
 
 import numpy as np
 import pytest
+from conftest import sphere_shell
 
 import knnrefine
 from knnrefine import InputError, KnnDensity
@@ -25,13 +26,6 @@ def blobs3(seed, n=1500, noise=600):
     pts = np.concatenate([rng.normal(c, 0.05, (n, 3)) for c in centres] + [rng.random((noise, 3))])
     truth = np.concatenate([np.full(n, i) for i in range(3)] + [np.full(noise, -1)])
     return np.clip(pts, 0.0, 1.0 - 1e-12), truth
-
-
-def shell(n, seed, radius=0.3, width=0.01):
-    rng = np.random.default_rng(seed)
-    v = rng.normal(size=(n, 3))
-    v /= np.linalg.norm(v, axis=1)[:, None]
-    return 0.5 + radius * v + width * rng.normal(size=(n, 3))
 
 
 def test_cluster_in_space_finds_the_blobs():
@@ -76,7 +70,7 @@ def test_cluster_checks_the_points_are_the_meshs():
 
 @pytest.mark.slow
 def test_persistence_of_a_sphere_shell_has_one_void():
-    pts = np.clip(shell(6000, 4), 0.0, 1.0 - 1e-12)
+    pts = np.clip(sphere_shell(6000, 4), 0.0, 1.0 - 1e-12)
     mesh = knnrefine.refine(pts, 10, box=BOX3)
     ph = Persistence(mesh, pts)
     life = ph.most_persistent(2, 2)

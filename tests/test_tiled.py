@@ -5,17 +5,13 @@ single-process run's."""
 
 import numpy as np
 import pytest
-from conftest import DEGENERATE, assert_certified, gaussian_clusters, on_lines
+from conftest import DEGENERATE, assert_certified, gaussian_clusters, on_lines, uniform
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import knnrefine
 from knnrefine.engine.region import in_rectangle
 from knnrefine.scale.tiled import strips
-
-
-def uniform(n, seed=0):
-    return np.random.default_rng(seed).random((n, 2))
 
 
 def clustered(n, seed=0):
