@@ -137,6 +137,16 @@ def test_cli_density_cluster_persistence_plot_in_space(tmp_path, csv3, capsys):
         assert (tmp_path / picture).stat().st_size > 10_000
 
 
+def test_a_mesh_in_space_is_not_written_in_parts(tmp_path):
+    """regression: write_partitioned of a mesh in space failed deep inside with a numpy
+    broadcast error; it is refused up front, and nothing is written."""
+    pts = np.random.default_rng(8).random((800, 3))
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX3)
+    with pytest.raises(InputError, match="meshes in parts are built for the plane"):
+        knnrefine.write_partitioned(mesh, tmp_path / "parts", 2)
+    assert not (tmp_path / "parts").exists()
+
+
 def test_cli_in_space_refuses_what_is_built_for_the_plane(tmp_path, csv3, capsys):
     path, _ = csv3
     box = ["--box", 0, 0, 0, 1, 1, 1]

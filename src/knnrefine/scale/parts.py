@@ -81,6 +81,11 @@ def write_partitioned(
     PartitionedMesh
         The folder, read back.
     """
+    if mesh.dim != 2:
+        raise InputError(
+            f"meshes in parts are built for the plane; this one is in {mesh.dim} dimensions: "
+            "write it whole (write_mesh: .npz, .vtu)"
+        )
     path = check_output(path, parts, force)
     parent = os.path.dirname(path)
     tmp = tempfile.mkdtemp(dir=parent, prefix=".knnrefine-")
