@@ -158,3 +158,15 @@ def test_cli_in_space_refuses_what_is_built_for_the_plane(tmp_path, csv3, capsys
     assert run("plot", tmp_path / "m.npz", "-o", tmp_path / "s.png", "--cells", "voronoi") == 2
     assert "a mesh in space is drawn as slices" in capsys.readouterr().err
     assert not (tmp_path / "s.png").exists()
+
+
+def test_points_of_neither_dimension_name_both():
+    """refine and the estimator take (n, 2) or (n, 3): four columns were refused as not
+    (n, 2) alone."""
+    four = np.random.default_rng(9).random((100, 4))
+    from knnrefine import KnnDensityEstimator
+
+    with pytest.raises(InputError, match=r"\(n, 2\) in the plane or \(n, 3\) in space"):
+        knnrefine.refine(four, 10)
+    with pytest.raises(InputError, match=r"\(n, 2\) in the plane or \(n, 3\) in space"):
+        KnnDensityEstimator(k=10).fit(four)

@@ -41,9 +41,13 @@ def as_points(points, dim=2):
         raise InputError("points must be real numbers, got complex values")
     if arr.ndim != 2 or arr.shape[1] != dim:
         axes = "x and y" if dim == 2 else "x, y and z"
+        # neither the plane's nor space's: say that both are taken (where the caller's
+        # dimension came from the points themselves, as refine's and the estimator's)
+        both = arr.ndim == 2 and arr.shape[1] not in (2, 3)
+        what = "(n, 2) in the plane or (n, 3) in space" if both else f"(n, {dim})"
         raise InputError(
-            f"points must have shape (n, {dim}), got {arr.shape}; pass one row per point with "
-            f"its {axes} coordinates"
+            f"points must have shape {what}, got {arr.shape}; pass one row per point with "
+            f"its {'coordinates' if both else axes + ' coordinates'}"
         )
     if arr.shape[0] == 0:
         raise InputError("points is empty: give at least one point")
