@@ -113,26 +113,26 @@ def uniform(n, seed=0, dim=2):
     return np.random.default_rng(seed).random((n, dim))
 
 
-def multiscale(n, seed, dim=3):
-    """Gaussian clusters of widths 1e-3 to 1e-1, wrapped, with a uniform background."""
+def clusters_on_background(n, seed, dim, clusters, exponents, background):
+    """``clusters`` Gaussian clusters of widths 10^exponents[0] to 10^exponents[1], wrapped
+    into the unit box, the first n // background points uniform."""
     rng = np.random.default_rng(seed)
-    centres = rng.random((8, dim))
-    widths = 10.0 ** rng.uniform(-3, -1, 8)
-    j = rng.integers(0, 8, n)
+    centres = rng.random((clusters, dim))
+    widths = 10.0 ** rng.uniform(*exponents, clusters)
+    j = rng.integers(0, clusters, n)
     pts = centres[j] + rng.standard_normal((n, dim)) * widths[j, None]
-    pts[: n // 10] = rng.random((n // 10, dim))
+    pts[: n // background] = rng.random((n // background, dim))
     return np.mod(pts, 1.0)
+
+
+def multiscale(n, seed, dim=3):
+    """Eight clusters of widths 1e-3 to 1e-1, a tenth of the points uniform."""
+    return clusters_on_background(n, seed, dim, 8, (-3, -1), 10)
 
 
 def background_clusters(n, seed, dim=3):
-    """Six clusters of widths 1e-2 to 1e-1, wrapped, a fifth of the points uniform."""
-    rng = np.random.default_rng(seed)
-    centres = rng.random((6, dim))
-    widths = 10.0 ** rng.uniform(-2, -1, 6)
-    j = rng.integers(0, 6, n)
-    pts = centres[j] + rng.standard_normal((n, dim)) * widths[j, None]
-    pts[: n // 5] = rng.random((n // 5, dim))
-    return np.mod(pts, 1.0)
+    """Six clusters of widths 1e-2 to 1e-1, a fifth of the points uniform."""
+    return clusters_on_background(n, seed, dim, 6, (-2, -1), 5)
 
 
 def two_blobs(dim, n, seed):

@@ -84,6 +84,7 @@ def test_persistence_on_the_3_torus_has_its_betti_numbers():
     ph = Persistence(mesh, pts)
     essential = [int(np.isinf(ph.diagram(d)[:, 1]).sum()) for d in range(4)]
     assert essential == [1, 3, 3, 1]  # the 3-torus: 1, 3, 3, 1
+    assert ph.betti(np.inf) == (1, 3, 3, 1)  # regression: classes that never die counted 0
     d_m2 = Persistence(mesh, pts, function="d_m2", subdivide=False)
     assert [int(np.isinf(d_m2.diagram(d)[:, 1]).sum()) for d in range(4)] == [1, 3, 3, 1]
 
@@ -170,3 +171,30 @@ def test_points_of_neither_dimension_name_both():
         knnrefine.refine(four, 10)
     with pytest.raises(InputError, match=r"\(n, 2\) in the plane or \(n, 3\) in space"):
         KnnDensityEstimator(k=10).fit(four)
+
+
+@pytest.mark.parametrize("case", ["coplanar", "duplicates", "on a seam"])
+def test_uses_in_space_on_degenerate_points(case):
+    """The uses added for space on points on a plane, repeated points and points on the
+    periodic seams: d_Pk exact at the mesh's vertices, the density's mass 1 and its samples
+    in the box, clusters and persistence computed, the mesh certified."""
+    rng = np.random.default_rng(12)
+    pts = rng.random((3000, 3))
+    if case == "coplanar":
+        pts[:, 2] = 0.5
+    elif case == "duplicates":
+        pts = np.repeat(pts[:300], 10, axis=0)
+    else:
+        pts[:1500, 0] = 0.0  # half on the seam x = 0 of the 3-torus
+    mesh = knnrefine.refine(pts, 12, periodic=True, box=BOX3)
+    assert knnrefine.certify(mesh, pts, samples=20_000).passed
+    dist = knnrefine.KnnDistance(mesh, pts)
+    v = mesh.vertices[:200]
+    np.testing.assert_allclose(dist(v), dist.exact(v), rtol=1e-9)
+    density = KnnDensity(mesh, pts)
+    assert density.mass() == pytest.approx(1.0, rel=1e-9)
+    draws = density.sample(2000, rng)
+    assert ((draws >= 0) & (draws <= 1)).all()
+    assert cluster(mesh, pts).n_clusters >= 1
+    h0 = Persistence(mesh, pts).diagram(0)
+    assert np.isinf(h0[:, 1]).sum() == 1  # one component never dies (the 3-torus)

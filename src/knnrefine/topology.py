@@ -217,7 +217,7 @@ class Persistence:
             (b0, b1, ..., b_d).
         """
         return tuple(
-            int(((dg[:, 0] <= threshold) & (dg[:, 1] > threshold)).sum())
+            int(((dg[:, 0] <= threshold) & ((dg[:, 1] > threshold) | np.isinf(dg[:, 1]))).sum())
             for dg in (self.diagram(i) for i in range(self.mesh.dim + 1))
         )
 
