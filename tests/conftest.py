@@ -108,6 +108,17 @@ ACHIEVED = []
 # -- generators of points, defined once (the plane's and space's tests share them) ---------
 
 
+@pytest.fixture(params=[2, 3], ids=["plane", "space"])
+def dim(request):
+    """The dimension a test runs in: the plane's and space's suites are one."""
+    return request.param
+
+
+def unit_box(dim):
+    """The unit box of ``dim`` dimensions, (0, ..., 0, 1, ..., 1)."""
+    return (0.0,) * dim + (1.0,) * dim
+
+
 def uniform(n, seed=0, dim=2):
     """n uniform points in the unit box."""
     return np.random.default_rng(seed).random((n, dim))

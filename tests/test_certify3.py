@@ -102,8 +102,8 @@ def test_certify3_with_no_probe_above_the_floor():
 
 def test_certify3_honours_samples_and_refuses_tiles():
     """certify's options in space: ``samples`` sets the probes in the tetrahedra (at least
-    4 each), ``threads`` the queries' threads; ``workers`` > 1 and ``weights`` are refused,
-    not ignored."""
+    4 each), ``threads`` the queries' threads; ``workers`` > 1 is refused, not ignored, and
+    weights are refused for a mesh refined without them."""
     pts = np.random.default_rng(6).random((3000, 3))
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
     few = knnrefine.certify(mesh, pts, samples=10, threads=1)
@@ -111,5 +111,5 @@ def test_certify3_honours_samples_and_refuses_tiles():
     assert many.n_probes - few.n_probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
     with pytest.raises(knnrefine.InputError, match="workers > 1"):
         knnrefine.certify(mesh, pts, workers=2)
-    with pytest.raises(knnrefine.InputError, match="weights"):
+    with pytest.raises(knnrefine.InputError, match="refined without weights"):
         knnrefine.certify(mesh, pts, weights=np.ones(len(pts)))

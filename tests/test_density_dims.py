@@ -5,6 +5,7 @@ d_{P,k}, Monte Carlo for integrals and samples)."""
 import numpy as np
 import pytest
 from conftest import two_blobs as blobs
+from conftest import unit_box
 from scipy.spatial import cKDTree
 
 import knnrefine
@@ -12,15 +13,6 @@ from knnrefine import InputError, KnnDensity, KnnDistance
 
 N = {2: 4000, 3: 6000}
 K = 10
-
-
-@pytest.fixture(params=[2, 3], ids=["plane", "space"])
-def dim(request):
-    return request.param
-
-
-def unit_box(dim):
-    return (0.0,) * dim + (1.0,) * dim
 
 
 @pytest.fixture(params=[True, False], ids=["periodic", "box"])

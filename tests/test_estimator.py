@@ -13,12 +13,14 @@ from knnrefine import InputError, KnnDensityEstimator
 sklearn = pytest.importorskip("sklearn")
 
 
-def mixture(n, seed=0):
+def mixture(n, seed=0, dim=2):
+    """A wide Gaussian and a narrow one of a quarter of the points."""
     rng = np.random.default_rng(seed)
     m = n // 4
     return np.concatenate(
-        [rng.normal([0.35, 0.4], 0.1, (n - m, 2)), rng.normal([0.75, 0.7], 0.02, (m, 2))]
-    )
+        [rng.normal([0.35, 0.4, 0.5][:dim], 0.1, (n - m, dim)),
+         rng.normal([0.75, 0.7, 0.6][:dim], 0.02, (m, dim))]
+    )  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -132,12 +134,12 @@ def test_sampling_is_reproducible_and_in_the_box(fitted):
         est.sample(3, random_state="seed")
 
 
-def test_integer_weights_are_copies():
-    X = mixture(800, seed=4)
+def test_integer_weights_are_copies(dim):
+    X = mixture(800, seed=4, dim=dim)
     w = np.random.default_rng(5).integers(0, 4, len(X))
     a = KnnDensityEstimator(k=15, method="knn").fit(X, sample_weight=w)
     b = KnnDensityEstimator(k=15, method="knn").fit(np.repeat(X, w, axis=0))
-    probes = mixture(300, seed=6)
+    probes = mixture(300, seed=6, dim=dim)
     np.testing.assert_array_equal(a.score_samples(probes), b.score_samples(probes))
     assert a.n_samples_ == w.sum()
     with pytest.raises(InputError, match="sum to 0"):

@@ -1,7 +1,9 @@
 """The 3-D counting index (engine/index3.py) against scipy's cKDTree with boxsize: closed
 balls anywhere on the 3-torus (across its faces, edges and corners), exact below k and at
-least k when the count stops early; closed Voronoi cells of a refined periodic triangulation
+least k when the count stops early, counting points or summing their weights; closed Voronoi cells of a refined periodic triangulation
 against each point's nearest mesh vertices."""
+
+import math
 
 import numpy as np
 import pytest
@@ -30,55 +32,89 @@ def _points(n, period, seed):
     return pts
 
 
+def _weights(n, seed):
+    """Weights from 1e-3 to 1e3, a tenth of them 0, one of 1e12 (a heavy point must not
+    swallow light ones)."""
+    rng = np.random.default_rng(seed)
+    w = 10.0 ** rng.uniform(-3, 3, n)
+    w[rng.random(n) < 0.1] = 0.0
+    w[7] = 1e12
+    return w
+
+
+def _held(lists, w):
+    """What each list of points holds: their number, or the exact sum of their weights."""
+    if w is None:
+        return np.array([len(a) for a in lists])
+    return np.array([math.fsum(w[a]) for a in lists])
+
+
+@pytest.mark.parametrize("weighted", [False, True], ids=["counts", "weights"])
 @pytest.mark.parametrize("period", [(1.0, 1.0, 1.0), (2.0, 0.5, 1.0)], ids=str)
-def test_ball_counts_match_a_periodic_kd_tree(period):
+def test_ball_counts_match_a_periodic_kd_tree(period, weighted):
+    """Unweighted, the counts exactly; weighted, the sums of weights within rounding (as
+    exact sums, math.fsum over the kd-tree's points)."""
     period = np.array(period)
     pts = _points(20000, period, 1)
-    index = build_index3(pts)
-    assert sorted(map(tuple, index[0])) == sorted(map(tuple, pts))  # a permutation
+    w = _weights(len(pts), 4) if weighted else None
+    index = build_index3(pts, weights=w)
+    rows = index[0]
+    if weighted:
+        assert rows.shape == (len(pts), 4) and index.weight[0] == pytest.approx(w.sum())
+        rows = rows[:, :3]
+        assert sorted(map(tuple, index[0])) == sorted(map(tuple, np.column_stack([pts, w])))
+    assert sorted(map(tuple, rows)) == sorted(map(tuple, pts))  # a permutation
     tree = cKDTree(pts, boxsize=period)
     rng = np.random.default_rng(2)
     centres = rng.random((3000, 3)) * period
     centres[:500] = rng.integers(0, 2, (500, 3)) * period  # at the torus' corners
     centres[500:1000] = pts[:500]  # on data points (the closed ball holds them)
     radii = rng.random(3000) ** 2 * 0.45 * period.min()
-    want = tree.query_ball_point(centres, radii, return_length=True)
+    want = _held(tree.query_ball_point(centres, radii), w)
     stack = np.empty(128, np.int64)
     shifted = centres + rng.integers(-2, 3, (3000, 3)) * period  # any frame
-    for k in (10**9, 25):
+    for k in (1e15, 25.0):
         got = np.array(
             [_ball(index, c, r * r, k, period, stack) for c, r in zip(shifted, radii, strict=True)]
         )
-        if k > 10**8:
+        if not weighted and k > 10**8:
             np.testing.assert_array_equal(got, want)
+        elif k > 10**8:
+            np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)
         else:
-            np.testing.assert_array_equal(np.minimum(got, k), np.minimum(want, k))
-            assert (got[want >= k] >= k).all()
+            below = want < k * (1 - 1e-12)
+            np.testing.assert_allclose(got[below], want[below], rtol=1e-13, atol=0)
+            assert (got[want >= k * (1 + 1e-12)] >= k).all()
 
 
 @pytest.mark.slow
-def test_cell_counts_match_each_points_nearest_vertices():
+@pytest.mark.parametrize("weighted", [False, True], ids=["counts", "weights"])
+def test_cell_counts_match_each_points_nearest_vertices(weighted):
     """The closed cell of every vertex of a refined triangulation of the unit 3-torus counts
     the points whose nearest vertex it is (ties: every nearest one), as a kd-tree over the
-    vertices says."""
+    vertices says; weighted points, their weights (exact sums, math.fsum)."""
     period = np.array([1.0, 1.0, 1.0])
     mesh, scratch, cnt = new_torus3(period, initial_grid3(period), 2000, 20000)
     insert_largest3(mesh, scratch, cnt, period, Q, 600, 0.0)
     nv = int(cnt[0])
     pts = _points(30000, period, 3)
     pts[:200] = mesh.xyz[:200]  # on vertices
-    index = build_index3(pts)
+    w = _weights(len(pts), 5) if weighted else None
+    index = build_index3(pts, weights=w)
     dd, ii = cKDTree(mesh.xyz[:nv], boxsize=period).query(pts, k=3)
     tie = dd <= dd[:, :1] * (1 + 1e-12)
-    want = np.bincount(ii[tie], minlength=nv)
+    members = [[] for _ in range(nv)]
+    for p, v in zip(*np.nonzero(tie), strict=True):
+        members[ii[p, v]].append(p)
+    want = _held([np.array(a, np.int64) for a in members], w)
     h = np.empty((256, 3))
     ids = np.empty(256, np.int64)
     stack = np.empty(128, np.int64)
-    got = np.empty(nv, np.int64)
+    got = np.empty(nv)
     for v in range(nv):
         nh = _neighbours(v, mesh, scratch, cnt, period, h, ids)
         assert nh > 3
         hc = 0.5 * (h[:nh] ** 2).sum(axis=1) * (1 + 1e-9)
         r2 = mesh.outradius2[v] * (1 + 1e-9)
-        got[v] = _cell(index, mesh.xyz[v], h[:nh].copy(), hc, nh, r2, 10**9, period, stack)
-    np.testing.assert_array_equal(got, want)
+        got[v] = _cell(index, mesh.xyz[v], h[:nh].copy(), hc, nh, r2, 1e15, period, stack)
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)

@@ -176,8 +176,8 @@ def test_bad_input_is_refused_before_work():
     bad[3, 1] = np.nan
     with pytest.raises(InputError, match="NaN"):
         knnrefine.refine(bad, 10, periodic=True, box=BOX)
-    with pytest.raises(InputError, match="weights"):
-        knnrefine.refine(pts, 10, periodic=True, box=BOX, weights=np.ones(100))
+    with pytest.raises(InputError, match=r"weights must have shape \(100,\)"):
+        knnrefine.refine(pts, 10, periodic=True, box=BOX, weights=np.ones(99))
     # the plane's option checks (options.RunOptions), not a looser copy: a bool is no time
     # limit, a number no progress callback
     with pytest.raises(InputError, match="time_limit"):

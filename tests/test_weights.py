@@ -5,6 +5,7 @@ rescaling (weights and k halved: sums of halves are exact)."""
 import numpy as np
 import oracle
 import pytest
+from conftest import unit_box
 
 import knnrefine
 from knnrefine.density import KnnDensity, KnnDistance
@@ -92,34 +93,62 @@ def test_weighted_kth_distance_matches_brute_force(periodic):
             np.testing.assert_allclose(index.kth(q, k), ref, rtol=1e-12, atol=1e-15, err_msg=name)
 
 
-@pytest.mark.parametrize("kw", [{}, {"periodic": True, "box": (0, 0, 1, 1)}])
-def test_whole_weights_are_repeated_points_bit_for_bit(kw):
+@pytest.mark.parametrize("periodic", [(False,) * 3, (True,) * 3, (False, True, True)], ids=str)
+def test_weighted_kth_distance_in_space_matches_brute_force(periodic):
+    """d_{P,k} in space with weights (KnnDistance.exact, certify's weighted_kth): the least
+    radius whose closed ball holds weight k, from sorted distances and running sums."""
+    rng = np.random.default_rng(8)
+    pts = np.concatenate([rng.random((600, 3)), np.repeat(rng.random((10, 3)), 20, axis=0)])
+    w = np.where(rng.random(len(pts)) < 0.2, 0.0, rng.gamma(1.5, 1.0, len(pts)))
+    box = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+    mesh = knnrefine.refine(pts, 7.5, periodic=periodic, box=box, weights=w)
+    q = np.concatenate([rng.random((150, 3)), pts[:30]])
+    e = np.abs(q[:, None, :] - pts[None, :, :])
+    for a in range(3):
+        if periodic[a]:
+            e[..., a] = np.minimum(e[..., a], 1.0 - e[..., a])
+    d = np.sqrt((e**2).sum(-1))
+    order = np.argsort(d, axis=1, kind="stable")
+    held = np.cumsum(w[order], axis=1)
+    dist = KnnDistance(mesh, pts, weights=w)
+    for k in (0.1, 7.5, 60.0):
+        at = np.argmax(held >= k * (1 - 1e-12), axis=1)
+        ref = np.take_along_axis(d, order, 1)[np.arange(len(q)), at]
+        np.testing.assert_allclose(dist.index.kth(q, k), ref, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("periodic", [False, True], ids=["box", "torus"])
+def test_whole_weights_are_repeated_points_bit_for_bit(dim, periodic):
     rng = np.random.default_rng(3)
-    pts = np.concatenate([rng.random((1500, 2)), rng.normal(0.4, 0.02, (500, 2)) % 1])
+    n = 1500 if dim == 2 else 800
+    pts = np.concatenate([rng.random((n, dim)), rng.normal(0.4, 0.02, (n // 3, dim)) % 1])
     w = rng.integers(1, 5, len(pts))
+    kw = {"periodic": True, "box": unit_box(dim)} if periodic else {}
     a = knnrefine.refine(pts, 12, weights=w, **kw)
     b = knnrefine.refine(np.repeat(pts, w, axis=0), 12, **kw)
-    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.triangles, b.triangles)
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.cells, b.cells)
     assert a.stats["weight"] == w.sum() and "weight" not in b.stats
-    q = rng.random((200, 2))
+    q = rng.random((200, dim))
     fa = KnnDensity(a, pts, weights=w)
     fb = KnnDensity(b, np.repeat(pts, w, axis=0))
     np.testing.assert_allclose(fa(q), fb(q), rtol=1e-12)
+    np.testing.assert_allclose(fa.distance.exact(q), fb.distance.exact(q), rtol=1e-12)
 
 
-def test_halved_weights_and_k_are_the_same_mesh():
+def test_halved_weights_and_k_are_the_same_mesh(dim):
     # every sum of halves is exact: the same decisions, the same mesh, at a real k
     rng = np.random.default_rng(4)
-    pts = rng.random((2500, 2))
+    pts = rng.random((2500 if dim == 2 else 1200, dim))
     a = knnrefine.refine(pts, 7.5, weights=np.full(len(pts), 0.5))
     b = knnrefine.refine(pts, 15)
     assert a.k == 7.5
-    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.triangles, b.triangles)
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.cells, b.cells)
 
 
-def test_weighted_certificate_is_independent_and_catches_wrong_weights():
+def test_weighted_certificate_is_independent_and_catches_wrong_weights(dim):
     rng = np.random.default_rng(5)
-    pts = np.concatenate([rng.random((2500, 2)), rng.normal(0.3, 0.02, (800, 2))])
+    n = 2500 if dim == 2 else 1500
+    pts = np.concatenate([rng.random((n, dim)), rng.normal(0.3, 0.02, (800, dim))])
     w = rng.gamma(1.0, 2.0, len(pts))
     mesh = knnrefine.refine(pts, 25.5, weights=w)
     cert = knnrefine.certify(mesh, pts, weights=w)
@@ -127,7 +156,7 @@ def test_weighted_certificate_is_independent_and_catches_wrong_weights():
     assert cert.max_ball_count < 25.5 and cert.max_cell_count < 25.5
     assert "total weight" in str(cert)
     # the same total spread differently: the mesh is wrong for these weights
-    other = np.where(np.arange(len(pts)) < 2500, 0.2, 5.0)
+    other = np.where(np.arange(len(pts)) < n, 0.2, 5.0)
     other *= w.sum() / other.sum()
     assert not knnrefine.certify(mesh, pts, weights=other).passed
     with pytest.raises(InputError, match="refined with weights"):
@@ -156,8 +185,8 @@ def test_weighted_certificate_is_independent_and_catches_wrong_weights():
         (np.ones(100) + 1j, 5, "real"),
     ],
 )
-def test_bad_weights_are_refused_before_work(weights, k, match):
-    pts = np.random.default_rng(6).random((100, 2))
+def test_bad_weights_are_refused_before_work(weights, k, match, dim):
+    pts = np.random.default_rng(6).random((100, dim))
     with pytest.raises(InputError, match=match):
         knnrefine.refine(pts, k, weights=weights)
 
@@ -231,6 +260,32 @@ def test_a_heavy_point_does_not_swallow_light_ones():
     exact = [d[p][next(j for j in range(len(pts)) if math.fsum(w[i[p][: j + 1]]) >= k)]
              for p in range(len(pts))]  # fmt: skip
     np.testing.assert_array_equal(TorusPoints(mesh, pts, 1, w).d_pk(local), exact)
+
+
+def test_a_heavy_point_does_not_swallow_light_ones_in_space():
+    """The same regression in space (engine/index3.py sums weights with compensation, as the
+    plane's index): one point of weight 1e16 among points of weight 1, k = 1e16 + 8; no
+    circumball of the mesh holds k by exact sums (math.fsum), and certify passes."""
+    import math
+
+    from scipy.spatial import cKDTree
+
+    from knnrefine.certify.space import _circumspheres
+
+    pts = np.random.default_rng(0).random((300, 3))
+    w = np.ones(300)
+    w[0] = 1e16
+    k = 1e16 + 8
+    mesh = knnrefine.refine(pts, k, weights=w)
+    assert knnrefine.certify(mesh, pts, weights=w).passed
+    torus = mesh.torus
+    period = np.array(torus.period)
+    local = np.mod(pts - np.array(torus.origin), period)
+    centres, r2 = _circumspheres(torus.vertices[torus.cells] + torus.offsets * period)
+    found = cKDTree(local, boxsize=period).query_ball_point(np.mod(centres, period), np.sqrt(r2))
+    assert max(math.fsum(w[i]) for i in found) < k
+    # the heavy point with 8 light ones around it does hold k: some ball about it was split
+    assert any(0 in i and math.fsum(w[i]) >= 1e16 + 4 for i in found)
 
 
 @pytest.mark.parametrize("bad", [0, -3, 2.5, float("inf"), float("nan"), True, "10"])

@@ -1,9 +1,14 @@
-"""The box's own metric: periodic axes wrap (a torus or a cylinder), the others are planar."""
+"""The box's own metric: periodic axes wrap (a torus or a cylinder), the others are planar;
+and what a kd-tree's points hold when they are weighted (``held_in_balls``, ``cell_tally``,
+``weighted_kth``), summed so that a heavy point cannot swallow light ones
+(``compensated_sums``). Used by certify and the applications, never by the engine."""
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .engine.embedding import wrap_offsets
+from .engine.geometry import plus_compensated
+from .engine.jit import kernel
 
 
 class BoxMetric:
@@ -53,3 +58,97 @@ class TorusFrame:
 
     def __call__(self, x):
         return self._metric.frame(x)
+
+
+@kernel(entry=True, lazy=True)
+def compensated_sums(values, bounds):
+    """values[bounds[i]:bounds[i + 1]] summed for each i, compensated
+    (``engine.geometry.plus_compensated``, the one arithmetic primitive the checks share
+    with the engine): for weights >= 0 within two ulps of the exact sum whatever their order
+    (plain addition loses a weight of 1 beside one of 1e16: a disk holding k = 1e16 + 8
+    would hold 1e16)."""
+    out = np.zeros(bounds.shape[0] - 1)
+    for i in range(out.shape[0]):
+        s = 0.0
+        c = 0.0
+        for j in range(bounds[i], bounds[i + 1]):
+            s, c = plus_compensated(s, c, values[j])
+        out[i] = s + c
+    return out
+
+
+@kernel(entry=True, lazy=True)
+def running_sums(values):
+    """The running sums along each row of ``values`` (rows, columns), compensated as
+    ``compensated_sums``."""
+    out = np.empty_like(values)
+    for i in range(values.shape[0]):
+        s = 0.0
+        c = 0.0
+        for j in range(values.shape[1]):
+            s, c = plus_compensated(s, c, values[i, j])
+            out[i, j] = s + c
+    return out
+
+
+def held_in_balls(tree, weights, centres, radii, threads=-1):
+    """What each closed ball (disk in the plane) about centres holds in the tree's points:
+    a count, or their weight (``compensated_sums``: a heavy point does not swallow light
+    ones)."""
+    if weights is None:
+        return tree.query_ball_point(centres, radii, return_length=True, workers=threads)
+    out = np.zeros(len(centres))
+    for lo in range(0, len(centres), 10_000):
+        lists = tree.query_ball_point(
+            centres[lo : lo + 10_000], np.broadcast_to(radii, len(centres))[lo : lo + 10_000]
+        )
+        sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
+        if sizes.sum():
+            members = np.concatenate([np.asarray(a, np.int64) for a in lists])
+            bounds = np.concatenate([[0], np.cumsum(sizes)])
+            out[lo : lo + len(lists)] = compensated_sums(weights[members], bounds)
+    return out
+
+
+def cell_tally(dd, ii, weights, m):
+    """Points per Voronoi cell from each point's nearest vertices (dd, ii: distances and
+    indices of up to 3, nearest first): a point counts for every vertex as near as its
+    nearest (up to a relative 1e-12), weighed by ``weights`` if given (compensated sums)."""
+    kk = dd.shape[1] if dd.ndim == 2 else 1
+    dd, ii = dd.reshape(len(dd), kk), ii.reshape(len(ii), kk)
+    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
+    if weights is None:
+        return np.bincount(ii[tie], minlength=m)
+    w = np.broadcast_to(weights[:, None], tie.shape)[tie]
+    cell = ii[tie]
+    order = np.argsort(cell, kind="stable")
+    bounds = np.searchsorted(cell[order], np.arange(m + 1))
+    return compensated_sums(np.ascontiguousarray(w[order], dtype=np.float64), bounds)
+
+
+def weighted_kth(tree, weights, x, k, threads, chunk=20_000):
+    """The least r whose closed disk about each x holds weight >= k: the nearest points in
+    order, their weights summed, more of them fetched where the first ones fall short."""
+    out = np.empty(len(x))
+    n = tree.n
+    first = int(min(n, 2 * np.ceil(k / max(weights.mean(), 1e-300)) + 16))
+    for lo in range(0, len(x), chunk):
+        q = x[lo : lo + chunk]
+        res = np.full(len(q), np.nan)
+        todo = np.arange(len(q))
+        kk = first
+        while len(todo):
+            d, i = tree.query(q[todo], k=kk, workers=threads)
+            d = d.reshape(len(todo), kk)
+            i = i.reshape(len(todo), kk)
+            held = running_sums(np.ascontiguousarray(weights[np.minimum(i, n - 1)] * (i < n)))
+            enough = held[:, -1] >= k
+            at = np.argmax(held >= k, axis=1)
+            res[todo[enough]] = d[enough, at[enough]]
+            todo = todo[~enough]
+            if kk >= n:
+                res[todo] = np.inf
+                break
+            kk = min(n, 4 * kk)
+        out[lo : lo + chunk] = res
+    return out

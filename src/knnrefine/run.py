@@ -49,8 +49,7 @@ def is_spatial(points):
 
 def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, RunOptions]:
     """The points, weights and options of a run, checked before any work (``RunOptions``):
-    (pts (n, d) float64, weights (n,) float64 or None, the options). In space weights are
-    refused (not built yet).
+    (pts (n, d) float64, weights (n,) float64 or None, the options).
 
     Parameters
     ----------
@@ -65,8 +64,6 @@ def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, Ru
     pts, weights, options
     """
     dim = 3 if is_spatial(points) else 2
-    if dim == 3 and weights is not None:
-        raise InputError("weights are not built for (n, 3) points yet")
     pts = V.as_points(points, dim)
     n = len(pts)
     w = None if weights is None else V.check_weights(weights, n)
@@ -122,7 +119,7 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Me
     if pts.shape[1] == 3:
         from .run3 import refine3
 
-        return refine3(pts, opt)
+        return refine3(pts, opt, w)
     n = len(pts)
     total = None if w is None else math.fsum(w)
     report = Progress(opt.progress)

@@ -3,6 +3,7 @@ engine's 3-D run (``engine/driver3.py``) behind the same options as in the plane
 non-periodic axes the box is embedded in a longer torus, as in the plane
 (``engine/embedding.py``), and the mesh unfolded back (``embedding.unfold``)."""
 
+import math
 import time
 import warnings
 
@@ -23,33 +24,41 @@ from .engine.state import (
 )
 from .errors import BudgetError, FloorWarning, InputError
 from .mesh import Mesh, Torus
-from .metric import BoxMetric
+from .metric import BoxMetric, held_in_balls, weighted_kth
 
 
 def _holds(index, x, reach, k, period):
     """Whether the closed ball of radius ``reach`` about each x holds >= k of the index's
-    points (the index answers below half the shortest period; beyond it, a periodic kd-tree
-    over its points, built only then, counts each point once, at its nearest image)."""
+    points, or weight k for weighted ones (the index answers below half the shortest period;
+    beyond it, a periodic kd-tree over its points, built only then, counts each point once,
+    at its nearest image)."""
     reach = np.asarray(reach, float)
     out = np.zeros(len(x), bool)
     small = reach < 0.5 * period.min() * (1.0 - 1e-9)
     out[small] = holds_k_within3(index, x[small], reach[small] ** 2, float(k), period)
     if not small.all():
-        tree = cKDTree(index.pts, boxsize=period)
+        weights = index.pts[:, 3] if len(index.weight) else None
+        tree = cKDTree(index.pts[:, :3], boxsize=period)
         far = ~small
-        out[far] = tree.query_ball_point(x[far] % period, reach[far], return_length=True) >= k
+        out[far] = held_in_balls(tree, weights, x[far] % period, reach[far]) >= k
     return out
 
 
-def _reach(pts, box, per, k):
-    """An upper bound on max d_{P,k} over the box in its own metric: d_{P,k} at the centres
-    of 16^3 cells plus half a cell's diagonal (d_{P,k} is 1-Lipschitz)."""
+def _reach(pts, box, per, k, weights=None):
+    """An upper bound on max d_{P,k} over the box in its own metric: d_{P,k} (for weighted
+    points the least radius holding weight k) at the centres of 16^3 cells plus half a
+    cell's diagonal (d_{P,k} is 1-Lipschitz)."""
     g = 16
     lo, hi = np.array(box[:3]), np.array(box[3:])
     cell = (hi - lo) / g
     axes = [lo[a] + (np.arange(g) + 0.5) * cell[a] for a in range(3)]
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    return float(BoxMetric(box, per).kth(pts, centres, k).max() + 0.5 * np.linalg.norm(cell))
+    metric = BoxMetric(box, per)
+    if weights is None:
+        far = metric.kth(pts, centres, k)
+    else:
+        far = weighted_kth(metric.tree(pts), weights, metric.frame(centres), k, -1)
+    return float(far.max() + 0.5 * np.linalg.norm(cell))
 
 
 LIMITS_EFFORT3 = 300_000  # initial vertices above which a refusal skips the limits search
@@ -66,8 +75,9 @@ class _Start3:
     built; indexes and candidates are kept per torus (the refusal asks again); the deadline
     and Ctrl-C are checked between every step."""
 
-    def __init__(self, pts, opt, budget, interrupts):
+    def __init__(self, pts, opt, budget, interrupts, weights=None):
         self.pts, self.box, self.per, self.budget = pts, opt.box, opt.periodic, budget
+        self.weights = weights
         self.opt, self.interrupts = opt, interrupts
         self.tori = {}  # reach -> (embedding, index, candidate cache)
         self.reach_of_k = {}
@@ -79,7 +89,7 @@ class _Start3:
     def torus(self, reach=None):
         if reach not in self.tori:
             emb = Embedding.make(self.box, self.per, reach)
-            index = build_index3(emb.to_internal(self.pts), copy=False)  # the index owns them
+            index = build_index3(emb.to_internal(self.pts), copy=False, weights=self.weights)
             self.check()
             self.tori[reach] = emb, index, {}
         return self.tori[reach]
@@ -89,7 +99,7 @@ class _Start3:
         if all(self.per):
             return
         if k not in self.reach_of_k:  # the data bound costs a kd-tree: only when asked
-            self.reach_of_k[k] = _reach(self.pts, self.box, self.per, k)
+            self.reach_of_k[k] = _reach(self.pts, self.box, self.per, k, self.weights)
             self.check()
         diam = diameter(self.box, self.per)
         default = np.array(Embedding.make(self.box, self.per).period_internal)
@@ -157,9 +167,10 @@ def _points_under_floor(pts, floor, emb, n):
     return int(hit.sum())
 
 
-def refine3(pts, opt):
+def refine3(pts, opt, weights=None):
     """kNNRefine in a box of three dimensions (``knnrefine.refine`` with (n, 3) points, its
-    options checked into ``opt``, a ``RunOptions``): a ``Mesh`` whose vertices M satisfy
+    options checked into ``opt``, a ``RunOptions``, and the points' checked weights or None):
+    a ``Mesh`` whose vertices M satisfy
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} in the box, tau-well-spaced, no Voronoi cell
     and no closed circumball holding k points (checked by ``certify``). As in the plane:
     an initial mesh that cannot fit is refused before any work (``RunOptions.check``),
@@ -169,7 +180,7 @@ def refine3(pts, opt):
     t_start, time_limit, progress = opt.t_start, opt.time_limit, opt.progress
     budget = opt.start_budget(len(pts))
     with Interrupts() as interrupts:
-        start = _Start3(pts, opt, budget, interrupts)
+        start = _Start3(pts, opt, budget, interrupts, weights)
         found = start.find(k, reach_factor(tau))
         if found is None:
             raise InputError(start.refusal(k, tau))
@@ -224,5 +235,6 @@ def refine3(pts, opt):
                "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
                "failed": int(cnt[C_FAILED]), "floor_circumballs": int(floor[2]),
                "floor_cells": int(len(floor[1]) - floor[2]), "points_under_floor": under,
-               "seconds": time.perf_counter() - t_start},
+               "seconds": time.perf_counter() - t_start,
+               **({} if weights is None else {"weight": math.fsum(weights)})},
     )  # fmt: skip

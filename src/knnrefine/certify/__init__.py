@@ -7,7 +7,6 @@ this process, or ``scale.checks`` strip by strip in worker processes."""
 
 import time
 
-from ..errors import InputError
 from ..validation import as_points
 from .certificate import Certificate
 from .common import check_precondition, check_source
@@ -39,13 +38,9 @@ def certify_points(
     Certificate
     """
     if mesh.dim == 3:  # in space: space.certify3's checks
-        if weights is not None:
-            raise InputError(
-                "weights are not built for (n, 3) points yet: certify a 3-D mesh without them "
-                "(refine in space takes none either)"
-            )
         return certify3(mesh, points, samples=samples, n_random=n_random,
-                        max_point_probes=max_point_probes, seed=seed, threads=threads)  # fmt: skip
+                        max_point_probes=max_point_probes, seed=seed, weights=weights,
+                        threads=threads)  # fmt: skip
     t0 = time.perf_counter()
     pts = as_points(points)
     weights = check_points_are_the_meshs(mesh, pts, weights)

@@ -1,13 +1,11 @@
 """What the plane's and space's certificates share: that the points are the run's own
-(``check_source``), Lemma 2's precondition on the initial vertices (``check_precondition``),
-sums of weights that a heavy point cannot swallow (``compensated_sums``, ``running_sums``), and
-finding rows of integers in a table (``find_rows``)."""
+(``check_source``), Lemma 2's precondition on the initial vertices (``check_precondition``) and
+finding rows of integers in a table (``find_rows``). Weighted counts from kd-trees are
+``metric``'s (``held_in_balls``, ``cell_tally``, ``weighted_kth``)."""
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..engine.geometry import plus_compensated
-from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..errors import InputError
 
 
@@ -48,37 +46,6 @@ def check_precondition(initial, torus, k, tau, period):
         remaining = remaining[~ok]
         rounds += 1
     return True, f"{len(initial)} vertices ordered in {rounds} round{'s' if rounds != 1 else ''}"
-
-
-@kernel(entry=True, lazy=True)
-def compensated_sums(values, bounds):
-    """values[bounds[i]:bounds[i + 1]] summed for each i, compensated
-    (``engine.geometry.plus_compensated``, the one arithmetic primitive certify shares with
-    the engine): for weights >= 0 within two ulps of the exact sum whatever their order
-    (plain addition loses a weight of 1 beside one of 1e16: a disk holding k = 1e16 + 8
-    would hold 1e16)."""
-    out = np.zeros(bounds.shape[0] - 1)
-    for i in range(out.shape[0]):
-        s = 0.0
-        c = 0.0
-        for j in range(bounds[i], bounds[i + 1]):
-            s, c = plus_compensated(s, c, values[j])
-        out[i] = s + c
-    return out
-
-
-@kernel(entry=True, lazy=True)
-def running_sums(values):
-    """The running sums along each row of ``values`` (rows, columns), compensated as
-    ``compensated_sums``."""
-    out = np.empty_like(values)
-    for i in range(values.shape[0]):
-        s = 0.0
-        c = 0.0
-        for j in range(values.shape[1]):
-            s, c = plus_compensated(s, c, values[i, j])
-            out[i, j] = s + c
-    return out
 
 
 def find_rows(table, rows):

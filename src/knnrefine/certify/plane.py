@@ -23,14 +23,12 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
-from ..metric import BoxMetric, TorusFrame
+from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
 from ..validation import check_made_from, weights_of_run
 from .certificate import Certificate, floor_sites, to_input
 from .common import (
     check_precondition,
-    compensated_sums,
     find_rows,
-    running_sums,
 )
 
 
@@ -136,7 +134,7 @@ class TorusPoints:
     def held(self, centres, radii):
         """What each closed disk (centre, radius) holds: its number of points, or their
         weight."""
-        return held_in_disks(self.point_tree, self.weights, centres, radii, self.threads)
+        return held_in_balls(self.point_tree, self.weights, centres, radii, self.threads)
 
     def cell_counts(self, outradii):
         """What each vertex's closed Voronoi cell holds (points equidistant to several
@@ -149,68 +147,6 @@ class TorusPoints:
         """Up to ``count`` input points, drawn at random."""
         P = self.points
         return P if len(P) <= count else P[rng.choice(len(P), count, False)]
-
-
-def held_in_disks(tree, weights, centres, radii, threads=-1):
-    """What each closed disk about centres holds in the tree's points: a count, or their
-    weight (summed by ``_sums``: a heavy point does not swallow light ones)."""
-    if weights is None:
-        return tree.query_ball_point(centres, radii, return_length=True, workers=threads)
-    out = np.zeros(len(centres))
-    for lo in range(0, len(centres), 10_000):
-        lists = tree.query_ball_point(
-            centres[lo : lo + 10_000], np.broadcast_to(radii, len(centres))[lo : lo + 10_000]
-        )
-        sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
-        if sizes.sum():
-            members = np.concatenate([np.asarray(a, np.int64) for a in lists])
-            bounds = np.concatenate([[0], np.cumsum(sizes)])
-            out[lo : lo + len(lists)] = compensated_sums(weights[members], bounds)
-    return out
-
-
-def cell_tally(dd, ii, weights, m):
-    """Points per Voronoi cell from each point's nearest vertices (dd, ii: distances and
-    indices of up to 3, nearest first): a point counts for every vertex as near as its
-    nearest (up to a relative 1e-12), weighed by ``weights`` if given (compensated sums)."""
-    kk = dd.shape[1] if dd.ndim == 2 else 1
-    dd, ii = dd.reshape(len(dd), kk), ii.reshape(len(ii), kk)
-    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
-    if weights is None:
-        return np.bincount(ii[tie], minlength=m)
-    w = np.broadcast_to(weights[:, None], tie.shape)[tie]
-    cell = ii[tie]
-    order = np.argsort(cell, kind="stable")
-    bounds = np.searchsorted(cell[order], np.arange(m + 1))
-    return compensated_sums(np.ascontiguousarray(w[order], dtype=np.float64), bounds)
-
-
-def weighted_kth(tree, weights, x, k, threads, chunk=20_000):
-    """The least r whose closed disk about each x holds weight >= k: the nearest points in
-    order, their weights summed, more of them fetched where the first ones fall short."""
-    out = np.empty(len(x))
-    n = tree.n
-    first = int(min(n, 2 * np.ceil(k / max(weights.mean(), 1e-300)) + 16))
-    for lo in range(0, len(x), chunk):
-        q = x[lo : lo + chunk]
-        res = np.full(len(q), np.nan)
-        todo = np.arange(len(q))
-        kk = first
-        while len(todo):
-            d, i = tree.query(q[todo], k=kk, workers=threads)
-            d = d.reshape(len(todo), kk)
-            i = i.reshape(len(todo), kk)
-            held = running_sums(np.ascontiguousarray(weights[np.minimum(i, n - 1)] * (i < n)))
-            enough = held[:, -1] >= k
-            at = np.argmax(held >= k, axis=1)
-            res[todo[enough]] = d[enough, at[enough]]
-            todo = todo[~enough]
-            if kk >= n:
-                res[todo] = np.inf
-                break
-            kk = min(n, 4 * kk)
-        out[lo : lo + chunk] = res
-    return out
 
 
 Triangulation = namedtuple("Triangulation", ["problems", "corners", "centres", "radii", "outradii"])

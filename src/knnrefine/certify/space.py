@@ -20,6 +20,7 @@ the box), whose extremes alpha_hat and beta_hat must lie within [alpha, beta] wh
 d_{P,k} >= min_size.
 """
 
+import math
 import time
 
 import numpy as np
@@ -28,10 +29,10 @@ from scipy.spatial import cKDTree
 from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..engine.predicates3 import insphere, orient3d
 from ..mesh import theorem6_constants
-from ..metric import BoxMetric, TorusFrame
-from ..validation import as_points, check_inside
+from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
+from ..validation import as_points, check_inside, check_made_from, weights_of_run
 from .certificate import Certificate, floor_sites, to_input
-from .common import check_precondition, check_source, find_rows
+from .common import check_precondition, find_rows
 
 
 @kernel(entry=True, lazy=True)
@@ -102,13 +103,15 @@ def _circumspheres(c):
 
 
 class _Points:
-    """The input points on the torus, as ``certify.check_precondition`` asks about them."""
+    """The input points on the torus, as ``certify.check_precondition`` asks about them: what
+    closed balls hold, a count or (weighted points) a weight."""
 
-    def __init__(self, tree, n):
-        self.tree, self.total = tree, float(n)
+    def __init__(self, tree, weights, threads):
+        self.tree, self.weights, self.threads = tree, weights, threads
+        self.total = float(tree.n) if weights is None else math.fsum(weights)
 
     def held(self, centres, radii):
-        return self.tree.query_ball_point(centres, radii, return_length=True)
+        return held_in_balls(self.tree, self.weights, centres, radii, self.threads)
 
 
 def _parity(rows):
@@ -197,7 +200,7 @@ def _tetrahedron_samples(c, per, rng):
 
 
 def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
-             seed=0, threads=-1):  # fmt: skip
+             seed=0, weights=None, threads=-1):  # fmt: skip
     """Check ``mesh`` (from ``knnrefine.refine`` with (n, 3) points) against ``points``;
     returns a ``Certificate`` (nothing is raised when a check fails: see ``.passed``).
 
@@ -209,10 +212,13 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     assumed): d_{P,k} from the points, d_{M,2} from the returned vertices, at probes in the
     box: ``samples`` stratified points in the tetrahedra (at least 4 in each), every vertex,
     circumcentre and edge midpoint, up to ``max_point_probes`` input points and ``n_random``
-    uniform points. ``threads``: the kd-tree queries' threads (-1: all cores)."""
+    uniform points. ``weights``: those of a weighted run (counts are then sums of weights and
+    d_{P,k} the least radius holding weight k). ``threads``: the kd-tree queries' threads
+    (-1: all cores)."""
     t0 = time.perf_counter()
     pts = as_points(points, 3)
-    check_source(mesh.stats, len(pts), None)
+    check_made_from(mesh.stats, len(pts), "certify a mesh against")
+    weights = weights_of_run(mesh.stats, len(pts), weights)
     check_inside(pts, mesh.box, mesh.periodic, warn=False)
     torus = mesh.torus
     origin, period = np.asarray(torus.origin, float), np.asarray(torus.period, float)
@@ -231,24 +237,23 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
 
     centres, r2 = _circumspheres(c)
     point_tree = cKDTree(p, boxsize=period)
-    held = point_tree.query_ball_point(np.mod(centres, period), np.sqrt(r2), return_length=True,
-                                       workers=threads)  # fmt: skip
+    points_on_torus = _Points(point_tree, weights, threads)
+    held = points_on_torus.held(np.mod(centres, period), np.sqrt(r2))
     vertex_tree = cKDTree(local, boxsize=period)
     dd, ii = vertex_tree.query(p, k=min(3, len(local)), workers=threads)
-    dd, ii = dd.reshape(len(p), -1), ii.reshape(len(p), -1)
-    tie = dd <= dd[:, :1] * (1 + 1e-12)
-    cells = np.bincount(ii[tie], minlength=len(local))
+    cells = cell_tally(dd, ii, weights, len(local))
     outer = np.zeros(len(local))
     np.maximum.at(outer, corners.ravel(), np.repeat(r2, 4))
     # elements below the resolution floor may hold k points (refinement leaves them)
     floor_balls = (held >= k) & (np.sqrt(r2) < mesh.min_size)
     floor_cells = (cells >= k) & (np.sqrt(outer) < mesh.min_size)
-    max_held = int(held[~floor_balls].max(initial=0))
-    max_cell = int(cells[~floor_cells].max(initial=0))
+    exact = int if weights is None else float
+    max_held = exact(held[~floor_balls].max(initial=0))
+    max_cell = exact(cells[~floor_cells].max(initial=0))
     d_m2 = vertex_tree.query(local, k=2, workers=threads)[0][:, 1]
     aspect = float((2.0 * np.sqrt(outer) / d_m2).max())
     precondition = check_precondition(
-        local[np.asarray(torus.kinds) == 0], _Points(point_tree, len(p)), k, mesh.tau, period
+        local[np.asarray(torus.kinds) == 0], points_on_torus, k, mesh.tau, period
     )
 
     # the promise in the box, in its own metric, from the returned vertices
@@ -290,7 +295,10 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
             mesh_problems.append(
                 "d_M2 from the returned vertices differs from the torus mesh's in the box"
             )
-    dpk = box_points.query(probes, k=[k], workers=threads)[0][:, 0]
+    if weights is None:
+        dpk = box_points.query(probes, k=[k], workers=threads)[0][:, 0]
+    else:
+        dpk = weighted_kth(box_points, weights, probes, k, threads)
     use = dpk >= mesh.min_size
     ratio = dm2[use] / dpk[use]
     nan = float("nan")
@@ -340,4 +348,6 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
         under_floor=float(np.mean(point_dpk < mesh.min_size)) if len(point_dpk) else 0.0,
         mesh_problems=mesh_problems, precondition_ok=bool(precondition[0]),
         precondition_note=precondition[1], seconds=time.perf_counter() - t0,
+        weight=None if weights is None else points_on_torus.total,
+        count_slack=0.0 if weights is None else 4.0 * float(np.spacing(float(k))),
     )  # fmt: skip

@@ -25,7 +25,7 @@ import numpy as np
 from ..engine.embedding import wrap_offsets
 from ..engine.index import PointIndex
 from ..errors import InputError
-from ..metric import BoxMetric
+from ..metric import BoxMetric, weighted_kth
 from ..validation import as_queries, check_inside, points_of_run
 from .plane import PlanePieces, index_values, linear_pieces
 from .space import SpacePieces
@@ -401,7 +401,7 @@ def point_index(mesh, pts, weights=None):
     (``TreeIndex``; the points must lie in the box along non-periodic axes)."""
     if mesh.dim == 3:
         check_inside(pts, mesh.box, mesh.periodic, warn=False)
-        return TreeIndex(mesh, pts)
+        return TreeIndex(mesh, pts, weights)
     kept = getattr(mesh, "index", None)
     if kept is not None and kept.indexes(pts, weights):
         return kept
@@ -416,14 +416,16 @@ def point_index(mesh, pts, weights=None):
 class TreeIndex:
     """Exact d_{P,k} in space from a periodic kd-tree over the points in the frame of the
     mesh's torus (relative to its origin, periodic axes wrapping): ``kth`` at input
-    coordinates, ``kth_local`` at torus-frame ones (the pieces')."""
+    coordinates, ``kth_local`` at torus-frame ones (the pieces'). Weighted points: d_{P,k} is
+    the least radius whose closed ball holds weight k."""
 
-    def __init__(self, mesh, pts):
+    def __init__(self, mesh, pts, weights=None):
         origin = np.asarray(mesh.torus.origin, float)
         period = np.asarray(mesh.torus.period, float)
         self.k = mesh.k
         self._metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)
         self._tree = self._metric.tree(pts)
+        self._weights = weights
 
     def kth(self, x, k):
         """d_{P,k} at points x (q, 3) in input coordinates."""
@@ -433,6 +435,8 @@ class TreeIndex:
         """d_{P,k} at points x (q, 3) relative to the torus origin (the kd-tree wraps queries
         along its periodic axes itself), on every core."""
         k = self.k if k is None else k
+        if self._weights is not None:
+            return weighted_kth(self._tree, self._weights, x, k, -1)
         return self._tree.query(x, k=[k], workers=-1)[0][:, 0]
 
 

@@ -226,8 +226,8 @@ class KnnDensityEstimator:
         y : ignored
         sample_weight : array-like (n,), optional
             Weights >= 0 (the engine counts them: a point of whole weight w is w copies, real
-            weights are survey or aggregation weights; n is then their total W). The plane
-            only (refined in space, weights are refused).
+            weights are survey or aggregation weights; n is then their total W), in both
+            dimensions.
 
         Returns
         -------

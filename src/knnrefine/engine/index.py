@@ -251,19 +251,20 @@ def build_index(pts, workers=None, weights=None):
     weight = np.zeros(0)
     if weights is not None:
         weight = np.empty(node.shape[0])
-        _node_weights(pts, node, weight)
+        node_weights(pts, node, weight)
     return PointTree(pts, box, node, split, weight)
 
 
 @kernel(entry=True)
-def _node_weights(pts, node, weight):
-    """weight[t] = the sum of node t's points' weights (compensated:
+def node_weights(pts, node, weight):
+    """weight[t] = the sum of node t's points' weights, their last column (compensated:
     ``geometry.plus_compensated``)."""
+    last = pts.shape[1] - 1
     for t in range(node.shape[0]):
         total = 0.0
         comp = 0.0
         for i in range(node[t, NODE_LO], node[t, NODE_HI]):
-            total, comp = plus_compensated(total, comp, pts[i, 2])
+            total, comp = plus_compensated(total, comp, pts[i, last])
         weight[t] = total + comp
 
 
@@ -301,7 +302,7 @@ def build_tree(pts, workers):
 
 
 @kernel(inline="always")
-def _held(node, weight, t):
+def held_by_node(node, weight, t):
     """What node t holds: its number of points, or its weight total for weighted points."""
     if weight.shape[0] == 0:
         return float(node[t, NODE_HI] - node[t, NODE_LO])
@@ -353,7 +354,7 @@ def _count_disk(index, cx, cy, r2, k, stack):
         fx = max(cx - box[t, 0], box[t, 2] - cx)
         fy = max(cy - box[t, 1], box[t, 3] - cy)
         if fx * fx + fy * fy <= r2:
-            count, comp = plus_compensated(count, comp, _held(node, weight, t))
+            count, comp = plus_compensated(count, comp, held_by_node(node, weight, t))
             if count + comp >= k:
                 return count + comp
             continue
@@ -465,7 +466,7 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
         if outside:
             continue
         if inside:
-            count, comp = plus_compensated(count, comp, _held(node, weight, t))
+            count, comp = plus_compensated(count, comp, held_by_node(node, weight, t))
             if count + comp >= k:
                 return count + comp
             continue
@@ -624,7 +625,7 @@ def count_in_torus_disk(index, cx, cy, r2, k, lx, ly, stack):
         if nx * nx + ny * ny > r2:
             continue
         if fx * fx + fy * fy <= r2:
-            count, comp = plus_compensated(count, comp, _held(node, weight, t))
+            count, comp = plus_compensated(count, comp, held_by_node(node, weight, t))
             if count + comp >= k:
                 return count + comp
             continue
@@ -755,7 +756,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
         if nx * nx + ny * ny > rout2:
             continue
         if fx * fx + fy * fy <= rin2:
-            inner, inner_c = plus_compensated(inner, inner_c, _held(node, weight, t))
+            inner, inner_c = plus_compensated(inner, inner_c, held_by_node(node, weight, t))
             if inner + inner_c >= k:
                 return WINDOW_LOW
             continue

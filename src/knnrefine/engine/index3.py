@@ -13,12 +13,17 @@ most one copy).
 
 Layout: ``pts`` (n, 3) float64, permuted; ``box`` (nodes, 6): x0, y0, z0, x1, y1, z1;
 ``node`` (nodes, 4) int64: the ``state.NODE_*`` columns (lo, hi, first child, the second
-following it, -1 at a leaf, split axis); ``split`` (nodes,). Points are unweighted here.
+following it, -1 at a leaf, split axis); ``split`` (nodes,); ``weight`` (nodes,) each node's
+weight total, empty without weights. Weighted points (``build_index3(..., weights=w)``) are
+(n, 4) rows, the weight last, and count with their weights as in the plane: a region holds
+k when their weights sum to k or more (``geometry.plus_compensated``: a heavy point does not
+swallow light ones); unweighted counts are whole numbers summed exactly.
 """
 
 import numpy as np
 
-from .index import LEAF_SIZE, STACK_SIZE, node_bound, select_kth
+from .geometry import plus_compensated
+from .index import LEAF_SIZE, STACK_SIZE, held_by_node, node_bound, node_weights, select_kth
 from .jit import kernel
 from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
 
@@ -74,18 +79,26 @@ def _build3(pts, box, node, split):
     return free
 
 
-def build_index3(points, copy=True):
-    """The index (a ``state.PointTree``, unweighted) over a copy of the (n, 3) points
-    (``copy=False``: over the caller's float64 array itself, reordered in place)."""
+def build_index3(points, copy=True, weights=None):
+    """The index (a ``state.PointTree``) over a copy of the (n, 3) points (``copy=False``:
+    over the caller's float64 array itself, reordered in place); with ``weights`` ((n,),
+    finite, >= 0) over a new (n, 4) array of both."""
     pts = np.ascontiguousarray(points, np.float64)
-    if copy and pts is points:
+    if weights is not None:
+        pts = np.column_stack([pts, np.asarray(weights, np.float64)])
+    elif copy and pts is points:
         pts = pts.copy()
     cap = node_bound(len(pts))
     box = np.empty((cap, 6))
     node = np.empty((cap, 4), np.int64)
     split = np.zeros(cap)
     n = _build3(pts, box, node, split)
-    return PointTree(pts, box[:n], node[:n], split[:n], np.zeros(0))
+    node = node[:n]
+    weight = np.zeros(0)
+    if weights is not None:
+        weight = np.empty(n)
+        node_weights(pts, node, weight)
+    return PointTree(pts, box[:n], node, split[:n], weight)
 
 
 @kernel(inline="always")
@@ -121,9 +134,12 @@ def count_in_ball3(index, c, r2, k, period, stack):
 
 @kernel(nrt=False)
 def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
-    """Points x with |x - v|^2 <= r2 and (x - v) . h[i] <= hc[i] for every i < nh."""
-    pts, box, node = index.pts, index.box, index.node
-    count = 0
+    """Points x with |x - v|^2 <= r2 and (x - v) . h[i] <= hc[i] for every i < nh (their
+    weight, for weighted points), up to at least k."""
+    pts, box, node, weight = index.pts, index.box, index.node, index.weight
+    weighted = weight.shape[0] > 0
+    count = 0.0
+    comp = 0.0
     stack[0] = 0
     sp = 1
     while sp > 0:
@@ -151,9 +167,9 @@ def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
         if missed:
             continue
         if whole:
-            count += node[t, NODE_HI] - node[t, NODE_LO]
-            if count >= k:
-                return count
+            count, comp = plus_compensated(count, comp, held_by_node(node, weight, t))
+            if count + comp >= k:
+                return count + comp
             continue
         if node[t, NODE_CHILD] < 0:
             for j in range(node[t, NODE_LO], node[t, NODE_HI]):
@@ -168,14 +184,14 @@ def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
                         ok = False
                         break
                 if ok:
-                    count += 1
-                    if count >= k:
-                        return count
+                    count, comp = plus_compensated(count, comp, pts[j, 3] if weighted else 1.0)
+                    if count + comp >= k:
+                        return count + comp
             continue
         stack[sp] = node[t, NODE_CHILD]
         stack[sp + 1] = node[t, NODE_CHILD] + 1
         sp += 2
-    return count
+    return count + comp
 
 
 @kernel(nrt=False)
@@ -190,11 +206,12 @@ def count_in_cell3(index, v, h, hc, nh, r2, k, period, stack):
     a0, b0 = _shifts(w0, r, period[0])
     a1, b1 = _shifts(w1, r, period[1])
     a2, b2 = _shifts(w2, r, period[2])
-    count = 0
+    count = 0.0
+    comp = 0.0
     for s0 in range(a0, b0 + 1):
         for s1 in range(a1, b1 + 1):
             for s2 in range(a2, b2 + 1):
-                count += _count_cell(
+                here = _count_cell(
                     index,
                     w0 + s0 * period[0],
                     w1 + s1 * period[1],
@@ -203,12 +220,13 @@ def count_in_cell3(index, v, h, hc, nh, r2, k, period, stack):
                     hc,
                     nh,
                     r2,
-                    k - count,
+                    k - (count + comp),
                     stack,
                 )
-                if count >= k:
-                    return count
-    return count
+                count, comp = plus_compensated(count, comp, here)
+                if count + comp >= k:
+                    return count + comp
+    return count + comp
 
 
 @kernel(entry=True)

@@ -11,15 +11,8 @@ from scipy.spatial import cKDTree
 
 from ..certify.certificate import Certificate
 from ..certify.common import check_source
-from ..certify.plane import (
-    TorusPoints,
-    cell_tally,
-    check_points_are_the_meshs,
-    held_in_disks,
-    run_checks,
-    weighted_kth,
-)
-from ..metric import TorusFrame
+from ..certify.plane import TorusPoints, check_points_are_the_meshs, run_checks
+from ..metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
 from ..validation import as_points
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
 
@@ -197,7 +190,7 @@ def certify_strip(points, weights, job):
     pts, w = points[own], None if weights is None else weights[own]
     if "balls" in job:
         centres, radii = job["balls"]
-        out["held"] = held_in_disks(cKDTree(pts, boxsize=period), w, centres, radii, 1)
+        out["held"] = held_in_balls(cKDTree(pts, boxsize=period), w, centres, radii, 1)
     if "cells" in job:
         vxy, ids, pad, before, complete = job["cells"]
         if len(vxy) == 0 or len(pts) == 0:  # nothing to tally (a strip may hold no point)
