@@ -61,7 +61,7 @@ def measure(n, workers, repeat, tasks, k):
     pts = rng.random((n, 2))
     emb = Embedding.make((0.0, 0.0, 1.0, 1.0), (True, True))
     lx, ly = emb.period_internal
-    sets = strips(emb.to_internal(pts[:100_000]), lx, ly, workers)
+    sets = strips(emb.to_internal(pts[:100_000]), (lx, ly), workers)
     internal = emb.to_internal(pts)
     out = {
         "cut": timed(lambda: _cut((pts, None), emb.to_internal, (lx, ly), sets, 4 * emb.grid),

@@ -163,20 +163,21 @@ def sphere_shell(n, seed, radius=0.3, width=0.01):
     return 0.5 + radius * v + width * rng.normal(size=(n, 3))
 
 
-def gaussian_clusters(n, seed=0, clusters=30):
+def gaussian_clusters(n, seed=0, clusters=30, dim=2):
     """Gaussian clusters with widths from 1e-3 to 3e-2 (log-uniform), wrapped into the unit
     box: scales that differ by thirty times in one input."""
     rng = np.random.default_rng(seed)
-    centres = rng.random((clusters, 2))
+    centres = rng.random((clusters, dim))
     widths = 10 ** rng.uniform(-3, -1.5, clusters)
     j = rng.integers(0, clusters, n)
-    return np.mod(centres[j] + rng.normal(size=(n, 2)) * widths[j, None], 1.0)
+    return np.mod(centres[j] + rng.normal(size=(n, dim)) * widths[j, None], 1.0)
 
 
-def on_lines(n, share, xs, seed=0, axis=0):
-    """Uniform points, ``share`` of them moved onto the lines {axis = x for x in xs}."""
+def on_lines(n, share, xs, seed=0, axis=0, dim=2):
+    """Uniform points, ``share`` of them moved onto the lines {axis = x for x in xs} (planes
+    in space)."""
     rng = np.random.default_rng(seed)
-    X = rng.random((n, 2))
+    X = rng.random((n, dim))
     moved = int(share * n)
     X[:moved, axis] = np.asarray(xs, float)[rng.integers(0, len(xs), moved)]
     return X
@@ -192,6 +193,21 @@ DEGENERATE = {
     ),
     "diagonal": lambda n, rng: np.column_stack([rng.random(n)] * 2) * [1.0, 0.5] + [0, 0.25],
     "lattice": lambda n, rng: rng.integers(0, 6, (n, 2)) / 6.0,
+}
+# the same in space: points on planes, on the seam, on a line, on a lattice
+DEGENERATE3 = {
+    "plane": lambda n, rng: on_lines(
+        n, rng.uniform(0.3, 1.0), [0.5], int(rng.integers(99)), dim=3
+    ),  # fmt: skip
+    "two planes": lambda n, rng: on_lines(n, 1.0, [0.3, 0.7], int(rng.integers(99)), dim=3),
+    "seam": lambda n, rng: on_lines(n, 0.5, [0.0], int(rng.integers(99)), dim=3),
+    "cross": lambda n, rng: np.concatenate(
+        [on_lines(n // 2, 1.0, [0.5], 1, dim=3), on_lines(n - n // 2, 1.0, [0.5], 2, 1, 3)]
+    ),
+    "line": lambda n, rng: np.column_stack([rng.random(n), np.full(n, 0.5), np.full(n, 0.25)]),
+    # 512 sites: many points coincide, fewer than k = 12 at a site (at k or more, d_Pk is 0
+    # there and every run refines down to the floor: hundreds of thousands of vertices)
+    "lattice": lambda n, rng: rng.integers(0, 8, (n, 3)) / 8.0,
 }
 
 
@@ -222,8 +238,9 @@ def assert_certified(mesh, points, label=""):
     cert = knnrefine.certify(mesh, points, n_random=20_000)
     assert cert.passed, str(cert)
     rng = np.random.default_rng(0)
-    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
-    probes = np.concatenate([lo + rng.random((2000, 2)) * (hi - lo), np.asarray(points)[:2000]])
+    d = mesh.dim
+    lo, hi = np.array(mesh.box[:d]), np.array(mesh.box[d:])
+    probes = np.concatenate([lo + rng.random((2000, d)) * (hi - lo), np.asarray(points)[:2000]])
     torus = mesh.torus
     period = np.array(torus.period)
     full = cKDTree(torus.vertices, boxsize=period).query(

@@ -23,9 +23,9 @@ def test_split_strips_with_a_pad_per_row_against_brute_force():
     xy[:500] = [0.31, 0.2]  # a duplicate that several cuts fall on
     pads = rng.random(len(xy)) ** 4 * 0.5
     for tiles in (1, 2, 3, 7):
-        regions = strips(xy, lx, ly, tiles)[0]
-        rows, bounds = split_strips(xy, regions, pads, lx, ly)
-        owner = strip_owner(xy, regions, lx, ly)
+        regions = strips(xy, (lx, ly), tiles)[0]
+        rows, bounds = split_strips(xy, regions, pads, (lx, ly))
+        owner = strip_owner(xy, regions, (lx, ly))
         for j, (x0, _, w, _) in enumerate(regions):
             d = (xy[:, 0] - x0) % lx
             dist = np.where(d < w, 0.0, np.minimum(d - w, lx - d))

@@ -1,7 +1,8 @@
 """The 3-D counting index (engine/index3.py) against scipy's cKDTree with boxsize: closed
 balls anywhere on the 3-torus (across its faces, edges and corners), exact below k and at
-least k when the count stops early, counting points or summing their weights; closed Voronoi cells of a refined periodic triangulation
-against each point's nearest mesh vertices."""
+least k when the count stops early, counting points or summing their weights; closed
+Voronoi cells of a refined periodic triangulation against each point's nearest mesh
+vertices."""
 
 import math
 

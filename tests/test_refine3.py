@@ -214,7 +214,8 @@ def test_time_limit_and_budget_stop_the_run(monkeypatch):
     assert run.run(deadline=time.perf_counter() - 1.0) == STATUS_STEPS
     assert nv0 < run.cnt[0] <= nv0 + 200  # one kernel call of 200 insertions, then the clock
     seen = []
-    assert run.run(deadline=time.perf_counter() + 600, progress=seen.append) == STATUS_DONE
+    done = run.run(deadline=time.perf_counter() + 600, progress=lambda m, q: seen.append(m))
+    assert done == STATUS_DONE
     assert len(seen) > 10 and seen == sorted(seen)
 
 
@@ -232,11 +233,11 @@ def test_methionine_torsions_on_the_3_torus(k):
 
 
 def test_the_initial_mesh_check_counts_balls_of_every_size():
-    """run3._holds (does the closed ball of radius r about x hold k points?) against a
+    """run3.holds_k (does the closed ball of radius r about x hold k points?) against a
     periodic kd-tree, for radii below half the period (the index), up to the torus'
     diameter (a direct count) and beyond it (every point)."""
     from knnrefine.engine.index3 import build_index3
-    from knnrefine.run3 import _holds
+    from knnrefine.run3 import holds_k
 
     period = np.array([1.0, 0.5, 2.0])
     u = np.mod(multiscale(5000, 9) * period, period)
@@ -247,7 +248,7 @@ def test_the_initial_mesh_check_counts_balls_of_every_size():
     tree = cKDTree(u, boxsize=period)
     for k in (1, 37, 2500, 5000):
         want = tree.query_ball_point(x, reach, return_length=True) >= k
-        np.testing.assert_array_equal(_holds(index, x, reach, k, period), want)
+        np.testing.assert_array_equal(holds_k(index, x, reach, k, period), want)
 
 
 def test_tau_beyond_6_is_certified():
@@ -319,11 +320,11 @@ def _start_run(pts, k=10):
     from knnrefine.engine.driver3 import Refinement3, choose_grid3
     from knnrefine.engine.index3 import build_index3
     from knnrefine.engine.initial import reach_factor
-    from knnrefine.run3 import _holds
+    from knnrefine.run3 import holds_k
 
     period = np.ones(3)
     index = build_index3(pts)
-    grid = choose_grid3(period, lambda x, r: _holds(index, x, r, k, period), reach_factor(3))
+    grid = choose_grid3(period, lambda x, r: holds_k(index, x, r, k, period), reach_factor(3))
     return Refinement3(index, period, k, 3.0, 1e-6, 10**6, grid)
 
 
@@ -603,7 +604,7 @@ def test_growing_without_mremap_or_mappings_copies(monkeypatch):
 
 
 def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(monkeypatch):
-    """run3._Start3 tries the default margin first and builds the data bound on max d_Pk (a
+    """run3.Start3 tries the default margin first and builds the data bound on max d_Pk (a
     kd-tree over all points) only if that torus cannot start; the bound is >= d_Pk at 20,000
     random points of the box (a brute kd-tree, straight metric)."""
     from knnrefine import run3 as api3
@@ -614,7 +615,7 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
     def start(pts, box, per, k, tau):
         opt = RunOptions.check(len(pts), None, lambda: box, lambda b, p: None, k=k, tau=tau,
                                periodic=per, box=box, dim=3)  # fmt: skip
-        return api3._Start3(pts, opt, 10**6, Interrupts()).find(k, reach_factor(tau))
+        return api3.Start3(pts, opt, 10**6, Interrupts()).find(k, reach_factor(tau))
 
     pts = multiscale(3000, 20)
     calls = []

@@ -5,7 +5,7 @@ single-process run's."""
 
 import numpy as np
 import pytest
-from conftest import DEGENERATE, assert_certified, gaussian_clusters, on_lines, uniform
+from conftest import DEGENERATE, DEGENERATE3, assert_certified, gaussian_clusters, on_lines, uniform
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -74,7 +74,7 @@ def test_strips_interleave_and_balance_the_points():
     border of one set lies strictly inside a strip of the other."""
     xy = clustered(40000) * [0.8, 0.5]
     for tiles in (2, 3, 5):
-        first, second = strips(xy, 0.8, 0.5, tiles)
+        first, second = strips(xy, (0.8, 0.5), tiles)
         for regions in (first, second):
             assert regions[:, 2].sum() == pytest.approx(0.8)  # the strips tile the x period
             counts = [in_rectangle(xy, *r, 0.0, 0.8, 0.5).sum() for r in regions]
@@ -125,8 +125,8 @@ def test_split_strips_holds_every_point_of_each_padded_strip():
     xy[:3000] = [0.31, 0.2]  # a heavy duplicate: several quantile cuts fall on it
     pad = 1e-3
     for tiles in (2, 5, 11):
-        for regions in strips(xy, 0.8, 0.5, tiles):
-            rows, bounds = split_strips(xy, regions, pad, 0.8, 0.5)
+        for regions in strips(xy, (0.8, 0.5), tiles):
+            rows, bounds = split_strips(xy, regions, pad, (0.8, 0.5))
             for j, region in enumerate(regions):
                 want = np.flatnonzero(in_rectangle(xy, *region, pad, 0.8, 0.5))
                 got = rows[bounds[j] : bounds[j + 1]]
@@ -179,12 +179,11 @@ def test_seeded_vertices_are_queued_again():
     from knnrefine.engine import refine as R
     from knnrefine.engine.driver import Refinement
     from knnrefine.engine.index import build_index
-    from knnrefine.scale.tiled import seed
 
     X = uniform(20000)
     run = Refinement(build_index(X.copy()), 10, 1.0, 1.0, 3.0, 0.0, 10**6)
     xy = np.random.default_rng(1).random((500, 2))
-    seed(run, xy, np.full(500, 1, np.int8), np.zeros(500, np.int32), np.zeros((0, 2, 4)))
+    run.seed(xy, np.full(500, 1, np.int8), np.zeros(500, np.int32), np.zeros((0, 2, 4)))
     assert (run.book.cell_state[: run.vertices] != R.GOOD).all()  # no round settled any
     assert run.run() == R.STATUS_DONE
     assert (run.book.cell_state[: run.vertices] == R.GOOD).all()  # every cell was looked at
@@ -247,9 +246,9 @@ def test_strips_are_never_empty_when_points_share_coordinates(tiles):
     cross[:1500, 0], cross[1500:, 1] = 0.4, 0.25
     inputs = [cross, np.full((500, 2), 0.3), np.zeros((0, 2)), on_lines(2000, 0.9, [0.0])]
     for xy in inputs:
-        first, second = strips(xy, 0.8, 0.5, tiles)
-        axis = regions_axis(first, 0.8, 0.5)
-        assert regions_axis(second, 0.8, 0.5) == axis
+        first, second = strips(xy, (0.8, 0.5), tiles)
+        axis = regions_axis(first, (0.8, 0.5))
+        assert regions_axis(second, (0.8, 0.5)) == axis
         period = (0.8, 0.5)[axis]
         gap = MIN_GAP * period / (2 * tiles)
         for regions in (first, second):
@@ -267,8 +266,8 @@ def test_strips_run_across_the_axis_that_balances_the_points():
     from knnrefine.scale.tiled import regions_axis
 
     xy = on_lines(20000, 1.0, [0.5], seed=2)
-    for regions in strips(xy, 1.0, 1.0, 4):
-        assert regions_axis(regions, 1.0, 1.0) == 1
+    for regions in strips(xy, (1.0, 1.0), 4):
+        assert regions_axis(regions, (1.0, 1.0)) == 1
         counts = [in_rectangle(xy, *r, 0.0, 1.0, 1.0).sum() for r in regions]
         assert max(counts) <= 1.1 * len(xy) / 4
 
@@ -280,11 +279,11 @@ def test_a_round_whose_tile_moved_outside_its_strip_is_refused():
 
     regions = np.array([[0.0, 0.0, 0.5, 1.0], [0.5, 0.0, 0.5, 1.0]])
     inside = [np.array([[0.1, 0.3], [0.5, 0.9]]), np.array([[0.75, 0.2], [0.999, 0.0]])]
-    check_seams(regions, inside, 1.0, 1.0)
+    check_seams(regions, inside, (1.0, 1.0))
     with pytest.raises(knnrefine.EngineError, match="outside its strip"):
-        check_seams(regions, [inside[0], np.array([[0.25, 0.5]])], 1.0, 1.0)
+        check_seams(regions, [inside[0], np.array([[0.25, 0.5]])], (1.0, 1.0))
     with pytest.raises(knnrefine.EngineError, match="do not tile"):
-        check_seams(np.array([[0.0, 0.0, 1.0, 1.0], [0.5, 0.0, 0.0, 1.0]]), inside, 1.0, 1.0)
+        check_seams(np.array([[0.0, 0.0, 1.0, 1.0], [0.5, 0.0, 0.0, 1.0]]), inside, (1.0, 1.0))
 
 
 @given(
@@ -304,6 +303,156 @@ def test_tiled_runs_on_degenerate_inputs_certify(name, workers, periodic, weight
     w = rng.integers(1, 4, len(X)).astype(float) if weighted else None
     mesh = knnrefine.refine(X, 12, periodic=periodic, box=(0, 0, 1, 1), weights=w,
                             workers=workers)  # fmt: skip
+    cert = knnrefine.certify(mesh, X, weights=w, samples=5_000, n_random=1_000)
+    assert cert.passed, str(cert)
+    assert all(r["new_vertices"] >= 0 for r in mesh.stats["rounds"])
+
+
+# -- in space: slabs (engine/region3.py) -------------------------------------------------------
+
+BOX3 = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize(
+    "periodic, workers, k",
+    [
+        (True, 2, 10),
+        pytest.param(False, 3, 10, marks=pytest.mark.slow),
+        pytest.param((True, False, True), 2, 30, marks=pytest.mark.slow),
+    ],
+    ids=str,
+)
+def test_tiled_run_in_space_is_certified_and_the_size_of_a_single_run(periodic, workers, k):
+    """Slabs in space: the mesh passes certify (one Delaunay tetrahedralisation across the
+    slabs' borders, every guarantee) with within 5% of the single-process mesh's vertices;
+    the rounds did the work, not the final pass."""
+    X = gaussian_clusters(30000, seed=4, clusters=25, dim=3)
+    single = knnrefine.refine(X, k, box=BOX3, periodic=periodic)
+    tiled = knnrefine.refine(X, k, box=BOX3, periodic=periodic, workers=workers)
+    assert_certified(tiled, X, f"tiled in space {periodic} k={k}")
+    assert abs(len(tiled.vertices) / len(single.vertices) - 1) < 0.05
+    rounds = tiled.stats["rounds"]
+    in_rounds = sum(r["new_vertices"] for r in rounds if r["round"] != "final")
+    assert rounds[-1]["round"] == "final" and rounds[-1]["new_vertices"] < 0.05 * in_rounds
+    # (unlike the plane's, the rounds leave a few hundred cells here: the initial mesh's
+    # cells in the empty space between clusters, whose balls of radius 2 R(v) are wider
+    # than the slabs' overlap; the final pass decides them with all points)
+
+
+def test_tiled_run_in_space_with_weights_and_an_executor():
+    """Weights count in every slab (whole weights are copies: the tiled mesh of weighted
+    points is certified by certify's weighted counts); an executor runs the tiles."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    X = gaussian_clusters(12000, seed=5, clusters=10, dim=3)
+    w = np.random.default_rng(5).integers(1, 4, len(X)).astype(float)
+    with ThreadPoolExecutor(2) as pool:
+        tiled = knnrefine.refine(X, 30, box=BOX3, periodic=True, weights=w, workers=2,
+                                 executor=pool)  # fmt: skip
+    cert = knnrefine.certify(tiled, X, weights=w)
+    assert cert.passed, str(cert)
+    single = knnrefine.refine(X, 30, box=BOX3, periodic=True, weights=w)
+    assert abs(len(tiled.vertices) / len(single.vertices) - 1) < 0.05
+
+
+def test_tiled_run_in_space_keeps_its_budgets():
+    """time_limit and max_vertices hold in space's tiled path as in one process."""
+    import time
+
+    X = uniform(40000, 6, dim=3)
+    with pytest.raises(knnrefine.BudgetError, match="max_vertices"):
+        knnrefine.refine(X, 10, box=BOX3, workers=2, max_vertices=5000)
+    calls = []
+
+    def slow(vertices, pending):
+        calls.append(vertices)
+        if len(calls) == 1:
+            time.sleep(3.0)
+
+    with pytest.raises(knnrefine.BudgetError, match="time_limit"):
+        knnrefine.refine(X, 10, box=BOX3, workers=2, time_limit=2.0, progress=slow)
+
+
+def test_slabs_interleave_and_balance_the_points_in_space():
+    """Each set of slabs tiles the torus across its longest period and spans the others;
+    each holds about 1 / T of the points; every border of one set lies strictly inside a
+    slab of the other."""
+    from knnrefine.engine.region3 import in_box3
+    from knnrefine.scale.tiled import regions_axis
+
+    period = np.array([0.6, 0.9, 0.5])
+    xyz = gaussian_clusters(30000, seed=7, dim=3) * period
+    for tiles in (2, 3, 5):
+        first, second = strips(xyz, tuple(period), tiles)
+        assert regions_axis(first, period) == regions_axis(second, period) == 1
+        for regions in (first, second):
+            assert regions[:, 4].sum() == pytest.approx(0.9)
+            assert (regions[:, [3, 5]] == period[[0, 2]]).all()
+            counts = [in_box3(xyz, r, 0.0, period).sum() for r in regions]
+            assert max(counts) <= 1.02 * len(xyz) / tiles + 2
+        for y in first[:, 1]:
+            inside = [((y - s[1]) % 0.9, s[4]) for s in second]
+            assert any(1e-9 < d < w - 1e-9 for d, w in inside)
+
+
+def test_a_seeded_run_in_space_rebuilds_the_mesh_and_finds_nothing_to_do():
+    """insert_points3 (a visibility walk to each vertex) and queue_seeded3: the vertices of
+    a finished run in space, seeded into a fresh run from the same initial mesh, give the
+    same vertices and as many tetrahedra, and running it inserts nothing; a vertex given
+    twice is skipped, and with a region of width 0 a run inserts nothing."""
+    from knnrefine.engine.driver3 import Refinement3, choose_grid3
+    from knnrefine.engine.index3 import build_index3
+    from knnrefine.engine.initial import reach_factor
+    from knnrefine.engine.state import STATUS_DONE
+    from knnrefine.run3 import holds_k
+
+    X = gaussian_clusters(8000, seed=8, clusters=6, dim=3)
+    period = np.ones(3)
+    index = build_index3(X)
+    grid = choose_grid3(period, lambda x, r: holds_k(index, x, r, 10, period), reach_factor(3))
+
+    def fresh():
+        return Refinement3(index, period, 10, 3.0, 1e-6, 10**6, grid)
+
+    done = fresh()
+    m0 = done.vertices
+    assert done.run() == STATUS_DONE
+    xyz, kinds = done.new_vertices(m0)
+    nt = int(done.cnt[1])
+    again = fresh()
+    twice = np.concatenate([xyz, xyz[:50]])
+    stamps = np.zeros(len(twice), np.int32)
+    with pytest.raises(knnrefine.EngineError, match="coincide"):
+        again.seed(twice, np.concatenate([kinds, kinds[:50]]), stamps, np.zeros((0, 2, 6)))
+    again = fresh()
+    again.seed(xyz, kinds, stamps[: len(xyz)], np.zeros((0, 2, 6)))
+    assert again.vertices == done.vertices and int(again.cnt[1]) == nt
+    assert sorted(map(tuple, again.mesh.xyz[: again.vertices])) == sorted(
+        map(tuple, done.mesh.xyz[: done.vertices])
+    )
+    assert again.run() == STATUS_DONE and again.vertices == done.vertices
+    empty = fresh()
+    empty.set_region(np.array([0.5, 0.0, 0.0, 0.0, 1.0, 1.0]))
+    assert empty.run() == STATUS_DONE and empty.vertices == m0
+
+
+@given(
+    name=st.sampled_from(sorted(DEGENERATE3)),
+    workers=st.integers(2, 4),
+    periodic=st.sampled_from([True, False, (True, False, True)]),
+    weighted=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+@settings(max_examples=8)
+def test_tiled_runs_in_space_on_degenerate_inputs_certify(name, workers, periodic, weighted,
+                                                          seed):  # fmt: skip
+    """Property, in space: points on planes, on the cuts a plan would choose, on the seam,
+    on one line, on a lattice, weighted or not, through 2-4 workers: every mesh returned
+    passes certify, and no round reports a negative count."""
+    rng = np.random.default_rng(seed)
+    X = DEGENERATE3[name](1500, rng)
+    w = rng.integers(1, 4, len(X)).astype(float) if weighted else None
+    mesh = knnrefine.refine(X, 12, periodic=periodic, box=BOX3, weights=w, workers=workers)
     cert = knnrefine.certify(mesh, X, weights=w, samples=5_000, n_random=1_000)
     assert cert.passed, str(cert)
     assert all(r["new_vertices"] >= 0 for r in mesh.stats["rounds"])

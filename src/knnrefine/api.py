@@ -122,13 +122,11 @@ def refine(
     kernel call during setup).
 
     Points in space ((n, 3), a box of six numbers, ``periodic`` a bool or three) are refined
-    by ``run3.refine3`` into the same ``Mesh`` type, weights included; workers and executor do
-    not apply there yet.
+    by ``run3.refine3`` into the same ``Mesh`` type, weights, workers (slabs) and executor
+    included.
     """
     asked = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
                  max_vertices=max_vertices, time_limit=time_limit, progress=progress)  # fmt: skip
-    if run.is_spatial(points) and (workers not in (None, 1) or executor is not None):
-        raise InputError("workers and executor are not built for (n, 3) points yet")
     pts, w, opt = run.checked(points, weights, **asked)
     workers = V.check_workers(workers)
     if executor is not None and not callable(getattr(executor, "map", None)):

@@ -19,6 +19,7 @@ from .engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
     C_FAILED,
+    C_MAX_VERTICES,
     STATUS_DONE,
     STATUS_MAX_VERTICES,
 )
@@ -27,7 +28,7 @@ from .mesh import Mesh, Torus
 from .metric import BoxMetric, held_in_balls, weighted_kth
 
 
-def _holds(index, x, reach, k, period):
+def holds_k(index, x, reach, k, period):
     """Whether the closed ball of radius ``reach`` about each x holds >= k of the index's
     points, or weight k for weighted ones (the index answers below half the shortest period;
     beyond it, a periodic kd-tree over its points, built only then, counts each point once,
@@ -64,7 +65,7 @@ def _reach(pts, box, per, k, weights=None):
 LIMITS_EFFORT3 = 300_000  # initial vertices above which a refusal skips the limits search
 
 
-class _Start3:
+class Start3:
     """Where a run in space starts (the plane's ``run.Start``): the embedding torus, the
     counting index over the points in it, and an initial mesh that satisfies Lemma 2's
     precondition. The default torus (a margin of 1.05 x the box's diameter along
@@ -121,7 +122,7 @@ class _Start3:
             period = np.array(emb.period_internal)
 
             def holds(x, r, index=index, period=period):
-                return _holds(index, x, r, k, period)
+                return holds_k(index, x, r, k, period)
 
             grid = choose_grid3(period, holds, factor, emb.grid, self.budget, self.check, cache)
             if grid is not None:
@@ -151,13 +152,14 @@ class _Start3:
         return refusal_message(len(self.pts), k, tau, emb, k_max, f_min)
 
 
-def _points_under_floor(pts, floor, emb, n):
+def _points_under_floor(points, floor, emb, n):
     """How many input points lie in a floor element (``Refinement3.take_result``): a
     circumball, or the ball of radius R(v) about a cell's vertex, that holds >= k points
-    below the floor; 0 without any (no kd-tree is built then)."""
+    below the floor; 0 without any (the points are not asked for, no kd-tree is built)."""
     centres, radii2, _ = floor
     if len(radii2) == 0:
         return 0
+    pts = points()
     period = np.array(emb.period_internal)
     tree = cKDTree(emb.to_internal(pts) % period, boxsize=period)
     found = tree.query_ball_point(centres % period, np.sqrt(radii2) * (1.0 + 1e-9))
@@ -176,11 +178,10 @@ def refine3(pts, opt, weights=None):
     an initial mesh that cannot fit is refused before any work (``RunOptions.check``),
     time_limit and Ctrl-C hold during the setup too, a refusal names the largest k and tau
     that would certify, and a FloorWarning says when most points lie below the floor."""
-    k, tau, per, box, min_size = opt.k, opt.tau, opt.periodic, opt.box, opt.min_size
-    t_start, time_limit, progress = opt.t_start, opt.time_limit, opt.progress
+    k, tau, min_size, progress = opt.k, opt.tau, opt.min_size, opt.progress
     budget = opt.start_budget(len(pts))
     with Interrupts() as interrupts:
-        start = _Start3(pts, opt, budget, interrupts, weights)
+        start = Start3(pts, opt, budget, interrupts, weights)
         found = start.find(k, reach_factor(tau))
         if found is None:
             raise InputError(start.refusal(k, tau))
@@ -191,11 +192,22 @@ def refine3(pts, opt, weights=None):
         run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
                           grid, emb.grid)  # fmt: skip
         del run_index, grid
-        status = run.run(opt.deadline, None if progress is None else (lambda m: progress(m, 0)),
-                         interrupts)  # fmt: skip
+        status = run.run(opt.deadline, progress, interrupts)
+    total = None if weights is None else math.fsum(weights)
+    return finish3(run, status, emb, opt, lambda: pts, len(pts), total)
+
+
+def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
+    """The Mesh of a finished run in space (``Refinement3``, consumed), or BudgetError for
+    one stopped by a budget (the plane's ``run.finish``). ``points()`` gives the input
+    points, asked only when elements were left below the floor (to count the points in
+    them); ``n`` their number, ``weight`` their total weight (None: unweighted), ``rounds``
+    a tiled run's report."""
+    k, tau, per, box, min_size = opt.k, opt.tau, opt.periodic, opt.box, opt.min_size
+    t_start, time_limit = opt.t_start, opt.time_limit
     if status != STATUS_DONE:
         what = (
-            f"max_vertices = {budget:,}"
+            f"max_vertices = {int(run.cnt[C_MAX_VERTICES]):,}"
             if status == STATUS_MAX_VERTICES
             else f"time_limit = {time_limit} s"
         )
@@ -205,10 +217,10 @@ def refine3(pts, opt, weights=None):
         )
     xyz, corners, offsets, kinds, cnt, floor = run.take_result()
     del run
-    under = _points_under_floor(pts, floor, emb, len(pts))
-    if under > len(pts) / 2:
+    under = _points_under_floor(points, floor, emb, n)
+    if under > n / 2:
         warnings.warn(
-            f"{under} of the {len(pts)} points ({100 * under / len(pts):.0f}%) lie in "
+            f"{under} of the {n} points ({100 * under / n:.0f}%) lie in "
             f"circumballs or cells smaller than min_size = {min_size:.3g} that still hold k = "
             f"{k} points: the bounds are not claimed there"
             + (
@@ -218,7 +230,7 @@ def refine3(pts, opt, weights=None):
                 "pass a smaller min_size or a box fitted to the data"
             ),
             FloorWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
     out_v, pos, tetrahedra, out_offsets = unfold(xyz, corners, offsets, emb, copy=False)
     # the torus' vertices first: when every axis is periodic pos is xyz, converted in place
@@ -227,14 +239,18 @@ def refine3(pts, opt, weights=None):
         vertices=xyz / emb.scale, cells=corners, offsets=offsets, kinds=kinds,
     )  # fmt: skip
     floor_points = emb.to_input(floor[0]) if len(floor[0]) else np.zeros((0, 3))
+    stats = {"n": n, "m": len(out_v), "m_torus": len(xyz),
+             "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
+             "failed": int(cnt[C_FAILED]), "floor_circumballs": int(floor[2]),
+             "floor_cells": int(len(floor[1]) - floor[2]), "points_under_floor": under,
+             "seconds": time.perf_counter() - t_start}  # fmt: skip
+    if weight is not None:
+        stats["weight"] = float(weight)
+    if rounds is not None:
+        stats["rounds"] = rounds
     return Mesh(
         vertices=emb.to_input(pos, copy=False), cells=tetrahedra, offsets=out_offsets,
         kinds=kinds[out_v], order=out_v, k=k, tau=tau, periodic=per, box=box,
         min_size=max(min_size, emb.resolution), floor_points=floor_points, torus=torus,
-        stats={"n": len(pts), "m": len(out_v), "m_torus": len(xyz),
-               "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
-               "failed": int(cnt[C_FAILED]), "floor_circumballs": int(floor[2]),
-               "floor_cells": int(len(floor[1]) - floor[2]), "points_under_floor": under,
-               "seconds": time.perf_counter() - t_start,
-               **({} if weights is None else {"weight": math.fsum(weights)})},
+        stats=stats,
     )  # fmt: skip

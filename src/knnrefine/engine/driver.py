@@ -17,6 +17,7 @@ from .geometry import FLOOR_BITS, Q
 from .index import LEAF_SIZE, STACK_SIZE
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
+from .region import WALK_LOST, insert_points, mark_settled, spatial_order
 from .state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -37,7 +38,10 @@ from .state import (
     P_K,
     P_LX,
     P_LY,
+    P_REGION_H,
     P_REGION_W,
+    P_REGION_X0,
+    P_REGION_Y0,
     P_TAU2,
     TRIANGLE_FIELDS,
     VERTEX_FIELDS,
@@ -288,6 +292,77 @@ class Refinement:
             if deadline is not None and time.perf_counter() >= deadline:
                 break
         return S.STATUS_STEPS
+
+    # -- a tile of a tiled run (``engine/region.py``; the same methods as ``Refinement3``) --
+
+    @property
+    def period(self):
+        """The torus' periods, internal units."""
+        return np.array([self.lx, self.ly])
+
+    def set_region(self, region):
+        """Move only for elements inside ``region`` (x0, y0, w, h) of the torus; None: the
+        whole torus again."""
+        if region is None:
+            self.prm[P_REGION_W] = NO_REGION
+            return
+        self.prm[P_REGION_X0], self.prm[P_REGION_Y0] = region[0], region[1]
+        self.prm[P_REGION_W], self.prm[P_REGION_H] = region[2], region[3]
+
+    def seed(self, xy, kinds, stamps, regions):
+        """Insert the vertices xy (with their kinds and the rounds that made them) into the
+        initial mesh, mark what earlier rounds settled (regions (Q, T, 4)) and queue the
+        rest. Returns (the number of vertices, the elements not settled: circumballs and
+        cells)."""
+        order = spatial_order(np.ascontiguousarray(xy), self.lx, self.ly)
+        pts = np.ascontiguousarray(xy[order])
+        ids = np.full(len(pts), -1, np.int64)
+        done = 0
+        while done < len(pts):
+            done = insert_points(pts, ids, done, self.mesh, self.book, self.scratch, self.cnt,
+                                 self.prm)  # fmt: skip
+            if done < 0:
+                what = "a walk got lost" if done == WALK_LOST else ERRORS.get(done, str(done))
+                raise EngineError(f"triangulating a tile's vertices failed: {what}")
+            if done < len(pts):
+                self.grow_if_needed()
+        placed = ids >= 0
+        if not placed.all():  # each was inserted at the centre of a disk empty of the others
+            raise EngineError(
+                f"{int((~placed).sum())} of the tiles' vertices coincide with others: tiles "
+                "moved outside their strips (a broken plan)"
+            )
+        nv = self.vertices
+        all_stamps = np.zeros(nv, np.int32)
+        all_stamps[ids] = stamps[order]
+        self.book.kinds[ids] = kinds[order]
+        self.reserve_queues(3 * nv + R.HEADROOM)  # queue_all pushes every triangle and vertex
+        balls, cells = mark_settled(self.mesh, self.book, self.cnt, self.prm, all_stamps, regions)
+        R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
+        return nv, int(self.cnt[C_NT]) - balls + nv - cells
+
+    def requeue(self):
+        """Queue every element again, those deferred by another region included."""
+        balls = self.book.ball_state[: int(self.cnt[C_NT])]
+        balls[balls == S.DEFERRED] = S.UNTESTED
+        self.reserve_queues(3 * self.vertices + R.HEADROOM)
+        R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
+
+    def new_vertices(self, start):
+        """(positions, kinds) of the vertices from ``start`` on: copies."""
+        nv = self.vertices
+        return self.mesh.xy[start:nv].copy(), self.book.kinds[start:nv].copy()
+
+    def unsettled(self):
+        """Elements not known to be settled: circumballs and cells not GOOD, and cells whose
+        aspect exceeds tau."""
+        nt, nv = int(self.cnt[C_NT]), self.vertices
+        aspect = 4.0 * self.mesh.outradius2[:nv] > self.prm[P_TAU2] * self.mesh.nearest2[:nv]
+        return int(
+            (self.book.ball_state[:nt] != S.GOOD).sum()
+            + (self.book.cell_state[:nv] != S.GOOD).sum()
+            + aspect.sum()
+        )
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""

@@ -17,19 +17,28 @@ from .refine3 import (
     P3_GRID,
     P3_INFLATE,
     P3_K,
+    P3_REGION,
+    P3_REGION_W,
     P3_TAU2,
     queue_all3,
+    queue_seeded3,
     refine_steps3,
 )
+from .region3 import WALK_LOST3, insert_points3, mark_settled3, spatial_order3
 from .state import (
+    C_CELL_TESTS,
+    C_DISK_TESTS,
     C_ERROR,
+    C_FAILED,
     C_MAX_VERTICES,
     C_NT,
     C_NV,
     C_STAMP,
     ERRORS,
     FLOOR,
+    GOOD,
     KIND_NAMES,
+    NO_REGION,
     STATUS_DONE,
     STATUS_ERROR,
     STATUS_GROW,
@@ -111,6 +120,7 @@ class Refinement3:
         prm[P3_INFLATE] = 1.0 + 1e-9
         prm[P3_GRID] = q
         prm[P3_K] = float(k)
+        prm[P3_REGION_W] = NO_REGION
         self.prm = prm
         self.cnt[C_MAX_VERTICES] = int(max_vertices)
         queue_all3(self.mesh, self.book, self.queues, self.cnt, self.prm)
@@ -118,7 +128,7 @@ class Refinement3:
     def run(self, deadline=None, progress=None, interrupts=None):
         """Refine until done, the vertex budget, or the deadline (a ``time.perf_counter()``
         value); returns the status. Kernel calls are sized to last about 50 ms; after every
-        one (growth included): progress(vertices), Ctrl-C (``interrupts``, or a handler of
+        one (growth included): progress(vertices, queued), Ctrl-C (``interrupts``, or a handler of
         its own), then the deadline."""
         import contextlib
         import time
@@ -141,7 +151,7 @@ class Refinement3:
                 if self.cnt[C_STAMP] > STAMP_LIMIT:
                     self._restart_stamps()
                 if progress is not None:
-                    progress(int(self.cnt[C_NV]))
+                    progress(int(self.cnt[C_NV]), self.pending())
                 if status == STATUS_ERROR:
                     code = int(self.cnt[C_ERROR])
                     raise EngineError(
@@ -156,6 +166,100 @@ class Refinement3:
                     self._grow()
                 if deadline is not None and time.perf_counter() > deadline:
                     return STATUS_STEPS
+
+    def pending(self):
+        """Queued candidates (an upper bound on the work left, not a promise)."""
+        return int(sum(q.scalars[Q_SIZE] for q in self.queues))
+
+    # -- a tile of a tiled run (``engine/region3.py``; the same methods as ``Refinement``) --
+
+    @property
+    def vertices(self):
+        return int(self.cnt[C_NV])
+
+    def set_region(self, region):
+        """Move only for elements inside ``region`` (corner (3), widths (3)) of the torus;
+        None: the whole torus again."""
+        if region is None:
+            self.prm[P3_REGION_W] = NO_REGION
+            return
+        self.prm[P3_REGION : P3_REGION + 3] = region[:3]
+        self.prm[P3_REGION_W : P3_REGION_W + 3] = region[3:]
+
+    def _fresh_queues(self):
+        """Empty queues with room for every tetrahedron and vertex (and the headroom)."""
+        nt, nv = int(self.cnt[C_NT]), self.vertices
+        size = max(self.mesh.xyz.shape[0], nv) + 4 * HEADROOM3
+        self.queues = Queues(
+            balls=new_queue(nt + size, mapped),
+            cells=new_queue(size, mapped),
+            cleans=new_queue(size, mapped),
+        )
+
+    def seed(self, xyz, kinds, stamps, regions):
+        """Insert the vertices xyz (with their kinds and the rounds that made them) into the
+        initial mesh, mark what earlier rounds settled (regions (Q, T, 6)) and queue the
+        rest. Returns (the number of vertices, the elements not settled)."""
+        order = spatial_order3(np.ascontiguousarray(xyz), self.period)
+        pts = np.ascontiguousarray(xyz[order])
+        ids = np.full(len(pts), -1, np.int64)
+        done = 0
+        while done < len(pts):
+            done = insert_points3(pts, ids, done, self.mesh, self.book, self.scratch, self.cnt,
+                                  self.period)  # fmt: skip
+            if done < 0:
+                what = "a walk got lost" if done == WALK_LOST3 else ERRORS.get(done, str(done))
+                raise EngineError(f"triangulating a tile's vertices failed: {what}")
+            if self.cnt[C_STAMP] > STAMP_LIMIT:
+                self._restart_stamps()
+            if done < len(pts):
+                self._grow()
+        placed = ids >= 0
+        if not placed.all():  # each was inserted at the centre of a ball empty of the others
+            raise EngineError(
+                f"{int((~placed).sum())} of the tiles' vertices coincide with others: tiles "
+                "moved outside their slabs (a broken plan)"
+            )
+        nv = self.vertices
+        all_stamps = np.zeros(nv, np.int32)
+        all_stamps[ids] = stamps[order]
+        self.book.kinds[ids] = kinds[order]
+        balls, cells = mark_settled3(self.mesh, self.book, self.scratch, self.cnt, self.prm,
+                                     all_stamps, np.ascontiguousarray(regions, float))  # fmt: skip
+        if balls < 0:
+            raise EngineError("a vertex has more neighbours than a tile's scratch holds")
+        self.requeue()
+        return nv, int(self.cnt[C_NT]) - balls + nv - cells
+
+    def requeue(self):
+        """Queue every element not settled again, those deferred by a region included."""
+        self._fresh_queues()
+        queue_seeded3(self.mesh, self.book, self.queues, self.cnt, self.prm)
+
+    def new_vertices(self, start):
+        """(positions, kinds) of the vertices from ``start`` on: copies."""
+        nv = self.vertices
+        return self.mesh.xyz[start:nv].copy(), self.book.kinds[start:nv].copy()
+
+    def unsettled(self):
+        """Elements not known to be settled: circumballs and cells not GOOD, and cells whose
+        aspect exceeds tau."""
+        nt, nv = int(self.cnt[C_NT]), self.vertices
+        aspect = 4.0 * self.mesh.outradius2[:nv] > self.prm[P3_TAU2] * self.mesh.nearest2[:nv]
+        return int(
+            (self.book.ball_state[:nt] != GOOD).sum()
+            + (self.book.cell_state[:nv] != GOOD).sum()
+            + aspect.sum()
+        )
+
+    def counters(self):
+        """Moves of each kind and the counting tests so far (``Refinement.counters``)."""
+        return {
+            "moves": self.progress()["moves"],
+            "disk_tests": int(self.cnt[C_DISK_TESTS]),
+            "cell_tests": int(self.cnt[C_CELL_TESTS]),
+            "failed_insertions": int(self.cnt[C_FAILED]),
+        }
 
     def progress(self):
         """How far the run got: its vertices and how each came (``refine.KIND_NAMES``)."""

@@ -15,8 +15,9 @@ tetrahedron cost more memory than the tetrahedra's circumradii. An entry (v, cla
 the untested tetrahedra at v of that class are due: popping it walks v's star, tests those,
 and queues v again at the class of its largest untested tetrahedron left. An insertion
 queues its new vertex once (every new tetrahedron has it as a corner); a tetrahedron moved to
-another slot (``triangulation3._move``) keeps its corners, so no entry goes stale. Not yet
-here: tiles, the cell sweep, weights.
+another slot (``triangulation3._move``) keeps its corners, so no entry goes stale. A tile of
+a tiled run (``engine/region3.py``) moves only for elements inside its region, as in the
+plane; the others are DEFERRED. Not here yet: the cell sweep.
 """
 
 import numpy as np
@@ -24,12 +25,14 @@ import numpy as np
 from .geometry import circumsphere
 from .index3 import count_in_ball3, count_in_cell3
 from .jit import kernel
-from .queue import N_CLASSES, Q_SIZE, queue_pop, queue_push, queue_size, size_class
+from .queue import N_CLASSES, Q_SIZE, queue_clear, queue_pop, queue_push, queue_size, size_class
+from .refine import interval_within
 from .state import (
     BREAK_BALL,
     BREAK_CELL,
     C_CELL_TESTS,
     C_CELLS_QUEUED,
+    C_DEFERRED,
     C_DISK_TESTS,
     C_ERROR,
     C_FAILED,
@@ -40,6 +43,7 @@ from .state import (
     CLEAN,
     CLEAN_BELOW_FLOOR,
     CLEAN_FAILED,
+    DEFERRED,
     FAILED,
     FLOOR,
     GOOD,
@@ -70,9 +74,32 @@ P3_CLEAN_FLOOR2 = 5  # the Clean floor squared
 P3_INFLATE = 6  # 1 + 1e-9
 P3_GRID = 7  # the grid step q
 P3_K = 8
-N_PARAMS3 = 9
+P3_REGION = 9  # a tile's region (``engine/region3.py``): its lower corner, 3 numbers, ...
+P3_REGION_W = 12  # ... and its widths, 3 numbers; widths[0] = state.NO_REGION: no region
+N_PARAMS3 = 15
 
 HEADROOM3 = MAX_CAVITY3 + 64  # free slots required before an insertion
+
+
+@kernel(inline="always")
+def ball_in_box3(c, r, corner, widths, prm):
+    """The closed ball (c, r), inflated by a relative 1e-6 and a grid step (beyond the
+    counts' own inflation), lies in the box [corner, corner + widths] of the torus."""
+    r = r * (1.0 + 1e-6) + prm[P3_GRID]
+    for a in range(3):
+        if not interval_within(c[a] - r, 2.0 * r, corner[a], widths[a], prm[a]):
+            return False
+    return True
+
+
+@kernel(inline="always")
+def in_region3(c, r, prm):
+    """True when the closed ball (c, r) lies in the tile's region (``engine/region3.py``), as
+    ``refine.in_region`` in the plane; always without a region (a whole run)."""
+    if prm[P3_REGION_W] < 0.0:
+        return True
+    return ball_in_box3(c, r, prm[P3_REGION : P3_REGION + 3], prm[P3_REGION_W : P3_REGION_W + 3],
+                        prm)  # fmt: skip
 
 
 @kernel(inline="always")
@@ -105,6 +132,24 @@ def queue_all3(mesh, book, queues, cnt, prm):
         queue_push(queues.balls, size_class(mesh.radius2[t]), mesh.corners[t, 0], 0)
     for v in range(cnt[C_NV]):
         book.flags[v] = 0
+        _touch3(v, mesh, book, queues, cnt, prm)
+
+
+@kernel(entry=True, nrt=False)
+def queue_seeded3(mesh, book, queues, cnt, prm):
+    """Queue what a seeded triangulation (``Refinement3.seed``) has left to decide: every
+    tetrahedron not settled (DEFERRED ones again) and every vertex (its cell unless GOOD,
+    its Clean if bad); the queues start empty and must hold that many entries."""
+    queue_clear(queues.balls)
+    queue_clear(queues.cells)
+    queue_clear(queues.cleans)
+    for t in range(cnt[C_NT]):
+        if book.ball_state[t] == DEFERRED:
+            book.ball_state[t] = UNTESTED
+        if book.ball_state[t] == UNTESTED:
+            queue_push(queues.balls, size_class(mesh.radius2[t]), mesh.corners[t, 0], 0)
+    for v in range(cnt[C_NV]):
+        book.flags[v] = book.flags[v] & ~(IN_CELL_QUEUE | IN_CLEAN_QUEUE)
         _touch3(v, mesh, book, queues, cnt, prm)
 
 
@@ -147,6 +192,8 @@ def _clean3(mesh, book, queues, scratch, cnt, prm):
         if outradius2 < prm[P3_CLEAN_FLOOR2]:
             book.flags[v] = book.flags[v] | CLEAN_BELOW_FLOOR
             continue
+        if not in_region3(mesh.xyz[v], 2.0 * np.sqrt(outradius2), prm):
+            continue  # far corner and neighbours not all the tile's: left for later
         return vertex_star3(v, mesh, scratch, cnt, prm[:3])[1], v
     return -1, -1
 
@@ -176,6 +223,10 @@ def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
                 continue
             load_corners(mesh, t, 0, 0, 0, period, pts)
             c[0], c[1], c[2], _ = circumsphere(pts)
+            if not in_region3(c, np.sqrt(mesh.radius2[t]), prm):
+                book.ball_state[t] = DEFERRED
+                cnt[C_DEFERRED] += 1
+                continue
             cnt[C_DISK_TESTS] += 1
             if count_in_ball3(index, c, mesh.radius2[t] * inflate, k, period, probe.stack) < k:
                 book.ball_state[t] = GOOD
@@ -197,6 +248,10 @@ def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
         if now > cls:
             queue_push(queues.cells, now, v, 0)
             book.flags[v] = book.flags[v] | IN_CELL_QUEUE
+            continue
+        if not in_region3(mesh.xyz[v], 2.0 * np.sqrt(outradius2), prm):
+            book.cell_state[v] = DEFERRED
+            cnt[C_DEFERRED] += 1
             continue
         n = count_cell3(v, mesh, scratch, probe, cnt, prm, index)
         if n < 0:

@@ -73,8 +73,8 @@ class StripQuestions:
         self.period = np.asarray(period, float)
         self.input_frame = TorusFrame(np.asarray(origin, float), self.period)
         sx = store.sample(min(1.0, SAMPLE_MIN / store.n))[0]
-        self.regions = strips(self.input_frame(sx), *self.period, int(tiles))[0]
-        self.axis_period = float(self.period[regions_axis(self.regions, *self.period)])
+        self.regions = strips(self.input_frame(sx), self.period, int(tiles))[0]
+        self.axis_period = float(self.period[regions_axis(self.regions, self.period)])
         self.passes = 0
 
     def ask(self, jobs, pad):
@@ -87,7 +87,7 @@ class StripQuestions:
 
     def route(self, x, pad):
         """The rows of x (torus frame) within ``pad`` of each strip (one pad per row)."""
-        rows, bounds = split_strips(x, self.regions, pad, *self.period)
+        rows, bounds = split_strips(x, self.regions, pad, self.period)
         return [rows[bounds[j] : bounds[j + 1]] for j in range(len(self.regions))]
 
     def d_pk(self, x, pad):
@@ -96,7 +96,7 @@ class StripQuestions:
         out = np.full(len(x), np.nan)
         if len(x) == 0:
             return out
-        owner = strip_owner(x, self.regions, *self.period)
+        owner = strip_owner(x, self.regions, self.period)
         todo = np.arange(len(x))
         pad = max(float(pad), 1e-12 * self.axis_period)
         while len(todo):
@@ -186,7 +186,7 @@ def certify_strip(points, weights, job):
         if not job["complete"]:
             d[~(d <= job["pad"])] = np.nan  # the k-th point may lie beyond the pad
         out["dpk"] = d
-    own = strip_owner(points, job["regions"], *period) == job["j"]
+    own = strip_owner(points, job["regions"], period) == job["j"]
     pts, w = points[own], None if weights is None else weights[own]
     if "balls" in job:
         centres, radii = job["balls"]

@@ -172,7 +172,7 @@ def _cut(part, frame, period, sets, pad):
     internal = frame(xy)
     out = []
     for regions in sets:
-        rows, bounds = split_strips(internal, regions, pad, *period)
+        rows, bounds = split_strips(internal, regions, pad, period)
         mine = [rows[bounds[j] : bounds[j + 1]] for j in range(len(regions))]
         out.append([(internal[r], None if w is None else w[r]) for r in mine])
     return out

@@ -32,26 +32,20 @@ from ..engine import jit, size
 from ..engine import refine as R
 from ..engine import state as S
 from ..engine.driver import Refinement
+from ..engine.driver3 import Refinement3
 from ..engine.geometry import FLOOR_BITS
 from ..engine.index import build_index
+from ..engine.index3 import build_index3
 from ..engine.initial import reach_factor
 from ..engine.interrupt import Interrupts
 from ..engine.jit import kernel
-from ..engine.region import WALK_LOST, in_rectangle, insert_points, mark_settled, spatial_order
-from ..engine.state import (
-    C_NT,
-    C_NV,
-    ERRORS,
-    NO_REGION,
-    P_REGION_H,
-    P_REGION_W,
-    P_REGION_X0,
-    P_REGION_Y0,
-    P_TAU2,
-)
+from ..engine.refine3 import refine_steps3
+from ..engine.region import in_rectangle
+from ..engine.region3 import in_box3
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
 from ..run import Progress, Start, finish, vertex_budget
+from ..run3 import Start3, finish3
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
 COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the points ...
@@ -70,15 +64,18 @@ def _mix(z):
 
 @kernel(entry=True)
 def _keys(bits, out):
+    d = bits.shape[1]
     for i in range(bits.shape[0]):
-        h = _mix(bits[i, 0] ^ _mix(bits[i, 1]))
+        h = _mix(bits[i, d - 1])
+        for a in range(d - 2, -1, -1):
+            h = _mix(bits[i, a] ^ h)
         out[i] = np.float64(h >> np.uint64(11)) * 1.1102230246251565e-16  # 2^-53
 
 
 def sample_keys(xy):
-    """A key in [0, 1) for each point (n, 2) that depends only on its two coordinates (0.0
-    and -0.0 alike): the points with key < f are a sample of about f n, the same one
-    however the points are split or ordered."""
+    """A key in [0, 1) for each point (n, d) that depends only on its coordinates (0.0 and
+    -0.0 alike): the points with key < f are a sample of about f n, the same one however
+    the points are split or ordered."""
     bits = np.ascontiguousarray(xy, dtype=np.float64) + 0.0  # a copy, -0.0 made 0.0
     out = np.empty(len(bits))
     _keys(bits.view(np.uint64), out)
@@ -86,8 +83,9 @@ def sample_keys(xy):
 
 
 def canonical(xy, weights, keys):
-    """The sample in an order that depends only on its points: by key, then x, then y."""
-    order = np.lexsort((xy[:, 1], xy[:, 0], keys))
+    """The sample in an order that depends only on its points: by key, then x, then y
+    (then z)."""
+    order = np.lexsort((*(xy[:, a] for a in reversed(range(xy.shape[1]))), keys))
     return xy[order], None if weights is None else weights[order], keys[order]
 
 
@@ -98,43 +96,45 @@ AXIS_PREFERENCE = 1.25  # strips run across the shorter period only if their hea
 # is this many times lighter than the longer period's
 
 
-def strip_axis(lx, ly):
-    """The axis strips are cut along by default: across the longer period."""
-    return 0 if lx >= ly else 1
+def strip_axis(period):
+    """The axis strips are cut along by default: across the longest period (the first of
+    equal ones)."""
+    return int(np.argmax(period))
 
 
-def regions_axis(regions, lx, ly):
-    """The axis a set of strips (regions (T, 4)) is cut along: the one they do not span."""
-    spans_x = bool(np.all(regions[:, 2] >= lx))
-    spans_y = bool(np.all(regions[:, 3] >= ly))
-    if spans_x != spans_y:
-        return 1 if spans_x else 0
-    return strip_axis(lx, ly)
+def regions_axis(regions, period):
+    """The axis a set of strips (regions (T, 2 d): corners, then widths) is cut along: the
+    one they do not span."""
+    d = len(period)
+    cut = [a for a in range(d) if not np.all(regions[:, d + a] >= period[a])]
+    return cut[0] if len(cut) == 1 else strip_axis(period)
 
 
-def strips(xy, lx, ly, tiles):
-    """Two sets of ``tiles`` strips (tiles, 4) as regions (x0, y0, w, h) of the torus, each
-    holding about 1 / tiles of the points xy (a sample will do): cut at the quantiles j /
-    tiles and (j + 1/2) / tiles (``_cuts``), so that each border of one set lies inside a
-    strip of the other, at least MIN_GAP of an even spacing from its borders. Across the
-    longer period, unless many points share a coordinate there (points on a line) and the
-    other axis balances them better (``AXIS_PREFERENCE``)."""
-    periods = (lx, ly)
-    first = strip_axis(lx, ly)
+def strips(xy, period, tiles):
+    """Two sets of ``tiles`` strips (slabs in space) as regions (tiles, 2 d) of the torus
+    (lower corner, then widths), each holding about 1 / tiles of the points xy (a sample
+    will do): cut at the quantiles j / tiles and (j + 1/2) / tiles (``_cuts``), so that each
+    border of one set lies inside a strip of the other, at least MIN_GAP of an even spacing
+    from its borders. Across the longest period, unless many points share a coordinate there
+    (points on a line or a plane) and another axis balances them better
+    (``AXIS_PREFERENCE``)."""
+    d = len(period)
+    first = strip_axis(period)
     plans = []
-    for axis in (first, 1 - first):
-        cuts = _cuts(xy[:, axis], periods[axis], tiles)
-        plans.append((_heaviest(xy[:, axis], cuts, periods[axis]), axis, cuts))
+    for axis in [first] + [a for a in range(d) if a != first]:
+        cuts = _cuts(xy[:, axis], period[axis], tiles)
+        plans.append((_heaviest(xy[:, axis], cuts, period[axis]), axis, cuts))
     load, axis, cuts = plans[0]
-    if tiles > 1 and plans[1][0] * AXIS_PREFERENCE < load:
-        load, axis, cuts = plans[1]
+    best = min(plans[1:], key=lambda plan: plan[0])
+    if tiles > 1 and best[0] * AXIS_PREFERENCE < load:
+        load, axis, cuts = best
     sets = []
     for s in (0, 1):
-        x0 = np.sort(_wrap(cuts[s::2], periods[axis]))
-        regions = np.zeros((tiles, 4))
+        x0 = np.sort(_wrap(cuts[s::2], period[axis]))
+        regions = np.zeros((tiles, 2 * d))
         regions[:, axis] = x0
-        regions[:, 2 + axis] = np.diff(np.append(x0, x0[0] + periods[axis]))
-        regions[:, 3 - axis] = periods[1 - axis]  # the whole other period
+        regions[:, d:] = period  # the whole of every other period
+        regions[:, d + axis] = np.diff(np.append(x0, x0[0] + period[axis]))
         sets.append(regions)
     return sets
 
@@ -195,25 +195,25 @@ def _heaviest(coord, cuts, period):
     return worst / len(c)
 
 
-def split_strips(xy, regions, pad, lx, ly):
+def split_strips(xy, regions, pad, period):
     """The rows of xy (torus coordinates) in each strip of one set widened by ``pad`` on
     both sides (a number, or one per row): (rows, bounds), strip j's rows being
     rows[bounds[j]:bounds[j + 1]] in increasing order. A point within its pad of a border
     is in both strips (and in every strip between them; in all of them when its widened
     interval goes round the period). A counting sort: O(n), whatever the number of strips."""
-    axis = regions_axis(regions, lx, ly)
+    axis = regions_axis(regions, period)
     cuts = np.ascontiguousarray(regions[:, axis])
     pads = np.ascontiguousarray(np.atleast_1d(np.asarray(pad, np.float64)))
-    return _strip_rows(np.ascontiguousarray(xy[:, axis]), cuts, pads, (lx, ly)[axis])
+    return _strip_rows(np.ascontiguousarray(xy[:, axis]), cuts, pads, float(period[axis]))
 
 
-def strip_owner(xy, regions, lx, ly):
+def strip_owner(xy, regions, period):
     """The one strip of the set ``regions`` that owns each point (torus coordinates): the
     strip whose [cut, next cut) holds it, the rule ``split_strips`` cuts by."""
-    axis = regions_axis(regions, lx, ly)
+    axis = regions_axis(regions, period)
     out = np.empty(len(xy), np.int64)
     _owners(np.ascontiguousarray(xy[:, axis]), np.ascontiguousarray(regions[:, axis]),
-            (lx, ly)[axis], out)  # fmt: skip
+            float(period[axis]), out)  # fmt: skip
     return out
 
 
@@ -277,41 +277,38 @@ def _strip_rows(c, cuts, pads, period):
     return rows, bounds
 
 
-def seed(run, xy, kinds, stamps, regions):
-    """Insert the vertices xy (with their kinds and rounds) into the run's initial mesh, mark
-    what earlier rounds settled (regions (Q, T, 4)), and queue the rest. Returns (the number
-    of vertices, the number of elements not settled: circumballs and cells)."""
-    order = spatial_order(np.ascontiguousarray(xy), run.lx, run.ly)
-    pts = np.ascontiguousarray(xy[order])
-    ids = np.full(len(pts), -1, np.int64)
-    done = 0
-    while done < len(pts):
-        done = insert_points(pts, ids, done, run.mesh, run.book, run.scratch, run.cnt, run.prm)
-        if done < 0:
-            what = "a walk got lost" if done == WALK_LOST else ERRORS.get(done, str(done))
-            raise EngineError(f"triangulating a tile's vertices failed: {what}")
-        if done < len(pts):
-            run.grow_if_needed()
-    placed = ids >= 0
-    if not placed.all():  # each was inserted at the centre of a disk empty of the others
-        raise EngineError(
-            f"{int((~placed).sum())} of the tiles' vertices coincide with others: tiles "
-            "moved outside their strips (a broken plan)"
-        )
-    nv = int(run.cnt[C_NV])
-    all_stamps = np.zeros(nv, np.int32)
-    placed = ids >= 0
-    all_stamps[ids] = stamps[order]
-    run.book.kinds[ids] = kinds[order]
-    run.reserve_queues(3 * nv + R.HEADROOM)  # queue_all pushes every triangle and vertex
-    balls, cells = mark_settled(run.mesh, run.book, run.cnt, run.prm, all_stamps, regions)
-    R.queue_all(run.mesh, run.book, run.queues, run.cnt, run.prm)
-    return nv, int(run.cnt[C_NT]) - balls + nv - cells
+def new_index(points, weights, workers=1):
+    """The counting index of the engine of the points' dimension over (n, d) points in
+    internal coordinates (kept by the index; ``workers`` threads building it in the
+    plane)."""
+    if points.shape[1] == 3:
+        return build_index3(points, copy=False, weights=weights)
+    return build_index(points, workers=workers, weights=weights)
 
 
 def tile_index(points, weights):
     """A strip's counting index, built on one thread (one of many tiles at once)."""
-    return build_index(points, workers=1, weights=weights)
+    return new_index(points, weights, workers=1)
+
+
+def new_run(index, common, expected=0):
+    """A run of the engine of the plan's dimension (``Refinement`` in the plane,
+    ``Refinement3`` in space) from the initial mesh, with the plan's parameters ``common``
+    (``refine_store``); ``expected`` vertices size its arrays (the plane's)."""
+    k, tau, floor, budget = common["k"], common["tau"], common["min_size"], common["max_vertices"]
+    period = common["period"]
+    if len(period) == 3:
+        return Refinement3(index, period, k, tau, floor, budget, common["m0"], common["grid"])
+    return Refinement(index, k, *period, tau, floor, budget, m0=common["m0"],
+                      grid=common["grid"], expected_vertices=expected)  # fmt: skip
+
+
+def in_region(x, region, pad, period):
+    """Mask of the points x (torus coordinates) in ``region`` widened by ``pad``."""
+    if len(period) == 3:
+        return in_box3(np.ascontiguousarray(x), np.asarray(region, float), pad,
+                       np.asarray(period, float))  # fmt: skip
+    return in_rectangle(x, *region, pad, *period)
 
 
 def run_tile(task, index=None):
@@ -324,40 +321,35 @@ def run_tile(task, index=None):
     deadline = None if left is None else t0 + left
     if index is None:
         index = tile_index(task["points"], task["weights"])
-    run = Refinement(
-        index, task["k"], task["lx"], task["ly"], task["tau"], task["min_size"],
-        task["max_vertices"], m0=task["m0"], grid=task["grid"],
-        expected_vertices=task["expected"],
-    )  # fmt: skip
-    start, _ = seed(run, task["xy"], task["kinds"], task["stamps"], task["history"])
-    x0, y0, w, h = task["region"]
-    if not (w > 0.0 and h > 0.0):
-        raise EngineError(f"a tile's region {tuple(task['region'])} is empty (a broken plan)")
-    run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = x0, y0
-    run.prm[P_REGION_W], run.prm[P_REGION_H] = w, h
+    run = new_run(index, task, task["expected"])
+    start, _ = run.seed(task["xy"], task["kinds"], task["stamps"], task["history"])
+    region = np.asarray(task["region"], float)
+    if not np.all(region[len(region) // 2 :] > 0.0):
+        raise EngineError(f"a tile's region {tuple(region)} is empty (a broken plan)")
+    run.set_region(region)
     status = run.run(deadline=deadline)
-    nv = int(run.cnt[C_NV])
+    xy, kinds = run.new_vertices(start)
     return {
-        "xy": run.mesh.xy[start:nv].copy(),
-        "kinds": run.book.kinds[start:nv].copy(),
+        "xy": xy,
+        "kinds": kinds,
         "status": int(status),
         "seconds": time.perf_counter() - t0,
         "counters": run.counters(),
     }
 
 
-def coarse_pass(points, weights, k, lx, ly, tau, min_size, max_vertices, m0, grid):
+def coarse_pass(points, weights, common):
     """The vertices (xy, kinds) of a refinement of ``points``, a subset of the input (the
     sample's coarsest part), in this process: the strips then start from a mesh whose
     elements are a few times the final ones (from the initial mesh's, a first round could
     split almost nothing inside a strip). Nothing when the subset holds fewer than 4 k."""
-    if len(points) < 4 * k:
-        return np.zeros((0, 2)), np.zeros(0, np.int8)
-    index = build_index(np.array(points), weights=weights)
-    run = Refinement(index, k, lx, ly, tau, min_size, max_vertices, m0=m0, grid=grid)
+    d = len(common["period"])
+    if len(points) < 4 * common["k"]:
+        return np.zeros((0, d)), np.zeros(0, np.int8)
+    run = new_run(new_index(np.array(points), weights, workers=None), common)
+    start = run.vertices
     run.run()
-    start, nv = len(m0[0]), int(run.cnt[C_NV])
-    return run.mesh.xy[start:nv].copy(), run.book.kinds[start:nv].copy()
+    return run.new_vertices(start)
 
 
 def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, interrupts, deadline):
@@ -369,15 +361,15 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
     strip is not settled, so nothing after it may treat it as settled: the run ends."""
     tiles = len(sets[0])
     stamps = np.zeros(len(xy), np.int32)
-    history = np.zeros((0, tiles, 4))
+    history = np.zeros((0, tiles, sets[0].shape[1]))
     report = []
-    lx, ly, grid = common["lx"], common["ly"], common["grid"]
+    period, grid = common["period"], common["grid"]
     stopped = None
     for r in range(1, MAX_ROUNDS + 1):
         s = (r - 1) % 2
         tasks = []
         for region in sets[s]:
-            inside = in_rectangle(xy, *region, 4 * grid, lx, ly)
+            inside = in_region(xy, region, 4 * grid, period)
             tasks.append({
                 **common, "xy": xy[inside], "kinds": kinds[inside], "stamps": stamps[inside],
                 "history": history, "region": region,
@@ -387,7 +379,7 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
         for task in tasks:
             task["time_left"] = None if deadline is None else deadline - t0
         results = store.run_round(s, tasks)
-        check_seams(sets[s], [res["xy"] for res in results], lx, ly)
+        check_seams(sets[s], [res["xy"] for res in results], period)
         new = np.concatenate([res["xy"] for res in results])
         report.append({
             "round": r, "new_vertices": len(new), "seconds": time.perf_counter() - t0,
@@ -410,20 +402,22 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
     return xy, kinds, stamps, history, report, stopped
 
 
-def check_seams(regions, inserted, lx, ly):
-    """The premise of a round (``engine/region.py``), checked on what it returned: the strips of the
-    set tile the period (positive widths, in order, adding up to it), and every vertex a
-    tile inserted lies in its own strip (at the centre of a disk inside it, so at most
-    within rounding of its border). EngineError otherwise: no mesh is made from the round."""
-    axis = regions_axis(regions, lx, ly)
-    period = (lx, ly)[axis]
-    x0, w = regions[:, axis], regions[:, 2 + axis]
-    if not (np.all(w > 0) and np.all(np.diff(x0) > 0)) or abs(w.sum() - period) > 1e-9 * period:
-        raise EngineError(f"the strips {regions.tolist()} do not tile the period {period}")
-    slack = 1e-9 * period
+def check_seams(regions, inserted, period):
+    """The premise of a round (``engine/region.py``), checked on what it returned: the strips
+    of the set tile the period (positive widths, in order, adding up to it), and every
+    vertex a tile inserted lies in its own strip (at the centre of a ball inside it, so at
+    most within rounding of its border). EngineError otherwise: no mesh is made from the
+    round."""
+    d = len(period)
+    axis = regions_axis(regions, period)
+    length = period[axis]
+    x0, w = regions[:, axis], regions[:, d + axis]
+    if not (np.all(w > 0) and np.all(np.diff(x0) > 0)) or abs(w.sum() - length) > 1e-9 * length:
+        raise EngineError(f"the strips {regions.tolist()} do not tile the period {length}")
+    slack = 1e-9 * length
     for j, xy in enumerate(inserted):
-        into = np.mod(xy[:, axis] - x0[j], period)
-        into = np.where(into > period - slack, into - period, into)  # just below x0
+        into = np.mod(xy[:, axis] - x0[j], length)
+        into = np.where(into > length - slack, into - length, into)  # just below x0
         out = (into < -slack) | (into > w[j] + slack)
         if out.any():
             raise EngineError(
@@ -433,37 +427,25 @@ def check_seams(regions, inserted, lx, ly):
 
 
 def margin_bands(emb, lo, hi):
-    """Regions (B, 4) of the torus that hold no input point: along each non-periodic axis,
-    the band between the far side of the points' extent [lo, hi] (input units) and its near
-    side one period on, a grid step off each. Counts inside them are 0 whatever the index,
-    so the plan's sample index decides their elements exactly."""
+    """Regions (B, 2 d) of the torus that hold no input point: along each non-periodic
+    axis, the band between the far side of the points' extent [lo, hi] (input units) and its
+    near side one period on, a grid step off each. Counts inside them are 0 whatever the
+    index, so the plan's sample index decides their elements exactly."""
     a = emb.to_internal(np.array([lo, hi], float))
-    lx, ly = emb.period_internal
+    period = emb.period_internal
+    d = len(period)
     bands = []
-    for axis in range(2):
+    for axis in range(d):
         if emb.periodic[axis]:
             continue
-        period = (lx, ly)[axis]
-        width = period - (a[1, axis] - a[0, axis]) - 2 * emb.grid
+        width = period[axis] - (a[1, axis] - a[0, axis]) - 2 * emb.grid
         if width <= 0:
             continue
-        region = [0.0, 0.0, lx, ly]
+        region = [0.0] * d + list(period)
         region[axis] = a[1, axis] + emb.grid
-        region[2 + axis] = width
+        region[d + axis] = width
         bands.append(region)
-    return np.array(bands).reshape(-1, 4)
-
-
-def unsettled_count(run):
-    """Elements of a run's mesh not known to be settled: circumballs and cells not GOOD,
-    and cells whose aspect exceeds tau."""
-    nt, nv = int(run.cnt[C_NT]), int(run.cnt[C_NV])
-    aspect = 4.0 * run.mesh.outradius2[:nv] > run.prm[P_TAU2] * run.mesh.nearest2[:nv]
-    return int(
-        (run.book.ball_state[:nt] != S.GOOD).sum()
-        + (run.book.cell_state[:nv] != S.GOOD).sum()
-        + aspect.sum()
-    )
+    return np.array(bands).reshape(-1, 2 * d)
 
 
 def settle_bands(run, bands, deadline=None):
@@ -472,34 +454,25 @@ def settle_bands(run, bands, deadline=None):
     for _ in range(MAX_ROUNDS):
         before = run.vertices
         for band in bands:
-            run.prm[P_REGION_X0], run.prm[P_REGION_Y0] = band[0], band[1]
-            run.prm[P_REGION_W], run.prm[P_REGION_H] = band[2], band[3]
-            balls = run.book.ball_state[: int(run.cnt[C_NT])]
-            balls[balls == S.DEFERRED] = S.UNTESTED  # deferred by the last band: look again
-            run.reserve_queues(3 * run.vertices + R.HEADROOM)
-            R.queue_all(run.mesh, run.book, run.queues, run.cnt, run.prm)
+            run.set_region(band)
+            run.requeue()  # those deferred by the last band too
             status = run.run(deadline=deadline)
             if status != S.STATUS_DONE:
                 return status, None
         if run.vertices == before:
             break
-    run.prm[P_REGION_W] = NO_REGION  # the whole torus again
-    return S.STATUS_DONE, unsettled_count(run)
+    run.set_region(None)  # the whole torus again
+    return S.STATUS_DONE, run.unsettled()
 
 
-def settle(index, xy, kinds, stamps, history, k, lx, ly, tau, min_size, max_vertices, m0, grid,
-           bands=None, deadline=None):  # fmt: skip
-    """The Refinement of the whole torus holding the initial mesh and every vertex of the
-    rounds, what the rounds settled marked so and the rest queued; then the point-free
-    ``bands`` (``margin_bands``) settled as tiles. Returns (run, status, elements not
-    settled). With none, the mesh is final and ``index`` was asked only counts in the bands
-    (the plan's sample index will do); otherwise the caller runs it on the index of all
-    points."""
-    final = Refinement(
-        index, k, lx, ly, tau, min_size, max_vertices, m0=m0, grid=grid,
-        expected_vertices=len(m0[0]) + len(xy),
-    )  # fmt: skip
-    _, unsettled = seed(final, xy, kinds, stamps, history)
+def settle(index, xy, kinds, stamps, history, common, bands=None, deadline=None):
+    """The run of the whole torus holding the initial mesh and every vertex of the rounds,
+    what the rounds settled marked so and the rest queued; then the point-free ``bands``
+    (``margin_bands``) settled as tiles. Returns (run, status, elements not settled). With
+    none, the mesh is final and ``index`` was asked only counts in the bands (the plan's
+    sample index will do); otherwise the caller runs it on the index of all points."""
+    final = new_run(index, common, expected=len(common["m0"][0]) + len(xy))
+    _, unsettled = final.seed(xy, kinds, stamps, history)
     status = S.STATUS_DONE
     if unsettled and bands is not None and len(bands):
         status, unsettled = settle_bands(final, bands, deadline)
@@ -524,8 +497,9 @@ class LocalStore:
         self.pts, self.weights, self.workers = points, weights, workers
         self.n = len(points)
         self.weight = None if weights is None else float(weights.sum())
-        lo = [float(points[:, a].min()) for a in range(2)]
-        self.bounds = (lo, [float(points[:, a].max()) for a in range(2)])  # the points' extent
+        d = points.shape[1]
+        lo = [float(points[:, a].min()) for a in range(d)]
+        self.bounds = (lo, [float(points[:, a].max()) for a in range(d)])  # the points' extent
         self.executor = executor
         self.own = None
         self.framed = None
@@ -539,8 +513,8 @@ class LocalStore:
     def prepare(self, emb, sets, pad):
         """The points in torus coordinates and each set's rows per strip."""
         self.internal = emb.to_internal(self.pts)
-        lx, ly = emb.period_internal
-        self.rows = [split_strips(self.internal, regions, pad, lx, ly) for regions in sets]
+        period = emb.period_internal
+        self.rows = [split_strips(self.internal, regions, pad, period) for regions in sets]
 
     def _map(self, fn, *args):
         if self.executor is None and self.own is None:
@@ -562,7 +536,7 @@ class LocalStore:
         if self.framed is None or self.framed[0] is not frame:
             self.framed = (frame, frame(self.pts))
         xy = self.framed[1]
-        rows, bounds = split_strips(xy, regions, pad, *frame.period)
+        rows, bounds = split_strips(xy, regions, pad, frame.period)
         mine = [rows[bounds[j] : bounds[j + 1]] for j in range(len(regions))]
         w = [None if self.weights is None else self.weights[r] for r in mine]
         return self._map(fn, [xy[r] for r in mine], w, payloads)
@@ -582,11 +556,11 @@ class LocalStore:
 
 def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
     """``knnrefine.refine`` with ``workers`` > 1: the points in that many local processes
-    (or on ``executor``), refined in strips (``refine_store``).
+    (or on ``executor``), refined in strips (slabs in space: ``refine_store``).
 
     Parameters
     ----------
-    pts : ndarray (n, 2)
+    pts : ndarray (n, 2) or (n, 3)
     w : ndarray (n,) or None
     opt : RunOptions
         Checked (``run.checked``).
@@ -604,52 +578,65 @@ def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
         store.close()
 
 
+def _plan_start(sx, sw, store, opt, budget, interrupts):
+    """(embedding, the sample's index, the initial mesh, its order, its grid) from the
+    sample, else from all points (the sample may be too sparse): d_{S,k} >= d_{P,k} for a
+    subset S, so an initial mesh the sample accepts is accepted. InputError when none is."""
+    k, factor = opt.k, reach_factor(opt.tau)
+    begin = Start if opt.dim == 2 else Start3
+    start = begin(sx, opt, budget, interrupts, sw)
+    found = start.find(k, factor)
+    if found is None and len(sx) < store.n:
+        every, w_every = store.points()
+        start = begin(every, opt, budget, interrupts, w_every)
+        found = start.find(k, factor)
+    if found is None:
+        raise InputError(start.refusal(k, opt.tau))
+    if opt.dim == 2:
+        emb, index, (m0, order, grid) = found
+        return emb, index, m0, order, grid
+    emb, index, m0 = found
+    return emb, index, m0, np.arange(len(m0[0])), None
+
+
 def refine_store(store, opt, workers) -> Mesh:
     """A tiled run (``scale/tiled.py``) on the points of ``store`` (``LocalStore``, or
     ``distributed.DaskStore``) with the checked options ``opt`` (``RunOptions``) in
-    ``workers`` strips: the plan from a sample of the points (initial mesh, size, strips), a
-    coarse pass on part of it, rounds of tiles, then whatever no round settled on the index
-    of all points, fetched only then."""
+    ``workers`` strips (slabs in space): the plan from a sample of the points (initial
+    mesh, size, strips), a coarse pass on part of it, rounds of tiles, then whatever no
+    round settled on the index of all points, fetched only then."""
     n = store.n
-    k, tau, min_size = opt.k, opt.tau, opt.min_size
+    k, tau, min_size, dim = opt.k, opt.tau, opt.min_size, opt.dim
     deadline = opt.deadline
     start_budget = opt.start_budget(n)
     report = Progress(opt.progress)
-    if not jit.is_ready(R.refine_steps):
+    if not jit.is_ready(R.refine_steps if dim == 2 else refine_steps3):
         report.compiling()
     with Interrupts() as interrupts:
         t0 = time.perf_counter()
         coarse_f = min(1.0 / (COARSE_SHARE * workers), COARSE_MAX / n)
         sx, sw, keys = store.sample(max(coarse_f, min(1.0, SAMPLE_MIN / n)))
         share = len(sx) / n if sw is None else float(sw.sum()) / store.weight
-        factor = reach_factor(tau)
-        # d_{S,k} >= d_{P,k} for a subset S: an initial mesh the sample accepts is accepted
-        start = Start(sx, opt, start_budget, interrupts, sw)
-        found = start.find(k, factor)
-        if found is None and len(sx) < n:  # the sample may be too sparse: ask all points
-            every, w_every = store.points()
-            start = Start(every, opt, start_budget, interrupts, w_every)
-            found = start.find(k, factor)
-        if found is None:
-            raise InputError(start.refusal(k, tau))
-        emb, s_index, (m0, m0_order, m0_grid) = found
+        emb, s_index, m0, m0_order, m0_grid = _plan_start(sx, sw, store, opt, start_budget,
+                                                          interrupts)  # fmt: skip
         opt.past("setting up")
-        lx, ly = emb.period_internal
-        floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
-        lo, hi = emb.box_internal()
-        estimated = size.estimate(s_index, k, floor, lx, ly, float(np.prod(hi - lo)))[0] / share
-        budget = vertex_budget(estimated, opt, len(m0_order), n)
+        period = tuple(emb.period_internal)
+        if dim == 2:
+            floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
+            lo, hi = emb.box_internal()
+            estimated = size.estimate(s_index, k, floor, *period, float(np.prod(hi - lo)))[0]
+            estimated /= share
+            budget = vertex_budget(estimated, opt, len(m0_order), n)
+        else:  # no size estimate in space: the start's budget, as a run in one process
+            estimated = budget = start_budget
         internal = emb.to_internal(sx)
-        sets = strips(internal, lx, ly, workers)
+        sets = strips(internal, period, workers)
         common = {
-            "k": k, "lx": lx, "ly": ly, "tau": tau, "min_size": min_size * emb.scale,
+            "k": k, "period": period, "tau": tau, "min_size": min_size * emb.scale,
             "max_vertices": budget, "m0": m0, "grid": emb.grid,
         }  # fmt: skip
         coarse = keys < coarse_f
-        xy, kinds = coarse_pass(
-            internal[coarse], None if sw is None else sw[coarse], k, lx, ly, tau,
-            min_size * emb.scale, budget, m0, emb.grid,
-        )  # fmt: skip
+        xy, kinds = coarse_pass(internal[coarse], None if sw is None else sw[coarse], common)
         store.prepare(emb, sets, 4 * emb.grid)
         setup = time.perf_counter() - t0
         xy, kinds, stamps, history, rounds, stopped = run_rounds(
@@ -657,8 +644,7 @@ def refine_store(store, opt, workers) -> Mesh:
             interrupts, deadline,
         )  # fmt: skip
         t1 = time.perf_counter()
-        args = (xy, kinds, stamps, history, k, lx, ly, tau, min_size * emb.scale, budget, m0,
-                emb.grid)  # fmt: skip
+        args = (xy, kinds, stamps, history, common)
         bands = margin_bands(emb, *store.bounds)
         run, status, unsettled = settle(s_index, *args, bands=bands, deadline=deadline)
         before, fetched = len(m0[0]) + len(xy), False
@@ -667,13 +653,16 @@ def refine_store(store, opt, workers) -> Mesh:
         elif status == S.STATUS_DONE and unsettled:
             pts, w = store.points()  # what is left needs the counts of all points
             fetched = True
-            run, _, unsettled = settle(build_index(emb.to_internal(pts), weights=w), *args)
+            run, _, unsettled = settle(new_index(emb.to_internal(pts), w, workers=None), *args)
             status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
-        run.n = n
         rounds.append({
             "round": "final", "new_vertices": run.vertices - before,
             "seconds": time.perf_counter() - t1, "unsettled": unsettled, "fetched_points": fetched,
         })  # fmt: skip
+        if dim == 3:
+            return finish3(run, status, emb, opt, lambda: store.points()[0], n, store.weight,
+                           rounds)  # fmt: skip
+        run.n = n
         run.time_index = setup
         run.time_refine = time.perf_counter() - t0 - setup
         return finish(
