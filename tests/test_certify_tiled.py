@@ -4,7 +4,7 @@ certify's, which reads one cKDTree of all points; and a bad mesh fails the same 
 
 import numpy as np
 import pytest
-from conftest import gaussian_clusters
+from conftest import gaussian_clusters, unit_box
 
 import knnrefine
 from knnrefine.certify.plane import TorusPoints
@@ -124,3 +124,62 @@ def test_strips_that_hold_no_point(workers):
     few = rng.random((5, 2))
     small = knnrefine.refine(few, 2, periodic=True, box=(0, 0, 1, 1))
     assert knnrefine.certify(small, few, workers=10).passed
+
+
+# -- in space: the same questions asked of slabs -----------------------------------------------
+
+BOX3 = unit_box(3)
+FIELDS3 = ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral",
+           "precondition_ok", "n", "m", "n_probes", "under_floor", "weight")  # fmt: skip
+
+
+def test_slab_answers_in_space_equal_one_tree():
+    """Balls of every size, every cell, d_{P,k} in the box's own metric at probes in the box
+    (a torus shorter than twice the box along x and z, where the torus' and the box's
+    metrics differ): the slabs' sums and decisions equal one process's kd-trees, exactly."""
+    from knnrefine.certify.space import SpacePoints
+    from knnrefine.scale.checks import TiledSpacePoints
+
+    pts = gaussian_clusters(10000, 4, clusters=25, dim=3)
+    w = np.random.default_rng(1).integers(1, 4, len(pts)).astype(float)
+    mesh = knnrefine.refine(pts, 10, periodic=(False, True, False), box=BOX3, weights=w)
+    assert mesh.torus.period[2] < 2.0  # the embedding's margin from a bound on d_Pk
+    one = SpacePoints(mesh, pts, w, -1)
+    store = LocalStore(pts, w, 3)
+    try:
+        tiled = TiledSpacePoints(mesh, store, 3, -1)
+        rng = np.random.default_rng(10)
+        centres = rng.random((2000, 3)) * one.period
+        radii = 10 ** rng.uniform(-3, 0.2, len(centres))
+        np.testing.assert_array_equal(tiled.held(centres, radii), one.held(centres, radii))
+        vertices = np.asarray(mesh.torus.vertices)
+        out = np.zeros(len(vertices))
+        np.testing.assert_array_equal(
+            tiled.cell_counts(vertices, out), one.cell_counts(vertices, out)
+        )
+        x = one.metric.frame(rng.random((3000, 3)))  # probes in the box
+        np.testing.assert_array_equal(tiled.d_pk(x), one.d_pk(x))
+    finally:
+        store.close()
+
+
+@pytest.mark.parametrize(
+    "periodic", [True, pytest.param((False, True, False), marks=pytest.mark.slow)], ids=str
+)
+def test_certify_in_space_with_workers_equals_certify(periodic):
+    """workers > 1 in space: the same certificate as one process, field by field; a mesh of
+    other points fails in both, with the same figures."""
+    pts = gaussian_clusters(8000, 11, dim=3)
+    mesh = knnrefine.refine(pts, 15, periodic=periodic, box=BOX3)
+    options = dict(samples=10_000, n_random=2_000)
+    a = knnrefine.certify(mesh, pts, **options)
+    b = knnrefine.certify(mesh, pts, workers=2, **options)
+    assert a.passed and b.passed
+    for field in FIELDS3:
+        assert getattr(a, field) == getattr(b, field), field
+    other = np.random.default_rng(12).random((8000, 3)) * 0.3  # all in one corner
+    a = knnrefine.certify(mesh, other, **options)
+    b = knnrefine.certify(mesh, other, workers=3, **options)
+    assert not a.passed and not b.passed
+    for field in FIELDS3:
+        assert getattr(a, field) == getattr(b, field), field

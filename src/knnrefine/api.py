@@ -209,10 +209,6 @@ def certify(
                    seed=seed)  # fmt: skip
     if workers == 1:
         return certify_points(mesh, points, weights=weights, threads=threads, **options)
-    if mesh.dim == 3:
-        raise InputError(
-            "workers > 1 is not built for (n, 3) points yet: certify a 3-D mesh in one process"
-        )
     from .scale.checks import certify_local
 
     return certify_local(mesh, points, weights, workers, threads, **options)

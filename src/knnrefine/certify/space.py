@@ -102,16 +102,47 @@ def _circumspheres(c):
     return a + u, (u**2).sum(axis=1)
 
 
-class _Points:
-    """The input points on the torus, as ``certify.check_precondition`` asks about them: what
-    closed balls hold, a count or (weighted points) a weight."""
+class SpacePoints:
+    """Every question certify asks about the input points in space, answered in this process
+    from scipy's kd-trees (``scale.checks.TiledSpacePoints`` asks the same where the points
+    are): what closed balls of the torus hold (``held``: a count, or a weight), what each
+    vertex's closed Voronoi cell holds (``cell_counts``), d_{P,k} at probes in the box's own
+    metric (``d_pk``; weighted: the least radius holding weight k), and some of the points
+    (``sample_points``), all in the frame of the mesh's torus."""
 
-    def __init__(self, tree, weights, threads):
-        self.tree, self.weights, self.threads = tree, weights, threads
-        self.total = float(tree.n) if weights is None else math.fsum(weights)
+    def __init__(self, mesh, pts, weights, threads):
+        torus = mesh.torus
+        self.origin = np.asarray(torus.origin, float)
+        self.period = np.asarray(torus.period, float)
+        self.points = TorusFrame(self.origin, self.period)(pts)
+        self.tree = cKDTree(self.points, boxsize=self.period)
+        self.weights, self.threads, self.k, self.n = weights, threads, mesh.k, len(pts)
+        self.weighted = weights is not None
+        self.total = float(len(pts)) if weights is None else math.fsum(weights)
+        self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
+        self._box_tree = self.tree if all(mesh.periodic) else self.metric.tree(pts)
 
     def held(self, centres, radii):
         return held_in_balls(self.tree, self.weights, centres, radii, self.threads)
+
+    def cell_counts(self, vertices, outradii):
+        """What the closed Voronoi cell of each vertex (torus frame) holds: every point
+        counts for each vertex as near as its nearest (``metric.cell_tally``)."""
+        tree = cKDTree(vertices, boxsize=self.period)
+        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.threads)
+        return cell_tally(dd, ii, self.weights, len(vertices))
+
+    def d_pk(self, x):
+        """d_{P,k} at x (the torus frame, periodic axes wrapped) in the box's own metric:
+        straight along non-periodic axes, so the embedding's claim is tested."""
+        if self.weights is None:
+            return self._box_tree.query(x, k=[self.k], workers=self.threads)[0][:, 0]
+        return weighted_kth(self._box_tree, self.weights, x, self.k, self.threads)
+
+    def sample_points(self, count, rng):
+        """Up to ``count`` input points (torus frame), drawn at random."""
+        P = self.points
+        return P if len(P) <= count else P[rng.choice(len(P), count, replace=False)]
 
 
 def _parity(rows):
@@ -201,6 +232,18 @@ def _tetrahedron_samples(c, per, rng):
 
 def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
              seed=0, weights=None, threads=-1):  # fmt: skip
+    """``certify`` in space in this process (``run_checks3`` on ``SpacePoints``)."""
+    t0 = time.perf_counter()
+    pts = as_points(points, 3)
+    check_made_from(mesh.stats, len(pts), "certify a mesh against")
+    weights = weights_of_run(mesh.stats, len(pts), weights)
+    check_inside(pts, mesh.box, mesh.periodic, warn=False)
+    return run_checks3(mesh, SpacePoints(mesh, pts, weights, threads), samples=samples,
+                       n_random=n_random, max_point_probes=max_point_probes, seed=seed,
+                       threads=threads, t0=t0)  # fmt: skip
+
+
+def run_checks3(mesh, points, *, samples, n_random, max_point_probes, seed, threads, t0):
     """Check ``mesh`` (from ``knnrefine.refine`` with (n, 3) points) against ``points``;
     returns a ``Certificate`` (nothing is raised when a check fails: see ``.passed``).
 
@@ -212,18 +255,13 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     assumed): d_{P,k} from the points, d_{M,2} from the returned vertices, at probes in the
     box: ``samples`` stratified points in the tetrahedra (at least 4 in each), every vertex,
     circumcentre and edge midpoint, up to ``max_point_probes`` input points and ``n_random``
-    uniform points. ``weights``: those of a weighted run (counts are then sums of weights and
-    d_{P,k} the least radius holding weight k). ``threads``: the kd-tree queries' threads
-    (-1: all cores)."""
-    t0 = time.perf_counter()
-    pts = as_points(points, 3)
-    check_made_from(mesh.stats, len(pts), "certify a mesh against")
-    weights = weights_of_run(mesh.stats, len(pts), weights)
-    check_inside(pts, mesh.box, mesh.periodic, warn=False)
+    uniform points. ``points`` answers every question about the input points
+    (``SpacePoints`` here, ``scale.checks.TiledSpacePoints`` where they are spread over
+    workers); with weights counts are sums of weights and d_{P,k} the least radius holding
+    weight k. ``threads``: the kd-tree queries' threads (-1: all cores)."""
     torus = mesh.torus
     origin, period = np.asarray(torus.origin, float), np.asarray(torus.period, float)
     metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)  # the torus' frame
-    p = TorusFrame(origin, period)(pts)
     k = mesh.k
     corners, offsets, local = torus.cells, torus.offsets.astype(np.int64), torus.vertices
     neighbours = _neighbours(corners, offsets)
@@ -236,24 +274,21 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     triangulation = ok_faces and bad_o == 0 and bad_d == 0 and abs(volume - 1.0) < 1e-9
 
     centres, r2 = _circumspheres(c)
-    point_tree = cKDTree(p, boxsize=period)
-    points_on_torus = _Points(point_tree, weights, threads)
-    held = points_on_torus.held(np.mod(centres, period), np.sqrt(r2))
+    held = points.held(np.mod(centres, period), np.sqrt(r2))
     vertex_tree = cKDTree(local, boxsize=period)
-    dd, ii = vertex_tree.query(p, k=min(3, len(local)), workers=threads)
-    cells = cell_tally(dd, ii, weights, len(local))
     outer = np.zeros(len(local))
     np.maximum.at(outer, corners.ravel(), np.repeat(r2, 4))
+    cells = points.cell_counts(local, np.sqrt(outer))
     # elements below the resolution floor may hold k points (refinement leaves them)
     floor_balls = (held >= k) & (np.sqrt(r2) < mesh.min_size)
     floor_cells = (cells >= k) & (np.sqrt(outer) < mesh.min_size)
-    exact = int if weights is None else float
+    exact = float if points.weighted else int
     max_held = exact(held[~floor_balls].max(initial=0))
     max_cell = exact(cells[~floor_cells].max(initial=0))
     d_m2 = vertex_tree.query(local, k=2, workers=threads)[0][:, 1]
     aspect = float((2.0 * np.sqrt(outer) / d_m2).max())
     precondition = check_precondition(
-        local[np.asarray(torus.kinds) == 0], points_on_torus, k, mesh.tau, period
+        local[np.asarray(torus.kinds) == 0], points, k, mesh.tau, period
     )
 
     # the promise in the box, in its own metric, from the returned vertices
@@ -266,17 +301,17 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     sample_weight = np.repeat(
         np.abs(np.linalg.det(c[:, 1:] - c[:, :1])) / 6.0 / per_tetrahedron, per_tetrahedron
     )
+    point_probes_at = points.sample_points(max_point_probes, rng)
     probes = np.concatenate([
         samples_at, lo + rng.random((n_random, 3)) * side, local, np.mod(centres, period),
-        np.mod(_edge_midpoints(local, corners, offsets, period), period),
-        p[rng.choice(len(p), min(len(p), max_point_probes), replace=False)],
+        np.mod(_edge_midpoints(local, corners, offsets, period), period), point_probes_at,
     ])  # fmt: skip
     del c
     free = ~np.array(mesh.periodic)
     in_box = (((probes >= lo) & (probes <= hi)) | ~free).all(axis=1)
     sample_in_box = in_box[: len(samples_at)]
     point_probes = np.zeros(len(probes), bool)
-    point_probes[len(probes) - min(len(p), max_point_probes) :] = True
+    point_probes[len(probes) - len(point_probes_at) :] = True
     probes, point_probes = probes[in_box], point_probes[in_box]
     mesh_problems = verify_returned_mesh3(mesh)
     returned = np.asarray(mesh.vertices, float)
@@ -285,7 +320,6 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     else:  # not coordinates at all (a failed check already): the torus' own, for the ratio
         returned = local
     box_boxsize = np.where(mesh.periodic, period, 0.0) if any(mesh.periodic) else None
-    box_points = point_tree if all(mesh.periodic) else metric.tree(pts)
     box_vertices = cKDTree(returned, boxsize=box_boxsize)
     dm2 = box_vertices.query(probes, k=min(2, len(returned)), workers=threads)[0]
     dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(probes), np.inf)
@@ -295,10 +329,7 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
             mesh_problems.append(
                 "d_M2 from the returned vertices differs from the torus mesh's in the box"
             )
-    if weights is None:
-        dpk = box_points.query(probes, k=[k], workers=threads)[0][:, 0]
-    else:
-        dpk = weighted_kth(box_points, weights, probes, k, threads)
+    dpk = points.d_pk(probes)
     use = dpk >= mesh.min_size
     ratio = dm2[use] / dpk[use]
     nan = float("nan")
@@ -336,7 +367,7 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
         10.0 * max(mesh.min_size, 1e-300), period, origin, mesh,
     )  # fmt: skip
     return Certificate(
-        n=len(pts), m=len(mesh.vertices), k=k, tau=mesh.tau, periodic=tuple(mesh.periodic),
+        n=points.n, m=len(mesh.vertices), k=k, tau=mesh.tau, periodic=tuple(mesh.periodic),
         box=tuple(mesh.box), min_size=mesh.min_size, triangulation_ok=triangulation,
         triangulation_problems=problems, max_aspect=aspect, max_cell_count=max_cell,
         max_ball_count=max_held, alpha=alpha, beta=beta, alpha_hat=alpha_hat,
@@ -348,6 +379,6 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
         under_floor=float(np.mean(point_dpk < mesh.min_size)) if len(point_dpk) else 0.0,
         mesh_problems=mesh_problems, precondition_ok=bool(precondition[0]),
         precondition_note=precondition[1], seconds=time.perf_counter() - t0,
-        weight=None if weights is None else points_on_torus.total,
-        count_slack=0.0 if weights is None else 4.0 * float(np.spacing(float(k))),
+        weight=points.total if points.weighted else None,
+        count_slack=4.0 * float(np.spacing(float(k))) if points.weighted else 0.0,
     )  # fmt: skip

@@ -12,8 +12,9 @@ from scipy.spatial import cKDTree
 from ..certify.certificate import Certificate
 from ..certify.common import check_source
 from ..certify.plane import TorusPoints, check_points_are_the_meshs, run_checks
+from ..certify.space import run_checks3
 from ..metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
-from ..validation import as_points
+from ..validation import as_points, check_inside, check_made_from, weights_of_run
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
 
 
@@ -34,15 +35,29 @@ def certify_local(mesh, points, weights, workers, threads, *, samples, n_random,
     Certificate
     """
     t0 = time.perf_counter()
-    pts = as_points(points)
-    weights = check_points_are_the_meshs(mesh, pts, weights)
+    pts = as_points(points, mesh.dim)
+    if mesh.dim == 3:
+        check_made_from(mesh.stats, len(pts), "certify a mesh against")
+        weights = weights_of_run(mesh.stats, len(pts), weights)
+        check_inside(pts, mesh.box, mesh.periodic, warn=False)
+    else:
+        weights = check_points_are_the_meshs(mesh, pts, weights)
     store = LocalStore(pts, weights, workers)
     try:
-        torus = TiledTorusPoints(mesh, store, workers, threads)
-        return run_checks(mesh, torus, samples=samples, n_random=n_random,
-                          max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+        return check_store(mesh, store, workers, threads, samples=samples, n_random=n_random,
+                           max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
     finally:
         store.close()
+
+
+def check_store(mesh, store, tiles, threads, *, samples, n_random, max_point_probes, seed, t0):
+    """The checks of either dimension with the points' questions asked of ``store``."""
+    options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
+                   seed=seed, t0=t0)  # fmt: skip
+    if mesh.dim == 3:
+        points = TiledSpacePoints(mesh, store, tiles, threads)
+        return run_checks3(mesh, points, threads=threads, **options)
+    return run_checks(mesh, TiledTorusPoints(mesh, store, tiles, threads), **options)
 
 
 def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
@@ -53,9 +68,8 @@ def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
     its points are. The caller has checked that the points lie in the mesh's box."""
     t0 = time.perf_counter()
     check_source(mesh.stats, store.n, store.weight)
-    torus = TiledTorusPoints(mesh, store, int(tiles), threads)
-    return run_checks(mesh, torus, samples=samples, n_random=n_random,
-                    max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+    return check_store(mesh, store, int(tiles), threads, samples=samples, n_random=n_random,
+                       max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
 
 
 class StripQuestions:
@@ -90,9 +104,10 @@ class StripQuestions:
         rows, bounds = split_strips(x, self.regions, pad, self.period)
         return [rows[bounds[j] : bounds[j + 1]] for j in range(len(self.regions))]
 
-    def d_pk(self, x, pad):
+    def d_pk(self, x, pad, boxsize=None):
         """Exact d_{P,k} at x (torus frame); ``pad`` a first guess of its reach (it only sets
-        how often a question is asked again)."""
+        how often a question is asked again). ``boxsize``: a metric other than the torus',
+        the kd-tree's periods with 0 on straight axes (the box's own, ``TiledSpacePoints``)."""
         out = np.full(len(x), np.nan)
         if len(x) == 0:
             return out
@@ -101,15 +116,36 @@ class StripQuestions:
         pad = max(float(pad), 1e-12 * self.axis_period)
         while len(todo):
             mine = [todo[owner[todo] == j] for j in range(len(self.regions))]
-            got = self.ask([{"dpk": x[r]} for r in mine], pad)
+            got = self.ask([{"dpk": x[r], "boxsize": boxsize} for r in mine], pad)
             for r, g in zip(mine, got, strict=True):
                 out[r] = g["dpk"]
             todo = todo[np.isnan(out[todo])]
             pad *= 4.0
         return out
 
+    def cell_counts(self, vertices, outradii):
+        """What the closed Voronoi cell of each of the vertices (torus frame, R(v) =
+        ``outradii``) holds: each point counts for every vertex as near as its nearest, asked
+        of the strip that owns it with the vertices within a pad, the pad widened until every
+        point's nearest vertex lies within it."""
+        m = len(vertices)
+        out = np.zeros(m, float if self.store.weight is not None else np.int64)
+        # Voronoi cell of v lies within R(v) of v: a first vertex pad from the outradii
+        pad = max(float(np.quantile(outradii, 0.999)) * 1.01, 1e-12 * self.axis_period)
+        before = -1.0
+        while True:
+            mine = self.route(vertices, pad)
+            complete = 2.0 * pad >= self.axis_period
+            jobs = [{"cells": (vertices[r], r, pad, before, complete)} for r in mine]
+            got = self.ask(jobs, 0.0)
+            for g in got:
+                np.add.at(out, g["cell_ids"], g["cell_counts"])
+            if sum(g["undecided"] for g in got) == 0:
+                return out
+            before, pad = pad, 4.0 * pad
+
     def held(self, centres, radii):
-        """What each closed disk (torus frame) holds: a count, or a weight."""
+        """What each closed ball (torus frame) holds: a count, or a weight."""
         radii = np.broadcast_to(np.asarray(radii, float), len(centres))
         out = np.zeros(len(centres), np.int64 if self.store.weight is None else float)
         if len(centres) == 0:
@@ -146,22 +182,43 @@ class TiledTorusPoints(TorusPoints):
         return self.questions.held(centres, radii)
 
     def cell_counts(self, outradii):
-        q = self.questions
-        m = len(self.vertices)
-        out = np.zeros(m, float if self.weighted else np.int64)
-        # Voronoi cell of v lies within R(v) of v: a first vertex pad from the outradii
-        pad = max(float(np.quantile(outradii, 0.999)) * 1.01, 1e-12 * q.axis_period)
-        before = -1.0
-        while True:
-            mine = q.route(self.vertices, pad)
-            complete = 2.0 * pad >= q.axis_period
-            jobs = [{"cells": (self.vertices[r], r, pad, before, complete)} for r in mine]
-            got = q.ask(jobs, 0.0)
-            for g in got:
-                np.add.at(out, g["cell_ids"], g["cell_counts"])
-            if sum(g["undecided"] for g in got) == 0:
-                return out
-            before, pad = pad, 4.0 * pad
+        return self.questions.cell_counts(self.vertices, outradii)
+
+    def sample_points(self, count, rng):
+        sx = self.store.sample(min(1.0, count / self.n))[0]
+        return self.input_frame(sx)
+
+
+class TiledSpacePoints:
+    """``certify.space.SpacePoints`` for points held in a store: every question about them a
+    ``StripQuestions`` (slabs). d_{P,k} is asked in the box's own metric, as in one process:
+    each slab's kd-tree is straight along the non-periodic axes (the box lies unwrapped in
+    the torus frame there, and a point within a pad in the box's metric is within it on the
+    torus, so a slab widened by the pad holds every point it needs)."""
+
+    def __init__(self, mesh, store, tiles, threads):
+        torus = mesh.torus
+        self.origin = np.asarray(torus.origin, float)
+        self.period = np.asarray(torus.period, float)
+        self.boxsize = tuple(np.where(mesh.periodic, self.period, 0.0))
+        self.store, self.k, self.n, self.threads = store, mesh.k, store.n, threads
+        self.weighted = store.weight is not None
+        self.total = float(store.n) if store.weight is None else float(store.weight)
+        self.input_frame = TorusFrame(self.origin, self.period)
+        self.questions = StripQuestions(store, self.origin, self.period, self.k, tiles)
+        self._vertex_tree = cKDTree(np.asarray(torus.vertices, float), boxsize=self.period)
+
+    def held(self, centres, radii):
+        return self.questions.held(centres, radii)
+
+    def cell_counts(self, vertices, outradii):
+        return self.questions.cell_counts(vertices, outradii)
+
+    def d_pk(self, x):
+        # a first pad from the mesh (a guess only: what the slabs decide is exact)
+        d_m2 = self._vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1] if len(x) else x
+        pad = float(np.quantile(4.0 * d_m2, 0.99)) if len(x) else 0.0
+        return self.questions.d_pk(x, pad, self.boxsize)
 
     def sample_points(self, count, rng):
         sx = self.store.sample(min(1.0, count / self.n))[0]
@@ -176,7 +233,8 @@ def certify_strip(points, weights, job):
     out = {}
     if "dpk" in job:
         x, k = job["dpk"], job["k"]
-        tree = cKDTree(points, boxsize=period)
+        boxsize = period if job.get("boxsize") is None else job["boxsize"]
+        tree = cKDTree(points, boxsize=None if not any(boxsize) else boxsize)
         if weights is not None:
             d = weighted_kth(tree, weights, x, k, 1)
         elif len(points) >= k and len(x):
