@@ -100,16 +100,14 @@ def test_certify3_with_no_probe_above_the_floor():
     assert "nothing measured" in str(cert)
 
 
-def test_certify3_honours_samples_and_refuses_tiles():
+def test_certify3_honours_samples_and_weights():
     """certify's options in space: ``samples`` sets the probes in the tetrahedra (at least
-    4 each), ``threads`` the queries' threads; ``workers`` > 1 is refused, not ignored, and
-    weights are refused for a mesh refined without them."""
+    4 each), ``threads`` the queries' threads; weights are refused for a mesh refined
+    without them (``workers``: test_certify_tiled.py)."""
     pts = np.random.default_rng(6).random((3000, 3))
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
     few = knnrefine.certify(mesh, pts, samples=10, threads=1)
     many = knnrefine.certify(mesh, pts, samples=40 * len(mesh.tetrahedra))
     assert many.n_probes - few.n_probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
-    with pytest.raises(knnrefine.InputError, match="workers > 1"):
-        knnrefine.certify(mesh, pts, workers=2)
     with pytest.raises(knnrefine.InputError, match="refined without weights"):
         knnrefine.certify(mesh, pts, weights=np.ones(len(pts)))

@@ -163,9 +163,8 @@ def test_slab_answers_in_space_equal_one_tree():
         store.close()
 
 
-@pytest.mark.parametrize(
-    "periodic", [True, pytest.param((False, True, False), marks=pytest.mark.slow)], ids=str
-)
+@pytest.mark.slow
+@pytest.mark.parametrize("periodic", [True, (False, True, False)], ids=str)
 def test_certify_in_space_with_workers_equals_certify(periodic):
     """workers > 1 in space: the same certificate as one process, field by field; a mesh of
     other points fails in both, with the same figures."""

@@ -244,3 +244,41 @@ def test_certify_on_the_cluster_with_more_strips_than_points(client):
     pts = np.random.default_rng(12).random((6, 2))
     mesh = knnrefine.refine(pts, 3, periodic=True, box=(0, 0, 1, 1))
     assert distributed.certify(mesh, pts, client=client, workers=9).passed
+
+
+# -- in space ----------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
+    """Points in space on the cluster (a NumPy array, a Dask array, a DataFrame's three
+    columns, weights by column): the same mesh from every source, certified by
+    knnrefine.certify and by distributed.certify with the same figures, and within 5% of
+    one process's size; output= (meshes in parts) is refused for them before any work."""
+    import dask.array as da
+    import pandas as pd
+    from conftest import gaussian_clusters
+
+    pts = gaussian_clusters(20000, 13, clusters=12, dim=3)
+    w = np.random.default_rng(13).integers(1, 3, len(pts)).astype(float)
+    box = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+    options = {"client": client, "periodic": (True, False, True), "box": box}
+    mesh = distributed.refine(pts, 15, weights=w, **options)
+    assert mesh.dim == 3 and len(mesh.stats["rounds"][0]["tiles"]) == 2
+    a = knnrefine.certify(mesh, pts, weights=w, samples=10000, n_random=2000)
+    b = distributed.certify(mesh, da.from_array(pts, chunks=(6000, 3)), client=client,
+                            weights=w, samples=10000, n_random=2000)  # fmt: skip
+    assert a.passed and b.passed, str(a)
+    for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
+        assert getattr(a, field) == getattr(b, field), field
+    one = knnrefine.refine(pts, 15, weights=w, periodic=(True, False, True), box=box)
+    assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
+    frame = pd.DataFrame({"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2], "w": w})
+    for source, extra in [
+        (da.from_array(pts, chunks=(7000, 3)), {"weights": w}),
+        (frame, {"columns": ("a", "b", "c"), "weights": "w"}),
+    ]:
+        got = distributed.refine(source, 15, **extra, **options)
+        np.testing.assert_array_equal(got.vertices, mesh.vertices)
+    with pytest.raises(InputError, match="output= writes a mesh in parts"):
+        distributed.refine(pts, 15, output=tmp_path / "parts", **options)

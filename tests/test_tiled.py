@@ -314,19 +314,19 @@ BOX3 = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
 
 
 @pytest.mark.parametrize(
-    "periodic, workers, k",
+    "periodic, workers, k, n",
     [
-        (True, 2, 10),
-        pytest.param(False, 3, 10, marks=pytest.mark.slow),
-        pytest.param((True, False, True), 2, 30, marks=pytest.mark.slow),
+        (True, 2, 10, 15000),
+        pytest.param(False, 3, 10, 30000, marks=pytest.mark.slow),
+        pytest.param((True, False, True), 2, 30, 30000, marks=pytest.mark.slow),
     ],
     ids=str,
 )
-def test_tiled_run_in_space_is_certified_and_the_size_of_a_single_run(periodic, workers, k):
+def test_tiled_run_in_space_is_certified_and_the_size_of_a_single_run(periodic, workers, k, n):
     """Slabs in space: the mesh passes certify (one Delaunay tetrahedralisation across the
     slabs' borders, every guarantee) with within 5% of the single-process mesh's vertices;
     the rounds did the work, not the final pass."""
-    X = gaussian_clusters(30000, seed=4, clusters=25, dim=3)
+    X = gaussian_clusters(n, seed=4, clusters=25, dim=3)
     single = knnrefine.refine(X, k, box=BOX3, periodic=periodic)
     tiled = knnrefine.refine(X, k, box=BOX3, periodic=periodic, workers=workers)
     assert_certified(tiled, X, f"tiled in space {periodic} k={k}")

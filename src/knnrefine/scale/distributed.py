@@ -58,11 +58,11 @@ def partitions(
 
     Parameters
     ----------
-    source : NumPy array (n, 2), Dask array, pandas or Dask DataFrame, or a Parquet path
-        A NumPy array is cut into ``chunk`` rows; a Parquet dataset is read with Dask, only
-        the columns needed.
-    columns : pair of str
-        The x and y columns of a DataFrame or Parquet dataset.
+    source : NumPy array (n, 2) or (n, 3), Dask array, pandas or Dask DataFrame, or a Parquet
+        path. A NumPy array is cut into ``chunk`` rows; a Parquet dataset is read with Dask,
+        only the columns needed.
+    columns : two or three str
+        The x and y (and z: points in space) columns of a DataFrame or Parquet dataset.
     weights : array-like, str or None
         An array, or a column's name.
     chunk : int
@@ -71,7 +71,7 @@ def partitions(
     Returns
     -------
     list of (Dask delayed partition, its weights)
-        The partition an (n_i, 2) array or a pandas DataFrame, its weights an array slice,
+        The partition an (n_i, d) array or a pandas DataFrame, its weights an array slice,
         a column's name, or None.
     """
     _dask()
@@ -108,16 +108,18 @@ def partitions(
     if isinstance(weights, str):
         raise InputError("a weight column name needs a DataFrame or Parquet source")
     if isinstance(source, da.Array):
-        if source.ndim != 2 or source.shape[1] != 2:
-            raise InputError(f"points must have shape (n, 2), got {source.shape}")
-        parts = list(source.rechunk({1: 2}).to_delayed().ravel())
+        if source.ndim != 2 or source.shape[1] not in (2, 3):
+            raise InputError(
+                f"points must have shape (n, 2) in the plane or (n, 3) in space, got {source.shape}"
+            )
+        parts = list(source.rechunk({1: source.shape[1]}).to_delayed().ravel())
         rows = source.chunks[0]
         if weights is not None and any(np.isnan(r) for r in rows):
             raise InputError(
                 "weights need a Dask array with known chunk sizes (compute_chunk_sizes)"
             )
     else:
-        arr = V.as_points(source)
+        arr = V.as_points(source, source_dim(source, columns))
         parts = [dask.delayed(arr[a : a + chunk]) for a in range(0, len(arr), chunk)]
         rows = [min(chunk, len(arr) - a) for a in range(0, len(arr), chunk)]
     if weights is None:
@@ -127,16 +129,25 @@ def partitions(
     return [(p, weights[e - r : e]) for p, r, e in zip(parts, rows, ends, strict=True)]
 
 
-def _arrays(part, columns, weights):
-    """(xy float64 (n, 2), weights (n,) or None) of one partition, checked."""
+def source_dim(source, columns):
+    """The points' dimension: the columns named for a DataFrame or Parquet dataset, the
+    array's columns otherwise (2 unless three are given)."""
+    if isinstance(source, (str, os.PathLike)) or hasattr(source, "columns"):
+        return len(columns)
+    shape = np.shape(source) if not hasattr(source, "shape") else source.shape
+    return 3 if len(shape) == 2 and shape[1] == 3 else 2
+
+
+def _arrays(part, columns, weights, dim):
+    """(xy float64 (n, dim), weights (n,) or None) of one partition, checked."""
     if hasattr(part, "columns"):
         w = part[weights].to_numpy(np.float64) if isinstance(weights, str) else None
         part = part[list(columns)].to_numpy()
     else:
         w = weights
     if len(part) == 0:
-        return np.zeros((0, 2)), None if w is None else np.zeros(0)
-    xy = V.as_points(part)
+        return np.zeros((0, dim)), None if w is None else np.zeros(0)
+    xy = V.as_points(part, dim)
     if w is not None:
         w = np.ascontiguousarray(w, np.float64)
         if not (np.isfinite(w).all() and (w >= 0).all()):
@@ -148,8 +159,8 @@ def _stats(part):
     xy, w = part
     if len(xy) == 0:
         return 0, None, None, 0.0
-    lo = [float(xy[:, a].min()) for a in range(2)]
-    hi = [float(xy[:, a].max()) for a in range(2)]
+    lo = [float(xy[:, a].min()) for a in range(xy.shape[1])]
+    hi = [float(xy[:, a].max()) for a in range(xy.shape[1])]
     return len(xy), lo, hi, 0.0 if w is None else float(w.sum())
 
 
@@ -200,11 +211,11 @@ class DaskStore:
     does): partitions and strip indexes live on the workers; strip j of either set is
     built on, and its tiles sent to, worker j mod W (another if that one is gone)."""
 
-    def __init__(self, client, parts, columns=DEFAULT_COLUMNS, retries=2):
+    def __init__(self, client, parts, columns=DEFAULT_COLUMNS, retries=2, dim=2):
         import dask
 
-        self.client, self.retries = client, int(retries)
-        arrays = [dask.delayed(_arrays)(p, columns, w) for p, w in parts]
+        self.client, self.retries, self.dim = client, int(retries), dim
+        arrays = [dask.delayed(_arrays)(p, columns, w, dim) for p, w in parts]
         self.parts = client.compute(arrays, retries=self.retries)
         stats = client.gather(client.map(_stats, self.parts, pure=False))
         self.n = int(sum(s[0] for s in stats))
@@ -213,8 +224,8 @@ class DaskStore:
         weighted = any(w is not None for _, w in parts)
         self.weight = float(sum(s[3] for s in stats)) if weighted else None
         full = [s for s in stats if s[0]]
-        lo = [min(s[1][a] for s in full) for a in range(2)]
-        self.bounds = (lo, [max(s[2][a] for s in full) for a in range(2)])
+        lo = [min(s[1][a] for s in full) for a in range(dim)]
+        self.bounds = (lo, [max(s[2][a] for s in full) for a in range(dim)])
         self.index = None
         self.workers = sorted(client.scheduler_info()["workers"])
 
@@ -304,8 +315,9 @@ def refine(
 
     Parameters
     ----------
-    source : NumPy array (n, 2), Dask array, pandas or Dask DataFrame, or a Parquet path
-        See ``partitions`` (``columns``; ``weights``: an array, or a column's name).
+    source : NumPy array (n, 2) or (n, 3), Dask array, pandas or Dask DataFrame, or a
+        Parquet path. See ``partitions`` (``columns``: three for points in space;
+        ``weights``: an array, or a column's name).
     k, tau, periodic, box, min_size, max_vertices, time_limit, progress
         As for ``knnrefine.refine``.
     client : dask.distributed.Client, optional
@@ -318,19 +330,29 @@ def refine(
     output : path, optional
         Write the mesh as a folder of ``parts`` parts (default: one per worker) and return it
         as a ``PartitionedMesh`` (``write_partitioned``: written atomically, a finished marker
-        last; ``force`` overwrites an existing folder).
+        last; ``force`` overwrites an existing folder). In the plane only.
 
     Returns
     -------
     Mesh or PartitionedMesh
+
+    Raises
+    ------
+    InputError
+        Bad options or points, checked before any work (``output=`` for points in space).
     """
     if output is not None:
+        if source_dim(source, columns) == 3:
+            raise InputError(
+                "output= writes a mesh in parts, built for meshes in the plane: refine points "
+                "in space without it (the result is a Mesh; save it with knnrefine.io)"
+            )
         check_output(output, parts, force)
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         opt = RunOptions.check(
             store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),
             store.check_inside, k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
-            max_vertices=max_vertices, time_limit=time_limit, progress=progress,
+            max_vertices=max_vertices, time_limit=time_limit, progress=progress, dim=store.dim,
         )  # fmt: skip
         lo, hi = store.bounds
         V.fold_warning(lo, hi, opt.box, opt.periodic, stacklevel=3)
@@ -445,7 +467,7 @@ def _store(source, client, workers, columns, weights, retries):
             cluster = local_cluster(workers or max(2, os.cpu_count() or 1))
             client = stack.enter_context(Client(stack.enter_context(cluster)))
         tiles = int(workers or max(2, sum(client.nthreads().values())))
-        store = DaskStore(client, parts, columns, retries)
+        store = DaskStore(client, parts, columns, retries, source_dim(source, columns))
         stack.callback(store.close)
         yield store, tiles
 
