@@ -10,12 +10,15 @@ above what the process held before the call (``bench_refine.py``'s method) per m
 and that peak less the counting index over the points (the input's copy: about 28 bytes a
 point, whatever the mesh) per mesh vertex: the mesh's own memory.
 Where n * k > --ckdtree-budget the query runs on 10^5 sampled points and its time is scaled
-to n (marked "~").
+to n (marked "~"). ``--workers N`` also times ``refine(..., workers=N)`` (slabs in N local
+processes), interleaved with the others, and reports it as a ratio to one process.
 
     python benchmarks/bench_refine3.py --sizes 1e5 1e6 --ks 10 100 1000 --repeat 3 \\
         --out benchmarks/results/bench_refine3.json
     python benchmarks/bench_refine3.py --box ordinary --sizes 1e6 --ks 10 100 --repeat 3 \\
         --out benchmarks/results/bench_refine3_ordinary.json
+    python benchmarks/bench_refine3.py --sizes 1e5 1e6 --ks 10 100 --workers 2 --repeat 3 \\
+        --out benchmarks/results/bench_refine3_workers.json
 """
 
 import argparse
@@ -51,7 +54,7 @@ BOXES = {
 }
 
 
-def worker(kind, n, k, repeat, budget, box_kind="torus"):
+def worker(kind, n, k, repeat, budget, box_kind="torus", workers=1):
     from scipy.spatial import cKDTree
 
     import knnrefine
@@ -61,7 +64,9 @@ def worker(kind, n, k, repeat, budget, box_kind="torus"):
     boxsize = np.where(periodic, 1.0, 0.0) if any(periodic) else None
     pts = make_points3(kind, n)
     knnrefine.refine(pts, k, periodic=periodic, box=box)  # warm-up
-    times, peaks, kd = [], [], []
+    if workers > 1:
+        knnrefine.refine(pts, k, periodic=periodic, box=box, workers=workers)
+    times, peaks, kd, tiled, m_tiled = [], [], [], [], 0
     sampled = n * k > budget
     q = pts[np.random.default_rng(2).choice(n, 100_000, replace=False)] if sampled else pts
     for _ in range(repeat):
@@ -82,6 +87,12 @@ def worker(kind, n, k, repeat, budget, box_kind="torus"):
         tree.query(q, k=[k], workers=-1)
         kd.append(t_build + (time.perf_counter() - t0) * (n / len(q)))
         del tree
+        if workers > 1:
+            t0 = time.perf_counter()
+            mesh = knnrefine.refine(pts, k, periodic=periodic, box=box, workers=workers)
+            tiled.append(time.perf_counter() - t0)
+            m_tiled = len(mesh.vertices)
+            del mesh
     peak = float(np.median(peaks))
     from knnrefine.engine.index3 import build_index3
 
@@ -94,6 +105,9 @@ def worker(kind, n, k, repeat, budget, box_kind="torus"):
         "ratio": float(np.median(times)) / float(np.median(kd)),
         "peak_mb": peak, "bytes_per_vertex": peak * 2**20 / m, "index_mb": index_mb,
         "mesh_bytes_per_vertex": (peak - index_mb) * 2**20 / m,
+        "workers": workers, "tiled_s": float(np.median(tiled)) if tiled else None,
+        "tiled_all_s": tiled, "m_tiled": m_tiled,
+        "tiled_ratio": float(np.median(tiled)) / float(np.median(times)) if tiled else None,
     }  # fmt: skip
 
 
@@ -105,12 +119,14 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--ckdtree-budget", type=float, default=2e8)
     ap.add_argument("--box", choices=sorted(BOXES), default="torus")
+    ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--out")
-    ap.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
+    ap.add_argument("--worker", nargs=7, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        kind, n, k, repeat, budget, box_kind = args.worker
-        print(json.dumps(worker(kind, int(n), int(k), int(repeat), float(budget), box_kind)))
+        kind, n, k, repeat, budget, box_kind, workers = args.worker
+        print(json.dumps(worker(kind, int(n), int(k), int(repeat), float(budget), box_kind,
+                                int(workers))))  # fmt: skip
         return
     rows = []
     for kind in args.kinds:
@@ -120,7 +136,7 @@ def main(argv=None):
                     continue
                 out = subprocess.run(
                     [sys.executable, __file__, "--worker", kind, str(n), str(k),
-                     str(args.repeat), str(args.ckdtree_budget), args.box],
+                     str(args.repeat), str(args.ckdtree_budget), args.box, str(args.workers)],
                     capture_output=True, text=True, check=True,
                 )  # fmt: skip
                 row = json.loads(out.stdout.strip().splitlines()[-1])
@@ -131,7 +147,13 @@ def main(argv=None):
                     f"cKDTree {mark}{row['ckdtree_s']:.3f} s (ratio {row['ratio']:.2f}), "
                     f"m = {row['m']:,} (torus {row['m_torus']:,}), peak {row['peak_mb']:.0f} MB = "
                     f"{row['bytes_per_vertex']:.0f} B/vertex ({row['mesh_bytes_per_vertex']:.0f} "
-                    f"without the index's {row['index_mb']:.0f} MB)",
+                    f"without the index's {row['index_mb']:.0f} MB)"
+                    + (
+                        f"; workers={args.workers}: {row['tiled_s']:.3f} s "
+                        f"({row['tiled_ratio']:.2f} x one process, m = {row['m_tiled']:,})"
+                        if row["tiled_s"] is not None
+                        else ""
+                    ),
                     flush=True,
                 )
     if args.out:

@@ -140,9 +140,9 @@ def test_slab_answers_in_space_equal_one_tree():
     from knnrefine.certify.space import SpacePoints
     from knnrefine.scale.checks import TiledSpacePoints
 
-    pts = gaussian_clusters(10000, 4, clusters=25, dim=3)
+    pts = gaussian_clusters(4000, 4, clusters=25, dim=3)
     w = np.random.default_rng(1).integers(1, 4, len(pts)).astype(float)
-    mesh = knnrefine.refine(pts, 10, periodic=(False, True, False), box=BOX3, weights=w)
+    mesh = knnrefine.refine(pts, 30, periodic=(False, True, False), box=BOX3, weights=w)
     assert mesh.torus.period[2] < 2.0  # the embedding's margin from a bound on d_Pk
     one = SpacePoints(mesh, pts, w, -1)
     store = LocalStore(pts, w, 3)

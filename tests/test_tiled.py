@@ -316,7 +316,7 @@ BOX3 = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
 @pytest.mark.parametrize(
     "periodic, workers, k, n",
     [
-        (True, 2, 10, 15000),
+        pytest.param(True, 2, 10, 15000, marks=pytest.mark.slow),
         pytest.param(False, 3, 10, 30000, marks=pytest.mark.slow),
         pytest.param((True, False, True), 2, 30, 30000, marks=pytest.mark.slow),
     ],
@@ -344,7 +344,7 @@ def test_tiled_run_in_space_with_weights_and_an_executor():
     points is certified by certify's weighted counts); an executor runs the tiles."""
     from concurrent.futures import ThreadPoolExecutor
 
-    X = gaussian_clusters(12000, seed=5, clusters=10, dim=3)
+    X = gaussian_clusters(6000, seed=5, clusters=10, dim=3)
     w = np.random.default_rng(5).integers(1, 4, len(X)).astype(float)
     with ThreadPoolExecutor(2) as pool:
         tiled = knnrefine.refine(X, 30, box=BOX3, periodic=True, weights=w, workers=2,

@@ -55,6 +55,7 @@ from .state import (
 )
 from .threads import run_all
 from .threads import workers as thread_count
+from .tile import TileRun
 from .triangulation import (
     LINK_SIZE,
     MAX_CAVITY,
@@ -94,7 +95,7 @@ def new_probe():
     )
 
 
-class Refinement:
+class Refinement(TileRun):
     """The state of one kNNRefine run: triangulation, queues, scratch and counters."""
 
     MIN_CAPACITY = 128  # vertices the arrays have room for at first, at least
@@ -309,37 +310,29 @@ class Refinement:
         self.prm[P_REGION_X0], self.prm[P_REGION_Y0] = region[0], region[1]
         self.prm[P_REGION_W], self.prm[P_REGION_H] = region[2], region[3]
 
-    def seed(self, xy, kinds, stamps, regions):
-        """Insert the vertices xy (with their kinds and the rounds that made them) into the
-        initial mesh, mark what earlier rounds settled (regions (Q, T, 4)) and queue the
-        rest. Returns (the number of vertices, the elements not settled: circumballs and
-        cells)."""
-        order = spatial_order(np.ascontiguousarray(xy), self.lx, self.ly)
-        pts = np.ascontiguousarray(xy[order])
-        ids = np.full(len(pts), -1, np.int64)
-        done = 0
-        while done < len(pts):
-            done = insert_points(pts, ids, done, self.mesh, self.book, self.scratch, self.cnt,
-                                 self.prm)  # fmt: skip
-            if done < 0:
-                what = "a walk got lost" if done == WALK_LOST else ERRORS.get(done, str(done))
-                raise EngineError(f"triangulating a tile's vertices failed: {what}")
-            if done < len(pts):
-                self.grow_if_needed()
-        placed = ids >= 0
-        if not placed.all():  # each was inserted at the centre of a disk empty of the others
-            raise EngineError(
-                f"{int((~placed).sum())} of the tiles' vertices coincide with others: tiles "
-                "moved outside their strips (a broken plan)"
-            )
-        nv = self.vertices
-        all_stamps = np.zeros(nv, np.int32)
-        all_stamps[ids] = stamps[order]
-        self.book.kinds[ids] = kinds[order]
-        self.reserve_queues(3 * nv + R.HEADROOM)  # queue_all pushes every triangle and vertex
-        balls, cells = mark_settled(self.mesh, self.book, self.cnt, self.prm, all_stamps, regions)
-        R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
-        return nv, int(self.cnt[C_NT]) - balls + nv - cells
+    # the hooks of ``TileRun``
+    _lost = WALK_LOST
+
+    @property
+    def positions(self):
+        return self.mesh.xy
+
+    @property
+    def _tau2(self):
+        return self.prm[P_TAU2]
+
+    def _order(self, xy):
+        return spatial_order(xy, self.lx, self.ly)
+
+    def _insert_given(self, pts, ids, done):
+        return insert_points(pts, ids, done, self.mesh, self.book, self.scratch, self.cnt,
+                             self.prm)  # fmt: skip
+
+    def _grow(self):
+        self.grow_if_needed()
+
+    def _mark_settled(self, stamps, regions):
+        return mark_settled(self.mesh, self.book, self.cnt, self.prm, stamps, regions)
 
     def requeue(self):
         """Queue every element again, those deferred by another region included."""
@@ -347,22 +340,6 @@ class Refinement:
         balls[balls == S.DEFERRED] = S.UNTESTED
         self.reserve_queues(3 * self.vertices + R.HEADROOM)
         R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
-
-    def new_vertices(self, start):
-        """(positions, kinds) of the vertices from ``start`` on: copies."""
-        nv = self.vertices
-        return self.mesh.xy[start:nv].copy(), self.book.kinds[start:nv].copy()
-
-    def unsettled(self):
-        """Elements not known to be settled: circumballs and cells not GOOD, and cells whose
-        aspect exceeds tau."""
-        nt, nv = int(self.cnt[C_NT]), self.vertices
-        aspect = 4.0 * self.mesh.outradius2[:nv] > self.prm[P_TAU2] * self.mesh.nearest2[:nv]
-        return int(
-            (self.book.ball_state[:nt] != S.GOOD).sum()
-            + (self.book.cell_state[:nv] != S.GOOD).sum()
-            + aspect.sum()
-        )
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""

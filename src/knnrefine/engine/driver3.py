@@ -36,7 +36,6 @@ from .state import (
     C_STAMP,
     ERRORS,
     FLOOR,
-    GOOD,
     KIND_NAMES,
     NO_REGION,
     STATUS_DONE,
@@ -50,6 +49,7 @@ from .state import (
     grow,
     mapped,
 )
+from .tile import TileRun
 from .triangulation3 import new_torus3, unpack_offsets
 
 STEPS = 20_000  # insertions per kernel call
@@ -82,7 +82,7 @@ def _grown(cap):
     return cap + cap // GROWTH + 4096
 
 
-class Refinement3:
+class Refinement3(TileRun):
     """One 3-D run on the torus of ``period`` (internal units, multiples of the grid step q,
     a power of two >= Q: ``embedding.Embedding.grid``) over the points of ``index``
     (``index3.build_index3``, internal coordinates in [0, period))."""
@@ -196,61 +196,38 @@ class Refinement3:
             cleans=new_queue(size, mapped),
         )
 
-    def seed(self, xyz, kinds, stamps, regions):
-        """Insert the vertices xyz (with their kinds and the rounds that made them) into the
-        initial mesh, mark what earlier rounds settled (regions (Q, T, 6)) and queue the
-        rest. Returns (the number of vertices, the elements not settled)."""
-        order = spatial_order3(np.ascontiguousarray(xyz), self.period)
-        pts = np.ascontiguousarray(xyz[order])
-        ids = np.full(len(pts), -1, np.int64)
-        done = 0
-        while done < len(pts):
-            done = insert_points3(pts, ids, done, self.mesh, self.book, self.scratch, self.cnt,
-                                  self.period)  # fmt: skip
-            if done < 0:
-                what = "a walk got lost" if done == WALK_LOST3 else ERRORS.get(done, str(done))
-                raise EngineError(f"triangulating a tile's vertices failed: {what}")
-            if self.cnt[C_STAMP] > STAMP_LIMIT:
-                self._restart_stamps()
-            if done < len(pts):
-                self._grow()
-        placed = ids >= 0
-        if not placed.all():  # each was inserted at the centre of a ball empty of the others
-            raise EngineError(
-                f"{int((~placed).sum())} of the tiles' vertices coincide with others: tiles "
-                "moved outside their slabs (a broken plan)"
-            )
-        nv = self.vertices
-        all_stamps = np.zeros(nv, np.int32)
-        all_stamps[ids] = stamps[order]
-        self.book.kinds[ids] = kinds[order]
+    # the hooks of ``TileRun``
+    _lost = WALK_LOST3
+
+    @property
+    def positions(self):
+        return self.mesh.xyz
+
+    @property
+    def _tau2(self):
+        return self.prm[P3_TAU2]
+
+    def _order(self, xyz):
+        return spatial_order3(xyz, self.period)
+
+    def _insert_given(self, pts, ids, done):
+        done = insert_points3(pts, ids, done, self.mesh, self.book, self.scratch, self.cnt,
+                              self.period)  # fmt: skip
+        if self.cnt[C_STAMP] > STAMP_LIMIT:
+            self._restart_stamps()
+        return done
+
+    def _mark_settled(self, stamps, regions):
         balls, cells = mark_settled3(self.mesh, self.book, self.scratch, self.cnt, self.prm,
-                                     all_stamps, np.ascontiguousarray(regions, float))  # fmt: skip
+                                     stamps, regions)  # fmt: skip
         if balls < 0:
             raise EngineError("a vertex has more neighbours than a tile's scratch holds")
-        self.requeue()
-        return nv, int(self.cnt[C_NT]) - balls + nv - cells
+        return balls, cells
 
     def requeue(self):
         """Queue every element not settled again, those deferred by a region included."""
         self._fresh_queues()
         queue_seeded3(self.mesh, self.book, self.queues, self.cnt, self.prm)
-
-    def new_vertices(self, start):
-        """(positions, kinds) of the vertices from ``start`` on: copies."""
-        nv = self.vertices
-        return self.mesh.xyz[start:nv].copy(), self.book.kinds[start:nv].copy()
-
-    def unsettled(self):
-        """Elements not known to be settled: circumballs and cells not GOOD, and cells whose
-        aspect exceeds tau."""
-        nt, nv = int(self.cnt[C_NT]), self.vertices
-        aspect = 4.0 * self.mesh.outradius2[:nv] > self.prm[P3_TAU2] * self.mesh.nearest2[:nv]
-        return int(
-            (self.book.ball_state[:nt] != GOOD).sum()
-            + (self.book.cell_state[:nv] != GOOD).sum()
-            + aspect.sum()
-        )
 
     def counters(self):
         """Moves of each kind and the counting tests so far (``Refinement.counters``)."""
