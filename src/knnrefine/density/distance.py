@@ -12,13 +12,12 @@ calls in both dimensions.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:  # the annotations' types only
     from ..mesh import Mesh
-    from ..scale.parts import PartitionedMesh
 
 import numpy as np
 
@@ -29,6 +28,17 @@ from ..metric import BoxMetric, weighted_kth
 from ..validation import as_queries, check_inside, points_of_run
 from .plane import PlanePieces, index_values, linear_pieces
 from .space import SpacePieces
+
+
+class MeshFrame(Protocol):
+    """What d_{P,k} from known pieces needs of a mesh: a ``Mesh``, or a mesh in parts
+    (``scale.parts.PartitionedMesh``, which this layer does not import)."""
+
+    dim: int
+    k: float
+    box: tuple
+    periodic: tuple
+
 
 #: a grid's default cells along each axis, by dimension
 DEFAULT_GRID = {2: 512, 3: 64}
@@ -105,7 +115,7 @@ class KnnDistance:
     @classmethod
     def of_pieces(
         cls,
-        mesh: Mesh | PartitionedMesh,
+        mesh: MeshFrame,
         n: int,
         total: float,
         nodes: np.ndarray,
@@ -119,8 +129,8 @@ class KnnDistance:
 
         Parameters
         ----------
-        mesh : Mesh or PartitionedMesh
-            Its k, box and periodic axes.
+        mesh : Mesh or PartitionedMesh (a ``MeshFrame``)
+            Its dimension, k, box and periodic axes.
         n, total : int, float
             The points' number and their total weight (n unweighted).
         nodes : ndarray (p, 2)

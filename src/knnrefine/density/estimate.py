@@ -3,20 +3,35 @@ the unit ball: pi in the plane, 4 pi / 3 in space), and the default choices of k
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 from numpy.typing import ArrayLike
 
 if TYPE_CHECKING:  # the annotations' types only
     from ..mesh import Mesh
-    from ..scale.parts import PartitionedDistance
 
 import math
 
 import numpy as np
 
 from .distance import KnnDistance
+
+
+class DistanceLike(Protocol):
+    """What the estimate needs of a d_{P,k}: a ``KnnDistance``, or one answered part by
+    part (``scale.parts.PartitionedDistance``, which this layer does not import)."""
+
+    k: float
+    total: float
+
+    def __call__(self, x: ArrayLike) -> np.ndarray: ...
+
+    def grid(self, shape: Any = None) -> tuple: ...
+
+    def integrate(self, func: Callable, region: Any = None) -> float: ...
+
+    def sample_pieces(self, n: int, rng: np.random.Generator) -> np.ndarray: ...
 
 
 def default_k(n: float) -> int:
@@ -101,13 +116,13 @@ class KnnDensity:
 
     @classmethod
     def of_distance(
-        cls, distance: KnnDistance | PartitionedDistance, normalized: bool = True
+        cls, distance: KnnDistance | DistanceLike, normalized: bool = True
     ) -> KnnDensity:
         """The estimate from a d_{P,k} already built.
 
         Parameters
         ----------
-        distance : KnnDistance or PartitionedDistance
+        distance : KnnDistance or PartitionedDistance (a ``DistanceLike``)
             Anything with ``k``, ``total``, ``__call__``, ``grid``, ``integrate`` and
             ``sample_pieces``.
         normalized : bool

@@ -624,7 +624,8 @@ def refine_store(store, opt, workers) -> Mesh:
         if dim == 2:
             floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
             lo, hi = emb.box_internal()
-            estimated = size.estimate(s_index, k, floor, *period, float(np.prod(hi - lo)))[0]
+            area = float(np.prod(hi - lo))
+            estimated = size.estimate(s_index, k, floor, period[0], period[1], area)[0]
             estimated /= share
             budget = vertex_budget(estimated, opt, len(m0_order), n)
         else:  # no size estimate in space: the start's budget, as a run in one process
