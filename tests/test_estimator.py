@@ -304,6 +304,7 @@ def test_standard_error_matches_the_sampling_distribution(replicates):
     assert 0.75 < ratio < 1.15
 
 
+@pytest.mark.slow
 def test_bootstrap_bands_match_the_sampling_distribution(replicates):
     """The 90% band's half-width, read as 1.645 standard deviations, against the Monte Carlo
     spread; it covers the true density (1) at most probes; reproducible with random_state."""

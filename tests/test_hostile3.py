@@ -38,6 +38,7 @@ def test_a_thin_periodic_slab_is_refused_before_any_work(max_vertices):
     assert time.perf_counter() - t0 < 1.0
 
 
+@pytest.mark.slow
 def test_a_slab_periodic_in_z_is_refused_quickly_and_lean():
     """regression: 45 points in a 1 x 1 x 0.1 box periodic in z, k = 12, ran 222 s to a 17 GB
     peak before refusing (ever larger embedding tori, each with the same spacing across z,

@@ -70,6 +70,7 @@ def test_hot_kernels_do_no_reference_counting(dispatcher):
     assert own_refcounts(dispatcher) == 0
 
 
+@pytest.mark.slow
 def test_the_option_matters():
     """The check above can fail: the same refinement kernel compiled with numba's runtime
     counts references around its calls."""

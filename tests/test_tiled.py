@@ -339,6 +339,7 @@ def test_tiled_run_in_space_is_certified_and_the_size_of_a_single_run(periodic, 
     # than the slabs' overlap; the final pass decides them with all points)
 
 
+@pytest.mark.slow
 def test_tiled_run_in_space_with_weights_and_an_executor():
     """Weights count in every slab (whole weights are copies: the tiled mesh of weighted
     points is certified by certify's weighted counts); an executor runs the tiles."""
