@@ -259,14 +259,14 @@ def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
     import pandas as pd
     from conftest import gaussian_clusters
 
-    pts = gaussian_clusters(20000, 13, clusters=12, dim=3)
+    pts = gaussian_clusters(8000, 13, clusters=12, dim=3)
     w = np.random.default_rng(13).integers(1, 3, len(pts)).astype(float)
     box = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
     options = {"client": client, "periodic": (True, False, True), "box": box}
     mesh = distributed.refine(pts, 15, weights=w, **options)
     assert mesh.dim == 3 and len(mesh.stats["rounds"][0]["tiles"]) == 2
     a = knnrefine.certify(mesh, pts, weights=w, samples=10000, n_random=2000)
-    b = distributed.certify(mesh, da.from_array(pts, chunks=(6000, 3)), client=client,
+    b = distributed.certify(mesh, da.from_array(pts, chunks=(2500, 3)), client=client,
                             weights=w, samples=10000, n_random=2000)  # fmt: skip
     assert a.passed and b.passed, str(a)
     for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
@@ -275,7 +275,7 @@ def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
     assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
     frame = pd.DataFrame({"a": pts[:, 0], "b": pts[:, 1], "c": pts[:, 2], "w": w})
     for source, extra in [
-        (da.from_array(pts, chunks=(7000, 3)), {"weights": w}),
+        (da.from_array(pts, chunks=(3000, 3)), {"weights": w}),
         (frame, {"columns": ("a", "b", "c"), "weights": "w"}),
     ]:
         got = distributed.refine(source, 15, **extra, **options)

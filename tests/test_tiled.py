@@ -316,7 +316,6 @@ BOX3 = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
 @pytest.mark.parametrize(
     "periodic, workers, k, n",
     [
-        pytest.param(True, 2, 10, 15000, marks=pytest.mark.slow),
         pytest.param(False, 3, 10, 30000, marks=pytest.mark.slow),
         pytest.param((True, False, True), 2, 30, 30000, marks=pytest.mark.slow),
     ],
