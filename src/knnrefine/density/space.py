@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..engine.bspline import shares_below, weighted_shares
+from ..engine.raster import first_holding3
 from ..errors import InputError
 from ..metric import BoxMetric
 
@@ -204,32 +205,33 @@ class SpacePieces:
         if self._locator is None:
             back = [[0, -1] if p else [0] for p in self._periodic]
             shifts = np.array(np.meshgrid(*back)).reshape(3, -1).T
-            c = self.corners[None] + (shifts * self.period)[:, None, None, :]
-            c = c.reshape(-1, 4, 3)
-            source = np.tile(np.arange(len(self.corners)), len(shifts))  # the piece
-            lo, hi = c.min(axis=1), c.max(axis=1)
-            meets = ((hi >= 0) & (lo <= self.period) | ~self._periodic).all(axis=1)
-            c, source = c[meets], source[meets]
+            lo, hi = self.corners.min(axis=1), self.corners.max(axis=1)
+            parts, sources = [], []
+            for shift in shifts * self.period:  # the copies that meet the box, built alone
+                meets = (hi + shift >= 0) & (lo + shift <= self.period) | ~self._periodic
+                keep = np.flatnonzero(meets.all(axis=1))
+                parts.append(self.corners[keep] + shift)
+                sources.append(keep)  # the piece
+            c, source = np.concatenate(parts), np.concatenate(sources)
             inv = np.linalg.inv(np.transpose(c[:, 1:] - c[:, :1], (0, 2, 1)))
-            self._locator = (cKDTree(c.mean(axis=1)), c[:, 0], inv, source)
+            self._locator = (cKDTree(c.mean(axis=1)), np.ascontiguousarray(c[:, 0]),
+                             np.ascontiguousarray(inv), source)  # fmt: skip
         tree, origin, inv, source = self._locator
+        x = np.ascontiguousarray(x, float)
         tet = np.full(len(x), -1)
         bary = np.zeros((len(x), 4))
         todo = np.arange(len(x))
         for kk in (8, 64, 512):
             if len(todo) == 0:
                 break
-            cand = tree.query(x[todo], k=min(kk, len(origin)))[1].reshape(len(todo), -1)
-            rel = x[todo, None, :] - origin[cand]
-            l123 = np.einsum("qcij,qcj->qci", inv[cand], rel)
-            l0 = 1.0 - l123.sum(axis=2)
-            inside = (l0 >= -1e-9) & (l123 >= -1e-9).all(axis=2)
-            hit = inside.any(axis=1)
-            j = np.argmax(inside, axis=1)[hit]
+            cand = tree.query(x[todo], k=min(kk, len(origin)), workers=-1)[1]
+            cand = np.ascontiguousarray(cand.reshape(len(todo), -1), np.int64)
+            here, b = np.full(len(todo), -1), np.zeros((len(todo), 4))
+            first_holding3(x[todo], cand, origin, inv, 1e-9, here, b)
+            hit = here >= 0
             rows = todo[hit]
-            tet[rows] = source[cand[hit, j]]
-            bary[rows, 0] = l0[hit, j]
-            bary[rows, 1:] = l123[hit, j]
+            tet[rows] = source[here[hit]]
+            bary[rows] = b[hit]
             todo = todo[~hit]
         if len(todo):
             raise AssertionError(f"{len(todo)} points in no tetrahedron")

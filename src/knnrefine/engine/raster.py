@@ -140,3 +140,42 @@ def fans(poly, vals, count):
     if not tri:
         return np.zeros((0, 3, 2)), np.zeros((0, 3))
     return np.concatenate(tri), np.concatenate(fv)
+
+
+@kernel(entry=True, nogil=True)
+def first_holding3(x, cand, origin, inv, tol, tet, bary):
+    """For each point x[q] (q, 3), the first of its candidate tetrahedra cand[q] (indices;
+    ones past the end are a kd-tree's "none") that holds it, up to ``tol`` in barycentric
+    coordinates: a tetrahedron t has corner ``origin[t]`` and ``inv[t]`` the inverse of its
+    edge matrix (rows: the coordinates 1 to 3). Sets tet[q] (left as it was when none holds
+    it) and bary[q] (4,); returns how many were found."""
+    found = 0
+    m = origin.shape[0]
+    for q in range(x.shape[0]):
+        for c in range(cand.shape[1]):
+            t = cand[q, c]
+            if t >= m:
+                continue
+            r0 = x[q, 0] - origin[t, 0]
+            r1 = x[q, 1] - origin[t, 1]
+            r2 = x[q, 2] - origin[t, 2]
+            l1 = inv[t, 0, 0] * r0 + inv[t, 0, 1] * r1 + inv[t, 0, 2] * r2
+            if l1 < -tol:
+                continue
+            l2 = inv[t, 1, 0] * r0 + inv[t, 1, 1] * r1 + inv[t, 1, 2] * r2
+            if l2 < -tol:
+                continue
+            l3 = inv[t, 2, 0] * r0 + inv[t, 2, 1] * r1 + inv[t, 2, 2] * r2
+            if l3 < -tol:
+                continue
+            l0 = 1.0 - (l1 + l2 + l3)
+            if l0 < -tol:
+                continue
+            tet[q] = t
+            bary[q, 0] = l0
+            bary[q, 1] = l1
+            bary[q, 2] = l2
+            bary[q, 3] = l3
+            found += 1
+            break
+    return found
