@@ -403,7 +403,7 @@ def test_a_seeded_run_in_space_rebuilds_the_mesh_and_finds_nothing_to_do():
     from knnrefine.engine.driver3 import Refinement3, choose_grid3
     from knnrefine.engine.index3 import build_index3
     from knnrefine.engine.initial import reach_factor
-    from knnrefine.engine.state import STATUS_DONE
+    from knnrefine.engine.state import C_NT, STATUS_DONE
     from knnrefine.run3 import holds_k
 
     X = gaussian_clusters(8000, seed=8, clusters=6, dim=3)
@@ -418,7 +418,7 @@ def test_a_seeded_run_in_space_rebuilds_the_mesh_and_finds_nothing_to_do():
     m0 = done.vertices
     assert done.run() == STATUS_DONE
     xyz, kinds = done.new_vertices(m0)
-    nt = int(done.cnt[1])
+    nt = int(done.cnt[C_NT])
     again = fresh()
     twice = np.concatenate([xyz, xyz[:50]])
     stamps = np.zeros(len(twice), np.int32)
@@ -426,7 +426,7 @@ def test_a_seeded_run_in_space_rebuilds_the_mesh_and_finds_nothing_to_do():
         again.seed(twice, np.concatenate([kinds, kinds[:50]]), stamps, np.zeros((0, 2, 6)))
     again = fresh()
     again.seed(xyz, kinds, stamps[: len(xyz)], np.zeros((0, 2, 6)))
-    assert again.vertices == done.vertices and int(again.cnt[1]) == nt
+    assert again.vertices == done.vertices and int(again.cnt[C_NT]) == nt
     assert sorted(map(tuple, again.mesh.xyz[: again.vertices])) == sorted(
         map(tuple, done.mesh.xyz[: done.vertices])
     )

@@ -216,9 +216,10 @@ class TiledSpacePoints:
 
     def d_pk(self, x):
         # a first pad from the mesh (a guess only: what the slabs decide is exact)
-        d_m2 = self._vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1] if len(x) else x
-        pad = float(np.quantile(4.0 * d_m2, 0.99)) if len(x) else 0.0
-        return self.questions.d_pk(x, pad, self.boxsize)
+        if len(x) == 0:
+            return np.zeros(0)
+        d_m2 = self._vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
+        return self.questions.d_pk(x, float(np.quantile(4.0 * d_m2, 0.99)), self.boxsize)
 
     def sample_points(self, count, rng):
         sx = self.store.sample(min(1.0, count / self.n))[0]
