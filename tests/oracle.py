@@ -1,13 +1,19 @@
-"""Brute-force references for small inputs: numpy over all pairs, all periodic copies.
+"""Brute-force references for small inputs: every pair, every periodic copy, in the plane and
+in space (the dimension is the points' number of columns).
 
-Nothing here imports knnrefine. Metrics are given per axis by ``period``: a positive period
-makes that axis periodic, 0 leaves it planar. ``knnrefine.certify`` (the scalable checker the
-other tests use) is validated against these in test_certify.py.
+Nothing here imports knnrefine; distances are scipy's ``cdist`` over every pair. Metrics are
+given per axis by ``period``: a positive period makes that axis periodic, 0 leaves it
+straight. ``knnrefine.certify`` (the scalable checker the other tests use) is validated
+against these in test_certify.py.
 """
 
+import itertools
 from fractions import Fraction
 
 import numpy as np
+from scipy.spatial.distance import cdist
+
+BLOCK = 4_000_000  # distances computed at a time (memory: 8 bytes each, a few times over)
 
 
 def theorem6(tau):
@@ -16,88 +22,116 @@ def theorem6(tau):
 
 
 def _copies(points, period):
+    """Every point shifted by -1, 0 and +1 periods along each periodic axis: a point's copy
+    nearest to anything in the box is among them."""
     period = np.asarray(period, float)
-    shifts = [
-        (sx, sy)
-        for sx in ((-1, 0, 1) if period[0] else (0,))
-        for sy in ((-1, 0, 1) if period[1] else (0,))
-    ]
-    return np.concatenate([points + np.array(s) * period for s in shifts])
+    steps = [(-1, 0, 1) if p else (0,) for p in period]
+    shifts = np.array(list(itertools.product(*steps)), float) * period
+    return np.concatenate([points + s for s in shifts])
+
+
+def _rows(x, cover):
+    """Blocks of rows of x small enough that (rows, len(cover)) distances fit in BLOCK."""
+    step = max(1, BLOCK // max(1, len(cover)))
+    for start in range(0, len(x), step):
+        block = x[start : start + step]
+        yield start, cdist(block, cover)
+
+
+def _as(x, period):
+    return np.asarray(x, float).reshape(-1, len(period))
 
 
 def distances(x, points, period):
     """(q, n * copies) distances from each x to every periodic copy of every point."""
-    c = _copies(np.asarray(points, float).reshape(-1, 2), period)
-    x = np.asarray(x, float).reshape(-1, 2)
-    return np.sqrt(((x[:, None, :] - c[None, :, :]) ** 2).sum(-1))
+    cover = _copies(_as(points, period), period)
+    return np.concatenate([d for _, d in _rows(_as(x, period), cover)])
 
 
 def kth(x, points, k, period):
     """d_{S,k}(x) by brute force (inf where S has fewer than k points)."""
-    d = distances(x, points, period)
-    if d.shape[1] < k:
-        return np.full(len(d), np.inf)
-    return np.partition(d, k - 1, axis=1)[:, k - 1]
+    x = _as(x, period)
+    cover = _copies(_as(points, period), period)
+    if len(cover) < k:
+        return np.full(len(x), np.inf)
+    out = np.empty(len(x))
+    for start, d in _rows(x, cover):
+        out[start : start + len(d)] = np.partition(d, k - 1, axis=1)[:, k - 1]
+    return out
 
 
 def circumcircles(corners):
+    """Centres (t, d) and radii (t,) of the circumspheres of simplices (t, d + 1, d)."""
     a = corners[:, 0]
-    b = corners[:, 1] - a
-    c = corners[:, 2] - a
-    d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
-    b2 = (b**2).sum(1)
-    c2 = (c**2).sum(1)
-    ux = (c[:, 1] * b2 - b[:, 1] * c2) / d
-    uy = (b[:, 0] * c2 - c[:, 0] * b2) / d
-    return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
+    edges = corners[:, 1:] - a[:, None, :]
+    u = np.linalg.solve(edges, 0.5 * (edges**2).sum(-1)[..., None])[..., 0]
+    return a + u, np.sqrt((u**2).sum(-1))
 
 
-def incircle_exact(a, b, c, d):
-    """Sign of the in-circle determinant in rational arithmetic (+1: d strictly inside)."""
-    ax, ay, bx, by, cx, cy, dx, dy = (Fraction(float(v)) for v in (*a, *b, *c, *d))
-    adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
-    det = (
-        (adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
-        + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
-        + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady)
-    )
-    return (det > 0) - (det < 0)
+def _solve_exact(rows, rhs):
+    """x with rows @ x = rhs, in rationals (Gauss-Jordan; rows nonsingular)."""
+    n = len(rows)
+    m = [list(r) + [b] for r, b in zip(rows, rhs, strict=True)]
+    for c in range(n):
+        p = next(i for i in range(c, n) if m[i][c] != 0)
+        m[c], m[p] = m[p], m[c]
+        for i in range(n):
+            if i != c and m[i][c] != 0:
+                f = m[i][c] / m[c][c]
+                m[i] = [v - f * w for v, w in zip(m[i], m[c], strict=True)]
+    return [m[i][n] / m[i][i] for i in range(n)]
+
+
+def insphere_exact(corners, q):
+    """+1 if q lies strictly inside the circumsphere of the simplex ``corners`` (d + 1
+    points of d coordinates), 0 on it, -1 outside: decided in rational arithmetic."""
+    c = [[Fraction(float(v)) for v in p] for p in corners]
+    q = [Fraction(float(v)) for v in q]
+    a = c[0]
+    edges = [[pi - ai for pi, ai in zip(p, a, strict=True)] for p in c[1:]]
+    u = _solve_exact(edges, [sum(e * e for e in row) / 2 for row in edges])
+    r2 = sum(v * v for v in u)
+    d2 = sum((qi - ai - ui) ** 2 for qi, ai, ui in zip(q, a, u, strict=True))
+    return (d2 < r2) - (d2 > r2)
 
 
 def torus_facts(torus, points):
-    """Everything Theorem 6 speaks of, by brute force, on the whole torus of a mesh.
+    """Everything Theorem 6 speaks of, by brute force, on the whole torus of a mesh (a
+    triangulation of the flat 2-torus or tetrahedralisation of the 3-torus).
 
-    Returns a dict: empty (no vertex strictly inside any circumcircle, decided exactly for
+    Returns a dict: empty (no vertex strictly inside any circumsphere, decided exactly for
     candidates), aspect (per vertex), R (outradius per vertex), ball (closed circumball
-    counts), r (circumradii), cell (closed Voronoi cell counts), cc (circumcenters)."""
+    counts), r (circumradii), cell (closed Voronoi cell counts), cc (circumcentres)."""
     period = np.asarray(torus.period, float)
     V = np.asarray(torus.vertices, float)
-    P = np.mod(np.asarray(points, float) - np.asarray(torus.origin), period)
-    tri = np.asarray(torus.triangles)
-    corners = V[tri] + np.asarray(torus.offsets) * period
+    dim = V.shape[1]
+    P = np.mod(np.asarray(points, float).reshape(-1, dim) - np.asarray(torus.origin), period)
+    cells = np.asarray(torus.cells)
+    corners = V[cells] + np.asarray(torus.offsets) * period
     cc, r = circumcircles(corners)
-    # empty circles against every copy of every vertex; rationals for the close calls
-    dv = distances(cc, V, period)
-    ids = np.tile(np.arange(len(V)), dv.shape[1] // len(V))
+    # empty spheres against every copy of every vertex; rationals for the close calls
     cover = _copies(V, period)
+    ids = np.tile(np.arange(len(V)), len(cover) // len(V))
     empty = True
-    for f, j in zip(*np.nonzero(dv < r[:, None] * (1 + 1e-7)), strict=True):
-        if ids[j] in tri[f]:
-            continue
-        if incircle_exact(*corners[f], cover[j]) > 0:
-            empty = False
+    for start, dv in _rows(cc, cover):
+        for f, j in zip(*np.nonzero(dv < r[start : start + len(dv), None] * (1 + 1e-7)),
+                        strict=True):  # fmt: skip
+            f += start
+            if ids[j] not in cells[f] and insphere_exact(corners[f], cover[j]) > 0:
+                empty = False
     R = np.zeros(len(V))
-    for c in range(3):
-        np.maximum.at(R, tri[:, c], r)
-    dvv = distances(V, V, period)
-    d2 = np.partition(dvv, 1, axis=1)[:, 1]
-    ball = (distances(cc, P, period) <= r[:, None]).sum(1) if len(P) else np.zeros(len(r), int)
+    for c in range(dim + 1):
+        np.maximum.at(R, cells[:, c], r)
+    d2 = kth(V, V, 2, period)
+    ball = np.zeros(len(r), int)
     cell = np.zeros(len(V), int)
     if len(P):
-        dp = distances(P, V, period)
-        dmin = dp.min(1, keepdims=True)
-        hit = dp <= dmin * (1 + 1e-12)
-        np.add.at(cell, ids[np.nonzero(hit)[1]], 1)
+        pcover = _copies(P, period)
+        for start, d in _rows(cc, pcover):
+            ball[start : start + len(d)] = (d <= r[start : start + len(d), None]).sum(1)
+        for _, dp in _rows(P, cover):
+            hit = dp <= dp.min(1, keepdims=True) * (1 + 1e-12)
+            np.add.at(cell, ids[np.nonzero(hit)[1]], 1)
     return {
         "empty": empty,
         "aspect": 2 * R / d2,
@@ -107,20 +141,3 @@ def torus_facts(torus, points):
         "cell": cell,
         "cc": cc,
     }
-
-
-def random_cell(rng):
-    """A Voronoi-like convex cell about the origin: half-planes {p : nb_j . p <= hc_j} towards
-    a ring of 3 to 8 neighbours nb (hc_j half of |nb_j|^2), inside the disk of squared radius
-    R2. Returns (nb (d, 2), hc (d,), R2)."""
-    deg = rng.integers(3, 9)
-    ang = np.sort(rng.random(deg)) * 2 * np.pi
-    nb = 0.2 * rng.random() * np.stack([np.cos(ang), np.sin(ang)], 1) + 1e-3
-    hc = 0.5 * (nb**2).sum(1)
-    return nb, hc, float((4 * hc).max())
-
-
-def in_cell(rel, nb, hc, R2, slack=1.0):
-    """Mask of the points rel (relative to the cell's centre) in the cell of ``random_cell``,
-    every constraint scaled by ``slack`` (1 -+ 1e-12 brackets the rounding)."""
-    return np.all(rel @ nb.T <= hc * slack, axis=1) & ((rel**2).sum(1) <= R2 * slack)

@@ -1,4 +1,5 @@
-"""certify against brute force (tests/oracle.py) and qhull, and on meshes that must fail."""
+"""certify against brute force (tests/oracle.py) and qhull, and on meshes that must fail, in
+the plane and in space (the ``dim`` fixture; space's own regressions: test_certify3.py)."""
 
 import dataclasses
 import json
@@ -6,41 +7,58 @@ import json
 import numpy as np
 import oracle
 import pytest
+from conftest import unit_box
 from scipy.spatial import Delaunay
 
 import knnrefine
 from knnrefine import certify
 
+
+def mixture(r, d, n=300):
+    """Two thirds uniform, a third in one tight cluster (wrapped into the unit box; wider in
+    space, where the oracle's pairs grow as the square of the vertices)."""
+    width = 0.01 if d == 2 else 0.03
+    return np.concatenate([r.random((2 * n // 3, d)), r.normal(0.3, width, (n // 3, d)) % 1])
+
+
+def with_duplicates(r, d, n=150):
+    """Uniform points and one site repeated six times."""
+    return np.concatenate([r.random((n, d)), np.repeat([[0.4, 0.6, 0.5][:d]], 6, 0)])
+
+
+# name -> (points(rng, dim), k, tau, periodic (per axis, plane first), box, min_size by dim)
 CASES = {
-    "uniform periodic": (lambda r: r.random((300, 2)), 5, 3.0, True, (0, 0, 1, 1), None),
-    "uniform planar": (lambda r: r.random((300, 2)), 5, 3.0, False, None, None),
-    "mixture x-periodic": (
-        lambda r: np.concatenate([r.random((200, 2)), r.normal(0.3, 0.01, (100, 2)) % 1]),
-        8,
-        2.5,
-        (True, False),
-        (0, 0, 1, 1),
-        None,
-    ),
-    "y-periodic tau 6": (lambda r: r.random((250, 2)), 4, 6.0, (False, True), (0, 0, 1, 1), None),
-    "duplicates at the floor": (
-        lambda r: np.concatenate([r.random((150, 2)), np.repeat([[0.4, 0.6]], 6, 0)]),
-        4,
-        3.0,
-        False,
-        None,
-        1e-3,
-    ),
-    "k = 1": (lambda r: r.random((30, 2)), 1, 4.0, True, (0, 0, 1, 1), 1e-2),
+    "uniform periodic": (lambda r, d: r.random((300, d)), 5, 3.0, True, True, None),
+    "uniform planar": (lambda r, d: r.random((300, d)), 5, 3.0, False, None, None),
+    "mixture x-periodic": (mixture, 8, 2.5, (True, False, False), True, None),
+    "y-periodic tau 6": (lambda r, d: r.random((250, d)), 4, 6.0, (False, True, True), True, None),
+    # in space the floors are higher: at the plane's, the meshes would hold 10,000 to 20,000
+    # tetrahedra and the oracle's all-pairs distances take a minute
+    "duplicates at the floor": (with_duplicates, 4, 3.0, False, None, {2: 1e-3, 3: 2e-2}),
+    "k = 1": (lambda r, d: r.random((30, d)), 1, 4.0, True, True, {2: 1e-2, 3: 0.1}),
 }
 
 
-@pytest.fixture(scope="module", params=list(CASES))
+def case_ids():
+    return [(name, d) for d in (2, 3) for name in CASES]
+
+
+@pytest.fixture(
+    scope="module",
+    params=case_ids(),
+    ids=[f"{name}-{'plane' if d == 2 else 'space'}" for name, d in case_ids()],
+)
 def case(request):
-    make, k, tau, periodic, box, min_size = CASES[request.param]
-    points = make(np.random.default_rng(len(request.param)))
+    name, d = request.param
+    make, k, tau, periodic, box, min_size = CASES[name]
+    points = make(np.random.default_rng(len(name)), d)
+    if isinstance(periodic, tuple):
+        periodic = periodic[:d]
+    if isinstance(min_size, dict):
+        min_size = min_size[d]
+    box = unit_box(d) if box else None
     mesh = knnrefine.refine(points, k, tau, periodic=periodic, box=box, min_size=min_size)
-    return request.param, points, mesh, certify(mesh, points, n_random=5000)
+    return name, points, mesh, certify(mesh, points, n_random=5000)
 
 
 def test_matches_brute_force(case):
@@ -55,7 +73,7 @@ def test_matches_brute_force(case):
     floor_balls = int(((facts["ball"] >= mesh.k) & ~above).sum())
     floor_cells = int(((facts["cell"] >= mesh.k) & (facts["R"] < mesh.min_size)).sum())
     assert (cert.floor_circumballs, cert.floor_cells) == (floor_balls, floor_cells)
-    assert sum(c for _, _, c in cert.floor_sites) == floor_balls + floor_cells
+    assert sum(site[-1] for site in cert.floor_sites) == floor_balls + floor_cells
     assert cert.passed, str(cert)
 
 
@@ -67,14 +85,15 @@ def box_metric(mesh):
 def test_achieved_constants_are_what_they_claim(case):
     name, points, mesh, cert = case
     per = box_metric(mesh)
+    d = mesh.dim
     # the ratio at the reported argmin / argmax, recomputed by brute force in the box's metric
     for value, where in ((cert.alpha_hat, cert.alpha_hat_at), (cert.beta_hat, cert.beta_hat_at)):
         x = np.array([where])
         ratio = oracle.kth(x, mesh.vertices, 2, per) / oracle.kth(x, points, mesh.k, per)
         assert ratio[0] == pytest.approx(value, rel=1e-9)
     # and a dense brute-force probe set agrees on the range, within sampling
-    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
-    q = lo + np.random.default_rng(1).random((3000, 2)) * (hi - lo)
+    lo, hi = np.array(mesh.box[:d]), np.array(mesh.box[d:])
+    q = lo + np.random.default_rng(1).random((3000, d)) * (hi - lo)
     q = np.concatenate([q, points[(points >= lo).all(1) & (points <= hi).all(1)]])
     dpk = oracle.kth(q, points, mesh.k, per)
     keep = dpk >= mesh.min_size
@@ -85,15 +104,17 @@ def test_achieved_constants_are_what_they_claim(case):
 
 @pytest.mark.slow
 def test_size_ratio_is_a_monte_carlo_integral(case):
+    """size_integral is the integral of 1 / d_Pk^d over the box (d the dimension)."""
     name, points, mesh, cert = case
     per = box_metric(mesh)
-    lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
-    q = lo + np.random.default_rng(2).random((40000, 2)) * (hi - lo)
+    d = mesh.dim
+    lo, hi = np.array(mesh.box[:d]), np.array(mesh.box[d:])
+    q = lo + np.random.default_rng(2).random((40000, d)) * (hi - lo)
     integral = np.prod(hi - lo) * np.mean(
-        1.0 / np.maximum(oracle.kth(q, points, mesh.k, per), mesh.min_size) ** 2
+        1.0 / np.maximum(oracle.kth(q, points, mesh.k, per), mesh.min_size) ** d
     )
     if name in ("duplicates at the floor", "k = 1"):
-        # 1 / d^2 is dominated by the floor regions: uniform sampling cannot see them; the
+        # 1 / d^dim is dominated by the floor regions: uniform sampling cannot see them; the
         # importance-sampled estimate must be at least as large
         assert cert.size_integral >= 0.5 * integral
     else:
@@ -101,48 +122,53 @@ def test_size_ratio_is_a_monte_carlo_integral(case):
     assert cert.size_ratio == pytest.approx(len(mesh.vertices) / cert.size_integral)
 
 
-@pytest.mark.parametrize("uniform, clustered", [(3000, 1000), (400, 150)])
-def test_outradii_agree_with_qhull(uniform, clustered):
-    """A second, independent triangulation: scipy's Delaunay of the 3 x 3 periodic cover gives
+def outradii(vertices, cells, corners):
+    """R(v): the largest circumradius of the cells at each vertex."""
+    _, r = oracle.circumcircles(corners)
+    R = np.zeros(len(vertices))
+    for c in range(cells.shape[1]):
+        np.maximum.at(R, cells[:, c], r)
+    return R
+
+
+@pytest.mark.parametrize(
+    "dim, uniform, clustered", [(2, 3000, 1000), (2, 400, 150), (3, 3000, 1000), (3, 300, 100)]
+)
+def test_outradii_agree_with_qhull(dim, uniform, clustered):
+    """A second, independent triangulation: scipy's Delaunay of the 3^d periodic cover gives
     the same Voronoi vertices, hence the same outradii R(v) (at moderate scales: qhull is not
     exact); on the small mesh the brute-force oracle does too (it used never to run: the only
     mesh was over its 800-vertex limit)."""
     rng = np.random.default_rng(11)
-    points = np.concatenate([rng.random((uniform, 2)), rng.normal(0.3, 0.02, (clustered, 2)) % 1.0])
-    mesh = knnrefine.refine(points, 8, 3.0, periodic=True, box=(0, 0, 1, 1))
+    points = np.concatenate(
+        [rng.random((uniform, dim)), rng.normal(0.3, 0.02, (clustered, dim)) % 1.0]
+    )
+    mesh = knnrefine.refine(points, 8, 3.0, periodic=True, box=unit_box(dim))
     V = mesh.torus.vertices
     m = len(V)
-    shifts = np.array(
-        [(0, 0)] + [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if (a, b) != (0, 0)]
-    )
-    cover = (V[None] + shifts[:, None]).reshape(-1, 2)
+    steps = np.stack(np.meshgrid(*[(0, -1, 1)] * dim, indexing="ij"), -1).reshape(-1, dim)
+    cover = (V[None] + steps[:, None]).reshape(-1, dim)  # the vertices themselves first
     s = Delaunay(cover).simplices
     s = s[(s < m).any(1)]
-    _, r = oracle.circumcircles(cover[s])
-    R_qhull = np.zeros(m)
-    for c in range(3):
-        np.maximum.at(R_qhull, s[:, c] % m, r)
-    corners = V[mesh.torus.triangles] + mesh.torus.offsets
-    _, r_engine = oracle.circumcircles(corners)
-    R_engine = np.zeros(m)
-    for c in range(3):
-        np.maximum.at(R_engine, mesh.torus.triangles[:, c], r_engine)
+    R_qhull = outradii(V, s % m, cover[s])
+    cells = mesh.torus.cells
+    R_engine = outradii(V, cells, V[cells] + mesh.torus.offsets)
     np.testing.assert_allclose(R_qhull, R_engine, rtol=1e-9)
     if uniform < 1000:
         assert m < 800
-        facts = oracle.torus_facts(mesh.torus, np.zeros((0, 2)))
+        facts = oracle.torus_facts(mesh.torus, np.zeros((0, dim)))
         np.testing.assert_allclose(facts["R"], R_engine, rtol=1e-9)
     assert certify(mesh, points).passed
 
 
-def test_reports_failures():
+def test_reports_failures(dim):
     """certify must be able to say no."""
     rng = np.random.default_rng(3)
-    points = rng.random((2000, 2))
-    mesh = knnrefine.refine(points, 10, 4.0, periodic=True, box=(0, 0, 1, 1))
+    points = rng.random((2000, dim))
+    mesh = knnrefine.refine(points, 10, 4.0, periodic=True, box=unit_box(dim))
     assert certify(mesh, points).passed
     # more data than the mesh was made for is an input error...
-    more = np.concatenate([points, 0.5 + 0.01 * rng.random((500, 2))])
+    more = np.concatenate([points, 0.5 + 0.01 * rng.random((500, dim))])
     with pytest.raises(knnrefine.InputError, match="made from 2,000 points but 2,500"):
         certify(mesh, more)
     # ...and a mesh that claims those points fails: cells and circumballs overflow
@@ -156,11 +182,13 @@ def test_reports_failures():
     # a vertex moved: no longer Delaunay
     torus = mesh.torus
     moved = torus.vertices.copy()
-    (a, b, _), (oa, ob, _) = torus.triangles[0], torus.offsets[0]
+    (a, b), (oa, ob) = torus.cells[0, :2], torus.offsets[0, :2]
     moved[a] += 0.6 * ((moved[b] + ob) - (moved[a] + oa))  # along an edge (period 1)
     bad = dataclasses.replace(mesh, torus=dataclasses.replace(torus, vertices=moved))
     c = certify(bad, points)
     assert not c.triangulation_ok and not c.passed
+    if torus.neighbors is None:  # in space the torus carries no neighbour links
+        return
     # a neighbour link broken
     nb = torus.neighbors.copy()
     nb[0, 0] = nb[0, 1]
@@ -177,10 +205,10 @@ def test_report_formats(case):
     assert d["passed"] is True and d["k"] == mesh.k
 
 
-def test_n_below_k_fails():
+def test_n_below_k_fails(dim):
     """A mesh certified against fewer points than its k: d_Pk is infinite, no lower bound.
     Only a mesh that claims those points gets that far (otherwise: input error)."""
-    points = np.random.default_rng(4).random((50, 2))
+    points = np.random.default_rng(4).random((50, dim))
     mesh = knnrefine.refine(points, 10)
     with pytest.raises(knnrefine.InputError, match="made from 50 points but 5"):
         certify(mesh, points[:5])
@@ -188,22 +216,23 @@ def test_n_below_k_fails():
     assert not c.passed and "n < k" in str(c)
 
 
-def test_points_outside_the_mesh_box_are_an_input_error():
+def test_points_outside_the_mesh_box_are_an_input_error(dim):
     """certify used to report a geometric FAIL for points that are not the mesh's."""
-    points = np.random.default_rng(5).random((300, 2))
+    points = np.random.default_rng(5).random((300, dim))
     mesh = knnrefine.refine(points, 5)
     moved = points.copy()
-    moved[7] = [3.0, 0.5]
+    moved[7, :2] = [3.0, 0.5]
     with pytest.raises(knnrefine.InputError, match="1 of the points lie outside the mesh's box"):
         certify(mesh, moved)
-    torus = knnrefine.refine(points, 5, periodic=True, box=(0, 0, 1, 1))
-    assert certify(torus, points + [1.0, -2.0]).passed  # periodic axes wrap: the same points
+    torus = knnrefine.refine(points, 5, periodic=True, box=unit_box(dim))
+    shift = [1.0, -2.0, 3.0][:dim]
+    assert certify(torus, points + shift).passed  # periodic axes wrap: the same points
 
 
-def test_nothing_measured_says_so():
+def test_nothing_measured_says_so(dim):
     """Every probe under the floor used to read 'not measured (n < k)'."""
-    points = np.random.default_rng(6).random((30, 2))
-    mesh = knnrefine.refine(points, 3, box=(0, 0, 1, 1), min_size=10.0)  # a floor above it all
+    points = np.random.default_rng(6).random((30, dim))
+    mesh = knnrefine.refine(points, 3, box=unit_box(dim), min_size=10.0)  # a floor above it all
     c = certify(mesh, points)
     assert "nothing measured: every probe lies where d_Pk < min_size" in str(c)
     assert "n < k" not in str(c)
@@ -217,10 +246,10 @@ def test_larger_input_samples_its_probes():
     assert c.passed and c.n_probes > 100_000
 
 
-def test_the_size_integral_reads_only_its_own_samples():
+def test_the_size_integral_reads_only_its_own_samples(dim):
     """The integral used to be read off the front of the concatenated probe array: it must
     not depend on how many other probes there are, or their order."""
-    points = np.random.default_rng(8).random((3000, 2))
+    points = np.random.default_rng(8).random((3000, dim))
     mesh = knnrefine.refine(points, 10)
     a = certify(mesh, points, n_random=0, max_point_probes=10)
     b = certify(mesh, points, n_random=20_000, max_point_probes=3000)

@@ -9,8 +9,8 @@ import time
 
 from ..validation import as_points
 from .certificate import Certificate
-from .common import check_precondition, check_source
-from .plane import TorusPoints, check_points_are_the_meshs, run_checks
+from .common import check_points_are_the_meshs, check_precondition, check_source
+from .plane import TorusPoints, run_checks
 from .space import certify3
 
 __all__ = [

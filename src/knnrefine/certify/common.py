@@ -1,12 +1,14 @@
 """What the plane's and space's certificates share: that the points are the run's own
 (``check_source``), Lemma 2's precondition on the initial vertices (``check_precondition``) and
-finding rows of integers in a table (``find_rows``). Weighted counts from kd-trees are
+finding rows of integers in a table (``find_rows``), and that the points given to certify are
+the mesh's (``check_points_are_the_meshs``). Weighted counts from kd-trees are
 ``metric``'s (``held_in_balls``, ``cell_tally``, ``weighted_kth``)."""
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from ..validation import check_inside, check_made_from, weights_of_run
 
 
 def check_source(stats, n, weight):
@@ -25,6 +27,29 @@ def check_source(stats, n, weight):
             f"the mesh was refined with total weight {total} but the source's is "
             f"{weight}: give the weights it was refined with (or none)"
         )
+
+
+def check_points_are_the_meshs(mesh, pts, weights=None):
+    """A mesh is certified against the points it was made from: as many as it records, inside
+    its box along non-periodic axes, with weights exactly when it was refined with weights
+    (of the total it records). Anything else is an input error, not a failed certificate.
+    Returns the weights as float64, or None."""
+    check_made_from(mesh.stats, len(pts), "certify a mesh against")
+    weights = weights_of_run(mesh.stats, len(pts), weights)
+    dim = mesh.dim
+    for a in range(dim):
+        if mesh.periodic[a]:
+            continue
+        lo, hi = mesh.box[a], mesh.box[a + dim]
+        out = (pts[:, a] < lo) | (pts[:, a] > hi)
+        if out.any():
+            raise InputError(
+                f"{int(out.sum()):,} of the points lie outside the mesh's box along "
+                f"{'xyz'[a]} ([{lo:g}, {hi:g}]), the first at index {int(np.argmax(out))}: these "
+                "are not the points the mesh was refined from"
+            )
+    check_inside(pts, mesh.box, mesh.periodic, warn=False)  # periodic positions not lost
+    return weights
 
 
 def check_precondition(initial, torus, k, tau, period):

@@ -21,10 +21,8 @@ from fractions import Fraction
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..errors import InputError
 from ..mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
 from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
-from ..validation import check_made_from, weights_of_run
 from .certificate import Certificate, floor_sites, to_input
 from .common import (
     check_precondition,
@@ -269,27 +267,6 @@ def measure_size(torus, probes):
         else 0.0
     )
     return Size(integral, float(np.sqrt(var)))
-
-
-def check_points_are_the_meshs(mesh, pts, weights=None):
-    """A mesh is certified against the points it was made from: as many as it records, inside
-    its box along non-periodic axes, with weights exactly when it was refined with weights
-    (of the total it records). Anything else is an input error, not a failed certificate.
-    Returns the weights as float64, or None."""
-    check_made_from(mesh.stats, len(pts), "certify a mesh against")
-    weights = weights_of_run(mesh.stats, len(pts), weights)
-    for a in range(2):
-        if mesh.periodic[a]:
-            continue
-        lo, hi = mesh.box[a], mesh.box[a + 2]
-        out = (pts[:, a] < lo) | (pts[:, a] > hi)
-        if out.any():
-            raise InputError(
-                f"{int(out.sum()):,} of the points lie outside the mesh's box along "
-                f"{'xy'[a]} ([{lo:g}, {hi:g}]), the first at index {int(np.argmax(out))}: these "
-                "are not the points the mesh was refined from"
-            )
-    return weights
 
 
 def verify_returned_mesh(mesh):

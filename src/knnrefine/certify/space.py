@@ -30,9 +30,9 @@ from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only i
 from ..engine.predicates3 import insphere, orient3d
 from ..mesh import theorem6_constants
 from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
-from ..validation import as_points, check_inside, check_made_from, weights_of_run
+from ..validation import as_points
 from .certificate import Certificate, floor_sites, to_input
-from .common import check_precondition, find_rows
+from .common import check_points_are_the_meshs, check_precondition, find_rows
 
 
 @kernel(entry=True, lazy=True)
@@ -235,9 +235,7 @@ def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes
     """``certify`` in space in this process (``run_checks3`` on ``SpacePoints``)."""
     t0 = time.perf_counter()
     pts = as_points(points, 3)
-    check_made_from(mesh.stats, len(pts), "certify a mesh against")
-    weights = weights_of_run(mesh.stats, len(pts), weights)
-    check_inside(pts, mesh.box, mesh.periodic, warn=False)
+    weights = check_points_are_the_meshs(mesh, pts, weights)
     return run_checks3(mesh, SpacePoints(mesh, pts, weights, threads), samples=samples,
                        n_random=n_random, max_point_probes=max_point_probes, seed=seed,
                        threads=threads, t0=t0)  # fmt: skip

@@ -10,11 +10,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..certify.certificate import Certificate
-from ..certify.common import check_source
-from ..certify.plane import TorusPoints, check_points_are_the_meshs, run_checks
+from ..certify.common import check_points_are_the_meshs, check_source
+from ..certify.plane import TorusPoints, run_checks
 from ..certify.space import run_checks3
 from ..metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
-from ..validation import as_points, check_inside, check_made_from, weights_of_run
+from ..validation import as_points
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
 
 
@@ -36,12 +36,7 @@ def certify_local(mesh, points, weights, workers, threads, *, samples, n_random,
     """
     t0 = time.perf_counter()
     pts = as_points(points, mesh.dim)
-    if mesh.dim == 3:
-        check_made_from(mesh.stats, len(pts), "certify a mesh against")
-        weights = weights_of_run(mesh.stats, len(pts), weights)
-        check_inside(pts, mesh.box, mesh.periodic, warn=False)
-    else:
-        weights = check_points_are_the_meshs(mesh, pts, weights)
+    weights = check_points_are_the_meshs(mesh, pts, weights)
     store = LocalStore(pts, weights, workers)
     try:
         return check_store(mesh, store, workers, threads, samples=samples, n_random=n_random,
