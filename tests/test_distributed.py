@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import DEGENERATE
+from conftest import DEGENERATE, DEGENERATE3
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -239,6 +239,29 @@ def test_dask_tiles_on_degenerate_inputs_certify(client, name, periodic, weighte
     assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
 
 
+@given(
+    name=st.sampled_from(sorted(DEGENERATE3)),
+    periodic=st.sampled_from([True, False, (True, False, True)]),
+    weighted=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+@settings(max_examples=4)
+def test_dask_slabs_in_space_on_degenerate_inputs_certify(client, name, periodic, weighted, seed):
+    """The same property in space: points on a plane, on two planes, on the seam, on a
+    cross of planes, on one line, on a lattice, weighted or not, through the Dask path: every
+    mesh certifies and has the size of one process's within 5%."""
+    rng = np.random.default_rng(seed)
+    pts = DEGENERATE3[name](2500, rng)
+    weights = rng.integers(1, 3, len(pts)).astype(float) if weighted else None
+    box = (0, 0, 0, 1, 1, 1)
+    mesh = distributed.refine(pts, 12, client=client, periodic=periodic, box=box,
+                              weights=weights)  # fmt: skip
+    cert = knnrefine.certify(mesh, pts, weights=weights)
+    assert cert.passed, str(cert)
+    one = knnrefine.refine(pts, 12, periodic=periodic, box=box, weights=weights)
+    assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
+
+
 def test_certify_on_the_cluster_with_more_strips_than_points(client):
     """regression (issue 28): distributed.certify crashed when a strip held no point."""
     pts = np.random.default_rng(12).random((6, 2))
@@ -254,7 +277,8 @@ def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
     """Points in space on the cluster (a NumPy array, a Dask array, a DataFrame's three
     columns, weights by column): the same mesh from every source, certified by
     knnrefine.certify and by distributed.certify with the same figures, and within 5% of
-    one process's size; output= (meshes in parts) is refused for them before any work."""
+    one process's size; output= writes it in parts (slabs), the same mesh again, whose
+    density part by part is refused (built in the plane)."""
     import dask.array as da
     import pandas as pd
     from conftest import gaussian_clusters
@@ -280,5 +304,11 @@ def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
     ]:
         got = distributed.refine(source, 15, **extra, **options)
         np.testing.assert_array_equal(got.vertices, mesh.vertices)
-    with pytest.raises(InputError, match="output= writes a mesh in parts"):
-        distributed.refine(pts, 15, output=tmp_path / "parts", **options)
+    pm = distributed.refine(pts, 15, weights=w, output=tmp_path / "parts", parts=3, **options)
+    back = pm.to_mesh()
+    np.testing.assert_array_equal(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.cells, mesh.cells)
+    q = np.random.default_rng(14).random((5000, 3))
+    np.testing.assert_array_equal(pm.d_m2(q), mesh.d_m2(q))
+    with pytest.raises(InputError, match="built for meshes in the plane"):
+        distributed.density(pm, pts, client=client, weights=w)

@@ -14,14 +14,16 @@ from knnrefine.scale.parts import FINISHED, PartitionedMesh, write_partitioned
 
 
 def assert_same_mesh(a, b):
-    for name in ("vertices", "triangles", "offsets", "kinds", "order", "floor_points"):
+    for name in ("vertices", "cells", "offsets", "kinds", "order", "floor_points"):
         x, y = getattr(a, name), getattr(b, name)
         assert (x is None) == (y is None), name
         if x is not None:
             assert x.dtype == y.dtype and np.array_equal(x, y), name
-    for name in ("vertices", "triangles", "offsets", "neighbors", "kinds"):
+    for name in ("vertices", "cells", "offsets", "neighbors", "kinds"):
         x, y = getattr(a.torus, name), getattr(b.torus, name)
-        assert x.dtype == y.dtype and np.array_equal(x, y), name
+        assert (x is None) == (y is None), name  # the torus in space keeps no neighbours
+        if x is not None:
+            assert x.dtype == y.dtype and np.array_equal(x, y), name
     assert (a.k, a.tau, a.periodic, a.box, a.min_size) == (
         b.k,
         b.tau,
@@ -60,6 +62,47 @@ def test_parts_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, parts):
             assert got[i] == mesh.d_m2(beyond[i : i + 1])[0]
     own = sum(p["vertices"] for p in pm.manifest["parts"])
     assert own == len(mesh.vertices)
+
+
+@pytest.mark.parametrize(
+    "periodic, parts", [(True, 4), (False, 3), ((True, False, True), 1)], ids=str
+)
+def test_parts_in_space_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, parts):
+    """A mesh in space in slabs: put back together it is the same Mesh (no neighbour links
+    in the torus, as refine's), its d_{M,2} part by part equals the whole mesh's at random
+    points, on every cut plane, at the box's corners and beyond the box (NaN along
+    non-periodic axes), each part exact at its own tetrahedra's centroids; d_Pk and plots part
+    by part are refused (built in the plane)."""
+    pts = gaussian_clusters(6000, 2, clusters=12, dim=3)
+    mesh = knnrefine.refine(pts, 15, periodic=periodic, box=(0, 0, 0, 1, 1, 1))
+    pm = write_partitioned(mesh, tmp_path / "mesh", parts)
+    assert len(pm) == parts and pm.dim == 3
+    back = PartitionedMesh(tmp_path / "mesh").to_mesh()
+    assert_same_mesh(mesh, back)
+    rng = np.random.default_rng(3)
+    lo, hi = np.array(mesh.box[:3]), np.array(mesh.box[3:])
+    axis = pm.manifest["axis"]
+    on_cuts = lo + rng.random((300 * parts, 3)) * (hi - lo)
+    cuts = np.clip(np.array(pm.manifest["cuts"]) + lo[axis], lo[axis], hi[axis])  # in the box
+    on_cuts[:, axis] = np.repeat(cuts, 300)
+    corners = np.array(np.meshgrid(*zip(lo, hi, strict=True))).reshape(3, -1).T
+    q = np.concatenate([lo + rng.random((30000, 3)) * (hi - lo), on_cuts, corners])
+    np.testing.assert_array_equal(pm.d_m2(q), mesh.d_m2(q))
+    beyond = (lo + hi) / 2 + np.eye(3) * (hi - lo)
+    got = pm.d_m2(beyond)
+    for a in range(3):
+        assert np.isnan(got[a]) == (not mesh.periodic[a])
+        if mesh.periodic[a]:
+            assert got[a] == mesh.d_m2(beyond[a : a + 1])[0]
+    for j in range(len(pm)):
+        part = pm.part(j)
+        c = part.corners().mean(axis=1)
+        np.testing.assert_array_equal(part.d_m2(c), mesh.d_m2(c))
+    assert sum(p["vertices"] for p in pm.manifest["parts"]) == len(mesh.vertices)
+    with pytest.raises(InputError, match="built for meshes in the plane"):
+        pm.density(pts)
+    with pytest.raises(InputError, match="built for meshes in the plane"):
+        pm.plot()
 
 
 def test_each_part_is_exact_in_its_own_triangles(tmp_path):

@@ -435,6 +435,17 @@ def circumcircles(corners):
     return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
 
 
+def circumspheres(corners):
+    """(centres (t, d), radii (t,)) of the circumballs of the simplices (t, d + 1, d): the
+    plane's circumcircles, or in space the solution of 2 (p_i - p_0) . u = |p_i - p_0|^2."""
+    if corners.shape[-1] == 2:
+        return circumcircles(corners)
+    a = corners[:, 0]
+    edges = corners[:, 1:] - a[:, None, :]
+    u = np.linalg.solve(edges, 0.5 * (edges**2).sum(-1)[..., None])[..., 0]
+    return a + u, np.sqrt((u**2).sum(-1))
+
+
 def triangle_areas(corners):
     """Signed areas of the triangles (t, 3, 2): positive when counter-clockwise."""
     e1 = corners[:, 1] - corners[:, 0]

@@ -330,7 +330,7 @@ def refine(
     output : path, optional
         Write the mesh as a folder of ``parts`` parts (default: one per worker) and return it
         as a ``PartitionedMesh`` (``write_partitioned``: written atomically, a finished marker
-        last; ``force`` overwrites an existing folder). In the plane only.
+        last; ``force`` overwrites an existing folder), in the plane and in space.
 
     Returns
     -------
@@ -339,14 +339,9 @@ def refine(
     Raises
     ------
     InputError
-        Bad options or points, checked before any work (``output=`` for points in space).
+        Bad options or points, checked before any work.
     """
     if output is not None:
-        if source_dim(source, columns) == 3:
-            raise InputError(
-                "output= writes a mesh in parts, built for meshes in the plane: refine points "
-                "in space without it (the result is a Mesh; save it with knnrefine.io)"
-            )
         check_output(output, parts, force)
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         opt = RunOptions.check(
@@ -431,6 +426,12 @@ def density(
     -------
     KnnDensity
         Evaluate, ``grid``, ``mass``, ``sample``.
+
+    Raises
+    ------
+    InputError
+        Not a partitioned mesh, a mesh in space (use ``knnrefine.KnnDensity`` on
+        ``pmesh.to_mesh()``), or points that are not the run's.
     """
     from ..density import KnnDensity
     from .parts import PartitionedDistance, PartitionedMesh
@@ -442,6 +443,7 @@ def density(
             f"density needs a PartitionedMesh (refine(..., output=)), got {type(pmesh).__name__};"
             " for a Mesh in memory use knnrefine.KnnDensity(mesh, points)"
         )
+    pmesh.check_plane("the kNN density")
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         store.check_inside(pmesh.box, pmesh.periodic)
         distance = PartitionedDistance.of_store(pmesh, store, tiles, subdivide)

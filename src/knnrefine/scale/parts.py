@@ -1,18 +1,21 @@
-"""A mesh kept as a folder of parts, one per strip of the box, read part by part.
+"""A mesh kept as a folder of parts, one per strip of the box (a slab in space), read part
+by part.
 
-``write_partitioned(mesh, path, parts)`` cuts the box into ``parts`` strips across its longer
+``write_partitioned(mesh, path, parts)`` cuts the box into ``parts`` strips across its longest
 side, balanced by vertex count, and writes for each an ``.npz`` file: the vertices it owns
-(those in its strip), the triangles it owns (those whose first corner it owns), a halo of
-the other vertices within 3 R_T of the circumcentre of some triangle T meeting the strip
-(R_T its circumradius), and its share of the torus triangulation (the certificate's
-evidence). A point x of a triangle T has its two nearest vertices within 2 R_T of x (T's
-corners are that close), so within 3 R_T of T's circumcentre; a point of the strip, or of
-one of the part's own triangles, lies in a triangle meeting the strip: so a part answers
-d_{M,2} exactly there without the rest of the mesh (``PartitionedMesh.part(j).d_m2``).
+(those in its strip), the cells (triangles, tetrahedra in space) it owns (those whose first
+corner it owns), a halo of the other vertices within 3 R_T of the circumcentre of some cell
+T meeting the strip (R_T its circumradius), and its share of the torus triangulation (the
+certificate's evidence). A point x of a cell T has its two nearest vertices within 2 R_T of x
+(T's corners are that close: T lies in its circumball), so within 3 R_T of T's circumcentre;
+a point of the strip, or of one of the part's own cells, lies in a cell meeting the strip:
+so a part answers d_{M,2} exactly there without the rest of the mesh
+(``PartitionedMesh.part(j).d_m2``). The argument is the same in any dimension; the files
+keep the plane's names (``triangles``: the cells).
 
-Each part also lists the other parts' triangles that meet its strip (format 2), so that
-the kNN density works part by part (``PartitionedDistance``, ``PartitionedMesh.density``):
-the piece holding a point of the strip is among them.
+Each part also lists the other parts' cells that meet its strip (format 2), so that the kNN
+density works part by part (``PartitionedDistance``, ``PartitionedMesh.density``; in the
+plane): the piece holding a point of the strip is among them.
 
 The folder is written under a temporary name and renamed into place with a finished marker
 (``_SUCCESS``) written last; ``PartitionedMesh(path)`` refuses a folder without it.
@@ -37,7 +40,7 @@ from ..density.plane import index_values, midpoints, node_guesses, sample_pieces
 from ..engine.raster import rasterise
 from ..errors import InputError
 from ..io import UNREADABLE, unreadable
-from ..mesh import Mesh, Torus, circumcircles, split_in_four
+from ..mesh import Mesh, Torus, circumspheres, split_in_four
 from ..metric import BoxMetric
 from ..validation import as_points, as_queries, check_workers, weights_of_run
 
@@ -50,7 +53,9 @@ MANIFEST = "manifest.json"
 
 
 def _axis(box):
-    return 0 if box[2] - box[0] >= box[3] - box[1] else 1
+    """The box's longest axis (the first of equals)."""
+    dim = len(box) // 2
+    return int(np.argmax([box[a + dim] - box[a] for a in range(dim)]))
 
 
 def _owner(coord, cuts):
@@ -68,11 +73,11 @@ def write_partitioned(
     Parameters
     ----------
     mesh : Mesh
-        In the plane.
+        In the plane or in space.
     path : str or PathLike
         The folder.
     parts : int
-        Strips across the box's longer periodic (else longer) axis, one file each.
+        Strips (slabs in space) across the box's longest axis, one file each.
     force : bool
         Replace an existing folder (the old one goes only once the new one is whole).
 
@@ -81,11 +86,6 @@ def write_partitioned(
     PartitionedMesh
         The folder, read back.
     """
-    if mesh.dim != 2:
-        raise InputError(
-            f"meshes in parts are built for the plane; this one is in {mesh.dim} dimensions: "
-            "write it whole (write_mesh: .npz, .vtu)"
-        )
     path = check_output(path, parts, force)
     parent = os.path.dirname(path)
     tmp = tempfile.mkdtemp(dir=parent, prefix=".knnrefine-")
@@ -132,21 +132,22 @@ def _umask():
 
 def _write_parts(mesh, folder, parts):
     box = np.array(mesh.box, float)
+    dim = mesh.dim
     axis = _axis(box)
     metric = BoxMetric(mesh.box, mesh.periodic)
     per = bool(mesh.periodic[axis])
-    side = box[axis + 2] - box[axis]
+    side = box[axis + dim] - box[axis]
     coord = metric.frame(mesh.vertices)[:, axis]
     cuts = np.quantile(coord, np.arange(parts) / parts) if len(coord) else np.zeros(parts)
     cuts[0] = min(cuts[0], 0.0)
     owner = _owner(coord, cuts)
     ends = np.append(cuts[1:], side)
 
-    # each strip's halo: the vertices within 3 R_T of the circumcentre of a triangle T that
-    # meets it (T lies in its circumdisk, and a point of T has its two nearest vertices
+    # each strip's halo: the vertices within 3 R_T of the circumcentre of a cell T that
+    # meets it (T lies in its circumball, and a point of T has its two nearest vertices
     # within 2 R_T: module docstring)
     corners = mesh.corners()
-    centres, radius = circumcircles(corners)
+    centres, radius = circumspheres(corners)
     c_axis = corners[..., axis] - box[axis]
     first = _owner(c_axis.min(axis=1) % side if per else c_axis.min(axis=1), cuts)
     last = _owner(c_axis.max(axis=1) % side if per else c_axis.max(axis=1), cuts)
@@ -161,11 +162,13 @@ def _write_parts(mesh, folder, parts):
         for j in np.unique(strip):
             meets[j].append(on[strip == j])
 
-    tri_owner = owner[mesh.triangles[:, 0]] if len(mesh.triangles) else np.zeros(0, int)
+    cells = mesh.cells
+    tri_owner = owner[cells[:, 0]] if len(cells) else np.zeros(0, int)
     torus = mesh.torus
     t_coord = metric.frame(np.asarray(torus.vertices) + np.array(torus.origin))[:, axis]
     t_owner = _owner(t_coord, cuts)
-    tt_owner = t_owner[torus.triangles[:, 0]]
+    tt_owner = t_owner[torus.cells[:, 0]]
+    no_neighbors = np.zeros((0, dim + 1), np.int64)  # the torus in space keeps none
     f_owner = _owner(metric.frame(mesh.floor_points)[:, axis], cuts)
     d_range = [np.inf, 0.0]
     files = []
@@ -181,18 +184,18 @@ def _write_parts(mesh, folder, parts):
         local[ids] = np.arange(len(ids))
         tids = np.flatnonzero(tri_owner == j)
         cover = np.setdiff1d(t, tids)  # the others' triangles that meet the strip
-        triangles = local[mesh.triangles[tids]]
-        cover_triangles = local[mesh.triangles[cover]]
+        triangles = local[cells[tids]]
+        cover_triangles = local[cells[cover]]
         if (triangles < 0).any() or (cover_triangles < 0).any():
-            raise AssertionError("a part's triangle reaches past its halo")
-        no_offsets = np.zeros((0, 3, 2), np.int8)
+            raise AssertionError("a part's cell reaches past its halo")
+        no_offsets = np.zeros((0, dim + 1, dim), np.int8)
         arrays = {
             "format": np.array(FORMAT_VERSION),
             "vertex_ids": ids, "owned": np.array(len(own)), "vertices": mesh.vertices[ids],
             "kinds": mesh.kinds[ids], "order": mesh.order[ids],
-            "triangle_ids": tids, "triangles": triangles.astype(mesh.triangles.dtype),
+            "triangle_ids": tids, "triangles": triangles.astype(cells.dtype),
             "offsets": no_offsets if mesh.offsets is None else mesh.offsets[tids],
-            "cover_ids": cover, "cover_triangles": cover_triangles.astype(mesh.triangles.dtype),
+            "cover_ids": cover, "cover_triangles": cover_triangles.astype(cells.dtype),
             "cover_offsets": no_offsets if mesh.offsets is None else mesh.offsets[cover],
             "floor_points": mesh.floor_points[f_owner == j],
             "floor_ids": np.flatnonzero(f_owner == j),
@@ -202,14 +205,14 @@ def _write_parts(mesh, folder, parts):
         arrays.update({
             "torus_vertex_ids": tv, "torus_vertices": torus.vertices[tv],
             "torus_kinds": torus.kinds[tv], "torus_triangle_ids": tt,
-            "torus_triangles": torus.triangles[tt], "torus_offsets": torus.offsets[tt],
-            "torus_neighbors": torus.neighbors[tt],
+            "torus_triangles": torus.cells[tt], "torus_offsets": torus.offsets[tt],
+            "torus_neighbors": no_neighbors if torus.neighbors is None else torus.neighbors[tt],
         })  # fmt: skip
         name = f"part-{j:05d}.npz"
         with open(os.path.join(folder, name), "wb") as f:
             np.savez_compressed(f, **arrays)
         part = _part_mesh(mesh, arrays, mesh.offsets is not None)
-        if len(part.triangles):
+        if len(part.cells):
             d = part.d_m2(part.corners().mean(axis=1))
             d_range = [min(d_range[0], float(d.min())), max(d_range[1], float(d.max()))]
         strip = [float(cuts[j] + box[axis]), float(ends[j] + box[axis])]
@@ -220,9 +223,10 @@ def _write_parts(mesh, folder, parts):
         "format": FORMAT_VERSION, "k": mesh.k, "tau": mesh.tau,
         "periodic": list(mesh.periodic), "box": list(mesh.box), "min_size": mesh.min_size,
         "axis": axis, "cuts": [float(c) for c in cuts], "parts": files,
-        "m": len(mesh.vertices), "triangles": len(mesh.triangles),
+        "m": len(mesh.vertices), "triangles": len(cells),
         "torus": {"origin": list(torus.origin), "period": list(torus.period),
-                  "m": len(torus.vertices), "triangles": len(torus.triangles)},
+                  "m": len(torus.vertices), "triangles": len(torus.cells),
+                  "neighbors": torus.neighbors is not None},
         "has_offsets": mesh.offsets is not None, "d_m2_range": d_range, "stats": mesh.stats,
     }  # fmt: skip
 
@@ -241,8 +245,9 @@ def _part_mesh(mesh, arrays, has_offsets):
 
 class PartitionedMesh:
     """A mesh written by ``write_partitioned`` (or ``distributed.refine(..., output=)``),
-    read part by part: ``part(j)`` is a small ``Mesh`` exact in its strip; ``d_m2`` and
-    ``plot`` go part by part; ``to_mesh()`` is the whole ``Mesh``.
+    read part by part: ``part(j)`` is a small ``Mesh`` exact in its strip; ``d_m2`` goes
+    part by part, and in the plane ``plot``, ``distance`` and ``density``; ``to_mesh()`` is
+    the whole ``Mesh``.
 
     Parameters
     ----------
@@ -283,8 +288,17 @@ class PartitionedMesh:
 
     @property
     def dim(self) -> int:
-        """2: meshes in parts are built in the plane."""
-        return 2
+        """2 in the plane, 3 in space."""
+        return len(self.box) // 2
+
+    def check_plane(self, what: str) -> None:
+        """Raise InputError unless in the plane, naming ``what`` (plots and d_Pk part by
+        part are built in the plane)."""
+        if self.dim != 2:
+            raise InputError(
+                f"{what} part by part is built for meshes in the plane; for this mesh in space "
+                "use the whole mesh (to_mesh()); d_m2 goes part by part in space too"
+            )
 
     def __len__(self):
         return len(self.manifest["parts"])
@@ -327,7 +341,7 @@ class PartitionedMesh:
 
         Parameters
         ----------
-        x : ndarray (q, 2)
+        x : ndarray (q, dim)
 
         Returns
         -------
@@ -343,18 +357,19 @@ class PartitionedMesh:
 
         Parameters
         ----------
-        x : array-like (..., 2)
+        x : array-like (..., dim)
 
         Returns
         -------
         ndarray (...)
         """
-        flat, shape = as_queries(x)
+        dim = self.dim
+        flat, shape = as_queries(x, dim)
         out = np.full(len(flat), np.nan)
         inside = np.ones(len(flat), bool)
-        for a in range(2):
+        for a in range(dim):
             if not self.periodic[a]:
-                inside &= (flat[:, a] >= self.box[a]) & (flat[:, a] <= self.box[a + 2])
+                inside &= (flat[:, a] >= self.box[a]) & (flat[:, a] <= self.box[a + dim])
         owner = self.owner(flat[inside])
         rows = np.flatnonzero(inside)
         for j in np.unique(owner):
@@ -374,9 +389,15 @@ class PartitionedMesh:
         Returns
         -------
         matplotlib Axes
+
+        Raises
+        ------
+        InputError
+            For a mesh in space (plot ``to_mesh()``).
         """
         from ..plot import plot_mesh
 
+        self.check_plane("plotting")
         m = self.manifest
         title = kwargs.pop("title", None) or (
             f"kNNRefine: k = {self.k}, tau = {self.tau:g}, m = {m['m']:,} in {len(self)} parts; "
@@ -413,8 +434,14 @@ class PartitionedMesh:
         Returns
         -------
         PartitionedDistance
+
+        Raises
+        ------
+        InputError
+            Points or weights that are not the run's, a bad ``workers``, or a mesh in space.
         """
         workers = check_workers(workers)
+        self.check_plane("d_Pk")
         if workers == 1:
             return PartitionedDistance.of_index(self, points, weights, subdivide)
         from .tiled import LocalStore
@@ -448,6 +475,11 @@ class PartitionedMesh:
         Returns
         -------
         KnnDensity
+
+        Raises
+        ------
+        InputError
+            As for ``distance``.
         """
         distance = self.distance(points, weights=weights, subdivide=subdivide, workers=workers)
         return KnnDensity.of_distance(distance, normalized)
@@ -471,6 +503,7 @@ class PartitionedMesh:
             out[name][ids] = values
 
         parts = [self._arrays(j) for j in range(len(self))]
+        has_neighbors = t.get("neighbors", True)  # the torus in space keeps none
         floor_count = sum(len(d["floor_ids"]) for d in parts)
         for d in parts:
             own = d["vertex_ids"][: int(d["owned"])]
@@ -484,14 +517,16 @@ class PartitionedMesh:
                 put(
                     "torus_" + name, d["torus_vertex_ids"], d["torus_" + name], rows["torus_vertex"]
                 )
-            for name in ("triangles", "offsets", "neighbors"):
+            for name in ("triangles", "offsets", "neighbors")[: 3 if has_neighbors else 2]:
                 put("torus_" + name, d["torus_triangle_ids"], d["torus_" + name],
                     rows["torus_triangle"])  # fmt: skip
-            put("floor_points", d["floor_ids"], d["floor_points"].reshape(-1, 2), floor_count)
+            put("floor_points", d["floor_ids"], d["floor_points"].reshape(-1, self.dim),
+                floor_count)  # fmt: skip
+        neighbors = out["torus_neighbors"] if has_neighbors else None
         torus = Torus(origin=tuple(t["origin"]), period=tuple(t["period"]),
                       vertices=out["torus_vertices"], cells=out["torus_triangles"],
                       offsets=out["torus_offsets"], kinds=out["torus_kinds"],
-                      neighbors=out["torus_neighbors"])  # fmt: skip
+                      neighbors=neighbors)  # fmt: skip
         return Mesh(
             vertices=out["vertices"], cells=out["triangles"],
             offsets=out["offsets"] if m["has_offsets"] else None, kinds=out["kinds"],
