@@ -138,14 +138,15 @@ def test_cli_density_cluster_persistence_plot_in_space(tmp_path, csv3, capsys):
         assert (tmp_path / picture).stat().st_size > 10_000
 
 
-def test_a_mesh_in_space_is_not_written_in_parts(tmp_path):
+def test_a_mesh_in_space_is_written_in_parts(tmp_path):
     """regression: write_partitioned of a mesh in space failed deep inside with a numpy
-    broadcast error; it is refused up front, and nothing is written."""
+    broadcast error (then it was refused); now it writes slabs, read back as the same mesh
+    (the whole check: test_partitioned.py)."""
     pts = np.random.default_rng(8).random((800, 3))
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX3)
-    with pytest.raises(InputError, match="meshes in parts are built for the plane"):
-        knnrefine.write_partitioned(mesh, tmp_path / "parts", 2)
-    assert not (tmp_path / "parts").exists()
+    parts = knnrefine.write_partitioned(mesh, tmp_path / "parts", 2)
+    np.testing.assert_array_equal(parts.to_mesh().tetrahedra, mesh.tetrahedra)
+    np.testing.assert_array_equal(parts.d_m2(pts), mesh.d_m2(pts))
 
 
 def test_cli_in_space_refuses_what_is_built_for_the_plane(tmp_path, csv3, capsys):
