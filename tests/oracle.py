@@ -61,7 +61,19 @@ def kth(x, points, k, period):
 
 
 def circumcircles(corners):
-    """Centres (t, d) and radii (t,) of the circumspheres of simplices (t, d + 1, d)."""
+    """Centres (t, d) and radii (t,) of the circumspheres of simplices (t, d + 1, d): in the
+    plane by the closed form (Cramer's rule: the engine's rounding on skinny triangles), in
+    space by a linear solve."""
+    if corners.shape[-1] == 2:
+        a = corners[:, 0]
+        b = corners[:, 1] - a
+        c = corners[:, 2] - a
+        d = 2.0 * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])
+        b2 = (b**2).sum(1)
+        c2 = (c**2).sum(1)
+        ux = (c[:, 1] * b2 - b[:, 1] * c2) / d
+        uy = (b[:, 0] * c2 - c[:, 0] * b2) / d
+        return a + np.stack([ux, uy], 1), np.hypot(ux, uy)
     a = corners[:, 0]
     edges = corners[:, 1:] - a[:, None, :]
     u = np.linalg.solve(edges, 0.5 * (edges**2).sum(-1)[..., None])[..., 0]
@@ -106,7 +118,7 @@ def torus_facts(torus, points):
     V = np.asarray(torus.vertices, float)
     dim = V.shape[1]
     P = np.mod(np.asarray(points, float).reshape(-1, dim) - np.asarray(torus.origin), period)
-    cells = np.asarray(torus.cells)
+    cells = np.asarray(torus.cells if hasattr(torus, "cells") else torus.triangles)
     corners = V[cells] + np.asarray(torus.offsets) * period
     cc, r = circumcircles(corners)
     # empty spheres against every copy of every vertex; rationals for the close calls
@@ -141,3 +153,20 @@ def torus_facts(torus, points):
         "cell": cell,
         "cc": cc,
     }
+
+
+def random_cell(rng):
+    """A Voronoi-like convex cell about the origin: half-planes {p : nb_j . p <= hc_j} towards
+    a ring of 3 to 8 neighbours nb (hc_j half of |nb_j|^2), inside the disk of squared radius
+    R2. Returns (nb (d, 2), hc (d,), R2)."""
+    deg = rng.integers(3, 9)
+    ang = np.sort(rng.random(deg)) * 2 * np.pi
+    nb = 0.2 * rng.random() * np.stack([np.cos(ang), np.sin(ang)], 1) + 1e-3
+    hc = 0.5 * (nb**2).sum(1)
+    return nb, hc, float((4 * hc).max())
+
+
+def in_cell(rel, nb, hc, R2, slack=1.0):
+    """Mask of the points rel (relative to the cell's centre) in the cell of ``random_cell``,
+    every constraint scaled by ``slack`` (1 -+ 1e-12 brackets the rounding)."""
+    return np.all(rel @ nb.T <= hc * slack, axis=1) & ((rel**2).sum(1) <= R2 * slack)

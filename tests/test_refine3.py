@@ -160,7 +160,7 @@ def test_bad_input_is_refused_before_work():
     mesh = knnrefine.refine(outside, 10, periodic=(False, False, True), box=BOX)  # z wraps
     with pytest.raises(InputError, match="made from 100 points"):
         knnrefine.certify(mesh, outside[:-1])
-    with pytest.raises(InputError, match="outside the box along x"):
+    with pytest.raises(InputError, match="outside the mesh.s box along x"):
         knnrefine.certify(mesh, outside + [1.0, 0.0, 0.0])
     with pytest.raises(InputError, match=r"needs box=\(x0, y0, z0, x1, y1, z1\)"):
         knnrefine.refine(pts, 10, periodic=True)

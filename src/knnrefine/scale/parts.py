@@ -292,8 +292,19 @@ class PartitionedMesh:
         return len(self.box) // 2
 
     def check_plane(self, what: str) -> None:
-        """Raise InputError unless in the plane, naming ``what`` (plots and d_Pk part by
-        part are built in the plane)."""
+        """Refuse a mesh in space for what is built in the plane only (plots and d_Pk part
+        by part).
+
+        Parameters
+        ----------
+        what : str
+            What was asked, for the message.
+
+        Raises
+        ------
+        InputError
+            The mesh is in space.
+        """
         if self.dim != 2:
             raise InputError(
                 f"{what} part by part is built for meshes in the plane; for this mesh in space "
