@@ -38,8 +38,40 @@ def theorem6_constants(tau: float) -> tuple[float, float]:
     return 1.0 / (2.0 * big_k + 1.0), float((3.0 - theta) / (1.0 - theta))
 
 
+class Cells:
+    """What a torus and a mesh say of their cells in any dimension: ``dim`` from the
+    vertices, and the cells by their name (``triangles`` in the plane, ``tetrahedra`` in
+    space; the other name is an AttributeError saying which the mesh has)."""
+
+    vertices: np.ndarray
+    cells: np.ndarray
+
+    @property
+    def dim(self) -> int:
+        """2 in the plane, 3 in space."""
+        return int(np.shape(self.vertices)[1])
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """The cells in the plane."""
+        return self._named("triangles", 2)
+
+    @property
+    def tetrahedra(self) -> np.ndarray:
+        """The cells in space."""
+        return self._named("tetrahedra", 3)
+
+    def _named(self, name, dim):
+        if self.dim != dim:
+            other = "triangles" if name == "tetrahedra" else "tetrahedra"
+            raise AttributeError(
+                f"a mesh in {self.dim} dimensions has {other}, not {name} (its cells: .cells)"
+            )
+        return self.cells
+
+
 @dataclass(frozen=True, eq=False)
-class Torus:
+class Torus(Cells):
     """The triangulation of the flat torus that the engine refined, in input units, in the
     plane or in space (the dimension is ``vertices.shape[1]``).
 
@@ -72,31 +104,9 @@ class Torus:
     kinds: np.ndarray
     neighbors: np.ndarray | None = None
 
-    @property
-    def dim(self) -> int:
-        return int(np.shape(self.vertices)[1])
-
-    @property
-    def triangles(self) -> np.ndarray:
-        return _cells_named(self, "triangles", 2)
-
-    @property
-    def tetrahedra(self) -> np.ndarray:
-        return _cells_named(self, "tetrahedra", 3)
-
-
-def _cells_named(mesh, name, dim):
-    """The cells under their name in ``dim`` dimensions (AttributeError in the other)."""
-    if mesh.dim != dim:
-        other = "triangles" if name == "tetrahedra" else "tetrahedra"
-        raise AttributeError(
-            f"a mesh in {mesh.dim} dimensions has {other}, not {name} (its cells: .cells)"
-        )
-    return mesh.cells
-
 
 @dataclass(frozen=True, eq=False)
-class Mesh:
+class Mesh(Cells):
     """Mesh vertices M whose second-nearest-neighbour distance approximates d_{P,k}: one
     type in the plane and in space (its dimension is ``vertices.shape[1]``).
 
@@ -151,21 +161,6 @@ class Mesh:
     stats: dict = field(default_factory=dict)
     torus: Torus | None = None
     index: object = field(default=None, repr=False)
-
-    @property
-    def dim(self) -> int:
-        """2 in the plane, 3 in space."""
-        return int(np.shape(self.vertices)[1])
-
-    @property
-    def triangles(self) -> np.ndarray:
-        """The cells of a mesh in the plane."""
-        return _cells_named(self, "triangles", 2)
-
-    @property
-    def tetrahedra(self) -> np.ndarray:
-        """The cells of a mesh in space."""
-        return _cells_named(self, "tetrahedra", 3)
 
     @property
     def alpha(self) -> float:

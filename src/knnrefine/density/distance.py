@@ -174,10 +174,15 @@ class KnnDistance:
         -------
         ndarray (...)
         """
+        return self._where_inside(x, self.pieces.interpolate)
+
+    def _where_inside(self, x, evaluate):
+        """``evaluate`` at the query points inside the box (periodic axes wrapped), NaN
+        beyond it along non-periodic axes."""
         flat, shape = as_queries(x, self.dim)
         out = np.full(len(flat), np.nan)
         inside = self._inside(flat)
-        out[inside] = self.pieces.interpolate(self._metric.wrap(flat[inside]))
+        out[inside] = evaluate(self._metric.wrap(flat[inside]))
         return out.reshape(shape)
 
     def interpolate(self, x: np.ndarray, values: ArrayLike) -> np.ndarray:
@@ -218,16 +223,13 @@ class KnnDistance:
         InputError
             For a d_{P,k} built from node values alone (``of_pieces``).
         """
-        flat, shape = as_queries(x, self.dim)
-        out = np.full(len(flat), np.nan)
-        inside = self._inside(flat)
-        if self.index is None:
+        index = self.index
+        if index is None:
             raise InputError(
                 "this d_Pk was built from node values alone (a part of a partitioned mesh): "
                 "exact values need the points; build KnnDistance(mesh, points)"
             )
-        out[inside] = self.index.kth(self._metric.wrap(flat[inside]), self.k)
-        return out.reshape(shape)
+        return self._where_inside(x, lambda wrapped: index.kth(wrapped, self.k))
 
     def grid(self, shape: int | tuple | None = None) -> tuple:
         """The estimate at the centres of a grid over the box.
