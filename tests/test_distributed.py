@@ -278,7 +278,7 @@ def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
     columns, weights by column): the same mesh from every source, certified by
     knnrefine.certify and by distributed.certify with the same figures, and within 5% of
     one process's size; output= writes it in parts (slabs), the same mesh again, whose
-    density part by part is refused (built in the plane)."""
+    density part by part (asked of the cluster) equals the whole mesh's."""
     import dask.array as da
     import pandas as pd
     from conftest import gaussian_clusters
@@ -310,5 +310,9 @@ def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
     np.testing.assert_array_equal(back.cells, mesh.cells)
     q = np.random.default_rng(14).random((5000, 3))
     np.testing.assert_array_equal(pm.d_m2(q), mesh.d_m2(q))
-    with pytest.raises(InputError, match="built for meshes in the plane"):
-        distributed.density(pm, pts, client=client, weights=w)
+    dens = distributed.density(pm, pts, client=client, weights=w)
+    whole = knnrefine.KnnDensity(mesh, pts, weights=w)
+    np.testing.assert_allclose(dens(q), whole(q), rtol=1e-12)
+    assert dens.mass((0.2, 0.3, 0.1, 0.9, 1.2, 0.6)) == pytest.approx(
+        whole.mass((0.2, 0.3, 0.1, 0.9, 1.2, 0.6)), rel=1e-12
+    )

@@ -71,8 +71,8 @@ def test_parts_in_space_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, part
     """A mesh in space in slabs: put back together it is the same Mesh (no neighbour links
     in the torus, as refine's), its d_{M,2} part by part equals the whole mesh's at random
     points, on every cut plane, at the box's corners and beyond the box (NaN along
-    non-periodic axes), each part exact at its own tetrahedra's centroids; d_Pk and plots part
-    by part are refused (built in the plane)."""
+    non-periodic axes), each part exact at its own tetrahedra's centroids; plots part by part
+    are refused (built in the plane)."""
     pts = gaussian_clusters(6000, 2, clusters=12, dim=3)
     mesh = knnrefine.refine(pts, 15, periodic=periodic, box=(0, 0, 0, 1, 1, 1))
     pm = write_partitioned(mesh, tmp_path / "mesh", parts)
@@ -99,8 +99,6 @@ def test_parts_in_space_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, part
         c = part.corners().mean(axis=1)
         np.testing.assert_array_equal(part.d_m2(c), mesh.d_m2(c))
     assert sum(p["vertices"] for p in pm.manifest["parts"]) == len(mesh.vertices)
-    with pytest.raises(InputError, match="built for meshes in the plane"):
-        pm.density(pts)
     with pytest.raises(InputError, match="built for meshes in the plane"):
         pm.plot()
 
@@ -257,3 +255,43 @@ def test_partitioned_density_refuses_other_points_and_old_folders(tmp_path):
     manifest.write_text(json.dumps(old))
     with pytest.raises(InputError, match="older knnrefine"):
         PartitionedMesh(tmp_path / "m").density(pts)
+
+
+@pytest.mark.parametrize(
+    "periodic, weighted",
+    [pytest.param((True, False, True), True, marks=pytest.mark.slow), (False, False)],
+)
+def test_density_in_space_part_by_part_equals_the_whole_meshs(tmp_path, periodic, weighted):
+    """In space, PartitionedMesh.density answers as KnnDensity on the whole mesh: at random
+    points, on the cut planes, beyond the box (NaN along non-periodic axes), its mass over
+    the box and over a region across the seams, its grid; weighted; strips in two local
+    processes give the same; samples fall in a region as often as its mass says (5 sigma)."""
+    pts = gaussian_clusters(4000, 11, clusters=12, dim=3)
+    weights = np.random.default_rng(11).integers(1, 3, len(pts)).astype(float) if weighted else None
+    k = 25.0 if weighted else 15
+    rng = np.random.default_rng(12)
+    mesh = knnrefine.refine(pts, k, periodic=periodic, box=(0, 0, 0, 1, 1, 1), weights=weights)
+    pm = write_partitioned(mesh, tmp_path / "m", 3)
+    got = pm.density(pts, weights=weights)
+    want = knnrefine.KnnDensity(mesh, pts, weights=weights)
+    axis = pm.manifest["axis"]
+    on_cuts = rng.random((300, 3))
+    on_cuts[:, axis] = np.repeat(np.clip(pm.manifest["cuts"], 0.0, 1.0), 100)
+    beyond = 0.5 + np.concatenate([-np.eye(3), np.eye(3)])
+    q = np.concatenate([rng.random((20000, 3)), on_cuts, beyond])
+    a, b = got(q), want(q)
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    np.testing.assert_allclose(a, b, rtol=1e-12)
+    assert np.isnan(a[-6:]).tolist() == [not p for p in mesh.periodic] * 2
+    assert got.raw_mass == pytest.approx(want.raw_mass, rel=1e-12)
+    region = (0.6, 0.7, 0.2, 1.3, 1.2, 0.9)  # past the upper sides along x and y
+    assert got.mass(region) == pytest.approx(want.mass(region), rel=1e-12)
+    np.testing.assert_allclose(got.grid((6, 7, 8))[3], want.grid((6, 7, 8))[3], rtol=1e-12)
+    if weighted:
+        np.testing.assert_allclose(pm.density(pts, weights=weights, workers=2)(q), a, rtol=1e-12)
+        return
+    draws = got.sample(20000, np.random.default_rng(1))
+    assert draws.shape == (20000, 3) and ((draws >= 0) & (draws <= 1)).all()
+    p = got.mass((0.0, 0.0, 0.0, 0.5, 1.0, 1.0))
+    inside = (draws[:, 0] <= 0.5).mean()
+    assert abs(inside - p) < 5 * np.sqrt(p * (1 - p) / len(draws))

@@ -145,11 +145,34 @@ class KnnDistance:
         -------
         KnnDistance
         """
+        pieces = PlanePieces(nodes, triangles, values, mesh.box, mesh.periodic, located)
+        return cls.of_linear_pieces(mesh, n, total, pieces)
+
+    @classmethod
+    def of_linear_pieces(
+        cls, mesh: MeshFrame, n: int, total: float, pieces: PlanePieces | SpacePieces
+    ) -> KnnDistance:
+        """A KnnDistance from linear pieces already built, in the plane or in space (a part
+        of a partitioned mesh). Without the points, no ``exact``.
+
+        Parameters
+        ----------
+        mesh : Mesh or PartitionedMesh (a ``MeshFrame``)
+            Its dimension, k, box and periodic axes.
+        n, total : int, float
+            The points' number and their total weight (n unweighted).
+        pieces : PlanePieces or SpacePieces
+            With their values at the mesh's vertices (``values``).
+
+        Returns
+        -------
+        KnnDistance
+        """
         self = cls.__new__(cls)
         self._frame(mesh, n, total)
         self._points = self.index = None
-        self.pieces = PlanePieces(nodes, triangles, values, mesh.box, mesh.periodic, located)
-        self.values = values
+        self.pieces = pieces
+        self.values = pieces.values
         return self
 
     # the plane's pieces, named as before (``scale.parts`` and the plots read them)
@@ -429,11 +452,13 @@ class TreeIndex:
     """Exact d_{P,k} in space from a periodic kd-tree over the points in the frame of the
     mesh's torus (relative to its origin, periodic axes wrapping): ``kth`` at input
     coordinates, ``kth_local`` at torus-frame ones (the pieces'). Weighted points: d_{P,k} is
-    the least radius whose closed ball holds weight k."""
+    the least radius whose closed ball holds weight k. ``frame``: the torus' (origin,
+    period) for a mesh that keeps none (a mesh in parts)."""
 
-    def __init__(self, mesh, pts, weights=None):
-        origin = np.asarray(mesh.torus.origin, float)
-        period = np.asarray(mesh.torus.period, float)
+    def __init__(self, mesh, pts, weights=None, frame=None):
+        origin, period = (mesh.torus.origin, mesh.torus.period) if frame is None else frame
+        origin = np.asarray(origin, float)
+        period = np.asarray(period, float)
         self.k = mesh.k
         self._metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)
         self._tree = self._metric.tree(pts)

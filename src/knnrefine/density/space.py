@@ -18,6 +18,8 @@ at its faces (``clip_below``: a tetrahedron cut by a plane leaves a tetrahedron 
 three tetrahedra), so that the pieces tile the box exactly and every integral is over the box.
 """
 
+import copy
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -38,27 +40,34 @@ class SpacePieces:
     corners' four and the central octahedron's four, split along one diagonal): d_{P,k} is a
     distance, peaked between its nodes, and the midpoints catch much of that.
     ``values``: d_{P,k} at the mesh's vertices; ``corners`` (t, 4, 3), ``d`` (t, 4) and
-    ``volume`` (t,) the pieces; ``bounds`` rigorous lower and upper bounds of d_{P,k} on
-    each."""
+    ``volume`` (t,) the pieces, ``source`` (t,) the mesh's tetrahedron each comes from;
+    ``bounds`` rigorous lower and upper bounds of d_{P,k} on each. ``kth`` is asked once,
+    at ``nodes3(...)``'s points. ``frame``: (origin, period) of the torus where the mesh has
+    none (a part of a mesh in parts: ``subset``)."""
 
     dim = 3
 
-    def __init__(self, mesh, kth, subdivide=True):
+    def __init__(self, mesh, kth, subdivide=True, frame=None):
         self.mesh = mesh
-        self._kth = kth
-        origin = np.asarray(mesh.torus.origin, float)
+        origin, period = (mesh.torus.origin, mesh.torus.period) if frame is None else frame
+        origin = np.asarray(origin, float)
         self.origin = origin
-        self.period = np.asarray(mesh.torus.period, float)
+        self.period = np.asarray(period, float)
         self._periodic = np.array(mesh.periodic)
         self.metric = BoxMetric((*origin, *(origin + self.period)), mesh.periodic)
-        local = self.metric.frame(mesh.vertices)  # exact: the engine's grid
-        self.values = kth(local)
-        corners = local[mesh.tetrahedra]  # relative to the origin, unwrapped
-        if mesh.offsets is not None:
-            corners = corners + mesh.offsets * self.period
+        local, corners, asked, inverse = nodes3(mesh, self.metric, self.period, subdivide)
+        found = kth(asked)
+        self.values = found[: len(local)]
         d = self.values[mesh.tetrahedra]
-        if subdivide:
-            corners, d = self._subdivided(corners, d)
+        source = np.arange(len(corners))
+        if subdivide:  # the edges' midpoints, each tetrahedron cut into eight
+            mids = 0.5 * (corners[:, self.PAIRS[:, 0]] + corners[:, self.PAIRS[:, 1]])
+            nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
+            dm = found[len(local) :][inverse].reshape(-1, 6)
+            values = np.concatenate([d, dm], axis=1)
+            corners = nodes[:, self.EIGHT].reshape(-1, 4, 3)
+            d = values[:, self.EIGHT].reshape(-1, 4)
+            source = np.repeat(source, 8)
         # rigorous bounds of d_{P,k} on each piece from its exact corner values (before any
         # cut: a cut point's value is interpolated, not exact): d_{P,k} is 1-Lipschitz, so on
         # the piece it lies within d_i -+ the distance from corner i to the farthest corner
@@ -72,9 +81,11 @@ class SpacePieces:
         hi = np.array(mesh.box[3:]) - origin
         self._box = lo, hi
         for a in np.flatnonzero(~self._periodic):  # cut at the box's faces
-            flipped, d, source = clip_below(-corners, d, a, -lo[a])  # x >= lo, mirrored
+            flipped, d, first = clip_below(-corners, d, a, -lo[a])  # x >= lo, mirrored
             corners, d, again = clip_below(-flipped, d, a, hi[a])  # x <= hi
-            self.bounds = tuple(b[source][again] for b in self.bounds)
+            self.bounds = tuple(b[first][again] for b in self.bounds)
+            source = source[first][again]
+        self.source = source
         self.corners = corners
         self.d = d
         self.volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
@@ -89,16 +100,20 @@ class SpacePieces:
     ])  # fmt: skip
     PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
-    def _subdivided(self, corners, d):
-        mids = 0.5 * (corners[:, self.PAIRS[:, 0]] + corners[:, self.PAIRS[:, 1]])
-        # one query per edge, not per tetrahedron's edge (7.4 edges per vertex, against 38
-        # tetrahedron edges): the same edge seen from two tetrahedra may be shifted by whole
-        # periods, where the periodic kd-tree gives the same distance
-        first, inverse = edges3(self.mesh.tetrahedra, self.mesh.offsets, self.PAIRS)
-        dm = self._kth(mids.reshape(-1, 3)[first])[inverse]
-        nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
-        values = np.concatenate([d, dm.reshape(-1, 6)], axis=1)
-        return nodes[:, self.EIGHT].reshape(-1, 4, 3), values[:, self.EIGHT].reshape(-1, 4)
+    def subset(self, cells):
+        """The pieces of the mesh's tetrahedra marked in ``cells`` (a part's own, of a mesh in
+        parts) for integrals, samples, the CDF and grids, points still located among all the
+        pieces (a point of the part's strip may lie in another part's tetrahedron)."""
+        keep = np.asarray(cells, bool)[self.source]
+        out = copy.copy(self)
+        out.corners, out.d, out.volume = self.corners[keep], self.d[keep], self.volume[keep]
+        out.source = self.source[keep]
+        out.bounds = tuple(b[keep] for b in self.bounds)
+        out._extent = None
+        out._knot_cache = None
+        out.locate = self.locate  # the located pieces are all of them, interpolated there
+        out.interpolate = self.interpolate
+        return out
 
     # -- evaluation ----------------------------------------------------------------------
     def interpolate(self, x, values=None):
@@ -114,18 +129,7 @@ class SpacePieces:
 
     def grid(self, shape):
         """(xs, ys, zs, values (nz, ny, nx)) at the centres of a grid over the box."""
-        nz, ny, nx = shape
-        lo = np.array(self.mesh.box[:3], float)
-        hi = np.array(self.mesh.box[3:], float)
-        axes = [
-            lo[a] + (np.arange(n) + 0.5) * (hi[a] - lo[a]) / n for a, n in enumerate((nx, ny, nz))
-        ]
-        out = np.empty(nz * ny * nx)
-        plane = np.column_stack([np.tile(axes[0], ny), np.repeat(axes[1], nx)])
-        for z in range(nz):  # a slice at a time: memory of one slice
-            x = np.column_stack([plane, np.full(len(plane), axes[2][z])])
-            out[z * ny * nx : (z + 1) * ny * nx] = self.interpolate(x)
-        return (*axes, out.reshape(nz, ny, nx))
+        return grid3(self.interpolate, self.mesh.box[:3], self.mesh.box[3:], shape)
 
     def integrate(self, func, rect):
         """Integral of func(d) over the box rect = [[x0, y0, z0], [x1, y1, z1]] (in the box,
@@ -279,6 +283,40 @@ class SpacePieces:
 
         lower_d, upper_d = self.bounds
         return weight_at_most(upper_d), weight_at_most(lower_d)
+
+
+def grid3(evaluate, lo, hi, shape):
+    """(xs, ys, zs, values (nz, ny, nx)): ``evaluate`` at the centres of a grid of ``shape``
+    (nz, ny, nx) over the box [lo, hi], a slice at a time (the memory of one slice)."""
+    nz, ny, nx = shape
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    axes = [lo[a] + (np.arange(n) + 0.5) * (hi[a] - lo[a]) / n for a, n in enumerate((nx, ny, nz))]
+    out = np.empty(nz * ny * nx)
+    plane = np.column_stack([np.tile(axes[0], ny), np.repeat(axes[1], nx)])
+    for z in range(nz):
+        x = np.column_stack([plane, np.full(len(plane), axes[2][z])])
+        out[z * ny * nx : (z + 1) * ny * nx] = evaluate(x)
+    return (*axes, out.reshape(nz, ny, nx))
+
+
+def nodes3(mesh, metric, period, subdivide=True):
+    """Where ``SpacePieces`` needs exact d_{P,k}: (local, corners, asked, inverse). ``local``
+    (m, 3) the vertices relative to the torus origin (``metric``: its frame), ``corners`` (t,
+    4, 3) the tetrahedra's there (unwrapped by their offsets); ``asked`` the vertices then,
+    with ``subdivide``, each distinct edge's midpoint once (7.4 edges per vertex, against 38
+    tetrahedron edges: the same edge seen from two tetrahedra may be shifted by whole periods,
+    where the periodic kd-tree gives the same distance); ``inverse`` each tetrahedron edge's
+    (in ``SpacePieces.PAIRS`` order) row among those midpoints."""
+    local = metric.frame(mesh.vertices)  # exact: the engine's grid
+    corners = local[mesh.tetrahedra]  # relative to the origin, unwrapped
+    if mesh.offsets is not None:
+        corners = corners + mesh.offsets * period
+    if not subdivide:
+        return local, corners, local, None
+    pairs = SpacePieces.PAIRS
+    mids = 0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]])
+    first, inverse = edges3(mesh.tetrahedra, mesh.offsets, pairs)
+    return local, corners, np.concatenate([local, mids.reshape(-1, 3)[first]]), inverse
 
 
 def edges3(tetrahedra, offsets, pairs):

@@ -430,8 +430,7 @@ def density(
     Raises
     ------
     InputError
-        Not a partitioned mesh, a mesh in space (use ``knnrefine.KnnDensity`` on
-        ``pmesh.to_mesh()``), or points that are not the run's.
+        Not a partitioned mesh, or points that are not the run's.
     """
     from ..density import KnnDensity
     from .parts import PartitionedDistance, PartitionedMesh
@@ -443,7 +442,6 @@ def density(
             f"density needs a PartitionedMesh (refine(..., output=)), got {type(pmesh).__name__};"
             " for a Mesh in memory use knnrefine.KnnDensity(mesh, points)"
         )
-    pmesh.check_plane("the kNN density")
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         store.check_inside(pmesh.box, pmesh.periodic)
         distance = PartitionedDistance.of_store(pmesh, store, tiles, subdivide)

@@ -14,8 +14,8 @@ so a part answers d_{M,2} exactly there without the rest of the mesh
 keep the plane's names (``triangles``: the cells).
 
 Each part also lists the other parts' cells that meet its strip (format 2), so that the kNN
-density works part by part (``PartitionedDistance``, ``PartitionedMesh.density``; in the
-plane): the piece holding a point of the strip is among them.
+density works part by part (``PartitionedDistance``, ``PartitionedMesh.density``): the piece
+holding a point of the strip is among them.
 
 The folder is written under a temporary name and renamed into place with a finished marker
 (``_SUCCESS``) written last; ``PartitionedMesh(path)`` refuses a folder without it.
@@ -33,16 +33,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.spatial import cKDTree
 
-from ..density.distance import KnnDistance, grid_shape, point_index
+from ..density.distance import KnnDistance, TreeIndex, grid_shape, point_index
 from ..density.estimate import KnnDensity
-from ..density.plane import index_values, midpoints, node_guesses, sample_pieces
+from ..density.plane import index_values, midpoints, node_guesses
+from ..density.space import SpacePieces, grid3, nodes3
 from ..engine.raster import rasterise
 from ..errors import InputError
 from ..io import UNREADABLE, unreadable
 from ..mesh import Mesh, Torus, circumspheres, split_in_four
 from ..metric import BoxMetric
-from ..validation import as_points, as_queries, check_workers, weights_of_run
+from ..validation import as_points, as_queries, check_inside, check_workers, weights_of_run
 
 if TYPE_CHECKING:  # the annotations' types only
     from matplotlib.axes import Axes
@@ -245,8 +247,8 @@ def _part_mesh(mesh, arrays, has_offsets):
 
 class PartitionedMesh:
     """A mesh written by ``write_partitioned`` (or ``distributed.refine(..., output=)``),
-    read part by part: ``part(j)`` is a small ``Mesh`` exact in its strip; ``d_m2`` goes
-    part by part, and in the plane ``plot``, ``distance`` and ``density``; ``to_mesh()`` is
+    read part by part: ``part(j)`` is a small ``Mesh`` exact in its strip; ``d_m2``,
+    ``distance`` and ``density`` go part by part, and in the plane ``plot``; ``to_mesh()`` is
     the whole ``Mesh``.
 
     Parameters
@@ -292,8 +294,7 @@ class PartitionedMesh:
         return len(self.box) // 2
 
     def check_plane(self, what: str) -> None:
-        """Refuse a mesh in space for what is built in the plane only (plots and d_Pk part
-        by part).
+        """Refuse a mesh in space for what is built in the plane only (plots part by part).
 
         Parameters
         ----------
@@ -308,7 +309,7 @@ class PartitionedMesh:
         if self.dim != 2:
             raise InputError(
                 f"{what} part by part is built for meshes in the plane; for this mesh in space "
-                "use the whole mesh (to_mesh()); d_m2 goes part by part in space too"
+                "use the whole mesh (to_mesh()); d_m2 and the density go part by part in space too"
             )
 
     def __len__(self):
@@ -449,15 +450,14 @@ class PartitionedMesh:
         Raises
         ------
         InputError
-            Points or weights that are not the run's, a bad ``workers``, or a mesh in space.
+            Points or weights that are not the run's, or a bad ``workers``.
         """
         workers = check_workers(workers)
-        self.check_plane("d_Pk")
         if workers == 1:
             return PartitionedDistance.of_index(self, points, weights, subdivide)
         from .tiled import LocalStore
 
-        pts = as_points(points)
+        pts = as_points(points, self.dim)
         store = LocalStore(pts, weights_of_run(self.stats, len(pts), weights), workers)
         try:
             return PartitionedDistance.of_store(self, store, workers, subdivide)
@@ -548,20 +548,22 @@ class PartitionedMesh:
 
 
 class PartitionedDistance:
-    """d_{P,k} over a partitioned mesh, part by part.
+    """d_{P,k} over a partitioned mesh, part by part, in the plane or in space.
 
-    Each part carries the linear pieces (``density.linear_pieces``) of the triangles that
-    meet its strip, copies across periodic seams included, exact at their nodes and edge
-    midpoints: ``vertex_values(nodes, near)`` and ``midpoint_values(mids, guess, low,
-    high)`` answer for all parts' nodes at once, then for all their midpoints (``of_index``:
-    the points in this process; ``of_store``: asked strip by strip where they are). A query
-    is answered by its strip's part (the piece holding it meets the strip); integrals, grids
-    and samples add up each part's own triangles (each triangle is one part's). So every
-    answer equals ``KnnDistance(pm.to_mesh(), points)``'s, up to rounding. Kept here: the
-    values at every part's nodes (about 40 bytes per vertex); a part's pieces are rebuilt
-    from its file when it is read."""
+    Each part carries the linear pieces of the cells that meet its strip, exact at their
+    nodes and edge midpoints. In the plane (``density.linear_pieces``: copies across periodic
+    seams included) ``vertex_values(nodes, near)`` and ``midpoint_values(mids, guess, low,
+    high)`` answer for all parts' nodes at once, then for all their midpoints; in space
+    (``density.space.SpacePieces``) ``kth(x)`` answers for all parts' vertices and distinct
+    edge midpoints at once, in the frame of the torus (``of_index``: the points in this
+    process; ``of_store``: asked strip by strip where they are). A query is answered by its
+    strip's part (the piece holding it meets the strip); integrals, grids and samples add up
+    each part's own cells (each cell is one part's). So every answer equals
+    ``KnnDistance(pm.to_mesh(), points)``'s, up to rounding. Kept here: the values at every
+    part's nodes (about 40 bytes per vertex in the plane); a part's pieces are rebuilt from
+    its file when it is read."""
 
-    def __init__(self, pmesh, vertex_values, midpoint_values, n, total, subdivide=True):
+    def __init__(self, pmesh, vertex_values, midpoint_values, n, total, subdivide=True, kth=None):
         if pmesh.manifest["format"] < 2:
             raise InputError(
                 f"{pmesh.path}: written by an older knnrefine (format "
@@ -571,8 +573,15 @@ class PartitionedDistance:
         if total < pmesh.k:
             raise InputError(f"a total of {total:.6g} points but k = {pmesh.k}: d_Pk is infinite")
         self.pmesh, self.k, self.subdivide = pmesh, pmesh.k, bool(subdivide)
-        self.n, self.total = n, float(total)
-        self.lo, self.hi = np.array(pmesh.box[:2], float), np.array(pmesh.box[2:], float)
+        self.n, self.total, self.dim = n, float(total), pmesh.dim
+        self.lo = np.array(pmesh.box[: self.dim], float)
+        self.hi = np.array(pmesh.box[self.dim :], float)
+        self._cache = {}
+        t = pmesh.manifest["torus"]
+        self.frame = np.array(t["origin"], float), np.array(t["period"], float)
+        if self.dim == 3:
+            self.values = self._space_values(kth)
+            return
         shapes = [self._covering(j) for j in range(len(pmesh))]
         guesses = [node_guesses(nodes, tri) for nodes, tri, _ in shapes]
         nodes = np.concatenate([s[0] for s in shapes])
@@ -587,7 +596,26 @@ class PartitionedDistance:
             found = np.split(found, np.cumsum([len(m[0]) for m in mid])[:-1])
             values = [np.concatenate(vf) for vf in zip(values, found, strict=True)]
         self.values = values
-        self._cache = {}
+
+    def _space_part(self, j):
+        """(part j's own and covering tetrahedra as a Mesh, the mask of its own)."""
+        arrays = self.pmesh._arrays(j)
+        own = len(arrays["triangles"])
+        arrays["triangles"] = np.concatenate([arrays["triangles"], arrays["cover_triangles"]])
+        arrays["offsets"] = np.concatenate([arrays["offsets"], arrays["cover_offsets"]])
+        mesh = _part_mesh(self.pmesh, arrays, self.pmesh.manifest["has_offsets"])
+        return mesh, np.arange(len(mesh.cells)) < own
+
+    def _space_values(self, kth):
+        """Exact d_{P,k} where each part's pieces need it (``space.nodes3``), asked at once."""
+        origin, period = self.frame
+        metric = BoxMetric((*origin, *(origin + period)), self.pmesh.periodic)
+        asked = [
+            nodes3(self._space_part(j)[0], metric, period, self.subdivide)[2]
+            for j in range(len(self.pmesh))
+        ]
+        found = kth(np.concatenate(asked)) if asked else np.zeros(0)
+        return np.split(found, np.cumsum([len(a) for a in asked])[:-1])
 
     @classmethod
     def of_index(cls, pmesh, points, weights=None, subdivide=True):
@@ -595,10 +623,15 @@ class PartitionedDistance:
         counting index, as ``KnnDistance``."""
         from ..certify import check_source
 
-        pts = as_points(points)
+        pts = as_points(points, pmesh.dim)
         weights = weights_of_run(pmesh.stats, len(pts), weights)
         total = len(pts) if weights is None else float(weights.sum())
         check_source(pmesh.stats, len(pts), None if weights is None else total)
+        if pmesh.dim == 3:  # a periodic kd-tree in the frame of the torus
+            check_inside(pts, pmesh.box, pmesh.periodic, warn=False)
+            t = pmesh.manifest["torus"]
+            tree = TreeIndex(pmesh, pts, weights, frame=(t["origin"], t["period"]))
+            return cls(pmesh, None, None, len(pts), total, subdivide, kth=tree.kth_local)
         index = point_index(pmesh, pts, weights)
         return cls(pmesh, *index_values(index, pmesh.k), len(pts), total, subdivide)
 
@@ -623,8 +656,12 @@ class PartitionedDistance:
             pad = float(np.quantile(high, 0.999)) if len(high) else 0.0
             return questions.d_pk(frame(mids), pad)
 
+        def kth(x):  # in space, at torus-frame points; the pad a guess from their spacing
+            near = cKDTree(x).query(x, k=2)[0][:, 1] if len(x) > 1 else np.ones(len(x))
+            return questions.d_pk(x, float(np.quantile(8.0 * near, 0.99)) if len(x) else 0.0)
+
         total = store.n if store.weight is None else store.weight
-        self = cls(pmesh, vertex_values, midpoint_values, store.n, total, subdivide)
+        self = cls(pmesh, vertex_values, midpoint_values, store.n, total, subdivide, kth)
         self.passes = questions.passes
         return self
 
@@ -646,6 +683,14 @@ class PartitionedDistance:
         if j not in self._cache:
             if len(self._cache) >= 8:
                 self._cache.pop(next(iter(self._cache)))
+            if self.dim == 3:
+                mesh, mine = self._space_part(j)
+                values = self.values[j]
+                pieces = SpacePieces(mesh, lambda x: values, self.subdivide, frame=self.frame)
+                self._cache[j] = KnnDistance.of_linear_pieces(
+                    self.pmesh, self.n, self.total, pieces.subset(mine)
+                )
+                return self._cache[j]
             nodes, triangles, mine = self._covering(j)
             values = self.values[j]
             if self.subdivide:
@@ -658,9 +703,9 @@ class PartitionedDistance:
         return self._cache[j]
 
     def __call__(self, x):
-        """d_{P,k} at the query points (..., 2), each in its strip's part: NaN beyond the
+        """d_{P,k} at the query points (..., dim), each in its strip's part: NaN beyond the
         box along non-periodic axes."""
-        flat, shape = as_queries(x)
+        flat, shape = as_queries(x, self.dim)
         out = np.full(len(flat), np.nan)
         owner = self.pmesh.owner(flat)
         for j in np.unique(owner):
@@ -670,8 +715,9 @@ class PartitionedDistance:
 
     def grid(self, shape=(512, 512)):
         """(xs, ys, values) as ``KnnDistance.grid``: every part's own pieces drawn into one
-        grid."""
-
+        grid; in space (xs, ys, zs, values), a slice at a time, each point by its part."""
+        if self.dim == 3:
+            return grid3(self, self.lo, self.hi, grid_shape(shape, 3))
         ny, nx = grid_shape(shape)
         dx, dy = (self.hi - self.lo) / (nx, ny)
         xs = self.lo[0] + (np.arange(nx) + 0.5) * dx
@@ -692,14 +738,12 @@ class PartitionedDistance:
         return float(sum(self.part(j).integrate(func, region) for j in range(len(self.pmesh))))
 
     def sample_pieces(self, n, rng):
-        """n points from the density proportional to 1 / d^2 over the box: each part's share
-        drawn by its exact mass, then from its own pieces (``density.sample_pieces``)."""
+        """n points from the density proportional to 1 / d^dim over the box: each part's
+        share drawn by its exact mass, then from its own pieces."""
 
         parts = [self.part(j) for j in range(len(self.pmesh))]
-        mass = np.array([p.integrate(lambda d: 1.0 / d**2) for p in parts])
+        dim = self.dim
+        mass = np.array([p.integrate(lambda d: 1.0 / d**dim) for p in parts])
         counts = rng.multinomial(int(n), mass / mass.sum())
-        drawn = [
-            sample_pieces(p.nodes, p.triangles, p.values, self.lo, self.hi, int(c), rng)
-            for p, c in zip(parts, counts, strict=True)
-        ]
+        drawn = [p.sample_pieces(int(c), rng) for p, c in zip(parts, counts, strict=True)]
         return np.concatenate(drawn)[rng.permutation(int(n))]
