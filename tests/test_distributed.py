@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import DEGENERATE, DEGENERATE3
+from conftest import DEGENERATE, DEGENERATE3, unit_box
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -215,50 +215,39 @@ def test_density_on_the_cluster_equals_part_by_part_here(client, tmp_path):
         distributed.density(pm, pts[:-1], client=client)
 
 
+# (dimension, name, n, k) of the degenerate inputs the Dask property runs on
+DEGENERATE_CASES = [
+    (2, name, 4000, 10) for name in ["line", "two lines", "seam", "cross", "lattice"]
+]
+DEGENERATE_CASES += [(3, name, 2500, 12) for name in sorted(DEGENERATE3)]
+
+
 @given(
-    name=st.sampled_from(["line", "two lines", "seam", "cross", "lattice"]),
-    periodic=st.sampled_from([True, False, (True, False)]),
+    case=st.sampled_from(DEGENERATE_CASES),
+    periodic=st.sampled_from([True, False, "mixed"]),
     weighted=st.booleans(),
     seed=st.integers(0, 2**16),
 )
-@settings(max_examples=5)
-def test_dask_tiles_on_degenerate_inputs_certify(client, name, periodic, weighted, seed):
+@settings(max_examples=6)
+def test_dask_tiles_on_degenerate_inputs_certify(client, case, periodic, weighted, seed):
     """regression (issue 28), as a property: points sharing one coordinate put the plan's
     cuts on one line, and the Dask path, which shares the plan, returned meshes certify
-    failed. Points on lines, on the seam, on a cross, on a lattice, weighted or not: every
-    mesh certifies and has the size of one process's within 5%."""
+    failed. In the plane points on lines, on the seam, on a cross, on a lattice; in space on
+    a plane, two planes, the seam, a cross of planes, one line, a lattice; weighted or not,
+    periodic, not, or mixed (periodic along x, and z in space): every mesh certifies and has
+    the size of one process's within 5%."""
+    dim, name, n, k = case
     rng = np.random.default_rng(seed)
-    pts = DEGENERATE[name](4000, rng)
+    pts = (DEGENERATE if dim == 2 else DEGENERATE3)[name](n, rng)
     weights = rng.integers(1, 3, len(pts)).astype(float) if weighted else None
-    box = (0, 0, 1, 1)
-    mesh = distributed.refine(pts, 10, client=client, periodic=periodic, box=box,
+    box = unit_box(dim)
+    if periodic == "mixed":
+        periodic = (True, False, True)[:dim]
+    mesh = distributed.refine(pts, k, client=client, periodic=periodic, box=box,
                               weights=weights)  # fmt: skip
     cert = knnrefine.certify(mesh, pts, weights=weights)
     assert cert.passed, str(cert)
-    one = knnrefine.refine(pts, 10, periodic=periodic, box=box, weights=weights)
-    assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
-
-
-@given(
-    name=st.sampled_from(sorted(DEGENERATE3)),
-    periodic=st.sampled_from([True, False, (True, False, True)]),
-    weighted=st.booleans(),
-    seed=st.integers(0, 2**16),
-)
-@settings(max_examples=4)
-def test_dask_slabs_in_space_on_degenerate_inputs_certify(client, name, periodic, weighted, seed):
-    """The same property in space: points on a plane, on two planes, on the seam, on a
-    cross of planes, on one line, on a lattice, weighted or not, through the Dask path: every
-    mesh certifies and has the size of one process's within 5%."""
-    rng = np.random.default_rng(seed)
-    pts = DEGENERATE3[name](2500, rng)
-    weights = rng.integers(1, 3, len(pts)).astype(float) if weighted else None
-    box = (0, 0, 0, 1, 1, 1)
-    mesh = distributed.refine(pts, 12, client=client, periodic=periodic, box=box,
-                              weights=weights)  # fmt: skip
-    cert = knnrefine.certify(mesh, pts, weights=weights)
-    assert cert.passed, str(cert)
-    one = knnrefine.refine(pts, 12, periodic=periodic, box=box, weights=weights)
+    one = knnrefine.refine(pts, k, periodic=periodic, box=box, weights=weights)
     assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.05
 
 

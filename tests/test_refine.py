@@ -71,7 +71,7 @@ def box_for(points, periodic):
 
 @pytest.mark.parametrize("name", list(INPUTS))
 @pytest.mark.parametrize("k", [1, 2, 10, 100])
-@pytest.mark.parametrize("tau", [2.5, 3.0, 4.0, 6.0])
+@pytest.mark.parametrize("tau", [2.5, 3.0, 4.0, 6.0], ids=["tau2_5", "tau3", "tau4", "tau6"])
 def test_matrix(name, k, tau):
     rng = np.random.default_rng(zlib.crc32(f"{name} {k} {tau}".encode()))
     n = 120 if k == 1 else 400  # k = 1 refines every point down to the floor
