@@ -401,6 +401,7 @@ def test_fixed_sensitivity_searches_the_bandwidth_only():
     assert not hasattr(both_fixed, "loo_scores_")
 
 
+@pytest.mark.slow
 def test_heavy_tails_choose_a_sensitivity_below_abramsons():
     """Student t (3 dof) product: the search leaves Abramson's 1/2 for a flatter law (wider
     kernels at the peak); the L1 error against the true density, by importance sampling,

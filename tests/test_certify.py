@@ -39,15 +39,23 @@ CASES = {
 }
 
 
-def case_ids():
-    return [(name, d) for d in (2, 3) for name in CASES]
+# in space these run with the heavy tests (slow): the oracle's pairs take seconds there
+SLOW_IN_SPACE = ("uniform planar", "mixture x-periodic", "duplicates at the floor")
 
 
-@pytest.fixture(
-    scope="module",
-    params=case_ids(),
-    ids=[f"{name}-{'plane' if d == 2 else 'space'}" for name, d in case_ids()],
-)
+def case_params():
+    return [
+        pytest.param(
+            (name, d),
+            id=f"{name}-{'plane' if d == 2 else 'space'}",
+            marks=[pytest.mark.slow] if d == 3 and name in SLOW_IN_SPACE else [],
+        )
+        for d in (2, 3)
+        for name in CASES
+    ]
+
+
+@pytest.fixture(scope="module", params=case_params())
 def case(request):
     name, d = request.param
     make, k, tau, periodic, box, min_size = CASES[name]
@@ -132,7 +140,13 @@ def outradii(vertices, cells, corners):
 
 
 @pytest.mark.parametrize(
-    "dim, uniform, clustered", [(2, 3000, 1000), (2, 400, 150), (3, 3000, 1000), (3, 300, 100)]
+    "dim, uniform, clustered",
+    [
+        (2, 3000, 1000),
+        (2, 400, 150),
+        pytest.param(3, 3000, 1000, marks=pytest.mark.slow),
+        (3, 300, 100),
+    ],
 )
 def test_outradii_agree_with_qhull(dim, uniform, clustered):
     """A second, independent triangulation: scipy's Delaunay of the 3^d periodic cover gives

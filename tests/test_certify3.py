@@ -12,10 +12,14 @@ from scipy.spatial import cKDTree
 import knnrefine
 
 BOX = (0, 0, 0, 1, 1, 1)
-PERIODICITIES = [True, False, (True, False, True)]
+PERIODICITIES = [  # the box and mixed cases with the heavy tests (slow)
+    pytest.param(True, id="torus"),
+    pytest.param(False, id="box", marks=pytest.mark.slow),
+    pytest.param((True, False, True), id="mixed", marks=pytest.mark.slow),
+]
 
 
-@pytest.fixture(scope="module", params=PERIODICITIES, ids=["torus", "box", "mixed"])
+@pytest.fixture(scope="module", params=PERIODICITIES)
 def case(request):
     pts = np.random.default_rng(3).random((6000, 3))
     return knnrefine.refine(pts, 10, periodic=request.param, box=BOX), pts

@@ -43,7 +43,7 @@ def _tori(mesh, pts, tiles, weights=None):
 
 
 @pytest.mark.parametrize("weighted", [False, True])
-@pytest.mark.parametrize("tiles", [2, 5])
+@pytest.mark.parametrize("tiles", [2, pytest.param(5, marks=pytest.mark.slow)])
 def test_strip_answers_equal_one_tree(tiles, weighted):
     """Disks of every size (up to past the whole torus), every cell, d_{P,k} anywhere: the
     strips' sums and decisions equal one cKDTree's answers, exactly."""

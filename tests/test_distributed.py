@@ -38,7 +38,7 @@ def clustered(n, seed):
     return np.mod(pts, 1.0)
 
 
-@pytest.mark.parametrize("periodic", [True, False])
+@pytest.mark.parametrize("periodic", [pytest.param(True, marks=pytest.mark.slow), False])
 def test_dask_tiles_certify_and_match_one_process_in_size(client, periodic):
     pts = clustered(60000, 1)
     box = (0, 0, 1, 1)
@@ -228,7 +228,7 @@ DEGENERATE_CASES += [(3, name, 2500, 12) for name in sorted(DEGENERATE3)]
     weighted=st.booleans(),
     seed=st.integers(0, 2**16),
 )
-@settings(max_examples=6)
+@settings(max_examples=4)
 def test_dask_tiles_on_degenerate_inputs_certify(client, case, periodic, weighted, seed):
     """regression (issue 28), as a property: points sharing one coordinate put the plan's
     cuts on one line, and the Dask path, which shares the plan, returned meshes certify

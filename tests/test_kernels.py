@@ -60,6 +60,7 @@ def type_callees():
     python_entry(index.count_in_cell)(idx, 0.5, 0.5, *h, 4, 0.02, 5, 1.0, 1.0, stack, mask)
 
 
+@pytest.mark.slow  # each kernel compiled again to read its LLVM IR: 14 s
 @pytest.mark.parametrize("dispatcher", HOT, ids=lambda d: d.py_func.__name__)
 def test_hot_kernels_do_no_reference_counting(dispatcher):
     if not dispatcher.signatures:

@@ -65,7 +65,13 @@ def test_parts_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, parts):
 
 
 @pytest.mark.parametrize(
-    "periodic, parts", [(True, 4), (False, 3), ((True, False, True), 1)], ids=str
+    "periodic, parts",
+    [
+        (True, 4),
+        pytest.param(False, 3, marks=pytest.mark.slow),
+        pytest.param((True, False, True), 1, marks=pytest.mark.slow),
+    ],
+    ids=str,
 )
 def test_parts_in_space_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, parts):
     """A mesh in space in slabs: put back together it is the same Mesh (no neighbour links

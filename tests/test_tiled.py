@@ -443,7 +443,7 @@ def test_a_seeded_run_in_space_rebuilds_the_mesh_and_finds_nothing_to_do():
     weighted=st.booleans(),
     seed=st.integers(0, 2**16),
 )
-@settings(max_examples=8)
+@settings(max_examples=5)
 def test_tiled_runs_in_space_on_degenerate_inputs_certify(name, workers, periodic, weighted,
                                                           seed):  # fmt: skip
     """Property, in space: points on planes, on the cuts a plan would choose, on the seam,
