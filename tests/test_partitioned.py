@@ -77,8 +77,8 @@ def test_parts_in_space_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, part
     """A mesh in space in slabs: put back together it is the same Mesh (no neighbour links
     in the torus, as refine's), its d_{M,2} part by part equals the whole mesh's at random
     points, on every cut plane, at the box's corners and beyond the box (NaN along
-    non-periodic axes), each part exact at its own tetrahedra's centroids; plots part by part
-    are refused (built in the plane)."""
+    non-periodic axes), each part exact at its own tetrahedra's centroids; its picture (three
+    slices of d_M2 asked part by part) is the whole mesh's, pixel for pixel."""
     pts = gaussian_clusters(6000, 2, clusters=12, dim=3)
     mesh = knnrefine.refine(pts, 15, periodic=periodic, box=(0, 0, 0, 1, 1, 1))
     pm = write_partitioned(mesh, tmp_path / "mesh", parts)
@@ -105,8 +105,18 @@ def test_parts_in_space_give_back_the_mesh_and_its_d_m2(tmp_path, periodic, part
         c = part.corners().mean(axis=1)
         np.testing.assert_array_equal(part.d_m2(c), mesh.d_m2(c))
     assert sum(p["vertices"] for p in pm.manifest["parts"]) == len(mesh.vertices)
-    with pytest.raises(InputError, match="built for meshes in the plane"):
-        pm.plot()
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from knnrefine.plot import plot_slices
+
+    axes = pm.plot(points=pts, shape=64)  # three slices, d_M2 asked part by part
+    whole = plot_slices(mesh.d_m2, mesh, plt.subplots(1, 3)[1], "d_M2", points=pts, shape=64)
+    for a, b in zip(axes, whole, strict=True):
+        np.testing.assert_array_equal(a.images[0].get_array(), b.images[0].get_array())
+    plt.close("all")
+    with pytest.raises(InputError, match="three Axes"):
+        pm.plot(ax=plt.subplots()[1])
 
 
 def test_each_part_is_exact_in_its_own_triangles(tmp_path):

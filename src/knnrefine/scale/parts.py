@@ -29,7 +29,7 @@ import json
 import os
 import shutil
 import tempfile
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -45,9 +45,6 @@ from ..io import UNREADABLE, unreadable
 from ..mesh import Mesh, Torus, circumspheres, split_in_four
 from ..metric import BoxMetric
 from ..validation import as_points, as_queries, check_inside, check_workers, weights_of_run
-
-if TYPE_CHECKING:  # the annotations' types only
-    from matplotlib.axes import Axes
 
 FORMAT_VERSION = 2  # 2: each part also lists the others' triangles meeting its strip
 FINISHED = "_SUCCESS"
@@ -248,8 +245,8 @@ def _part_mesh(mesh, arrays, has_offsets):
 class PartitionedMesh:
     """A mesh written by ``write_partitioned`` (or ``distributed.refine(..., output=)``),
     read part by part: ``part(j)`` is a small ``Mesh`` exact in its strip; ``d_m2``,
-    ``distance`` and ``density`` go part by part, and in the plane ``plot``; ``to_mesh()`` is
-    the whole ``Mesh``.
+    ``plot``, ``distance`` and ``density`` go part by part; ``to_mesh()`` is the whole
+    ``Mesh``.
 
     Parameters
     ----------
@@ -293,24 +290,24 @@ class PartitionedMesh:
         """2 in the plane, 3 in space."""
         return len(self.box) // 2
 
-    def check_plane(self, what: str) -> None:
-        """Refuse a mesh in space for what is built in the plane only (plots part by part).
+    def _plot_slices(self, axes, points=None, shape=256, title=None):
+        import matplotlib.pyplot as plt
 
-        Parameters
-        ----------
-        what : str
-            What was asked, for the message.
+        from ..plot import plot_slices, space_figure_size
 
-        Raises
-        ------
-        InputError
-            The mesh is in space.
-        """
-        if self.dim != 2:
-            raise InputError(
-                f"{what} part by part is built for meshes in the plane; for this mesh in space "
-                "use the whole mesh (to_mesh()); d_m2 and the density go part by part in space too"
-            )
+        if axes is None:
+            axes = plt.subplots(1, 3, figsize=space_figure_size())[1]
+        axes = list(np.ravel(axes))
+        if len(axes) != 3:
+            raise InputError(f"a mesh in space is drawn on three Axes, got {len(axes)}")
+        m = self.manifest
+        title = title or (
+            f"mesh in space in {len(self)} parts: m = {m['m']:,} vertices, "
+            f"{m['triangles']:,} tetrahedra, k = {self.k}, tau = {self.tau:g}"
+        )
+        label = "d_M2 (distance to the second-nearest vertex)"
+        return list(plot_slices(self.d_m2, self, axes, label, points=points, shape=shape,
+                                title=title))  # fmt: skip
 
     def __len__(self):
         return len(self.manifest["parts"])
@@ -389,28 +386,28 @@ class PartitionedMesh:
             out[at] = self.part(int(j)).d_m2(flat[at])
         return out.reshape(shape)
 
-    def plot(self, ax: Axes | None = None, **kwargs) -> Axes:
-        """``plot.plot_mesh`` part by part on one axes, one colour scale for all.
+    def plot(self, ax: Any = None, **kwargs) -> Any:
+        """In the plane ``plot.plot_mesh`` part by part on one axes, one colour scale for
+        all; in space three slices through the box's centre coloured by d_{M,2}, answered
+        part by part (``plot.plot_slices``, as ``knnrefine plot`` draws a mesh in space).
 
         Parameters
         ----------
-        ax : matplotlib Axes, optional
+        ax : matplotlib Axes (plane) or three Axes (space), optional
+            Where to draw (default: a new figure).
         **kwargs
-            As for ``plot.plot_mesh``.
+            As for ``plot.plot_mesh`` in the plane; in space ``points`` (drawn near each
+            slice), ``shape`` (pixels per side) and ``title``.
 
         Returns
         -------
-        matplotlib Axes
-
-        Raises
-        ------
-        InputError
-            For a mesh in space (plot ``to_mesh()``).
+        matplotlib Axes (plane) or list of three Axes (space)
         """
         from ..plot import plot_mesh
 
-        self.check_plane("plotting")
         m = self.manifest
+        if self.dim == 3:
+            return self._plot_slices(ax, **kwargs)
         title = kwargs.pop("title", None) or (
             f"kNNRefine: k = {self.k}, tau = {self.tau:g}, m = {m['m']:,} in {len(self)} parts; "
             "colour: distance to the second-nearest mesh vertex"
