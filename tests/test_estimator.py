@@ -406,3 +406,41 @@ def test_sample_weight_from_any_array_like():
     with pytest.raises(knnrefine.InputError, match="finite"):
         KnnDensityEstimator(k=20).fit(pts, sample_weight=pd.Series([1.0] * 399 + [None],
                                                                  dtype="Float64"))  # fmt: skip
+
+
+@pytest.mark.parametrize("method", [None, "knn"])
+def test_grid_is_in_the_datas_units(dim, method):
+    """est.grid gives the cells' centres in the data's units (inside box_) and the density
+    there as score_samples does, whitened or not, in the plane and in space (issue 30)."""
+    if dim == 3 and method is None:
+        method = "knn"  # the default in space
+    X = mixture(3000, seed=21, dim=dim) * [10.0, 0.5, 3.0][:dim] + [100.0, -2.0, 7.0][:dim]
+    est = KnnDensityEstimator(k=40, method=method).fit(X)
+    shape = (12, 15) if dim == 2 else (5, 6, 7)
+    *axes, values = est.grid(shape)
+    assert values.shape == shape and [len(a) for a in axes] == list(shape[::-1])
+    lo, hi = np.array(est.box_[:dim]), np.array(est.box_[dim:])
+    for a, axis in enumerate(axes):
+        assert (axis > lo[a]).all() and (axis < hi[a]).all()
+    mesh = np.meshgrid(*axes, indexing="xy") if dim == 2 else np.meshgrid(*axes, indexing="ij")
+    centres = np.stack([m.ravel() for m in mesh], axis=1)
+    want = np.exp(est.score_samples(centres))
+    got = values.ravel() if dim == 2 else values.transpose(2, 1, 0).ravel()
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    with pytest.raises(InputError, match="shape"):
+        est.grid((0, 3))
+
+
+def test_feature_names_are_kept_and_checked():
+    """Fitted on a DataFrame with named columns, the estimator keeps their names as
+    scikit-learn does (feature_names_in_), refuses queries whose columns are named otherwise,
+    and takes plain arrays; a refit on an array forgets them (issue 30)."""
+    pd = pytest.importorskip("pandas")
+    X = mixture(800, seed=22)
+    frame = pd.DataFrame(X, columns=["lon", "lat"])
+    est = KnnDensityEstimator(k=20, method="knn").fit(frame)
+    assert list(est.feature_names_in_) == ["lon", "lat"]
+    np.testing.assert_array_equal(est.score_samples(frame), est.score_samples(X))
+    with pytest.raises(InputError, match="columns"):
+        est.score_samples(frame[["lat", "lon"]])
+    assert not hasattr(est.fit(X), "feature_names_in_")

@@ -23,6 +23,7 @@ from .adaptive import (
     generator,
     square_integral,
 )
+from .distance import grid_shape
 from .estimate import KnnDensity, default_k, default_pilot_k
 
 
@@ -100,7 +101,9 @@ class KnnDensityEstimator:
 
     Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
     ``scale_`` (the whitening divisors, ones without), ``method_`` (the estimate used),
-    ``n_samples_`` (weights counted), ``n_features_in_`` (2 or 3), ``mesh_`` (the ``Mesh``),
+    ``n_samples_`` (weights counted), ``n_features_in_`` (2 or 3), ``feature_names_in_`` (the
+    columns' names, when X was a DataFrame with names that are all strings, as scikit-learn
+    keeps them), ``mesh_`` (the ``Mesh``),
     ``density_`` (the ``AdaptiveDensity`` or ``KnnDensity``), ``sensitivity_`` (adaptive); when
     either is ``"cv"``, ``loo_scores_`` (a row (alpha, c, score) for every pair the search
     scored: the leave-one-out log-likelihood per point, or the least-squares score, by
@@ -241,6 +244,7 @@ class KnnDensityEstimator:
         dim = 3 if np.ndim(X) == 2 and np.shape(X)[1] == 3 else 2
         pts = as_points(X, dim)
         self._check_options()
+        names = feature_names(X)
         if self.method is None:  # the adaptive estimate in the plane, the kNN one in space
             self.method_ = "adaptive" if dim == 2 else "knn"
         elif self.method == "adaptive" and dim == 3:
@@ -291,6 +295,10 @@ class KnnDensityEstimator:
         self.box_ = tuple(float(b) for b in np.array(self.mesh_.box) * np.tile(scale, 2))
         self.n_samples_ = n
         self.n_features_in_ = dim
+        if names is None:
+            self.__dict__.pop("feature_names_in_", None)  # from an earlier fit
+        else:
+            self.feature_names_in_ = names
         return self
 
     def _check_options(self):
@@ -547,10 +555,45 @@ class KnnDensityEstimator:
             raise InputError(f"n_samples must be >= 0, got {n_samples}")
         return density.sample(int(n_samples), generator(random_state)) * self.scale_
 
+    def grid(self, shape: int | tuple | None = None) -> tuple:
+        """The density at the centres of a grid over the fitted box, in the data's units.
+
+        Parameters
+        ----------
+        shape : int or tuple of int, optional
+            Cells per axis, slowest first: (ny, nx) in the plane, (nz, ny, nx) in space; one
+            number for all axes; default 512 per axis in the plane, 64 in space.
+
+        Returns
+        -------
+        xs, ys[, zs] : ndarray
+            The cells' centres along each axis, in the data's units (``box_``).
+        values : ndarray (ny, nx) or (nz, ny, nx)
+            The density per unit area (volume) of the data, as ``exp(score_samples)``; row j
+            at ys[j] (image order, origin at the lower left).
+
+        Raises
+        ------
+        InputError
+            A bad shape.
+        """
+        density = self._fitted()
+        *axes, values = density.grid(grid_shape(shape, self.n_features_in_))
+        scale = np.asarray(self.scale_)
+        return (*(np.asarray(a) * s for a, s in zip(axes, scale, strict=True)),
+                values / self._jacobian())  # fmt: skip
+
     def _queries(self, X):
         """Query points (..., d) as flat (q, d) in the fitted (scaled) coordinates, and the
-        leading shape; non-finite coordinates refused."""
+        leading shape; non-finite coordinates refused, and columns named otherwise than
+        those fitted."""
         self._fitted()
+        names, fitted = feature_names(X), getattr(self, "feature_names_in_", None)
+        if names is not None and fitted is not None and list(names) != list(fitted):
+            raise InputError(
+                f"X has the columns {list(names)}, but the estimator was fitted with "
+                f"{list(fitted)}: give the columns in the fitted order"
+            )
         flat, shape = as_queries(X, self.n_features_in_)
         if not np.isfinite(flat).all():
             raise InputError("X holds NaN or infinite coordinates; give finite points")
@@ -559,6 +602,15 @@ class KnnDensityEstimator:
     def _jacobian(self):
         """Density in scaled coordinates / density in the data's: the scales' product."""
         return float(np.prod(self.scale_))
+
+
+def feature_names(X):
+    """The column names of a DataFrame X as an object array, when all are strings (as
+    scikit-learn keeps them); else None."""
+    columns = getattr(X, "columns", None)
+    if columns is None or not all(isinstance(c, str) for c in columns):
+        return None
+    return np.asarray(list(columns), dtype=object)
 
 
 def _same(a, b):
