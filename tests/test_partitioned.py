@@ -311,3 +311,31 @@ def test_density_in_space_part_by_part_equals_the_whole_meshs(tmp_path, periodic
     p = got.mass((0.0, 0.0, 0.0, 0.5, 1.0, 1.0))
     inside = (draws[:, 0] <= 0.5).mean()
     assert abs(inside - p) < 5 * np.sqrt(p * (1 - p) / len(draws))
+
+
+@pytest.mark.parametrize(
+    "dim, name",
+    [
+        (2, "line"),
+        (2, "seam"),
+        (3, "plane"),
+        (3, "seam"),
+        pytest.param(3, "lattice", marks=pytest.mark.slow),
+    ],
+)
+def test_parts_of_degenerate_inputs_answer_as_the_whole_mesh(tmp_path, dim, name):
+    """Points sharing a coordinate put many vertices on one cut (the cuts are quantiles of
+    the vertices' coordinate): on a line (a plane in space) across the box, on the seam, on a
+    lattice, the parts still give back the mesh, and d_M2 and the density part by part
+    equal the whole mesh's at the points themselves and at random points."""
+    from conftest import DEGENERATE, DEGENERATE3, unit_box
+
+    rng = np.random.default_rng(31)
+    pts = (DEGENERATE if dim == 2 else DEGENERATE3)[name](3000 if dim == 2 else 2000, rng)
+    mesh = knnrefine.refine(pts, 12, periodic=True, box=unit_box(dim))
+    pm = write_partitioned(mesh, tmp_path / "m", 3)
+    assert_same_mesh(mesh, pm.to_mesh())
+    q = np.concatenate([pts, rng.random((5000, dim))])
+    np.testing.assert_array_equal(pm.d_m2(q), mesh.d_m2(q))
+    want = knnrefine.KnnDensity(mesh, pts)(q)
+    np.testing.assert_allclose(pm.density(pts)(q), want, rtol=1e-12)

@@ -157,10 +157,8 @@ class KnnDistance:
 
         Parameters
         ----------
-        mesh : Mesh or PartitionedMesh (a ``MeshFrame``)
-            Its dimension, k, box and periodic axes.
-        n, total : int, float
-            The points' number and their total weight (n unweighted).
+        mesh, n, total
+            As for ``of_pieces``.
         pieces : PlanePieces or SpacePieces
             With their values at the mesh's vertices (``values``).
 

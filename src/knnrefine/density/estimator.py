@@ -561,16 +561,13 @@ class KnnDensityEstimator:
         Parameters
         ----------
         shape : int or tuple of int, optional
-            Cells per axis, slowest first: (ny, nx) in the plane, (nz, ny, nx) in space; one
-            number for all axes; default 512 per axis in the plane, 64 in space.
+            As for ``KnnDistance.grid``.
 
         Returns
         -------
-        xs, ys[, zs] : ndarray
-            The cells' centres along each axis, in the data's units (``box_``).
-        values : ndarray (ny, nx) or (nz, ny, nx)
-            The density per unit area (volume) of the data, as ``exp(score_samples)``; row j
-            at ys[j] (image order, origin at the lower left).
+        xs, ys[, zs], values : ndarray
+            As ``KnnDistance.grid``'s, in the data's units (``box_``): the density per unit
+            area (volume) of the data, ``exp(score_samples)`` at the centres.
 
         Raises
         ------

@@ -55,13 +55,12 @@ class SpacePieces:
         self.period = np.asarray(period, float)
         self._periodic = np.array(mesh.periodic)
         self.metric = BoxMetric((*origin, *(origin + self.period)), mesh.periodic)
-        local, corners, asked, inverse = nodes3(mesh, self.metric, self.period, subdivide)
+        local, corners, mids, asked, inverse = nodes3(mesh, self.metric, self.period, subdivide)
         found = kth(asked)
         self.values = found[: len(local)]
         d = self.values[mesh.tetrahedra]
         source = np.arange(len(corners))
-        if subdivide:  # the edges' midpoints, each tetrahedron cut into eight
-            mids = 0.5 * (corners[:, self.PAIRS[:, 0]] + corners[:, self.PAIRS[:, 1]])
+        if mids is not None:  # the edges' midpoints, each tetrahedron cut into eight
             nodes = np.concatenate([corners, mids], axis=1)  # (t, 10, 3)
             dm = found[len(local) :][inverse].reshape(-1, 6)
             values = np.concatenate([d, dm], axis=1)
@@ -300,10 +299,11 @@ def grid3(evaluate, lo, hi, shape):
 
 
 def nodes3(mesh, metric, period, subdivide=True):
-    """Where ``SpacePieces`` needs exact d_{P,k}: (local, corners, asked, inverse). ``local``
-    (m, 3) the vertices relative to the torus origin (``metric``: its frame), ``corners`` (t,
-    4, 3) the tetrahedra's there (unwrapped by their offsets); ``asked`` the vertices then,
-    with ``subdivide``, each distinct edge's midpoint once (7.4 edges per vertex, against 38
+    """Where ``SpacePieces`` needs exact d_{P,k}: (local, corners, mids, asked, inverse).
+    ``local`` (m, 3) the vertices relative to the torus origin (``metric``: its frame),
+    ``corners`` (t, 4, 3) the tetrahedra's there (unwrapped by their offsets), ``mids`` (t, 6,
+    3) their edges' midpoints (None without ``subdivide``); ``asked`` the vertices then, with
+    ``subdivide``, each distinct edge's midpoint once (7.4 edges per vertex, against 38
     tetrahedron edges: the same edge seen from two tetrahedra may be shifted by whole periods,
     where the periodic kd-tree gives the same distance); ``inverse`` each tetrahedron edge's
     (in ``SpacePieces.PAIRS`` order) row among those midpoints."""
@@ -312,11 +312,11 @@ def nodes3(mesh, metric, period, subdivide=True):
     if mesh.offsets is not None:
         corners = corners + mesh.offsets * period
     if not subdivide:
-        return local, corners, local, None
+        return local, corners, None, local, None
     pairs = SpacePieces.PAIRS
     mids = 0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]])
     first, inverse = edges3(mesh.tetrahedra, mesh.offsets, pairs)
-    return local, corners, np.concatenate([local, mids.reshape(-1, 3)[first]]), inverse
+    return local, corners, mids, np.concatenate([local, mids.reshape(-1, 3)[first]]), inverse
 
 
 def edges3(tetrahedra, offsets, pairs):

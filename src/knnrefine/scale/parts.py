@@ -594,8 +594,9 @@ class PartitionedDistance:
             values = [np.concatenate(vf) for vf in zip(values, found, strict=True)]
         self.values = values
 
-    def _space_part(self, j):
-        """(part j's own and covering tetrahedra as a Mesh, the mask of its own)."""
+    def _with_cover(self, j):
+        """(part j's own cells and the others' meeting its strip as a Mesh, the mask of its
+        own cells)."""
         arrays = self.pmesh._arrays(j)
         own = len(arrays["triangles"])
         arrays["triangles"] = np.concatenate([arrays["triangles"], arrays["cover_triangles"]])
@@ -608,7 +609,7 @@ class PartitionedDistance:
         origin, period = self.frame
         metric = BoxMetric((*origin, *(origin + period)), self.pmesh.periodic)
         asked = [
-            nodes3(self._space_part(j)[0], metric, period, self.subdivide)[2]
+            nodes3(self._with_cover(j)[0], metric, period, self.subdivide)[3]
             for j in range(len(self.pmesh))
         ]
         found = kth(np.concatenate(asked)) if asked else np.zeros(0)
@@ -665,13 +666,9 @@ class PartitionedDistance:
     def _covering(self, j):
         """(nodes, triangles, mine): the covering (``Mesh.covering``) of part j's triangles
         and the others' meeting its strip; ``mine`` marks the copies of its own."""
-        arrays = self.pmesh._arrays(j)
-        own = len(arrays["triangles"])
-        arrays["triangles"] = np.concatenate([arrays["triangles"], arrays["cover_triangles"]])
-        arrays["offsets"] = np.concatenate([arrays["offsets"], arrays["cover_offsets"]])
-        part = _part_mesh(self.pmesh, arrays, self.pmesh.manifest["has_offsets"])
+        part, mine = self._with_cover(j)
         nodes, triangles, source = part.covering(sources=True)
-        return nodes, triangles, source < own
+        return nodes, triangles, mine[source]
 
     def part(self, j):
         """Part j's d_{P,k}: a ``KnnDistance`` over its own pieces, locating points in the
@@ -681,9 +678,14 @@ class PartitionedDistance:
             if len(self._cache) >= 8:
                 self._cache.pop(next(iter(self._cache)))
             if self.dim == 3:
-                mesh, mine = self._space_part(j)
+                mesh, mine = self._with_cover(j)
                 values = self.values[j]
-                pieces = SpacePieces(mesh, lambda x: values, self.subdivide, frame=self.frame)
+
+                def known(asked):  # what _space_values found, asked in the same order
+                    assert len(asked) == len(values), "a part's nodes changed since asked"
+                    return values
+
+                pieces = SpacePieces(mesh, known, self.subdivide, frame=self.frame)
                 self._cache[j] = KnnDistance.of_linear_pieces(
                     self.pmesh, self.n, self.total, pieces.subset(mine)
                 )
