@@ -230,3 +230,31 @@ def test_edges_are_the_distinct_sorted_pairs():
     ref, inverse = np.unique(sides, axis=0, return_inverse=True)
     assert np.array_equal(pairs, ref) and pairs.dtype == t.dtype
     assert np.array_equal(edge_of, inverse.reshape(3, -1).T)
+
+
+def test_point_location_by_walking_equals_the_centroid_candidates(case):
+    """The pieces' walk from a raster of piece indices (the fast path) finds the piece the
+    kd-tree's candidates find, at random points, at the nodes, on the box's sides and
+    corners and across a periodic seam, and the interpolants agree to rounding."""
+    pts, mesh = case
+    d = KnnDistance(mesh, pts)
+    pieces = d.pieces
+    rng = np.random.default_rng(3)
+    q = np.concatenate(
+        [
+            rng.random((20000, 2)),
+            d.nodes[(d.nodes >= 0).all(axis=1) & (d.nodes <= 1).all(axis=1)],
+            np.column_stack([rng.random(200), np.zeros(200)]),
+            np.column_stack([np.ones(200), rng.random(200)]),
+            [[0.0, 0.0], [1.0, 1.0], [0.0, 1.0], [1.0, 0.0]],
+        ]
+    )
+    tri, bary = pieces._locate(q)
+    ref, ref_bary = pieces._nearest(q)
+    assert (tri >= 0).all() and (ref >= 0).all()
+    corners = pieces.values[pieces._pieces()]
+    v = np.einsum("qc,qc->q", bary, corners[tri])
+    v_ref = np.einsum("qc,qc->q", ref_bary, corners[ref])
+    np.testing.assert_allclose(v, v_ref, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(bary.sum(axis=1), 1.0)
+    assert (bary >= -1e-9).all()

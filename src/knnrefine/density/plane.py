@@ -7,7 +7,8 @@ Dunavant's 7-point rule on triangles clipped to rectangles, and sampled by rejec
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..engine.raster import clip_triangles, fans, rasterise
+from ..engine.raster import clip_triangles, fans, rasterise, walk_to
+from ..engine.threads import in_chunks
 from ..mesh import edges, split_in_four, triangle_areas, uniform_in_triangles
 
 # Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
@@ -105,9 +106,16 @@ class PlanePieces:
         values = np.asarray(self.values if values is None else values, float)
         tri, bary = self._locate(x)
         ok = tri >= 0
+        pieces = self._pieces()
+        if ok.all():  # (the usual case: no masked copies)
+            ok, tri_ok, bary_ok = slice(None), tri, bary
+        else:
+            tri_ok, bary_ok = tri[ok], bary[ok]
         out = np.full((len(x), *values.shape[1:]), np.nan)
-        corner = values[self._pieces()[tri[ok]]]  # (q, 3, ...)
-        out[ok] = np.einsum("qc,qc...->q...", bary[ok], corner)
+        if values.ndim == 1:  # d_{P,k} itself: three gathers, no (q, 3) temporaries
+            out[ok] = sum(bary_ok[:, c] * values[pieces[tri_ok, c]] for c in range(3))
+        else:
+            out[ok] = np.einsum("qc,qc...->q...", bary_ok, values[pieces[tri_ok]])
         return out
 
     def grid(self, shape):
@@ -152,8 +160,46 @@ class PlanePieces:
     def _locate(self, x):
         """The linear piece holding each point, and its barycentric coordinates (-1: none).
 
-        The pieces are well shaped (bounded aspect, Theorem 6), so the one holding x is among
-        the few whose centroids are nearest to x: a kd-tree on centroids finds it."""
+        A walk over the pieces (``engine.raster.walk_to``) from the piece a raster of piece
+        indices names at the point's cell: the pieces are well shaped (bounded aspect,
+        Theorem 6), so a walk takes a few steps where the raster's cells are no larger than
+        the pieces, and about (cell / piece) where they are. What the walk misses (a cell
+        named by no piece unwrapped, near a periodic seam) is located by ``_nearest``."""
+        located = self._pieces()
+        tri = np.full(len(x), -1, np.int64)
+        bary = np.zeros((len(x), 3))
+        if len(x) == 0 or len(located) == 0:
+            return tri, bary
+        side = int(np.clip(2 * np.sqrt(len(x)), 64, 1024))
+        start, dx, dy = self._id_raster(side)
+        if not hasattr(self, "_neighbours"):
+            self._neighbours = triangle_neighbours(located)
+        qx, qy = np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(x[:, 1])
+        in_chunks(
+            lambda a, b: walk_to(self.nodes, located, self._neighbours, start, *self.lo, dx, dy,
+                                 qx, qy, tri, bary, a, b),
+            len(x),
+        )  # fmt: skip
+        lost = np.nonzero(tri < 0)[0]
+        if len(lost):
+            tri[lost], bary[lost] = self._nearest(x[lost])
+        return tri, bary
+
+    def _id_raster(self, side):
+        """(raster (side, side) of the index of the piece holding each cell's centre, -1
+        where none does unwrapped; its cell sides dx, dy), kept per side."""
+        cache = self.__dict__.setdefault("_rasters", {})
+        if side not in cache:
+            dx, dy = (self.hi - self.lo) / side
+            out = np.full((side, side), -1.0)
+            empty = np.zeros(0)
+            rasterise(self.nodes, self._pieces(), empty, *self.lo, dx, dy, False, False, out, True)
+            cache[side] = (out, dx, dy)
+        return cache[side]
+
+    def _nearest(self, x):
+        """``_locate`` by candidates: the piece holding x is among the few whose centroids are
+        nearest to x (a kd-tree on centroids), for the points a walk did not place."""
         located = self._pieces()
         if not hasattr(self, "_centroids"):
             c = self.nodes[located]
@@ -191,6 +237,24 @@ class PlanePieces:
             bary[rows, 1:] = l12[hit, j]
             todo = todo[~hit]
         return tri, bary
+
+
+def triangle_neighbours(triangles):
+    """(t, 3): the triangle across the edge opposite each corner, -1 where none (a side of
+    the triangles, or an edge shared by more than two)."""
+    t = len(triangles)
+    edge_of = edges(triangles)[1].ravel()  # (t * 3,): edge of (triangle, corner)
+    order = np.argsort(edge_of, kind="stable")
+    e = edge_of[order]
+    out = np.full(t * 3, -1, np.int64)
+    pair = np.nonzero(e[1:] == e[:-1])[0]
+    single = np.ones(len(pair), bool)  # an edge of exactly two triangles
+    single &= (pair + 2 >= len(e)) | (e[np.minimum(pair + 2, len(e) - 1)] != e[pair])
+    single &= (pair == 0) | (e[np.maximum(pair - 1, 0)] != e[pair])
+    first, second = order[pair[single]], order[pair[single] + 1]
+    out[first] = second // 3
+    out[second] = first // 3
+    return out.reshape(t, 3)
 
 
 def sample_pieces(nodes, triangles, values, lo, hi, n, rng):

@@ -13,9 +13,10 @@ from .jit import kernel
 
 
 @kernel(entry=True, nogil=True)
-def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out):
+def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out, ids=False):
     """out[j, i] = the linear interpolant of ``values`` (given at ``nodes``) over the triangle
-    holding the grid centre (x0 + (i + 1/2) dx, y0 + (j + 1/2) dy). Centres on no triangle
+    holding the grid centre (x0 + (i + 1/2) dx, y0 + (j + 1/2) dy), or with ``ids`` that
+    triangle's index (``values`` unused: a start for ``walk_to``). Centres on no triangle
     keep their value. Along a periodic axis (px, py) a triangle reaching past the grid writes
     the centres it covers there wrapped round (index modulo the grid's size); along the
     others the part past the grid is skipped. Centres on a shared edge take either side's
@@ -40,7 +41,9 @@ def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out):
         if not py:
             j0 = max(j0, 0)
             j1 = min(j1, ny - 1)
-        va, vb, vc = values[a], values[b], values[c]
+        va = vb = vc = 0.0
+        if not ids:
+            va, vb, vc = values[a], values[b], values[c]
         for j in range(j0, j1 + 1):
             y = y0 + (j + 0.5) * dy
             jj = j % ny
@@ -55,8 +58,55 @@ def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out):
                 else:
                     inside = wa <= -tol and wb <= -tol and wc <= -tol
                 if inside:
-                    out[jj, i % nx] = (wa * va + wb * vb + wc * vc) / det
+                    if ids:
+                        out[jj, i % nx] = t
+                    else:
+                        out[jj, i % nx] = (wa * va + wb * vb + wc * vc) / det
     return 0
+
+
+WALK_STEPS = 4096  # a located walk's limit: far beyond a well-shaped mesh's, a lost walk's guard
+
+
+@kernel(entry=True, nogil=True)
+def walk_to(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx, qy, tri, bary, lo, hi):
+    """Locate queries lo..hi-1 by walking over triangles: from the triangle ``start`` (an
+    ``ids`` raster, as ``rasterise``) names at the query's cell, across the edge opposite
+    the most negative barycentric coordinate, until all three are >= -1e-12 (relative):
+    tri[q] and bary[q] (3,), or tri[q] = -1 where the cell names no triangle, the walk
+    leaves the triangles (a side with no neighbour) or runs past WALK_STEPS (the caller
+    locates those otherwise). The triangles must be consistently oriented, either way."""
+    ny, nx = start.shape
+    for q in range(lo, hi):
+        x, y = qx[q], qy[q]
+        i = min(max(int((x - x0) / dx), 0), nx - 1)
+        j = min(max(int((y - y0) / dy), 0), ny - 1)
+        t = int(start[j, i])
+        tri[q] = -1
+        for _ in range(WALK_STEPS):
+            if t < 0:
+                break
+            a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+            ax, ay = nodes[a, 0], nodes[a, 1]
+            bx, by = nodes[b, 0], nodes[b, 1]
+            cx, cy = nodes[c, 0], nodes[c, 1]
+            det = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            if det == 0.0:
+                break
+            la = ((bx - x) * (cy - y) - (by - y) * (cx - x)) / det
+            lb = ((cx - x) * (ay - y) - (cy - y) * (ax - x)) / det
+            lc = 1.0 - la - lb
+            worst = min(la, lb, lc)
+            if worst >= -1e-12:
+                tri[q] = t
+                bary[q, 0] = la
+                bary[q, 1] = lb
+                bary[q, 2] = lc
+                break
+            e = 0 if la == worst else (1 if lb == worst else 2)
+            t = neighbours[t, e]
+    return 0
+
 
 
 MAX_CLIPPED = 7  # a triangle cut by a rectangle's four sides has at most 7 corners
