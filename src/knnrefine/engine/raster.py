@@ -108,7 +108,6 @@ def walk_to(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx, qy, tri, ba
     return 0
 
 
-
 MAX_CLIPPED = 7  # a triangle cut by a rectangle's four sides has at most 7 corners
 
 
