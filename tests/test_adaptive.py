@@ -463,15 +463,21 @@ def test_estimator_default_is_adaptive_with_its_bandwidth_from_the_curve():
     assert est.score(test) > knn.score(test)
 
 
-def test_integer_weights_are_copies():
+def test_weights_are_relative():
+    """Issue 30: the weights' scale does not change the adaptive fit: the same k (from
+    n_eff when not given), the same chosen smoothing and leave-one-out curve, the same
+    density (weights normalised to sum 1 raised "k must be an integer in [1, n = 1]")."""
     X = mixture(800, seed=4)
-    w = np.random.default_rng(5).integers(0, 4, len(X))
-    a = KnnDensityEstimator(k=15).fit(X, sample_weight=w)
-    b = KnnDensityEstimator(k=15).fit(np.repeat(X, w, axis=0))
-    assert a.bandwidth_ == b.bandwidth_
-    np.testing.assert_allclose(a.bandwidth_scores_, b.bandwidth_scores_, rtol=1e-10)
+    w = np.random.default_rng(5).integers(1, 4, len(X)).astype(float)
+    a = KnnDensityEstimator().fit(X, sample_weight=w)
+    b = KnnDensityEstimator().fit(X, sample_weight=w / w.sum())
+    c = KnnDensityEstimator().fit(X, sample_weight=w * 1000)
     probes = mixture(300, seed=6)
-    np.testing.assert_allclose(a.score_samples(probes), b.score_samples(probes), rtol=1e-10)
+    for other in (b, c):
+        assert other.k_ == a.k_ and other.bandwidth_ == a.bandwidth_
+        np.testing.assert_allclose(other.bandwidth_scores_, a.bandwidth_scores_, rtol=1e-9)
+        np.testing.assert_allclose(other.score_samples(probes), a.score_samples(probes),
+                                   rtol=1e-9)  # fmt: skip
 
 
 def test_ties_do_not_pull_the_bandwidth_to_zero():
@@ -496,7 +502,8 @@ def test_whiten_makes_the_estimate_scale_equivariant():
     )
     s = b.sample(3000, random_state=0)
     lo, hi = np.array(b.box_[:2]), np.array(b.box_[2:])
-    assert ((s >= lo) & (s <= hi)).all() and s[:, 1].std() > 100 * s[:, 0].std()
+    inside = np.all((s >= lo) & (s <= hi), axis=1)  # but for the tail's few (1 / n)
+    assert inside.mean() > 0.995 and s[inside, 1].std() > 100 * s[inside, 0].std()
 
 
 def test_local_shape_wins_on_a_thin_ridge():

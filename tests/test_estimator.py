@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 import knnrefine
 from knnrefine import InputError, KnnDensityEstimator
+from knnrefine.density import default_k, default_pilot_k
 
 sklearn = pytest.importorskip("sklearn")
 
@@ -54,7 +55,7 @@ def test_density_matches_brute_force(fitted):
     brute_mass = grid_mean(brute, lo, hi) * float(np.prod(hi - lo))
     nodes = est.density_.distance.nodes
     nodes = nodes[np.all((nodes >= lo) & (nodes <= hi), axis=1)]
-    scale = np.exp(est.score_samples(nodes)) / brute(nodes)
+    scale = est.density_(nodes) / brute(nodes)  # the estimate in the box (no tail_)
     np.testing.assert_allclose(scale, scale[0], rtol=1e-9)
     assert scale[0] * brute_mass == pytest.approx(1.0, abs=0.02)
     rng = np.random.default_rng(1)
@@ -76,7 +77,7 @@ def test_outside_the_box_and_shapes(fitted):
     X, est = fitted
     lo, hi = np.array(est.box_[:2]), np.array(est.box_[2:])
     out = est.score_samples(np.array([[hi[0] + 1e-9, 0.5], [lo[0], lo[1]], [0.5, 0.5]]))
-    assert out[0] == -np.inf and np.isfinite(out[1:]).all()
+    assert np.isfinite(out).all() and out[0] < out[2]  # no box given: tails everywhere
     cube = X[:24].reshape(2, 3, 4, 2)
     np.testing.assert_array_equal(
         est.score_samples(cube), est.score_samples(X[:24]).reshape(2, 3, 4)
@@ -134,14 +135,43 @@ def test_sampling_is_reproducible_and_in_the_box(fitted):
         est.sample(3, random_state="seed")
 
 
-def test_integer_weights_are_copies(dim):
+def test_sample_weights_are_relative(dim):
+    """Issue 30: sample_weight is relative, as scikit-learn's and gaussian_kde's: weights
+    times any factor (normalised to sum 1, times 1000) fit the same estimate at the same k,
+    and the sample counts as its effective size (sum w)^2 / sum w^2, from which the default
+    k comes. Equal weights are no weights. Weights of 2 against copies: the engine counts
+    the weights scaled to n_eff, so k effective neighbours with weights w are k W / n_eff
+    copies' worth."""
     X = mixture(800, seed=4, dim=dim)
-    w = np.random.default_rng(5).integers(0, 4, len(X))
+    w = np.random.default_rng(5).integers(0, 4, len(X)).astype(float)
+    n_eff = w.sum() ** 2 / (w * w).sum()
     a = KnnDensityEstimator(k=15, method="knn").fit(X, sample_weight=w)
-    b = KnnDensityEstimator(k=15, method="knn").fit(np.repeat(X, w, axis=0))
     probes = mixture(300, seed=6, dim=dim)
-    np.testing.assert_array_equal(a.score_samples(probes), b.score_samples(probes))
-    assert a.n_samples_ == w.sum()
+    for factor in (1 / w.sum(), 1000.0):
+        b = KnnDensityEstimator(k=15, method="knn").fit(X, sample_weight=w * factor)
+        np.testing.assert_allclose(b.score_samples(probes), a.score_samples(probes), rtol=1e-10)
+        assert b.n_samples_ == pytest.approx(n_eff)
+    # no k given: the default from n_eff, whatever the weights' scale (it raised at sum 1)
+    for method in ("knn", None if dim == 2 else "knn"):
+        c = KnnDensityEstimator(method=method).fit(X, sample_weight=w / w.sum())
+        d = KnnDensityEstimator(method=method).fit(X, sample_weight=w * 1000)
+        assert c.k_ == d.k_ == (default_k if method == "knn" else default_pilot_k)(n_eff)
+    # equal weights are the unweighted estimate
+    plain = KnnDensityEstimator(k=15, method="knn").fit(X)
+    same = KnnDensityEstimator(k=15, method="knn").fit(X, sample_weight=np.full(len(X), 7.0))
+    np.testing.assert_array_equal(same.score_samples(probes), plain.score_samples(probes))
+    # weights 2 on a fifth of the points, 1 on the rest: W = 6 n / 5, n_eff = 9 n / 10, the
+    # engine's weights 3 / 2 and 3 / 4 (exact in binary: no rounding at the count of k)
+    twice = np.where(np.arange(len(X)) % 5 == 0, 2.0, 1.0)
+    ratio = twice.sum() / (twice.sum() ** 2 / (twice * twice).sum())  # W / n_eff = 4 / 3
+    e = KnnDensityEstimator(k=18, method="knn").fit(X, sample_weight=twice)
+    copies = KnnDensityEstimator(k=24, method="knn", box=e.box_)
+    copies.fit(np.repeat(X, twice.astype(int), axis=0))
+    assert 18 * ratio == pytest.approx(24)
+    inside = probes[np.all((probes >= e.box_[:dim]) & (probes <= e.box_[dim:]), axis=1)]
+    np.testing.assert_allclose(  # the same d_Pk: the radius holding that much weight
+        e.density_.distance.exact(inside), copies.density_.distance.exact(inside), rtol=1e-12
+    )
     with pytest.raises(InputError, match="sum to 0"):
         KnnDensityEstimator(k=15).fit(X, sample_weight=np.zeros(len(X)))
     with pytest.raises(InputError, match="shape"):
@@ -211,10 +241,10 @@ def test_real_data_old_faithful():
     order = rng.permutation(len(X))
     train, test = X[order[: len(X) * 3 // 4]], X[order[len(X) * 3 // 4 :]]
     est = KnnDensityEstimator(k=10).fit(train)
-    assert np.isfinite(est.score_samples(test)).mean() > 0.95
+    assert np.isfinite(est.score_samples(test)).all()  # no box given: tails everywhere
     s = est.sample(2000, random_state=0)
     lo, hi = np.array(est.box_[:2]), np.array(est.box_[2:])
-    assert ((s >= lo) & (s <= hi)).all()
+    assert np.all((s >= lo) & (s <= hi), axis=1).mean() > 0.99  # but the tail's few
     # two modes (short and long eruptions): both get samples
     assert (s[:, 0] < 3).mean() > 0.2 and (s[:, 0] > 3.5).mean() > 0.4
 
@@ -348,17 +378,21 @@ def test_refit_without_cv_drops_the_curve():
 
 
 def test_real_weights_are_counted_by_the_engine():
-    """Issue 11: real-valued sample_weight (it raised InputError). Halving every weight and k
-    is the same estimate (sums of halves are exact); against brute force the estimate at the
-    mesh's nodes is k / (W pi d^2) with d the least radius holding weight k."""
+    """Issue 11: real-valued sample_weight (it raised InputError). Halving every weight is
+    the same estimate (issue 30: weights are relative); against brute force the estimate at
+    the mesh's nodes is k / (n_eff pi d^2) with d the least radius holding weight k once the
+    weights are scaled to sum to n_eff = (sum w)^2 / sum w^2."""
     X = mixture(1500, seed=11)
-    half = KnnDensityEstimator(k=15, method="knn").fit(X, sample_weight=np.full(len(X), 0.5))
-    assert half.n_samples_ == 750.0
+    half = KnnDensityEstimator(k=30, method="knn").fit(X, sample_weight=np.full(len(X), 0.5))
+    assert half.n_samples_ == 1500.0
     whole = KnnDensityEstimator(k=30, method="knn").fit(X)
     probes = mixture(300, seed=13)
     np.testing.assert_array_equal(half.score_samples(probes), whole.score_samples(probes))
     w = np.random.default_rng(12).gamma(2.0, 1.0, len(X))
     est = KnnDensityEstimator(k=20, method="knn").fit(X, sample_weight=w)
+    n_eff = w.sum() ** 2 / (w * w).sum()
+    assert est.n_samples_ == pytest.approx(n_eff)
+    w = w * n_eff / w.sum()  # what the engine counts
     dist = est.density_.distance
     lo, hi = np.array(est.box_[:2]), np.array(est.box_[2:])
     nodes = dist.nodes[np.all((dist.nodes >= lo) & (dist.nodes <= hi), axis=1)][:400]
@@ -368,9 +402,7 @@ def test_real_weights_are_counted_by_the_engine():
     ref = np.take_along_axis(d, order, 1)[np.arange(len(nodes)), np.argmax(held >= 20, axis=1)]
     np.testing.assert_allclose(dist.exact(nodes), ref, rtol=1e-12)
     raw = 20 / (w.sum() * np.pi * ref**2)
-    np.testing.assert_allclose(
-        np.exp(est.score_samples(nodes)), raw / est.density_.raw_mass, rtol=1e-9
-    )
+    np.testing.assert_allclose(est.density_(nodes), raw / est.density_.raw_mass, rtol=1e-9)
     # the weighted estimate follows the weights: points weighted up in one half pull mass
     left = X[:, 0] < np.median(X[:, 0])
     tilted = KnnDensityEstimator(k=20, method="knn")
@@ -444,3 +476,53 @@ def test_feature_names_are_kept_and_checked():
     with pytest.raises(InputError, match="columns"):
         est.score_samples(frame[["lat", "lon"]])
     assert not hasattr(est.fit(X), "feature_names_in_")
+
+
+def test_held_out_points_beyond_the_box_score_finitely_without_a_box(dim):
+    """Issue 30: fitted without a box, the estimate has tails everywhere (a Cauchy density of
+    one point's weight about the fitted box), so that held-out points beyond the data's box
+    score finitely; it still integrates to 1 and samples follow it; with a box given, the
+    estimate is 0 outside it as before."""
+    method = None if dim == 2 else "knn"
+    X = mixture(3000, seed=4, dim=dim)
+    est = KnnDensityEstimator(k=40, method=method).fit(X)
+    tail = est.tail_
+    assert tail is not None and tail.weight == pytest.approx(1 / 3000)
+    lo, hi = np.array(est.box_[:dim]), np.array(est.box_[dim:])
+    far = np.array([hi + 1.0, lo - 50.0, [hi[0] + 0.01, *lo[1:] + 0.1]])
+    inside = X[:200]
+    got = est.score_samples(far)
+    np.testing.assert_allclose(got, np.log(tail.weight * tail(far)), rtol=1e-12)
+    # inside: the box estimate and the tail, mixed
+    box_only = est.density_(inside)
+    want = np.log((1 - tail.weight) * box_only + tail.weight * tail(inside))
+    np.testing.assert_allclose(est.score_samples(inside), want, rtol=1e-12)
+    # the tail's mass in the box by its own draws: box part + tail part integrate to 1
+    draws = tail.sample(400000, np.random.default_rng(0))
+    in_box = np.mean(np.all((draws >= lo) & (draws <= hi), axis=1))
+    shape = (200, 200) if dim == 2 else (40, 40, 40)
+    *axes, values = est.grid(shape)
+    cell = np.prod([a[1] - a[0] for a in axes])
+    assert values.sum() * cell == pytest.approx(1 - tail.weight + tail.weight * in_box, abs=2e-3)
+    # the tail's density is the t density with one degree of freedom (scipy)
+    from scipy.stats import multivariate_t
+
+    ref = multivariate_t(loc=tail.centre, shape=np.diag(tail.scale**2), df=1)
+    np.testing.assert_allclose(tail(far), ref.pdf(far), rtol=1e-10)
+    # samples: a share of about weight * P(outside) beyond the box
+    s = est.sample(60000, random_state=1)
+    assert np.mean(~np.all((s >= lo) & (s <= hi), axis=1)) < 10 * tail.weight
+    # with a box given: 0 outside it, as before
+    boxed = KnnDensityEstimator(k=40, method=method, box=est.box_).fit(X)
+    assert boxed.tail_ is None and np.isneginf(boxed.score_samples(far)).all()
+
+
+def test_cross_validation_scores_are_finite_with_outliers_in_held_out_folds():
+    """Issue 30 (regression): a held-out point beyond the training folds' box scored -inf,
+    which made cross_val_score unusable on data with a few far points."""
+    sklearn = pytest.importorskip("sklearn.model_selection")
+    rng = np.random.default_rng(3)
+    X = np.concatenate([mixture(2000, seed=3), rng.normal(0.5, 3.0, (6, 2))])
+    rng.shuffle(X)
+    scores = sklearn.cross_val_score(KnnDensityEstimator(k=30), X, cv=3)
+    assert np.isfinite(scores).all()

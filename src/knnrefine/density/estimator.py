@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -77,10 +78,13 @@ class KnnDensityEstimator:
     periodic : bool or (bool, bool)
         Flat torus along these axes (``box`` then required).
     box : (xmin, ymin, xmax, ymax), optional
-        Where the estimate lives: it integrates to 1 over the box and is 0 outside it along
-        non-periodic axes (log-density -inf there); periodic axes wrap. Default: the data's
-        bounding box widened by ``margin`` of its sides on every side, so that held-out points
-        near the sample's edge score finitely.
+        Where the estimate lives: given, it integrates to 1 over the box and is 0 outside it
+        along non-periodic axes (log-density -inf there); periodic axes wrap. Default (no
+        box, no periodic axis): the estimate is built in the data's bounding box widened by
+        ``margin`` of its sides on every side, and has tails everywhere, as a kernel
+        estimate does: a multivariate Cauchy density about that box of one point's weight
+        (1 / n_eff) is mixed in (``tail_``), so that held-out points anywhere score finitely
+        and cross-validation and model comparison work.
     margin : float >= 0
         See ``box`` (ignored when a box is given).
     min_size : float, optional
@@ -100,8 +104,9 @@ class KnnDensityEstimator:
         project's study at 1e6 (docs/uses.md). ``score`` stays the log-likelihood.
 
     Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
+    ``tail_`` (the ``CauchyTail`` mixed in when no box was given, else None),
     ``scale_`` (the whitening divisors, ones without), ``method_`` (the estimate used),
-    ``n_samples_`` (weights counted), ``n_features_in_`` (2 or 3), ``feature_names_in_`` (the
+    ``n_samples_`` (the effective sample size n_eff with weights), ``n_features_in_`` (2 or 3), ``feature_names_in_`` (the
     columns' names, when X was a DataFrame with names that are all strings, as scikit-learn
     keeps them), ``mesh_`` (the ``Mesh``),
     ``density_`` (the ``AdaptiveDensity`` or ``KnnDensity``), ``sensitivity_`` (adaptive); when
@@ -228,9 +233,13 @@ class KnnDensityEstimator:
             The points (pandas frames too).
         y : ignored
         sample_weight : array-like (n,), optional
-            Weights >= 0 (the engine counts them: a point of whole weight w is w copies, real
-            weights are survey or aggregation weights; n is then their total W), in both
-            dimensions.
+            Relative weights >= 0, as scikit-learn's and scipy's gaussian_kde's: only their
+            ratios matter (weights times any factor fit the same estimate). The sample counts
+            as its effective size n_eff = (sum w)^2 / sum w^2 (Kish's; n without weights):
+            the default k and the tail's weight follow n_eff, and k counts effective points
+            (the engine counts the weights scaled to sum to n_eff). A point of weight 2 is
+            therefore not two copies of it: copies are two observations, a weight is one
+            observation that counts double. In both dimensions.
 
         Returns
         -------
@@ -258,9 +267,8 @@ class KnnDensityEstimator:
         if sample_weight is not None:
             weights = check_weights(sample_weight, len(pts))
             pts, weights = pts[weights > 0], weights[weights > 0]
-            if np.all(weights == 1.0):
-                weights = None
-        n = len(pts) if weights is None else float(weights.sum())
+            weights = relative_weights(weights)
+        n = len(pts) if weights is None else float(weights.sum())  # n_eff
         scale = self._scale(pts, weights)
         pts = pts / scale
         box = self._box(pts, scale)
@@ -290,6 +298,15 @@ class KnnDensityEstimator:
             self.bandwidth_ = self.density_.bandwidth
             self.sensitivity_ = self.density_.sensitivity
         self._train = (pts, np.ones(len(pts)) if weights is None else weights)
+        self.tail_ = None  # the box was given (or a torus): the estimate is 0 outside it
+        if self.box is None and not np.any(self.periodic):
+            w = self._train[1]
+            bounds = np.asarray(self.mesh_.box, float)
+            self.tail_ = CauchyTail(
+                centre=0.5 * (bounds[:dim] + bounds[dim:]),
+                scale=0.5 * (bounds[dim:] - bounds[:dim]),
+                weight=1.0 / float(w.sum()),  # one point's worth: 1 / n_eff
+            )
         self.k_ = int(k)
         self.scale_ = tuple(float(v) for v in scale)
         self.box_ = tuple(float(b) for b in np.array(self.mesh_.box) * np.tile(scale, 2))
@@ -395,8 +412,8 @@ class KnnDensityEstimator:
         log-likelihood per unit of weight (higher is better), or the mean over folds of the
         least-squares score integral f^2 - 2 (weighted mean of f at the held-out points),
         lower is better (``square_integral``). Every fold is refined in the same box, so
-        that held-out points are in it; folds split points, so a point of weight w (w
-        copies) is held out whole."""
+        that held-out points are in it; folds split points, so a point is held out whole,
+        with its weight."""
         folds = cv_folds(len(pts), self.cv, self.random_state)
         weight = np.ones(len(pts)) if weights is None else weights
         n = float(weight.sum())
@@ -450,8 +467,8 @@ class KnnDensityEstimator:
         """Percentile bands of the density: the estimate refitted (same k and box) on n_boot
         resamples of the training points with replacement (as weights: no copies are made),
         and the (1 - level) / 2 and (1 + level) / 2 quantiles of its values at each point.
-        Whole-number weights are copies and the copies are resampled; real weights stay with
-        their points, which are resampled (the bootstrap of a weighted sample).
+        Weights stay with their points, which are resampled (the bootstrap of a weighted
+        sample).
 
         Parameters
         ----------
@@ -474,18 +491,15 @@ class KnnDensityEstimator:
         flat, shape = self._queries(X)
         pts, weight = self._train  # in the fitted (scaled) coordinates
         rng = generator(random_state)
-        whole = bool(np.all(weight == np.rint(weight)))
         params = {**self.get_params(), "k": self.k_, "box": self.mesh_.box, "whiten": False}
         if self.method_ == "adaptive":
             params["bandwidth"] = density.bandwidth
             params["sensitivity"] = density.sensitivity
         values = np.empty((int(n_boot), len(flat)))
         for b in range(int(n_boot)):
-            if whole:  # the copies, resampled
-                draw = rng.multinomial(int(weight.sum()), weight / weight.sum())
-            else:  # the points, resampled, each with its weight
-                draw = rng.multinomial(len(weight), np.full(len(weight), 1.0 / len(weight)))
-                draw = draw * weight
+            # the points, resampled, each with its weight (the bootstrap of a weighted sample)
+            draw = rng.multinomial(len(weight), np.full(len(weight), 1.0 / len(weight)))
+            draw = draw * weight
             refit = type(self)(**params).fit(pts, sample_weight=draw)
             values[b] = np.exp(refit.score_samples(flat)) / self._jacobian()
         lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2], axis=0)
@@ -498,8 +512,9 @@ class KnnDensityEstimator:
 
     # -- evaluation ----------------------------------------------------------------------------
     def score_samples(self, X: ArrayLike) -> np.ndarray:
-        """Log-density at points: -inf outside the box along non-periodic axes (the estimate
-        is 0 there); periodic axes wrap.
+        """Log-density at points: finite everywhere when no box was given (``tail_``), else
+        -inf outside the box along non-periodic axes (the estimate is 0 there); periodic axes
+        wrap.
 
         Parameters
         ----------
@@ -511,14 +526,18 @@ class KnnDensityEstimator:
         """
         density = self._fitted()
         flat, shape = self._queries(X)
-        f = density(flat) / self._jacobian()
+        f = density(flat)
+        tail = getattr(self, "tail_", None)
+        if tail is not None:  # tails everywhere: finite outside the box
+            f = (1.0 - tail.weight) * np.where(np.isnan(f), 0.0, f) + tail.weight * tail(flat)
+        f = f / self._jacobian()
         with np.errstate(divide="ignore"):
             out = np.where(np.isnan(f), -np.inf, np.log(np.where(np.isnan(f), 1.0, f)))
         return out.reshape(shape)
 
     def score(self, X: ArrayLike, y: None = None) -> float:
-        """Total log-likelihood of points under the estimate (-inf if one lies outside the
-        box).
+        """Total log-likelihood of points under the estimate (-inf if one lies outside a box
+        that was given).
 
         Parameters
         ----------
@@ -537,7 +556,7 @@ class KnnDensityEstimator:
         random_state: int | np.random.Generator | np.random.RandomState | None = None,
     ) -> np.ndarray:
         """Points drawn exactly from the estimate (``AdaptiveDensity.sample``,
-        ``KnnDensity.sample``).
+        ``KnnDensity.sample``, and the tail's with its weight when no box was given).
 
         Parameters
         ----------
@@ -553,7 +572,15 @@ class KnnDensityEstimator:
             raise InputError(f"n_samples must be an integer >= 0, got {n_samples!r}")
         if n_samples < 0:
             raise InputError(f"n_samples must be >= 0, got {n_samples}")
-        return density.sample(int(n_samples), generator(random_state)) * self.scale_
+        rng = generator(random_state)
+        tail = getattr(self, "tail_", None)
+        if tail is None:
+            return density.sample(int(n_samples), rng) * self.scale_
+        from_tail = rng.random(int(n_samples)) < tail.weight
+        out = np.empty((int(n_samples), self.n_features_in_))
+        out[~from_tail] = density.sample(int((~from_tail).sum()), rng)
+        out[from_tail] = tail.sample(int(from_tail.sum()), rng)
+        return out * self.scale_
 
     def grid(self, shape: int | tuple | None = None) -> tuple:
         """The density at the centres of a grid over the fitted box, in the data's units.
@@ -576,6 +603,10 @@ class KnnDensityEstimator:
         """
         density = self._fitted()
         *axes, values = density.grid(grid_shape(shape, self.n_features_in_))
+        tail = getattr(self, "tail_", None)
+        if tail is not None:
+            centres = np.stack([g.ravel() for g in np.meshgrid(*axes[::-1], indexing="ij")[::-1]], 1)
+            values = (1.0 - tail.weight) * values + tail.weight * tail(centres).reshape(values.shape)
         scale = np.asarray(self.scale_)
         return (*(np.asarray(a) * s for a, s in zip(axes, scale, strict=True)),
                 values / self._jacobian())  # fmt: skip
@@ -599,6 +630,42 @@ class KnnDensityEstimator:
     def _jacobian(self):
         """Density in scaled coordinates / density in the data's: the scales' product."""
         return float(np.prod(self.scale_))
+
+
+def relative_weights(weights):
+    """Weights (n,) > 0 scaled to sum to their effective sample size (sum w)^2 / sum w^2, so
+    that the engine, which counts weight, counts effective points; None when all are equal
+    (the unweighted sample)."""
+    if np.all(weights == weights[0]):
+        return None
+    total = float(weights.sum())
+    n_eff = total * total / float((weights * weights).sum())
+    return weights * (n_eff / total)
+
+
+class CauchyTail:
+    """The multivariate Cauchy density (Student's t with one degree of freedom) about
+    ``centre`` with per-axis ``scale``: the tail an estimate fitted without a box mixes in at
+    ``weight`` (one point's worth, 1 / n_eff), so that it is positive everywhere and held-out
+    points beyond the box score finitely, as every kernel estimate's tails make it; heavy
+    enough for any data (it decays as |x|^-(d + 1))."""
+
+    def __init__(self, centre, scale, weight):
+        self.centre = np.asarray(centre, float)
+        self.scale = np.asarray(scale, float)
+        self.weight = float(weight)
+        d = len(self.centre)
+        self._norm = math.gamma((d + 1) / 2) / math.pi ** ((d + 1) / 2) / float(np.prod(self.scale))
+
+    def __call__(self, x):
+        """The density at points x (q, d)."""
+        z = (np.asarray(x, float) - self.centre) / self.scale
+        return self._norm * (1.0 + (z * z).sum(axis=1)) ** (-(len(self.centre) + 1) / 2)
+
+    def sample(self, n, rng):
+        """n points (n, d): a normal vector over the absolute value of an independent one."""
+        z = rng.standard_normal((n, len(self.centre))) / np.abs(rng.standard_normal((n, 1)))
+        return self.centre + self.scale * z
 
 
 def feature_names(X):
