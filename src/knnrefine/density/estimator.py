@@ -106,9 +106,9 @@ class KnnDensityEstimator:
     Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
     ``tail_`` (the ``CauchyTail`` mixed in when no box was given, else None),
     ``scale_`` (the whitening divisors, ones without), ``method_`` (the estimate used),
-    ``n_samples_`` (the effective sample size n_eff with weights), ``n_features_in_`` (2 or 3), ``feature_names_in_`` (the
-    columns' names, when X was a DataFrame with names that are all strings, as scikit-learn
-    keeps them), ``mesh_`` (the ``Mesh``),
+    ``n_samples_`` (the effective sample size n_eff with weights), ``n_features_in_`` (2 or
+    3), ``feature_names_in_`` (the columns' names, when X was a DataFrame with names that are
+    all strings, as scikit-learn keeps them), ``mesh_`` (the ``Mesh``),
     ``density_`` (the ``AdaptiveDensity`` or ``KnnDensity``), ``sensitivity_`` (adaptive); when
     either is ``"cv"``, ``loo_scores_`` (a row (alpha, c, score) for every pair the search
     scored: the leave-one-out log-likelihood per point, or the least-squares score, by
@@ -605,8 +605,9 @@ class KnnDensityEstimator:
         *axes, values = density.grid(grid_shape(shape, self.n_features_in_))
         tail = getattr(self, "tail_", None)
         if tail is not None:
-            centres = np.stack([g.ravel() for g in np.meshgrid(*axes[::-1], indexing="ij")[::-1]], 1)
-            values = (1.0 - tail.weight) * values + tail.weight * tail(centres).reshape(values.shape)
+            mesh = np.meshgrid(*axes[::-1], indexing="ij")[::-1]  # x, y[, z]; (.., ny, nx)
+            at = tail(np.stack([g.ravel() for g in mesh], 1)).reshape(values.shape)
+            values = (1.0 - tail.weight) * values + tail.weight * at
         scale = np.asarray(self.scale_)
         return (*(np.asarray(a) * s for a, s in zip(axes, scale, strict=True)),
                 values / self._jacobian())  # fmt: skip
