@@ -384,12 +384,13 @@ def choose_smoothing(
     if m > 2 * COARSE:
         pool = np.arange(n) if sample is None else sample
         coarse = np.sort(generator(random_state).choice(pool, max(COARSE, m // 5), False))
-        i, j, _ = _climb(density, alphas, bandwidths, coarse, i, j, criterion)
-    i, j, scored = _climb(density, alphas, bandwidths, sample, i, j, criterion)
+        i, j, _ = _climb(Scores(density, coarse, criterion), alphas, bandwidths, i, j)
+    scores = Scores(density, sample, criterion)
+    i, j, scored = _climb(scores, alphas, bandwidths, i, j)
     alpha, c = float(alphas[i]), float(bandwidths[j])
     rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
     if len(bandwidths) > 1:
-        c, settled = _widest_within_one_se(density, alpha, c, sample, criterion, max(bandwidths))
+        c, settled = _widest_within_one_se(scores, alpha, c, max(bandwidths))
         near = [b for a, b, _ in rows if a == alpha]
         rows += [(alpha, b, v) for b, v in settled.items() if not np.isclose(near, b).any()]
     sign = 1.0 if criterion == "likelihood" else -1.0  # the table has the scores as defined
@@ -398,35 +399,47 @@ def choose_smoothing(
     return alpha, c, table
 
 
-def _score_terms(density, c, alpha, sample, criterion):
-    """The cross-validation score at (alpha, c) as terms (values, weights, factor): the score
-    (higher is better) is the sum of factor * (weighted mean of values), and two smoothings'
-    values pair item by item (the same points; the same seeded draws), so the standard error
-    of a difference of scores comes from the differences of values."""
-    density.set_bandwidth(c, alpha)
-    idx = np.arange(len(density.pilot)) if sample is None else np.asarray(sample)
-    w = density.weights_of(idx)
-    if criterion == "likelihood":
-        return [(density.loo(idx), w, 1.0)]
-    return [(_at_own_draws(density, len(idx), 0), np.ones(len(idx)), -1.0),
-            (np.exp(density.loo(idx)), w, 2.0)]  # fmt: skip
+class Scores:
+    """The cross-validation score of an ``AdaptiveDensity`` at the points ``sample`` for
+    each smoothing (alpha, c) asked, each computed once (a search asks for some twice): the
+    score as terms (values, weights, factor), higher is better, the sum of factor * (weighted
+    mean of values); two smoothings' values pair item by item (the same points; the same
+    seeded draws), so the standard error of a difference of scores comes from the
+    differences of values (``difference_se``)."""
+
+    def __init__(self, density, sample, criterion):
+        self.density, self.criterion = density, criterion
+        n = len(density.pilot)
+        self.idx = np.arange(n) if sample is None else np.asarray(sample)
+        self._terms = {}
+
+    def terms(self, alpha, c):
+        key = (float(f"{alpha:.12g}"), float(f"{c:.12g}"))  # half steps meet grid values
+        if key not in self._terms:
+            density, idx = self.density, self.idx
+            density.set_bandwidth(key[1], key[0])
+            w = density.weights_of(idx)
+            if self.criterion == "likelihood":
+                self._terms[key] = [(density.loo(idx), w, 1.0)]
+            else:
+                self._terms[key] = [(_at_own_draws(density, len(idx), 0), np.ones(len(idx)), -1.0),
+                                    (np.exp(density.loo(idx)), w, 2.0)]  # fmt: skip
+        return self._terms[key]
+
+    def __call__(self, alpha, c):
+        return float(sum(f * (v * w).sum() / w.sum() for v, w, f in self.terms(alpha, c)))
+
+    def difference_se(self, one, other):
+        """Standard error of the difference of the scores at smoothings one and other."""
+        var = 0.0
+        for (v, w, f), (v0, _, _) in zip(self.terms(*one), self.terms(*other), strict=True):
+            d = v - v0
+            mean = (d * w).sum() / w.sum()
+            var += f * f * ((w * (d - mean)) ** 2).sum() / w.sum() ** 2
+        return float(np.sqrt(var))
 
 
-def _score_of(terms):
-    return float(sum(f * (v * w).sum() / w.sum() for v, w, f in terms))
-
-
-def _difference_se(terms, base):
-    """Standard error of the score difference between two smoothings' paired terms."""
-    var = 0.0
-    for (v, w, f), (v0, _, _) in zip(terms, base, strict=True):
-        d = v - v0
-        mean = (d * w).sum() / w.sum()
-        var += f * f * ((w * (d - mean)) ** 2).sum() / w.sum() ** 2
-    return float(np.sqrt(var))
-
-
-def _widest_within_one_se(density, alpha, c, sample, criterion, widest):
+def _widest_within_one_se(scores, alpha, c, widest):
     """The last step of the search, on the grid's half steps in c at the climb's alpha: the
     best of c / HALF_STEP, c, c * HALF_STEP, then the widest c above it, step by step up to
     ``widest``, whose score is within one standard error of the best's (the one-standard-
@@ -434,36 +447,33 @@ def _widest_within_one_se(density, alpha, c, sample, criterion, widest):
     estimate; at large n the likelihood's optimum is such a flat top, and L1 errors reward
     its wide side). Returns (c, {c: score} of the candidates scored here but c itself,
     higher is better)."""
-    terms, scores = {}, {}
+    seen = {}
 
     def score(j):
-        if j not in terms:
-            terms[j] = _score_terms(density, c * HALF_STEP**j, alpha, sample, criterion)
-            scores[j] = _score_of(terms[j])
-        return scores[j]
+        seen[j] = scores(alpha, c * HALF_STEP**j)
+        return seen[j]
 
     best = max((j for j in (-1, 0, 1) if c * HALF_STEP**j <= widest), key=score)
     chosen = best
     while c * HALF_STEP ** (chosen + 1) <= widest * (1 + 1e-9):
-        if score(chosen + 1) < score(best) - _difference_se(terms[chosen + 1], terms[best]):
+        se = scores.difference_se(
+            (alpha, c * HALF_STEP ** (chosen + 1)), (alpha, c * HALF_STEP**best)
+        )
+        if score(chosen + 1) < score(best) - se:
             break
         chosen += 1
-    return c * HALF_STEP**chosen, {c * HALF_STEP**j: v for j, v in scores.items() if j}
+    return c * HALF_STEP**chosen, {c * HALF_STEP**j: v for j, v in seen.items() if j}
 
 
-def _climb(density, alphas, cs, sample, i, j, criterion="likelihood"):
-    """Hill-climb of a cross-validation score over the grid alphas x cs from (i, j):
-    (i, j) of the best pair found, {(i, j): score} of every pair scored (the
-    least-squares score negated, so that higher is better for both criteria)."""
+def _climb(scores, alphas, cs, i, j):
+    """Hill-climb of a cross-validation score (``Scores``) over the grid alphas x cs from
+    (i, j): (i, j) of the best pair found, {(i, j): score} of every pair scored (higher is
+    better for both criteria: the least-squares score negated)."""
     scored = {}
 
     def score(a, b):
         if (a, b) not in scored:
-            if criterion == "likelihood":
-                scored[a, b] = density.loo_curve([cs[b]], sample, alphas[a])[0]
-            else:
-                density.set_bandwidth(cs[b], alphas[a])
-                scored[a, b] = -density.least_squares(sample)
+            scored[a, b] = scores(alphas[a], cs[b])
         return scored[a, b]
 
     best = score(i, j)
