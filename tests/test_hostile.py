@@ -4,6 +4,7 @@ and every mesh that comes back is certified (above the resolution floor)."""
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -194,6 +195,60 @@ def test_ctrl_c_leaves_the_interpreter_usable():
     assert "interrupted after" in stdout and "still works True" in stdout, stdout + stderr
     seconds = float(stdout.split("interrupted after")[1].split()[0])
     assert seconds < 2.0  # a kernel call lasts ~50 ms; generous for a loaded machine
+
+
+def test_ctrl_c_during_density_work_ends_it_within_a_second():
+    """Issue 30: `knnrefine density` on 10^6 points ran 120 s with nothing on screen, and
+    after a Ctrl-C during the exact d_Pk of its error report the process took 8-10 s to
+    exit: the exception came at once, but each thread's one long kernel call ran on. Work
+    is now cut into many short calls (threads take no new one after the interrupt), and the
+    estimator reports its smoothing search through progress=. Sent at the search's first
+    scored pair, the interrupt ends the fit within a second; sent half a second into a long
+    exact d_Pk (k = 400 at 120,000 probes: seconds of work), the process exits within a
+    second of it."""
+    stdout, stderr = _child("""
+        import os, signal, time
+        import numpy as np
+        import knnrefine
+        pts = np.random.default_rng(1).normal(size=(200000, 2))
+        sent = []
+        def progress(count, pending, phase="refining"):
+            if phase == "choosing the smoothing" and not sent:
+                sent.append((time.perf_counter(), count))
+                os.kill(os.getpid(), signal.SIGINT)
+        try:
+            knnrefine.KnnDensityEstimator(progress=progress).fit(pts)
+            print("not interrupted")
+        except KeyboardInterrupt:
+            print("search interrupted after", time.perf_counter() - sent[0][0], sent[0][1])
+        print("still works", len(knnrefine.refine(pts[:300], 5).vertices) > 0)
+    """)
+    assert "search interrupted after" in stdout and "still works True" in stdout, stdout + stderr
+    assert float(stdout.split("search interrupted after")[1].split()[0]) < 1.0
+    assert stdout.split("search interrupted after")[1].split()[1] == "1"  # the first pair
+    stdout, stderr = _child("""
+        import os, signal, threading, time
+        import numpy as np
+        import knnrefine
+        from knnrefine.density import KnnDistance
+        pts = np.random.default_rng(1).normal(size=(200000, 2))
+        distance = KnnDistance(knnrefine.refine(pts, 400), pts)
+        probes = np.random.default_rng(2).normal(size=(120000, 2))
+        def interrupt():
+            print("sent at", time.time(), flush=True)
+            os.kill(os.getpid(), signal.SIGINT)
+        threading.Timer(0.5, interrupt).start()
+        t0 = time.perf_counter()
+        try:
+            distance.exact(probes)
+            print("not interrupted", time.perf_counter() - t0)
+        except KeyboardInterrupt:
+            print("interrupted")
+    """)
+    exited = time.time()
+    assert "interrupted" in stdout, stdout + stderr
+    if "not interrupted" not in stdout:  # (a fast machine may finish within 0.5 s)
+        assert exited - float(stdout.split("sent at")[1].split()[0]) < 1.0
 
 
 def test_ctrl_c_during_build_index_is_a_keyboard_interrupt():

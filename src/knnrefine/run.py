@@ -202,8 +202,10 @@ def finish(run, status, emb, opt, plan, report, interrupts, kept, weight, rounds
 
 class Progress:
     """The user's progress callback: progress(vertices, pending) while refining; if it takes
-    a ``phase`` argument, also phase="compiling" before a first compilation and
-    phase="assembling" / "done" while the mesh is assembled."""
+    a ``phase`` argument, also phase="compiling" before a first compilation,
+    phase="assembling" / "done" while the mesh is assembled, and progress(count, 0, phase)
+    for an application's work after it (``stage``: the density estimator's "choosing the
+    smoothing", pairs scored)."""
 
     def __init__(self, callback):
         self.callback = callback
@@ -224,6 +226,12 @@ class Progress:
     def refining(self, vertices, pending):
         if self.callback is not None:
             self.callback(vertices, pending)
+
+    def stage(self, count, phase):
+        """Work after the refinement (an application's): count done so far in ``phase``,
+        reported to callbacks that take a phase."""
+        if self.phases:
+            self.callback(count, 0, phase=phase)
 
     def assembling(self, vertices, done=False):
         if self.callback is None:

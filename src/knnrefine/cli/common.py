@@ -1,5 +1,6 @@
 """Options and helpers shared by the subcommands."""
 
+import contextlib
 import os
 import sys
 import time
@@ -163,6 +164,27 @@ def announce_compilation(quiet):
             file=sys.stderr,
             flush=True,
         )
+
+
+@contextlib.contextmanager
+def stage_bar(quiet, desc, unit):
+    """A progress bar for one stage of long work (shown only after a second, and only on a
+    terminal, unless quiet): yields update(count), the count done so far."""
+    bar = None
+    if not quiet and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        bar = tqdm(total=None, unit=unit, delay=1.0, desc=desc, leave=False, dynamic_ncols=True)
+
+    def update(count):
+        if bar is not None:
+            bar.update(count - bar.n)
+
+    try:
+        yield update
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def refine_with_progress(points, args, quiet, weights=None):

@@ -233,7 +233,7 @@ class AdaptiveDensity:
             draw(cx, cy, r, amp, level, lx, ly, px, py, levels, values, a, b)
             parts.append(values)
 
-        in_chunks(call, len(r), least=65536)
+        in_chunks(call, len(r), least=65536, per_thread=1)  # a lattice per range
         values = parts[0] if len(parts) == 1 else np.sum(parts, axis=0)
         out = np.empty(len(frame))
         qx, qy = np.ascontiguousarray(frame[:, 0]), np.ascontiguousarray(frame[:, 1])
@@ -358,7 +358,7 @@ HALF_STEP = 2.0**0.25  # the last search's step in c: half the grid's
 
 def choose_smoothing(
     density, alphas=SENSITIVITIES, bandwidths=BANDWIDTHS, loo_points=20000, random_state=0,
-    criterion="likelihood",
+    criterion="likelihood", progress=None,
 ):  # fmt: skip
     """(sensitivity, bandwidth, table): the pair of the grid alphas x bandwidths with the
     best cross-validation score of the ``AdaptiveDensity`` at up to ``loo_points`` of its
@@ -374,8 +374,16 @@ def choose_smoothing(
     score is within one standard error of the best, so the choice may lie between grid
     values. The table has a row (alpha, c, score) per pair the last climb scored, in that
     order, then the half steps (the score as defined above for the criterion). The density
-    is left at the chosen pair."""
+    is left at the chosen pair. ``progress``: called with the number of pairs scored so far
+    after each (long work shows it; a pass costs about ``loo_points`` c^2 k kernel terms)."""
     criterion = check_criterion(criterion)
+    count = [0]
+
+    def scored_one():
+        count[0] += 1
+        if progress is not None:
+            progress(count[0])
+
     n = len(density.pilot)
     m = min(n, int(loo_points))
     sample = None if m == n else np.sort(generator(random_state).choice(n, m, False))
@@ -384,8 +392,8 @@ def choose_smoothing(
     if m > 2 * COARSE:
         pool = np.arange(n) if sample is None else sample
         coarse = np.sort(generator(random_state).choice(pool, max(COARSE, m // 5), False))
-        i, j, _ = _climb(Scores(density, coarse, criterion), alphas, bandwidths, i, j)
-    scores = Scores(density, sample, criterion)
+        i, j, _ = _climb(Scores(density, coarse, criterion, scored_one), alphas, bandwidths, i, j)
+    scores = Scores(density, sample, criterion, scored_one)
     i, j, scored = _climb(scores, alphas, bandwidths, i, j)
     alpha, c = float(alphas[i]), float(bandwidths[j])
     rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
@@ -407,8 +415,8 @@ class Scores:
     seeded draws), so the standard error of a difference of scores comes from the
     differences of values (``difference_se``)."""
 
-    def __init__(self, density, sample, criterion):
-        self.density, self.criterion = density, criterion
+    def __init__(self, density, sample, criterion, scored=None):
+        self.density, self.criterion, self._scored = density, criterion, scored
         n = len(density.pilot)
         self.idx = np.arange(n) if sample is None else np.asarray(sample)
         self._terms = {}
@@ -424,6 +432,8 @@ class Scores:
             else:
                 self._terms[key] = [(_at_own_draws(density, len(idx), 0), np.ones(len(idx)), -1.0),
                                     (np.exp(density.loo(idx)), w, 2.0)]  # fmt: skip
+            if self._scored is not None:
+                self._scored()
         return self._terms[key]
 
     def __call__(self, alpha, c):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -102,6 +102,10 @@ class KnnDensityEstimator:
         cross-validation, an estimate of the integrated squared error (``choose_smoothing``):
         it picks wider kernels, and won L1 error where likelihood's choice lost it in the
         project's study at 1e6 (docs/uses.md). ``score`` stays the log-likelihood.
+    progress : callable, optional
+        As ``knnrefine.refine``'s: progress(vertices, pending) while the mesh is refined;
+        a callable with a ``phase`` argument also gets progress(pairs, 0, phase="choosing
+        the smoothing") after each pair (alpha, c) the search scored.
 
     Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
     ``tail_`` (the ``CauchyTail`` mixed in when no box was given, else None),
@@ -140,6 +144,7 @@ class KnnDensityEstimator:
         random_state: int | np.random.Generator | np.random.RandomState | None = 0,
         loo_points: int = 20000,
         criterion: str = "likelihood",
+        progress: Callable | None = None,
     ) -> None:
         self.k = k
         self.method = method
@@ -158,6 +163,7 @@ class KnnDensityEstimator:
         self.random_state = random_state
         self.loo_points = loo_points
         self.criterion = criterion
+        self.progress = progress
 
     # -- scikit-learn's parameter protocol ---------------------------------------------------
     @classmethod
@@ -350,11 +356,11 @@ class KnnDensityEstimator:
     def _estimate(self, pts, weights, box, k):
         """(density, mesh) at this k: the kNN estimate, or the adaptive one with its
         bandwidth given or chosen by leave-one-out likelihood (recording the curve)."""
-        from ..run import refine
+        from ..run import Progress, refine
 
         mesh = refine(
             pts, k, self.tau, periodic=self.periodic, box=box, min_size=self.min_size,
-            weights=weights,
+            weights=weights, progress=self.progress,
         )  # fmt: skip
         knn = KnnDensity(mesh, pts, normalized=True, subdivide=self.subdivide, weights=weights)
         if self.method_ == "knn":
@@ -365,9 +371,16 @@ class KnnDensityEstimator:
             mesh, pts, cs[0], self.shape, weights=weights, knn=knn, sensitivity=alphas[0]
         )
         if len(cs) > 1 or len(alphas) > 1:
+            report = Progress(self.progress)
             alpha, _, self.loo_scores_ = choose_smoothing(
-                density, alphas, cs, self.loo_points, self.random_state, self.criterion
-            )  # leaves the density at the chosen pair
+                density,
+                alphas,
+                cs,
+                self.loo_points,
+                self.random_state,
+                self.criterion,
+                progress=lambda count: report.stage(count, "choosing the smoothing"),
+            )  # leaves the density at the chosen pair; fmt: skip
             at = self.loo_scores_[self.loo_scores_[:, 0] == alpha]
             at = at[np.argsort(at[:, 1])]
             self.bandwidths_, self.bandwidth_scores_ = at[:, 1], at[:, 2]

@@ -43,9 +43,34 @@ def run_all(task, count):
     return list(_pool[0].map(task, range(count)))
 
 
-def in_chunks(call, m, threads=None, least=256):
-    """call(start, stop) over ranges that split [0, m) evenly among ``threads`` (default
-    ``workers()``), each at least ``least`` long (one range when m is small)."""
-    chunks = max(1, min(workers() if threads is None else int(threads), m // least))
+PER_THREAD = 16  # ranges per thread: an interrupt waits for the ranges running only
+
+
+def in_chunks(call, m, threads=None, least=256, per_thread=PER_THREAD):
+    """[call(start, stop)] over ranges that split [0, m) evenly, ``per_thread`` ranges for
+    each of ``threads`` (default ``workers()``), each at least ``least`` long (one range when
+    m is small), run by at most ``threads`` threads at once: many short calls rather than
+    one long one per thread, so that an interrupt (Ctrl-C) waits only for the ranges running,
+    about 1 / per_thread of the work (the threads take no new range once it came)."""
+    threads = max(1, workers() if threads is None else int(threads))
+    chunks = max(1, min(threads * int(per_thread), m // least))
     edges = np.linspace(0, m, chunks + 1).astype(np.int64)
-    return run_all(lambda j: call(edges[j], edges[j + 1]), chunks)
+    out = [None] * chunks
+    if threads == 1 or chunks == 1:  # here, between ranges Ctrl-C is raised at once
+        for j in range(chunks):
+            out[j] = call(edges[j], edges[j + 1])
+        return out
+    stop = []
+
+    def take(t):
+        for j in range(t, chunks, threads):
+            if stop:
+                return
+            out[j] = call(edges[j], edges[j + 1])
+
+    try:
+        run_all(take, min(threads, chunks))
+    except BaseException:
+        stop.append(True)
+        raise
+    return out
