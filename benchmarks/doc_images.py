@@ -4,7 +4,8 @@
 
 docs/images/rama_density.png: the kNN density of the 202,215 backbone torsion angles (phi,
 psi) of the Top8000 set (../shared/data/rama_top8000_phi_psi.csv) on the 360 x 360 degree
-torus, k = sqrt(n) / 2, on a 512 x 512 grid. Printed: the time to refine, to build the density
+torus, k = sqrt(n) / 2, on a 512 x 512 grid, drawn as its highest-density regions (50, 80
+and 95% of the mass: ``plot_density``'s default). Printed: the time to refine, to build the density
 and to evaluate the grid, and d_{P,k}'s relative error against exact values on probes.
 """
 

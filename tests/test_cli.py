@@ -836,3 +836,16 @@ def test_a_periodic_box_smaller_than_the_data_is_reported(tmp_path, capsys):
     assert run("refine", path, "-k", 10, "--periodic", "--box", 0, 0, 0.5, 0.5, "-o", out) == 0
     err = capsys.readouterr().err
     assert "knnrefine: warning:" in err and "wrapped into it" in err and "along x" in err
+
+
+@pytest.mark.parametrize("style", ["hdr", "image"])
+def test_density_plot_styles(tmp_path, csv, style):
+    """knnrefine density --plot (issue 30): the highest-density regions by default, an image
+    with --plot-style image; another style is a usage error before any work."""
+    pic = tmp_path / f"{style}.png"
+    args = ("density", csv, "--columns", "lon,lat", "--plot", pic, "--plot-style", style, "-q")
+    assert run(*args) == 0
+    picture_is_real(pic)
+    with pytest.raises(SystemExit) as bad:
+        run("density", csv, "--columns", "lon,lat", "--plot", pic, "--plot-style", "dots")
+    assert bad.value.code == 2

@@ -258,3 +258,72 @@ def test_point_location_by_walking_equals_the_centroid_candidates(case):
     np.testing.assert_allclose(v, v_ref, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(bary.sum(axis=1), 1.0)
     assert (bary >= -1e-9).all()
+
+
+def test_highest_density_levels_hold_their_mass():
+    """hdr_levels (issue 30's pictures): on a grid of a known density the region at or above
+    each level holds its share of the grid's mass, to one cell's worth; and for a Gaussian
+    the levels are the analytic ones, exp(-r_p^2 / 2) / (2 pi) with r_p^2 = -2 ln(1 - p)."""
+    from knnrefine.plot import hdr_levels
+
+    xs = np.linspace(-6, 6, 801)
+    gx, gy = np.meshgrid(xs, xs)
+    f = np.exp(-(gx**2 + gy**2) / 2) / (2 * np.pi)
+    masses = np.array([0.5, 0.8, 0.95])
+    levels = hdr_levels(f, masses)
+    for p, t in zip(masses, levels, strict=True):
+        held = f[f >= t].sum() / f.sum()
+        assert p <= held <= p + 8 * t / f.sum() + 1e-12  # (ties: eight cells by symmetry)
+    np.testing.assert_allclose(levels, (1 - masses) / (2 * np.pi), rtol=2e-3)
+    with pytest.raises(knnrefine.InputError, match="0 or undefined"):
+        hdr_levels(np.zeros((3, 3)))
+    with pytest.raises(knnrefine.InputError, match="masses"):
+        hdr_levels(f, [0.5, 1.0])
+
+
+def test_plot_density_draws_the_regions_with_labels_and_title_inside(tmp_path):
+    """plot_density of a fitted estimator: filled contours at the highest-density levels of
+    its grid (50/80/95%), the columns' names on the axes, a colour bar naming the shares, a
+    title inside the picture; style="image" a log colour scale from the 99% region's level
+    to the peak; unknown styles refused."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import pandas as pd
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from knnrefine.plot import hdr_levels, plot_density
+
+    rng = np.random.default_rng(0)
+    X = pd.DataFrame(
+        np.concatenate([rng.normal([0, 0], 1, (3000, 2)), rng.normal([4, 1], 0.3, (1000, 2))]),
+        columns=["flipper", "mass"],
+    )
+    est = knnrefine.KnnDensityEstimator().fit(X)
+    fig = Figure(figsize=(6, 5), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    plot_density(est, ax, shape=(200, 200))
+    xs, ys, f = est.grid((200, 200))
+    want = hdr_levels(f, [0.95, 0.8, 0.5])
+    drawn = [c for c in ax.collections if hasattr(c, "levels")]
+    np.testing.assert_allclose(drawn[0].levels[:3], want, rtol=1e-12)
+    assert ax.get_xlabel() == "flipper" and ax.get_ylabel() == "mass"
+    bar = fig.axes[-1] if len(fig.axes) > 1 else ax.child_axes[0]
+    assert [t.get_text() for t in bar.get_yticklabels()] == ["95%", "80%", "50%"]
+    assert "adaptive kernel density" in ax.get_title() and "n = 4,000" in ax.get_title()
+    path = tmp_path / "d.png"
+    fig.savefig(path)
+    renderer = fig.canvas.get_renderer()
+    box = ax.title.get_window_extent(renderer)
+    assert box.x0 >= 0 and box.y1 <= fig.bbox.y1  # the title is inside the figure
+    image = Figure().add_subplot()
+    plot_density(est, image, shape=(100, 100), style="image")
+    norm = image.images[0].norm
+    _, _, g = est.grid((100, 100))
+    assert norm.vmax == pytest.approx(g.max()) and norm.vmin == pytest.approx(
+        min(hdr_levels(g, [0.99])[0], 0.1 * g.max())
+    )
+    with pytest.raises(knnrefine.InputError, match="style"):
+        plot_density(est, image, style="contours")

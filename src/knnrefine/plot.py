@@ -169,33 +169,145 @@ def save_figure(path, figsize, draw, force=False, dpi=150, panels=1):
     )
 
 
-def plot_density(density, ax, shape=(512, 512), labels=("x", "y"), cmap="magma", grid=None):
-    """A density estimate (``KnnDensity`` or ``AdaptiveDensity``) on a grid over the box, log
-    colour scale; ``grid``: its (xs, ys, values) when already computed."""
+HDR_MASSES = (0.5, 0.8, 0.95)  # the highest-density regions drawn by default
+IMAGE_MASS = 0.99  # an image's colour scale reaches down to this region's level
+
+
+def hdr_levels(values, masses=HDR_MASSES):
+    """The density levels whose superlevel sets hold the given shares of the mass of a grid
+    of values (equal cells): level t_p is the least value such that the cells at or above it
+    hold p of the grid's total (Hyndman 1996's highest-density regions). Returns the levels,
+    in the order of ``masses``.
+
+    Parameters
+    ----------
+    values : ndarray
+        Densities at the cells' centres (NaN and values <= 0 hold no mass).
+    masses : sequence of float in (0, 1)
+
+    Returns
+    -------
+    ndarray
+    """
+    f = np.asarray(values, float).ravel()
+    f = np.sort(f[np.isfinite(f) & (f > 0)])[::-1]
+    if len(f) == 0:
+        raise InputError("the density is 0 or undefined everywhere on the grid: nothing to draw")
+    share = np.cumsum(f) / f.sum()
+    masses = np.asarray(masses, float)
+    if not np.all((masses > 0) & (masses < 1)):
+        raise InputError(f"masses must lie in (0, 1), got {list(masses)}")
+    return f[np.minimum(np.searchsorted(share, masses), len(f) - 1)]
+
+
+def plot_density(
+    density, ax, shape=(512, 512), labels=None, cmap=None, grid=None, style="hdr",
+    masses=HDR_MASSES, points=None, max_points=20_000,
+):  # fmt: skip
+    """Draw a density estimate the way statisticians publish one.
+
+    Parameters
+    ----------
+    density : KnnDensityEstimator, KnnDensity or AdaptiveDensity
+        A fitted estimator (drawn in the data's units, its columns' names as labels) or an
+        estimate over a mesh's box.
+    ax : matplotlib Axes
+    shape : (ny, nx)
+        The grid the density is evaluated on.
+    labels : (str, str), optional
+        The axes' names (default: the estimator's feature names, else "x", "y").
+    cmap : str, optional
+        A sequential colour map (default "Blues" for contours, "magma" for the image).
+    grid : (xs, ys, values), optional
+        The density on a grid already computed (then ``shape`` is not used).
+    style : "hdr" or "image"
+        "hdr": filled contours of the highest-density regions holding ``masses`` of the
+        probability (50, 80 and 95% by default: the levels ``hdr_levels`` finds), as
+        ``seaborn.kdeplot``'s filled contours, with their outlines; "image": the density as
+        an image on a perceptual colour map, log scale from the peak down to the level of
+        the region holding IMAGE_MASS of the mass (the tails beyond it, where single kernels
+        would show, take the floor's colour).
+    masses : sequence of float in (0, 1)
+        The regions' shares of the mass ("hdr").
+    points : array-like (n, 2), optional
+        Points drawn over the density (at most ``max_points``, chosen at random).
+
+    Returns
+    -------
+    matplotlib Axes
+
+    Raises
+    ------
+    InputError
+        An unknown style, or masses outside (0, 1).
+    """
+    from matplotlib import colormaps
     from matplotlib.colors import LogNorm
 
-    xs, ys, f = density.grid(shape) if grid is None else grid
-    knn = getattr(density, "knn", density)  # the adaptive estimate's pilot
-    mesh = knn.distance.mesh
-    positive = f[np.isfinite(f) & (f > 0)]
-    im = ax.imshow(
-        f,
-        origin="lower",
-        extent=(*mesh.box[::2], *mesh.box[1::2]),
-        cmap=cmap,
-        norm=LogNorm(vmin=max(positive.min(), positive.max() * 1e-6), vmax=positive.max()),
-        interpolation="nearest",
-        aspect="auto",
-    )
-    colour_bar(ax, im, f"density per unit {labels[0]} x {labels[1]}")
-    ratio = (mesh.box[3] - mesh.box[1]) / (mesh.box[2] - mesh.box[0])
+    if style not in ("hdr", "image"):
+        raise InputError(f'style must be "hdr" or "image", got {style!r}')
+    xs, ys, f, box, names, title = _density_grid(density, shape, grid)
+    labels = names if labels is None else labels
+    extent = (box[0], box[2], box[1], box[3])
+    if style == "hdr":
+        order = np.argsort(masses)[::-1]  # widest region first
+        masses = np.asarray(masses, float)[order]
+        levels = hdr_levels(f, masses)
+        top = float(np.nanmax(f))
+        bounds = np.append(levels, top * (1 + 1e-9))
+        colours = colormaps[cmap or "Blues"](np.linspace(0.35, 0.95, len(levels)))
+        filled = ax.contourf(xs, ys, np.nan_to_num(f), levels=bounds, colors=colours)
+        ax.contour(xs, ys, np.nan_to_num(f), levels=levels, colors=[colours[-1]],
+                   linewidths=0.6)  # fmt: skip
+        cbar = colour_bar(ax, filled, "highest-density region holding this share of the mass")
+        cbar.set_ticks(0.5 * (bounds[:-1] + bounds[1:]))
+        cbar.set_ticklabels([f"{m:.0%}" for m in masses])
+    else:
+        top = float(np.nanmax(f))
+        floor = min(float(hdr_levels(f, [IMAGE_MASS])[0]), 0.1 * top)
+        im = ax.imshow(
+            np.where(np.isfinite(f) & (f > floor), f, floor), origin="lower", extent=extent,
+            cmap=cmap or "magma", norm=LogNorm(vmin=floor, vmax=top, clip=True),
+            interpolation="bilinear", aspect="auto",
+        )  # fmt: skip
+        colour_bar(ax, im, f"density per unit area ({labels[0]} by {labels[1]})")
+    if points is not None:
+        pts = np.asarray(points, float)
+        if len(pts) > max_points:
+            pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
+        ax.scatter(pts[:, 0], pts[:, 1], s=1.5, c="0.15", alpha=0.4, linewidths=0)
+    ax.set_xlim(box[0], box[2])
+    ax.set_ylim(box[1], box[3])
+    ratio = (box[3] - box[1]) / (box[2] - box[0])
     ax.set_aspect("equal" if 0.05 < ratio < 20 else "auto")
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
-    n = knn.n if not float(knn.n).is_integer() else int(knn.n)
-    what = "kNN density" if knn is density else "adaptive kernel density"
-    ax.set_title(f"{what}: n = {n:,}, k = {density.k}, m = {len(mesh.vertices):,}")
+    ax.set_title(title, fontsize="medium")
     return ax
+
+
+def _density_grid(density, shape, grid):
+    """(xs, ys, values, box, axis names, title) of a density to draw: a fitted
+    ``KnnDensityEstimator`` in the data's units, or an estimate over its mesh's box."""
+    if hasattr(density, "density_"):  # a fitted KnnDensityEstimator
+        xs, ys, f = density.grid(shape) if grid is None else grid
+        names = getattr(density, "feature_names_in_", None)
+        names = tuple(names) if names is not None else ("x", "y")
+        inner, est = density.density_, density
+        k, n = est.k_, est.n_samples_
+        what = "kNN density" if est.method_ == "knn" else "adaptive kernel density"
+        knn = getattr(inner, "knn", inner)
+        box = est.box_
+    else:
+        xs, ys, f = density.grid(shape) if grid is None else grid
+        names = ("x", "y")
+        knn = getattr(density, "knn", density)  # the adaptive estimate's pilot
+        k, n = density.k, knn.n
+        what = "kNN density" if knn is density else "adaptive kernel density"
+        box = knn.distance.mesh.box
+    m = len(knn.distance.mesh.vertices)
+    n = f"{n:,.0f}" if float(n).is_integer() else f"{n:,.1f}"
+    return xs, ys, np.asarray(f, float), box, names, f"{what}\nn = {n}, k = {k}, m = {m:,}"
 
 
 def plot_diagram(persistence, ax, dims=(0, 1)):

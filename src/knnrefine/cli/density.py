@@ -93,6 +93,13 @@ def add_arguments(parser):
         help="write the grid (.npz or .csv; repeatable)",
     )
     parser.add_argument("--plot", metavar="PICTURE", help="draw the density (.png .svg .pdf)")
+    parser.add_argument(
+        "--plot-style",
+        choices=("hdr", "image"),
+        default="hdr",
+        help="the plane's picture: filled contours of the regions holding 50, 80 and 95%% of "
+        "the mass (default), or an image on a log colour scale",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite existing files")
 
 
@@ -255,7 +262,9 @@ def run(args):
         save_figure(
             args.plot,
             figure_size(mesh),
-            lambda ax: plot_density(density, ax, labels=names, grid=(*axes, f)),
+            lambda ax: plot_density(
+                density, ax, labels=names, grid=(*axes, f), style=args.plot_style
+            ),
             force=args.force,
         )
     if not args.quiet:
