@@ -65,7 +65,7 @@ def certify_every_mesh(monkeypatch):
         return mesh
 
     @functools.wraps(original)
-    def refine_and_register(points, k, *args, **kwargs):
+    def refine_and_register(points, k=None, *args, **kwargs):
         return register(original(points, k, *args, **kwargs), points, kwargs)
 
     def seen_by(check):
@@ -82,7 +82,7 @@ def certify_every_mesh(monkeypatch):
     in_process = knnrefine.run.refine
 
     @functools.wraps(in_process)
-    def in_process_and_register(points, k, *args, **kwargs):
+    def in_process_and_register(points, k=None, *args, **kwargs):
         return register(in_process(points, k, *args, **kwargs), points, kwargs)
 
     monkeypatch.setattr(knnrefine.run, "refine", in_process_and_register)

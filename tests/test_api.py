@@ -224,3 +224,16 @@ def test_demo_data_ships_with_the_package():
     angles = knnrefine.datasets.trp_chi1_chi2()
     assert angles.shape == (18748, 2)
     assert angles.min() >= 0 and angles.max() < 360
+
+
+def test_refine_has_a_default_k(dim):
+    """Issue 30: refine without k uses sqrt(n) / 2 (at least 10, at most n; of the total
+    weight with weights), the rule knnrefine.density.default_k states, in both dimensions."""
+    from knnrefine.density import default_k
+
+    rng = np.random.default_rng(0)
+    pts = rng.random((4000, dim))
+    assert knnrefine.refine(pts).k == default_k(4000) == 32
+    assert knnrefine.refine(pts[:30]).k == 10 and knnrefine.refine(pts[:7]).k == 7
+    w = np.full(4000, 2.5)
+    assert knnrefine.refine(pts, weights=w).k == default_k(10000) == 50

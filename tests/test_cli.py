@@ -591,8 +591,6 @@ def test_density_criterion_least_squares_is_the_librarys_choice(tmp_path, points
         (["density", "{csv}", "--bandwidth", "0", "-o", "d.npz"], "bandwidth must be"),
         (["density", "{csv}", "--grid", "0", "-o", "d.npz"], "--grid takes one or two positive"),
         (["density", "{csv}", "--grid", "10", "20", "30", "-o", "d.npz"], "--grid takes one"),
-        (["cluster", "{csv}", "-o", "l.csv"], "required: -k"),
-        (["persistence", "{csv}", "-o", "p.csv"], "required: -k"),
         (["refine", "{csv}", "-k", "5", "--periodic"], "--periodic needs --box XMIN YMIN"),
     ],
 )
@@ -849,3 +847,11 @@ def test_density_plot_styles(tmp_path, csv, style):
     with pytest.raises(SystemExit) as bad:
         run("density", csv, "--columns", "lon,lat", "--plot", pic, "--plot-style", "dots")
     assert bad.value.code == 2
+
+
+@pytest.mark.parametrize("command, out", [("cluster", "l.csv"), ("persistence", "p.csv")])
+def test_cluster_and_persistence_default_k(tmp_path, csv, capsys, command, out):
+    """Issue 30: a default k for the mesh (sqrt(n) / 2, at least 10), so that clustering and
+    persistence users need not pick one (-k was required)."""
+    assert run(command, csv, "--columns", "lon,lat", "-o", tmp_path / out) == 0
+    assert "k = 22" in capsys.readouterr().out  # n = 2,000: sqrt(n) / 2 = 22.4

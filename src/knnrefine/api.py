@@ -18,7 +18,7 @@ from .mesh import Mesh
 
 def refine(
     points: ArrayLike,
-    k: float,
+    k: float | None = None,
     tau: float = 3.0,
     *,
     periodic: bool | tuple = False,
@@ -55,8 +55,10 @@ def refine(
     ----------
     points : array-like, shape (n, 2)
         The input points P (a multiset: duplicates count with their multiplicity).
-    k : int, 1 <= k <= n
+    k : int, 1 <= k <= n, optional
         Which nearest neighbour: d_{P,k}(x) is the distance from x to its k-th nearest point.
+        Default: sqrt(n) / 2, at least 10 and at most n (n the total weight with weights;
+        ``knnrefine.density.default_k``), what clustering and persistence need not tune.
     tau : float > 2
         Well-spacedness: every Voronoi cell of the output has aspect 2 R(v) / d_{M,2}(v) <= tau.
     periodic : bool or (bool, bool)

@@ -116,6 +116,8 @@ class RunOptions:
                 )
             time_limit = float(time_limit)
             deadline = t_start + time_limit
+        if k is None:  # the default: sqrt(n) / 2 of the points or their total weight
+            k = V.default_k(n if total is None else total)
         k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
         tau = V.check_tau(tau)
         per = V.check_periodic(periodic, dim)

@@ -74,7 +74,7 @@ def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, Ru
 
 def refine(
     points: ArrayLike,
-    k: float,
+    k: float | None = None,
     tau: float = 3.0,
     *,
     periodic: bool | tuple = False,

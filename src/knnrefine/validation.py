@@ -69,6 +69,25 @@ def as_points(points, dim=2):
     return arr
 
 
+def default_k(n: float) -> int:
+    """The default k, for the mesh (``refine`` without k: clustering and persistence users need
+    not pick one) and the kNN density estimate: sqrt(n) / 2, at least 10 and at most n (on 5
+    points, 5), after the paper's k ~ sqrt(n) (k / n -> 0 and k / log n -> infinity): a
+    cluster or a class of persistence holding fewer than about k points is smoothed over,
+    and about k outliers together are what it takes to make a feature.
+
+    Parameters
+    ----------
+    n : float
+        The points' number or total weight.
+
+    Returns
+    -------
+    int
+    """
+    return min(max(10, int(round(0.5 * math.sqrt(n)))), max(1, int(n)))
+
+
 def check_k(k, n=None):
     """k is a positive integer, at most the number of points n when given (beyond it d_{P,k}
     is infinite everywhere and there is nothing to sample)."""

@@ -20,7 +20,9 @@ are drawn in three views. Outputs: .csv (row, the columns, label) or .npy (label
 
 def add_arguments(parser):
     add_input_options(parser)
-    add_refine_options(parser, k_required=False, k_help="which nearest neighbour")
+    add_refine_options(
+        parser, k_required=False, k_help="which nearest neighbour (default: sqrt(n) / 2, >= 10)"
+    )
     add_mesh_option(parser)
     parser.add_argument("--n-clusters", type=int, help="how many clusters to keep")
     parser.add_argument("--noise", action="store_true", help="label -1 the points between clusters")
@@ -42,15 +44,15 @@ def run(args):
         space_figure_size,
     )
     from ..topology import require_gudhi
-    from .common import PICTURES, check_outputs, dim_of, plural, read_input, require_k_or_mesh
+    from ..validation import default_k
+    from .common import PICTURES, check_outputs, dim_of, plural, read_input
 
     outputs = [(args.output, (".csv", ".npy"), "labels")] if args.output else []
     outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
     check_outputs(outputs, args.force)
-    require_k_or_mesh(args)
     require_gudhi()
     points, names = read_input(args, dim=dim_of(args))
-    mesh, _ = mesh_for(args, points)
+    mesh, _ = mesh_for(args, points, default_k)
     cl = cluster(mesh, points, n_clusters=args.n_clusters, noise=args.noise)
     if args.output:
         if os.path.splitext(args.output)[1].lower() == ".csv":

@@ -146,12 +146,6 @@ def periodic_of(args):
     return tuple(flags[f"--periodic-{'xyz'[a]}"] for a in range(dim))
 
 
-def require_k_or_mesh(args):
-    """Before any work: -k is required unless --mesh gives a mesh (usage error, exit 2)."""
-    if args.k is None and getattr(args, "mesh", None) is None:
-        raise UsageError("the following argument is required: -k (or --mesh MESH.npz)")
-
-
 def announce_compilation(quiet):
     """Say so when the kernels are about to be compiled (the first run: 10-60 s, once)."""
     from ..engine.jit import is_ready

@@ -18,7 +18,9 @@ space (three --columns, a six-number --box or a --mesh in space) give classes H0
 
 def add_arguments(parser):
     add_input_options(parser)
-    add_refine_options(parser, k_required=False, k_help="which nearest neighbour")
+    add_refine_options(
+        parser, k_required=False, k_help="which nearest neighbour (default: sqrt(n) / 2, >= 10)"
+    )
     add_mesh_option(parser)
     parser.add_argument("--linear", action="store_true", help="d_Pk itself, not its logarithm")
     parser.add_argument("-o", "--output", metavar="FILE", help="write the diagram (.csv)")
@@ -31,15 +33,15 @@ def run(args):
     from .. import io
     from ..plot import plot_diagram, save_figure
     from ..topology import Persistence, require_gudhi
-    from .common import PICTURES, check_outputs, dim_of, plural, read_input, require_k_or_mesh
+    from ..validation import default_k
+    from .common import PICTURES, check_outputs, dim_of, plural, read_input
 
     outputs = [(args.output, (".csv",), "diagrams")] if args.output else []
     outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
     check_outputs(outputs, args.force)
-    require_k_or_mesh(args)
     require_gudhi()
     points, _ = read_input(args, dim=dim_of(args))
-    mesh, _ = mesh_for(args, points)
+    mesh, _ = mesh_for(args, points, default_k)
     ph = Persistence(mesh, points, log=not args.linear)
     dims = tuple(range(mesh.dim + 1))  # classes up to the top dimension: H0-H2, or H0-H3
     if args.output:

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from ..validation import default_k  # noqa: F401  (the rule lives with the validation of k)
 from .distance import KnnDistance
 
 
@@ -32,22 +33,6 @@ class DistanceLike(Protocol):
     def integrate(self, func: Callable, region: Any = None) -> float: ...
 
     def sample_pieces(self, n: int, rng: np.random.Generator) -> np.ndarray: ...
-
-
-def default_k(n: float) -> int:
-    """A default k for density estimation from n points: sqrt(n) / 2, at least 10 and at most
-    n (on 5 points, 5), after the paper's k ~ sqrt(n) (k / n -> 0 and k / log n -> infinity).
-
-    Parameters
-    ----------
-    n : float
-        The points' number or total weight.
-
-    Returns
-    -------
-    int
-    """
-    return min(max(10, int(round(0.5 * np.sqrt(n)))), max(1, int(n)))
 
 
 def default_pilot_k(n: float) -> int:

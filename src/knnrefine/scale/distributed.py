@@ -292,7 +292,7 @@ class DaskStore:
 
 def refine(
     source: Any,
-    k: float,
+    k: float | None = None,
     tau: float = 3.0,
     *,
     client: Any = None,
