@@ -1,9 +1,7 @@
-"""What the adaptive estimate's smoothing search can save without moving its choice: the
-default (leave-one-out at ``loo_points=20000`` points, sums over a random share of the
-kernels where they are many: ``adaptive.ThinnedLoo``) against every kernel summed ("exact")
-and against fewer leave-one-out points (5,000 and 2,000, every kernel), on the six truths of
-``density_accuracy.py`` (each truth's box given): L1 error and held-out log-likelihood as
-scored there, the fit's time, and the smoothing chosen.
+"""How many leave-one-out points the adaptive estimate's smoothing search needs: the default
+(``loo_points=20000``) against 5,000 and 2,000 on the six truths of ``density_accuracy.py``
+(each truth's box given), L1 error and held-out log-likelihood as scored there, the fit's
+time, and the smoothing chosen.
 
     python benchmarks/loo_points.py                # n = 10^4 and 10^5 (a few minutes)
     python benchmarks/loo_points.py 1e6
@@ -20,29 +18,21 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import density_accuracy as da  # noqa: E402
 
 import knnrefine  # noqa: E402
-from knnrefine.density import adaptive  # noqa: E402
 
-EVERY = float("inf")  # THINNED_KERNELS at which no sum is thinned
-VARIANTS = {  # name: (estimator options, THINNED_KERNELS)
-    "default": ({}, adaptive.THINNED_KERNELS),
-    "exact": ({}, EVERY),
-    "5000": ({"loo_points": 5000}, EVERY),
-    "2000": ({"loo_points": 2000}, EVERY),
-}
+VARIANTS = {"20000": {}, "5000": {"loo_points": 5000}, "2000": {"loo_points": 2000}}
 
 
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     sizes = [int(float(s)) for s in argv] or [10_000, 100_000]
-    print("truth n variant L1 loglik seconds alpha c")
+    print("truth n loo_points L1 loglik seconds alpha c")
     for key, truth_class in da.TRUTHS.items():
         truth = truth_class()
         ev, f, q = da.evaluation_points(truth, np.random.default_rng(0))
         test = truth.sample(len(ev), np.random.default_rng(3))
         for n in sizes:
             pts = truth.sample(n, np.random.default_rng(1))
-            for name, (options, kernels) in VARIANTS.items():
-                adaptive.THINNED_KERNELS = kernels
+            for name, options in VARIANTS.items():
                 t0 = time.perf_counter()
                 est = knnrefine.KnnDensityEstimator(
                     box=truth.box, periodic=truth.periodic, **options

@@ -150,9 +150,22 @@ class AdaptiveDensity:
     def _sums(self, frame, loo=False):
         """Kernel sums at points in frame coordinates, and the sums of their squares (with
         ``loo``, at centres: each sum without the centres at that place, and their weight;
-        ``sums_at``)."""
-        tree = (self._rows, self._box, self._node, self._extent)
-        return sums_at(tree, frame, loo, self.hi - self.lo, self.periodic)
+        ``kernelsum.kernel_sums``)."""
+        m = len(frame)
+        out, out2 = np.empty(m), np.empty(m)
+        lx, ly = self.hi - self.lo
+        order = z_order(frame, lx, ly)  # neighbours in turn: the tree's leaves stay cached
+        qx, qy = frame[order, 0], frame[order, 1]
+        px, py = self.periodic
+        rows, box, node, extent = self._rows, self._box, self._node, self._extent
+
+        def call(a, b):
+            kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2, a, b)
+
+        in_chunks(call, m)
+        back = np.empty_like(order)
+        back[order] = np.arange(m)
+        return out[back], out2[back]
 
     def _at(self, flat):
         """(kernel sums, their squares, the kNN estimate) at points (q, 2); NaN outside."""
@@ -309,87 +322,6 @@ class AdaptiveDensity:
         return self._metric.wrap(frame + self.lo)
 
 
-def sums_at(tree, frame, loo, sides, periodic):
-    """Kernel sums of the kernels in ``tree`` (rows, box, node, extent) at points in frame
-    coordinates, and the sums of their squares (with ``loo``: ``kernelsum.kernel_sums``),
-    the queries taken in Z order (neighbours in turn: the tree's leaves stay cached)."""
-    m = len(frame)
-    out, out2 = np.empty(m), np.empty(m)
-    lx, ly = sides
-    order = z_order(frame, lx, ly)
-    qx, qy = frame[order, 0], frame[order, 1]
-    px, py = periodic
-    rows, box, node, extent = tree
-
-    def call(a, b):
-        kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2, a, b)
-
-    in_chunks(call, m)
-    back = np.empty_like(order)
-    back[order] = np.arange(m)
-    return out[back], out2[back]
-
-
-class ThinnedLoo:
-    """Leave-one-out scores of an ``AdaptiveDensity`` from a random 1 / ``factor`` of its
-    kernels, each ``factor`` times heavier, for the smoothing search at large n.
-
-    A leave-one-out sum at a point covers about c^2 k kernels (thousands at n = 10^6, c^2 k
-    growing as sqrt(n)); a random share of them, reweighted, is an unbiased sum whose
-    relative noise is about sqrt(factor / (c^2 k)): with THINNED_KERNELS or more kernels
-    left per sum, a few tenths of a percent, and the same kernels serve every smoothing
-    scored (common random numbers), so that score differences, what the search compares,
-    keep little of it. Kernels keep their full-data pilot and extents; only their number
-    changes. ``set_bandwidth``, ``loo`` and ``weights_of`` as ``AdaptiveDensity``'s."""
-
-    def __init__(self, full, factor, rng):
-        n = len(full.pilot)
-        keep = np.sort(rng.choice(n, max(n // int(factor), 1), replace=False))
-        src = full._row_of[keep]  # their rows in the full tree
-        rows = full._rows[src]
-        self._rows, self._box, self._node = build_centres(
-            np.ascontiguousarray(rows[:, X : Y + 1]), rows[:, W] * factor
-        )
-        mine = src[self._rows[:, ROW].astype(np.int64)]  # full rows, in this tree's order
-        self._q = np.ascontiguousarray(full._q[mine])
-        self._amp = full._amp[mine] * factor
-        self._r = full._r[mine]
-        self._log_ratio = full._log_ratio[mine]
-        self._extent = np.zeros(len(self._node))
-        self.full, self.factor = full, int(factor)
-        self.total = float(self._rows[:, W].sum())
-
-    def set_bandwidth(self, bandwidth, sensitivity=None):
-        full = self.full
-        alpha = full.sensitivity if sensitivity is None else sensitivity
-        c = check_bandwidth(bandwidth)
-        scale_kernels(self._rows, self._q, self._amp, self._r, self._log_ratio, c,
-                      check_sensitivity(alpha), full._cap)  # fmt: skip
-        node_extents(self._rows, self._node, self._extent)
-        return self
-
-    def loo(self, sample=None):
-        """As ``AdaptiveDensity.loo``, the sums over the kept kernels (the point's own, and
-        its copies', left out where kept); the remaining mass W - w_i."""
-        full = self.full
-        idx = np.arange(len(full.pilot)) if sample is None else np.asarray(sample)
-        at = full._rows[full._row_of[idx]]
-        tree = (self._rows, self._box, self._node, self._extent)
-        s = sums_at(tree, at[:, X : Y + 1], True, full.hi - full.lo, full.periodic)[0]
-        rest = np.maximum(full.total - at[:, W], 1e-300)
-        knn = full.knn.constant / full.pilot[idx] ** 2
-        f = (1.0 - full.eps) * s * full.total / rest + full.eps * knn
-        with np.errstate(divide="ignore"):
-            return np.log(f)
-
-    def weights_of(self, idx):
-        return self.full.weights_of(idx)
-
-    @property
-    def pilot(self):
-        return self.full.pilot
-
-
 def z_order(frame, lx, ly, bits=10):
     """An order of points (q, 2) in the box [0, lx] x [0, ly] along the Z (Morton) curve of
     a 2^bits grid: points near each other come near each other."""
@@ -442,12 +374,8 @@ def choose_smoothing(
     score is within one standard error of the best, so the choice may lie between grid
     values. The table has a row (alpha, c, score) per pair the last climb scored, in that
     order, then the half steps (the score as defined above for the criterion). The density
-    is left at the chosen pair. With the likelihood criterion and k >= 2 THINNED_KERNELS
-    (n above 40,000 at the default pilot k), the leave-one-out scores come from a random
-    share of the kernels, reweighted (``ThinnedLoo``: unbiased sums, the same share for
-    every pair). ``progress``: called with the number of pairs
-    scored so far after each (long work shows it; a pass costs about ``loo_points`` c^2 k
-    kernel terms)."""
+    is left at the chosen pair. ``progress``: called with the number of pairs scored so far
+    after each (long work shows it; a pass costs about ``loo_points`` c^2 k kernel terms)."""
     criterion = check_criterion(criterion)
     count = [0]
 
@@ -461,15 +389,11 @@ def choose_smoothing(
     sample = None if m == n else np.sort(generator(random_state).choice(n, m, False))
     i = int(np.argmin(np.abs(np.asarray(alphas) - 0.5)))
     j = int(np.argmin(np.abs(np.log(bandwidths))))
-    scored_by = density
-    factor = thinning(density) if criterion == "likelihood" else 1
-    if factor > 1:  # sums of thousands of kernels: a random share of them, reweighted
-        scored_by = ThinnedLoo(density, factor, generator(random_state))
     if m > 2 * COARSE:
         pool = np.arange(n) if sample is None else sample
         coarse = np.sort(generator(random_state).choice(pool, max(COARSE, m // 5), False))
-        i, j, _ = _climb(Scores(scored_by, coarse, criterion, scored_one), alphas, bandwidths, i, j)
-    scores = Scores(scored_by, sample, criterion, scored_one)
+        i, j, _ = _climb(Scores(density, coarse, criterion, scored_one), alphas, bandwidths, i, j)
+    scores = Scores(density, sample, criterion, scored_one)
     i, j, scored = _climb(scores, alphas, bandwidths, i, j)
     alpha, c = float(alphas[i]), float(bandwidths[j])
     rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
@@ -481,18 +405,6 @@ def choose_smoothing(
     table = np.array([(a, b, sign * v) for a, b, v in rows])
     density.set_bandwidth(c, alpha)
     return alpha, c, table
-
-
-THINNED_KERNELS = 200  # a thinned leave-one-out sum keeps about this many kernels
-
-
-def thinning(density):
-    """The factor by which ``ThinnedLoo`` thins an estimate's kernels for its leave-one-out
-    scores: about k kernels cover a data point at unit bandwidth (each reaches d_{P,k} of
-    its centre, and the ball of that radius holds k points), so k // THINNED_KERNELS, and 1
-    (none) below 2."""
-    factor = int(density.k // THINNED_KERNELS)
-    return factor if factor >= 2 else 1
 
 
 class Scores:
