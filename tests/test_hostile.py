@@ -158,9 +158,15 @@ def test_min_size_zero_still_terminates_at_the_resolution_limit():
     assert cert.floor_sites and np.allclose(cert.floor_sites[0][:2], 0.5, atol=1e-8)
 
 
+# A child started from a shell's background job inherits SIGINT ignored, and Python then
+# keeps it ignored: the Ctrl-C tests failed with "not interrupted" when the suite ran as
+# `pytest &`. The children restore Python's default handler first.
+DEFAULT_SIGINT = "import signal\nsignal.signal(signal.SIGINT, signal.default_int_handler)\n"
+
+
 def _child(script, timeout=120):
     out = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(script)],
+        [sys.executable, "-c", DEFAULT_SIGINT + textwrap.dedent(script)],
         capture_output=True,
         text=True,
         timeout=timeout,

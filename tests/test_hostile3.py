@@ -103,8 +103,10 @@ def test_ctrl_c_during_the_setup_in_space():
                                 box=box)
         print("still works", len(mesh.vertices) > 0)
     """)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=300)  # fmt: skip
+    from test_hostile import DEFAULT_SIGINT  # (a background job starts with SIGINT ignored)
+
+    out = subprocess.run([sys.executable, "-c", DEFAULT_SIGINT + code], capture_output=True,
+                         text=True, timeout=300)  # fmt: skip
     assert "interrupted after" in out.stdout and "still works True" in out.stdout, (
         out.stdout + out.stderr
     )
