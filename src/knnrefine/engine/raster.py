@@ -12,6 +12,15 @@ import numpy as np
 from .jit import kernel
 
 
+@kernel(inline="always")
+def _corners(nodes, a, b, c):
+    """The corners a, b, c of a triangle and twice its signed area."""
+    ax, ay = nodes[a, 0], nodes[a, 1]
+    bx, by = nodes[b, 0], nodes[b, 1]
+    cx, cy = nodes[c, 0], nodes[c, 1]
+    return ax, ay, bx, by, cx, cy, (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+
+
 @kernel(entry=True, nogil=True)
 def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out, ids=False):
     """out[j, i] = the linear interpolant of ``values`` (given at ``nodes``) over the triangle
@@ -24,10 +33,7 @@ def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out, ids=False):
     ny, nx = out.shape
     for t in range(triangles.shape[0]):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ax, ay = nodes[a, 0], nodes[a, 1]
-        bx, by = nodes[b, 0], nodes[b, 1]
-        cx, cy = nodes[c, 0], nodes[c, 1]
-        det = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+        ax, ay, bx, by, cx, cy, det = _corners(nodes, a, b, c)
         if det == 0.0:
             continue
         tol = -1e-12 * abs(det)
@@ -86,11 +92,9 @@ def walk_to(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx, qy, tri, ba
         for _ in range(WALK_STEPS):
             if t < 0:
                 break
-            a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-            ax, ay = nodes[a, 0], nodes[a, 1]
-            bx, by = nodes[b, 0], nodes[b, 1]
-            cx, cy = nodes[c, 0], nodes[c, 1]
-            det = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            ax, ay, bx, by, cx, cy, det = _corners(
+                nodes, triangles[t, 0], triangles[t, 1], triangles[t, 2]
+            )
             if det == 0.0:
                 break
             la = ((bx - x) * (cy - y) - (by - y) * (cx - x)) / det
