@@ -277,14 +277,21 @@ def test_k_by_cross_validation_is_the_best_of_its_curve():
 
 @pytest.mark.slow
 def test_cross_validation_keeps_copies_in_one_fold():
-    """With integer weights a point's copies are held out together: otherwise a held-out
-    point would have a copy at distance 0 in its training fold, and k = 1 would win."""
+    """A weighted point is held out whole (folds split points): a held-out point never has
+    a part of itself at distance 0 in its training fold, where k = 1 would win. Issue 30:
+    weights are relative, so equal weights (all 3) are the unweighted sample (n_eff = n) and
+    give its curve; copies made by repeating points are held out together too."""
     X = mixture(600, seed=10)
     w = np.full(len(X), 3)
     est = KnnDensityEstimator(k="cv", method="knn", k_grid=[1, 5, 20], cv=3)
     est.fit(X, sample_weight=w)
     assert est.k_ != 1 and np.isfinite(est.cv_scores_).all()
-    assert est.n_samples_ == 1800
+    assert est.n_samples_ == 600
+    plain = KnnDensityEstimator(k="cv", method="knn", k_grid=[1, 5, 20], cv=3).fit(X)
+    np.testing.assert_array_equal(est.cv_scores_, plain.cv_scores_)
+    uneven = np.where(np.arange(len(X)) % 2 == 0, 3.0, 1.0)
+    est.fit(X, sample_weight=uneven)
+    assert est.k_ != 1 and np.isfinite(est.cv_scores_).all()
 
 
 def test_cross_validation_parameters_are_checked():
@@ -337,7 +344,10 @@ def test_standard_error_matches_the_sampling_distribution(replicates):
 @pytest.mark.slow
 def test_bootstrap_bands_match_the_sampling_distribution(replicates):
     """The 90% band's half-width, read as 1.645 standard deviations, against the Monte Carlo
-    spread; it covers the true density (1) at most probes; reproducible with random_state."""
+    spread; it covers the true density (1) at most probes; reproducible with random_state.
+    Regression (issue 30): with weights made relative, a resample's counts were rescaled to
+    its n_eff (about n / 2), so k counted twice the neighbours and the band was 0.62 of the
+    spread; resamples count their repeats as copies."""
     q, values = replicates
     est = KnnDensityEstimator(k=30, method="knn", box=(0, 0, 1, 1)).fit(
         np.random.default_rng(5).random((3000, 2))

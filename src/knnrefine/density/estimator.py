@@ -256,6 +256,12 @@ class KnnDensityEstimator:
         InputError
             Bad points, weights or options (``method="adaptive"`` for points in space).
         """
+        return self._fit(X, sample_weight, counted=False)
+
+    def _fit(self, X, sample_weight, counted):
+        """``fit``, the weights relative (scaled to sum to n_eff) or, with ``counted``,
+        counted as they are: a bootstrap resample's counts are copies (its points repeat),
+        times the fitted estimate's own weights."""
         dim = 3 if np.ndim(X) == 2 and np.shape(X)[1] == 3 else 2
         pts = as_points(X, dim)
         self._check_options()
@@ -273,7 +279,10 @@ class KnnDensityEstimator:
         if sample_weight is not None:
             weights = check_weights(sample_weight, len(pts))
             pts, weights = pts[weights > 0], weights[weights > 0]
-            weights = relative_weights(weights)
+            if not counted:
+                weights = relative_weights(weights)
+            elif np.all(weights == 1.0):
+                weights = None
         n = len(pts) if weights is None else float(weights.sum())  # n_eff
         scale = self._scale(pts, weights)
         pts = pts / scale
@@ -481,7 +490,8 @@ class KnnDensityEstimator:
         resamples of the training points with replacement (as weights: no copies are made),
         and the (1 - level) / 2 and (1 + level) / 2 quantiles of its values at each point.
         Weights stay with their points, which are resampled (the bootstrap of a weighted
-        sample).
+        sample); a point drawn twice counts twice (the resample's repeats are copies, its
+        weights counted as they are, not rescaled to its own n_eff).
 
         Parameters
         ----------
@@ -513,7 +523,7 @@ class KnnDensityEstimator:
             # the points, resampled, each with its weight (the bootstrap of a weighted sample)
             draw = rng.multinomial(len(weight), np.full(len(weight), 1.0 / len(weight)))
             draw = draw * weight
-            refit = type(self)(**params).fit(pts, sample_weight=draw)
+            refit = type(self)(**params)._fit(pts, draw, counted=True)  # draws are copies
             values[b] = np.exp(refit.score_samples(flat)) / self._jacobian()
         lo, hi = np.quantile(values, [(1 - level) / 2, (1 + level) / 2], axis=0)
         return lo.reshape(shape), hi.reshape(shape)
