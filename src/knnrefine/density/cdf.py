@@ -121,13 +121,12 @@ def knn_cdf(
     """
     pts = as_points(points, 3 if np.ndim(points) == 2 and np.shape(points)[1] == 3 else 2)
     n, dim = pts.shape
-    if isinstance(ks, (int, np.integer)):
-        ks = [ks]
+    asked = [ks] if isinstance(ks, (int, np.integer)) else ks
     try:
-        ks = np.unique(np.asarray([check_k(k, n) for k in ks], np.int64))
+        wanted = np.unique(np.asarray([check_k(k, n) for k in asked], np.int64))
     except TypeError:
         raise InputError(f"ks must be a sequence of integers in [1, n = {n}], got {ks!r}") from None
-    if len(ks) == 0:
+    if len(wanted) == 0:
         raise InputError("ks is empty: give at least one k")
     r = np.asarray(radii, float)
     if r.ndim != 1 or len(r) == 0 or not np.all(np.isfinite(r)) or np.any(r < 0):
@@ -155,13 +154,13 @@ def knn_cdf(
     def by_mesh(k):
         return method == "mesh" or (method == "auto" and dim == 3 and k >= even)
 
-    mesh_ks = [int(k) for k in ks if by_mesh(k)]
-    mc_ks = [int(k) for k in ks if not by_mesh(k)]
-    out = KnnCdf(ks, r, *np.zeros((3, len(ks), len(r))))
-    out.method = ["mesh" if by_mesh(k) else "monte-carlo" for k in ks]
+    mesh_ks = [int(k) for k in wanted if by_mesh(k)]
+    mc_ks = [int(k) for k in wanted if not by_mesh(k)]
+    out = KnnCdf(wanted, r, *np.zeros((3, len(wanted), len(r))))
+    out.method = ["mesh" if by_mesh(k) else "monte-carlo" for k in wanted]
     t0 = time.perf_counter()
     tree = cKDTree(pts - lo, boxsize=side if periodic else None)
-    row = {int(k): j for j, k in enumerate(ks)}
+    row = {int(k): j for j, k in enumerate(wanted)}
     if mc_ks:  # one query answers every k
         q = rng.random((int(queries), dim)) * side
         d = tree.query(q, k=mc_ks, workers=-1)[0]
