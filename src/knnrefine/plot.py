@@ -289,17 +289,14 @@ def plot_density(
 def _density_grid(density, shape, grid):
     """(xs, ys, values, box, axis names, title) of a density to draw: a fitted
     ``KnnDensityEstimator`` in the data's units, or an estimate over its mesh's box."""
+    xs, ys, f = density.grid(shape) if grid is None else grid
     if hasattr(density, "density_"):  # a fitted KnnDensityEstimator
-        xs, ys, f = density.grid(shape) if grid is None else grid
         names = getattr(density, "feature_names_in_", None)
         names = tuple(names) if names is not None else ("x", "y")
-        inner, est = density.density_, density
-        k, n = est.k_, est.n_samples_
-        what = "kNN density" if est.method_ == "knn" else "adaptive kernel density"
-        knn = getattr(inner, "knn", inner)
-        box = est.box_
+        k, n, box = density.k_, density.n_samples_, density.box_
+        what = "kNN density" if density.method_ == "knn" else "adaptive kernel density"
+        knn = getattr(density.density_, "knn", density.density_)
     else:
-        xs, ys, f = density.grid(shape) if grid is None else grid
         names = ("x", "y")
         knn = getattr(density, "knn", density)  # the adaptive estimate's pilot
         k, n = density.k, knn.n

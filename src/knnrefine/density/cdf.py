@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from ..validation import as_points, check_k
+from ..validation import as_points, check_box, check_k
 from .adaptive import generator
 
 MESH_K = 40  # "auto": the mesh from this k on at n = 10^5 points and 10^6 queries (space)
@@ -131,7 +131,8 @@ def knn_cdf(
     r = np.asarray(radii, float)
     if r.ndim != 1 or len(r) == 0 or not np.all(np.isfinite(r)) or np.any(r < 0):
         raise InputError("radii must be a non-empty 1-D array of finite numbers >= 0")
-    lo, hi = _box(box, dim)
+    corners = np.asarray(check_box(box, dim))
+    lo, hi = corners[:dim], corners[dim:]
     if not isinstance(periodic, (bool, np.bool_)):
         raise InputError(f"periodic must be True or False (every axis or none), got {periodic!r}")
     if isinstance(queries, bool) or not isinstance(queries, (int, np.integer)) or queries < 100:
@@ -210,17 +211,3 @@ def _by_mesh(pts, k, r, lo, hi, periodic, q, exact):
     floor = ((delta != 0).sum(axis=0) + 1.0) / (m + 2.0)
     se = np.sqrt(np.maximum(delta.var(axis=0), floor) / m)
     return np.clip(f + mean, 0.0, 1.0), Z95 * se, dist.cdf_bounds(r), len(mesh.vertices)
-
-
-def _box(box, dim):
-    try:
-        b = np.asarray(box, float)
-    except (TypeError, ValueError):
-        b = None
-    if b is None or b.shape != (2 * dim,) or not np.all(np.isfinite(b)):
-        corners = "(x0, y0, x1, y1)" if dim == 2 else "(x0, y0, z0, x1, y1, z1)"
-        raise InputError(f"box must be {corners} for points in {dim} dimensions, got {box!r}")
-    lo, hi = b[:dim], b[dim:]
-    if not np.all(hi > lo):
-        raise InputError(f"box must have each upper side above its lower one, got {box!r}")
-    return lo, hi
