@@ -291,3 +291,26 @@ def test_knn_cdf_refuses_bad_input_before_work():
         knn_cdf(flat, [2], [0.1], (0, 0, 1, 1), method="mesh")
     plane = knn_cdf(flat, [2, 200], [0.05, 0.1], (0, 0, 1, 1), queries=1000)
     assert plane.method == ["monte-carlo", "monte-carlo"]  # the plane: Monte Carlo's way
+
+
+@pytest.mark.parametrize("case", ["plane", "duplicates"])
+def test_knn_cdf_on_degenerate_inputs(case):
+    """knn_cdf (issue 30) on points on a plane and on many duplicates: the mesh's way agrees
+    with Monte Carlo's way (independent points) within four standard errors at every radius,
+    its CDFs non-decreasing in r and in [0, 1]."""
+    from knnrefine.density import knn_cdf
+
+    rng = np.random.default_rng(4)
+    if case == "plane":
+        pts = np.column_stack([rng.random((3000, 2)), np.full(3000, 0.5)])
+    else:
+        pts = np.repeat(rng.random((100, 3)), 30, axis=0)
+    r = np.linspace(0.01, 0.4, 15)
+    box = (0, 0, 0, 1, 1, 1)
+    mesh = knn_cdf(pts, [40], r, box, queries=200_000, method="mesh")
+    mc = knn_cdf(pts, [40], r, box, queries=400_000, method="monte-carlo", random_state=3)
+    se = np.hypot(mesh.upper - mesh.lower, mc.upper - mc.lower) / (2 * 1.96)
+    assert (np.abs(mesh.cdf - mc.cdf) <= 4 * se + 1e-6).all()
+    assert (
+        (np.diff(mesh.cdf[0]) >= -1e-12).all() and (mesh.cdf >= 0).all() and (mesh.cdf <= 1).all()
+    )

@@ -346,7 +346,7 @@ def _at_own_draws(density, draws, seed):
     return density(density.sample(int(draws), np.random.default_rng(seed)))
 
 
-LATTICE_SAMPLES = 4  # lattice steps per kernel radius on the coarser lattices (``engine.lattice``)
+LATTICE_SAMPLES = 5  # lattice steps per kernel radius on the coarser lattices (``engine.lattice``)
 EXACT_TERMS = 2e7  # a grid's exact sums below this many kernel terms (about 0.05 s): exact
 LATTICE_VALUES = 1 << 22  # the most values the lattices may hold (32 MiB), per thread
 CRITERIA = ("likelihood", "least-squares")
