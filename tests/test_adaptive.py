@@ -631,7 +631,7 @@ def test_grid_through_lattices_matches_the_exact_sums(periodic, monkeypatch):
     gx, gy = np.meshgrid(xs, ys)
     exact = ad._sums(ad._metric.frame(np.column_stack([gx.ravel(), gy.ravel()])))[0]
     monkeypatch.setattr(adaptive, "EXACT_TERMS", 0.0)  # lattices at any size
-    got = ad._grid_sums(xs, ys).ravel()
+    got = ad._grid_sums([xs, ys]).ravel()
     assert (got >= 0).all()
     seen = exact > 1e-3 * exact.max()
     rel = np.abs(got - exact)[seen] / exact[seen]
@@ -639,7 +639,7 @@ def test_grid_through_lattices_matches_the_exact_sums(periodic, monkeypatch):
     assert np.abs(got - exact).max() < 3e-3 * exact.max()
     # only kernels narrower than two lattice radii: on the grid itself, exact
     monkeypatch.setattr(adaptive, "LATTICE_SAMPLES", 1e6)
-    np.testing.assert_allclose(ad._grid_sums(xs, ys).ravel(), exact, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ad._grid_sums([xs, ys]).ravel(), exact, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("case", ["line", "duplicates", "seam"])
@@ -665,7 +665,7 @@ def test_grid_through_lattices_on_degenerate_inputs(case, monkeypatch):
     gx, gy = np.meshgrid(xs, ys)
     exact = ad._sums(ad._metric.frame(np.column_stack([gx.ravel(), gy.ravel()])))[0]
     monkeypatch.setattr(adaptive, "EXACT_TERMS", 0.0)
-    got = ad._grid_sums(xs, ys).ravel()
+    got = ad._grid_sums([xs, ys]).ravel()
     assert (got >= 0).all()
     seen = exact > 1e-3 * exact.max()
     rel = np.abs(got - exact)[seen] / exact[seen]

@@ -113,7 +113,7 @@ def test_refusals_name_the_dimension(dim):
 
 def test_estimator_in_both_dimensions(dim):
     """fit, score_samples, score, sample, k="cv" and GridSearchCV with (n, d) data; the
-    default estimate is the adaptive one in the plane and the kNN one in space."""
+    default estimate is the adaptive one in both dimensions."""
     sklearn = pytest.importorskip("sklearn")
     from sklearn.model_selection import GridSearchCV
 
@@ -134,10 +134,10 @@ def test_estimator_in_both_dimensions(dim):
     )
     assert search.fit(X).best_params_["k"] in (5, 40)
     assert sklearn.base.clone(est).get_params() == est.get_params()
+    assert KnnDensityEstimator(k=20).fit(X).method_ == "adaptive"  # in both (issue 30)
     if dim == 3:
-        assert KnnDensityEstimator(k=20).fit(X).method_ == "knn"
-        with pytest.raises(InputError, match='method="adaptive" is built for points in the plane'):
-            KnnDensityEstimator(k=20, method="adaptive").fit(X)
+        with pytest.raises(InputError, match='shape="local" is built for points in the plane'):
+            KnnDensityEstimator(k=20, shape="local").fit(X)
     with pytest.raises(InputError, match=f"\\(\\.\\.\\., {dim}\\)"):
         est.score_samples(np.zeros((2, 5 - dim)))
 
@@ -155,3 +155,120 @@ def test_certify_returns_one_certificate_in_both_dimensions(case):
     assert "PASSED" in text and f"1 / d_Pk^{dim}" in text
     with pytest.raises(InputError, match="points"):
         knnrefine.certify(mesh, pts[:-1])
+
+
+# -- the adaptive estimate in both dimensions (issue 30) -----------------------------------------
+
+TRIWEIGHT_MASS = {2: np.pi / 4, 3: 64 * np.pi / 315}  # of (1 - |x|^2)^3 over the unit ball
+
+
+def brute_adaptive(ad, pts, q, periodic, leave_out=None):
+    """The adaptive estimate's kernel sums at q by brute force (numpy, every point, every
+    image): isotropic triweights of radius h_i = c * unit extent (capped at the unit box's
+    side), mass w_i / n each; periodic axes wrap (images one period away), the others fold
+    (the query's mirror images in the sides). ``leave_out``: per query, the point left out."""
+    dim = pts.shape[1]
+    h = np.minimum(ad.bandwidth * ad.unit_extents, 1.0)
+    amp = 1.0 / len(pts) / (TRIWEIGHT_MASS[dim] * h**dim)
+    images = []
+    for shift in np.array(np.meshgrid(*[[0, 1, 2]] * dim)).reshape(dim, -1).T:
+        img = q.copy()
+        for a, j in enumerate(shift):
+            if j == 0:
+                continue
+            if periodic:
+                img[:, a] += -1.0 if j == 1 else 1.0
+            else:
+                img[:, a] = -img[:, a] if j == 1 else 2.0 - img[:, a]
+        images.append(img)
+    out = np.zeros(len(q))
+    for img in images:
+        u = ((img[:, None, :] - pts[None]) ** 2).sum(-1) / h[None] ** 2
+        terms = amp[None] * np.clip(1.0 - u, 0.0, None) ** 3
+        if leave_out is not None:
+            terms[np.arange(len(q)), leave_out] = 0.0
+        out += terms.sum(1)
+    return out
+
+
+@pytest.mark.parametrize("periodic", [False, True], ids=["box", "torus"])
+def test_adaptive_sums_match_brute_force(dim, periodic):
+    """AdaptiveDensity in the plane and in space (issue 30 built it in space): its value at
+    random points, and its leave-one-out values at the points, are the brute-force kernel
+    sums (every kernel, every image) to rounding, at two smoothings; it integrates to 1."""
+    from knnrefine.density import AdaptiveDensity
+
+    pts = blobs(dim, 1500, 3)
+    mesh = knnrefine.refine(pts, 30, periodic=periodic, box=unit_box(dim))
+    ad = AdaptiveDensity(mesh, pts, bandwidth=1.3, sensitivity=0.3)
+    q = np.random.default_rng(4).random((300, dim))
+    for c, alpha in ((1.3, 0.3), (2.5, 0.5)):  # the second reaches past the sides
+        ad.set_bandwidth(c, alpha)
+        want = (1 - ad.eps) * brute_adaptive(ad, pts, q, periodic) + ad.eps * ad.knn(q)
+        np.testing.assert_allclose(ad(q), want, rtol=1e-9)
+        idx = np.arange(0, 1500, 37)
+        s = brute_adaptive(ad, pts, pts[idx], periodic, leave_out=idx)
+        n = len(pts)
+        loo = (1 - ad.eps) * s * n / (n - 1) + ad.eps * ad.knn.constant / ad.pilot[idx] ** dim
+        np.testing.assert_allclose(ad.loo(idx), np.log(loo), rtol=1e-9)
+    *axes, values = ad.grid(24)
+    cell = np.prod([a[1] - a[0] for a in axes])
+    assert values.sum() * cell == pytest.approx(1.0, abs=0.02)
+
+
+@pytest.mark.parametrize("case", ["general", "plane", "duplicates", "seam"])
+def test_grid_through_lattices_in_space(case, monkeypatch):
+    """The lattice grid in space (``lattice.draw3`` + ``read_grid``) against the exact sums
+    at the centres, on general points, points on a plane, many duplicates and across a
+    periodic seam: to about 1e-3 where the estimate is seen, never below 0, mass kept."""
+    from knnrefine.density import AdaptiveDensity, adaptive
+
+    rng = np.random.default_rng(9)
+    periodic = case == "seam"
+    if case == "general":
+        X = blobs(3, 4000, 5)
+    elif case == "plane":
+        t = rng.random((3000, 2))
+        X = np.concatenate([np.column_stack([t, 0.5 * np.ones(3000)]), rng.random((500, 3))])
+    elif case == "duplicates":
+        X = np.concatenate([np.repeat(rng.random((30, 3)), 50, axis=0), rng.random((800, 3))])
+    else:
+        X = np.column_stack([rng.random((3000, 2)), rng.normal(0.0, 0.02, 3000) % 1.0])
+    # (duplicates: d_Pk is 0 at the sites, refined down to min_size; a coarse floor)
+    mesh = knnrefine.refine(X, 30, box=unit_box(3), periodic=periodic, min_size=1e-3)
+    ad = AdaptiveDensity(mesh, X, bandwidth=1.2)
+    axes = [(np.arange(m) + 0.5) / m for m in (80, 76, 72)]  # x, y, z: oblong cells
+    g = np.meshgrid(*axes[::-1], indexing="ij")
+    centres = np.column_stack([a.ravel() for a in g[::-1]])
+    exact = ad._sums(ad._metric.frame(centres))[0]
+    monkeypatch.setattr(adaptive, "EXACT_TERMS", 0.0)  # lattices at any size
+    got = ad._grid_sums(axes).ravel()
+    assert (got >= 0).all()
+    seen = exact > 1e-3 * exact.max()
+    rel = np.abs(got - exact)[seen] / exact[seen]
+    assert np.median(rel) < 1e-3 and np.quantile(rel, 0.99) < 1e-2
+    assert np.abs(got - exact).max() < 1e-3 * exact.max()
+    assert got.mean() == pytest.approx(exact.mean(), rel=1e-4)
+    # only kernels on the grid's own lattice: exact
+    monkeypatch.setattr(adaptive, "LATTICE_SAMPLES", 1e6)
+    np.testing.assert_allclose(ad._grid_sums(axes).ravel(), exact, rtol=1e-9, atol=1e-12)
+
+
+def test_adaptive_samples_follow_the_estimate_in_space():
+    """Draws from the adaptive estimate in space (u ~ Beta(3/2, 4) in a ball) have the
+    estimate's mean and mass per octant (the octants' masses from a fine grid of it)."""
+    from knnrefine.density import AdaptiveDensity
+
+    pts = blobs(3, 3000, 6)
+    mesh = knnrefine.refine(pts, 40, box=unit_box(3))
+    ad = AdaptiveDensity(mesh, pts, bandwidth=1.5)
+    draws = ad.sample(200_000, np.random.default_rng(0))
+    assert ((draws >= 0) & (draws <= 1)).all()
+    *axes, values = ad.grid(48)
+    cell = np.prod([a[1] - a[0] for a in axes])
+    octant = [(a >= 0.5).astype(int) for a in np.meshgrid(*axes[::-1], indexing="ij")]
+    index = octant[0] * 4 + octant[1] * 2 + octant[2]  # z, y, x halves
+    grid_mass = np.bincount(index.ravel(), weights=values.ravel() * cell, minlength=8)
+    z, y, x = (draws[:, 2] >= 0.5), (draws[:, 1] >= 0.5), (draws[:, 0] >= 0.5)
+    drawn_mass = np.bincount(z * 4 + y * 2 + x, minlength=8) / len(draws)
+    np.testing.assert_allclose(drawn_mass, grid_mass, atol=0.006)

@@ -1,30 +1,16 @@
 """The adaptive (sample-point) kernel estimate with local bandwidths from d_{P,k}
-(``AdaptiveDensity``, in the plane), and the choice of its bandwidth and sensitivity by
+(``AdaptiveDensity``, in the plane and in space), and the choice of its bandwidth and sensitivity by
 cross-validation (``choose_smoothing``)."""
 
 import numpy as np
 
-from ..engine.kernelsum import (
-    AMP,
-    Q11,
-    Q12,
-    Q22,
-    ROW,
-    R,
-    W,
-    X,
-    Y,
-    ball_moments,
-    build_centres,
-    kernel_sums,
-    node_extents,
-    scale_kernels,
-)
-from ..engine.lattice import draw, plan_levels, read
+from ..engine import kernelsum, kernelsum3, lattice
+from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  # plane
+from ..engine.lattice import plan_levels, read_grid
 from ..engine.threads import in_chunks
 from ..errors import InputError
 from ..validation import as_points, as_queries, weights_of_run
-from .estimate import KnnDensity
+from .estimate import KnnDensity, unit_ball_volume
 
 
 class AdaptiveDensity:
@@ -62,14 +48,21 @@ class AdaptiveDensity:
         check_shape(shape)
         if not (isinstance(max_ratio, (int, float)) and 1 <= max_ratio < np.inf):
             raise InputError(f"max_ratio must be a number >= 1, got {max_ratio!r}")
-        pts = as_points(points)
+        dim = mesh.dim
+        if shape == "local" and dim != 2:
+            raise InputError(
+                'shape="local" is built for points in the plane; in space the kernels are '
+                'balls: use shape="isotropic"'
+            )
+        pts = as_points(points, dim)
         if knn is None:
             knn = KnnDensity(mesh, pts, subdivide=subdivide, weights=weights)
         self.knn = knn
         dist = knn.distance
         weights = weights_of_run(mesh.stats, len(pts), weights)
         w = np.ones(len(pts)) if weights is None else weights
-        self.k, self.shape = mesh.k, shape
+        self.k, self.shape, self.dim = mesh.k, shape, dim
+        self._kernels = kernelsum if dim == 2 else kernelsum3  # the per-dimension kernels
         self.total = float(w.sum())
         self.eps = 1.0 / self.total
         self.n_eff = self.total**2 / float((w * w).sum())
@@ -77,8 +70,8 @@ class AdaptiveDensity:
         self.lo, self.hi = dist.lo, dist.hi
         self.periodic = tuple(bool(p) for p in mesh.periodic)
         frame = self._metric.frame(pts)
-        self._rows, self._box, self._node = build_centres(frame, w)
-        order = self._rows[:, ROW].astype(np.int64)
+        self._rows, self._box, self._node = self._kernels.build_centres(frame, w)
+        order = self._rows[:, self._kernels.ROW].astype(np.int64)
         self._row_of = np.empty(len(pts), np.int64)
         self._row_of[order] = np.arange(len(pts))
         self._extent = np.zeros(len(self._node))
@@ -87,20 +80,26 @@ class AdaptiveDensity:
             cov = self._node_covariance(dist)
             pilot = dist.interpolate(pts, np.column_stack([dist.values, cov]))
             d, cov = pilot[:, 0], pilot[:, 1:]
-        else:
+        elif dim == 2:
             d, cov = dist.interpolate(pts, dist.values), None
+        else:
+            d, cov = dist(pts), None
         lost = ~np.isfinite(d)
         if lost.any():  # on no piece by rounding: exact
             d[lost] = dist.exact(pts[lost])
-        unit = unit_shapes(cov, len(pts), max_ratio)  # (n, 3): s11, s12, s22, det 1
-        # per unit bandwidth: Q = S^-1 / d^2, extent d sqrt(lambda_max(S)), amp
-        # w / W * 4 sqrt(det Q) / pi (the triweight's mass is pi / (4 sqrt(det Q)))
+        # per unit bandwidth: Q = S^-1 / d^2 (S of determinant 1: the plane's local shape,
+        # else the identity), extent d sqrt(lambda_max(S)), amp w / W / (MASS d^dim) (the
+        # triweight's mass is MASS / sqrt(det Q))
         d2 = d * d
-        self._q = np.column_stack([unit[:, 2], -unit[:, 1], unit[:, 0]])[order] / d2[order, None]
-        tr = unit[:, 0] + unit[:, 2]
-        lmax = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - 1.0, 0.0))
-        self._r = (d * np.sqrt(lmax))[order]
-        self._amp = (w / self.total * 4.0 / (np.pi * d2))[order]
+        if dim == 2:
+            unit = unit_shapes(cov, len(pts), max_ratio)  # (n, 3): s11, s12, s22
+            q = np.column_stack([unit[:, 2], -unit[:, 1], unit[:, 0]]) / d2[:, None]
+            tr = unit[:, 0] + unit[:, 2]
+            r = d * np.sqrt(0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - 1.0, 0.0)))
+        else:
+            q, r = (1.0 / d2)[:, None], d
+        self._q, self._r = np.ascontiguousarray(q[order]), r[order]
+        self._amp = (w / self.total / (self._kernels.MASS * d**dim))[order]
         self.pilot = d
         # the sensitivity rescales d around its (weighted) geometric mean G: G (d / G)^(2 alpha)
         pos = d > 0
@@ -136,8 +135,10 @@ class AdaptiveDensity:
         c = check_bandwidth(bandwidth)
         alpha = self.sensitivity if sensitivity is None else check_sensitivity(sensitivity)
         self.bandwidth, self.sensitivity = c, alpha
-        scale_kernels(self._rows, self._q, self._amp, self._r, self._log_ratio, c, alpha, self._cap)
-        node_extents(self._rows, self._node, self._extent)
+        rows = self._rows
+        self._kernels.scale_kernels(rows, self._q, self._amp, self._r, self._log_ratio, c, alpha,
+                                    self._cap)  # fmt: skip
+        node_extents(rows[:, self._kernels.R], self._node, self._extent)
         return self
 
     @property
@@ -153,14 +154,15 @@ class AdaptiveDensity:
         ``kernelsum.kernel_sums``)."""
         m = len(frame)
         out, out2 = np.empty(m), np.empty(m)
-        lx, ly = self.hi - self.lo
-        order = z_order(frame, lx, ly)  # neighbours in turn: the tree's leaves stay cached
-        qx, qy = frame[order, 0], frame[order, 1]
-        px, py = self.periodic
+        period = np.asarray(self.hi - self.lo, float)
+        order = z_order(frame, period)  # neighbours in turn: the tree's leaves stay cached
+        q = np.ascontiguousarray(frame[order])
+        periodic = np.array(self.periodic, bool)
         rows, box, node, extent = self._rows, self._box, self._node, self._extent
+        sums = self._kernels.kernel_sums
 
         def call(a, b):
-            kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2, a, b)
+            sums(rows, box, node, extent, q, loo, period, periodic, out, out2, a, b)
 
         in_chunks(call, m)
         back = np.empty_like(order)
@@ -168,7 +170,7 @@ class AdaptiveDensity:
         return out[back], out2[back]
 
     def _at(self, flat):
-        """(kernel sums, their squares, the kNN estimate) at points (q, 2); NaN outside."""
+        """(kernel sums, their squares, the kNN estimate) at points (q, d); NaN outside."""
         knn = self.knn(flat)
         inside = np.isfinite(knn)
         s, s2 = np.full(len(flat), np.nan), np.full(len(flat), np.nan)
@@ -176,69 +178,76 @@ class AdaptiveDensity:
         return s, s2, knn
 
     def __call__(self, x):
-        """The density at points x (..., 2): shape (...); NaN outside the box along
+        """The density at points x (..., d): shape (...); NaN outside the box along
         non-periodic axes."""
-        flat, shape = as_queries(x)
+        flat, shape = as_queries(x, self.dim)
         s, _, knn = self._at(flat)
         return ((1.0 - self.eps) * s + self.eps * knn).reshape(shape)
 
     def standard_error(self, x):
-        """Pointwise standard error at x (..., 2) -> (...): the sample-point estimate's
+        """Pointwise standard error at x (..., d) -> (...): the sample-point estimate's
         variance, (sum of squared kernel terms) - f^2 / n (bandwidths held fixed)."""
-        flat, shape = as_queries(x)
+        flat, shape = as_queries(x, self.dim)
         s, s2, _ = self._at(flat)
         var = np.maximum(s2 - s * s / self.n_eff, 0.0)
         return ((1.0 - self.eps) * np.sqrt(var)).reshape(shape)
 
-    def grid(self, shape=(512, 512)):
-        """(xs, ys, values): the density at the centres of a ny x nx grid over the box."""
-        xs, ys, knn = self.knn.grid(shape)
-        s = self._grid_sums(xs, ys)
-        return xs, ys, (1.0 - self.eps) * s + self.eps * knn
+    def grid(self, shape=None):
+        """(xs, ys[, zs], values): the density at the centres of a grid over the box, cells
+        per axis slowest first ((ny, nx) or (nz, ny, nx); default 512 per axis in the plane,
+        64 in space, as ``KnnDensity.grid``)."""
+        *axes, knn = self.knn.grid(shape)
+        s = self._grid_sums(axes)
+        return (*axes, (1.0 - self.eps) * s + self.eps * knn)
 
-    def _grid_sums(self, xs, ys):
-        """Kernel sums at the centres of a grid (xs, ys in the box's coordinates), (ny, nx):
-        through lattices (``engine.lattice``: kernels narrower than 2 LATTICE_SAMPLES cells
-        drawn exactly on the grid, wider ones on coarser lattices through its centres, read
-        by cubic interpolation) where that costs less than summing at each centre the
-        kernels that cover it (about the mean coverage times the centres), that sum is long
-        (EXACT_TERMS terms or more) and the kernels are disks; else exactly, as at any
-        points. Through lattices the values are those of exact sums at the centres where
-        only grid-drawn kernels reach, and within about 1e-3 (relative) where wider ones do
-        (``tests/test_adaptive.py`` measures it)."""
-        gx, gy = np.meshgrid(xs, ys)
-        frame = self._metric.frame(np.column_stack([gx.ravel(), gy.ravel()]))
-        rows = self._rows
-        lx, ly = self.hi - self.lo
-        r = np.ascontiguousarray(rows[:, R])
-        dx = xs[1] - xs[0] if len(xs) > 1 else lx
-        dy = ys[1] - ys[0] if len(ys) > 1 else ly
-        cover = np.pi * float((r * r).sum()) / (lx * ly)  # kernels at a point, on average
-        drawn = np.pi * np.minimum(r * r / (dx * dy), (2 * LATTICE_SAMPLES) ** 2).sum()
-        exact = len(frame) * cover  # kernel terms summed centre by centre
-        if self.shape != "isotropic" or exact < EXACT_TERMS or drawn >= exact:
-            return self._sums(frame)[0].reshape(len(ys), len(xs))
-        px, py = self.periodic
-        cx, cy = np.ascontiguousarray(rows[:, X]), np.ascontiguousarray(rows[:, Y])
-        amp = np.ascontiguousarray(rows[:, AMP])
-        grid = (frame[0, 0], frame[0, 1], dx, dy)
-        plan = plan_levels(cx, cy, r, lx, ly, px, py, grid, LATTICE_SAMPLES, LATTICE_VALUES)
-        if plan is None:
-            return self._sums(frame)[0].reshape(len(ys), len(xs))
+    def _grid_sums(self, axes):
+        """Kernel sums at the centres of a grid (its axes xs, ys[, zs] in the box's
+        coordinates), (ny, nx) or (nz, ny, nx): through lattices (``engine.lattice``:
+        kernels narrower than 2 LATTICE_SAMPLES cells drawn exactly on the grid, wider ones
+        on coarser lattices through its centres, read by cubic interpolation) where that
+        costs less than summing at each centre the kernels that cover it (about the mean
+        coverage times the centres), that sum is long (EXACT_TERMS terms or more) and the
+        kernels are disks or balls; else exactly, as at any points. Through lattices the
+        values are those of exact sums at the centres where only grid-drawn kernels reach,
+        and within about 1e-3 (relative) where wider ones do (``tests/test_adaptive.py``
+        measures it)."""
+        dim = self.dim
+        shape = tuple(len(a) for a in axes[::-1])
+        rows, kernels = self._rows, self._kernels
+        period = np.asarray(self.hi - self.lo, float)
+        r = np.ascontiguousarray(rows[:, kernels.R])
+        step = np.array([a[1] - a[0] if len(a) > 1 else period[i] for i, a in enumerate(axes)])
+        origin = np.array([a[0] for a in axes], float) - self.lo  # frame coordinates
+        ball = unit_ball_volume(dim)
+        cover = ball * float((r**dim).sum()) / float(np.prod(period))  # kernels at a point
+        cells = np.minimum(r**dim / float(np.prod(step)), (2 * LATTICE_SAMPLES) ** dim)
+        drawn = ball * float(cells.sum())
+        exact = np.prod(shape) * cover  # kernel terms summed centre by centre
+        plan = None
+        if self.shape == "isotropic" and exact >= EXACT_TERMS and drawn < exact:
+            periodic = np.array(self.periodic, bool)
+            centres = np.ascontiguousarray(rows[:, :dim])
+            amp = np.ascontiguousarray(rows[:, kernels.AMP])
+            plan = plan_levels(
+                centres, r, period, periodic, (origin, step), LATTICE_SAMPLES, LATTICE_VALUES
+            )
+        if plan is None:  # exactly, centre by centre
+            mesh = np.meshgrid(*axes[::-1], indexing="ij")  # the slowest axis first
+            flat = np.column_stack([g.ravel() for g in mesh[::-1]])
+            return self._sums(self._metric.frame(flat))[0].reshape(shape)
         level, levels, total = plan
+        draw = lattice.draw if dim == 2 else lattice.draw3
         parts = []  # one lattice per thread (kernels overlap: no shared writes)
 
         def call(a, b):
             values = np.zeros(total)
-            draw(cx, cy, r, amp, level, lx, ly, px, py, levels, values, a, b)
+            draw(centres, r, amp, level, period, periodic, levels, values, a, b)
             parts.append(values)
 
-        in_chunks(call, len(r), least=65536, per_thread=1)  # a lattice per range
+        least = 65536 if dim == 2 else 8192  # a ball costs some 10 times a disk
+        in_chunks(call, len(r), least=least, per_thread=1)  # a lattice per range
         values = parts[0] if len(parts) == 1 else np.sum(parts, axis=0)
-        out = np.empty(len(frame))
-        qx, qy = np.ascontiguousarray(frame[:, 0]), np.ascontiguousarray(frame[:, 1])
-        in_chunks(lambda a, b: read(qx, qy, levels, values, out, a, b), len(frame))
-        return out.reshape(len(ys), len(xs))
+        return read_grid(levels, values, origin, step, np.array(shape[::-1], np.int64))
 
     def loo(self, sample=None):
         """Leave-one-out log-density at the points ``sample`` (indices into the points; all
@@ -248,16 +257,16 @@ class AdaptiveDensity:
         part keep them (they are smooth in one point)."""
         idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
         rows = self._row_of[idx]
-        s, w = self._sums(self._rows[rows, X : Y + 1], loo=True)
+        s, w = self._sums(self._rows[rows, : self.dim], loo=True)
         rest = np.maximum(self.total - w, 1e-300)
-        knn = self.knn.constant / self.pilot[idx] ** 2
+        knn = self.knn.constant / self.pilot[idx] ** self.dim
         f = (1.0 - self.eps) * s * self.total / rest + self.eps * knn
         with np.errstate(divide="ignore"):
             return np.log(f)
 
     def weights_of(self, idx):
         """The weights of the points ``idx`` (indices into the points)."""
-        return self._rows[self._row_of[idx], W]
+        return self._rows[self._row_of[idx], self._kernels.W]
 
     def loo_curve(self, bandwidths, sample=None, sensitivity=None):
         """Mean leave-one-out log-likelihood (per unit weight) of each candidate bandwidth at
@@ -285,27 +294,36 @@ class AdaptiveDensity:
         return square_integral(self, len(idx) if draws is None else int(draws), seed) - 2 * loo
 
     def sample(self, n, rng):
-        """n points (n, 2) drawn from the estimate: a kernel chosen by weight, a point from
-        it (u = |z|^2 ~ Beta(1, 4) for the triweight), folded or wrapped into the box; with
-        probability eps from the kNN part instead."""
+        """n points (n, d) drawn from the estimate: a kernel chosen by weight, a point from
+        it (u = |z|^2 ~ Beta(d / 2, 4) for the triweight in d dimensions), folded or wrapped
+        into the box; with probability eps from the kNN part instead."""
         rows = self._rows
-        out = np.empty((n, 2))
+        out = np.empty((n, self.dim))
         from_knn = rng.random(n) < self.eps
         m = int(n - from_knn.sum())
-        i = rng.choice(len(rows), m, p=rows[:, W] / rows[:, W].sum())
-        u = rng.beta(1.0, 4.0, m)
-        theta = rng.random(m) * 2 * np.pi
-        z = np.sqrt(u)[:, None] * np.column_stack([np.cos(theta), np.sin(theta)])
-        # x = X_i + L z with L L^T = Q^-1 (Cholesky of the 2 x 2 inverse)
-        q11, q12, q22 = rows[i, Q11], rows[i, Q12], rows[i, Q22]
-        det = q11 * q22 - q12 * q12
-        a, b, c = q22 / det, -q12 / det, q11 / det  # Q^-1
-        l11 = np.sqrt(a)
-        l21 = b / l11
-        l22 = np.sqrt(np.maximum(c - l21 * l21, 0.0))
-        x = rows[i, X] + l11 * z[:, 0]
-        y = rows[i, Y] + l21 * z[:, 0] + l22 * z[:, 1]
-        out[~from_knn] = self._into_box(np.column_stack([x, y]))
+        weight = rows[:, self._kernels.W]
+        i = rng.choice(len(rows), m, p=weight / weight.sum())
+        if self.dim == 2:
+            u = rng.beta(1.0, 4.0, m)
+            theta = rng.random(m) * 2 * np.pi
+            z = np.sqrt(u)[:, None] * np.column_stack([np.cos(theta), np.sin(theta)])
+            # x = X_i + L z with L L^T = Q^-1 (Cholesky of the 2 x 2 inverse)
+            q11, q12, q22 = rows[i, Q11], rows[i, Q12], rows[i, Q22]
+            det = q11 * q22 - q12 * q12
+            a, b, c = q22 / det, -q12 / det, q11 / det  # Q^-1
+            l11 = np.sqrt(a)
+            l21 = b / l11
+            l22 = np.sqrt(np.maximum(c - l21 * l21, 0.0))
+            x = rows[i, X] + l11 * z[:, 0]
+            y = rows[i, Y] + l21 * z[:, 0] + l22 * z[:, 1]
+            drawn = np.column_stack([x, y])
+        else:  # balls: a uniform direction, the radius from u
+            k3 = kernelsum3
+            u = rng.beta(1.5, 4.0, m)
+            z = rng.standard_normal((m, 3))
+            z *= (np.sqrt(u) / np.linalg.norm(z, axis=1))[:, None]
+            drawn = rows[i, k3.X : k3.Z + 1] + z * rows[i, k3.R, None]
+        out[~from_knn] = self._into_box(drawn)
         if from_knn.any():
             out[from_knn] = self.knn.sample(int(from_knn.sum()), rng)
         return out
@@ -315,23 +333,23 @@ class AdaptiveDensity:
         non-periodic axes (mirrored in the sides, as the sums fold), wrapped along periodic
         ones (``BoxMetric.wrap``, the one wrapping rule)."""
         period = self.hi - self.lo
-        for a in range(2):
+        for a in range(self.dim):
             if not self.periodic[a]:
                 v = np.abs(frame[:, a])  # the mirror in the lower side
                 frame[:, a] = np.where(v > period[a], 2 * period[a] - v, v)
         return self._metric.wrap(frame + self.lo)
 
 
-def z_order(frame, lx, ly, bits=10):
-    """An order of points (q, 2) in the box [0, lx] x [0, ly] along the Z (Morton) curve of
-    a 2^bits grid: points near each other come near each other."""
+def z_order(frame, period, bits=10):
+    """An order of points (q, d) in the box [0, period] along the Z (Morton) curve of a
+    2^bits grid per axis: points near each other come near each other."""
     scale = (1 << bits) - 1
-    ix = np.clip(frame[:, 0] / lx * scale, 0, scale).astype(np.uint32)
-    iy = np.clip(frame[:, 1] / ly * scale, 0, scale).astype(np.uint32)
+    dim = frame.shape[1]
     key = np.zeros(len(frame), np.uint64)
-    for b in range(bits):
-        key |= ((ix >> b) & 1).astype(np.uint64) << np.uint64(2 * b)
-        key |= ((iy >> b) & 1).astype(np.uint64) << np.uint64(2 * b + 1)
+    for a in range(dim):
+        cell = np.clip(frame[:, a] / period[a] * scale, 0, scale).astype(np.uint64)
+        for b in range(bits):
+            key |= ((cell >> np.uint64(b)) & np.uint64(1)) << np.uint64(dim * b + a)
     return np.argsort(key, kind="stable")
 
 

@@ -49,9 +49,9 @@ class KnnDensityEstimator:
         ``random_state``, every fold in the same box; adaptive: each fold with its own
         bandwidth by leave-one-out).
     method : None, "adaptive" or "knn"
-        The estimate (see above). None (default): the adaptive one for points in the plane,
-        the kNN one in space (the adaptive kernels are built in the plane; asked for in
-        space they are refused). The adaptive one (default or ``shape="local"``) had the
+        The estimate (see above). None (default): the adaptive one, in the plane and in
+        space (before issue 30 the kNN one in space). The adaptive one (default or
+        ``shape="local"``) had the
         best held-out likelihood and the lowest L1 error on every truth of the project's
         study at n = 1e4 to 1e6 (``benchmarks/density_accuracy.py``, docs/uses.md).
     bandwidth : float > 0 or "cv"
@@ -67,8 +67,8 @@ class KnnDensityEstimator:
         the bandwidth. Heavy tails and flat regions choose less than 1/2, narrow peaks 1/2
         (docs/uses.md).
     shape : "isotropic" or "local"
-        The adaptive estimate's kernels: disks, or ellipses shaped like the local covariance
-        of the points (thin ridges, curved structure).
+        The adaptive estimate's kernels: disks (balls in space), or ellipses shaped like the
+        local covariance of the points (thin ridges, curved structure; the plane only).
     whiten : bool
         Work in coordinates divided by each axis' standard deviation (data whose axes have
         different units: millimetres against grams); densities are returned in the data's
@@ -254,7 +254,7 @@ class KnnDensityEstimator:
         Raises
         ------
         InputError
-            Bad points, weights or options (``method="adaptive"`` for points in space).
+            Bad points, weights or options (``shape="local"`` for points in space).
         """
         return self._fit(X, sample_weight, counted=False)
 
@@ -266,15 +266,12 @@ class KnnDensityEstimator:
         pts = as_points(X, dim)
         self._check_options()
         names = feature_names(X)
-        if self.method is None:  # the adaptive estimate in the plane, the kNN one in space
-            self.method_ = "adaptive" if dim == 2 else "knn"
-        elif self.method == "adaptive" and dim == 3:
+        if self.shape == "local" and dim == 3 and self.method != "knn":
             raise InputError(
-                'method="adaptive" is built for points in the plane; for points in space use '
-                'method="knn" (the default there: method=None)'
+                'shape="local" is built for points in the plane; for points in space use '
+                'shape="isotropic" (the default: balls)'
             )
-        else:
-            self.method_ = self.method
+        self.method_ = "adaptive" if self.method is None else self.method
         weights = None
         if sample_weight is not None:
             weights = check_weights(sample_weight, len(pts))

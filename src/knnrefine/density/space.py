@@ -24,7 +24,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..engine.bspline import shares_below, weighted_shares
-from ..engine.raster import first_holding3
+from ..engine.raster import first_holding3, rasterise3
+from ..engine.threads import in_chunks
 from ..errors import InputError
 from ..metric import BoxMetric
 
@@ -79,11 +80,23 @@ class SpacePieces:
         lo = np.array(mesh.box[:3]) - origin
         hi = np.array(mesh.box[3:]) - origin
         self._box = lo, hi
-        for a in np.flatnonzero(~self._periodic):  # cut at the box's faces
+        # cut at the box's faces, only the pieces that cross one (the others kept whole)
+        free = np.flatnonzero(~self._periodic)
+        reach = (corners.min(axis=1)[:, free] < lo[free]) | (
+            corners.max(axis=1)[:, free] > hi[free]
+        )
+        cross = reach.any(axis=1)
+        whole = [corners[~cross], d[~cross], source[~cross], *(b[~cross] for b in self.bounds)]
+        corners, d, source = corners[cross], d[cross], source[cross]
+        bounds = tuple(b[cross] for b in self.bounds)
+        for a in free:
             flipped, d, first = clip_below(-corners, d, a, -lo[a])  # x >= lo, mirrored
             corners, d, again = clip_below(-flipped, d, a, hi[a])  # x <= hi
-            self.bounds = tuple(b[first][again] for b in self.bounds)
+            bounds = tuple(b[first][again] for b in bounds)
             source = source[first][again]
+        parts = zip(whole, (corners, d, source, *bounds), strict=True)
+        corners, d, source, *bounds = (np.concatenate([w, c]) for w, c in parts)
+        self.bounds = tuple(bounds)
         self.source = source
         self.corners = corners
         self.d = d
@@ -127,8 +140,20 @@ class SpacePieces:
         return np.einsum("qc,qc->q", bary, self.d[tet])
 
     def grid(self, shape):
-        """(xs, ys, zs, values (nz, ny, nx)) at the centres of a grid over the box."""
-        return grid3(self.interpolate, self.mesh.box[:3], self.mesh.box[3:], shape)
+        """(xs, ys, zs, values (nz, ny, nx)) at the centres of a grid over the box: each
+        piece writes the centres it holds (``engine.raster.rasterise3``: no point location,
+        about the grid's size plus the pieces' work); a centre on no piece by rounding is NaN
+        (``KnnDistance.grid`` locates it)."""
+        nz, ny, nx = shape
+        lo, hi = (np.asarray(b, float) for b in (self.mesh.box[:3], self.mesh.box[3:]))
+        step = (hi - lo) / np.array([nx, ny, nz])
+        axes = [lo[a] + (np.arange(n) + 0.5) * step[a] for a, n in enumerate((nx, ny, nz))]
+        out = np.full((nz, ny, nx), np.nan)
+        corners, d = np.ascontiguousarray(self.corners), np.ascontiguousarray(self.d)
+        x0 = np.ascontiguousarray(self._box[0], float)
+        periodic = np.ascontiguousarray(self._periodic, bool)
+        in_chunks(lambda a, b: rasterise3(corners, d, x0, step, periodic, out, a, b), len(corners))
+        return (*axes, out)
 
     def integrate(self, func, rect):
         """Integral of func(d) over the box rect = [[x0, y0, z0], [x1, y1, z1]] (in the box,
@@ -352,9 +377,11 @@ def clip_below(corners, values, axis, bound):
     plane). Orientation is not kept."""
     below = corners[:, :, axis] <= bound
     count = below.sum(axis=1)
-    order = np.argsort(~below, axis=1, kind="stable")  # the corners below first
-    c = np.take_along_axis(corners, order[..., None], 1)
-    v = np.take_along_axis(values, order, 1)
+    crossing = np.flatnonzero((count > 0) & (count < 4))  # the others kept or dropped whole
+    order = np.argsort(~below[crossing], axis=1, kind="stable")  # the corners below first
+    c = np.take_along_axis(corners[crossing], order[..., None], 1)
+    v = np.take_along_axis(values[crossing], order, 1)
+    count_of = count[crossing]
 
     def cut(i, j, rows):
         """Where edge (i, j) of the tetrahedra ``rows`` meets the plane, and the value."""
@@ -370,19 +397,20 @@ def clip_below(corners, values, axis, bound):
         parts = [(p[0], p[1], p[2], q[0]), (p[1], p[2], q[0], q[1]), (p[2], q[0], q[1], q[2])]
         return [(np.stack([x[0] for x in t], 1), np.stack([x[1] for x in t], 1)) for t in parts]
 
-    out = [(corners[count == 4], values[count == 4])]
-    source = [np.flatnonzero(count == 4)]
-    rows = np.flatnonzero(count == 1)
-    source.append(rows)
+    inside = np.flatnonzero(count == 4)
+    out = [(corners[inside], values[inside])]
+    source = [inside]
+    rows = np.flatnonzero(count_of == 1)  # rows of the crossing ones
+    source.append(crossing[rows])
     a = (c[rows, 0], v[rows, 0])
     b, cc, d = cut(0, 1, rows), cut(0, 2, rows), cut(0, 3, rows)
     out.append((np.stack([a[0], b[0], cc[0], d[0]], 1), np.stack([a[1], b[1], cc[1], d[1]], 1)))
-    rows = np.flatnonzero(count == 2)
-    source += [rows] * 3
+    rows = np.flatnonzero(count_of == 2)
+    source += [crossing[rows]] * 3
     a, b = (c[rows, 0], v[rows, 0]), (c[rows, 1], v[rows, 1])
     out += prism([a, cut(0, 2, rows), cut(0, 3, rows)], [b, cut(1, 2, rows), cut(1, 3, rows)])
-    rows = np.flatnonzero(count == 3)
-    source += [rows] * 3
+    rows = np.flatnonzero(count_of == 3)
+    source += [crossing[rows]] * 3
     base = [(c[rows, i], v[rows, i]) for i in range(3)]
     out += prism(base, [cut(i, 3, rows) for i in range(3)])
     return (

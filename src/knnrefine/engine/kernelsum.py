@@ -28,6 +28,7 @@ from .state import NODE_CHILD, NODE_HI, NODE_LO
 
 X, Y, W, AMP, Q11, Q12, Q22, R, ROW = range(9)
 COLUMNS = 9
+MASS = np.pi / 4.0  # the integral of (1 - |x|^2)^3 over the unit disk
 
 
 def build_centres(points, weights, workers=None):
@@ -44,18 +45,19 @@ def build_centres(points, weights, workers=None):
 
 
 @kernel(entry=True)
-def node_extents(rows, node, extent):
-    """extent[t] = the largest kernel extent among node t's centres (children before
-    parents: nodes are numbered parents first, so a reverse sweep sees children first)."""
+def node_extents(r, node, extent):
+    """extent[t] = the largest kernel extent r[i] among node t's centres (children before
+    parents: nodes are numbered parents first, so a reverse sweep sees children first). Any
+    dimension: r is the extents' column of the tree's rows."""
     for t in range(node.shape[0] - 1, -1, -1):
         c = node[t, NODE_CHILD]
         if c >= 0:
             extent[t] = max(extent[c], extent[c + 1])
         else:
-            r = 0.0
+            e = 0.0
             for i in range(node[t, NODE_LO], node[t, NODE_HI]):
-                r = max(r, rows[i, R])
-            extent[t] = r
+                e = max(e, r[i])
+            extent[t] = e
 
 
 @kernel(entry=True, nogil=True)
@@ -80,9 +82,10 @@ def scale_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
 
 
 @kernel(inline="always")
-def _image(q, j, period, periodic):
-    """The query's j-th image along one axis of the box [0, period]: itself, then one
-    period down and up (periodic) or its mirror images in the two sides (folded)."""
+def axis_image(q, j, period, periodic):
+    """The j-th image of a coordinate (a query's or a centre's) along one axis of the box
+    [0, period]: itself, then one period down and up (periodic) or its mirror images in the
+    two sides (folded)."""
     if j == 0:
         return q
     if periodic:
@@ -91,8 +94,9 @@ def _image(q, j, period, periodic):
 
 
 @kernel(entry=True, nogil=True, fastmath=True)
-def kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2, start, stop):
-    """out[j] = sum of the kernels at query j (frame coordinates, in the box), out2[j] the
+def kernel_sums(rows, box, node, extent, q, loo, period, periodic, out, out2, start, stop):
+    """out[j] = sum of the kernels at query j (q (m, 2), frame coordinates, in the box;
+    ``period`` (2,) the box's widths, ``periodic`` (2,) booleans), out2[j] the
     sum of their squares. With ``loo`` (leave one out; the queries are centres) the centres
     at exactly the query's place are left out of its sum, all images of them (copies of a
     point leave together, as a point of whole weight would), and out2[j] is their weight.
@@ -106,9 +110,9 @@ def kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2,
         s2 = 0.0
         own = 0.0  # the left-out centres' share of s (loo)
         for a in range(3):
-            x = _image(qx[j], a, lx, px)
+            x = axis_image(q[j, 0], a, period[0], periodic[0])
             for b in range(3):
-                y = _image(qy[j], b, ly, py)
+                y = axis_image(q[j, 1], b, period[1], periodic[1])
                 for f in range(leaves_near(box, node, extent, 0.0, x, y, stack, leaves)):
                     t = leaves[f]
                     for i in range(node[t, NODE_LO], node[t, NODE_HI]):
@@ -120,7 +124,7 @@ def kernel_sums(rows, box, node, extent, qx, qy, loo, lx, ly, px, py, out, out2,
                         v = rows[i, AMP] * v * v * v
                         s += v
                         if loo:
-                            if rows[i, X] == qx[j] and rows[i, Y] == qy[j]:
+                            if rows[i, X] == q[j, 0] and rows[i, Y] == q[j, 1]:
                                 own += v
                                 if a == 0 and b == 0:
                                     s2 += rows[i, W]
@@ -145,9 +149,9 @@ def ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, start, st
         r = radius[j]
         r2 = r * r
         for a in range(3 if px else 1):
-            x = _image(qx[j], a, lx, True)
+            x = axis_image(qx[j], a, lx, True)
             for b in range(3 if py else 1):
-                y = _image(qy[j], b, ly, True)
+                y = axis_image(qy[j], b, ly, True)
                 for f in range(leaves_near(box, node, none, r, x, y, stack, leaves)):
                     t = leaves[f]
                     for i in range(node[t, NODE_LO], node[t, NODE_HI]):

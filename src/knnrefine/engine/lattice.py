@@ -1,16 +1,18 @@
-"""Sums of isotropic triweight kernels, one radius per centre, on a grid: each kernel is drawn
-exactly onto the lattice of its scale, and the lattices are read at the grid's centres.
+"""Sums of isotropic triweight kernels, one radius per centre, on a grid (plane or space):
+each kernel is drawn exactly onto the lattice of its scale, and the lattices are read at the
+grid's centres.
 
 Along each axis a kernel of radius r goes to the lattice whose step is the grid's times 2^m,
 m >= 0 the largest with r / step >= S: kernels narrower than 2S cells are drawn on the grid
 itself, wider ones on coarser lattices through the same centres, each with at most about
-pi (2S)^2 values whatever its radius and however many other kernels overlap it. A grid
-then costs O(n S^2) to draw and O(levels) per centre to read, where summing at each centre
-the kernels that cover it costs their number (about c^2 k per centre for the adaptive
-estimate, which grows with n). The grid's own lattice is read exactly; coarser ones by
-Catmull-Rom interpolation (4 x 4 values), exact at their points and third-order between:
-a lattice holds kernels at least S steps wide only, so the error is a small fixed fraction
-of them (``tests/test_adaptive.py`` measures it against the exact sums).
+the volume of a ball of 2S steps whatever its radius and however many other kernels overlap
+it (``draw``, ``draw3``). A grid then costs O(n S^d) to draw and a few operations per centre
+and level to read, where summing at each centre the kernels that cover it costs their
+number (about c^d k per centre for the adaptive estimate, which grows with n). The grid's
+own lattice is read exactly; coarser ones by Catmull-Rom interpolation along each axis in
+turn (``read_grid``), exact at their points and third-order between: a lattice holds
+kernels at least S steps wide only, so the error is a small fixed fraction of them
+(``tests/test_adaptive.py`` measures it against the exact sums).
 
 The box is handled as ``kernelsum`` does: along periodic axes kernels wrap (their images one
 period away are drawn too), along the others the mass beyond a side folds back (the kernel's
@@ -20,29 +22,34 @@ lower corner. A lattice covers its kernels' supports within two steps of the box
 """
 
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from .jit import kernel
+from .kernelsum import axis_image
 
-LEVEL_COLUMNS = 7  # per level: origin x, origin y, steps x and y, nx, ny, offset in values
-OX, OY, SX, SY, NX, NY, OFFSET = range(LEVEL_COLUMNS)
+LEVEL_COLUMNS = 7  # per level in the plane: origin x, y, steps x, y, nx, ny, offset in values
+OX, OY, SX, SY, NX, NY, OFFSET = range(LEVEL_COLUMNS)  # in space: ``draw3``'s layout
 
 
-def plan_levels(cx, cy, r, lx, ly, px, py, grid, samples, max_values):
-    """(level of each kernel (-1: none, radius 0), levels (L, LEVEL_COLUMNS), total values)
-    for kernels at (cx, cy) of radii r in the box [0, lx] x [0, ly], read on the grid
-    ``grid`` = (x0, y0, dx, dy) (the cells' centres x0 + i dx, y0 + j dy). Along each axis a
-    kernel's step is the grid's times 2^m, m >= 0 the largest with r / step >= ``samples``:
+def plan_levels(centres, r, period, periodic, grid, samples, max_values):
+    """(level of each kernel (-1: none, radius 0), levels (L, 3 d + 1), total values) for
+    kernels at ``centres`` (n, d) of radii r in the box [0, period] (d,), read on the grid
+    ``grid`` = (origin (d,), step (d,)) (the cells' centres origin + i step). Along each axis
+    a kernel's step is the grid's times 2^m, m >= 0 the largest with r / step >= ``samples``:
     kernels narrower than 2 samples cells are drawn on the grid itself (read exactly there),
     wider ones on coarser lattices through the same centres (read by interpolation between
-    them). None when the lattices would hold more than ``max_values`` values."""
-    x0, y0, dx, dy = grid
+    them). A level's row: its origin (d), steps (d), counts (d) and the offset of its values
+    (the x axis fastest). None when the lattices would hold more than ``max_values``."""
+    origin, step = (np.asarray(v, float) for v in grid)
+    dim = len(origin)
     live = r > 0
-    mx = np.zeros(len(r), np.int64)
-    my = np.zeros(len(r), np.int64)
+    key = np.zeros(len(r), np.int64)
     with np.errstate(divide="ignore"):
-        mx[live] = np.maximum(np.floor(np.log2(r[live] / (samples * dx))), 0)
-        my[live] = np.maximum(np.floor(np.log2(r[live] / (samples * dy))), 0)
-    key = np.where(live, mx * 64 + my, -1)
+        for a in range(dim):
+            m = np.zeros(len(r), np.int64)
+            m[live] = np.maximum(np.floor(np.log2(r[live] / (samples * step[a]))), 0)
+            key += m << (6 * a)
+    key[~live] = -1
     keys, level = np.unique(key, return_inverse=True)
     level = level.astype(np.int64)
     if len(keys) and keys[0] < 0:
@@ -51,46 +58,36 @@ def plan_levels(cx, cy, r, lx, ly, px, py, grid, samples, max_values):
     rows, total = [], 0
     for j, kk in enumerate(keys):
         mine = level == j
+        rm = r[mine]
         spans = []
-        for c, ext, periodic, first, step in (
-            (cx, lx, px, x0, dx * 2.0 ** (kk // 64)),
-            (cy, ly, py, y0, dy * 2.0 ** (kk % 64)),
-        ):
-            pad = 2.0 * step
-            cm, rm = c[mine], r[mine]
+        for a in range(dim):
+            ext, first = float(period[a]), origin[a]
+            s = step[a] * 2.0 ** ((int(kk) >> (6 * a)) & 63)
+            pad = 2.0 * s
+            cm = centres[mine, a]
             lo = max(float(np.min(cm - rm)), -pad)
             hi = min(float(np.max(cm + rm)), ext + pad)
-            if periodic and np.any((cm < rm + pad) | (cm > ext - rm - pad)):
+            if periodic[a] and np.any((cm < rm + pad) | (cm > ext - rm - pad)):
                 lo, hi = -pad, ext + pad  # images one period away reach into the box
-            if not periodic and np.any(cm < rm + pad):
+            if not periodic[a] and np.any(cm < rm + pad):
                 lo = -pad  # mirror images in the lower side
-            if not periodic and np.any(cm > ext - rm - pad):
+            if not periodic[a] and np.any(cm > ext - rm - pad):
                 hi = ext + pad
-            i0 = np.floor((lo - first) / step)
-            spans.append((first + i0 * step, step, int(np.floor((hi - first) / step) - i0) + 1))
-        (ox, sx, nx), (oy, sy, ny) = spans
-        rows.append((ox, oy, sx, sy, nx, ny, total))
-        total += nx * ny
+            i0 = np.floor((lo - first) / s)
+            spans.append((first + i0 * s, s, int(np.floor((hi - first) / s) - i0) + 1))
+        origins, steps, counts = zip(*spans, strict=True)
+        rows.append((*origins, *steps, *counts, total))
+        total += int(np.prod(counts))
         if total > max_values:
             return None
-    return level, np.array(rows, float).reshape(-1, LEVEL_COLUMNS), total
-
-
-@kernel(inline="always")
-def _image(c, j, period, periodic):
-    """A centre's j-th image along one axis: itself, then one period down and up (periodic)
-    or its mirror images in the two sides (folded)."""
-    if j == 0:
-        return c
-    if periodic:
-        return c - period if j == 1 else c + period
-    return -c if j == 1 else 2.0 * period - c
+    return level, np.array(rows, float).reshape(-1, 3 * dim + 1), total
 
 
 @kernel(entry=True, nogil=True)
-def draw(cx, cy, r, amp, level, lx, ly, px, py, levels, values, start, stop):
-    """Add kernels start..stop-1, amp_i (1 - |x - c_i|^2 / r_i^2)^3, and their images in the
-    box's sides, to the values of their level's lattice (``plan_levels``)."""
+def draw(centres, r, amp, level, period, periodic, levels, values, start, stop):
+    """Add kernels start..stop-1 (centres (n, 2)), amp_i (1 - |x - c_i|^2 / r_i^2)^3, and
+    their images in the box's sides (``period`` (2,) its widths, ``periodic`` (2,)
+    booleans), to the values of their level's lattice (``plan_levels``)."""
     for i in range(start, stop):
         lev = level[i]
         if lev < 0:
@@ -101,13 +98,13 @@ def draw(cx, cy, r, amp, level, lx, ly, px, py, levels, values, start, stop):
         inv = 1.0 / (rad * rad)
         a = amp[i]
         for ia in range(3):
-            x = _image(cx[i], ia, lx, px)
+            x = axis_image(centres[i, 0], ia, period[0], periodic[0])
             i0 = max(int(np.ceil((x - rad - ox) / sx)), 0)
             i1 = min(int(np.floor((x + rad - ox) / sx)), nx - 1)
             if i0 > i1:
                 continue
             for ib in range(3):
-                y = _image(cy[i], ib, ly, py)
+                y = axis_image(centres[i, 1], ib, period[1], periodic[1])
                 j0 = max(int(np.ceil((y - rad - oy) / sy)), 0)
                 j1 = min(int(np.floor((y + rad - oy) / sy)), ny - 1)
                 for j in range(j0, j1 + 1):
@@ -122,46 +119,97 @@ def draw(cx, cy, r, amp, level, lx, ly, px, py, levels, values, start, stop):
     return 0
 
 
-@kernel(inline="always")
-def _catmull_rom(t, w):
-    """The four Catmull-Rom weights of the values at -1, 0, 1, 2 for a point at t in [0, 1)."""
-    t2 = t * t
-    t3 = t2 * t
-    w[0] = 0.5 * (-t3 + 2.0 * t2 - t)
-    w[1] = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
-    w[2] = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
-    w[3] = 0.5 * (t3 - t2)
-
-
 @kernel(entry=True, nogil=True)
-def read(qx, qy, levels, values, out, start, stop):
-    """out[q] = the sum over levels of the lattice values interpolated at query q
-    (Catmull-Rom; values beyond a lattice count as 0: no kernel of its level reaches there)."""
-    wx = np.empty(4)
-    wy = np.empty(4)
-    for q in range(start, stop):
-        s = 0.0
-        for lev in range(levels.shape[0]):
-            ox, oy, sx, sy = levels[lev, OX], levels[lev, OY], levels[lev, SX], levels[lev, SY]
-            nx, ny, off = int(levels[lev, NX]), int(levels[lev, NY]), int(levels[lev, OFFSET])
-            fx = (qx[q] - ox) / sx
-            fy = (qy[q] - oy) / sy
-            i = int(np.floor(fx))
-            j = int(np.floor(fy))
-            if i + 2 < 0 or i - 1 >= nx or j + 2 < 0 or j - 1 >= ny:
+def draw3(centres, r, amp, level, period, periodic, levels, values, start, stop):
+    """``draw`` in space: add kernels start..stop-1, amp_i (1 - |x - c_i|^2 / r_i^2)^3, and
+    their images in the box's sides, to their level's lattice; a level's row is origin (3),
+    steps (3), counts (3), offset (``plan_levels``), x fastest in the values."""
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for i in range(start, stop):
+        lev = level[i]
+        if lev < 0:
+            continue
+        nx, ny, nz = int(levels[lev, 6]), int(levels[lev, 7]), int(levels[lev, 8])
+        off = int(levels[lev, 9])
+        rad = r[i]
+        inv = 1.0 / (rad * rad)
+        amp_i = amp[i]
+        for a in range(3):
+            x = axis_image(centres[i, 0], a, period[0], periodic[0])
+            if not _span(x, rad, levels[lev, 0], levels[lev, 3], nx, lo, hi, 0):
                 continue
-            _catmull_rom(fx - i, wx)
-            _catmull_rom(fy - j, wy)
-            for b in range(4):
-                jj = j - 1 + b
-                if jj < 0 or jj >= ny:
+            for b in range(3):
+                y = axis_image(centres[i, 1], b, period[1], periodic[1])
+                if not _span(y, rad, levels[lev, 1], levels[lev, 4], ny, lo, hi, 1):
                     continue
-                row = off + jj * nx
-                acc = 0.0
-                for a in range(4):
-                    ii = i - 1 + a
-                    if 0 <= ii < nx:
-                        acc += wx[a] * values[row + ii]
-                s += wy[b] * acc
-        out[q] = max(s, 0.0)  # (interpolation may dip below 0 beside a steep rim)
+                for e in range(3):
+                    z = axis_image(centres[i, 2], e, period[2], periodic[2])
+                    if not _span(z, rad, levels[lev, 2], levels[lev, 5], nz, lo, hi, 2):
+                        continue
+                    ox, sx = levels[lev, 0], levels[lev, 3]
+                    for kz in range(lo[2], hi[2] + 1):
+                        ez = levels[lev, 2] + kz * levels[lev, 5] - z
+                        for ky in range(lo[1], hi[1] + 1):
+                            ey = levels[lev, 1] + ky * levels[lev, 4] - y
+                            uyz = (ey * ey + ez * ez) * inv
+                            if uyz >= 1.0:
+                                continue
+                            half = rad * np.sqrt(1.0 - uyz)  # the row's chord of the ball
+                            k0 = max(int(np.ceil((x - half - ox) / sx)), lo[0])
+                            k1 = min(int(np.floor((x + half - ox) / sx)), hi[0])
+                            row = off + (kz * ny + ky) * nx
+                            for kx in range(k0, k1 + 1):
+                                ex = ox + kx * sx - x
+                                v = max(1.0 - uyz - ex * ex * inv, 0.0)
+                                values[row + kx] += amp_i * v * v * v
     return 0
+
+
+@kernel(inline="always")
+def _span(c, rad, origin, step, count, lo, hi, a):
+    """The lattice indices [lo[a], hi[a]] along axis a within rad of c; False when none."""
+    lo[a] = max(int(np.ceil((c - rad - origin) / step)), 0)
+    hi[a] = min(int(np.floor((c + rad - origin) / step)), count - 1)
+    return lo[a] <= hi[a]
+
+
+def read_grid(levels, values, origin, step, counts):
+    """The sum over levels of the lattices' values interpolated at the centres of the grid
+    origin + i * step (counts (d,) per axis, x first), as an array (..., ny, nx), clipped at
+    0 (interpolation may dip below it beside a steep rim). Catmull-Rom along each axis in
+    turn (``axis_weights``: four weights per centre, sparse), so a level costs a few
+    multiply-adds per centre, not 4^d; values beyond a lattice count as 0 (no kernel of its
+    level reaches there); the grid's own lattice is read exactly (one weight, 1)."""
+    dim = len(counts)
+    out = np.zeros(tuple(int(c) for c in counts[::-1]))
+    for row in levels:
+        lat_origin, lat_step = row[:dim], row[dim : 2 * dim]
+        lat_counts = row[2 * dim : 3 * dim].astype(np.int64)
+        off = int(row[3 * dim])
+        v = values[off : off + int(np.prod(lat_counts))].reshape(lat_counts[::-1])
+        for a in range(dim - 1, -1, -1):  # array axis 0 is lattice axis a: z (y), ..., x
+            at = origin[a] + np.arange(counts[a]) * step[a]
+            m = axis_weights(lat_origin[a], lat_step[a], lat_counts[a], at)
+            v = (m @ v.reshape(v.shape[0], -1)).reshape(len(at), *v.shape[1:])
+            v = np.moveaxis(v, 0, -1)  # the next axis first; after d turns, as they were
+        out += v
+    return np.maximum(out, 0.0)
+
+
+def axis_weights(origin, step, count, at):
+    """The (len(at), count) sparse matrix of Catmull-Rom weights that interpolates values at
+    origin + i * step (i < count; 0 beyond) at the points ``at``; a point within 1e-9 steps
+    of a lattice point takes its value alone."""
+    f = (np.asarray(at, float) - origin) / step
+    near = np.round(f)
+    f = np.where(np.abs(f - near) < 1e-9, near, f)
+    i = np.floor(f)
+    t = f - i
+    t2, t3 = t * t, t * t * t
+    w = np.column_stack([0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+                         0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2)])  # fmt: skip
+    cols = i.astype(np.int64)[:, None] - 1 + np.arange(4)
+    rows = np.repeat(np.arange(len(f)), 4).reshape(-1, 4)
+    keep = (cols >= 0) & (cols < count) & (w != 0.0)
+    return csr_matrix((w[keep], (rows[keep], cols[keep])), shape=(len(f), int(count)))

@@ -232,3 +232,65 @@ def first_holding3(x, cand, origin, inv, tol, tet, bary):
             found += 1
             break
     return found
+
+
+@kernel(entry=True, nogil=True)
+def rasterise3(corners, values, x0, step, periodic, out, start, stop):
+    """``rasterise`` in space, over the tetrahedra start..stop-1 (corners (t, 4, 3), their
+    values (t, 4)): out[k, j, i] = the linear interpolant at the grid centre x0 + (i + 1/2,
+    j + 1/2, k + 1/2) * step of the tetrahedron holding it (barycentric coordinates >= -1e-9).
+    Centres on no tetrahedron keep their value; along a periodic axis a tetrahedron reaching
+    past the grid writes the centres there wrapped round, along the others that part is
+    skipped. Each tetrahedron visits the centres of its bounding box only."""
+    nz, ny, nx = out.shape
+    n = np.empty(3, np.int64)
+    n[0], n[1], n[2] = nx, ny, nz
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    m = np.empty((3, 3))
+    inv = np.empty((3, 3))
+    for t in range(start, stop):
+        for a in range(3):
+            for b in range(3):
+                m[a, b] = corners[t, b + 1, a] - corners[t, 0, a]  # columns: the edges
+        det = (
+            m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
+        )
+        if det == 0.0:
+            continue
+        for a in range(3):  # the inverse by cofactors: rows give the barycentric l1..l3
+            a1, a2 = (a + 1) % 3, (a + 2) % 3
+            for b in range(3):
+                b1, b2 = (b + 1) % 3, (b + 2) % 3
+                inv[b, a] = (m[a1, b1] * m[a2, b2] - m[a1, b2] * m[a2, b1]) / det
+        empty = False
+        for a in range(3):
+            c_lo = min(corners[t, 0, a], corners[t, 1, a], corners[t, 2, a], corners[t, 3, a])
+            c_hi = max(corners[t, 0, a], corners[t, 1, a], corners[t, 2, a], corners[t, 3, a])
+            lo[a] = int(np.ceil((c_lo - x0[a]) / step[a] - 0.5))
+            hi[a] = int(np.floor((c_hi - x0[a]) / step[a] - 0.5))
+            if not periodic[a]:
+                lo[a] = max(lo[a], 0)
+                hi[a] = min(hi[a], n[a] - 1)
+            if lo[a] > hi[a]:
+                empty = True
+        if empty:
+            continue
+        v0, v1, v2, v3 = values[t, 0], values[t, 1], values[t, 2], values[t, 3]
+        for k in range(lo[2], hi[2] + 1):
+            rz = x0[2] + (k + 0.5) * step[2] - corners[t, 0, 2]
+            kk = k % nz
+            for j in range(lo[1], hi[1] + 1):
+                ry = x0[1] + (j + 0.5) * step[1] - corners[t, 0, 1]
+                jj = j % ny
+                for i in range(lo[0], hi[0] + 1):
+                    rx = x0[0] + (i + 0.5) * step[0] - corners[t, 0, 0]
+                    l1 = inv[0, 0] * rx + inv[0, 1] * ry + inv[0, 2] * rz
+                    l2 = inv[1, 0] * rx + inv[1, 1] * ry + inv[1, 2] * rz
+                    l3 = inv[2, 0] * rx + inv[2, 1] * ry + inv[2, 2] * rz
+                    l0 = 1.0 - (l1 + l2 + l3)
+                    if l0 >= -1e-9 and l1 >= -1e-9 and l2 >= -1e-9 and l3 >= -1e-9:
+                        out[kk, jj, i % nx] = l0 * v0 + l1 * v1 + l2 * v2 + l3 * v3
+    return 0
