@@ -23,6 +23,8 @@ import numpy as np
 
 from ..engine.embedding import wrap_offsets
 from ..engine.index import PointIndex
+from ..engine.index3 import build_index3, kth_distances3
+from ..engine.threads import in_chunks
 from ..errors import InputError
 from ..metric import BoxMetric, weighted_kth
 from ..validation import as_queries, check_inside, points_of_run
@@ -447,32 +449,88 @@ def point_index(mesh, pts, weights=None):
 
 
 class TreeIndex:
-    """Exact d_{P,k} in space from a periodic kd-tree over the points in the frame of the
-    mesh's torus (relative to its origin, periodic axes wrapping): ``kth`` at input
-    coordinates, ``kth_local`` at torus-frame ones (the pieces'). Weighted points: d_{P,k} is
-    the least radius whose closed ball holds weight k. ``frame``: the torus' (origin,
-    period) for a mesh that keeps none (a mesh in parts)."""
+    """Exact d_{P,k} in space from the engine's counting kd-tree over the points in the
+    frame of the mesh's torus (relative to its origin, periodic axes wrapping): ``kth`` at
+    input coordinates, ``kth_local`` at torus-frame ones (the pieces'). Each query collects
+    the points in a window of radii about a guess and selects the k-th
+    (``index3.kth_distances3``, as ``PointIndex.kth`` in the plane): nodes inside the inner
+    radius count whole, so a query costs about the points in the window, not k log k as a
+    k-nearest query does. Weighted points: d_{P,k} is the least radius whose closed ball
+    holds weight k. ``frame``: the torus' (origin, period) for a mesh that keeps none (a
+    mesh in parts)."""
 
     def __init__(self, mesh, pts, weights=None, frame=None):
         origin, period = (mesh.torus.origin, mesh.torus.period) if frame is None else frame
         origin = np.asarray(origin, float)
         period = np.asarray(period, float)
         self.k = mesh.k
+        self._origin = origin
         self._metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)
-        self._tree = self._metric.tree(pts)
+        self._period = np.where(self._metric.periodic, period, np.inf)
+        self._points = pts
         self._weights = weights
+        local = np.ascontiguousarray(self._metric.frame(pts))
+        self._tree = build_index3(local, copy=False, weights=weights)
+        self.n = len(pts)
+        self.total = float(len(pts) if weights is None else np.sum(weights))
+        span = np.ptp(local, axis=0) if len(local) else np.ones(3)
+        self._volume = float(np.prod(np.where(span > 0, span, max(span.max(), 1e-300))))
 
     def kth(self, x, k):
         """d_{P,k} at points x (q, 3) in input coordinates."""
         return self.kth_local(self._metric.frame(x), k)
 
     def kth_local(self, x, k=None):
-        """d_{P,k} at points x (q, 3) relative to the torus origin (the kd-tree wraps queries
-        along its periodic axes itself), on every core."""
-        k = self.k if k is None else k
-        if self._weights is not None:
-            return weighted_kth(self._tree, self._weights, x, k, -1)
-        return self._tree.query(x, k=[k], workers=-1)[0][:, 0]
+        """d_{P,k} at points x (q, 3) relative to the torus origin (periodic coordinates
+        wrapped here), on every core."""
+        k = float(self.k if k is None else k)
+        q = np.ascontiguousarray(self._metric.frame(np.asarray(x, float) + self._origin))
+        m = len(q)
+        guess = self._guess(q, k)
+        r_in, r_out = guess / WINDOW, guess * WINDOW
+        per_point = self.total / max(self.n, 1) if self._weights is not None else 1.0
+        cap = int(min(self.n, 4.0 * k / max(per_point, 1e-300) + 1024)) + 1
+        periodic = np.asarray(self._metric.periodic, bool)
+        out = np.empty(m)
+        tree, period = self._tree, self._period
+
+        def chunk(a, b):
+            kth_distances3(tree, q, k, r_in, r_out, period, periodic, cap, out, a, b)
+
+        in_chunks(chunk, m)
+        lost = np.flatnonzero(np.isnan(out))
+        if len(lost):  # more ties than a window holds (rare): scipy's tree
+            ck = self._metric.tree(self._points)
+            if self._weights is None:
+                out[lost] = ck.query(q[lost], k=[int(k)], workers=-1)[0][:, 0]
+            else:
+                out[lost] = weighted_kth(ck, self._weights, q[lost], k, -1)
+        return out
+
+    def _guess(self, q, k):
+        """A guess of d_{P,k} at the queries q (frame), for the windows: the k_s-th distance
+        in a seeded sample of a quarter of P, at most GUESS_SAMPLE points (k_s: the sample's
+        share of the points that hold weight k, at least 1), scaled by the cube root of the
+        ratio of the two counts (a ball's count grows with its volume); below 4000 points,
+        the radius holding k points at the mean density. A poor guess costs only retries (wider
+        windows), never a wrong answer."""
+        s = min(self.n // 4, GUESS_SAMPLE)
+        if s < 1000:  # few points: any window is cheap
+            uniform = k * self._volume / (4.0 / 3.0 * np.pi * max(self.total, 1e-300))
+            return np.full(len(q), uniform ** (1 / 3))
+        if getattr(self, "_sample_tree", None) is None:
+            pick = np.random.default_rng(0).choice(self.n, s, replace=False)
+            self._sample_tree = self._metric.tree(self._points[pick])
+        points = k * self.n / max(self.total, 1e-300)  # points holding weight k, on average
+        ks = max(int(round(points * s / self.n)), 1)
+        d = self._sample_tree.query(q, k=[ks], workers=-1)[0][:, 0]
+        d = d * (points * s / (ks * self.n)) ** (1 / 3)
+        fine = np.isfinite(d) & (d > 0)
+        return np.where(fine, d, np.max(d[fine]) if fine.any() else 1.0)
+
+
+GUESS_SAMPLE = 100000  # points of P sampled for TreeIndex's guesses of d_Pk
+WINDOW = 1.1  # its windows: (guess / WINDOW, guess * WINDOW]
 
 
 def grid_shape(shape, dim=2):

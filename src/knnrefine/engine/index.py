@@ -662,7 +662,7 @@ def holds_k_within(index, xy, r2, k, lx, ly):
 
 
 @kernel(inline="always")
-def _gap(c, lo, hi, period, periodic):
+def axis_gap(c, lo, hi, period, periodic):
     """Least and greatest distance along one axis from c to the interval [lo, hi]: on the
     circle of length ``period`` (c in [0, period)) when periodic, on the line otherwise."""
     if periodic:
@@ -676,7 +676,7 @@ WINDOW_FULL = -3  # more points between the radii than the buffer holds
 
 
 @kernel(nrt=False)
-def _select_held(buf, wbuf, n, target, unit):
+def select_held(buf, wbuf, n, target, unit):
     """The smallest value d of buf[:n] such that the values <= d hold at least ``target``
     (> 0, at most what all of them hold): their weights wbuf, or their number when ``unit``
     (wbuf is then neither read nor moved). A quickselect with a three-way partition, so that
@@ -751,8 +751,8 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
     while sp > 0:
         sp -= 1
         t = stack[sp]
-        nx, fx = _gap(cx, box[t, 0], box[t, 2], lx, px)
-        ny, fy = _gap(cy, box[t, 1], box[t, 3], ly, py)
+        nx, fx = axis_gap(cx, box[t, 0], box[t, 2], lx, px)
+        ny, fy = axis_gap(cy, box[t, 1], box[t, 3], ly, py)
         if nx * nx + ny * ny > rout2:
             continue
         if fx * fx + fy * fy <= rin2:
@@ -789,7 +789,7 @@ def _kth_in_window(index, cx, cy, k, r_in, r_out, lx, ly, px, py, stack, buf, wb
     inner += inner_c
     if inner + (between + between_c) < k:
         return WINDOW_HIGH
-    return _select_held(buf, wbuf, kept, k - inner, weight.shape[0] == 0)
+    return select_held(buf, wbuf, kept, k - inner, weight.shape[0] == 0)
 
 
 @kernel(entry=True, nogil=True)
@@ -815,28 +815,39 @@ def kth_distances(index, qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, cap,
         out[i] = np.nan
         for _ in range(200):
             d2 = _kth_in_window(index, qx[i], qy[i], k, a, b, lx, ly, px, py, stack, buf, wbuf)
-            if d2 >= 0.0:
-                out[i] = np.sqrt(d2)
-                break
-            if d2 == WINDOW_LOW:
-                if a == 0.0:  # weight k at distance 0
-                    out[i] = 0.0
-                    break
-                known_high = a
-                width *= 2.0
-                b = a
-                a = max(known_low, a - width, 0.0)
-            elif d2 == WINDOW_HIGH:
-                known_low = b
-                width *= 2.0
-                a = b
-                b = min(b + width, known_high)
-            else:
-                width *= 0.5
-                b = a + width
-            if not b > a:
+            done, out[i], a, b, width, known_low, known_high = move_window(
+                d2, a, b, width, known_low, known_high
+            )
+            if done:
                 break
     return 0
+
+
+@kernel(inline="always")
+def move_window(d2, a, b, width, known_low, known_high):
+    """One step of the search for d_{P,k} in a window (a, b] (``kth_distances``, and
+    ``index3.kth_distances3`` in space), after a window's answer d2 (a squared distance, or
+    WINDOW_LOW, WINDOW_HIGH, WINDOW_FULL): (done, the distance (NaN unless known), the next
+    window a, b, its width, and what is known: d_{P,k} in [known_low, known_high]). A
+    window too low moves down by twice its width, one too high up, one too full halves."""
+    if d2 >= 0.0:
+        return True, np.sqrt(d2), a, b, width, known_low, known_high
+    if d2 == WINDOW_LOW:
+        if a == 0.0:  # weight k at distance 0
+            return True, 0.0, a, b, width, known_low, known_high
+        known_high = a
+        width *= 2.0
+        b = a
+        a = max(known_low, a - width, 0.0)
+    elif d2 == WINDOW_HIGH:
+        known_low = b
+        width *= 2.0
+        a = b
+        b = min(b + width, known_high)
+    else:
+        width *= 0.5
+        b = a + width
+    return not b > a, np.nan, a, b, width, known_low, known_high
 
 
 class PointIndex:

@@ -23,7 +23,20 @@ swallow light ones); unweighted counts are whole numbers summed exactly.
 import numpy as np
 
 from .geometry import plus_compensated
-from .index import LEAF_SIZE, STACK_SIZE, held_by_node, node_bound, node_weights, select_kth
+from .index import (
+    LEAF_SIZE,
+    STACK_SIZE,
+    WINDOW_FULL,
+    WINDOW_HIGH,
+    WINDOW_LOW,
+    axis_gap,
+    held_by_node,
+    move_window,
+    node_bound,
+    node_weights,
+    select_held,
+    select_kth,
+)
 from .jit import kernel
 from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
 
@@ -238,3 +251,114 @@ def holds_k_within3(index, x, r2, k, period):
     for i in range(x.shape[0]):
         out[i] = count_in_ball3(index, x[i], r2[i], k, period, stack) >= k
     return out
+
+
+# -- the k-th nearest distance itself (for evaluating d_{P,k}, not for refining) ---------------
+
+
+@kernel(nrt=False)
+def _kth_in_window3(index, q, k, r_in, r_out, period, periodic, stack, buf, wbuf):
+    """``index._kth_in_window`` in space: the squared distance from q (3,) to its k-th
+    nearest point of P (weighted: the least radius whose closed ball holds weight >= k) if
+    it lies in (r_in, r_out] (nodes inside the inner ball counted whole, points between the
+    radii kept in buf and wbuf, then the one needed selected), else WINDOW_LOW, WINDOW_HIGH
+    or WINDOW_FULL. Periodic axes by the distance of the circle, each point counted once."""
+    pts, box, node, split, weight = index
+    rin2 = r_in * r_in
+    rout2 = r_out * r_out
+    inner = 0.0
+    inner_c = 0.0
+    between = 0.0
+    between_c = 0.0
+    kept = 0
+    cap = buf.shape[0]
+    unit = weight.shape[0] == 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        t = stack[sp]
+        near2 = 0.0
+        far2 = 0.0
+        for a in range(3):
+            g, f = axis_gap(q[a], box[t, a], box[t, 3 + a], period[a], periodic[a])
+            near2 += g * g
+            far2 += f * f
+        if near2 > rout2:
+            continue
+        if far2 <= rin2:
+            inner, inner_c = plus_compensated(inner, inner_c, held_by_node(node, weight, t))
+            if inner + inner_c >= k:
+                return WINDOW_LOW
+            continue
+        c = node[t, NODE_CHILD]
+        if c >= 0:
+            stack[sp] = c
+            stack[sp + 1] = c + 1
+            sp += 2
+            continue
+        for i in range(node[t, NODE_LO], node[t, NODE_HI]):
+            d2 = 0.0
+            for a in range(3):
+                e = abs(pts[i, a] - q[a])
+                if periodic[a]:
+                    e = min(e, period[a] - e)
+                d2 += e * e
+            if d2 > rout2:
+                continue
+            if unit:  # counts: whole numbers, summed exactly
+                if d2 <= rin2:
+                    inner += 1.0
+                    if inner >= k:
+                        return WINDOW_LOW
+                else:
+                    if kept == cap:
+                        return WINDOW_FULL
+                    buf[kept] = d2
+                    between += 1.0
+                    kept += 1
+                continue
+            w = pts[i, 3]
+            if d2 <= rin2:
+                inner, inner_c = plus_compensated(inner, inner_c, w)
+                if inner + inner_c >= k:
+                    return WINDOW_LOW
+            else:
+                if kept == cap:
+                    return WINDOW_FULL
+                buf[kept] = d2
+                wbuf[kept] = w
+                between, between_c = plus_compensated(between, between_c, w)
+                kept += 1
+    inner += inner_c
+    if inner + (between + between_c) < k:
+        return WINDOW_HIGH
+    return select_held(buf, wbuf, kept, k - inner, unit)
+
+
+@kernel(entry=True, nogil=True)
+def kth_distances3(index, q, k, r_in, r_out, period, periodic, cap, out, start, stop):
+    """out[i] = d_{P,k}(q_i) for i in [start, stop) (q (m, 3) in the tree's frame, periodic
+    coordinates in [0, period)), searched from the window (r_in[i], r_out[i]] moved as
+    ``index.move_window`` says (``index.kth_distances`` in the plane); NaN where no window
+    settles it within 200 tries (more points at one distance than ``cap``)."""
+    stack = np.empty(STACK_SIZE, np.int64)
+    buf = np.empty(cap)
+    wbuf = np.empty(cap)
+    for i in range(start, stop):
+        known_low = 0.0
+        known_high = np.inf
+        a = r_in[i]
+        b = max(r_out[i], a)
+        if not b > a:
+            b = a + max(a, 1e-300)
+        width = b - a
+        out[i] = np.nan
+        for _ in range(200):
+            d2 = _kth_in_window3(index, q[i], k, a, b, period, periodic, stack, buf, wbuf)
+            done, out[i], a, b, width, known_low, known_high = move_window(
+                d2, a, b, width, known_low, known_high
+            )
+            if done:
+                break
+    return 0
