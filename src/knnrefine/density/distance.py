@@ -509,12 +509,12 @@ class TreeIndex:
 
     def _guess(self, q, k):
         """A guess of d_{P,k} at the queries q (frame), for the windows: the k_s-th distance
-        in a seeded sample of a quarter of P, at most GUESS_SAMPLE points (k_s: the sample's
+        in a seeded sample of an eighth of P, at most GUESS_SAMPLE points (k_s: the sample's
         share of the points that hold weight k, at least 1), scaled by the cube root of the
-        ratio of the two counts (a ball's count grows with its volume); below 4000 points,
+        ratio of the two counts (a ball's count grows with its volume); below 8000 points,
         the radius holding k points at the mean density. A poor guess costs only retries (wider
         windows), never a wrong answer."""
-        s = min(self.n // 4, GUESS_SAMPLE)
+        s = min(self.n // 8, GUESS_SAMPLE)
         if s < 1000:  # few points: any window is cheap
             uniform = k * self._volume / (4.0 / 3.0 * np.pi * max(self.total, 1e-300))
             return np.full(len(q), uniform ** (1 / 3))
@@ -529,8 +529,8 @@ class TreeIndex:
         return np.where(fine, d, np.max(d[fine]) if fine.any() else 1.0)
 
 
-GUESS_SAMPLE = 100000  # points of P sampled for TreeIndex's guesses of d_Pk
-WINDOW = 1.1  # its windows: (guess / WINDOW, guess * WINDOW]
+GUESS_SAMPLE = 30000  # points of P sampled for TreeIndex's guesses of d_Pk
+WINDOW = 1.05  # its windows: (guess / WINDOW, guess * WINDOW]
 
 
 def grid_shape(shape, dim=2):

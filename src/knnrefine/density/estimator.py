@@ -625,9 +625,7 @@ class KnnDensityEstimator:
         *axes, values = density.grid(grid_shape(shape, self.n_features_in_))
         tail = getattr(self, "tail_", None)
         if tail is not None:
-            mesh = np.meshgrid(*axes[::-1], indexing="ij")[::-1]  # x, y[, z]; (.., ny, nx)
-            at = tail(np.stack([g.ravel() for g in mesh], 1)).reshape(values.shape)
-            values = (1.0 - tail.weight) * values + tail.weight * at
+            values = (1.0 - tail.weight) * values + tail.weight * tail.on_grid(axes)
         scale = np.asarray(self.scale_)
         return (*(np.asarray(a) * s for a, s in zip(axes, scale, strict=True)),
                 values / self._jacobian())  # fmt: skip
@@ -682,6 +680,16 @@ class CauchyTail:
         """The density at points x (q, d)."""
         z = (np.asarray(x, float) - self.centre) / self.scale
         return self._norm * (1.0 + (z * z).sum(axis=1)) ** (-(len(self.centre) + 1) / 2)
+
+    def on_grid(self, axes):
+        """The density at the centres of a grid with these axes (x, y[, z]): (..., ny, nx),
+        by broadcasting (no array of the centres)."""
+        d = len(self.centre)
+        u = 1.0
+        for a, values in enumerate(axes):
+            z = (np.asarray(values, float) - self.centre[a]) / self.scale[a]
+            u = u + (z * z).reshape((-1,) + (1,) * a)  # axis a is the array's axis d - 1 - a
+        return self._norm * u ** (-(d + 1) / 2)
 
     def sample(self, n, rng):
         """n points (n, d): a normal vector over the absolute value of an independent one."""

@@ -34,22 +34,19 @@ OX, OY, SX, SY, NX, NY, OFFSET = range(LEVEL_COLUMNS)  # in space: ``draw3``'s l
 def plan_levels(centres, r, period, periodic, grid, samples, max_values):
     """(level of each kernel (-1: none, radius 0), levels (L, 3 d + 1), total values) for
     kernels at ``centres`` (n, d) of radii r in the box [0, period] (d,), read on the grid
-    ``grid`` = (origin (d,), step (d,)) (the cells' centres origin + i step). Along each axis
-    a kernel's step is the grid's times 2^m, m >= 0 the largest with r / step >= ``samples``:
-    kernels narrower than 2 samples cells are drawn on the grid itself (read exactly there),
-    wider ones on coarser lattices through the same centres (read by interpolation between
-    them). A level's row: its origin (d), steps (d), counts (d) and the offset of its values
-    (the x axis fastest). None when the lattices would hold more than ``max_values``."""
+    ``grid`` = (origin (d,), step (d,)) (the cells' centres origin + i step). A kernel's
+    lattice steps are the grid's times 2^m, m >= 0 the largest with r / (the widest step)
+    >= ``samples`` (one m for all axes: few lattices to read): kernels narrower than 2
+    samples of the widest cell side are drawn on the grid itself (read exactly there), wider
+    ones on coarser lattices through the same centres (read by interpolation between them).
+    A level's row: its origin (d), steps (d), counts (d) and the offset of its values (the x
+    axis fastest). None when the lattices would hold more than ``max_values``."""
     origin, step = (np.asarray(v, float) for v in grid)
     dim = len(origin)
     live = r > 0
-    key = np.zeros(len(r), np.int64)
+    key = np.full(len(r), -1, np.int64)  # m, the same on every axis (few levels to read)
     with np.errstate(divide="ignore"):
-        for a in range(dim):
-            m = np.zeros(len(r), np.int64)
-            m[live] = np.maximum(np.floor(np.log2(r[live] / (samples * step[a]))), 0)
-            key += m << (6 * a)
-    key[~live] = -1
+        key[live] = np.maximum(np.floor(np.log2(r[live] / (samples * step.max()))), 0)
     keys, level = np.unique(key, return_inverse=True)
     level = level.astype(np.int64)
     if len(keys) and keys[0] < 0:
@@ -62,7 +59,7 @@ def plan_levels(centres, r, period, periodic, grid, samples, max_values):
         spans = []
         for a in range(dim):
             ext, first = float(period[a]), origin[a]
-            s = step[a] * 2.0 ** ((int(kk) >> (6 * a)) & 63)
+            s = step[a] * 2.0 ** int(kk)
             pad = 2.0 * s
             cm = centres[mine, a]
             lo = max(float(np.min(cm - rm)), -pad)
@@ -188,13 +185,31 @@ def read_grid(levels, values, origin, step, counts):
         lat_counts = row[2 * dim : 3 * dim].astype(np.int64)
         off = int(row[3 * dim])
         v = values[off : off + int(np.prod(lat_counts))].reshape(lat_counts[::-1])
+        shift = (lat_origin - origin) / step
+        if np.allclose(lat_step, step) and np.allclose(shift, np.round(shift), atol=1e-9):
+            _add_block(out, v, np.round(shift).astype(np.int64))  # the grid's own: exact
+            continue
         for a in range(dim - 1, -1, -1):  # array axis 0 is lattice axis a: z (y), ..., x
             at = origin[a] + np.arange(counts[a]) * step[a]
             m = axis_weights(lat_origin[a], lat_step[a], lat_counts[a], at)
             v = (m @ v.reshape(v.shape[0], -1)).reshape(len(at), *v.shape[1:])
             v = np.moveaxis(v, 0, -1)  # the next axis first; after d turns, as they were
         out += v
-    return np.maximum(out, 0.0)
+    return np.maximum(out, 0.0, out=out)
+
+
+def _add_block(out, v, shift):
+    """out += v placed with its first cell at grid index ``shift`` (x first), the part
+    beyond the grid dropped (no kernel there reaches a centre)."""
+    target, source = [], []
+    for a in range(len(shift) - 1, -1, -1):  # array axes: the slowest first
+        n, m = out.shape[len(shift) - 1 - a], v.shape[len(shift) - 1 - a]
+        lo, hi = max(int(shift[a]), 0), min(int(shift[a]) + m, n)
+        if lo >= hi:
+            return
+        target.append(slice(lo, hi))
+        source.append(slice(lo - int(shift[a]), hi - int(shift[a])))
+    out[tuple(target)] += v[tuple(source)]
 
 
 def axis_weights(origin, step, count, at):
