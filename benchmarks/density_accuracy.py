@@ -13,7 +13,8 @@ Truths (each restricted to its box, normalised there):
 * ridge: 90% on a circular arc (radius 0.3) with a Gaussian cross-section 0.002 wide, 10%
   uniform background;
 * edge: half uniform on a disk of radius 0.2 (a jump of 4x the background at its rim), half
-  uniform on the unit square.
+  uniform on the unit square;
+* disc: uniform on a disk of radius 0.45, nothing outside it (a sharp edge to 0).
 
 Scores, the same evaluation points for every method:
 * L1 error, the integral of |estimate - truth| over the box, and the Hellinger distance
@@ -200,6 +201,21 @@ class Edge:
         return x
 
 
+class Disc:
+    name = "uniform disk (radius 0.45), nothing outside it"
+    box = (0.0, 0.0, 1.0, 1.0)
+    periodic = False
+    R = 0.45
+
+    def pdf(self, x):
+        return (((x - 0.5) ** 2).sum(1) <= self.R**2) / (np.pi * self.R**2)
+
+    def sample(self, n, rng):
+        r = self.R * np.sqrt(rng.random(n))
+        t = rng.random(n) * 2 * np.pi
+        return 0.5 + r[:, None] * np.column_stack([np.cos(t), np.sin(t)])
+
+
 TRUTHS = {
     "multiscale": Multiscale,
     "hole": Hole,
@@ -207,6 +223,7 @@ TRUTHS = {
     "heavy": Heavy,
     "ridge": Ridge,
     "edge": Edge,
+    "disc": Disc,
 }
 
 

@@ -119,3 +119,36 @@ def test_cell_counts_match_each_points_nearest_vertices(weighted):
         r2 = mesh.outradius2[v] * (1 + 1e-9)
         got[v] = _cell(index, mesh.xyz[v], h[:nh].copy(), hc, nh, r2, 1e15, period, stack)
     np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)
+
+
+@pytest.mark.parametrize(
+    "periodic", [(False, False, False), (True, True, True), (True, False, True)]
+)
+@pytest.mark.parametrize("weighted", [False, True])
+def test_kth_distances3_match_scipy(periodic, weighted):
+    """Exact d_{P,k} in space by windows (``index3.kth_distances3``, issue 30) against
+    scipy's k-nearest query (weighted: the least radius whose closed ball holds weight k):
+    clustered points with duplicates, on a torus along some axes; windows far too narrow,
+    far too wide and at the answer all settle to the same value."""
+    period = np.array([1.0, 2.0, 1.5])
+    pts = _points(3000, period, 4)
+    per = np.array(periodic, bool)
+    w = np.random.default_rng(5).integers(1, 4, len(pts)).astype(float) if weighted else None
+    tree = build_index3(pts, weights=w)
+    q = np.random.default_rng(6).random((400, 3)) * period
+    q[:50] = pts[:50]  # at the points themselves (distance 0 among the answers' ties)
+    boxsize = np.where(per, period, 0.0) if per.any() else None
+    ck = cKDTree(pts % np.where(per, period, np.inf), boxsize=boxsize)
+    for k in (1, 7, 60):
+        if w is None:
+            want = ck.query(q, k=[k])[0][:, 0]
+        else:
+            d, i = ck.query(q, k=min(len(pts), 2 * k + 16))
+            held = np.cumsum(w[i], axis=1)
+            want = d[np.arange(len(q)), np.argmax(held >= k, axis=1)]
+        for guess in (want * 0.01 + 1e-9, want * 30 + 1e-9, want):
+            out = np.empty(len(q))
+            index3.kth_distances3(tree, q, float(k), guess / 1.05, guess * 1.05,
+                                  np.where(per, period, np.inf), per, 64 * k + 64, out, 0,
+                                  len(q))  # fmt: skip
+            np.testing.assert_allclose(out, want, rtol=1e-12)

@@ -113,10 +113,10 @@ def test_cli_density_cluster_persistence_plot_in_space(tmp_path, csv3, capsys):
                "-o", tmp_path / "m.npz", "--plot", tmp_path / "m.png") == 0  # fmt: skip
     mesh = knnrefine.io.read_mesh(tmp_path / "m.npz")
     assert mesh.dim == 3
-    # density: the kNN estimate (the default in space), its grid as the library's
+    # density: the kNN estimate, its grid as the library's
     assert run("density", path, "--columns", "px,py,pz", "--mesh", tmp_path / "m.npz",
-               "--grid", 6, 5, 4, "-o", tmp_path / "d.npz", "-o", tmp_path / "d.csv",
-               "--plot", tmp_path / "d.png") == 0  # fmt: skip
+               "--method", "knn", "--grid", 6, 5, 4, "-o", tmp_path / "d.npz",
+               "-o", tmp_path / "d.csv", "--plot", tmp_path / "d.png") == 0  # fmt: skip
     with np.load(tmp_path / "d.npz") as z:
         assert z["density"].shape == (4, 5, 6) and len(z["zs"]) == 4
         expected = KnnDensity(mesh, pts).grid((4, 5, 6))
@@ -149,12 +149,34 @@ def test_a_mesh_in_space_is_written_in_parts(tmp_path):
     np.testing.assert_array_equal(parts.d_m2(pts), mesh.d_m2(pts))
 
 
+def test_cli_adaptive_density_in_space(tmp_path, csv3, capsys):
+    """knnrefine density on three columns: the adaptive estimate by default (issue 30), its
+    grid the library's at the smoothing it reports, integrating to 1 over the box, drawn as
+    projections."""
+    from knnrefine.density import AdaptiveDensity, KnnDensity
+
+    path, pts = csv3
+    box = ["--box", 0, 0, 0, 1, 1, 1]
+    assert run("density", path, "--columns", "px,py,pz", *box, "-k", 20, "--grid", 12,
+               "-o", tmp_path / "d.npz", "--plot", tmp_path / "d.png") == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "adaptive kernel density" in out and "bandwidth c =" in out
+    with np.load(tmp_path / "d.npz") as z:
+        assert str(z["method"]) == "adaptive" and z["density"].shape == (12, 12, 12)
+        mesh = knnrefine.refine(pts, 20, box=(0, 0, 0, 1, 1, 1))
+        ad = AdaptiveDensity(mesh, pts, float(z["bandwidth"]), sensitivity=float(z["sensitivity"]))
+        np.testing.assert_allclose(z["density"], ad.grid(12)[3], rtol=1e-9)
+        assert z["density"].sum() / 12**3 == pytest.approx(1.0, abs=0.03)
+    assert KnnDensity(mesh, pts).k == 20
+    assert (tmp_path / "d.png").stat().st_size > 10_000
+
+
 def test_cli_in_space_refuses_what_is_built_for_the_plane(tmp_path, csv3, capsys):
     path, _ = csv3
     box = ["--box", 0, 0, 0, 1, 1, 1]
     assert run("density", path, "--columns", "px,py,pz", *box, "-k", 20,
-               "--method", "adaptive", "-o", tmp_path / "d.npz") == 2  # fmt: skip
-    assert "--method adaptive is built for points in the plane" in capsys.readouterr().err
+               "--shape", "local", "-o", tmp_path / "d.npz") == 2  # fmt: skip
+    assert "--shape local is built for points in the plane" in capsys.readouterr().err
     assert run("refine", path, "--columns", "px,py,pz", "-k", 20, *box,
                "-o", tmp_path / "m.npz") == 0  # fmt: skip
     assert run("plot", tmp_path / "m.npz", "-o", tmp_path / "s.png", "--cells", "voronoi") == 2

@@ -538,14 +538,16 @@ def plot_slices(field, mesh, axes, label, points=None, shape=256, cmap="viridis"
 
 
 def plot_projections(density, axes, grid=None, points=None, max_points=20_000, cmap="magma"):
-    """A density in space (``KnnDensity``) projected along each axis: the marginal density of
-    each pair of axes (the grid summed across the third times its cell), log colour scale
-    shared by the three, with up to ``max_points`` of the points as dots. ``grid``: (xs, ys,
-    zs, values (nz, ny, nx)) when already computed."""
+    """A density in space (``KnnDensity`` or ``AdaptiveDensity``) projected along each axis:
+    the marginal density of each pair of axes (the grid summed across the third times its
+    cell), log colour scale shared by the three, with up to ``max_points`` of the points as
+    dots. ``grid``: (xs, ys, zs, values (nz, ny, nx)) when already computed."""
     from matplotlib.colors import LogNorm
 
     xs, ys, zs, f = density.grid() if grid is None else grid
-    mesh = density.distance.mesh
+    what = "adaptive kernel" if hasattr(density, "bandwidth") else "kNN"
+    knn = getattr(density, "knn", density)  # the adaptive estimate's pilot knows the mesh
+    mesh = knn.distance.mesh
     box = np.asarray(mesh.box, float)
     cell = (box[3:] - box[:3]) / (len(xs), len(ys), len(zs))
     # f is (z, y, x): the marginal of (x, y) sums over z, of (x, z) over y, of (y, z) over x
@@ -567,9 +569,9 @@ def plot_projections(density, axes, grid=None, points=None, max_points=20_000, c
         ax.set_xlabel(names[a])
         ax.set_ylabel(names[b])
     colour_bar(axes[-1], im, "marginal density")
-    n = density.n if not float(density.n).is_integer() else int(density.n)
+    n = knn.n if not float(knn.n).is_integer() else int(knn.n)
     axes[0].figure.suptitle(
-        f"kNN density projected along each axis: n = {n:,}, k = {density.k}, "
+        f"{what} density projected along each axis: n = {n:,}, k = {knn.k}, "
         f"m = {len(mesh.vertices):,}"
     )
     return axes

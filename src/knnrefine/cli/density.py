@@ -17,12 +17,12 @@ EXAMPLES = """examples:
       -o density.npz --plot projections.png
 
 the density integrates to 1 over the box. --method adaptive (default): one kernel per point,
-of extent c G (d_Pk / G)^(2 alpha), c and alpha by leave-one-out likelihood (or
---criterion least-squares) unless given;
--k defaults to 2 sqrt(n). --method knn: k / (n pi d_Pk^2), -k defaults to sqrt(n) / 2.
-Points in space (three --columns, a six-number --box or a --mesh in space) get the kNN
-estimate k / (n (4/3) pi d_Pk^3) (the default there; the adaptive one is built in the plane)
-on a 64^3 grid by default, drawn as its projections along each axis.
+of extent c G (d_Pk / G)^(d alpha) in d dimensions, c and alpha by leave-one-out likelihood
+(or --criterion least-squares) unless given;
+-k defaults to 2 sqrt(n). --method knn: k / (n V_d d_Pk^d), -k defaults to sqrt(n) / 2.
+Points in space (three --columns, a six-number --box or a --mesh in space) get either
+estimate (balls for kernels) on a 64^3 grid by default, drawn as its projections along each
+axis.
 Outputs: .npz (xs, ys[, zs], density, d_pk on the grid), .csv (x, y[, z], density, d_pk per
 grid cell), pictures (.png .svg .pdf)"""
 
@@ -47,8 +47,7 @@ def add_arguments(parser):
     parser.add_argument(
         "--method",
         choices=("adaptive", "knn"),
-        help="adaptive kernel estimate (default in the plane) or the kNN estimate (default "
-        "and the only one in space)",
+        help="adaptive kernel estimate (default) or the kNN estimate",
     )
     parser.add_argument(
         "--bandwidth",
@@ -74,7 +73,8 @@ def add_arguments(parser):
         "--shape",
         choices=("isotropic", "local"),
         default="isotropic",
-        help="adaptive: disks, or ellipses shaped like the points nearby (thin ridges)",
+        help="adaptive: disks (balls in space), or ellipses shaped like the points nearby "
+        "(thin ridges; the plane only)",
     )
     parser.add_argument(
         "--grid",
@@ -110,11 +110,11 @@ def _check_smoothing(args):
     from .common import UsageError
 
     if args.method is None:
-        args.method = "knn" if args.dim == 3 else "adaptive"
-    if args.method == "adaptive" and args.dim == 3:
+        args.method = "adaptive"
+    if args.method == "adaptive" and args.dim == 3 and args.shape == "local":
         raise UsageError(
-            "--method adaptive is built for points in the plane; in space use --method knn "
-            "(the default there)"
+            "--shape local is built for points in the plane; in space the kernels are balls "
+            "(--shape isotropic, the default)"
         )
     if args.method == "knn":
         set_ = {
@@ -208,7 +208,7 @@ def run(args):
                     density, alphas, cs, criterion=args.criterion, progress=update
                 )[2]
             scored = len(table)
-        f = density.grid(tuple(cells[::-1]))[2]
+        f = density.grid(tuple(cells[::-1]))[-1]
     else:
         density = knn
         f = knn.constant / d**dim

@@ -1,6 +1,6 @@
 """The adaptive (sample-point) kernel estimate with local bandwidths from d_{P,k}
-(``AdaptiveDensity``, in the plane and in space), and the choice of its bandwidth and sensitivity by
-cross-validation (``choose_smoothing``)."""
+(``AdaptiveDensity``, in the plane and in space), and the choice of its bandwidth and
+sensitivity by cross-validation (``choose_smoothing``)."""
 
 import numpy as np
 
@@ -17,21 +17,24 @@ class AdaptiveDensity:
     """The adaptive (sample-point) kernel estimate with local bandwidths from d_{P,k}.
 
     f(x) = (1 - eps) sum_i (w_i / W) K_i(x) + eps f_kNN(x): one kernel per point, of extent
-    h_i = c G (d_i / G)^(2 alpha), d_i = d_{P,k}(X_i), G their geometric mean. The kNN
-    estimate f ~ 1 / d_{P,k}^2 is the pilot, so h_i ~ f(X_i)^(-alpha): the sensitivity
-    alpha = 1/2 is Abramson's square-root law (1982), narrow kernels where the points are
-    dense and wide ones in the tails; alpha = 0 is the fixed-bandwidth estimate (bandwidth
-    c G everywhere); in between, what heavy tails and flat regions prefer (Silverman 1986,
-    5.3). The mesh gives d_{P,k} at every point at once (linear interpolation over its
-    pieces).
+    h_i = c G (d_i / G)^(d alpha) in d dimensions, d_i = d_{P,k}(X_i), G their geometric
+    mean. The kNN estimate f ~ 1 / d_{P,k}^d is the pilot, so h_i ~ f(X_i)^(-alpha) in the
+    plane and in space alike: the sensitivity alpha = 1/2 is Abramson's square-root law
+    (1982), narrow kernels where the points are dense and wide ones in the tails; alpha = 0
+    is the fixed-bandwidth estimate (bandwidth c G everywhere); in between, what heavy tails
+    and flat regions prefer (Silverman 1986, 5.3). The mesh gives d_{P,k} at every point at
+    once (linear interpolation over its pieces).
 
     K_i is the triweight profile (1 - u)^3, u = (x - X_i)^T Q_i (x - X_i) < 1, normalised to
     mass 1: smooth, compactly supported (sums visit only the kernels that reach x).
-    ``shape="isotropic"`` makes it a disk of radius h_i; ``shape="local"`` an ellipse of the
-    same area shaped like the covariance of the points within d_{P,k} of X_i (measured at the
-    mesh's nodes and interpolated; axes ratio at most ``max_ratio``): long along a ridge,
-    narrow across it. Kernels stay in the box: periodic axes wrap, the others fold the mass
-    beyond a side back into the box (reflection), so the estimate integrates to 1 there.
+    ``shape="isotropic"`` makes it a disk (in space a ball) of radius h_i; ``shape="local"``
+    (the plane only) an ellipse of the same area shaped like the covariance of the points
+    within d_{P,k} of X_i (measured at the mesh's nodes and interpolated; axes ratio at most
+    ``max_ratio``): long along a ridge, narrow across it. In the plane or in space (the
+    mesh's dimension; the kernels' code per dimension is ``engine.kernelsum`` and
+    ``engine.kernelsum3``). Kernels stay in the box: periodic axes wrap, the others fold the
+    mass beyond a side back into the box (reflection), so the estimate integrates to 1
+    there.
     eps = 1 / W (one point's worth, W the total weight) of the kNN estimate keeps the
     estimate positive where no kernel reaches (far tails): a finite log-likelihood.
 
@@ -101,7 +104,8 @@ class AdaptiveDensity:
         self._q, self._r = np.ascontiguousarray(q[order]), r[order]
         self._amp = (w / self.total / (self._kernels.MASS * d**dim))[order]
         self.pilot = d
-        # the sensitivity rescales d around its (weighted) geometric mean G: G (d / G)^(2 alpha)
+        # the sensitivity rescales d around its (weighted) geometric mean G:
+        # G (d / G)^(dim alpha)
         pos = d > 0
         log_g = float((w[pos] * np.log(d[pos])).sum() / max(w[pos].sum(), 1e-300))
         self._log_ratio = np.where(pos, np.log(np.where(pos, d, 1.0)) - log_g, 0.0)[order]
@@ -144,8 +148,8 @@ class AdaptiveDensity:
     @property
     def unit_extents(self):
         """Each point's kernel extent per unit bandwidth (its h_i / c), in input order: the
-        pilot d_{P,k}(X_i) at sensitivity 1/2, G (d / G)^(2 alpha) otherwise."""
-        rho = np.exp((2.0 * self.sensitivity - 1.0) * self._log_ratio)
+        pilot d_{P,k}(X_i) at sensitivity 1/dim, G (d / G)^(dim alpha) otherwise."""
+        rho = np.exp((self.dim * self.sensitivity - 1.0) * self._log_ratio)
         return self.pilot * rho[self._row_of]
 
     def _sums(self, frame, loo=False):

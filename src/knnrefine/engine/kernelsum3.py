@@ -50,10 +50,11 @@ def build_centres(points, weights, workers=None):
 def scale_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
     """Set the kernels' columns for bandwidth c at sensitivity alpha from their unit values
     (q (n, 1): 1 / d^2; amp, r = d; log_ratio: log(d_i / G)), as ``kernelsum.scale_kernels``
-    in the plane: radii scale by rho = c exp((2 alpha - 1) log_ratio), q by 1 / rho^2 and amp
-    by 1 / rho^3 (mass kept); a kernel wider than ``cap`` is narrowed to it."""
+    in the plane: radii scale by rho = c exp((3 alpha - 1) log_ratio) (extents c G (d / G)^(3
+    alpha) ~ f^-alpha, f ~ d^-3 in space), q by 1 / rho^2 and amp by 1 / rho^3 (mass kept);
+    a kernel wider than ``cap`` is narrowed to it."""
     for i in range(rows.shape[0]):
-        rho = c * np.exp((2.0 * alpha - 1.0) * log_ratio[i])
+        rho = c * np.exp((3.0 * alpha - 1.0) * log_ratio[i])
         ri = r[i] * rho
         shrink = max(ri / cap, 1.0)
         scale = shrink / rho
