@@ -272,3 +272,20 @@ def test_adaptive_samples_follow_the_estimate_in_space():
     z, y, x = (draws[:, 2] >= 0.5), (draws[:, 1] >= 0.5), (draws[:, 0] >= 0.5)
     drawn_mass = np.bincount(z * 4 + y * 2 + x, minlength=8) / len(draws)
     np.testing.assert_allclose(drawn_mass, grid_mass, atol=0.006)
+
+
+@pytest.mark.parametrize("periodic", [False, True], ids=["box", "torus"])
+def test_exact_d_pk_in_space_by_windows_matches_scipy(periodic):
+    """KnnDistance.exact in space at k >= WINDOWS_FROM_K goes through the counting tree's
+    windows about sampled guesses (issue 30): scipy's answer at clustered points with
+    duplicates, on the box and on the torus, at query points anywhere and at the points."""
+    from knnrefine.density.distance import WINDOWS_FROM_K
+
+    pts = blobs(3, 20000, 11)
+    pts[:300] = pts[300:600]  # duplicates
+    k = WINDOWS_FROM_K + 20
+    mesh = knnrefine.refine(pts, k, periodic=periodic, box=unit_box(3))
+    dist = KnnDistance(mesh, pts)
+    q = np.concatenate([np.random.default_rng(3).random((3000, 3)), pts[:200]])
+    want = cKDTree(pts, boxsize=1.0 if periodic else None).query(q, k=[k])[0][:, 0]
+    np.testing.assert_allclose(dist.exact(q), want, rtol=1e-12)
