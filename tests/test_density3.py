@@ -243,7 +243,7 @@ def test_knn_cdf_for_several_k_matches_monte_carlo_at_its_noise(periodic):
     r = np.linspace(0.01, 0.2, 20)
     box = (0, 0, 0, 1, 1, 1)
     res = knn_cdf(pts, [1, 5, 40], r, box, periodic=periodic, queries=200_000)
-    assert res.method == ["monte-carlo", "monte-carlo", "mesh"]  # even at 40 sqrt(1/4) = 20
+    assert res.method == ["monte-carlo", "monte-carlo", "mesh"]  # even at 80 sqrt(1/4) = 40
     forced = knn_cdf(pts, [5], r, box, periodic=periodic, queries=200_000, method="mesh")
     res.cdf[1], res.lower[1], res.upper[1] = forced.cdf[0], forced.lower[0], forced.upper[0]
     res.bounds.update(forced.bounds)

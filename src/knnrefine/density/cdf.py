@@ -20,10 +20,11 @@ Two ways, chosen per k:
   several vertices per point), while one kd-tree query answers every k.
 
 "auto" takes the mesh from k = MESH_K sqrt((n / 10^5) / (queries / 10^6)) on, the
-break-even measured on a Thomas process (10^5 points, 10^6 queries: Monte Carlo 4.6 s
-against the mesh's 6.9 s at k = 32, 5.9 against 4.8 s at k = 48, 8.2 against 4.8 s at
-k = 64; ``benchmarks/knn_cdf3.py``), scaled as the two costs scale; in space only (the plane
-has no exact CDF integral over pieces: Monte Carlo there).
+break-even measured at 10^5 points and 10^6 queries (``benchmarks/knn_cdf3.py``): on a
+Thomas process the mesh wins from k = 48 on (Monte Carlo 5.9 against 4.8 s at k = 48),
+but on clustered points not yet at k = 64 (9.5 against 9.9-11.1 s in three runs) and by
+1.4x at k = 128, so "auto" takes it from k = 80, scaled as the two costs scale; in space
+only (the plane has no exact CDF integral over pieces: Monte Carlo there).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from ..errors import InputError
 from ..validation import as_points, check_box, check_k
 from .adaptive import generator
 
-MESH_K = 40  # "auto": the mesh from this k on at n = 10^5 points and 10^6 queries (space)
+MESH_K = 80  # "auto": the mesh from this k on at n = 10^5 points and 10^6 queries (space)
 METHODS = ("auto", "mesh", "monte-carlo")
 CONTROL = 4  # the mesh's control sample: queries / CONTROL points
 Z95 = 1.959963984540054  # the normal's 97.5% quantile: two-sided 95% bands
