@@ -193,12 +193,17 @@ class Edge:
 
     def sample(self, n, rng):
         on = rng.random(n) < 0.5
-        m = int(on.sum())
-        r = self.R * np.sqrt(rng.random(m))
-        t = rng.random(m) * 2 * np.pi
+        disk = uniform_disk(int(on.sum()), self.R, rng)  # drawn first: the study's stream
         x = rng.random((n, 2))
-        x[on] = 0.5 + r[:, None] * np.column_stack([np.cos(t), np.sin(t)])
+        x[on] = disk
         return x
+
+
+def uniform_disk(n, radius, rng):
+    """n points uniform on the disk of ``radius`` about (0.5, 0.5)."""
+    r = radius * np.sqrt(rng.random(n))
+    t = rng.random(n) * 2 * np.pi
+    return 0.5 + r[:, None] * np.column_stack([np.cos(t), np.sin(t)])
 
 
 class Disc:
@@ -211,9 +216,7 @@ class Disc:
         return (((x - 0.5) ** 2).sum(1) <= self.R**2) / (np.pi * self.R**2)
 
     def sample(self, n, rng):
-        r = self.R * np.sqrt(rng.random(n))
-        t = rng.random(n) * 2 * np.pi
-        return 0.5 + r[:, None] * np.column_stack([np.cos(t), np.sin(t)])
+        return uniform_disk(n, self.R, rng)
 
 
 TRUTHS = {

@@ -248,6 +248,20 @@ def load_shared(name):
     return np.loadtxt(path, delimiter=",", skiprows=1)
 
 
+def assert_lattice_close(got, exact, worst, mean_rel=None):
+    """A lattice grid's kernel sums (``adaptive._grid_sums``) against the exact sums at the
+    same centres: never below 0; where the estimate is seen (above 1e-3 of its peak) a median
+    relative error below 1e-3 and a 99th percentile below 1e-2; nowhere off by more than
+    ``worst`` times the peak; with ``mean_rel``, the mean (the mass) within it."""
+    assert (got >= 0).all()
+    seen = exact > 1e-3 * exact.max()
+    rel = np.abs(got - exact)[seen] / exact[seen]
+    assert np.median(rel) < 1e-3 and np.quantile(rel, 0.99) < 1e-2
+    assert np.abs(got - exact).max() < worst * exact.max()
+    if mean_rel is not None:
+        assert got.mean() == pytest.approx(exact.mean(), rel=mean_rel)
+
+
 def assert_certified(mesh, points, label=""):
     """knnrefine.certify (validated against brute force in test_certify.py) must pass: the
     torus triangulation is Delaunay; aspect <= tau; every Voronoi cell and closed circumball

@@ -485,9 +485,17 @@ class TreeIndex:
         wrapped here), on every core."""
         k = float(self.k if k is None else k)
         q = np.ascontiguousarray(self._metric.frame(np.asarray(x, float) + self._origin))
-        m = len(q)
         if self._weights is None and k < WINDOWS_FROM_K:  # scipy's k-nearest query is faster
             return self._scipy_tree().query(q, k=[int(k)], workers=-1)[0][:, 0]
+        return self.windows(q, k)
+
+    def windows(self, q, k):
+        """d_{P,k} at points q (q, 3) of the frame (periodic coordinates in [0, period)) by
+        the counting tree's windows, whatever k (``kth_local`` takes scipy's query below
+        WINDOWS_FROM_K; ``benchmarks/exact_kth3.py`` times both)."""
+        k = float(k)
+        q = np.ascontiguousarray(q, np.float64)
+        m = len(q)
         guess, width = self._guess(q, k)
         r_in, r_out = guess / width, guess * width
         per_point = self.total / max(self.n, 1) if self._weights is not None else 1.0
@@ -542,8 +550,8 @@ class TreeIndex:
 
 GUESS_SAMPLE = 30000  # points of P sampled for TreeIndex's guesses of d_Pk
 # TreeIndex's windows from this k on (unweighted; below it scipy's k-nearest query was
-# faster: at the mesh's nodes of 10^5 clustered points, k = 64: 0.93 s against 0.79 s; k =
-# 128: 0.98 against 1.08 s; on a Thomas process 0.16 against 0.22 s and 0.11 against 0.18 s)
+# faster: ``benchmarks/exact_kth3.py`` at 10^5 clustered points, k = 64, 0.95 against 0.78 s;
+# k = 128, 0.98 against 1.10 s)
 WINDOWS_FROM_K = 100
 
 
