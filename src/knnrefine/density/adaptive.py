@@ -5,6 +5,7 @@ sensitivity by cross-validation (``choose_smoothing``)."""
 import numpy as np
 
 from ..engine import kernelsum, kernelsum3, lattice
+from ..engine.binned import BinnedSums, copies_weight, place_bits
 from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  # plane
 from ..engine.lattice import plan_levels, read_grid
 from ..engine.threads import in_chunks
@@ -142,7 +143,7 @@ class AdaptiveDensity:
         rows = self._rows
         self._kernels.scale_kernels(rows, self._q, self._amp, self._r, self._log_ratio, c, alpha,
                                     self._cap)  # fmt: skip
-        node_extents(rows[:, self._kernels.R], self._node, self._extent)
+        self._extent_stale = True  # the tree's extents: at the next exact sums
         return self
 
     @property
@@ -162,6 +163,9 @@ class AdaptiveDensity:
         order = z_order(frame, period)  # neighbours in turn: the tree's leaves stay cached
         q = np.ascontiguousarray(frame[order])
         periodic = np.array(self.periodic, bool)
+        if self._extent_stale:
+            node_extents(self._rows[:, self._kernels.R], self._node, self._extent)
+            self._extent_stale = False
         rows, box, node, extent = self._rows, self._box, self._node, self._extent
         sums = self._kernels.kernel_sums
 
@@ -253,20 +257,69 @@ class AdaptiveDensity:
         values = parts[0] if len(parts) == 1 else np.sum(parts, axis=0)
         return read_grid(levels, values, origin, step, np.array(shape[::-1], np.int64))
 
-    def loo(self, sample=None):
+    def loo(self, sample=None, binned=False):
         """Leave-one-out log-density at the points ``sample`` (indices into the points; all
         by default): the kernels of the point and of its copies at the same place left out
         (W - their weight the total then: copies are one observation, as a point of whole
         weight is, or ties would pull the bandwidth to 0); the pilot bandwidths and the eps
-        part keep them (they are smooth in one point)."""
+        part keep them (they are smooth in one point). ``binned``: the kernel sums through
+        binned lattices (``engine.binned``: within about 1 % of the exact sums, at a cost
+        that does not grow with the kernels' overlap; isotropic kernels in the plane)."""
         idx = np.arange(len(self._row_of)) if sample is None else np.asarray(sample)
         rows = self._row_of[idx]
-        s, w = self._sums(self._rows[rows, : self.dim], loo=True)
+        if binned:
+            s, w = self._binned_loo(rows)
+        else:
+            s, w = self._sums(self._rows[rows, : self.dim], loo=True)
         rest = np.maximum(self.total - w, 1e-300)
         knn = self.knn.constant / self.pilot[idx] ** self.dim
         f = (1.0 - self.eps) * s * self.total / rest + self.eps * knn
         with np.errstate(divide="ignore"):
             return np.log(f)
+
+    def _binned_loo(self, rows):
+        """(leave-one-out kernel sums, the weight at the place) at the tree's rows ``rows``,
+        through binned lattices (``engine.binned.BinnedSums``)."""
+        if self.dim != 2 or self.shape != "isotropic":
+            raise InputError(
+                "binned leave-one-out sums are built for isotropic kernels in the plane; use "
+                "binned=False"
+            )
+        table = self._rows
+        if not hasattr(self, "_binned_columns"):  # the centres and masses, as columns
+            k = self._kernels
+            self._binned_columns = tuple(np.ascontiguousarray(table[:, j]) for j in (k.X, k.Y, k.W))
+        cx, cy, weight = self._binned_columns
+        w = self._copies_of_rows(rows)
+        period = np.asarray(self.hi - self.lo, float)
+        r = np.ascontiguousarray(table[:, self._kernels.R])
+        sums = BinnedSums(cx, cy, r, weight / self.total, period, np.array(self.periodic, bool))
+        total, own = sums.without(rows, w / self.total)
+        s = np.maximum(total - own, 0.0)
+        # where a point's own share is most of the binned sum (few other kernels reach it),
+        # the difference is mostly binning's error: those points exactly
+        check = np.flatnonzero(own > OWN_SHARE * total)
+        if len(check):
+            s[check] = self._sums(table[rows[check], : self.dim], loo=True)[0]
+        return s, w
+
+    def _copies_at(self, idx):
+        """The total weight of the points at exactly the place of each point ``idx`` (in the plane)
+        (indices into the points), itself included."""
+        return self._copies_of_rows(self._row_of[np.asarray(idx)])
+
+    def _copies_of_rows(self, rows):
+        """``_copies_at`` by the tree's rows, kept for the last rows asked (a search asks
+        for the same sample at every smoothing)."""
+        key = rows.tobytes()
+        if getattr(self, "_copies", (None,))[0] != key:
+            if not hasattr(self, "_bits"):
+                self._bits = place_bits(self._rows[:, : self.dim])
+            at = np.empty(len(rows))
+            weight = np.ascontiguousarray(self._rows[:, self._kernels.W])
+            copies_weight(*self._bits, weight, rows, at)
+            self._copies = (key, at)
+        return self._copies[1]
 
     def weights_of(self, idx):
         """The weights of the points ``idx`` (indices into the points)."""
@@ -380,14 +433,15 @@ HALF_STEP = 2.0**0.25  # the last search's step in c: half the grid's
 
 def choose_smoothing(
     density, alphas=SENSITIVITIES, bandwidths=BANDWIDTHS, loo_points=20000, random_state=0,
-    criterion="likelihood", progress=None,
+    criterion="likelihood", progress=None, binned=None,
 ):  # fmt: skip
     """(sensitivity, bandwidth, table): the pair of the grid alphas x bandwidths with the
     best cross-validation score of the ``AdaptiveDensity`` at up to ``loo_points`` of its
     points (chosen by ``random_state``), by climbing from the candidates nearest (1/2, 1) to
     the best grid neighbour until none is better: the score is smooth in both, so a climb
     scores a few pairs, not all. Over 2 COARSE points, a first climb on a fifth of them
-    (at least COARSE) finds the region at a fifth of the cost, and the second starts there.
+    (at least COARSE) finds the region at a fifth of the cost, and the second starts there
+    (exact sums only: binned ones cost about the same for any number of points).
     ``criterion``: "likelihood" (mean leave-one-out log-density, higher is better: what
     held-out likelihood rewards) or "least-squares" (``AdaptiveDensity.least_squares``,
     lower is better: an unbiased estimate of the integrated squared error less a constant,
@@ -397,7 +451,13 @@ def choose_smoothing(
     values. The table has a row (alpha, c, score) per pair the last climb scored, in that
     order, then the half steps (the score as defined above for the criterion). The density
     is left at the chosen pair. ``progress``: called with the number of pairs scored so far
-    after each (long work shows it; a pass costs about ``loo_points`` c^2 k kernel terms)."""
+    after each (long work shows it; a pass costs about ``loo_points`` c^2 k kernel terms
+    exactly). ``binned``: score the likelihood with kernel sums through binned lattices
+    (``AdaptiveDensity.loo``; its error is stated in ``engine.binned``), a pass then costing
+    O(n) whatever c^2 k; None: where that is faster (isotropic kernels in the plane, the
+    likelihood, loo_points * k >= BINNED_FROM) and the sample has few copies (at most
+    ``BINNED_COPIES`` of its points share their place: next to the share left out at a tie,
+    binning's error is not small)."""
     criterion = check_criterion(criterion)
     count = [0]
 
@@ -411,11 +471,13 @@ def choose_smoothing(
     sample = None if m == n else np.sort(generator(random_state).choice(n, m, False))
     i = int(np.argmin(np.abs(np.asarray(alphas) - 0.5)))
     j = int(np.argmin(np.abs(np.log(bandwidths))))
-    if m > 2 * COARSE:
+    binned = _binned_scores(density, sample, criterion, binned)
+    if m > 2 * COARSE and not binned:  # binned passes cost about O(n), whatever m
         pool = np.arange(n) if sample is None else sample
         coarse = np.sort(generator(random_state).choice(pool, max(COARSE, m // 5), False))
-        i, j, _ = _climb(Scores(density, coarse, criterion, scored_one), alphas, bandwidths, i, j)
-    scores = Scores(density, sample, criterion, scored_one)
+        coarse_scores = Scores(density, coarse, criterion, scored_one, binned)
+        i, j, _ = _climb(coarse_scores, alphas, bandwidths, i, j)
+    scores = Scores(density, sample, criterion, scored_one, binned)
     i, j, scored = _climb(scores, alphas, bandwidths, i, j)
     alpha, c = float(alphas[i]), float(bandwidths[j])
     rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
@@ -429,6 +491,30 @@ def choose_smoothing(
     return alpha, c, table
 
 
+OWN_SHARE = 0.5  # binned leave-one-out sums where the point's own share is less than this
+BINNED_FROM = 1e6  # loo_points * k: from here binned sums are faster (docs/benchmarks.md)
+BINNED_COPIES = 0.01  # binned scores only where at most this share of the sample has copies
+
+
+def _binned_scores(density, sample, criterion, binned):
+    """Whether ``choose_smoothing`` scores through binned lattices (``binned`` None: auto)."""
+    able = density.dim == 2 and density.shape == "isotropic" and criterion == "likelihood"
+    if binned is not None:
+        if binned and not able:
+            raise InputError(
+                "binned=True scores the likelihood of isotropic kernels in the plane; use "
+                "binned=False or None"
+            )
+        return bool(binned)
+    n = len(density.pilot)
+    m = n if sample is None else len(sample)
+    if not able or m * density.k < BINNED_FROM:
+        return False
+    idx = np.arange(n) if sample is None else np.asarray(sample)
+    copies = density._copies_at(idx)
+    return float(np.mean(copies > density.weights_of(idx) * (1 + 1e-9))) <= BINNED_COPIES
+
+
 class Scores:
     """The cross-validation score of an ``AdaptiveDensity`` at the points ``sample`` for
     each smoothing (alpha, c) asked, each computed once (a search asks for some twice): the
@@ -437,8 +523,9 @@ class Scores:
     seeded draws), so the standard error of a difference of scores comes from the
     differences of values (``difference_se``)."""
 
-    def __init__(self, density, sample, criterion, scored=None):
+    def __init__(self, density, sample, criterion, scored=None, binned=False):
         self.density, self.criterion, self._scored = density, criterion, scored
+        self.binned = binned
         n = len(density.pilot)
         self.idx = np.arange(n) if sample is None else np.asarray(sample)
         self._terms = {}
@@ -450,7 +537,7 @@ class Scores:
             density.set_bandwidth(key[1], key[0])
             w = density.weights_of(idx)
             if self.criterion == "likelihood":
-                self._terms[key] = [(density.loo(idx), w, 1.0)]
+                self._terms[key] = [(density.loo(idx, self.binned), w, 1.0)]
             else:
                 self._terms[key] = [(_at_own_draws(density, len(idx), 0), np.ones(len(idx)), -1.0),
                                     (np.exp(density.loo(idx)), w, 2.0)]  # fmt: skip
