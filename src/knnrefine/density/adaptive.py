@@ -94,22 +94,23 @@ class AdaptiveDensity:
         # per unit bandwidth: Q = S^-1 / d^2 (S of determinant 1: the plane's local shape,
         # else the identity), extent d sqrt(lambda_max(S)), amp w / W / (MASS d^dim) (the
         # triweight's mass is MASS / sqrt(det Q))
-        d2 = d * d
-        if dim == 2:
+        # the sensitivity rescales d around its (weighted) geometric mean G:
+        # G (d / G)^(dim alpha), from log_ratio = log(d / G)
+        n = len(d)
+        self._q = np.empty((n, 3 if dim == 2 else 1))
+        self._r, self._amp, self._log_ratio = np.empty(n), np.empty(n), np.empty(n)
+        with np.errstate(divide="ignore"):
+            kernelsum.isotropic_units(d[order], np.asarray(w, float)[order], self.total,
+                                      self._kernels.MASS, dim, self._q, self._r, self._amp,
+                                      self._log_ratio)  # fmt: skip
+        if cov is not None:  # the plane's local shapes
+            d2 = d * d
             unit = unit_shapes(cov, len(pts), max_ratio)  # (n, 3): s11, s12, s22
             q = np.column_stack([unit[:, 2], -unit[:, 1], unit[:, 0]]) / d2[:, None]
             tr = unit[:, 0] + unit[:, 2]
             r = d * np.sqrt(0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - 1.0, 0.0)))
-        else:
-            q, r = (1.0 / d2)[:, None], d
-        self._q, self._r = np.ascontiguousarray(q[order]), r[order]
-        self._amp = (w / self.total / (self._kernels.MASS * d**dim))[order]
+            self._q, self._r = np.ascontiguousarray(q[order]), r[order]
         self.pilot = d
-        # the sensitivity rescales d around its (weighted) geometric mean G:
-        # G (d / G)^(dim alpha)
-        pos = d > 0
-        log_g = float((w[pos] * np.log(d[pos])).sum() / max(w[pos].sum(), 1e-300))
-        self._log_ratio = np.where(pos, np.log(np.where(pos, d, 1.0)) - log_g, 0.0)[order]
         # kernels no wider than the box along any axis (wrapping and folding stay exact)
         self._cap = float(np.min(self.hi - self.lo))
         self.sensitivity = 0.5

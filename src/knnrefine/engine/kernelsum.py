@@ -81,6 +81,35 @@ def scale_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
     return 0
 
 
+@kernel(entry=True, nogil=True)
+def isotropic_units(d, w, total, mass, dim, q, r, amp, log_ratio):
+    """Unit-bandwidth columns of isotropic kernels (disks or balls) of extents d and weights
+    w (both in the tree's order): q (m, 3) in the plane (1/d^2, 0, 1/d^2) or (m, 1) in space
+    (1/d^2), r = d, amp = w / total / (mass d^dim), log_ratio = log(d / G) (0 where d = 0),
+    G the w-weighted geometric mean of the positive d."""
+    num = 0.0
+    den = 0.0
+    for i in range(d.shape[0]):
+        if d[i] > 0.0:
+            log_ratio[i] = np.log(d[i])
+            num += w[i] * log_ratio[i]
+            den += w[i]
+    log_g = num / max(den, 1e-300)
+    plane = q.shape[1] == 3
+    for i in range(d.shape[0]):
+        di = d[i]
+        d2 = di * di
+        inv = 1.0 / d2
+        q[i, 0] = inv
+        if plane:
+            q[i, 1] = 0.0
+            q[i, 2] = inv
+        r[i] = di
+        amp[i] = w[i] / total / (mass * (d2 if dim == 2 else d2 * di))
+        log_ratio[i] = log_ratio[i] - log_g if di > 0.0 else 0.0
+    return 0
+
+
 @kernel(inline="always")
 def axis_image(q, j, period, periodic):
     """The j-th image of a coordinate (a query's or a centre's) along one axis of the box
