@@ -715,9 +715,12 @@ def test_binned_leave_one_out_matches_the_exact_sums(case, monkeypatch):
         # on a line binning's tent reaches across it: the shape differs, not the variance
         assert abs(got.mean() - exact.mean()) < (1e-2 if case == "line" else 1e-3)
     if case == "narrow-exact":  # the budget did send lattices to exact sums
-        r = ad._rows[:, 7]
-        sums = binned.BinnedSums(ad._rows[:, 0], ad._rows[:, 1], r, np.full(len(r), 1 / len(r)),
-                                 np.ones(2), np.array(periodic))  # fmt: skip
+        from knnrefine.engine import kernelsum as ks
+
+        rows = ad._rows
+        mass = rows[:, ks.W] / ad.total
+        sums = binned.BinnedSums(rows[:, ks.X], rows[:, ks.Y], rows[:, ks.R], mass, np.ones(2),
+                                 np.array(periodic))  # fmt: skip
         assert sums.exact is not None and len(sums.exact[0]) > 0
 
 
@@ -740,6 +743,36 @@ def test_binned_search_chooses_as_the_exact_one():
     rounded = np.round(X, 2)
     ad2 = AdaptiveDensity(knnrefine.refine(rounded, 120), rounded)
     assert not adaptive._binned_scores(ad2, None, "likelihood", None)
+
+
+@pytest.mark.parametrize("case", ["line", "seam"])
+def test_estimator_with_binned_scores_on_degenerate_inputs(case, monkeypatch):
+    """Through the public estimator (issue 30: binned scores by default from loo_points x k >=
+    10^6): points on a line with a background, and points across a periodic seam, choose the
+    smoothing the exact search chooses (same sensitivity, bandwidth within a half step), and
+    the fitted density integrates to 1 over the box."""
+    from knnrefine.density import adaptive
+
+    rng = np.random.default_rng(21)
+    if case == "line":
+        t = rng.random(7000)
+        X = np.concatenate([np.column_stack([0.1 + 0.8 * t, 0.2 + 0.6 * t]), rng.random((1000, 2))])
+        options = {"box": (0, 0, 1, 1)}
+    else:
+        X = np.column_stack([rng.random(8000), rng.normal(0.0, 0.02, 8000) % 1.0])
+        options = {"box": (0, 0, 1, 1), "periodic": True}
+    seen = []
+    real = adaptive._binned_scores
+    monkeypatch.setattr(adaptive, "_binned_scores", lambda *a: seen.append(real(*a)) or seen[-1])
+    binned = KnnDensityEstimator(**options).fit(X)
+    assert seen == [True]  # the default took binned scores
+    monkeypatch.setattr(adaptive, "BINNED_FROM", np.inf)
+    exact = KnnDensityEstimator(**options).fit(X)
+    assert seen[-1] is False
+    assert binned.sensitivity_ == exact.sensitivity_
+    assert abs(np.log(binned.bandwidth_ / exact.bandwidth_)) <= np.log(adaptive.HALF_STEP) + 1e-9
+    assert np.isfinite(binned.score_samples(X)).all()
+    assert (binned.grid((100, 100))[2] >= 0).all()
 
 
 def test_binned_scores_are_refused_where_they_are_not_built():

@@ -5,7 +5,7 @@ sensitivity by cross-validation (``choose_smoothing``)."""
 import numpy as np
 
 from ..engine import kernelsum, kernelsum3, lattice
-from ..engine.binned import BinnedSums, copies_weight, place_bits
+from ..engine.binned import BinnedSums
 from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  # plane
 from ..engine.lattice import plan_levels, read_grid
 from ..engine.threads import in_chunks
@@ -287,14 +287,15 @@ class AdaptiveDensity:
                 "binned=False"
             )
         table = self._rows
-        if not hasattr(self, "_binned_columns"):  # the centres and masses, as columns
+        if not hasattr(self, "_binned_columns"):  # the centres and masses (w / W), as columns
             k = self._kernels
-            self._binned_columns = tuple(np.ascontiguousarray(table[:, j]) for j in (k.X, k.Y, k.W))
-        cx, cy, weight = self._binned_columns
+            cx, cy = (np.ascontiguousarray(table[:, j]) for j in (k.X, k.Y))
+            self._binned_columns = (cx, cy, table[:, k.W] / self.total)
+        cx, cy, mass = self._binned_columns
         w = self._copies_of_rows(rows)
         period = np.asarray(self.hi - self.lo, float)
         r = np.ascontiguousarray(table[:, self._kernels.R])
-        sums = BinnedSums(cx, cy, r, weight / self.total, period, np.array(self.periodic, bool))
+        sums = BinnedSums(cx, cy, r, mass, period, np.array(self.periodic, bool))
         total, own = sums.without(rows, w / self.total)
         s = np.maximum(total - own, 0.0)
         # where a point's own share is most of the binned sum (few other kernels reach it),
@@ -305,21 +306,26 @@ class AdaptiveDensity:
         return s, w
 
     def _copies_at(self, idx):
-        """The total weight of the points at exactly the place of each point ``idx`` (in the plane)
-        (indices into the points), itself included."""
+        """The total weight of the points at exactly the place of each point ``idx`` (indices
+        into the points), itself included; in the plane."""
         return self._copies_of_rows(self._row_of[np.asarray(idx)])
 
     def _copies_of_rows(self, rows):
-        """``_copies_at`` by the tree's rows, kept for the last rows asked (a search asks
-        for the same sample at every smoothing)."""
+        """``_copies_at`` by the tree's rows: the weight within distance 0 of each
+        (``kernelsum.ball_moments``, one descent of the tree per point), kept for the last
+        rows asked (a search asks for the same sample at every smoothing)."""
         key = rows.tobytes()
         if getattr(self, "_copies", (None,))[0] != key:
-            if not hasattr(self, "_bits"):
-                self._bits = place_bits(self._rows[:, : self.dim])
-            at = np.empty(len(rows))
-            weight = np.ascontiguousarray(self._rows[:, self._kernels.W])
-            copies_weight(*self._bits, weight, rows, at)
-            self._copies = (key, at)
+            table = self._rows
+            qx, qy = (np.ascontiguousarray(table[rows, j]) for j in (X, Y))
+            lx, ly = self.hi - self.lo
+            px, py = self.periodic
+            none, out = np.zeros(len(rows)), np.empty((len(rows), 6))
+            box, node = self._box, self._node
+            in_chunks(
+                lambda a, b: ball_moments(table, box, node, qx, qy, none, lx, ly, px, py, out,
+                                          a, b), len(rows))  # fmt: skip
+            self._copies = (key, out[:, 0])
         return self._copies[1]
 
     def weights_of(self, idx):

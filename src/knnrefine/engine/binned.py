@@ -34,6 +34,7 @@ import numpy as np
 from . import kernelsum
 from .jit import kernel
 from .kernelsum import MASS, axis_image
+from .lattice import catmull_rom
 from .threads import in_chunks
 
 SAMPLES = 4  # lattice steps per kernel radius, at least (at most twice as many)
@@ -146,17 +147,6 @@ def stamp(mass_at, log_r_at, values, step0, lattices, period, periodic, start, s
     return 0
 
 
-@kernel(inline="always")
-def catmull_rom(t, out):
-    """The four Catmull-Rom weights of the lattice points i - 1..i + 2 at i + t."""
-    t2 = t * t
-    t3 = t2 * t
-    out[0] = 0.5 * (-t3 + 2.0 * t2 - t)
-    out[1] = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
-    out[2] = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
-    out[3] = 0.5 * (t3 - t2)
-
-
 @kernel(entry=True, nogil=True)
 def read_sums(qx, qy, values, step0, lattices, out, start, stop):
     """out[j]: the lattices' values interpolated at point j (0 off a lattice: none of its
@@ -241,51 +231,6 @@ def own_terms(qx, qy, mass, level, step0, lattices, radius_at, period, periodic,
                                 total += wx[a] * wy[b] * amp * v * v * v
         out[j] = total
     return 0
-
-
-@kernel(entry=True)
-def copies_weight(x_bits, y_bits, weight, sample, out):
-    """out[j]: the total weight of the points at exactly the place of point sample[j]
-    (itself included), by a hash table of the sample's coordinates (as integer bits)."""
-    m = sample.shape[0]
-    size = 1
-    while size < 2 * m:
-        size *= 2
-    table = np.full(size, -1, np.int64)
-    for j in range(m):
-        out[j] = 0.0
-        p = sample[j]
-        h = ((x_bits[p] * 0x9E3779B97F4A7C15) ^ (y_bits[p] * 0xC2B2AE3D27D4EB4F)) & (size - 1)
-        while table[h] >= 0 and not (
-            x_bits[sample[table[h]]] == x_bits[p] and y_bits[sample[table[h]]] == y_bits[p]
-        ):
-            h = (h + 1) & (size - 1)
-        if table[h] < 0:
-            table[h] = j
-    first = np.empty(m, np.int64)  # the slot each sample point's place took
-    for j in range(m):
-        p = sample[j]
-        h = ((x_bits[p] * 0x9E3779B97F4A7C15) ^ (y_bits[p] * 0xC2B2AE3D27D4EB4F)) & (size - 1)
-        while not (x_bits[sample[table[h]]] == x_bits[p] and y_bits[sample[table[h]]] == y_bits[p]):
-            h = (h + 1) & (size - 1)
-        first[j] = table[h]
-    total = np.zeros(m)
-    for i in range(x_bits.shape[0]):
-        h = ((x_bits[i] * 0x9E3779B97F4A7C15) ^ (y_bits[i] * 0xC2B2AE3D27D4EB4F)) & (size - 1)
-        while table[h] >= 0:
-            q = sample[table[h]]
-            if x_bits[q] == x_bits[i] and y_bits[q] == y_bits[i]:
-                total[table[h]] += weight[i]
-                break
-            h = (h + 1) & (size - 1)
-    for j in range(m):
-        out[j] = total[first[j]]
-    return 0
-
-
-def place_bits(centres):
-    """The centres' coordinates as integer bits (-0.0 made 0.0): equal places, equal bits."""
-    return tuple(np.ascontiguousarray(centres[:, a] + 0.0).view(np.int64) for a in range(2))
 
 
 class BinnedSums:
@@ -391,9 +336,9 @@ class BinnedSums:
 
     def without(self, idx, copies):
         """(sums, own) at centres ``idx``: the binned sums there, and the share in them of the
-        centres at that place (``copies``: their total mass, ``copies_weight`` over the
-        total weight). sums - own is the leave-one-out sum; where own is most of sums, that
-        difference keeps binning's error but not the sum's size (check it exactly)."""
+        centres at that place (``copies``: their total mass). sums - own is the leave-one-out
+        sum; where own is most of sums, that difference keeps binning's error but not the
+        sum's size (check it exactly)."""
         idx = np.asarray(idx, np.int64)
         qx, qy = self.cx[idx], self.cy[idx]
         sums = np.empty(len(idx))

@@ -212,6 +212,26 @@ def _add_block(out, v, shift):
     out[tuple(target)] += v[tuple(source)]
 
 
+@kernel(inline="always")
+def catmull_rom(t, out):
+    """The four Catmull-Rom weights of the lattice points i - 1, i, i + 1, i + 2 at i + t
+    (0 <= t < 1): cubic, exact at the lattice points, reproducing quadratics."""
+    t2 = t * t
+    t3 = t2 * t
+    out[0] = 0.5 * (-t3 + 2.0 * t2 - t)
+    out[1] = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+    out[2] = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+    out[3] = 0.5 * (t3 - t2)
+
+
+@kernel(entry=True)
+def catmull_rom_rows(t, out):
+    """out[j] = ``catmull_rom`` weights at t[j]."""
+    for j in range(t.shape[0]):
+        catmull_rom(t[j], out[j])
+    return 0
+
+
 def axis_weights(origin, step, count, at):
     """The (len(at), count) sparse matrix of Catmull-Rom weights that interpolates values at
     origin + i * step (i < count; 0 beyond) at the points ``at``; a point within 1e-9 steps
@@ -220,10 +240,8 @@ def axis_weights(origin, step, count, at):
     near = np.round(f)
     f = np.where(np.abs(f - near) < 1e-9, near, f)
     i = np.floor(f)
-    t = f - i
-    t2, t3 = t * t, t * t * t
-    w = np.column_stack([0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
-                         0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2)])  # fmt: skip
+    w = np.empty((len(f), 4))
+    catmull_rom_rows(f - i, w)
     cols = i.astype(np.int64)[:, None] - 1 + np.arange(4)
     rows = np.repeat(np.arange(len(f)), 4).reshape(-1, 4)
     keep = (cols >= 0) & (cols < count) & (w != 0.0)
