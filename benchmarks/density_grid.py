@@ -17,6 +17,10 @@ the same grid.
     python benchmarks/density_grid.py                 # n = 10^6, 3 repeats
     python benchmarks/density_grid.py --n 100000 --repeat 5
     python benchmarks/density_grid.py --dim 3 --n 100000 --repeat 5   # 128^3 grid
+    python benchmarks/density_grid.py --n 1e6 --repeat 1 --profile    # where the time goes
+
+``--profile`` ends with one more adaptive fit (smoothing chosen) + grid under cProfile and
+prints the cumulative seconds of its main phases.
 
 In space (``--dim 3``) the points are a mixture of three Gaussians in R^3 (widths 0.12, 0.02,
 0.006; ``Multiscale3``), the grid 128 x 128 x 128 over each estimate's own box, FFTKDE's
@@ -109,6 +113,37 @@ def fftkde_job(pts, shape, rule, probe=None):
     return seconds, read(probe)
 
 
+PHASES = (  # (file, function) -> what it is, for --profile
+    ("run.py", "refine", "the mesh (refine)"),
+    ("estimate.py", "__init__", "exact d_Pk at the mesh's nodes + the integral"),
+    ("adaptive.py", "__init__", "the adaptive set-up"),
+    ("kernelsum.py", "build_centres", "  of which the kernels' kd-tree"),
+    ("distance.py", "interpolate", "  of which the pilot at the points"),
+    ("adaptive.py", "choose_smoothing", "the smoothing search"),
+    ("estimator.py", "grid", "the grid"),
+)
+
+
+def profile(pts, shape):
+    """One adaptive fit (smoothing chosen) + grid under cProfile: cumulative seconds of the
+    phases in PHASES."""
+    import cProfile
+    import pstats
+
+    prof = cProfile.Profile()
+    t0 = time.perf_counter()
+    prof.runcall(lambda: knnrefine.KnnDensityEstimator().fit(pts).grid(shape))
+    total = time.perf_counter() - t0
+    stats = pstats.Stats(prof).stats
+    print(f"profile of one adaptive fit + grid ({total:.2f} s, cProfile's overhead included):")
+    for file, func, what in PHASES:
+        seconds = sum(
+            v[3] for (path, _, fn), v in stats.items()
+            if fn == func and path.endswith(os.sep + file) and "knnrefine" in path
+        )  # fmt: skip
+        print(f"  {what:48s} {seconds:7.3f} s")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=float, default=1e6)
@@ -116,6 +151,7 @@ def main(argv=None):
     ap.add_argument("--dim", type=int, choices=(2, 3), default=2)
     ap.add_argument("--shape", type=int, nargs="+", default=None,
                     help="cells per axis (default 512 x 512, or 128^3 with --dim 3)")  # fmt: skip
+    ap.add_argument("--profile", action="store_true", help="profile one more adaptive fit")
     args = ap.parse_args(argv)
     n, dim = int(args.n), args.dim
     shape = tuple(args.shape) if args.shape else ((512, 512) if dim == 2 else (128,) * 3)
@@ -166,6 +202,8 @@ def main(argv=None):
     print("knnrefine's phases (median):")
     for name in phases[0]:
         print(f"  {name:24s} {np.median([p[name] for p in phases]):7.3f} s")
+    if args.profile:
+        profile(pts, shape)
     if probe is not None:
         f = truth.pdf(probe)
         print("L1 error against the truth (mean |f_hat / f - 1| at 20,000 draws from f):")

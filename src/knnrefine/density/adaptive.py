@@ -499,7 +499,7 @@ def choose_smoothing(
 
 
 OWN_SHARE = 0.5  # binned leave-one-out sums where the point's own share is less than this
-BINNED_FROM = 1e6  # loo_points * k: from here binned sums are faster (docs/benchmarks.md)
+BINNED_FROM = 1e6  # loo_points * k from here: binned passes faster (binned_scores.py)
 BINNED_COPIES = 0.01  # binned scores only where at most this share of the sample has copies
 
 
