@@ -30,6 +30,8 @@ def refine(
     progress: Callable | None = None,
     workers: int | None = None,
     executor: Executor | None = None,
+    sphere: bool = False,
+    radius: float | None = None,
 ) -> Mesh:
     """kNNRefine (Gardner & Sheehy, CCCG 2016): mesh vertices M with
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} everywhere in the box.
@@ -116,6 +118,18 @@ def refine(
         round with that round's tiles (a Dask client's ``get_executor()``:
         ``knnrefine.scale.distributed.refine``). None: a pool of ``workers`` local processes.
 
+    sphere : bool
+        Refine on the sphere S^2 (geographic or sky data): points are (n, 2) longitude and
+        latitude in degrees (or (n, 3) unit vectors), every distance is great-circle, and the
+        guarantee holds on the whole sphere (no box, no periodic axes; docs/algorithm.md, "On
+        the sphere"). The mesh has ``domain="sphere"``, vertices in longitude/latitude,
+        ``xyz`` unit vectors and ``triangles`` over them. One process only (``workers`` is
+        refused).
+    radius : float, optional
+        On the sphere, its radius in the unit lengths are wanted in (``min_size``,
+        ``Mesh.d_m2``): 1 (the default) gives angles in radians, 6371.0088 kilometres on the
+        Earth.
+
     Returns
     -------
     Mesh
@@ -127,6 +141,13 @@ def refine(
     by ``run3.refine3`` into the same ``Mesh`` type, weights, workers (slabs) and executor
     included.
     """
+    if not isinstance(sphere, (bool, np.bool_)):
+        raise InputError(f"sphere must be True or False, got {sphere!r}")
+    if sphere:
+        return _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertices,
+                              time_limit, progress, workers, executor, radius)  # fmt: skip
+    if radius is not None:
+        raise InputError("radius is the sphere's: give it with sphere=True")
     asked = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
                  max_vertices=max_vertices, time_limit=time_limit, progress=progress)  # fmt: skip
     pts, w, opt = run.checked(points, weights, **asked)
@@ -142,6 +163,23 @@ def refine(
 
         return refine_local(pts, w, opt, workers, executor)
     return run.refine_checked(pts, w, opt)
+
+
+def _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertices, time_limit,
+                   progress, workers, executor, radius):  # fmt: skip
+    """``refine`` on the sphere: the options a sphere has no use for are refused first."""
+    if periodic is not False or box is not None:
+        raise InputError(
+            "the sphere has no box and no periodic axes: drop box= and periodic= with "
+            "sphere=True (longitudes wrap by themselves)"
+        )
+    if V.check_workers(workers) > 1 or executor is not None:
+        raise InputError("refinement on the sphere runs in one process: drop workers= and "
+                         "executor= with sphere=True")  # fmt: skip
+    from .run_sphere import refine_sphere
+
+    return refine_sphere(points, k, tau, weights=weights, radius=radius, min_size=min_size,
+                         max_vertices=max_vertices, time_limit=time_limit, progress=progress)
 
 
 def certify(

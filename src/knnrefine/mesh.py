@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 from .engine.raster import clip_triangles
 from .engine.state import KIND_NAMES  # how each vertex came: the insertion moves
 from .errors import InputError
-from .metric import BoxMetric
+from .metric import BoxMetric, chord_to_angle, unit_vectors
 from .validation import as_queries
 
 
@@ -145,6 +145,18 @@ class Mesh(Cells):
         be evaluated exactly without a second tree (``KnnDistance``, the density estimate);
         about 20 bytes per input point. None for a mesh read from a file;
         ``dataclasses.replace(mesh, index=None)`` gives a copy without it.
+    domain : str
+        "box" (the plane or space, the box above) or "sphere" (``refine(..., sphere=True)``):
+        then ``vertices`` are (longitude, latitude) in degrees, ``xyz`` their unit vectors,
+        ``triangles`` the spherical Delaunay triangulation (the convex hull of ``xyz``,
+        counter-clockwise seen from outside), and every length (``d_m2``, ``min_size``) a
+        great-circle distance: an angle in radians times ``radius``.
+    radius : float
+        The sphere's radius in the user's length unit (1: lengths are angles in radians;
+        6371.0088: kilometres on the Earth). 1 in a box.
+    xyz : (m, 3) float64 or None
+        On the sphere, the vertices as the unit vectors the engine triangulated (exactly:
+        ``vertices`` are them rounded to degrees); None in a box.
     """
 
     vertices: np.ndarray
@@ -161,6 +173,9 @@ class Mesh(Cells):
     stats: dict = field(default_factory=dict)
     torus: Torus | None = None
     index: object = field(default=None, repr=False)
+    domain: str = "box"
+    radius: float = 1.0
+    xyz: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def alpha(self) -> float:
@@ -187,12 +202,21 @@ class Mesh(Cells):
         )
         return tuple(float(sides[a]) if self.periodic[a] else 0.0 for a in range(d))
 
+    @property
+    def on_sphere(self) -> bool:
+        """Whether this mesh lies on the sphere (``domain == "sphere"``)."""
+        return self.domain == "sphere"
+
     @cached_property
     def _metric(self):
         return BoxMetric(self.box, self.periodic)
 
     @cached_property
     def _tree(self):
+        if self.on_sphere:
+            from scipy.spatial import cKDTree
+
+            return cKDTree(self.xyz if self.xyz is not None else unit_vectors(self.vertices))
         return self._metric.tree(self.vertices)
 
     def d_m2(self, x: ArrayLike) -> np.ndarray:
@@ -213,6 +237,9 @@ class Mesh(Cells):
         flat, shape = as_queries(x, self.dim)
         if len(flat) == 0:
             return np.zeros(shape)
+        if self.on_sphere:
+            chord = self._tree.query(unit_vectors(flat), k=2)[0][:, 1]
+            return (chord_to_angle(chord) * self.radius).reshape(shape)
         return self._tree.query(self._metric.frame(flat), k=2)[0][:, 1].reshape(shape)
 
     def corners(self) -> np.ndarray:
@@ -340,6 +367,11 @@ class Mesh(Cells):
         return nodes, inverse.reshape(-1, 3)
 
     def _plane_only(self, what):
+        if self.on_sphere:
+            raise InputError(
+                f"Mesh.{what} is built for meshes in the plane; this one lies on the sphere "
+                "(its triangles: .triangles over .xyz; maps: knnrefine.plot)"
+            )
         if self.dim != 2:
             raise InputError(
                 f"Mesh.{what} is built for meshes in the plane; this one is in {self.dim} "
@@ -347,6 +379,11 @@ class Mesh(Cells):
             )
 
     def __repr__(self):
+        if self.on_sphere:
+            return (
+                f"<Mesh m={len(self.vertices)} triangles={len(self.cells)} k={self.k} "
+                f"tau={self.tau:g} sphere radius={self.radius:g}>"
+            )
         d = self.dim
         mode = {(True,) * d: "periodic", (False,) * d: "non-periodic"}.get(
             tuple(self.periodic), f"periodic={self.periodic}"

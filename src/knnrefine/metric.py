@@ -1,5 +1,5 @@
 """The box's own metric: periodic axes wrap (a torus or a cylinder), the others are planar;
-and what a kd-tree's points hold when they are weighted (``held_in_balls``, ``cell_tally``,
+the sphere's great-circle metric (``SphereMetric``, with its coordinates); and what a kd-tree's points hold when they are weighted (``held_in_balls``, ``cell_tally``,
 ``weighted_kth``), summed so that a heavy point cannot swallow light ones
 (``compensated_sums``). Used by certify and the applications, never by the engine."""
 
@@ -43,6 +43,62 @@ class BoxMetric:
     def kth(self, points, queries, k):
         """Exact d_{S,k} at the queries for the point set S = points."""
         return self.tree(points).query(self.frame(queries), k=[k], workers=-1)[0][:, 0]
+
+
+def unit_vectors(x):
+    """Unit vectors (n, 3) of points on the sphere given as (longitude, latitude) in degrees
+    (n, 2) or as vectors (n, 3) (normalised here; the caller has checked them)."""
+    x = np.asarray(x, float)
+    if x.shape[-1] == 3:
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+    lon, lat = np.radians(x[..., 0]), np.radians(x[..., 1])
+    c = np.cos(lat)
+    return np.stack([c * np.cos(lon), c * np.sin(lon), np.sin(lat)], axis=-1)
+
+
+def lonlat_of(xyz):
+    """(longitude in [-180, 180], latitude in [-90, 90]) in degrees of vectors (n, 3)."""
+    xyz = np.asarray(xyz, float)
+    lon = np.degrees(np.arctan2(xyz[..., 1], xyz[..., 0]))
+    lat = np.degrees(np.arctan2(xyz[..., 2], np.hypot(xyz[..., 0], xyz[..., 1])))
+    return np.stack([lon, lat], axis=-1)
+
+
+def chord_to_angle(chord):
+    """The great-circle angle (radians) between unit vectors ``chord`` apart."""
+    return 2.0 * np.arcsin(np.minimum(1.0, 0.5 * np.asarray(chord, float)))
+
+
+def angle_to_chord(angle):
+    """The chord between unit vectors an ``angle`` (radians, at most pi) apart."""
+    return 2.0 * np.sin(0.5 * np.minimum(np.asarray(angle, float), np.pi))
+
+
+class SphereMetric:
+    """Great-circle distances on the sphere of ``radius`` through kd-trees over unit vectors
+    (chords order points as angles do): the sphere's ``BoxMetric``."""
+
+    def __init__(self, radius=1.0):
+        self.radius = float(radius)
+        self.dim = 2
+
+    def frame(self, x):
+        """The unit vectors of lon/lat points (n, 2) or vectors (n, 3)."""
+        x = np.asarray(x, float)
+        return unit_vectors(x.reshape(-1, x.shape[-1]))
+
+    def tree(self, x):
+        """A cKDTree of the points' unit vectors (query it with ``frame`` coordinates)."""
+        return cKDTree(self.frame(x))
+
+    def length(self, chord):
+        """The great-circle length (times ``radius``) of chords."""
+        return chord_to_angle(chord) * self.radius
+
+    def kth(self, points, queries, k):
+        """Exact d_{S,k} at the queries for S = points, great-circle, times ``radius``."""
+        d = self.tree(points).query(self.frame(queries), k=[k], workers=-1)[0][:, 0]
+        return self.length(d)
 
 
 class TorusFrame:

@@ -146,7 +146,7 @@ def count_in_ball3(index, c, r2, k, period, stack):
 
 
 @kernel(nrt=False)
-def _count_cell(index, vx, vy, vz, h, hc, nh, r2, k, stack):
+def count_in_region3(index, vx, vy, vz, h, hc, nh, r2, k, stack):
     """Points x with |x - v|^2 <= r2 and (x - v) . h[i] <= hc[i] for every i < nh (their
     weight, for weighted points), up to at least k."""
     pts, box, node, weight = index.pts, index.box, index.node, index.weight
@@ -224,7 +224,7 @@ def count_in_cell3(index, v, h, hc, nh, r2, k, period, stack):
     for s0 in range(a0, b0 + 1):
         for s1 in range(a1, b1 + 1):
             for s2 in range(a2, b2 + 1):
-                here = _count_cell(
+                here = count_in_region3(
                     index,
                     w0 + s0 * period[0],
                     w1 + s1 * period[1],

@@ -94,6 +94,36 @@ Scratch3 = namedtuple(
     ],
 )
 
+# -- the sphere (``triangulation_sphere.py``) -------------------------------------------------
+SphereMesh = namedtuple(
+    "SphereMesh",
+    [
+        "corners",  # (T, 3) int32: the vertex at each corner, counter-clockwise seen from outside
+        "neighbours",  # (T, 3) int32: the triangle across the edge opposite each corner
+        "centre",  # (T, 3) float64: the circumcap's centre (a unit vector)
+        "chord2",  # (T,) float64: the circumcap's squared chord radius |centre - corner|^2
+        "gen",  # (T,) int32: how often the slot was filled (a queue entry's aux: stale if not)
+        "xyz",  # (V, 3) float64: vertex unit vectors
+        "star",  # (V,) int32: one triangle at each vertex (where a walk round it starts)
+    ],
+)
+
+SphereScratch = namedtuple(
+    "SphereScratch",
+    [
+        "mark",  # (T,) int64: insertion stamp of the triangles already met
+        "vmark",  # (V,) int64: insertion stamp of the vertices on the cavity's boundary
+        "vnext",  # (V,) int32: the boundary edge that starts at each such vertex
+        "cavity",  # (C,) int32: the cavity's triangles, then the new triangles' slots
+        "horizon",  # (C, 3) int32: boundary edges (first vertex, second, outer triangle)
+        "points",  # (4, 3) float64: the corners handed to a predicate
+        "ids",  # (D,) int64: a vertex's neighbours (a star walk)
+        "h",  # (D, 3) float64: their offsets from the vertex
+        "hc",  # (D,) float64: the bisectors' offsets (a cell count)
+        "stack",  # (S,) int64: a tree walk's stack
+    ],
+)
+
 # the scratch of a 3-D cell count: a vertex's neighbours (relative positions, indices, the
 # half-spaces' offsets) and the tree walk's stack
 Probe3 = namedtuple("Probe3", ["h", "ids", "hc", "stack"])

@@ -1,0 +1,330 @@
+"""``knnrefine.refine(..., sphere=True)``: kNNRefine on the sphere S^2, behind the same
+options as in the plane. Points come as (longitude, latitude) in degrees or as unit vectors;
+the engine (``engine/refine_sphere.py``) refines the spherical Delaunay triangulation from
+the regular tetrahedron, counting the points' unit vectors with the 3-D index, in bounded
+steps (progress, time limit and Ctrl-C between them), and the result is the one ``Mesh``
+with ``domain="sphere"``.
+
+Lemma 2's precondition holds for the tetrahedron whatever the data: its vertices are
+109.47 degrees (1.91 rad) apart, and (K - 1) 1.91 >= 3.82 > pi >= d_{P,k} for K >= 3, so
+no input is refused for it (docs/algorithm.md, "On the sphere").
+"""
+
+import math
+import time
+
+import numpy as np
+
+from . import validation as V
+from .engine.index3 import build_index3
+from .engine.interrupt import Interrupts
+from .engine.jit import is_ready
+from .engine.queue import Q_SIZE, Q_USED, new_queue
+from .engine.refine_sphere import (
+    MAX_CAVITY_SPHERE,
+    N_PARAMS_SPHERE,
+    PS_CLEAN_FLOOR2,
+    PS_FLOOR2,
+    PS_INFLATE,
+    PS_K,
+    PS_TAU2,
+    QUEUE_HEADROOM,
+    queue_all_sphere,
+    refine_steps_sphere,
+)
+from .engine.state import (
+    C_CELL_TESTS,
+    C_DISK_TESTS,
+    C_ERROR,
+    C_FAILED,
+    C_MAX_VERTICES,
+    C_NT,
+    C_NV,
+    ERRORS,
+    FLOOR,
+    KIND_NAMES,
+    N_COUNTERS,
+    STATUS_DONE,
+    STATUS_ERROR,
+    STATUS_GROW,
+    STATUS_MAX_VERTICES,
+    STATUS_STEPS,
+    Bookkeeping,
+    Queues,
+    SphereScratch,
+    grown,
+)
+from .engine.triangulation_sphere import new_sphere
+from .errors import BudgetError, EngineError, FloorWarning, InputError
+from .mesh import Mesh
+from .metric import angle_to_chord, lonlat_of, unit_vectors
+from .run import Progress, is_spatial
+
+STEPS = 20_000  # insertions per kernel call
+DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the resolution floor: a millionth of half a great circle
+CLEAN_FLOOR_CHORD = 2.0**-38  # 2^14 ulps of a unit vector: no Clean below it
+MAX_DEGREE = 256
+SPHERE_BOX = (-180.0, -90.0, 180.0, 90.0)
+
+
+def as_sphere_points(points):
+    """Unit vectors (n, 3) of points given as (longitude, latitude) degrees (n, 2) or as
+    vectors (n, 3) of length 1 (within 1e-6); InputError otherwise, naming what is wrong."""
+    dim = 3 if is_spatial(points) else 2
+    try:
+        pts = V.as_points(points, dim)
+    except InputError as exc:
+        raise InputError(
+            f"{exc} (on the sphere: (n, 2) longitude and latitude in degrees, or (n, 3) unit "
+            "vectors)"
+        ) from None
+    if dim == 3:
+        norm = np.linalg.norm(pts, axis=1)
+        bad = np.abs(norm - 1.0) > 1e-6
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(
+                f"points of shape (n, 3) on the sphere must be unit vectors; point {i} has "
+                f"length {norm[i]:.9g} (normalise them, or give longitude and latitude)"
+            )
+        return pts / norm[:, None]
+    lat = pts[:, 1]
+    bad = np.abs(lat) > 90.0
+    if bad.any():
+        i = int(np.argmax(bad))
+        swapped = " (are the columns swapped? give longitude first)" if (
+            np.abs(pts[:, 0]) <= 90.0
+        ).all() else ""  # fmt: skip
+        raise InputError(
+            f"latitudes must lie in [-90, 90] degrees; point {i} has latitude {lat[i]:g}"
+            f"{swapped}"
+        )
+    return unit_vectors(pts)
+
+
+class SphereOptions:
+    """What a run on the sphere was asked, checked before any work."""
+
+    def __init__(self, n, total, k, tau, radius, min_size, max_vertices, time_limit, progress):
+        self.t_start = time.perf_counter()
+        if radius is None:
+            radius = 1.0
+        if isinstance(radius, bool) or not isinstance(radius, (int, float, np.integer,
+                                                               np.floating)) or not (
+            0 < float(radius) < np.inf
+        ):  # fmt: skip
+            raise InputError(f"radius must be a finite number > 0, got {radius!r}")
+        self.radius = float(radius)
+        if k is None:
+            k = V.default_k(n if total is None else total)
+        self.k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
+        self.tau = V.check_tau(tau)
+        if min_size is None:
+            self.min_angle = DEFAULT_MIN_ANGLE
+        elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
+            raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
+        else:
+            self.min_angle = float(min_size) / self.radius
+        self.max_vertices = V.check_max_vertices(max_vertices)
+        self.deadline = None
+        if time_limit is not None:
+            if isinstance(time_limit, bool) or not isinstance(
+                time_limit, (int, float, np.integer, np.floating)
+            ) or not (np.isfinite(time_limit) and time_limit > 0):  # fmt: skip
+                raise InputError(
+                    f"time_limit must be a positive number of seconds, got {time_limit!r}"
+                )
+            self.deadline = self.t_start + float(time_limit)
+        if progress is not None and not callable(progress):
+            raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
+        self.progress = progress
+
+    @property
+    def min_size(self):
+        return self.min_angle * self.radius
+
+
+class SphereRun:
+    """The engine's arrays for one run (grown in place of their fields)."""
+
+    def __init__(self, cap_v, cap_t, cap_q):
+        self.mesh, nv, nt = new_sphere(cap_v, cap_t)
+        self.book = Bookkeeping(
+            ball_state=np.zeros(cap_t, np.int8),
+            kinds=np.zeros(cap_v, np.int8),
+            cell_state=np.zeros(cap_v, np.int8),
+            flags=np.zeros(cap_v, np.int8),
+        )
+        self.queues = Queues(new_queue(cap_q), new_queue(cap_q), new_queue(cap_q))
+        self.scratch = SphereScratch(
+            mark=np.zeros(cap_t, np.int64),
+            vmark=np.zeros(cap_v, np.int64),
+            vnext=np.zeros(cap_v, np.int32),
+            cavity=np.zeros(MAX_CAVITY_SPHERE + 2, np.int32),
+            horizon=np.zeros((MAX_CAVITY_SPHERE + 2, 3), np.int32),
+            points=np.zeros((4, 3)),
+            ids=np.zeros(MAX_DEGREE, np.int64),
+            h=np.zeros((MAX_DEGREE, 3)),
+            hc=np.zeros(MAX_DEGREE),
+            stack=np.zeros(128, np.int64),
+        )
+        self.cnt = np.zeros(N_COUNTERS, np.int64)
+        self.cnt[C_NV] = nv
+        self.cnt[C_NT] = nt
+
+    def grow(self):
+        """Double whatever is nearly full: the vertex and triangle arrays, the queues."""
+        cap_v = self.mesh.xyz.shape[0]
+        cap_t = self.mesh.corners.shape[0]
+        if self.cnt[C_NV] + 64 > cap_v or self.cnt[C_NT] + 128 > cap_t:
+            v2, t2 = 2 * cap_v, 2 * cap_t
+            self.mesh = self.mesh._replace(
+                **{f: grown(getattr(self.mesh, f), t2)
+                   for f in ("corners", "neighbours", "centre", "chord2", "gen")},
+                **{f: grown(getattr(self.mesh, f), v2) for f in ("xyz", "star")},
+            )  # fmt: skip
+            self.book = self.book._replace(
+                ball_state=grown(self.book.ball_state, t2),
+                **{f: grown(getattr(self.book, f), v2) for f in ("kinds", "cell_state", "flags")},
+            )
+            self.scratch = self.scratch._replace(
+                mark=grown(self.scratch.mark, t2),
+                vmark=grown(self.scratch.vmark, v2),
+                vnext=grown(self.scratch.vnext, v2),
+            )
+        queues = []
+        for q in self.queues:
+            cap = q.ident.shape[0]
+            if q.scalars[Q_USED] + 2 * QUEUE_HEADROOM > cap:
+                q = q._replace(**{f: grown(getattr(q, f), 2 * cap) for f in ("ident", "aux",
+                                                                              "next")})
+            queues.append(q)
+        self.queues = Queues(*queues)
+
+    def pending(self):
+        return int(sum(q.scalars[Q_SIZE] for q in self.queues))
+
+    def step(self, prm, index, steps):
+        return refine_steps_sphere(self.mesh, self.book, self.queues, self.scratch, self.cnt,
+                                   prm, index, steps)  # fmt: skip
+
+
+def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_size=None,
+                  max_vertices=None, time_limit=None, progress=None):  # fmt: skip
+    """kNNRefine on the sphere (``knnrefine.refine(..., sphere=True)`` documents it)."""
+    xyz_p = as_sphere_points(points)
+    n = len(xyz_p)
+    w = None if weights is None else V.check_weights(weights, n)
+    total = None if w is None else math.fsum(w)
+    opt = SphereOptions(n, total, k, tau, radius, min_size, max_vertices, time_limit, progress)
+    report = Progress(opt.progress)
+    budget = opt.max_vertices if opt.max_vertices is not None else max(10**6, 4 * n)
+    index = build_index3(xyz_p, copy=True, weights=w)
+    prm = np.zeros(N_PARAMS_SPHERE)
+    prm[PS_TAU2] = opt.tau**2 * (1.0 - 1e-12)
+    prm[PS_FLOOR2] = max(angle_to_chord(opt.min_angle), CLEAN_FLOOR_CHORD) ** 2
+    prm[PS_CLEAN_FLOOR2] = CLEAN_FLOOR_CHORD**2
+    prm[PS_INFLATE] = 1.0 + 1e-9
+    prm[PS_K] = float(opt.k)
+    first = max(1024, min(budget, 8 * int(n / max(opt.k, 1.0)) + 64))
+    run = SphereRun(first, 2 * first, 4 * first + 4 * QUEUE_HEADROOM)
+    run.cnt[C_MAX_VERTICES] = budget
+    if not is_ready(refine_steps_sphere):
+        report.compiling()
+    t0 = time.perf_counter()
+    with Interrupts() as interrupts:
+        queue_all_sphere(run.mesh, run.book, run.queues, run.scratch, run.cnt)
+        while True:
+            status = run.step(prm, index, STEPS)
+            interrupts.check()
+            if status == STATUS_GROW:
+                run.grow()
+                continue
+            if status == STATUS_STEPS:
+                report.refining(int(run.cnt[C_NV]), run.pending())
+                if opt.deadline is not None and time.perf_counter() > opt.deadline:
+                    raise BudgetError(
+                        f"time_limit reached with {int(run.cnt[C_NV]):,} vertices; raise "
+                        "time_limit, or use a larger k or min_size",
+                        progress=_progress(run, t0),
+                    )
+                continue
+            if status == STATUS_MAX_VERTICES:
+                raise BudgetError(
+                    f"the mesh reached max_vertices={budget:,}; raise it, or use a larger k "
+                    "or min_size",
+                    progress=_progress(run, t0),
+                )
+            if status == STATUS_ERROR:
+                code = int(run.cnt[C_ERROR])
+                raise EngineError(
+                    f"the refinement on the sphere broke an invariant: "
+                    f"{ERRORS.get(code, code)}; please report it with the input"
+                )
+            if status == STATUS_DONE:
+                break
+    seconds = time.perf_counter() - t0
+    report.assembling(int(run.cnt[C_NV]))
+    mesh = _assemble(run, opt, index, seconds, n)
+    report.assembling(len(mesh.vertices), done=True)
+    return mesh
+
+
+def _progress(run, t0):
+    nv = int(run.cnt[C_NV])
+    kinds = run.book.kinds[:nv]
+    return {
+        "vertices": nv,
+        "moves": {name: int((kinds == i).sum()) for i, name in enumerate(KIND_NAMES)},
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _assemble(run, opt, index, seconds, n):
+    nv, nt = int(run.cnt[C_NV]), int(run.cnt[C_NT])
+    xyz = run.mesh.xyz[:nv].copy()
+    kinds = run.book.kinds[:nv].copy()
+    floor_t = np.flatnonzero(run.book.ball_state[:nt] == FLOOR)
+    floor_v = np.flatnonzero(run.book.cell_state[:nv] == FLOOR)
+    sites = np.concatenate([run.mesh.centre[floor_t], xyz[floor_v]])
+    stats = {
+        "moves": {name: int((kinds == i).sum()) for i, name in enumerate(KIND_NAMES)},
+        "circumcap_tests": int(run.cnt[C_DISK_TESTS]),
+        "cell_tests": int(run.cnt[C_CELL_TESTS]),
+        "failed_insertions": int(run.cnt[C_FAILED]),
+        "floor_circumcaps": int(len(floor_t)),
+        "floor_cells": int(len(floor_v)),
+        "seconds": seconds,
+        "vertices": nv,
+        "triangles": nt,
+        "n": n,
+    }
+    if len(sites):
+        import warnings
+
+        warnings.warn(
+            f"{len(sites)} circumcaps or cells still hold >= k points but are smaller than "
+            f"min_size = {opt.min_size:.3g}: the guarantee holds above that floor "
+            "(Mesh.floor_points says where)",
+            FloorWarning,
+            stacklevel=3,
+        )
+    return Mesh(
+        vertices=lonlat_of(xyz),
+        cells=run.mesh.corners[:nt].copy(),
+        offsets=None,
+        kinds=kinds,
+        order=np.arange(nv, dtype=np.int64),
+        k=opt.k,
+        tau=opt.tau,
+        periodic=(True, False),
+        box=SPHERE_BOX,
+        min_size=opt.min_size,
+        floor_points=lonlat_of(sites).reshape(-1, 2),
+        stats=stats,
+        torus=None,
+        index=index,
+        domain="sphere",
+        radius=opt.radius,
+        xyz=xyz,
+    )
