@@ -247,7 +247,7 @@ def certify(
         raise InputError(f"threads must be -1 (all cores) or a positive integer, got {threads!r}")
     options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
                    seed=seed)  # fmt: skip
-    if workers == 1:
+    if workers == 1 or getattr(mesh, "on_sphere", False):  # the sphere: one process
         return certify_points(mesh, points, weights=weights, threads=threads, **options)
     from .scale.checks import certify_local
 

@@ -57,49 +57,14 @@ from .engine.state import (
 from .engine.triangulation_sphere import new_sphere
 from .errors import BudgetError, EngineError, FloorWarning, InputError
 from .mesh import Mesh
-from .metric import angle_to_chord, lonlat_of, unit_vectors
-from .run import Progress, is_spatial
+from .metric import angle_to_chord, lonlat_of
+from .run import Progress
 
 STEPS = 20_000  # insertions per kernel call
 DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the resolution floor: a millionth of half a great circle
 CLEAN_FLOOR_CHORD = 2.0**-38  # 2^14 ulps of a unit vector: no Clean below it
 MAX_DEGREE = 256
 SPHERE_BOX = (-180.0, -90.0, 180.0, 90.0)
-
-
-def as_sphere_points(points):
-    """Unit vectors (n, 3) of points given as (longitude, latitude) degrees (n, 2) or as
-    vectors (n, 3) of length 1 (within 1e-6); InputError otherwise, naming what is wrong."""
-    dim = 3 if is_spatial(points) else 2
-    try:
-        pts = V.as_points(points, dim)
-    except InputError as exc:
-        raise InputError(
-            f"{exc} (on the sphere: (n, 2) longitude and latitude in degrees, or (n, 3) unit "
-            "vectors)"
-        ) from None
-    if dim == 3:
-        norm = np.linalg.norm(pts, axis=1)
-        bad = np.abs(norm - 1.0) > 1e-6
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise InputError(
-                f"points of shape (n, 3) on the sphere must be unit vectors; point {i} has "
-                f"length {norm[i]:.9g} (normalise them, or give longitude and latitude)"
-            )
-        return pts / norm[:, None]
-    lat = pts[:, 1]
-    bad = np.abs(lat) > 90.0
-    if bad.any():
-        i = int(np.argmax(bad))
-        swapped = " (are the columns swapped? give longitude first)" if (
-            np.abs(pts[:, 0]) <= 90.0
-        ).all() else ""  # fmt: skip
-        raise InputError(
-            f"latitudes must lie in [-90, 90] degrees; point {i} has latitude {lat[i]:g}"
-            f"{swapped}"
-        )
-    return unit_vectors(pts)
 
 
 class SphereOptions:
@@ -212,7 +177,7 @@ class SphereRun:
 def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_size=None,
                   max_vertices=None, time_limit=None, progress=None):  # fmt: skip
     """kNNRefine on the sphere (``knnrefine.refine(..., sphere=True)`` documents it)."""
-    xyz_p = as_sphere_points(points)
+    xyz_p = V.as_sphere_points(points)
     n = len(xyz_p)
     w = None if weights is None else V.check_weights(weights, n)
     total = None if w is None else math.fsum(w)
@@ -250,9 +215,14 @@ def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_siz
                     )
                 continue
             if status == STATUS_MAX_VERTICES:
+                hint = (
+                    "k = 1 refines every input point down to min_size: use k >= 2 or a larger "
+                    "min_size"
+                    if opt.k == 1
+                    else "use a larger k or min_size"
+                )
                 raise BudgetError(
-                    f"the mesh reached max_vertices={budget:,}; raise it, or use a larger k "
-                    "or min_size",
+                    f"the mesh reached max_vertices={budget:,}; {hint}, or raise max_vertices",
                     progress=_progress(run, t0),
                 )
             if status == STATUS_ERROR:
@@ -265,7 +235,7 @@ def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_siz
                 break
     seconds = time.perf_counter() - t0
     report.assembling(int(run.cnt[C_NV]))
-    mesh = _assemble(run, opt, index, seconds, n)
+    mesh = _assemble(run, opt, index, seconds, n, total)
     report.assembling(len(mesh.vertices), done=True)
     return mesh
 
@@ -280,7 +250,7 @@ def _progress(run, t0):
     }
 
 
-def _assemble(run, opt, index, seconds, n):
+def _assemble(run, opt, index, seconds, n, total):
     nv, nt = int(run.cnt[C_NV]), int(run.cnt[C_NT])
     xyz = run.mesh.xyz[:nv].copy()
     kinds = run.book.kinds[:nv].copy()
@@ -299,6 +269,8 @@ def _assemble(run, opt, index, seconds, n):
         "triangles": nt,
         "n": n,
     }
+    if total is not None:
+        stats["weight"] = total
     if len(sites):
         import warnings
 

@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 
 from .errors import InputError, WrapWarning
+from .metric import unit_vectors
 
 # squared distances of coordinates up to 1e100 stay far from overflow and underflow
 MAX_COORDINATE = 1e100
@@ -417,3 +418,39 @@ def check_resolution(box, per):
             f"across the box (its side is {side:.3g}, about {side / step:.3g} steps); subtract "
             "an offset first, for example points - points.min(axis=0)"
         )
+
+
+def as_sphere_points(points):
+    """Unit vectors (n, 3) of points given as (longitude, latitude) degrees (n, 2) or as
+    vectors (n, 3) of length 1 (within 1e-6); InputError otherwise, naming what is wrong."""
+    shape = np.shape(points if hasattr(points, "shape") else np.asarray(points, dtype=object))
+    dim = 3 if len(shape) == 2 and shape[1] == 3 else 2
+    try:
+        pts = as_points(points, dim)
+    except InputError as exc:
+        raise InputError(
+            f"{exc} (on the sphere: (n, 2) longitude and latitude in degrees, or (n, 3) unit "
+            "vectors)"
+        ) from None
+    if dim == 3:
+        norm = np.linalg.norm(pts, axis=1)
+        bad = np.abs(norm - 1.0) > 1e-6
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(
+                f"points of shape (n, 3) on the sphere must be unit vectors; point {i} has "
+                f"length {norm[i]:.9g} (normalise them, or give longitude and latitude)"
+            )
+        return pts / norm[:, None]
+    lat = pts[:, 1]
+    bad = np.abs(lat) > 90.0
+    if bad.any():
+        i = int(np.argmax(bad))
+        swapped = " (are the columns swapped? give longitude first)" if (
+            np.abs(pts[:, 0]) <= 90.0
+        ).all() else ""  # fmt: skip
+        raise InputError(
+            f"latitudes must lie in [-90, 90] degrees; point {i} has latitude {lat[i]:g}"
+            f"{swapped}"
+        )
+    return unit_vectors(pts)

@@ -1,6 +1,6 @@
 """Checks of a mesh against Theorem 6, independently of the engine, in the plane (``plane``:
 the torus triangulation verified in exact arithmetic, counts, ratios, the floor) or in space
-(``space``); what both share is in ``common``, the ``Certificate`` in ``certificate``. Nothing
+(``space``) or on the sphere (``sphere``); what they share is in ``common``, the ``Certificate`` in ``certificate``. Nothing
 here calls the refinement kernels: counts and distances come from scipy's cKDTree.
 ``knnrefine.certify`` (``api.certify``) checks its options and calls ``certify_points`` in
 this process, or ``scale.checks`` strip by strip in worker processes."""
@@ -12,6 +12,7 @@ from .certificate import Certificate
 from .common import check_points_are_the_meshs, check_precondition, check_source
 from .plane import TorusPoints, run_checks
 from .space import certify3
+from .sphere import certify_sphere
 
 __all__ = [
     "certify_points",
@@ -37,6 +38,10 @@ def certify_points(
     -------
     Certificate
     """
+    if getattr(mesh, "on_sphere", False):  # on the sphere: sphere.certify_sphere's checks
+        return certify_sphere(mesh, points, samples=samples, n_random=n_random,
+                              max_point_probes=max_point_probes, seed=seed, weights=weights,
+                              threads=threads)  # fmt: skip
     if mesh.dim == 3:  # in space: space.certify3's checks
         return certify3(mesh, points, samples=samples, n_random=n_random,
                         max_point_probes=max_point_probes, seed=seed, weights=weights,

@@ -80,6 +80,7 @@ class Certificate:
     # sums of real weights are rounded (compensated: within two ulps, engine and certify
     # alike): a weighted count passes below k plus this, 0 for counts of points
     count_slack: float = 0.0
+    domain: str = "box"  # "sphere": circumcaps, great-circle distances, no box
 
     @property
     def dim(self) -> int:
@@ -145,17 +146,29 @@ class Certificate:
         )
         cells = "triangulation     " if self.dim == 2 else "tetrahedralisation"
         held = "count" if self.weight is None else "weight"
+        sphere = self.domain == "sphere"
+        where = "on the sphere" if sphere else f"{mode}, box {tuple(round(b, 6) for b in self.box)}"
         lines = [
             f"knnrefine certificate: n = {self.n}"
             + ("" if self.weight is None else f" (total weight {self.weight:.6g})")
             + f", m = {self.m}, k = {self.k}, "
-            f"tau = {self.tau:g}, {mode}, box {tuple(round(b, 6) for b in self.box)}",
+            f"tau = {self.tau:g}, {where}",
             f"  {cells} Delaunay"
-            + (" on the torus" if all(self.periodic) else " (of the torus embedding the box)")
+            + (
+                " on the sphere (the vectors' convex hull)"
+                if sphere
+                else " on the torus"
+                if all(self.periodic)
+                else " (of the torus embedding the box)"
+            )
             + f": {verdict(self.triangulation_ok)}"
             + ("" if self.triangulation_ok else f" ({'; '.join(self.triangulation_problems)})"),
-            f"  returned mesh      the certified torus mesh, exactly, no repeated vertex: "
-            f"{verdict(not self.mesh_problems)}"
+            (
+                "  returned mesh      degrees are the certified unit vectors: "
+                if sphere
+                else "  returned mesh      the certified torus mesh, exactly, no repeated vertex: "
+            )
+            + f"{verdict(not self.mesh_problems)}"
             + ("" if not self.mesh_problems else f" ({'; '.join(self.mesh_problems)})"),
             f"  initial mesh       Lemma 2's precondition d_Pk <= (K - 1) lambda: "
             f"{verdict(self.precondition_ok)}"
@@ -164,7 +177,8 @@ class Certificate:
             f"{verdict(self.max_aspect <= self.tau)}",
             f"  Voronoi cells      max {held} {self.max_cell_count:.8g} < k: "
             f"{verdict(self.max_cell_count < self.k + self.count_slack)}",
-            f"  circumballs        max {held} {self.max_ball_count:.8g} < k: "
+            f"  {'circumcaps ' if sphere else 'circumballs'}        max {held} "
+            f"{self.max_ball_count:.8g} < k: "
             f"{verdict(self.max_ball_count < self.k + self.count_slack)}",
             f"  d_M2 / d_Pk        in [{self.alpha_hat:.4f}, {self.beta_hat:.4f}] over "
             f"{self.n_probes} probes; Theorem 6 allows [{self.alpha:.4f}, {self.beta:.2f}]: "

@@ -1,0 +1,321 @@
+"""``certify`` on the sphere: every promise of a ``Mesh`` with ``domain="sphere"`` checked
+without the engine's refinement code, in great-circle distance.
+
+The triangulation is checked exactly on the unit vectors the user received (``Mesh.xyz``):
+every edge is shared by exactly two triangles in opposite directions, there are 2 m - 4
+triangles over all m vertices (a closed surface of genus 0), every triangle is positively
+oriented about the centre, and every edge is locally convex (the far corner of the triangle
+across it is not strictly inside the triangle's circumcap), all signs from the exact
+``predicates3.orient3d`` (itself tested against rational arithmetic). Locally convex and
+positively oriented everywhere, the surface is the boundary of the vectors' convex hull,
+which is the spherical Delaunay triangulation; scipy's ConvexHull (qhull) is asked too: it
+must find every vertex extreme and the same enclosed volume. The vertices in degrees must be
+the vectors' longitude and latitude.
+
+Counts come from scipy's cKDTree on the points' unit vectors (a cap is a ball's trace on the
+sphere): points in every closed circumcap and every closed Voronoi cell (each point counting
+for every vertex as near as its nearest), below k except for elements smaller than the
+resolution floor (counted and reported). The aspect 2 R(v) / d_{M,2}(v) in angles. Lemma 2's
+precondition on the initial vertices, ordered by peeling as in the plane. The achieved
+constants: d_{M,2} / d_{P,k} at every vertex, cap centre and edge midpoint, stratified
+samples in every triangle, input points and uniform points of the sphere, within [alpha,
+beta] wherever d_{P,k} >= min_size.
+"""
+
+import math
+import time
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull, cKDTree
+
+from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
+from ..engine.predicates3 import orient3d
+from ..mesh import theorem6_constants
+from ..metric import (
+    angle_to_chord,
+    cell_tally,
+    chord_to_angle,
+    held_in_balls,
+    lonlat_of,
+    weighted_kth,
+)
+from ..validation import as_sphere_points, check_made_from, weights_of_run
+from .certificate import Certificate
+
+
+@kernel(entry=True, lazy=True)
+def _exact_edges(xyz, corners, twin_tri, twin_corner):
+    """(triangles not positively oriented about the centre, edges not locally convex)."""
+    bad_orient = 0
+    bad_convex = 0
+    pts = np.empty((4, 3))
+    for t in range(corners.shape[0]):
+        for i in range(3):
+            for a in range(3):
+                pts[i, a] = xyz[corners[t, i], a]
+        for a in range(3):
+            pts[3, a] = 0.0
+        if orient3d(pts) <= 0:
+            bad_orient += 1
+        for i in range(3):
+            u = twin_tri[t, i]
+            d = corners[u, twin_corner[t, i]]
+            for a in range(3):
+                pts[3, a] = xyz[d, a]
+            if orient3d(pts) < 0:
+                bad_convex += 1
+    return bad_orient, bad_convex
+
+
+def _twins(tri, m):
+    """For each (triangle, corner): the triangle across the opposite edge and its corner
+    opposite that edge; None unless every directed edge has exactly one reversed twin."""
+    t = len(tri)
+    a = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]]).astype(np.int64)
+    b = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]]).astype(np.int64)
+    own = a * m + b
+    order = np.argsort(own, kind="stable")
+    sorted_own = own[order]
+    if len(sorted_own) > 1 and (np.diff(sorted_own) == 0).any():
+        return None
+    where = np.minimum(np.searchsorted(sorted_own, b * m + a), len(own) - 1)
+    found = sorted_own[where] == b * m + a
+    if not found.all():
+        return None
+    twin = order[where]  # flat index: corner * t + triangle
+    return (twin % t).reshape(3, t).T.copy(), (twin // t).reshape(3, t).T.copy()
+
+
+def _caps(xyz, tri):
+    """(centres (t, 3) unit vectors, angular radii (t,)) of the triangles' circumcaps."""
+    a, b, c = xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    chord = np.max([np.linalg.norm(n - p, axis=1) for p in (a, b, c)], axis=0)
+    return n, chord_to_angle(chord)
+
+
+def check_triangulation(mesh):
+    """(problems, returned-mesh problems): the triangulation's exact checks, and the
+    vertices in degrees against the unit vectors."""
+    problems, mesh_problems = [], []
+    xyz = np.asarray(mesh.xyz, float)
+    tri = np.asarray(mesh.triangles, np.int64)
+    m = len(xyz)
+    if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
+        return [f"triangles have shape {tri.shape}, not (t, 3)"], mesh_problems
+    if tri.min() < 0 or tri.max() >= m:
+        return ["a triangle names a vertex that does not exist"], mesh_problems
+    if len(tri) != 2 * m - 4:
+        problems.append(f"{len(tri)} triangles over {m} vertices, not 2 m - 4 = {2 * m - 4}")
+    unused = m - len(np.unique(tri))
+    if unused:
+        problems.append(f"{unused} vertices are in no triangle")
+    twins = _twins(tri, m)
+    if twins is None:
+        problems.append("an edge is not shared by exactly two triangles in opposite directions")
+    else:
+        orient, convex = _exact_edges(np.ascontiguousarray(xyz), np.ascontiguousarray(tri),
+                                      twins[0], twins[1])  # fmt: skip
+        if orient:
+            problems.append(f"{orient} triangles are not counter-clockwise seen from outside")
+        if convex:
+            problems.append(f"{convex} edges are not locally Delaunay (a corner inside a cap)")
+    if m >= 4:
+        try:
+            hull = ConvexHull(xyz)
+            volume = abs(np.einsum("ij,ij->i", xyz[tri[:, 0]],
+                                   np.cross(xyz[tri[:, 1]], xyz[tri[:, 2]])).sum()) / 6.0  # fmt: skip
+            if len(hull.vertices) != m:
+                problems.append(f"qhull finds {m - len(hull.vertices)} vertices not extreme")
+            if not math.isclose(hull.volume, volume, rel_tol=1e-9):
+                problems.append(f"the enclosed volume {volume:.12g} is not the hull's "
+                                f"{hull.volume:.12g}")  # fmt: skip
+        except Exception as exc:  # qhull's own errors: a degenerate vertex set
+            problems.append(f"qhull could not build the hull: {exc}")
+    norms = np.linalg.norm(xyz, axis=1)
+    if np.abs(norms - 1.0).max(initial=0.0) > 1e-12:
+        mesh_problems.append("the vertices' vectors are not unit vectors")
+    if np.asarray(mesh.vertices).shape != (m, 2):
+        mesh_problems.append("vertices and xyz differ in number")
+    else:
+        gap = np.abs(lonlat_of(xyz) - mesh.vertices)
+        gap[:, 0] = np.minimum(gap[:, 0], 360.0 - gap[:, 0])  # -180 and 180 are one meridian
+        gap[np.abs(mesh.vertices[:, 1]) == 90.0, 0] = 0.0  # at a pole any longitude is it
+        if gap.max(initial=0.0) > 1e-9:
+            mesh_problems.append(
+                f"vertices (degrees) differ from their vectors by up to {gap.max():.3g} degrees"
+            )
+    return problems, mesh_problems
+
+
+class SpherePoints:
+    """The questions ``certify`` asks about the points, on the unit sphere: counts in caps
+    (balls about unit vectors), d_{P,k} (an angle), cell tallies."""
+
+    def __init__(self, unit, weights, threads):
+        self.unit, self.weights, self.threads = unit, weights, threads
+        self.tree = cKDTree(unit)
+        self.n = len(unit)
+        self.total = self.n if weights is None else float(weights.sum())
+
+    def held(self, centres, angles):
+        """What each closed cap (centre, angle) holds, inflated by a relative 1e-12."""
+        chord = angle_to_chord(np.asarray(angles, float)) * (1.0 + 1e-12)
+        return held_in_balls(self.tree, self.weights, centres, chord, self.threads)
+
+    def kth(self, x, k):
+        """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
+        if self.total < k:
+            return np.full(len(x), np.inf)
+        if self.weights is None:
+            d = self.tree.query(x, k=[int(k)], workers=self.threads)[0][:, 0]
+        else:
+            d = weighted_kth(self.tree, self.weights, x, k, self.threads)
+        return chord_to_angle(d)
+
+
+def _precondition(initial, points, k, tau):
+    """Lemma 2's base case on the sphere, by peeling as in the plane: (ok, note)."""
+    factor = max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
+    remaining = np.asarray(initial, float)
+    if points.total < k:
+        return False, "n < k"
+    rounds = 0
+    while len(remaining) > 1:
+        lam = chord_to_angle(cKDTree(remaining).query(remaining, k=2)[0][:, 1])
+        ok = points.held(remaining, np.minimum(factor * lam, np.pi)) >= k
+        if not ok.any():
+            return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"
+        remaining = remaining[~ok]
+        rounds += 1
+    return True, f"{len(initial)} vertices ordered in {rounds} round{'s' if rounds != 1 else ''}"
+
+
+def _uniform_on_sphere(n, rng):
+    x = rng.standard_normal((n, 3))
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _floor_sites(sites, angle):
+    """Floor elements within ``angle`` of each other grouped: [(lon, lat, count), ...]."""
+    if len(sites) == 0:
+        return []
+    pairs = cKDTree(sites).query_pairs(angle_to_chord(angle), output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(sites), len(sites)))  # fmt: skip
+    ncomp, label = connected_components(graph, directed=False)
+    counts = np.bincount(label, minlength=ncomp)
+    order = np.argsort(-counts, kind="stable")
+    first = np.array([np.flatnonzero(label == c)[0] for c in order])
+    where = lonlat_of(sites[first])
+    return [(float(x[0]), float(x[1]), int(counts[c])) for x, c in zip(where, order, strict=True)]
+
+
+def certify_sphere(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
+                   seed=0, weights=None, threads=-1):  # fmt: skip
+    """``knnrefine.certify`` for a mesh on the sphere (its parameters)."""
+    t0 = time.perf_counter()
+    unit = as_sphere_points(points)
+    check_made_from(mesh.stats, len(unit), "certify a mesh against")
+    weights = weights_of_run(mesh.stats, len(unit), weights)
+    pts = SpherePoints(unit, weights, threads)
+    k, tau = mesh.k, mesh.tau
+    min_angle = mesh.min_size / mesh.radius
+    problems, mesh_problems = check_triangulation(mesh)
+    xyz = np.asarray(mesh.xyz, float)
+    tri = np.asarray(mesh.triangles, np.int64)
+    m = len(xyz)
+    centres, cap = _caps(xyz, tri)
+    # well-spacedness: R(v) the largest cap angle about v, d_M2(v) the nearest other vertex
+    vtree = cKDTree(xyz)
+    outradius = np.zeros(m)
+    for j in range(3):
+        np.maximum.at(outradius, tri[:, j], cap)
+    nearest = chord_to_angle(vtree.query(xyz, k=2)[0][:, 1])
+    max_aspect = float(np.max(2.0 * outradius / nearest))
+    # counts in circumcaps and Voronoi cells above the floor
+    big = cap >= min_angle
+    held_caps = pts.held(centres, cap)
+    floor_caps = (~big) & (held_caps >= k)
+    dd, ii = vtree.query(unit, k=min(3, m), workers=threads)
+    cells = cell_tally(dd, ii, weights, m)
+    big_cells = outradius >= min_angle
+    floor_cells = (~big_cells) & (cells >= k)
+    max_ball = float(held_caps[big].max(initial=0))
+    max_cell = float(cells[big_cells].max(initial=0))
+    precondition_ok, note = _precondition(xyz[np.asarray(mesh.kinds) == 0], pts, k, tau)
+    # probes: vertices, cap centres, edge midpoints, stratified samples, data, uniform
+    rng = np.random.default_rng(seed)
+    per = max(4, int(math.ceil(samples / max(len(tri), 1))))
+    u = rng.random((len(tri), per, 2))
+    fold = u.sum(-1) > 1
+    u[fold] = 1.0 - u[fold]
+    a = xyz[tri[:, 0]][:, None]
+    inside = a + u[..., :1] * (xyz[tri[:, 1]][:, None] - a) + u[..., 1:] * (
+        xyz[tri[:, 2]][:, None] - a
+    )  # fmt: skip
+    mids = np.concatenate([xyz[tri[:, i]] + xyz[tri[:, (i + 1) % 3]] for i in range(3)])
+    take = rng.choice(len(unit), min(len(unit), int(max_point_probes)), replace=False)
+    probes = np.concatenate([xyz, centres, mids, inside.reshape(-1, 3), unit[take],
+                             _uniform_on_sphere(int(n_random), rng)])  # fmt: skip
+    probes /= np.linalg.norm(probes, axis=1, keepdims=True)
+    d_pk = pts.kth(probes, k)
+    d_m2 = chord_to_angle(vtree.query(probes, k=2, workers=threads)[0][:, 1])
+    above = d_pk >= min_angle
+    alpha, beta = theorem6_constants(tau)
+    if above.any():
+        ratio = d_m2[above] / d_pk[above]
+        lo, hi = int(np.argmin(ratio)), int(np.argmax(ratio))
+        at = lonlat_of(probes[above])
+        alpha_hat, beta_hat = float(ratio[lo]), float(ratio[hi])
+        alpha_at, beta_at = tuple(at[lo].tolist()), tuple(at[hi].tolist())
+    else:
+        alpha_hat = beta_hat = float("nan")
+        alpha_at = beta_at = ()
+    at_points = pts.kth(unit[take], k)
+    under = float(np.mean(at_points < min_angle)) if len(take) else 0.0
+    # the size integral over the sphere of 1 / d_Pk^2 (area 4 pi), Monte Carlo
+    uniform = _uniform_on_sphere(max(int(n_random), 1000), rng)
+    inv = 1.0 / np.maximum(pts.kth(uniform, k), 1e-300) ** 2
+    integral = 4.0 * np.pi * float(inv.mean())
+    stderr = 4.0 * np.pi * float(inv.std() / np.sqrt(len(inv)))
+    sites = _floor_sites(np.concatenate([centres[floor_caps], xyz[floor_cells]]),
+                         10.0 * max(min_angle, 1e-300))  # fmt: skip
+    return Certificate(
+        n=pts.n,
+        m=m,
+        k=k,
+        tau=tau,
+        periodic=tuple(mesh.periodic),
+        box=tuple(mesh.box),
+        min_size=mesh.min_size,
+        triangulation_ok=not problems,
+        triangulation_problems=problems,
+        max_aspect=max_aspect,
+        max_cell_count=max_cell,
+        max_ball_count=max_ball,
+        alpha=alpha,
+        beta=beta,
+        alpha_hat=alpha_hat,
+        beta_hat=beta_hat,
+        alpha_hat_at=alpha_at,
+        beta_hat_at=beta_at,
+        n_probes=int(above.sum()),
+        size_integral=integral,
+        size_integral_stderr=stderr,
+        size_ratio=m / integral if integral > 0 else float("nan"),
+        floor_circumballs=int(floor_caps.sum()),
+        floor_cells=int(floor_cells.sum()),
+        floor_sites=sites,
+        under_floor=under,
+        mesh_problems=mesh_problems,
+        precondition_ok=precondition_ok,
+        precondition_note=note,
+        seconds=time.perf_counter() - t0,
+        weight=pts.total if weights is not None else None,
+        count_slack=4.0 * float(np.spacing(float(k))) if weights is not None else 0.0,
+        domain="sphere",
+    )
