@@ -266,6 +266,7 @@ def _assemble(run, opt, index, seconds, n, total):
         "floor_cells": int(len(floor_v)),
         "seconds": seconds,
         "vertices": nv,
+        "m_torus": nv,  # the engine's vertices (in a box, the torus'): all of them here
         "triangles": nt,
         "n": n,
     }
