@@ -38,6 +38,36 @@ def theorem6_constants(tau: float) -> tuple[float, float]:
     return 1.0 / (2.0 * big_k + 1.0), float((3.0 - theta) / (1.0 - theta))
 
 
+def sphere_constants(tau: float, largest_cap: float) -> tuple[float, float]:
+    """Theorem 6's constants on the sphere, for a mesh whose largest circumcap has angular
+    radius ``largest_cap`` (radians, below pi / 2).
+
+    alpha is the plane's (Lemmas 1-3 are metric arguments). Theorem 5's one Euclidean step,
+    |x' - cc(t)| <= theta |p - cc(t)| in the right triangle p, o, cc(t), becomes spherical
+    Pythagoras, cos R = cos |p o| cos |o cc(t)| with |p o| >= R / tau: theta grows to
+    arccos(cos R / cos(R / tau)) / R, which increases with R from the plane's
+    sqrt(1 - 1 / tau^2) (docs/algorithm.md, "On the sphere").
+
+    Parameters
+    ----------
+    tau : float
+        The well-spacedness bound, > 2.
+    largest_cap : float
+        The largest circumcap's angular radius R, radians.
+
+    Returns
+    -------
+    (alpha, beta) : tuple of float
+    """
+    alpha, _ = theorem6_constants(tau)
+    plane = np.sqrt(1.0 - 1.0 / tau**2)
+    r = float(largest_cap)
+    theta = plane if r <= 0 else max(plane, float(np.arccos(np.cos(r) / np.cos(r / tau)) / r))
+    if theta >= 1.0:
+        return alpha, float("inf")
+    return alpha, float((3.0 - theta) / (1.0 - theta))
+
+
 class Cells:
     """What a torus and a mesh say of their cells in any dimension: ``dim`` from the
     vertices, and the cells by their name (``triangles`` in the plane, ``tetrahedra`` in
@@ -183,6 +213,8 @@ class Mesh(Cells):
 
     @property
     def beta(self) -> float:
+        if self.on_sphere:  # spherical Pythagoras: from the largest circumcap
+            return sphere_constants(self.tau, self.stats.get("largest_circumcap", 0.0))[1]
         return theorem6_constants(self.tau)[1]
 
     @property

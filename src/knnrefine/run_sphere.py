@@ -57,7 +57,7 @@ from .engine.state import (
 from .engine.triangulation_sphere import new_sphere
 from .errors import BudgetError, EngineError, FloorWarning, InputError
 from .mesh import Mesh
-from .metric import angle_to_chord, lonlat_of
+from .metric import angle_to_chord, chord_to_angle, lonlat_of
 from .run import Progress
 
 STEPS = 20_000  # insertions per kernel call
@@ -262,6 +262,7 @@ def _assemble(run, opt, index, seconds, n, total):
         "circumcap_tests": int(run.cnt[C_DISK_TESTS]),
         "cell_tests": int(run.cnt[C_CELL_TESTS]),
         "failed_insertions": int(run.cnt[C_FAILED]),
+        "largest_circumcap": float(chord_to_angle(np.sqrt(run.mesh.chord2[:nt].max()))),
         "floor_circumcaps": int(len(floor_t)),
         "floor_cells": int(len(floor_v)),
         "seconds": seconds,

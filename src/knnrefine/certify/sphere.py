@@ -19,7 +19,8 @@ resolution floor (counted and reported). The aspect 2 R(v) / d_{M,2}(v) in angle
 precondition on the initial vertices, ordered by peeling as in the plane. The achieved
 constants: d_{M,2} / d_{P,k} at every vertex, cap centre and edge midpoint, stratified
 samples in every triangle, input points and uniform points of the sphere, within [alpha,
-beta] wherever d_{P,k} >= min_size.
+beta] wherever d_{P,k} >= min_size, beta from the largest circumcap measured here
+(``mesh.sphere_constants``: spherical Pythagoras widens the plane's).
 """
 
 import math
@@ -32,7 +33,7 @@ from scipy.spatial import ConvexHull, cKDTree
 
 from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..engine.predicates3 import orient3d
-from ..mesh import theorem6_constants
+from ..mesh import sphere_constants
 from ..metric import (
     angle_to_chord,
     cell_tally,
@@ -265,7 +266,7 @@ def certify_sphere(mesh, points, *, samples=100_000, n_random=20_000, max_point_
     d_pk = pts.kth(probes, k)
     d_m2 = chord_to_angle(vtree.query(probes, k=2, workers=threads)[0][:, 1])
     above = d_pk >= min_angle
-    alpha, beta = theorem6_constants(tau)
+    alpha, beta = sphere_constants(tau, float(cap.max(initial=0.0)))
     if above.any():
         ratio = d_m2[above] / d_pk[above]
         lo, hi = int(np.argmin(ratio)), int(np.argmax(ratio))
