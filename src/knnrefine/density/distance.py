@@ -26,10 +26,18 @@ from ..engine.index import PointIndex
 from ..engine.index3 import build_index3, kth_distances3
 from ..engine.threads import in_chunks
 from ..errors import InputError
-from ..metric import BoxMetric, weighted_kth
-from ..validation import as_queries, check_inside, points_of_run
+from ..metric import BoxMetric, lonlat_of, unit_vectors, weighted_kth
+from ..validation import (
+    as_queries,
+    as_sphere_points,
+    check_inside,
+    check_made_from,
+    points_of_run,
+    weights_of_run,
+)
 from .plane import PlanePieces, index_values, linear_pieces
 from .space import SpacePieces
+from .sphere import SphereIndex, SpherePieces, equal_area_radius
 
 
 class MeshFrame(Protocol):
@@ -86,6 +94,9 @@ class KnnDistance:
         weights: ArrayLike | None = None,
     ) -> None:
         """See the class docstring."""
+        if getattr(mesh, "on_sphere", False):
+            self._on_sphere(mesh, points, subdivide, weights)
+            return
         dim = mesh.dim
         pts, weights, total = points_of_run(mesh, points, weights)
         self._frame(mesh, len(pts), total)
@@ -104,8 +115,42 @@ class KnnDistance:
             self.pieces = SpacePieces(mesh, self.index.kth_local, subdivide)
         self.values = self.pieces.values
 
+    def _on_sphere(self, mesh, points, subdivide, weights):
+        """On the sphere: exact values from a kd-tree over the points' unit vectors, linear
+        pieces over the spherical triangles (``sphere.SpherePieces``)."""
+        unit = as_sphere_points(points)
+        check_made_from(mesh.stats, len(unit), "use a mesh with")
+        weights = weights_of_run(mesh.stats, len(unit), weights)
+        total = len(unit) if weights is None else float(weights.sum())
+        if total < mesh.k:
+            raise InputError(f"a total of {total:.6g} but k = {mesh.k}: d_Pk is infinite")
+        self._frame(mesh, len(unit), total)
+        self._points = lonlat_of(unit)
+        self.index = SphereIndex(unit, weights, mesh.radius)
+        self.pieces = SpherePieces(mesh, self.index, mesh.k, subdivide)
+        self.values = self.pieces.values
+
+    def equal_area_radius(self, d: ArrayLike) -> np.ndarray:
+        """The radius of the flat ball whose volume is the ball of radius d's: d itself in
+        a box; on the sphere the chord 2 R sin(d / 2R), the cap's area being pi chord^2.
+        The kNN density is k / (n V_d r^d) with this r.
+
+        Parameters
+        ----------
+        d : array-like
+            Distances (great-circle on the sphere).
+
+        Returns
+        -------
+        ndarray
+        """
+        if self.on_sphere:
+            return equal_area_radius(d, self.mesh.radius)
+        return np.asarray(d, float)
+
     def _frame(self, mesh, n, total):
         self.mesh = mesh
+        self.on_sphere = bool(getattr(mesh, "on_sphere", False))
         self.dim = mesh.dim
         self.k = mesh.k
         self.n = n
@@ -205,7 +250,10 @@ class KnnDistance:
         flat, shape = as_queries(x, self.dim)
         out = np.full(len(flat), np.nan)
         inside = self._inside(flat)
-        out[inside] = evaluate(self._metric.wrap(flat[inside]))
+        if self.on_sphere:  # the pieces and the index take unit vectors
+            out[inside] = evaluate(unit_vectors(flat[inside]))
+        else:
+            out[inside] = evaluate(self._metric.wrap(flat[inside]))
         return out.reshape(shape)
 
     def interpolate(self, x: np.ndarray, values: ArrayLike) -> np.ndarray:
@@ -252,6 +300,8 @@ class KnnDistance:
                 "this d_Pk was built from node values alone (a part of a partitioned mesh): "
                 "exact values need the points; build KnnDistance(mesh, points)"
             )
+        if self.on_sphere:
+            return self._where_inside(x, lambda unit: index.kth_unit(unit, self.k))
         return self._where_inside(x, lambda wrapped: index.kth(wrapped, self.k))
 
     def grid(self, shape: int | tuple | None = None) -> tuple:
@@ -328,6 +378,8 @@ class KnnDistance:
         -------
         float
         """
+        if self.on_sphere:
+            return self.pieces.integrate(func, None if region is None else _sphere_region(region))
         return float(sum(self.pieces.integrate(func, rect) for rect in self._region(region)))
 
     def sample_pieces(self, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -426,6 +478,25 @@ class KnnDistance:
         for axis_spans in spans:
             boxes = [b + [s] for b in boxes for s in axis_spans if s[1] > s[0]]
         return [np.array(b).T for b in boxes]
+
+
+def _sphere_region(region):
+    """(lon0, lat0, lon1, lat1) checked: latitudes in [-90, 90] and increasing, longitudes
+    increasing (wrapping: 170 to 190 crosses the antimeridian), at most 360 apart."""
+    try:
+        bounds = [float(r) for r in region]
+    except (TypeError, ValueError):
+        bounds = []
+    if len(bounds) != 4 or not np.isfinite(bounds).all():
+        raise InputError(f"region on the sphere must be 4 numbers (lon0, lat0, lon1, lat1), "
+                         f"got {region!r}")  # fmt: skip
+    lon0, lat0, lon1, lat1 = bounds
+    if not (-90 <= lat0 < lat1 <= 90 and lon0 < lon1 and lon1 - lon0 <= 360):
+        raise InputError(
+            f"region {tuple(region)} must have -90 <= lat0 < lat1 <= 90 and lon0 < lon1 <= "
+            "lon0 + 360 (longitudes wrap: (170, -10, 190, 10) crosses the antimeridian)"
+        )
+    return lon0, lat0, lon1, lat1
 
 
 def point_index(mesh, pts, weights=None):

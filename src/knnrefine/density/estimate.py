@@ -132,6 +132,9 @@ class KnnDensity:
 
     def _of_d(self, constant):
         dim = self.dim
+        radius = getattr(self.distance, "equal_area_radius", None)
+        if radius is not None and getattr(self.distance, "on_sphere", False):
+            return lambda d: constant / radius(d) ** dim  # the cap's area: pi chord^2
         return lambda d: constant / d**dim
 
     def __call__(self, x: ArrayLike) -> np.ndarray:
@@ -145,7 +148,7 @@ class KnnDensity:
         -------
         ndarray (...)
         """
-        return self.constant / self.distance(x) ** self.dim
+        return self._of_d(self.constant)(self.distance(x))
 
     def grid(self, shape: int | tuple | None = None) -> tuple:
         """The density at the centres of a grid over the box (``KnnDistance.grid``).
@@ -161,7 +164,7 @@ class KnnDensity:
         values : ndarray (ny, nx) or (nz, ny, nx)
         """
         *axes, d = self.distance.grid(shape)
-        return (*axes, self.constant / d**self.dim)
+        return (*axes, self._of_d(self.constant)(d))
 
     def mass(self, region: Sequence[float] | None = None) -> float:
         """The estimate's integral over a region: the probability of the part of the region

@@ -12,10 +12,10 @@ from ..engine.threads import in_chunks
 from ..mesh import edges, split_in_four, triangle_areas, uniform_in_triangles
 
 # Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
-_QW = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
+TRIANGLE_RULE_WEIGHTS = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
 _a, _b = 0.059715871789770, 0.470142064105115
 _c, _d = 0.797426985353087, 0.101286507323456
-_QP = np.array(
+TRIANGLE_RULE_POINTS = np.array(
     [
         [1 / 3, 1 / 3, 1 / 3],
         [_a, _b, _b],
@@ -287,5 +287,5 @@ def quadrature(corners, d, func):
     if len(corners) == 0:
         return np.zeros(0)
     area = np.abs(triangle_areas(corners))
-    dq = d @ _QP.T  # (t, 7): d at the quadrature points
-    return area * (func(dq) @ _QW)
+    dq = d @ TRIANGLE_RULE_POINTS.T  # (t, 7): d at the quadrature points
+    return area * (func(dq) @ TRIANGLE_RULE_WEIGHTS)
