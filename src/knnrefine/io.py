@@ -158,6 +158,8 @@ def _read_columns(path, cols, delimiter):
     if os.path.isdir(path):
         raise InputError(f"{path}: is a directory, not a file of points")
     ext = os.path.splitext(path)[1].lower()
+    if cols is LONLAT and ext in (".npy", ".npz"):  # no names: the first two columns
+        cols = None
     if ext == ".npy":
         points = _select_array(_load_npy(path), path, cols)
         return points, AXIS_NAMES[: points.shape[1]]
@@ -174,9 +176,16 @@ def _read_columns(path, cols, delimiter):
         return _read_text(head, path, path, cols, delimiter)
 
 
+LON_NAMES = ("lon", "lng", "long", "longitude")
+LAT_NAMES = ("lat", "latitude")
+LONLAT = "lonlat"  # ``columns``: the longitude and latitude columns, found by their names
+
+
 def _parse_columns(columns):
     if columns is None:
         return None
+    if isinstance(columns, str) and columns == LONLAT:
+        return LONLAT
     if isinstance(columns, str):
         parts = [c.strip() for c in columns.split(",")]
     else:
@@ -254,6 +263,8 @@ def _select_frame(frame, name, cols, has_header, skipped=0):
         raise InputError(f"{name}: needs at least two columns (x and y), found {frame.shape[1]}")
     if cols is None:
         cols = [0, 1]
+    if cols is LONLAT:
+        cols = _lonlat_columns(frame, name, has_header)
     picked = []
     for c in cols:
         if isinstance(c, int):
@@ -291,6 +302,23 @@ def _select_frame(frame, name, cols, has_header, skipped=0):
         out[:, j] = col.to_numpy(dtype=np.float64, na_value=np.nan)
     names = tuple(str(c) for c in picked) if has_header else AXIS_NAMES[: len(picked)]
     return out, names
+
+
+def _lonlat_columns(frame, name, has_header):
+    """The longitude and latitude columns by name (``LON_NAMES``, ``LAT_NAMES``, any case);
+    without a header the first two columns; a header without them is an error."""
+    if not has_header:
+        return [0, 1]
+    lower = {str(c).strip().lower(): c for c in frame.columns}
+    lon = next((lower[n] for n in LON_NAMES if n in lower), None)
+    lat = next((lower[n] for n in LAT_NAMES if n in lower), None)
+    if lon is None or lat is None:
+        raise InputError(
+            f"{name}: no longitude and latitude columns found by name (lon, lng, longitude; "
+            f"lat, latitude); columns are {', '.join(map(str, frame.columns))}: name them "
+            "with --columns LON,LAT"
+        )
+    return [lon, lat]
 
 
 def _load_npy(path):
@@ -480,7 +508,18 @@ def write_text(path: str | os.PathLike, text: str, force: bool = False) -> None:
 
 def _write_npz(mesh, path):
     """A mesh in the plane or in space, losslessly (``read_mesh`` gives it back, array for
-    array, with the torus mesh ``certify`` checks)."""
+    array, with the torus mesh ``certify`` checks); on the sphere with its unit vectors."""
+    if mesh.on_sphere:
+        with open(path, "wb") as f:
+            np.savez_compressed(
+                f, format=np.array(FORMAT_VERSION), domain=np.array("sphere"),
+                radius=np.array(mesh.radius), vertices=mesh.vertices, xyz=mesh.xyz,
+                cells=mesh.cells, kinds=mesh.kinds, order=mesh.order, k=np.array(mesh.k),
+                tau=np.array(mesh.tau), periodic=np.array(mesh.periodic),
+                box=np.array(mesh.box), min_size=np.array(mesh.min_size),
+                floor_points=mesh.floor_points, stats=np.array(json.dumps(mesh.stats)),
+            )  # fmt: skip
+        return
     t = mesh.torus
     d = mesh.dim
     neighbors = {} if t.neighbors is None else {"torus_neighbors": t.neighbors}
@@ -530,6 +569,15 @@ def _mesh_of_npz(d, path):
         raise InputError(f"{path}: written by a newer knnrefine (format {int(d['format'])})")
     if "tetrahedra" in d.files:
         return _mesh_of_space_format1(d)
+    if "domain" in d.files and str(d["domain"]) == "sphere":
+        return Mesh(
+            vertices=d["vertices"], cells=d["cells"], offsets=None, kinds=d["kinds"],
+            order=d["order"], k=d["k"].item(), tau=float(d["tau"]),
+            periodic=tuple(bool(p) for p in d["periodic"]),
+            box=tuple(float(b) for b in d["box"]), min_size=float(d["min_size"]),
+            floor_points=d["floor_points"], stats=json.loads(str(d["stats"])), torus=None,
+            domain="sphere", radius=float(d["radius"]), xyz=d["xyz"],
+        )  # fmt: skip
     cells = "cells" if "cells" in d.files else "triangles"  # format 1: the plane's names
     torus = Torus(
         origin=tuple(d["torus_origin"].tolist()),
@@ -593,6 +641,21 @@ def _meshio_writer(file_format):
                     "(or write .vtu, which needs nothing more)"
                 ) from None
 
+        if mesh.on_sphere:  # the triangles on the unit sphere
+            out = meshio.Mesh(
+                points=mesh.xyz,
+                cells=[("triangle", mesh.triangles.astype(np.int64))],
+                point_data={
+                    "kind": mesh.kinds.astype(np.int32),
+                    "order": mesh.order.astype(np.int64),
+                    "d_m2": mesh.d_m2(mesh.vertices),
+                    "longitude": mesh.vertices[:, 0],
+                    "latitude": mesh.vertices[:, 1],
+                },
+            )
+            kwargs = {"data_format": "XML"} if file_format == "xdmf" else {}
+            meshio.write(path, out, file_format=file_format, **kwargs)
+            return
         points, triangles, source = mesh.flat()
         out = meshio.Mesh(
             points=np.column_stack([points, np.zeros(len(points))]),
@@ -614,7 +677,8 @@ def _write_geojson(mesh, path):
     """Triangles as Polygon features cut to the box (a triangle across a periodic seam
     becomes its pieces on either side: longitudes stay in the box, as WGS84 wants), with
     d_M2 at each piece's centroid and its triangle's index; parameters in the collection's
-    properties."""
+    properties. On the sphere, WGS84 longitude and latitude (``Mesh.pieces_in_box``: cut at
+    the antimeridian, split at the poles), d_M2 in the mesh's length unit."""
     pieces = mesh.pieces_in_box()
     centroids = np.array([poly.mean(axis=0) for _, poly in pieces]).reshape(-1, 2)
     d = mesh.d_m2(centroids) if len(pieces) else np.zeros(0)
@@ -629,6 +693,7 @@ def _write_geojson(mesh, path):
                     "box": list(mesh.box),
                     "alpha": mesh.alpha,
                     "beta": mesh.beta,
+                    **({"domain": "sphere", "radius": mesh.radius} if mesh.on_sphere else {}),
                 }
             )
         )
@@ -656,6 +721,11 @@ def _write_csv(mesh, path):
     a non-periodic side that the mesh keeps for its triangles are left out."""
     import pandas as pd
 
+    if mesh.on_sphere:  # every vertex, in longitude and latitude
+        pd.DataFrame({"vertex": np.arange(len(mesh.vertices)), "lon": mesh.vertices[:, 0],
+                      "lat": mesh.vertices[:, 1], "kind": mesh.kinds,
+                      "order": mesh.order}).to_csv(path, index=False)  # fmt: skip
+        return
     lo, hi = np.array(mesh.box[:2]), np.array(mesh.box[2:])
     inside = np.flatnonzero(np.all((mesh.vertices >= lo) & (mesh.vertices <= hi), axis=1))
     pd.DataFrame(

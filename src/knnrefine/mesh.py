@@ -319,16 +319,20 @@ class Mesh(Cells):
         return points, triangles, vertex
 
     def pieces_in_box(self) -> list[tuple[int, np.ndarray]]:
-        """The triangles cut to the box, as the user's coordinates see it (the plane only):
-        along periodic axes a triangle across the seam becomes its pieces on either side (the
-        far one shifted back by a period), along non-periodic axes the parts outside the box
-        go; what GIS formats want (WGS84 longitudes stay in [-180, 180]).
+        """The triangles cut to the box, as the user's coordinates see it: along periodic
+        axes a triangle across the seam becomes its pieces on either side (the far one
+        shifted back by a period), along non-periodic axes the parts outside the box go;
+        what GIS formats want (WGS84 longitudes stay in [-180, 180]). On the sphere, the
+        triangles in longitude and latitude (``lonlat_pieces``): cut at the antimeridian,
+        and a triangle round a pole split there.
 
         Returns
         -------
         list of (int, ndarray (q, 2))
             (triangle index, polygon inside the box), by triangle.
         """
+        if self.on_sphere:
+            return lonlat_pieces(self.xyz, self.triangles)
         self._plane_only("pieces_in_box")
         per = np.array(self.periodic, bool)
         period = np.array(self.period, float)
@@ -425,6 +429,99 @@ class Mesh(Cells):
             f"<Mesh m={len(self.vertices)} {cells}={len(self.cells)} k={self.k} "
             f"tau={self.tau:g} {mode} box={self.box}>"
         )
+
+
+def lonlat_pieces(xyz, triangles):
+    """The spherical triangles (unit vectors ``xyz``, ``triangles``) as polygons in
+    longitude and latitude: [(triangle, polygon (q, 2)), ...]. Corners' longitudes are
+    unwrapped about the first corner's, so a triangle across the antimeridian is one
+    polygon reaching past +-180, then cut there into its two sides, the far one shifted back
+    by 360. A triangle holding a pole is split at it into three, each (pole, a, b) drawn as
+    the quadrilateral a, b, (lon b, +-90), (lon a, +-90), where the pole is a line in these
+    coordinates. Edges are straight in longitude and latitude (GeoJSON's rule; the
+    triangles are small)."""
+    from .metric import lonlat_of
+
+    xyz = np.asarray(xyz, float)
+    tri = np.asarray(triangles, np.int64)
+    ll = lonlat_of(xyz)
+    out = []
+    at_pole = np.abs(ll[:, 1]) == 90.0
+    for t, (a, b, c) in enumerate(tri):
+        corner = [u for u in (a, b, c) if at_pole[u]]
+        if corner:  # a corner at a pole: the pole is the edge lat = +-90 of one quadrilateral
+            p = corner[0]
+            u, v = (b, c) if p == a else (c, a) if p == b else (a, b)
+            lon_u = ll[u, 0]
+            lon_v = lon_u + _wrap180(ll[v, 0] - lon_u)
+            lat = ll[p, 1]
+            quad = np.array([[lon_u, ll[u, 1]], [lon_v, ll[v, 1]], [lon_v, lat], [lon_u, lat]])
+            out.extend((t, piece) for piece in _cut_at_antimeridian(quad))
+            continue
+        poles = [
+            z for z in (1.0, -1.0)
+            if all(_cross_z(xyz[u], xyz[v]) * z > 0 for u, v in ((a, b), (b, c), (c, a)))
+        ]  # fmt: skip
+        if poles:
+            z = poles[0]
+            lat = 90.0 * z
+            for u, v in ((a, b), (b, c), (c, a)):
+                lon_u = ll[u, 0]
+                lon_v = lon_u + _wrap180(ll[v, 0] - lon_u)
+                quad = np.array([[lon_u, ll[u, 1]], [lon_v, ll[v, 1]], [lon_v, lat], [lon_u, lat]])
+                out.extend((t, piece) for piece in _cut_at_antimeridian(quad))
+            continue
+        corners = ll[[a, b, c]].copy()
+        corners[1:, 0] = corners[0, 0] + _wrap180(corners[1:, 0] - corners[0, 0])
+        out.extend((t, piece) for piece in _cut_at_antimeridian(corners))
+    return out
+
+
+def _cross_z(u, v):
+    return u[0] * v[1] - u[1] * v[0]
+
+
+def _wrap180(d):
+    return (np.asarray(d) + 180.0) % 360.0 - 180.0
+
+
+def _cut_at_antimeridian(poly):
+    """A polygon (lon, lat) whose longitudes may reach past +-180: its parts on either side
+    of the antimeridian, each shifted by whole turns into [-180, 180] (degenerate parts
+    dropped)."""
+    lo, hi = poly[:, 0].min(), poly[:, 0].max()
+    if lo >= -180.0 and hi <= 180.0:
+        return [poly]
+    line = 180.0 if hi > 180.0 else -180.0
+    parts = (_clip_half(poly, line, True), _clip_half(poly, line, False))
+    return [
+        _into_range(p) for p in parts
+        if len(p) >= 3 and np.ptp(p[:, 0]) > 0 and np.ptp(p[:, 1]) > 0
+    ]  # fmt: skip
+
+
+def _into_range(poly):
+    """The polygon shifted by whole turns so that its longitudes lie in [-180, 180]."""
+    mid = 0.5 * (poly[:, 0].min() + poly[:, 0].max())
+    poly = poly.copy()
+    poly[:, 0] -= 360.0 * np.round(mid / 360.0)
+    return np.clip(poly, [-180.0, -90.0], [180.0, 90.0])
+
+
+def _clip_half(poly, line, below):
+    """Sutherland-Hodgman: the part of the polygon with lon <= line (below) or >= line."""
+    out = []
+    n = len(poly)
+    for i in range(n):
+        p, q = poly[i], poly[(i + 1) % n]
+        p_in = p[0] <= line if below else p[0] >= line
+        q_in = q[0] <= line if below else q[0] >= line
+        if p_in:
+            out.append(p)
+        if p_in != q_in:
+            f = (line - p[0]) / (q[0] - p[0])
+            out.append(np.array([line, p[1] + f * (q[1] - p[1])]))
+    return np.array(out).reshape(-1, 2)
 
 
 def copy_key(vertex, sx, sy):

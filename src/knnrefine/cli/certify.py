@@ -7,6 +7,7 @@ from .common import add_input_options
 HELP = "certify a mesh (.npz) against its points"
 EXAMPLES = """examples:
   knnrefine certify quakes.npz quakes.csv --columns lon,lat
+  knnrefine certify world.npz quakes.csv          # a mesh on the sphere: lon, lat by name
   knnrefine certify mesh.npz points.npy --json certificate.json
 
 exit status: 0 when every guarantee holds (above the resolution floor), 3 when one fails,
@@ -35,6 +36,7 @@ def run(args):
     if args.json:
         check_outputs([(args.json, (".json",), "certificates")], args.force)
     mesh = io.read_mesh(args.mesh)
+    args.sphere = mesh.on_sphere  # its points: longitude and latitude, found by name
     points, _ = read_input(args)
     cert = certify(mesh, points, samples=args.samples)
     if args.json:

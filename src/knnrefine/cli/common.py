@@ -56,8 +56,12 @@ def read_input(args, path=None, dim=None):
 
 
 def space_columns(args, dim=None):
-    """--columns as given, or the first three columns for points in space (see
-    ``read_input``)."""
+    """--columns as given, the first three columns for points in space (see
+    ``read_input``), or on the sphere the longitude and latitude columns found by name."""
+    if args.columns is None and getattr(args, "sphere", False):
+        from ..io import LONLAT
+
+        return LONLAT
     if args.columns is None and (dim == 3 or in_space(args)):
         return "0,1,2"
     return args.columns
@@ -102,7 +106,23 @@ def add_refine_options(parser, k_required=True, k_help="which nearest neighbour 
         "space; default: the points' bounding box",
     )
     parser.add_argument(
-        "--min-size", type=float, help="resolution floor (default 1e-6 of the box's longer side)"
+        "--sphere",
+        action="store_true",
+        help="the points are longitude and latitude in degrees on the sphere (columns found "
+        "by name: lon/lng/longitude, lat/latitude; else --columns); great-circle distances, "
+        "no --box or --periodic",
+    )
+    parser.add_argument(
+        "--radius",
+        type=float,
+        help="with --sphere, the sphere's radius in the length unit wanted (6371.0088 for "
+        "kilometres on the Earth); default 1 (radians)",
+    )
+    parser.add_argument(
+        "--min-size",
+        type=float,
+        help="resolution floor (default 1e-6 of the box's longer side; on the sphere 1e-6 pi "
+        "radians)",
     )
     parser.add_argument("--max-vertices", type=int, help="vertex budget")
     parser.add_argument(
@@ -122,6 +142,14 @@ def in_space(args):
 def periodic_of(args):
     """The --periodic flags as refine's ``periodic``: a bool, or one bool per axis."""
     box = getattr(args, "box", None)
+    if getattr(args, "sphere", False):
+        if box is not None or args.periodic or args.periodic_x or args.periodic_y or getattr(
+            args, "periodic_z", False
+        ):  # fmt: skip
+            raise UsageError("--sphere takes no --box or --periodic: the sphere has neither")
+        return False
+    if getattr(args, "radius", None) is not None:
+        raise UsageError("--radius is the sphere's: give it with --sphere")
     if box is not None and len(box) not in (4, 6):
         raise UsageError(
             f"--box takes 4 numbers (XMIN YMIN XMAX YMAX) or 6 for points in space "
@@ -146,12 +174,16 @@ def periodic_of(args):
     return tuple(flags[f"--periodic-{'xyz'[a]}"] for a in range(dim))
 
 
-def announce_compilation(quiet):
+def announce_compilation(quiet, sphere=False):
     """Say so when the kernels are about to be compiled (the first run: 10-60 s, once)."""
     from ..engine.jit import is_ready
-    from ..engine.refine import refine_steps
 
-    if not quiet and not is_ready(refine_steps):
+    if sphere:
+        from ..engine.refine_sphere import refine_steps_sphere as steps
+    else:
+        from ..engine.refine import refine_steps as steps
+
+    if not quiet and not is_ready(steps):
         print(
             "knnrefine: compiling the kernels for their first use (10-60 s, once; later runs "
             "load them from the cache)",
@@ -186,7 +218,7 @@ def refine_with_progress(points, args, quiet, weights=None):
     terminal) unless quiet."""
     from .. import refine
 
-    announce_compilation(quiet)
+    announce_compilation(quiet, getattr(args, "sphere", False))
     bar = None
     if not quiet and sys.stderr.isatty():  # no carriage returns in a redirected stderr
         from tqdm import tqdm
@@ -214,10 +246,12 @@ def refine_with_progress(points, args, quiet, weights=None):
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
+            sphere = {"sphere": True, "radius": args.radius} if getattr(args, "sphere", False) else {}
             mesh = refine(
                 points,
                 args.k,
                 args.tau,
+                **sphere,
                 periodic=periodic_of(args),
                 box=tuple(args.box) if args.box else None,
                 min_size=args.min_size,
@@ -235,6 +269,17 @@ def refine_with_progress(points, args, quiet, weights=None):
 
 
 def summary(mesh, seconds):
+    if mesh.on_sphere:
+        moves = mesh.kind_counts
+        unit = "radians" if mesh.radius == 1.0 else f"radius {mesh.radius:g}"
+        return (
+            f"refined n = {mesh.stats['n']:,} points on the sphere (k = {mesh.k}, tau = "
+            f"{mesh.tau:g}, {unit}) into m = {len(mesh.vertices):,} vertices and "
+            f"{len(mesh.triangles):,} triangles in {seconds:.2f} s\n"
+            f"  moves: {moves['break_circumball']:,} circumcap breaks, "
+            f"{moves['break_cell']:,} cell breaks, {moves['clean']:,} cleans; Theorem 6: "
+            f"alpha = {mesh.alpha:.4f}, beta = {mesh.beta:.2f}"
+        )
     if mesh.dim == 3:
         moves = mesh.kind_counts
         return (
