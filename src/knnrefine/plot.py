@@ -7,7 +7,8 @@ import numpy as np
 
 from .errors import InputError
 from .mesh import edges
-from .metric import BoxMetric
+from .metric import BoxMetric, lonlat_of, unit_vectors
+from .validation import as_sphere_points
 
 
 def plot_mesh(
@@ -37,6 +38,10 @@ def plot_mesh(
 
     if cells not in ("triangles", "voronoi", "none"):
         raise InputError(f"cells must be 'triangles', 'voronoi' or 'none', got {cells!r}")
+    if mesh.on_sphere:
+        return plot_sphere_mesh(mesh, points, ax=ax, cells=cells, show_mesh=show_mesh,
+                                show_points=show_points, max_points=max_points, cmap=cmap,
+                                title=title, show_colour_bar=show_colour_bar)  # fmt: skip
     if ax is None:
         from matplotlib.figure import Figure
 
@@ -137,19 +142,22 @@ def colour_bar(ax, mappable, label):
 
 
 def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
-    """Draw the mesh and write the picture; PNG, SVG or PDF by the extension."""
+    """Draw the mesh and write the picture; PNG, SVG or PDF by the extension (a mesh on the
+    sphere on an equal-area Mollweide map)."""
     save_figure(
         path,
         figure_size(mesh),
         lambda ax: plot_mesh(mesh, points, ax=ax, **kwargs),
         force=force,
         dpi=dpi,
+        projection=MAP_PROJECTION if mesh.on_sphere else None,
     )
 
 
-def save_figure(path, figsize, draw, force=False, dpi=150, panels=1):
+def save_figure(path, figsize, draw, force=False, dpi=150, panels=1, projection=None):
     """Make a figure, let ``draw(ax)`` fill it (``draw(axes)`` with a row of ``panels`` axes
-    when more than one), write it atomically (PNG, SVG or PDF)."""
+    when more than one), write it atomically (PNG, SVG or PDF); ``projection``: matplotlib's
+    (``"mollweide"`` for maps of the sphere)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -160,7 +168,8 @@ def save_figure(path, figsize, draw, force=False, dpi=150, panels=1):
         raise InputError(f"{path}: pictures are written as .png, .svg or .pdf")
     fig = Figure(figsize=figsize, layout="constrained")
     FigureCanvasAgg(fig)
-    draw(fig.add_subplot() if panels == 1 else list(fig.subplots(1, panels)))
+    kw = {} if projection is None else {"projection": projection}
+    draw(fig.add_subplot(**kw) if panels == 1 else list(fig.subplots(1, panels, subplot_kw=kw)))
     # tight: the colour bar inset and a long title stay in the picture
     atomic_write(
         path,
@@ -173,27 +182,34 @@ HDR_MASSES = (0.5, 0.8, 0.95)  # the highest-density regions drawn by default
 IMAGE_MASS = 0.99  # an image's colour scale reaches down to this region's level
 
 
-def hdr_levels(values, masses=HDR_MASSES):
+def hdr_levels(values, masses=HDR_MASSES, areas=None):
     """The density levels whose superlevel sets hold the given shares of the mass of a grid
-    of values (equal cells): level t_p is the least value such that the cells at or above it
-    hold p of the grid's total (Hyndman 1996's highest-density regions). Returns the levels,
-    in the order of ``masses``.
+    of values: level t_p is the least value such that the cells at or above it hold p of the
+    grid's total (Hyndman 1996's highest-density regions). Returns the levels, in the order
+    of ``masses``.
 
     Parameters
     ----------
     values : ndarray
         Densities at the cells' centres (NaN and values <= 0 hold no mass).
     masses : sequence of float in (0, 1)
+    areas : ndarray, optional
+        The cells' areas, broadcast to ``values`` (default: equal cells; on a longitude by
+        latitude grid, the cosine of the latitude).
 
     Returns
     -------
     ndarray
     """
-    f = np.asarray(values, float).ravel()
-    f = np.sort(f[np.isfinite(f) & (f > 0)])[::-1]
+    f = np.asarray(values, float)
+    a = np.ones_like(f) if areas is None else np.broadcast_to(np.asarray(areas, float), f.shape)
+    keep = np.isfinite(f) & (f > 0)
+    f, a = f[keep], a[keep]
+    order = np.argsort(f)[::-1]
+    f, a = f[order], a[order]
     if len(f) == 0:
         raise InputError("the density is 0 or undefined everywhere on the grid: nothing to draw")
-    share = np.cumsum(f) / f.sum()
+    share = np.cumsum(f * a) / (f * a).sum()
     masses = np.asarray(masses, float)
     if not np.all((masses > 0) & (masses < 1)):
         raise InputError(f"masses must lie in (0, 1), got {list(masses)}")
@@ -246,6 +262,9 @@ def plot_density(
 
     if style not in ("hdr", "image"):
         raise InputError(f'style must be "hdr" or "image", got {style!r}')
+    if _on_sphere(density):
+        return _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points,
+                                    max_points)  # fmt: skip
     xs, ys, f, box, names, title = _density_grid(density, shape, grid)
     labels = names if labels is None else labels
     extent = (box[0], box[2], box[1], box[3])
@@ -305,6 +324,179 @@ def _density_grid(density, shape, grid):
     m = len(knn.distance.mesh.vertices)
     n = f"{n:,.0f}" if float(n).is_integer() else f"{n:,.1f}"
     return xs, ys, np.asarray(f, float), box, names, f"{what}\nn = {n}, k = {k}, m = {m:,}"
+
+
+# -- the sphere -------------------------------------------------------------------------------
+MAP_PROJECTION = "mollweide"  # equal-area, in matplotlib itself (no cartographic package)
+
+
+def _on_sphere(density):
+    """Whether a density (a KnnDensity or an estimator) lives on the sphere."""
+    knn = getattr(density, "knn", density)
+    distance = getattr(knn, "distance", None)
+    return bool(getattr(distance, "on_sphere", False))
+
+
+def _map_axes(ax, figsize=(10.0, 5.6)):
+    """The axes to draw a map on: ``ax`` (a matplotlib geographic projection, such as
+    ``projection="mollweide"``), or a new Mollweide figure's; a graticule every 30 degrees
+    with labels, which reads without coastlines."""
+    if ax is None:
+        from matplotlib.figure import Figure
+
+        ax = Figure(figsize=figsize, layout="constrained").add_subplot(projection=MAP_PROJECTION)
+    if not hasattr(ax, "set_longitude_grid"):
+        raise InputError(
+            "a map of the sphere needs geographic axes: make them with "
+            'fig.add_subplot(projection="mollweide") (or "hammer"), or use plot_orthographic'
+        )
+    ax.set_longitude_grid(30)
+    ax.set_latitude_grid(30)
+    ax.grid(True, color="0.5", linewidth=0.4, alpha=0.6)
+    ax.tick_params(labelsize="small")
+    return ax
+
+
+def plot_sphere_mesh(mesh, points=None, *, ax=None, cells="triangles", show_mesh=True,
+                     show_points=True, max_points=200_000, cmap="viridis", title=None,
+                     show_colour_bar=True):  # fmt: skip
+    """Draw a mesh on the sphere on an equal-area map (Mollweide unless ``ax`` has another
+    geographic projection): its triangles in longitude and latitude (``Mesh.pieces_in_box``:
+    cut at the antimeridian), coloured by d_{M,2} at their centroids (log scale), the points
+    over them. ``cells``: "triangles" or "none". Returns the axes."""
+    from matplotlib.collections import PolyCollection
+    from matplotlib.colors import LogNorm
+
+    if cells not in ("triangles", "none"):
+        raise InputError(f"cells must be 'triangles' or 'none' on the sphere, got {cells!r}")
+    ax = _map_axes(ax)
+    pieces = mesh.pieces_in_box()
+    polys = [np.radians(p) for _, p in pieces]
+    if cells == "triangles" or show_mesh:
+        if cells == "triangles":
+            tri = np.array([t for t, _ in pieces])
+            centroid = mesh.xyz[mesh.triangles[tri]].sum(axis=1)
+            values = mesh.d_m2(lonlat_of(centroid))
+            values = np.maximum(values, values[values > 0].min() if (values > 0).any() else 1.0)
+            norm = LogNorm(vmin=values.min(), vmax=max(values.max(), values.min() * 1.0001))
+            coll = PolyCollection(polys, array=values, cmap=cmap, norm=norm,
+                                  edgecolors="0.1" if show_mesh else "face",
+                                  linewidths=0.15 if show_mesh else 0.3,
+                                  rasterized=len(polys) > 20000)  # fmt: skip
+        else:
+            coll = PolyCollection(polys, facecolors="none", edgecolors="0.1", linewidths=0.2,
+                                  rasterized=len(polys) > 20000)  # fmt: skip
+        ax.add_collection(coll)
+        if cells == "triangles" and show_colour_bar:
+            unit = "radians" if mesh.radius == 1.0 else f"units of the radius {mesh.radius:g}"
+            bar = ax.figure.colorbar(coll, ax=ax, shrink=0.7, pad=0.02)
+            bar.set_label(f"$d_{{M,2}}$, great-circle ({unit})")
+    if points is not None and show_points:
+        pts = lonlat_of(as_sphere_points(points))
+        if len(pts) > max_points:
+            pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
+        ax.scatter(np.radians(pts[:, 0]), np.radians(pts[:, 1]), s=0.8, c="crimson",
+                   linewidths=0, alpha=0.5, rasterized=True)  # fmt: skip
+    if title is None:
+        n = mesh.stats.get("n")
+        title = (f"kNNRefine on the sphere: n = {n:,}, k = {mesh.k}, tau = {mesh.tau:g}, "
+                 f"m = {len(mesh.vertices):,}")  # fmt: skip
+    ax.set_title(title, fontsize="medium", pad=14)
+    return ax
+
+
+def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, max_points):
+    """``plot_density`` on the sphere: an equal-area map of the density per unit area
+    (steradian, or the radius' unit squared), its highest-density regions weighted by the
+    cells' areas."""
+    from matplotlib import colormaps
+    from matplotlib.colors import LogNorm
+
+    ax = _map_axes(ax)
+    knn = getattr(density, "knn", density)
+    lon, lat, f = density.grid(shape) if grid is None else grid
+    f = np.asarray(f, float)
+    areas = np.cos(np.radians(lat))[:, None]
+    x, y = np.radians(lon), np.radians(lat)
+    if style == "hdr":
+        order = np.argsort(masses)[::-1]
+        masses = np.asarray(masses, float)[order]
+        levels = hdr_levels(f, masses, areas)
+        top = float(np.nanmax(f))
+        bounds = np.append(levels, top * (1 + 1e-9))
+        colours = colormaps[cmap or "Blues"](np.linspace(0.35, 0.95, len(levels)))
+        filled = ax.contourf(x, y, np.nan_to_num(f), levels=bounds, colors=colours)
+        ax.contour(x, y, np.nan_to_num(f), levels=levels, colors=[colours[-1]], linewidths=0.6)
+        bar = ax.figure.colorbar(filled, ax=ax, shrink=0.7, pad=0.02)
+        bar.set_ticks(0.5 * (bounds[:-1] + bounds[1:]))
+        bar.set_ticklabels([f"{m:.0%}" for m in masses])
+        bar.set_label("highest-density region holding this share of the mass")
+    else:
+        top = float(np.nanmax(f))
+        floor = min(float(hdr_levels(f, [IMAGE_MASS], areas)[0]), 0.1 * top)
+        mesh = ax.pcolormesh(x, y, np.where(np.isfinite(f) & (f > floor), f, floor),
+                             cmap=cmap or "magma", norm=LogNorm(vmin=floor, vmax=top, clip=True),
+                             shading="auto", rasterized=True)  # fmt: skip
+        radius = knn.distance.mesh.radius
+        unit = "steradian" if radius == 1.0 else f"unit area (radius {radius:g})"
+        bar = ax.figure.colorbar(mesh, ax=ax, shrink=0.7, pad=0.02)
+        bar.set_label(f"density per {unit}")
+    if points is not None:
+        pts = lonlat_of(as_sphere_points(points))
+        if len(pts) > max_points:
+            pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
+        ax.scatter(np.radians(pts[:, 0]), np.radians(pts[:, 1]), s=1.0, c="0.15", alpha=0.4,
+                   linewidths=0)  # fmt: skip
+    k, n, m = knn.k, knn.n, len(knn.distance.mesh.vertices)
+    n = f"{n:,.0f}" if float(n).is_integer() else f"{n:,.1f}"
+    ax.set_title(f"kNN density on the sphere\nn = {n}, k = {k}, m = {m:,}", fontsize="medium",
+                 pad=14)  # fmt: skip
+    return ax
+
+
+def plot_orthographic(mesh, ax=None, centre=(0.0, 0.0), points=None, cmap="viridis",
+                      max_points=50_000):  # fmt: skip
+    """The mesh on the sphere seen from far away above ``centre`` (longitude, latitude in
+    degrees): the triangles of the facing hemisphere coloured by d_{M,2} (log scale), the
+    points there over them. Returns the axes (ordinary, equal aspect)."""
+    from matplotlib.collections import PolyCollection
+    from matplotlib.colors import LogNorm
+
+    if ax is None:
+        from matplotlib.figure import Figure
+
+        ax = Figure(figsize=(7.0, 6.0), layout="constrained").add_subplot()
+    view = unit_vectors(np.array([centre], float))[0]
+    east = np.cross([0.0, 0.0, 1.0], view)
+    east = east / np.linalg.norm(east) if np.linalg.norm(east) > 1e-12 else np.array([0, 1.0, 0])
+    north = np.cross(view, east)
+    xyz = mesh.xyz
+    corners = xyz[mesh.triangles]
+    facing = (corners @ view).min(axis=1) > 0
+    flat = np.stack([corners[facing] @ east, corners[facing] @ north], axis=-1)
+    values = mesh.d_m2(lonlat_of(corners[facing].sum(axis=1)))
+    values = np.maximum(values, values[values > 0].min() if (values > 0).any() else 1.0)
+    coll = PolyCollection(flat, array=values, cmap=cmap,
+                          norm=LogNorm(vmin=values.min(), vmax=max(values.max(),
+                                                                   values.min() * 1.0001)),
+                          edgecolors="0.1", linewidths=0.15)  # fmt: skip
+    ax.add_collection(coll)
+    colour_bar(ax, coll, "$d_{M,2}$, great-circle")
+    if points is not None:
+        u = as_sphere_points(points)
+        u = u[u @ view > 0]
+        if len(u) > max_points:
+            u = u[np.random.default_rng(0).choice(len(u), max_points, replace=False)]
+        ax.scatter(u @ east, u @ north, s=0.8, c="crimson", linewidths=0, alpha=0.5)
+    circle = np.linspace(0, 2 * np.pi, 361)
+    ax.plot(np.cos(circle), np.sin(circle), color="0.2", linewidth=0.8)
+    ax.set_xlim(-1.02, 1.02)
+    ax.set_ylim(-1.02, 1.02)
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    ax.set_title(f"seen from above ({centre[0]:g}, {centre[1]:g}): k = {mesh.k}, "
+                 f"m = {len(mesh.vertices):,}", fontsize="medium")  # fmt: skip
+    return ax
 
 
 def plot_diagram(persistence, ax, dims=(0, 1)):

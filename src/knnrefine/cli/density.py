@@ -149,6 +149,7 @@ def run(args):
         default_pilot_k,
     )
     from ..plot import (
+        MAP_PROJECTION,
         figure_size,
         plot_density,
         plot_projections,
@@ -161,6 +162,7 @@ def run(args):
         UsageError,
         check_outputs,
         dim_of,
+        given_mesh,
         plural,
         space_columns,
         stage_bar,
@@ -169,7 +171,20 @@ def run(args):
     if not args.output and not args.plot:
         raise UsageError("nothing to write: give -o FILE and/or --plot PICTURE")
     args.dim = dim = dim_of(args)
+    sphere = bool(getattr(args, "sphere", False)) or bool(
+        getattr(given_mesh(args), "on_sphere", False)
+    )
+    args.sphere = sphere
+    if sphere and args.method == "adaptive":
+        raise UsageError(
+            "on the sphere the density is the kNN estimate (--method knn, the default there); "
+            "adaptive kernels on the sphere are not built yet"
+        )
+    if sphere:
+        args.method = "knn"
     grid = [512 if dim == 2 else 64] if args.grid is None else args.grid
+    if sphere and args.grid is None:
+        grid = [720, 360]  # half a degree
     if len(grid) not in (1, dim) or min(grid) < 1:
         shapes = "N, or NX NY" if dim == 2 else "N, or NX NY NZ"
         raise UsageError(
@@ -211,7 +226,7 @@ def run(args):
         f = density.grid(tuple(cells[::-1]))[-1]
     else:
         density = knn
-        f = knn.constant / d**dim
+        f = knn.at_distance(d)
     seconds = time.perf_counter() - t0
     n = len(points) if weights is None else float(weights.sum())
     extra = {}
@@ -261,11 +276,12 @@ def run(args):
     elif args.plot:
         save_figure(
             args.plot,
-            figure_size(mesh),
+            (10.0, 5.6) if sphere else figure_size(mesh),
             lambda ax: plot_density(
                 density, ax, labels=names, grid=(*axes, f), style=args.plot_style
             ),
             force=args.force,
+            projection=MAP_PROJECTION if sphere else None,
         )
     if not args.quiet:
         # exact d_Pk costs about k per probe: at most ERROR_TERMS neighbours in all

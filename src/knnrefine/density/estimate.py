@@ -150,6 +150,21 @@ class KnnDensity:
         """
         return self._of_d(self.constant)(self.distance(x))
 
+    def at_distance(self, d: ArrayLike) -> np.ndarray:
+        """The density where d_{P,k} = d: k / (n V_d d^d), normalised (on the sphere with
+        the cap's area, pi chord(d)^2, in place of V_2 d^2).
+
+        Parameters
+        ----------
+        d : array-like
+            Values of d_{P,k}.
+
+        Returns
+        -------
+        ndarray
+        """
+        return self._of_d(self.constant)(np.asarray(d, float))
+
     def grid(self, shape: int | tuple | None = None) -> tuple:
         """The density at the centres of a grid over the box (``KnnDistance.grid``).
 
