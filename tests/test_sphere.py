@@ -19,7 +19,10 @@ def haversine(a, b):
     """Great-circle angles (len(a), len(b)) between lon/lat degree points, written out."""
     lon1, lat1 = np.radians(a[:, 0])[:, None], np.radians(a[:, 1])[:, None]
     lon2, lat2 = np.radians(b[:, 0])[None], np.radians(b[:, 1])[None]
-    h = np.sin((lat2 - lat1) / 2) ** 2 + np.cos(lat1) * np.cos(lat2) * np.sin((lon2 - lon1) / 2) ** 2
+    h = (
+        np.sin((lat2 - lat1) / 2) ** 2
+        + np.cos(lat1) * np.cos(lat2) * np.sin((lon2 - lon1) / 2) ** 2
+    )
     return 2 * np.arcsin(np.sqrt(np.minimum(h, 1.0)))
 
 

@@ -178,8 +178,17 @@ def _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertice
                          "executor= with sphere=True")  # fmt: skip
     from .run_sphere import refine_sphere
 
-    return refine_sphere(points, k, tau, weights=weights, radius=radius, min_size=min_size,
-                         max_vertices=max_vertices, time_limit=time_limit, progress=progress)
+    return refine_sphere(
+        points,
+        k,
+        tau,
+        weights=weights,
+        radius=radius,
+        min_size=min_size,
+        max_vertices=max_vertices,
+        time_limit=time_limit,
+        progress=progress,
+    )
 
 
 def certify(

@@ -493,11 +493,21 @@ def _cut_at_antimeridian(poly):
     if lo >= -180.0 and hi <= 180.0:
         return [poly]
     line = 180.0 if hi > 180.0 else -180.0
-    parts = (_clip_half(poly, line, True), _clip_half(poly, line, False))
-    return [
-        _into_range(p) for p in parts
-        if len(p) >= 3 and np.ptp(p[:, 0]) > 0 and np.ptp(p[:, 1]) > 0
-    ]  # fmt: skip
+    parts = [_distinct(_clip_half(poly, line, below)) for below in (True, False)]
+    return [_into_range(p) for p in parts if len(p) >= 3 and abs(_shoelace(p)) > 1e-12]
+
+
+def _distinct(poly):
+    """The polygon without corners repeating the one before (cyclically, to 1e-12 degrees)."""
+    if len(poly) == 0:
+        return poly
+    step = np.abs(poly - np.roll(poly, 1, axis=0)).max(axis=1)
+    return poly[step > 1e-12]
+
+
+def _shoelace(poly):
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
 def _into_range(poly):

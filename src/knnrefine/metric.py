@@ -1,5 +1,6 @@
 """The box's own metric: periodic axes wrap (a torus or a cylinder), the others are planar;
-the sphere's great-circle metric (``SphereMetric``, with its coordinates); and what a kd-tree's points hold when they are weighted (``held_in_balls``, ``cell_tally``,
+the sphere's great-circle metric (``SphereMetric``, with its coordinates); and what a
+kd-tree's points hold when they are weighted (``held_in_balls``, ``cell_tally``,
 ``weighted_kth``), summed so that a heavy point cannot swallow light ones
 (``compensated_sums``). Used by certify and the applications, never by the engine."""
 

@@ -161,8 +161,9 @@ class SphereRun:
         for q in self.queues:
             cap = q.ident.shape[0]
             if q.scalars[Q_USED] + 2 * QUEUE_HEADROOM > cap:
-                q = q._replace(**{f: grown(getattr(q, f), 2 * cap) for f in ("ident", "aux",
-                                                                              "next")})
+                q = q._replace(
+                    **{f: grown(getattr(q, f), 2 * cap) for f in ("ident", "aux", "next")}
+                )
             queues.append(q)
         self.queues = Queues(*queues)
 

@@ -450,7 +450,6 @@ def as_sphere_points(points):
             np.abs(pts[:, 0]) <= 90.0
         ).all() else ""  # fmt: skip
         raise InputError(
-            f"latitudes must lie in [-90, 90] degrees; point {i} has latitude {lat[i]:g}"
-            f"{swapped}"
+            f"latitudes must lie in [-90, 90] degrees; point {i} has latitude {lat[i]:g}{swapped}"
         )
     return unit_vectors(pts)

@@ -1,9 +1,10 @@
 """Checks of a mesh against Theorem 6, independently of the engine, in the plane (``plane``:
 the torus triangulation verified in exact arithmetic, counts, ratios, the floor) or in space
-(``space``) or on the sphere (``sphere``); what they share is in ``common``, the ``Certificate`` in ``certificate``. Nothing
-here calls the refinement kernels: counts and distances come from scipy's cKDTree.
-``knnrefine.certify`` (``api.certify``) checks its options and calls ``certify_points`` in
-this process, or ``scale.checks`` strip by strip in worker processes."""
+(``space``) or on the sphere (``sphere``); what they share is in ``common``, the
+``Certificate`` in ``certificate``. Nothing here calls the refinement kernels: counts and
+distances come from scipy's cKDTree. ``knnrefine.certify`` (``api.certify``) checks its
+options and calls ``certify_points`` in this process, or ``scale.checks`` strip by strip in
+worker processes."""
 
 import time
 

@@ -127,8 +127,8 @@ def check_triangulation(mesh):
     if m >= 4:
         try:
             hull = ConvexHull(xyz)
-            volume = abs(np.einsum("ij,ij->i", xyz[tri[:, 0]],
-                                   np.cross(xyz[tri[:, 1]], xyz[tri[:, 2]])).sum()) / 6.0  # fmt: skip
+            det = np.einsum("ij,ij->i", xyz[tri[:, 0]], np.cross(xyz[tri[:, 1]], xyz[tri[:, 2]]))
+            volume = abs(det.sum()) / 6.0
             if len(hull.vertices) != m:
                 problems.append(f"qhull finds {m - len(hull.vertices)} vertices not extreme")
             if not math.isclose(hull.volume, volume, rel_tol=1e-9):

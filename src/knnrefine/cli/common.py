@@ -246,7 +246,9 @@ def refine_with_progress(points, args, quiet, weights=None):
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            sphere = {"sphere": True, "radius": args.radius} if getattr(args, "sphere", False) else {}
+            sphere = (
+                {"sphere": True, "radius": args.radius} if getattr(args, "sphere", False) else {}
+            )
             mesh = refine(
                 points,
                 args.k,

@@ -144,9 +144,7 @@ def count_cell_sphere(v, mesh, scratch, cnt, prm, index):
             h[j, a] = mesh.xyz[w, a] - x[a]
             s += h[j, a] * h[j, a]
         hc[j] = 0.5 * s * inflate
-    return count_in_region3(
-        index, x[0], x[1], x[2], h, hc, nh, far2 * inflate, k, scratch.stack
-    )
+    return count_in_region3(index, x[0], x[1], x[2], h, hc, nh, far2 * inflate, k, scratch.stack)
 
 
 @kernel(entry=True, nrt=False)

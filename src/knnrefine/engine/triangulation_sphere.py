@@ -31,8 +31,15 @@ import numpy as np
 
 from .jit import kernel
 from .predicates3 import orient3d
-from .state import C_NT, C_NV, C_STAMP, INSERT_CAVITY_OVERFLOW, INSERT_NOT_IN_SEED, SphereMesh
-from .state import INSERT_TOPOLOGY
+from .state import (
+    C_NT,
+    C_NV,
+    C_STAMP,
+    INSERT_CAVITY_OVERFLOW,
+    INSERT_NOT_IN_SEED,
+    INSERT_TOPOLOGY,
+    SphereMesh,
+)
 
 INSERT_TOO_CLOSE = INSERT_TOPOLOGY  # the cavity was not a disk: a vertex would be swallowed
 

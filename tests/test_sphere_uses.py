@@ -1,0 +1,291 @@
+"""What users do with a mesh on the sphere: d_Pk and the kNN density against brute-force
+great-circle oracles and known densities (von Mises-Fisher, a band, a cap), files (npz,
+vtu, csv, GeoJSON that tiles the sphere), the command line and the maps."""
+
+import json
+import os
+import warnings
+
+import numpy as np
+import pytest
+from test_sphere import haversine, uniform
+
+import knnrefine
+from knnrefine import io
+from knnrefine.cli.main import main
+from knnrefine.datasets import earthquakes
+from knnrefine.density import KnnDensity, KnnDistance
+from knnrefine.metric import lonlat_of
+
+RNG = np.random.default_rng(311)
+
+
+def vmf(n, mu_lonlat, kappa, rng):
+    """n draws of the von Mises-Fisher distribution about mu (Wood's method on S^2)."""
+    mu = knnrefine.metric.unit_vectors(np.array([mu_lonlat], float))[0]
+    u = rng.random(n)
+    w = 1.0 + np.log(u + (1.0 - u) * np.exp(-2.0 * kappa)) / kappa
+    phi = rng.uniform(0, 2 * np.pi, n)
+    a = np.cross(mu, [0.0, 0.0, 1.0] if abs(mu[2]) < 0.9 else [1.0, 0.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(mu, a)
+    s = np.sqrt(np.maximum(1 - w * w, 0))[:, None]
+    x = w[:, None] * mu + s * (np.cos(phi)[:, None] * a + np.sin(phi)[:, None] * b)
+    return lonlat_of(x)
+
+
+def vmf_pdf(lonlat, mu_lonlat, kappa):
+    """Per steradian."""
+    x = knnrefine.metric.unit_vectors(np.asarray(lonlat, float))
+    mu = knnrefine.metric.unit_vectors(np.array([mu_lonlat], float))[0]
+    return kappa / (2 * np.pi * (1 - np.exp(-2 * kappa))) * np.exp(kappa * (x @ mu - 1))
+
+
+class Mixture:
+    """Two von Mises-Fisher components, one across the antimeridian, one near a pole."""
+
+    parts = (((175.0, 10.0), 40.0, 0.6), ((30.0, 75.0), 150.0, 0.4))
+
+    def sample(self, n, rng):
+        counts = rng.multinomial(n, [w for *_, w in self.parts])
+        return np.concatenate(
+            [vmf(c, mu, k, rng) for (mu, k, _), c in zip(self.parts, counts, strict=True)]
+        )
+
+    def pdf(self, x):
+        return sum(w * vmf_pdf(x, mu, k) for mu, k, w in self.parts)
+
+
+def band(n, rng, half_width=20.0):
+    """Uniform on the band |lat| <= half_width: density 1 / (4 pi sin(half_width))."""
+    z = rng.uniform(-np.sin(np.radians(half_width)), np.sin(np.radians(half_width)), n)
+    return np.column_stack([rng.uniform(-180, 180, n), np.degrees(np.arcsin(z))])
+
+
+def cap(n, rng, radius=30.0):
+    """Uniform on the polar cap of angular radius ``radius`` about the north pole."""
+    z = rng.uniform(np.cos(np.radians(radius)), 1.0, n)
+    return np.column_stack([rng.uniform(-180, 180, n), np.degrees(np.arcsin(z))])
+
+
+def test_knn_distance_on_the_sphere_against_haversine():
+    pts = Mixture().sample(6000, RNG)
+    mesh = knnrefine.refine(pts, 40, sphere=True)
+    dist = KnnDistance(mesh, pts)
+    probes = np.concatenate([uniform(3000, RNG), pts[:1000]])
+    exact = np.sort(haversine(probes, pts), axis=1)[:, 39]
+    np.testing.assert_allclose(dist.exact(probes), exact, rtol=1e-9)
+    rel = np.abs(dist(probes) - exact) / exact
+    assert np.median(rel) < 0.03 and np.percentile(rel, 99) < 0.3
+    # nodes are exact; the sphere's area from the quadrature
+    assert dist.integrate(np.ones_like) == pytest.approx(4 * np.pi, rel=1e-5)  # the rule
+    # a query at the antimeridian from either side, and at the poles
+    edge = dist(np.array([[180.0, 10.0], [-180.0, 10.0], [0.0, 90.0], [77.0, 90.0]]))
+    assert edge[0] == pytest.approx(edge[1], rel=1e-9) and edge[2] == pytest.approx(edge[3])
+
+
+@pytest.mark.parametrize("truth", ["mixture", "band", "cap"])
+def test_knn_density_on_the_sphere_against_known_densities(truth):
+    n = 20000
+    if truth == "mixture":
+        pts, pdf = Mixture().sample(n, RNG), Mixture().pdf
+    elif truth == "band":
+        pts = band(n, RNG)
+
+        def pdf(x):
+            inside = np.abs(np.asarray(x)[:, 1]) <= 20.0
+            return inside / (4 * np.pi * np.sin(np.radians(20.0)))
+    else:
+        pts = cap(n, RNG)
+
+        def pdf(x):
+            inside = np.asarray(x)[:, 1] >= 60.0
+            return inside / (2 * np.pi * (1 - np.cos(np.radians(30.0))))
+
+    mesh = knnrefine.refine(pts, None, sphere=True)
+    f = KnnDensity(mesh, pts)
+    assert f.mass() == pytest.approx(1.0, rel=1e-6)
+    # L1 error at draws from the truth: inside the supports, away from their edges
+    draws = pts[:4000] if truth != "mixture" else Mixture().sample(4000, np.random.default_rng(1))
+    l1 = np.mean(np.abs(f(draws) / pdf(draws) - 1))
+    assert l1 < {"mixture": 0.2, "band": 0.15, "cap": 0.15}[truth], l1
+    # draws from the estimate: as many in a region as its mass there (the kNN estimate's
+    # 1 / d^2 tails hold about a tenth of the mass outside a sharp support)
+    s = f.sample(40000, np.random.default_rng(2))
+    assert s.shape == (40000, 2) and np.all(np.abs(s[:, 1]) <= 90)
+    region = {"mixture": (150, -20, 200, 40), "band": (-180, -21, 180, 21),
+              "cap": (-180, 59, 180, 90)}[truth]  # fmt: skip
+    lon = (s[:, 0] - region[0]) % 360 <= region[2] - region[0]
+    inside = lon & (s[:, 1] >= region[1]) & (s[:, 1] <= region[3])
+    assert np.mean(inside) == pytest.approx(f.mass(region), abs=0.01)
+    assert f.mass(region) > 0.5
+
+
+def test_knn_density_per_unit_area_with_radius():
+    pts = uniform(20000, RNG)
+    a = knnrefine.refine(pts, 100, sphere=True)
+    b = knnrefine.refine(pts, 100, sphere=True, radius=6371.0088)
+    fa, fb = KnnDensity(a, pts), KnnDensity(b, pts)
+    q = uniform(500, RNG)
+    np.testing.assert_allclose(fb(q) * 6371.0088**2, fa(q), rtol=1e-9)
+    assert np.median(fa(q)) == pytest.approx(1 / (4 * np.pi), rel=0.05)
+    assert fb.mass((-180, 0, 180, 90)) == pytest.approx(0.5, abs=0.02)
+    assert fb.mass((170, -90, 190, 90)) == pytest.approx(20 / 360, abs=0.01)  # across 180
+
+
+def cylindrical_area(poly):
+    """The area on the unit sphere of a lon/lat polygon in Lambert's equal-area cylinder."""
+    x, y = np.radians(poly[:, 0]), np.sin(np.radians(poly[:, 1]))
+    return 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+
+
+def check_geojson_tiles_the_sphere(path, mesh):
+    g = json.load(open(path))
+    assert g["properties"]["domain"] == "sphere"
+    total = 0.0
+    for feature in g["features"]:
+        ring = np.array(feature["geometry"]["coordinates"][0])
+        assert (ring[0] == ring[-1]).all()
+        assert (np.abs(ring[:, 0]) <= 180).all() and (np.abs(ring[:, 1]) <= 90).all()
+        area = cylindrical_area(ring[:-1])
+        assert area > 0  # counter-clockwise, as RFC 7946 asks of exterior rings
+        total += area
+    # the pieces cover the sphere once: no overlap, no gap
+    assert total == pytest.approx(4 * np.pi, rel=1e-9)
+    assert len(g["features"]) >= len(mesh.triangles)
+
+
+def test_geojson_on_the_sphere_tiles_it(tmp_path):
+    """Also a regression: a triangle with a corner exactly on the antimeridian (longitude
+    180) was cut into its piece and a degenerate one of three equal corners, zero area."""
+    pts = np.concatenate([uniform(3000, RNG), np.array([[0.0, 90.0], [120.0, -90.0]])])
+    mesh = knnrefine.refine(pts, 10, sphere=True)
+    io.write_mesh(mesh, tmp_path / "m.geojson")
+    check_geojson_tiles_the_sphere(tmp_path / "m.geojson", mesh)
+
+
+def test_geojson_triangle_with_a_corner_at_a_pole(tmp_path):
+    """Regression: a triangle with a vertex exactly at a pole was taken as holding the pole
+    and split in three overlapping pieces (the pieces covered 4% more than the sphere)."""
+    quakes = earthquakes()
+    mesh = knnrefine.refine(quakes, 30, sphere=True)
+    assert (np.abs(mesh.vertices[:, 1]) == 90).any()  # the tetrahedron's pole vertex
+    io.write_mesh(mesh, tmp_path / "q.geojson")
+    check_geojson_tiles_the_sphere(tmp_path / "q.geojson", mesh)
+
+
+def test_sphere_mesh_files_round_trip(tmp_path):
+    import meshio
+    import pandas as pd
+
+    pts = uniform(3000, RNG)
+    mesh = knnrefine.refine(pts, 10, sphere=True, radius=2.0)
+    io.write_mesh(mesh, tmp_path / "m.npz")
+    back = io.read_mesh(tmp_path / "m.npz")
+    assert back.on_sphere and back.radius == 2.0
+    np.testing.assert_array_equal(back.xyz, mesh.xyz)
+    np.testing.assert_array_equal(back.triangles, mesh.triangles)
+    assert knnrefine.certify(back, pts, samples=5000, n_random=2000).passed
+    io.write_mesh(mesh, tmp_path / "m.vtu")
+    vtu = meshio.read(tmp_path / "m.vtu")
+    np.testing.assert_allclose(np.linalg.norm(vtu.points, axis=1), 1.0, rtol=1e-12)
+    io.write_mesh(mesh, tmp_path / "m.csv")
+    table = pd.read_csv(tmp_path / "m.csv")
+    assert list(table.columns) == ["vertex", "lon", "lat", "kind", "order"]
+    assert len(table) == len(mesh.vertices)
+
+
+def run(*argv):
+    return main([str(a) for a in argv])
+
+
+def write_lonlat(path, pts, names=("name", "Longitude", "LAT")):
+    with open(path, "w") as f:
+        f.write(",".join(names) + "\n")
+        for i, (x, y) in enumerate(pts.tolist()):
+            f.write(f"p{i},{x!r},{y!r}\n")
+
+
+def test_cli_on_the_sphere(tmp_path, capsys):
+    pts = Mixture().sample(5000, RNG)
+    csv = tmp_path / "pts.csv"
+    write_lonlat(csv, pts)  # columns found by name, in any case
+    out = tmp_path / "m.npz"
+    assert (
+        run(
+            "refine",
+            csv,
+            "--sphere",
+            "-k",
+            20,
+            "--radius",
+            6371.0088,
+            "-o",
+            out,
+            "-o",
+            tmp_path / "m.geojson",
+            "--plot",
+            tmp_path / "m.png",
+            "--certify",
+        )
+        == 0
+    )
+    text = capsys.readouterr().out
+    assert "on the sphere" in text and "PASSED" in text
+    mesh = io.read_mesh(out)
+    direct = knnrefine.refine(pts, 20, sphere=True, radius=6371.0088)
+    np.testing.assert_array_equal(mesh.xyz, direct.xyz)
+    assert run("certify", out, csv) == 0
+    assert (
+        run("density", csv, "--sphere", "-o", tmp_path / "d.npz", "--plot", tmp_path / "d.png") == 0
+    )
+    grid = np.load(tmp_path / "d.npz")
+    assert grid["density"].shape == (360, 720)
+    cell = np.outer(np.cos(np.radians(grid["ys"])), np.ones(720)) * (np.pi / 360) ** 2
+    assert (grid["density"] * cell).sum() == pytest.approx(1.0, rel=0.02)
+    for picture in ("m.png", "d.png"):
+        assert os.path.getsize(tmp_path / picture) > 50_000
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["refine", "{csv}", "--sphere", "--box", "0", "0", "1", "1", "-k", "3"], "no --box"),
+        (["refine", "{csv}", "--radius", "2", "-k", "3"], "--radius"),
+        (
+            ["density", "{csv}", "--sphere", "--method", "adaptive", "-o", "{tmp}/d.npz"],
+            "not built yet",
+        ),
+        (["refine", "{bad}", "--sphere", "-k", "3"], "no longitude and latitude columns"),
+    ],
+)
+def test_cli_sphere_refusals(tmp_path, capsys, argv, message):
+    csv, bad = tmp_path / "p.csv", tmp_path / "bad.csv"
+    write_lonlat(csv, uniform(100, RNG))
+    write_lonlat(bad, uniform(100, RNG), names=("id", "x", "y"))
+    argv = [a.format(csv=csv, bad=bad, tmp=tmp_path) for a in argv]
+    assert run(*argv) in (1, 2)
+    assert message in capsys.readouterr().err
+
+
+def test_maps_of_the_sphere(tmp_path):
+    from matplotlib.figure import Figure
+
+    from knnrefine.plot import plot_density, plot_mesh, plot_orthographic, save_figure
+
+    pts = Mixture().sample(4000, RNG)
+    mesh = knnrefine.refine(pts, 20, sphere=True)
+    f = KnnDensity(mesh, pts)
+    for style in ("hdr", "image"):
+        path = tmp_path / f"{style}.png"
+        save_figure(path, (10, 5.6), lambda ax, s=style: plot_density(f, ax, shape=(90, 180),
+                                                                      style=s),
+                    projection="mollweide")  # fmt: skip
+        assert os.path.getsize(path) > 30_000
+    ax = plot_orthographic(mesh, centre=(175.0, 10.0), points=pts)
+    assert len(ax.collections) >= 2
+    with pytest.raises(knnrefine.errors.InputError, match="geographic axes"):
+        plot_mesh(mesh, ax=Figure().add_subplot())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        plot_mesh(mesh, pts)  # a new Mollweide figure
