@@ -7,8 +7,11 @@ from .common import add_input_options
 HELP = "certify a mesh (.npz) against its points"
 EXAMPLES = """examples:
   knnrefine certify quakes.npz quakes.csv --columns lon,lat
-  knnrefine certify world.npz quakes.csv          # a mesh on the sphere: lon, lat by name
+  knnrefine certify world.npz quakes.csv
   knnrefine certify mesh.npz points.npy --json certificate.json
+
+a mesh on the sphere (world.npz, from 'knnrefine refine quakes.csv --sphere ...') reads its
+points' longitude and latitude columns by name.
 
 exit status: 0 when every guarantee holds (above the resolution floor), 3 when one fails,
 1 on bad input"""

@@ -23,7 +23,7 @@ EXAMPLES = """examples:
   knnrefine refine quakes.csv --columns lon,lat -k 20 --periodic-x --box -180 -90 180 90 \\
       -o quakes.npz -o quakes.vtu --plot quakes.png
   knnrefine refine angles.csv -k 50 --periodic --box 0 0 360 360 -o angles.npz --certify
-  knnrefine refine quakes.csv --sphere -k 30 --radius 6371.0088 -o world.npz \
+  knnrefine refine quakes.csv --sphere -k 30 --radius 6371.0088 -o world.npz \\
       -o world.geojson --certify
   cat points.txt | knnrefine refine - -k 10 -o mesh.geojson
   knnrefine refine chi.csv --columns chi1,chi2,chi3 -k 20 --periodic \\
