@@ -96,9 +96,9 @@ def test_sphere_triangulation_is_the_convex_hull():
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     mesh, nv, nt = new_sphere(4000, 8000)
     scratch = SphereScratch(
-        mark=np.zeros(8000, np.int64), vmark=np.zeros(4000, np.int64),
+        mark=np.zeros(8000, np.int32), vmark=np.zeros(4000, np.int32),
         vnext=np.zeros(4000, np.int32), cavity=np.zeros(4098, np.int32),
-        horizon=np.zeros((4098, 3), np.int32), points=np.zeros((4, 3)),
+        horizon=np.zeros((4098, 3), np.int32), points=np.zeros((4, 3)), point=np.zeros(3),
         ids=np.zeros(256, np.int64), h=np.zeros((256, 3)), hc=np.zeros(256),
         stack=np.zeros(128, np.int64),
     )  # fmt: skip
@@ -120,9 +120,9 @@ def test_sphere_insertion_too_close_to_a_vertex_is_refused():
 
     mesh, nv, nt = new_sphere(64, 128)
     scratch = SphereScratch(
-        mark=np.zeros(128, np.int64), vmark=np.zeros(64, np.int64),
+        mark=np.zeros(128, np.int32), vmark=np.zeros(64, np.int32),
         vnext=np.zeros(64, np.int32), cavity=np.zeros(4098, np.int32),
-        horizon=np.zeros((4098, 3), np.int32), points=np.zeros((4, 3)),
+        horizon=np.zeros((4098, 3), np.int32), points=np.zeros((4, 3)), point=np.zeros(3),
         ids=np.zeros(256, np.int64), h=np.zeros((256, 3)), hc=np.zeros(256),
         stack=np.zeros(128, np.int64),
     )  # fmt: skip

@@ -62,7 +62,10 @@ def sphere_constants(tau: float, largest_cap: float) -> tuple[float, float]:
     alpha, _ = theorem6_constants(tau)
     plane = np.sqrt(1.0 - 1.0 / tau**2)
     r = float(largest_cap)
-    theta = plane if r <= 0 else max(plane, float(np.arccos(np.cos(r) / np.cos(r / tau)) / r))
+    if not r < 0.5 * np.pi:  # a cap of a hemisphere or more: Theorem 5's step has no bound
+        return alpha, float("inf")
+    ratio = min(1.0, np.cos(r) / np.cos(r / tau))
+    theta = plane if r <= 0 else max(plane, float(np.arccos(ratio)) / r)
     if theta >= 1.0:
         return alpha, float("inf")
     return alpha, float((3.0 - theta) / (1.0 - theta))

@@ -40,6 +40,7 @@ from .engine.state import (
     C_MAX_VERTICES,
     C_NT,
     C_NV,
+    C_STAMP,
     ERRORS,
     FLOOR,
     KIND_NAMES,
@@ -65,6 +66,7 @@ DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the resolution floor: a millionth of half 
 CLEAN_FLOOR_CHORD = 2.0**-38  # 2^14 ulps of a unit vector: no Clean below it
 MAX_DEGREE = 256
 SPHERE_BOX = (-180.0, -90.0, 180.0, 90.0)
+STAMP_LIMIT_SPHERE = 2**30  # a kernel call makes at most STEPS insertions: far below 2^31
 
 
 class SphereOptions:
@@ -122,12 +124,13 @@ class SphereRun:
         )
         self.queues = Queues(new_queue(cap_q), new_queue(cap_q), new_queue(cap_q))
         self.scratch = SphereScratch(
-            mark=np.zeros(cap_t, np.int64),
-            vmark=np.zeros(cap_v, np.int64),
+            mark=np.zeros(cap_t, np.int32),
+            vmark=np.zeros(cap_v, np.int32),
             vnext=np.zeros(cap_v, np.int32),
             cavity=np.zeros(MAX_CAVITY_SPHERE + 2, np.int32),
             horizon=np.zeros((MAX_CAVITY_SPHERE + 2, 3), np.int32),
             points=np.zeros((4, 3)),
+            point=np.zeros(3),
             ids=np.zeros(MAX_DEGREE, np.int64),
             h=np.zeros((MAX_DEGREE, 3)),
             hc=np.zeros(MAX_DEGREE),
@@ -145,7 +148,7 @@ class SphereRun:
             v2, t2 = 2 * cap_v, 2 * cap_t
             self.mesh = self.mesh._replace(
                 **{f: grown(getattr(self.mesh, f), t2)
-                   for f in ("corners", "neighbours", "centre", "chord2", "gen")},
+                   for f in ("corners", "neighbours", "chord2", "gen")},
                 **{f: grown(getattr(self.mesh, f), v2) for f in ("xyz", "star")},
             )  # fmt: skip
             self.book = self.book._replace(
@@ -167,6 +170,13 @@ class SphereRun:
             queues.append(q)
         self.queues = Queues(*queues)
 
+    def restart_stamps(self):
+        """Past STAMP_LIMIT_SPHERE insertions the 32-bit stamps start again from 0."""
+        if self.cnt[C_STAMP] > STAMP_LIMIT_SPHERE:
+            self.scratch.mark[:] = 0
+            self.scratch.vmark[:] = 0
+            self.cnt[C_STAMP] = 0
+
     def pending(self):
         return int(sum(q.scalars[Q_SIZE] for q in self.queues))
 
@@ -185,15 +195,17 @@ def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_siz
     opt = SphereOptions(n, total, k, tau, radius, min_size, max_vertices, time_limit, progress)
     report = Progress(opt.progress)
     budget = opt.max_vertices if opt.max_vertices is not None else max(10**6, 4 * n)
-    index = build_index3(xyz_p, copy=True, weights=w)
+    index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
     prm = np.zeros(N_PARAMS_SPHERE)
     prm[PS_TAU2] = opt.tau**2 * (1.0 - 1e-12)
     prm[PS_FLOOR2] = max(angle_to_chord(opt.min_angle), CLEAN_FLOOR_CHORD) ** 2
     prm[PS_CLEAN_FLOOR2] = CLEAN_FLOOR_CHORD**2
     prm[PS_INFLATE] = 1.0 + 1e-9
     prm[PS_K] = float(opt.k)
-    first = max(1024, min(budget, 8 * int(n / max(opt.k, 1.0)) + 64))
-    run = SphereRun(first, 2 * first, 4 * first + 4 * QUEUE_HEADROOM)
+    # about 2.5 (n / k) vertices on uniform points: room for 3 (n / k), grown when short
+    mass = n if total is None else total
+    first = int(max(1024, min(budget, 3.0 * mass / max(opt.k, 1e-300) + 1024)))
+    run = SphereRun(first, 2 * first, first + 4 * QUEUE_HEADROOM)
     run.cnt[C_MAX_VERTICES] = budget
     if not is_ready(refine_steps_sphere):
         report.compiling()
@@ -201,6 +213,7 @@ def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_siz
     with Interrupts() as interrupts:
         queue_all_sphere(run.mesh, run.book, run.queues, run.scratch, run.cnt)
         while True:
+            run.restart_stamps()
             status = run.step(prm, index, STEPS)
             interrupts.check()
             if status == STATUS_GROW:
@@ -257,7 +270,10 @@ def _assemble(run, opt, index, seconds, n, total):
     kinds = run.book.kinds[:nv].copy()
     floor_t = np.flatnonzero(run.book.ball_state[:nt] == FLOOR)
     floor_v = np.flatnonzero(run.book.cell_state[:nv] == FLOOR)
-    sites = np.concatenate([run.mesh.centre[floor_t], xyz[floor_v]])
+    a, b, c = (xyz[run.mesh.corners[floor_t, i]] for i in range(3))
+    normal = np.cross(b - a, c - a)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    sites = np.concatenate([normal, xyz[floor_v]])
     stats = {
         "moves": {name: int((kinds == i).sum()) for i, name in enumerate(KIND_NAMES)},
         "circumcap_tests": int(run.cnt[C_DISK_TESTS]),

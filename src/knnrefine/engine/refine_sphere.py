@@ -51,7 +51,7 @@ from .state import (
     STATUS_STEPS,
     UNTESTED,
 )
-from .triangulation_sphere import insert_sphere, walk_star
+from .triangulation_sphere import circumcap_centre, insert_sphere, walk_star
 
 # parameters (float64 array ``prm``) of a run on the sphere
 PS_TAU2 = 0  # tau^2, lowered by a relative 1e-12
@@ -176,7 +176,8 @@ def refine_steps_sphere(mesh, book, queues, scratch, cnt, prm, index, max_steps)
             if far2 < prm[PS_CLEAN_FLOOR2]:
                 book.flags[v] = book.flags[v] | CLEAN_BELOW_FLOOR
                 continue
-            got = _insert(mesh.centre[far], far, CLEAN, mesh, book, queues, scratch, cnt)
+            circumcap_centre(mesh, far, scratch.point)
+            got = _insert(scratch.point, far, CLEAN, mesh, book, queues, scratch, cnt)
             if got == INSERT_CAVITY_OVERFLOW:
                 cnt[C_ERROR] = got
                 return STATUS_ERROR
@@ -191,7 +192,8 @@ def refine_steps_sphere(mesh, book, queues, scratch, cnt, prm, index, max_steps)
             if mesh.gen[t] != g or book.ball_state[t] != UNTESTED:
                 continue  # stale: slot t holds another triangle now, or was tested
             cnt[C_DISK_TESTS] += 1
-            c = mesh.centre[t]
+            c = scratch.point
+            circumcap_centre(mesh, t, c)
             held = count_in_region3(
                 index, c[0], c[1], c[2], scratch.h, scratch.hc, 0, mesh.chord2[t] * inflate,
                 k, scratch.stack,
@@ -202,7 +204,7 @@ def refine_steps_sphere(mesh, book, queues, scratch, cnt, prm, index, max_steps)
             if mesh.chord2[t] < prm[PS_FLOOR2]:
                 book.ball_state[t] = FLOOR
                 continue
-            got = _insert(mesh.centre[t], t, BREAK_BALL, mesh, book, queues, scratch, cnt)
+            got = _insert(c, t, BREAK_BALL, mesh, book, queues, scratch, cnt)
             if got == INSERT_CAVITY_OVERFLOW:
                 cnt[C_ERROR] = got
                 return STATUS_ERROR
@@ -228,7 +230,8 @@ def refine_steps_sphere(mesh, book, queues, scratch, cnt, prm, index, max_steps)
             if far2 < prm[PS_FLOOR2]:
                 book.cell_state[v] = FLOOR
                 continue
-            got = _insert(mesh.centre[far], far, BREAK_CELL, mesh, book, queues, scratch, cnt)
+            circumcap_centre(mesh, far, scratch.point)
+            got = _insert(scratch.point, far, BREAK_CELL, mesh, book, queues, scratch, cnt)
             if got == INSERT_CAVITY_OVERFLOW:
                 cnt[C_ERROR] = got
                 return STATUS_ERROR

@@ -100,8 +100,8 @@ SphereMesh = namedtuple(
     [
         "corners",  # (T, 3) int32: the vertex at each corner, counter-clockwise seen from outside
         "neighbours",  # (T, 3) int32: the triangle across the edge opposite each corner
-        "centre",  # (T, 3) float64: the circumcap's centre (a unit vector)
         "chord2",  # (T,) float64: the circumcap's squared chord radius |centre - corner|^2
+        # (its centre is computed when asked: ``triangulation_sphere.circumcap_centre``)
         "gen",  # (T,) int32: how often the slot was filled (a queue entry's aux: stale if not)
         "xyz",  # (V, 3) float64: vertex unit vectors
         "star",  # (V,) int32: one triangle at each vertex (where a walk round it starts)
@@ -111,12 +111,14 @@ SphereMesh = namedtuple(
 SphereScratch = namedtuple(
     "SphereScratch",
     [
-        "mark",  # (T,) int64: insertion stamp of the triangles already met
-        "vmark",  # (V,) int64: insertion stamp of the vertices on the cavity's boundary
+        "mark",  # (T,) int32: insertion stamp of the triangles already met
+        "vmark",  # (V,) int32: insertion stamp of the vertices on the cavity's boundary
+        # (the driver restarts the stamps past STAMP_LIMIT_SPHERE)
         "vnext",  # (V,) int32: the boundary edge that starts at each such vertex
         "cavity",  # (C,) int32: the cavity's triangles, then the new triangles' slots
         "horizon",  # (C, 3) int32: boundary edges (first vertex, second, outer triangle)
         "points",  # (4, 3) float64: the corners handed to a predicate
+        "point",  # (3,) float64: a point to insert (a circumcap's centre)
         "ids",  # (D,) int64: a vertex's neighbours (a star walk)
         "h",  # (D, 3) float64: their offsets from the vertex
         "hc",  # (D,) float64: the bisectors' offsets (a cell count)

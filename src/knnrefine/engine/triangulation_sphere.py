@@ -81,7 +81,6 @@ def new_sphere(capacity_v, capacity_t, zeros=np.zeros):
     mesh = SphereMesh(
         corners=zeros((capacity_t, 3), np.int32),
         neighbours=zeros((capacity_t, 3), np.int32),
-        centre=zeros((capacity_t, 3), np.float64),
         chord2=zeros((capacity_t,), np.float64),
         gen=zeros((capacity_t,), np.int32),
         xyz=zeros((capacity_v, 3), np.float64),
@@ -97,30 +96,35 @@ def new_sphere(capacity_v, capacity_t, zeros=np.zeros):
     return mesh, 4, 4
 
 
-@kernel(entry=True)
-def set_circumcap(mesh, t):
-    """The circumcap of triangle t: its centre, the unit normal of its plane on the side
-    away from the origin, and its squared chord radius (the largest over the corners, so
-    that rounding never shrinks it)."""
+@kernel(inline="always")
+def _centre_of(mesh, t):
+    """The centre of triangle t's circumcap: the unit normal of its plane on the side away
+    from the origin, (b - a) x (c - a) normalised, as three numbers."""
     a = mesh.xyz[mesh.corners[t, 0]]
     b = mesh.xyz[mesh.corners[t, 1]]
     c = mesh.xyz[mesh.corners[t, 2]]
-    # (b - a) x (c - a) = a x b + b x c + c x a
     nx = (b[1] - a[1]) * (c[2] - a[2]) - (b[2] - a[2]) * (c[1] - a[1])
     ny = (b[2] - a[2]) * (c[0] - a[0]) - (b[0] - a[0]) * (c[2] - a[2])
     nz = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
     norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-    nx /= norm
-    ny /= norm
-    nz /= norm
-    mesh.centre[t, 0] = nx
-    mesh.centre[t, 1] = ny
-    mesh.centre[t, 2] = nz
+    return nx / norm, ny / norm, nz / norm
+
+
+@kernel(inline="always")
+def circumcap_centre(mesh, t, out):
+    """The centre of triangle t's circumcap into ``out`` (3,)."""
+    out[0], out[1], out[2] = _centre_of(mesh, t)
+
+
+@kernel(entry=True)
+def set_circumcap(mesh, t):
+    """The squared chord radius of triangle t's circumcap: the largest over the corners of
+    |centre - corner|^2, so that rounding never shrinks the counting region."""
+    nx, ny, nz = _centre_of(mesh, t)
     r2 = 0.0
     for j in range(3):
         p = mesh.xyz[mesh.corners[t, j]]
-        d = (p[0] - nx) ** 2 + (p[1] - ny) ** 2 + (p[2] - nz) ** 2
-        r2 = max(r2, d)
+        r2 = max(r2, (p[0] - nx) ** 2 + (p[1] - ny) ** 2 + (p[2] - nz) ** 2)
     mesh.chord2[t] = r2
 
 
@@ -250,7 +254,8 @@ def _unmark(mark, cavity, ncav):
 @kernel(nrt=False)
 def walk_star(v, mesh, scratch):
     """Round vertex v: (its neighbours' count nh, written to ``scratch.ids``; the slot of
-    the star triangle with the largest circumcap; that cap's squared chord; the least
+    the star triangle with the largest circumcap, whose centre is v's farthest Voronoi
+    vertex; that cap's squared chord, R(v) as a chord, v being one of its corners; the least
     squared chord from v to a neighbour). -1 for nh when the star outgrows ``ids``."""
     t = mesh.star[v]
     start = t
@@ -271,9 +276,7 @@ def walk_star(v, mesh, scratch):
         for a in range(3):
             d2 += (mesh.xyz[w, a] - x[a]) ** 2
         near2 = min(near2, d2)
-        c2 = 0.0
-        for a in range(3):
-            c2 += (mesh.centre[t, a] - x[a]) ** 2
+        c2 = mesh.chord2[t]
         if c2 > far2:
             far2 = c2
             far = t
