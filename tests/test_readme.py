@@ -78,6 +78,11 @@ def test_every_readme_command_runs_as_written(tmp_path):
         "labels.csv",
         "clusters.png",
         "certificate-quakes.json",
+        "world.npz",
+        "world.geojson",
+        "world.png",
+        "world-density.npz",
+        "world-density.png",
     ):
         assert (cwd / made).stat().st_size > 0, made
 
@@ -92,6 +97,26 @@ def test_every_readme_python_example_runs(tmp_path, monkeypatch):
     assert namespace["cert"].passed
     assert namespace["again"].k == namespace["torus"].k
     assert os.path.exists(tmp_path / "torus.npz")
+    assert namespace["world"].on_sphere and os.path.exists(tmp_path / "world.geojson")
+
+
+def test_the_readme_sphere_block_runs_as_a_script_and_from_stdin(tmp_path):
+    """The sphere's block, pasted into a script or piped to python, runs cleanly and writes
+    its GeoJSON and map."""
+    import subprocess
+    import sys
+
+    block = next(b for b in blocks("python") if "sphere=True" in b)
+    code = "import knnrefine\n" + block
+    script = tmp_path / "sphere.py"
+    script.write_text(code)
+    for args, stdin in (([str(script)], None), (["-"], code)):
+        run = subprocess.run([sys.executable, *args], input=stdin, capture_output=True,
+                             text=True, timeout=600, cwd=tmp_path)  # fmt: skip
+        assert run.returncode == 0, run.stderr[-3000:]
+        assert "Traceback" not in run.stderr and "Warning" not in run.stderr, run.stderr
+        assert (tmp_path / "world.geojson").stat().st_size > 0
+        assert (tmp_path / "world.png").stat().st_size > 50_000
 
 
 @pytest.mark.slow

@@ -52,9 +52,19 @@ def unit_vectors(x):
     x = np.asarray(x, float)
     if x.shape[-1] == 3:
         return x / np.linalg.norm(x, axis=-1, keepdims=True)
-    lon, lat = np.radians(x[..., 0]), np.radians(x[..., 1])
-    c = np.cos(lat)
-    return np.stack([c * np.cos(lon), c * np.sin(lon), np.sin(lat)], axis=-1)
+    flat = x.reshape(-1, 2)
+    out = np.empty((len(flat), 3))
+    for lo in range(0, len(flat), UNIT_CHUNK):  # in blocks: temporaries of one block only
+        block = np.radians(flat[lo : lo + UNIT_CHUNK])
+        lon, lat = block[:, 0], block[:, 1]
+        c = np.cos(lat)
+        out[lo : lo + len(block), 0] = c * np.cos(lon)
+        out[lo : lo + len(block), 1] = c * np.sin(lon)
+        out[lo : lo + len(block), 2] = np.sin(lat)
+    return out.reshape(x.shape[:-1] + (3,))
+
+
+UNIT_CHUNK = 1 << 16  # rows converted at a time by ``unit_vectors``
 
 
 def lonlat_of(xyz):

@@ -443,12 +443,15 @@ def as_sphere_points(points):
             )
         return pts / norm[:, None]
     lat = pts[:, 1]
-    bad = np.abs(lat) > 90.0
+    bad = (lat > 90.0) | (lat < -90.0)
     if bad.any():
         i = int(np.argmax(bad))
-        swapped = " (are the columns swapped? give longitude first)" if (
-            np.abs(pts[:, 0]) <= 90.0
-        ).all() else ""  # fmt: skip
+        lon = pts[:, 0]
+        swapped = (
+            " (are the columns swapped? give longitude first)"
+            if ((lon <= 90.0) & (lon >= -90.0)).all()
+            else ""
+        )
         raise InputError(
             f"latitudes must lie in [-90, 90] degrees; point {i} has latitude {lat[i]:g}{swapped}"
         )
