@@ -8,9 +8,10 @@ both cores: the issue's baseline), HEALPix binning (healpy: ``ang2pix`` + ``binc
 resolution whose pixels hold about k points on average, the quick picture astronomers draw)
 and, at n <= 10^5, scipy's SphericalVoronoi of the points (the other mesh a user could
 make; on clustered points it refuses "duplicate generators" within its tolerance, and is
-reported as refused). Each configuration runs in a fresh subprocess after one untimed warm-up call; the
-tools alternate --repeat times and the medians are reported, with refine's peak resident
-memory above the process' before the call per mesh vertex, and that peak less the counting
+reported as refused). Each configuration runs in a fresh subprocess after one untimed
+warm-up call; the tools alternate --repeat times and the medians are reported, with
+refine's peak resident memory above the process' before the call per mesh vertex, and that
+peak less the counting
 index over the points (their unit vectors and the tree: about 30 bytes a point, whatever
 the mesh) per mesh vertex: the mesh's own memory, the plane's budget being 300 bytes.
 
@@ -155,8 +156,10 @@ def speed_worker(kind, n, k, repeat):
 def speed(args):
     rows = []
     print(f"# {machine()['cpu']}, {os.cpu_count()} cores; medians of {args.repeat}")
-    print(f"{'points':>10} {'n':>9} {'k':>5} {'m':>8} {'refine':>8} {'cKDTree':>8} "
-          f"{'ratio':>6} {'HEALPix':>8} {'SphVor':>8} {'B/vertex':>9} {'less index':>10}")  # fmt: skip
+    head = ("points", "n", "k", "m", "refine", "cKDTree", "ratio", "HEALPix", "SphVor",
+            "B/vertex", "less index")  # fmt: skip
+    widths = (10, 9, 5, 8, 8, 8, 6, 8, 8, 9, 10)
+    print(" ".join(f"{h:>{w}}" for h, w in zip(head, widths, strict=True)))
     for kind in args.kinds:
         for n in args.sizes:
             for k in args.ks:
@@ -205,7 +208,8 @@ class Truth:
         if self.name == "mixture":
             return 0.6 * vmf_pdf(x, self.mus[0], 40.0) + 0.4 * vmf_pdf(x, self.mus[1], 150.0)
         if self.name == "band":
-            return (np.abs(x[:, 2]) <= np.sin(np.radians(20))) / (4 * np.pi * np.sin(np.radians(20)))
+            edge = np.sin(np.radians(20))
+            return (np.abs(x[:, 2]) <= edge) / (4 * np.pi * edge)
         return (x[:, 2] >= np.cos(np.radians(30))) / (2 * np.pi * (1 - np.cos(np.radians(30))))
 
 

@@ -289,3 +289,50 @@ def test_maps_of_the_sphere(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         plot_mesh(mesh, pts)  # a new Mollweide figure
+
+
+def test_the_adaptive_estimate_is_not_built_on_the_sphere_and_says_so():
+    from knnrefine.density import AdaptiveDensity
+
+    pts = uniform(2000, RNG)
+    mesh = knnrefine.refine(pts, 20, sphere=True)
+    with pytest.raises(knnrefine.errors.InputError, match="not built on the sphere yet"):
+        AdaptiveDensity(mesh, pts)
+
+
+def test_cluster_on_the_sphere_finds_the_caps_across_the_antimeridian():
+    pytest.importorskip("gudhi")
+    rng = np.random.default_rng(7)
+    parts = [vmf(3000, (178.0, 0.0), 300.0, rng), vmf(3000, (60.0, 70.0), 300.0, rng),
+             vmf(3000, (-60.0, -30.0), 300.0, rng), uniform(1000, rng)]  # fmt: skip
+    pts = np.concatenate(parts)
+    mesh = knnrefine.refine(pts, 30, sphere=True)
+    result = knnrefine.cluster(mesh, pts)
+    assert result.n_clusters == 3
+    truth = np.repeat([0, 1, 2], 3000)
+    labels = result.labels[:9000]
+    # each cap one label (the cap across 180 degrees is one cluster, not two), all different
+    majority = [np.bincount(labels[truth == c]).argmax() for c in range(3)]
+    assert len(set(majority)) == 3
+    agree = np.mean([np.mean(labels[truth == c] == majority[c]) for c in range(3)])
+    assert agree > 0.95
+
+
+def test_persistence_on_the_sphere_sees_a_ring_and_reports_the_sphere():
+    """A ring of points round a pole with outliers: H1 has one long-lived class (the empty
+    polar cap it encloses); H2 holds the sphere's one essential class, born at the
+    filtration's largest value."""
+    pytest.importorskip("gudhi")
+    from knnrefine.topology import Persistence
+
+    rng = np.random.default_rng(8)
+    ring = np.column_stack([rng.uniform(-180, 180, 3000), 60 + rng.normal(0, 1.0, 3000)])
+    pts = np.concatenate([ring, uniform(300, rng)])
+    mesh = knnrefine.refine(pts, 20, sphere=True)
+    pers = Persistence(mesh, pts)
+    h1 = pers.most_persistent(1, 2)
+    assert h1[0] > 1.0 and (len(h1) < 2 or h1[1] < 0.3 * h1[0])
+    h2 = pers.diagram(2)
+    assert len(h2) == 1 and np.isinf(h2[0, 1])
+    assert h2[0, 0] == pytest.approx(pers.values.max())
+    assert pers.positions.shape[1] == 2 and np.abs(pers.positions[:, 1]).max() <= 90

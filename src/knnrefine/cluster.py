@@ -44,15 +44,17 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .density.distance import point_index
 from .density.estimate import unit_ball_volume
+from .density.sphere import SphereIndex, equal_area_radius
 from .engine.superlevel import superlevel_noise
 from .errors import InputError
 from .mesh import cell_edges
 from .metric import BoxMetric
 from .topology import require_gudhi
-from .validation import points_of_run
+from .validation import points_of_run, sphere_points_of_run
 
 
 @dataclass
@@ -103,7 +105,8 @@ def cluster(
     weights: ArrayLike | None = None,
 ) -> Clustering:
     """ToMATo clusters of ``points`` on the mesh graph (see the module docstring), in the
-    plane or in space.
+    plane, in space or on the sphere (great-circle d_Pk, the density per unit area of the
+    sphere).
 
     Parameters
     ----------
@@ -138,7 +141,10 @@ def cluster(
     gudhi = require_gudhi()
     from gudhi.clustering.tomato import Tomato
 
-    pts, weights, total = points_of_run(mesh, points, weights)
+    if mesh.on_sphere:
+        pts, weights, total = sphere_points_of_run(mesh, points, weights)
+    else:
+        pts, weights, total = points_of_run(mesh, points, weights)
     if n_clusters is not None and (
         isinstance(n_clusters, bool) or int(n_clusters) != n_clusters or n_clusters < 1
     ):
@@ -160,9 +166,14 @@ def cluster(
     both = both[np.argsort(both[:, 0], kind="stable")]
     indptr = np.concatenate([[0], np.cumsum(np.bincount(both[:, 0], minlength=m))])
     neighbours = np.split(both[:, 1], indptr[1:-1])
-    metric = BoxMetric(mesh.box, mesh.periodic)
-    d = point_index(mesh, pts, weights).kth(metric.wrap(vertices), mesh.k)
     dim = mesh.dim
+    if mesh.on_sphere:  # great-circle d_Pk; the cap's area is pi chord^2
+        index = SphereIndex(pts, weights, mesh.radius)
+        unit = mesh.xyz[used]
+        d = equal_area_radius(index.kth_unit(unit, mesh.k), mesh.radius)
+    else:
+        metric = BoxMetric(mesh.box, mesh.periodic)
+        d = point_index(mesh, pts, weights).kth(metric.wrap(vertices), mesh.k)
     log_density = np.log(mesh.k / (total * unit_ball_volume(dim))) - dim * np.log(d)
     tomato = Tomato(graph_type="manual", density_type="manual")
     tomato.fit(neighbours, weights=log_density)
@@ -206,7 +217,10 @@ def cluster(
     vertex_labels = rank[vertex_labels]
     if noise:
         vertex_labels = np.where(kept_leaf, vertex_labels, -1)
-    labels = vertex_labels[metric.tree(vertices).query(metric.frame(pts), workers=-1)[1]]
+    if mesh.on_sphere:  # each point takes its nearest vertex's label (chords order as angles)
+        labels = vertex_labels[cKDTree(unit).query(pts, workers=-1)[1]]
+    else:
+        labels = vertex_labels[metric.tree(vertices).query(metric.frame(pts), workers=-1)[1]]
     all_labels = np.full(len(mesh.vertices), -1)
     all_labels[used] = vertex_labels
     return Clustering(

@@ -24,10 +24,11 @@ import numpy as np
 
 from .density.distance import point_index
 from .density.space import SpacePieces, edges3
+from .density.sphere import SphereIndex
 from .errors import InputError
 from .mesh import edges, split_in_four
-from .metric import BoxMetric
-from .validation import as_points, points_of_run
+from .metric import BoxMetric, lonlat_of
+from .validation import as_points, points_of_run, sphere_points_of_run
 
 
 def require_gudhi():
@@ -52,9 +53,23 @@ def mesh_complex(mesh, subdivide=True):
     edge midpoints. Raises EngineError if two edges join the same pair of vertices, or an
     edge a vertex to itself (the complex would then not be simplicial: only on a torus a few
     cells across)."""
+    if mesh.on_sphere:
+        return _sphere_complex(mesh, subdivide)
     if mesh.dim == 2:
         return _plane_complex(mesh, subdivide)
     return _space_complex(mesh, subdivide)
+
+
+def _sphere_complex(mesh, subdivide):
+    """The sphere's triangulation (closed: every edge borders two triangles), its positions
+    as unit vectors; subdivided through the edge midpoints pushed onto the sphere."""
+    tri = mesh.triangles.astype(np.int64)
+    xyz = np.asarray(mesh.xyz, float)
+    if not subdivide:
+        return xyz, tri
+    pairs, _, tri = split_in_four(tri, len(xyz))
+    mids = xyz[pairs[:, 0]] + xyz[pairs[:, 1]]
+    return np.concatenate([xyz, mids / np.linalg.norm(mids, axis=1, keepdims=True)]), tri
 
 
 def _not_simplicial():
@@ -139,6 +154,14 @@ class Persistence:
     ``diagram(dim)``: (q, 2) birth and death of the classes in dimension dim (death inf for
     the classes that never die). ``cells`` are the filtered complex's top cells (triangles
     or tetrahedra) over ``positions``.
+
+    On the sphere the complex is the sphere's own triangulation, ``positions`` in longitude
+    and latitude: once every triangle has entered, the sublevel set is the whole sphere, so
+    ``diagram(2)`` ends with one class born at the largest value of the filtration that
+    never dies. That class is the sphere itself, not a feature of the data (as the one
+    essential class in dimension 0 is the sphere's connectedness); the data's holes (a
+    region without points enclosed by a ring of them) are the finite classes in dimension 1,
+    and a cavity in dimension 2 cannot exist on a surface.
     """
 
     def __init__(
@@ -154,15 +177,24 @@ class Persistence:
         gudhi = require_gudhi()
         if function not in ("d_pk", "d_m2"):
             raise InputError(f"function must be 'd_pk' or 'd_m2', got {function!r}")
-        pts, weights, _ = points_of_run(mesh, points, weights)
         self.mesh = mesh
         self.log = log
-        self.positions, self.cells = mesh_complex(mesh, subdivide)
-        if function == "d_pk":
-            index = point_index(mesh, pts, weights)
-            d = index.kth(BoxMetric(mesh.box, mesh.periodic).wrap(self.positions), mesh.k)
-        else:  # the mesh's own sizing: within [alpha, beta] d_Pk, free
-            d = mesh.d_m2(self.positions)
+        if mesh.on_sphere:  # great-circle d_Pk at unit vectors; positions in lon/lat
+            unit, weights, _ = sphere_points_of_run(mesh, points, weights)
+            nodes, self.cells = mesh_complex(mesh, subdivide)
+            self.positions = lonlat_of(nodes)
+            if function == "d_pk":
+                d = SphereIndex(unit, weights, mesh.radius).kth_unit(nodes, mesh.k)
+            else:
+                d = mesh.d_m2(self.positions)
+        else:
+            pts, weights, _ = points_of_run(mesh, points, weights)
+            self.positions, self.cells = mesh_complex(mesh, subdivide)
+            if function == "d_pk":
+                index = point_index(mesh, pts, weights)
+                d = index.kth(BoxMetric(mesh.box, mesh.periodic).wrap(self.positions), mesh.k)
+            else:  # the mesh's own sizing: within [alpha, beta] d_Pk, free
+                d = mesh.d_m2(self.positions)
         self.values = np.log(d) if log else d
         st = gudhi.SimplexTree()
         n = len(self.positions)

@@ -170,6 +170,7 @@ def points_of_run(mesh, points, weights=None):
     clustering, persistence): (pts (n, d) float64, weights or None, total: n or the total
     weight). Refused with an InputError: points of another dimension or number than the
     run's, weights that are not the run's (``weights_of_run``), less than k in all."""
+    check_in_a_box(mesh, "this use")
     pts = as_points(points, mesh.dim)
     check_made_from(mesh.stats, len(pts), "use a mesh with")
     weights = weights_of_run(mesh.stats, len(pts), weights)
@@ -178,6 +179,30 @@ def points_of_run(mesh, points, weights=None):
         what = f"{len(pts)} points" if weights is None else f"a total weight of {total:.6g}"
         raise InputError(f"{what} but k = {mesh.k}: d_Pk is infinite")
     return pts, weights, total
+
+
+def sphere_points_of_run(mesh, points, weights=None):
+    """``points_of_run`` for a mesh on the sphere: (unit vectors (n, 3), weights or None,
+    total: n or the total weight), refused as there when they are not the run's."""
+    unit = as_sphere_points(points)
+    check_made_from(mesh.stats, len(unit), "use a mesh with")
+    weights = weights_of_run(mesh.stats, len(unit), weights)
+    total = len(unit) if weights is None else float(weights.sum())
+    if total < mesh.k:
+        what = f"{len(unit)} points" if weights is None else f"a total weight of {total:.6g}"
+        raise InputError(f"{what} but k = {mesh.k}: d_Pk is infinite")
+    return unit, weights, total
+
+
+def check_in_a_box(mesh, what):
+    """InputError for a mesh on the sphere where ``what`` is built for the plane and space
+    only (rather than treat longitude and latitude as a plane)."""
+    if getattr(mesh, "on_sphere", False):
+        raise InputError(
+            f"{what} is built for meshes in a box (the plane or space); this mesh lies on the "
+            "sphere, where KnnDistance, KnnDensity, cluster and Persistence work; the adaptive "
+            "estimate is not built on the sphere yet"
+        )
 
 
 def check_weighted_k(k, total):

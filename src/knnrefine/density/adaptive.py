@@ -10,7 +10,7 @@ from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  
 from ..engine.lattice import plan_levels, read_grid
 from ..engine.threads import in_chunks
 from ..errors import InputError
-from ..validation import as_points, as_queries, weights_of_run
+from ..validation import as_points, as_queries, check_in_a_box, weights_of_run
 from .estimate import KnnDensity, unit_ball_volume
 
 
@@ -50,6 +50,7 @@ class AdaptiveDensity:
         max_ratio=10.0, knn=None, sensitivity=0.5,
     ):  # fmt: skip
         check_shape(shape)
+        check_in_a_box(mesh, "the adaptive estimate")
         if not (isinstance(max_ratio, (int, float)) and 1 <= max_ratio < np.inf):
             raise InputError(f"max_ratio must be a number >= 1, got {max_ratio!r}")
         dim = mesh.dim

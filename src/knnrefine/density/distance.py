@@ -27,14 +27,7 @@ from ..engine.index3 import build_index3, kth_distances3
 from ..engine.threads import in_chunks
 from ..errors import InputError
 from ..metric import BoxMetric, lonlat_of, unit_vectors, weighted_kth
-from ..validation import (
-    as_queries,
-    as_sphere_points,
-    check_inside,
-    check_made_from,
-    points_of_run,
-    weights_of_run,
-)
+from ..validation import as_queries, check_inside, points_of_run, sphere_points_of_run
 from .plane import PlanePieces, index_values, linear_pieces
 from .space import SpacePieces
 from .sphere import SphereIndex, SpherePieces, equal_area_radius
@@ -118,12 +111,7 @@ class KnnDistance:
     def _on_sphere(self, mesh, points, subdivide, weights):
         """On the sphere: exact values from a kd-tree over the points' unit vectors, linear
         pieces over the spherical triangles (``sphere.SpherePieces``)."""
-        unit = as_sphere_points(points)
-        check_made_from(mesh.stats, len(unit), "use a mesh with")
-        weights = weights_of_run(mesh.stats, len(unit), weights)
-        total = len(unit) if weights is None else float(weights.sum())
-        if total < mesh.k:
-            raise InputError(f"a total of {total:.6g} but k = {mesh.k}: d_Pk is infinite")
+        unit, weights, total = sphere_points_of_run(mesh, points, weights)
         self._frame(mesh, len(unit), total)
         self._points = lonlat_of(unit)
         self.index = SphereIndex(unit, weights, mesh.radius)
