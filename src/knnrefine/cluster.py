@@ -169,7 +169,7 @@ def cluster(
     dim = mesh.dim
     if mesh.on_sphere:  # great-circle d_Pk; the cap's area is pi chord^2
         index = SphereIndex(pts, weights, mesh.radius)
-        unit = mesh.xyz[used]
+        unit = np.asarray(mesh.xyz)[used]
         d = equal_area_radius(index.kth_unit(unit, mesh.k), mesh.radius)
     else:
         metric = BoxMetric(mesh.box, mesh.periodic)
