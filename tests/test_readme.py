@@ -100,6 +100,7 @@ def test_every_readme_python_example_runs(tmp_path, monkeypatch):
     assert namespace["world"].on_sphere and os.path.exists(tmp_path / "world.geojson")
 
 
+@pytest.mark.slow
 def test_the_readme_sphere_block_runs_as_a_script_and_from_stdin(tmp_path):
     """The sphere's block, pasted into a script or piped to python, runs cleanly and writes
     its GeoJSON and map."""

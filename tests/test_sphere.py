@@ -57,18 +57,19 @@ INPUTS = {"uniform": uniform, "clustered": clustered, "polar": polar,
 @pytest.mark.parametrize("name", sorted(INPUTS))
 def test_sphere_mesh_meets_the_guarantee_by_brute_force(name, k):
     pts = INPUTS[name](1500, np.random.default_rng(k))
-    options = {"min_size": 0.02} if k == 1 else {}
+    options = {"min_size": 0.03} if k == 1 else {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FloorWarning)
         mesh = knnrefine.refine(pts, k, sphere=True, **options)
     assert mesh.on_sphere and mesh.triangles.shape == (2 * len(mesh.vertices) - 4, 3)
     # the oracle: every great-circle distance by haversine, nothing shared with the engine
     rng = np.random.default_rng(0)
-    probes = np.concatenate([uniform(2000, rng), pts[:500], mesh.vertices])
-    d_pk = np.sort(haversine(probes, pts), axis=1)[:, k - 1]
-    d_m2 = np.sort(haversine(probes, mesh.vertices), axis=1)[:, 1]
+    some = rng.choice(len(mesh.vertices), min(500, len(mesh.vertices)), replace=False)
+    probes = np.concatenate([uniform(2000, rng), pts[:500], mesh.vertices[some]])
+    d_pk = np.partition(haversine(probes, pts), k - 1, axis=1)[:, k - 1]
+    d_m2 = np.partition(haversine(probes, mesh.vertices), 1, axis=1)[:, 1]
     above = d_pk >= mesh.min_size
-    assert above.sum() > 1000
+    assert above.sum() > 500
     ratio = d_m2[above] / d_pk[above]
     assert mesh.alpha <= ratio.min() and ratio.max() <= mesh.beta
     np.testing.assert_allclose(mesh.d_m2(probes), d_m2, rtol=1e-9, atol=1e-12)
@@ -80,7 +81,8 @@ def test_sphere_mesh_meets_the_guarantee_by_brute_force(name, k):
     cap = np.arccos(np.clip(np.einsum("ij,ij->i", centre, a), -1, 1))
     cen = np.column_stack([np.degrees(np.arctan2(centre[:, 1], centre[:, 0])),
                            np.degrees(np.arcsin(np.clip(centre[:, 2], -1, 1)))])  # fmt: skip
-    big = cap >= mesh.min_size
+    big = np.flatnonzero(cap >= mesh.min_size)  # (at most 4,000 of them, the oracle's cost)
+    big = big[rng.permutation(len(big))[:4000]]
     held = (haversine(cen[big], pts) <= cap[big, None] * (1 + 1e-9)).sum(axis=1)
     assert held.max(initial=0) < k
     cert = knnrefine.certify(mesh, pts, samples=20_000, n_random=5_000)
