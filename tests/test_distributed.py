@@ -116,9 +116,17 @@ def test_any_executor_runs_the_tiles():
 def test_a_killed_worker_still_gives_a_complete_certified_mesh():
     """A worker process killed (SIGKILL) while it runs a tile: Dask runs the tile again on
     a live worker, and the mesh is whole and certified, the same as without the kill."""
+    import dask
+    from distributed import LocalCluster
+
     pts = clustered(400000, 7)
     options = {"periodic": True, "box": (0, 0, 1, 1)}
-    with _cluster() as cluster, Client(cluster) as c:
+    # the replacement worker is started by its nanny: spawned, not forked (a fork of the
+    # nanny's threads could hang the new worker, and the run with it: seen 3 times in ~12)
+    with dask.config.set({"distributed.worker.multiprocessing-method": "spawn"}):
+        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                               dashboard_address=":0", env={"KNNREFINE_THREADS": "1"})  # fmt: skip
+    with cluster, Client(cluster) as c:
         pids = c.run(os.getpid)
         c.run(lambda: __import__("knnrefine.scale.tiled"))  # warm the imports
         out = {}
