@@ -253,8 +253,8 @@ def test_cli_on_the_sphere(tmp_path, capsys):
         (["refine", "{csv}", "--sphere", "--box", "0", "0", "1", "1", "-k", "3"], "no --box"),
         (["refine", "{csv}", "--radius", "2", "-k", "3"], "--radius"),
         (
-            ["density", "{csv}", "--sphere", "--method", "adaptive", "-o", "{tmp}/d.npz"],
-            "not built yet",
+            ["density", "{csv}", "--sphere", "--shape", "local", "-o", "{tmp}/d.npz"],
+            "--shape local",
         ),
         (["refine", "{bad}", "--sphere", "-k", "3"], "no longitude and latitude columns"),
     ],
@@ -291,13 +291,64 @@ def test_maps_of_the_sphere(tmp_path):
         plot_mesh(mesh, pts)  # a new Mollweide figure
 
 
-def test_the_adaptive_estimate_is_not_built_on_the_sphere_and_says_so():
-    from knnrefine.density import AdaptiveDensity
+def test_adaptive_leave_one_out_on_the_sphere_against_direct_sums():
+    """The sphere's adaptive estimate: kernels in chord distance, exactly normalised (mass 1
+    by Monte Carlo), and its leave-one-out log-density against sums written out here."""
+    from knnrefine.density.sphere import SphereAdaptiveDensity
 
-    pts = uniform(2000, RNG)
-    mesh = knnrefine.refine(pts, 20, sphere=True)
-    with pytest.raises(knnrefine.errors.InputError, match="not built on the sphere yet"):
-        AdaptiveDensity(mesh, pts)
+    pts = Mixture().sample(3000, RNG)
+    pts = np.concatenate([pts, pts[:5]])  # copies: left out with the point
+    mesh = knnrefine.refine(pts, 60, sphere=True)
+    a = SphereAdaptiveDensity(mesh, pts, bandwidth=1.2, sensitivity=0.3)
+    u = knnrefine.metric.unit_vectors(pts)
+    d = a.pilot  # great-circle d_Pk at the points (radius 1): chords 2 sin(d / 2)
+    chord = 2 * np.sin(d / 2)
+    g = np.exp(np.mean(np.log(chord)))
+    h = np.minimum(1.2 * g * (chord / g) ** (2 * 0.3), 2.0)
+    idx = np.array([0, 1, 2, 10, 400, 2999, 3000])
+    c2 = ((u[idx, None, :] - u[None, :, :]) ** 2).sum(-1)
+    kern = np.clip(1 - c2 / h**2, 0, None) ** 3 / (np.pi * h**2 / 4)
+    same = c2 == 0
+    n = len(pts)
+    rest = n - same.sum(axis=1)
+    s = np.where(same, 0.0, kern).sum(axis=1) / n
+    knn = a.knn.at_distance(d[idx])
+    expected = np.log((1 - 1 / n) * s * n / rest + knn / n)
+    np.testing.assert_allclose(a.loo(idx), expected, rtol=1e-9)
+    draws = uniform(200_000, np.random.default_rng(3))
+    assert 4 * np.pi * np.mean(a(draws)) == pytest.approx(1.0, abs=0.02)
+
+
+def test_estimator_on_the_sphere():
+    """KnnDensityEstimator(sphere=True): the adaptive estimate in great-circle geometry,
+    against the truth and against the kNN estimate; unit vectors or lon/lat; per km^2 with
+    a radius; refusals."""
+    truth = Mixture()
+    pts = truth.sample(20000, RNG)
+    est = knnrefine.KnnDensityEstimator(sphere=True).fit(pts)
+    probes = truth.sample(4000, np.random.default_rng(5))
+    l1 = np.mean(np.abs(np.exp(est.score_samples(probes)) / truth.pdf(probes) - 1))
+    knn = knnrefine.KnnDensityEstimator(sphere=True, method="knn").fit(pts)
+    l1_knn = np.mean(np.abs(np.exp(knn.score_samples(probes)) / truth.pdf(probes) - 1))
+    assert l1 < 0.1 and l1 < 0.7 * l1_knn, (l1, l1_knn)
+    assert est.score(probes) > knn.score(probes)
+    unit = knnrefine.metric.unit_vectors(pts)
+    km = knnrefine.KnnDensityEstimator(sphere=True, radius=6371.0088).fit(unit)
+    np.testing.assert_allclose(
+        np.exp(km.score_samples(unit[:50])) * 6371.0088**2,
+        np.exp(est.score_samples(pts[:50])), rtol=1e-9,
+    )  # fmt: skip
+    drawn = km.sample(100, 0)
+    assert drawn.shape == (100, 3)
+    np.testing.assert_allclose(np.linalg.norm(drawn, axis=1), 1.0)
+    lon, lat, grid = est.grid((90, 180))
+    assert grid.shape == (90, 180) and np.isfinite(grid).all()
+    assert np.isfinite(est.score_samples([[0.0, -89.9], [-179.9, 0.0]])).all()  # no -inf
+    for bad in ({"box": (0, 0, 1, 1)}, {"periodic": True}, {"whiten": True}):
+        with pytest.raises(knnrefine.errors.InputError, match="sphere=True takes no"):
+            knnrefine.KnnDensityEstimator(sphere=True, **bad).fit(pts)
+    with pytest.raises(knnrefine.errors.InputError, match="radius"):
+        knnrefine.KnnDensityEstimator(radius=2.0).fit(pts)
 
 
 def test_cluster_on_the_sphere_finds_the_caps_across_the_antimeridian():

@@ -331,7 +331,9 @@ MAP_PROJECTION = "mollweide"  # equal-area, in matplotlib itself (no cartographi
 
 
 def _on_sphere(density):
-    """Whether a density (a KnnDensity or an estimator) lives on the sphere."""
+    """Whether a density (a KnnDensity, an AdaptiveDensity or a fitted estimator) lives on
+    the sphere."""
+    density = getattr(density, "density_", density)
     knn = getattr(density, "knn", density)
     distance = getattr(knn, "distance", None)
     return bool(getattr(distance, "on_sphere", False))
@@ -413,6 +415,7 @@ def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, 
     from matplotlib.colors import LogNorm
 
     ax = _map_axes(ax)
+    density = getattr(density, "density_", density)  # a fitted KnnDensityEstimator's
     knn = getattr(density, "knn", density)
     lon, lat, f = density.grid(shape) if grid is None else grid
     f = np.asarray(f, float)
@@ -449,7 +452,8 @@ def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, 
                    linewidths=0)  # fmt: skip
     k, n, m = knn.k, knn.n, len(knn.distance.mesh.vertices)
     n = f"{n:,.0f}" if float(n).is_integer() else f"{n:,.1f}"
-    ax.set_title(f"kNN density on the sphere\nn = {n}, k = {k}, m = {m:,}", fontsize="medium",
+    what = "kNN density" if knn is density else "adaptive kernel density"
+    ax.set_title(f"{what} on the sphere\nn = {n}, k = {k}, m = {m:,}", fontsize="medium",
                  pad=14)  # fmt: skip
     return ax
 

@@ -148,6 +148,7 @@ def run(args):
         default_k,
         default_pilot_k,
     )
+    from ..density.sphere import SphereAdaptiveDensity
     from ..plot import (
         MAP_PROJECTION,
         figure_size,
@@ -175,13 +176,8 @@ def run(args):
         getattr(given_mesh(args), "on_sphere", False)
     )
     args.sphere = sphere
-    if sphere and args.method == "adaptive":
-        raise UsageError(
-            "on the sphere the density is the kNN estimate (--method knn, the default there); "
-            "adaptive kernels on the sphere are not built yet"
-        )
-    if sphere:
-        args.method = "knn"
+    if sphere and args.shape != "isotropic":
+        raise UsageError("--shape local is built for the plane; on the sphere kernels are caps")
     grid = [512 if dim == 2 else 64] if args.grid is None else args.grid
     if sphere and args.grid is None:
         grid = [720, 360]  # half a degree
@@ -213,9 +209,13 @@ def run(args):
     if adaptive:
         alphas = SENSITIVITIES if args.sensitivity is None else (args.sensitivity,)
         cs = BANDWIDTHS if args.bandwidth is None else (args.bandwidth,)
-        density = AdaptiveDensity(
-            mesh, points, cs[0], args.shape, weights=weights, knn=knn, sensitivity=alphas[0]
-        )
+        if sphere:
+            density = SphereAdaptiveDensity(mesh, points, cs[0], alphas[0], weights=weights,
+                                            knn=knn)  # fmt: skip
+        else:
+            density = AdaptiveDensity(
+                mesh, points, cs[0], args.shape, weights=weights, knn=knn, sensitivity=alphas[0]
+            )
         scored = 0
         if len(alphas) > 1 or len(cs) > 1:
             with stage_bar(args.quiet, "choosing the smoothing", " pairs scored") as update:

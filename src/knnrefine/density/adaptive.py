@@ -507,11 +507,12 @@ BINNED_COPIES = 0.01  # binned scores only where at most this share of the sampl
 def _binned_scores(density, sample, criterion, binned):
     """Whether ``choose_smoothing`` scores through binned lattices (``binned`` None: auto)."""
     able = density.dim == 2 and density.shape == "isotropic" and criterion == "likelihood"
+    able = able and not getattr(density, "on_sphere", False)  # lattices of the plane only
     if binned is not None:
         if binned and not able:
             raise InputError(
-                "binned=True scores the likelihood of isotropic kernels in the plane; use "
-                "binned=False or None"
+                "binned=True scores the likelihood of isotropic kernels in the plane (not on "
+                "the sphere); use binned=False or None"
             )
         return bool(binned)
     n = len(density.pilot)

@@ -10,7 +10,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..errors import InputError
-from ..validation import as_points, as_queries, check_weights, default_box
+from ..metric import lonlat_of, unit_vectors
+from ..validation import as_points, as_queries, as_sphere_points, check_weights, default_box
 from .adaptive import (
     BANDWIDTHS,
     SENSITIVITIES,
@@ -26,6 +27,7 @@ from .adaptive import (
 )
 from .distance import grid_shape
 from .estimate import KnnDensity, default_k, default_pilot_k
+from .sphere import SphereAdaptiveDensity
 
 
 class KnnDensityEstimator:
@@ -106,6 +108,16 @@ class KnnDensityEstimator:
         As ``knnrefine.refine``'s: progress(vertices, pending) while the mesh is refined;
         a callable with a ``phase`` argument also gets progress(pairs, 0, phase="choosing
         the smoothing") after each pair (alpha, c) the search scored.
+    sphere : bool
+        X are points on the sphere: (n, 2) longitude and latitude in degrees or (n, 3) unit
+        vectors (``refine(..., sphere=True)``). Kernels in great-circle geometry
+        (``density.sphere.SphereAdaptiveDensity``: triweights in chord distance, exactly
+        normalised on the sphere), densities per steradian (per unit area with ``radius``),
+        no box, no tail (the sphere is bounded); ``grid`` is a longitude by latitude grid,
+        ``sample`` returns points in X's form. Not with ``periodic``, ``box``, ``whiten`` or
+        ``shape="local"``.
+    radius : float, optional
+        The sphere's radius, in the unit densities are wanted per (6371.0088: per km^2).
 
     Attributes after ``fit``: ``k_``, ``bandwidth_`` (adaptive), ``box_`` (data units),
     ``tail_`` (the ``CauchyTail`` mixed in when no box was given, else None),
@@ -145,6 +157,8 @@ class KnnDensityEstimator:
         loo_points: int = 20000,
         criterion: str = "likelihood",
         progress: Callable | None = None,
+        sphere: bool = False,
+        radius: float | None = None,
     ) -> None:
         self.k = k
         self.method = method
@@ -164,6 +178,8 @@ class KnnDensityEstimator:
         self.loo_points = loo_points
         self.criterion = criterion
         self.progress = progress
+        self.sphere = sphere
+        self.radius = radius
 
     # -- scikit-learn's parameter protocol ---------------------------------------------------
     @classmethod
@@ -263,8 +279,10 @@ class KnnDensityEstimator:
         counted as they are: a bootstrap resample's counts are copies (its points repeat),
         times the fitted estimate's own weights."""
         dim = 3 if np.ndim(X) == 2 and np.shape(X)[1] == 3 else 2
-        pts = as_points(X, dim)
         self._check_options()
+        if self.sphere:  # unit vectors checked here, kept in X's own form
+            as_sphere_points(X)
+        pts = as_points(X, dim)
         names = feature_names(X)
         if self.shape == "local" and dim == 3 and self.method != "knn":
             raise InputError(
@@ -283,7 +301,7 @@ class KnnDensityEstimator:
         n = len(pts) if weights is None else float(weights.sum())  # n_eff
         scale = self._scale(pts, weights)
         pts = pts / scale
-        box = self._box(pts, scale)
+        box = None if self.sphere else self._box(pts, scale)
         stale_attrs = (
             "cv_ks_", "cv_scores_", "bandwidths_", "bandwidth_scores_", "bandwidth_",
             "sensitivity_", "loo_scores_",
@@ -311,7 +329,7 @@ class KnnDensityEstimator:
             self.sensitivity_ = self.density_.sensitivity
         self._train = (pts, np.ones(len(pts)) if weights is None else weights)
         self.tail_ = None  # the box was given (or a torus): the estimate is 0 outside it
-        if self.box is None and not np.any(self.periodic):
+        if self.box is None and not np.any(self.periodic) and not self.sphere:
             w = self._train[1]
             bounds = np.asarray(self.mesh_.box, float)
             self.tail_ = CauchyTail(
@@ -321,7 +339,10 @@ class KnnDensityEstimator:
             )
         self.k_ = int(k)
         self.scale_ = tuple(float(v) for v in scale)
-        self.box_ = tuple(float(b) for b in np.array(self.mesh_.box) * np.tile(scale, 2))
+        if self.sphere:  # longitude and latitude: the whole sphere
+            self.box_ = tuple(float(b) for b in self.mesh_.box)
+        else:
+            self.box_ = tuple(float(b) for b in np.array(self.mesh_.box) * np.tile(scale, 2))
         self.n_samples_ = n
         self.n_features_in_ = dim
         if names is None:
@@ -331,6 +352,21 @@ class KnnDensityEstimator:
         return self
 
     def _check_options(self):
+        if not isinstance(self.sphere, (bool, np.bool_)):
+            raise InputError(f"sphere must be True or False, got {self.sphere!r}")
+        if self.sphere:
+            given = {
+                "periodic": self.periodic is not False,
+                "box": self.box is not None,
+                "whiten": bool(self.whiten),
+                'shape="local"': self.shape != "isotropic",
+            }
+            if any(given.values()):
+                names = ", ".join(name for name, on in given.items() if on)
+                raise InputError(f"sphere=True takes no {names}: the sphere has no box, its "
+                                 "kernels are isotropic in great-circle geometry")  # fmt: skip
+        elif self.radius is not None:
+            raise InputError("radius is the sphere's: give it with sphere=True")
         if self.method not in (None, "adaptive", "knn"):
             raise InputError(f'method must be None, "adaptive" or "knn", got {self.method!r}')
         check_shape(self.shape)
@@ -364,18 +400,28 @@ class KnnDensityEstimator:
         bandwidth given or chosen by leave-one-out likelihood (recording the curve)."""
         from ..run import Progress, refine
 
-        mesh = refine(
-            pts, k, self.tau, periodic=self.periodic, box=box, min_size=self.min_size,
-            weights=weights, progress=self.progress,
-        )  # fmt: skip
+        if self.sphere:
+            from ..run_sphere import refine_sphere
+
+            mesh = refine_sphere(pts, k, self.tau, weights=weights, radius=self.radius,
+                                 min_size=self.min_size, progress=self.progress)  # fmt: skip
+        else:
+            mesh = refine(
+                pts, k, self.tau, periodic=self.periodic, box=box, min_size=self.min_size,
+                weights=weights, progress=self.progress,
+            )  # fmt: skip
         knn = KnnDensity(mesh, pts, normalized=True, subdivide=self.subdivide, weights=weights)
         if self.method_ == "knn":
             return knn, mesh
         cs = self.BANDWIDTHS if self.bandwidth == "cv" else (float(self.bandwidth),)
         alphas = self.SENSITIVITIES if self.sensitivity == "cv" else (float(self.sensitivity),)
-        density = AdaptiveDensity(
-            mesh, pts, cs[0], self.shape, weights=weights, knn=knn, sensitivity=alphas[0]
-        )
+        if self.sphere:
+            density = SphereAdaptiveDensity(mesh, pts, cs[0], alphas[0], weights=weights,
+                                            knn=knn)  # fmt: skip
+        else:
+            density = AdaptiveDensity(
+                mesh, pts, cs[0], self.shape, weights=weights, knn=knn, sensitivity=alphas[0]
+            )
         if len(cs) > 1 or len(alphas) > 1:
             report = Progress(self.progress)
             alpha, _, self.loo_scores_ = choose_smoothing(
@@ -511,7 +557,8 @@ class KnnDensityEstimator:
         flat, shape = self._queries(X)
         pts, weight = self._train  # in the fitted (scaled) coordinates
         rng = generator(random_state)
-        params = {**self.get_params(), "k": self.k_, "box": self.mesh_.box, "whiten": False}
+        box = None if self.sphere else self.mesh_.box
+        params = {**self.get_params(), "k": self.k_, "box": box, "whiten": False}
         if self.method_ == "adaptive":
             params["bandwidth"] = density.bandwidth
             params["sensitivity"] = density.sensitivity
@@ -594,6 +641,9 @@ class KnnDensityEstimator:
             raise InputError(f"n_samples must be >= 0, got {n_samples}")
         rng = generator(random_state)
         tail = getattr(self, "tail_", None)
+        if self.sphere:  # lon/lat draws, as unit vectors when fitted on them
+            drawn = density.sample(int(n_samples), rng)
+            return unit_vectors(drawn) if self.n_features_in_ == 3 else drawn
         if tail is None:
             return density.sample(int(n_samples), rng) * self.scale_
         from_tail = rng.random(int(n_samples)) < tail.weight
@@ -622,6 +672,8 @@ class KnnDensityEstimator:
             A bad shape.
         """
         density = self._fitted()
+        if self.sphere:  # longitude by latitude, half a degree by default
+            return density.grid((360, 720) if shape is None else grid_shape(shape, 2))
         *axes, values = density.grid(grid_shape(shape, self.n_features_in_))
         tail = getattr(self, "tail_", None)
         if tail is not None:
@@ -644,6 +696,8 @@ class KnnDensityEstimator:
         flat, shape = as_queries(X, self.n_features_in_)
         if not np.isfinite(flat).all():
             raise InputError("X holds NaN or infinite coordinates; give finite points")
+        if self.sphere:  # the estimates on the sphere take longitude and latitude
+            return lonlat_of(as_sphere_points(flat)), shape
         return flat / np.asarray(self.scale_), shape
 
     def _jacobian(self):

@@ -64,6 +64,23 @@ def scale_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
     return 0
 
 
+@kernel(entry=True, nogil=True)
+def scale_surface_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
+    """``scale_kernels`` for kernels on a surface in space (the unit sphere's, in chord
+    distance): the mass is the plane's, so radii scale by rho = c exp((2 alpha - 1)
+    log_ratio), q by 1 / rho^2 and amp by 1 / rho^2; a kernel wider than ``cap`` is narrowed
+    to it, its mass kept."""
+    for i in range(rows.shape[0]):
+        rho = c * np.exp((2.0 * alpha - 1.0) * log_ratio[i])
+        ri = r[i] * rho
+        shrink = max(ri / cap, 1.0)
+        scale = shrink / rho
+        rows[i, Q] = q[i, 0] * scale * scale
+        rows[i, AMP] = amp[i] * scale * scale
+        rows[i, R] = ri / shrink
+    return 0
+
+
 @kernel(inline="always")
 def leaves_near3(box, node, extent, x, y, z, stack, leaves):
     """The leaves whose bounding box lies within extent[t] of (x, y, z), into ``leaves``;
