@@ -17,13 +17,14 @@ the mesh) per mesh vertex: the mesh's own memory, the plane's budget being 300 b
 
 Accuracy (``--part accuracy``): known densities on the unit sphere, at n points, scored at
 4,000 draws from the truth by L1 = mean |f_hat / f - 1| (inside the support for the band and
-the cap) and the held-out mean log-likelihood: knnrefine's kNN density (``KnnDensity``, its
-default k = sqrt(n) / 2), scikit-learn's ``KernelDensity(metric="haversine")`` (Gaussian,
-bandwidth by 5-fold likelihood cross-validation over 8 values on a 2,000-point subsample:
-"KDE-CV"), and HEALPix histograms (nside with about sqrt(n) points per pixel). The truths: a
-mixture of two von Mises-Fisher components (one across the antimeridian, one near the north
-pole), the band |lat| <= 20 and the polar cap of radius 30 degrees. Seconds are each
-method's whole fit + evaluation.
+the cap) and the held-out mean log-likelihood: knnrefine's default estimate
+(``KnnDensityEstimator(sphere=True)``: adaptive kernels, the smoothing by leave-one-out
+likelihood), its kNN density (``KnnDensity``, default k = sqrt(n) / 2), scikit-learn's
+``KernelDensity(metric="haversine")`` (Gaussian, bandwidth by 5-fold likelihood cross-
+validation over 8 values on a 2,000-point subsample: "KDE-CV"), and HEALPix histograms
+(nside with about sqrt(n) points per pixel). The truths: a mixture of two von Mises-Fisher
+components (one across the antimeridian, one near the north pole), the band |lat| <= 20 and
+the polar cap of radius 30 degrees. Seconds are each method's whole fit + evaluation.
 
     python benchmarks/bench_sphere.py --part speed --sizes 1e5 1e6 --ks 10 100 --repeat 3
     python benchmarks/bench_sphere.py --part accuracy --sizes 1e4 1e5
@@ -219,6 +220,16 @@ def score(fhat, f):
 
 
 def knnrefine_fit(unit, probes):
+    """The default estimate: ``KnnDensityEstimator(sphere=True)``, adaptive kernels with the
+    smoothing by leave-one-out likelihood."""
+    import knnrefine
+
+    est = knnrefine.KnnDensityEstimator(sphere=True).fit(lonlat_of(unit))
+    return np.exp(est.score_samples(lonlat_of(probes)))
+
+
+def knn_fit(unit, probes):
+    """The plain kNN estimate, ``KnnDensity`` at its default k."""
     import knnrefine
     from knnrefine.density import KnnDensity
 
@@ -253,10 +264,12 @@ def healpix_fit(unit, probes):
 def accuracy(args):
     rng = np.random.default_rng(0)
     methods = {"knnrefine": lambda u, p: knnrefine_fit(u, p),
+               "kNN": lambda u, p: knn_fit(u, p),
                "KDE-CV": lambda u, p: kde_cv_fit(u, p, rng),
                "HEALPix": lambda u, p: healpix_fit(u, p)}  # fmt: skip
     rows = []
     print(f"# {machine()['cpu']}, {os.cpu_count()} cores")
+    knnrefine_fit(Truth("cap").sample(2000, rng), Truth("cap").sample(10, rng))  # warm-up
     print(f"{'truth':>8} {'n':>8} {'method':>10} {'L1':>7} {'loglik':>8} {'seconds':>8}")
     for name in ("mixture", "band", "cap"):
         truth = Truth(name)

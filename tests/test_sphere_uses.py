@@ -319,6 +319,15 @@ def test_adaptive_leave_one_out_on_the_sphere_against_direct_sums():
     assert 4 * np.pi * np.mean(a(draws)) == pytest.approx(1.0, abs=0.02)
 
 
+def test_the_box_adaptive_estimate_refuses_a_mesh_on_the_sphere():
+    from knnrefine.density import AdaptiveDensity
+
+    pts = uniform(2000, RNG)
+    mesh = knnrefine.refine(pts, 20, sphere=True)
+    with pytest.raises(knnrefine.errors.InputError, match="SphereAdaptiveDensity"):
+        AdaptiveDensity(mesh, pts)
+
+
 def test_estimator_on_the_sphere():
     """KnnDensityEstimator(sphere=True): the adaptive estimate in great-circle geometry,
     against the truth and against the kNN estimate; unit vectors or lon/lat; per km^2 with

@@ -200,8 +200,8 @@ def check_in_a_box(mesh, what):
     if getattr(mesh, "on_sphere", False):
         raise InputError(
             f"{what} is built for meshes in a box (the plane or space); this mesh lies on the "
-            "sphere, where KnnDistance, KnnDensity, cluster and Persistence work; the adaptive "
-            "estimate is not built on the sphere yet"
+            "sphere: use knnrefine.density.sphere.SphereAdaptiveDensity (or "
+            "KnnDensityEstimator(sphere=True))"
         )
 
 
