@@ -237,11 +237,12 @@ def test_cli_on_the_sphere(tmp_path, capsys):
     np.testing.assert_array_equal(mesh.xyz, direct.xyz)
     assert run("certify", out, csv) == 0
     assert (
-        run("density", csv, "--sphere", "-o", tmp_path / "d.npz", "--plot", tmp_path / "d.png") == 0
-    )
+        run("density", csv, "--sphere", "--grid", "240", "120", "-o", tmp_path / "d.npz",
+            "--plot", tmp_path / "d.png") == 0
+    )  # fmt: skip
     grid = np.load(tmp_path / "d.npz")
-    assert grid["density"].shape == (360, 720)
-    cell = np.outer(np.cos(np.radians(grid["ys"])), np.ones(720)) * (np.pi / 360) ** 2
+    assert grid["density"].shape == (120, 240)
+    cell = np.outer(np.cos(np.radians(grid["ys"])), np.ones(240)) * (np.pi / 120) ** 2
     assert (grid["density"] * cell).sum() == pytest.approx(1.0, rel=0.02)
     for picture in ("m.png", "d.png"):
         assert os.path.getsize(tmp_path / picture) > 50_000
