@@ -153,6 +153,12 @@ def check_geojson_tiles_the_sphere(path, mesh):
     # the pieces cover the sphere once: no overlap, no gap
     assert total == pytest.approx(4 * np.pi, rel=1e-9)
     assert len(g["features"]) >= len(mesh.triangles)
+    try:  # what a GIS reads: every geometry valid for shapely (GEOS), when it is installed
+        from shapely.geometry import shape
+    except ImportError:
+        return
+    invalid = [f for f in g["features"] if not shape(f["geometry"]).is_valid]
+    assert not invalid, invalid[:3]
 
 
 def test_geojson_on_the_sphere_tiles_it(tmp_path):
