@@ -91,19 +91,17 @@ def test_sphere_mesh_meets_the_guarantee_by_brute_force(name, k):
 
 def test_sphere_triangulation_is_the_convex_hull():
     """The engine's incremental insertion against qhull, vertex by vertex order kept."""
-    from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS, SphereScratch
-    from knnrefine.engine.triangulation_sphere import insert_points_sphere, new_sphere
+    from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS
+    from knnrefine.engine.triangulation_sphere import (
+        insert_points_sphere,
+        new_sphere,
+        new_sphere_scratch,
+    )
 
     x = RNG.normal(size=(3000, 3))
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     mesh, nv, nt = new_sphere(4000, 8000)
-    scratch = SphereScratch(
-        mark=np.zeros(8000, np.int32), vmark=np.zeros(4000, np.int32),
-        vnext=np.zeros(4000, np.int32), cavity=np.zeros(4098, np.int32),
-        horizon=np.zeros((4098, 3), np.int32), points=np.zeros((4, 3)), point=np.zeros(3),
-        ids=np.zeros(256, np.int64), h=np.zeros((256, 3)), hc=np.zeros(256),
-        stack=np.zeros(128, np.int64),
-    )  # fmt: skip
+    scratch = new_sphere_scratch(4000, 8000, 4096)
     cnt = np.zeros(N_COUNTERS, np.int64)
     cnt[C_NV], cnt[C_NT] = nv, nt
     assert insert_points_sphere(x, mesh, scratch, cnt) == len(x)
@@ -117,17 +115,15 @@ def test_sphere_triangulation_is_the_convex_hull():
 
 def test_sphere_insertion_too_close_to_a_vertex_is_refused():
     """A point within rounding of a vertex must not swallow it: refused, nothing changed."""
-    from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS, SphereScratch
-    from knnrefine.engine.triangulation_sphere import insert_points_sphere, new_sphere
+    from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS
+    from knnrefine.engine.triangulation_sphere import (
+        insert_points_sphere,
+        new_sphere,
+        new_sphere_scratch,
+    )
 
     mesh, nv, nt = new_sphere(64, 128)
-    scratch = SphereScratch(
-        mark=np.zeros(128, np.int32), vmark=np.zeros(64, np.int32),
-        vnext=np.zeros(64, np.int32), cavity=np.zeros(4098, np.int32),
-        horizon=np.zeros((4098, 3), np.int32), points=np.zeros((4, 3)), point=np.zeros(3),
-        ids=np.zeros(256, np.int64), h=np.zeros((256, 3)), hc=np.zeros(256),
-        stack=np.zeros(128, np.int64),
-    )  # fmt: skip
+    scratch = new_sphere_scratch(64, 128, 4096)
     cnt = np.zeros(N_COUNTERS, np.int64)
     cnt[C_NV], cnt[C_NT] = nv, nt
     before = mesh.corners[:4].copy()

@@ -52,10 +52,9 @@ from .engine.state import (
     STATUS_STEPS,
     Bookkeeping,
     Queues,
-    SphereScratch,
     grown,
 )
-from .engine.triangulation_sphere import new_sphere
+from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
 from .errors import BudgetError, EngineError, FloorWarning, InputError
 from .mesh import Mesh
 from .metric import angle_to_chord, chord_to_angle, lonlat_of
@@ -123,19 +122,7 @@ class SphereRun:
             flags=np.zeros(cap_v, np.int8),
         )
         self.queues = Queues(new_queue(cap_q), new_queue(cap_q), new_queue(cap_q))
-        self.scratch = SphereScratch(
-            mark=np.zeros(cap_t, np.int32),
-            vmark=np.zeros(cap_v, np.int32),
-            vnext=np.zeros(cap_v, np.int32),
-            cavity=np.zeros(MAX_CAVITY_SPHERE + 2, np.int32),
-            horizon=np.zeros((MAX_CAVITY_SPHERE + 2, 3), np.int32),
-            points=np.zeros((4, 3)),
-            point=np.zeros(3),
-            ids=np.zeros(MAX_DEGREE, np.int64),
-            h=np.zeros((MAX_DEGREE, 3)),
-            hc=np.zeros(MAX_DEGREE),
-            stack=np.zeros(128, np.int64),
-        )
+        self.scratch = new_sphere_scratch(cap_v, cap_t, MAX_CAVITY_SPHERE, MAX_DEGREE)
         self.cnt = np.zeros(N_COUNTERS, np.int64)
         self.cnt[C_NV] = nv
         self.cnt[C_NT] = nt

@@ -171,7 +171,12 @@ def points_of_run(mesh, points, weights=None):
     weight). Refused with an InputError: points of another dimension or number than the
     run's, weights that are not the run's (``weights_of_run``), less than k in all."""
     check_in_a_box(mesh, "this use")
-    pts = as_points(points, mesh.dim)
+    return _of_run(mesh, as_points(points, mesh.dim), weights)
+
+
+def _of_run(mesh, pts, weights):
+    """(pts, the run's weights or None, their total), refused when they are not the run's
+    or hold less than k."""
     check_made_from(mesh.stats, len(pts), "use a mesh with")
     weights = weights_of_run(mesh.stats, len(pts), weights)
     total = len(pts) if weights is None else float(weights.sum())
@@ -184,14 +189,7 @@ def points_of_run(mesh, points, weights=None):
 def sphere_points_of_run(mesh, points, weights=None):
     """``points_of_run`` for a mesh on the sphere: (unit vectors (n, 3), weights or None,
     total: n or the total weight), refused as there when they are not the run's."""
-    unit = as_sphere_points(points)
-    check_made_from(mesh.stats, len(unit), "use a mesh with")
-    weights = weights_of_run(mesh.stats, len(unit), weights)
-    total = len(unit) if weights is None else float(weights.sum())
-    if total < mesh.k:
-        what = f"{len(unit)} points" if weights is None else f"a total weight of {total:.6g}"
-        raise InputError(f"{what} but k = {mesh.k}: d_Pk is infinite")
-    return unit, weights, total
+    return _of_run(mesh, as_sphere_points(points), weights)
 
 
 def check_in_a_box(mesh, what):

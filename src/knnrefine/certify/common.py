@@ -52,19 +52,26 @@ def check_points_are_the_meshs(mesh, pts, weights=None):
     return weights
 
 
-def check_precondition(initial, torus, k, tau, period):
+def check_precondition(initial, torus, k, tau, period=None, spacing=None):
     """Lemma 2's base case, checked here independently of the engine: can the initial vertices
     be ordered so that each u has d_Pk(u) <= (K - 1) lambda_u, lambda_u its distance to the
     nearest earlier one (K = max(2 tau / (tau - 2), 3))? Peel: a vertex whose disk of radius
     (K - 1) x (distance to the nearest other remaining vertex) holds k points can go last.
+    ``torus.held(centres, radii)`` counts the points; ``spacing(vertices)`` gives each
+    vertex's distance to its nearest other one (default: on the torus of ``period``).
     Returns (ok, note)."""
+    if spacing is None:
+
+        def spacing(vertices):
+            return cKDTree(vertices, boxsize=period).query(vertices, k=2)[0][:, 1]
+
     factor = max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
     remaining = np.asarray(initial, float)
     if torus.total < k:
         return False, "n < k"
     rounds = 0
     while len(remaining) > 1:
-        lam = cKDTree(remaining, boxsize=period).query(remaining, k=2)[0][:, 1]
+        lam = spacing(remaining)
         ok = torus.held(remaining, factor * lam) >= k
         if not ok.any():
             return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"

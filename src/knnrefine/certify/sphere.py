@@ -44,6 +44,7 @@ from ..metric import (
 )
 from ..validation import as_sphere_points, check_made_from, weights_of_run
 from .certificate import Certificate
+from .common import check_precondition
 
 
 @kernel(entry=True, lazy=True)
@@ -178,21 +179,9 @@ class SpherePoints:
         return chord_to_angle(d)
 
 
-def _precondition(initial, points, k, tau):
-    """Lemma 2's base case on the sphere, by peeling as in the plane: (ok, note)."""
-    factor = max(2.0 * tau / (tau - 2.0), 3.0) - 1.0
-    remaining = np.asarray(initial, float)
-    if points.total < k:
-        return False, "n < k"
-    rounds = 0
-    while len(remaining) > 1:
-        lam = chord_to_angle(cKDTree(remaining).query(remaining, k=2)[0][:, 1])
-        ok = points.held(remaining, np.minimum(factor * lam, np.pi)) >= k
-        if not ok.any():
-            return False, f"{len(remaining)} initial vertices have d_Pk > {factor:.3g} lambda"
-        remaining = remaining[~ok]
-        rounds += 1
-    return True, f"{len(initial)} vertices ordered in {rounds} round{'s' if rounds != 1 else ''}"
+def _spacing(vertices):
+    """Each unit vector's great-circle distance to its nearest other one."""
+    return chord_to_angle(cKDTree(vertices).query(vertices, k=2)[0][:, 1])
 
 
 def _uniform_on_sphere(n, rng):
@@ -247,7 +236,8 @@ def certify_sphere(mesh, points, *, samples=100_000, n_random=20_000, max_point_
     floor_cells = (~big_cells) & (cells >= k)
     max_ball = float(held_caps[big].max(initial=0))
     max_cell = float(cells[big_cells].max(initial=0))
-    precondition_ok, note = _precondition(xyz[np.asarray(mesh.kinds) == 0], pts, k, tau)
+    precondition_ok, note = check_precondition(xyz[np.asarray(mesh.kinds) == 0], pts, k, tau,
+                                               spacing=_spacing)  # fmt: skip
     # probes: vertices, cap centres, edge midpoints, stratified samples, data, uniform
     rng = np.random.default_rng(seed)
     per = max(4, int(math.ceil(samples / max(len(tri), 1))))

@@ -46,39 +46,36 @@ def build_centres(points, weights, workers=None):
     return tree.pts, tree.box, tree.node
 
 
-@kernel(entry=True, nogil=True)
-def scale_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
-    """Set the kernels' columns for bandwidth c at sensitivity alpha from their unit values
-    (q (n, 1): 1 / d^2; amp, r = d; log_ratio: log(d_i / G)), as ``kernelsum.scale_kernels``
-    in the plane: radii scale by rho = c exp((3 alpha - 1) log_ratio) (extents c G (d / G)^(3
-    alpha) ~ f^-alpha, f ~ d^-3 in space), q by 1 / rho^2 and amp by 1 / rho^3 (mass kept);
-    a kernel wider than ``cap`` is narrowed to it."""
+@kernel(inline="always")
+def _scale_isotropic(rows, q, amp, r, log_ratio, c, alpha, cap, dim):
+    """Radii scale by rho = c exp((dim alpha - 1) log_ratio), q by 1 / rho^2 and amp by
+    1 / rho^dim (a kernel's mass grows as r^dim): the mass kept; a kernel wider than
+    ``cap`` is narrowed to it."""
     for i in range(rows.shape[0]):
-        rho = c * np.exp((3.0 * alpha - 1.0) * log_ratio[i])
+        rho = c * np.exp((dim * alpha - 1.0) * log_ratio[i])
         ri = r[i] * rho
         shrink = max(ri / cap, 1.0)
         scale = shrink / rho
         rows[i, Q] = q[i, 0] * scale * scale
-        rows[i, AMP] = amp[i] * scale * scale * scale
+        rows[i, AMP] = amp[i] * scale**dim
         rows[i, R] = ri / shrink
     return 0
+
+
+@kernel(entry=True, nogil=True)
+def scale_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
+    """Set the kernels' columns for bandwidth c at sensitivity alpha from their unit values
+    (q (n, 1): 1 / d^2; amp, r = d; log_ratio: log(d_i / G)), as ``kernelsum.scale_kernels``
+    in the plane: extents c G (d / G)^(3 alpha) ~ f^-alpha, f ~ d^-3 in space, the balls'
+    mass r^3 kept (``_scale_isotropic``)."""
+    return _scale_isotropic(rows, q, amp, r, log_ratio, c, alpha, cap, 3)
 
 
 @kernel(entry=True, nogil=True)
 def scale_surface_kernels(rows, q, amp, r, log_ratio, c, alpha, cap):
     """``scale_kernels`` for kernels on a surface in space (the unit sphere's, in chord
-    distance): the mass is the plane's, so radii scale by rho = c exp((2 alpha - 1)
-    log_ratio), q by 1 / rho^2 and amp by 1 / rho^2; a kernel wider than ``cap`` is narrowed
-    to it, its mass kept."""
-    for i in range(rows.shape[0]):
-        rho = c * np.exp((2.0 * alpha - 1.0) * log_ratio[i])
-        ri = r[i] * rho
-        shrink = max(ri / cap, 1.0)
-        scale = shrink / rho
-        rows[i, Q] = q[i, 0] * scale * scale
-        rows[i, AMP] = amp[i] * scale * scale
-        rows[i, R] = ri / shrink
-    return 0
+    distance), whose mass grows as r^2, as the plane's disks'."""
+    return _scale_isotropic(rows, q, amp, r, log_ratio, c, alpha, cap, 2)
 
 
 @kernel(inline="always")

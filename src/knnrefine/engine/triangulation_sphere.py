@@ -29,6 +29,7 @@ circumcap is smaller than a hemisphere, and so stay those of every later triangu
 
 import numpy as np
 
+from .index import STACK_SIZE
 from .jit import kernel
 from .predicates3 import orient3d
 from .state import (
@@ -39,6 +40,7 @@ from .state import (
     INSERT_NOT_IN_SEED,
     INSERT_TOPOLOGY,
     SphereMesh,
+    SphereScratch,
 )
 
 INSERT_TOO_CLOSE = INSERT_TOPOLOGY  # the cavity was not a disk: a vertex would be swallowed
@@ -94,6 +96,25 @@ def new_sphere(capacity_v, capacity_t, zeros=np.zeros):
     for i, t in enumerate([0, 0, 0, 1]):
         mesh.star[i] = t
     return mesh, 4, 4
+
+
+def new_sphere_scratch(capacity_v, capacity_t, max_cavity, max_degree=256):
+    """The insertion's and the star walks' working space (``state.SphereScratch``) for up to
+    ``capacity_v`` vertices and ``capacity_t`` triangles, cavities of ``max_cavity``
+    triangles and vertices of ``max_degree`` neighbours."""
+    return SphereScratch(
+        mark=np.zeros(capacity_t, np.int32),
+        vmark=np.zeros(capacity_v, np.int32),
+        vnext=np.zeros(capacity_v, np.int32),
+        cavity=np.zeros(max_cavity + 2, np.int32),
+        horizon=np.zeros((max_cavity + 2, 3), np.int32),
+        points=np.zeros((4, 3)),
+        point=np.zeros(3),
+        ids=np.zeros(max_degree, np.int64),
+        h=np.zeros((max_degree, 3)),
+        hc=np.zeros(max_degree),
+        stack=np.zeros(STACK_SIZE, np.int64),
+    )
 
 
 @kernel(inline="always")
