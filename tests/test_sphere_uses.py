@@ -212,6 +212,7 @@ def write_lonlat(path, pts, names=("name", "Longitude", "LAT")):
             f.write(f"p{i},{x!r},{y!r}\n")
 
 
+@pytest.mark.slow
 def test_cli_on_the_sphere(tmp_path, capsys):
     pts = Mixture().sample(5000, RNG)
     csv = tmp_path / "pts.csv"
@@ -250,7 +251,9 @@ def test_cli_on_the_sphere(tmp_path, capsys):
     assert grid["density"].shape == (120, 240)
     cell = np.outer(np.cos(np.radians(grid["ys"])), np.ones(240)) * (np.pi / 120) ** 2
     assert (grid["density"] * cell).sum() == pytest.approx(1.0, rel=0.02)
-    for picture in ("m.png", "d.png"):
+    assert run("cluster", csv, "--sphere", "-k", 30, "-o", tmp_path / "labels.csv", "--plot",
+               tmp_path / "c.png") == 0  # fmt: skip
+    for picture in ("m.png", "d.png", "c.png"):
         assert os.path.getsize(tmp_path / picture) > 50_000
 
 
@@ -275,6 +278,7 @@ def test_cli_sphere_refusals(tmp_path, capsys, argv, message):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_maps_of_the_sphere(tmp_path):
     from matplotlib.figure import Figure
 

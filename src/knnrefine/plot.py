@@ -542,7 +542,8 @@ def plot_diagram(persistence, ax, dims=(0, 1)):
 
 def plot_clusters(mesh, points, labels, ax, max_points=200_000, labels_xy=("x", "y")):
     """Input points coloured by cluster (noise, label -1, in grey) over the mesh's edges, with
-    a legend of the clusters and their sizes."""
+    a legend of the clusters and their sizes; on the sphere, on a Mollweide map (``ax`` with
+    that projection)."""
     pts = np.asarray(points, float)
     lab = np.asarray(labels)
     n_clusters = int(lab.max()) + 1 if len(lab) else 0
@@ -551,18 +552,18 @@ def plot_clusters(mesh, points, labels, ax, max_points=200_000, labels_xy=("x", 
     if len(pts) > max_points:
         pick = np.random.default_rng(0).choice(len(pts), max_points, replace=False)
         pts, lab = pts[pick], lab[pick]
-    plot_mesh(
-        mesh,
-        None,
-        ax=ax,
-        cells="none",
-        show_points=False,
-        labels=labels_xy,
-        title=f"ToMATo on the mesh: {n_clusters} cluster{'s' if n_clusters != 1 else ''}"
+    title = (
+        f"ToMATo on the mesh: {n_clusters} cluster{'s' if n_clusters != 1 else ''}"
         + (f" and {noise:,} noise points" if noise else "")
-        + f", k = {mesh.k}, m = {len(mesh.vertices)}",
+        + f", k = {mesh.k}, m = {len(mesh.vertices)}"
     )
-    pts = BoxMetric(mesh.box, mesh.periodic).wrap(pts)
+    if mesh.on_sphere:  # an equal-area map: longitude and latitude in radians
+        plot_mesh(mesh, None, ax=ax, cells="none", show_points=False, title=title)
+        pts = np.radians(lonlat_of(as_sphere_points(pts)))
+    else:
+        plot_mesh(mesh, None, ax=ax, cells="none", show_points=False, labels=labels_xy,
+                  title=title)  # fmt: skip
+        pts = BoxMetric(mesh.box, mesh.periodic).wrap(pts)
     size = 2 if len(pts) > 5000 else 6
     if noise:
         grey = lab < 0

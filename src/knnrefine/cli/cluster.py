@@ -37,6 +37,7 @@ def run(args):
     from .. import io
     from ..cluster import cluster
     from ..plot import (
+        MAP_PROJECTION,
         figure_size,
         plot_clusters,
         plot_clusters_projected,
@@ -78,9 +79,10 @@ def run(args):
     elif args.plot:
         save_figure(
             args.plot,
-            figure_size(mesh),
+            (11.0, 5.6) if mesh.on_sphere else figure_size(mesh),
             lambda ax: plot_clusters(mesh, points, cl.labels, ax, labels_xy=names),
             force=args.force,
+            projection=MAP_PROJECTION if mesh.on_sphere else None,
         )
     if not args.quiet:
         sizes = np.bincount(cl.labels[cl.labels >= 0], minlength=cl.n_clusters)

@@ -11,7 +11,7 @@ EXAMPLES = """examples:
 
 writes mesh.npz, mesh.vtu, mesh.png, certificate.txt and certificate.json into the folder
 (default ./knnrefine-demo), then refines and certifies the shipped earthquakes on the sphere
-(world.npz), replacing what an earlier demo put there, and the example inputs
+(earth.npz), replacing what an earlier demo put there, and the example inputs
 the README's commands use: angles.csv (chi1,chi2; CC BY 4.0), quakes.csv (lon,lat; MIT),
 ring.csv and blobs.csv (synthetic)"""
 
@@ -92,8 +92,8 @@ def run(args):
     )
     quakes = examples["quakes.csv"][0]
     world = refine(quakes, 30, args.tau, sphere=True, radius=EARTH_KM)
-    files["world.npz"] = os.path.join(args.out, "world.npz")
-    io.write_mesh(world, files["world.npz"], force=True)
+    files["earth.npz"] = os.path.join(args.out, "earth.npz")
+    io.write_mesh(world, files["earth.npz"], force=True)
     round_earth = certify(world, quakes)
     say(
         f"  on the sphere: the {len(quakes):,} earthquakes (k = 30, great-circle km) into "
