@@ -407,3 +407,23 @@ def test_persistence_on_the_sphere_sees_a_ring_and_reports_the_sphere():
     assert len(h2) == 1 and np.isinf(h2[0, 1])
     assert h2[0, 0] == pytest.approx(pers.values.max())
     assert pers.positions.shape[1] == 2 and np.abs(pers.positions[:, 1]).max() <= 90
+
+
+@pytest.mark.parametrize("case", ["great circle", "duplicates", "antimeridian seam"])
+def test_estimator_on_the_sphere_on_degenerate_inputs(case):
+    """Points on one great circle (the sphere's line), repeated points, and points exactly
+    on the antimeridian (the seam of longitude): the adaptive estimate fits, every score is
+    finite, and its mass is 1 (Monte Carlo)."""
+    rng = np.random.default_rng(12)
+    if case == "great circle":
+        pts = np.column_stack([rng.uniform(-180, 180, 3000), np.zeros(3000)])
+    elif case == "duplicates":
+        pts = np.repeat(Mixture().sample(600, rng), 5, axis=0)
+    else:
+        pts = np.column_stack([np.full(3000, 180.0), rng.uniform(-60, 60, 3000)])
+        pts[::2, 0] = -180.0  # the same meridian written both ways
+    est = knnrefine.KnnDensityEstimator(sphere=True).fit(pts)
+    assert np.isfinite(est.score_samples(pts[:200])).all()
+    assert np.isfinite(est.score_samples(uniform(200, rng))).all()
+    draws = uniform(100_000, np.random.default_rng(4))
+    assert 4 * np.pi * np.mean(np.exp(est.score_samples(draws))) == pytest.approx(1.0, abs=0.05)

@@ -57,7 +57,10 @@ def _scale_isotropic(rows, q, amp, r, log_ratio, c, alpha, cap, dim):
         shrink = max(ri / cap, 1.0)
         scale = shrink / rho
         rows[i, Q] = q[i, 0] * scale * scale
-        rows[i, AMP] = amp[i] * scale**dim
+        a = amp[i] * scale * scale
+        if dim == 3:
+            a = a * scale  # ((amp s) s) s, as before the two shared this loop
+        rows[i, AMP] = a
         rows[i, R] = ri / shrink
     return 0
 

@@ -212,19 +212,16 @@ def insert_sphere(p, seed, mesh, scratch, cnt):
                 nb += 1
     # a disk with every vertex on its one boundary cycle: F = B - 2 and B distinct starts
     if nb != ncav + 2:
-        _unmark(mark, cavity, ncav)
         return INSERT_TOO_CLOSE, 0
     vmark, vnext = scratch.vmark, scratch.vnext
     for e in range(nb):
         a = horizon[e, 0]
         if vmark[a] == stamp:
-            _unmark(mark, cavity, ncav)
             return INSERT_TOO_CLOSE, 0
         vmark[a] = stamp
         vnext[a] = e
     for e in range(nb):
         if vmark[horizon[e, 1]] != stamp:
-            _unmark(mark, cavity, ncav)
             return INSERT_TOO_CLOSE, 0
     # the new triangles take the cavity's slots, then two appended
     nv = cnt[C_NV]
@@ -251,9 +248,8 @@ def insert_sphere(p, seed, mesh, scratch, cnt):
     for e in range(nb):  # across p-a: the new triangle that ends at a, whose edge's head is a
         s = cavity[e]
         mesh.neighbours[cavity[mesh_next(vnext, horizon, e)], 1] = s
-    for e in range(nb):
+    for e in range(nb):  # (marks need no reset: every insertion has a stamp of its own)
         set_circumcap(mesh, cavity[e])
-        scratch.mark[cavity[e]] = 0
     mesh.star[nv] = cavity[0]
     cnt[C_NV] = nv + 1
     cnt[C_NT] = nt + 2
@@ -264,12 +260,6 @@ def insert_sphere(p, seed, mesh, scratch, cnt):
 def mesh_next(vnext, horizon, e):
     """The boundary edge that follows edge e (it starts where e ends)."""
     return vnext[horizon[e, 1]]
-
-
-@kernel(inline="always")
-def _unmark(mark, cavity, ncav):
-    for i in range(ncav):
-        mark[cavity[i]] = 0
 
 
 @kernel(nrt=False)
