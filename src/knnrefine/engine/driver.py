@@ -115,6 +115,7 @@ class Refinement(TileRun):
         self.ly = ly
         self.index = index
         self.time_index = 0.0  # seconds building the index (set by the caller)
+        self.threads = None  # threads of a bulk sweep; None: ``threads.workers()``
         self.n = int(index.pts.shape[0])
         xy, corners, offsets, neighbours = initial_grid(lx, ly, q=grid)[:4] if m0 is None else m0
         self.grid = grid
@@ -265,7 +266,8 @@ class Refinement(TileRun):
         reads the mesh, so the result is the same with any number of threads. Returns
         STATUS_ERROR (with the code in the counters) or STATUS_STEPS."""
         order = R.cells_to_sweep(self.mesh, self.book, self.queues, self.cnt, self.prm)
-        threads = min(thread_count(), max(1, len(order) // self.SWEEP_PER_THREAD))
+        most = thread_count() if self.threads is None else self.threads
+        threads = min(most, max(1, len(order) // self.SWEEP_PER_THREAD))
         while len(self.sweep_probes) < threads - 1:
             self.sweep_probes.append(new_probe())
         probes = [self.probe] + self.sweep_probes

@@ -284,7 +284,7 @@ def break_(mesh, book, queues, probe, cnt, prm, index):
     return -1, 0, -1
 
 
-@kernel(entry=True)
+@kernel(entry=True, nogil=True)
 def cells_to_sweep(mesh, book, queues, cnt, prm):
     """The queued vertices whose cells are untested, in Z-order of their positions (the
     sweep's order); from now on they count as swept."""
@@ -325,7 +325,7 @@ def sweep_cells(vertices, mesh, book, probe, cnt, prm, index):
     return 0
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def queue_all(mesh, book, queues, cnt, prm):
     """Queue every triangle and vertex of a fresh triangulation (the initial mesh M0), or of
     one seeded with settled elements (``partition.seed``): the queues start empty, so no
@@ -352,7 +352,7 @@ def needs_growth(mesh, queues, cnt):
     )
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def refine_steps(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps):
     """Run Algorithm 1 for at most max_steps insertions; returns a STATUS_* code."""
     steps = 0

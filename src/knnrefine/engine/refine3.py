@@ -124,7 +124,7 @@ def _touch3(v, mesh, book, queues, cnt, prm):
         book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def queue_all3(mesh, book, queues, cnt, prm):
     """Queue every tetrahedron (at its first corner) and vertex of a fresh triangulation."""
     for t in range(cnt[C_NT]):
@@ -135,7 +135,7 @@ def queue_all3(mesh, book, queues, cnt, prm):
         _touch3(v, mesh, book, queues, cnt, prm)
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def queue_seeded3(mesh, book, queues, cnt, prm):
     """Queue what a seeded triangulation (``Refinement3.seed``) has left to decide: every
     tetrahedron not settled (DEFERRED ones again) and every vertex (its cell unless GOOD,
@@ -278,7 +278,7 @@ def needs_growth3(mesh, book, queues, cnt):
     )
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def refine_steps3(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps):
     """Run Algorithm 1 in space for at most max_steps insertions; returns a STATUS_* code."""
     steps = 0

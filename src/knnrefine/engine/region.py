@@ -76,7 +76,7 @@ def locate(px, py, t, mesh, lx, ly):
     return -1, 0, 0
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def insert_points(xy, ids, start, mesh, book, scratch, cnt, prm):
     """Insert the points xy[start:] (on the grid, in [0, lx) x [0, ly), best in a
     space-filling order) into the Delaunay triangulation, each from where the last one went;
@@ -125,7 +125,7 @@ def _settled_by(cx, cy, r, newest, rounds, regions, prm):
     return False
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def mark_settled(mesh, book, cnt, prm, stamps, regions):
     """Mark GOOD the circumballs and cells that a finished round settled (module docstring):
     stamps[v] is the round that inserted vertex v (0: before any), regions the rounds'

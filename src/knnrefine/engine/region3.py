@@ -74,7 +74,7 @@ def locate3(p, t, mesh, period, pts, shift):
     return -1
 
 
-@kernel(entry=True, nrt=False)
+@kernel(entry=True, nrt=False, nogil=True)
 def insert_points3(xyz, ids, start, mesh, book, scratch, cnt, period):
     """Insert the points xyz[start:] (on the grid, in [0, period), best in a space-filling
     order) into the Delaunay triangulation, each from where the last one went; ids[p] is
@@ -126,7 +126,7 @@ def _settled_by3(c, r, newest, rounds, regions, prm):
     return False
 
 
-@kernel(entry=True)
+@kernel(entry=True, nogil=True)
 def mark_settled3(mesh, book, scratch, cnt, prm, stamps, regions):
     """Mark GOOD the circumballs and cells that a finished round settled (``region.py``'s
     rule): stamps[v] is the round that inserted vertex v (0: before any), regions the

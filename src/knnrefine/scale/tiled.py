@@ -40,6 +40,7 @@ from ..engine.initial import reach_factor
 from ..engine.interrupt import Interrupts
 from ..engine.jit import kernel
 from ..engine.refine3 import refine_steps3
+from ..engine.threads import in_chunks, run_all
 from ..engine.region import in_rectangle
 from ..engine.region3 import in_box3
 from ..errors import EngineError, InputError
@@ -51,6 +52,7 @@ MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
 COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the points ...
 COARSE_MAX = 2_000_000  # ... but no more than this many (it runs in the calling process)
 SAMPLE_MIN = 100_000  # the plan's sample (strips, initial mesh, size) has at least this many
+STRIP_SAMPLE = 200_000  # points of the sample the strips are cut by, about
 
 
 @kernel(inline="always")
@@ -62,13 +64,18 @@ def _mix(z):
     return z ^ (z >> np.uint64(31))
 
 
-@kernel(entry=True)
-def _keys(bits, out):
+NEG_ZERO = np.uint64(1 << 63)  # -0.0's bits: keyed as 0.0's
+
+
+@kernel(entry=True, nogil=True)
+def _keys(bits, out, start, stop):
     d = bits.shape[1]
-    for i in range(bits.shape[0]):
-        h = _mix(bits[i, d - 1])
+    for i in range(start, stop):
+        b = bits[i, d - 1]
+        h = _mix(np.uint64(0) if b == NEG_ZERO else b)
         for a in range(d - 2, -1, -1):
-            h = _mix(bits[i, a] ^ h)
+            b = bits[i, a]
+            h = _mix((np.uint64(0) if b == NEG_ZERO else b) ^ h)
         out[i] = np.float64(h >> np.uint64(11)) * 1.1102230246251565e-16  # 2^-53
 
 
@@ -76,9 +83,9 @@ def sample_keys(xy):
     """A key in [0, 1) for each point (n, d) that depends only on its coordinates (0.0 and
     -0.0 alike): the points with key < f are a sample of about f n, the same one however
     the points are split or ordered."""
-    bits = np.ascontiguousarray(xy, dtype=np.float64) + 0.0  # a copy, -0.0 made 0.0
+    bits = np.ascontiguousarray(xy, dtype=np.float64).view(np.uint64)
     out = np.empty(len(bits))
-    _keys(bits.view(np.uint64), out)
+    in_chunks(lambda a, b: _keys(bits, out, a, b), len(bits), least=65536, per_thread=1)
     return out
 
 
@@ -311,17 +318,20 @@ def in_region(x, region, pad, period):
     return in_rectangle(x, *region, pad, *period)
 
 
-def run_tile(task, index=None):
+def run_tile(task, index=None, shared=False):
     """One tile of one round: its points' index (``index``, else built from task["points"]),
     the vertices in its region, the earlier rounds' regions; returns the vertices it
-    inserted (xy, kinds) and its counters."""
+    inserted (xy, kinds) and its counters. ``shared``: one of the threads of this process
+    (``ThreadStore``), else the one tile of a process at a time."""
     t0 = time.perf_counter()
-    os.environ["KNNREFINE_THREADS"] = "1"  # one of many tiles at once: one engine thread
+    if not shared:  # one of many tiles at once: one engine thread in this process
+        os.environ["KNNREFINE_THREADS"] = "1"
     left = task["time_left"]  # seconds, not a clock reading: tiles may run on other machines
     deadline = None if left is None else t0 + left
     if index is None:
         index = tile_index(task["points"], task["weights"])
     run = new_run(index, task, task["expected"])
+    run.threads = 1  # its sweeps: the other tiles hold the other cores
     start, _ = run.seed(task["xy"], task["kinds"], task["stamps"], task["history"])
     region = np.asarray(task["region"], float)
     if not np.all(region[len(region) // 2 :] > 0.0):
@@ -551,6 +561,27 @@ class LocalStore:
             self.own = None
 
 
+class ThreadStore(LocalStore):
+    """The points in this process, refined by ``workers`` threads over the same arrays: the
+    plan's index is over every point and every tile counts in it (no copies, no pickling),
+    each tile a thread of this process whose kernels release the GIL."""
+
+    shared = True
+
+    def sample(self, fraction):
+        """Every point (the plan's index is the tiles'), in the caller's order, with keys."""
+        return self.pts, self.weights, sample_keys(self.pts)
+
+    def prepare(self, emb, sets, pad):
+        """Nothing to split: tiles count in the shared index (``share_index``)."""
+
+    def share_index(self, index):
+        self.index = index
+
+    def run_round(self, s, tasks):
+        return run_all(lambda j: run_tile(tasks[j], self.index, shared=True), len(tasks))
+
+
 # -- a tiled run ------------------------------------------------------------------------------
 
 
@@ -571,7 +602,10 @@ def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
     -------
     Mesh
     """
-    store = LocalStore(pts, w, workers, executor)
+    if executor is None:
+        store = ThreadStore(pts, w, workers)
+    else:
+        store = LocalStore(pts, w, workers, executor)
     try:
         return refine_store(store, opt, workers)
     finally:
@@ -630,14 +664,20 @@ def refine_store(store, opt, workers) -> Mesh:
             budget = vertex_budget(estimated, opt, len(m0_order), n)
         else:  # no size estimate in space: the start's budget, as a run in one process
             estimated = budget = start_budget
-        internal = emb.to_internal(sx)
+        # the strips from at most STRIP_SAMPLE of the sample (by key: any order gives them)
+        planned = keys < max(coarse_f, STRIP_SAMPLE / len(sx))
+        internal = emb.to_internal(sx[planned])
         sets = strips(internal, period, workers)
         common = {
             "k": k, "period": period, "tau": tau, "min_size": min_size * emb.scale,
             "max_vertices": budget, "m0": m0, "grid": emb.grid,
         }  # fmt: skip
-        coarse = keys < coarse_f
-        xy, kinds = coarse_pass(internal[coarse], None if sw is None else sw[coarse], common)
+        coarse = keys[planned] < coarse_f
+        cw = None if sw is None else sw[planned][coarse]
+        xy, kinds = coarse_pass(internal[coarse], cw, common)
+        everything = len(sx) == n  # the plan's index counts all points
+        if getattr(store, "shared", False):
+            store.share_index(s_index)
         store.prepare(emb, sets, 4 * emb.grid)
         setup = time.perf_counter() - t0
         xy, kinds, stamps, history, rounds, stopped = run_rounds(
@@ -652,9 +692,13 @@ def refine_store(store, opt, workers) -> Mesh:
         if stopped is not None:
             status = stopped
         elif status == S.STATUS_DONE and unsettled:
-            pts, w = store.points()  # what is left needs the counts of all points
-            fetched = True
-            run, _, unsettled = settle(new_index(emb.to_internal(pts), w, workers=None), *args)
+            if everything:  # the same run, on the whole torus: what the bands deferred too
+                run.requeue()
+            else:  # what is left needs the counts of all points
+                pts, w = store.points()
+                fetched = True
+                index = new_index(emb.to_internal(pts), w, workers=None)
+                run, _, unsettled = settle(index, *args)
             status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
         rounds.append({
             "round": "final", "new_vertices": run.vertices - before,
