@@ -75,31 +75,36 @@ def reset_peak():
         return False
 
 
-def worker(kind, n, k, tau, repeat, ckdtree_budget):
+def worker(kind, n, k, tau, repeat, ckdtree_budget, workers=(1,)):
     from scipy.spatial import cKDTree
 
     import knnrefine
 
     pts = make_points(kind, n)
-    knnrefine.refine(pts, k, tau)  # warm-up: loads every kernel this input needs, the threads
+    for w in workers:  # warm-up: loads every kernel this input needs, the threads
+        knnrefine.refine(pts, k, tau, workers=w)
     first = _status_mb("VmRSS")
-    times = []
+    times = {w: [] for w in workers}
     peaks = []
     totals = []
+    sizes = {}
     for _ in range(repeat):
-        # working memory: the peak above what the process holds when the call starts, after
-        # the allocator has handed back what the previous call freed
-        _trim()
-        base = _status_mb("VmRSS")
-        ok = reset_peak()
-        t0 = time.perf_counter()
-        mesh = knnrefine.refine(pts, k, tau)
-        times.append(time.perf_counter() - t0)
-        totals.append(_status_mb("VmHWM") if ok else float("nan"))
-        peaks.append(totals[-1] - base)
-        stats = mesh.stats
-        m = len(mesh.vertices)
-        del mesh
+        for w in workers:  # interleaved: each repeat runs every workers value in turn
+            # working memory: the peak above what the process holds when the call starts,
+            # after the allocator has handed back what the previous call freed
+            _trim()
+            base = _status_mb("VmRSS")
+            ok = reset_peak()
+            t0 = time.perf_counter()
+            mesh = knnrefine.refine(pts, k, tau, workers=w)
+            times[w].append(time.perf_counter() - t0)
+            sizes[w] = len(mesh.vertices)
+            if w == workers[0]:
+                totals.append(_status_mb("VmHWM") if ok else float("nan"))
+                peaks.append(totals[-1] - base)
+                stats = mesh.stats
+                m = len(mesh.vertices)
+            del mesh
     t0 = time.perf_counter()
     tree = cKDTree(pts)
     t_build = time.perf_counter() - t0
@@ -113,8 +118,14 @@ def worker(kind, n, k, tau, repeat, ckdtree_budget):
         "n": n,
         "k": k,
         "tau": tau,
-        "refine_s": float(np.median(times)),
-        "refine_all_s": times,
+        "workers": list(workers),
+        "refine_s": float(np.median(times[workers[0]])),
+        "refine_all_s": times[workers[0]],
+        # each workers value's median time and mesh size (memory: the first value's)
+        "by_workers": {
+            str(w): {"refine_s": float(np.median(times[w])), "all_s": times[w], "m": sizes[w]}
+            for w in workers
+        },
         "peak_mb": float(np.median(peaks)),
         # issue 10's budget for working memory: 24 bytes per input point, 300 per mesh vertex
         "budget_mb": (24 * n + 300 * m) / 2**20,
@@ -186,17 +197,25 @@ def markdown(results):
         f"a later process starts in {comp['cached_start_s']:.2f} s (cache reused)."
     )
     lines.append("")
+    runs = results["runs"]
+    extra = [w for w in (runs[0].get("workers", [1])[1:] if runs else [])]
+    first = runs[0].get("workers", [1])[0] if runs else 1
+    head = "".join(f" workers={w} (m) | speed-up |" for w in extra)
     lines.append(
-        "| input | n | k | refine (median) | memory: refine / budget / process peak | m "
-        "| cKDTree k-th NN | refine / cKDTree |"
+        f"| input | n | k | refine, workers={first} (median) | memory: refine / budget / "
+        f"process peak | m | cKDTree k-th NN | refine / cKDTree |{head}"
     )
-    lines.append("|---|---:|---:|---:|---:|---:|---:|---:|")
-    for r in results["runs"]:
+    lines.append("|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|---:|" * len(extra))
+    for r in runs:
         ck = ("~" if r["ckdtree_sampled"] else "") + f"{r['ckdtree_s']:.2f} s"
+        cols = ""
+        for w in extra:
+            b = r["by_workers"][str(w)]
+            cols += f" {b['refine_s']:.3f} s ({b['m']}) | {r['refine_s'] / b['refine_s']:.2f}x |"
         lines.append(
             f"| {r['kind']} | {r['n']:.0e} | {r['k']} | {r['refine_s']:.3f} s | "
             f"{r['peak_mb']:.1f} / {r['budget_mb']:.1f} / {r['peak_total_mb']:.0f} MiB | "
-            f"{r['m']} | {ck} | {r['refine_s'] / r['ckdtree_s']:.2g} |"
+            f"{r['m']} | {ck} | {r['refine_s'] / r['ckdtree_s']:.2g} |{cols}"
         )
     return "\n".join(lines)
 
@@ -212,6 +231,13 @@ def main(argv=None):
     ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_refine.json"))
     ap.add_argument("--markdown", metavar="JSON", help="print the table of a saved run")
     ap.add_argument(
+        "--workers",
+        nargs="+",
+        type=int,
+        default=[1, 2],
+        help="workers values, run interleaved in each configuration's process",
+    )
+    ap.add_argument(
         "--worker", nargs=4, metavar=("KIND", "N", "K", "REPEAT"), help=argparse.SUPPRESS
     )
     args = ap.parse_args(argv)
@@ -221,7 +247,15 @@ def main(argv=None):
         return
     if args.worker:
         kind, n, k, repeat = args.worker
-        res = worker(kind, int(float(n)), int(k), args.tau, int(repeat), args.ckdtree_budget)
+        res = worker(
+            kind,
+            int(float(n)),
+            int(k),
+            args.tau,
+            int(repeat),
+            args.ckdtree_budget,
+            tuple(args.workers),
+        )
         print("RESULT " + json.dumps(res))
         return
     results = {
@@ -245,6 +279,8 @@ def main(argv=None):
                         str(args.tau),
                         "--ckdtree-budget",
                         str(args.ckdtree_budget),
+                        "--workers",
+                        *map(str, args.workers),
                         "--worker",
                         kind,
                         str(n),

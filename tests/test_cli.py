@@ -652,6 +652,24 @@ def test_no_carriage_returns_in_a_redirected_stderr(tmp_path):
     assert b"\r" not in out.stderr
 
 
+def test_first_run_in_space_asks_about_the_kernels_of_space(capsys, monkeypatch):
+    """Issue 32: the CLI's notice asked whether the plane's kernels were compiled, also for
+    points in space; each domain now asks about its own."""
+    from knnrefine.cli import common
+    from knnrefine.engine.refine import refine_steps
+    from knnrefine.engine.refine3 import refine_steps3
+    from knnrefine.engine.refine_sphere import refine_steps_sphere
+
+    for domain, steps in (("plane", refine_steps), ("space", refine_steps3),
+                          ("sphere", refine_steps_sphere)):  # fmt: skip
+        monkeypatch.setattr("knnrefine.engine.jit.is_ready", lambda d, steps=steps: d is not steps)
+        common.announce_compilation(quiet=False, domain=domain)
+        assert "compiling the kernels" in capsys.readouterr().err, domain
+        monkeypatch.setattr("knnrefine.engine.jit.is_ready", lambda d, steps=steps: d is steps)
+        common.announce_compilation(quiet=False, domain=domain)
+        assert capsys.readouterr().err == "", domain
+
+
 def test_first_run_says_it_compiles(capsys, monkeypatch):
     """First run: the kernels compiled for 16-58 s with nothing on screen."""
     from knnrefine.cli import common

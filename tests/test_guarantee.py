@@ -373,3 +373,30 @@ def test_one_point_on_a_thin_x_periodic_strip():
     mesh = knnrefine.refine(P, 1, tau_max, periodic=(True, False), box=box, min_size=1e-12)
     cert = certify(mesh, P)
     assert cert.passed and cert.alpha_hat >= cert.alpha, str(cert)
+
+
+def test_progress_says_compiling_in_space_too(monkeypatch):
+    """Issue 32: a first 3-D call compiled for about 21 s with nothing on screen; it now says
+    "compiling" first, as the plane does, and only when the 3-D kernels are not ready."""
+    from knnrefine.engine import jit
+    from knnrefine.engine.refine3 import refine_steps3
+
+    seen = []
+
+    def progress(vertices, pending, phase="refining"):
+        seen.append(phase)
+
+    asked = []
+
+    def not_ready(dispatcher):
+        asked.append(dispatcher)
+        return False
+
+    monkeypatch.setattr(jit, "is_ready", not_ready)
+    knnrefine.refine(rng(17).random((3000, 3)), 5, progress=progress)
+    assert seen[0] == "compiling" and seen.count("compiling") == 1
+    assert refine_steps3 in asked  # the kernel of space is the one asked about
+    monkeypatch.undo()
+    seen.clear()
+    knnrefine.refine(rng(17).random((3000, 3)), 5, progress=progress)  # compiled by now
+    assert "compiling" not in seen

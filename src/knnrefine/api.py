@@ -102,21 +102,24 @@ def refine(
         never compiled in this environment, it is first called once with (0, 0,
         phase="compiling"): the compilation that follows takes 10-60 s, once.
     workers : int, optional
-        None or 1: refine in this process. N > 1: in N local processes (forked on Linux;
-        elsewhere the calling script needs the ``if __name__ == "__main__":`` guard): a plan
-        from a sample of the points (the same whatever their order), a coarse pass on part of
-        it, then rounds of N strips of the torus, balanced by point count, each refining only
-        what lies inside it, alternating with strips shifted by half; whatever no round
+        None or 1: refine in this process, whose kernels use every core for the index and
+        the bulk counts (``KNNREFINE_THREADS`` caps them). N > 1: a tiled run over N threads
+        of this process, sharing one counting index of all points (the kernels release the
+        GIL): a plan from the points (the same whatever their order), a coarse pass on a
+        sample, then rounds of N strips of the torus, balanced by point count, each refining
+        only what lies inside it, alternating with strips shifted by half; whatever no round
         settled is finished here (``engine/region.py`` and docs/algorithm.md say why the
         result is a kNNRefine run: the same guarantees, certified by ``certify``). The mesh
         differs from a one-process run's in the order of its moves, and its size by a few
         percent. ``stats["rounds"]`` reports each round and the last step; ``time_limit``
-        and ``max_vertices`` hold in every tile. Not faster than one process on 2 cores
-        (docs/benchmarks.md).
+        and ``max_vertices`` hold in every tile. On 2 cores a tiled run is slower than the
+        default (0.6-0.85x at 4 x 10^6 points, docs/benchmarks.md): None is the fastest
+        choice measured there.
     executor : concurrent.futures.Executor, optional
-        Where the tiles of a run with ``workers`` > 1 run: its ``map`` is called once per
-        round with that round's tiles (a Dask client's ``get_executor()``:
-        ``knnrefine.scale.distributed.refine``). None: a pool of ``workers`` local processes.
+        Run the tiles of a run with ``workers`` > 1 on this executor instead (processes or
+        machines, each tile with a copy of its strip's points): its ``map`` is called once
+        per round with that round's tiles (a ``ProcessPoolExecutor``, or a Dask client's
+        ``get_executor()``: ``knnrefine.scale.distributed.refine``).
 
     sphere : bool
         Refine on the sphere S^2 (geographic or sky data): points are (n, 2) longitude and

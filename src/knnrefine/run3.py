@@ -10,11 +10,13 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .engine import jit
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
 from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from .engine.interrupt import Interrupts
+from .engine.refine3 import refine_steps3
 from .engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -26,6 +28,7 @@ from .engine.state import (
 from .errors import BudgetError, FloorWarning, InputError
 from .mesh import Mesh, Torus
 from .metric import BoxMetric, held_in_balls, weighted_kth
+from .run import Progress
 
 
 def holds_k(index, x, reach, k, period):
@@ -180,6 +183,8 @@ def refine3(pts, opt, weights=None):
     that would certify, and a FloorWarning says when most points lie below the floor."""
     k, tau, min_size, progress = opt.k, opt.tau, opt.min_size, opt.progress
     budget = opt.start_budget(len(pts))
+    if not jit.is_ready(refine_steps3):  # as in the plane: say so before a first compile
+        Progress(progress).compiling()
     with Interrupts() as interrupts:
         start = Start3(pts, opt, budget, interrupts, weights)
         found = start.find(k, reach_factor(tau))

@@ -248,7 +248,8 @@ def check_max_vertices(max_vertices):
 
 
 def check_workers(workers):
-    """None or 1 (this process), or a number of local processes for a tiled run."""
+    """None or 1 (one run in this process), or the number of tiles (threads, or an
+    executor's tasks) of a tiled run."""
     if workers is None:
         return 1
     if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:

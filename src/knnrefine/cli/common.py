@@ -174,12 +174,15 @@ def periodic_of(args):
     return tuple(flags[f"--periodic-{'xyz'[a]}"] for a in range(dim))
 
 
-def announce_compilation(quiet, sphere=False):
-    """Say so when the kernels are about to be compiled (the first run: 10-60 s, once)."""
+def announce_compilation(quiet, domain="plane"):
+    """Say so when the kernels of ``domain`` ("plane", "space" or "sphere") are about to be
+    compiled (the first run: 10-60 s, once)."""
     from ..engine.jit import is_ready
 
-    if sphere:
+    if domain == "sphere":
         from ..engine.refine_sphere import refine_steps_sphere as steps
+    elif domain == "space":
+        from ..engine.refine3 import refine_steps3 as steps
     else:
         from ..engine.refine import refine_steps as steps
 
@@ -218,7 +221,12 @@ def refine_with_progress(points, args, quiet, weights=None):
     terminal) unless quiet."""
     from .. import refine
 
-    announce_compilation(quiet, getattr(args, "sphere", False))
+    shape = getattr(points, "shape", ())
+    if getattr(args, "sphere", False):
+        domain = "sphere"
+    else:
+        domain = "space" if len(shape) == 2 and shape[1] == 3 else "plane"
+    announce_compilation(quiet, domain)
     bar = None
     if not quiet and sys.stderr.isatty():  # no carriage returns in a redirected stderr
         from tqdm import tqdm

@@ -14,11 +14,12 @@ that makes the union of the tiles' moves a kNNRefine run is ``engine/region.py``
   (elements crossing a border of both sets, or below the floor) needs the counts of all the
   points: the caller's final pass.
 
-Where the points live is a store's business: ``LocalStore`` (this process; tiles in local
-processes or on any executor) and ``knnrefine.scale.distributed.DaskStore`` (partitions and strip
-indexes on Dask workers). A store has ``n``, ``weight`` (the total, or None),
-``bounds`` (the points' extent: lows, highs), ``sample``, ``prepare``, ``run_round``,
-``points`` and ``close``.
+Where the points live is a store's business: ``ThreadStore`` (this process; tiles in its
+threads, counting in one shared index), ``LocalStore`` (this process; tiles on an
+executor's processes, each with a copy of its strip) and
+``knnrefine.scale.distributed.DaskStore`` (partitions and strip indexes on Dask workers).
+A store has ``n``, ``weight`` (the total, or None), ``bounds`` (the points' extent: lows,
+highs), ``sample``, ``prepare``, ``run_round``, ``points`` and ``close``.
 """
 
 import multiprocessing
@@ -40,9 +41,9 @@ from ..engine.initial import reach_factor
 from ..engine.interrupt import Interrupts
 from ..engine.jit import kernel
 from ..engine.refine3 import refine_steps3
-from ..engine.threads import in_chunks, run_all
 from ..engine.region import in_rectangle
 from ..engine.region3 import in_box3
+from ..engine.threads import in_chunks, run_all
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
 from ..run import Progress, Start, finish, vertex_budget
@@ -563,31 +564,30 @@ class LocalStore:
 
 class ThreadStore(LocalStore):
     """The points in this process, refined by ``workers`` threads over the same arrays: the
-    plan's index is over every point and every tile counts in it (no copies, no pickling),
-    each tile a thread of this process whose kernels release the GIL."""
-
-    shared = True
-
-    def sample(self, fraction):
-        """Every point (the plan's index is the tiles'), in the caller's order, with keys."""
-        return self.pts, self.weights, sample_keys(self.pts)
+    plan comes from the sample, as with any store (so the mesh is the same), and every tile
+    counts in one index of all points (no copies, no pickling), a thread of this process
+    whose kernels release the GIL; the last step counts in that index too."""
 
     def prepare(self, emb, sets, pad):
-        """Nothing to split: tiles count in the shared index (``share_index``)."""
-
-    def share_index(self, index):
-        self.index = index
+        """The index of all points, in torus coordinates (built by all threads)."""
+        self.index = new_index(emb.to_internal(self.pts), self.weights, workers=None)
 
     def run_round(self, s, tasks):
         return run_all(lambda j: run_tile(tasks[j], self.index, shared=True), len(tasks))
+
+    def index_of_all(self, emb):
+        """The counting index of all points for the last step: the tiles' own."""
+        return self.index
 
 
 # -- a tiled run ------------------------------------------------------------------------------
 
 
 def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
-    """``knnrefine.refine`` with ``workers`` > 1: the points in that many local processes
-    (or on ``executor``), refined in strips (slabs in space: ``refine_store``).
+    """``knnrefine.refine`` with ``workers`` > 1: refined in strips (slabs in space:
+    ``refine_store``) by that many threads of this process over one index of all points
+    (``ThreadStore``), or, given ``executor``, by its processes, each with a copy of its
+    strip's points (``LocalStore``).
 
     Parameters
     ----------
@@ -676,8 +676,6 @@ def refine_store(store, opt, workers) -> Mesh:
         cw = None if sw is None else sw[planned][coarse]
         xy, kinds = coarse_pass(internal[coarse], cw, common)
         everything = len(sx) == n  # the plan's index counts all points
-        if getattr(store, "shared", False):
-            store.share_index(s_index)
         store.prepare(emb, sets, 4 * emb.grid)
         setup = time.perf_counter() - t0
         xy, kinds, stamps, history, rounds, stopped = run_rounds(
@@ -694,6 +692,8 @@ def refine_store(store, opt, workers) -> Mesh:
         elif status == S.STATUS_DONE and unsettled:
             if everything:  # the same run, on the whole torus: what the bands deferred too
                 run.requeue()
+            elif hasattr(store, "index_of_all"):  # the store's own index of all points
+                run, _, unsettled = settle(store.index_of_all(emb), *args)
             else:  # what is left needs the counts of all points
                 pts, w = store.points()
                 fetched = True
