@@ -53,7 +53,7 @@ from .state import (
     grow,
     grown,
 )
-from .threads import run_all
+from .threads import in_chunks, run_all
 from .threads import workers as thread_count
 from .tile import TileRun
 from .triangulation import (
@@ -104,13 +104,17 @@ class Refinement(TileRun):
     SWEEP_PER_THREAD = 4096  # fewer cells than this per thread are swept by one
 
     def __init__(
-        self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q, expected_vertices=0
-    ):
+        self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q, expected_vertices=0,
+        capacity=None, queued=True,
+    ):  # fmt: skip
         """index: the counting kd-tree over P in internal coordinates (``build_index``); m0:
         the initial mesh (xy, corners, offsets, neighbours) on the grid step ``grid``, by
-        default ``initial.initial_grid(lx, ly)``; expected_vertices: the size estimate, which
-        sizes the arrays (``size.estimate``). Elements smaller than 2^14 grid (the
-        resolution floor) or than min_size are never split."""
+        default ``initial.initial_grid(lx, ly)``, or any Delaunay triangulation of the torus
+        to go on from (a stitched one: ``scale/shared.py``); expected_vertices: the size
+        estimate, which sizes the arrays (``size.estimate``); capacity: the vertices the
+        arrays have room for at first instead (``capacity`` >= the mesh's); queued: every
+        element queued (else the caller queues: ``queue_unsettled``). Elements smaller than
+        2^14 grid (the resolution floor) or than min_size are never split."""
         self.lx = lx
         self.ly = ly
         self.index = index
@@ -124,10 +128,12 @@ class Refinement(TileRun):
         # first sizes: 0.6 of the estimate (an overestimate of up to 1.7x costs nothing),
         # then growth by a quarter; small first sizes keep small runs small
         cap_v = max(self.MIN_CAPACITY, 4 * m0, int(0.6 * expected_vertices))
+        if capacity is not None:
+            cap_v = max(self.MIN_CAPACITY, m0, int(capacity))
         cap_t = 2 * cap_v
         star = np.zeros(cap_v, np.int32)
-        star[corners[:, 0]] = np.arange(corners.shape[0], dtype=np.int32)
-        star[corners[:, 1]] = np.arange(corners.shape[0], dtype=np.int32)
+        for c in (2, 1, 0):  # a triangle at each vertex, whichever corner it is of them
+            star[corners[:, c]] = np.arange(corners.shape[0], dtype=np.int32)
         self.mesh = TorusMesh(
             corners=grown(corners, cap_t),
             neighbours=grown(neighbours, cap_t),
@@ -154,7 +160,7 @@ class Refinement(TileRun):
         )
         # a queue keeps room for one insertion's pushes (R.HEADROOM) beyond its entries
         self.queues = Queues(
-            balls=new_queue(cap_v + R.HEADROOM),
+            balls=new_queue(max(cap_v, corners.shape[0]) + R.HEADROOM),  # queue_all's below
             cells=new_queue(cap_v + R.HEADROOM),
             cleans=new_queue(R.HEADROOM + 256),
         )
@@ -177,8 +183,26 @@ class Refinement(TileRun):
         self.prm[P_INFLATE] = 1.0 + 1e-9
         self.prm[P_REGION_W] = NO_REGION
         set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
-        set_vertex_caches(self.mesh, self.prm, m0, self.probe.hx, self.probe.hy)
-        R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
+        self._set_vertex_caches(m0)
+        if queued:
+            R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
+
+    def _set_vertex_caches(self, nv):
+        """R(v)^2 and d_{M,2}(v)^2 of vertices 0..nv-1, on the engine's threads when many."""
+        if nv < self.SWEEP_PER_THREAD:
+            set_vertex_caches(self.mesh, self.prm, 0, nv, self.probe.hx, self.probe.hy)
+            return
+        probes = [new_probe() for _ in range(thread_count())]
+        free = list(range(len(probes)))
+
+        def fill(start, stop):
+            j = free.pop()  # one probe per range running at once (list.pop is atomic)
+            try:
+                set_vertex_caches(self.mesh, self.prm, start, stop, probes[j].hx, probes[j].hy)
+            finally:
+                free.append(j)
+
+        in_chunks(fill, nv, least=self.SWEEP_PER_THREAD)
 
     def grow_if_needed(self):
         """Grow, by GROWTH, every array that could overflow during the next insertion: the
@@ -342,6 +366,12 @@ class Refinement(TileRun):
         balls[balls == S.DEFERRED] = S.UNTESTED
         self.reserve_queues(3 * self.vertices + R.HEADROOM)
         R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
+
+    def queue_unsettled(self):
+        """Queue only what is not settled (a triangulation made of settled parts:
+        ``refine.queue_unsettled``)."""
+        self.reserve_queues(3 * self.vertices + R.HEADROOM)
+        R.queue_unsettled(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""

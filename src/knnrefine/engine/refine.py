@@ -340,6 +340,24 @@ def queue_all(mesh, book, queues, cnt, prm):
         _touch(v, mesh, book, queues, cnt, prm)
 
 
+@kernel(entry=True, nrt=False, nogil=True)
+def queue_unsettled(mesh, book, queues, cnt, prm):
+    """Queue what a triangulation made of settled parts still needs looked at (a stitched
+    one, ``scale/shared.py``): the triangles whose circumball is not settled (DEFERRED ones
+    again) and the vertices as ``queue_all`` does (an untested cell, an aspect over tau)."""
+    queue_clear(queues.balls)
+    queue_clear(queues.cells)
+    queue_clear(queues.cleans)
+    for t in range(cnt[C_NT]):
+        if book.ball_state[t] == DEFERRED:
+            book.ball_state[t] = UNTESTED
+        if book.ball_state[t] == UNTESTED:
+            queue_push(queues.balls, size_class(mesh.radius2[t]), t, mesh.corners[t, 0])
+    for v in range(cnt[C_NV]):
+        book.flags[v] = book.flags[v] & ~(IN_CELL_QUEUE | IN_CLEAN_QUEUE)
+        _touch(v, mesh, book, queues, cnt, prm)
+
+
 @kernel(inline="always")
 def needs_growth(mesh, queues, cnt):
     """True when an array could overflow during the next insertion."""

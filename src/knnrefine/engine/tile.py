@@ -22,6 +22,18 @@ class TileRun:
         initial mesh, mark what earlier rounds settled (regions (Q, T, 2 d)) and queue the
         rest. Returns (the number of vertices, the elements not settled: circumballs and
         cells)."""
+        ids = self.insert(x, kinds)
+        nv = self.vertices
+        all_stamps = np.zeros(nv, np.int32)
+        all_stamps[ids] = stamps
+        balls, cells = self._mark_settled(all_stamps, np.ascontiguousarray(regions, float))
+        self.requeue()
+        return nv, int(self.cnt[C_NT]) - balls + nv - cells
+
+    def insert(self, x, kinds):
+        """Insert the vertices x (other tiles' moves: none of them a vertex here already),
+        in a space-filling order, with their kinds; returns each one's vertex id. What the
+        insertions made is untested and not queued (``requeue``)."""
         order = self._order(np.ascontiguousarray(x))
         pts = np.ascontiguousarray(x[order])
         ids = np.full(len(pts), -1, np.int64)
@@ -39,13 +51,10 @@ class TileRun:
                 f"{int((~placed).sum())} of the tiles' vertices coincide with others: tiles "
                 "moved outside their strips (a broken plan)"
             )
-        nv = self.vertices
-        all_stamps = np.zeros(nv, np.int32)
-        all_stamps[ids] = stamps[order]
         self.book.kinds[ids] = kinds[order]
-        balls, cells = self._mark_settled(all_stamps, np.ascontiguousarray(regions, float))
-        self.requeue()
-        return nv, int(self.cnt[C_NT]) - balls + nv - cells
+        out = np.empty(len(pts), np.int64)
+        out[order] = ids
+        return out
 
     def new_vertices(self, start):
         """(positions, kinds) of the vertices from ``start`` on: copies."""

@@ -136,11 +136,12 @@ def far_corner(v, mesh):
             return best
 
 
-@kernel(entry=True, nrt=False)
-def set_vertex_caches(mesh, prm, nv, hx, hy):
-    """Fill outradius2 and nearest2 for vertices 0..nv-1 by walking their stars
-    (``vertex_star``; hx, hy: its scratch)."""
-    for v in range(nv):
+@kernel(entry=True, nrt=False, nogil=True)
+def set_vertex_caches(mesh, prm, start, stop, hx, hy):
+    """Fill outradius2 and nearest2 for vertices start..stop-1 by walking their stars
+    (``vertex_star``; hx, hy: its scratch, one per thread: threads may fill disjoint
+    ranges at once)."""
+    for v in range(start, stop):
         outradius2, _, d_m2_sq, _ = vertex_star(v, mesh, prm, hx, hy)
         mesh.outradius2[v] = outradius2
         mesh.nearest2[v] = d_m2_sq

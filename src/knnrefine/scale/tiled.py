@@ -26,6 +26,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -602,6 +603,10 @@ def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
     -------
     Mesh
     """
+    if executor is None and pts.shape[1] == 2:
+        from .shared import refine_threads
+
+        return refine_threads(pts, w, opt, workers)
     if executor is None:
         store = ThreadStore(pts, w, workers)
     else:
@@ -633,6 +638,68 @@ def _plan_start(sx, sw, store, opt, budget, interrupts):
     return emb, index, m0, np.arange(len(m0[0])), None
 
 
+@dataclass
+class Plan:
+    """What a tiled run starts from (``plan``): the embedding, the sample's index, the initial
+    mesh (with its order and grid), the estimated size and the vertex budget, the two sets of
+    strips, the engine's parameters ``common`` (``new_run``), the coarse pass' vertices
+    (internal coordinates) and kinds, whether the sample is every point, and the seconds the
+    plan took."""
+
+    emb: object
+    s_index: object
+    m0: tuple
+    m0_order: np.ndarray
+    m0_grid: tuple
+    estimated: float
+    budget: int
+    sets: list
+    common: dict
+    xy: np.ndarray
+    kinds: np.ndarray
+    everything: bool
+    seconds: float
+
+
+def plan(store, opt, workers, interrupts) -> Plan:
+    """A tiled run's plan from a sample of the points of ``store`` (the same set however they
+    are split or ordered): the initial mesh, the size, the strips, and a coarse pass on part
+    of the sample, in this process."""
+    t0 = time.perf_counter()
+    n = store.n
+    k, tau, min_size, dim = opt.k, opt.tau, opt.min_size, opt.dim
+    start_budget = opt.start_budget(n)
+    coarse_f = min(1.0 / (COARSE_SHARE * workers), COARSE_MAX / n)
+    sx, sw, keys = store.sample(max(coarse_f, min(1.0, SAMPLE_MIN / n)))
+    share = len(sx) / n if sw is None else float(sw.sum()) / store.weight
+    emb, s_index, m0, m0_order, m0_grid = _plan_start(sx, sw, store, opt, start_budget,
+                                                      interrupts)  # fmt: skip
+    opt.past("setting up")
+    period = tuple(emb.period_internal)
+    if dim == 2:
+        floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
+        lo, hi = emb.box_internal()
+        area = float(np.prod(hi - lo))
+        estimated = size.estimate(s_index, k, floor, period[0], period[1], area)[0]
+        estimated /= share
+        budget = vertex_budget(estimated, opt, len(m0_order), n)
+    else:  # no size estimate in space: the start's budget, as a run in one process
+        estimated = budget = start_budget
+    # the strips from at most STRIP_SAMPLE of the sample (by key: any order gives them)
+    planned = keys < max(coarse_f, STRIP_SAMPLE / len(sx))
+    internal = emb.to_internal(sx[planned])
+    sets = strips(internal, period, workers)
+    common = {
+        "k": k, "period": period, "tau": tau, "min_size": min_size * emb.scale,
+        "max_vertices": budget, "m0": m0, "grid": emb.grid,
+    }  # fmt: skip
+    coarse = keys[planned] < coarse_f
+    cw = None if sw is None else sw[planned][coarse]
+    xy, kinds = coarse_pass(internal[coarse], cw, common)
+    return Plan(emb, s_index, m0, m0_order, m0_grid, estimated, budget, sets, common, xy, kinds,
+                len(sx) == n, time.perf_counter() - t0)  # fmt: skip
+
+
 def refine_store(store, opt, workers) -> Mesh:
     """A tiled run (``scale/tiled.py``) on the points of ``store`` (``LocalStore``, or
     ``distributed.DaskStore``) with the checked options ``opt`` (``RunOptions``) in
@@ -640,42 +707,18 @@ def refine_store(store, opt, workers) -> Mesh:
     mesh, size, strips), a coarse pass on part of it, rounds of tiles, then whatever no
     round settled on the index of all points, fetched only then."""
     n = store.n
-    k, tau, min_size, dim = opt.k, opt.tau, opt.min_size, opt.dim
+    dim = opt.dim
     deadline = opt.deadline
-    start_budget = opt.start_budget(n)
     report = Progress(opt.progress)
     if not jit.is_ready(R.refine_steps if dim == 2 else refine_steps3):
         report.compiling()
     with Interrupts() as interrupts:
         t0 = time.perf_counter()
-        coarse_f = min(1.0 / (COARSE_SHARE * workers), COARSE_MAX / n)
-        sx, sw, keys = store.sample(max(coarse_f, min(1.0, SAMPLE_MIN / n)))
-        share = len(sx) / n if sw is None else float(sw.sum()) / store.weight
-        emb, s_index, m0, m0_order, m0_grid = _plan_start(sx, sw, store, opt, start_budget,
-                                                          interrupts)  # fmt: skip
-        opt.past("setting up")
-        period = tuple(emb.period_internal)
-        if dim == 2:
-            floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
-            lo, hi = emb.box_internal()
-            area = float(np.prod(hi - lo))
-            estimated = size.estimate(s_index, k, floor, period[0], period[1], area)[0]
-            estimated /= share
-            budget = vertex_budget(estimated, opt, len(m0_order), n)
-        else:  # no size estimate in space: the start's budget, as a run in one process
-            estimated = budget = start_budget
-        # the strips from at most STRIP_SAMPLE of the sample (by key: any order gives them)
-        planned = keys < max(coarse_f, STRIP_SAMPLE / len(sx))
-        internal = emb.to_internal(sx[planned])
-        sets = strips(internal, period, workers)
-        common = {
-            "k": k, "period": period, "tau": tau, "min_size": min_size * emb.scale,
-            "max_vertices": budget, "m0": m0, "grid": emb.grid,
-        }  # fmt: skip
-        coarse = keys[planned] < coarse_f
-        cw = None if sw is None else sw[planned][coarse]
-        xy, kinds = coarse_pass(internal[coarse], cw, common)
-        everything = len(sx) == n  # the plan's index counts all points
+        p = plan(store, opt, workers, interrupts)
+        emb, s_index, m0, m0_order, m0_grid = p.emb, p.s_index, p.m0, p.m0_order, p.m0_grid
+        estimated, budget, sets, common, xy, kinds = (p.estimated, p.budget, p.sets, p.common,
+                                                      p.xy, p.kinds)  # fmt: skip
+        everything = p.everything
         store.prepare(emb, sets, 4 * emb.grid)
         setup = time.perf_counter() - t0
         xy, kinds, stamps, history, rounds, stopped = run_rounds(

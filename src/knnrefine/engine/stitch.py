@@ -1,0 +1,134 @@
+"""Stitching tiles' triangulations into one, in the plane (``scale/shared.py`` runs them).
+
+Tiles of a run in threads keep their meshes. Each tile's mesh holds every vertex of the run
+inside its *exact area* (an x-interval of the torus, or the frame around the data's box):
+there, a triangle of the tile whose closed circumdisk lies inside the area is a triangle of
+the run's Delaunay triangulation (its disk is empty of the tile's vertices, so of all), and
+conversely. The torus is cut into *cores*: half-open x-intervals of the data's box, each
+inside one tile's exact area, and the frame around the box (where a non-periodic axis'
+margin holds no data). A triangle belongs to the core holding its corner of lowest global id
+(a vertex's stored position, the same double in every tile, so every tile decides alike).
+Each tile hands in the triangles of its core, having checked that their disks lie in its
+exact area; ``scale/shared.py`` joins them by their edges and checks the join (every edge
+has one twin; 2 m triangles on the torus).
+
+Kernels: ``owned_triangles`` (a tile's share, and whether it can vouch for it), ``hand_in``
+(writing it into the run's arrays).
+"""
+
+import numpy as np
+
+from .jit import kernel
+from .refine import interval_within
+from .state import FLOOR, GOOD, P_GRID, P_LX, P_LY, UNTESTED
+from .triangulation import circumcentre
+
+
+@kernel(inline="always")
+def core_of(x, bounds, period):
+    """The core [bounds[c], bounds[c + 1]) holding x in [0, period) (the last core runs on
+    across the period to bounds[0])."""
+    c = np.searchsorted(bounds, x, side="right") - 1
+    return c % bounds.shape[0]
+
+
+@kernel(inline="always")
+def _wrapped(x, period):
+    x = x - np.floor(x / period) * period
+    return x - period if x >= period else x
+
+
+@kernel(inline="always")
+def in_box(x, y, box, prm):
+    """(x, y) in the rectangle box = (x0, y0, w, h) of the torus (closed)."""
+    return interval_within(x, 0.0, box[0], box[2], prm[P_LX]) and interval_within(
+        y, 0.0, box[1], box[3], prm[P_LY]
+    )
+
+
+@kernel(inline="always")
+def disk_meets_box(cx, cy, r, box, prm):
+    """The disk (cx, cy, r) meets the rectangle box = (x0, y0, w, h) of the torus, which
+    does not wrap (0 <= x0, x0 + w <= lx, and so along y)."""
+    lx = prm[P_LX]
+    ly = prm[P_LY]
+    x = _wrapped(cx, lx)
+    y = _wrapped(cy, ly)
+    best = np.inf
+    for sx in (-1.0, 0.0, 1.0):
+        dx = max(box[0] - (x + sx * lx), 0.0, (x + sx * lx) - (box[0] + box[2]))
+        for sy in (-1.0, 0.0, 1.0):
+            dy = max(box[1] - (y + sy * ly), 0.0, (y + sy * ly) - (box[1] + box[3]))
+            best = min(best, dx * dx + dy * dy)
+    return best <= r * r
+
+
+@kernel(entry=True, nogil=True)
+def owned_triangles(mesh, nt, gid, bounds, core, data, exact, prm, out):
+    """out[t] = True for this tile's share of the triangles t < nt: those whose corner of
+    lowest global id (``gid``: a vertex's global id) lies in the data box ``data`` (x0, y0,
+    w, h) and in core number ``core`` of ``bounds`` (``core_of``), or, for ``core`` = -1
+    (the frame's tile), outside the data box. Returns how many of them have a circumdisk
+    (inflated by a relative 1e-6 and a grid step) outside the tile's exact area ``exact``
+    (x0, y0, w, h, inside): the rectangle when inside > 0, else everything outside it: 0
+    when the tile vouches for all of its share."""
+    lx = prm[P_LX]
+    pad = prm[P_GRID]
+    bad = 0
+    for t in range(nt):
+        o = mesh.corners[t, 0]
+        for i in range(1, 3):
+            v = mesh.corners[t, i]
+            if gid[v] < gid[o]:
+                o = v
+        x = mesh.xy[o, 0]
+        inside = in_box(x, mesh.xy[o, 1], data, prm)
+        if core < 0:
+            mine = not inside
+        else:
+            mine = inside and core_of(x, bounds, lx) == core
+        out[t] = mine
+        if not mine:
+            continue
+        cx, cy, r2 = circumcentre(mesh, prm, t)
+        r = np.sqrt(r2) * (1.0 + 1e-6) + pad
+        if exact[4] > 0.0:
+            ok = interval_within(cx - r, 2.0 * r, exact[0], exact[2], lx) and interval_within(
+                cy - r, 2.0 * r, exact[1], exact[3], prm[P_LY]
+            )
+        else:
+            ok = not disk_meets_box(cx, cy, r, exact, prm)
+        if not ok:
+            bad += 1
+    return bad
+
+
+@kernel(entry=True, nogil=True)
+def hand_in(mesh, book, nt, nv, gid, mine, base, corners, offsets, neighbours, balls, cells):
+    """Write this tile's share (``mine``, from ``owned_triangles``) into the run's arrays
+    from row ``base`` on, in the tile's order: corners as global ids, offsets, neighbours
+    (the rows of the share's own triangles; -1 across an edge to another tile's share) and
+    the circumball states worth keeping (GOOD and FLOOR; others UNTESTED). Marks in
+    ``cells`` the vertices whose cell this tile found to hold < k points (GOOD: a cell only
+    shrinks as vertices come, so it stays so). Returns the number of rows written."""
+    row = np.full(nt, -1, np.int64)
+    r = base
+    for t in range(nt):
+        if mine[t]:
+            row[t] = r
+            r += 1
+    for t in range(nt):
+        g = row[t]
+        if g < 0:
+            continue
+        for i in range(3):
+            corners[g, i] = gid[mesh.corners[t, i]]
+            offsets[g, i, 0] = mesh.offsets[t, i, 0]
+            offsets[g, i, 1] = mesh.offsets[t, i, 1]
+            neighbours[g, i] = row[mesh.neighbours[t, i]]
+        state = book.ball_state[t]
+        balls[g] = state if state == GOOD or state == FLOOR else UNTESTED
+    for v in range(nv):
+        if book.cell_state[v] == GOOD:
+            cells[gid[v]] = True
+    return r - base

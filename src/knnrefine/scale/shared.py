@@ -1,0 +1,409 @@
+"""A tiled run in threads of this process, its tiles' meshes stitched (the plane).
+
+``refine(points, k, workers=N)`` in the plane. The plan is any tiled run's (``tiled.plan``:
+the same sample, initial mesh, strips and coarse pass), then:
+
+* **Strips.** N tiles, each a thread refining its strip of the torus in its own mesh, all of
+  them counting in one index of all points (the kernels release the GIL). A tile keeps its
+  mesh from round to round.
+* **Seams.** What a strip left (elements crossing its borders: ``engine/region.py``'s rule)
+  lies near the N cuts. Each cut gets a seam: a band as wide as what was left there reaches
+  (``stitch.deferred_reach``), at most SEAM_SHARE of either strip, refined by a tile of its
+  own from the vertices near it. Strips and seams then take turns, each first inserting the
+  vertices the others made in its area (``Tile.sync``), until a turn of all of them adds
+  nothing.
+* **Stitch.** Every tile has every vertex of the run in its area, so the run's Delaunay
+  triangulation is the union of the tiles' shares (``engine/stitch.py``): the cores of the
+  strips and seams partition the torus, and each triangle is handed in by the tile whose
+  core holds its corner of lowest id. The join is checked (each edge has one twin, 2 m
+  triangles); a join that fails (cocircular vertices that two tiles triangulated alike only
+  up to a flip) is rebuilt by inserting every vertex into one mesh, as the rounds of shifted
+  strips do.
+* **Last step.** One run over the stitched mesh, with what the tiles settled marked so (a
+  circumball's count does not depend on the tile, and a cell only shrinks), finishes
+  whatever is left (elements wider than a seam, which no tile could take) and is the mesh
+  returned.
+
+Nothing is re-triangulated: a strip's tile inserts only its strip's and its neighbours'
+vertices, once. Space keeps the rounds of shifted strips (``tiled.ThreadStore``).
+"""
+
+import time
+
+import numpy as np
+
+from ..engine import jit
+from ..engine import refine as R
+from ..engine import state as S
+from ..engine.driver import Refinement
+from ..engine.interrupt import Interrupts
+from ..engine.region import in_rectangle
+from ..engine.stitch import hand_in, owned_triangles
+from ..engine.threads import run_all
+from ..errors import EngineError
+from ..mesh import Mesh
+from ..run import Progress, finish
+from .tiled import ThreadStore, new_run, plan, settle
+
+SEAM_SPACINGS = 12.0  # a seam reaches this many of the mesh's mean spacings each side ...
+SEAM_SHARE = 1 / 8  # ... but no more than this share of the narrower strip it borders
+FRAME_SHARE = 0.5  # the frame's tile has the vertices this share of a seam into the data box
+MAX_TURNS = 4  # turns of strips and seams before the last step takes what is left
+
+
+class Tile:
+    """A tile's kept mesh: its run, each vertex's global id, its region (where it moves: x0,
+    y0, w, h), its area (where it has every vertex of the run: the rectangle (x0, y0, w, h),
+    or everything outside it when the fifth number is 0) and how many of the run's vertices
+    it has looked at (``synced``)."""
+
+    def __init__(self, number, common, index, region, area, expected):
+        self.number = number
+        self.run = new_run(index, common, expected)
+        self.run.threads = 1  # its sweeps: the other tiles hold the other cores
+        if region is not None:
+            self.run.set_region(region)
+        self.area = np.asarray(area, float)
+        m0 = self.run.vertices
+        self.gid = np.arange(m0, dtype=np.int64)  # the initial mesh: the same ids in all
+        self.synced = m0
+        self.seconds = 0.0
+
+    def sync(self, vertices):
+        """Insert the run's vertices made since the last sync by other tiles (or the coarse
+        pass) that lie in this tile's area; True when there were some."""
+        t0 = time.perf_counter()
+        new = np.arange(self.synced, vertices.count)
+        self.synced = vertices.count
+        new = new[vertices.maker[new] != self.number]
+        if len(new) == 0:
+            return False
+        x0, y0, w, h, inside = self.area
+        lx, ly = self.run.period
+        mask = in_rectangle(vertices.xy[new], x0, y0, w, h, 0.0, lx, ly)
+        new = new[mask if inside else ~mask]
+        if len(new) == 0:
+            return False
+        ids = self.run.insert(vertices.xy[new], vertices.kinds[new])
+        self.gid = _grown(self.gid, self.run.vertices)
+        self.gid[ids] = new
+        self.seconds += time.perf_counter() - t0
+        return True
+
+    def step(self, vertices, first, deadline, stop):
+        """Sync, then refine the region: (status, the new vertices' positions and kinds)."""
+        if self.sync(vertices) or first:
+            self.run.queue_unsettled()  # what the sync made, and what others' regions kept
+        t0 = time.perf_counter()
+        start = self.run.vertices
+        status = self.run.run(deadline=deadline, interrupts=stop)
+        xy, kinds = self.run.new_vertices(start)
+        self.seconds += time.perf_counter() - t0
+        return status, start, xy, kinds
+
+    def adopt(self, start, ids):
+        """The run's ids of this tile's vertices from ``start`` on."""
+        self.gid = _grown(self.gid, self.run.vertices)
+        self.gid[start : start + len(ids)] = ids
+
+
+def _grown(a, n):
+    if len(a) >= n:
+        return a
+    out = np.full(max(n, int(1.25 * len(a))), -1, np.int64)
+    out[: len(a)] = a
+    return out
+
+
+class Vertices:
+    """The run's vertices so far, in the order they got their ids: positions (internal),
+    kinds, and the tile that made each (-1: the initial mesh and the coarse pass)."""
+
+    def __init__(self, xy, kinds):
+        self.xy, self.kinds = xy, kinds
+        self.maker = np.full(len(xy), -1, np.int64)
+
+    @property
+    def count(self):
+        return len(self.xy)
+
+    def add(self, xy, kinds, maker):
+        """Append; returns the new vertices' ids."""
+        first = self.count
+        self.xy = np.concatenate([self.xy, xy])
+        self.kinds = np.concatenate([self.kinds, kinds])
+        self.maker = np.concatenate([self.maker, np.full(len(xy), maker, np.int64)])
+        return np.arange(first, self.count)
+
+
+class Stop:
+    """What a tile's thread checks between kernel calls: Ctrl-C (seen, not consumed: every
+    tile stops; the caller raises it) or another tile's failure."""
+
+    def __init__(self, interrupts):
+        self.interrupts = interrupts
+        self.failed = False
+
+    def check(self):
+        if self.failed or (self.interrupts is not None and self.interrupts.hit):
+            raise KeyboardInterrupt
+
+
+def run_turn(tiles, vertices, first, deadline, stop, report):
+    """Every tile's step, on threads; the new vertices get their ids, tile by tile (so the
+    ids do not depend on which thread finished first). Returns (status of a tile stopped by
+    a budget or None, the vertices added, the turn's report)."""
+    t0 = time.perf_counter()
+    try:
+        results = run_all(lambda j: tiles[j].step(vertices, first, deadline, stop), len(tiles))
+    except BaseException:
+        stop.failed = True
+        raise
+    added = 0
+    stopped = None
+    for tile, (status, start, xy, kinds) in zip(tiles, results, strict=True):
+        tile.adopt(start, vertices.add(xy, kinds, tile.number))
+        added += len(xy)
+        if status != S.STATUS_DONE and stopped is None:
+            stopped = status
+    report.refining(vertices.count, 0)
+    return stopped, added, {"new_vertices": added, "seconds": time.perf_counter() - t0,
+                            "tiles": [float(t.seconds) for t in tiles]}  # fmt: skip
+
+
+def seam_widths(cuts, period, spacing):
+    """Half the width of the seam at each cut: SEAM_SPACINGS times the mesh's mean spacing
+    ``spacing``, but at most SEAM_SHARE of the narrower strip it borders."""
+    widths = np.diff(np.append(cuts, cuts[0] + period[0]))
+    return np.minimum(SEAM_SPACINGS * spacing, SEAM_SHARE * np.minimum(widths, np.roll(widths, 1)))
+
+
+def stitch(tiles, bounds, cores, data, vertices):
+    """The run's triangulation from the tiles' shares, each tile on a thread: (corners,
+    offsets, neighbours, the circumballs' states, the cells settled), or None when the
+    shares do not join (a tile cannot vouch for its share, or an edge lacks its twin, or
+    the count is not 2 m). ``cores``: each tile's core in ``bounds`` (-1: the frame's
+    tile); ``data``: the box of the data (x0, y0, w, h), the frame around it."""
+    nv = vertices.count
+    shares = [None] * len(tiles)
+
+    def own(j):
+        run = tiles[j].run
+        gid = np.ascontiguousarray(tiles[j].gid[: run.vertices])
+        if gid.min() < 0:
+            raise EngineError("a tile's vertex has no id in the run (a broken tile)")
+        mine = np.zeros(int(run.cnt[S.C_NT]), np.bool_)
+        bad = owned_triangles(run.mesh, len(mine), gid, bounds, cores[j], data, tiles[j].area,
+                              run.prm, mine)  # fmt: skip
+        shares[j] = (gid, mine)
+        return bad, int(np.count_nonzero(mine))
+
+    owned = run_all(own, len(tiles))
+    total = sum(c for _, c in owned)
+    if any(bad for bad, _ in owned) or total != 2 * nv:
+        return None
+    bases = np.concatenate([[0], np.cumsum([c for _, c in owned])])
+    corners = np.empty((total, 3), np.int32)  # the engine's types (``initial.initial_grid``)
+    offsets = np.empty((total, 3, 2), np.int8)
+    neighbours = np.empty((total, 3), np.int32)
+    balls = np.empty(total, np.int8)
+    cells = np.zeros(nv, np.bool_)
+
+    def write(j):
+        run = tiles[j].run
+        gid, mine = shares[j]
+        hand_in(run.mesh, run.book, len(mine), run.vertices, gid, mine, bases[j], corners,
+                offsets, neighbours, balls, cells)  # fmt: skip
+
+    run_all(write, len(tiles))
+    t, i = np.nonzero(neighbours < 0)
+    if not _join(t, i, corners, offsets, neighbours, nv):
+        return None
+    if np.bincount(corners.ravel(), minlength=nv).min() == 0:
+        return None
+    return corners, offsets, neighbours, balls, cells
+
+
+def _join(t, i, corners, offsets, neighbours, nv):
+    """Set the neighbours across the edges (triangle t, opposite corner i) that join two
+    tiles' shares: each edge a -> b (with b's offset from a) meets its twin b -> a. False
+    when some edge has no twin, or more than one."""
+    if len(t) == 0:
+        return True
+    if nv >= 1 << 29:  # the keys below would overflow
+        return False
+    a = corners[t, (i + 1) % 3].astype(np.int64)
+    b = corners[t, (i + 2) % 3].astype(np.int64)
+    d = offsets[t, (i + 2) % 3].astype(np.int64) - offsets[t, (i + 1) % 3]
+    if np.abs(d).max() > 2:
+        return False
+
+    def key(u, v, dx, dy):
+        return ((u * nv + v) * 5 + (dx + 2)) * 5 + (dy + 2)
+
+    fwd = key(a, b, d[:, 0], d[:, 1])
+    back = key(b, a, -d[:, 0], -d[:, 1])
+    order = np.argsort(fwd)
+    sorted_fwd = fwd[order]
+    if np.any(sorted_fwd[1:] == sorted_fwd[:-1]):
+        return False
+    at = np.searchsorted(sorted_fwd, back)
+    at = np.minimum(at, len(fwd) - 1)
+    if not np.array_equal(sorted_fwd[at], back):
+        return False
+    neighbours[t, i] = t[order[at]]
+    return True
+
+
+def refine_threads(pts, w, opt, workers) -> Mesh:
+    """``knnrefine.refine(points, k, workers=N)`` in the plane: the module's run.
+
+    Parameters
+    ----------
+    pts : ndarray (n, 2)
+    w : ndarray (n,) or None
+    opt : RunOptions
+        Checked (``run.checked``).
+    workers : int
+        Threads, and strips.
+
+    Returns
+    -------
+    Mesh
+    """
+    store = ThreadStore(pts, w, workers)
+    report = Progress(opt.progress)
+    if not jit.is_ready(R.refine_steps):
+        report.compiling()
+    with Interrupts() as interrupts:
+        t0 = time.perf_counter()
+        p = plan(store, opt, workers, interrupts)
+        emb, common = p.emb, p.common
+        store.prepare(emb, p.sets, 4 * emb.grid)
+        index = store.index
+        setup = time.perf_counter() - t0
+        lx, ly = period = tuple(emb.period_internal)
+        grid = emb.grid
+        m0 = p.m0
+        vertices = Vertices(np.concatenate([m0[0], p.xy]),
+                            np.concatenate([np.zeros(len(m0[0]), np.int8), p.kinds]))  # fmt: skip
+        stop = Stop(interrupts)
+        deadline = opt.deadline
+        # the strips of the plan's second set: its cuts are inner quantiles of the data, so
+        # a margin (no data, large elements) lies inside a strip, never at a cut
+        cuts, widths = p.sets[1][:, 0], p.sets[1][:, 2]
+        data = _data_box(emb, period)
+        half = seam_widths(cuts, period, np.sqrt(data[2] * data[3] / max(p.estimated, 1.0)))
+        expected = min(p.estimated, p.budget)
+        strips = [
+            Tile(j, common, index, (cuts[j], 0.0, widths[j], ly),
+                 (cuts[j] - 4 * grid, 0.0, widths[j] + 8 * grid, ly, 1), expected / workers)
+            for j in range(workers)
+        ]  # fmt: skip
+        seams = [
+            Tile(workers + j, common, index, (cuts[j] - half[j], 0.0, 2 * half[j], ly),
+                 (cuts[j] - 2 * half[j] - 4 * grid, 0.0, 4 * half[j] + 8 * grid, ly, 1),
+                 expected * 4 * half[j] / lx)
+            for j in range(workers)
+        ]  # fmt: skip
+        rounds = []
+        stopped = None
+        turns = [("strips", strips, True), ("seams", seams, True)]
+        turns += [("strips", strips, False), ("seams", seams, False)] * MAX_TURNS
+        added = 0
+        for name, group, first in turns:
+            stopped, got, rep = run_turn(group, vertices, first, deadline, stop, report)
+            rounds.append({"round": name, **rep})
+            interrupts.check()
+            if stopped is not None:
+                break
+            added += got
+            if name == "seams":  # the end of a turn of all tiles
+                if not first and added == 0:
+                    break
+                added = 0
+        t1 = time.perf_counter()
+        frame = _frame(emb, period, data, half.min() * FRAME_SHARE)
+        tiles = strips + seams
+        bounds, owners = _cores(cuts, half, lx)
+        cores = [int(np.flatnonzero(owners == t.number)[0]) for t in tiles]
+        if frame is not None:  # the frame's tile: every vertex in the margins, and near them
+            tiles.append(Tile(2 * workers, common, index, None, frame, 0))
+            cores.append(-1)
+        joined = None
+        if stopped is None:
+            # every tile gets every vertex of its area (after a turn that added none: only the
+            # frame's tile inserts some)
+            run_all(lambda j, tiles=tiles: tiles[j].sync(vertices), len(tiles))
+            joined = stitch(tiles, bounds, cores, data, vertices)
+        counts = np.sum([t.run.cnt for t in tiles], axis=0)
+        seconds = [float(t.seconds) for t in tiles]
+        tiles = strips = seams = []  # their meshes go before the last step's is made
+        budget = p.budget
+        if joined is not None:
+            corners, offsets, neighbours, balls, cells = joined
+            run = Refinement(index, common["k"], lx, ly, common["tau"], common["min_size"],
+                             budget, m0=(vertices.xy, corners, offsets, neighbours), grid=grid,
+                             capacity=vertices.count + vertices.count // 8 + 1024,
+                             queued=False)  # fmt: skip
+            nt, nv = len(corners), vertices.count
+            run.book.ball_state[:nt] = balls
+            run.book.cell_state[:nv] = np.where(cells, S.GOOD, S.UNTESTED)
+            run.book.kinds[:nv] = vertices.kinds
+            run.queue_unsettled()
+        else:  # the vertices are a run's moves: one mesh of them all, everything requeued
+            x = vertices.xy[len(m0[0]) :]
+            kinds = vertices.kinds[len(m0[0]) :]
+            run, _, _ = settle(index, x, kinds, np.zeros(len(x), np.int32),
+                               np.zeros((0, workers, 4)), common)  # fmt: skip
+        for c in (S.C_DISK_TESTS, S.C_CELL_TESTS, S.C_FAILED):
+            run.cnt[c] += counts[c]
+        before = run.vertices
+        status = stopped
+        if status is None:
+            status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
+        rounds.append({"round": "final", "new_vertices": run.vertices - before,
+                       "seconds": time.perf_counter() - t1, "stitched": joined is not None,
+                       "tile_seconds": seconds, "seams": [float(h / emb.scale) for h in half],
+                       "fetched_points": False})  # fmt: skip
+        run.n = store.n
+        run.time_index = setup
+        run.time_refine = time.perf_counter() - t0 - setup
+        return finish(
+            run, status, emb, opt, (p.m0_order, p.m0_grid, p.estimated, budget), report,
+            interrupts, None, store.weight, rounds,
+        )  # fmt: skip
+
+
+def _data_box(emb, period):
+    """The box of the data in torus coordinates (x0, y0, w, h; a periodic axis' whole
+    period)."""
+    lo, hi = emb.box_internal()
+    box = [(0.0, period[a]) if emb.periodic[a] else (float(lo[a]), float(hi[a] - lo[a]))
+           for a in range(2)]  # fmt: skip
+    return np.array([box[0][0], box[1][0], box[0][1], box[1][1]])
+
+
+def _frame(emb, period, data, band):
+    """The frame's tile's area: everything outside the data's box shrunk by ``band`` along
+    its non-periodic axes (None when both axes are periodic: no frame)."""
+    if all(emb.periodic):
+        return None
+    x0, y0, w, h = data
+    inner = []
+    for a, (lo, size) in enumerate(((x0, w), (y0, h))):
+        inner.append((lo, size) if emb.periodic[a] else (lo + band, max(size - 2 * band, 0.0)))
+    return (inner[0][0], inner[1][0], inner[0][1], inner[1][1], 0)
+
+
+def _cores(cuts, half, lx):
+    """The cores' lower bounds (sorted, in [0, lx)) and the tile owning each: seam j
+    (number T + j) owns [cut_j - h_j, cut_j + h_j), strip j (number j) the rest of its strip,
+    [cut_j + h_j, cut_{j+1} - h_{j+1})."""
+    t = len(cuts)
+    lows = np.concatenate([cuts - half, cuts + half])
+    owners = np.concatenate([np.arange(t, 2 * t), np.arange(t)])
+    lows = lows - np.floor(lows / lx) * lx
+    lows = np.where(lows >= lx, lows - lx, lows)
+    order = np.argsort(lows, kind="stable")
+    return np.ascontiguousarray(lows[order]), owners[order]
