@@ -369,8 +369,21 @@ class Refinement(TileRun):
 
     def queue_unsettled(self):
         """Queue only what is not settled (a triangulation made of settled parts:
-        ``refine.queue_unsettled``)."""
-        self.reserve_queues(3 * self.vertices + R.HEADROOM)
+        ``refine.queue_unsettled``), the queues made just large enough for it."""
+        nt, nv = int(self.cnt[C_NT]), self.vertices
+        balls = self.book.ball_state[:nt]
+        open_balls = int(np.count_nonzero((balls == S.UNTESTED) | (balls == S.DEFERRED)))
+        need = {"balls": open_balls, "cells": nv, "cleans": nv}  # after the kernel's clear
+        queues = {}
+        for name in Queues._fields:
+            q = getattr(self.queues, name)
+            n = need[name] + R.HEADROOM
+            if q.ident.shape[0] < n:
+                q = q._replace(
+                    **{part: grown(getattr(q, part), n) for part in ("ident", "aux", "next")}
+                )
+            queues[name] = q
+        self.queues = Queues(**queues)
         R.queue_unsettled(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
     def pending(self):

@@ -1,10 +1,10 @@
 """Stitching tiles' triangulations into one, in the plane (``scale/shared.py`` runs them).
 
 Tiles of a run in threads keep their meshes. Each tile's mesh holds every vertex of the run
-inside its *exact area* (an x-interval of the torus, or the frame around the data's box):
+inside its *exact area* (a strip of the torus, or the frame around the data's box):
 there, a triangle of the tile whose closed circumdisk lies inside the area is a triangle of
 the run's Delaunay triangulation (its disk is empty of the tile's vertices, so of all), and
-conversely. The torus is cut into *cores*: half-open x-intervals of the data's box, each
+conversely. The torus is cut into *cores*: half-open strips of the data's box, each
 inside one tile's exact area, and the frame around the box (where a non-periodic axis'
 margin holds no data). A triangle belongs to the core holding its corner of lowest global id
 (a vertex's stored position, the same double in every tile, so every tile decides alike).
@@ -13,7 +13,8 @@ exact area; ``scale/shared.py`` joins them by their edges and checks the join (e
 has one twin; 2 m triangles on the torus).
 
 Kernels: ``owned_triangles`` (a tile's share, and whether it can vouch for it), ``hand_in``
-(writing it into the run's arrays).
+(writing it into the run's arrays), ``largest_near`` (the mesh's size near a cut or the
+data's box, which sizes the seams and the frame's band).
 """
 
 import numpy as np
@@ -64,10 +65,11 @@ def disk_meets_box(cx, cy, r, box, prm):
 
 
 @kernel(entry=True, nogil=True)
-def owned_triangles(mesh, nt, gid, bounds, core, data, exact, prm, out):
+def owned_triangles(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
     """out[t] = True for this tile's share of the triangles t < nt: those whose corner of
     lowest global id (``gid``: a vertex's global id) lies in the data box ``data`` (x0, y0,
-    w, h) and in core number ``core`` of ``bounds`` (``core_of``), or, for ``core`` = -1
+    w, h) and in core number ``core`` of ``bounds`` along ``axis`` (``core_of``; the cores
+    are strips across that axis), or, for ``core`` = -1
     (the frame's tile), outside the data box. Returns how many of them have a circumdisk
     (inflated by a relative 1e-6 and a grid step) outside the tile's exact area ``exact``
     (x0, y0, w, h, inside): the rectangle when inside > 0, else everything outside it: 0
@@ -81,12 +83,11 @@ def owned_triangles(mesh, nt, gid, bounds, core, data, exact, prm, out):
             v = mesh.corners[t, i]
             if gid[v] < gid[o]:
                 o = v
-        x = mesh.xy[o, 0]
-        inside = in_box(x, mesh.xy[o, 1], data, prm)
+        inside = in_box(mesh.xy[o, 0], mesh.xy[o, 1], data, prm)
         if core < 0:
             mine = not inside
         else:
-            mine = inside and core_of(x, bounds, lx) == core
+            mine = inside and core_of(mesh.xy[o, axis], bounds, prm[P_LX + axis]) == core
         out[t] = mine
         if not mine:
             continue
@@ -132,3 +133,26 @@ def hand_in(mesh, book, nt, nv, gid, mine, base, corners, offsets, neighbours, b
         if book.cell_state[v] == GOOD:
             cells[gid[v]] = True
     return r - base
+
+
+@kernel(entry=True, nogil=True)
+def largest_near(mesh, book, nt, slabs, data, prm, out):
+    """out[s] = max(out[s], the largest circumradius of the settled (GOOD) triangles with
+    their circumcentre in the data's box ``data`` (x0, y0, w, h) and their circumdisk
+    meeting slab s = (axis, lo, width): [lo, lo + width] across that axis of the torus): the
+    mesh's size there, from elements a tile decided (not the margins' large ones)."""
+    for t in range(nt):
+        if book.ball_state[t] != GOOD:
+            continue
+        cx, cy, r2 = circumcentre(mesh, prm, t)
+        if not in_box(cx, cy, data, prm):
+            continue
+        r = np.sqrt(r2)
+        for s in range(slabs.shape[0]):
+            axis = int(slabs[s, 0])
+            period = prm[P_LX + axis]
+            d = np.fmod((cx if axis == 0 else cy) - slabs[s, 1], period)
+            if d < 0.0:
+                d += period
+            if (d <= slabs[s, 2] + r or d >= period - r) and r > out[s]:
+                out[s] = r

@@ -38,16 +38,18 @@ from ..engine import state as S
 from ..engine.driver import Refinement
 from ..engine.interrupt import Interrupts
 from ..engine.region import in_rectangle
-from ..engine.stitch import hand_in, owned_triangles
+from ..engine.stitch import hand_in, largest_near, owned_triangles
 from ..engine.threads import run_all
 from ..errors import EngineError
 from ..mesh import Mesh
 from ..run import Progress, finish
-from .tiled import ThreadStore, new_run, plan, settle
+from .tiled import ThreadStore, new_run, plan, regions_axis, settle
 
-SEAM_SPACINGS = 12.0  # a seam reaches this many of the mesh's mean spacings each side ...
+SEAM_SIZES = 3.0  # a seam reaches this many of the largest elements near its cut, each side,
+SEAM_SPACINGS = 8.0  # and at least this many of the mesh's mean spacings, ...
 SEAM_SHARE = 1 / 8  # ... but no more than this share of the narrower strip it borders
-FRAME_SHARE = 0.5  # the frame's tile has the vertices this share of a seam into the data box
+FRAME_SIZES = 3.0  # the frame's tile has the vertices this many elements into the data's box
+COARSE_SHARE = 32  # the plan's coarse pass refines 1 / (32 T) of the points: strips are wide
 MAX_TURNS = 4  # turns of strips and seams before the last step takes what is left
 
 
@@ -61,12 +63,14 @@ class Tile:
         self.number = number
         self.run = new_run(index, common, expected)
         self.run.threads = 1  # its sweeps: the other tiles hold the other cores
+        self.region = region  # None: a tile that only has the vertices of its area
         if region is not None:
             self.run.set_region(region)
         self.area = np.asarray(area, float)
-        m0 = self.run.vertices
+        self.m0 = m0 = self.run.vertices
         self.gid = np.arange(m0, dtype=np.int64)  # the initial mesh: the same ids in all
         self.synced = m0
+        self.pending = np.zeros(0, np.int64)  # vertices of a widened area, to insert
         self.seconds = 0.0
 
     def sync(self, vertices):
@@ -76,12 +80,11 @@ class Tile:
         new = np.arange(self.synced, vertices.count)
         self.synced = vertices.count
         new = new[vertices.maker[new] != self.number]
-        if len(new) == 0:
-            return False
         x0, y0, w, h, inside = self.area
         lx, ly = self.run.period
         mask = in_rectangle(vertices.xy[new], x0, y0, w, h, 0.0, lx, ly)
-        new = new[mask if inside else ~mask]
+        new = np.concatenate([self.pending, new[mask if inside else ~mask]])
+        self.pending = new[:0]
         if len(new) == 0:
             return False
         ids = self.run.insert(vertices.xy[new], vertices.kinds[new])
@@ -90,8 +93,25 @@ class Tile:
         self.seconds += time.perf_counter() - t0
         return True
 
+    def widen(self, area, vertices):
+        """Make ``area`` (a rectangle holding the present one) this tile's area: the run's
+        vertices in the part it adds are inserted at its next sync."""
+        x0, y0, w, h, _ = self.area
+        lx, ly = self.run.period
+        old = np.arange(self.m0, self.synced)  # the initial mesh is in every tile already
+        old = old[vertices.maker[old] != self.number]
+        known = in_rectangle(vertices.xy[old], x0, y0, w, h, 0.0, lx, ly)
+        x0, y0, w, h, _ = area
+        added = in_rectangle(vertices.xy[old], x0, y0, w, h, 0.0, lx, ly) & ~known
+        self.area = np.asarray(area, float)
+        self.pending = old[added]
+
     def step(self, vertices, first, deadline, stop):
-        """Sync, then refine the region: (status, the new vertices' positions and kinds)."""
+        """Sync, then refine the region (a tile without one only syncs): (status, the new
+        vertices' positions and kinds)."""
+        if self.region is None:
+            self.sync(vertices)
+            return S.STATUS_DONE, self.run.vertices, self.run.positions[:0], np.zeros(0, np.int8)
         if self.sync(vertices) or first:
             self.run.queue_unsettled()  # what the sync made, and what others' regions kept
         t0 = time.perf_counter()
@@ -171,19 +191,49 @@ def run_turn(tiles, vertices, first, deadline, stop, report):
                             "tiles": [float(t.seconds) for t in tiles]}  # fmt: skip
 
 
-def seam_widths(cuts, period, spacing):
-    """Half the width of the seam at each cut: SEAM_SPACINGS times the mesh's mean spacing
-    ``spacing``, but at most SEAM_SHARE of the narrower strip it borders."""
-    widths = np.diff(np.append(cuts, cuts[0] + period[0]))
-    return np.minimum(SEAM_SPACINGS * spacing, SEAM_SHARE * np.minimum(widths, np.roll(widths, 1)))
+def sizes_near(tiles, slabs, data):
+    """The largest settled circumradius centred in the data's box ``data`` and meeting each
+    slab (axis, lo, width) in any of the tiles' meshes (``stitch.largest_near``, a thread
+    per tile)."""
+    slabs = np.ascontiguousarray(slabs, float)
+    found = [np.zeros(len(slabs)) for _ in tiles]
+
+    def measure(j):
+        run = tiles[j].run
+        largest_near(run.mesh, run.book, int(run.cnt[S.C_NT]), slabs, data, run.prm, found[j])
+
+    run_all(measure, len(tiles))
+    return np.max(found, axis=0)
 
 
-def stitch(tiles, bounds, cores, data, vertices):
+def seam_widths(strips, cuts, axis, length, spacing, data):
+    """Half the width of the seam at each cut (of a period ``length``), and the largest
+    element the strips settled near it: SEAM_SIZES times that element, at least
+    SEAM_SPACINGS times the mesh's mean spacing ``spacing``, at most SEAM_SHARE of the
+    narrower strip it borders."""
+    least = SEAM_SPACINGS * spacing
+    near = sizes_near(strips, [(axis, c - least, 2 * least) for c in cuts], data)
+    widths = np.diff(np.append(cuts, cuts[0] + length))
+    most = SEAM_SHARE * np.minimum(widths, np.roll(widths, 1))
+    return np.minimum(np.maximum(SEAM_SIZES * near, least), most), near
+
+
+def frame_band(strips, data, periodic, least):
+    """How far into the data's box the frame's tile must have every vertex: FRAME_SIZES
+    times the largest element the strips settled near the box's sides (at least ``least``)."""
+    slabs = [(a, data[a] + side * data[2 + a] - least, 2 * least)
+             for a in range(2) if not periodic[a] for side in (0, 1)]  # fmt: skip
+    if not slabs:
+        return least
+    return max(FRAME_SIZES * float(sizes_near(strips, slabs, data).max()), least)
+
+
+def stitch(tiles, bounds, axis, cores, data, vertices):
     """The run's triangulation from the tiles' shares, each tile on a thread: (corners,
     offsets, neighbours, the circumballs' states, the cells settled), or None when the
     shares do not join (a tile cannot vouch for its share, or an edge lacks its twin, or
-    the count is not 2 m). ``cores``: each tile's core in ``bounds`` (-1: the frame's
-    tile); ``data``: the box of the data (x0, y0, w, h), the frame around it."""
+    the count is not 2 m). ``cores``: each tile's core in ``bounds`` along ``axis`` (-1:
+    the frame's tile); ``data``: the box of the data (x0, y0, w, h), the frame around it."""
     nv = vertices.count
     shares = [None] * len(tiles)
 
@@ -193,8 +243,8 @@ def stitch(tiles, bounds, cores, data, vertices):
         if gid.min() < 0:
             raise EngineError("a tile's vertex has no id in the run (a broken tile)")
         mine = np.zeros(int(run.cnt[S.C_NT]), np.bool_)
-        bad = owned_triangles(run.mesh, len(mine), gid, bounds, cores[j], data, tiles[j].area,
-                              run.prm, mine)  # fmt: skip
+        bad = owned_triangles(run.mesh, len(mine), gid, bounds, axis, cores[j], data,
+                              tiles[j].area, run.prm, mine)  # fmt: skip
         shares[j] = (gid, mine)
         return bad, int(np.count_nonzero(mine))
 
@@ -277,7 +327,7 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         report.compiling()
     with Interrupts() as interrupts:
         t0 = time.perf_counter()
-        p = plan(store, opt, workers, interrupts)
+        p = plan(store, opt, workers, interrupts, COARSE_SHARE)
         emb, common = p.emb, p.common
         store.prepare(emb, p.sets, 4 * emb.grid)
         index = store.index
@@ -291,54 +341,76 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         deadline = opt.deadline
         # the strips of the plan's second set: its cuts are inner quantiles of the data, so
         # a margin (no data, large elements) lies inside a strip, never at a cut
-        cuts, widths = p.sets[1][:, 0], p.sets[1][:, 2]
+        axis = regions_axis(p.sets[1], period)
+        cuts, widths = p.sets[1][:, axis], p.sets[1][:, 2 + axis]
+        length = period[axis]
         data = _data_box(emb, period)
-        half = seam_widths(cuts, period, np.sqrt(data[2] * data[3] / max(p.estimated, 1.0)))
+        spacing = np.sqrt(data[2] * data[3] / max(p.estimated, 1.0))
         expected = min(p.estimated, p.budget)
+        pad = 4 * grid
+
+        def band(start, width, inside=None):
+            """The strip [start, start + width] across ``axis`` as (x0, y0, w, h), with an
+            area's flag when given."""
+            box = [0.0, 0.0, lx, ly]
+            box[axis], box[2 + axis] = start, width
+            return tuple(box) if inside is None else (*box, inside)
+
         strips = [
-            Tile(j, common, index, (cuts[j], 0.0, widths[j], ly),
-                 (cuts[j] - 4 * grid, 0.0, widths[j] + 8 * grid, ly, 1), expected / workers)
-            for j in range(workers)
-        ]  # fmt: skip
-        seams = [
-            Tile(workers + j, common, index, (cuts[j] - half[j], 0.0, 2 * half[j], ly),
-                 (cuts[j] - 2 * half[j] - 4 * grid, 0.0, 4 * half[j] + 8 * grid, ly, 1),
-                 expected * 4 * half[j] / lx)
+            Tile(j, common, index, band(cuts[j], widths[j]),
+                 band(cuts[j] - pad, widths[j] + 2 * pad, 1), expected / workers)
             for j in range(workers)
         ]  # fmt: skip
         rounds = []
-        stopped = None
-        turns = [("strips", strips, True), ("seams", seams, True)]
-        turns += [("strips", strips, False), ("seams", seams, False)] * MAX_TURNS
-        added = 0
-        for name, group, first in turns:
-            stopped, got, rep = run_turn(group, vertices, first, deadline, stop, report)
-            rounds.append({"round": name, **rep})
-            interrupts.check()
-            if stopped is not None:
+        stopped, _, rep = run_turn(strips, vertices, True, deadline, stop, report)
+        rounds.append({"round": "strips", **rep})
+        interrupts.check()
+        half, near = seam_widths(strips, cuts, axis, length, spacing, data)
+        # a tile vouches for the triangles of its core whose disks lie in its area: beyond
+        # its region, seams and strips have every vertex as far again as the largest element
+        # near their cut spans
+        reach = half + 2.0 * near
+        seams = [
+            Tile(workers + j, common, index, band(cuts[j] - half[j], 2 * half[j]),
+                 band(cuts[j] - reach[j] - pad, 2 * reach[j] + 2 * pad, 1),
+                 expected * 2 * reach[j] / length)
+            for j in range(workers)
+        ]  # fmt: skip
+        for j, tile in enumerate(strips):
+            k = (j + 1) % workers
+            lo, hi = 2.0 * near[j], 2.0 * near[k]
+            tile.widen(band(cuts[j] - lo - pad, widths[j] + lo + hi + 2 * pad, 1), vertices)
+        least = SEAM_SPACINGS * spacing
+        frame = _frame(emb, period, data, frame_band(strips, data, emb.periodic, least))
+        framed = []  # the frame's tile: every vertex in the margins and near them, gathered
+        if frame is not None:  # with the seams' turns (it makes none)
+            framed = [Tile(2 * workers, common, index, None, frame, 0)]
+        for turn in range(MAX_TURNS):  # seams, then strips with their vertices, until the
+            if stopped is not None:  # strips add nothing
                 break
-            added += got
-            if name == "seams":  # the end of a turn of all tiles
-                if not first and added == 0:
+            for name, group in (("seams", seams + framed), ("strips", strips)):
+                stopped, added, rep = run_turn(group, vertices, turn == 0 and name == "seams",
+                                               deadline, stop, report)  # fmt: skip
+                rounds.append({"round": name, **rep})
+                interrupts.check()
+                if stopped is not None:
                     break
-                added = 0
+            if added == 0:
+                break
         t1 = time.perf_counter()
-        frame = _frame(emb, period, data, half.min() * FRAME_SHARE)
         tiles = strips + seams
-        bounds, owners = _cores(cuts, half, lx)
-        cores = [int(np.flatnonzero(owners == t.number)[0]) for t in tiles]
-        if frame is not None:  # the frame's tile: every vertex in the margins, and near them
-            tiles.append(Tile(2 * workers, common, index, None, frame, 0))
-            cores.append(-1)
+        bounds, owners = _cores(cuts, half, length)
+        cores = [int(np.flatnonzero(owners == t.number)[0]) for t in tiles] + [-1] * len(framed)
+        tiles += framed
         joined = None
         if stopped is None:
             # every tile gets every vertex of its area (after a turn that added none: only the
             # frame's tile inserts some)
             run_all(lambda j, tiles=tiles: tiles[j].sync(vertices), len(tiles))
-            joined = stitch(tiles, bounds, cores, data, vertices)
+            joined = stitch(tiles, bounds, axis, cores, data, vertices)
         counts = np.sum([t.run.cnt for t in tiles], axis=0)
         seconds = [float(t.seconds) for t in tiles]
-        tiles = strips = seams = []  # their meshes go before the last step's is made
+        tiles = strips = seams = framed = []  # their meshes go before the last step's is made
         budget = p.budget
         if joined is not None:
             corners, offsets, neighbours, balls, cells = joined
@@ -358,12 +430,13 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
                                np.zeros((0, workers, 4)), common)  # fmt: skip
         for c in (S.C_DISK_TESTS, S.C_CELL_TESTS, S.C_FAILED):
             run.cnt[c] += counts[c]
-        before = run.vertices
+        before, unsettled = run.vertices, run.pending()
         status = stopped
         if status is None:
             status = run.run(deadline=deadline, progress=report.refining, interrupts=interrupts)
         rounds.append({"round": "final", "new_vertices": run.vertices - before,
                        "seconds": time.perf_counter() - t1, "stitched": joined is not None,
+                       "unsettled": unsettled,
                        "tile_seconds": seconds, "seams": [float(h / emb.scale) for h in half],
                        "fetched_points": False})  # fmt: skip
         run.n = store.n
@@ -397,7 +470,8 @@ def _frame(emb, period, data, band):
 
 
 def _cores(cuts, half, lx):
-    """The cores' lower bounds (sorted, in [0, lx)) and the tile owning each: seam j
+    """The cores' lower bounds along the cut axis (sorted, in [0, lx): lx its period) and
+    the tile owning each: seam j
     (number T + j) owns [cut_j - h_j, cut_j + h_j), strip j (number j) the rest of its strip,
     [cut_j + h_j, cut_{j+1} - h_{j+1})."""
     t = len(cuts)

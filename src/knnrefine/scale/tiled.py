@@ -661,15 +661,15 @@ class Plan:
     seconds: float
 
 
-def plan(store, opt, workers, interrupts) -> Plan:
+def plan(store, opt, workers, interrupts, coarse_share=COARSE_SHARE) -> Plan:
     """A tiled run's plan from a sample of the points of ``store`` (the same set however they
-    are split or ordered): the initial mesh, the size, the strips, and a coarse pass on part
-    of the sample, in this process."""
+    are split or ordered): the initial mesh, the size, the strips, and a coarse pass on
+    1 / (coarse_share * workers) of the points, in this process."""
     t0 = time.perf_counter()
     n = store.n
     k, tau, min_size, dim = opt.k, opt.tau, opt.min_size, opt.dim
     start_budget = opt.start_budget(n)
-    coarse_f = min(1.0 / (COARSE_SHARE * workers), COARSE_MAX / n)
+    coarse_f = min(1.0 / (coarse_share * workers), COARSE_MAX / n)
     sx, sw, keys = store.sample(max(coarse_f, min(1.0, SAMPLE_MIN / n)))
     share = len(sx) / n if sw is None else float(sw.sum()) / store.weight
     emb, s_index, m0, m0_order, m0_grid = _plan_start(sx, sw, store, opt, start_budget,
