@@ -7,7 +7,7 @@ may use, at most MAX_THREADS.
 """
 
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 
 import numpy as np
 
@@ -34,13 +34,25 @@ def workers():
     return max(1, min(cores, MAX_THREADS))
 
 
-def run_all(task, count):
-    """[task(0), ..., task(count - 1)], on the pool's threads when count > 1."""
-    if count <= 1:
+def run_all(task, count, meanwhile=None, every=0.05):
+    """[task(0), ..., task(count - 1)], on the pool's threads when count > 1; the calling
+    thread calls ``meanwhile()`` every ``every`` seconds while it waits (progress, Ctrl-C:
+    what it raises is raised here, the tasks left to finish or to stop by themselves)."""
+    if count <= 1 and meanwhile is None:
         return [task(j) for j in range(count)]
     if not _pool:
         _pool.append(ThreadPoolExecutor(MAX_THREADS, thread_name_prefix="knnrefine"))
-    return list(_pool[0].map(task, range(count)))
+    if meanwhile is None:
+        return list(_pool[0].map(task, range(count)))
+    futures = [_pool[0].submit(task, j) for j in range(count)]
+    while True:
+        done, pending = wait(futures, timeout=every, return_when=FIRST_EXCEPTION)
+        failed = [f for f in done if f.exception() is not None]
+        if failed:  # at once: the caller tells the others to stop
+            raise failed[0].exception()
+        if not pending:
+            return [f.result() for f in futures]
+        meanwhile()
 
 
 PER_THREAD = 16  # ranges per thread: an interrupt waits for the ranges running only

@@ -71,6 +71,7 @@ class Tile:
         self.gid = np.arange(m0, dtype=np.int64)  # the initial mesh: the same ids in all
         self.synced = m0
         self.pending = np.zeros(0, np.int64)  # vertices of a widened area, to insert
+        self.start = None  # its vertices when its refinement began (for progress)
         self.seconds = 0.0
 
     def sync(self, vertices):
@@ -115,7 +116,7 @@ class Tile:
         if self.sync(vertices) or first:
             self.run.queue_unsettled()  # what the sync made, and what others' regions kept
         t0 = time.perf_counter()
-        start = self.run.vertices
+        start = self.start = self.run.vertices
         status = self.run.run(deadline=deadline, interrupts=stop)
         xy, kinds = self.run.new_vertices(start)
         self.seconds += time.perf_counter() - t0
@@ -174,8 +175,17 @@ def run_turn(tiles, vertices, first, deadline, stop, report):
     ids do not depend on which thread finished first). Returns (status of a tile stopped by
     a budget or None, the vertices added, the turn's report)."""
     t0 = time.perf_counter()
+    for tile in tiles:
+        tile.start = None
+
+    def meanwhile():  # in this thread: the vertices so far (the tiles' read as they grow)
+        made = sum(t.run.vertices - t.start for t in tiles if t.start is not None)
+        report.refining(vertices.count + max(made, 0), 0)
+        stop.check()  # Ctrl-C
+
     try:
-        results = run_all(lambda j: tiles[j].step(vertices, first, deadline, stop), len(tiles))
+        results = run_all(lambda j: tiles[j].step(vertices, first, deadline, stop), len(tiles),
+                          meanwhile)  # fmt: skip
     except BaseException:
         stop.failed = True
         raise

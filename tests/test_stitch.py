@@ -1,0 +1,179 @@
+"""Tiles in threads, stitched (``scale/shared.py``, ``engine/stitch.py``): the stitch against
+the mesh it should give back, its refusals, and the runs through it against certify."""
+
+import os
+import subprocess
+import sys
+import textwrap
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from conftest import assert_certified, gaussian_clusters, uniform
+
+import knnrefine
+from knnrefine.engine import state as S
+from knnrefine.engine.driver import Refinement
+from knnrefine.engine.index import build_index
+from knnrefine.scale import shared
+
+
+def refined(n=4000, k=10, seed=3):
+    """A finished run on the unit torus, in this process."""
+    run = Refinement(build_index(uniform(n, seed).copy()), k, 1.0, 1.0, 3.0, 0.0, 10**6)
+    assert run.run() == S.STATUS_DONE
+    return run
+
+
+def triangles_of(corners, offsets):
+    """Each triangle as a hashable key: its corners from the lowest, with their offsets
+    relative to that corner's (a triangle's frame is arbitrary)."""
+    keys = set()
+    for c, o in zip(corners, offsets, strict=True):
+        i = int(np.argmin(c))
+        order = [(i + j) % 3 for j in range(3)]
+        rel = o[order] - o[order[0]]
+        keys.add((tuple(int(v) for v in c[order]), tuple(rel.ravel().tolist())))
+    return keys
+
+
+def as_tile(run, number, area):
+    return SimpleNamespace(run=run, gid=np.arange(run.vertices), area=np.asarray(area, float),
+                           number=number)  # fmt: skip
+
+
+def test_stitching_two_complete_meshes_gives_the_mesh_back():
+    """Two tiles that both hold the whole mesh (their areas the whole torus) hand in the
+    triangles of their cores (x < 0.3 or >= 0.7, and the rest): the stitched triangulation
+    is the mesh's own, triangle for triangle, with every neighbour across the matching edge,
+    and the circumballs' and cells' settled states carried."""
+    run = refined()
+    nv, nt = run.vertices, int(run.cnt[S.C_NT])
+    whole = (0.0, 0.0, 1.0, 1.0, 1)
+    tiles = [as_tile(run, 0, whole), as_tile(run, 1, whole)]
+    bounds = np.array([0.3, 0.7])  # core 0: [0.3, 0.7), core 1: [0.7, 1.3)
+    data = np.array([0.0, 0.0, 1.0, 1.0])
+    vertices = SimpleNamespace(count=nv)
+    got = shared.stitch(tiles, bounds, 0, [1, 0], data, vertices)
+    assert got is not None
+    corners, offsets, neighbours, balls, cells = got
+    mesh = run.mesh
+    assert triangles_of(corners, offsets) == triangles_of(mesh.corners[:nt], mesh.offsets[:nt])
+    for t in range(len(corners)):  # the neighbour across edge i holds it the other way round
+        for i in range(3):
+            a, b = corners[t, (i + 1) % 3], corners[t, (i + 2) % 3]
+            n = neighbours[t, i]
+            edges = {(corners[n, (j + 1) % 3], corners[n, (j + 2) % 3]) for j in range(3)}
+            assert (b, a) in edges
+    assert (balls == S.GOOD).all()  # a finished run settled every circumball
+    assert cells.all() == (run.book.cell_state[:nv] == S.GOOD).all()
+
+
+def test_stitch_refuses_what_a_tile_cannot_vouch_for():
+    """A tile whose area is narrower than the disks of its share's triangles (here a tenth
+    of the torus around its core) cannot vouch for them: no stitch (the run then makes one
+    mesh of all its vertices)."""
+    run = refined()
+    tiles = [as_tile(run, 0, (0.3, 0.0, 0.4, 1.0, 1)), as_tile(run, 1, (0.65, 0.0, 0.1, 1.0, 1))]
+    got = shared.stitch(tiles, np.array([0.3, 0.7]), 0, [1, 0], np.array([0.0, 0.0, 1.0, 1.0]),
+                        SimpleNamespace(count=run.vertices))  # fmt: skip
+    assert got is None
+
+
+def test_join_refuses_an_edge_without_its_twin():
+    """The join of two shares: an edge whose twin is missing (a triangle dropped) fails."""
+    corners = np.array([[0, 1, 2], [2, 1, 3]], np.int32)
+    offsets = np.zeros((2, 3, 2), np.int8)
+    neighbours = np.full((2, 3), -1, np.int32)
+    t, i = np.nonzero(neighbours < 0)
+    assert not shared._join(t, i, corners, offsets, neighbours, 4)  # outer edges: no twins
+    neighbours = np.full((2, 3), -1, np.int32)
+    t, i = np.array([0, 1]), np.array([0, 2])  # the shared edge 1-2, both ways
+    assert shared._join(t, i, corners, offsets, neighbours, 4)
+    assert neighbours[0, 0] == 1 and neighbours[1, 2] == 0
+
+
+@pytest.mark.parametrize(
+    ("name", "points", "periodic"),
+    [
+        ("uniform", lambda: uniform(60000, 1), False),
+        ("clustered", lambda: gaussian_clusters(60000, 2, clusters=40), False),
+        ("uniform, torus", lambda: uniform(60000, 3), True),
+        (
+            "clustered, periodic in x",
+            lambda: gaussian_clusters(60000, 4, clusters=40),
+            (True, False),
+        ),
+    ],
+)
+def test_runs_in_threads_are_stitched_and_certified(name, points, periodic):
+    """Issue 32: a run in two threads keeps its tiles' meshes and stitches them (no
+    re-triangulation), certified, its size within 3% of one process'."""
+    pts = points()
+    box = (0, 0, 1, 1) if periodic is not False else None
+    mesh = knnrefine.refine(pts, 10, workers=2, periodic=periodic, box=box)
+    last = mesh.stats["rounds"][-1]
+    assert last["stitched"], (name, last)
+    assert_certified(mesh, pts, f"threads, {name}")
+    one = knnrefine.refine(pts, 10, periodic=periodic, box=box)
+    assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.03
+
+
+def test_a_stitch_that_fails_falls_back_to_one_mesh(monkeypatch):
+    """When the shares do not join, the run's vertices (valid moves all) are inserted into
+    one mesh and refinement goes on there: the same guarantees."""
+    monkeypatch.setattr(shared, "stitch", lambda *args: None)
+    pts = gaussian_clusters(30000, 5, clusters=40)
+    mesh = knnrefine.refine(pts, 10, workers=2)
+    assert mesh.stats["rounds"][-1]["stitched"] is False
+    assert_certified(mesh, pts, "threads, stitch refused")
+
+
+def test_progress_is_reported_while_the_tiles_refine():
+    """The strips' turn is most of the run: progress comes every ~50 ms from this thread
+    while the tiles work, with growing counts."""
+    import threading
+
+    seen = []
+
+    def progress(vertices, pending, phase="refining"):
+        seen.append((vertices, phase, threading.current_thread() is threading.main_thread()))
+
+    knnrefine.refine(uniform(300000, 7), 5, workers=2, progress=progress)
+    refining = [v for v, phase, _ in seen if phase == "refining"]
+    assert all(main for _, _, main in seen)
+    assert len(refining) >= 5 and refining[-1] > refining[0]
+
+
+def test_ctrl_c_stops_every_tile():
+    """Ctrl-C during a run in threads: a KeyboardInterrupt within a second, and the tiles'
+    threads stop (the interpreter can refine again at once)."""
+    script = """
+        import os, signal, threading, time
+        import numpy as np
+        import knnrefine
+        knnrefine.refine(np.random.default_rng(0).random((5000, 2)), 3, workers=2)  # warm
+        pts = np.random.default_rng(1).random((1000000, 2))
+        sent = []
+        def interrupt():
+            sent.append(time.perf_counter())
+            os.kill(os.getpid(), signal.SIGINT)
+        threading.Timer(1.0, interrupt).start()
+        try:
+            knnrefine.refine(pts, 2, workers=2)
+            print("not interrupted")
+        except KeyboardInterrupt:
+            print("interrupted after", time.perf_counter() - sent[0])
+        t0 = time.perf_counter()
+        mesh = knnrefine.refine(np.random.default_rng(2).random((3000, 2)), 5, workers=2)
+        print("still works", len(mesh.vertices) > 0, time.perf_counter() - t0)
+    """
+    out = subprocess.run(
+        [sys.executable, "-c", "import signal\nsignal.signal(signal.SIGINT, "
+         "signal.default_int_handler)\n" + textwrap.dedent(script)],
+        capture_output=True, text=True, timeout=300, env=dict(os.environ),
+    )  # fmt: skip
+    assert "interrupted after" in out.stdout and "still works True" in out.stdout, (
+        out.stdout + out.stderr
+    )
+    assert float(out.stdout.split("interrupted after")[1].split()[0]) < 1.0
