@@ -56,7 +56,7 @@ def test_stitching_two_complete_meshes_gives_the_mesh_back():
     vertices = SimpleNamespace(count=nv)
     got = shared.stitch(tiles, bounds, 0, [1, 0], data, vertices)
     assert got is not None
-    corners, offsets, neighbours, balls, cells = got
+    corners, offsets, neighbours, balls, cells, (radius2, nearest2, known) = got
     mesh = run.mesh
     assert triangles_of(corners, offsets) == triangles_of(mesh.corners[:nt], mesh.offsets[:nt])
     for t in range(len(corners)):  # the neighbour across edge i holds it the other way round
@@ -67,6 +67,9 @@ def test_stitching_two_complete_meshes_gives_the_mesh_back():
             assert (b, a) in edges
     assert (balls == S.GOOD).all()  # a finished run settled every circumball
     assert cells.all() == (run.book.cell_state[:nv] == S.GOOD).all()
+    assert known.all()  # every star lies in the whole torus: the caches are the run's
+    np.testing.assert_array_equal(nearest2, mesh.nearest2[:nv])
+    assert np.isclose(np.sort(radius2), np.sort(mesh.radius2[:nt]), rtol=1e-12).all()
 
 
 def test_stitch_refuses_what_a_tile_cannot_vouch_for():
@@ -177,3 +180,41 @@ def test_ctrl_c_stops_every_tile():
         out.stdout + out.stderr
     )
     assert float(out.stdout.split("interrupted after")[1].split()[0]) < 1.0
+
+
+def test_stitched_outradii_are_their_triangles_circumradii_bit_for_bit():
+    """regression (a stitched run of points on a cross, on the torus, made 4,744 vertices
+    where one process makes 2,007, aspect 4.3 and vertices a grid step apart): R(v)^2 was
+    carried from the tile holding v's star while the circumradii came from the tiles
+    holding the triangles, computed in other frames, 1e-15 apart. The insertions forget
+    R(v)^2 only when a leaving triangle's radius2 reaches it, so a value above all of them
+    never went: the aspect stayed over tau and Clean inserted the same far corner again
+    and again. R(v)^2 is now the largest radius2 at v, bit for bit."""
+    from conftest import DEGENERATE
+
+    from knnrefine.engine import driver
+
+    made = []
+    init = driver.Refinement.__init__
+
+    def keep(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        if kwargs.get("caches") is not None:  # the last step's run, made from the stitch
+            nt, nv = int(self.cnt[S.C_NT]), self.vertices
+            made.append((self.mesh.corners[:nt].copy(), self.mesh.radius2[:nt].copy(),
+                         self.mesh.outradius2[:nv].copy()))  # fmt: skip
+
+    pts = DEGENERATE["cross"](2500, np.random.default_rng(0))
+    try:
+        driver.Refinement.__init__ = keep
+        mesh = knnrefine.refine(pts, 12, periodic=True, box=(0, 0, 1, 1), workers=2)
+    finally:
+        driver.Refinement.__init__ = init
+    assert mesh.stats["rounds"][-1]["stitched"]
+    assert_certified(mesh, pts, "threads, cross on the torus")
+    one = knnrefine.refine(pts, 12, periodic=True, box=(0, 0, 1, 1))
+    assert abs(len(mesh.vertices) / len(one.vertices) - 1) < 0.03
+    corners, radius2, outradius2 = made[0]  # each R(v)^2 is one of its radius2
+    largest = np.full(len(outradius2), -1.0)
+    np.maximum.at(largest, corners.ravel(), np.repeat(radius2, 3))
+    np.testing.assert_array_equal(outradius2, largest)

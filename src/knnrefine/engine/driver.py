@@ -61,6 +61,7 @@ from .triangulation import (
     MAX_CAVITY,
     circumcentres,
     set_all_circumcircles,
+    set_outradii,
     set_vertex_caches,
 )
 
@@ -105,7 +106,7 @@ class Refinement(TileRun):
 
     def __init__(
         self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q, expected_vertices=0,
-        capacity=None, queued=True,
+        capacity=None, queued=True, caches=None,
     ):  # fmt: skip
         """index: the counting kd-tree over P in internal coordinates (``build_index``); m0:
         the initial mesh (xy, corners, offsets, neighbours) on the grid step ``grid``, by
@@ -113,7 +114,9 @@ class Refinement(TileRun):
         to go on from (a stitched one: ``scale/shared.py``); expected_vertices: the size
         estimate, which sizes the arrays (``size.estimate``); capacity: the vertices the
         arrays have room for at first instead (``capacity`` >= the mesh's); queued: every
-        element queued (else the caller queues: ``queue_unsettled``). Elements smaller than
+        element queued (else the caller queues: ``queue_unsettled``); caches: m0's triangles'
+        squared circumradii and its vertices' d_{M,2}(v)^2 where known (a mask; the others
+        are computed; R(v)^2 always comes from these circumradii). Elements smaller than
         2^14 grid (the resolution floor) or than min_size are never split."""
         self.lx = lx
         self.ly = ly
@@ -182,15 +185,23 @@ class Refinement(TileRun):
         self.prm[P_K] = k
         self.prm[P_INFLATE] = 1.0 + 1e-9
         self.prm[P_REGION_W] = NO_REGION
-        set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
-        self._set_vertex_caches(m0)
+        if caches is None:
+            set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
+            self._set_vertex_caches(np.arange(m0))
+        else:  # a stitched triangulation's, where its tiles knew them (``scale/shared.py``)
+            radius2, nearest2, known = caches
+            self.mesh.radius2[: corners.shape[0]] = radius2
+            set_outradii(self.mesh, corners.shape[0], m0)  # from these radius2, exactly
+            self.mesh.nearest2[:m0] = nearest2
+            self._set_vertex_caches(np.flatnonzero(~known))
         if queued:
             R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
-    def _set_vertex_caches(self, nv):
-        """R(v)^2 and d_{M,2}(v)^2 of vertices 0..nv-1, on the engine's threads when many."""
-        if nv < self.SWEEP_PER_THREAD:
-            set_vertex_caches(self.mesh, self.prm, 0, nv, self.probe.hx, self.probe.hy)
+    def _set_vertex_caches(self, vertices):
+        """R(v)^2 and d_{M,2}(v)^2 of these vertices, on the engine's threads when many."""
+        m = len(vertices)
+        if m < self.SWEEP_PER_THREAD:
+            set_vertex_caches(self.mesh, self.prm, vertices, 0, m, self.probe.hx, self.probe.hy)
             return
         probes = [new_probe() for _ in range(thread_count())]
         free = list(range(len(probes)))
@@ -198,11 +209,12 @@ class Refinement(TileRun):
         def fill(start, stop):
             j = free.pop()  # one probe per range running at once (list.pop is atomic)
             try:
-                set_vertex_caches(self.mesh, self.prm, start, stop, probes[j].hx, probes[j].hy)
+                set_vertex_caches(self.mesh, self.prm, vertices, start, stop, probes[j].hx,
+                                  probes[j].hy)  # fmt: skip
             finally:
                 free.append(j)
 
-        in_chunks(fill, nv, least=self.SWEEP_PER_THREAD)
+        in_chunks(fill, m, least=self.SWEEP_PER_THREAD)
 
     def grow_if_needed(self):
         """Grow, by GROWTH, every array that could overflow during the next insertion: the

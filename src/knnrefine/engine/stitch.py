@@ -64,18 +64,36 @@ def disk_meets_box(cx, cy, r, box, prm):
     return best <= r * r
 
 
+@kernel(inline="always")
+def _in_core(x, y, bounds, axis, core, data, prm):
+    """(x, y) in the core number ``core`` of ``bounds`` along ``axis`` inside the data's box
+    ``data``, or, for core = -1 (the frame's tile), outside that box."""
+    inside = in_box(x, y, data, prm)
+    if core < 0:
+        return not inside
+    return inside and core_of(x if axis == 0 else y, bounds, prm[P_LX + axis]) == core
+
+
+@kernel(inline="always")
+def _vouched(cx, cy, r, exact, prm):
+    """The disk (cx, cy, r), inflated by a relative 1e-6 and a grid step, lies in the exact
+    area ``exact`` (x0, y0, w, h, inside): the rectangle when inside > 0, else everything
+    outside it."""
+    r = r * (1.0 + 1e-6) + prm[P_GRID]
+    if exact[4] > 0.0:
+        return interval_within(cx - r, 2.0 * r, exact[0], exact[2], prm[P_LX]) and (
+            interval_within(cy - r, 2.0 * r, exact[1], exact[3], prm[P_LY])
+        )
+    return not disk_meets_box(cx, cy, r, exact, prm)
+
+
 @kernel(entry=True, nogil=True)
 def owned_triangles(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
     """out[t] = True for this tile's share of the triangles t < nt: those whose corner of
-    lowest global id (``gid``: a vertex's global id) lies in the data box ``data`` (x0, y0,
-    w, h) and in core number ``core`` of ``bounds`` along ``axis`` (``core_of``; the cores
-    are strips across that axis), or, for ``core`` = -1
-    (the frame's tile), outside the data box. Returns how many of them have a circumdisk
-    (inflated by a relative 1e-6 and a grid step) outside the tile's exact area ``exact``
-    (x0, y0, w, h, inside): the rectangle when inside > 0, else everything outside it: 0
-    when the tile vouches for all of its share."""
-    lx = prm[P_LX]
-    pad = prm[P_GRID]
+    lowest global id (``gid``: a vertex's global id) lies in its core (``_in_core``: core
+    number ``core`` of ``bounds`` along ``axis`` in the data's box ``data``, or the frame).
+    Returns how many of them have a circumdisk outside the tile's exact area ``exact``
+    (``_vouched``): 0 when the tile vouches for all of its share."""
     bad = 0
     for t in range(nt):
         o = mesh.corners[t, 0]
@@ -83,35 +101,31 @@ def owned_triangles(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
             v = mesh.corners[t, i]
             if gid[v] < gid[o]:
                 o = v
-        inside = in_box(mesh.xy[o, 0], mesh.xy[o, 1], data, prm)
-        if core < 0:
-            mine = not inside
-        else:
-            mine = inside and core_of(mesh.xy[o, axis], bounds, prm[P_LX + axis]) == core
+        mine = _in_core(mesh.xy[o, 0], mesh.xy[o, 1], bounds, axis, core, data, prm)
         out[t] = mine
         if not mine:
             continue
         cx, cy, r2 = circumcentre(mesh, prm, t)
-        r = np.sqrt(r2) * (1.0 + 1e-6) + pad
-        if exact[4] > 0.0:
-            ok = interval_within(cx - r, 2.0 * r, exact[0], exact[2], lx) and interval_within(
-                cy - r, 2.0 * r, exact[1], exact[3], prm[P_LY]
-            )
-        else:
-            ok = not disk_meets_box(cx, cy, r, exact, prm)
-        if not ok:
+        if not _vouched(cx, cy, np.sqrt(r2), exact, prm):
             bad += 1
     return bad
 
 
 @kernel(entry=True, nogil=True)
-def hand_in(mesh, book, nt, nv, gid, mine, base, corners, offsets, neighbours, balls, cells):
-    """Write this tile's share (``mine``, from ``owned_triangles``) into the run's arrays
-    from row ``base`` on, in the tile's order: corners as global ids, offsets, neighbours
-    (the rows of the share's own triangles; -1 across an edge to another tile's share) and
-    the circumball states worth keeping (GOOD and FLOOR; others UNTESTED). Marks in
-    ``cells`` the vertices whose cell this tile found to hold < k points (GOOD: a cell only
-    shrinks as vertices come, so it stays so). Returns the number of rows written."""
+def hand_in(mesh, book, nt, nv, gid, mine, base, bounds, axis, core, data, exact, prm, out,
+            caches):  # fmt: skip
+    """Write this tile's share (``mine``, from ``owned_triangles``, with the same core and
+    exact area) into the run's arrays ``out`` (corners, offsets, neighbours, balls, radius2,
+    cells) from row ``base`` on, in the tile's order: corners as global ids, offsets,
+    neighbours (the rows of the share's own triangles; -1 across an edge to another tile's
+    share), the circumball states worth keeping (GOOD and FLOOR; others UNTESTED) and the
+    squared circumradii. Marks in ``cells`` the vertices whose cell this tile found to hold
+    < k points (GOOD: a cell only shrinks as vertices come, so it stays so). ``caches``
+    (nearest2, known): each vertex of the core whose disk of radius 2 R(v) (its star) lies
+    in the exact area gets its d_{M,2}(v)^2 (an edge's length, the same in every frame),
+    and is marked known. Returns the number of rows written."""
+    corners, offsets, neighbours, balls, radius2, cells = out
+    nearest2, known = caches
     row = np.full(nt, -1, np.int64)
     r = base
     for t in range(nt):
@@ -129,9 +143,16 @@ def hand_in(mesh, book, nt, nv, gid, mine, base, corners, offsets, neighbours, b
             neighbours[g, i] = row[mesh.neighbours[t, i]]
         state = book.ball_state[t]
         balls[g] = state if state == GOOD or state == FLOOR else UNTESTED
+        radius2[g] = mesh.radius2[t]
     for v in range(nv):
         if book.cell_state[v] == GOOD:
             cells[gid[v]] = True
+        x, y = mesh.xy[v, 0], mesh.xy[v, 1]
+        if not _in_core(x, y, bounds, axis, core, data, prm):
+            continue
+        if _vouched(x, y, 2.0 * np.sqrt(mesh.outradius2[v]), exact, prm):
+            nearest2[gid[v]] = mesh.nearest2[v]
+            known[gid[v]] = True
     return r - base
 
 

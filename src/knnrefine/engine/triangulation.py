@@ -137,11 +137,27 @@ def far_corner(v, mesh):
 
 
 @kernel(entry=True, nrt=False, nogil=True)
-def set_vertex_caches(mesh, prm, start, stop, hx, hy):
-    """Fill outradius2 and nearest2 for vertices start..stop-1 by walking their stars
+def set_outradii(mesh, nt, nv):
+    """outradius2 of vertices 0..nv-1 from the cached circumradii of triangles 0..nt-1: the
+    largest at each vertex, the very value the insertions compare with (``_forget_outradius``
+    needs R(v)^2 to be one of its triangles' radius2, bit for bit)."""
+    for v in range(nv):
+        mesh.outradius2[v] = -1.0
+    for t in range(nt):
+        r2 = mesh.radius2[t]
+        for i in range(3):
+            c = mesh.corners[t, i]
+            if r2 > mesh.outradius2[c]:
+                mesh.outradius2[c] = r2
+
+
+@kernel(entry=True, nrt=False, nogil=True)
+def set_vertex_caches(mesh, prm, vertices, start, stop, hx, hy):
+    """Fill outradius2 and nearest2 for vertices[start:stop] by walking their stars
     (``vertex_star``; hx, hy: its scratch, one per thread: threads may fill disjoint
     ranges at once)."""
-    for v in range(start, stop):
+    for i in range(start, stop):
+        v = vertices[i]
         outradius2, _, d_m2_sq, _ = vertex_star(v, mesh, prm, hx, hy)
         mesh.outradius2[v] = outradius2
         mesh.nearest2[v] = d_m2_sq

@@ -240,7 +240,8 @@ def frame_band(strips, data, periodic, least):
 
 def stitch(tiles, bounds, axis, cores, data, vertices):
     """The run's triangulation from the tiles' shares, each tile on a thread: (corners,
-    offsets, neighbours, the circumballs' states, the cells settled), or None when the
+    offsets, neighbours, the circumballs' states, the cells settled, the caches the tiles
+    knew: ``Refinement``'s ``caches``), or None when the
     shares do not join (a tile cannot vouch for its share, or an edge lacks its twin, or
     the count is not 2 m). ``cores``: each tile's core in ``bounds`` along ``axis`` (-1:
     the frame's tile); ``data``: the box of the data (x0, y0, w, h), the frame around it."""
@@ -263,25 +264,30 @@ def stitch(tiles, bounds, axis, cores, data, vertices):
     if any(bad for bad, _ in owned) or total != 2 * nv:
         return None
     bases = np.concatenate([[0], np.cumsum([c for _, c in owned])])
-    corners = np.empty((total, 3), np.int32)  # the engine's types (``initial.initial_grid``)
-    offsets = np.empty((total, 3, 2), np.int8)
-    neighbours = np.empty((total, 3), np.int32)
-    balls = np.empty(total, np.int8)
-    cells = np.zeros(nv, np.bool_)
+    out = (
+        np.empty((total, 3), np.int32),  # corners (the engine's types: ``initial_grid``)
+        np.empty((total, 3, 2), np.int8),  # offsets
+        np.empty((total, 3), np.int32),  # neighbours
+        np.empty(total, np.int8),  # circumball states
+        np.empty(total),  # squared circumradii
+        np.zeros(nv, np.bool_),  # cells settled
+    )
+    caches = (np.zeros(nv), np.zeros(nv, np.bool_))
 
     def write(j):
         run = tiles[j].run
         gid, mine = shares[j]
-        hand_in(run.mesh, run.book, len(mine), run.vertices, gid, mine, bases[j], corners,
-                offsets, neighbours, balls, cells)  # fmt: skip
+        hand_in(run.mesh, run.book, len(mine), run.vertices, gid, mine, bases[j], bounds, axis,
+                cores[j], data, tiles[j].area, run.prm, out, caches)  # fmt: skip
 
     run_all(write, len(tiles))
+    corners, offsets, neighbours, balls, radius2, cells = out
     t, i = np.nonzero(neighbours < 0)
     if not _join(t, i, corners, offsets, neighbours, nv):
         return None
     if np.bincount(corners.ravel(), minlength=nv).min() == 0:
         return None
-    return corners, offsets, neighbours, balls, cells
+    return corners, offsets, neighbours, balls, cells, (radius2, *caches)
 
 
 def _join(t, i, corners, offsets, neighbours, nv):
@@ -423,11 +429,11 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         tiles = strips = seams = framed = []  # their meshes go before the last step's is made
         budget = p.budget
         if joined is not None:
-            corners, offsets, neighbours, balls, cells = joined
+            corners, offsets, neighbours, balls, cells, caches = joined
             run = Refinement(index, common["k"], lx, ly, common["tau"], common["min_size"],
                              budget, m0=(vertices.xy, corners, offsets, neighbours), grid=grid,
                              capacity=vertices.count + vertices.count // 8 + 1024,
-                             queued=False)  # fmt: skip
+                             queued=False, caches=caches)  # fmt: skip
             nt, nv = len(corners), vertices.count
             run.book.ball_state[:nt] = balls
             run.book.cell_state[:nv] = np.where(cells, S.GOOD, S.UNTESTED)
