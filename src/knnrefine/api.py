@@ -102,19 +102,20 @@ def refine(
         never compiled in this environment, it is first called once with (0, 0,
         phase="compiling"): the compilation that follows takes 10-60 s, once.
     workers : int, optional
-        None or 1: refine in this process, whose kernels use every core for the index and
-        the bulk counts (``KNNREFINE_THREADS`` caps them). N > 1: a tiled run over N threads
-        of this process, sharing one counting index of all points (the kernels release the
-        GIL): a plan from the points (the same whatever their order), a coarse pass on a
-        sample, then rounds of N strips of the torus, balanced by point count, each refining
-        only what lies inside it, alternating with strips shifted by half; whatever no round
-        settled is finished here (``engine/region.py`` and docs/algorithm.md say why the
-        result is a kNNRefine run: the same guarantees, certified by ``certify``). The mesh
-        differs from a one-process run's in the order of its moves, and its size by a few
-        percent. ``stats["rounds"]`` reports each round and the last step; ``time_limit``
-        and ``max_vertices`` hold in every tile. On 2 cores a tiled run is slower than the
-        default (0.6-0.85x at 4 x 10^6 points, docs/benchmarks.md): None is the fastest
-        choice measured there.
+        None or 1: one run in this process, whose kernels use every core for the index and
+        the bulk counts (``KNNREFINE_THREADS`` caps them). N > 1: a tiled run in N threads
+        of this process, all counting in one index of all points (the kernels release the
+        GIL). In the plane: N strips of the torus, balanced by point count, each refining
+        only what lies inside it (``engine/region.py``), then a seam at each cut, in turns,
+        each tile keeping its mesh and inserting only the others' vertices near it; the
+        meshes are stitched into one triangulation (checked: every edge has its twin) and
+        one last run finishes what no tile could decide (docs/algorithm.md, "In threads,
+        stitched": the same guarantees, certified by ``certify``). In space: rounds of slabs
+        and shifted slabs. The mesh differs from a one-process run's in the order of its
+        moves, and its size by a few percent. ``stats["rounds"]`` reports each turn and the
+        last step; ``time_limit`` and ``max_vertices`` hold in every tile. On this project's
+        2-core machine N = 2 is about as fast as the default, not faster
+        (docs/benchmarks.md, "Workers in threads"): None is the choice there.
     executor : concurrent.futures.Executor, optional
         Run the tiles of a run with ``workers`` > 1 on this executor instead (processes or
         machines, each tile with a copy of its strip's points): its ``map`` is called once
