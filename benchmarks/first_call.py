@@ -19,8 +19,7 @@ import numpy as np
 CALLS = {
     "plane": "knnrefine.refine(rng.random((2000, 2)), 10)",
     "space": "knnrefine.refine(rng.random((2000, 3)), 10)",
-    "sphere": "knnrefine.refine(rng.random((2000, 2)) * [360, 180] - [180, 90], 10, "
-    "sphere=True)",
+    "sphere": "knnrefine.refine(rng.random((2000, 2)) * [360, 180] - [180, 90], 10, sphere=True)",
 }
 
 CODE = """

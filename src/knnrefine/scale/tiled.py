@@ -35,6 +35,7 @@ from ..engine import refine as R
 from ..engine import state as S
 from ..engine.driver import Refinement
 from ..engine.driver3 import Refinement3
+from ..engine.embedding import Embedding
 from ..engine.geometry import FLOOR_BITS
 from ..engine.index import build_index
 from ..engine.index3 import build_index3
@@ -607,6 +608,7 @@ def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
         from .shared import refine_threads
 
         return refine_threads(pts, w, opt, workers)
+    store: LocalStore
     if executor is None:
         store = ThreadStore(pts, w, workers)
     else:
@@ -646,7 +648,7 @@ class Plan:
     (internal coordinates) and kinds, whether the sample is every point, and the seconds the
     plan took."""
 
-    emb: object
+    emb: Embedding
     s_index: object
     m0: tuple
     m0_order: np.ndarray
