@@ -1,31 +1,32 @@
 """A tiled run in threads of this process, its tiles' meshes stitched (the plane).
 
 ``refine(points, k, workers=N)`` in the plane. The plan is any tiled run's (``tiled.plan``:
-the same sample, initial mesh, strips and coarse pass), then:
+the sample, the initial mesh, the strips, a coarse pass), then:
 
 * **Strips.** N tiles, each a thread refining its strip of the torus in its own mesh, all of
-  them counting in one index of all points (the kernels release the GIL). A tile keeps its
-  mesh from round to round.
+  them counting in one index of all points (the kernels release the GIL). The plan's second
+  set of cuts is used: inner quantiles of the data, so a margin lies inside a strip. A tile
+  keeps its mesh from turn to turn.
 * **Seams.** What a strip left (elements crossing its borders: ``engine/region.py``'s rule)
-  lies near the N cuts. Each cut gets a seam: a band as wide as what was left there reaches
-  (``stitch.deferred_reach``), at most SEAM_SHARE of either strip, refined by a tile of its
-  own from the vertices near it. Strips and seams then take turns, each first inserting the
-  vertices the others made in its area (``Tile.sync``), until a turn of all of them adds
-  nothing.
+  lies near the N cuts. Each cut gets a seam, SEAM_SIZES times the largest element the
+  strips settled near it (``stitch.largest_near``), refined by a tile of its own from the
+  vertices near it. Seams and strips then take turns, each first inserting the vertices the
+  others made in its area (``Tile.sync``), until the strips add nothing. A tile without a
+  region gathers the vertices of the frame around the data's box (the margins).
 * **Stitch.** Every tile has every vertex of the run in its area, so the run's Delaunay
   triangulation is the union of the tiles' shares (``engine/stitch.py``): the cores of the
-  strips and seams partition the torus, and each triangle is handed in by the tile whose
-  core holds its corner of lowest id. The join is checked (each edge has one twin, 2 m
-  triangles); a join that fails (cocircular vertices that two tiles triangulated alike only
-  up to a flip) is rebuilt by inserting every vertex into one mesh, as the rounds of shifted
-  strips do.
+  strips, seams and frame partition the torus, and each triangle is handed in by the tile
+  whose core holds its corner of lowest id, which checks that its disk lies in its area. The
+  join is checked (each edge has one twin, 2 m triangles, every vertex used); a join that
+  fails is rebuilt by inserting every vertex into one mesh, as the rounds of shifted strips
+  do.
 * **Last step.** One run over the stitched mesh, with what the tiles settled marked so (a
   circumball's count does not depend on the tile, and a cell only shrinks), finishes
   whatever is left (elements wider than a seam, which no tile could take) and is the mesh
   returned.
 
-Nothing is re-triangulated: a strip's tile inserts only its strip's and its neighbours'
-vertices, once. Space keeps the rounds of shifted strips (``tiled.ThreadStore``).
+Nothing is triangulated twice but the few percent of vertices near the seams. Space keeps the
+rounds of shifted strips (``tiled.ThreadStore``).
 """
 
 import time
