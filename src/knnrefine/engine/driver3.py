@@ -12,6 +12,7 @@ from .queue import Q_SIZE, new_queue
 from .refine3 import (
     HEADROOM3,
     N_PARAMS3,
+    NO_SWEEPS,
     P3_CLEAN_FLOOR2,
     P3_FLOOR2,
     P3_GRID,
@@ -23,9 +24,12 @@ from .refine3 import (
     queue_all3,
     queue_seeded3,
     refine_steps3,
+    sweep_balls3,
+    sweep_cells3,
 )
 from .region3 import WALK_LOST3, insert_points3, mark_settled3, spatial_order3
 from .state import (
+    C_BALLS_SWEPT,
     C_CELL_TESTS,
     C_DISK_TESTS,
     C_ERROR,
@@ -34,6 +38,7 @@ from .state import (
     C_NT,
     C_NV,
     C_STAMP,
+    C_SWEEP_CELLS,
     ERRORS,
     FLOOR,
     KIND_NAMES,
@@ -43,12 +48,14 @@ from .state import (
     STATUS_GROW,
     STATUS_MAX_VERTICES,
     STATUS_STEPS,
+    STATUS_SWEEP,
     Bookkeeping,
     Probe3,
     Queues,
     grow,
     mapped,
 )
+from .threads import in_chunks, workers
 from .tile import TileRun
 from .triangulation3 import new_torus3, unpack_offsets
 
@@ -86,6 +93,14 @@ class Refinement3(TileRun):
     """One 3-D run on the torus of ``period`` (internal units, multiples of the grid step q,
     a power of two >= Q: ``embedding.Embedding.grid``) over the points of ``index``
     (``index3.build_index3``, internal coordinates in [0, period))."""
+
+    # circumballs swept in bulk (``refine3.sweep_balls3``) on this many threads (None:
+    # ``threads.workers()``); with one thread there is no sweep (a tile of a tiled run,
+    # itself one of several threads, sets 1)
+    threads = None
+    SWEEP_SLOTS = 16384  # the least slots a thread sweeps at once
+    SAMPLE_STRIDE = 16  # a sweep counts every 16th slot first ...
+    SWEEP_GOOD = 0.95  # ... and the rest if this share of those held < k
 
     def __init__(self, index, period, k, tau, floor, max_vertices, grid, q=Q):
         self.period = np.asarray(period, float)
@@ -138,6 +153,8 @@ class Refinement3(TileRun):
             if interrupts is None:
                 interrupts = stack.enter_context(Interrupts())
             while True:
+                if self._sweep_threads() < 2:
+                    self.cnt[C_BALLS_SWEPT] = NO_SWEEPS
                 before, t1 = int(self.cnt[C_NV]), time.perf_counter()
                 status = refine_steps3(
                     self.mesh, self.book, self.queues, self.scratch, self.probe, self.cnt,
@@ -150,6 +167,11 @@ class Refinement3(TileRun):
                     steps = int(min(max(rate * 0.05, 100), STEPS))
                 if self.cnt[C_STAMP] > STAMP_LIMIT:
                     self._restart_stamps()
+                # a sweep asked for before any insertion: the deadline waits for a call that
+                # makes some (a run always moves on)
+                idle = status == STATUS_SWEEP and done == 0
+                if status == STATUS_SWEEP:
+                    status = self._sweep()
                 if progress is not None:
                     progress(int(self.cnt[C_NV]), self.pending())
                 if status == STATUS_ERROR:
@@ -164,8 +186,46 @@ class Refinement3(TileRun):
                 interrupts.check()
                 if status == STATUS_GROW:
                     self._grow()
-                if deadline is not None and time.perf_counter() > deadline:
+                if not idle and deadline is not None and time.perf_counter() > deadline:
                     return STATUS_STEPS
+
+    def _sweep_threads(self):
+        return workers() if self.threads is None else int(self.threads)
+
+    def _sweep(self):
+        """Count in bulk what ``refine_steps3`` asked for: the untested circumballs of the
+        class just reached (``sweep_balls3``: every SAMPLE_STRIDE-th slot first, the rest
+        only if SWEEP_GOOD of those held < k, for a class whose tetrahedra the coming Breaks
+        would mostly destroy is not worth counting ahead), or the cells queued since the
+        last sweep (``sweep_cells3``); in ranges over the engine's threads (Ctrl-C waits
+        for the ranges running only)."""
+        threads = self._sweep_threads()
+        if self.cnt[C_SWEEP_CELLS]:
+
+            def cells(start, stop):
+                return sweep_cells3(self.mesh, self.book, self.prm, self.index, start, stop)
+
+            parts = in_chunks(cells, self.vertices, threads, self.SWEEP_SLOTS // 8)
+            if min(p[0] for p in parts) < 0:
+                self.cnt[C_ERROR] = min(p[0] for p in parts)
+                return STATUS_ERROR
+            self.cnt[C_CELL_TESTS] += sum(p[0] for p in parts)
+            return STATUS_STEPS
+        cls = int(self.cnt[C_BALLS_SWEPT]) - 1
+        made = good = 0
+        for stride in (self.SAMPLE_STRIDE, 1):
+
+            def balls(start, stop, stride=stride):
+                return sweep_balls3(self.mesh, self.book, self.prm, self.index, cls, start,
+                                    stop, stride)  # fmt: skip
+
+            parts = in_chunks(balls, int(self.cnt[C_NT]), threads, self.SWEEP_SLOTS)
+            made += sum(p[0] for p in parts)
+            good += sum(p[1] for p in parts)
+            self.cnt[C_DISK_TESTS] += sum(p[0] for p in parts)
+            if good < self.SWEEP_GOOD * made:
+                break
+        return STATUS_STEPS
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""

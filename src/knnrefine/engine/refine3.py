@@ -17,21 +17,33 @@ and queues v again at the class of its largest untested tetrahedron left. An ins
 queues its new vertex once (every new tetrahedron has it as a corner); a tetrahedron moved to
 another slot (``triangulation3._move``) keeps its corners, so no entry goes stale. A tile of
 a tiled run (``engine/region3.py``) moves only for elements inside its region, as in the
-plane; the others are DEFERRED. Not here yet: the cell sweep.
+plane; the others are DEFERRED.
+
+Circumballs in bulk: most of a run's counts are circumball counts (8.5 per vertex at k = 10
+in uniform points), and whether a closed circumball holds k points is a pure function of the
+tetrahedron. So when the queue first reaches a size class (every larger class empty: the
+untested tetrahedra of that class are the next to be tested, bar those a Break destroys
+first), ``refine_steps3`` returns STATUS_SWEEP and the driver has ``sweep_balls3`` count
+them all, in slot ranges on every thread, marking GOOD those holding < k. The refinement
+then pops as before and skips them: the same moves, the same mesh, with most counting
+spread over the cores. Not here yet: the cell sweep (cells are 1 count in 9).
 """
 
 import numpy as np
 
 from .geometry import circumsphere
+from .index import STACK_SIZE
 from .index3 import count_in_ball3, count_in_cell3
 from .jit import kernel
 from .queue import N_CLASSES, Q_SIZE, queue_clear, queue_pop, queue_push, queue_size, size_class
 from .refine import interval_within
 from .state import (
     BREAK_BALL,
+    C_BALLS_SWEPT,
     BREAK_CELL,
     C_CELL_TESTS,
     C_CELLS_QUEUED,
+    C_CELLS_SWEPT,
     C_DEFERRED,
     C_DISK_TESTS,
     C_ERROR,
@@ -40,6 +52,7 @@ from .state import (
     C_MAX_VERTICES,
     C_NT,
     C_NV,
+    C_SWEEP_CELLS,
     CLEAN,
     CLEAN_BELOW_FLOOR,
     CLEAN_FAILED,
@@ -56,14 +69,17 @@ from .state import (
     STATUS_GROW,
     STATUS_MAX_VERTICES,
     STATUS_STEPS,
+    STATUS_SWEEP,
+    TOUCHED,
     UNTESTED,
 )
 from .triangulation3 import (
     MAX_CAVITY3,
     insert_vertex3,
     load_corners,
+    neighbours_local3,
+    star3,
     vertex_neighbours3,
-    vertex_star3,
 )
 
 # parameters (float64 array ``prm``) of a 3-D run
@@ -79,6 +95,9 @@ P3_REGION_W = 12  # ... and its widths, 3 numbers; widths[0] = state.NO_REGION: 
 N_PARAMS3 = 15
 
 HEADROOM3 = MAX_CAVITY3 + 64  # free slots required before an insertion
+SWEEP_DUE3 = 99  # _break3's kind when the circumballs of a class should be swept first
+NO_SWEEPS = N_CLASSES + 1  # cnt[C_BALLS_SWEPT] that turns the sweeps off (a tile's run)
+CELL_SWEEP_MIN = 4096  # cells newly queued that make a cell sweep worthwhile
 
 
 @kernel(inline="always")
@@ -194,7 +213,7 @@ def _clean3(mesh, book, queues, scratch, cnt, prm):
             continue
         if not in_region3(mesh.xyz[v], 2.0 * np.sqrt(outradius2), prm):
             continue  # far corner and neighbours not all the tile's: left for later
-        return vertex_star3(v, mesh, scratch, cnt, prm[:3])[1], v
+        return star3(v, mesh, scratch, cnt)[1], v
     return -1, -1
 
 
@@ -209,7 +228,12 @@ def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
     while queue_size(queues.balls) > 0:
         # an entry (v, class): the untested tetrahedra at v of this class (or larger) are due
         cls, v, _ = queue_pop(queues.balls)
-        n = vertex_star3(v, mesh, scratch, cnt, period)[3]
+        if cls >= cnt[C_BALLS_SWEPT]:  # a class reached for the first time: sweep it
+            cnt[C_BALLS_SWEPT] = cls + 1
+            queue_push(queues.balls, cls, v, 0)  # the same entry, popped next
+            cnt[C_SWEEP_CELLS] = 0
+            return -1, SWEEP_DUE3, cls
+        n = star3(v, mesh, scratch, cnt)[2]
         if n < 0:
             return STAR_OVERFLOW, 0, -1
         later = N_CLASSES
@@ -238,6 +262,11 @@ def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
             return t, BREAK_BALL, t
         if later < N_CLASSES:  # v's smaller untested tetrahedra wait for their class
             queue_push(queues.balls, later, v, 0)
+    if (cnt[C_BALLS_SWEPT] != NO_SWEEPS
+            and cnt[C_CELLS_QUEUED] - cnt[C_CELLS_SWEPT] >= CELL_SWEEP_MIN):  # fmt: skip
+        cnt[C_CELLS_SWEPT] = cnt[C_CELLS_QUEUED]  # the cells queued since: sweep them
+        cnt[C_SWEEP_CELLS] = 1
+        return -1, SWEEP_DUE3, -1
     while queue_size(queues.cells) > 0:
         cls, v, _ = queue_pop(queues.cells)
         book.flags[v] = book.flags[v] & ~IN_CELL_QUEUE
@@ -262,8 +291,80 @@ def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
         if outradius2 < prm[P3_FLOOR2]:
             book.cell_state[v] = FLOOR
             continue
-        return vertex_star3(v, mesh, scratch, cnt, period)[1], BREAK_CELL, v
+        return star3(v, mesh, scratch, cnt)[1], BREAK_CELL, v
     return -1, 0, -1
+
+
+@kernel(entry=True, nogil=True)
+def sweep_balls3(mesh, book, prm, index, cls, start, stop, stride):
+    """Count the closed circumballs of the untested tetrahedra of size class <= cls in the
+    slots of [start, stop) that are multiples of ``stride`` and mark GOOD those holding < k
+    points (the others are counted again when popped). Returns (counts made, GOOD among
+    them). It reads the mesh and writes only these slots' ball states: threads may sweep
+    disjoint ranges at once."""
+    k = prm[P3_K]
+    inflate = prm[P3_INFLATE]
+    period = prm[:3]
+    pts = np.empty((5, 3))
+    c = np.empty(3)
+    stack = np.empty(STACK_SIZE, np.int64)
+    made = 0
+    good = 0
+    for t in range(start, stop):
+        if t % stride != 0:
+            continue
+        if book.ball_state[t] != UNTESTED or size_class(mesh.radius2[t]) > cls:
+            continue
+        load_corners(mesh, t, 0, 0, 0, period, pts)  # as _break3 does: the same ball
+        c[0], c[1], c[2], _ = circumsphere(pts)
+        if not in_region3(c, np.sqrt(mesh.radius2[t]), prm):
+            continue
+        made += 1
+        if count_in_ball3(index, c, mesh.radius2[t] * inflate, k, period, stack) < k:
+            book.ball_state[t] = GOOD
+            good += 1
+    return made, good
+
+
+@kernel(entry=True, nogil=True)
+def sweep_cells3(mesh, book, prm, index, start, stop):
+    """Count the closed Voronoi cells of the queued vertices with untested cells among
+    [start, stop) and mark GOOD those holding < k points (a cell only shrinks: settled for
+    good; the others are counted again when popped). Returns (counts made, GOOD among them),
+    or (STAR_OVERFLOW, 0). Reads the mesh, writes only these vertices' cell states, and
+    walks stars without the shared marks (``neighbours_local3``): threads may sweep
+    disjoint ranges at once."""
+    k = prm[P3_K]
+    inflate = prm[P3_INFLATE]
+    period = prm[:3]
+    h = np.empty((1024, 3))
+    hc = np.empty(1024)
+    ids = np.empty(1024, np.int64)
+    walk = np.empty(MAX_CAVITY3, np.int64)
+    stack = np.empty(STACK_SIZE, np.int64)
+    made = 0
+    good = 0
+    for v in range(start, stop):
+        if not (book.flags[v] & IN_CELL_QUEUE) or book.cell_state[v] != UNTESTED:
+            continue
+        r2 = mesh.outradius2[v]
+        if not in_region3(mesh.xyz[v], 2.0 * np.sqrt(r2), prm):
+            continue
+        made += 1
+        r2 = r2 * inflate  # as count_cell3 counts
+        if count_in_ball3(index, mesh.xyz[v], r2, k, period, stack) < k:
+            book.cell_state[v] = GOOD
+            good += 1
+            continue
+        nh = neighbours_local3(v, mesh, period, walk, h, ids)
+        if nh < 0:
+            return STAR_OVERFLOW, 0
+        for j in range(nh):
+            hc[j] = 0.5 * (h[j, 0] ** 2 + h[j, 1] ** 2 + h[j, 2] ** 2) * inflate
+        if count_in_cell3(index, mesh.xyz[v], h, hc, nh, r2, k, period, stack) < k:
+            book.cell_state[v] = GOOD
+            good += 1
+    return made, good
 
 
 @kernel(inline="always")
@@ -296,7 +397,7 @@ def refine_steps3(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps
         if t == -1:
             t, kind, elem = _break3(mesh, book, queues, scratch, probe, cnt, prm, index)
             if t == -1:
-                return STATUS_DONE
+                return STATUS_SWEEP if kind == SWEEP_DUE3 else STATUS_DONE
             if t < -1:
                 cnt[C_ERROR] = t
                 return STATUS_ERROR
@@ -333,9 +434,20 @@ def refine_steps3(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps
             book.ball_state[s] = UNTESTED
             first = min(first, size_class(mesh.radius2[s]))
         queue_push(queues.balls, first, v, 0)
+        # each corner once (a vertex is a corner of many new tetrahedra, v of all of them),
+        # in the order first met, as touching them all in turn would (``_touch3`` does
+        # nothing the second time)
         for e in range(nb):
             s = scratch.cavity[e]
             for i in range(4):
-                _touch3(mesh.corners[s, i], mesh, book, queues, cnt, prm)
+                u = mesh.corners[s, i]
+                if not (book.flags[u] & TOUCHED):
+                    book.flags[u] = book.flags[u] | TOUCHED
+                    _touch3(u, mesh, book, queues, cnt, prm)
+        for e in range(nb):
+            s = scratch.cavity[e]
+            for i in range(4):
+                u = mesh.corners[s, i]
+                book.flags[u] = book.flags[u] & ~TOUCHED
         steps += 1
     return STATUS_STEPS

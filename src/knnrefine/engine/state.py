@@ -160,6 +160,8 @@ C_NT = 1  # triangles in use (always 2 * C_NV on the torus)
 C_STAMP = 2  # insertions so far: stamps the cavity marks
 C_LAST_NB = 3  # boundary edges of the last cavity (= its new triangles)
 C_SWEEP_MIN = 4  # cells newly queued that make a sweep worthwhile (refine.sweep_cells)
+C_BALLS_SWEPT = 5  # in space: 1 + the circumball class swept last (refine3.sweep_balls3)
+C_SWEEP_CELLS = 6  # in space: the sweep asked for is the cells' (refine3.sweep_cells3)
 C_MAX_VERTICES = 9
 C_DISK_TESTS = 26  # circumball counts made
 C_CELL_TESTS = 27  # cell counts made
@@ -319,6 +321,7 @@ IN_CELL_QUEUE = 1
 IN_CLEAN_QUEUE = 2
 CLEAN_BELOW_FLOOR = 4  # aspect > tau but its cell is below the Clean floor
 CLEAN_FAILED = 8
+TOUCHED = 16  # in space, during one insertion: looked at already (refine3.refine_steps3)
 
 # refine_steps results
 STATUS_DONE = 0
@@ -326,7 +329,7 @@ STATUS_STEPS = 1  # max_steps insertions made; call again
 STATUS_GROW = 2  # an array is nearly full; grow it and call again
 STATUS_MAX_VERTICES = 3
 STATUS_ERROR = 4  # a broken invariant; cnt[C_ERROR] holds the code (state.ERRORS)
-STATUS_SWEEP = 5  # many cells wait to be counted: call sweep_cells, then call again
+STATUS_SWEEP = 5  # many cells (in space: circumballs) wait to be counted: sweep, call again
 
 
 # the counting index over P (``index.py``, ``index3.py``): a static kd-tree whose nodes own

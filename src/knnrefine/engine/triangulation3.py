@@ -214,6 +214,42 @@ def vertex_star3(v, mesh, scratch, cnt, period):
     return r2, far, d2, n
 
 
+@kernel(nrt=False)
+def star3(v, mesh, scratch, cnt):
+    """(R(v)^2, far corner's tetrahedron, tetrahedra at v, listed in scratch.walk): the walk
+    of ``walk_star3`` without its edges, for the callers that need neither d_{M,2} nor the
+    neighbours (most walks of a refinement: an entry of the circumball queue, an R(v) lost
+    in a cavity), at about half its cost."""
+    stack = scratch.walk
+    stamp = cnt[C_STAMP] + 1
+    cnt[C_STAMP] = stamp
+    t0 = mesh.star[v]
+    stack[0] = t0
+    scratch.mark[t0] = stamp
+    n = 1
+    i = 0
+    outradius2 = -1.0
+    far = -1
+    while i < n:
+        t = stack[i]
+        i += 1
+        r2 = mesh.radius2[t]
+        if r2 > outradius2:
+            outradius2 = r2
+            far = t
+        for j in range(4):
+            if mesh.corners[t, j] == v:
+                continue
+            nb = mesh.neighbours[t, j]  # across the face opposite corner j: it holds v
+            if scratch.mark[nb] != stamp:
+                if n >= stack.shape[0]:
+                    return outradius2, far, -1
+                scratch.mark[nb] = stamp
+                stack[n] = nb
+                n += 1
+    return outradius2, far, n
+
+
 @kernel(entry=True, nrt=False)
 def set_vertex_caches3(mesh, scratch, cnt, period, nv):
     """outradius2 and nearest2 of vertices 0..nv-1 from their stars."""
@@ -469,7 +505,7 @@ def _update_vertex_caches3(v, mesh, scratch, cnt, nb, period):
         for k in range(4):
             u = mesh.corners[s, k]
             if mesh.outradius2[u] < 0.0:
-                mesh.outradius2[u] = vertex_star3(u, mesh, scratch, cnt, period)[0]
+                mesh.outradius2[u] = star3(u, mesh, scratch, cnt)[0]
 
 
 @kernel(nrt=False)
@@ -575,3 +611,48 @@ def vertex_neighbours3(v, mesh, scratch, cnt, period, h, ids):
     indices; returns their number, -1 if h or the walk's stack is too short."""
     n, nh = walk_star3(v, mesh, scratch, cnt, period, h, ids)[3:]
     return -1 if n < 0 else nh
+
+
+@kernel(nrt=False)
+def neighbours_local3(v, mesh, period, stack, h, ids):
+    """``vertex_neighbours3`` without the shared marks: the tetrahedra met are looked up in
+    the walk's own stack (a star has a few dozen), so threads may walk stars at once.
+    Returns the number of neighbours, -1 if h or the stack is too short."""
+    stack[0] = mesh.star[v]
+    n = 1
+    i = 0
+    nh = 0
+    while i < n:
+        t = stack[i]
+        i += 1
+        iv = corner_of3(mesh, t, v)
+        for j in range(4):
+            if j == iv:
+                continue
+            u = mesh.corners[t, j]
+            seen = False
+            for m in range(nh):
+                if ids[m] == u:
+                    seen = True
+                    break
+            if not seen:
+                if nh >= h.shape[0]:
+                    return -1
+                dx, dy, dz = edge_to3(mesh, t, iv, j, period)
+                ids[nh] = u
+                h[nh, 0] = dx
+                h[nh, 1] = dy
+                h[nh, 2] = dz
+                nh += 1
+            nb = mesh.neighbours[t, j]  # across the face opposite u: it holds v
+            seen = False
+            for m in range(n):
+                if stack[m] == nb:
+                    seen = True
+                    break
+            if not seen:
+                if n >= stack.shape[0]:
+                    return -1
+                stack[n] = nb
+                n += 1
+    return nh
