@@ -25,8 +25,12 @@ tetrahedron. So when the queue first reaches a size class (every larger class em
 untested tetrahedra of that class are the next to be tested, bar those a Break destroys
 first), ``refine_steps3`` returns STATUS_SWEEP and the driver has ``sweep_balls3`` count
 them all, in slot ranges on every thread, marking GOOD those holding < k. The refinement
-then pops as before and skips them: the same moves, the same mesh, with most counting
-spread over the cores. Not here yet: the cell sweep (cells are 1 count in 9).
+then pops as before and skips them: the same moves, the same mesh, with much of the
+counting spread over the cores. A class the coming Breaks would mostly destroy is not worth
+counting ahead: the driver counts a sample first (``driver3.Refinement3._sweep``). The cells
+queued since the last sweep are swept the same way once the circumball queue is empty
+(``sweep_cells3``, at least CELL_SWEEP_MIN of them: a cell only shrinks, so one under k is
+settled for good).
 """
 
 import numpy as np
@@ -39,8 +43,8 @@ from .queue import N_CLASSES, Q_SIZE, queue_clear, queue_pop, queue_push, queue_
 from .refine import interval_within
 from .state import (
     BREAK_BALL,
-    C_BALLS_SWEPT,
     BREAK_CELL,
+    C_BALLS_SWEPT,
     C_CELL_TESTS,
     C_CELLS_QUEUED,
     C_CELLS_SWEPT,

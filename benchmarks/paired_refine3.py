@@ -1,0 +1,70 @@
+"""Before/after timing of refine in space: the same command alternating between two source
+trees (this checkout's ``src`` and another's, e.g. a ``git worktree`` of an earlier commit),
+each run in a fresh process after a warm-up call on 20,000 of the points, refine only,
+medians over --repeat pairs. Mesh sizes are printed too (the same when a change leaves the
+moves alone).
+
+    git worktree add /tmp/before <commit>
+    python benchmarks/paired_refine3.py --before /tmp/before/src --n 1e6 --k 10 \\
+        --kind uniform --repeat 3
+"""
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def one(kind, n, k):
+    import numpy as np  # noqa: F401
+
+    sys.path.insert(0, HERE)
+    from bench_refine3 import make_points3
+
+    import knnrefine
+
+    pts = make_points3(kind, n)
+    box, periodic = (0, 0, 0, 1, 1, 1), (True, True, True)
+    knnrefine.refine(pts[:20000], k, periodic=periodic, box=box)
+    t0 = time.perf_counter()
+    mesh = knnrefine.refine(pts, k, periodic=periodic, box=box)
+    print(time.perf_counter() - t0, len(mesh.vertices))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--before", required=True, help="the other tree's src directory")
+    ap.add_argument("--n", type=float, default=1e6)
+    ap.add_argument("--k", type=int, default=10)
+    ap.add_argument("--kind", choices=["uniform", "clustered"], default="uniform")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.one:
+        one(args.kind, int(args.n), args.k)
+        return
+    trees = {"before": os.path.abspath(args.before),
+             "after": os.path.join(os.path.dirname(HERE), "src")}  # fmt: skip
+    times = {name: [] for name in trees}
+    cmd = [sys.executable, __file__, "--one", "--before", args.before, "--n", str(args.n),
+           "--k", str(args.k), "--kind", args.kind]  # fmt: skip
+    for _ in range(args.repeat):
+        for name, src in trees.items():
+            env = dict(os.environ, PYTHONPATH=src)
+            out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+            seconds, m = out.stdout.split()[-2:]
+            times[name].append(float(seconds))
+            print(f"{name}: {float(seconds):.3f} s, m = {int(m):,}", flush=True)
+    a, b = (statistics.median(times[x]) for x in ("before", "after"))
+    print(
+        f"{args.kind} n={args.n:.0e} k={args.k}: before {a:.2f} s, after {b:.2f} s, "
+        f"after / before {b / a:.3f} (medians of {args.repeat})"
+    )
+
+
+if __name__ == "__main__":
+    main()
