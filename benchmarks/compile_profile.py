@@ -1,11 +1,11 @@
 """Where the first-ever compile goes: numba's stages, and the functions that cost most.
 
-Runs the benchmark's compile workload (refine 2,000 points in a box, then on the torus) in a
-fresh process with an empty numba cache and times, exclusive of nested compilations, numba's
+Runs the benchmark's compile workload (refine 2,000 points in a box, then on the torus; with
+``--domain space`` the same in the unit cube) in a fresh process with an empty numba cache and times, exclusive of nested compilations, numba's
 type inference, lowering (IR generation, with the CPython wrappers), inlining, and LLVM's
 optimisation and machine-code generation.
 
-    python benchmarks/compile_profile.py [--top 15]
+    python benchmarks/compile_profile.py [--top 15] [--domain space]
 """
 
 import argparse
@@ -22,9 +22,15 @@ p = np.random.default_rng(0).random((2000, 2))
 knnrefine.refine(p, 10)
 knnrefine.refine(p, 10, periodic=True, box=(0, 0, 1, 1))
 """
+WORKLOAD3 = """
+import numpy as np, knnrefine
+p = np.random.default_rng(0).random((2000, 3))
+knnrefine.refine(p, 10)
+knnrefine.refine(p, 10, periodic=True, box=(0, 0, 0, 1, 1, 1))
+"""
 
 
-def profile(top):
+def profile(top, workload=WORKLOAD):
     """In this process (its numba cache must be empty): stage and per-function times."""
     from numba.core import codegen, typed_passes, untyped_passes
 
@@ -61,7 +67,7 @@ def profile(top):
     timed(codegen.JITCodeLibrary, "_finalize_specific", "LLVM code generation")
     timed(codegen.CPUCodeLibrary, "add_ir_module", "LLVM IR parsing")
     t0 = time.perf_counter()
-    exec(WORKLOAD, {})
+    exec(workload, {})
     total = time.perf_counter() - t0
     print(f"first compile (import included): {total:.2f} s")
     for stage, seconds in stages.most_common():
@@ -75,14 +81,16 @@ def profile(top):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--top", type=int, default=15)
+    ap.add_argument("--domain", choices=["plane", "space"], default="plane")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        profile(args.top)
+        profile(args.top, WORKLOAD3 if args.domain == "space" else WORKLOAD)
         return
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        cmd = [sys.executable, __file__, "--child", "--top", str(args.top)]
+        cmd = [sys.executable, __file__, "--child", "--top", str(args.top), "--domain",
+               args.domain]  # fmt: skip
         subprocess.run(cmd, env=env, check=True)
 
 
