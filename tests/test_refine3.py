@@ -682,7 +682,7 @@ def test_sweeps_count_in_bulk_and_change_no_move(kind):
     from knnrefine.engine.state import C_CELL_TESTS, C_DISK_TESTS
 
     rng = np.random.default_rng(31)
-    pts = rng.random((30000, 3)) if kind == "uniform" else multiscale(30000, 31)
+    pts = rng.random((20000, 3)) if kind == "uniform" else multiscale(20000, 31)
     made = {}
     for threads in (1, 2):
         run = _start_run(pts)
