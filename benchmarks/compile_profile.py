@@ -1,9 +1,10 @@
 """Where the first-ever compile goes: numba's stages, and the functions that cost most.
 
 Runs the benchmark's compile workload (refine 2,000 points in a box, then on the torus; with
-``--domain space`` the same in the unit cube) in a fresh process with an empty numba cache and times, exclusive of nested compilations, numba's
-type inference, lowering (IR generation, with the CPython wrappers), inlining, and LLVM's
-optimisation and machine-code generation.
+``--domain space`` the same in the unit cube) in a fresh process with an empty numba cache
+and times, exclusive of nested compilations, numba's type inference, lowering (IR
+generation, with the CPython wrappers), inlining, and LLVM's optimisation and machine-code
+generation.
 
     python benchmarks/compile_profile.py [--top 15] [--domain space]
 """
