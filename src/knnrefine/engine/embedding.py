@@ -30,6 +30,7 @@ import numpy as np
 
 from .geometry import FLOOR_BITS, Q
 from .jit import kernel
+from .threads import in_chunks
 
 MARGIN = 1.05
 
@@ -193,6 +194,13 @@ def unfold(points, cells, offsets, emb, copy=True):
     lies in a kept cell, whose corners are within its longest edge of x. Vertex copies are
     numbered in (vertex, shift) order.
 
+    A cell's copies are a 3^d-bit mask (shift -1..1 per non-periodic axis), a vertex's a
+    4^d-bit one (shift -1..2); a copy's output index is its vertex's first index plus the
+    copies before it in the mask: 4 bytes per cell and 16 per vertex of working memory, not a
+    word per copy. The passes over cells and over vertices run in ranges on the engine's
+    threads (``threads.in_chunks``); marking the corners of the kept cells, whose vertices
+    several cells share, and numbering the copies run on one.
+
     Returns (vertex ids (m',) int64, positions (m', d) internal, cells (t', d + 1) int32 into
     the returned vertices, offsets (t', d + 1, d) int8 or None when no axis is periodic), new
     arrays; when every axis is periodic and ``copy`` is False, the arrays given.
@@ -205,22 +213,34 @@ def unfold(points, cells, offsets, emb, copy=True):
     blo, bhi = emb.box_internal()
     L = np.array(emb.period_internal)
     free = np.array([not p for p in per])
-    out_v, out_s, kept, out_offsets = _unfold(points, cells, offsets, L, blo, bhi, free)
-    pos = points[out_v]
-    for a in range(emb.dim):
-        pos[:, a] += out_s[:, a] * L[a]
-    del out_s
-    return out_v, pos, kept, (out_offsets if any(per) else None)
+    m, d = points.shape
+    nt, nc = cells.shape
+    keep = np.zeros(nt, np.uint32)
+    rstar2 = max(in_chunks(lambda a, b: _keep_cells(points, cells, offsets, L, blo, bhi, free,
+                                                   keep, a, b), nt), default=0.0)  # fmt: skip
+    need = np.zeros(m, np.uint64)
+    in_chunks(lambda a, b: _need_vertices(points, L, blo, bhi, free, rstar2, need, a, b), m)
+    first = np.empty(m + 1, np.int64)
+    start = np.empty(nt + 1, np.int64)
+    _number_copies(cells, offsets, free, keep, need, first, start)
+    out_v = np.empty(first[m], np.int64)
+    pos = np.empty((first[m], d))
+    in_chunks(lambda a, b: _vertex_copies(points, L, need, first, out_v, pos, a, b), m)
+    kept = np.empty((start[nt], nc), np.int32)
+    off = np.zeros((start[nt], nc, d), np.int8)
+    in_chunks(lambda a, b: _cell_copies(cells, offsets, free, keep, need, first, start, kept,
+                                        off, a, b), nt)  # fmt: skip
+    return out_v, pos, kept, (off if any(per) else None)
 
 
 @kernel(inline="always")
 def _popcount64(x):
-    """Set bits of a uint64."""
-    n = 0
-    while x != np.uint64(0):
-        x &= x - np.uint64(1)
-        n += 1
-    return n
+    """Set bits of a uint64 (bits summed in pairs, nibbles, then bytes)."""
+    x = np.uint64(x)
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return np.int64((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
 
 
 @kernel(inline="always")
@@ -249,106 +269,164 @@ def _corner_shift(offsets, t, i, s, free, out):
         out[a] = (offsets[t, i, a] + s[a]) if free[a] else 0
 
 
-@kernel(entry=True)
-def _unfold(points, cells, offsets, L, blo, bhi, free):
-    """Copies of the cells (triangles or tetrahedra) meeting the box and of the vertices they
-    (and r*) need, in the plane or in space (d = points.shape[1]). A cell's copies are a
-    3^d-bit mask (shift -1..1 per non-periodic axis), a vertex's a 4^d-bit one (shift -1..2);
-    a copy's output index is its vertex's first index plus the copies before it in the mask:
-    4 bytes per cell and 16 per vertex of working memory, not a word per copy."""
-    m, d = points.shape
-    nt, nc = cells.shape
-    keep = np.zeros(nt, np.uint32)
-    nkeep = 0
+@kernel(entry=True, nogil=True)
+def _keep_cells(points, cells, offsets, L, blo, bhi, free, keep, t0, t1):
+    """keep[t] = the mask of cell t's copies that meet the box, for t in [t0, t1); returns
+    the squared longest edge of the kept cells there. Per axis, the shifts whose copy meets
+    the box's slab; a copy meets the box when each of its shifts does (most cells: shift 0
+    only, one bit)."""
+    d = points.shape[1]
+    nc = cells.shape[1]
     rstar2 = 0.0
     c = np.empty((nc, d))
-    lo = np.empty(d)
-    hi = np.empty(d)
+    ok = np.empty(d, np.int64)  # per axis: bit s + 1 set when shift s meets the slab
     s = np.zeros(d, np.int64)
-    vs = np.zeros(d, np.int64)
-    # pass 1: cell copies that meet the box along the non-periodic axes
-    for t in range(nt):
+    centre = 0  # the code of shift 0 on every axis
+    for a in range(d):
+        centre = centre * 3 + 1
+    for t in range(t0, t1):
         for i in range(nc):
             for a in range(d):
                 c[i, a] = points[cells[t, i], a] + offsets[t, i, a] * L[a]
+        only_centre = True
+        none = False
         for a in range(d):
-            lo[a] = c[0, a]
-            hi[a] = c[0, a]
+            if not free[a]:
+                ok[a] = 2
+                continue
+            lo = c[0, a]
+            hi = c[0, a]
             for i in range(1, nc):
-                lo[a] = min(lo[a], c[i, a])
-                hi[a] = max(hi[a], c[i, a])
-        mask = 0
-        for code in range(3**d):
-            _digits(code, 3, d, s)
-            meets = True
-            for a in range(d):
-                sh = s[a] * L[a]
-                if free[a]:
-                    if hi[a] + sh < blo[a] or lo[a] + sh > bhi[a]:
+                lo = min(lo, c[i, a])
+                hi = max(hi, c[i, a])
+            bits = 0
+            for sh in range(-1, 2):
+                if hi + sh * L[a] >= blo[a] and lo + sh * L[a] <= bhi[a]:
+                    bits |= 1 << (sh + 1)
+            ok[a] = bits
+            if bits == 0:
+                none = True
+            elif bits != 2:
+                only_centre = False
+        if none:
+            continue
+        if only_centre:
+            mask = 1 << centre
+        else:
+            mask = 0
+            for code in range(3**d):
+                _digits(code, 3, d, s)
+                meets = True
+                for a in range(d):
+                    if not ok[a] & (1 << (s[a] + 1)):
                         meets = False
-                elif s[a] != 0:
-                    meets = False
-            if meets:
-                mask |= 1 << code
-                nkeep += 1
-        if mask:
-            keep[t] = mask
-            for i in range(nc):
-                for j in range(i + 1, nc):
-                    e2 = 0.0
-                    for a in range(d):
-                        e2 += (c[i, a] - c[j, a]) ** 2
-                    rstar2 = max(rstar2, e2)
-    # pass 2: vertex copies needed, within r* of the box or a corner of a kept copy
-    need = np.zeros(m, np.uint64)
-    for v in range(m):
+                if meets:
+                    mask |= 1 << code
+        keep[t] = mask
+        for i in range(nc):
+            for j in range(i + 1, nc):
+                e2 = 0.0
+                for a in range(d):
+                    e2 += (c[i, a] - c[j, a]) ** 2
+                rstar2 = max(rstar2, e2)
+    return rstar2
+
+
+@kernel(entry=True, nogil=True)
+def _need_vertices(points, L, blo, bhi, free, rstar2, need, v0, v1):
+    """need[v] |= the bits of vertex v's copies within sqrt(rstar2) of the box, for v in
+    [v0, v1) (shift -1..2 along non-periodic axes; the gap to the box summed over axes)."""
+    d = points.shape[1]
+    g2 = np.zeros((d, 4))  # per axis and shift: the squared gap to the box's slab
+    s = np.zeros(d, np.int64)
+    for v in range(v0, v1):
+        only_centre = True
+        for a in range(d):
+            for j in range(4):
+                if free[a]:
+                    p = points[v, a] + (j - 1) * L[a]
+                    g = max(blo[a] - p, 0.0, p - bhi[a])
+                    g2[a, j] = g * g
+                else:
+                    g2[a, j] = 0.0 if j == 1 else np.inf
+                if j != 1 and g2[a, j] <= rstar2:
+                    only_centre = False
+        if only_centre:
+            gap2 = 0.0
+            for a in range(d):
+                gap2 += g2[a, 1]
+            if gap2 <= rstar2:
+                for a in range(d):
+                    s[a] = 0
+                need[v] |= _vertex_bit(s, d)
+            continue
         for code in range(4**d):
             _digits(code, 4, d, s)
             gap2 = 0.0
-            skip = False
             for a in range(d):
-                if free[a]:
-                    p = points[v, a] + s[a] * L[a]
-                    g = max(blo[a] - p, 0.0, p - bhi[a])
-                    gap2 += g * g
-                elif s[a] != 0:
-                    skip = True
-            if not skip and gap2 <= rstar2:
+                gap2 += g2[a, s[a] + 1]
+            if gap2 <= rstar2:
                 need[v] |= _vertex_bit(s, d)
+
+
+@kernel(entry=True)
+def _number_copies(cells, offsets, free, keep, need, first, start):
+    """Mark each kept cell copy's corners in ``need`` (one thread: cells share vertices),
+    then number the copies: vertex v's first copy is first[v], cell t's first start[t]."""
+    nt, nc = cells.shape
+    m = need.shape[0]
+    d = offsets.shape[2]
+    s = np.zeros(d, np.int64)
+    vs = np.zeros(d, np.int64)
+    start[0] = 0
     for t in range(nt):
-        if keep[t] == 0:
+        mask = keep[t]
+        start[t + 1] = start[t] + _popcount64(np.uint64(mask))
+        if mask == 0:
             continue
         for code in range(3**d):
-            if keep[t] & (1 << code):
+            if mask & (1 << code):
                 _digits(code, 3, d, s)
                 for i in range(nc):
                     _corner_shift(offsets, t, i, s, free, vs)
                     need[cells[t, i]] |= _vertex_bit(vs, d)
-    # number the copies in (vertex, shift) order
-    first = np.empty(m + 1, np.int64)
     first[0] = 0
     for v in range(m):
         first[v + 1] = first[v] + _popcount64(need[v])
-    nout = first[m]
-    out_v = np.empty(nout, np.int64)
-    out_s = np.empty((nout, d), np.int8)
-    for v in range(m):
+
+
+@kernel(entry=True, nogil=True)
+def _vertex_copies(points, L, need, first, out_v, pos, v0, v1):
+    """The vertex copies of vertices [v0, v1): their vertex and position (internal units,
+    shifted by whole periods)."""
+    d = points.shape[1]
+    s = np.zeros(d, np.int64)
+    for v in range(v0, v1):
         j = first[v]
         for code in range(4**d):
             if need[v] & (np.uint64(1) << np.uint64(code)):
                 out_v[j] = v
                 _digits(code, 4, d, s)
                 for a in range(d):
-                    out_s[j, a] = s[a]
+                    pos[j, a] = points[v, a] + s[a] * L[a]
                 j += 1
-    kept = np.empty((nkeep, nc), np.int32)
-    off = np.zeros((nkeep, nc, d), np.int8)
-    n = 0
-    for t in range(nt):
-        if keep[t] == 0:
+
+
+@kernel(entry=True, nogil=True)
+def _cell_copies(cells, offsets, free, keep, need, first, start, kept, off, t0, t1):
+    """The cell copies of cells [t0, t1): corners into the vertex copies, and the offsets
+    along periodic axes."""
+    nc = cells.shape[1]
+    d = offsets.shape[2]
+    s = np.zeros(d, np.int64)
+    vs = np.zeros(d, np.int64)
+    for t in range(t0, t1):
+        mask = keep[t]
+        if mask == 0:
             continue
+        n = start[t]
         for code in range(3**d):
-            if keep[t] & (1 << code):
+            if mask & (1 << code):
                 _digits(code, 3, d, s)
                 for i in range(nc):
                     _corner_shift(offsets, t, i, s, free, vs)
@@ -359,4 +437,3 @@ def _unfold(points, cells, offsets, L, blo, bhi, free):
                     bit = _vertex_bit(vs, d)
                     kept[n, i] = first[v] + _popcount64(need[v] & (bit - np.uint64(1)))
                 n += 1
-    return out_v, out_s, kept, off
