@@ -461,10 +461,10 @@ def test_certify_fails_a_box_mesh_missing_its_copies():
 
 @pytest.mark.parametrize("periodic", [False, (True, False, True)])
 def test_unfolding_in_space_keeps_every_copy_the_box_needs(periodic):
-    """embedding.unfold in space (its passes on the engine's threads) against a brute numpy oracle on the
-    torus mesh: the tetrahedron copies (shifts -1..1 along non-periodic axes) whose bounding
-    boxes meet the box, and every vertex copy within r* (the longest kept edge) of the box,
-    each exactly once."""
+    """embedding.unfold in space (its passes on the engine's threads) against a brute numpy
+    oracle on the torus mesh: the tetrahedron copies (shifts -1..1 along non-periodic axes)
+    whose bounding boxes meet the box, and every vertex copy within r* (the longest kept
+    edge) of the box, each exactly once."""
     import itertools
 
     pts = multiscale(5000, 18)

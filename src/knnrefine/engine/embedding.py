@@ -281,9 +281,7 @@ def _keep_cells(points, cells, offsets, L, blo, bhi, free, keep, t0, t1):
     c = np.empty((nc, d))
     ok = np.empty(d, np.int64)  # per axis: bit s + 1 set when shift s meets the slab
     s = np.zeros(d, np.int64)
-    centre = 0  # the code of shift 0 on every axis
-    for a in range(d):
-        centre = centre * 3 + 1
+    centre = (3**d - 1) // 2  # the code of shift 0 on every axis (digits 1...1 in base 3)
     for t in range(t0, t1):
         for i in range(nc):
             for a in range(d):
