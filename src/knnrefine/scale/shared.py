@@ -139,23 +139,37 @@ def _grown(a, n):
 
 class Vertices:
     """The run's vertices so far, in the order they got their ids: positions (internal),
-    kinds, and the tile that made each (-1: the initial mesh and the coarse pass)."""
+    kinds, and the tile that made each (-1: the initial mesh and the coarse pass). Views of
+    arrays that grow by a quarter when full (a turn appends each tile's vertices)."""
 
     def __init__(self, xy, kinds):
-        self.xy, self.kinds = xy, kinds
-        self.maker = np.full(len(xy), -1, np.int64)
+        self._xy, self._kinds = xy, kinds
+        self._maker = np.full(len(xy), -1, np.int64)
+        self.count = len(xy)
 
-    @property
-    def count(self):
-        return len(self.xy)
+    xy = property(lambda self: self._xy[: self.count])
+    kinds = property(lambda self: self._kinds[: self.count])
+    maker = property(lambda self: self._maker[: self.count])
 
     def add(self, xy, kinds, maker):
         """Append; returns the new vertices' ids."""
-        first = self.count
-        self.xy = np.concatenate([self.xy, xy])
-        self.kinds = np.concatenate([self.kinds, kinds])
-        self.maker = np.concatenate([self.maker, np.full(len(xy), maker, np.int64)])
-        return np.arange(first, self.count)
+        first, last = self.count, self.count + len(xy)
+        if last > len(self._xy):
+            size = max(last, int(1.25 * len(self._xy)))
+            self._xy, self._kinds, self._maker = (
+                _grown_to(a, size) for a in (self._xy, self._kinds, self._maker)
+            )
+        self._xy[first:last] = xy
+        self._kinds[first:last] = kinds
+        self._maker[first:last] = maker
+        self.count = last
+        return np.arange(first, last)
+
+
+def _grown_to(a, size):
+    out = np.empty((size, *a.shape[1:]), a.dtype)
+    out[: len(a)] = a
+    return out
 
 
 class Stop:
@@ -217,26 +231,23 @@ def sizes_near(tiles, slabs, data):
     return np.max(found, axis=0)
 
 
-def seam_widths(strips, cuts, axis, length, spacing, data):
-    """Half the width of the seam at each cut (of a period ``length``), and the largest
-    element the strips settled near it: SEAM_SIZES times that element, at least
-    SEAM_SPACINGS times the mesh's mean spacing ``spacing``, at most SEAM_SHARE of the
-    narrower strip it borders."""
+def seam_widths(strips, cuts, axis, length, spacing, data, periodic):
+    """Half the width of the seam at each cut (of a period ``length``), the largest element
+    the strips settled near it, and how far into the data's box the frame's tile must have
+    every vertex. A seam is SEAM_SIZES times its element, at least SEAM_SPACINGS times the
+    mesh's mean spacing ``spacing``, at most SEAM_SHARE of the narrower strip it borders; the
+    frame's band FRAME_SIZES times the largest element the strips settled near the box's
+    sides along its non-periodic axes (at least SEAM_SPACINGS spacings). One pass over the
+    strips' meshes measures both."""
     least = SEAM_SPACINGS * spacing
-    near = sizes_near(strips, [(axis, c - least, 2 * least) for c in cuts], data)
+    sides = [(a, data[a] + side * data[2 + a] - least, 2 * least)
+             for a in range(2) if not periodic[a] for side in (0, 1)]  # fmt: skip
+    near = sizes_near(strips, [(axis, c - least, 2 * least) for c in cuts] + sides, data)
+    near, frame = near[: len(cuts)], near[len(cuts) :]
     widths = np.diff(np.append(cuts, cuts[0] + length))
     most = SEAM_SHARE * np.minimum(widths, np.roll(widths, 1))
-    return np.minimum(np.maximum(SEAM_SIZES * near, least), most), near
-
-
-def frame_band(strips, data, periodic, least):
-    """How far into the data's box the frame's tile must have every vertex: FRAME_SIZES
-    times the largest element the strips settled near the box's sides (at least ``least``)."""
-    slabs = [(a, data[a] + side * data[2 + a] - least, 2 * least)
-             for a in range(2) if not periodic[a] for side in (0, 1)]  # fmt: skip
-    if not slabs:
-        return least
-    return max(FRAME_SIZES * float(sizes_near(strips, slabs, data).max()), least)
+    band = max(FRAME_SIZES * float(frame.max(initial=0.0)), least)
+    return np.minimum(np.maximum(SEAM_SIZES * near, least), most), near, band
 
 
 def stitch(tiles, bounds, axis, cores, data, vertices):
@@ -382,7 +393,7 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         stopped, _, rep = run_turn(strips, vertices, True, deadline, stop, report)
         rounds.append({"round": "strips", **rep})
         interrupts.check()
-        half, near = seam_widths(strips, cuts, axis, length, spacing, data)
+        half, near, frame_w = seam_widths(strips, cuts, axis, length, spacing, data, emb.periodic)
         # a tile vouches for the triangles of its core whose disks lie in its area: beyond
         # its region, seams and strips have every vertex as far again as the largest element
         # near their cut spans
@@ -397,8 +408,7 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
             k = (j + 1) % workers
             lo, hi = 2.0 * near[j], 2.0 * near[k]
             tile.widen(band(cuts[j] - lo - pad, widths[j] + lo + hi + 2 * pad, 1), vertices)
-        least = SEAM_SPACINGS * spacing
-        frame = _frame(emb, period, data, frame_band(strips, data, emb.periodic, least))
+        frame = _frame(emb, period, data, frame_w)
         framed = []  # the frame's tile: every vertex in the margins and near them, gathered
         if frame is not None:  # with the seams' turns (it makes none)
             framed = [Tile(2 * workers, common, index, None, frame, 0)]

@@ -1,11 +1,12 @@
-"""Before/after timing of refine in space: the same command alternating between two source
-trees (this checkout's ``src`` and another's, e.g. a ``git worktree`` of an earlier commit),
-each run in a fresh process after a warm-up call on 20,000 of the points, refine only,
-medians over --repeat pairs. Mesh sizes are printed too (the same when a change leaves the
-moves alone).
+"""Before/after timing of refine: the same command alternating between two source trees
+(this checkout's ``src`` and another's, e.g. a ``git worktree`` of an earlier commit), each
+run in a fresh process after a warm-up call on 20,000 of the points, refine only, medians
+over --repeat pairs. Mesh sizes are printed too (the same when a change leaves the moves
+alone). ``--dim 3``: the periodic unit cube, ``bench_refine3.py``'s points; ``--dim 2``: the
+unit square (not periodic), ``bench_refine.py``'s points; ``--workers``: refine's.
 
     git worktree add /tmp/before <commit>
-    python benchmarks/paired_refine3.py --before /tmp/before/src --n 1e6 --k 10 \\
+    python benchmarks/paired_refine.py --before /tmp/before/src --dim 3 --n 1e6 --k 10 \\
         --kind uniform --repeat 3
 """
 
@@ -19,25 +20,30 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def one(kind, n, k):
-    import numpy as np  # noqa: F401
-
+def one(dim, kind, n, k, workers):
     sys.path.insert(0, HERE)
-    from bench_refine3 import make_points3
-
     import knnrefine
 
-    pts = make_points3(kind, n)
-    box, periodic = (0, 0, 0, 1, 1, 1), (True, True, True)
-    knnrefine.refine(pts[:20000], k, periodic=periodic, box=box)
+    if dim == 3:
+        from bench_refine3 import make_points3
+
+        pts = make_points3(kind, n)
+        where = {"box": (0, 0, 0, 1, 1, 1), "periodic": True}
+    else:
+        from bench_refine import make_points
+
+        pts, where = make_points(kind, n), {}
+    knnrefine.refine(pts[:20000], k, workers=workers, **where)
     t0 = time.perf_counter()
-    mesh = knnrefine.refine(pts, k, periodic=periodic, box=box)
+    mesh = knnrefine.refine(pts, k, workers=workers, **where)
     print(time.perf_counter() - t0, len(mesh.vertices))
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--before", required=True, help="the other tree's src directory")
+    ap.add_argument("--dim", type=int, choices=[2, 3], default=3)
+    ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--n", type=float, default=1e6)
     ap.add_argument("--k", type=int, default=10)
     ap.add_argument("--kind", choices=["uniform", "clustered"], default="uniform")
@@ -45,13 +51,15 @@ def main(argv=None):
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
-        one(args.kind, int(args.n), args.k)
+        one(args.dim, args.kind, int(args.n), args.k, args.workers)
         return
     trees = {"before": os.path.abspath(args.before),
              "after": os.path.join(os.path.dirname(HERE), "src")}  # fmt: skip
     times = {name: [] for name in trees}
     cmd = [sys.executable, __file__, "--one", "--before", args.before, "--n", str(args.n),
-           "--k", str(args.k), "--kind", args.kind]  # fmt: skip
+           "--k", str(args.k), "--kind", args.kind, "--dim", str(args.dim)]  # fmt: skip
+    if args.workers is not None:
+        cmd += ["--workers", str(args.workers)]
     for _ in range(args.repeat):
         for name, src in trees.items():
             env = dict(os.environ, PYTHONPATH=src)
@@ -61,7 +69,8 @@ def main(argv=None):
             print(f"{name}: {float(seconds):.3f} s, m = {int(m):,}", flush=True)
     a, b = (statistics.median(times[x]) for x in ("before", "after"))
     print(
-        f"{args.kind} n={args.n:.0e} k={args.k}: before {a:.2f} s, after {b:.2f} s, "
+        f"{args.kind} d={args.dim} n={args.n:.0e} k={args.k} workers={args.workers}: "
+        f"before {a:.2f} s, after {b:.2f} s, "
         f"after / before {b / a:.3f} (medians of {args.repeat})"
     )
 
