@@ -108,9 +108,15 @@ def interval_within(lo, extent, start, width, period):
     """The interval [lo, lo + extent] of a periodic axis lies in [start, start + width]."""
     if width >= period:  # the region spans the axis
         return extent < period
-    d = np.fmod(lo - start, period)
-    if d < 0.0:
-        d += period
+    d = lo - start
+    if d < 0.0:  # one period either way covers every caller's frame; fmod (a libm call,
+        d += period  # the costlier) only beyond
+    elif d >= period:
+        d -= period
+    if d < 0.0 or d >= period:
+        d = np.fmod(lo - start, period)
+        if d < 0.0:
+            d += period
     return d + extent <= width
 
 
