@@ -75,14 +75,33 @@ def reset_peak():
         return False
 
 
+def _refine(pts, k, tau, w):
+    """refine with ``workers=w``; w = ONE_CORE: workers=1 with KNNREFINE_THREADS=1 (one
+    thread for the index, the sweeps and the assembly too)."""
+    import knnrefine
+
+    if w != ONE_CORE:
+        return knnrefine.refine(pts, k, tau, workers=w)
+    saved = os.environ.get("KNNREFINE_THREADS")
+    os.environ["KNNREFINE_THREADS"] = "1"
+    try:
+        return knnrefine.refine(pts, k, tau, workers=1)
+    finally:
+        if saved is None:
+            del os.environ["KNNREFINE_THREADS"]
+        else:
+            os.environ["KNNREFINE_THREADS"] = saved
+
+
+ONE_CORE = 0  # the workers value that stands for one core (``--one-core``)
+
+
 def worker(kind, n, k, tau, repeat, ckdtree_budget, workers=(1,)):
     from scipy.spatial import cKDTree
 
-    import knnrefine
-
     pts = make_points(kind, n)
     for w in workers:  # warm-up: loads every kernel this input needs, the threads
-        knnrefine.refine(pts, k, tau, workers=w)
+        _refine(pts, k, tau, w)
     first = _status_mb("VmRSS")
     times = {w: [] for w in workers}
     peaks = []
@@ -96,7 +115,7 @@ def worker(kind, n, k, tau, repeat, ckdtree_budget, workers=(1,)):
             base = _status_mb("VmRSS")
             ok = reset_peak()
             t0 = time.perf_counter()
-            mesh = knnrefine.refine(pts, k, tau, workers=w)
+            mesh = _refine(pts, k, tau, w)
             times[w].append(time.perf_counter() - t0)
             sizes[w] = len(mesh.vertices)
             if w == workers[0]:
@@ -200,18 +219,31 @@ def markdown(results):
     runs = results["runs"]
     extra = [w for w in (runs[0].get("workers", [1])[1:] if runs else [])]
     first = runs[0].get("workers", [1])[0] if runs else 1
-    head = "".join(f" workers={w} (m) | speed-up |" for w in extra)
+    head = "".join(
+        " one core (m) | workers=1 / one core |"
+        if w == ONE_CORE
+        else f" workers={w} (m) | speed-up |"
+        for w in extra
+    )
+    if ONE_CORE in extra and len(extra) > 1:
+        head += f" workers={extra[0]} over one core |"
     lines.append(
         f"| input | n | k | refine, workers={first} (median) | memory: refine / budget / "
         f"process peak | m | cKDTree k-th NN | refine / cKDTree |{head}"
     )
-    lines.append("|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|---:|" * len(extra))
+    over = ONE_CORE in extra and len(extra) > 1
+    lines.append(
+        "|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|---:|" * len(extra) + "---:|" * over
+    )
     for r in runs:
         ck = ("~" if r["ckdtree_sampled"] else "") + f"{r['ckdtree_s']:.2f} s"
         cols = ""
         for w in extra:
             b = r["by_workers"][str(w)]
             cols += f" {b['refine_s']:.3f} s ({b['m']}) | {r['refine_s'] / b['refine_s']:.2f}x |"
+        if over:
+            one, tiles = (r["by_workers"][str(w)]["refine_s"] for w in (ONE_CORE, extra[0]))
+            cols += f" **{one / tiles:.2f}x** |"
         lines.append(
             f"| {r['kind']} | {r['n']:.0e} | {r['k']} | {r['refine_s']:.3f} s | "
             f"{r['peak_mb']:.1f} / {r['budget_mb']:.1f} / {r['peak_total_mb']:.0f} MiB | "
@@ -238,6 +270,11 @@ def main(argv=None):
         help="workers values, run interleaved in each configuration's process",
     )
     ap.add_argument(
+        "--one-core",
+        action="store_true",
+        help="also run workers=1 on one core (KNNREFINE_THREADS=1), interleaved",
+    )
+    ap.add_argument(
         "--worker", nargs=4, metavar=("KIND", "N", "K", "REPEAT"), help=argparse.SUPPRESS
     )
     args = ap.parse_args(argv)
@@ -245,6 +282,8 @@ def main(argv=None):
         with open(args.markdown) as f:
             print(markdown(json.load(f)))
         return
+    if args.one_core:
+        args.workers = [*args.workers, ONE_CORE]
     if args.worker:
         kind, n, k, repeat = args.worker
         res = worker(
