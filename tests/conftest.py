@@ -129,6 +129,20 @@ ACHIEVED = []
 # -- generators of points, defined once (the plane's and space's tests share them) ---------
 
 
+@pytest.fixture(scope="module")
+def tiles_always():
+    """refine(workers=N) runs its tiles at every size (``KNNREFINE_TILES=always``): below
+    ``scale.tiled.TILES_FROM`` it would run one process, which is faster there; the tests of
+    the tiles want the tiles."""
+    saved = os.environ.get("KNNREFINE_TILES")
+    os.environ["KNNREFINE_TILES"] = "always"
+    yield
+    if saved is None:
+        del os.environ["KNNREFINE_TILES"]
+    else:
+        os.environ["KNNREFINE_TILES"] = saved
+
+
 @pytest.fixture(params=[2, 3], ids=["plane", "space"])
 def dim(request):
     """The dimension a test runs in: the plane's and space's suites are one."""

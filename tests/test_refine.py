@@ -216,7 +216,7 @@ def test_knnrefine_threads_must_be_a_number(monkeypatch):
 
 @pytest.mark.parametrize("workers", [1, 2])
 @pytest.mark.parametrize("periodic", [False, (True, False), (False, True)])
-def test_unfolding_in_threads_keeps_every_copy_the_box_needs(periodic, workers):
+def test_unfolding_in_threads_keeps_every_copy_the_box_needs(periodic, workers, monkeypatch):
     """embedding.unfold in the plane (its passes over cells and vertices run in ranges on
     the engine's threads) against a brute numpy oracle on the torus mesh: the triangle
     copies (shifts -1..1 along non-periodic axes) whose bounding boxes meet the box, and
@@ -226,6 +226,7 @@ def test_unfolding_in_threads_keeps_every_copy_the_box_needs(periodic, workers):
 
     from conftest import torus_frame
 
+    monkeypatch.setenv("KNNREFINE_TILES", "always")  # the stitched tiles at this size too
     rng = np.random.default_rng(33)
     pts = rng.random((30000, 2)) ** 2
     pts[:3000, 0] = 0.5
@@ -256,3 +257,37 @@ def test_unfolding_in_threads_keeps_every_copy_the_box_needs(periodic, workers):
         gap = np.where(per, 0.0, np.maximum(np.maximum(lo - x, 0.0), x - hi))
         near |= {tuple(v) for v in np.round(x[(gap**2).sum(axis=1) <= edges], 12)}
     assert near <= {tuple(v) for v in np.round(local, 12)}
+
+
+def test_workers_below_the_tiles_size_run_one_process(monkeypatch):
+    """Issue 32: refine(workers=2) on 10^6 points ran 0.75-0.9x as fast as one process (the
+    stitched strips' plan, seams and stitch outweigh halving the refinement; one process
+    uses every core for its index, sweeps and assembly already). Below
+    ``scale.tiled.TILES_FROM`` (and always in space) workers > 1 runs that one process: the
+    very mesh of workers=None, vertex by vertex; KNNREFINE_TILES=always tiles anyway, and a
+    value it does not know is refused before any work."""
+    from knnrefine.errors import InputError
+    from knnrefine.scale import tiled
+
+    monkeypatch.delenv("KNNREFINE_TILES", raising=False)
+    pts = np.random.default_rng(34).random((20000, 2))
+    one = knnrefine.refine(pts, 10)
+    two = knnrefine.refine(pts, 10, workers=2)
+    assert "rounds" not in two.stats
+    np.testing.assert_array_equal(one.vertices, two.vertices)
+    np.testing.assert_array_equal(one.cells, two.cells)
+    xyz = np.random.default_rng(35).random((3000, 3))
+    box3 = (0, 0, 0, 1, 1, 1)
+    a = knnrefine.refine(xyz, 10, periodic=True, box=box3)
+    b = knnrefine.refine(xyz, 10, periodic=True, box=box3, workers=3)
+    assert "rounds" not in b.stats
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    monkeypatch.setitem(tiled.TILES_FROM, 2, 10000)  # at and above it: the tiles
+    assert "rounds" in knnrefine.refine(pts, 10, workers=2).stats
+    assert "rounds" not in knnrefine.refine(pts[:9999], 10, workers=2).stats
+    monkeypatch.setitem(tiled.TILES_FROM, 2, 2_000_000)
+    monkeypatch.setenv("KNNREFINE_TILES", "always")
+    assert "rounds" in knnrefine.refine(pts, 10, workers=2).stats
+    monkeypatch.setenv("KNNREFINE_TILES", "sometimes")
+    with pytest.raises(InputError, match="KNNREFINE_TILES"):
+        knnrefine.refine(pts, 10, workers=2)

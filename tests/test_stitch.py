@@ -17,6 +17,8 @@ from knnrefine.engine.driver import Refinement
 from knnrefine.engine.index import build_index
 from knnrefine.scale import shared
 
+pytestmark = pytest.mark.usefixtures("tiles_always")  # the tiles at every size
+
 
 def refined(n=4000, k=10, seed=3):
     """A finished run on the unit torus, in this process."""

@@ -16,6 +16,8 @@ import knnrefine
 from knnrefine.engine.region import in_rectangle
 from knnrefine.scale.tiled import strips
 
+pytestmark = pytest.mark.usefixtures("tiles_always")  # the tiles at every size
+
 
 def clustered(n, seed=0):
     """Forty Gaussian clusters with widths from 1e-3 to 3e-2, wrapped into the unit box."""

@@ -296,12 +296,13 @@ def test_max_vertices_is_checked(bad):
         knnrefine.refine(np.random.default_rng(2).random((100, 2)), 5, max_vertices=bad)
 
 
-def test_max_vertices_beyond_int64_means_no_budget():
+def test_max_vertices_beyond_int64_means_no_budget(monkeypatch):
     """regression: max_vertices=2**70 raised a bare OverflowError; a budget beyond 2^62 is
     no budget (capped there), in the plane, in space and through the tiles."""
     pts = np.random.default_rng(3).random((2000, 2))
     mesh = knnrefine.refine(pts, 5, max_vertices=2**70)
     assert mesh.stats["max_vertices"] == 2**62
+    monkeypatch.setenv("KNNREFINE_TILES", "always")  # the tiles at this size too
     assert len(knnrefine.refine(pts, 5, max_vertices=2**70, workers=2).vertices) > 0
     space = np.random.default_rng(4).random((500, 3))
     knnrefine.refine(space, 5, periodic=True, box=(0, 0, 0, 1, 1, 1), max_vertices=2**70)

@@ -102,20 +102,25 @@ def refine(
         never compiled in this environment, it is first called once with (0, 0,
         phase="compiling"): the compilation that follows takes 10-60 s, once.
     workers : int, optional
-        None or 1: one run in this process, whose kernels use every core for the index and
-        the bulk counts (``KNNREFINE_THREADS`` caps them). N > 1: a tiled run in N threads
-        of this process, all counting in one index of all points (the kernels release the
-        GIL). In the plane: N strips of the torus, balanced by point count, each refining
-        only what lies inside it (``engine/region.py``), then a seam at each cut, in turns,
-        each tile keeping its mesh and inserting only the others' vertices near it; the
-        meshes are stitched into one triangulation (checked: every edge has its twin) and
-        one last run finishes what no tile could decide (docs/algorithm.md, "In threads,
-        stitched": the same guarantees, certified by ``certify``). In space: rounds of slabs
-        and shifted slabs. The mesh differs from a one-process run's in the order of its
-        moves, and its size by a few percent. ``stats["rounds"]`` reports each turn and the
-        last step; ``time_limit`` and ``max_vertices`` hold in every tile. On this project's
-        2-core machine N = 2 is about as fast as the default, not faster
-        (docs/benchmarks.md, "Workers in threads"): None is the choice there.
+        None or 1: one run in this process, whose kernels use every core for the index, the
+        bulk counts and the assembly (``KNNREFINE_THREADS`` caps them); the mesh does not
+        depend on the cores. N > 1: a tiled run in N threads of this process where tiles
+        pay, all counting in one index of all points (the kernels release the GIL): in the
+        plane from ``scale.tiled.TILES_FROM`` points on (2 x 10^6), N strips of the torus,
+        balanced by point count, each refining only what lies inside it
+        (``engine/region.py``), then a seam at each cut, in turns, each tile keeping its
+        mesh and inserting only the others' vertices near it; the meshes are stitched into
+        one triangulation (checked: every edge has its twin) and one last run finishes what
+        no tile could decide (docs/algorithm.md, "In threads, stitched": the same
+        guarantees, certified by ``certify``). Below that size, and in space (whose slabs
+        re-triangulate: 1.1-1.7x slower than one process at 10^6 points), N > 1 runs
+        the one process of None, which is faster there (docs/benchmarks.md, "Workers in
+        threads"); ``KNNREFINE_TILES=always`` tiles at every size. A tiled mesh differs from
+        a one-process run's in the order of its moves, and its size by a few percent;
+        ``stats["rounds"]`` reports each turn and the last step; ``time_limit`` and
+        ``max_vertices`` hold in every tile. On this project's 2-core machine the stitched
+        strips are 0.94-1.13x of one process at 4 x 10^6 points and 1.15-1.4x of a run on
+        one core (``KNNREFINE_THREADS=1``).
     executor : concurrent.futures.Executor, optional
         Run the tiles of a run with ``workers`` > 1 on this executor instead (processes or
         machines, each tile with a copy of its strip's points): its ``map`` is called once
@@ -142,7 +147,7 @@ def refine(
     kernel call during setup).
 
     Points in space ((n, 3), a box of six numbers, ``periodic`` a bool or three) are refined
-    by ``run3.refine3`` into the same ``Mesh`` type, weights, workers (slabs) and executor
+    by ``run3.refine3`` into the same ``Mesh`` type, weights, workers and executor (slabs)
     included.
     """
     if not isinstance(sphere, (bool, np.bool_)):
@@ -163,9 +168,10 @@ def refine(
     if executor is not None and workers < 2:
         raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
     if workers > 1:
-        from .scale.tiled import refine_local
+        from .scale.tiled import refine_local, tiles_pay
 
-        return refine_local(pts, w, opt, workers, executor)
+        if executor is not None or tiles_pay(pts.shape[1], len(pts)):
+            return refine_local(pts, w, opt, workers, executor)
     return run.refine_checked(pts, w, opt)
 
 

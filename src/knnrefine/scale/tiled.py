@@ -584,6 +584,26 @@ class ThreadStore(LocalStore):
 
 # -- a tiled run ------------------------------------------------------------------------------
 
+# Points from which tiles in threads beat one process (whose index, sweeps and assembly use
+# every core already), per dimension; below, ``workers`` > 1 runs one process. Measured on 2
+# cores (docs/benchmarks.md, "Workers in threads"): in the plane the stitched strips are
+# 0.75-1.0x of one process at 10^6 points and 0.94-1.13x at 4 x 10^6; in space the slabs,
+# which re-triangulate, are slower at every size measured, so space runs one process.
+# ``KNNREFINE_TILES=always`` tiles at every size (to measure them, or with more cores).
+TILES_FROM = {2: 2_000_000, 3: None}
+
+
+def tiles_pay(dim, n):
+    """Whether ``workers`` > 1 without an executor runs tiles for n points in ``dim``
+    dimensions (else one process): ``TILES_FROM``, or always when KNNREFINE_TILES=always."""
+    env = os.environ.get("KNNREFINE_TILES", "").strip().lower()
+    if env not in ("", "auto", "always"):
+        raise InputError(f"KNNREFINE_TILES must be 'auto' or 'always', got {env!r}")
+    if env == "always":
+        return True
+    least = TILES_FROM[dim]
+    return least is not None and n >= least
+
 
 def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
     """``knnrefine.refine`` with ``workers`` > 1: refined in strips (slabs in space:
