@@ -206,10 +206,10 @@ class Refinement3(TileRun):
                 return sweep_cells3(self.mesh, self.book, self.prm, self.index, start, stop)
 
             parts = in_chunks(cells, self.vertices, threads, self.SWEEP_SLOTS // 8)
-            if min(p[0] for p in parts) < 0:
-                self.cnt[C_ERROR] = min(p[0] for p in parts)
+            if min(parts) < 0:
+                self.cnt[C_ERROR] = min(parts)
                 return STATUS_ERROR
-            self.cnt[C_CELL_TESTS] += sum(p[0] for p in parts)
+            self.cnt[C_CELL_TESTS] += sum(parts)
             return STATUS_STEPS
         cls = int(self.cnt[C_BALLS_SWEPT]) - 1
         made = good = 0

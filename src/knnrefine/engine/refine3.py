@@ -192,9 +192,18 @@ def count_cell3(v, mesh, scratch, probe, cnt, prm, index):
     nh = vertex_neighbours3(v, mesh, scratch, cnt, period, probe.h, probe.ids)
     if nh < 0:
         return STAR_OVERFLOW
+    return _count_in_cell3(index, mesh.xyz[v], probe.h, probe.hc, nh, r2, inflate, k, period,
+                           probe.stack)  # fmt: skip
+
+
+@kernel(inline="always")
+def _count_in_cell3(index, x, h, hc, nh, r2, inflate, k, period, stack):
+    """The count of ``count_cell3`` and ``sweep_cells3`` once the ball of radius R(v) held
+    >= k: the cell about x cut by the bisectors of its nh neighbours (h: their positions
+    relative to x; hc: scratch for the half squared lengths, inflated), within r2."""
     for j in range(nh):
-        probe.hc[j] = 0.5 * (probe.h[j, 0] ** 2 + probe.h[j, 1] ** 2 + probe.h[j, 2] ** 2) * inflate
-    return count_in_cell3(index, mesh.xyz[v], probe.h, probe.hc, nh, r2, k, period, probe.stack)
+        hc[j] = 0.5 * (h[j, 0] ** 2 + h[j, 1] ** 2 + h[j, 2] ** 2) * inflate
+    return count_in_cell3(index, x, h, hc, nh, r2, k, period, stack)
 
 
 @kernel(inline="always")
@@ -334,8 +343,8 @@ def sweep_balls3(mesh, book, prm, index, cls, start, stop, stride):
 def sweep_cells3(mesh, book, prm, index, start, stop):
     """Count the closed Voronoi cells of the queued vertices with untested cells among
     [start, stop) and mark GOOD those holding < k points (a cell only shrinks: settled for
-    good; the others are counted again when popped). Returns (counts made, GOOD among them),
-    or (STAR_OVERFLOW, 0). Reads the mesh, writes only these vertices' cell states, and
+    good; the others are counted again when popped). Returns the counts made, or
+    STAR_OVERFLOW. Reads the mesh, writes only these vertices' cell states, and
     walks stars without the shared marks (``neighbours_local3``): threads may sweep
     disjoint ranges at once."""
     k = prm[P3_K]
@@ -347,7 +356,6 @@ def sweep_cells3(mesh, book, prm, index, start, stop):
     walk = np.empty(MAX_CAVITY3, np.int64)
     stack = np.empty(STACK_SIZE, np.int64)
     made = 0
-    good = 0
     for v in range(start, stop):
         if not (book.flags[v] & IN_CELL_QUEUE) or book.cell_state[v] != UNTESTED:
             continue
@@ -358,17 +366,13 @@ def sweep_cells3(mesh, book, prm, index, start, stop):
         r2 = r2 * inflate  # as count_cell3 counts
         if count_in_ball3(index, mesh.xyz[v], r2, k, period, stack) < k:
             book.cell_state[v] = GOOD
-            good += 1
             continue
-        nh = neighbours_local3(v, mesh, period, walk, h, ids)
-        if nh < 0:
-            return STAR_OVERFLOW, 0
-        for j in range(nh):
-            hc[j] = 0.5 * (h[j, 0] ** 2 + h[j, 1] ** 2 + h[j, 2] ** 2) * inflate
-        if count_in_cell3(index, mesh.xyz[v], h, hc, nh, r2, k, period, stack) < k:
+        nh = neighbours_local3(v, mesh, period, walk, h, ids)  # the shared marks are not
+        if nh < 0:  # this thread's: count_cell3's walk cannot be used
+            return STAR_OVERFLOW
+        if _count_in_cell3(index, mesh.xyz[v], h, hc, nh, r2, inflate, k, period, stack) < k:
             book.cell_state[v] = GOOD
-            good += 1
-    return made, good
+    return made
 
 
 @kernel(inline="always")
