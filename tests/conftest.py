@@ -256,6 +256,44 @@ def torus_frame(mesh):
     return BoxMetric((*origin, *(origin + period)), mesh.periodic).frame
 
 
+def assert_unfolding_keeps_every_copy(mesh, box):
+    """A brute numpy oracle for ``embedding.unfold`` (the mesh as returned, from its torus
+    mesh), in the plane or in space: the cell copies (shifts -1..1 along non-periodic axes)
+    whose bounding boxes meet the box are the cells returned, each once, and every vertex
+    copy within r* (the longest kept edge) of the box is among the vertices returned, none
+    twice."""
+    import itertools
+
+    t = mesh.torus
+    d = t.vertices.shape[1]
+    period = np.array(t.period)
+    per = np.array(mesh.periodic)
+    lo = np.array(box[:d]) - t.origin
+    hi = np.array(box[d:]) - t.origin
+    c = t.vertices[t.cells] + t.offsets * period
+    pairs = [(i, j) for i in range(d + 1) for j in range(i)]
+    want, edges = [], 0.0
+    for s in itertools.product(*[[0] if p else [-1, 0, 1] for p in per]):
+        cs = c + np.array(s) * period
+        kept = cs[((cs.max(axis=1) >= lo) & (cs.min(axis=1) <= hi) | per).all(axis=1)]
+        want.append(np.round(kept.mean(axis=1), 12))
+        for i, j in pairs:
+            e2 = ((kept[:, i] - kept[:, j]) ** 2).sum(axis=1)
+            edges = max(edges, float(e2.max(initial=0.0)))
+    want = {tuple(x) for x in np.concatenate(want)}
+    got = mesh.corners() - np.array(t.origin)
+    assert len(got) == len(want)
+    assert {tuple(np.round(x, 12)) for x in got.mean(axis=1)} == want
+    local = torus_frame(mesh)(mesh.vertices)
+    assert len({tuple(x) for x in np.round(local, 12)}) == len(local)  # no repeats
+    near = set()
+    for s in itertools.product(*[[0] if p else [-1, 0, 1, 2] for p in per]):
+        x = t.vertices + np.array(s) * period
+        gap = np.where(per, 0.0, np.maximum(np.maximum(lo - x, 0.0), x - hi))
+        near |= {tuple(v) for v in np.round(x[(gap**2).sum(axis=1) <= edges], 12)}
+    assert near <= {tuple(v) for v in np.round(local, 12)}
+
+
 def load_shared(name):
     path = SHARED_DATA / name
     if not path.exists():

@@ -222,9 +222,7 @@ def test_unfolding_in_threads_keeps_every_copy_the_box_needs(periodic, workers, 
     copies (shifts -1..1 along non-periodic axes) whose bounding boxes meet the box, and
     every vertex copy within r* (the longest kept edge) of the box, each exactly once; a
     tenth of the points on one line, through one process and the stitched threads."""
-    import itertools
-
-    from conftest import torus_frame
+    from conftest import assert_unfolding_keeps_every_copy
 
     monkeypatch.setenv("KNNREFINE_TILES", "always")  # the stitched tiles at this size too
     rng = np.random.default_rng(33)
@@ -232,31 +230,9 @@ def test_unfolding_in_threads_keeps_every_copy_the_box_needs(periodic, workers, 
     pts[:3000, 0] = 0.5
     box = (0.0, 0.0, 1.0, 1.0)
     mesh = knnrefine.refine(pts, 10, periodic=periodic, box=box, workers=workers)
-    t = mesh.torus
-    period = np.array(t.period)
-    per = np.array(mesh.periodic)
-    lo = np.array(box[:2]) - t.origin
-    hi = np.array(box[2:]) - t.origin
-    c = t.vertices[t.cells] + t.offsets * period
-    want, edges = [], 0.0
-    for s in itertools.product(*[[0] if p else [-1, 0, 1] for p in per]):
-        cs = c + np.array(s) * period
-        meets = ((cs.max(axis=1) >= lo) & (cs.min(axis=1) <= hi) | per).all(axis=1)
-        want.append(np.round(cs[meets].mean(axis=1), 12))
-        e = cs[meets][:, [0, 1, 2]] - cs[meets][:, [1, 2, 0]]
-        edges = max(edges, float((e**2).sum(axis=2).max(initial=0.0)))
-    want = {tuple(x) for x in np.concatenate(want)}
-    got = mesh.corners() - np.array(t.origin)
-    assert len(got) == len(want)
-    assert {tuple(np.round(x, 12)) for x in got.mean(axis=1)} == want
-    local = torus_frame(mesh)(mesh.vertices)
-    assert len({tuple(x) for x in np.round(local, 12)}) == len(local)  # no repeats
-    near = set()
-    for s in itertools.product(*[[0] if p else [-1, 0, 1, 2] for p in per]):
-        x = t.vertices + np.array(s) * period
-        gap = np.where(per, 0.0, np.maximum(np.maximum(lo - x, 0.0), x - hi))
-        near |= {tuple(v) for v in np.round(x[(gap**2).sum(axis=1) <= edges], 12)}
-    assert near <= {tuple(v) for v in np.round(local, 12)}
+    if workers > 1:
+        assert mesh.stats["rounds"][-1]["stitched"]
+    assert_unfolding_keeps_every_copy(mesh, box)
 
 
 def test_workers_below_the_tiles_size_run_one_process(monkeypatch):

@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 import pytest
-from conftest import multiscale, torus_frame
+from conftest import assert_unfolding_keeps_every_copy, multiscale, torus_frame
 from conftest import uniform as uniform_in
 from scipy.spatial import cKDTree
 
@@ -465,36 +465,9 @@ def test_unfolding_in_space_keeps_every_copy_the_box_needs(periodic):
     oracle on the torus mesh: the tetrahedron copies (shifts -1..1 along non-periodic axes)
     whose bounding boxes meet the box, and every vertex copy within r* (the longest kept
     edge) of the box, each exactly once."""
-    import itertools
-
     pts = multiscale(5000, 18)
     mesh = knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
-    t = mesh.torus
-    period = np.array(t.period)
-    per = np.array(mesh.periodic)
-    lo = np.array(BOX[:3]) - t.origin
-    hi = np.array(BOX[3:]) - t.origin
-    c = t.vertices[t.tetrahedra] + t.offsets * period
-    want, edges = set(), 0.0
-    for s in itertools.product(*[[0] if p else [-1, 0, 1] for p in per]):
-        cs = c + np.array(s) * period
-        meets = ((cs.max(axis=1) >= lo) & (cs.min(axis=1) <= hi) | per).all(axis=1)
-        for tet in cs[meets]:
-            want.add(tuple(np.round(tet.mean(axis=0), 12)))
-            edges = max(
-                edges, max(np.sum((tet[i] - tet[j]) ** 2) for i in range(4) for j in range(i))
-            )
-    got = mesh.corners() - np.array(t.origin)
-    assert len(got) == len(want)
-    assert {tuple(np.round(x, 12)) for x in got.mean(axis=1)} == want
-    local = torus_frame(mesh)(mesh.vertices)
-    assert len({tuple(x) for x in np.round(local, 12)}) == len(local)  # no repeats
-    near = set()
-    for s in itertools.product(*[[0] if p else [-1, 0, 1, 2] for p in per]):
-        x = t.vertices + np.array(s) * period
-        gap = np.where(per, 0.0, np.maximum(np.maximum(lo - x, 0.0), x - hi))
-        near |= {tuple(v) for v in np.round(x[(gap**2).sum(axis=1) <= edges], 12)}
-    assert near <= {tuple(v) for v in np.round(local, 12)}
+    assert_unfolding_keeps_every_copy(mesh, BOX)
 
 
 def test_restarting_the_32_bit_stamps_changes_nothing(monkeypatch):
