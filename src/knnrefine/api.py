@@ -119,8 +119,8 @@ def refine(
         a one-process run's in the order of its moves, and its size by a few percent;
         ``stats["rounds"]`` reports each turn and the last step; ``time_limit`` and
         ``max_vertices`` hold in every tile. On this project's 2-core machine the stitched
-        strips are 0.94-1.13x of one process at 4 x 10^6 points and 1.15-1.4x of a run on
-        one core (``KNNREFINE_THREADS=1``).
+        strips are 0.94-1.14x of one process at 4 x 10^6 points and 1.12-1.5x of a run on
+        one core (``KNNREFINE_THREADS=1``), in two runs of the benchmark.
     executor : concurrent.futures.Executor, optional
         Run the tiles of a run with ``workers`` > 1 on this executor instead (processes or
         machines, each tile with a copy of its strip's points): its ``map`` is called once
