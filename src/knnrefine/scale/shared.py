@@ -157,19 +157,13 @@ class Vertices:
         if last > len(self._xy):
             size = max(last, int(1.25 * len(self._xy)))
             self._xy, self._kinds, self._maker = (
-                _grown_to(a, size) for a in (self._xy, self._kinds, self._maker)
+                S.grown(a, size) for a in (self._xy, self._kinds, self._maker)
             )
         self._xy[first:last] = xy
         self._kinds[first:last] = kinds
         self._maker[first:last] = maker
         self.count = last
         return np.arange(first, last)
-
-
-def _grown_to(a, size):
-    out = np.empty((size, *a.shape[1:]), a.dtype)
-    out[: len(a)] = a
-    return out
 
 
 class Stop:
