@@ -2,8 +2,9 @@
 (this checkout's ``src`` and another's, e.g. a ``git worktree`` of an earlier commit), each
 run in a fresh process after a warm-up call on 20,000 of the points, refine only, medians
 over --repeat pairs. Mesh sizes are printed too (the same when a change leaves the moves
-alone). ``--dim 3``: the periodic unit cube, ``bench_refine3.py``'s points; ``--dim 2``: the
-unit square (not periodic), ``bench_refine.py``'s points; ``--workers``: refine's.
+alone). ``--dim 3``: the periodic unit cube, ``bench_refine3.py``'s points (``--ordinary``:
+the cube not periodic); ``--dim 2``: the unit square (not periodic), ``bench_refine.py``'s
+points; ``--workers``: refine's.
 
     git worktree add /tmp/before <commit>
     python benchmarks/paired_refine.py --before /tmp/before/src --dim 3 --n 1e6 --k 10 \\
@@ -20,7 +21,7 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def one(dim, kind, n, k, workers):
+def one(dim, kind, n, k, workers, ordinary=False):
     sys.path.insert(0, HERE)
     import knnrefine
 
@@ -28,7 +29,7 @@ def one(dim, kind, n, k, workers):
         from bench_refine3 import make_points3
 
         pts = make_points3(kind, n)
-        where = {"box": (0, 0, 0, 1, 1, 1), "periodic": True}
+        where = {"box": (0, 0, 0, 1, 1, 1), "periodic": not ordinary}
     else:
         from bench_refine import make_points
 
@@ -44,6 +45,7 @@ def main(argv=None):
     ap.add_argument("--before", required=True, help="the other tree's src directory")
     ap.add_argument("--dim", type=int, choices=[2, 3], default=3)
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--ordinary", action="store_true", help="in space: the cube not periodic")
     ap.add_argument("--n", type=float, default=1e6)
     ap.add_argument("--k", type=int, default=10)
     ap.add_argument("--kind", choices=["uniform", "clustered"], default="uniform")
@@ -51,7 +53,7 @@ def main(argv=None):
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
-        one(args.dim, args.kind, int(args.n), args.k, args.workers)
+        one(args.dim, args.kind, int(args.n), args.k, args.workers, args.ordinary)
         return
     trees = {"before": os.path.abspath(args.before),
              "after": os.path.join(os.path.dirname(HERE), "src")}  # fmt: skip
@@ -60,6 +62,8 @@ def main(argv=None):
            "--k", str(args.k), "--kind", args.kind, "--dim", str(args.dim)]  # fmt: skip
     if args.workers is not None:
         cmd += ["--workers", str(args.workers)]
+    if args.ordinary:
+        cmd += ["--ordinary"]
     for _ in range(args.repeat):
         for name, src in trees.items():
             env = dict(os.environ, PYTHONPATH=src)
