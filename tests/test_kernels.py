@@ -91,3 +91,69 @@ def test_internal_kernels_refuse_python_calls():
         predicates.orient2d(0.0, 0.0, 1.0, 0.0, 0.0, 1.0)
     assert python_entry(predicates.orient2d)(0.0, 0.0, 1.0, 0.0, 0.0, 1.0) == 1
     assert not isinstance(refine.refine_steps, InternalKernel)
+
+
+CALLER = "def caller(a, j):\n    return callee(a, 0) + callee(a, j[0]) + callee(a, np.int64(1))\n"
+
+
+def _called(jit_callee, jit_caller):
+    """A callee compiled by ``jit_callee``, once called by a kernel (``jit_caller``) with a
+    constant, an int32 element and an int64."""
+
+    def callee(a, i):
+        return a[i] * 2.0
+
+    scope = {"np": np, "callee": jit_callee(callee)}
+    exec(CALLER, scope)  # noqa: S102
+    caller = jit_caller(scope["caller"])
+    assert caller(np.arange(3.0), np.array([2], np.int32)) == 0.0 + 4.0 + 2.0
+    return scope["callee"]
+
+
+def test_kernels_compile_once_for_constants_and_narrower_integers():
+    """A kernel called from others with a constant, an int32 and an int64 is compiled once
+    (for int64), not once per type: a first call in space compiled eleven such copies, among
+    them the 3-D cell count twice (first call 44 -> 32 s)."""
+    from knnrefine.engine.jit import kernel
+
+    callee = _called(kernel(cache=False), kernel(entry=True, cache=False))
+    assert len(callee.signatures) == 1
+    assert [str(t) for t in callee.signatures[0]] == ["array(float64, 1d, C)", "int64"]
+
+
+def test_numba_alone_compiles_a_copy_per_argument_type():
+    """The check above can fail: numba's own dispatcher compiles the same callee three
+    times (for the constant 0, for int32 and for int64)."""
+    callee = _called(numba.njit(cache=False), numba.njit(cache=False))
+    assert len(callee.signatures) == 3
+
+
+@pytest.mark.slow  # a fresh process compiling the 3-D counts: 5 s
+def test_the_ball_count_in_space_and_the_cell_count_share_one_compile(tmp_path):
+    """``count_in_ball3`` (a cell with no half-spaces) passes arrays of the cell count's own
+    types: it passed module constants, which numba types read-only, and the 3-D cell count
+    and its callees were compiled twice on every first call in space. In a fresh process
+    with an empty numba cache, after a ball count and a cell count, the cell count has one
+    compiled signature."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from knnrefine.engine import index3
+from knnrefine.engine.jit import python_entry
+idx = index3.build_index3(np.random.default_rng(0).random((300, 3)))
+stack = np.zeros(128, np.int64)
+period = np.ones(3)
+c = np.full(3, 0.5)
+python_entry(index3.count_in_ball3)(idx, c, 0.01, 5, period, stack)
+h, hc = np.array([[0.1, 0.0, 0.0]]), np.array([0.005])
+python_entry(index3.count_in_cell3)(idx, c, h, hc, 1, 0.01, 5, period, stack)
+print(len(index3.count_in_cell3.signatures), len(index3.count_in_region3.signatures))
+"""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=600)  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.split() == ["1", "1"]

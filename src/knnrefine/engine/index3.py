@@ -40,9 +40,6 @@ from .index import (
 from .jit import kernel
 from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
 
-_NO_H = np.zeros((0, 3))  # no half-spaces: a ball (``count_in_ball3``)
-_NO_HC = np.zeros(0)
-
 
 @kernel(entry=True)
 def _build3(pts, box, node, split):
@@ -142,7 +139,9 @@ def count_in_ball3(index, c, r2, k, period, stack):
     """Points of P in the closed ball (c, sqrt(r2)) of the torus, up to k (the count stops
     there); c anywhere (wrapped here), the radius below half the shortest period: a cell
     with no half-spaces (``count_in_cell3``)."""
-    return count_in_cell3(index, c, _NO_H, _NO_HC, 0, r2, k, period, stack)
+    # no half-spaces: empty slices of the index's own arrays, not module constants (numba
+    # types those read-only and would compile count_in_cell3 a second time for them)
+    return count_in_cell3(index, c, index.pts[:0], period[:0], 0, r2, k, period, stack)
 
 
 @kernel(nrt=False)

@@ -28,7 +28,7 @@ import os
 import tempfile
 import warnings
 
-from numba import njit
+from numba import njit, types
 from numba.core.caching import FunctionCache, InTreeCacheLocator
 from numba.core.registry import CPUDispatcher
 
@@ -83,7 +83,28 @@ def _never_save(dispatcher):
         cache.save_overload = lambda sig, data: None
 
 
-class InternalKernel(CPUDispatcher):
+def _widened(t):
+    """The argument type a kernel is compiled for when another kernel calls it with type t:
+    a constant (numba's ``Literal``) as its plain type, a narrower signed integer (an int32
+    array's element) as int64. numba would otherwise compile the callee, and every callee
+    below it not yet compiled for those types, once more for each of them (a first call in
+    space compiled eleven such copies)."""
+    t = types.unliteral(t)
+    if isinstance(t, types.Integer) and t.signed and t.bitwidth < 64:
+        return types.int64
+    return t
+
+
+class Kernel(CPUDispatcher):
+    """A kernel: numba's dispatcher, compiled once per argument type up to ``_widened``
+    when called from other kernels (numba converts the call's arguments)."""
+
+    def get_call_template(self, args, kws):
+        args = tuple(_widened(a) for a in args)
+        return super().get_call_template(args, {k: _widened(v) for k, v in kws.items()})
+
+
+class InternalKernel(Kernel):
     """A kernel compiled without a Python entry: callable from other kernels only."""
 
     def __call__(self, *args, **kwargs):
@@ -123,8 +144,7 @@ def kernel(entry=False, lazy=False, **options):
 
     def wrap(func):
         dispatcher = _dispatcher(func, options)
-        if not entry:
-            dispatcher.__class__ = InternalKernel
+        dispatcher.__class__ = Kernel if entry else InternalKernel
         return dispatcher
 
     return wrap
@@ -144,7 +164,10 @@ class _LazyKernel:
 
 
 def _dispatcher(func, options):
-    """The cached dispatcher, or an uncached one where numba cannot cache."""
+    """The cached dispatcher, or an uncached one where numba cannot cache (or the option
+    ``cache=False`` asks for one: tests compiling kernels afresh)."""
+    if not options.pop("cache", True):
+        return njit(cache=False, **options)(func)
     try:
         dispatcher = njit(cache=True, **options)(func)
     except RuntimeError as exc:
