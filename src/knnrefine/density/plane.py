@@ -127,7 +127,7 @@ class PlanePieces:
         ys = self.lo[1] + (np.arange(ny) + 0.5) * dy
         out = np.full((ny, nx), np.nan)
         px, py = self.periodic
-        rasterise(self.nodes, self.triangles, self.values, *self.lo, dx, dy, px, py, out)
+        rasterise(self.nodes, self.triangles, self.values, *self.lo, dx, dy, px, py, out, False)
         return xs, ys, out
 
     def integrate(self, func, rect):

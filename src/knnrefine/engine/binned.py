@@ -312,7 +312,7 @@ class BinnedSums:
         rows[:, k.AMP] = rows[:, k.W] / (MASS * rr * rr)
         rows[:, k.R] = rr
         extent = np.zeros(len(node))
-        k.node_extents(np.ascontiguousarray(rows[:, k.R]), node, extent)
+        k.node_extents(rows[:, k.R], node, extent)  # the column itself, as every caller
         return rows, box, node, extent
 
     def _lattices(self, lo, hi, samples):

@@ -22,7 +22,7 @@ def _corners(nodes, a, b, c):
 
 
 @kernel(entry=True, nogil=True)
-def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out, ids=False):
+def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out, ids):
     """out[j, i] = the linear interpolant of ``values`` (given at ``nodes``) over the triangle
     holding the grid centre (x0 + (i + 1/2) dx, y0 + (j + 1/2) dy), or with ``ids`` that
     triangle's index (``values`` unused: a start for ``walk_to``). Centres on no triangle

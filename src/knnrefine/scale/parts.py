@@ -725,7 +725,7 @@ class PartitionedDistance:
         px, py = (bool(p) for p in self.pmesh.periodic)
         for j in range(len(self.pmesh)):
             p = self.part(j)
-            rasterise(p.nodes, p.triangles, p.values, *self.lo, dx, dy, px, py, out)
+            rasterise(p.nodes, p.triangles, p.values, *self.lo, dx, dy, px, py, out, False)
         missed = np.isnan(out)
         if missed.any():
             jj, ii = np.nonzero(missed)
