@@ -336,8 +336,29 @@ def assert_certified(mesh, points, label=""):
     np.testing.assert_allclose(
         mesh.d_m2(probes), full, rtol=1e-9, atol=1e-12 * float((hi - lo).max())
     )
-    ACHIEVED.append((label, cert))
+    ACHIEVED.append(
+        f"{label[:34]:34s} {cert.n:7d} {cert.k:4d} {cert.tau:4g} {str(cert.periodic):>14s} "
+        f"{cert.m:7d} {cert.max_aspect:7.3f} {cert.alpha_hat:7.3f} {cert.beta_hat:7.3f} "
+        f"{cert.size_ratio:6.2f}"
+    )
     return cert
+
+
+def pytest_sessionfinish(session):
+    """Under pytest-xdist a worker hands its tallies to the controller, which reports them
+    (``pytest_testnodedown``)."""
+    out = getattr(session.config, "workeroutput", None)
+    if out is not None:
+        out["certified"] = dict(CERTIFIED)
+        out["achieved"] = list(ACHIEVED)
+
+
+@pytest.hookimpl(optionalhook=True)  # a pytest-xdist hook: absent without it
+def pytest_testnodedown(node, error):
+    out = getattr(node, "workeroutput", {})
+    for key, count in out.get("certified", {}).items():
+        CERTIFIED[key] += count
+    ACHIEVED.extend(out.get("achieved", []))
 
 
 def pytest_terminal_summary(terminalreporter):
@@ -358,9 +379,5 @@ def pytest_terminal_summary(terminalreporter):
         f"{'case':34s} {'n':>7s} {'k':>4s} {'tau':>4s} {'periodic':>14s} {'m':>7s} "
         f"{'aspect':>7s} {'a_hat':>7s} {'b_hat':>7s} {'size':>6s}"
     )
-    for label, c in ACHIEVED:
-        tr.write_line(
-            f"{label[:34]:34s} {c.n:7d} {c.k:4d} {c.tau:4g} {str(c.periodic):>14s} "
-            f"{c.m:7d} {c.max_aspect:7.3f} {c.alpha_hat:7.3f} {c.beta_hat:7.3f} "
-            f"{c.size_ratio:6.2f}"
-        )
+    for line in ACHIEVED:
+        tr.write_line(line)
