@@ -141,7 +141,9 @@ def _insphere_exact(a, b, c, d, e):
     p = np.empty((4, 3, 2))
     n = np.empty((4, 3), np.int64)
     for i, q in enumerate((a, b, c, d)):
-        n[i] = _diffs(q, e, p[i])
+        ni = _diffs(q, e, p[i])
+        for ax in range(3):  # not n[i] = ...: numba compiles its shape-mismatch message
+            n[i, ax] = ni[ax]  # (string formatting) for an array assigned to a slice
     A, B, C, D = 0, 1, 2, 3
     cr = np.empty((6, 16))  # ab, bc, cd, da, ac, bd: x_i y_j - x_j y_i
     ncr = np.empty(6, np.int64)
