@@ -143,6 +143,18 @@ def tiles_always():
         os.environ["KNNREFINE_TILES"] = saved
 
 
+@pytest.fixture(scope="session")
+def compiled():
+    """The kernels of a refinement in the plane and in space, boxes and tori, compiled (or
+    loaded from numba's cache) before a test that times a run: under pytest-xdist a worker
+    can reach such a test before any test of its own compiled them, and a first compile
+    takes 20-40 s (the tests time the run, not the compiler)."""
+    pts = np.random.default_rng(0).random((300, 3))
+    for d in (2, 3):
+        knnrefine.refine(pts[:, :d], 3)
+        knnrefine.refine(pts[:, :d], 3, periodic=True, box=(0,) * d + (1,) * d)
+
+
 @pytest.fixture(params=[2, 3], ids=["plane", "space"])
 def dim(request):
     """The dimension a test runs in: the plane's and space's suites are one."""

@@ -253,6 +253,7 @@ def test_k2_on_many_points_fits_the_default_budget():
     assert mesh.stats["m_torus"] > 10**6
 
 
+@pytest.mark.usefixtures("compiled")  # times a run, not a first compile
 def test_k1_on_many_points_is_refused_before_any_work_when_memory_cannot_hold_it(monkeypatch):
     """k = 1 on 10^5 points needs about 2.3 x 10^7 vertices (11.7 GB, 3 minutes): with less
     than half that memory, refused up front; with an explicit budget far below, too."""
@@ -309,6 +310,7 @@ def test_progress_says_compiling_before_a_first_compilation(monkeypatch):
 # -- 7. time limits and small budgets ----------------------------------------------------------
 
 
+@pytest.mark.usefixtures("compiled")  # times a run, not a first compile
 @pytest.mark.parametrize("limit", [0.001, 0.1, 0.5])
 def test_time_limit_stops_promptly(limit):
     """time_limit of 0.001, 0.1 or 0.5 s stopped after 2.0-2.3 s with 400,000 vertices: the
@@ -331,6 +333,7 @@ def test_bad_time_limits_are_input_errors(limit):
         knnrefine.refine(rng(1).random((50, 2)), 3, time_limit=limit)
 
 
+@pytest.mark.usefixtures("compiled")  # times a run, not a first compile
 def test_elongated_periodic_box_honours_the_time_limit():
     """(0, 0, 60000, 1) with time_limit=1 ran 31.8 s in the initial grid's Python loop."""
     P = rng(17).random((10**5, 2)) * [60000, 1]

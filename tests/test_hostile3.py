@@ -26,6 +26,7 @@ def slab(n, thickness, seed=0):
     return np.random.default_rng(seed).random((n, 3)) * [1.0, 1.0, thickness]
 
 
+@pytest.mark.usefixtures("compiled")  # times a run, not a first compile
 @pytest.mark.parametrize("max_vertices", [10_000, None])
 def test_a_thin_periodic_slab_is_refused_before_any_work(max_vertices):
     """regression: a 1 x 1 x 0.002 periodic slab asked for an (16000000, 6, 4, 3) int64 array
@@ -56,6 +57,7 @@ def test_a_slab_periodic_in_z_is_refused_quickly_and_lean():
     assert peak < 2e9
 
 
+@pytest.mark.usefixtures("compiled")  # times a run, not a first compile
 def test_time_limit_holds_during_the_setup_in_space():
     """regression: in space the setup ignored time_limit (a 1 x 1 x 0.01 slab with
     time_limit=20 took 591 s; 0.5 s asked, 30 s taken). Now checked between the steps of
@@ -67,6 +69,7 @@ def test_time_limit_holds_during_the_setup_in_space():
     assert time.perf_counter() - t0 < 3.0
 
 
+@pytest.mark.usefixtures("compiled")  # times a run, not a first compile
 def test_time_limit_holds_while_refining_in_space():
     """regression: the 3-D driver checked the deadline only after a kernel call that ran its
     full count of steps, never after one that stopped to grow the arrays, so a growing run
