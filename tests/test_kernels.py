@@ -157,3 +157,28 @@ print(len(index3.count_in_cell3.signatures), len(index3.count_in_region3.signatu
                          timeout=600)  # fmt: skip
     assert run.returncode == 0, run.stderr[-3000:]
     assert run.stdout.split() == ["1", "1"]
+
+
+@pytest.mark.slow  # a fresh process compiling the 3-D predicates: 5 s
+def test_the_exact_insphere_compiles_no_error_message(tmp_path):
+    """The exact insphere assigned an array to a row of another, for which numba compiles
+    its shape-mismatch message (string formatting: 1.7 s of type inference on every first
+    call in space). Compiled afresh, its code holds no such message."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from knnrefine.engine import predicates3
+from knnrefine.engine.jit import python_entry
+p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float) / 2
+print(python_entry(predicates3.insphere)(p))
+ir = "".join(predicates3._insphere_exact.inspect_llvm().values())
+print("message" if "cannot assign slice" in ir else "none", len(ir) > 1000)
+"""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=600)  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.split()[1:] == ["none", "True"]
