@@ -115,7 +115,6 @@ def test_any_executor_runs_the_tiles():
     assert mesh.stats["rounds"][0]["new_vertices"] > 0
 
 
-@pytest.mark.slow  # 10 s (a Dask cluster of processes, one killed): with CI's heavy cases
 def test_a_killed_worker_still_gives_a_complete_certified_mesh():
     """A worker process killed (SIGKILL) while it runs a tile: Dask runs the tile again on
     a live worker, and the mesh is whole and certified, the same as without the kill."""

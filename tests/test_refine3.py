@@ -646,15 +646,7 @@ def test_the_counting_index_is_freed_before_the_unfolding(monkeypatch, periodic)
     assert len(refs) == 5 and dead == [[True] * 5]  # the PointTree's five arrays
 
 
-@pytest.mark.parametrize(
-    "kind",
-    [
-        "uniform",
-        pytest.param("clustered", marks=pytest.mark.slow),  # 5 s: with CI's heavy cases
-        pytest.param("coplanar", marks=pytest.mark.slow),
-        "duplicates",
-    ],
-)
+@pytest.mark.parametrize("kind", ["uniform", "clustered", "coplanar", "duplicates"])
 def test_sweeps_count_in_bulk_and_change_no_move(kind):
     """The bulk counts (``refine3.sweep_balls3``, ``sweep_cells3`` on two threads) only
     settle elements the refinement would find settled when it pops them: the run with them
