@@ -318,3 +318,38 @@ def test_dask_in_space_refines_and_certifies_as_one_process(client, tmp_path):
     assert dens.mass((0.2, 0.3, 0.1, 0.9, 1.2, 0.6)) == pytest.approx(
         whole.mass((0.2, 0.3, 0.1, 0.9, 1.2, 0.6)), rel=1e-12
     )
+
+
+def test_a_heartbeat_caught_by_the_clusters_close_prints_no_traceback(tmp_path):
+    """regression: the README's Dask block, run under load, ended a successful run with
+    distributed's "Failed to communicate with scheduler during heartbeat" and its traceback
+    (a worker's heartbeat in flight when the cluster closed; a race in distributed). The
+    workers of ``local_cluster`` drop that record and log everything else; the calling
+    process's logger is left as it was."""
+    import subprocess
+    import sys
+
+    code = """
+import logging
+from distributed import Client
+from knnrefine.scale import distributed
+
+def log_both():
+    log = logging.getLogger("distributed.worker")
+    try:
+        raise OSError("Stream is closed")
+    except OSError:
+        log.exception("Failed to communicate with scheduler during heartbeat.")
+        log.error("another worker error, kept")
+    return True
+
+with distributed.local_cluster(2) as cluster, Client(cluster) as client:
+    assert all(client.run(log_both).values())
+print("filters here", len(logging.getLogger("distributed.worker").filters))
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "another worker error, kept" in run.stderr  # the workers' logs still reach us
+    assert "during heartbeat" not in run.stderr and "Traceback" not in run.stderr
+    assert "filters here 0" in run.stdout

@@ -17,6 +17,7 @@ edge wider than the strips overlap.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -487,8 +488,25 @@ def local_cluster(workers):
     from distributed import LocalCluster
 
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-    with dask.config.set({"distributed.worker.multiprocessing-method": method}):
-        return LocalCluster(
-            n_workers=int(workers), threads_per_worker=1, processes=True,
-            dashboard_address=":0", env={"KNNREFINE_THREADS": "1"},
-        )  # fmt: skip
+    worker_log = logging.getLogger("distributed.worker")
+    quiet = QuietShutdownHeartbeat()
+    worker_log.addFilter(quiet)  # forked workers keep it; this process drops it below
+    try:
+        with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+            return LocalCluster(
+                n_workers=int(workers), threads_per_worker=1, processes=True,
+                dashboard_address=":0", env={"KNNREFINE_THREADS": "1"},
+            )  # fmt: skip
+    finally:
+        worker_log.removeFilter(quiet)
+
+
+class QuietShutdownHeartbeat(logging.Filter):
+    """Drops distributed's "Failed to communicate with scheduler during heartbeat" record (an
+    error with its traceback) in the worker processes of ``local_cluster``. Their scheduler
+    runs in the calling process and closes with the run, and a heartbeat caught in flight by
+    that close (a race in distributed, known upstream) printed a traceback after a run that
+    had succeeded. A worker of such a cluster cannot lose its scheduler otherwise."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Failed to communicate with scheduler")
