@@ -116,7 +116,7 @@ def test_cell_counts_match_each_points_nearest_vertices(weighted):
         nh = _neighbours(v, mesh, scratch, cnt, period, h, ids)
         assert nh > 3
         hc = 0.5 * (h[:nh] ** 2).sum(axis=1) * (1 + 1e-9)
-        r2 = mesh.outradius2[v] * (1 + 1e-9)
+        r2 = abs(mesh.outradius2[v]) * (1 + 1e-9)  # R(v)^2 or a bound: the ball holds the cell
         got[v] = _cell(index, mesh.xyz[v], h[:nh].copy(), hc, nh, r2, 1e15, period, stack)
     np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)
 

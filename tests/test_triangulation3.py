@@ -19,12 +19,15 @@ from knnrefine.engine.triangulation3 import (
     insert_largest3,
     insert_points3,
     new_torus3,
+    outradius2_at3,
     pack_offsets,
+    refresh_outradii3,
     unpack_offsets,
 )
 
 _orient3d = python_entry(predicates3.orient3d)
 _insphere = python_entry(predicates3.insphere)
+_outradius2_at3 = python_entry(outradius2_at3)
 
 
 @njit(cache=False)
@@ -102,7 +105,11 @@ def check_triangulation(mesh, cnt, period):
     np.testing.assert_allclose(mesh.radius2[:nt], cs[:, 3], rtol=1e-9)
     outer = np.zeros(nv)
     np.maximum.at(outer, corners.ravel(), np.repeat(cs[:, 3], 4))
-    np.testing.assert_allclose(mesh.outradius2[:nv], outer, rtol=1e-9)
+    # R(v)^2 itself where the cache holds it, else (negated) a bound on it
+    cached = mesh.outradius2[:nv]
+    known = cached >= 0
+    np.testing.assert_allclose(cached[known], outer[known], rtol=1e-9)
+    assert (-cached[~known] >= outer[~known] * (1 - 1e-9)).all()
     d = cKDTree(mesh.xyz[:nv], boxsize=period).query(mesh.xyz[:nv], k=2)[0][:, 1]
     np.testing.assert_allclose(mesh.nearest2[:nv], d**2, rtol=1e-9)
     for v in np.random.default_rng(0).choice(nv, min(nv, 200), replace=False):
@@ -156,6 +163,27 @@ def test_circumcentre_refinement_keeps_it_valid_and_grows_as_expected():
     check_triangulation(mesh, cnt, period)
     assert 5.5 < cnt[1] / cnt[0] < 7.5
     assert mesh.radius2[: cnt[1]].max() < first / 4  # the largest balls were split
+
+
+def test_r_v_left_with_a_cavity_is_a_bound_until_asked_for():
+    """An insertion that destroys the tetrahedron realising R(v) leaves R(v)^2 as a bound
+    (negated) instead of walking v's star again: the cache holds bounds after refinement,
+    ``outradius2_at3`` walks one and keeps R(v)^2 itself, ``refresh_outradii3`` all."""
+    period = np.array([1.0, 1.0, 1.0])
+    mesh, scratch, cnt = new_torus3(period, initial_grid3(period), 4000, 40000)
+    insert_largest3(mesh, scratch, cnt, period, Q, 2000, 0.0)
+    nv, nt = int(cnt[0]), int(cnt[1])
+    outer = np.zeros(nv)
+    np.maximum.at(outer, mesh.corners[:nt].ravel(), np.repeat(mesh.radius2[:nt], 4))
+    bounds = np.flatnonzero(mesh.outradius2[:nv] < 0)
+    assert 0 < len(bounds) < nv
+    assert (-mesh.outradius2[bounds] >= outer[bounds]).all()
+    assert (-mesh.outradius2[bounds] > outer[bounds]).any()  # a bound, not the value
+    v = bounds[0]
+    assert _outradius2_at3(v, mesh, scratch, cnt) == outer[v] == mesh.outradius2[v]
+    refresh_outradii3(mesh, scratch, cnt, nv)
+    np.testing.assert_array_equal(mesh.outradius2[:nv], outer)
+    check_triangulation(mesh, cnt, period)
 
 
 def test_a_cubic_lattice_is_inserted_without_loops_or_crashes():

@@ -57,7 +57,7 @@ from .state import (
 )
 from .threads import in_chunks, workers
 from .tile import TileRun
-from .triangulation3 import new_torus3, unpack_offsets
+from .triangulation3 import new_torus3, refresh_outradii3, unpack_offsets
 
 STEPS = 20_000  # insertions per kernel call
 # the tetrahedra's marks are 32-bit stamps: between kernel calls, past this many stamps,
@@ -138,7 +138,7 @@ class Refinement3(TileRun):
         prm[P3_REGION_W] = NO_REGION
         self.prm = prm
         self.cnt[C_MAX_VERTICES] = int(max_vertices)
-        queue_all3(self.mesh, self.book, self.queues, self.cnt, self.prm)
+        queue_all3(self.mesh, self.book, self.queues, self.scratch, self.cnt, self.prm)
 
     def run(self, deadline=None, progress=None, interrupts=None):
         """Refine until done, the vertex budget, or the deadline (a ``time.perf_counter()``
@@ -284,10 +284,15 @@ class Refinement3(TileRun):
             raise EngineError("a vertex has more neighbours than a tile's scratch holds")
         return balls, cells
 
+    def unsettled(self):
+        """``TileRun.unsettled``, on R(v) itself (the run keeps bounds: ``triangulation3``)."""
+        refresh_outradii3(self.mesh, self.scratch, self.cnt, self.vertices)
+        return super().unsettled()
+
     def requeue(self):
         """Queue every element not settled again, those deferred by a region included."""
         self._fresh_queues()
-        queue_seeded3(self.mesh, self.book, self.queues, self.cnt, self.prm)
+        queue_seeded3(self.mesh, self.book, self.queues, self.scratch, self.cnt, self.prm)
 
     def counters(self):
         """Moves of each kind and the counting tests so far (``Refinement.counters``)."""
@@ -344,7 +349,7 @@ class Refinement3(TileRun):
         ) * self.period  # fmt: skip
         floor = (
             np.concatenate([circumcentres3(c), self.mesh.xyz[cells]]) % self.period,
-            np.concatenate([self.mesh.radius2[balls], self.mesh.outradius2[cells]]),
+            np.concatenate([self.mesh.radius2[balls], np.abs(self.mesh.outradius2[cells])]),
             len(balls),
         )
         arrays = self.mesh._asdict()

@@ -82,6 +82,7 @@ from .triangulation3 import (
     insert_vertex3,
     load_corners,
     neighbours_local3,
+    outradius2_at3,
     star3,
     vertex_neighbours3,
 )
@@ -132,34 +133,40 @@ def is_too_aspect3(outradius2, d_m2_sq, prm):
 
 
 @kernel(nrt=False)
-def _touch3(v, mesh, book, queues, cnt, prm):
-    """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean."""
+def _touch3(v, mesh, book, queues, scratch, cnt, prm):
+    """Re-examine vertex v after its star changed: queue its cell and, if bad, its Clean.
+    The cell is queued at the class of R(v)'s bound (``triangulation3``: its pop finds R(v)
+    itself); whether v is bad is decided on R(v) itself, walked only if the bound says bad.
+    Overwrites scratch.walk."""
     if book.cell_state[v] >= FLOOR:  # its cell changed: look again
         book.cell_state[v] = UNTESTED
+    bound = abs(mesh.outradius2[v])
     if book.cell_state[v] == UNTESTED and not (book.flags[v] & IN_CELL_QUEUE):
-        queue_push(queues.cells, size_class(mesh.outradius2[v]), v, 0)
+        queue_push(queues.cells, size_class(bound), v, 0)
         book.flags[v] = book.flags[v] | IN_CELL_QUEUE
         cnt[C_CELLS_QUEUED] += 1
     book.flags[v] = book.flags[v] & ~(CLEAN_BELOW_FLOOR | CLEAN_FAILED)
-    bad = is_too_aspect3(mesh.outradius2[v], mesh.nearest2[v], prm)
-    if bad and not (book.flags[v] & IN_CLEAN_QUEUE):
-        queue_push(queues.cleans, size_class(mesh.outradius2[v]), v, 0)
+    if book.flags[v] & IN_CLEAN_QUEUE or not is_too_aspect3(bound, mesh.nearest2[v], prm):
+        return
+    outradius2 = outradius2_at3(v, mesh, scratch, cnt)
+    if is_too_aspect3(outradius2, mesh.nearest2[v], prm):
+        queue_push(queues.cleans, size_class(outradius2), v, 0)
         book.flags[v] = book.flags[v] | IN_CLEAN_QUEUE
 
 
 @kernel(entry=True, nrt=False, nogil=True)
-def queue_all3(mesh, book, queues, cnt, prm):
+def queue_all3(mesh, book, queues, scratch, cnt, prm):
     """Queue every tetrahedron (at its first corner) and vertex of a fresh triangulation."""
     for t in range(cnt[C_NT]):
         book.ball_state[t] = UNTESTED
         queue_push(queues.balls, size_class(mesh.radius2[t]), mesh.corners[t, 0], 0)
     for v in range(cnt[C_NV]):
         book.flags[v] = 0
-        _touch3(v, mesh, book, queues, cnt, prm)
+        _touch3(v, mesh, book, queues, scratch, cnt, prm)
 
 
 @kernel(entry=True, nrt=False, nogil=True)
-def queue_seeded3(mesh, book, queues, cnt, prm):
+def queue_seeded3(mesh, book, queues, scratch, cnt, prm):
     """Queue what a seeded triangulation (``Refinement3.seed``) has left to decide: every
     tetrahedron not settled (DEFERRED ones again) and every vertex (its cell unless GOOD,
     its Clean if bad); the queues start empty and must hold that many entries."""
@@ -173,7 +180,7 @@ def queue_seeded3(mesh, book, queues, cnt, prm):
             queue_push(queues.balls, size_class(mesh.radius2[t]), mesh.corners[t, 0], 0)
     for v in range(cnt[C_NV]):
         book.flags[v] = book.flags[v] & ~(IN_CELL_QUEUE | IN_CLEAN_QUEUE)
-        _touch3(v, mesh, book, queues, cnt, prm)
+        _touch3(v, mesh, book, queues, scratch, cnt, prm)
 
 
 @kernel(nrt=False)
@@ -182,7 +189,7 @@ def count_cell3(v, mesh, scratch, probe, cnt, prm, index):
     STAR_OVERFLOW if v has more neighbours than the probe holds."""
     k = prm[P3_K]
     inflate = prm[P3_INFLATE]
-    r2 = mesh.outradius2[v] * inflate
+    r2 = abs(mesh.outradius2[v]) * inflate  # R(v) or a bound: the ball holds the cell
     period = prm[:3]
     cnt[C_CELL_TESTS] += 1
     # the cell lies in the ball of radius R(v) about v: the cheaper ball count may settle it
@@ -213,7 +220,7 @@ def _clean3(mesh, book, queues, scratch, cnt, prm):
     while queue_size(queues.cleans) > 0:
         cls, v, _ = queue_pop(queues.cleans)
         book.flags[v] = book.flags[v] & ~IN_CLEAN_QUEUE
-        outradius2 = mesh.outradius2[v]
+        outradius2 = outradius2_at3(v, mesh, scratch, cnt)
         if not is_too_aspect3(outradius2, mesh.nearest2[v], prm):
             continue
         now = size_class(outradius2)
@@ -285,7 +292,7 @@ def _break3(mesh, book, queues, scratch, probe, cnt, prm, index):
         book.flags[v] = book.flags[v] & ~IN_CELL_QUEUE
         if book.cell_state[v] != UNTESTED:
             continue
-        outradius2 = mesh.outradius2[v]
+        outradius2 = outradius2_at3(v, mesh, scratch, cnt)
         now = size_class(outradius2)
         if now > cls:
             queue_push(queues.cells, now, v, 0)
@@ -359,7 +366,7 @@ def sweep_cells3(mesh, book, prm, index, start, stop):
     for v in range(start, stop):
         if not (book.flags[v] & IN_CELL_QUEUE) or book.cell_state[v] != UNTESTED:
             continue
-        r2 = mesh.outradius2[v]
+        r2 = abs(mesh.outradius2[v])  # R(v) or a bound (no walks here: threads share marks)
         if not in_region3(mesh.xyz[v], 2.0 * np.sqrt(r2), prm):
             continue
         made += 1
@@ -451,7 +458,7 @@ def refine_steps3(mesh, book, queues, scratch, probe, cnt, prm, index, max_steps
                 u = mesh.corners[s, i]
                 if not (book.flags[u] & TOUCHED):
                     book.flags[u] = book.flags[u] | TOUCHED
-                    _touch3(u, mesh, book, queues, cnt, prm)
+                    _touch3(u, mesh, book, queues, scratch, cnt, prm)
         for e in range(nb):
             s = scratch.cavity[e]
             for i in range(4):

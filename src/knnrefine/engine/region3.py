@@ -28,6 +28,7 @@ from .triangulation3 import (
     insert_vertex3,
     load_corners,
     offset3,
+    outradius2_at3,
     vertex_neighbours3,
 )
 
@@ -154,7 +155,8 @@ def mark_settled3(mesh, book, scratch, cnt, prm, stamps, regions):
     ids = np.empty(1024, np.int64)
     cells = 0
     for v in range(cnt[C_NV]):
-        if mesh.outradius2[v] < prm[P3_FLOOR2]:
+        outradius2 = outradius2_at3(v, mesh, scratch, cnt)
+        if outradius2 < prm[P3_FLOOR2]:
             continue
         nh = vertex_neighbours3(v, mesh, scratch, cnt, period, h, ids)
         if nh < 0:
@@ -162,7 +164,7 @@ def mark_settled3(mesh, book, scratch, cnt, prm, stamps, regions):
         newest = stamps[v]
         for j in range(nh):
             newest = max(newest, stamps[ids[j]])
-        if _settled_by3(mesh.xyz[v], 2.0 * np.sqrt(mesh.outradius2[v]), newest, rounds,
+        if _settled_by3(mesh.xyz[v], 2.0 * np.sqrt(outradius2), newest, rounds,
                         regions, prm):  # fmt: skip
             book.cell_state[v] = GOOD
             cells += 1

@@ -26,9 +26,13 @@ tetrahedra (a ball triangulated with interior edges): the slots left over are fi
 moving the last tetrahedra down (``_move``), so the arrays stay dense.
 
 ``R(v)^2`` (``outradius2``, the largest circumradius of the tetrahedra at v: Vor(v)'s far
-corner) and ``d_{M,2}(v)^2`` (``nearest2``) are kept as in the plane: an insertion forgets
-R(v) where a tetrahedron realising it leaves (walked again after, ``vertex_star3``) and
-updates both through the new tetrahedra at v.
+corner) and ``d_{M,2}(v)^2`` (``nearest2``) are updated through the new tetrahedra at each
+insertion. Where a tetrahedron realising R(v) leaves, R(v) is not walked again at once (in
+uniform points that was 5.2 star walks an insertion): the cache keeps an upper bound, stored
+negated, ``-max(old R(v)^2, the new tetrahedra's at v)``. Readers that can use a bound (queue
+classes, the ball about v that holds its cell, the region tests) take ``abs``; those that
+need R(v) itself (a Clean's test, a cell's pop) call ``outradius2_at3``, which walks the
+star then and keeps the value.
 """
 
 import numpy as np
@@ -140,11 +144,13 @@ def corner_of3(mesh, t, v):
 
 @kernel(inline="always")
 def _forget_outradius(mesh, t):
-    """Tetrahedron t leaves: a corner whose R(v) it realised loses its cached value (-1)."""
+    """Tetrahedron t leaves: a corner whose R(v) it realised keeps it as a bound only
+    (negated; one already a bound stays one)."""
     for i in range(4):
         c = mesh.corners[t, i]
-        if mesh.radius2[t] >= mesh.outradius2[c]:
-            mesh.outradius2[c] = -1.0
+        r2 = mesh.outradius2[c]
+        if r2 >= 0.0 and mesh.radius2[t] >= r2:
+            mesh.outradius2[c] = -r2
 
 
 @kernel(nrt=False)
@@ -250,6 +256,24 @@ def star3(v, mesh, scratch, cnt):
                 stack[n] = nb
                 n += 1
     return outradius2, far, n
+
+
+@kernel(nrt=False)
+def outradius2_at3(v, mesh, scratch, cnt):
+    """R(v)^2 itself: the cache's, or, where it holds a bound only, a walk of v's star
+    (``star3``: scratch.walk is overwritten), kept in the cache."""
+    r2 = mesh.outradius2[v]
+    if r2 < 0.0:
+        r2 = star3(v, mesh, scratch, cnt)[0]
+        mesh.outradius2[v] = r2
+    return r2
+
+
+@kernel(entry=True, nrt=False)
+def refresh_outradii3(mesh, scratch, cnt, nv):
+    """R(v)^2 itself in the cache for every vertex 0..nv-1 (``outradius2_at3``)."""
+    for v in range(nv):
+        outradius2_at3(v, mesh, scratch, cnt)
 
 
 @kernel(entry=True, nrt=False)
@@ -492,22 +516,17 @@ def _update_vertex_caches3(v, mesh, scratch, cnt, nb, period):
             if k == iv:
                 continue
             u = mesh.corners[s, k]
-            if mesh.outradius2[u] >= 0.0:
-                mesh.outradius2[u] = max(mesh.outradius2[u], r2)
+            bound = mesh.outradius2[u]
+            if bound >= 0.0:
+                mesh.outradius2[u] = max(bound, r2)
+            else:  # R(u) is known as a bound only (``_forget_outradius``): keep it one
+                mesh.outradius2[u] = -max(-bound, r2)
             dx, dy, dz = edge_to3(mesh, s, iv, k, period)
             e2 = dx * dx + dy * dy + dz * dz
             mesh.nearest2[u] = min(mesh.nearest2[u], e2)
             nearest2 = min(nearest2, e2)
     mesh.outradius2[v] = outradius2
     mesh.nearest2[v] = nearest2
-    # corners whose R(v) left with the cavity: walk their stars again (after the above, so
-    # the new tetrahedra count)
-    for e in range(nb):
-        s = scratch.cavity[e]
-        for k in range(4):
-            u = mesh.corners[s, k]
-            if mesh.outradius2[u] < 0.0:
-                mesh.outradius2[u] = star3(u, mesh, scratch, cnt)[0]
 
 
 @kernel(nrt=False)
