@@ -337,6 +337,53 @@ def test_a_map_of_the_sphere_projects_its_triangles_once(projection):
     assert sum(len(p.vertices) for p in paths) > drawn_corners  # long edges were cut
 
 
+def test_a_density_map_of_the_sphere_projects_its_grid_once(monkeypatch):
+    """The highest-density regions on a map of the sphere are contoured on the grid projected
+    once (matplotlib projected every contour path by path: 2.8 s of a 4,457-vertex world
+    map's density, now 1.3 s): an affine transform, and the same picture as matplotlib's own
+    contours of the grid in longitude and latitude, but for the odd pixel."""
+    from unittest import mock
+
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from knnrefine.plot import HDR_MASSES, hdr_levels, plot_density
+
+    pts = Mixture().sample(3000, np.random.default_rng(6))
+    f = KnnDensity(knnrefine.refine(pts, 20, sphere=True), pts)
+    lon, lat, values = f.grid((90, 180))
+    monkeypatch.setattr(Figure, "colorbar", mock.MagicMock())  # the maps alone are compared
+
+    def picture(draw):
+        fig = Figure(figsize=(6, 3.4), dpi=80)
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot(projection="mollweide")
+        ax.set_longitude_grid(30)
+        ax.set_latitude_grid(30)
+        ax.grid(True, color="0.5", linewidth=0.4, alpha=0.6)
+        ax.tick_params(labelsize="small")
+        draw(ax)
+        ax.set_title("")
+        fig.canvas.draw()
+        return ax, np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(int)
+
+    def theirs(ax):
+        masses = np.sort(HDR_MASSES)[::-1]
+        levels = hdr_levels(values, masses, np.cos(np.radians(lat))[:, None])
+        bounds = np.append(levels, values.max() * (1 + 1e-9))
+        colours = colormaps["Blues"](np.linspace(0.35, 0.95, len(levels)))
+        ax.contourf(np.radians(lon), np.radians(lat), values, levels=bounds, colors=colours)
+        ax.contour(np.radians(lon), np.radians(lat), values, levels=levels,
+                   colors=[colours[-1]], linewidths=0.6)  # fmt: skip
+
+    ax, mine = picture(lambda ax: plot_density(f, ax, grid=(lon, lat, values)))
+    assert ax.collections[0].get_transform().is_affine
+    _, other = picture(theirs)
+    differ = np.abs(mine - other).max(axis=-1) > 40
+    assert differ.mean() < 0.005, differ.mean()
+
+
 def test_adaptive_leave_one_out_on_the_sphere_against_direct_sums():
     """The sphere's adaptive estimate: kernels in chord distance, exactly normalised (mass 1
     by Monte Carlo), and its leave-one-out log-density against sums written out here."""
