@@ -293,8 +293,8 @@ class Start:
     margins are tried along non-periodic axes: 1.05 x a bound on max d_Pk over the box (the
     least that keeps d_Pk exact on the box: fewer initial vertices far from the data), then
     2, 4 and 10 diameters (initial meshes coarser relative to the box). Indexes and candidate
-    initial meshes are built once per torus; the deadline and Ctrl-C are checked between
-    candidates."""
+    initial meshes are built once per torus, when first tried; the deadline and Ctrl-C are
+    checked between candidates and in every peeling round."""
 
     LIMITS_EFFORT = 50_000  # initial vertices above which a refusal skips the limit search
 
@@ -318,12 +318,23 @@ class Start:
             index = build_index(emb.to_internal(self.pts), weights=self.weights)
             self.seconds += time.perf_counter() - t0
             self.check()
-            grids = list(candidate_grids(*emb.period_internal, self.max_vertices, emb.grid))
-            self.tori[reach] = emb, index, grids
+            later = candidate_grids(*emb.period_internal, self.max_vertices, emb.grid)
+            self.tori[reach] = emb, index, ([], later)
         return self.tori[reach]
 
+    def grids(self, reach=None):
+        """The torus' candidate initial meshes, each built when first asked for and kept for
+        later tries (on a long box one took 0.2 s: building them all first overran a
+        time_limit of 1 s by 0.8 s)."""
+        built, later = self.torus(reach)[2]
+        yield from list(built)
+        for grid in later:
+            built.append(grid)
+            yield grid
+
     def _try(self, reach, k, factor):
-        emb, index, grids = self.torus(reach)
+        emb, index, _ = self.torus(reach)
+        grids = self.grids(reach)
         choice = choose_initial_mesh(grids, index, k, factor, *emb.period_internal, self.check)
         return None if choice is None else (emb, index, choice)
 
@@ -345,8 +356,8 @@ class Start:
     def refusal(self, k, tau):
         """The message for an input no torus can start: what failed and what would work."""
         factor = reach_factor(tau)
-        emb, _, grids = self.torus()
-        effort = sum(len(m0[0]) for _, m0 in grids)
+        emb = self.torus()[0]
+        effort = sum(len(m0[0]) for _, m0 in self.grids())
         k_max, f_min = (
             largest_passing(lambda kk, f: self.find(kk, f) is not None, k, factor)
             if effort <= self.LIMITS_EFFORT

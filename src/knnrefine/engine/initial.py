@@ -126,13 +126,17 @@ def initial_grid(lx, ly, per_period=4, jitter=0.3, shift=0.0, q=Q):
     return vxy, tv.astype(np.int32), to, tn.astype(np.int32), lam
 
 
-def precondition_order(vxy, lam, index, k, factor, lx, ly):
+def precondition_order(vxy, lam, index, k, factor, lx, ly, check=None):
     """An order of the initial vertices in which each u satisfies d_{P,k}(u) <= factor *
     lambda_u (the distance to its nearest predecessor on the torus), by peeling (see the
     module docstring); ``lam`` holds each vertex's distance to its nearest other vertex.
-    Returns (order, rounds) or (None, failing) with the vertices no order can place."""
+    ``check()`` runs before each peeling round (deadline, Ctrl-C: a long box peels for
+    seconds). Returns (order, rounds) or (None, failing) with the vertices no order can
+    place."""
 
     def passes(xy, lam):
+        if check is not None:
+            check()
         # conservative: the reach is shortened by a relative 1e-9 against rounding
         return holds_k_within(index, xy, (factor * lam * (1.0 - 1e-9)) ** 2, k, lx, ly)
 
@@ -171,10 +175,10 @@ def candidate_grids(lx, ly, max_vertices, q=Q):
 def choose_initial_mesh(candidates, index, k, factor, lx, ly, check=None):
     """The first of ``candidates`` [(grid, m0), ...] whose vertices can be ordered so that
     d_{P,k}(u) <= factor * lambda_u (Lemma 2's precondition with factor = K - 1, see
-    ``reach_factor``). ``check()`` runs between candidates (deadline, Ctrl-C). Returns
-    (m0, order, grid) with m0 = (vxy, tv, to, tn), or None."""
+    ``reach_factor``). ``check()`` runs between candidates and peeling rounds (deadline,
+    Ctrl-C). Returns (m0, order, grid) with m0 = (vxy, tv, to, tn), or None."""
     for grid, m0 in candidates:
-        order, _ = precondition_order(m0[0], m0[4], index, k, factor, lx, ly)
+        order, _ = precondition_order(m0[0], m0[4], index, k, factor, lx, ly, check)
         if order is not None:
             return m0[:4], order, grid
         if check is not None:
