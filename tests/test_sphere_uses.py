@@ -302,8 +302,18 @@ def test_maps_of_the_sphere(tmp_path):
         plot_mesh(mesh, pts)  # a new Mollweide figure
 
 
+def _on_the_seam(n, rng):
+    """Degenerate points for a map: on the antimeridian (the map's cut), at both poles, and
+    each point twice."""
+    lat = rng.uniform(-89.0, 89.0, n // 2)
+    pts = np.column_stack([np.where(rng.random(n // 2) < 0.5, -180.0, 180.0), lat])
+    pts[:20] = [[0.0, 90.0]] * 10 + [[0.0, -90.0]] * 10
+    return np.repeat(pts, 2, axis=0)
+
+
 @pytest.mark.parametrize("projection", ["mollweide", "hammer"])
-def test_a_map_of_the_sphere_projects_its_triangles_once(projection):
+@pytest.mark.parametrize("points", ["mixture", "on the seam"])
+def test_a_map_of_the_sphere_projects_its_triangles_once(projection, points):
     """regression: ``knnrefine refine quakes.csv --sphere ... --plot world.png`` (the README)
     spent 21 s drawing 8,910 triangles, matplotlib projecting them path by path twice. The
     triangles now reach the map already projected, in one call: the collection's transform
@@ -314,7 +324,8 @@ def test_a_map_of_the_sphere_projects_its_triangles_once(projection):
 
     from knnrefine.plot import plot_mesh
 
-    pts = Mixture().sample(3000, np.random.default_rng(5))
+    rng = np.random.default_rng(5)
+    pts = Mixture().sample(3000, rng) if points == "mixture" else _on_the_seam(3000, rng)
     mesh = knnrefine.refine(pts, 20, sphere=True)
     ax = plot_mesh(mesh, ax=Figure().add_subplot(projection=projection))
     coll = ax.collections[0]

@@ -359,14 +359,25 @@ def _map_axes(ax, figsize=(10.0, 5.6)):
     return ax
 
 
+def _projected(ax, lonlat):
+    """Points (q, 2) in longitude and latitude (degrees) in the projected coordinates of the
+    map axes ``ax``, all in one call of its projection; drawn with ``_after_projection(ax)``.
+    matplotlib projects a collection path by path (contours, meshes, polygons), cutting
+    every edge into many pieces: seconds for a map of a few thousand triangles."""
+    return ax.transProjection.transform(np.radians(lonlat))
+
+
+def _after_projection(ax):
+    """The rest of the map axes' transform, for coordinates already ``_projected``."""
+    return ax.transAffine + ax.transAxes
+
+
 def _projected_polygons(ax, polygons, step=2.0):
-    """Polygons in longitude and latitude (degrees) in the projected coordinates of the map
-    axes ``ax``, to be drawn with ``transform=ax.transAffine + ax.transAxes``. matplotlib
-    projects a collection path by path, each edge cut into many pieces, and again to find
-    the data limits: 21 s for a 4,457-vertex mesh (8,910 triangles) on a Mollweide map.
-    Here every corner goes through the projection in one call, an edge longer than ``step``
-    degrees first cut into pieces of at most that (16 at most) so that it bends as the map
-    does; an edge shared by two triangles is cut at the same points from both sides."""
+    """Polygons in longitude and latitude (degrees), ``_projected``: matplotlib's own way
+    (path by path, and again for the data limits) took 21 s for a 4,457-vertex mesh (8,910
+    triangles) on a Mollweide map. An edge longer than ``step`` degrees is first cut into
+    pieces of at most that (16 at most) so that it bends as the map does; an edge shared by
+    two triangles is cut at the same points from both sides."""
     if not polygons:
         return []
     count = np.array([len(p) for p in polygons])
@@ -379,7 +390,7 @@ def _projected_polygons(ax, polygons, step=2.0):
     edge = np.repeat(j, pieces)
     t = (np.arange(len(edge)) - np.repeat(np.cumsum(pieces) - pieces, pieces)) / pieces[edge]
     along = corner[edge] + t[:, None] * (corner[nxt[edge]] - corner[edge])
-    flat = ax.transProjection.transform(np.radians(along))
+    flat = _projected(ax, along)
     ends = np.add.reduceat(pieces, np.cumsum(count) - count).cumsum()
     return np.split(flat, ends[:-1])
 
@@ -410,11 +421,11 @@ def plot_sphere_mesh(mesh, points=None, *, ax=None, cells="triangles", show_mesh
                                   edgecolors="0.1" if show_mesh else "face",
                                   linewidths=0.15 if show_mesh else 0.3,
                                   rasterized=len(polys) > 20000,
-                                  transform=ax.transAffine + ax.transAxes)  # fmt: skip
+                                  transform=_after_projection(ax))  # fmt: skip
         else:
             coll = PolyCollection(polys, facecolors="none", edgecolors="0.1", linewidths=0.2,
                                   rasterized=len(polys) > 20000,
-                                  transform=ax.transAffine + ax.transAxes)  # fmt: skip
+                                  transform=_after_projection(ax))  # fmt: skip
         ax.add_collection(coll, autolim=False)  # a map's limits are the whole sphere
         if cells == "triangles" and show_colour_bar:
             unit = "radians" if mesh.radius == 1.0 else f"units of the radius {mesh.radius:g}"
@@ -447,12 +458,11 @@ def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, 
     lon, lat, f = density.grid(shape) if grid is None else grid
     f = np.asarray(f, float)
     areas = np.cos(np.radians(lat))[:, None]
-    # the grid projected once (matplotlib projects contours and meshes path by path: 2.5 s
-    # of a world map's 4), drawn with the affine rest of the map's transform
-    lon2, lat2 = np.meshgrid(np.radians(lon), np.radians(lat))
-    flat = ax.transProjection.transform(np.column_stack([lon2.ravel(), lat2.ravel()]))
+    # the grid projected once (path by path, the contours took 2.5 s of a world map's 4)
+    lon2, lat2 = np.meshgrid(lon, lat)
+    flat = _projected(ax, np.column_stack([lon2.ravel(), lat2.ravel()]))
     x, y = flat[:, 0].reshape(lon2.shape), flat[:, 1].reshape(lon2.shape)
-    on_map = ax.transAffine + ax.transAxes
+    on_map = _after_projection(ax)
     if style == "hdr":
         order = np.argsort(masses)[::-1]
         masses = np.asarray(masses, float)[order]
