@@ -76,13 +76,15 @@ def test_stitching_two_complete_meshes_gives_the_mesh_back():
 
 def test_stitch_refuses_what_a_tile_cannot_vouch_for():
     """A tile whose area is narrower than the disks of its share's triangles (here a tenth
-    of the torus around its core) cannot vouch for them: no stitch (the run then makes one
-    mesh of all its vertices)."""
+    of the torus around its core) cannot vouch for them: no stitch, but how far past each
+    tile's area its disks reach (the run widens those tiles' areas and tries again)."""
     run = refined()
-    tiles = [as_tile(run, 0, (0.3, 0.0, 0.4, 1.0, 1)), as_tile(run, 1, (0.65, 0.0, 0.1, 1.0, 1))]
+    tiles = [as_tile(run, 0, (0.0, 0.0, 1.0, 1.0, 1)), as_tile(run, 1, (0.65, 0.0, 0.1, 1.0, 1))]
     got = shared.stitch(tiles, np.array([0.3, 0.7]), 0, [1, 0], np.array([0.0, 0.0, 1.0, 1.0]),
                         SimpleNamespace(count=run.vertices))  # fmt: skip
-    assert got is None
+    assert isinstance(got, list)
+    assert got[0] == 0.0 and got[1] > 0.0  # the first tile's area is the whole torus
+    assert got[1] <= np.sqrt(run.mesh.radius2[: int(run.cnt[S.C_NT])].max())
 
 
 def test_join_refuses_an_edge_without_its_twin():
@@ -91,10 +93,10 @@ def test_join_refuses_an_edge_without_its_twin():
     offsets = np.zeros((2, 3, 2), np.int8)
     neighbours = np.full((2, 3), -1, np.int32)
     t, i = np.nonzero(neighbours < 0)
-    assert not shared._join(t, i, corners, offsets, neighbours, 4)  # outer edges: no twins
+    assert not shared._join(t, i, corners, offsets[t], neighbours)  # outer edges: no twins
     neighbours = np.full((2, 3), -1, np.int32)
     t, i = np.array([0, 1]), np.array([0, 2])  # the shared edge 1-2, both ways
-    assert shared._join(t, i, corners, offsets, neighbours, 4)
+    assert shared._join(t, i, corners, offsets[t], neighbours)
     assert neighbours[0, 0] == 1 and neighbours[1, 2] == 0
 
 

@@ -102,10 +102,12 @@ class Refinement3(TileRun):
     SAMPLE_STRIDE = 16  # a sweep counts every 16th slot first ...
     SWEEP_GOOD = 0.95  # ... and the rest if this share of those held < k
 
-    def __init__(self, index, period, k, tau, floor, max_vertices, grid, q=Q):
+    def __init__(
+        self, index, period, k, tau, floor, max_vertices, grid, q=Q, queued=True, capacity=None
+    ):
         self.period = np.asarray(period, float)
         self.index = index
-        estimate = max(4096, len(grid[0]) * 4)
+        estimate = max(4096, len(grid[0]) * 4) if capacity is None else capacity
         self.mesh, self.scratch, self.cnt = new_torus3(self.period, grid, estimate, 7 * estimate)
         t_cap = self.mesh.corners.shape[0]
         v_cap = self.mesh.xyz.shape[0]
@@ -138,7 +140,8 @@ class Refinement3(TileRun):
         prm[P3_REGION_W] = NO_REGION
         self.prm = prm
         self.cnt[C_MAX_VERTICES] = int(max_vertices)
-        queue_all3(self.mesh, self.book, self.queues, self.scratch, self.cnt, self.prm)
+        if queued:  # else the caller sets the states and queues (``queue_unsettled``)
+            queue_all3(self.mesh, self.book, self.queues, self.scratch, self.cnt, self.prm)
 
     def run(self, deadline=None, progress=None, interrupts=None):
         """Refine until done, the vertex budget, or the deadline (a ``time.perf_counter()``
@@ -293,6 +296,8 @@ class Refinement3(TileRun):
         """Queue every element not settled again, those deferred by a region included."""
         self._fresh_queues()
         queue_seeded3(self.mesh, self.book, self.queues, self.scratch, self.cnt, self.prm)
+
+    queue_unsettled = requeue  # a triangulation of settled parts (a stitched one): the same
 
     def counters(self):
         """Moves of each kind and the counting tests so far (``Refinement.counters``)."""

@@ -34,7 +34,8 @@ def core_of(x, bounds, period):
 
 
 @kernel(inline="always")
-def _wrapped(x, period):
+def wrapped(x, period):
+    """x reduced to [0, period)."""
     x = x - np.floor(x / period) * period
     return x - period if x >= period else x
 
@@ -53,8 +54,8 @@ def disk_meets_box(cx, cy, r, box, prm):
     does not wrap (0 <= x0, x0 + w <= lx, and so along y)."""
     lx = prm[P_LX]
     ly = prm[P_LY]
-    x = _wrapped(cx, lx)
-    y = _wrapped(cy, ly)
+    x = wrapped(cx, lx)
+    y = wrapped(cy, ly)
     best = np.inf
     for sx in (-1.0, 0.0, 1.0):
         dx = max(box[0] - (x + sx * lx), 0.0, (x + sx * lx) - (box[0] + box[2]))
@@ -92,9 +93,11 @@ def owned_triangles(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
     """out[t] = True for this tile's share of the triangles t < nt: those whose corner of
     lowest global id (``gid``: a vertex's global id) lies in its core (``_in_core``: core
     number ``core`` of ``bounds`` along ``axis`` in the data's box ``data``, or the frame).
-    Returns how many of them have a circumdisk outside the tile's exact area ``exact``
-    (``_vouched``): 0 when the tile vouches for all of its share."""
+    Returns (how many of them have a circumdisk outside the tile's exact area ``exact``
+    (``_vouched``), the largest radius among those): (0, 0) when the tile vouches for all of
+    its share."""
     bad = 0
+    largest = 0.0
     for t in range(nt):
         o = mesh.corners[t, 0]
         for i in range(1, 3):
@@ -108,7 +111,8 @@ def owned_triangles(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
         cx, cy, r2 = circumcentre(mesh, prm, t)
         if not _vouched(cx, cy, np.sqrt(r2), exact, prm):
             bad += 1
-    return bad
+            largest = max(largest, np.sqrt(r2))
+    return bad, largest
 
 
 @kernel(entry=True, nogil=True)

@@ -285,6 +285,32 @@ def set_vertex_caches3(mesh, scratch, cnt, period, nv):
         mesh.nearest2[v] = d2
 
 
+@kernel(entry=True, nrt=False, nogil=True)
+def vertex_caches_from_tets3(mesh, period, nt, nv):
+    """star, outradius2 and nearest2 of vertices 0..nv-1 in one pass over the tetrahedra
+    (the values ``set_vertex_caches3``'s walks find: R(v)^2 the largest circumradius at v,
+    d_{M,2}(v)^2 the shortest edge; star[v] the last tetrahedron at v), for a triangulation
+    given whole (a stitched one: no star to walk from yet)."""
+    for v in range(nv):
+        mesh.outradius2[v] = -1.0
+        mesh.nearest2[v] = np.inf
+    for t in range(nt):
+        r2 = mesh.radius2[t]
+        for i in range(4):
+            v = mesh.corners[t, i]
+            mesh.star[v] = t
+            if r2 > mesh.outradius2[v]:
+                mesh.outradius2[v] = r2
+            for j in range(i + 1, 4):
+                dx, dy, dz = edge_to3(mesh, t, i, j, period)
+                e2 = dx * dx + dy * dy + dz * dz
+                u = mesh.corners[t, j]
+                if e2 < mesh.nearest2[v]:
+                    mesh.nearest2[v] = e2
+                if e2 < mesh.nearest2[u]:
+                    mesh.nearest2[u] = e2
+
+
 @kernel(inline="always")
 def _link_slot(link, stamp, a, b):
     """Slot of edge (a, b), a < b, in the edge table for this insertion (open addressing;
@@ -574,7 +600,8 @@ def insert_points3(points, seeds, mesh, scratch, cnt, period):
 
 def new_torus3(period, grid, vertices, tetrahedra):
     """(mesh, scratch, cnt): a ``TorusMesh3`` holding the triangulation ``grid`` =
-    (xyz, corners, offsets, neighbours, ...) of ``initial.initial_grid3``, with room for
+    (xyz, corners, offsets, neighbours, ...) of ``initial.initial_grid3`` (or a stitched
+    one: offsets (t, 4, 3), or packed (t,) as ``offset3`` reads them), with room for
     ``vertices`` vertices and ``tetrahedra`` tetrahedra, its caches filled."""
     from .state import N_COUNTERS, Scratch3, TorusMesh3, mapped
 
@@ -592,16 +619,15 @@ def new_torus3(period, grid, vertices, tetrahedra):
     mesh = TorusMesh3(
         corners=rows(corners, tetrahedra, np.int32),
         neighbours=rows(neighbours, tetrahedra, np.int32),
-        offsets=rows(pack_offsets(offsets), tetrahedra, np.uint32),
+        offsets=rows(
+            offsets if offsets.ndim == 1 else pack_offsets(offsets), tetrahedra, np.uint32
+        ),  # fmt: skip
         radius2=mapped((tetrahedra,), np.float64),
         xyz=rows(xyz, vertices, np.float64),
         star=mapped((vertices,), np.int32),
         outradius2=mapped((vertices,), np.float64),
         nearest2=mapped((vertices,), np.float64),
     )
-    star = np.zeros(nv, np.int32)
-    star[corners.ravel()] = np.repeat(np.arange(nt, dtype=np.int32), 4)
-    mesh.star[:nv] = star
     scratch = Scratch3(
         mark=mapped((tetrahedra,), np.int32),
         cavity=mapped((MAX_CAVITY3,), np.int32),
@@ -622,7 +648,7 @@ def new_torus3(period, grid, vertices, tetrahedra):
     cnt[C_NV], cnt[C_NT] = nv, nt
     period = np.asarray(period, float)
     set_all_circumspheres(mesh, period, nt, scratch.points)
-    set_vertex_caches3(mesh, scratch, cnt, period, nv)
+    vertex_caches_from_tets3(mesh, period, nt, nv)
     return mesh, scratch, cnt
 
 

@@ -1,32 +1,34 @@
-"""A tiled run in threads of this process, its tiles' meshes stitched (the plane).
+"""A tiled run in threads of this process, its tiles' meshes stitched (the plane and space).
 
-``refine(points, k, workers=N)`` in the plane. The plan is any tiled run's (``tiled.plan``:
-the sample, the initial mesh, the strips, a coarse pass), then:
+``refine(points, k, workers=N)``. The plan is any tiled run's (``tiled.plan``: the sample,
+the initial mesh, the strips, a coarse pass), then:
 
-* **Strips.** N tiles, each a thread refining its strip of the torus in its own mesh, all of
-  them counting in one index of all points (the kernels release the GIL). The plan's second
-  set of cuts is used: inner quantiles of the data, so a margin lies inside a strip. A tile
-  keeps its mesh from turn to turn.
-* **Seams.** What a strip left (elements crossing its borders: ``engine/region.py``'s rule)
-  lies near the N cuts. Each cut gets a seam, SEAM_SIZES times the largest element the
-  strips settled near it (``stitch.largest_near``), refined by a tile of its own from the
-  vertices near it. Seams and strips then take turns, each first inserting the vertices the
-  others made in its area (``Tile.sync``), until the strips add nothing. A tile without a
-  region gathers the vertices of the frame around the data's box (the margins).
+* **Strips.** N tiles, each a thread refining its strip of the torus (a slab in space) in
+  its own mesh, all of them counting in one index of all points (the kernels release the
+  GIL). The plan's second set of cuts is used: inner quantiles of the data, so a margin
+  lies inside a strip. A tile keeps its mesh from turn to turn.
+* **Seams.** What a strip left (elements crossing its borders: ``engine/region.py``'s rule,
+  ``region3.py`` in space) lies near the N cuts. Each cut gets a seam, SEAM_SIZES times the
+  largest element the strips settled near it (``stitch.largest_near``), refined by a tile
+  of its own from the vertices near it. Seams and strips then take turns, each first
+  inserting the vertices the others made in its area (``Tile.sync``), until the strips add
+  nothing. A tile without a region gathers the vertices of the frame around the data's box
+  (the margins).
 * **Stitch.** Every tile has every vertex of the run in its area, so the run's Delaunay
-  triangulation is the union of the tiles' shares (``engine/stitch.py``): the cores of the
-  strips, seams and frame partition the torus, and each triangle is handed in by the tile
-  whose core holds its corner of lowest id, which checks that its disk lies in its area. The
-  join is checked (each edge has one twin, 2 m triangles, every vertex used); a join that
-  fails is rebuilt by inserting every vertex into one mesh, as the rounds of shifted strips
-  do.
+  triangulation is the union of the tiles' shares (``engine/stitch.py``,
+  ``engine/stitch3.py``): the cores of the strips, seams (the middle half of each seam) and
+  frame partition the torus, and each simplex is handed in by the tile whose core holds
+  its corner of lowest id, which checks that its ball lies in its area. A tile that cannot
+  (an element too large for a seam beside its core) takes every vertex as far again as
+  that ball spans and the stitch is tried again. The join is checked (each facet has one
+  twin; 2 m triangles on the torus, the torus' volume in space); a join that fails is
+  rebuilt by inserting every vertex into one mesh, as the rounds of shifted strips do.
 * **Last step.** One run over the stitched mesh, with what the tiles settled marked so (a
   circumball's count does not depend on the tile, and a cell only shrinks), finishes
   whatever is left (elements wider than a seam, which no tile could take) and is the mesh
   returned.
 
-Nothing is triangulated twice but the few percent of vertices near the seams. Space keeps the
-rounds of shifted strips (``tiled.ThreadStore``).
+Nothing is triangulated twice but the vertices near the seams.
 """
 
 import time
@@ -37,28 +39,38 @@ from ..engine import jit
 from ..engine import refine as R
 from ..engine import state as S
 from ..engine.driver import Refinement
+from ..engine.driver3 import Refinement3
 from ..engine.interrupt import Interrupts
-from ..engine.region import in_rectangle
+from ..engine.refine3 import refine_steps3
 from ..engine.stitch import hand_in, largest_near, owned_triangles
+from ..engine.stitch3 import hand_in3, largest_near3, owned_tetrahedra
 from ..engine.threads import run_all
+from ..engine.triangulation3 import unpack_offsets
 from ..errors import EngineError
 from ..mesh import Mesh
 from ..run import Progress, finish
-from .tiled import ThreadStore, new_run, plan, regions_axis, settle
+from ..run3 import finish3
+from .tiled import ThreadStore, in_region, new_run, plan, regions_axis, settle
 
 SEAM_SIZES = 3.0  # a seam reaches this many of the largest elements near its cut, each side,
 SEAM_SPACINGS = 8.0  # and at least this many of the mesh's mean spacings, ...
 SEAM_SHARE = 1 / 8  # ... but no more than this share of the narrower strip it borders
 FRAME_SIZES = 3.0  # the frame's tile has the vertices this many elements into the data's box
 COARSE_SHARE = 32  # the plan's coarse pass refines 1 / (32 T) of the points: strips are wide
+# beyond its region a tile has every vertex at least this many of the largest elements near
+# its cut deep (``refine_threads``' margin; 2, before the cores were halved, made the seams'
+# areas 20% wider in space)
+MARGIN_SIZES = 1.0
+CORE_SHARE = 0.5  # a seam's core: this share of its region's width, about the cut
 MAX_TURNS = 4  # turns of strips and seams before the last step takes what is left
+STITCH_TRIES = 3  # stitches tried, the areas of tiles that could not vouch widened between
 
 
 class Tile:
-    """A tile's kept mesh: its run, each vertex's global id, its region (where it moves: x0,
-    y0, w, h), its area (where it has every vertex of the run: the rectangle (x0, y0, w, h),
-    or everything outside it when the fifth number is 0) and how many of the run's vertices
-    it has looked at (``synced``)."""
+    """A tile's kept mesh: its run, each vertex's global id, its region (where it moves: a
+    box, its lower corner then its widths), its area (where it has every vertex of the run:
+    a box, and a last number, 1 for the box, 0 for everything outside it) and how many of
+    the run's vertices it has looked at (``synced``)."""
 
     def __init__(self, number, common, index, region, area, expected):
         self.number = number
@@ -82,10 +94,7 @@ class Tile:
         new = np.arange(self.synced, vertices.count)
         self.synced = vertices.count
         new = new[vertices.maker[new] != self.number]
-        x0, y0, w, h, inside = self.area
-        lx, ly = self.run.period
-        mask = in_rectangle(vertices.xy[new], x0, y0, w, h, 0.0, lx, ly)
-        new = np.concatenate([self.pending, new[mask if inside else ~mask]])
+        new = np.concatenate([self.pending, new[self._holds(vertices.xy[new])]])
         self.pending = new[:0]
         if len(new) == 0:
             return False
@@ -95,18 +104,43 @@ class Tile:
         self.seconds += time.perf_counter() - t0
         return True
 
+    def _in_area(self, x, area=None):
+        """Mask of the positions x in the box of ``area`` (this tile's by default)."""
+        box = self.area[:-1] if area is None else np.asarray(area[:-1], float)
+        return in_region(x, box, 0.0, tuple(self.run.period))
+
+    def _holds(self, x, area=None):
+        """Mask of the positions x in ``area`` (this tile's by default): its box, or
+        everything outside it."""
+        area = self.area if area is None else area
+        inside = self._in_area(x, area)
+        return inside if area[-1] else ~inside
+
     def widen(self, area, vertices):
-        """Make ``area`` (a rectangle holding the present one) this tile's area: the run's
-        vertices in the part it adds are inserted at its next sync."""
-        x0, y0, w, h, _ = self.area
-        lx, ly = self.run.period
+        """Make ``area`` (holding the present one) this tile's area: the run's vertices in
+        the part it adds are inserted at its next sync."""
         old = np.arange(self.m0, self.synced)  # the initial mesh is in every tile already
         old = old[vertices.maker[old] != self.number]
-        known = in_rectangle(vertices.xy[old], x0, y0, w, h, 0.0, lx, ly)
-        x0, y0, w, h, _ = area
-        added = in_rectangle(vertices.xy[old], x0, y0, w, h, 0.0, lx, ly) & ~known
+        known = self._holds(vertices.xy[old])
+        added = self._holds(vertices.xy[old], area) & ~known
         self.area = np.asarray(area, float)
-        self.pending = old[added]
+        self.pending = np.union1d(self.pending, old[added])
+
+    def grown_area(self, by, axis, periodic, period):
+        """This tile's area grown by ``by`` on each side: a strip's or seam's along the cut
+        ``axis`` (up to the whole period), the frame's (everything outside a box) into the
+        box along its non-periodic axes."""
+        area = self.area.copy()
+        d = len(period)
+        if area[-1]:
+            area[axis] -= by
+            area[d + axis] = min(area[d + axis] + 2.0 * by, period[axis])
+            return area
+        for a in range(d):
+            if not periodic[a]:
+                area[a] += by
+                area[d + a] = max(area[d + a] - 2.0 * by, 0.0)
+        return area
 
     def step(self, vertices, first, deadline, stop):
         """Sync, then refine the region (a tile without one only syncs): (status, the new
@@ -212,14 +246,15 @@ def run_turn(tiles, vertices, first, deadline, stop, report):
 
 def sizes_near(tiles, slabs, data):
     """The largest settled circumradius centred in the data's box ``data`` and meeting each
-    slab (axis, lo, width) in any of the tiles' meshes (``stitch.largest_near``, a thread
-    per tile)."""
+    slab (axis, lo, width) in any of the tiles' meshes (``stitch.largest_near``,
+    ``stitch3.largest_near3`` in space; a thread per tile)."""
     slabs = np.ascontiguousarray(slabs, float)
     found = [np.zeros(len(slabs)) for _ in tiles]
+    largest = largest_near if len(data) == 4 else largest_near3
 
     def measure(j):
         run = tiles[j].run
-        largest_near(run.mesh, run.book, int(run.cnt[S.C_NT]), slabs, data, run.prm, found[j])
+        largest(run.mesh, run.book, int(run.cnt[S.C_NT]), slabs, data, run.prm, found[j])
 
     run_all(measure, len(tiles))
     return np.max(found, axis=0)
@@ -234,8 +269,9 @@ def seam_widths(strips, cuts, axis, length, spacing, data, periodic):
     sides along its non-periodic axes (at least SEAM_SPACINGS spacings). One pass over the
     strips' meshes measures both."""
     least = SEAM_SPACINGS * spacing
-    sides = [(a, data[a] + side * data[2 + a] - least, 2 * least)
-             for a in range(2) if not periodic[a] for side in (0, 1)]  # fmt: skip
+    d = len(periodic)
+    sides = [(a, data[a] + side * data[d + a] - least, 2 * least)
+             for a in range(d) if not periodic[a] for side in (0, 1)]  # fmt: skip
     near = sizes_near(strips, [(axis, c - least, 2 * least) for c in cuts] + sides, data)
     near, frame = near[: len(cuts)], near[len(cuts) :]
     widths = np.diff(np.append(cuts, cuts[0] + length))
@@ -247,12 +283,17 @@ def seam_widths(strips, cuts, axis, length, spacing, data, periodic):
 def stitch(tiles, bounds, axis, cores, data, vertices):
     """The run's triangulation from the tiles' shares, each tile on a thread: (corners,
     offsets, neighbours, the circumballs' states, the cells settled, the caches the tiles
-    knew: ``Refinement``'s ``caches``), or None when the
-    shares do not join (a tile cannot vouch for its share, or an edge lacks its twin, or
-    the count is not 2 m). ``cores``: each tile's core in ``bounds`` along ``axis`` (-1:
-    the frame's tile); ``data``: the box of the data (x0, y0, w, h), the frame around it."""
+    knew: ``Refinement``'s ``caches``; in space the squared circumradii); or, when some
+    tiles cannot vouch for their share, a list: the largest radius of a ball past each
+    tile's area (0: none); or None when the shares do not join (a face lacks its twin, or
+    the shares do not fill the torus: 2 m triangles in the plane, the torus' volume in
+    space). ``cores``: each tile's core in ``bounds`` along ``axis`` (-1: the frame's
+    tile); ``data``: the box of the data (its corner, then its widths), the frame around
+    it."""
     nv = vertices.count
+    d = len(tiles[0].run.period)
     shares = [None] * len(tiles)
+    owned_by = owned_triangles if d == 2 else owned_tetrahedra
 
     def own(j):
         run = tiles[j].run
@@ -260,84 +301,99 @@ def stitch(tiles, bounds, axis, cores, data, vertices):
         if gid.min() < 0:
             raise EngineError("a tile's vertex has no id in the run (a broken tile)")
         mine = np.zeros(int(run.cnt[S.C_NT]), np.bool_)
-        bad = owned_triangles(run.mesh, len(mine), gid, bounds, axis, cores[j], data,
-                              tiles[j].area, run.prm, mine)  # fmt: skip
+        bad = owned_by(run.mesh, len(mine), gid, bounds, axis, cores[j], data, tiles[j].area,
+                       run.prm, mine)  # fmt: skip
         shares[j] = (gid, mine)
         return bad, int(np.count_nonzero(mine))
 
     owned = run_all(own, len(tiles))
+    if any(bad for (bad, _), _ in owned):  # balls past some areas: by how far at most
+        return [largest if bad else 0.0 for (bad, largest), _ in owned]
     total = sum(c for _, c in owned)
-    if any(bad for bad, _ in owned) or total != 2 * nv:
+    if d == 2 and total != 2 * nv:
         return None
     bases = np.concatenate([[0], np.cumsum([c for _, c in owned])])
     out = (
-        np.empty((total, 3), np.int32),  # corners (the engine's types: ``initial_grid``)
-        np.empty((total, 3, 2), np.int8),  # offsets
-        np.empty((total, 3), np.int32),  # neighbours
+        np.empty((total, d + 1), np.int32),  # corners (the engine's types: ``initial_grid``)
+        np.empty((total, 3, 2), np.int8) if d == 2 else np.empty(total, np.uint32),  # offsets
+        np.empty((total, d + 1), np.int32),  # neighbours
         np.empty(total, np.int8),  # circumball states
         np.empty(total),  # squared circumradii
         np.zeros(nv, np.bool_),  # cells settled
     )
     caches = (np.zeros(nv), np.zeros(nv, np.bool_))
+    volumes = np.zeros(len(tiles))
 
     def write(j):
         run = tiles[j].run
         gid, mine = shares[j]
-        hand_in(run.mesh, run.book, len(mine), run.vertices, gid, mine, bases[j], bounds, axis,
-                cores[j], data, tiles[j].area, run.prm, out, caches)  # fmt: skip
+        if d == 2:
+            hand_in(run.mesh, run.book, len(mine), run.vertices, gid, mine, bases[j], bounds,
+                    axis, cores[j], data, tiles[j].area, run.prm, out, caches)  # fmt: skip
+        else:
+            volumes[j] = hand_in3(run.mesh, run.book, len(mine), run.vertices, gid, mine,
+                                  bases[j], run.prm, out)[1]  # fmt: skip
 
     run_all(write, len(tiles))
     corners, offsets, neighbours, balls, radius2, cells = out
+    if d == 3:  # no count of tetrahedra follows from m: the volumes must fill the torus
+        torus = float(np.prod(tiles[0].run.period))
+        if abs(volumes.sum() - torus) > 1e-9 * torus:
+            return None
     t, i = np.nonzero(neighbours < 0)
-    if not _join(t, i, corners, offsets, neighbours, nv):
+    facets = offsets[t] if d == 2 else unpack_offsets(offsets[t])
+    if not _join(t, i, corners, facets, neighbours):
         return None
     if np.bincount(corners.ravel(), minlength=nv).min() == 0:
         return None
+    if d == 3:
+        return corners, offsets, neighbours, balls, cells, radius2
     return corners, offsets, neighbours, balls, cells, (radius2, *caches)
 
 
-def _join(t, i, corners, offsets, neighbours, nv):
-    """Set the neighbours across the edges (triangle t, opposite corner i) that join two
-    tiles' shares: each edge a -> b (with b's offset from a) meets its twin b -> a. False
-    when some edge has no twin, or more than one."""
+def _join(t, i, corners, offsets, neighbours):
+    """Set the neighbours across the facets (simplex t, opposite corner i) that join two
+    tiles' shares: edges in the plane, triangles in space; ``offsets`` (len(t), d + 1, d)
+    are the simplices t's. Each facet meets its twin: the same vertices at the same
+    offsets from one another. False when some facet has no twin, or more than one."""
     if len(t) == 0:
         return True
-    if nv >= 1 << 29:  # the keys below would overflow
+    d = corners.shape[1] - 1
+    others = (i[:, None] + np.arange(1, d + 1)[None, :]) % (d + 1)  # the facet's corners
+    ids = corners[t[:, None], others].astype(np.int64)
+    offs = np.take_along_axis(offsets, others[:, :, None], axis=1).astype(np.int64)
+    order = np.argsort(ids, axis=1, kind="stable")  # by vertex: the same in both twins
+    ids = np.take_along_axis(ids, order, axis=1)
+    offs = np.take_along_axis(offs, order[:, :, None], axis=1)
+    rel = offs[:, 1:] - offs[:, :1]  # the others' offsets from the first's
+    if np.abs(rel).max() > 3:
         return False
-    a = corners[t, (i + 1) % 3].astype(np.int64)
-    b = corners[t, (i + 2) % 3].astype(np.int64)
-    d = offsets[t, (i + 2) % 3].astype(np.int64) - offsets[t, (i + 1) % 3]
-    if np.abs(d).max() > 2:
+    columns = [ids[:, c] for c in range(d)] + [(rel + 3).reshape(len(t), -1) @ (
+        7 ** np.arange((d - 1) * d, dtype=np.int64))]  # fmt: skip
+    by = np.lexsort(columns[::-1])
+    keys = np.stack(columns, axis=1)[by]
+    if len(by) % 2 or not np.array_equal(keys[0::2], keys[1::2]):
         return False
-
-    def key(u, v, dx, dy):
-        return ((u * nv + v) * 5 + (dx + 2)) * 5 + (dy + 2)
-
-    fwd = key(a, b, d[:, 0], d[:, 1])
-    back = key(b, a, -d[:, 0], -d[:, 1])
-    order = np.argsort(fwd)
-    sorted_fwd = fwd[order]
-    if np.any(sorted_fwd[1:] == sorted_fwd[:-1]):
-        return False
-    at = np.searchsorted(sorted_fwd, back)
-    at = np.minimum(at, len(fwd) - 1)
-    if not np.array_equal(sorted_fwd[at], back):
-        return False
-    neighbours[t, i] = t[order[at]]
+    if len(by) > 2 and np.any(np.all(keys[2::2] == keys[1:-1:2], axis=1)):
+        return False  # three or more alike
+    a, b = by[0::2], by[1::2]
+    neighbours[t[a], i[a]] = t[b]
+    neighbours[t[b], i[b]] = t[a]
     return True
 
 
 def refine_threads(pts, w, opt, workers) -> Mesh:
-    """``knnrefine.refine(points, k, workers=N)`` in the plane: the module's run.
+    """``knnrefine.refine(points, k, workers=N)`` in this process: the module's run, in the
+    plane or in space.
 
     Parameters
     ----------
-    pts : ndarray (n, 2)
+    pts : ndarray (n, 2) or (n, 3)
     w : ndarray (n,) or None
     opt : RunOptions
         Checked (``run.checked``).
     workers : int
-        Threads, and strips.
+        Threads, and strips (slabs in space).
 
     Returns
     -------
@@ -345,7 +401,8 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
     """
     store = ThreadStore(pts, w, workers)
     report = Progress(opt.progress)
-    if not jit.is_ready(R.refine_steps):
+    dim = pts.shape[1]
+    if not jit.is_ready(R.refine_steps if dim == 2 else refine_steps3):
         report.compiling()
     with Interrupts() as interrupts:
         t0 = time.perf_counter()
@@ -354,7 +411,7 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         store.prepare(emb, p.sets, 4 * emb.grid)
         index = store.index
         setup = time.perf_counter() - t0
-        lx, ly = period = tuple(emb.period_internal)
+        period = tuple(emb.period_internal)
         grid = emb.grid
         m0 = p.m0
         vertices = Vertices(np.concatenate([m0[0], p.xy]),
@@ -364,18 +421,18 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         # the strips of the plan's second set: its cuts are inner quantiles of the data, so
         # a margin (no data, large elements) lies inside a strip, never at a cut
         axis = regions_axis(p.sets[1], period)
-        cuts, widths = p.sets[1][:, axis], p.sets[1][:, 2 + axis]
+        cuts, widths = p.sets[1][:, axis], p.sets[1][:, dim + axis]
         length = period[axis]
         data = _data_box(emb, period)
-        spacing = np.sqrt(data[2] * data[3] / max(p.estimated, 1.0))
         expected = min(p.estimated, p.budget)
+        spacing = (np.prod(data[dim:]) / max(p.estimated, 1.0)) ** (1.0 / dim)
         pad = 4 * grid
 
         def band(start, width, inside=None):
-            """The strip [start, start + width] across ``axis`` as (x0, y0, w, h), with an
-            area's flag when given."""
-            box = [0.0, 0.0, lx, ly]
-            box[axis], box[2 + axis] = start, width
+            """The strip [start, start + width] across ``axis`` as a box (corner, widths),
+            with an area's flag when given."""
+            box = [0.0] * dim + list(period)
+            box[axis], box[dim + axis] = start, width
             return tuple(box) if inside is None else (*box, inside)
 
         strips = [
@@ -388,10 +445,12 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         rounds.append({"round": "strips", **rep})
         interrupts.check()
         half, near, frame_w = seam_widths(strips, cuts, axis, length, spacing, data, emb.periodic)
-        # a tile vouches for the triangles of its core whose disks lie in its area: beyond
-        # its region, seams and strips have every vertex as far again as the largest element
-        # near their cut spans
-        reach = half + 2.0 * near
+        # a tile vouches for the simplices of its core whose balls lie in its area: beyond
+        # its region, seams and strips have every vertex ``margin`` deep, so that with the
+        # core's boundary CORE_SHARE of a seam inside the region a ball of twice the largest
+        # element near the cut fits (a seam narrowed by SEAM_SHARE needs the most)
+        margin = np.maximum(MARGIN_SIZES * near, 2.0 * near - CORE_SHARE * half)
+        reach = half + margin
         seams = [
             Tile(workers + j, common, index, band(cuts[j] - half[j], 2 * half[j]),
                  band(cuts[j] - reach[j] - pad, 2 * reach[j] + 2 * pad, 1),
@@ -400,7 +459,7 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         ]  # fmt: skip
         for j, tile in enumerate(strips):
             k = (j + 1) % workers
-            lo, hi = 2.0 * near[j], 2.0 * near[k]
+            lo, hi = margin[j], margin[k]
             tile.widen(band(cuts[j] - lo - pad, widths[j] + lo + hi + 2 * pad, 1), vertices)
         frame = _frame(emb, period, data, frame_w)
         framed = []  # the frame's tile: every vertex in the margins and near them, gathered
@@ -420,35 +479,41 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
                 break
         t1 = time.perf_counter()
         tiles = strips + seams
-        bounds, owners = _cores(cuts, half, length)
+        # a seam's core is the middle half of its region: on both sides of a core's
+        # boundary the tile owning it and its neighbour have half a seam to settle what
+        # crosses it (a core as wide as the seam's region left the seam's elements near its
+        # edge unsettled, for the last step to count again)
+        bounds, owners = _cores(cuts, CORE_SHARE * half, length)
         cores = [int(np.flatnonzero(owners == t.number)[0]) for t in tiles] + [-1] * len(framed)
         tiles += framed
         joined = None
         if stopped is None:
             # every tile gets every vertex of its area (after a turn that added none: only the
             # frame's tile inserts some)
-            run_all(lambda j, tiles=tiles: tiles[j].sync(vertices), len(tiles))
-            joined = stitch(tiles, bounds, axis, cores, data, vertices)
+            for _ in range(STITCH_TRIES):
+                run_all(lambda j, tiles=tiles: tiles[j].sync(vertices), len(tiles))
+                joined = stitch(tiles, bounds, axis, cores, data, vertices)
+                if not isinstance(joined, list):
+                    break
+                # elements larger than the margins (too large for a seam, left to the last
+                # step: in voids, or beside a narrow strip): the tiles that cannot vouch
+                # for them take every vertex as far again as their balls span
+                for tile, reach in zip(tiles, joined, strict=True):
+                    if reach > 0.0:
+                        tile.widen(tile.grown_area(2.0 * reach, axis, emb.periodic, period),
+                                   vertices)  # fmt: skip
+                joined = None
         counts = np.sum([t.run.cnt for t in tiles], axis=0)
         seconds = [float(t.seconds) for t in tiles]
         tiles = strips = seams = framed = []  # their meshes go before the last step's is made
         budget = p.budget
         if joined is not None:
-            corners, offsets, neighbours, balls, cells, caches = joined
-            run = Refinement(index, common["k"], lx, ly, common["tau"], common["min_size"],
-                             budget, m0=(vertices.xy, corners, offsets, neighbours), grid=grid,
-                             capacity=vertices.count + vertices.count // 8 + 1024,
-                             queued=False, caches=caches)  # fmt: skip
-            nt, nv = len(corners), vertices.count
-            run.book.ball_state[:nt] = balls
-            run.book.cell_state[:nv] = np.where(cells, S.GOOD, S.UNTESTED)
-            run.book.kinds[:nv] = vertices.kinds
-            run.queue_unsettled()
+            run = _stitched_run(joined, vertices, index, common, budget)
         else:  # the vertices are a run's moves: one mesh of them all, everything requeued
             x = vertices.xy[len(m0[0]) :]
             kinds = vertices.kinds[len(m0[0]) :]
             run, _, _ = settle(index, x, kinds, np.zeros(len(x), np.int32),
-                               np.zeros((0, workers, 4)), common)  # fmt: skip
+                               np.zeros((0, workers, 2 * dim)), common)  # fmt: skip
         for c in (S.C_DISK_TESTS, S.C_CELL_TESTS, S.C_FAILED):
             run.cnt[c] += counts[c]
         before, unsettled = run.vertices, run.pending()
@@ -460,6 +525,8 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
                        "unsettled": unsettled,
                        "tile_seconds": seconds, "seams": [float(h / emb.scale) for h in half],
                        "fetched_points": False})  # fmt: skip
+        if dim == 3:
+            return finish3(run, status, emb, opt, lambda: pts, store.n, store.weight, rounds)
         run.n = store.n
         run.time_index = setup
         run.time_refine = time.perf_counter() - t0 - setup
@@ -469,32 +536,55 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         )  # fmt: skip
 
 
+def _stitched_run(joined, vertices, index, common, budget):
+    """The last step's run over the stitched triangulation: what the tiles settled marked
+    so, the rest queued."""
+    corners, offsets, neighbours, balls, cells, caches = joined
+    nt, nv = len(corners), vertices.count
+    capacity = nv + nv // 8 + 1024
+    k, tau, floor, grid = common["k"], common["tau"], common["min_size"], common["grid"]
+    period = common["period"]
+    m0 = (vertices.xy, corners, offsets, neighbours)
+    if len(period) == 3:
+        run = Refinement3(index, period, k, tau, floor, budget, m0, grid, queued=False,
+                          capacity=capacity)  # fmt: skip
+    else:
+        run = Refinement(index, k, *period, tau, floor, budget, m0=m0, grid=grid,
+                         capacity=capacity, queued=False, caches=caches)  # fmt: skip
+    run.book.ball_state[:nt] = balls
+    run.book.cell_state[:nv] = np.where(cells, S.GOOD, S.UNTESTED)
+    run.book.kinds[:nv] = vertices.kinds
+    run.queue_unsettled()
+    return run
+
+
 def _data_box(emb, period):
-    """The box of the data in torus coordinates (x0, y0, w, h; a periodic axis' whole
-    period)."""
+    """The box of the data in torus coordinates (its corner, then its widths; a periodic
+    axis' whole period)."""
     lo, hi = emb.box_internal()
+    d = len(period)
     box = [(0.0, period[a]) if emb.periodic[a] else (float(lo[a]), float(hi[a] - lo[a]))
-           for a in range(2)]  # fmt: skip
-    return np.array([box[0][0], box[1][0], box[0][1], box[1][1]])
+           for a in range(d)]  # fmt: skip
+    return np.array([b[0] for b in box] + [b[1] for b in box])
 
 
 def _frame(emb, period, data, band):
     """The frame's tile's area: everything outside the data's box shrunk by ``band`` along
-    its non-periodic axes (None when both axes are periodic: no frame)."""
+    its non-periodic axes (None when every axis is periodic: no frame)."""
     if all(emb.periodic):
         return None
-    x0, y0, w, h = data
-    inner = []
-    for a, (lo, size) in enumerate(((x0, w), (y0, h))):
-        inner.append((lo, size) if emb.periodic[a] else (lo + band, max(size - 2 * band, 0.0)))
-    return (inner[0][0], inner[1][0], inner[0][1], inner[1][1], 0)
+    d = len(period)
+    corner, widths = list(data[:d]), list(data[d:])
+    for a in range(d):
+        if not emb.periodic[a]:
+            corner[a], widths[a] = corner[a] + band, max(widths[a] - 2 * band, 0.0)
+    return (*corner, *widths, 0)
 
 
 def _cores(cuts, half, lx):
     """The cores' lower bounds along the cut axis (sorted, in [0, lx): lx its period) and
-    the tile owning each: seam j
-    (number T + j) owns [cut_j - h_j, cut_j + h_j), strip j (number j) the rest of its strip,
-    [cut_j + h_j, cut_{j+1} - h_{j+1})."""
+    the tile owning each: seam j (number T + j) owns [cut_j - h_j, cut_j + h_j), strip j
+    (number j) the rest of its strip, [cut_j + h_j, cut_{j+1} - h_{j+1})."""
     t = len(cuts)
     lows = np.concatenate([cuts - half, cuts + half])
     owners = np.concatenate([np.arange(t, 2 * t), np.arange(t)])

@@ -14,12 +14,13 @@ that makes the union of the tiles' moves a kNNRefine run is ``engine/region.py``
   (elements crossing a border of both sets, or below the floor) needs the counts of all the
   points: the caller's final pass.
 
-Where the points live is a store's business: ``ThreadStore`` (this process; tiles in its
-threads, counting in one shared index), ``LocalStore`` (this process; tiles on an
+Where the points live is a store's business: ``LocalStore`` (this process; tiles on an
 executor's processes, each with a copy of its strip) and
 ``knnrefine.scale.distributed.DaskStore`` (partitions and strip indexes on Dask workers).
 A store has ``n``, ``weight`` (the total, or None), ``bounds`` (the points' extent: lows,
-highs), ``sample``, ``prepare``, ``run_round``, ``points`` and ``close``.
+highs), ``sample``, ``prepare``, ``run_round``, ``points`` and ``close``. Tiles in threads
+of this process keep their meshes and stitch them instead of rounds (``scale/shared.py``,
+whose ``ThreadStore`` has the plan's methods and one index of all points).
 """
 
 import multiprocessing
@@ -45,7 +46,7 @@ from ..engine.jit import kernel
 from ..engine.refine3 import refine_steps3
 from ..engine.region import in_rectangle
 from ..engine.region3 import in_box3
-from ..engine.threads import in_chunks, run_all
+from ..engine.threads import in_chunks
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
 from ..run import Progress, Start, finish, vertex_budget
@@ -321,14 +322,12 @@ def in_region(x, region, pad, period):
     return in_rectangle(x, *region, pad, *period)
 
 
-def run_tile(task, index=None, shared=False):
-    """One tile of one round: its points' index (``index``, else built from task["points"]),
-    the vertices in its region, the earlier rounds' regions; returns the vertices it
-    inserted (xy, kinds) and its counters. ``shared``: one of the threads of this process
-    (``ThreadStore``), else the one tile of a process at a time."""
+def run_tile(task, index=None):
+    """One tile of one round, the one tile of its process at a time: its points' index
+    (``index``, else built from task["points"]), the vertices in its region, the earlier
+    rounds' regions; returns the vertices it inserted (xy, kinds) and its counters."""
     t0 = time.perf_counter()
-    if not shared:  # one of many tiles at once: one engine thread in this process
-        os.environ["KNNREFINE_THREADS"] = "1"
+    os.environ["KNNREFINE_THREADS"] = "1"  # one of many tiles at once: one engine thread
     left = task["time_left"]  # seconds, not a clock reading: tiles may run on other machines
     deadline = None if left is None else t0 + left
     if index is None:
@@ -565,21 +564,15 @@ class LocalStore:
 
 
 class ThreadStore(LocalStore):
-    """The points in this process, refined by ``workers`` threads over the same arrays: the
-    plan comes from the sample, as with any store (so the mesh is the same), and every tile
-    counts in one index of all points (no copies, no pickling), a thread of this process
-    whose kernels release the GIL; the last step counts in that index too."""
+    """The points in this process, refined by ``workers`` threads over the same arrays
+    (``scale/shared.py``): the plan comes from the sample, as with any store (so the mesh
+    is the same), and every tile counts in one index of all points (no copies, no
+    pickling), a thread of this process whose kernels release the GIL; the last step
+    counts in that index too."""
 
     def prepare(self, emb, sets, pad):
         """The index of all points, in torus coordinates (built by all threads)."""
         self.index = new_index(emb.to_internal(self.pts), self.weights, workers=None)
-
-    def run_round(self, s, tasks):
-        return run_all(lambda j: run_tile(tasks[j], self.index, shared=True), len(tasks))
-
-    def index_of_all(self, emb):
-        """The counting index of all points for the last step: the tiles' own."""
-        return self.index
 
 
 # -- a tiled run ------------------------------------------------------------------------------
@@ -606,10 +599,10 @@ def tiles_pay(dim, n):
 
 
 def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
-    """``knnrefine.refine`` with ``workers`` > 1: refined in strips (slabs in space:
-    ``refine_store``) by that many threads of this process over one index of all points
-    (``ThreadStore``), or, given ``executor``, by its processes, each with a copy of its
-    strip's points (``LocalStore``).
+    """``knnrefine.refine`` with ``workers`` > 1: refined in strips (slabs in space) by that
+    many threads of this process over one index of all points, their meshes stitched
+    (``scale/shared.py``), or, given ``executor``, in rounds on its processes, each with a
+    copy of its strip's points (``LocalStore``, ``refine_store``).
 
     Parameters
     ----------
@@ -624,15 +617,11 @@ def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
     -------
     Mesh
     """
-    if executor is None and pts.shape[1] == 2:
+    if executor is None:
         from .shared import refine_threads
 
         return refine_threads(pts, w, opt, workers)
-    store: LocalStore
-    if executor is None:
-        store = ThreadStore(pts, w, workers)
-    else:
-        store = LocalStore(pts, w, workers, executor)
+    store = LocalStore(pts, w, workers, executor)
     try:
         return refine_store(store, opt, workers)
     finally:
@@ -757,8 +746,6 @@ def refine_store(store, opt, workers) -> Mesh:
         elif status == S.STATUS_DONE and unsettled:
             if everything:  # the same run, on the whole torus: what the bands deferred too
                 run.requeue()
-            elif hasattr(store, "index_of_all"):  # the store's own index of all points
-                run, _, unsettled = settle(store.index_of_all(emb), *args)
             else:  # what is left needs the counts of all points
                 pts, w = store.points()
                 fetched = True
