@@ -178,3 +178,23 @@ def test_tiles_that_cannot_vouch_are_widened_and_stitched(monkeypatch):
     assert answers[0] == "list" and answers[-1] == "tuple", answers
     assert mesh.stats["rounds"][-1]["stitched"]
     assert_certified(mesh, pts, "slabs widened")
+
+
+def test_a_sync_queues_what_it_changed_and_nothing_is_left_for_a_full_requeue():
+    """Between turns a tile inserts the vertices other tiles made in its area, then queues
+    only what those insertions changed (``Refinement3.queue_synced``) instead of every
+    element: the run that follows leaves nothing that a full requeue would still find
+    (the oracle: ``requeue`` then ``run`` inserts no vertex)."""
+    run = refined3(6000, k=5)
+    q = run.prm[7]  # the grid step: vertices lie on it (``refine3.P3_GRID``)
+    new = np.rint(np.random.default_rng(0).random((300, 3)) / q) * q % 1.0
+    ids = run.insert(new, np.zeros(len(new), np.int8))
+    before = run.vertices
+    run.queue_synced(ids)
+    assert run.pending() > 0
+    assert run.run() == S.STATUS_DONE
+    assert run.vertices > before  # the insertions left bad elements
+    after = run.vertices
+    run.requeue()
+    assert run.run() == S.STATUS_DONE
+    assert run.vertices == after

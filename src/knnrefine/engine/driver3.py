@@ -23,6 +23,7 @@ from .refine3 import (
     P3_TAU2,
     queue_all3,
     queue_seeded3,
+    queue_synced3,
     refine_steps3,
     sweep_balls3,
     sweep_cells3,
@@ -298,6 +299,23 @@ class Refinement3(TileRun):
         queue_seeded3(self.mesh, self.book, self.queues, self.scratch, self.cnt, self.prm)
 
     queue_unsettled = requeue  # a triangulation of settled parts (a stitched one): the same
+
+    def queue_synced(self, ids):
+        """Queue only what inserting the vertices ``ids`` into this finished run changed
+        (``refine3.queue_synced3``; a tile's sync between its turns)."""
+        ids = np.ascontiguousarray(ids, np.int64)
+        nv = self.vertices  # a vertex is at most once in the cells' and Cleans' queues
+        for name, need in (("balls", len(ids)), ("cells", nv), ("cleans", nv)):
+            q = getattr(self.queues, name)
+            cap = q.ident.shape[0]
+            size = int(q.scalars[Q_SIZE]) + need + 4 * HEADROOM3
+            if size > cap:
+                del q
+                parts = [("queues", name, part) for part in ("ident", "aux", "next")]
+                grow(self, parts, _grown(size), in_place=True)
+        if queue_synced3(self.mesh, self.book, self.queues, self.scratch, self.cnt, self.prm,
+                         ids) < 0:  # fmt: skip
+            raise EngineError("a vertex's star overflowed the walk's stack")
 
     def counters(self):
         """Moves of each kind and the counting tests so far (``Refinement.counters``)."""

@@ -183,6 +183,46 @@ def queue_seeded3(mesh, book, queues, scratch, cnt, prm):
         _touch3(v, mesh, book, queues, scratch, cnt, prm)
 
 
+@kernel(entry=True, nogil=True)
+def queue_synced3(mesh, book, queues, scratch, cnt, prm, ids):
+    """Queue what inserting the vertices ``ids`` (a tile's sync: ``TileRun.insert``) into a
+    finished run changed, instead of everything (``queue_seeded3``): every tetrahedron an
+    insertion made has the vertex it inserted as a corner, so an entry per vertex with an
+    untested tetrahedron left (at the class of the largest) and a touch of every corner of
+    their stars find it all. DEFERRED elements stay so (a tile's region does not change).
+    The queues must hold len(ids) entries more, and the cells' and Cleans' one per vertex
+    touched."""
+    touched = np.empty(64 * ids.shape[0] + 64, np.int64)
+    nt = 0
+    for m in range(ids.shape[0]):
+        v = ids[m]
+        n = star3(v, mesh, scratch, cnt)[2]
+        if n < 0:
+            return STAR_OVERFLOW
+        first = N_CLASSES
+        for e in range(n):
+            t = scratch.walk[e]
+            if book.ball_state[t] == UNTESTED:
+                first = min(first, size_class(mesh.radius2[t]))
+            for i in range(4):
+                u = mesh.corners[t, i]
+                if not (book.flags[u] & TOUCHED):
+                    book.flags[u] = book.flags[u] | TOUCHED
+                    if nt == touched.shape[0]:
+                        grown = np.empty(2 * nt, np.int64)
+                        grown[:nt] = touched
+                        touched = grown
+                    touched[nt] = u
+                    nt += 1
+        if first < N_CLASSES:
+            queue_push(queues.balls, first, v, 0)
+    for m in range(nt):
+        book.flags[touched[m]] = book.flags[touched[m]] & ~TOUCHED
+    for m in range(nt):
+        _touch3(touched[m], mesh, book, queues, scratch, cnt, prm)
+    return nt
+
+
 @kernel(nrt=False)
 def count_cell3(v, mesh, scratch, probe, cnt, prm, index):
     """Points of P in the closed Voronoi cell of v (inflated): exact below k, else >= k;

@@ -89,7 +89,8 @@ class Tile:
 
     def sync(self, vertices):
         """Insert the run's vertices made since the last sync by other tiles (or the coarse
-        pass) that lie in this tile's area; True when there were some."""
+        pass) that lie in this tile's area; returns their ids in this tile's run (None when
+        there were none)."""
         t0 = time.perf_counter()
         new = np.arange(self.synced, vertices.count)
         self.synced = vertices.count
@@ -97,12 +98,12 @@ class Tile:
         new = np.concatenate([self.pending, new[self._holds(vertices.xy[new])]])
         self.pending = new[:0]
         if len(new) == 0:
-            return False
+            return None
         ids = self.run.insert(vertices.xy[new], vertices.kinds[new])
         self.gid = _grown(self.gid, self.run.vertices)
         self.gid[ids] = new
         self.seconds += time.perf_counter() - t0
-        return True
+        return ids
 
     def _in_area(self, x, area=None):
         """Mask of the positions x in the box of ``area`` (this tile's by default)."""
@@ -148,8 +149,11 @@ class Tile:
         if self.region is None:
             self.sync(vertices)
             return S.STATUS_DONE, self.run.vertices, self.run.positions[:0], np.zeros(0, np.int8)
-        if self.sync(vertices) or first:
+        ids = self.sync(vertices)
+        if first or (ids is not None and not hasattr(self.run, "queue_synced")):
             self.run.queue_unsettled()  # what the sync made, and what others' regions kept
+        elif ids is not None:  # a finished run: only what the sync changed (space)
+            self.run.queue_synced(ids)
         t0 = time.perf_counter()
         start = self.start = self.run.vertices
         status = self.run.run(deadline=deadline, interrupts=stop)
