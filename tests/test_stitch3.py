@@ -198,3 +198,38 @@ def test_a_sync_queues_what_it_changed_and_nothing_is_left_for_a_full_requeue():
     run.requeue()
     assert run.run() == S.STATUS_DONE
     assert run.vertices == after
+
+
+def test_settled_tetrahedra_are_found_by_another_tile_and_only_they():
+    """A seam looks up the strips' settled circumballs instead of counting them again
+    (``stitch3.settled_table3`` / ``take_settled3``): a second mesh of the same vertices,
+    inserted in another order (other local ids), finds every tetrahedron of the first's
+    settled table; one more vertex's tetrahedra are found in no table and stay untested."""
+    from knnrefine.engine.stitch3 import settled_table3, take_settled3
+
+    pts = np.random.default_rng(3).random((3000, 3))
+    period = np.ones(3)
+    index = build_index3(pts)
+    grid = choose_grid3(period, lambda x, r: holds_k(index, x, r, 10, period), reach_factor(3))
+    first = Refinement3(index, period, 10, 3.0, 1e-6, 10**6, grid)
+    assert first.run() == S.STATUS_DONE
+    nv, nt = first.vertices, int(first.cnt[S.C_NT])
+    m0 = len(grid[0])
+    table = settled_table3(first.mesh, first.book, nt, np.arange(nv), first.prm,
+                           np.array([[0.0, 0.0, 0.0, 1.0, 1.0, 1.0]]))  # fmt: skip
+    assert (table[:, 0] != -1).sum() == nt  # a finished run settled every circumball
+    second = Refinement3(index, period, 10, 3.0, 1e-6, 10**6, grid)
+    order = np.random.default_rng(1).permutation(np.arange(m0, nv))
+    ids = second.insert(first.mesh.xyz[order], np.zeros(len(order), np.int8))
+    gid = np.arange(second.vertices)
+    gid[ids] = order
+    q = first.prm[7]
+    extra = second.insert(np.rint(np.array([[0.5, 0.5, 0.5]]) / q) * q, np.zeros(1, np.int8))
+    gid = np.append(gid, nv)  # an id the first mesh does not have
+    nt2 = int(second.cnt[S.C_NT])
+    second.book.ball_state[:nt2] = S.UNTESTED
+    taken = take_settled3(second.mesh, second.book, nt2, gid, table)
+    at_extra = (second.mesh.corners[:nt2] == extra[0]).any(axis=1)
+    assert at_extra.any() and taken == nt2 - at_extra.sum()
+    assert (second.book.ball_state[:nt2][at_extra] == S.UNTESTED).all()
+    assert (second.book.ball_state[:nt2][~at_extra] == S.GOOD).all()

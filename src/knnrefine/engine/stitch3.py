@@ -177,3 +177,94 @@ def largest_near3(mesh, book, nt, slabs, data, prm, out):
                 d += period
             if (d <= slabs[s, 2] + r or d >= period - r) and r > out[s]:
                 out[s] = r
+
+
+@kernel(inline="always")
+def _swap_if(ga, ca, gb, cb):
+    if gb < ga:
+        return gb, cb, ga, ca
+    return ga, ca, gb, cb
+
+
+@kernel(inline="always")
+def _tet_key(mesh, t, gid):
+    """Tetrahedron t as three words that are the same in every tile's mesh: its corners'
+    global ids in increasing order (two to a word) and its packed offsets
+    (``triangulation3.offset3``: normalised per axis, so the same in every frame) in that
+    corner order."""
+    g0, c0 = gid[mesh.corners[t, 0]], 0
+    g1, c1 = gid[mesh.corners[t, 1]], 1
+    g2, c2 = gid[mesh.corners[t, 2]], 2
+    g3, c3 = gid[mesh.corners[t, 3]], 3
+    g0, c0, g1, c1 = _swap_if(g0, c0, g1, c1)  # a sorting network of four
+    g2, c2, g3, c3 = _swap_if(g2, c2, g3, c3)
+    g0, c0, g2, c2 = _swap_if(g0, c0, g2, c2)
+    g1, c1, g3, c3 = _swap_if(g1, c1, g3, c3)
+    g1, c1, g2, c2 = _swap_if(g1, c1, g2, c2)
+    o = np.int64(mesh.offsets[t])
+    packed = ((o >> (6 * c0)) & 63) | (((o >> (6 * c1)) & 63) << 6)
+    packed |= (((o >> (6 * c2)) & 63) << 12) | (((o >> (6 * c3)) & 63) << 18)
+    return np.int64(g0) | (np.int64(g1) << 32), np.int64(g2) | (np.int64(g3) << 32), packed
+
+
+@kernel(inline="always")
+def _slot(a, b, c, mask):
+    h = (a * np.int64(-7046029254386353131)) ^ (b * np.int64(-4658895280553007687)) ^ c
+    return (h ^ (h >> 29)) & mask
+
+
+@kernel(entry=True, nogil=True)
+def settled_table3(mesh, book, nt, gid, prm, boxes):
+    """The tetrahedra this tile settled (GOOD) whose circumcentre lies in one of ``boxes``
+    (rows: corner, widths) as an open-addressing table of their keys (``_tet_key``; rows
+    (a, b, offsets), a = -1 empty), for another tile to look up (``take_settled3``): a
+    circumball's count depends on the tetrahedron only."""
+    pts = np.empty((5, 3))
+    c = np.empty(3)
+    found = np.zeros(nt, np.bool_)
+    count = 0
+    for t in range(nt):
+        if book.ball_state[t] != GOOD:
+            continue
+        load_corners(mesh, t, 0, 0, 0, prm, pts)
+        c[0], c[1], c[2], _ = circumsphere(pts)
+        for b in range(boxes.shape[0]):
+            if in_box3(c, boxes[b], prm):
+                found[t] = True
+                count += 1
+                break
+    size = 64
+    while size < 2 * count:
+        size *= 2
+    table = np.full((size, 3), -1, np.int64)
+    mask = size - 1
+    for t in range(nt):
+        if not found[t]:
+            continue
+        a, b, o = _tet_key(mesh, t, gid)
+        h = _slot(a, b, o, mask)
+        while table[h, 0] != -1 and not (table[h, 0] == a and table[h, 1] == b
+                                         and table[h, 2] == o):  # fmt: skip
+            h = (h + 1) & mask
+        table[h, 0], table[h, 1], table[h, 2] = a, b, o
+    return table
+
+
+@kernel(entry=True, nogil=True)
+def take_settled3(mesh, book, nt, gid, table):
+    """Mark GOOD the untested tetrahedra of this tile found in another tile's
+    ``settled_table3``; returns how many."""
+    mask = table.shape[0] - 1
+    taken = 0
+    for t in range(nt):
+        if book.ball_state[t] != UNTESTED:
+            continue
+        a, b, o = _tet_key(mesh, t, gid)
+        h = _slot(a, b, o, mask)
+        while table[h, 0] != -1:
+            if table[h, 0] == a and table[h, 1] == b and table[h, 2] == o:
+                book.ball_state[t] = GOOD
+                taken += 1
+                break
+            h = (h + 1) & mask
+    return taken

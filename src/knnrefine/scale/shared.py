@@ -43,7 +43,13 @@ from ..engine.driver3 import Refinement3
 from ..engine.interrupt import Interrupts
 from ..engine.refine3 import refine_steps3
 from ..engine.stitch import hand_in, largest_near, owned_triangles
-from ..engine.stitch3 import hand_in3, largest_near3, owned_tetrahedra
+from ..engine.stitch3 import (
+    hand_in3,
+    largest_near3,
+    owned_tetrahedra,
+    settled_table3,
+    take_settled3,
+)
 from ..engine.threads import run_all
 from ..engine.triangulation3 import unpack_offsets
 from ..errors import EngineError
@@ -85,6 +91,7 @@ class Tile:
         self.synced = m0
         self.pending = np.zeros(0, np.int64)  # vertices of a widened area, to insert
         self.start = None  # its vertices when its refinement began (for progress)
+        self.known = []  # other tiles' settled tetrahedra (``stitch3.settled_table3``)
         self.seconds = 0.0
 
     def sync(self, vertices):
@@ -102,6 +109,7 @@ class Tile:
         ids = self.run.insert(vertices.xy[new], vertices.kinds[new])
         self.gid = _grown(self.gid, self.run.vertices)
         self.gid[ids] = new
+        self.run.book.cell_state[ids[vertices.settled[new]]] = S.GOOD  # counted by others
         self.seconds += time.perf_counter() - t0
         return ids
 
@@ -150,6 +158,10 @@ class Tile:
             self.sync(vertices)
             return S.STATUS_DONE, self.run.vertices, self.run.positions[:0], np.zeros(0, np.int8)
         ids = self.sync(vertices)
+        for table in self.known:  # counted already by the tiles that made them (space)
+            take_settled3(self.run.mesh, self.run.book, int(self.run.cnt[S.C_NT]), self.gid,
+                          table)  # fmt: skip
+        self.known = []
         if first or (ids is not None and not hasattr(self.run, "queue_synced")):
             self.run.queue_unsettled()  # what the sync made, and what others' regions kept
         elif ids is not None:  # a finished run: only what the sync changed (space)
@@ -177,25 +189,35 @@ def _grown(a, n):
 
 class Vertices:
     """The run's vertices so far, in the order they got their ids: positions (internal),
-    kinds, and the tile that made each (-1: the initial mesh and the coarse pass). Views of
-    arrays that grow by a quarter when full (a turn appends each tile's vertices)."""
+    kinds, the tile that made each (-1: the initial mesh and the coarse pass) and whether
+    some tile found its cell to hold < k points (settled for good: a cell only shrinks as
+    vertices come). Views of arrays that grow by a quarter when full (a turn appends each
+    tile's vertices)."""
 
     def __init__(self, xy, kinds):
         self._xy, self._kinds = xy, kinds
         self._maker = np.full(len(xy), -1, np.int64)
+        self._settled = np.zeros(len(xy), np.bool_)
         self.count = len(xy)
 
     xy = property(lambda self: self._xy[: self.count])
     kinds = property(lambda self: self._kinds[: self.count])
     maker = property(lambda self: self._maker[: self.count])
+    settled = property(lambda self: self._settled[: self.count])
+
+    def settle(self, tile):
+        """Note the cells ``tile`` settled."""
+        run = tile.run
+        nv = run.vertices
+        self._settled[tile.gid[:nv][run.book.cell_state[:nv] == S.GOOD]] = True
 
     def add(self, xy, kinds, maker):
         """Append; returns the new vertices' ids."""
         first, last = self.count, self.count + len(xy)
         if last > len(self._xy):
             size = max(last, int(1.25 * len(self._xy)))
-            self._xy, self._kinds, self._maker = (
-                S.grown(a, size) for a in (self._xy, self._kinds, self._maker)
+            self._xy, self._kinds, self._maker, self._settled = (
+                S.grown(a, size) for a in (self._xy, self._kinds, self._maker, self._settled)
             )
         self._xy[first:last] = xy
         self._kinds[first:last] = kinds
@@ -240,6 +262,7 @@ def run_turn(tiles, vertices, first, deadline, stop, report):
     stopped = None
     for tile, (status, start, xy, kinds) in zip(tiles, results, strict=True):
         tile.adopt(start, vertices.add(xy, kinds, tile.number))
+        vertices.settle(tile)
         added += len(xy)
         if status != S.STATUS_DONE and stopped is None:
             stopped = status
@@ -461,6 +484,17 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
                  expected * 2 * reach[j] / length)
             for j in range(workers)
         ]  # fmt: skip
+        if dim == 3:  # the seams' circumballs the strips counted: not counted again
+            boxes = np.array([seam.region for seam in seams])
+
+            def settled(j):
+                run = strips[j].run
+                return settled_table3(run.mesh, run.book, int(run.cnt[S.C_NT]), strips[j].gid,
+                                      run.prm, boxes)  # fmt: skip
+
+            tables = run_all(settled, workers)
+            for seam in seams:
+                seam.known = tables
         for j, tile in enumerate(strips):
             k = (j + 1) % workers
             lo, hi = margin[j], margin[k]
