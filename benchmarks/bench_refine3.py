@@ -10,16 +10,17 @@ above what the process held before the call (``bench_refine.py``'s method) per m
 and that peak less the counting index over the points (the input's copy: about 28 bytes a
 point, whatever the mesh) per mesh vertex: the mesh's own memory.
 Where n * k > --ckdtree-budget the query runs on 10^5 sampled points and its time is scaled
-to n (marked "~"). ``--workers N`` also times ``refine(..., workers=N)`` (one process in
-space, on every core; with ``KNNREFINE_TILES=always``, slabs in N threads), interleaved with
-the others, and reports it as a ratio to one process.
+to n (marked "~"). ``--workers N`` also times ``refine(..., workers=N)`` (slabs in N
+threads, stitched, from 10^6 points: ``scale.tiled.TILES_FROM``; below, one process unless
+``KNNREFINE_TILES=always``), interleaved with the others, and reports it as a ratio to one
+process.
 
     python benchmarks/bench_refine3.py --sizes 1e5 1e6 --ks 10 100 1000 --repeat 3 \\
         --out benchmarks/results/bench_refine3.json
     python benchmarks/bench_refine3.py --box ordinary --sizes 1e6 --ks 10 100 --repeat 3 \\
         --out benchmarks/results/bench_refine3_ordinary.json
-    python benchmarks/bench_refine3.py --sizes 1e5 1e6 --ks 10 100 --workers 2 --repeat 3 \\
-        --out benchmarks/results/bench_refine3_workers.json
+    KNNREFINE_TILES=always python benchmarks/bench_refine3.py --sizes 1e5 1e6 --ks 10 100 \\
+        --workers 2 --repeat 3 --out benchmarks/results/bench_refine3_threads.json
 """
 
 import argparse

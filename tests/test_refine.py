@@ -239,7 +239,7 @@ def test_workers_below_the_tiles_size_run_one_process(monkeypatch):
     """Issue 32: refine(workers=2) on 10^6 points ran 0.75-0.9x as fast as one process (the
     stitched strips' plan, seams and stitch outweigh halving the refinement; one process
     uses every core for its index, sweeps and assembly already). Below
-    ``scale.tiled.TILES_FROM`` (and always in space) workers > 1 runs that one process: the
+    ``scale.tiled.TILES_FROM`` (in the plane and in space) workers > 1 runs that one process: the
     very mesh of workers=None, vertex by vertex; KNNREFINE_TILES=always tiles anyway, and a
     value it does not know is refused before any work."""
     from knnrefine.errors import InputError
@@ -260,6 +260,12 @@ def test_workers_below_the_tiles_size_run_one_process(monkeypatch):
     np.testing.assert_array_equal(a.vertices, b.vertices)
     monkeypatch.setitem(tiled.TILES_FROM, 2, 10000)  # at and above it: the tiles
     assert "rounds" in knnrefine.refine(pts, 10, workers=2).stats
+    monkeypatch.setitem(tiled.TILES_FROM, 3, 3000)  # in space too: the stitched slabs
+    assert knnrefine.refine(xyz, 10, periodic=True, box=box3, workers=2).stats["rounds"][-1][
+        "stitched"
+    ]
+    assert "rounds" not in knnrefine.refine(xyz[:2999], 10, periodic=True, box=box3,
+                                            workers=2).stats  # fmt: skip
     assert "rounds" not in knnrefine.refine(pts[:9999], 10, workers=2).stats
     monkeypatch.setitem(tiled.TILES_FROM, 2, 2_000_000)
     monkeypatch.setenv("KNNREFINE_TILES", "always")

@@ -105,22 +105,22 @@ def refine(
         None or 1: one run in this process, whose kernels use every core for the index, the
         bulk counts and the assembly (``KNNREFINE_THREADS`` caps them); the mesh does not
         depend on the cores. N > 1: a tiled run in N threads of this process where tiles
-        pay, all counting in one index of all points (the kernels release the GIL): in the
-        plane from ``scale.tiled.TILES_FROM`` points on (2 x 10^6), N strips of the torus,
-        balanced by point count, each refining only what lies inside it
-        (``engine/region.py``), then a seam at each cut, in turns, each tile keeping its
-        mesh and inserting only the others' vertices near it; the meshes are stitched into
-        one triangulation (checked: every edge has its twin) and one last run finishes what
-        no tile could decide (docs/algorithm.md, "In threads, stitched": the same
-        guarantees, certified by ``certify``). Below that size, and in space (whose slabs
-        re-triangulate: 1.1-1.7x slower than one process at 10^6 points), N > 1 runs
-        the one process of None, which is faster there (docs/benchmarks.md, "Workers in
-        threads"); ``KNNREFINE_TILES=always`` tiles at every size. A tiled mesh differs from
+        pay, all counting in one index of all points (the kernels release the GIL): from
+        ``scale.tiled.TILES_FROM`` points on (2 x 10^6 in the plane, 10^6 in space), N
+        strips of the torus (slabs in space), balanced by point count, each refining only
+        what lies inside it (``engine/region.py``), then a seam at each cut, in turns, each
+        tile keeping its mesh and inserting only the others' vertices near it; the meshes
+        are stitched into one triangulation (checked: every facet has its twin) and one last
+        run finishes what no tile could decide (docs/algorithm.md, "In threads, stitched":
+        the same guarantees, certified by ``certify``). Below that size N > 1 runs the one
+        process of None, which is faster there (docs/benchmarks.md, "Workers in threads");
+        ``KNNREFINE_TILES=always`` tiles at every size. A tiled mesh differs from
         a one-process run's in the order of its moves, and its size by a few percent;
         ``stats["rounds"]`` reports each turn and the last step; ``time_limit`` and
         ``max_vertices`` hold in every tile. On this project's 2-core machine the stitched
         strips are 0.94-1.14x of one process at 4 x 10^6 points and 1.12-1.5x of a run on
-        one core (``KNNREFINE_THREADS=1``), in two runs of the benchmark.
+        one core (``KNNREFINE_THREADS=1``), in two runs of the benchmark; the slabs in space
+        1.01-1.47x faster than one process at 10^6 points (k = 10 and 100).
     executor : concurrent.futures.Executor, optional
         Run the tiles of a run with ``workers`` > 1 on this executor instead (processes or
         machines, each tile with a copy of its strip's points): its ``map`` is called once

@@ -580,10 +580,10 @@ class ThreadStore(LocalStore):
 # Points from which tiles in threads beat one process (whose index, sweeps and assembly use
 # every core already), per dimension; below, ``workers`` > 1 runs one process. Measured on 2
 # cores (docs/benchmarks.md, "Workers in threads"): in the plane the stitched strips are
-# 0.75-1.0x of one process at 10^6 points and 0.94-1.14x at 4 x 10^6; in space the slabs,
-# which re-triangulate, were 1.1-3.4x slower at 10^5 and 10^6, so space runs one process.
+# 0.75-1.0x of one process at 10^6 points and 0.94-1.14x at 4 x 10^6; in space the stitched
+# slabs take 1.16-1.67x one process's time at 10^5 points and 0.68-0.90x at 10^6.
 # ``KNNREFINE_TILES=always`` tiles at every size (to measure them, or with more cores).
-TILES_FROM = {2: 2_000_000, 3: None}
+TILES_FROM = {2: 2_000_000, 3: 1_000_000}
 
 
 def tiles_pay(dim, n):
