@@ -393,3 +393,23 @@ def pytest_terminal_summary(terminalreporter):
     )
     for line in ACHIEVED:
         tr.write_line(line)
+
+
+def simplices_of(corners, offsets):
+    """Each simplex (triangle or tetrahedron) as a hashable key: its corners sorted, with
+    their periodic offsets relative to the lowest's (a simplex's frame is arbitrary), for
+    comparing triangulations whatever their order (the stitch tests)."""
+    keys = set()
+    for c, o in zip(corners, offsets, strict=True):
+        order = np.argsort(c)
+        rel = o[order] - o[order[0]]
+        keys.add((tuple(int(v) for v in c[order]), tuple(rel.ravel().tolist())))
+    return keys
+
+
+def as_tile(run, number, area):
+    """A stand-in for ``scale.shared.Tile`` holding a finished run (ids: its own)."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(run=run, gid=np.arange(run.vertices), area=np.asarray(area, float),
+                           number=number)  # fmt: skip

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import assert_certified, gaussian_clusters, uniform
+from conftest import as_tile, assert_certified, gaussian_clusters, simplices_of, uniform
 
 import knnrefine
 from knnrefine.engine import state as S
@@ -25,23 +25,6 @@ def refined(n=4000, k=10, seed=3):
     run = Refinement(build_index(uniform(n, seed).copy()), k, 1.0, 1.0, 3.0, 0.0, 10**6)
     assert run.run() == S.STATUS_DONE
     return run
-
-
-def triangles_of(corners, offsets):
-    """Each triangle as a hashable key: its corners from the lowest, with their offsets
-    relative to that corner's (a triangle's frame is arbitrary)."""
-    keys = set()
-    for c, o in zip(corners, offsets, strict=True):
-        i = int(np.argmin(c))
-        order = [(i + j) % 3 for j in range(3)]
-        rel = o[order] - o[order[0]]
-        keys.add((tuple(int(v) for v in c[order]), tuple(rel.ravel().tolist())))
-    return keys
-
-
-def as_tile(run, number, area):
-    return SimpleNamespace(run=run, gid=np.arange(run.vertices), area=np.asarray(area, float),
-                           number=number)  # fmt: skip
 
 
 def test_stitching_two_complete_meshes_gives_the_mesh_back():
@@ -60,7 +43,7 @@ def test_stitching_two_complete_meshes_gives_the_mesh_back():
     assert got is not None
     corners, offsets, neighbours, balls, cells, (radius2, nearest2, known) = got
     mesh = run.mesh
-    assert triangles_of(corners, offsets) == triangles_of(mesh.corners[:nt], mesh.offsets[:nt])
+    assert simplices_of(corners, offsets) == simplices_of(mesh.corners[:nt], mesh.offsets[:nt])
     for t in range(len(corners)):  # the neighbour across edge i holds it the other way round
         for i in range(3):
             a, b = corners[t, (i + 1) % 3], corners[t, (i + 2) % 3]

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import assert_certified
+from conftest import as_tile, assert_certified, simplices_of
 
 import knnrefine
 from knnrefine.engine import state as S
@@ -31,22 +31,6 @@ def refined3(n=3000, k=10, seed=3):
     return run
 
 
-def tetrahedra_of(corners, offsets):
-    """Each tetrahedron as a hashable key: its corners sorted, with their offsets relative
-    to the lowest's (a tetrahedron's frame is arbitrary)."""
-    keys = set()
-    for c, o in zip(corners, offsets, strict=True):
-        order = np.argsort(c)
-        rel = o[order] - o[order[0]]
-        keys.add((tuple(int(v) for v in c[order]), tuple(rel.ravel().tolist())))
-    return keys
-
-
-def as_tile(run, number, area):
-    return SimpleNamespace(run=run, gid=np.arange(run.vertices), area=np.asarray(area, float),
-                           number=number)  # fmt: skip
-
-
 def test_stitching_two_complete_meshes_gives_the_mesh_back_in_space():
     """Two tiles that both hold the whole mesh hand in the tetrahedra of their cores (x in
     [0.3, 0.7) and the rest): the stitched triangulation is the mesh's own, tetrahedron for
@@ -61,7 +45,7 @@ def test_stitching_two_complete_meshes_gives_the_mesh_back_in_space():
     corners, packed, neighbours, balls, cells, radius2 = got
     offsets = unpack_offsets(packed)
     mine = unpack_offsets(run.mesh.offsets[:nt])
-    assert tetrahedra_of(corners, offsets) == tetrahedra_of(run.mesh.corners[:nt], mine)
+    assert simplices_of(corners, offsets) == simplices_of(run.mesh.corners[:nt], mine)
     for t in range(len(corners)):  # the neighbour across face i holds that face
         for i in range(4):
             face = {int(corners[t, j]) for j in range(4) if j != i}

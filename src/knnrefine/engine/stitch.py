@@ -88,6 +88,19 @@ def _vouched(cx, cy, r, exact, prm):
     return not disk_meets_box(cx, cy, r, exact, prm)
 
 
+@kernel(inline="always")
+def share_rows(mine, nt, base):
+    """The run's row of each simplex t < nt of a tile's share (``mine``; -1 elsewhere), the
+    share's rows running from ``base`` in the tile's order, and the row after the last."""
+    row = np.full(nt, -1, np.int64)
+    r = base
+    for t in range(nt):
+        if mine[t]:
+            row[t] = r
+            r += 1
+    return row, r
+
+
 @kernel(entry=True, nogil=True)
 def owned_triangles(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
     """out[t] = True for this tile's share of the triangles t < nt: those whose corner of
@@ -130,12 +143,7 @@ def hand_in(mesh, book, nt, nv, gid, mine, base, bounds, axis, core, data, exact
     and is marked known. Returns the number of rows written."""
     corners, offsets, neighbours, balls, radius2, cells = out
     nearest2, known = caches
-    row = np.full(nt, -1, np.int64)
-    r = base
-    for t in range(nt):
-        if mine[t]:
-            row[t] = r
-            r += 1
+    row, r = share_rows(mine, nt, base)
     for t in range(nt):
         g = row[t]
         if g < 0:

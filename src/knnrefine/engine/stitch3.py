@@ -22,7 +22,7 @@ from .jit import kernel
 from .refine import interval_within
 from .refine3 import P3_GRID
 from .state import FLOOR, GOOD, UNTESTED
-from .stitch import core_of, wrapped
+from .stitch import core_of, share_rows, wrapped
 from .triangulation3 import load_corners
 
 
@@ -127,12 +127,7 @@ def hand_in3(mesh, book, nt, nv, gid, mine, base, prm, out):
     points (a cell only shrinks as vertices come). Returns (rows written, their signed
     volume: positively oriented, the shares' add up to the torus')."""
     corners, offsets, neighbours, balls, radius2, cells = out
-    row = np.full(nt, -1, np.int64)
-    r = base
-    for t in range(nt):
-        if mine[t]:
-            row[t] = r
-            r += 1
+    row, r = share_rows(mine, nt, base)
     pts = np.empty((5, 3))
     volume = 0.0
     for t in range(nt):
