@@ -335,20 +335,22 @@ BOX3 = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
     ids=str,
 )
 def test_tiled_run_in_space_is_certified_and_the_size_of_a_single_run(periodic, workers, k, n):
-    """Slabs in space: the mesh passes certify (one Delaunay tetrahedralisation across the
-    slabs' borders, every guarantee) with within 5% of the single-process mesh's vertices;
-    the rounds did the work, not the final pass."""
+    """Slabs in space (in threads, stitched): the mesh passes certify (one Delaunay
+    tetrahedralisation across the slabs' borders, every guarantee) with within 5% of the
+    single-process mesh's vertices; the tiles made most of the vertices, the last step the
+    rest. At 3 x 10^4 clustered points the elements are wide against a narrow slab and its
+    seams (an eighth of it), so the last step makes up to 43% of the mesh here (at 10^6
+    points, a few dozen vertices of 400,000: docs/benchmarks.md); tiles start at 10^6
+    points in space for that reason (``scale.tiled.TILES_FROM``)."""
     X = gaussian_clusters(n, seed=4, clusters=25, dim=3)
     single = knnrefine.refine(X, k, box=BOX3, periodic=periodic)
     tiled = knnrefine.refine(X, k, box=BOX3, periodic=periodic, workers=workers)
     assert_certified(tiled, X, f"tiled in space {periodic} k={k}")
     assert abs(len(tiled.vertices) / len(single.vertices) - 1) < 0.05
     rounds = tiled.stats["rounds"]
-    in_rounds = sum(r["new_vertices"] for r in rounds if r["round"] != "final")
-    assert rounds[-1]["round"] == "final" and rounds[-1]["new_vertices"] < 0.05 * in_rounds
-    # (unlike the plane's, the rounds leave a few hundred cells here: the initial mesh's
-    # cells in the empty space between clusters, whose balls of radius 2 R(v) are wider
-    # than the slabs' overlap; the final pass decides them with all points)
+    in_tiles = sum(r["new_vertices"] for r in rounds if r["round"] != "final")
+    assert rounds[-1]["round"] == "final" and rounds[-1]["stitched"]
+    assert rounds[-1]["new_vertices"] < in_tiles
 
 
 @pytest.mark.slow
