@@ -38,10 +38,15 @@ from bench_refine import _status_mb, _trim, machine, reset_peak  # noqa: E402
 
 def make_points3(kind, n, seed=0):
     """uniform: the unit cube. clustered: 30 Gaussian clusters whose widths span three orders
-    of magnitude (1e-4 to 1e-1) over a 10% uniform background, wrapped into the cube."""
+    of magnitude (1e-4 to 1e-1) over a 10% uniform background, wrapped into the cube.
+    plane: uniform on the plane z = 0.5 (a hostile input: empty space beside the points)."""
     rng = np.random.default_rng(seed)
     if kind == "uniform":
         return rng.random((n, 3))
+    if kind == "plane":
+        pts = rng.random((n, 3))
+        pts[:, 2] = 0.5
+        return pts
     centres = rng.random((30, 3))
     widths = 10 ** rng.uniform(-4, -1, 30)
     counts = rng.multinomial(n - n // 10, rng.dirichlet(np.ones(30)))
