@@ -217,3 +217,21 @@ def test_settled_tetrahedra_are_found_by_another_tile_and_only_they():
     assert at_extra.any() and taken == nt2 - at_extra.sum()
     assert (second.book.ball_state[:nt2][at_extra] == S.UNTESTED).all()
     assert (second.book.ball_state[:nt2][~at_extra] == S.GOOD).all()
+
+
+def test_progress_is_reported_from_this_thread_while_the_slabs_refine():
+    """As in the plane: the slabs' turns are most of the run, and progress comes from the
+    calling thread while they work, with growing counts, the run stitched."""
+    import threading
+
+    seen = []
+
+    def progress(vertices, pending, phase="refining"):
+        seen.append((vertices, phase, threading.current_thread() is threading.main_thread()))
+
+    mesh = knnrefine.refine(_points("uniform", 150000, 4), 5, workers=2, progress=progress,
+                            box=(0, 0, 0, 1, 1, 1), periodic=True)  # fmt: skip
+    assert mesh.stats["rounds"][-1]["stitched"]
+    refining = [v for v, phase, _ in seen if phase == "refining"]
+    assert all(main for _, _, main in seen)
+    assert len(refining) >= 5 and refining[-1] > refining[0]

@@ -379,6 +379,13 @@ class Refinement(TileRun):
         self.reserve_queues(3 * self.vertices + R.HEADROOM)
         R.queue_all(self.mesh, self.book, self.queues, self.cnt, self.prm)
 
+    def queue_synced(self, ids):
+        """Queue what inserting the vertices ``ids`` (a tile's sync between its turns)
+        changed: in the plane everything not settled again (``queue_unsettled``; its
+        turns after the first are a few percent of a run, space's ``queue_synced3`` only
+        what the insertions touched)."""
+        self.queue_unsettled()
+
     def queue_unsettled(self):
         """Queue only what is not settled (a triangulation made of settled parts:
         ``refine.queue_unsettled``), the queues made just large enough for it."""

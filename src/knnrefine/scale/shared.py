@@ -162,9 +162,9 @@ class Tile:
             take_settled3(self.run.mesh, self.run.book, int(self.run.cnt[S.C_NT]), self.gid,
                           table)  # fmt: skip
         self.known = []
-        if first or (ids is not None and not hasattr(self.run, "queue_synced")):
+        if first:
             self.run.queue_unsettled()  # what the sync made, and what others' regions kept
-        elif ids is not None:  # a finished run: only what the sync changed (space)
+        elif ids is not None:  # a finished run: what the sync changed
             self.run.queue_synced(ids)
         t0 = time.perf_counter()
         start = self.start = self.run.vertices
