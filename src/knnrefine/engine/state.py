@@ -90,7 +90,7 @@ Scratch3 = namedtuple(
         "moved",  # (C + 1, 2) int64: row 0: the count; then (from, to) of each tetrahedron
         # moved by the last insertion, in order
         "no_h",  # (0, 3) float64, "no_ids" (0,) int64: a star walk that collects no
-        "no_ids",  # neighbours (``triangulation3.vertex_star3``)
+        "no_ids",  # neighbours (``triangulation3.walk_star3``)
     ],
 )
 

@@ -27,7 +27,7 @@ from .triangulation3 import load_corners
 
 
 @kernel(inline="always")
-def in_box3(p, box, prm):
+def point_in_box3(p, box, prm):
     """The point p in the box ``box`` (corner (3), widths (3)) of the torus (closed)."""
     for a in range(3):
         if not interval_within(p[a], 0.0, box[a], box[3 + a], prm[a]):
@@ -53,7 +53,7 @@ def ball_meets_box3(c, r, box, prm):
 def _in_core3(p, bounds, axis, core, data, prm):
     """p in core number ``core`` of ``bounds`` along ``axis`` inside the data's box, or, for
     core = -1 (the frame's tile), outside that box."""
-    inside = in_box3(p, data, prm)
+    inside = point_in_box3(p, data, prm)
     if core < 0:
         return not inside
     return inside and core_of(p[axis], bounds, prm[axis]) == core
@@ -161,7 +161,7 @@ def largest_near3(mesh, book, nt, slabs, data, prm, out):
             continue
         load_corners(mesh, t, 0, 0, 0, prm, pts)
         c[0], c[1], c[2], r2 = circumsphere(pts)
-        if not in_box3(c, data, prm):
+        if not point_in_box3(c, data, prm):
             continue
         r = np.sqrt(r2)
         for s in range(slabs.shape[0]):
@@ -224,7 +224,7 @@ def settled_table3(mesh, book, nt, gid, prm, boxes):
         load_corners(mesh, t, 0, 0, 0, prm, pts)
         c[0], c[1], c[2], _ = circumsphere(pts)
         for b in range(boxes.shape[0]):
-            if in_box3(c, boxes[b], prm):
+            if point_in_box3(c, boxes[b], prm):
                 found[t] = True
                 count += 1
                 break

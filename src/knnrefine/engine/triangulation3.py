@@ -214,13 +214,6 @@ def walk_star3(v, mesh, scratch, cnt, period, h, ids):
 
 
 @kernel(nrt=False)
-def vertex_star3(v, mesh, scratch, cnt, period):
-    """(R(v)^2, far corner's tetrahedron, d_{M,2}(v)^2, tetrahedra at v): ``walk_star3``."""
-    r2, far, d2, n, _ = walk_star3(v, mesh, scratch, cnt, period, scratch.no_h, scratch.no_ids)
-    return r2, far, d2, n
-
-
-@kernel(nrt=False)
 def star3(v, mesh, scratch, cnt):
     """(R(v)^2, far corner's tetrahedron, tetrahedra at v, listed in scratch.walk): the walk
     of ``walk_star3`` without its edges, for the callers that need neither d_{M,2} nor the
@@ -276,19 +269,10 @@ def refresh_outradii3(mesh, scratch, cnt, nv):
         outradius2_at3(v, mesh, scratch, cnt)
 
 
-@kernel(entry=True, nrt=False)
-def set_vertex_caches3(mesh, scratch, cnt, period, nv):
-    """outradius2 and nearest2 of vertices 0..nv-1 from their stars."""
-    for v in range(nv):
-        r2, _, d2, _ = vertex_star3(v, mesh, scratch, cnt, period)
-        mesh.outradius2[v] = r2
-        mesh.nearest2[v] = d2
-
-
 @kernel(entry=True, nrt=False, nogil=True)
 def vertex_caches_from_tets3(mesh, period, nt, nv):
     """star, outradius2 and nearest2 of vertices 0..nv-1 in one pass over the tetrahedra
-    (the values ``set_vertex_caches3``'s walks find: R(v)^2 the largest circumradius at v,
+    (the values ``walk_star3`` finds: R(v)^2 the largest circumradius at v,
     d_{M,2}(v)^2 the shortest edge; star[v] the last tetrahedron at v), for a triangulation
     given whole (a stitched one: no star to walk from yet)."""
     for v in range(nv):

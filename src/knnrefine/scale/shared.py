@@ -348,7 +348,7 @@ def stitch(tiles, bounds, axis, cores, data, vertices):
         np.empty(total),  # squared circumradii
         np.zeros(nv, np.bool_),  # cells settled
     )
-    caches = (np.zeros(nv), np.zeros(nv, np.bool_))
+    caches = (np.zeros(nv), np.zeros(nv, np.bool_)) if d == 2 else None  # the plane's
     volumes = np.zeros(len(tiles))
 
     def write(j):
