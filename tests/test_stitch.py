@@ -70,6 +70,58 @@ def test_stitch_refuses_what_a_tile_cannot_vouch_for():
     assert got[1] <= np.sqrt(run.mesh.radius2[: int(run.cnt[S.C_NT])].max())
 
 
+def test_a_tile_under_the_reach_rule_vouches_for_its_whole_share():
+    """A tile whose area's flag is -1 holds, by the reach rule, every vertex whose star
+    reaches its region: the stitch takes its share whatever the box (the same narrow one
+    as above), and the mesh comes back whole."""
+    run = refined()
+    nt = int(run.cnt[S.C_NT])
+    tiles = [as_tile(run, 0, (0.0, 0.0, 1.0, 1.0, 1)), as_tile(run, 1, (0.65, 0.0, 0.1, 1.0, -1))]
+    got = shared.stitch(tiles, np.array([0.3, 0.7]), 0, [1, 0], np.array([0.0, 0.0, 1.0, 1.0]),
+                        SimpleNamespace(count=run.vertices))  # fmt: skip
+    assert isinstance(got, tuple)
+    assert simplices_of(got[0], got[1]) == simplices_of(run.mesh.corners[:nt],
+                                                        run.mesh.offsets[:nt])  # fmt: skip
+
+
+def test_outradii_are_the_largest_circumradius_at_each_vertex():
+    """``Refinement.outradii``, the reach rule's bound on R(v), against the triangles:
+    the largest circumradius among the triangles at v, exactly (the plane's cache is R(v)
+    itself)."""
+    run = refined()
+    nv, nt = run.vertices, int(run.cnt[S.C_NT])
+    outer = np.full(nv, -1.0)
+    corners = run.mesh.corners[:nt]
+    np.maximum.at(outer, corners.ravel(), np.repeat(run.mesh.radius2[:nt], 3))
+    np.testing.assert_array_equal(run.outradii(), np.sqrt(outer))
+
+
+def test_distance_to_a_box_and_to_outside_it_on_the_torus():
+    """``shared.distance_to`` against the nearest of the box's periodic copies (the box
+    clipped per axis) and, outside a box, against the depth to its nearest side."""
+    rng = np.random.default_rng(4)
+    period = (1.0, 2.0)
+    x = rng.random((500, 2)) * period
+    box = np.array([0.8, 0.5, 0.4, 0.3, 1])  # wraps across x = 1
+    got = shared.distance_to(x, box, period)
+    best = np.full(len(x), np.inf)
+    for sx in (-1, 0, 1):
+        for sy in (-1, 0, 1):
+            y = x + np.array([sx, sy]) * period
+            gap = np.maximum(np.maximum(box[:2] - y, 0.0), y - (box[:2] + box[2:4]))
+            best = np.minimum(best, np.hypot(gap[:, 0], gap[:, 1]))
+    np.testing.assert_allclose(got, best, atol=1e-12)
+    band = np.array([0.0, 0.5, 1.0, 1.0, 1])  # the whole period along x: a band in y
+    gap = np.maximum(np.maximum(0.5 - x[:, 1], x[:, 1] - 1.5), 0.0)
+    np.testing.assert_allclose(shared.distance_to(x, band, period), gap)
+    frame = np.array([0.0, 0.5, 1.0, 1.0, 0])  # outside the band: the depth into it
+    depth = shared.distance_to(x, frame, period)
+    inside = (x[:, 1] >= 0.5) & (x[:, 1] <= 1.5)
+    np.testing.assert_allclose(depth[inside],
+                               np.minimum(x[inside, 1] - 0.5, 1.5 - x[inside, 1]))  # fmt: skip
+    assert (depth[~inside] == 0.0).all()
+
+
 def test_join_refuses_an_edge_without_its_twin():
     """The join of two shares: an edge whose twin is missing (a triangle dropped) fails."""
     corners = np.array([[0, 1, 2], [2, 1, 3]], np.int32)

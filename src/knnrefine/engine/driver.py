@@ -409,6 +409,13 @@ class Refinement(TileRun):
         """Queued candidates (an upper bound on the work left, not a promise)."""
         return int(sum(q.scalars[Q_SIZE] for q in self.queues))
 
+    def outradii(self):
+        """An upper bound on R(v) (the distance from v to its Voronoi cell's farthest
+        corner) for every vertex, inf where the cache does not know it: the cache is R(v)
+        itself, -1 while unknown."""
+        r2 = self.mesh.outradius2[: self.vertices]
+        return np.sqrt(np.where(r2 < 0.0, np.inf, r2))
+
     @property
     def vertices(self):
         return int(self.cnt[C_NV])

@@ -235,6 +235,12 @@ class Refinement3(TileRun):
         """Queued candidates (an upper bound on the work left, not a promise)."""
         return int(sum(q.scalars[Q_SIZE] for q in self.queues))
 
+    def outradii(self):
+        """An upper bound on R(v) (the distance from v to its Voronoi cell's farthest
+        corner) for every vertex: the cache holds R(v) or, negated, a bound on it
+        (``triangulation3``)."""
+        return np.sqrt(np.abs(self.mesh.outradius2[: self.vertices]))
+
     # -- a tile of a tiled run (``engine/region3.py``; the same methods as ``Refinement``) --
 
     @property

@@ -78,8 +78,11 @@ def _in_core(x, y, bounds, axis, core, data, prm):
 @kernel(inline="always")
 def _vouched(cx, cy, r, exact, prm):
     """The disk (cx, cy, r), inflated by a relative 1e-6 and a grid step, lies in the exact
-    area ``exact`` (x0, y0, w, h, inside): the rectangle when inside > 0, else everything
-    outside it."""
+    area ``exact`` (x0, y0, w, h, inside): the rectangle when inside > 0, everything
+    outside it when inside = 0, the whole torus when inside < 0 (a tile that holds every
+    vertex whose star reaches its region: ``scale/shared.py``'s reach rule)."""
+    if exact[4] < 0.0:
+        return True
     r = r * (1.0 + 1e-6) + prm[P_GRID]
     if exact[4] > 0.0:
         return interval_within(cx - r, 2.0 * r, exact[0], exact[2], prm[P_LX]) and (

@@ -62,8 +62,10 @@ def _in_core3(p, bounds, axis, core, data, prm):
 @kernel(inline="always")
 def _vouched3(c, r, exact, prm):
     """The ball (c, r), inflated by a relative 1e-6 and a grid step, lies in the exact area
-    ``exact`` (corner (3), widths (3), inside): the box when inside > 0, else everything
-    outside it."""
+    ``exact`` (corner (3), widths (3), inside): the box when inside > 0, everything outside
+    it when inside = 0, the whole torus when inside < 0 (``stitch._vouched``)."""
+    if exact[6] < 0.0:
+        return True
     r = r * (1.0 + 1e-6) + prm[P3_GRID]
     if exact[6] > 0.0:
         for a in range(3):

@@ -11,18 +11,22 @@ the initial mesh, the strips, a coarse pass), then:
   ``region3.py`` in space) lies near the N cuts. Each cut gets a seam, SEAM_SIZES times the
   largest element the strips settled near it (``stitch.largest_near``), refined by a tile
   of its own from the vertices near it. Seams and strips then take turns, each first
-  inserting the vertices the others made in its area (``Tile.sync``), until the strips add
-  nothing. A tile without a region gathers the vertices of the frame around the data's box
-  (the margins).
-* **Stitch.** Every tile has every vertex of the run in its area, so the run's Delaunay
-  triangulation is the union of the tiles' shares (``engine/stitch.py``,
-  ``engine/stitch3.py``): the cores of the strips, seams (the middle half of each seam) and
-  frame partition the torus, and each simplex is handed in by the tile whose core holds
-  its corner of lowest id, which checks that its ball lies in its area. A tile that cannot
-  (an element too large for a seam beside its core) takes every vertex as far again as
-  that ball spans and the stitch is tried again. The join is checked (each facet has one
-  twin; 2 m triangles on the torus, the torus' volume in space); a join that fails is
-  rebuilt by inserting every vertex into one mesh, as the rounds of shifted strips do.
+  inserting the vertices the others made that it must have (``Tile.sync``), until the
+  strips add nothing. A tile without a region gathers the vertices of the frame around the
+  data's box (the margins).
+* **Reach.** Beyond its region (a pad aside) a tile has every vertex v within 2 R(v) of its
+  region, R(v) bounded from above by any tile's mesh that has v (``Vertices.reach``; the
+  reach rule, ``Tile``): then its stars of the vertices in its region are the run's. The
+  reach is each vertex's own, so the large elements of a void reach far and the small ones
+  beside them do not (a margin as wide as the largest element near a cut took every
+  vertex of a plane of points in space into every tile).
+* **Stitch.** The run's Delaunay triangulation is the union of the tiles' shares
+  (``engine/stitch.py``, ``engine/stitch3.py``): the cores of the strips, seams (the middle
+  half of each seam) and frame partition the torus, and each simplex is handed in by the
+  tile whose core holds its corner of lowest id, whose star there is the run's. The join
+  is checked (each facet has one twin; 2 m triangles on the torus, the torus' volume in
+  space); a join that fails is rebuilt by inserting every vertex into one mesh, as the
+  rounds of shifted strips do.
 * **Last step.** One run over the stitched mesh, with what the tiles settled marked so (a
   circumball's count does not depend on the tile, and a cell only shrinks), finishes
   whatever is left (elements wider than a seam, which no tile could take) and is the mesh
@@ -61,49 +65,56 @@ from .tiled import ThreadStore, in_region, new_run, plan, regions_axis, settle
 SEAM_SIZES = 3.0  # a seam reaches this many of the largest elements near its cut, each side,
 SEAM_SPACINGS = 8.0  # and at least this many of the mesh's mean spacings, ...
 SEAM_SHARE = 1 / 8  # ... but no more than this share of the narrower strip it borders
-FRAME_SIZES = 3.0  # the frame's tile has the vertices this many elements into the data's box
 COARSE_SHARE = 32  # the plan's coarse pass refines 1 / (32 T) of the points: strips are wide
-# beyond its region a tile has every vertex at least this many of the largest elements near
-# its cut deep (``refine_threads``' margin; 2, before the cores were halved, made the seams'
-# areas 20% wider in space)
-MARGIN_SIZES = 1.0
 CORE_SHARE = 0.5  # a seam's core: this share of its region's width, about the cut
 MAX_TURNS = 4  # turns of strips and seams before the last step takes what is left
-STITCH_TRIES = 3  # stitches tried, the areas of tiles that could not vouch widened between
 
 
 class Tile:
     """A tile's kept mesh: its run, each vertex's global id, its region (where it moves: a
-    box, its lower corner then its widths), its area (where it has every vertex of the run:
-    a box, and a last number, 1 for the box, 0 for everything outside it) and how many of
-    the run's vertices it has looked at (``synced``)."""
+    box, its lower corner then its widths), its box (where it has every vertex of the run:
+    a box, and a last number, 1 for the box, 0 for everything outside it), what it reaches
+    (``near``: its region, or for the frame's tile everything outside the data's box, in
+    the same form), and how many of the run's vertices it has looked at (``synced``).
 
-    def __init__(self, number, common, index, region, area, expected):
+    The reach rule: a tile has every vertex v of the run within 2 R(v) of ``near`` (R(v)
+    the distance from v to its Voronoi cell's farthest corner, a bound from any tile's
+    mesh: ``Vertices.reach``). Then it has every Delaunay neighbour of every vertex in
+    ``near`` (an edge uv lies in the circumball of a tetrahedron at v, of radius <= R(v)),
+    and the balls of those vertices' stars are empty of the run's vertices, so its stars
+    of the vertices in ``near`` are the run's, whatever its mesh elsewhere: it vouches for
+    every simplex whose corner of lowest id lies in its core (its ``area`` for the stitch
+    is the whole torus). A vertex's reach is local: beside a plane of points in space the
+    large elements of the empty side reach far but are few, where a margin as wide as the
+    largest element near a cut took most of the plane's vertices into every tile."""
+
+    def __init__(self, number, common, index, region, box, expected, near=None):
         self.number = number
         self.run = new_run(index, common, expected)
         self.run.threads = 1  # its sweeps: the other tiles hold the other cores
         self.region = region  # None: a tile that only has the vertices of its area
         if region is not None:
             self.run.set_region(region)
-        self.area = np.asarray(area, float)
+        self.box = np.asarray(box, float)
+        self.near = np.asarray((*region, 1) if near is None else near, float)
+        period = self.run.period
+        self.area = np.array([0.0] * len(period) + list(period) + [-1.0])  # the reach rule
         self.m0 = m0 = self.run.vertices
         self.gid = np.arange(m0, dtype=np.int64)  # the initial mesh: the same ids in all
         self.synced = m0
-        self.pending = np.zeros(0, np.int64)  # vertices of a widened area, to insert
         self.start = None  # its vertices when its refinement began (for progress)
         self.known = []  # other tiles' settled tetrahedra (``stitch3.settled_table3``)
         self.seconds = 0.0
 
     def sync(self, vertices):
         """Insert the run's vertices made since the last sync by other tiles (or the coarse
-        pass) that lie in this tile's area; returns their ids in this tile's run (None when
-        there were none)."""
+        pass) that lie in this tile's box or reach what it is near (``Vertices.reach``);
+        returns their ids in this tile's run (None when there were none)."""
         t0 = time.perf_counter()
         new = np.arange(self.synced, vertices.count)
         self.synced = vertices.count
         new = new[vertices.maker[new] != self.number]
-        new = np.concatenate([self.pending, new[self._holds(vertices.xy[new])]])
-        self.pending = new[:0]
+        new = new[self._holds(vertices.xy[new], vertices.reach[new])]
         if len(new) == 0:
             return None
         ids = self.run.insert(vertices.xy[new], vertices.kinds[new])
@@ -113,43 +124,13 @@ class Tile:
         self.seconds += time.perf_counter() - t0
         return ids
 
-    def _in_area(self, x, area=None):
-        """Mask of the positions x in the box of ``area`` (this tile's by default)."""
-        box = self.area[:-1] if area is None else np.asarray(area[:-1], float)
-        return in_region(x, box, 0.0, tuple(self.run.period))
-
-    def _holds(self, x, area=None):
-        """Mask of the positions x in ``area`` (this tile's by default): its box, or
-        everything outside it."""
-        area = self.area if area is None else area
-        inside = self._in_area(x, area)
-        return inside if area[-1] else ~inside
-
-    def widen(self, area, vertices):
-        """Make ``area`` (holding the present one) this tile's area: the run's vertices in
-        the part it adds are inserted at its next sync."""
-        old = np.arange(self.m0, self.synced)  # the initial mesh is in every tile already
-        old = old[vertices.maker[old] != self.number]
-        known = self._holds(vertices.xy[old])
-        added = self._holds(vertices.xy[old], area) & ~known
-        self.area = np.asarray(area, float)
-        self.pending = np.union1d(self.pending, old[added])
-
-    def grown_area(self, by, axis, periodic, period):
-        """This tile's area grown by ``by`` on each side: a strip's or seam's along the cut
-        ``axis`` (up to the whole period), the frame's (everything outside a box) into the
-        box along its non-periodic axes."""
-        area = self.area.copy()
-        d = len(period)
-        if area[-1]:
-            area[axis] -= by
-            area[d + axis] = min(area[d + axis] + 2.0 * by, period[axis])
-            return area
-        for a in range(d):
-            if not periodic[a]:
-                area[a] += by
-                area[d + a] = max(area[d + a] - 2.0 * by, 0.0)
-        return area
+    def _holds(self, x, reach):
+        """Mask of the positions x (with their reach) this tile must have: in its box, or
+        within reach of what it is near."""
+        period = tuple(self.run.period)
+        inside = in_region(x, self.box[:-1], 0.0, period)
+        held = inside if self.box[-1] else ~inside
+        return held | (distance_to(x, self.near, period) <= reach)
 
     def step(self, vertices, first, deadline, stop):
         """Sync, then refine the region (a tile without one only syncs): (status, the new
@@ -179,6 +160,27 @@ class Tile:
         self.gid[start : start + len(ids)] = ids
 
 
+def distance_to(x, near, period):
+    """Distance on the torus of ``period`` from each position x to ``near`` (a box: its
+    corner, its widths, then 1), or, with a last 0, to everything outside that box (the
+    depth of x in it: 0 outside)."""
+    d = len(period)
+    x = np.asarray(x, float).reshape(-1, d)
+    inside = near[-1] > 0.0
+    total = np.zeros(len(x)) if inside else np.full(len(x), np.inf)
+    for a in range(d):
+        lo, w, length = near[a], near[d + a], period[a]
+        if w >= length:  # the whole circle: no gap to it, no side to leave it by
+            continue
+        s = np.mod(x[:, a] - lo, length)
+        if inside:
+            gap = np.where(s <= w, 0.0, np.minimum(s - w, length - s))
+            total += gap * gap
+        else:
+            total = np.minimum(total, np.where(s <= w, np.minimum(s, w - s), 0.0))
+    return np.sqrt(total) if inside else total
+
+
 def _grown(a, n):
     if len(a) >= n:
         return a
@@ -189,39 +191,50 @@ def _grown(a, n):
 
 class Vertices:
     """The run's vertices so far, in the order they got their ids: positions (internal),
-    kinds, the tile that made each (-1: the initial mesh and the coarse pass) and whether
+    kinds, the tile that made each (-1: the initial mesh and the coarse pass), whether
     some tile found its cell to hold < k points (settled for good: a cell only shrinks as
-    vertices come). Views of arrays that grow by a quarter when full (a turn appends each
+    vertices come) and its reach: 2 R(v) (R(v) the distance to its Voronoi cell's farthest
+    corner) bounded from above by the meshes of the tiles that have it (the cell of v among
+    fewer vertices holds its cell among all), widened by a relative 1e-6 and ``slack``; inf
+    until a tile told. Views of arrays that grow by a quarter when full (a turn appends each
     tile's vertices)."""
 
-    def __init__(self, xy, kinds):
+    def __init__(self, xy, kinds, slack):
         self._xy, self._kinds = xy, kinds
         self._maker = np.full(len(xy), -1, np.int64)
         self._settled = np.zeros(len(xy), np.bool_)
+        self._reach = np.full(len(xy), np.inf)
+        self.slack = slack
         self.count = len(xy)
 
     xy = property(lambda self: self._xy[: self.count])
     kinds = property(lambda self: self._kinds[: self.count])
     maker = property(lambda self: self._maker[: self.count])
     settled = property(lambda self: self._settled[: self.count])
+    reach = property(lambda self: self._reach[: self.count])
 
     def settle(self, tile):
-        """Note the cells ``tile`` settled."""
+        """Note the cells ``tile`` settled, and its bounds on the reach of its vertices."""
         run = tile.run
         nv = run.vertices
-        self._settled[tile.gid[:nv][run.book.cell_state[:nv] == S.GOOD]] = True
+        gid = tile.gid[:nv]
+        self._settled[gid[run.book.cell_state[:nv] == S.GOOD]] = True
+        reach = 2.0 * (1.0 + 1e-6) * run.outradii() + self.slack
+        self._reach[gid] = np.minimum(self._reach[gid], reach)  # a tile's ids are distinct
 
     def add(self, xy, kinds, maker):
         """Append; returns the new vertices' ids."""
         first, last = self.count, self.count + len(xy)
         if last > len(self._xy):
             size = max(last, int(1.25 * len(self._xy)))
-            self._xy, self._kinds, self._maker, self._settled = (
-                S.grown(a, size) for a in (self._xy, self._kinds, self._maker, self._settled)
+            self._xy, self._kinds, self._maker, self._settled, self._reach = (
+                S.grown(a, size)
+                for a in (self._xy, self._kinds, self._maker, self._settled, self._reach)
             )
         self._xy[first:last] = xy
         self._kinds[first:last] = kinds
         self._maker[first:last] = maker
+        self._reach[first:last] = np.inf
         self.count = last
         return np.arange(first, last)
 
@@ -287,24 +300,15 @@ def sizes_near(tiles, slabs, data):
     return np.max(found, axis=0)
 
 
-def seam_widths(strips, cuts, axis, length, spacing, data, periodic):
-    """Half the width of the seam at each cut (of a period ``length``), the largest element
-    the strips settled near it, and how far into the data's box the frame's tile must have
-    every vertex. A seam is SEAM_SIZES times its element, at least SEAM_SPACINGS times the
-    mesh's mean spacing ``spacing``, at most SEAM_SHARE of the narrower strip it borders; the
-    frame's band FRAME_SIZES times the largest element the strips settled near the box's
-    sides along its non-periodic axes (at least SEAM_SPACINGS spacings). One pass over the
-    strips' meshes measures both."""
+def seam_widths(strips, cuts, axis, length, spacing, data):
+    """Half the width of the seam at each cut (of a period ``length``): SEAM_SIZES times
+    the largest element the strips settled near it, at least SEAM_SPACINGS times the mesh's
+    mean spacing ``spacing``, at most SEAM_SHARE of the narrower strip it borders."""
     least = SEAM_SPACINGS * spacing
-    d = len(periodic)
-    sides = [(a, data[a] + side * data[d + a] - least, 2 * least)
-             for a in range(d) if not periodic[a] for side in (0, 1)]  # fmt: skip
-    near = sizes_near(strips, [(axis, c - least, 2 * least) for c in cuts] + sides, data)
-    near, frame = near[: len(cuts)], near[len(cuts) :]
+    near = sizes_near(strips, [(axis, c - least, 2 * least) for c in cuts], data)
     widths = np.diff(np.append(cuts, cuts[0] + length))
     most = SEAM_SHARE * np.minimum(widths, np.roll(widths, 1))
-    band = max(FRAME_SIZES * float(frame.max(initial=0.0)), least)
-    return np.minimum(np.maximum(SEAM_SIZES * near, least), most), near, band
+    return np.minimum(np.maximum(SEAM_SIZES * near, least), most)
 
 
 def stitch(tiles, bounds, axis, cores, data, vertices):
@@ -441,8 +445,9 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         period = tuple(emb.period_internal)
         grid = emb.grid
         m0 = p.m0
-        vertices = Vertices(np.concatenate([m0[0], p.xy]),
-                            np.concatenate([np.zeros(len(m0[0]), np.int8), p.kinds]))  # fmt: skip
+        pad = 4 * grid
+        kinds = np.concatenate([np.zeros(len(m0[0]), np.int8), p.kinds])
+        vertices = Vertices(np.concatenate([m0[0], p.xy]), kinds, pad)
         stop = Stop(interrupts)
         deadline = opt.deadline
         # the strips of the plan's second set: its cuts are inner quantiles of the data, so
@@ -453,7 +458,6 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         data = _data_box(emb, period)
         expected = min(p.estimated, p.budget)
         spacing = (np.prod(data[dim:]) / max(p.estimated, 1.0)) ** (1.0 / dim)
-        pad = 4 * grid
 
         def band(start, width, inside=None):
             """The strip [start, start + width] across ``axis`` as a box (corner, widths),
@@ -471,17 +475,12 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         stopped, _, rep = run_turn(strips, vertices, True, deadline, stop, report)
         rounds.append({"round": "strips", **rep})
         interrupts.check()
-        half, near, frame_w = seam_widths(strips, cuts, axis, length, spacing, data, emb.periodic)
-        # a tile vouches for the simplices of its core whose balls lie in its area: beyond
-        # its region, seams and strips have every vertex ``margin`` deep, so that with the
-        # core's boundary CORE_SHARE of a seam inside the region a ball of twice the largest
-        # element near the cut fits (a seam narrowed by SEAM_SHARE needs the most)
-        margin = np.maximum(MARGIN_SIZES * near, 2.0 * near - CORE_SHARE * half)
-        reach = half + margin
+        half = seam_widths(strips, cuts, axis, length, spacing, data)
+        # beyond its region a tile has what the reach rule asks (``Tile``), no margin
         seams = [
             Tile(workers + j, common, index, band(cuts[j] - half[j], 2 * half[j]),
-                 band(cuts[j] - reach[j] - pad, 2 * reach[j] + 2 * pad, 1),
-                 expected * 2 * reach[j] / length)
+                 band(cuts[j] - half[j] - pad, 2 * half[j] + 2 * pad, 1),
+                 expected * 2 * half[j] / length)
             for j in range(workers)
         ]  # fmt: skip
         if dim == 3:  # the seams' circumballs the strips counted: not counted again
@@ -495,14 +494,10 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
             tables = run_all(settled, workers)
             for seam in seams:
                 seam.known = tables
-        for j, tile in enumerate(strips):
-            k = (j + 1) % workers
-            lo, hi = margin[j], margin[k]
-            tile.widen(band(cuts[j] - lo - pad, widths[j] + lo + hi + 2 * pad, 1), vertices)
-        frame = _frame(emb, period, data, frame_w)
+        frame = _frame(emb, period, data, pad)
         framed = []  # the frame's tile: every vertex in the margins and near them, gathered
         if frame is not None:  # with the seams' turns (it makes none)
-            framed = [Tile(2 * workers, common, index, None, frame, 0)]
+            framed = [Tile(2 * workers, common, index, None, frame, 0, (*data, 0))]
         for turn in range(MAX_TURNS):  # seams, then strips with their vertices, until the
             if stopped is not None:  # strips add nothing
                 break
@@ -526,20 +521,11 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         tiles += framed
         joined = None
         if stopped is None:
-            # every tile gets every vertex of its area (after a turn that added none: only the
-            # frame's tile inserts some)
-            for _ in range(STITCH_TRIES):
-                run_all(lambda j, tiles=tiles: tiles[j].sync(vertices), len(tiles))
-                joined = stitch(tiles, bounds, axis, cores, data, vertices)
-                if not isinstance(joined, list):
-                    break
-                # elements larger than the margins (too large for a seam, left to the last
-                # step: in voids, or beside a narrow strip): the tiles that cannot vouch
-                # for them take every vertex as far again as their balls span
-                for tile, reach in zip(tiles, joined, strict=True):
-                    if reach > 0.0:
-                        tile.widen(tile.grown_area(2.0 * reach, axis, emb.periodic, period),
-                                   vertices)  # fmt: skip
+            # every tile gets every vertex the reach rule asks (after a turn that added
+            # none: only the frame's tile inserts some)
+            run_all(lambda j, tiles=tiles: tiles[j].sync(vertices), len(tiles))
+            joined = stitch(tiles, bounds, axis, cores, data, vertices)
+            if not isinstance(joined, tuple):  # refused: every vertex in one mesh below
                 joined = None
         counts = np.sum([t.run.cnt for t in tiles], axis=0)
         seconds = [float(t.seconds) for t in tiles]
