@@ -120,8 +120,8 @@ def refine(
         ``max_vertices`` hold in every tile. On this project's 2-core machine the stitched
         strips are 0.94-1.14x of one process at 4 x 10^6 points and 1.12-1.5x of a run on
         one core (``KNNREFINE_THREADS=1``), in two runs of the benchmark; the slabs in space
-        1.01-1.47x faster than one process at 10^6 points (k = 10 and 100), 2.2x slower on
-        10^6 points on a plane (docs/benchmarks.md).
+        1.15-1.41x faster than one process at 10^6 points (k = 10 and 100), 1.09x faster on
+        10^6 points on a plane in space (docs/benchmarks.md).
     executor : concurrent.futures.Executor, optional
         Run the tiles of a run with ``workers`` > 1 on this executor instead (processes or
         machines, each tile with a copy of its strip's points): its ``map`` is called once
