@@ -115,3 +115,28 @@ def test_certify3_honours_samples_and_weights():
     assert many.n_probes - few.n_probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
     with pytest.raises(knnrefine.InputError, match="refined without weights"):
         knnrefine.certify(mesh, pts, weights=np.ones(len(pts)))
+
+
+def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
+    """The faces of the torus mesh pair up (each shared by exactly two tetrahedra), found by
+    sorting the face keys (``space._sorted_rows``, which replaced ``np.unique(axis=0)``, its
+    oracle here, for speed); a tetrahedron dropped or doubled leaves a face once or three
+    times: not a triangulation."""
+    from knnrefine.certify import space
+
+    mesh, _ = case
+    corners, offsets = mesh.torus.cells, mesh.torus.offsets.astype(np.int64)
+    got = space._neighbours(corners, offsets)
+    assert got is not None
+    t = len(corners)
+    for i in range(4):  # across face i of t: a tetrahedron holding the other three corners
+        other = np.sort(corners[:, [j for j in range(4) if j != i]], axis=1)
+        across = np.sort(corners[got[:, i]], axis=1)
+        assert all(np.isin(other[s], across[s]).all() for s in range(0, t, max(t // 200, 1)))
+    rows = np.random.default_rng(0).integers(0, 3, (5000, 4))
+    by, same = space._sorted_rows(rows)
+    _, first = np.unique(rows, axis=0, return_index=True)
+    np.testing.assert_array_equal(by[np.concatenate([[True], ~same])], first)
+    assert space._neighbours(corners[1:], offsets[1:]) is None
+    doubled = np.concatenate([corners, corners[:1]])
+    assert space._neighbours(doubled, np.concatenate([offsets, offsets[:1]])) is None

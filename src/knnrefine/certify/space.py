@@ -65,6 +65,15 @@ def _exact_faces(local, corners, offsets, neighbours, period):
     return bad_orient, bad_delaunay
 
 
+def _sorted_rows(rows):
+    """(the order sorting the integer rows lexicographically, stably; whether each sorted
+    row equals the one before it). ``np.unique(axis=0)`` answers the same through a sort of
+    the rows as opaque bytes, several times slower on the 10^5-10^6 faces of a mesh."""
+    by = np.lexsort(rows.T[::-1])
+    ordered = rows[by]
+    return by, np.all(ordered[1:] == ordered[:-1], axis=1)
+
+
 def _neighbours(corners, offsets):
     """The tetrahedron across each face, from face keys (sorted vertices and their offsets
     relative to each other); None unless every face is shared by exactly two."""
@@ -82,11 +91,10 @@ def _neighbours(corners, offsets):
                  np.take_along_axis(o, order[..., None], 1).reshape(t, 9)], axis=1,
             )
         )  # fmt: skip
-    _, inverse, counts = np.unique(np.concatenate(rows), axis=0, return_inverse=True,
-                                   return_counts=True)  # fmt: skip
-    if (counts != 2).any():
+    order, same = _sorted_rows(np.concatenate(rows))
+    # every face exactly twice: the sorted keys come in equal pairs, unequal between pairs
+    if len(order) % 2 or not same[0::2].all() or same[1::2].any():
         return None
-    order = np.argsort(inverse.ravel(), kind="stable")
     out = np.empty(4 * t, np.int64)
     out[order[0::2]] = order[1::2] % t
     out[order[1::2]] = order[0::2] % t
@@ -217,7 +225,8 @@ def _edge_midpoints(local, corners, offsets, period):
     flip = a > b
     key = np.column_stack([np.where(flip, b, a), np.where(flip, a, b),
                            np.where(flip[:, None], -d, d)])  # fmt: skip
-    _, first = np.unique(key, axis=0, return_index=True)
+    by, same = _sorted_rows(key)
+    first = by[np.concatenate([[True], ~same])]  # each key's first row, in the keys' order
     a, b, d = a[first], b[first], d[first]
     return local[a] + 0.5 * (local[b] + d * period - local[a])
 
