@@ -96,9 +96,9 @@ def test_outradii_are_the_largest_circumradius_at_each_vertex():
     np.testing.assert_array_equal(run.outradii(), np.sqrt(outer))
 
 
-def test_distance_to_a_box_and_to_outside_it_on_the_torus():
+def test_distance_to_a_box_on_the_torus():
     """``shared.distance_to`` against the nearest of the box's periodic copies (the box
-    clipped per axis) and, outside a box, against the depth to its nearest side."""
+    clipped per axis)."""
     rng = np.random.default_rng(4)
     period = (1.0, 2.0)
     x = rng.random((500, 2)) * period
@@ -114,12 +114,6 @@ def test_distance_to_a_box_and_to_outside_it_on_the_torus():
     band = np.array([0.0, 0.5, 1.0, 1.0, 1])  # the whole period along x: a band in y
     gap = np.maximum(np.maximum(0.5 - x[:, 1], x[:, 1] - 1.5), 0.0)
     np.testing.assert_allclose(shared.distance_to(x, band, period), gap)
-    frame = np.array([0.0, 0.5, 1.0, 1.0, 0])  # outside the band: the depth into it
-    depth = shared.distance_to(x, frame, period)
-    inside = (x[:, 1] >= 0.5) & (x[:, 1] <= 1.5)
-    np.testing.assert_allclose(depth[inside],
-                               np.minimum(x[inside, 1] - 0.5, 1.5 - x[inside, 1]))  # fmt: skip
-    assert (depth[~inside] == 0.0).all()
 
 
 def test_join_refuses_an_edge_without_its_twin():

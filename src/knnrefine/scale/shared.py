@@ -12,8 +12,7 @@ the initial mesh, the strips, a coarse pass), then:
   largest element the strips settled near it (``stitch.largest_near``), refined by a tile
   of its own from the vertices near it. Seams and strips then take turns, each first
   inserting the vertices the others made that it must have (``Tile.sync``), until the
-  strips add nothing. A tile without a region gathers the vertices of the frame around the
-  data's box (the margins).
+  strips add nothing.
 * **Reach.** Beyond its region (a pad aside) a tile has every vertex v within 2 R(v) of its
   region, R(v) bounded from above by any tile's mesh that has v (``Vertices.reach``; the
   reach rule, ``Tile``): then its stars of the vertices in its region are the run's. The
@@ -21,9 +20,10 @@ the initial mesh, the strips, a coarse pass), then:
   beside them do not (a margin as wide as the largest element near a cut took every
   vertex of a plane of points in space into every tile).
 * **Stitch.** The run's Delaunay triangulation is the union of the tiles' shares
-  (``engine/stitch.py``, ``engine/stitch3.py``): the cores of the strips, seams (the middle
-  half of each seam) and frame partition the torus, and each simplex is handed in by the
-  tile whose core holds its corner of lowest id, whose star there is the run's. The join
+  (``engine/stitch.py``, ``engine/stitch3.py``): the cores of the strips and seams (the
+  middle half of each seam) partition the torus, margins included, and each simplex is
+  handed in by the tile whose core holds its corner of lowest id, whose star there is the
+  run's. The join
   is checked (each facet has one twin; 2 m triangles on the torus, the torus' volume in
   space); a join that fails is rebuilt by inserting every vertex into one mesh, as the
   rounds of shifted strips do.
@@ -73,30 +73,28 @@ MAX_TURNS = 4  # turns of strips and seams before the last step takes what is le
 class Tile:
     """A tile's kept mesh: its run, each vertex's global id, its region (where it moves: a
     box, its lower corner then its widths), its box (where it has every vertex of the run:
-    a box, and a last number, 1 for the box, 0 for everything outside it), what it reaches
-    (``near``: its region, or for the frame's tile everything outside the data's box, in
-    the same form), and how many of the run's vertices it has looked at (``synced``).
+    a box and 1) and how many of the run's vertices it has looked at (``synced``).
 
-    The reach rule: a tile has every vertex v of the run within 2 R(v) of ``near`` (R(v)
+    The reach rule: a tile has every vertex v of the run within 2 R(v) of its region (R(v)
     the distance from v to its Voronoi cell's farthest corner, a bound from any tile's
     mesh: ``Vertices.reach``). Then it has every Delaunay neighbour of every vertex in
     ``near`` (an edge uv lies in the circumball of a tetrahedron at v, of radius <= R(v)),
     and the balls of those vertices' stars are empty of the run's vertices, so its stars
-    of the vertices in ``near`` are the run's, whatever its mesh elsewhere: it vouches for
+    of the vertices in its region are the run's, whatever its mesh elsewhere: it vouches for
     every simplex whose corner of lowest id lies in its core (its ``area`` for the stitch
     is the whole torus). A vertex's reach is local: beside a plane of points in space the
     large elements of the empty side reach far but are few, where a margin as wide as the
-    largest element near a cut took most of the plane's vertices into every tile."""
+    largest element near a cut took most of the plane's vertices into every tile. Nor does a
+    tile need the frame's tile it once had around the data's box: a strip's band crosses
+    the margins, and the rule holds there too."""
 
-    def __init__(self, number, common, index, region, box, expected, near=None):
+    def __init__(self, number, common, index, region, box, expected):
         self.number = number
         self.run = new_run(index, common, expected)
         self.run.threads = 1  # its sweeps: the other tiles hold the other cores
-        self.region = region  # None: a tile that only has the vertices of its area
-        if region is not None:
-            self.run.set_region(region)
+        self.region = region
+        self.run.set_region(region)
         self.box = np.asarray(box, float)
-        self.near = np.asarray((*region, 1) if near is None else near, float)
         period = self.run.period
         self.area = np.array([0.0] * len(period) + list(period) + [-1.0])  # the reach rule
         self.m0 = m0 = self.run.vertices
@@ -108,7 +106,7 @@ class Tile:
 
     def sync(self, vertices):
         """Insert the run's vertices made since the last sync by other tiles (or the coarse
-        pass) that lie in this tile's box or reach what it is near (``Vertices.reach``);
+        pass) that lie in this tile's box or reach its region (``Vertices.reach``);
         returns their ids in this tile's run (None when there were none)."""
         t0 = time.perf_counter()
         new = np.arange(self.synced, vertices.count)
@@ -126,18 +124,13 @@ class Tile:
 
     def _holds(self, x, reach):
         """Mask of the positions x (with their reach) this tile must have: in its box, or
-        within reach of what it is near."""
+        within reach of its region."""
         period = tuple(self.run.period)
         inside = in_region(x, self.box[:-1], 0.0, period)
-        held = inside if self.box[-1] else ~inside
-        return held | (distance_to(x, self.near, period) <= reach)
+        return inside | (distance_to(x, self.region, period) <= reach)
 
     def step(self, vertices, first, deadline, stop):
-        """Sync, then refine the region (a tile without one only syncs): (status, the new
-        vertices' positions and kinds)."""
-        if self.region is None:
-            self.sync(vertices)
-            return S.STATUS_DONE, self.run.vertices, self.run.positions[:0], np.zeros(0, np.int8)
+        """Sync, then refine the region: (status, the new vertices' positions and kinds)."""
         ids = self.sync(vertices)
         for table in self.known:  # counted already by the tiles that made them (space)
             take_settled3(self.run.mesh, self.run.book, int(self.run.cnt[S.C_NT]), self.gid,
@@ -160,25 +153,20 @@ class Tile:
         self.gid[start : start + len(ids)] = ids
 
 
-def distance_to(x, near, period):
-    """Distance on the torus of ``period`` from each position x to ``near`` (a box: its
-    corner, its widths, then 1), or, with a last 0, to everything outside that box (the
-    depth of x in it: 0 outside)."""
+def distance_to(x, box, period):
+    """Distance on the torus of ``period`` from each position x to ``box`` (its corner, then
+    its widths)."""
     d = len(period)
     x = np.asarray(x, float).reshape(-1, d)
-    inside = near[-1] > 0.0
-    total = np.zeros(len(x)) if inside else np.full(len(x), np.inf)
+    total = np.zeros(len(x))
     for a in range(d):
-        lo, w, length = near[a], near[d + a], period[a]
-        if w >= length:  # the whole circle: no gap to it, no side to leave it by
+        lo, w, length = box[a], box[d + a], period[a]
+        if w >= length:  # the whole circle: no gap to it
             continue
         s = np.mod(x[:, a] - lo, length)
-        if inside:
-            gap = np.where(s <= w, 0.0, np.minimum(s - w, length - s))
-            total += gap * gap
-        else:
-            total = np.minimum(total, np.where(s <= w, np.minimum(s, w - s), 0.0))
-    return np.sqrt(total) if inside else total
+        gap = np.where(s <= w, 0.0, np.minimum(s - w, length - s))
+        total += gap * gap
+    return np.sqrt(total)
 
 
 def _grown(a, n):
@@ -318,9 +306,9 @@ def stitch(tiles, bounds, axis, cores, data, vertices):
     tiles cannot vouch for their share, a list: the largest radius of a ball past each
     tile's area (0: none); or None when the shares do not join (a face lacks its twin, or
     the shares do not fill the torus: 2 m triangles in the plane, the torus' volume in
-    space). ``cores``: each tile's core in ``bounds`` along ``axis`` (-1: the frame's
-    tile); ``data``: the box of the data (its corner, then its widths), the frame around
-    it."""
+    space). ``cores``: each tile's core in ``bounds`` along ``axis`` inside the box
+    ``data`` (its corner, then its widths; the whole torus in a run), or, for -1, the
+    frame outside that box (the kernels' other reading, kept for their tests)."""
     nv = vertices.count
     d = len(tiles[0].run.period)
     shares = [None] * len(tiles)
@@ -494,14 +482,10 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
             tables = run_all(settled, workers)
             for seam in seams:
                 seam.known = tables
-        frame = _frame(emb, period, data, pad)
-        framed = []  # the frame's tile: every vertex in the margins and near them, gathered
-        if frame is not None:  # with the seams' turns (it makes none)
-            framed = [Tile(2 * workers, common, index, None, frame, 0, (*data, 0))]
         for turn in range(MAX_TURNS):  # seams, then strips with their vertices, until the
             if stopped is not None:  # strips add nothing
                 break
-            for name, group in (("seams", seams + framed), ("strips", strips)):
+            for name, group in (("seams", seams), ("strips", strips)):
                 stopped, added, rep = run_turn(group, vertices, turn == 0 and name == "seams",
                                                deadline, stop, report)  # fmt: skip
                 rounds.append({"round": name, **rep})
@@ -517,19 +501,19 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
         # crosses it (a core as wide as the seam's region left the seam's elements near its
         # edge unsettled, for the last step to count again)
         bounds, owners = _cores(cuts, CORE_SHARE * half, length)
-        cores = [int(np.flatnonzero(owners == t.number)[0]) for t in tiles] + [-1] * len(framed)
-        tiles += framed
+        cores = [int(np.flatnonzero(owners == t.number)[0]) for t in tiles]
         joined = None
         if stopped is None:
             # every tile gets every vertex the reach rule asks (after a turn that added
-            # none: only the frame's tile inserts some)
+            # none: few or none); the cores cross the margins (the whole torus)
             run_all(lambda j, tiles=tiles: tiles[j].sync(vertices), len(tiles))
-            joined = stitch(tiles, bounds, axis, cores, data, vertices)
+            whole = np.array([0.0] * dim + list(period))
+            joined = stitch(tiles, bounds, axis, cores, whole, vertices)
             if not isinstance(joined, tuple):  # refused: every vertex in one mesh below
                 joined = None
         counts = np.sum([t.run.cnt for t in tiles], axis=0)
         seconds = [float(t.seconds) for t in tiles]
-        tiles = strips = seams = framed = []  # their meshes go before the last step's is made
+        tiles = strips = seams = []  # their meshes go before the last step's is made
         budget = p.budget
         if joined is not None:
             run = _stitched_run(joined, vertices, index, common, budget)
@@ -590,19 +574,6 @@ def _data_box(emb, period):
     box = [(0.0, period[a]) if emb.periodic[a] else (float(lo[a]), float(hi[a] - lo[a]))
            for a in range(d)]  # fmt: skip
     return np.array([b[0] for b in box] + [b[1] for b in box])
-
-
-def _frame(emb, period, data, band):
-    """The frame's tile's area: everything outside the data's box shrunk by ``band`` along
-    its non-periodic axes (None when every axis is periodic: no frame)."""
-    if all(emb.periodic):
-        return None
-    d = len(period)
-    corner, widths = list(data[:d]), list(data[d:])
-    for a in range(d):
-        if not emb.periodic[a]:
-            corner[a], widths[a] = corner[a] + band, max(widths[a] - 2 * band, 0.0)
-    return (*corner, *widths, 0)
 
 
 def _cores(cuts, half, lx):
