@@ -118,8 +118,8 @@ def refine(
         a one-process run's in the order of its moves, and its size by a few percent;
         ``stats["rounds"]`` reports each turn and the last step; ``time_limit`` and
         ``max_vertices`` hold in every tile. On this project's 2-core machine the stitched
-        strips are 0.94-1.14x of one process at 4 x 10^6 points and 1.12-1.5x of a run on
-        one core (``KNNREFINE_THREADS=1``), in two runs of the benchmark; the slabs in space
+        strips are 1.04-1.14x faster than one process at 4 x 10^6 points and 1.23-1.48x
+        faster than one core (``KNNREFINE_THREADS=1``); the slabs in space
         1.15-1.41x faster than one process at 10^6 points (k = 10 and 100), 1.09x faster on
         10^6 points on a plane in space (docs/benchmarks.md).
     executor : concurrent.futures.Executor, optional

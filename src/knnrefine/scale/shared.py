@@ -97,7 +97,7 @@ class Tile:
         self.box = np.asarray(box, float)
         period = self.run.period
         self.area = np.array([0.0] * len(period) + list(period) + [-1.0])  # the reach rule
-        self.m0 = m0 = self.run.vertices
+        m0 = self.run.vertices
         self.gid = np.arange(m0, dtype=np.int64)  # the initial mesh: the same ids in all
         self.synced = m0
         self.start = None  # its vertices when its refinement began (for progress)

@@ -580,7 +580,7 @@ class ThreadStore(LocalStore):
 # Points from which tiles in threads beat one process (whose index, sweeps and assembly use
 # every core already), per dimension; below, ``workers`` > 1 runs one process. Measured on 2
 # cores (docs/benchmarks.md, "Workers in threads"): in the plane the stitched strips are
-# 0.75-1.0x of one process at 10^6 points and 0.94-1.14x at 4 x 10^6; in space the stitched
+# 0.75-1.0x of one process at 10^6 points and 1.04-1.14x faster at 4 x 10^6; in space the stitched
 # slabs take 1.06-1.62x one process's time at 10^5 points and 0.71-0.87x at 10^6.
 # ``KNNREFINE_TILES=always`` tiles at every size (to measure them, or with more cores).
 TILES_FROM = {2: 2_000_000, 3: 1_000_000}
