@@ -13,9 +13,10 @@ the initial mesh, the strips, a coarse pass), then:
   of its own from the vertices near it. Seams and strips then take turns, each first
   inserting the vertices the others made that it must have (``Tile.sync``), until the
   strips add nothing.
-* **Reach.** Beyond its region (a pad aside) a tile has every vertex v within 2 R(v) of its
-  region, R(v) bounded from above by any tile's mesh that has v (``Vertices.reach``; the
-  reach rule, ``Tile``): then its stars of the vertices in its region are the run's. The
+* **Reach.** Besides every vertex within a pad of its region, a tile has every vertex v
+  within 2 R(v) of its region, R(v) bounded from above by any tile's mesh that has v
+  (``Vertices.reach``; the reach rule, ``Tile``): then its stars of the vertices in its
+  region are the run's. The
   reach is each vertex's own, so the large elements of a void reach far and the small ones
   beside them do not (a margin as wide as the largest element near a cut took every
   vertex of a plane of points in space into every tile).
@@ -23,10 +24,9 @@ the initial mesh, the strips, a coarse pass), then:
   (``engine/stitch.py``, ``engine/stitch3.py``): the cores of the strips and seams (the
   middle half of each seam) partition the torus, margins included, and each simplex is
   handed in by the tile whose core holds its corner of lowest id, whose star there is the
-  run's. The join
-  is checked (each facet has one twin; 2 m triangles on the torus, the torus' volume in
-  space); a join that fails is rebuilt by inserting every vertex into one mesh, as the
-  rounds of shifted strips do.
+  run's. The join is checked (each facet has one twin; 2 m triangles on the torus, the
+  torus' volume in space); a join that fails is rebuilt by inserting every vertex into one
+  mesh, as the rounds of shifted strips do.
 * **Last step.** One run over the stitched mesh, with what the tiles settled marked so (a
   circumball's count does not depend on the tile, and a cell only shrinks), finishes
   whatever is left (elements wider than a seam, which no tile could take) and is the mesh
@@ -72,17 +72,18 @@ MAX_TURNS = 4  # turns of strips and seams before the last step takes what is le
 
 class Tile:
     """A tile's kept mesh: its run, each vertex's global id, its region (where it moves: a
-    box, its lower corner then its widths), its box (where it has every vertex of the run:
-    a box and 1) and how many of the run's vertices it has looked at (``synced``).
+    box, its lower corner then its widths), its box (the region and a pad, where it has
+    every vertex of the run: a box, then 1) and how many of the run's vertices it has
+    looked at (``synced``).
 
     The reach rule: a tile has every vertex v of the run within 2 R(v) of its region (R(v)
     the distance from v to its Voronoi cell's farthest corner, a bound from any tile's
-    mesh: ``Vertices.reach``). Then it has every Delaunay neighbour of every vertex in
-    ``near`` (an edge uv lies in the circumball of a tetrahedron at v, of radius <= R(v)),
-    and the balls of those vertices' stars are empty of the run's vertices, so its stars
-    of the vertices in its region are the run's, whatever its mesh elsewhere: it vouches for
-    every simplex whose corner of lowest id lies in its core (its ``area`` for the stitch
-    is the whole torus). A vertex's reach is local: beside a plane of points in space the
+    mesh: ``Vertices.reach``). Then it has every Delaunay neighbour u of every vertex v in
+    its region (the edge uv lies in the circumball of a simplex at u, of radius <= R(u), so
+    |uv| <= 2 R(u)), and the balls of v's star are empty of the run's vertices, so its
+    stars of the vertices in its region are the run's, whatever its mesh elsewhere: it
+    vouches for every simplex whose corner of lowest id lies in its core (its ``area`` for
+    the stitch is the whole torus). A vertex's reach is local: beside a plane of points in space the
     large elements of the empty side reach far but are few, where a margin as wide as the
     largest element near a cut took most of the plane's vertices into every tile. Nor does a
     tile need the frame's tile it once had around the data's box: a strip's band crosses
