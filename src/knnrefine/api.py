@@ -106,7 +106,7 @@ def refine(
         bulk counts and the assembly (``KNNREFINE_THREADS`` caps them); the mesh does not
         depend on the cores. N > 1: a tiled run in N threads of this process where tiles
         pay, all counting in one index of all points (the kernels release the GIL): from
-        ``scale.tiled.TILES_FROM`` points on (2 x 10^6 in the plane, 10^6 in space), N
+        ``scale.tiled.TILES_FROM`` points on (2 x 10^6 in the plane, 3 x 10^5 in space), N
         strips of the torus (slabs in space), balanced by point count, each refining only
         what lies inside it (``engine/region.py``), then a seam at each cut, in turns, each
         tile keeping its mesh and inserting only the others' vertices near it; the meshes

@@ -581,9 +581,10 @@ class ThreadStore(LocalStore):
 # every core already), per dimension; below, ``workers`` > 1 runs one process. Measured on 2
 # cores (docs/benchmarks.md, "Workers in threads"): in the plane the stitched strips are
 # 0.75-1.0x of one process at 10^6 points and 1.04-1.14x faster at 4 x 10^6; in space the stitched
-# slabs take 1.06-1.62x one process's time at 10^5 points and 0.71-0.87x at 10^6.
+# slabs take 1.06-1.62x one process's time at 10^5 points, 0.88-1.02x at 3 x 10^5 (two runs)
+# and 0.71-0.87x at 10^6.
 # ``KNNREFINE_TILES=always`` tiles at every size (to measure them, or with more cores).
-TILES_FROM = {2: 2_000_000, 3: 1_000_000}
+TILES_FROM = {2: 2_000_000, 3: 300_000}
 
 
 def tiles_pay(dim, n):
