@@ -251,3 +251,21 @@ def test_stitched_outradii_are_their_triangles_circumradii_bit_for_bit():
     largest = np.full(len(outradius2), -1.0)
     np.maximum.at(largest, corners.ravel(), np.repeat(radius2, 3))
     np.testing.assert_array_equal(outradius2, largest)
+
+
+@pytest.mark.parametrize("name", ["circle", "two far clusters"])
+def test_hostile_inputs_are_stitched_under_the_reach_rule(name):
+    """Points on a circle and two tight clusters far apart (elements of every size beside
+    a cut, voids between): the tiles take what the reach rule asks, the stitch holds at its
+    one try, and the mesh is certified."""
+    rng = np.random.default_rng(11)
+    n = 8000
+    if name == "circle":
+        t = rng.random(n) * 2 * np.pi
+        pts = np.c_[0.5 + 0.3 * np.cos(t), 0.5 + 0.3 * np.sin(t)]
+    else:
+        pts = np.r_[0.01 * rng.standard_normal((n // 2, 2)) + 0.1,
+                    0.01 * rng.standard_normal((n // 2, 2)) + 0.9]  # fmt: skip
+    mesh = knnrefine.refine(pts, 10, workers=2)
+    assert mesh.stats["rounds"][-1]["stitched"]
+    assert_certified(mesh, pts, f"threads, {name}")

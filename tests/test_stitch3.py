@@ -282,3 +282,20 @@ def test_progress_is_reported_from_this_thread_while_the_slabs_refine():
     refining = [v for v, phase, _ in seen if phase == "refining"]
     assert all(main for _, _, main in seen)
     assert len(refining) >= 5 and refining[-1] > refining[0]
+
+
+@pytest.mark.parametrize("name", ["sphere surface", "two far clusters"])
+def test_hostile_inputs_are_stitched_under_the_reach_rule_in_space(name):
+    """Points on a sphere's surface and two tight clusters far apart in the ordinary cube
+    (large empty balls beside the cuts): stitched at the one try, certified."""
+    rng = np.random.default_rng(11)
+    n = 8000
+    if name == "sphere surface":
+        v = rng.standard_normal((n, 3))
+        pts = 0.5 + 0.3 * v / np.linalg.norm(v, axis=1)[:, None]
+    else:
+        pts = np.r_[0.02 * rng.standard_normal((n // 2, 3)) + 0.2,
+                    0.02 * rng.standard_normal((n // 2, 3)) + 0.8] % 1.0  # fmt: skip
+    mesh = knnrefine.refine(pts, 10, workers=2, box=(0, 0, 0, 1, 1, 1))
+    assert mesh.stats["rounds"][-1]["stitched"]
+    assert_certified(mesh, pts, f"slabs, {name}")
