@@ -122,7 +122,7 @@ def owned_triangles(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
                 o = v
         mine = _in_core(mesh.xy[o, 0], mesh.xy[o, 1], bounds, axis, core, data, prm)
         out[t] = mine
-        if not mine:
+        if not mine or exact[4] < 0.0:  # the whole torus (the reach rule): no disk to check
             continue
         cx, cy, r2 = circumcentre(mesh, prm, t)
         if not _vouched(cx, cy, np.sqrt(r2), exact, prm):

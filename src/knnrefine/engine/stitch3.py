@@ -108,7 +108,7 @@ def owned_tetrahedra(mesh, nt, gid, bounds, axis, core, data, exact, prm, out):
     for t in range(nt):
         mine = _in_core3(mesh.xyz[_lowest3(mesh, t, gid)], bounds, axis, core, data, prm)
         out[t] = mine
-        if not mine:
+        if not mine or exact[6] < 0.0:  # the whole torus (the reach rule): no ball to check
             continue
         load_corners(mesh, t, 0, 0, 0, prm, pts)
         c[0], c[1], c[2], r2 = circumsphere(pts)
