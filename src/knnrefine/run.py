@@ -13,8 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import validation as V
-from .engine import jit, size
-from .engine import refine as R
+from .engine import ahead, size
 from .engine import state as S
 from .engine.driver import Refinement
 from .engine.embedding import Embedding, diameter, unfold, wrap
@@ -123,9 +122,7 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Me
     n = len(pts)
     total = None if w is None else math.fsum(w)
     report = Progress(opt.progress)
-    if not jit.is_ready(R.refine_steps):
-        report.compiling()
-    with Interrupts() as interrupts:
+    with ahead.compiling("plane", report.compiling), Interrupts() as interrupts:
         start = Start(pts, opt, opt.start_budget(n), interrupts, w)
         found = start.find(opt.k, reach_factor(opt.tau))
         if found is None:

@@ -10,13 +10,12 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .engine import jit
+from .engine import ahead
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.embedding import Embedding, diameter, unfold
 from .engine.index3 import build_index3, holds_k_within3
 from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from .engine.interrupt import Interrupts
-from .engine.refine3 import refine_steps3
 from .engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -183,9 +182,7 @@ def refine3(pts, opt, weights=None):
     that would certify, and a FloorWarning says when most points lie below the floor."""
     k, tau, min_size, progress = opt.k, opt.tau, opt.min_size, opt.progress
     budget = opt.start_budget(len(pts))
-    if not jit.is_ready(refine_steps3):  # as in the plane: say so before a first compile
-        Progress(progress).compiling()
-    with Interrupts() as interrupts:
+    with ahead.compiling("space", Progress(progress).compiling), Interrupts() as interrupts:
         start = Start3(pts, opt, budget, interrupts, weights)
         found = start.find(k, reach_factor(tau))
         if found is None:

@@ -16,9 +16,9 @@ import time
 import numpy as np
 
 from . import validation as V
+from .engine import ahead
 from .engine.index3 import build_index3
 from .engine.interrupt import Interrupts
-from .engine.jit import is_ready
 from .engine.queue import Q_SIZE, Q_USED, new_queue
 from .engine.refine_sphere import (
     MAX_CAVITY_SPHERE,
@@ -181,6 +181,14 @@ def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_siz
     total = None if w is None else math.fsum(w)
     opt = SphereOptions(n, total, k, tau, radius, min_size, max_vertices, time_limit, progress)
     report = Progress(opt.progress)
+    with ahead.compiling("sphere", report.compiling):
+        return _refine_checked(xyz_p, w, total, opt, report)
+
+
+def _refine_checked(xyz_p, w, total, opt, report):
+    """``refine_sphere`` on checked unit vectors, weights (or None) and their total, and
+    options."""
+    n = len(xyz_p)
     budget = opt.max_vertices if opt.max_vertices is not None else max(10**6, 4 * n)
     index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
     prm = np.zeros(N_PARAMS_SPHERE)
@@ -194,8 +202,6 @@ def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_siz
     first = int(max(1024, min(budget, 3.0 * mass / max(opt.k, 1e-300) + 1024)))
     run = SphereRun(first, 2 * first, first + 4 * QUEUE_HEADROOM)
     run.cnt[C_MAX_VERTICES] = budget
-    if not is_ready(refine_steps_sphere):
-        report.compiling()
     t0 = time.perf_counter()
     with Interrupts() as interrupts:
         queue_all_sphere(run.mesh, run.book, run.queues, run.scratch, run.cnt)

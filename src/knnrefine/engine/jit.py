@@ -95,6 +95,17 @@ def _widened(t):
     return t
 
 
+_awaited: dict = {}
+
+
+def await_compiled(waits):
+    """Before compiling each kernel of ``waits`` (dispatcher: a function that returns when
+    another process has compiled it into the cache, ``ahead.py``), call that function once,
+    so that the kernel is loaded rather than compiled twice; ``{}`` forgets them all."""
+    _awaited.clear()
+    _awaited.update(waits)
+
+
 class Kernel(CPUDispatcher):
     """A kernel: numba's dispatcher, compiled once per argument type up to ``_widened``
     when called from other kernels (numba converts the call's arguments)."""
@@ -102,6 +113,12 @@ class Kernel(CPUDispatcher):
     def get_call_template(self, args, kws):
         args = tuple(_widened(a) for a in args)
         return super().get_call_template(args, {k: _widened(v) for k, v in kws.items()})
+
+    def compile(self, sig):
+        wait = _awaited.pop(self, None) if _awaited else None
+        if wait is not None:
+            wait()
+        return super().compile(sig)
 
 
 class InternalKernel(Kernel):

@@ -39,13 +39,11 @@ import time
 
 import numpy as np
 
-from ..engine import jit
-from ..engine import refine as R
+from ..engine import ahead
 from ..engine import state as S
 from ..engine.driver import Refinement
 from ..engine.driver3 import Refinement3
 from ..engine.interrupt import Interrupts
-from ..engine.refine3 import refine_steps3
 from ..engine.stitch import hand_in, largest_near, owned_triangles
 from ..engine.stitch3 import (
     hand_in3,
@@ -422,9 +420,8 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
     store = ThreadStore(pts, w, workers)
     report = Progress(opt.progress)
     dim = pts.shape[1]
-    if not jit.is_ready(R.refine_steps if dim == 2 else refine_steps3):
-        report.compiling()
-    with Interrupts() as interrupts:
+    domain = "plane" if dim == 2 else "space"
+    with ahead.compiling(domain, report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         p = plan(store, opt, workers, interrupts, COARSE_SHARE)
         emb, common = p.emb, p.common

@@ -31,8 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..engine import jit, size
-from ..engine import refine as R
+from ..engine import ahead, size
 from ..engine import state as S
 from ..engine.driver import Refinement
 from ..engine.driver3 import Refinement3
@@ -43,7 +42,6 @@ from ..engine.index3 import build_index3
 from ..engine.initial import reach_factor
 from ..engine.interrupt import Interrupts
 from ..engine.jit import kernel
-from ..engine.refine3 import refine_steps3
 from ..engine.region import in_rectangle
 from ..engine.region3 import in_box3
 from ..engine.threads import in_chunks
@@ -722,9 +720,8 @@ def refine_store(store, opt, workers) -> Mesh:
     dim = opt.dim
     deadline = opt.deadline
     report = Progress(opt.progress)
-    if not jit.is_ready(R.refine_steps if dim == 2 else refine_steps3):
-        report.compiling()
-    with Interrupts() as interrupts:
+    domain = "plane" if dim == 2 else "space"
+    with ahead.compiling(domain, report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         p = plan(store, opt, workers, interrupts)
         emb, s_index, m0, m0_order, m0_grid = p.emb, p.s_index, p.m0, p.m0_order, p.m0_grid
