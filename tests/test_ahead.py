@@ -92,20 +92,38 @@ def test_wait_for_returns_on_the_marker_the_helper_ending_or_the_limit(tmp_path)
     assert time.perf_counter() - t < 1
 
 
-def test_no_helper_on_one_core_switched_off_or_without_a_record(monkeypatch):
-    """The helper starts only where it can help: two cores or more, not switched off by
-    ``KNNREFINE_COMPILE_AHEAD=0``, a record to read."""
+def test_no_helper_on_one_core_switched_off_frozen_or_without_a_record(monkeypatch):
+    """The helper starts only where it can help: two threads or more (``KNNREFINE_THREADS=1``
+    asks for one core), not switched off by ``KNNREFINE_COMPILE_AHEAD=0``, an interpreter to
+    start (a frozen application would start itself), a record to read."""
     started = []
     monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a))
-    monkeypatch.setattr(ahead, "_cores", lambda: 1)
+    monkeypatch.setenv("KNNREFINE_THREADS", "1")
     assert ahead._start("plane") is None
-    monkeypatch.setattr(ahead, "_cores", lambda: 2)
+    monkeypatch.setenv("KNNREFINE_THREADS", "2")
     monkeypatch.setenv(ahead.ENV, "0")
     assert ahead._start("plane") is None
     monkeypatch.delenv(ahead.ENV)
+    monkeypatch.setattr(sys, "frozen", True, raising=False)
+    assert ahead._start("plane") is None
+    monkeypatch.delattr(sys, "frozen")
     monkeypatch.setattr(ahead, "MANIFEST", os.devnull)
     assert ahead._start("plane") is None
     assert started == []
+    monkeypatch.undo()
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: started.append(a) or _Ended())
+    monkeypatch.setenv("KNNREFINE_THREADS", "2")
+    helper = ahead._start("plane")  # the same conditions with a record: it starts
+    try:
+        assert helper is not None and len(started) == 1
+    finally:
+        jit.await_compiled({})
+        os.rmdir(helper[1])
+
+
+class _Ended:
+    def poll(self):
+        return 0
 
 
 @pytest.mark.slow  # a fresh process compiling the sphere's kernels: 7-10 s

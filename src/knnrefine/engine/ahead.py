@@ -14,7 +14,9 @@ before; when it reaches a kernel on the helper's list it waits for the helper's 
 Nothing depends on the helper for correctness: a kernel it has not written (a signature the
 record lacks, another numba, the helper killed or failed) is compiled by the caller as
 before; the helper is stopped when the call returns. It is not started where numba cannot
-cache (nothing to share), on one core, or with ``KNNREFINE_COMPILE_AHEAD=0``.
+cache (nothing to share), on one core or with ``KNNREFINE_THREADS=1`` (``threads.workers``),
+without a Python interpreter to start (a frozen application), or with
+``KNNREFINE_COMPILE_AHEAD=0``.
 
 ``ahead.json`` is written by ``python -c "from knnrefine.engine import ahead; ahead.record()"``
 (after a change to these kernels' arguments; a first call in
@@ -35,7 +37,7 @@ import time
 import numba
 from numba import types
 
-from . import jit
+from . import jit, threads
 
 MANIFEST = os.path.join(os.path.dirname(os.path.abspath(__file__)), "ahead.json")
 ENV = "KNNREFINE_COMPILE_AHEAD"
@@ -112,13 +114,6 @@ def load_manifest():
         return None
 
 
-def _cores():
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def _caches(name):
     """Whether numba keeps this kernel's compiled code in a cache another process reads."""
     cache = getattr(kernel_named(name), "_cache", None)
@@ -162,8 +157,10 @@ def compiling(domain, announce=None):
 
 def _start(domain):
     """The helper (process, marker folder), or None where it would not help."""
-    if os.environ.get(ENV, "1").strip() == "0" or _cores() < 2 or not sys.executable:
-        return None
+    if os.environ.get(ENV, "1").strip() == "0" or threads.workers() < 2:
+        return None  # switched off, or one core (a process per core, as Dask's, says 1)
+    if getattr(sys, "frozen", False) or not os.path.isfile(sys.executable or ""):
+        return None  # no interpreter to start (a frozen application's binary is not one)
     manifest = load_manifest()
     if manifest is None or domain not in manifest:
         return None
