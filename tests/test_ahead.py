@@ -78,17 +78,17 @@ def test_wait_for_returns_on_the_marker_the_helper_ending_or_the_limit(tmp_path)
     sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
         t = time.perf_counter()
-        ahead.wait_for(sleeper, str(marker), limit=0.2)  # neither: the limit
+        ahead.wait_for(sleeper, str(marker), t + 0.2)  # neither: the limit
         assert 0.2 <= time.perf_counter() - t < 5
         marker.touch()
         t = time.perf_counter()
-        ahead.wait_for(sleeper, str(marker), limit=60)  # the marker
+        ahead.wait_for(sleeper, str(marker), t + 60)  # the marker
         assert time.perf_counter() - t < 1
     finally:
         sleeper.kill()
         sleeper.wait()
     t = time.perf_counter()
-    ahead.wait_for(sleeper, str(tmp_path / "1"), limit=60)  # the helper has ended
+    ahead.wait_for(sleeper, str(tmp_path / "1"), t + 60)  # the helper has ended
     assert time.perf_counter() - t < 1
 
 
@@ -150,3 +150,28 @@ print("certified", bool(knnrefine.certify(mesh, p)))
     assert lines[-2] == "certified True"
     for line, name in zip(lines, ahead.AHEAD["sphere"], strict=False):
         assert line.split() == [name, "1", "0"], run.stdout
+
+
+def test_a_stuck_helper_is_stopped_when_the_call_returns(monkeypatch):
+    """A helper that never finishes (here: one that sleeps) delays no kernel past the wait's
+    limit and does not outlive the call: ``compiling`` stops it and removes its folder."""
+    made = []
+    popen = subprocess.Popen
+
+    def spy(*args, **kwargs):
+        made.append(popen(*args, **kwargs))
+        return made[-1]
+
+    monkeypatch.setattr(ahead, "HELPER", "import time; time.sleep(60)")
+    monkeypatch.setattr(subprocess, "Popen", spy)
+    monkeypatch.setattr(jit, "is_ready", lambda dispatcher: False)
+    monkeypatch.setenv("KNNREFINE_THREADS", "2")
+    monkeypatch.delenv(ahead.ENV, raising=False)
+    announced = []
+    with ahead.compiling("plane", lambda: announced.append(True)):
+        (process,) = made
+        assert process.poll() is None and jit._awaited  # running, its kernels awaited
+        folder = process.args[-1]
+        assert os.path.isdir(folder)
+    assert announced == [True]
+    assert process.poll() is not None and not os.path.exists(folder) and not jit._awaited

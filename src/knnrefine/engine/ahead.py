@@ -41,7 +41,7 @@ from . import jit, threads
 
 MANIFEST = os.path.join(os.path.dirname(os.path.abspath(__file__)), "ahead.json")
 ENV = "KNNREFINE_COMPILE_AHEAD"
-WAIT_LIMIT = 300.0  # seconds the caller waits for one kernel at most (a stuck helper)
+WAIT_LIMIT = 120.0  # seconds after the helper's start that the caller waits for it at most
 
 # the helper's kernels, in its order ("module:name" in knnrefine.engine): the costliest the
 # refinement loop calls (compiled while the caller builds the index and the initial mesh),
@@ -180,17 +180,18 @@ def _start(domain):
         os.rmdir(folder)
         return None
 
+    until = time.monotonic() + WAIT_LIMIT
     jit.await_compiled({
-        kernel_named(name): functools.partial(wait_for, process, os.path.join(folder, str(i)))
+        kernel_named(name): functools.partial(
+            wait_for, process, os.path.join(folder, str(i)), until)
         for i, (name, _) in enumerate(entries)
     })  # fmt: skip
     return process, folder
 
 
-def wait_for(process, marker, limit=WAIT_LIMIT):
-    """Return when the file ``marker`` exists, the process has ended, or after ``limit``
-    seconds (a stuck helper: the caller compiles the kernel itself)."""
-    until = time.monotonic() + limit
+def wait_for(process, marker, until):
+    """Return when the file ``marker`` exists, the process has ended, or at ``until``
+    (``time.monotonic()``: a stuck helper, the caller compiles the kernel itself)."""
     while not os.path.exists(marker) and process.poll() is None and time.monotonic() < until:
         time.sleep(0.005)
 
