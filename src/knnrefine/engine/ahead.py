@@ -29,6 +29,7 @@ import functools
 import importlib
 import json
 import os
+import site
 import subprocess
 import sys
 import tempfile
@@ -60,7 +61,7 @@ AHEAD = {
     "sphere": ["refine_sphere:_insert", "index3:count_in_region3"],
 }  # fmt: skip
 
-# the first call whose signatures ``--record`` keeps (as the benchmark's first call)
+# each domain's first call whose signatures ``record`` keeps (the benchmark's first call)
 RECORD_CALLS = {
     "plane": "knnrefine.refine(np.random.default_rng(0).random((2000, 2)), 10)",
     "space": "knnrefine.refine(np.random.default_rng(0).random((2000, 3)), 10)",
@@ -168,9 +169,13 @@ def _start(domain):
     if not all(_caches(name) for name, _ in entries):
         return None
     folder = tempfile.mkdtemp(prefix="knnrefine-ahead-")
-    # the helper imports this package from where this process did (a checkout, say)
-    paths = [os.path.dirname(jit.PACKAGE), os.environ.get("PYTHONPATH", "")]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in paths if p))
+    env = dict(os.environ)
+    parent = os.path.dirname(jit.PACKAGE)
+    if parent not in {*site.getsitepackages(), site.getusersitepackages()}:
+        # the helper imports this package from where this process did (a checkout put on
+        # sys.path, say); an installed one it finds by itself, and site-packages put first
+        # on its path would shadow the standard library with any backport installed there
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (parent, env.get("PYTHONPATH")) if p)
     try:
         process = subprocess.Popen(
             [sys.executable, "-c", HELPER, domain, folder], env=env,
