@@ -182,3 +182,66 @@ print("message" if "cannot assign slice" in ir else "none", len(ir) > 1000)
                          timeout=600)  # fmt: skip
     assert run.returncode == 0, run.stderr[-3000:]
     assert run.stdout.split()[1:] == ["none", "True"]
+
+
+@pytest.mark.slow  # two fresh processes compiling one small kernel each: 5 s
+def test_a_kernel_cached_before_its_callee_changed_is_compiled_again(tmp_path):
+    """numba keeps a cached kernel while its own file is unchanged, though its code holds
+    the kernels it calls from other files: after an upgrade in place (pip leaves numba's
+    cache files in ``__pycache__``) or an edit of a callee's file, the caller came back from
+    the cache with the callee's old code (CI's site-packages held sphere kernels cached
+    months of commits before). In a copy of the package, ``metric.running_sums`` (cached)
+    calls ``geometry.plus_compensated``; after an edit of geometry.py alone, a new process
+    gets the new code."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    copy = tmp_path / "pkg" / "knnrefine"
+    shutil.copytree(os.path.dirname(knnrefine.__file__), copy,
+                    ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    code = """
+import numpy as np, knnrefine
+from knnrefine.metric import running_sums
+print(knnrefine.__file__)
+print(running_sums(np.ones((1, 3))).tolist())
+"""
+    env = dict(os.environ, PYTHONPATH=str(tmp_path / "pkg"), NUMBA_CACHE_DIR=str(tmp_path / "c"),
+               KNNREFINE_COMPILE_AHEAD="0")  # fmt: skip
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                             text=True, timeout=600, cwd=tmp_path)  # fmt: skip
+        assert out.returncode == 0, out.stderr[-3000:]
+        return out.stdout.split("\n")
+
+    where, before = run()[:2]
+    assert where.startswith(str(copy)) and before == "[[1.0, 2.0, 3.0]]"
+    geometry = copy / "engine" / "geometry.py"
+    text = geometry.read_text()
+    assert text.count("    return t, c\n") == 1
+    geometry.write_text(text.replace("    return t, c\n", "    return t + 1.0, c\n"))
+    assert run()[1] != before  # the callee's new code, not the cached caller's old one
+
+
+def test_the_sources_fingerprint_covers_what_kernels_hold(tmp_path):
+    """Every kernel's cache index is stamped with ``jit.sources_fingerprint()``: it changes
+    with any file of ``engine/`` (constants such as ``state.py``'s are compiled into the
+    kernels) and any other file that defines kernels, not with the rest (the API)."""
+    import shutil
+
+    from knnrefine.engine import jit, refine
+
+    stamp = refine.refine_steps._cache._cache_file._source_stamp
+    assert stamp[1] == jit.sources_fingerprint()
+    root = tmp_path / "knnrefine"
+    shutil.copytree(jit.PACKAGE, root, ignore=shutil.ignore_patterns("__pycache__", "data"))
+    before = jit.sources_fingerprint(str(root))
+    for name, changes in (("engine/state.py", True), ("metric.py", True), ("api.py", False)):
+        path = root / name
+        text = path.read_text()
+        path.write_text(text + "\n# edited\n")
+        assert (jit.sources_fingerprint(str(root)) != before) == changes, name
+        path.write_text(text)
+    assert jit.sources_fingerprint(str(root)) == before

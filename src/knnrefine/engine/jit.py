@@ -23,6 +23,7 @@ from Python raises ``TypeError`` (not numba's crash); ``python_entry`` makes a c
 tests and debugging.
 """
 
+import hashlib
 import inspect
 import os
 import tempfile
@@ -202,7 +203,43 @@ def _dispatcher(func, options):
             )
         return njit(cache=False, **options)(func)
     _never_save(dispatcher)
+    _stamp_with_sources(dispatcher)
     return dispatcher
+
+
+_fingerprint: list = []
+
+
+def sources_fingerprint(root=PACKAGE):
+    """A hash, by relative path and content, of the source files under ``root`` that a
+    compiled kernel may hold code or constants of: every file of ``engine/`` and every
+    other file that defines kernels (``@kernel``)."""
+    if root == PACKAGE and _fingerprint:
+        return _fingerprint[0]
+    digest = hashlib.sha256()
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+        for name in sorted(f for f in files if f.endswith(".py")):
+            path = os.path.join(folder, name)
+            with open(path, "rb") as f:
+                text = f.read()
+            if b"@kernel" in text or os.path.basename(folder) == "engine":
+                digest.update(os.path.relpath(path, root).encode() + b"\0" + text + b"\0")
+    value = digest.hexdigest()
+    if root == PACKAGE:
+        _fingerprint.append(value)
+    return value
+
+
+def _stamp_with_sources(dispatcher):
+    """numba keeps a cached kernel while its own source file is unchanged, but the code it
+    compiled holds the kernels it calls from other files (inlined or linked): after an
+    upgrade, or an edit of such a file, a caller came back from the cache with its callees'
+    old code. The index's stamp is therefore the file's and ``sources_fingerprint()``: a
+    change to any kernel's source compiles every kernel again."""
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    if cache_file is not None and hasattr(cache_file, "_source_stamp"):
+        cache_file._source_stamp = (cache_file._source_stamp, sources_fingerprint())
 
 
 def is_ready(dispatcher):
