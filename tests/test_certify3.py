@@ -133,10 +133,16 @@ def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
         other = np.sort(corners[:, [j for j in range(4) if j != i]], axis=1)
         across = np.sort(corners[got[:, i]], axis=1)
         assert all(np.isin(other[s], across[s]).all() for s in range(0, t, max(t // 200, 1)))
-    rows = np.random.default_rng(0).integers(0, 3, (5000, 4))
-    by, same = space._sorted_rows(rows)
-    _, first = np.unique(rows, axis=0, return_index=True)
-    np.testing.assert_array_equal(by[np.concatenate([[True], ~same])], first)
+    rng = np.random.default_rng(0)
+    for rows in (rng.integers(0, 3, (5000, 4)),  # the columns packed into one key
+                 rng.integers(-(2**40), 2**40, (5000, 4)) // rng.integers(1, 2**38, 4),
+                 np.c_[rng.integers(0, 2**62, (3000, 2)), rng.integers(-3, 3, (3000, 3))],
+                 np.zeros((0, 13), np.int64), np.full((7, 3), 5)):  # fmt: skip
+        by, same = space._sorted_rows(rows)  # (several keys; empty; all alike)
+        np.testing.assert_array_equal(by, np.lexsort(rows.T[::-1]))
+        _, first = np.unique(rows, axis=0, return_index=True)
+        starts = by[np.concatenate([[True], ~same])] if len(rows) else by
+        np.testing.assert_array_equal(starts, first)
     assert space._neighbours(corners[1:], offsets[1:]) is None
     doubled = np.concatenate([corners, corners[:1]])
     assert space._neighbours(doubled, np.concatenate([offsets, offsets[:1]])) is None

@@ -276,7 +276,7 @@ def test_progress_is_reported_from_this_thread_while_the_slabs_refine():
     def progress(vertices, pending, phase="refining"):
         seen.append((vertices, phase, threading.current_thread() is threading.main_thread()))
 
-    mesh = knnrefine.refine(_points("uniform", 150000, 4), 5, workers=2, progress=progress,
+    mesh = knnrefine.refine(_points("uniform", 100000, 4), 10, workers=2, progress=progress,
                             box=(0, 0, 0, 1, 1, 1), periodic=True)  # fmt: skip
     assert mesh.stats["rounds"][-1]["stitched"]
     refining = [v for v, phase, _ in seen if phase == "refining"]

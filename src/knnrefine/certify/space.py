@@ -68,10 +68,36 @@ def _exact_faces(local, corners, offsets, neighbours, period):
 def _sorted_rows(rows):
     """(the order sorting the integer rows lexicographically, stably; whether each sorted
     row equals the one before it). ``np.unique(axis=0)`` answers the same through a sort of
-    the rows as opaque bytes, several times slower on the 10^5-10^6 faces of a mesh."""
-    by = np.lexsort(rows.T[::-1])
-    ordered = rows[by]
-    return by, np.all(ordered[1:] == ordered[:-1], axis=1)
+    the rows as opaque bytes, several times slower on the 10^5-10^6 faces of a mesh; the
+    columns are packed into as few 63-bit keys as their ranges allow (a face's three
+    vertices and nine offsets: two), which sort faster than thirteen."""
+    keys = _packed_keys(rows)
+    by = np.lexsort(keys[::-1])
+    ordered = [k[by] for k in keys]
+    same = np.ones(max(len(rows) - 1, 0), np.bool_)
+    for k in ordered:
+        same &= k[1:] == k[:-1]
+    return by, same
+
+
+def _packed_keys(rows):
+    """The columns of the integer rows (m, c), each shifted to start at 0 and given the bits
+    its range needs, packed in order into int64 keys of at most 63 bits: comparing the keys
+    in turn compares the rows lexicographically."""
+    lo = rows.min(axis=0) if len(rows) else np.zeros(rows.shape[1], np.int64)
+    span = (rows.max(axis=0) - lo) if len(rows) else lo
+    keys, key, used = [], np.zeros(len(rows), np.int64), 0
+    for c in range(rows.shape[1]):
+        bits = int(span[c]).bit_length()
+        if bits == 0:
+            continue
+        if used + bits > 63:
+            keys.append(key)
+            key, used = np.zeros(len(rows), np.int64), 0
+        key = (key << bits) | (rows[:, c].astype(np.int64) - lo[c])
+        used += bits
+    keys.append(key)
+    return keys
 
 
 def _neighbours(corners, offsets):
