@@ -514,3 +514,19 @@ def test_tiles_on_an_executor_run_in_its_processes_in_the_plane():
     threads = knnrefine.refine(pts, 10, workers=2)
     assert threads.stats["rounds"][-1]["stitched"]
     assert abs(len(threads.vertices) / len(mesh.vertices) - 1) < 0.03
+
+
+def test_tiles_on_an_executor_in_this_process_leave_the_thread_setting_alone(monkeypatch):
+    """A tile set ``KNNREFINE_THREADS=1`` in the process that ran it, meant for a worker
+    process of a pool; on an executor whose tasks run in the caller's process (threads, Dask
+    in-process) it stayed set there: every later run used one core, and a first call started
+    no compile-ahead helper. The tiles now tell their run to use one thread instead."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    monkeypatch.delenv("KNNREFINE_THREADS", raising=False)
+    pts = clustered(20_000, seed=3)
+    with ThreadPoolExecutor(2) as pool:
+        mesh = knnrefine.refine(pts, 10, workers=2, executor=pool)
+    assert "KNNREFINE_THREADS" not in os.environ
+    assert len(mesh.stats["rounds"]) >= 2  # the tiles ran, in this process

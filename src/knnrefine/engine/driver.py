@@ -203,7 +203,8 @@ class Refinement(TileRun):
         if m < self.SWEEP_PER_THREAD:
             set_vertex_caches(self.mesh, self.prm, vertices, 0, m, self.probe.hx, self.probe.hy)
             return
-        probes = [new_probe() for _ in range(thread_count())]
+        threads = thread_count() if self.threads is None else self.threads
+        probes = [new_probe() for _ in range(threads)]
         free = list(range(len(probes)))
 
         def fill(start, stop):
@@ -214,7 +215,7 @@ class Refinement(TileRun):
             finally:
                 free.append(j)
 
-        in_chunks(fill, m, least=self.SWEEP_PER_THREAD)
+        in_chunks(fill, m, threads, least=self.SWEEP_PER_THREAD)
 
     def grow_if_needed(self):
         """Grow, by GROWTH, every array that could overflow during the next insertion: the

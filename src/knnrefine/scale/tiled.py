@@ -325,7 +325,9 @@ def run_tile(task, index=None):
     (``index``, else built from task["points"]), the vertices in its region, the earlier
     rounds' regions; returns the vertices it inserted (xy, kinds) and its counters."""
     t0 = time.perf_counter()
-    os.environ["KNNREFINE_THREADS"] = "1"  # one of many tiles at once: one engine thread
+    # one of many tiles at once: one engine thread (its index, its sweeps), said to the run
+    # rather than through KNNREFINE_THREADS, which stayed set in the caller's process when
+    # the executor ran tiles there (threads, Dask in-process): every later run on one core
     left = task["time_left"]  # seconds, not a clock reading: tiles may run on other machines
     deadline = None if left is None else t0 + left
     if index is None:
