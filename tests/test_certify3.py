@@ -119,10 +119,10 @@ def test_certify3_honours_samples_and_weights():
 
 def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
     """The faces of the torus mesh pair up (each shared by exactly two tetrahedra), found by
-    sorting the face keys (``space._sorted_rows``, which replaced ``np.unique(axis=0)``, its
+    sorting the face keys (``common.sorted_rows``, which replaced ``np.unique(axis=0)``, its
     oracle here, for speed); a tetrahedron dropped or doubled leaves a face once or three
     times: not a triangulation."""
-    from knnrefine.certify import space
+    from knnrefine.certify import common, space
 
     mesh, _ = case
     corners, offsets = mesh.torus.cells, mesh.torus.offsets.astype(np.int64)
@@ -138,7 +138,7 @@ def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
                  rng.integers(-(2**40), 2**40, (5000, 4)) // rng.integers(1, 2**38, 4),
                  np.c_[rng.integers(0, 2**62, (3000, 2)), rng.integers(-3, 3, (3000, 3))],
                  np.zeros((0, 13), np.int64), np.full((7, 3), 5)):  # fmt: skip
-        by, same = space._sorted_rows(rows)  # (several keys; empty; all alike)
+        by, same = common.sorted_rows(rows)  # (several keys; empty; all alike)
         np.testing.assert_array_equal(by, np.lexsort(rows.T[::-1]))
         _, first = np.unique(rows, axis=0, return_index=True)
         starts = by[np.concatenate([[True], ~same])] if len(rows) else by

@@ -24,10 +24,7 @@ from scipy.spatial import cKDTree
 from ..mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
 from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
 from .certificate import Certificate, floor_sites, to_input
-from .common import (
-    check_precondition,
-    find_rows,
-)
+from .common import cell_array_problem, check_cells_tile, check_precondition, find_rows
 
 
 def run_checks(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
@@ -272,7 +269,8 @@ def measure_size(torus, probes):
 def verify_returned_mesh(mesh):
     """Problems (a list of strings) that stop ``mesh.vertices``, ``mesh.triangles`` and
     ``mesh.offsets`` (what the user works with) from being, exactly and without repeated
-    vertices, copies of the torus mesh that certify checks."""
+    vertices, copies of the torus mesh that certify checks, each once, tiling the box
+    (``common.check_cells_tile``)."""
     torus = mesh.torus
     problems = []
     v = np.asarray(mesh.vertices, float)
@@ -287,6 +285,10 @@ def verify_returned_mesh(mesh):
     order = np.asarray(mesh.order)
     if len(order) != len(v) or order.min(initial=0) < 0 or order.max(initial=0) >= len(tv):
         return problems + ["vertex order does not index the torus vertices"]
+    broken = cell_array_problem(mesh)
+    if broken:
+        return problems + [broken]
+    problems += check_cells_tile(mesh)
     # each returned vertex is a torus vertex shifted by whole periods, exactly
     shift = np.rint((v - origin - tv[order]) / period)
     if np.any(v != origin + (tv[order] + shift * period)):

@@ -32,7 +32,14 @@ from ..mesh import theorem6_constants
 from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
 from ..validation import as_points
 from .certificate import Certificate, floor_sites, to_input
-from .common import check_points_are_the_meshs, check_precondition, find_rows
+from .common import (
+    cell_array_problem,
+    check_cells_tile,
+    check_points_are_the_meshs,
+    check_precondition,
+    find_rows,
+    sorted_rows,
+)
 
 
 @kernel(entry=True, lazy=True)
@@ -65,41 +72,6 @@ def _exact_faces(local, corners, offsets, neighbours, period):
     return bad_orient, bad_delaunay
 
 
-def _sorted_rows(rows):
-    """(the order sorting the integer rows lexicographically, stably; whether each sorted
-    row equals the one before it). ``np.unique(axis=0)`` answers the same through a sort of
-    the rows as opaque bytes, several times slower on the 10^5-10^6 faces of a mesh; the
-    columns are packed into as few 63-bit keys as their ranges allow (a face's three
-    vertices and nine offsets: two), which sort faster than thirteen."""
-    keys = _packed_keys(rows)
-    by = np.lexsort(keys[::-1])
-    ordered = [k[by] for k in keys]
-    same = np.ones(max(len(rows) - 1, 0), np.bool_)
-    for k in ordered:
-        same &= k[1:] == k[:-1]
-    return by, same
-
-
-def _packed_keys(rows):
-    """The columns of the integer rows (m, c), each shifted to start at 0 and given the bits
-    its range needs, packed in order into int64 keys of at most 63 bits: comparing the keys
-    in turn compares the rows lexicographically."""
-    lo = rows.min(axis=0) if len(rows) else np.zeros(rows.shape[1], np.int64)
-    span = (rows.max(axis=0) - lo) if len(rows) else lo
-    keys, key, used = [], np.zeros(len(rows), np.int64), 0
-    for c in range(rows.shape[1]):
-        bits = int(span[c]).bit_length()
-        if bits == 0:
-            continue
-        if used + bits > 63:
-            keys.append(key)
-            key, used = np.zeros(len(rows), np.int64), 0
-        key = (key << bits) | (rows[:, c].astype(np.int64) - lo[c])
-        used += bits
-    keys.append(key)
-    return keys
-
-
 def _neighbours(corners, offsets):
     """The tetrahedron across each face, from face keys (sorted vertices and their offsets
     relative to each other); None unless every face is shared by exactly two."""
@@ -117,7 +89,7 @@ def _neighbours(corners, offsets):
                  np.take_along_axis(o, order[..., None], 1).reshape(t, 9)], axis=1,
             )
         )  # fmt: skip
-    order, same = _sorted_rows(np.concatenate(rows))
+    order, same = sorted_rows(np.concatenate(rows))
     # every face exactly twice: the sorted keys come in equal pairs, unequal between pairs
     if len(order) % 2 or not same[0::2].all() or same[1::2].any():
         return None
@@ -193,7 +165,8 @@ def verify_returned_mesh3(mesh):
     coordinates) and ``tetrahedra`` with ``offsets``, from being, exactly and without
     repeated vertices, copies of the torus mesh that certify checks: each vertex a torus
     vertex moved by whole periods, each tetrahedron a torus tetrahedron (the same corners,
-    the same orientation) moved by whole periods."""
+    the same orientation) moved by whole periods, each once, tiling the box
+    (``common.check_cells_tile``)."""
     torus = mesh.torus
     v = np.asarray(mesh.vertices, float)
     if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
@@ -211,9 +184,11 @@ def verify_returned_mesh3(mesh):
     off = np.any(v != origin + (tl[order] + shift * period), axis=1)
     if off.any():
         problems.append(f"{int(off.sum())} vertices differ from their torus vertex")
+    broken = cell_array_problem(mesh)
+    if broken:
+        return problems + [broken]
+    problems += check_cells_tile(mesh)
     tet = np.asarray(mesh.cells, np.int64)
-    if tet.ndim != 2 or tet.shape[1] != 4 or tet.min(initial=0) < 0 or tet.max(initial=0) >= len(v):
-        return problems + ["tetrahedra do not index the vertices"]
     offsets = (
         np.zeros(tet.shape + (3,)) if mesh.offsets is None else np.asarray(mesh.offsets, float)
     )
@@ -251,7 +226,7 @@ def _edge_midpoints(local, corners, offsets, period):
     flip = a > b
     key = np.column_stack([np.where(flip, b, a), np.where(flip, a, b),
                            np.where(flip[:, None], -d, d)])  # fmt: skip
-    by, same = _sorted_rows(key)
+    by, same = sorted_rows(key)
     first = by[np.concatenate([[True], ~same])]  # each key's first row, in the keys' order
     a, b, d = a[first], b[first], d[first]
     return local[a] + 0.5 * (local[b] + d * period - local[a])
