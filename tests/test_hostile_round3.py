@@ -22,6 +22,7 @@ TAMPER_CASES = [
 def _tampered(mesh, how, at):
     """The mesh with cell ``at`` dropped, replaced by a copy of the next one, or listed
     twice (its offsets with it)."""
+
     def edit(a):
         if a is None:
             return None
