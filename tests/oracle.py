@@ -170,3 +170,80 @@ def in_cell(rel, nb, hc, R2, slack=1.0):
     """Mask of the points rel (relative to the cell's centre) in the cell of ``random_cell``,
     every constraint scaled by ``slack`` (1 -+ 1e-12 brackets the rounding)."""
     return np.all(rel @ nb.T <= hc * slack, axis=1) & ((rel**2).sum(1) <= R2 * slack)
+
+
+# ---- the sphere -------------------------------------------------------------------------
+
+
+def unit_vectors_of(lonlat):
+    """Unit vectors of (longitude, latitude) in degrees, by the textbook formula."""
+    lon, lat = np.radians(np.asarray(lonlat, float)).T
+    return np.column_stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+
+
+def great_circle(x, y):
+    """(len(x), len(y)) great-circle angles between unit vectors, by atan2 (accurate at
+    every angle, unlike arccos of the dot product)."""
+    cross = np.linalg.norm(np.cross(x[:, None, :], y[None, :, :]), axis=2)
+    return np.arctan2(cross, x @ y.T)
+
+
+def _orient_exact(a, b, c, d):
+    """Sign of det[a - d, b - d, c - d] in rational arithmetic."""
+    rows = [[Fraction(float(u)) - Fraction(float(w)) for u, w in zip(r, d, strict=True)]
+            for r in (a, b, c)]  # fmt: skip
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
+    det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
+    return (det > 0) - (det < 0)
+
+
+def in_caps(xyz, triangles, points):
+    """(t, n) bool: point j on or above the plane of triangle t's corners (in its closed
+    circumcap), decided in floating point with a wide error bound and in rationals where
+    that cannot decide."""
+    a, b, c = (xyz[triangles[:, i]][:, None, :] for i in range(3))
+    p = points[None, :, :]
+    u, v, w = a - p, b - p, c - p
+    det = np.einsum("tnj,tnj->tn", u, np.cross(v, w))
+    scale = np.einsum("tnj,tnj->tn", np.abs(u), np.abs(np.cross(v, w)) + 2 * np.abs(v) * np.abs(w))
+    sure = np.abs(det) > 1e-12 * scale
+    out = det <= 0
+    for t, j in zip(*np.nonzero(~sure), strict=True):
+        out[t, j] = _orient_exact(*xyz[triangles[t]], points[j]) <= 0
+    return out
+
+
+def sphere_facts(mesh, lonlat, k, probes):
+    """Brute-force facts of a sphere mesh (angles in radians, on the unit sphere): the most
+    points in a closed circumcap and in a closed Voronoi cell (nearest vertex by atan2
+    angle, ties within a relative 1e-9 counting for each) among elements of angular radius
+    >= the floor, and d_{M,2} / d_{P,k} at the probes (unit vectors) where d_{P,k} >= the
+    floor."""
+    xyz = np.asarray(mesh.xyz, float)
+    tri = np.asarray(mesh.triangles)
+    pts = unit_vectors_of(lonlat)
+    floor = mesh.min_size / mesh.radius
+    a = xyz[tri[:, 0]]
+    normal = np.cross(xyz[tri[:, 1]] - a, xyz[tri[:, 2]] - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    cap = great_circle(normal, a).diagonal() if len(tri) < 4000 else None
+    if cap is None:
+        cap = np.array([great_circle(normal[i : i + 1], a[i : i + 1])[0, 0] for i in range(len(a))])
+    held = in_caps(xyz, tri, pts).sum(axis=1)
+    big = cap >= floor
+    g = great_circle(pts, xyz)
+    nearest = g.min(axis=1, keepdims=True)
+    tie = g <= nearest * (1 + 1e-9)
+    cells = tie.sum(axis=0)
+    outradius = np.zeros(len(xyz))
+    for i in range(3):
+        np.maximum.at(outradius, tri[:, i], cap)
+    d_m2 = np.sort(great_circle(probes, xyz), axis=1)[:, 1]
+    d_pk = np.sort(great_circle(probes, pts), axis=1)[:, k - 1]
+    use = d_pk >= floor
+    return {
+        "max_cap": int(held[big].max(initial=0)),
+        "max_cell": int(cells[outradius >= floor].max(initial=0)),
+        "ratio": d_m2[use] / d_pk[use],
+        "largest_cap": float(cap.max()),
+    }

@@ -85,7 +85,10 @@ def refine(
         reported in ``Mesh.floor_points`` and ``Mesh.stats["points_under_floor"]``. Values
         below the engine's resolution (2^14 grid steps, the grid being 2^-50 of the torus
         period or the spacing of doubles at the coordinates, whichever is coarser) act as that
-        resolution, which ``Mesh.min_size`` then reports.
+        resolution, which ``Mesh.min_size`` then reports. On the sphere: a great-circle
+        length in ``radius`` units, default pi 1e-6 radians (20 m on the Earth), and the
+        engine's resolution is 2^-20 radians (6.1 m on the Earth: below it the rounding of
+        unit vectors is the size of the caps).
     max_vertices : int, optional
         Budget: stop with BudgetError beyond this many vertices. Default: ten times the size
         estimated before refining (at least 10^6, at most what memory holds); a run whose

@@ -177,13 +177,18 @@ def held_in_balls(tree, weights, centres, radii, threads=-1):
     return out
 
 
-def cell_tally(dd, ii, weights, m):
+def cell_tally(dd, ii, weights, m, slack2=0.0):
     """Points per Voronoi cell from each point's nearest vertices (dd, ii: distances and
     indices of up to 3, nearest first): a point counts for every vertex as near as its
-    nearest (up to a relative 1e-12), weighed by ``weights`` if given (compensated sums)."""
+    nearest (up to a relative 1e-12, and ``slack2`` added to the squared distance: on the
+    sphere, the rounding of unit vectors), weighed by ``weights`` if given (compensated
+    sums)."""
     kk = dd.shape[1] if dd.ndim == 2 else 1
     dd, ii = dd.reshape(len(dd), kk), ii.reshape(len(ii), kk)
-    tie = dd <= dd[:, :1] * (1.0 + 1e-12)
+    if slack2 > 0:
+        tie = dd * dd <= dd[:, :1] ** 2 * (1.0 + 2e-12) + slack2
+    else:
+        tie = dd <= dd[:, :1] * (1.0 + 1e-12)
     if weights is None:
         return np.bincount(ii[tie], minlength=m)
     w = np.broadcast_to(weights[:, None], tie.shape)[tie]

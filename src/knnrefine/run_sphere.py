@@ -27,8 +27,11 @@ from .engine.refine_sphere import (
     PS_FLOOR2,
     PS_INFLATE,
     PS_K,
+    PS_SLACK2,
     PS_TAU2,
     QUEUE_HEADROOM,
+    RESOLUTION_ANGLE,
+    SLACK2,
     queue_all_sphere,
     refine_steps_sphere,
 )
@@ -61,8 +64,7 @@ from .metric import angle_to_chord, chord_to_angle, lonlat_of
 from .run import Progress
 
 STEPS = 20_000  # insertions per kernel call
-DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the resolution floor: a millionth of half a great circle
-CLEAN_FLOOR_CHORD = 2.0**-38  # 2^14 ulps of a unit vector: no Clean below it
+DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the default floor: a millionth of half a great circle
 MAX_DEGREE = 256
 SPHERE_BOX = (-180.0, -90.0, 180.0, 90.0)
 STAMP_LIMIT_SPHERE = 2**30  # a kernel call makes at most STEPS insertions: far below 2^31
@@ -106,8 +108,14 @@ class SphereOptions:
         self.progress = progress
 
     @property
+    def floor_angle(self):
+        """The Break floor in effect: ``min_size`` as an angle, at least the engine's
+        resolution (``refine_sphere.RESOLUTION_ANGLE``), below which nothing is split."""
+        return max(self.min_angle, RESOLUTION_ANGLE)
+
+    @property
     def min_size(self):
-        return self.min_angle * self.radius
+        return self.floor_angle * self.radius
 
 
 class SphereRun:
@@ -193,10 +201,11 @@ def _refine_checked(xyz_p, w, total, opt, report):
     index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
     prm = np.zeros(N_PARAMS_SPHERE)
     prm[PS_TAU2] = opt.tau**2 * (1.0 - 1e-12)
-    prm[PS_FLOOR2] = max(angle_to_chord(opt.min_angle), CLEAN_FLOOR_CHORD) ** 2
-    prm[PS_CLEAN_FLOOR2] = CLEAN_FLOOR_CHORD**2
+    prm[PS_FLOOR2] = angle_to_chord(opt.floor_angle) ** 2
+    prm[PS_CLEAN_FLOOR2] = angle_to_chord(RESOLUTION_ANGLE) ** 2
     prm[PS_INFLATE] = 1.0 + 1e-9
     prm[PS_K] = float(opt.k)
+    prm[PS_SLACK2] = SLACK2
     # about 2.5 (n / k) vertices on uniform points: room for 3 (n / k), grown when short
     mass = n if total is None else total
     first = int(max(1024, min(budget, 3.0 * mass / max(opt.k, 1e-300) + 1024)))

@@ -6,16 +6,20 @@ every edge is shared by exactly two triangles in opposite directions, there are 
 triangles over all m vertices (a closed surface of genus 0), every triangle is positively
 oriented about the centre, and every edge is locally convex (the far corner of the triangle
 across it is not strictly inside the triangle's circumcap), all signs from the exact
-``predicates3.orient3d`` (itself tested against rational arithmetic). Locally convex and
-positively oriented everywhere, the surface is the boundary of the vectors' convex hull,
-which is the spherical Delaunay triangulation; scipy's ConvexHull (qhull) is asked too: it
-must find every vertex extreme and the same enclosed volume. The vertices in degrees must be
-the vectors' longitude and latitude.
+``predicates3.orient3d`` (itself tested against rational arithmetic); and the triangles,
+seen from the centre, cover the sphere once (their solid angles add up to 4 pi: a float sum
+deciding an integer with a margin of 2 pi). Locally convex, facing out and covering once,
+the surface is the boundary of the vectors' convex hull, which is the spherical Delaunay
+triangulation. (qhull is not asked: at caps of a micro-radian its rounding calls extreme
+vertices inner ones, and a verdict rests on exact signs.) The vertices in degrees must be the
+vectors' longitude and latitude.
 
-Counts come from scipy's cKDTree on the points' unit vectors (a cap is a ball's trace on the
-sphere): points in every closed circumcap and every closed Voronoi cell (each point counting
-for every vertex as near as its nearest), below k except for elements smaller than the
-resolution floor (counted and reported). The aspect 2 R(v) / d_{M,2}(v) in angles. Lemma 2's
+Counts: the points in every closed circumcap are those on or above the plane of its corners,
+decided exactly (``orient3d``) among the candidates a cKDTree over the points' unit vectors
+finds in a slightly larger ball; the points in every closed Voronoi cell from the kd-tree
+(each point counting for every vertex as near as its nearest, up to the unit vectors'
+rounding). Both below k except for elements smaller than the resolution floor (counted and
+reported). The aspect 2 R(v) / d_{M,2}(v) in angles. Lemma 2's
 precondition on the initial vertices, ordered by peeling as in the plane. The achieved
 constants: d_{M,2} / d_{P,k} at every vertex, cap centre and edge midpoint, stratified
 samples in every triangle, input points and uniform points of the sphere, within [alpha,
@@ -29,8 +33,9 @@ import time
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import cKDTree
 
+from ..engine.geometry import plus_compensated
 from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..engine.predicates3 import orient3d
 from ..mesh import sphere_constants
@@ -90,13 +95,84 @@ def _twins(tri, m):
     return (twin % t).reshape(3, t).T.copy(), (twin // t).reshape(3, t).T.copy()
 
 
+@kernel(entry=True, lazy=True)
+def _held_exactly(xyz, tri, unit, weights, members, bounds, first):
+    """What the closed circumcap of each triangle first + i holds of its candidates
+    ``members[bounds[i]:bounds[i + 1]]``: the points on or above the plane of its corners
+    (``orient3d(a, b, c, p) <= 0``, exact), counted, or their weights summed (compensated;
+    ``weights`` empty: counts)."""
+    out = np.zeros(bounds.shape[0] - 1)
+    pts = np.empty((4, 3))
+    weighted = weights.shape[0] > 0
+    for i in range(out.shape[0]):
+        t = first + i
+        for j in range(3):
+            for a in range(3):
+                pts[j, a] = xyz[tri[t, j], a]
+        s = 0.0
+        c = 0.0
+        for e in range(bounds[i], bounds[i + 1]):
+            p = members[e]
+            for a in range(3):
+                pts[3, a] = unit[p, a]
+            if orient3d(pts) <= 0:
+                if weighted:
+                    s, c = plus_compensated(s, c, weights[p])
+                else:
+                    s += 1.0
+        out[i] = s + c
+    return out
+
+
+def _held_in_caps(xyz, tri, centres, chords, unit, tree, weights, threads, chunk=20_000):
+    """What each closed circumcap holds, decided exactly (``_held_exactly``) among the
+    points a kd-tree finds in a ball a little larger than the cap (``CAP_CANDIDATES``)."""
+    reach = np.sqrt(chords**2 * (1.0 + 1e-6) + CAP_CANDIDATES)
+    w = np.zeros(0) if weights is None else np.ascontiguousarray(weights, float)
+    out = np.zeros(len(tri))
+    for lo in range(0, len(tri), chunk):
+        hi = min(len(tri), lo + chunk)
+        lists = tree.query_ball_point(centres[lo:hi], reach[lo:hi], workers=threads)
+        sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
+        bounds = np.concatenate([[0], np.cumsum(sizes)])
+        members = (np.concatenate([np.asarray(a, np.int64) for a in lists]) if bounds[-1]
+                   else np.zeros(0, np.int64))  # fmt: skip
+        out[lo:hi] = _held_exactly(xyz, tri, unit, w, members, bounds, lo)
+    return out
+
+
+# A cap's candidates: the points within its chord, squared, plus this (and a relative 1e-6):
+# the points on or above the plane of a triangle's corners lie within |a - n|^2 +
+# (|p|^2 - |a|^2) + O(ulp) of its computed centre n, the middle term 2^-50 at most for unit
+# vectors as rounded (engine/refine_sphere.py derives it); this is 2^10 times that.
+CAP_CANDIDATES = 2.0**-40
+# Points count for every Voronoi cell their squared chord to its vertex is within this of
+# their nearest's: the unit vectors' rounding (|v|^2 = 1 +- 2^-52 each) makes the chord's
+# bisector and the great circle's differ by that much (the engine's cells reach 2^-47 past).
+CELL_TIES = 2.0**-50
+
+
+def _degree(xyz, tri):
+    """How many times the triangles, seen from the centre, cover the sphere: their solid
+    angles (Van Oosterom and Strackee's formula) summed over 4 pi. A float sum deciding an
+    integer: 1 for the hull's boundary, 2 or more for a surface wound round twice, whatever
+    the rounding (each term is off by ulps, the margin is 2 pi)."""
+    a, b, c = xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]
+    det = np.einsum("ij,ij->i", a, np.cross(b, c))
+    na, nb, nc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+    den = (na * nb * nc + np.einsum("ij,ij->i", a, b) * nc + np.einsum("ij,ij->i", b, c) * na
+           + np.einsum("ij,ij->i", c, a) * nb)  # fmt: skip
+    return float(2.0 * np.arctan2(det, den).sum() / (4.0 * np.pi))
+
+
 def _caps(xyz, tri):
-    """(centres (t, 3) unit vectors, angular radii (t,)) of the triangles' circumcaps."""
+    """(centres (t, 3) unit vectors, chords (t,), angular radii (t,)) of the triangles'
+    circumcaps."""
     a, b, c = xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]
     n = np.cross(b - a, c - a)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     chord = np.max([np.linalg.norm(n - p, axis=1) for p in (a, b, c)], axis=0)
-    return n, chord_to_angle(chord)
+    return n, chord, chord_to_angle(chord)
 
 
 def check_triangulation(mesh):
@@ -125,18 +201,10 @@ def check_triangulation(mesh):
             problems.append(f"{orient} triangles are not counter-clockwise seen from outside")
         if convex:
             problems.append(f"{convex} edges are not locally Delaunay (a corner inside a cap)")
-    if m >= 4:
-        try:
-            hull = ConvexHull(xyz)
-            det = np.einsum("ij,ij->i", xyz[tri[:, 0]], np.cross(xyz[tri[:, 1]], xyz[tri[:, 2]]))
-            volume = abs(det.sum()) / 6.0
-            if len(hull.vertices) != m:
-                problems.append(f"qhull finds {m - len(hull.vertices)} vertices not extreme")
-            if not math.isclose(hull.volume, volume, rel_tol=1e-9):
-                problems.append(f"the enclosed volume {volume:.12g} is not the hull's "
-                                f"{hull.volume:.12g}")  # fmt: skip
-        except Exception as exc:  # qhull's own errors: a degenerate vertex set
-            problems.append(f"qhull could not build the hull: {exc}")
+        if not orient:  # every triangle faces out: each covers its part of the sphere once
+            degree = _degree(xyz, tri)
+            if abs(degree - 1.0) > 0.25:
+                problems.append(f"the triangles cover the sphere {degree:.3g} times, not once")
     norms = np.linalg.norm(xyz, axis=1)
     if np.abs(norms - 1.0).max(initial=0.0) > 1e-12:
         mesh_problems.append("the vertices' vectors are not unit vectors")
@@ -218,7 +286,7 @@ def certify_sphere(mesh, points, *, samples=100_000, n_random=20_000, max_point_
     xyz = np.asarray(mesh.xyz, float)
     tri = np.asarray(mesh.triangles, np.int64)
     m = len(xyz)
-    centres, cap = _caps(xyz, tri)
+    centres, chords, cap = _caps(xyz, tri)
     # well-spacedness: R(v) the largest cap angle about v, d_M2(v) the nearest other vertex
     vtree = cKDTree(xyz)
     outradius = np.zeros(m)
@@ -228,10 +296,13 @@ def certify_sphere(mesh, points, *, samples=100_000, n_random=20_000, max_point_
     max_aspect = float(np.max(2.0 * outradius / nearest))
     # counts in circumcaps and Voronoi cells above the floor
     big = cap >= min_angle
-    held_caps = pts.held(centres, cap)
+    if problems:  # no triangulation to count in: the kd-tree's caps (the verdict is FAILED)
+        held_caps = pts.held(centres, cap)
+    else:
+        held_caps = _held_in_caps(xyz, tri, centres, chords, unit, pts.tree, weights, threads)
     floor_caps = (~big) & (held_caps >= k)
     dd, ii = vtree.query(unit, k=min(3, m), workers=threads)
-    cells = cell_tally(dd, ii, weights, m)
+    cells = cell_tally(dd, ii, weights, m, slack2=CELL_TIES)
     big_cells = outradius >= min_angle
     floor_cells = (~big_cells) & (cells >= k)
     max_ball = float(held_caps[big].max(initial=0))

@@ -12,9 +12,11 @@ d_{M,2}(v) is measured in angles.
 The loop is the plane's: Clean first (a vertex whose aspect exceeds tau: insert its cell's
 far corner), else Break (a triangle whose closed circumcap holds >= k points: its centre;
 else a vertex whose closed cell does: its far corner), largest first by size class
-(``queue.py``); counting regions inflated by a relative 1e-9 and tau^2 lowered by 1e-12, so
-that the output passes the strict checks of independent code; the Break floor (``min_size``)
-and the Clean floor leave elements smaller than them and report them. Each insertion queues
+(``queue.py``); counting regions inflated by a relative 1e-9 and an absolute ``SLACK2`` (the
+rounding of unit vectors) and tau^2 lowered by 1e-12, so that the output passes the strict
+and exact checks of independent code; the Break floor (``min_size``, at least
+``RESOLUTION_ANGLE``) and the Clean floor (``RESOLUTION_ANGLE``) leave elements smaller than
+them and report them. Each insertion queues
 its new triangles (entries carry the slot's fill count, ``mesh.gen``: a refilled slot makes
 the entry stale) and re-examines the vertices joined to the new one, whose cells changed.
 """
@@ -59,7 +61,24 @@ PS_FLOOR2 = 1  # the Break floor: a squared chord
 PS_CLEAN_FLOOR2 = 2  # the Clean floor: a squared chord
 PS_INFLATE = 3  # 1 + 1e-9
 PS_K = 4
-N_PARAMS_SPHERE = 5
+PS_SLACK2 = 5  # added to every squared chord (and bisector constant) a count compares with
+N_PARAMS_SPHERE = 6
+
+# The counting regions are balls and half-spaces about unit vectors as stored, which are unit
+# only to a few ulps (|x|^2 = 1 +- 2^-50): a point p lies in the closed circumcap of (a, b, c)
+# exactly when it is on or above the plane through them (``orient3d(a, b, c, p) <= 0``, what
+# certify counts), and then |p - n|^2 <= |a - n|^2 + (|p|^2 - |a|^2) + O(|p - a| ulp) for the
+# cap's centre n as computed: the ball needs an absolute slack of a few ulps of 1 on its
+# squared chord, not only a relative one. SLACK2 is four times the bound. Against a cap of
+# angle theta it is a relative 2^-48 / theta^2: 2^-8 at the resolution floor below.
+SLACK2 = 2.0**-48
+# The smallest cap or cell the engine refines (radians, 2^-20: 0.95 micro-radians, 6.1 m on
+# the Earth): there the slack above inflates a cap's radius by 0.2%, and a cap is 2^-41 deep
+# (its centre that far above the plane of its corners), 2^12 times the rounding of a unit
+# vector, so an inserted centre is strictly inside its cap. Below it the vectors' rounding
+# is the size of the caps themselves: the hull of rounded vectors is no longer the sphere's
+# Delaunay triangulation of the points they stand for.
+RESOLUTION_ANGLE = 2.0**-20
 
 HEADROOM_SPHERE = 8  # free vertex slots required before an insertion (triangles: 2 per vertex)
 MAX_CAVITY_SPHERE = 4096  # the most triangles a cavity may have (scratch.cavity holds 2 more)
@@ -131,6 +150,7 @@ def count_cell_sphere(v, mesh, scratch, cnt, prm, index):
     else some value >= k; STAR_OVERFLOW when v has more neighbours than the scratch holds."""
     k = prm[PS_K]
     inflate = prm[PS_INFLATE]
+    slack2 = prm[PS_SLACK2]
     nh, far, far2, near2 = walk_star(v, mesh, scratch)
     if nh < 0:
         return STAR_OVERFLOW
@@ -143,8 +163,9 @@ def count_cell_sphere(v, mesh, scratch, cnt, prm, index):
         for a in range(3):
             h[j, a] = mesh.xyz[w, a] - x[a]
             s += h[j, a] * h[j, a]
-        hc[j] = 0.5 * s * inflate
-    return count_in_region3(index, x[0], x[1], x[2], h, hc, nh, far2 * inflate, k, scratch.stack)
+        hc[j] = 0.5 * s * inflate + slack2  # the bisector of w and v, moved past w's rounding
+    return count_in_region3(index, x[0], x[1], x[2], h, hc, nh, far2 * inflate + slack2, k,
+                            scratch.stack)  # fmt: skip
 
 
 @kernel(entry=True, nrt=False)
@@ -195,8 +216,8 @@ def refine_steps_sphere(mesh, book, queues, scratch, cnt, prm, index, max_steps)
             c = scratch.point
             circumcap_centre(mesh, t, c)
             held = count_in_region3(
-                index, c[0], c[1], c[2], scratch.h, scratch.hc, 0, mesh.chord2[t] * inflate,
-                k, scratch.stack,
+                index, c[0], c[1], c[2], scratch.h, scratch.hc, 0,
+                mesh.chord2[t] * inflate + prm[PS_SLACK2], k, scratch.stack,
             )  # fmt: skip
             if held < k:
                 book.ball_state[t] = GOOD
