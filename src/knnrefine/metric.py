@@ -4,9 +4,13 @@ kd-tree's points hold when they are weighted (``held_in_balls``, ``cell_tally``,
 ``weighted_kth``), summed so that a heavy point cannot swallow light ones
 (``compensated_sums``). Used by certify and the applications, never by the engine."""
 
+import math
+
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ._weight_tree import WeightTree, ball_weights, kth_radius
+from ._weight_tree import build as build_weight_tree
 from .engine.embedding import wrap_offsets
 from .engine.geometry import plus_compensated
 from .engine.jit import kernel
@@ -158,23 +162,24 @@ def running_sums(values):
     return out
 
 
+def weight_tree(tree, weights):
+    """The tree's points with their weights in a ``_weight_tree.WeightTree`` (node totals:
+    what a ball holds without visiting its points; points of weight 0 left out), to be
+    given as ``weights`` to ``held_in_balls`` and ``weighted_kth`` when they are asked
+    several times about the same points; ``weights`` unchanged if already one or None."""
+    if weights is None or isinstance(weights, WeightTree):
+        return weights
+    return build_weight_tree(tree.data, weights, tree.boxsize)
+
+
 def held_in_balls(tree, weights, centres, radii, threads=-1):
     """What each closed ball (disk in the plane) about centres holds in the tree's points:
-    a count, or their weight (``compensated_sums``: a heavy point does not swallow light
-    ones)."""
+    a count, or their weight (``weights``: an array, or ``weight_tree(tree, weights)``),
+    compensated (a heavy point does not swallow light ones), from node totals (light and
+    weightless points cost nothing: ``_weight_tree``)."""
     if weights is None:
         return tree.query_ball_point(centres, radii, return_length=True, workers=threads)
-    out = np.zeros(len(centres))
-    for lo in range(0, len(centres), 10_000):
-        lists = tree.query_ball_point(
-            centres[lo : lo + 10_000], np.broadcast_to(radii, len(centres))[lo : lo + 10_000]
-        )
-        sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
-        if sizes.sum():
-            members = np.concatenate([np.asarray(a, np.int64) for a in lists])
-            bounds = np.concatenate([[0], np.cumsum(sizes)])
-            out[lo : lo + len(lists)] = compensated_sums(weights[members], bounds)
-    return out
+    return ball_weights(weight_tree(tree, weights), centres, radii, threads)
 
 
 def cell_tally(dd, ii, weights, m, slack2=0.0):
@@ -199,28 +204,102 @@ def cell_tally(dd, ii, weights, m, slack2=0.0):
 
 
 def weighted_kth(tree, weights, x, k, threads, chunk=20_000):
-    """The least r whose closed disk about each x holds weight >= k: the nearest points in
-    order, their weights summed, more of them fetched where the first ones fall short."""
+    """The least r whose closed disk about each x holds weight >= k (``weights``: an array,
+    or ``weight_tree(tree, weights)``): the nearest points of positive weight in order,
+    their weights summed, twice at most (the first count, then four times as many). Where
+    they still fall short (most of the weight far away, light points near), the heavy
+    points (weight >= k / 64) give a radius holding k, and the tree of node totals
+    (``_weight_tree.kth_radius``) checks that less does not, or brackets the answer: work
+    that does not grow with the light points."""
+    x = np.asarray(x, float).reshape(-1, tree.m)
+    wt = weights if isinstance(weights, WeightTree) else None
+    w = wt.source_weights if wt is not None else np.asarray(weights, float)
     out = np.empty(len(x))
+    if (w <= 0).sum() > 0.01 * len(w):  # weightless points hold nothing: not asked about
+        keep = w > 0
+        tree, w = cKDTree(tree.data[keep], boxsize=tree.boxsize), w[keep]
     n = tree.n
-    first = int(min(n, 2 * np.ceil(k / max(weights.mean(), 1e-300)) + 16))
+    total = float(w.sum())
+    if n == 0 or total < k * (1.0 - 1e-12):
+        out[:] = np.inf
+        return out
+    first = int(min(n, 2 * np.ceil(k / max(total / max(n, 1), 1e-300)) + 16))
+    heavy = None
     for lo in range(0, len(x), chunk):
         q = x[lo : lo + chunk]
-        res = np.full(len(q), np.nan)
-        todo = np.arange(len(q))
-        kk = first
-        while len(todo):
-            d, i = tree.query(q[todo], k=kk, workers=threads)
-            d = d.reshape(len(todo), kk)
-            i = i.reshape(len(todo), kk)
-            held = running_sums(np.ascontiguousarray(weights[np.minimum(i, n - 1)] * (i < n)))
-            enough = held[:, -1] >= k
-            at = np.argmax(held >= k, axis=1)
-            res[todo[enough]] = d[enough, at[enough]]
-            todo = todo[~enough]
-            if kk >= n:
-                res[todo] = np.inf
-                break
-            kk = min(n, 4 * kk)
+        res, low, todo = _nearest_first(tree, w, q, k, first, threads)
+        if len(todo):
+            if wt is None:
+                wt = build_weight_tree(tree.data, w, tree.boxsize)
+            if heavy is None:
+                heavy = _heavy_points(tree, w, k)
+            high = np.full(len(todo), -1.0)
+            if heavy[0] is not None:
+                high, before = _heavy_kth(heavy[0], heavy[1], q[todo], k, threads)
+                # the heavy points before the one reaching k and every light point weigh
+                # less than k: no smaller ball holds k
+                sure = (high >= 0) & (before + heavy[2] < k * (1.0 - 1e-12))
+                res[todo[sure]] = high[sure]
+                todo, high = todo[~sure], high[~sure]
+            if len(todo):
+                res[todo] = kth_radius(wt, q[todo], k, low[todo], high, threads)
         out[lo : lo + chunk] = res
     return out
+
+
+def _nearest_first(tree, w, q, k, first, threads):
+    """(d_{P,k} at the queries where ``first`` nearest points of ``tree`` hold k, or four
+    times as many where the first ones held k / 8 (nan elsewhere); a radius just inside the
+    farthest fetched, whose ball holds less than k; the queries left unanswered)."""
+    n = tree.n
+    res = np.full(len(q), np.nan)
+    low = np.full(len(q), -1.0)
+    todo = np.arange(len(q))
+    left = [todo[:0]]
+    kk = first
+    for attempt in range(2):
+        if not len(todo):
+            break
+        d, i = tree.query(q[todo], k=kk, workers=threads)
+        d, i = d.reshape(len(todo), kk), i.reshape(len(todo), kk)
+        held = running_sums(np.ascontiguousarray(w[np.minimum(i, n - 1)] * (i < n)))
+        enough = held[:, -1] >= k
+        at = np.argmax(held >= k, axis=1)
+        res[todo[enough]] = d[enough, at[enough]]
+        low[todo] = np.where(np.isfinite(d[:, -1]), d[:, -1] * (1.0 - 1e-9), -1.0)
+        short = todo[~enough]
+        if kk >= n:  # every point fetched: less than k in all
+            res[short] = np.inf
+            break
+        again = held[~enough, -1] >= k / 8.0
+        left.append(short if attempt == 1 else short[~again])
+        todo, kk = short[again], min(n, 4 * kk)
+    return res, low, np.concatenate(left)
+
+
+HEAVY = 64  # a heavy point weighs k / HEAVY or more: HEAVY of them hold k
+
+
+def _heavy_points(tree, w, k):
+    """(a kd-tree of the points of weight >= k / HEAVY, their weights, the total weight of
+    the others), when they weigh k together and are fewer than the points; else Nones."""
+    big = w >= k / HEAVY
+    if big.all() or w[big].sum() < k:
+        return None, None, None
+    light = math.fsum(w[~big])
+    return cKDTree(tree.data[big], boxsize=tree.boxsize), w[big], light
+
+
+def _heavy_kth(tree, w, x, k, threads):
+    """(the least radius at which the heavy points alone hold k, -1 where HEAVY of them do
+    not; the weight of the heavy points fetched before the one reaching k)."""
+    kk = min(tree.n, HEAVY + 1)
+    d, i = tree.query(x, k=kk, workers=threads)
+    d, i = d.reshape(len(x), kk), i.reshape(len(x), kk)
+    held = running_sums(np.ascontiguousarray(w[np.minimum(i, tree.n - 1)] * (i < tree.n)))
+    enough = held[:, -1] >= k
+    at = np.argmax(held >= k, axis=1)
+    rows = np.arange(len(x))
+    high = np.where(enough, d[rows, at], -1.0)
+    before = np.where(at > 0, held[rows, np.maximum(at - 1, 0)], 0.0)
+    return high, before
