@@ -2,6 +2,7 @@
 fails on the code before its fix."""
 
 import dataclasses
+import os
 import warnings
 
 import numpy as np
@@ -327,3 +328,92 @@ def test_certify_with_mostly_zero_weights_is_not_quadratic():
             warnings.simplefilter("ignore", knnrefine.FloorWarning)
             mesh = knnrefine.refine(p, 10, weights=w, sphere=domain == "sphere")
         assert knnrefine.certify(mesh, p, weights=w, samples=20_000).passed
+
+
+# ---- item 5 and a new user's: the command line's outputs ----------------------------------
+
+
+def _points_csv(path, n=400, seed=0):
+    pts = np.random.default_rng(seed).random((n, 2))
+    with open(path, "w") as f:
+        f.write("x,y\n")
+        for x, y in pts.tolist():
+            f.write(f"{x!r},{y!r}\n")
+    return pts
+
+
+def test_the_command_line_writes_every_output_or_none(tmp_path, capsys, monkeypatch):
+    """Item 5: `-o out/q.npz --plot out/p.png --force` with p.png a folder left q.npz
+    behind; so did an unwritable second output that passed the up-front check. Now a
+    command's outputs are staged and put in place together: a folder given as an output is
+    refused before any work, a later output that fails (its writer raising, as a full disk
+    or a folder made read-only after the check would) leaves no earlier one, and files that
+    --force would have replaced are kept as they were."""
+    from knnrefine import io
+    from knnrefine.cli.main import main
+
+    _points_csv(tmp_path / "p.csv")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "p.png").mkdir()
+    code = main(["refine", str(tmp_path / "p.csv"), "-k", "5", "-o", str(out / "q.npz"),
+                 "--plot", str(out / "p.png"), "--force"])  # fmt: skip
+    assert code == 1
+    assert "p.png is a folder" in capsys.readouterr().err
+    assert sorted(os.listdir(out)) == ["p.png"]
+    # the second output fails while being written: the first is not left, and an existing
+    # file the first would have replaced is kept as it was
+    (out / "old.npz").write_text("keep me")
+    real = io.WRITERS[".vtu"]
+
+    def broken(mesh, path):
+        open(path, "w").write("half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setitem(io.WRITERS, ".vtu", broken)
+    code = main(["refine", str(tmp_path / "p.csv"), "-k", "5", "-o", str(out / "old.npz"),
+                 "-o", str(out / "m.vtu"), "--force"])  # fmt: skip
+    assert code == 1
+    assert "No space left on device" in capsys.readouterr().err
+    assert sorted(os.listdir(out)) == ["old.npz", "p.png"]
+    assert (out / "old.npz").read_text() == "keep me"
+    # a failure when they are put in place (a folder appearing where a file goes): undone
+    monkeypatch.setitem(io.WRITERS, ".vtu", real)
+    with pytest.raises(knnrefine.InputError, match="is a folder"):
+        with io.all_or_none():
+            io.write_text(str(out / "a.txt"), "a")
+            io.write_text(str(out / "old.npz"), "new", force=True)
+            (out / "z.txt").mkdir()
+            io.write_text(str(out / "y.txt"), "y")
+            os.rmdir(out / "z.txt")
+            os.mkdir(out / "y.txt")
+    assert sorted(os.listdir(out)) == ["old.npz", "p.png", "y.txt"]
+    assert (out / "old.npz").read_text() == "keep me"
+    # and when all is well, all are written
+    assert main(["refine", str(tmp_path / "p.csv"), "-k", "5", "-o", str(out / "old.npz"),
+                 "-o", str(out / "m.vtu"), "--force", "-q"]) == 0  # fmt: skip
+    assert {"old.npz", "m.vtu"} <= set(os.listdir(out))
+    assert not [f for f in os.listdir(out) if f.startswith(".knnrefine-")]
+
+
+@pytest.mark.parametrize("command", ["refine", "density", "cluster"])
+def test_an_output_that_is_an_input_is_refused_whatever_force_says(tmp_path, capsys, command):
+    """A new user's: `-o points.csv --force` silently overwrote the input file with the
+    mesh. An output that is one of the command's inputs (points, mesh) is refused before any
+    work, --force or not, and the input is left as it was."""
+    from knnrefine.cli.main import main
+
+    csv = tmp_path / "p.csv"
+    _points_csv(csv)
+    assert main(["refine", str(csv), "-k", "5", "-o", str(tmp_path / "m.npz"), "-q"]) == 0
+    before = {p: p.read_bytes() for p in (csv, tmp_path / "m.npz")}
+    argv = {
+        "refine": ["refine", str(csv), "-k", "5", "-o", str(csv)],
+        "density": ["density", str(csv), "-k", "5", "-o", str(csv)],
+        "cluster": ["cluster", str(csv), "-k", "5", "-o", str(csv)],
+    }[command]
+    code = main(argv + ["--force"])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert "is this command's input" in err and "--force never overwrites an input" in err
+    assert {p: p.read_bytes() for p in before} == before

@@ -15,6 +15,8 @@ half a file; existing files are kept unless ``force``.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import io as _io
 import json
 import os
@@ -22,7 +24,7 @@ import sys
 import tempfile
 import zipfile
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -430,9 +432,78 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     return READERS[ext](path)
 
 
+_batch: contextvars.ContextVar[list | None] = contextvars.ContextVar("knnrefine_batch",
+                                                                   default=None)
+
+
+@contextlib.contextmanager
+def all_or_none() -> Iterator[None]:
+    """Writes (``atomic_write`` and every writer here) inside this block are staged in
+    temporary files beside their paths and put in place together when it ends without an
+    error: then every file is written, or none (files they replace are kept aside until all
+    are in place and put back if one fails). An error in the block, or in putting them in
+    place, removes them all and is raised. The command line runs each command in one.
+
+    Raises
+    ------
+    InputError
+        A staged file that could not be put in place (its path a folder, say).
+    """
+    staged: list = []
+    token = _batch.set(staged)
+    try:
+        yield
+    except BaseException:
+        _batch.reset(token)
+        for tmp, _ in staged:
+            _remove_quietly(tmp)
+        raise
+    _batch.reset(token)
+    _commit(staged)
+
+
+def _commit(staged):
+    """Rename each staged (tmp, path) into place; on a failure undo those done (the files
+    they replaced put back) and remove the rest."""
+    done = []  # (path, the file it replaced, moved aside, or None)
+    try:
+        for tmp, path in staged:
+            aside = None
+            if os.path.isdir(path):
+                raise InputError(f"{path} is a folder: give a file name")
+            if os.path.lexists(path):
+                aside = tmp + ".replaced"
+                os.replace(path, aside)
+            done.append((path, aside))
+            os.replace(tmp, path)
+    except BaseException as exc:
+        for path, aside in reversed(done):
+            if aside is None or os.path.lexists(aside):
+                _remove_quietly(path)
+            if aside is not None and os.path.lexists(aside):
+                os.replace(aside, path)
+        for tmp, _ in staged:
+            _remove_quietly(tmp)
+        if isinstance(exc, OSError):
+            where = done[-1][0] if done else staged[0][1]
+            raise InputError(f"{where}: could not be written ({exc.strerror or exc}); no "
+                             "output was written") from None  # fmt: skip
+        raise
+    for _, aside in done:
+        if aside is not None:
+            _remove_quietly(aside)
+
+
+def _remove_quietly(path):
+    with contextlib.suppress(OSError):
+        if os.path.lexists(path) and not os.path.isdir(path):
+            os.remove(path)
+
+
 def atomic_write(path: str | os.PathLike, force: bool, write: Callable) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it into place, so
-    that a failed write leaves nothing behind.
+    that a failed write leaves nothing behind (inside ``all_or_none``: renamed when the
+    block ends, with the block's other files).
 
     Parameters
     ----------
@@ -447,6 +518,8 @@ def atomic_write(path: str | os.PathLike, force: bool, write: Callable) -> None:
     InputError
         An existing file without ``force``, a missing or read-only folder.
     """
+    if os.path.isdir(path):
+        raise InputError(f"{path} is a folder: give a file name")
     if os.path.exists(path) and not force:
         raise InputError(f"{path} exists; use --force (force=True) to overwrite it")
     folder = os.path.dirname(os.path.abspath(path))
@@ -463,6 +536,10 @@ def atomic_write(path: str | os.PathLike, force: bool, write: Callable) -> None:
         umask = os.umask(0)  # mkstemp makes the file private; give it the usual permissions
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
+        staged = _batch.get()
+        if staged is not None:  # put in place when the block ends
+            staged.append((tmp, os.fspath(path)))
+            return
         os.replace(tmp, path)
     except OSError as exc:
         if os.path.exists(tmp):

@@ -37,7 +37,7 @@ def run(args):
     if args.samples < 1:
         raise UsageError(f"--samples must be a positive number of probes, got {args.samples}")
     if args.json:
-        check_outputs([(args.json, (".json",), "certificates")], args.force)
+        check_outputs([(args.json, (".json",), "certificates")], args)
     mesh = io.read_mesh(args.mesh)
     args.sphere = mesh.on_sphere  # its points: longitude and latitude, found by name
     points, _ = read_input(args)

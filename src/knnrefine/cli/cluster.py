@@ -50,7 +50,7 @@ def run(args):
 
     outputs = [(args.output, (".csv", ".npy"), "labels")] if args.output else []
     outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
-    check_outputs(outputs, args.force)
+    check_outputs(outputs, args)
     require_gudhi()
     points, names = read_input(args, dim=dim_of(args))
     mesh, _ = mesh_for(args, points, default_k)

@@ -24,9 +24,14 @@ def plural(count, word, words=None):
     return f"{count:,} {word if count == 1 else (words or word + 's')}"
 
 
-def check_outputs(outputs, force):
-    """Every output, before any work: its extension, its folder (exists, writable), and no
-    existing file unless --force. ``outputs``: [(path, allowed extensions, what), ...]."""
+def check_outputs(outputs, args):
+    """Every output, before any work: its extension, its folder (exists, writable), not a
+    folder, not one of the command's inputs (its points, its mesh: whatever --force says),
+    and no existing file unless --force. ``outputs``: [(path, allowed extensions, what),
+    ...]; ``args``: the command's (--force and its input files)."""
+    force = args.force
+    inputs = [p for p in (getattr(args, "points", None), getattr(args, "mesh", None))
+              if isinstance(p, str) and p != "-" and os.path.exists(p)]  # fmt: skip
     seen = set()
     for path, allowed, what in outputs:
         ext = os.path.splitext(path)[1].lower()
@@ -36,6 +41,14 @@ def check_outputs(outputs, force):
         if full in seen:
             raise InputError(f"{path} is given twice as an output")
         seen.add(full)
+        if os.path.isdir(path):
+            raise InputError(f"{path} is a folder: give a file name")
+        for source in inputs:
+            if os.path.exists(path) and os.path.samefile(path, source):
+                raise InputError(
+                    f"{path} is this command's input {source}: write the output to another "
+                    "file (--force never overwrites an input)"
+                )
         folder = os.path.dirname(full)
         if not os.path.isdir(folder):
             raise InputError(f"{path}: the folder {os.path.dirname(path) or '.'} does not exist")

@@ -192,7 +192,7 @@ def run(args):
     check_outputs(
         [(p, (".npz", ".csv"), "grids") for p in args.output]
         + ([(args.plot, PICTURES, "pictures")] if args.plot else []),
-        args.force,
+        args,
     )
     cells = (grid * dim)[:dim]  # nx, ny[, nz]
     points, weights, names = io.read_weighted_points(

@@ -87,8 +87,10 @@ def main(argv=None):
     from ..errors import KnnRefineError
     from .common import UsageError
 
+    from ..io import all_or_none
+
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), all_or_none():  # every output of a command, or none
             warnings.showwarning = _show_warning
             return SUBCOMMANDS[args.command].run(args)
     except KeyboardInterrupt:

@@ -35,7 +35,7 @@ def run(args):
     from ..plot import save_plot
     from .common import PICTURES, UsageError, check_outputs, read_input
 
-    check_outputs([(args.output, PICTURES, "pictures")], args.force)
+    check_outputs([(args.output, PICTURES, "pictures")], args)
     mesh = io.read_mesh(args.mesh)
     if mesh.dim == 3 and (args.cells != "triangles" or args.no_mesh):
         raise UsageError(

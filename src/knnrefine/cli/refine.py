@@ -60,7 +60,7 @@ def run(args):
     check_outputs(
         [(p, MESHES, "meshes") for p in outputs]
         + ([(args.plot, PICTURES, "pictures")] if args.plot else []),
-        args.force,
+        args,
     )
     periodic_of(args)
     if in_space(args):
