@@ -432,8 +432,9 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     return READERS[ext](path)
 
 
-_batch: contextvars.ContextVar[list | None] = contextvars.ContextVar("knnrefine_batch",
-                                                                   default=None)
+_batch: contextvars.ContextVar[list | None] = contextvars.ContextVar(
+    "knnrefine_batch", default=None
+)
 
 
 @contextlib.contextmanager

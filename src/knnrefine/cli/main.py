@@ -85,9 +85,8 @@ def main(argv=None):
     args.quiet = getattr(args, "quiet", False)
     args.debug = getattr(args, "debug", False)
     from ..errors import KnnRefineError
-    from .common import UsageError
-
     from ..io import all_or_none
+    from .common import UsageError
 
     try:
         with warnings.catch_warnings(), all_or_none():  # every output of a command, or none
