@@ -417,3 +417,116 @@ def test_an_output_that_is_an_input_is_refused_whatever_force_says(tmp_path, cap
     assert code == 1, err
     assert "is this command's input" in err and "--force never overwrites an input" in err
     assert {p: p.read_bytes() for p in before} == before
+
+
+# ---- items 6 to 11: raw errors and one rule for queries -----------------------------------
+
+
+def test_certify_of_a_mesh_without_its_torus_says_what_is_missing():
+    """Item 6: certify on a Mesh with torus=None (the dataclass default) raised a raw
+    AttributeError; now an InputError before any work says what certify needs."""
+    pts = np.random.default_rng(0).random((300, 2))
+    mesh = knnrefine.refine(pts, 5)
+    with pytest.raises(knnrefine.InputError, match=r"no torus mesh \(Mesh.torus is None\)"):
+        knnrefine.certify(dataclasses.replace(mesh, torus=None), pts)
+    with pytest.raises(knnrefine.InputError, match="takes a knnrefine.Mesh"):
+        knnrefine.certify({"vertices": mesh.vertices}, pts)
+    lonlat = pts * [360.0, 180.0] - [180.0, 90.0]
+    sphere = knnrefine.refine(lonlat, 5, sphere=True)
+    with pytest.raises(knnrefine.InputError, match=r"Mesh.xyz is None"):
+        knnrefine.certify(dataclasses.replace(sphere, xyz=None), lonlat)
+
+
+@pytest.mark.parametrize("radius", [1e200, 1e-200, 0.0, -1.0, float("inf"), float("nan")])
+def test_a_sphere_radius_is_checked_once_everywhere(radius, tmp_path):
+    """Item 7: KnnDensity on the sphere with radius=1e200 raised a raw OverflowError and
+    with 1e-200 answered NaN, while refine and certify accepted both. One check
+    (validation.check_radius, 1e-100 to 1e100) at every door: refine, the estimator, a mesh
+    given to certify or the uses, a mesh file."""
+    from knnrefine import io
+
+    lonlat = np.random.default_rng(1).random((400, 2)) * [360.0, 180.0] - [180.0, 90.0]
+    with pytest.raises(knnrefine.InputError, match="radius must be a number from 1e-100"):
+        knnrefine.refine(lonlat, 10, sphere=True, radius=radius)
+    with pytest.raises(knnrefine.InputError, match="radius must be a number from 1e-100"):
+        knnrefine.KnnDensityEstimator(sphere=True, radius=radius).fit(lonlat)
+    mesh = dataclasses.replace(knnrefine.refine(lonlat, 10, sphere=True), radius=radius)
+    for use in (knnrefine.certify, knnrefine.KnnDensity, knnrefine.KnnDistance):
+        with pytest.raises(knnrefine.InputError, match="radius must be a number from 1e-100"):
+            use(mesh, lonlat)
+    if np.isfinite(radius) and radius > 0:
+        path = tmp_path / "m.npz"
+        io.write_mesh(mesh, path)
+        with pytest.raises(knnrefine.InputError, match="radius must be a number from 1e-100"):
+            io.read_mesh(path)
+
+
+@pytest.mark.parametrize("radius", [1e-100, 1.0, 1e100])
+def test_densities_are_finite_at_the_ends_of_the_radius_range(radius):
+    """Item 7: at both ends of the accepted range lengths, densities and masses are finite."""
+    lonlat = np.random.default_rng(2).random((400, 2)) * [360.0, 180.0] - [180.0, 90.0]
+    mesh = knnrefine.refine(lonlat, 10, sphere=True, radius=radius)
+    density = knnrefine.KnnDensity(mesh, lonlat)
+    at = density([[0.0, 0.0], [120.0, -45.0]])
+    assert np.isfinite(at).all() and (at > 0).all()
+    assert density.mass() == pytest.approx(1.0, rel=0.05)
+    assert np.isfinite(mesh.d_m2([[0.0, 0.0]])).all()
+
+
+def test_every_query_method_answers_nan_at_a_non_finite_point_or_beyond_a_pole():
+    """Items 8 and 9: Mesh.d_m2 raised scipy's raw ValueError at a NaN query (KnnDistance and
+    KnnDensity answered NaN), and on the sphere answered 826 km at latitude 95 (which
+    refine refuses and KnnDistance answers NaN). One rule now (validation.answerable): NaN
+    at non-finite coordinates and beyond +-90 degrees of latitude, in every domain and
+    every query method; the finite queries beside them are answered as alone."""
+    rng = np.random.default_rng(3)
+    lonlat = rng.random((500, 2)) * [360.0, 180.0] - [180.0, 90.0]
+    plane, space = rng.random((500, 2)), rng.random((500, 3))
+    cases = [
+        (plane, {}, [[np.nan, 0.5], [0.5, np.inf]], [0.5, 0.5]),
+        (space, {}, [[np.nan, 0.5, 0.5], [0.5, 0.5, -np.inf]], [0.5, 0.5, 0.5]),
+        (lonlat, {"sphere": True}, [[np.nan, 0.0], [0.0, 95.0], [10.0, -90.5]], [10.0, 20.0]),
+    ]
+    for pts, options, bad, good in cases:
+        mesh = knnrefine.refine(pts, 10, **options)
+        queries = np.array(bad + [good])
+        for method in (mesh.d_m2, knnrefine.KnnDistance(mesh, pts),
+                       knnrefine.KnnDensity(mesh, pts)):  # fmt: skip
+            got = method(queries)
+            assert np.isnan(got[:-1]).all(), (mesh.domain, method)
+            assert got[-1] == method(np.array([good]))[0]
+
+
+def test_a_text_file_named_npz_is_called_text_never_a_pickle(tmp_path):
+    """Item 10: a text file named .npz gave NumPy's advice to load pickles unsafely. Now it
+    is called what it is; and an .npz of Python objects never suggests allow_pickle."""
+    from knnrefine import io
+
+    text = tmp_path / "points.npz"
+    text.write_text("x,y\n1,2\n3,4\n")
+    for read in (io.read_mesh, io.read_points):
+        with pytest.raises(knnrefine.InputError, match="is not an .npz file but text") as info:
+            read(str(text))
+        assert "pickle" not in str(info.value)
+    objects = tmp_path / "objects.npz"
+    np.savez(objects, points=np.array([{"a": 1}, None], dtype=object))
+    with pytest.raises(knnrefine.InputError) as info:
+        io.read_points(str(objects))
+    assert "pickle" not in str(info.value)
+    empty = tmp_path / "empty.npy"
+    empty.write_bytes(b"")
+    with pytest.raises(knnrefine.InputError, match="empty"):
+        io.read_points(str(empty))
+
+
+def test_a_latitude_past_the_pole_is_quoted_as_given():
+    """Item 11: latitude 90.0000001 was refused as "latitude 90 (are the columns
+    swapped?)". The value is printed as given, rounding past a pole is called that, and
+    swapped columns are suggested only when the longitudes look like latitudes."""
+    with pytest.raises(knnrefine.InputError, match=r"latitude 90\.0000001 \(past the pole") as e:
+        knnrefine.refine(np.array([[0.0, 90.0000001], [1.0, 2.0], [3.0, 4.0]]), 2, sphere=True)
+    assert "swapped" not in str(e.value)
+    with pytest.raises(knnrefine.InputError, match=r"latitude 95\.0 \(the longitudes look like"):
+        knnrefine.refine(np.array([[10.0, 95.0], [1.0, 2.0], [3.0, 4.0]]), 2, sphere=True)
+    with pytest.raises(knnrefine.InputError, match=r"latitude 95\.0$"):
+        knnrefine.refine(np.array([[170.0, 95.0], [1.0, 2.0], [3.0, 4.0]]), 2, sphere=True)

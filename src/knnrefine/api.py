@@ -261,6 +261,7 @@ def certify(
     InputError
         Points, weights or options that are not the mesh's or not valid.
     """
+    _check_certifiable(mesh)
     workers = V.check_workers(workers)
     if (
         isinstance(threads, bool)
@@ -275,3 +276,28 @@ def certify(
     from .scale.checks import certify_local
 
     return certify_local(mesh, points, weights, workers, threads, **options)
+
+
+def _check_certifiable(mesh):
+    """A Mesh that carries what certify checks: in a box its torus mesh (what the engine
+    refined, which refine returns with every mesh and .npz files keep), on the sphere its
+    unit vectors; else InputError, before any work."""
+    if not isinstance(mesh, Mesh):
+        raise InputError(
+            f"certify takes a knnrefine.Mesh (from refine or io.read_mesh), got "
+            f"{type(mesh).__name__}"
+        )
+    if mesh.on_sphere:
+        V.check_radius(mesh.radius)
+        if mesh.xyz is None:
+            raise InputError(
+                "this sphere mesh has no unit vectors (Mesh.xyz is None): certify checks the "
+                "vectors the engine triangulated; use the mesh refine returned or its .npz file"
+            )
+    elif mesh.torus is None:
+        raise InputError(
+            "this mesh has no torus mesh (Mesh.torus is None): certify checks the torus "
+            "triangulation the engine refined, which refine returns with every mesh and .npz "
+            "files keep; use that mesh, or io.read_mesh of its .npz file (.vtu and .geojson "
+            "files do not carry it)"
+        )

@@ -30,6 +30,7 @@ import numpy as np
 
 from .errors import InputError
 from .mesh import Mesh, Torus
+from .validation import check_radius
 
 FORMAT_VERSION = 2  # 2: one layout for the plane and space (cells); 1 is still read
 # what NumPy raises on a truncated or corrupted .npy / .npz (a zip of .npy members, each
@@ -52,10 +53,41 @@ def unreadable(path: str | os.PathLike, what: str, exc: BaseException) -> InputE
     -------
     InputError
     """
+    foreign = _not_numpys(path, what)
+    if foreign is not None:
+        return InputError(foreign)
+    said = str(exc)
+    if "pickle" in said:  # NumPy's advice to load pickles unsafely is not ours to give
+        said = "it holds Python objects, not arrays"
     return InputError(
         f"{path}: not a readable {what} file: truncated or corrupted? ({type(exc).__name__}: "
-        f"{exc}); write it again"
+        f"{said}); write it again"
     )
+
+
+NUMPY_MAGIC = {".npy": (b"\x93NUMPY",), ".npz": (b"PK\x03\x04", b"PK\x05\x06")}
+
+
+def _not_numpys(path, what):
+    """What to say when the file is not NumPy's format at all (its first bytes are not an
+    .npy header or a zip archive's): what it looks like instead; None when they are."""
+    ext = ".npy" if ".npy" in what else ".npz"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError:
+        return None
+    if head.startswith(NUMPY_MAGIC[ext]):
+        return None
+    if not head:
+        return f"{path}: the file is empty, not an {ext} file"
+    text = head.decode("utf-8", "replace")
+    printable = sum(c.isprintable() or c in "\r\n\t" for c in text) >= 0.95 * len(text)
+    if printable:
+        first = text.splitlines()[0][:40] if text.splitlines() else ""
+        return (f"{path} is not an {ext} file but text (it starts {first!r}): name a CSV or "
+                "text file by its own extension (.csv, .txt)")  # fmt: skip
+    return f"{path} is not an {ext} file (its first bytes are not NumPy's {ext} header)"
 
 
 # --- points -------------------------------------------------------------------------------
@@ -445,6 +477,11 @@ def all_or_none() -> Iterator[None]:
     are in place and put back if one fails). An error in the block, or in putting them in
     place, removes them all and is raised. The command line runs each command in one.
 
+    Returns
+    -------
+    context manager
+        ``with io.all_or_none(): ...`` (it yields nothing).
+
     Raises
     ------
     InputError
@@ -654,7 +691,7 @@ def _mesh_of_npz(d, path):
             periodic=tuple(bool(p) for p in d["periodic"]),
             box=tuple(float(b) for b in d["box"]), min_size=float(d["min_size"]),
             floor_points=d["floor_points"], stats=json.loads(str(d["stats"])), torus=None,
-            domain="sphere", radius=float(d["radius"]), xyz=d["xyz"],
+            domain="sphere", radius=check_radius(float(d["radius"])), xyz=d["xyz"],
         )  # fmt: skip
     cells = "cells" if "cells" in d.files else "triangles"  # format 1: the plane's names
     torus = Torus(

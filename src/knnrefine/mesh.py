@@ -12,7 +12,7 @@ from .engine.raster import clip_triangles
 from .engine.state import KIND_NAMES  # how each vertex came: the insertion moves
 from .errors import InputError
 from .metric import BoxMetric, chord_to_angle, unit_vectors
-from .validation import as_queries
+from .validation import answerable, as_queries
 
 
 def theorem6_constants(tau: float) -> tuple[float, float]:
@@ -258,7 +258,9 @@ class Mesh(Cells):
         """d_{M,2}: the distance to the second-nearest mesh vertex.
 
         Periodic axes use the torus metric. Guaranteed to lie within [alpha, beta] d_{P,k}
-        at every point of the box (above the floor).
+        at every point of the box (above the floor). NaN at non-finite query points and, on
+        the sphere, at latitudes beyond +-90 (``validation.answerable``: the rule of every
+        query method).
 
         Parameters
         ----------
@@ -270,12 +272,16 @@ class Mesh(Cells):
         ndarray (...)
         """
         flat, shape = as_queries(x, self.dim)
-        if len(flat) == 0:
-            return np.zeros(shape)
+        out = np.full(len(flat), np.nan)
+        ok = answerable(flat, self.on_sphere)
+        if not ok.any():
+            return out.reshape(shape)
         if self.on_sphere:
-            chord = self._tree.query(unit_vectors(flat), k=2)[0][:, 1]
-            return (chord_to_angle(chord) * self.radius).reshape(shape)
-        return self._tree.query(self._metric.frame(flat), k=2)[0][:, 1].reshape(shape)
+            chord = self._tree.query(unit_vectors(flat[ok]), k=2)[0][:, 1]
+            out[ok] = chord_to_angle(chord) * self.radius
+        else:
+            out[ok] = self._tree.query(self._metric.frame(flat[ok]), k=2)[0][:, 1]
+        return out.reshape(shape)
 
     def corners(self) -> np.ndarray:
         """The cells' corners in input units, offsets applied (periodic cells may reach past

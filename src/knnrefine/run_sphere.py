@@ -75,14 +75,7 @@ class SphereOptions:
 
     def __init__(self, n, total, k, tau, radius, min_size, max_vertices, time_limit, progress):
         self.t_start = time.perf_counter()
-        if radius is None:
-            radius = 1.0
-        if isinstance(radius, bool) or not isinstance(radius, (int, float, np.integer,
-                                                               np.floating)) or not (
-            0 < float(radius) < np.inf
-        ):  # fmt: skip
-            raise InputError(f"radius must be a finite number > 0, got {radius!r}")
-        self.radius = float(radius)
+        self.radius = V.check_radius(radius)
         if k is None:
             k = V.default_k(n if total is None else total)
         self.k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)

@@ -188,8 +188,33 @@ def _of_run(mesh, pts, weights):
 
 def sphere_points_of_run(mesh, points, weights=None):
     """``points_of_run`` for a mesh on the sphere: (unit vectors (n, 3), weights or None,
-    total: n or the total weight), refused as there when they are not the run's."""
+    total: n or the total weight), refused as there when they are not the run's (or the
+    mesh's radius is not one lengths and densities can be given in: ``check_radius``)."""
+    check_radius(mesh.radius)
     return _of_run(mesh, as_sphere_points(points), weights)
+
+
+RADIUS_RANGE = (1e-100, 1e100)
+
+
+def check_radius(radius):
+    """The sphere's radius as a float, or InputError: a finite number in RADIUS_RANGE, so
+    that every length (up to pi radius), area (4 pi radius^2) and density (per unit area)
+    knnrefine gives in its unit is a finite double. None: 1 (radians)."""
+    if radius is None:
+        return 1.0
+    lo, hi = RADIUS_RANGE
+    if (
+        isinstance(radius, bool)
+        or not isinstance(radius, (int, float, np.integer, np.floating))
+        or not (lo <= float(radius) <= hi)
+    ):
+        raise InputError(
+            f"radius must be a number from {lo:g} to {hi:g}, got {radius!r}: the sphere's "
+            "radius in the length unit wanted (1 for radians, 6371.0088 for kilometres on "
+            "the Earth); beyond that range areas and densities overflow"
+        )
+    return float(radius)
 
 
 def check_in_a_box(mesh, what):
@@ -421,6 +446,18 @@ def as_queries(x, dim=2):
     return arr.reshape(-1, dim), arr.shape[:-1]
 
 
+def answerable(flat, on_sphere=False):
+    """The one rule of every query method (``Mesh.d_m2``, ``KnnDistance``, ``KnnDensity``,
+    the partitioned meshes): which query points (q, d) get an answer; the others get NaN.
+    Non-finite coordinates get none, nor on the sphere latitudes beyond +-90 degrees (no
+    point of the sphere; longitudes wrap). Box limits are each method's own (d_M2 is defined
+    everywhere, the interpolated d_Pk in the box)."""
+    ok = np.isfinite(flat).all(axis=1)
+    if on_sphere:
+        ok &= np.abs(np.where(ok, flat[:, 1], 0.0)) <= 90.0
+    return ok
+
+
 RESOLUTION_BITS = 24  # a box must span at least 2^24 grid steps: the floor is 2^14 of them
 
 
@@ -471,12 +508,19 @@ def as_sphere_points(points):
     if bad.any():
         i = int(np.argmax(bad))
         lon = pts[:, 0]
-        swapped = (
-            " (are the columns swapped? give longitude first)"
-            if ((lon <= 90.0) & (lon >= -90.0)).all()
-            else ""
-        )
+        past = np.abs(lat[bad]).max() - 90.0
+        if past <= 0.01:  # rounding past a pole, not another column
+            advice = (f" (past the pole by {past:.3g} degrees: rounding? clip the latitudes to "
+                      "[-90, 90])")  # fmt: skip
+        elif (np.abs(lon) <= 90.0).all() and (np.abs(lat) <= 360.0).all():
+            advice = (
+                " (the longitudes look like latitudes: are the columns swapped? give "
+                "longitude first)"
+            )
+        else:
+            advice = ""
         raise InputError(
-            f"latitudes must lie in [-90, 90] degrees; point {i} has latitude {lat[i]:g}{swapped}"
+            f"latitudes must lie in [-90, 90] degrees; point {i} has latitude "
+            f"{float(lat[i])!r}{advice}"
         )
     return unit_vectors(pts)

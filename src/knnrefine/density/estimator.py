@@ -11,7 +11,14 @@ from numpy.typing import ArrayLike
 
 from ..errors import InputError
 from ..metric import lonlat_of, unit_vectors
-from ..validation import as_points, as_queries, as_sphere_points, check_weights, default_box
+from ..validation import (
+    as_points,
+    as_queries,
+    as_sphere_points,
+    check_radius,
+    check_weights,
+    default_box,
+)
 from .adaptive import (
     BANDWIDTHS,
     SENSITIVITIES,
@@ -365,6 +372,7 @@ class KnnDensityEstimator:
                 names = ", ".join(name for name, on in given.items() if on)
                 raise InputError(f"sphere=True takes no {names}: the sphere has no box, its "
                                  "kernels are isotropic in great-circle geometry")  # fmt: skip
+            check_radius(self.radius)
         elif self.radius is not None:
             raise InputError("radius is the sphere's: give it with sphere=True")
         if self.method not in (None, "adaptive", "knn"):

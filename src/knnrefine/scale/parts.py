@@ -44,7 +44,14 @@ from ..errors import InputError
 from ..io import UNREADABLE, unreadable
 from ..mesh import Mesh, Torus, circumspheres, split_in_four
 from ..metric import BoxMetric
-from ..validation import as_points, as_queries, check_inside, check_workers, weights_of_run
+from ..validation import (
+    answerable,
+    as_points,
+    as_queries,
+    check_inside,
+    check_workers,
+    weights_of_run,
+)
 
 FORMAT_VERSION = 2  # 2: each part also lists the others' triangles meeting its strip
 FINISHED = "_SUCCESS"
@@ -375,7 +382,7 @@ class PartitionedMesh:
         dim = self.dim
         flat, shape = as_queries(x, dim)
         out = np.full(len(flat), np.nan)
-        inside = np.ones(len(flat), bool)
+        inside = answerable(flat)
         for a in range(dim):
             if not self.periodic[a]:
                 inside &= (flat[:, a] >= self.box[a]) & (flat[:, a] <= self.box[a + dim])
@@ -706,9 +713,10 @@ class PartitionedDistance:
         box along non-periodic axes."""
         flat, shape = as_queries(x, self.dim)
         out = np.full(len(flat), np.nan)
-        owner = self.pmesh.owner(flat)
+        rows = np.flatnonzero(answerable(flat))
+        owner = self.pmesh.owner(flat[rows])
         for j in np.unique(owner):
-            at = np.flatnonzero(owner == j)
+            at = rows[owner == j]
             out[at] = self.part(int(j))(flat[at])
         return out.reshape(shape)
 
