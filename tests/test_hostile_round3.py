@@ -530,3 +530,38 @@ def test_a_latitude_past_the_pole_is_quoted_as_given():
         knnrefine.refine(np.array([[10.0, 95.0], [1.0, 2.0], [3.0, 4.0]]), 2, sphere=True)
     with pytest.raises(knnrefine.InputError, match=r"latitude 95\.0$"):
         knnrefine.refine(np.array([[170.0, 95.0], [1.0, 2.0], [3.0, 4.0]]), 2, sphere=True)
+
+
+# ---- item 12: k = 1 says up front what it costs -------------------------------------------
+
+
+@pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
+def test_k1_says_before_the_run_how_many_vertices_it_makes(domain):
+    """Item 12: k = 1 in space made 838,301 vertices from 300 points in 18 s, said nothing
+    before, and certify of that mesh did not finish. Now refine says before any work that
+    k = 1 refines around every point down to the floor and how many vertices that is (the
+    size estimate of each domain, within a factor 1.5 here), and a vertex budget it cannot
+    fit is refused before any work."""
+    rng = np.random.default_rng(4)
+    dim = 3 if domain == "space" else 2
+    pts = rng.random((60, dim))
+    options = {"min_size": 1e-3}
+    if domain == "sphere":
+        pts = pts * [360.0, 180.0] - [180.0, 90.0]
+        options = {"sphere": True, "min_size": 1e-4}
+    calls = []
+    with pytest.warns(knnrefine.FloorWarning, match="k = 1 refines around every input point") as w:
+        mesh = knnrefine.refine(pts, 1, progress=lambda v, p: calls.append(v), **options)
+    said = [str(x.message) for x in w if "k = 1 refines" in str(x.message)]
+    assert len(said) == 1
+    expected = float(said[0].split("about ")[1].split(" vertices")[0].replace(",", ""))
+    assert 1 / 1.5 < len(mesh.vertices) / expected < 1.5, (len(mesh.vertices), expected)
+    if domain != "sphere":
+        assert mesh.stats["estimated_vertices"] == pytest.approx(expected, abs=1)
+        calls.clear()
+        with pytest.raises(knnrefine.BudgetError, match="k = 1 refines every input point"):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", knnrefine.FloorWarning)
+                knnrefine.refine(pts, 1, max_vertices=1000, progress=lambda v, p: calls.append(v),
+                                 min_size=1e-6)  # fmt: skip
+        assert calls == []  # refused before any work

@@ -448,11 +448,14 @@ def test_certify_fails_a_box_mesh_missing_its_copies():
     inside = np.flatnonzero(((v >= 0) & (v <= 1)).all(axis=1))
     keep = np.ones(len(v), bool)
     keep[inside[0]] = False
-    no_cells = np.zeros((0, 4), np.int32)
+    renumber = np.cumsum(keep) - 1  # the cells without that vertex, renumbered
+    kept = ~np.isin(mesh.cells, inside[0]).any(axis=1)
     fewer = dataclasses.replace(mesh, order=mesh.order[keep], vertices=v[keep],
-                                kinds=mesh.kinds[keep], cells=no_cells)  # fmt: skip
+                                kinds=mesh.kinds[keep], cells=renumber[mesh.cells[kept]],
+                                offsets=None)  # fmt: skip
     cert = knnrefine.certify(fewer, pts)
     assert not cert.passed and any("d_M2" in p for p in cert.mesh_problems)
+    assert any("hole" in p for p in cert.mesh_problems)
     moved = v.copy()
     moved[inside[1], 0] += 1e-9
     cert = knnrefine.certify(dataclasses.replace(mesh, vertices=moved), pts)

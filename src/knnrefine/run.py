@@ -5,6 +5,7 @@ the tiled runs of ``scale.tiled`` use its start and finish."""
 
 import inspect
 import math
+import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -246,8 +247,10 @@ def vertex_budget(estimated, opt, m0, n):
     whose estimate exceeds twice the memory (by default) or eight times the user's budget is
     refused before any work; one expected to need more than 2 GB says so (LargeRunWarning)."""
     k, max_vertices, min_size = opt.k, opt.max_vertices, opt.min_size
-    need = estimated * size.BYTES_PER_VERTEX
+    per_vertex = size.BYTES_PER_VERTEX if opt.dim == 2 else size.BYTES_PER_VERTEX3
+    need = estimated * per_vertex
     memory = size.memory_bytes()
+    warn_k1(k, estimated, n, min_size)
     hint = (
         "k = 1 refines every input point down to min_size: use k >= 2 or a larger min_size"
         if k == 1
@@ -269,7 +272,7 @@ def vertex_budget(estimated, opt, m0, n):
                 "to insist",
                 progress={"vertices": 0, "moves": {}, "seconds": 0.0},
             )
-        fits = int(0.9 * memory / size.BYTES_PER_VERTEX)
+        fits = int(0.9 * memory / per_vertex)
         budget = int(max(10**6, 2 * m0, min(10 * estimated, fits)))
     if need > LARGE_RUN_BYTES:
         warnings.warn(
@@ -279,6 +282,25 @@ def vertex_budget(estimated, opt, m0, n):
             stacklevel=3,
         )
     return budget
+
+
+def warn_k1(k, estimated, n, min_size):
+    """Up front, a FloorWarning that k = 1 refines around every input point down to the
+    floor (d_{P,1} vanishes on P), with the vertices expected (``estimated``, of ``n``
+    points): several per point, thousands in space. Shown at the caller's line."""
+    if k != 1:
+        return
+    frame, stacklevel = sys._getframe(0), 1
+    while frame is not None and frame.f_globals.get("__name__", "").startswith("knnrefine"):
+        frame, stacklevel = frame.f_back, stacklevel + 1
+    warnings.warn(
+        f"k = 1 refines around every input point down to min_size = {min_size:.3g} (d_P1 is 0 "
+        f"at each point): about {estimated:,.0f} vertices are expected, {estimated / n:,.0f} "
+        "per point; the bounds are not claimed below the floor. Use k >= 2 or a larger "
+        "min_size",
+        FloorWarning,
+        stacklevel=stacklevel,
+    )
 
 
 class Start:
@@ -404,7 +426,7 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, ind
         "points_under_floor": under,
         "m0": m0_stats,
     }
-    if under > run.n / 2:
+    if under > run.n / 2 and k != 1:  # k = 1 was said before the run (warn_k1)
         warnings.warn(
             f"{under} of the {run.n} points ({100 * under / run.n:.0f}%) lie in circumballs or "
             f"cells smaller than min_size = {min_size:.3g} that still hold k = {k} points: the "

@@ -10,9 +10,10 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .engine import ahead
+from .engine import ahead, size
 from .engine.driver3 import Refinement3, choose_grid3
 from .engine.embedding import Embedding, diameter, unfold
+from .engine.geometry import FLOOR_BITS
 from .engine.index3 import build_index3, holds_k_within3
 from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from .engine.interrupt import Interrupts
@@ -27,7 +28,7 @@ from .engine.state import (
 from .errors import BudgetError, FloorWarning, InputError
 from .mesh import Mesh, Torus
 from .metric import BoxMetric, held_in_balls, weighted_kth
-from .run import Progress
+from .run import Progress, vertex_budget
 
 
 def holds_k(index, x, reach, k, period):
@@ -191,12 +192,20 @@ def refine3(pts, opt, weights=None):
         del found  # the index must go with the run (take_result), not live on in this tuple
         start.release()
         opt.past("setting up")
+        floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
+        lo, hi = emb.box_internal()
+        estimated = size.estimate3(run_index, k, floor, np.array(emb.period_internal),
+                                   float(np.prod(np.asarray(hi) - np.asarray(lo))))[0]  # fmt: skip
+        budget = vertex_budget(estimated, opt, len(grid[0]) if len(grid) else 0, len(pts))
         run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
                           grid, emb.grid)  # fmt: skip
         del run_index, grid
         status = run.run(opt.deadline, progress, interrupts)
     total = None if weights is None else math.fsum(weights)
-    return finish3(run, status, emb, opt, lambda: pts, len(pts), total)
+    mesh = finish3(run, status, emb, opt, lambda: pts, len(pts), total)
+    mesh.stats["estimated_vertices"] = int(estimated)
+    mesh.stats["max_vertices"] = budget
+    return mesh
 
 
 def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
@@ -220,7 +229,7 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
     xyz, corners, offsets, kinds, cnt, floor = run.take_result()
     del run
     under = _points_under_floor(points, floor, emb, n)
-    if under > n / 2:
+    if under > n / 2 and k != 1:  # k = 1 was said before the run (run.warn_k1)
         warnings.warn(
             f"{under} of the {n} points ({100 * under / n:.0f}%) lie in "
             f"circumballs or cells smaller than min_size = {min_size:.3g} that still hold k = "

@@ -35,6 +35,7 @@ from .engine.refine_sphere import (
     queue_all_sphere,
     refine_steps_sphere,
 )
+from .engine.size import floored_per_site
 from .engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -61,7 +62,7 @@ from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
 from .errors import BudgetError, EngineError, FloorWarning, InputError
 from .mesh import Mesh
 from .metric import angle_to_chord, chord_to_angle, lonlat_of
-from .run import Progress
+from .run import Progress, warn_k1
 
 STEPS = 20_000  # insertions per kernel call
 DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the default floor: a millionth of half a great circle
@@ -191,6 +192,10 @@ def _refine_checked(xyz_p, w, total, opt, report):
     options."""
     n = len(xyz_p)
     budget = opt.max_vertices if opt.max_vertices is not None else max(10**6, 4 * n)
+    if opt.k == 1:  # every point refined around down to the floor: the plane's count of it
+        spacing = math.sqrt(4.0 * math.pi / n)
+        octaves = max(1.0, math.log2(max(spacing / opt.floor_angle, 2.0)))
+        warn_k1(opt.k, n * floored_per_site(octaves, 2) + 64.0, n, opt.min_size)
     index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
     prm = np.zeros(N_PARAMS_SPHERE)
     prm[PS_TAU2] = opt.tau**2 * (1.0 - 1e-12)
@@ -285,7 +290,7 @@ def _assemble(run, opt, index, seconds, n, total):
     }
     if total is not None:
         stats["weight"] = total
-    if len(sites):
+    if len(sites) and opt.k != 1:  # k = 1 was said before the run (run.warn_k1)
         import warnings
 
         warnings.warn(

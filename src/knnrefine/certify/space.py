@@ -323,7 +323,8 @@ def run_checks3(mesh, points, *, samples, n_random, max_point_probes, seed, thre
     probes, point_probes = probes[in_box], point_probes[in_box]
     mesh_problems = verify_returned_mesh3(mesh)
     returned = np.asarray(mesh.vertices, float)
-    if returned.ndim == 2 and returned.shape[1] == 3 and np.isfinite(returned).all():
+    coordinates = returned.ndim == 2 and returned.shape[1] == 3 and np.isfinite(returned).all()
+    if coordinates:
         returned = metric.frame(returned)  # relative to the origin, periodic axes wrapped
     else:  # not coordinates at all (a failed check already): the torus' own, for the ratio
         returned = local
@@ -331,7 +332,7 @@ def run_checks3(mesh, points, *, samples, n_random, max_point_probes, seed, thre
     box_vertices = cKDTree(returned, boxsize=box_boxsize)
     dm2 = box_vertices.query(probes, k=min(2, len(returned)), workers=threads)[0]
     dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(probes), np.inf)
-    if not mesh_problems:  # the copies near the box hold its two nearest
+    if coordinates and len(returned) >= 2:  # the copies near the box hold its two nearest
         on_torus = vertex_tree.query(probes, k=2, workers=threads)[0][:, 1]  # wraps queries
         if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
             mesh_problems.append(

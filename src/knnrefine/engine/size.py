@@ -8,13 +8,20 @@ points (n = 10^4 and 10^5, default tau and floor) kNNRefine's mesh has
     m / n = 2.3 / (k - 1.47)            (k >= 2, within 5% from k = 2 to 100)
 
 vertices. Where k points fall within the resolution floor (duplicates, rounded coordinates,
-and every point when k = 1) the mesh refines around them down to the floor instead: about 20
-vertices per halving from the local spacing down to min_size (measured: k = 1 on uniform
-points, 271 vertices per point at a spacing 10^4 times min_size). ``estimate`` adds both
+and every point when k = 1) the mesh refines around them down to the floor instead: about 29
+vertices per halving from the local spacing down to min_size, less the first four
+(``floored_per_site``; measured: k = 1 on uniform points, 354 vertices per point at a
+spacing 10^4.8 times min_size). ``estimate`` adds both
 parts, the second from a sample of the points. It is a planning figure: within 5% on uniform
 points, within 0.6 to 1.3 of the truth on most real data sets, but down to 0.13 on data with
 tight clusters above the floor and up to 3.2 with many exact repeats
 (``benchmarks/mesh_size.py``); it is reported in ``Mesh.stats["estimated_vertices"]``.
+
+In space the same shape holds with other constants (measured on uniform points, n = 2 x 10^4,
+the 3-torus): m / n = 3.2 / (k - 1.47) within 5% for k = 3 to 100 (6.0 against 7.2 at
+k = 2), and about 215 vertices per point and halving (less the first four and a half) where
+points are refined to the floor (k = 1: 2,190 vertices per point at a spacing 10^4.4 times
+min_size).
 """
 
 import os
@@ -22,11 +29,26 @@ import os
 import numpy as np
 
 from .index import holds_k_within
+from .index3 import holds_k_within3
 
 PER_POINT = 2.3  # vertices per point times (k - 1.47), uniform data
 K_SHIFT = 1.47
-PER_OCTAVE = 20.0  # vertices per halving around a site refined to the floor
+PER_POINT3 = 3.2  # the same in space
+# vertices around a site refined to the floor, by the halvings from the points' spacing down
+# to min_size (k = 1 on 60 and 200 uniform points, floors 10^-2 to 10^-6 of the box):
+# SLOPE * (octaves - SHIFT) once the octaves are many, LOW * octaves when few
+FLOORED = {2: (28.8, 3.75, 6.5), 3: (215.0, 4.45, 40.0)}  # dimension: (SLOPE, SHIFT, LOW)
+
+
+def floored_per_site(octaves, dim):
+    """Vertices around one site refined to the floor, ``octaves`` halvings below the points'
+    spacing (2: the plane and the sphere, 3: space)."""
+    slope, shift, low = FLOORED[dim]
+    return max(slope * (octaves - shift), low * octaves)
+
+
 BYTES_PER_VERTEX = 600  # peak memory of a run per mesh vertex (measured: 530 at k = 1, n = 1e5)
+BYTES_PER_VERTEX3 = 1500  # in space (about 6.5 tetrahedra per vertex)
 SAMPLE = 2000
 
 
@@ -54,7 +76,33 @@ def estimate(index, k, floor, lx, ly, area, seed=0):
     octaves = max(1.0, float(np.log2(max(spacing / floor, 2.0))))
     k_units = min(max(k_units, 1e-300), float(n))
     regular = PER_POINT * n * (1.0 - under) / (k_units - K_SHIFT) if k_units >= 2 else 0.0
-    floored = under * n / k_units * PER_OCTAVE * octaves
+    floored = under * n / k_units * floored_per_site(octaves, 2)
+    return regular + floored + 64.0, float(under)
+
+
+def estimate3(index, k, floor, period, volume, seed=0):
+    """``estimate`` in space: expected mesh vertices (on the 3-torus of ``period``) for the
+    points of the 3-D ``index``, and the fraction of points whose k-th neighbour lies within
+    ``floor``; ``volume`` the volume the points are spread over (internal units)."""
+    pts = index.pts
+    n = pts.shape[0]
+    if n == 0:
+        return 0.0, 0.0
+    k_units = k
+    if index.weight.shape[0]:  # weighted: k in units of the mean weight
+        total = float(index.weight[0])
+        k_units = k * (n / total) if total > 0 else float(n)
+    rng = np.random.default_rng(seed)
+    sample = pts[rng.choice(n, SAMPLE, replace=False)] if n > SAMPLE else pts
+    sample = np.ascontiguousarray(sample[:, :3])
+    r2 = np.full(len(sample), min(floor, 0.49 * float(np.min(period))) ** 2)
+    under = float(np.mean(holds_k_within3(index, sample, r2, float(k),
+                                          np.asarray(period, float))))  # fmt: skip
+    spacing = (volume / n) ** (1.0 / 3.0)
+    octaves = max(1.0, float(np.log2(max(spacing / floor, 2.0))))
+    k_units = min(max(k_units, 1e-300), float(n))
+    regular = PER_POINT3 * n * (1.0 - under) / (k_units - K_SHIFT) if k_units >= 2 else 0.0
+    floored = under * n / k_units * floored_per_site(octaves, 3)
     return regular + floored + 64.0, float(under)
 
 
