@@ -565,3 +565,41 @@ def test_k1_says_before_the_run_how_many_vertices_it_makes(domain):
                 knnrefine.refine(pts, 1, max_vertices=1000, progress=lambda v, p: calls.append(v),
                                  min_size=1e-6)  # fmt: skip
         assert calls == []  # refused before any work
+
+
+# ---- item 13: knn_cdf's mesh at small k ---------------------------------------------------
+
+
+def test_knn_cdf_by_the_mesh_bounds_its_memory_before_the_work(monkeypatch):
+    """Item 13: knn_cdf(method="mesh") at k = 2 on 10^5 points stopped with a BudgetError
+    saying to raise max_vertices, which knn_cdf does not take, and at k = 4-16 peaked at
+    8.9 GB. Now the mesh's memory is estimated for each k before any work and a k that
+    would take more than half the machine is refused, naming knn_cdf's own options; a
+    budget hit inside says the same, never max_vertices."""
+    from knnrefine.density import cdf, knn_cdf
+    from knnrefine.engine import size
+
+    pts = np.random.default_rng(5).random((20_000, 3))
+    radii = np.linspace(0.0, 0.1, 5)
+    monkeypatch.setattr(size, "memory_bytes", lambda: 2 * 10**9)  # a 2 GB machine
+    refined = []
+    monkeypatch.setattr(knnrefine.run, "refine", lambda *a, **k: refined.append(a))
+    with pytest.raises(knnrefine.InputError, match='method="monte-carlo"') as info:
+        knn_cdf(pts, [2, 30], radii, (0, 0, 0, 1, 1, 1), method="mesh", queries=1000)
+    assert "max_vertices" not in str(info.value) and "k = 2" in str(info.value)
+    assert refined == []  # before any work
+    # "auto" keeps small k on Monte Carlo: nothing refused
+    auto = knn_cdf(pts, [2], radii, (0, 0, 0, 1, 1, 1), queries=1000)
+    assert auto.method == ["monte-carlo"]
+
+    def over_budget(*args, **kwargs):
+        raise knnrefine.BudgetError(
+            "the run reached max_vertices=10; raise max_vertices", {"vertices": 10}
+        )
+
+    monkeypatch.setattr(knnrefine.run, "refine", over_budget)
+    monkeypatch.setattr(size, "memory_bytes", lambda: 10**12)
+    with pytest.raises(knnrefine.BudgetError, match='method="monte-carlo"') as info:
+        knn_cdf(pts, [30], radii, (0, 0, 0, 1, 1, 1), method="mesh", queries=1000)
+    assert "max_vertices" not in str(info.value)
+    assert cdf.MESH_BYTES_PER_VERTEX > 0

@@ -106,6 +106,16 @@ def estimate3(index, k, floor, period, volume, seed=0):
     return regular + floored + 64.0, float(under)
 
 
+def expected_vertices(n, k, dim, octaves=17.0):
+    """The size ``estimate`` (``estimate3``) expects of n uniform points in a torus, from
+    their count alone (no index): PER_POINT (PER_POINT3) n / (k - K_SHIFT) for k >= 2, and at
+    k = 1 every point refined around down to a floor ``octaves`` halvings below the
+    spacing (17: the default floor, 10^-6 of the box, for 10^5 points in space)."""
+    if k < 2:
+        return n * floored_per_site(octaves, dim) + 64.0
+    return (PER_POINT if dim == 2 else PER_POINT3) * n / (k - K_SHIFT) + 64.0
+
+
 def memory_bytes():
     """The memory this process may use: physical memory, or the cgroup's limit if lower."""
     total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
