@@ -146,7 +146,7 @@ def test_nan_message_names_the_first_index():
     "kw, message",
     [
         ({"k": 0}, "k must be an integer >= 1"),
-        ({"k": 2.5}, "k must be an integer"),
+        ({"k": 2.5}, "k must be a whole number"),
         ({"k": True}, "k must be an integer"),
         ({"k": "3"}, "k must be an integer"),
         ({"tau": 2.0}, "tau must be > 2"),

@@ -830,7 +830,8 @@ def test_the_refine_help_example_on_the_demo_angles_runs(tmp_path, capsys):
     from knnrefine.cli import refine
 
     assert run("demo", "--out", tmp_path, "-q") == 0
-    line = next(x for x in refine.EXAMPLES.splitlines() if "angles.csv" in x)
+    text = refine.EXAMPLES.replace("\\\n", " ")  # continued lines joined
+    line = next(x for x in text.splitlines() if "angles.csv" in x)
     args = line.split()[1:]  # after "knnrefine"
     cwd = os.getcwd()
     try:

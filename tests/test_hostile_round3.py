@@ -603,3 +603,66 @@ def test_knn_cdf_by_the_mesh_bounds_its_memory_before_the_work(monkeypatch):
         knn_cdf(pts, [30], radii, (0, 0, 0, 1, 1, 1), method="mesh", queries=1000)
     assert "max_vertices" not in str(info.value)
     assert cdf.MESH_BYTES_PER_VERTEX > 0
+
+
+# ---- what a new user met ------------------------------------------------------------------
+
+
+def test_cluster_and_persistence_print_readable_lines(tmp_path, capsys):
+    """A new user's: `knnrefine cluster` printed 207 cluster sizes on one line, and
+    `knnrefine persistence` printed "H2: 0 classes; most persistent: " with nothing after.
+    Now a summary line shows ten numbers and says how many more, and a dimension without
+    classes says only that."""
+    pytest.importorskip("gudhi")
+    from knnrefine.cli.main import main
+
+    rng = np.random.default_rng(6)
+    centres = rng.random((40, 2)) * 100
+    pts = np.concatenate([c + rng.normal(0, 0.3, (60, 2)) for c in centres])
+    path = tmp_path / "blobs.csv"
+    np.savetxt(path, pts, delimiter=",", header="x,y", comments="")
+    assert main(["cluster", str(path), "-k", "10", "--n-clusters", "40"]) == 0
+    out = capsys.readouterr().out
+    sizes = next(line for line in out.splitlines() if "sizes:" in line)
+    assert "and 30 more" in sizes
+    assert len(sizes.split("sizes: ")[1].split(";")[0].split(", ")) == 10
+    assert main(["persistence", str(path), "-k", "10"]) == 0
+    out = capsys.readouterr().out
+    for line in out.splitlines():
+        if "most persistent:" in line:
+            assert line.split("most persistent:")[1].strip(), line
+    assert any(line.strip() == "H2: 0 classes" for line in out.splitlines()), out
+
+
+def test_a_whole_float_k_is_that_integer():
+    """A new user's: refine(P, 5.0, sphere=True) refused "k must be an integer, got 5.0"
+    while a weighted k = 5.5 was accepted. A float with a whole value is that integer, in
+    every domain; a fractional one says it is a weight."""
+    rng = np.random.default_rng(7)
+    lonlat = rng.random((300, 2)) * [360.0, 180.0] - [180.0, 90.0]
+    for pts, options in ((lonlat, {"sphere": True}), (rng.random((300, 2)), {}),
+                         (rng.random((300, 3)), {})):  # fmt: skip
+        mesh = knnrefine.refine(pts, 5.0, **options)
+        assert mesh.k == 5 and isinstance(mesh.k, int)
+        again = knnrefine.refine(pts, np.float32(5.0), **options)
+        assert len(again.vertices) == len(mesh.vertices)
+    with pytest.raises(knnrefine.InputError, match="a fractional k is a weight"):
+        knnrefine.refine(lonlat, 5.5, sphere=True)
+
+
+def test_a_weighted_density_plot_names_its_sample_size():
+    """A new user's: a weighted density plot's title said "n = 3,695.9" (the effective
+    sample size, unlabelled). The title names the points and what their weights add to."""
+    from knnrefine.plot import sample_label
+
+    rng = np.random.default_rng(8)
+    pts = rng.random((2000, 2))
+    w = rng.random(2000)
+    fitted = knnrefine.KnnDensityEstimator().fit(pts, sample_weight=w)
+    label = sample_label(fitted.density_.knn, effective=True)
+    assert label.startswith("n = 2,000 weighted (effective n ")
+    mesh = knnrefine.refine(pts, 10, weights=3 * w)
+    label = sample_label(knnrefine.KnnDensity(mesh, pts, weights=3 * w))
+    assert label.startswith("n = 2,000 weighted (total weight ")
+    plain = knnrefine.KnnDensity(knnrefine.refine(pts, 10), pts)
+    assert sample_label(plain) == "n = 2,000"

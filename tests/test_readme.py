@@ -55,6 +55,18 @@ def test_the_readme_has_what_this_test_runs():
     assert {"refine", "certify", "plot", "density", "persistence", "cluster"} <= names
 
 
+def test_the_readmes_geographic_examples_use_the_sphere():
+    """A new user's (issue 50): the README's first command-line example refined the
+    earthquakes' longitude and latitude as a planar box periodic in x. Geographic data
+    (quakes.csv) goes through --sphere (or a mesh made with it), and the periodic box is
+    for planar data (the torsion angles)."""
+    for command in shell_commands():
+        if "quakes.csv" in command and command.split()[1] in ("refine", "density", "cluster"):
+            assert "--sphere" in command or "--mesh world.npz" in command, command
+        if "--periodic" in command:
+            assert "angles.csv" in command, command
+
+
 @pytest.mark.slow
 def test_every_readme_command_runs_as_written(tmp_path):
     if shutil.which("knnrefine") is None:
@@ -69,15 +81,16 @@ def test_every_readme_command_runs_as_written(tmp_path):
         out = subprocess.run(command, shell=True, cwd=cwd, capture_output=True, text=True)
         assert out.returncode == 0, f"{command}\n{out.stdout}\n{out.stderr}"
     for made in (
-        "quakes.npz",
-        "quakes.geojson",
-        "quakes.png",
+        "angles.npz",
+        "angles.vtu",
+        "angles.png",
         "cells.svg",
         "density.png",
         "diagram.png",
         "labels.csv",
         "clusters.png",
-        "certificate-quakes.json",
+        "certificate-angles.json",
+        "certificate-world.json",
         "world.npz",
         "world.geojson",
         "world.png",

@@ -312,18 +312,37 @@ def _density_grid(density, shape, grid):
     if hasattr(density, "density_"):  # a fitted KnnDensityEstimator
         names = getattr(density, "feature_names_in_", None)
         names = tuple(names) if names is not None else ("x", "y")
-        k, n, box = density.k_, density.n_samples_, density.box_
+        k, box = density.k_, density.box_
         what = "kNN density" if density.method_ == "knn" else "adaptive kernel density"
         knn = getattr(density.density_, "knn", density.density_)
     else:
         names = ("x", "y")
         knn = getattr(density, "knn", density)  # the adaptive estimate's pilot
-        k, n = density.k, knn.n
+        k = density.k
         what = "kNN density" if knn is density else "adaptive kernel density"
         box = knn.distance.mesh.box
     m = len(knn.distance.mesh.vertices)
-    n = f"{n:,.0f}" if float(n).is_integer() else f"{n:,.1f}"
-    return xs, ys, np.asarray(f, float), box, names, f"{what}\nn = {n}, k = {k}, m = {m:,}"
+    effective = hasattr(density, "density_")
+    return (
+        xs,
+        ys,
+        np.asarray(f, float),
+        box,
+        names,
+        (f"{what}\n{sample_label(knn, effective)}, k = {k}, m = {m:,}"),
+    )
+
+
+def sample_label(knn, effective=False):
+    """ "n = 4,000" for an unweighted estimate; for a weighted one the points and their
+    total weight, named: an estimator's weights sum to its effective sample size
+    (``effective``), a user's to what they count."""
+    points, total = knn.distance.n, float(knn.distance.total)
+    if total == points:
+        return f"n = {points:,}"
+    what = "effective n" if effective else "total weight"
+    total_text = f"{total:,.0f}" if total.is_integer() else f"{total:,.1f}"
+    return f"n = {points:,} weighted ({what} {total_text})"
 
 
 # -- the sphere -------------------------------------------------------------------------------
@@ -494,11 +513,10 @@ def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, 
             pts = pts[np.random.default_rng(0).choice(len(pts), max_points, replace=False)]
         ax.scatter(np.radians(pts[:, 0]), np.radians(pts[:, 1]), s=1.0, c="0.15", alpha=0.4,
                    linewidths=0)  # fmt: skip
-    k, n, m = knn.k, knn.n, len(knn.distance.mesh.vertices)
-    n = f"{n:,.0f}" if float(n).is_integer() else f"{n:,.1f}"
+    k, m = knn.k, len(knn.distance.mesh.vertices)
     what = "kNN density" if knn is density else "adaptive kernel density"
-    ax.set_title(f"{what} on the sphere\nn = {n}, k = {k}, m = {m:,}", fontsize="medium",
-                 pad=14)  # fmt: skip
+    ax.set_title(f"{what} on the sphere\n{sample_label(knn)}, k = {k}, m = {m:,}",
+                 fontsize="medium", pad=14)  # fmt: skip
     return ax
 
 
@@ -810,9 +828,8 @@ def plot_projections(density, axes, grid=None, points=None, max_points=20_000, c
         ax.set_xlabel(names[a])
         ax.set_ylabel(names[b])
     colour_bar(axes[-1], im, "marginal density")
-    n = knn.n if not float(knn.n).is_integer() else int(knn.n)
     axes[0].figure.suptitle(
-        f"{what} density projected along each axis: n = {n:,}, k = {knn.k}, "
+        f"{what} density projected along each axis: {sample_label(knn)}, k = {knn.k}, "
         f"m = {len(mesh.vertices):,}"
     )
     return axes

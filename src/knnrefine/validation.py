@@ -92,6 +92,15 @@ def default_k(n: float) -> int:
 def check_k(k, n=None):
     """k is a positive integer, at most the number of points n when given (beyond it d_{P,k}
     is infinite everywhere and there is nothing to sample)."""
+    if isinstance(k, numbers.Real) and not isinstance(k, (bool, numbers.Integral)):
+        # a float with a whole value is that integer (5.0 from a computation or a file)
+        if np.isfinite(k) and float(k).is_integer() and abs(float(k)) < 2.0**53:
+            k = int(k)
+        else:
+            raise InputError(
+                f"k must be a whole number >= 1, got {k!r} (a fractional k is a weight: give "
+                "weights to count weight)"
+            )
     if isinstance(k, bool) or not isinstance(k, numbers.Integral):
         raise InputError(f"k must be an integer >= 1, got {k!r}")
     if k < 1:

@@ -6,7 +6,7 @@ from .common import add_input_options
 
 HELP = "certify a mesh (.npz) against its points"
 EXAMPLES = """examples:
-  knnrefine certify quakes.npz quakes.csv --columns lon,lat
+  knnrefine certify angles.npz angles.csv
   knnrefine certify world.npz quakes.csv
   knnrefine certify mesh.npz points.npy --json certificate.json
 

@@ -86,7 +86,7 @@ def run(args):
         )
     if not args.quiet:
         sizes = np.bincount(cl.labels[cl.labels >= 0], minlength=cl.n_clusters)
-        prom = ", ".join(f"{p:.3g}" for p in cl.prominence[: cl.n_clusters + 2])
+        prom = _first(cl.prominence[: cl.n_clusters + 2], "{:.3g}")
         print(
             f"{plural(cl.n_clusters, 'cluster')} of n = {plural(len(points), 'point')} from "
             f"m = {plural(len(mesh.vertices), 'mesh vertex', 'mesh vertices')} (k = {mesh.k}) "
@@ -94,10 +94,21 @@ def run(args):
         )
         noise = f"; noise: {plural(cl.noise, 'point')}" if args.noise else ""
         print(
-            f"  sizes: {', '.join(f'{s:,}' for s in sizes)}{noise}; prominences (ln density): "
+            f"  sizes: {_first(sizes, '{:,}')}{noise}; prominences (ln density): "
             f"{prom}; significance threshold {cl.threshold:.3g}"
         )
         written = [p for p in (args.output, args.plot) if p]
         if written:
             print("  wrote " + ", ".join(written))
     return 0
+
+
+SHOWN = 10  # numbers a summary line shows before it says how many more there are
+
+
+def _first(values, form):
+    """The first SHOWN of ``values`` formatted, and how many more there are: one line
+    however many clusters a run finds."""
+    shown = ", ".join(form.format(v) for v in values[:SHOWN])
+    more = len(values) - SHOWN
+    return shown + (f" and {more:,} more" if more > 0 else "")

@@ -9,8 +9,9 @@ from .common import add_input_options, add_mesh_option, add_refine_options, mesh
 
 HELP = "estimate the density (adaptive kernel, or kNN k / (n V_d d_Pk^d)) on a grid"
 EXAMPLES = """examples:
-  knnrefine density quakes.csv --columns lon,lat --periodic-x --box -180 -90 180 90 \\
-      -o density.npz --plot density.png
+  knnrefine density quakes.csv --sphere -k 30 --radius 6371.0088 -o density.npz \\
+      --plot density.png
+  knnrefine density angles.csv --periodic --box 0 0 360 360 --plot angles-density.png
   knnrefine density counts.csv --columns x,y --weights count -o density.csv
   knnrefine density points.npy --method knn --mesh mesh.npz --grid 1024 -o density.csv
   knnrefine density chi.csv --columns chi1,chi2,chi3 --periodic --box 0 0 0 360 360 360 \\

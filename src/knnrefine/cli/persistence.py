@@ -69,7 +69,8 @@ def run(args):
             life = dg[:, 1] - dg[:, 0]
             order = np.argsort(-life)[: args.top]
             shown = ", ".join(f"[{dg[i, 0]:.4g}, {dg[i, 1]:.4g})" for i in order)
-            print(f"  H{d}: {plural(len(dg), 'class', 'classes')}; most persistent: {shown}")
+            most = f"; most persistent: {shown}" if len(dg) else ""
+            print(f"  H{d}: {plural(len(dg), 'class', 'classes')}{most}")
         written = [p for p in (args.output, args.plot) if p]
         if written:
             print("  wrote " + ", ".join(written))

@@ -2,7 +2,8 @@
 
 HELP = "draw a mesh (.npz) as a picture (.png, .svg, .pdf)"
 EXAMPLES = """examples:
-  knnrefine plot quakes.npz -o quakes.png --points quakes.csv --columns lon,lat
+  knnrefine plot angles.npz -o angles.png --points angles.csv
+  knnrefine plot world.npz -o world.png
   knnrefine plot angles.npz -o cells.pdf --cells voronoi --no-mesh
   knnrefine plot chi.npz -o slices.png --points chi.csv --columns chi1,chi2,chi3
 

@@ -20,9 +20,8 @@ from .common import (
 
 HELP = "refine a file of points into a mesh"
 EXAMPLES = """examples:
-  knnrefine refine quakes.csv --columns lon,lat -k 20 --periodic-x --box -180 -90 180 90 \\
-      -o quakes.npz -o quakes.vtu --plot quakes.png
-  knnrefine refine angles.csv -k 50 --periodic --box 0 0 360 360 -o angles.npz --certify
+  knnrefine refine angles.csv -k 50 --periodic --box 0 0 360 360 -o angles.npz \\
+      -o angles.vtu --plot angles.png --certify
   knnrefine refine quakes.csv --sphere -k 30 --radius 6371.0088 -o world.npz \\
       -o world.geojson --certify
   cat points.txt | knnrefine refine - -k 10 -o mesh.geojson
