@@ -256,6 +256,9 @@ def test_bad_columns_and_formats(tmp_path, csv, capsys):
     assert run("plot", tmp_path / "missing.npz", "-o", tmp_path / "p.png") == 1
     (tmp_path / "fake.npz").write_bytes(b"not a zip file")
     assert run("plot", tmp_path / "fake.npz", "-o", tmp_path / "p.png") == 1
+    assert "fake.npz is not an .npz file but text" in capsys.readouterr().err
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04" + bytes(40))  # a zip's start, cut short
+    assert run("plot", tmp_path / "cut.npz", "-o", tmp_path / "p.png") == 1
     assert "not a readable .npz" in capsys.readouterr().err
 
 

@@ -53,8 +53,11 @@ def as_points(points, dim=2):
     if arr.shape[0] == 0:
         raise InputError("points is empty: give at least one point")
     arr = np.ascontiguousarray(arr, dtype=np.float64)
-    # reductions without temporaries first (the sum of finite doubles <= 1e100 is finite)
-    if not np.isfinite(arr.sum()) and not np.isfinite(arr).all():
+    # reductions without temporaries first (the sum of finite doubles <= 1e100 is finite;
+    # one that overflows is looked at again, quietly)
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = arr.sum()
+    if not np.isfinite(total) and not np.isfinite(arr).all():
         bad = ~np.isfinite(arr).all(axis=1)
         first = int(np.argmax(bad))
         raise InputError(
