@@ -152,26 +152,17 @@ def check_cells_tile(mesh):
     if mesh.offsets is not None:  # offsets along non-periodic axes mean nothing
         off = np.where(per, np.asarray(mesh.offsets, np.int64), 0)
     problems = []
-    # a cell: its vertices sorted, with their offsets relative to the least
-    rel = off - off.min(axis=1, keepdims=True)
-    order = np.argsort(cells, axis=1, kind="stable")
-    key = np.concatenate([np.take_along_axis(cells, order, 1),
-                          np.take_along_axis(rel, order[..., None], 1).reshape(len(cells), -1)],
-                         axis=1)  # fmt: skip
-    _, same = sorted_rows(key)
+    # a cell, and each of its facets: its corners' codes (vertex and offset relative to the
+    # least, in one integer: CODE_BASE values per axis) sorted
+    keys, spread = _corner_codes(cells, off, range(nc))
+    if spread:
+        return [f"{spread} cells span more than {CODE_BASE - 1} periods"]
+    _, same = sorted_rows(keys)
     if same.any():
         problems.append(f"{int(same.sum())} cells are listed more than once")
-    # facets: nc per cell, keyed the same way
-    facets = []
-    for i in range(nc):
-        other = [j for j in range(nc) if j != i]
-        fv, fo = cells[:, other], off[:, other]
-        fo = fo - fo.min(axis=1, keepdims=True)
-        fs = np.argsort(fv, axis=1, kind="stable")
-        facets.append(np.concatenate([np.take_along_axis(fv, fs, 1),
-                                      np.take_along_axis(fo, fs[..., None], 1)
-                                      .reshape(len(cells), -1)], axis=1))  # fmt: skip
-    rows = np.concatenate(facets)
+    rows = np.concatenate(
+        [_corner_codes(cells, off, [j for j in range(nc) if j != i])[0] for i in range(nc)]
+    )
     by, same = sorted_rows(rows)
     start = np.concatenate([[True], ~same])  # the first of each run of equal facets
     first = np.flatnonzero(start)
@@ -197,6 +188,23 @@ def check_cells_tile(mesh):
     if not per.all() and not _cells_meet_the_box(v, cells, off, period, per, mesh.box):
         problems.append("no cell lies in the box")
     return problems
+
+
+CODE_BASE = 16  # values of a corner's offset (relative to the least) per axis in its code
+
+
+def _corner_codes(cells, off, corners):
+    """(the ``corners`` of each cell as sorted integer codes, vertex * CODE_BASE^d + its
+    offset relative to the least of them, digit by axis; how many cells spread their
+    offsets over CODE_BASE periods or more: no code for those)."""
+    v = cells[:, corners]
+    o = off[:, corners]
+    o = o - o.min(axis=1, keepdims=True)
+    spread = int((o.max(axis=(1, 2)) >= CODE_BASE).sum()) if len(o) else 0
+    code = v.astype(np.int64)
+    for a in range(off.shape[2]):
+        code = code * CODE_BASE + o[:, :, a]
+    return np.sort(code, axis=1), spread
 
 
 def cell_array_problem(mesh):
@@ -225,7 +233,8 @@ def _cells_meet_the_box(v, cells, off, period, per, box):
     dim = v.shape[1]
     lo, hi = np.asarray(box[:dim], float), np.asarray(box[dim:], float)
     free = ~per
-    used = np.unique(cells)
+    used = np.zeros(len(v), bool)
+    used[cells.ravel()] = True
     inside = ((v[used] > lo) & (v[used] < hi) | per).all(axis=1)
     if inside.any():
         return True
