@@ -163,7 +163,8 @@ class Mesh(Cells):
         as several copies); in the plane also the insertion order.
     k, tau, periodic, box, min_size, alpha, beta, period
         The run's parameters and Theorem 6's constants for tau; ``min_size`` is the floor that
-        was in effect (at least the engine's resolution, 2^14 grid steps; see ``refine``);
+        was in effect (at least the engine's resolution: 2^14 grid steps in a box, 2^-20
+        radians on the sphere; see ``refine``);
         ``period`` is the box's side along periodic axes and 0 along the others.
     floor_points : (f, d) float64
         Where refinement stopped at the resolution floor ``min_size``: circumcenters of

@@ -9,11 +9,11 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._weight_tree import WeightTree, ball_weights, kth_radius
-from ._weight_tree import build as build_weight_tree
 from .engine.embedding import wrap_offsets
 from .engine.geometry import plus_compensated
 from .engine.jit import kernel
+from .engine.weight_tree import WeightTree, ball_weights, kth_radius
+from .engine.weight_tree import build as build_weight_tree
 
 
 class BoxMetric:
@@ -163,7 +163,7 @@ def running_sums(values):
 
 
 def weight_tree(tree, weights):
-    """The tree's points with their weights in a ``_weight_tree.WeightTree`` (node totals:
+    """The tree's points with their weights in a ``engine.weight_tree.WeightTree`` (node totals:
     what a ball holds without visiting its points; points of weight 0 left out), to be
     given as ``weights`` to ``held_in_balls`` and ``weighted_kth`` when they are asked
     several times about the same points; ``weights`` unchanged if already one or None."""
@@ -176,7 +176,7 @@ def held_in_balls(tree, weights, centres, radii, threads=-1):
     """What each closed ball (disk in the plane) about centres holds in the tree's points:
     a count, or their weight (``weights``: an array, or ``weight_tree(tree, weights)``),
     compensated (a heavy point does not swallow light ones), from node totals (light and
-    weightless points cost nothing: ``_weight_tree``)."""
+    weightless points cost nothing: ``engine.weight_tree``)."""
     if weights is None:
         return tree.query_ball_point(centres, radii, return_length=True, workers=threads)
     return ball_weights(weight_tree(tree, weights), centres, radii, threads)
@@ -209,7 +209,7 @@ def weighted_kth(tree, weights, x, k, threads, chunk=20_000):
     their weights summed, twice at most (the first count, then four times as many). Where
     they still fall short (most of the weight far away, light points near), the heavy
     points (weight >= k / 64) give a radius holding k, and the tree of node totals
-    (``_weight_tree.kth_radius``) checks that less does not, or brackets the answer: work
+    (``engine.weight_tree.kth_radius``) checks that less does not, or brackets the answer: work
     that does not grow with the light points."""
     x = np.asarray(x, float).reshape(-1, tree.m)
     wt = weights if isinstance(weights, WeightTree) else None

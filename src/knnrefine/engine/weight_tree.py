@@ -12,17 +12,18 @@ the bracket until few points lie between its ends, which are then sorted.
 
 Distances are Euclidean, with periodic axes (``boxsize`` > 0, points in [0, boxsize)) at
 their minimum image, as cKDTree's ``boxsize`` has them. Sums are compensated
-(``engine.geometry.plus_compensated``). Used by ``metric`` (certify and the applications),
-never by the engine.
+(``geometry.plus_compensated``). Used by ``metric`` (certify and the applications), never
+by the refinement; it lives here, with the engine's other indexes, so that its kernels are
+cached as theirs are (also on read-only installs).
 """
 
 from collections import namedtuple
 
 import numpy as np
 
-from .engine.geometry import plus_compensated
-from .engine.jit import kernel
-from .engine.threads import in_chunks
+from .geometry import plus_compensated
+from .jit import kernel
+from .threads import in_chunks
 
 LEAF = 16  # points per leaf at most
 SHELL = 64  # points between the bracket's ends below which they are sorted
