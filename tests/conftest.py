@@ -63,7 +63,7 @@ def _digest(mesh, points, weights):
 def certify_every_mesh(monkeypatch):
     import sys
 
-    original = knnrefine.api.refine
+    original = knnrefine.pipeline.refine  # every refine goes through it: the API's, the uses'
     package = sys.modules["knnrefine.certify"]  # the entry's own names, read at each call
     made, seen = [], set()
 
@@ -91,16 +91,17 @@ def certify_every_mesh(monkeypatch):
 
         return wrapped
 
-    monkeypatch.setattr(knnrefine, "refine", refine_and_register)
-    monkeypatch.setattr(knnrefine.api, "refine", refine_and_register)
-    # the applications (the density estimator) refine in this process through run.refine
-    in_process = knnrefine.run.refine
+    monkeypatch.setattr(knnrefine.pipeline, "refine", refine_and_register)
+    # tiled runs (workers, executors) come from scale's one entry
+    import knnrefine.scale.shared as shared
 
-    @functools.wraps(in_process)
-    def in_process_and_register(points, k=None, *args, **kwargs):
-        return register(in_process(points, k, *args, **kwargs), points, kwargs)
+    tiled = shared.refine_local
 
-    monkeypatch.setattr(knnrefine.run, "refine", in_process_and_register)
+    @functools.wraps(tiled)
+    def tiled_and_register(pts, w, opt, *args, **kwargs):
+        return register(tiled(pts, w, opt, *args, **kwargs), pts, {"weights": w})
+
+    monkeypatch.setattr(shared, "refine_local", tiled_and_register)
     monkeypatch.setattr(package, "run_checks", seen_by(package.run_checks))
     checks = sys.modules.get("knnrefine.scale.checks")  # strip by strip: its own binding
     if checks is not None:

@@ -590,12 +590,12 @@ def test_bad_options_are_refused_before_work():
 def test_infinite_bandwidth_is_refused_before_work(monkeypatch):
     """regression: bandwidth=inf passed the estimator's check (inf > 0) and failed only after
     refinement, in set_bandwidth."""
-    import knnrefine.run
+    import knnrefine.pipeline
 
     def no_work(*args, **kwargs):
         raise AssertionError("refine ran before the options were checked")
 
-    monkeypatch.setattr(knnrefine.run, "refine", no_work)
+    monkeypatch.setattr(knnrefine.pipeline, "refine", no_work)
     with pytest.raises(InputError, match="finite"):
         KnnDensityEstimator(k=10, bandwidth=float("inf")).fit(mixture(300))
 

@@ -583,7 +583,7 @@ def test_knn_cdf_by_the_mesh_bounds_its_memory_before_the_work(monkeypatch):
     radii = np.linspace(0.0, 0.1, 5)
     monkeypatch.setattr(size, "memory_bytes", lambda: 2 * 10**9)  # a 2 GB machine
     refined = []
-    monkeypatch.setattr(knnrefine.run, "refine", lambda *a, **k: refined.append(a))
+    monkeypatch.setattr(knnrefine.pipeline, "refine", lambda *a, **k: refined.append(a))
     with pytest.raises(knnrefine.InputError, match='method="monte-carlo"') as info:
         knn_cdf(pts, [2, 30], radii, (0, 0, 0, 1, 1, 1), method="mesh", queries=1000)
     assert "max_vertices" not in str(info.value) and "k = 2" in str(info.value)
@@ -597,7 +597,7 @@ def test_knn_cdf_by_the_mesh_bounds_its_memory_before_the_work(monkeypatch):
             "the run reached max_vertices=10; raise max_vertices", {"vertices": 10}
         )
 
-    monkeypatch.setattr(knnrefine.run, "refine", over_budget)
+    monkeypatch.setattr(knnrefine.pipeline, "refine", over_budget)
     monkeypatch.setattr(size, "memory_bytes", lambda: 10**12)
     with pytest.raises(knnrefine.BudgetError, match='method="monte-carlo"') as info:
         knn_cdf(pts, [30], radii, (0, 0, 0, 1, 1, 1), method="mesh", queries=1000)

@@ -398,7 +398,7 @@ def test_a_density_map_of_the_sphere_projects_its_grid_once(monkeypatch):
 def test_adaptive_leave_one_out_on_the_sphere_against_direct_sums():
     """The sphere's adaptive estimate: kernels in chord distance, exactly normalised (mass 1
     by Monte Carlo), and its leave-one-out log-density against sums written out here."""
-    from knnrefine.density.sphere import SphereAdaptiveDensity
+    from knnrefine.density.adaptive import SphereAdaptiveDensity
 
     pts = Mixture().sample(3000, RNG)
     pts = np.concatenate([pts, pts[:5]])  # copies: left out with the point

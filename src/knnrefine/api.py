@@ -1,5 +1,7 @@
-"""knnrefine's two entry points, ``refine`` and ``certify``: each checks what it is given,
-then runs in this process (``run``, ``certify``) or over worker processes (``scale``)."""
+"""knnrefine's two entry points, ``refine`` and ``certify``, documented here: refine runs
+the pipeline (``pipeline.refine``: the domain decided, everything checked, then a run in
+this process, in threads or on an executor); certify checks its options and runs in this
+process (``certify``) or over worker processes (``scale``)."""
 
 from __future__ import annotations
 
@@ -9,7 +11,7 @@ from concurrent.futures import Executor
 import numpy as np
 from numpy.typing import ArrayLike
 
-from . import run
+from . import pipeline
 from . import validation as V
 from .certify import Certificate, certify_points
 from .errors import InputError
@@ -154,55 +156,28 @@ def refine(
     by ``run3.refine3`` into the same ``Mesh`` type, weights, workers and executor (slabs)
     included.
     """
-    if not isinstance(sphere, (bool, np.bool_)):
-        raise InputError(f"sphere must be True or False, got {sphere!r}")
-    if sphere:
-        return _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertices,
-                              time_limit, progress, workers, executor, radius)  # fmt: skip
-    if radius is not None:
-        raise InputError("radius is the sphere's: give it with sphere=True")
-    asked = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
-                 max_vertices=max_vertices, time_limit=time_limit, progress=progress)  # fmt: skip
-    pts, w, opt = run.checked(points, weights, **asked)
-    workers = V.check_workers(workers)
-    if executor is not None and not callable(getattr(executor, "map", None)):
-        raise InputError(
-            f"executor must be a concurrent.futures.Executor (with a map method), got {executor!r}"
-        )
-    if executor is not None and workers < 2:
-        raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
-    if workers > 1:
-        from .scale.tiled import refine_local, tiles_pay
+    if pipeline.domain_of(points, sphere, radius) == "sphere":
+        pipeline.check_sphere_options(periodic, box, workers, executor)
+    elif workers is not None or executor is not None:  # tiles where they pay
+        pts, w, opt = pipeline.checked(points, weights, k=k, tau=tau, periodic=periodic,
+                                       box=box, min_size=min_size, max_vertices=max_vertices,
+                                       time_limit=time_limit, progress=progress)  # fmt: skip
+        workers = V.check_workers(workers)
+        if executor is not None and not callable(getattr(executor, "map", None)):
+            raise InputError(
+                "executor must be a concurrent.futures.Executor (with a map method), got "
+                f"{executor!r}"
+            )
+        if executor is not None and workers < 2:
+            raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
+        from .scale.shared import refine_local
+        from .scale.tiled import tiles_pay
 
-        if executor is not None or tiles_pay(pts.shape[1], len(pts)):
+        if workers > 1 and (executor is not None or tiles_pay(pts.shape[1], len(pts))):
             return refine_local(pts, w, opt, workers, executor)
-    return run.refine_checked(pts, w, opt)
-
-
-def _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertices, time_limit,
-                   progress, workers, executor, radius):  # fmt: skip
-    """``refine`` on the sphere: the options a sphere has no use for are refused first."""
-    if periodic is not False or box is not None:
-        raise InputError(
-            "the sphere has no box and no periodic axes: drop box= and periodic= with "
-            "sphere=True (longitudes wrap by themselves)"
-        )
-    if V.check_workers(workers) > 1 or executor is not None:
-        raise InputError("refinement on the sphere runs in one process: drop workers= and "
-                         "executor= with sphere=True")  # fmt: skip
-    from .run_sphere import refine_sphere
-
-    return refine_sphere(
-        points,
-        k,
-        tau,
-        weights=weights,
-        radius=radius,
-        min_size=min_size,
-        max_vertices=max_vertices,
-        time_limit=time_limit,
-        progress=progress,
-    )
+    return pipeline.refine(points, k, tau, periodic=periodic, box=box, weights=weights,
+                           min_size=min_size, max_vertices=max_vertices, time_limit=time_limit,
+                           progress=progress, sphere=sphere, radius=radius)  # fmt: skip
 
 
 def certify(

@@ -1,4 +1,6 @@
-"""The options of one run, checked once before any work: ``RunOptions``.
+"""The options of one run, checked once before any work: ``RunOptions``; and what every
+domain's run shares around them: the user's progress callback (``Progress``), the vertex
+budget from the size estimate (``vertex_budget``) and the k = 1 notice (``warn_k1``).
 
 A run in the plane or in space, in one process, in tiles or on a Dask cluster, reads its
 options from one frozen object made by ``RunOptions.check``: each option validated in one
@@ -7,8 +9,11 @@ the run's budget errors read (``past``), and what cannot fit refused up front (t
 mesh of the torus the box makes must fit the vertex budget and memory).
 """
 
+import inspect
 import numbers
+import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -18,7 +23,7 @@ from . import validation as V
 from .engine import size
 from .engine.embedding import Embedding
 from .engine.initial import GRIDS, GRIDS3, grid_shape, grid_shape3
-from .errors import BudgetError, InputError
+from .errors import BudgetError, FloorWarning, InputError, LargeRunWarning
 
 DEFAULT_MIN_SIZE = 1e-6  # resolution floor, relative to the box's longer side
 INITIAL_BYTES3 = 2500  # peak memory per initial vertex while an M0 is built in space (2.3 KB)
@@ -177,4 +182,112 @@ def check_initial_budget(box, per, budget):
         f"mesh of the {torus} alone needs {dims} = {need:,} vertices{cost} (max_vertices="
         f"{budget:,}); rescale the coordinates, use a less elongated periodic box (or make "
         "its short axis non-periodic), or raise max_vertices"
+    )
+
+
+LARGE_RUN_BYTES = 2e9  # runs expected to need more memory than this say so up front
+
+
+class Progress:
+    """The user's progress callback: progress(vertices, pending) while refining; if it takes
+    a ``phase`` argument, also phase="compiling" before a first compilation,
+    phase="assembling" / "done" while the mesh is assembled, and progress(count, 0, phase)
+    for an application's work after it (``stage``: the density estimator's "choosing the
+    smoothing", pairs scored)."""
+
+    def __init__(self, callback):
+        self.callback = callback
+        self.phases = False
+        if callback is not None:
+            try:
+                params = inspect.signature(callback).parameters.values()
+                self.phases = any(
+                    p.name == "phase" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params
+                )
+            except (TypeError, ValueError):
+                pass
+
+    def compiling(self):
+        if self.phases:
+            self.callback(0, 0, phase="compiling")
+
+    def refining(self, vertices, pending):
+        if self.callback is not None:
+            self.callback(vertices, pending)
+
+    def stage(self, count, phase):
+        """Work after the refinement (an application's): count done so far in ``phase``,
+        reported to callbacks that take a phase."""
+        if self.phases:
+            self.callback(count, 0, phase=phase)
+
+    def assembling(self, vertices, done=False):
+        if self.callback is None:
+            return
+        if self.phases:
+            self.callback(vertices, 0, phase="done" if done else "assembling")
+        else:
+            self.callback(vertices, 0)
+
+
+def vertex_budget(estimated, opt, m0, n):
+    """The vertex budget: the user's max_vertices, else ten times the estimate (at least
+    10^6), but no more than the machine's memory holds. The estimate is within 5% on uniform
+    points but off by up to 8x on clustered data (benchmarks/mesh_size.py), so only a run
+    whose estimate exceeds twice the memory (by default) or eight times the user's budget is
+    refused before any work; one expected to need more than 2 GB says so (LargeRunWarning)."""
+    k, max_vertices, min_size = opt.k, opt.max_vertices, opt.min_size
+    per_vertex = size.BYTES_PER_VERTEX if opt.dim == 2 else size.BYTES_PER_VERTEX3
+    need = estimated * per_vertex
+    memory = size.memory_bytes()
+    warn_k1(k, estimated, n, min_size)
+    hint = (
+        "k = 1 refines every input point down to min_size: use k >= 2 or a larger min_size"
+        if k == 1
+        else "use a larger k or a larger min_size"
+    )
+    if max_vertices is not None:
+        if estimated > 8 * max_vertices:
+            raise BudgetError(
+                f"this run needs about {estimated:.3g} vertices, far beyond "
+                f"max_vertices={max_vertices}; {hint}, or raise max_vertices",
+                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
+            )
+        budget = int(max_vertices)
+    else:
+        if need > 2 * memory:
+            raise BudgetError(
+                f"this run needs about {estimated:.3g} vertices, about {need / 1e9:.3g} GB, far "
+                f"more than this machine's {memory / 1e9:.3g} GB; {hint}, or pass max_vertices "
+                "to insist",
+                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
+            )
+        fits = int(0.9 * memory / per_vertex)
+        budget = int(max(10**6, 2 * m0, min(10 * estimated, fits)))
+    if need > LARGE_RUN_BYTES:
+        warnings.warn(
+            f"this run will need about {estimated:.3g} vertices and {need / 1e9:.2g} GB of memory "
+            f"(n = {n}, k = {k}, min_size = {min_size:.3g})",
+            LargeRunWarning,
+            stacklevel=3,
+        )
+    return budget
+
+
+def warn_k1(k, estimated, n, min_size):
+    """Up front, a FloorWarning that k = 1 refines around every input point down to the
+    floor (d_{P,1} vanishes on P), with the vertices expected (``estimated``, of ``n``
+    points): several per point, thousands in space. Shown at the caller's line."""
+    if k != 1:
+        return
+    frame, stacklevel = sys._getframe(0), 1
+    while frame is not None and frame.f_globals.get("__name__", "").startswith("knnrefine"):
+        frame, stacklevel = frame.f_back, stacklevel + 1
+    warnings.warn(
+        f"k = 1 refines around every input point down to min_size = {min_size:.3g} (d_P1 is 0 "
+        f"at each point): about {estimated:,.0f} vertices are expected, {estimated / n:,.0f} "
+        "per point; the bounds are not claimed below the floor. Use k >= 2 or a larger "
+        "min_size",
+        FloorWarning,
+        stacklevel=stacklevel,
     )

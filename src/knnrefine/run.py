@@ -1,17 +1,14 @@
-"""A run of kNNRefine in this process: the points and options checked (``checked``), the
-start (the embedding torus, the counting index, the initial mesh: ``Start``), the engine's
-run, and the mesh assembled (``finish``); in space ``run3``. ``api.refine`` calls it, and
-the tiled runs of ``scale.tiled`` use its start and finish."""
+"""A run of kNNRefine in the plane in this process: the points and options checked
+(``checked``, for the plane and space), the start (the embedding torus, the counting index,
+the initial mesh: ``Start``), the engine's run (``refine_plane``), and the mesh assembled
+(``finish``); in space ``run3``. ``pipeline`` chooses between them, and the tiled runs of
+``scale.tiled`` use their starts and finishes."""
 
-import inspect
 import math
-import sys
 import time
 import warnings
-from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import ArrayLike
 
 from . import validation as V
 from .engine import ahead, size
@@ -29,11 +26,9 @@ from .engine.initial import (
     refusal_message,
 )
 from .engine.interrupt import Interrupts
-from .errors import BudgetError, FloorWarning, InputError, LargeRunWarning
+from .errors import BudgetError, FloorWarning, InputError
 from .mesh import Mesh, Torus
-from .options import RunOptions
-
-LARGE_RUN_BYTES = 2e9  # runs expected to need more memory than this say so up front
+from .options import Progress, RunOptions, vertex_budget
 
 
 def is_spatial(points):
@@ -72,43 +67,13 @@ def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, Ru
     return pts, w, RunOptions.check(n, total, bounds, inside, **asked, dim=dim)
 
 
-def refine(
-    points: ArrayLike,
-    k: float | None = None,
-    tau: float = 3.0,
-    *,
-    periodic: bool | tuple = False,
-    box: tuple | None = None,
-    weights: ArrayLike | None = None,
-    min_size: float | None = None,
-    max_vertices: int | None = None,
-    time_limit: float | None = None,
-    progress: Callable | None = None,
-) -> Mesh:
-    """``knnrefine.refine`` in this process, in the plane or in space: what the applications
-    (the density estimator) call.
+def refine_plane(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
+    """A run in the plane in this process on checked points, weights and options
+    (``checked``; ``pipeline.refine_checked`` chooses it).
 
     Parameters
     ----------
-    points, k, tau, periodic, box, weights, min_size, max_vertices, time_limit, progress
-        As for ``knnrefine.refine``.
-
-    Returns
-    -------
-    Mesh
-    """
-    asked = dict(k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
-                 max_vertices=max_vertices, time_limit=time_limit, progress=progress)  # fmt: skip
-    return refine_checked(*checked(points, weights, **asked))
-
-
-def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
-    """A run in this process on checked points, weights and options (``checked``): the
-    plane's here, space's in ``run3``.
-
-    Parameters
-    ----------
-    pts : ndarray (n, d)
+    pts : ndarray (n, 2)
     w : ndarray (n,) or None
     opt : RunOptions
 
@@ -116,10 +81,6 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Me
     -------
     Mesh
     """
-    if pts.shape[1] == 3:
-        from .run3 import refine3
-
-        return refine3(pts, opt, w)
     n = len(pts)
     total = None if w is None else math.fsum(w)
     report = Progress(opt.progress)
@@ -196,111 +157,6 @@ def finish(run, status, emb, opt, plan, report, interrupts, kept, weight, rounds
     }
     report.assembling(len(mesh.vertices), done=True)
     return mesh
-
-
-class Progress:
-    """The user's progress callback: progress(vertices, pending) while refining; if it takes
-    a ``phase`` argument, also phase="compiling" before a first compilation,
-    phase="assembling" / "done" while the mesh is assembled, and progress(count, 0, phase)
-    for an application's work after it (``stage``: the density estimator's "choosing the
-    smoothing", pairs scored)."""
-
-    def __init__(self, callback):
-        self.callback = callback
-        self.phases = False
-        if callback is not None:
-            try:
-                params = inspect.signature(callback).parameters.values()
-                self.phases = any(
-                    p.name == "phase" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params
-                )
-            except (TypeError, ValueError):
-                pass
-
-    def compiling(self):
-        if self.phases:
-            self.callback(0, 0, phase="compiling")
-
-    def refining(self, vertices, pending):
-        if self.callback is not None:
-            self.callback(vertices, pending)
-
-    def stage(self, count, phase):
-        """Work after the refinement (an application's): count done so far in ``phase``,
-        reported to callbacks that take a phase."""
-        if self.phases:
-            self.callback(count, 0, phase=phase)
-
-    def assembling(self, vertices, done=False):
-        if self.callback is None:
-            return
-        if self.phases:
-            self.callback(vertices, 0, phase="done" if done else "assembling")
-        else:
-            self.callback(vertices, 0)
-
-
-def vertex_budget(estimated, opt, m0, n):
-    """The vertex budget: the user's max_vertices, else ten times the estimate (at least
-    10^6), but no more than the machine's memory holds. The estimate is within 5% on uniform
-    points but off by up to 8x on clustered data (benchmarks/mesh_size.py), so only a run
-    whose estimate exceeds twice the memory (by default) or eight times the user's budget is
-    refused before any work; one expected to need more than 2 GB says so (LargeRunWarning)."""
-    k, max_vertices, min_size = opt.k, opt.max_vertices, opt.min_size
-    per_vertex = size.BYTES_PER_VERTEX if opt.dim == 2 else size.BYTES_PER_VERTEX3
-    need = estimated * per_vertex
-    memory = size.memory_bytes()
-    warn_k1(k, estimated, n, min_size)
-    hint = (
-        "k = 1 refines every input point down to min_size: use k >= 2 or a larger min_size"
-        if k == 1
-        else "use a larger k or a larger min_size"
-    )
-    if max_vertices is not None:
-        if estimated > 8 * max_vertices:
-            raise BudgetError(
-                f"this run needs about {estimated:.3g} vertices, far beyond "
-                f"max_vertices={max_vertices}; {hint}, or raise max_vertices",
-                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
-            )
-        budget = int(max_vertices)
-    else:
-        if need > 2 * memory:
-            raise BudgetError(
-                f"this run needs about {estimated:.3g} vertices, about {need / 1e9:.3g} GB, far "
-                f"more than this machine's {memory / 1e9:.3g} GB; {hint}, or pass max_vertices "
-                "to insist",
-                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
-            )
-        fits = int(0.9 * memory / per_vertex)
-        budget = int(max(10**6, 2 * m0, min(10 * estimated, fits)))
-    if need > LARGE_RUN_BYTES:
-        warnings.warn(
-            f"this run will need about {estimated:.3g} vertices and {need / 1e9:.2g} GB of memory "
-            f"(n = {n}, k = {k}, min_size = {min_size:.3g})",
-            LargeRunWarning,
-            stacklevel=3,
-        )
-    return budget
-
-
-def warn_k1(k, estimated, n, min_size):
-    """Up front, a FloorWarning that k = 1 refines around every input point down to the
-    floor (d_{P,1} vanishes on P), with the vertices expected (``estimated``, of ``n``
-    points): several per point, thousands in space. Shown at the caller's line."""
-    if k != 1:
-        return
-    frame, stacklevel = sys._getframe(0), 1
-    while frame is not None and frame.f_globals.get("__name__", "").startswith("knnrefine"):
-        frame, stacklevel = frame.f_back, stacklevel + 1
-    warnings.warn(
-        f"k = 1 refines around every input point down to min_size = {min_size:.3g} (d_P1 is 0 "
-        f"at each point): about {estimated:,.0f} vertices are expected, {estimated / n:,.0f} "
-        "per point; the bounds are not claimed below the floor. Use k >= 2 or a larger "
-        "min_size",
-        FloorWarning,
-        stacklevel=stacklevel,
-    )
 
 
 class Start:

@@ -28,7 +28,7 @@ from .engine.state import (
 from .errors import BudgetError, FloorWarning, InputError
 from .mesh import Mesh, Torus
 from .metric import BoxMetric, held_in_balls, weighted_kth
-from .run import Progress, vertex_budget
+from .options import Progress, vertex_budget
 
 
 def holds_k(index, x, reach, k, period):
@@ -229,7 +229,7 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
     xyz, corners, offsets, kinds, cnt, floor = run.take_result()
     del run
     under = _points_under_floor(points, floor, emb, n)
-    if under > n / 2 and k != 1:  # k = 1 was said before the run (run.warn_k1)
+    if under > n / 2 and k != 1:  # k = 1 was said before the run (options.warn_k1)
         warnings.warn(
             f"{under} of the {n} points ({100 * under / n:.0f}%) lie in "
             f"circumballs or cells smaller than min_size = {min_size:.3g} that still hold k = "

@@ -62,7 +62,7 @@ from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
 from .errors import BudgetError, EngineError, FloorWarning, InputError
 from .mesh import Mesh
 from .metric import angle_to_chord, chord_to_angle, lonlat_of
-from .run import Progress, warn_k1
+from .options import Progress, warn_k1
 
 STEPS = 20_000  # insertions per kernel call
 DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the default floor: a millionth of half a great circle
@@ -290,7 +290,7 @@ def _assemble(run, opt, index, seconds, n, total):
     }
     if total is not None:
         stats["weight"] = total
-    if len(sites) and opt.k != 1:  # k = 1 was said before the run (run.warn_k1)
+    if len(sites) and opt.k != 1:  # k = 1 was said before the run (options.warn_k1)
         import warnings
 
         warnings.warn(

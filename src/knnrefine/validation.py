@@ -235,7 +235,7 @@ def check_in_a_box(mesh, what):
     if getattr(mesh, "on_sphere", False):
         raise InputError(
             f"{what} is built for meshes in a box (the plane or space); this mesh lies on the "
-            "sphere: use knnrefine.density.sphere.SphereAdaptiveDensity (or "
+            "sphere: use knnrefine.density.adaptive.SphereAdaptiveDensity (or "
             "KnnDensityEstimator(sphere=True))"
         )
 

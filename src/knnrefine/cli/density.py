@@ -149,7 +149,7 @@ def run(args):
         default_k,
         default_pilot_k,
     )
-    from ..density.sphere import SphereAdaptiveDensity
+    from ..density.adaptive import SphereAdaptiveDensity
     from ..plot import (
         MAP_PROJECTION,
         figure_size,

@@ -10,8 +10,16 @@ from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  
 from ..engine.lattice import plan_levels, read_grid
 from ..engine.threads import in_chunks
 from ..errors import InputError
-from ..validation import as_points, as_queries, check_in_a_box, weights_of_run
+from ..metric import lonlat_of, unit_vectors
+from ..validation import (
+    as_points,
+    as_queries,
+    check_in_a_box,
+    sphere_points_of_run,
+    weights_of_run,
+)
 from .estimate import KnnDensity, unit_ball_volume
+from .sphere import equal_area_radius
 
 
 class AdaptiveDensity:
@@ -683,3 +691,171 @@ def generator(random_state):
             f"random_state must be None, an int, a numpy Generator or RandomState, got "
             f"{random_state!r}"
         ) from None
+
+
+# the kernel tree holds unit vectors shifted into its box [0, 2 OFFSET)^3, far from the
+# sides (kernels reach a chord of 2 at most), so that its folding never acts
+SPHERE_FRAME_OFFSET = 4.0
+DISK_MASS = np.pi / 4.0  # the integral of (1 - |x|^2)^3 over the unit disk
+
+
+class SphereAdaptiveDensity:
+    """The adaptive kernel estimate on the sphere: one triweight kernel per point,
+    K_i(x) = w_i / W (1 - |x - x_i|^2 / h_i^2)^3 / (pi h_i^2 / 4), in chord distance |x - x_i|
+    between unit vectors. On the unit sphere the area within chord c of a point is pi c^2
+    (Archimedes), so dA = pi d(c^2) and each kernel integrates to w_i / W exactly, as the
+    plane's disk kernel does, while h_i <= 2 (kernels are capped there). Extents as in the
+    plane: h_i = c G (d_i / G)^(2 alpha), d_i the pilot kNN distance at point i (as a chord,
+    the kNN estimate's equal-area radius), G their geometric mean; c (``bandwidth``) and alpha
+    (``sensitivity``) chosen by ``choose_smoothing`` (exact leave-one-out likelihood). Kernel
+    sums through the 3-D kernel tree over the unit vectors (``engine.kernelsum3``): one
+    centre per point, every node knowing its widest kernel. Densities are per unit area of
+    the sphere of ``radius`` (per steradian for radius 1), like ``KnnDensity``'s.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        On the sphere (``refine(..., sphere=True)``), made from ``points``.
+    points : array-like (n, 2) or (n, 3)
+        Longitude and latitude in degrees, or unit vectors.
+    bandwidth, sensitivity : float
+        c > 0 and alpha in [0, 1].
+    weights : array-like (n,), optional
+        The run's weights.
+    knn : KnnDensity, optional
+        The pilot, when built already.
+    """
+
+    shape = "isotropic"
+    dim = 2
+    on_sphere = True
+
+    def __init__(self, mesh, points, bandwidth=1.0, sensitivity=0.5, weights=None, knn=None):
+        unit, weights, total = sphere_points_of_run(mesh, points, weights)
+        if knn is None:
+            knn = KnnDensity(mesh, unit, weights=weights)
+        self.knn, self.mesh, self.k = knn, mesh, mesh.k
+        self.radius = float(mesh.radius)
+        w = np.ones(len(unit)) if weights is None else np.asarray(weights, float)
+        self.total = float(w.sum())
+        self._weights = w
+        self._unit = unit
+        self.eps = 1.0 / self.total  # the kNN estimate's share: the plane's defensive mixture
+        self.n_eff = self.total**2 / float((w * w).sum())
+        frame = unit + SPHERE_FRAME_OFFSET  # inside the kernel tree's box, far from its sides
+        self._rows, self._box, self._node = kernelsum3.build_centres(frame, w)
+        order = self._rows[:, kernelsum3.ROW].astype(np.int64)
+        self._row_of = np.empty(len(unit), np.int64)
+        self._row_of[order] = np.arange(len(unit))
+        self._extent = np.zeros(len(self._node))
+        # the pilot: d_Pk at the points (interpolated), as the chord of the unit sphere
+        d = knn.distance.pieces.interpolate(unit)
+        lost = ~np.isfinite(d)
+        if lost.any():
+            d[lost] = knn.distance.index.kth_unit(unit[lost], self.k)
+        chord = equal_area_radius(d, self.radius) / self.radius
+        self.pilot = d
+        n = len(unit)
+        self._q = np.empty((n, 1))
+        self._r, self._amp, self._log_ratio = np.empty(n), np.empty(n), np.empty(n)
+        with np.errstate(divide="ignore"):
+            kernelsum.isotropic_units(chord[order], w[order], self.total, DISK_MASS, 2, self._q,
+                                      self._r, self._amp, self._log_ratio)  # fmt: skip
+        self.set_bandwidth(bandwidth, sensitivity)
+
+    def set_bandwidth(self, bandwidth, sensitivity=None):
+        """Make the kernels' extents c G (d / G)^(2 alpha) (at most a chord of 2)."""
+        self.bandwidth = check_bandwidth(bandwidth)
+        if sensitivity is not None:
+            self.sensitivity = check_sensitivity(sensitivity)
+        kernelsum3.scale_surface_kernels(self._rows, self._q, self._amp, self._r,
+                                         self._log_ratio, self.bandwidth, self.sensitivity,
+                                         2.0)  # fmt: skip
+        self._extent_stale = True
+
+    def weights_of(self, idx):
+        return self._weights[np.asarray(idx)]
+
+    def _sums(self, unit, loo=False):
+        """Kernel sums at unit vectors (per steradian); with ``loo`` (the queries are
+        centres), without the centres at each query's place, and their weight."""
+        m = len(unit)
+        out, out2 = np.empty(m), np.empty(m)
+        q = np.ascontiguousarray(unit + SPHERE_FRAME_OFFSET)
+        if self._extent_stale:
+            kernelsum.node_extents(self._rows[:, kernelsum3.R], self._node, self._extent)
+            self._extent_stale = False
+        rows, box, node, extent = self._rows, self._box, self._node, self._extent
+        period = np.full(3, 2.0 * SPHERE_FRAME_OFFSET)
+        periodic = np.zeros(3, bool)
+
+        def call(a, b):
+            kernelsum3.kernel_sums(rows, box, node, extent, q, loo, period, periodic, out,
+                                   out2, a, b)  # fmt: skip
+
+        in_chunks(call, m)
+        return out, out2
+
+    def _scale(self):
+        """Per steradian to per unit area of the sphere of ``radius``."""
+        return 1.0 / self.radius**2
+
+    def __call__(self, x):
+        """The density at lon/lat points (..., 2) (or unit vectors (..., 3)), per unit area:
+        (1 - eps) the kernels' sum + eps the kNN estimate, eps = 1 / W (as in the plane:
+        every point keeps a positive density)."""
+        x = np.asarray(x, float)
+        flat = unit_vectors(x.reshape(-1, x.shape[-1]))
+        knn = self.knn(lonlat_of(flat))
+        f = (1.0 - self.eps) * self._sums(flat)[0] * self._scale() + self.eps * knn
+        return f.reshape(x.shape[:-1])
+
+    def standard_error(self, x):
+        """Pointwise standard error at lon/lat points (..., 2): the sample-point estimate's
+        variance, (sum of squared kernel terms) - f^2 / n_eff, as in the plane."""
+        x = np.asarray(x, float)
+        s, s2 = self._sums(unit_vectors(x.reshape(-1, x.shape[-1])))
+        var = np.maximum(s2 - s * s / self.n_eff, 0.0)
+        return ((1.0 - self.eps) * np.sqrt(var) * self._scale()).reshape(x.shape[:-1])
+
+    def loo(self, sample=None, binned=False):
+        """Leave-one-out log-density at the points ``sample`` (indices; all by default): the
+        kernels of the point and of its copies at its place left out (W less their weight
+        the total then), as ``AdaptiveDensity.loo`` in the plane; exact sums only."""
+        if binned:
+            raise InputError("binned scores are built for the plane; on the sphere they are exact")
+        idx = np.arange(len(self._unit)) if sample is None else np.asarray(sample)
+        rows = self._row_of[idx]
+        s, w = self._sums(self._rows[rows, : kernelsum3.Z + 1] - SPHERE_FRAME_OFFSET, loo=True)
+        rest = np.maximum(self.total - w, 1e-300)
+        knn = self.knn.at_distance(self.pilot[idx])
+        f = (1.0 - self.eps) * s * self.total / rest * self._scale() + self.eps * knn
+        with np.errstate(divide="ignore"):
+            return np.log(f)
+
+    def grid(self, shape=None):
+        """(longitudes, latitudes, values (ny, nx)) at the centres of a lon/lat grid."""
+        ny, nx = (360, 720) if shape is None else shape
+        lon = -180.0 + (np.arange(nx) + 0.5) * 360.0 / nx
+        lat = -90.0 + (np.arange(ny) + 0.5) * 180.0 / ny
+        grid = np.stack(np.meshgrid(lon, lat), axis=-1).reshape(-1, 2)
+        return lon, lat, self(grid).reshape(ny, nx)
+
+    def sample(self, n, rng):
+        """n lon/lat points drawn from the estimate: a kernel by its weight, then a point at
+        chord c from its centre with c^2 / h^2 ~ Beta(1, 4) (the triweight's law on the
+        sphere, where area grows as c^2) and a uniform direction."""
+        rows = self._rows
+        i = rng.choice(len(rows), int(n), p=rows[:, kernelsum3.W] / rows[:, kernelsum3.W].sum())
+        centre = rows[i, kernelsum3.X : kernelsum3.Z + 1] - SPHERE_FRAME_OFFSET
+        centre /= np.linalg.norm(centre, axis=1, keepdims=True)
+        c = rows[i, kernelsum3.R] * np.sqrt(rng.beta(1.0, 4.0, len(i)))
+        theta = 2.0 * np.arcsin(np.minimum(0.5 * c, 1.0))
+        helper = np.where(np.abs(centre[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+        a = np.cross(centre, helper)
+        a /= np.linalg.norm(a, axis=1, keepdims=True)
+        b = np.cross(centre, a)
+        phi = rng.uniform(0, 2 * np.pi, len(i))[:, None]
+        x = (np.cos(theta)[:, None] * centre
+             + np.sin(theta)[:, None] * (np.cos(phi) * a + np.sin(phi) * b))  # fmt: skip
+        return lonlat_of(x)

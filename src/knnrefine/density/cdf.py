@@ -220,11 +220,11 @@ def _check_mesh_memory(n, k, dim, periodic):
 def _by_mesh(pts, k, r, lo, hi, periodic, q, exact):
     """(CDF, its 95% half-band, rigorous bounds, vertices) at radii r by the mesh at k with
     the control sample q (exact d_{P,k} there: ``exact``)."""
-    from ..run import refine
+    from .. import pipeline
     from .distance import KnnDistance
 
     try:
-        mesh = refine(pts, k, periodic=periodic, box=(*lo, *hi))
+        mesh = pipeline.refine(pts, k, periodic=periodic, box=(*lo, *hi))
     except BudgetError as exc:  # its advice names refine's options, which knn_cdf has not
         raise BudgetError(
             f"the mesh at k = {k} stopped at its budget ({exc.progress.get('vertices', 0):,} "

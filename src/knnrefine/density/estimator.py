@@ -23,6 +23,7 @@ from .adaptive import (
     BANDWIDTHS,
     SENSITIVITIES,
     AdaptiveDensity,
+    SphereAdaptiveDensity,
     check_bandwidth,
     check_criterion,
     check_cv,
@@ -34,7 +35,6 @@ from .adaptive import (
 )
 from .distance import grid_shape
 from .estimate import KnnDensity, default_k, default_pilot_k
-from .sphere import SphereAdaptiveDensity
 
 
 class KnnDensityEstimator:
@@ -118,7 +118,7 @@ class KnnDensityEstimator:
     sphere : bool
         X are points on the sphere: (n, 2) longitude and latitude in degrees or (n, 3) unit
         vectors (``refine(..., sphere=True)``). Kernels in great-circle geometry
-        (``density.sphere.SphereAdaptiveDensity``: triweights in chord distance, exactly
+        (``density.adaptive.SphereAdaptiveDensity``: triweights in chord distance, exactly
         normalised on the sphere), densities per steradian (per unit area with ``radius``),
         no box, no tail (the sphere is bounded); ``grid`` is a longitude by latitude grid,
         ``sample`` returns points in X's form. Not with ``periodic``, ``box``, ``whiten`` or
@@ -406,15 +406,15 @@ class KnnDensityEstimator:
     def _estimate(self, pts, weights, box, k):
         """(density, mesh) at this k: the kNN estimate, or the adaptive one with its
         bandwidth given or chosen by leave-one-out likelihood (recording the curve)."""
-        from ..run import Progress, refine
+        from .. import pipeline
+        from ..options import Progress
 
         if self.sphere:
-            from ..run_sphere import refine_sphere
-
-            mesh = refine_sphere(pts, k, self.tau, weights=weights, radius=self.radius,
-                                 min_size=self.min_size, progress=self.progress)  # fmt: skip
+            mesh = pipeline.refine(pts, k, self.tau, weights=weights, radius=self.radius,
+                                   min_size=self.min_size, progress=self.progress,
+                                   sphere=True)  # fmt: skip
         else:
-            mesh = refine(
+            mesh = pipeline.refine(
                 pts, k, self.tau, periodic=self.periodic, box=box, min_size=self.min_size,
                 weights=weights, progress=self.progress,
             )  # fmt: skip

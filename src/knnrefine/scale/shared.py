@@ -56,9 +56,19 @@ from ..engine.threads import run_all
 from ..engine.triangulation3 import unpack_offsets
 from ..errors import EngineError
 from ..mesh import Mesh
-from ..run import Progress, finish
+from ..options import Progress
+from ..run import finish
 from ..run3 import finish3
-from .tiled import ThreadStore, in_region, new_run, plan, regions_axis, settle
+from .tiled import (
+    LocalStore,
+    ThreadStore,
+    in_region,
+    new_run,
+    plan,
+    refine_store,
+    regions_axis,
+    settle,
+)
 
 SEAM_SIZES = 3.0  # a seam reaches this many of the largest elements near its cut, each side,
 SEAM_SPACINGS = 8.0  # and at least this many of the mesh's mean spacings, ...
@@ -585,3 +595,31 @@ def _cores(cuts, half, lx):
     lows = np.where(lows >= lx, lows - lx, lows)
     order = np.argsort(lows, kind="stable")
     return np.ascontiguousarray(lows[order]), owners[order]
+
+
+def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
+    """``knnrefine.refine`` with ``workers`` > 1: refined in strips (slabs in space) by that
+    many threads of this process over one index of all points, their meshes stitched
+    (``scale/shared.py``), or, given ``executor``, in rounds on its processes, each with a
+    copy of its strip's points (``LocalStore``, ``refine_store``).
+
+    Parameters
+    ----------
+    pts : ndarray (n, 2) or (n, 3)
+    w : ndarray (n,) or None
+    opt : RunOptions
+        Checked (``run.checked``).
+    workers : int
+    executor : concurrent.futures.Executor, optional
+
+    Returns
+    -------
+    Mesh
+    """
+    if executor is None:
+        return refine_threads(pts, w, opt, workers)
+    store = LocalStore(pts, w, workers, executor)
+    try:
+        return refine_store(store, opt, workers)
+    finally:
+        store.close()

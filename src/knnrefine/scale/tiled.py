@@ -47,7 +47,8 @@ from ..engine.region3 import in_box3
 from ..engine.threads import in_chunks
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
-from ..run import Progress, Start, finish, vertex_budget
+from ..options import Progress, vertex_budget
+from ..run import Start, finish
 from ..run3 import Start3, finish3
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
@@ -597,36 +598,6 @@ def tiles_pay(dim, n):
         return True
     least = TILES_FROM[dim]
     return least is not None and n >= least
-
-
-def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
-    """``knnrefine.refine`` with ``workers`` > 1: refined in strips (slabs in space) by that
-    many threads of this process over one index of all points, their meshes stitched
-    (``scale/shared.py``), or, given ``executor``, in rounds on its processes, each with a
-    copy of its strip's points (``LocalStore``, ``refine_store``).
-
-    Parameters
-    ----------
-    pts : ndarray (n, 2) or (n, 3)
-    w : ndarray (n,) or None
-    opt : RunOptions
-        Checked (``run.checked``).
-    workers : int
-    executor : concurrent.futures.Executor, optional
-
-    Returns
-    -------
-    Mesh
-    """
-    if executor is None:
-        from .shared import refine_threads
-
-        return refine_threads(pts, w, opt, workers)
-    store = LocalStore(pts, w, workers, executor)
-    try:
-        return refine_store(store, opt, workers)
-    finally:
-        store.close()
 
 
 def _plan_start(sx, sw, store, opt, budget, interrupts):

@@ -1,0 +1,124 @@
+"""The package's layers (docs/data-structure.md): every import of every module, those inside
+functions too, read from the source; no module imports one above its layer, and no modules
+import each other in a circle (issue 51)."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "src" / "knnrefine"
+
+# the layers, lowest first: a module may import its own layer's modules (without a circle)
+# and those below; the key is the module's path under the package, a folder for all in it
+LAYERS = [
+    ["errors.py", "datasets.py", "data/"],
+    ["engine/"],
+    ["metric.py"],
+    ["validation.py"],
+    ["options.py", "mesh.py"],
+    ["run.py", "run3.py", "run_sphere.py"],
+    ["pipeline.py"],
+    ["certify/", "density/", "cluster.py", "topology.py", "plot.py", "io.py"],
+    ["scale/"],
+    ["api.py"],
+    ["__init__.py"],
+    ["cli/"],
+]
+
+
+def _layer(module):
+    for i, names in enumerate(LAYERS):
+        for name in names:
+            if module == name or (name.endswith("/") and module.startswith(name)):
+                return i
+    raise AssertionError(f"{module} is in no layer of tests/test_layers.py: add it")
+
+
+def _modules():
+    return {
+        str(path.relative_to(PACKAGE)): path
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if "__pycache__" not in path.parts
+    }
+
+
+def _resolve(module, level, name, known):
+    """The module file an ``import`` in ``module`` names (relative or absolute), or None
+    outside the package."""
+    if level == 0:
+        if not name or not name.startswith("knnrefine"):
+            return None
+        parts = name.split(".")[1:]
+    else:
+        base = module.split("/")[:-1]
+        if level > 1:
+            base = base[: len(base) - (level - 1)]
+        parts = base + (name.split(".") if name else [])
+    for candidate in ("/".join(parts) + ".py", "/".join(parts + ["__init__.py"])):
+        if candidate in known:
+            return candidate
+    return None
+
+
+def imports():
+    """{module: {module it imports}} over the package, `from . import x` as x's module."""
+    known = _modules()
+    graph = {}
+    for module, path in known.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                target = _resolve(module, node.level, node.module, known)
+                for alias in node.names:  # `from . import run`: the module run
+                    named = f"{node.module or ''}.{alias.name}".strip(".")
+                    sub = _resolve(module, node.level, named, known)
+                    if sub is not None and sub != target:
+                        found.add(sub)
+                if target is not None:
+                    found.add(target)
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    target = _resolve(module, 0, alias.name, known)
+                    if target is not None:
+                        found.add(target)
+        found.discard(module)
+        graph[module] = found
+    return graph
+
+
+def test_no_module_imports_one_above_its_layer():
+    up = [
+        f"{module} -> {target}"
+        for module, targets in imports().items()
+        for target in targets
+        if _layer(target) > _layer(module) and not target.endswith("__init__.py")
+    ]
+    assert up == [], "imports back up a layer:\n" + "\n".join(up)
+
+
+def test_no_import_circles():
+    graph = {m: {t for t in ts if not t.endswith("__init__.py")} for m, ts in imports().items()}
+    circles = []
+    state = {}
+
+    def visit(module, path):
+        state[module] = "open"
+        for target in sorted(graph.get(module, ())):
+            if state.get(target) == "open":
+                circles.append(" -> ".join(path[path.index(target) :] + [target]))
+            elif target not in state:
+                visit(target, path + [target])
+        state[module] = "done"
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+    assert circles == [], "import circles:\n" + "\n".join(circles)
+
+
+@pytest.mark.parametrize("module", sorted(_modules()))
+def test_every_module_is_in_a_layer_and_on_the_map(module):
+    _layer(module)
+    text = (PACKAGE.parents[1] / "docs" / "data-structure.md").read_text()
+    assert Path(module).name in text, f"{module} is not on docs/data-structure.md's map"
