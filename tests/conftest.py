@@ -102,12 +102,8 @@ def certify_every_mesh(monkeypatch):
         return register(tiled(pts, w, opt, *args, **kwargs), pts, {"weights": w})
 
     monkeypatch.setattr(shared, "refine_local", tiled_and_register)
-    monkeypatch.setattr(package, "run_checks", seen_by(package.run_checks))
-    checks = sys.modules.get("knnrefine.scale.checks")  # strip by strip: its own binding
-    if checks is not None:
-        monkeypatch.setattr(checks, "run_checks", seen_by(checks.run_checks))
-    monkeypatch.setattr(package, "certify3", seen_by(package.certify3))
-    monkeypatch.setattr(package, "certify_sphere", seen_by(package.certify_sphere))
+    # every certificate, in every domain, in this process or strip by strip: certify's steps
+    monkeypatch.setattr(package.steps, "run_checks", seen_by(package.steps.run_checks))
     yield
     for mesh, points, weights in made:
         if id(mesh) in seen:

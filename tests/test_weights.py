@@ -256,7 +256,7 @@ def test_a_heavy_point_does_not_swallow_light_ones():
                 cells.setdefault(v, []).append(w[p])
     assert max(math.fsum(c) for c in cells.values()) < k
     # d_Pk by exact sums in distance order, against certify's (compensated) one
-    from knnrefine.certify.plane import TorusPoints
+    from knnrefine.certify.plane import Points as TorusPoints
 
     d, i = tree.query(local, k=len(pts))
     exact = [d[p][next(j for j in range(len(pts)) if math.fsum(w[i[p][: j + 1]]) >= k)]

@@ -56,8 +56,8 @@ class Certificate:
     triangulation_ok: bool
     triangulation_problems: list
     max_aspect: float
-    max_cell_count: int  # over cells with outradius >= min_size (a weight if weighted)
-    max_ball_count: int  # over circumballs with radius >= min_size (a weight if weighted)
+    max_cell_count: int | float  # over cells with outradius >= min_size (a weight if weighted)
+    max_ball_count: int | float  # over circumballs with radius >= min_size (weighted: a weight)
     alpha: float
     beta: float
     alpha_hat: float

@@ -8,7 +8,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from ..mesh import theorem6_constants
 from ..validation import check_inside, check_made_from, weights_of_run
+from .certificate import floor_sites, to_input
 
 
 def check_source(stats, n, weight):
@@ -254,3 +256,46 @@ def _cells_meet_the_box(v, cells, off, period, per, box):
         return False
     bary = np.concatenate([1.0 - lam.sum(axis=1, keepdims=True), lam], axis=1)
     return bool((bary >= -1e-9).all(axis=1).any())
+
+
+class TorusGeometry:
+    """What the plane's and space's ``Geometry`` share: the mesh's torus (its vertices
+    relative to the origin, a periodic kd-tree over them), lengths in input units, the
+    circumballs counted by the points, Lemma 2's precondition on the initial vertices,
+    Theorem 6's constants, the floor's sites and positions back in input coordinates."""
+
+    def __init__(self, mesh, threads):
+        self.mesh, self.threads = mesh, threads
+        self.floor = mesh.min_size
+        self.origin = np.asarray(mesh.torus.origin, float)
+        self.period = np.asarray(mesh.torus.period, float)
+        self.vertices = np.asarray(mesh.torus.vertices, float)
+        self.vertex_tree = cKDTree(self.vertices, boxsize=self.period)
+        dim = self.vertices.shape[1]
+        self.lo = np.array(mesh.box[:dim]) - self.origin
+        self.hi = np.array(mesh.box[dim:]) - self.origin
+        self.no_position = (float("nan"),) * dim
+
+    def vertex_d_m2(self):
+        return self.vertex_tree.query(self.vertices, k=2, workers=self.threads)[0][:, 1]
+
+    def cell_vertices(self):
+        return self.vertices
+
+    def held(self, points, tri):
+        return points.held(tri.centres, tri.radii)
+
+    def precondition(self, points, k, tau):
+        initial = self.vertices[np.asarray(self.mesh.torus.kinds) == 0]
+        return check_precondition(initial, points, k, tau, self.period)
+
+    def constants(self, tri):
+        return theorem6_constants(self.mesh.tau)
+
+    def floor_sites(self, centres, vertices):
+        return floor_sites(np.concatenate([centres, vertices]),
+                           10.0 * max(self.mesh.min_size, 1e-300), self.period, self.origin,
+                           self.mesh)  # fmt: skip
+
+    def to_input(self, x):
+        return to_input(x, self.origin, self.mesh)

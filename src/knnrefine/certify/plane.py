@@ -14,256 +14,139 @@ box. Only probes in the box count, and only where d_{P,k} >= min_size (the floor
 """
 
 import math
-import time
-from collections import namedtuple
 from fractions import Fraction
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..mesh import circumcircles, theorem6_constants, triangle_areas, uniform_in_triangles
-from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
-from .certificate import Certificate, floor_sites, to_input
-from .common import cell_array_problem, check_cells_tile, check_precondition, find_rows
+from ..mesh import circumcircles, triangle_areas, uniform_in_triangles
+from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
+from .common import TorusGeometry, cell_array_problem, check_cells_tile, find_rows
+from .steps import Probes, Triangulation
 
 
-def run_checks(mesh, torus, *, samples, n_random, max_point_probes, seed, t0):
-    """The checks of ``certify`` on a torus that answers questions about the points."""
+class Geometry(TorusGeometry):
+    """The plane's questions about a mesh (``steps.run_checks`` asks them): its torus
+    triangulation verified exactly, the returned triangles, circumdisks, probes, d_{M,2}
+    from the torus' vertices, the size integral over the box. Lengths in input units,
+    positions relative to the torus' origin with both axes wrapped."""
 
-    triangulation = check_triangulation(torus)
-    max_aspect = check_well_spaced(torus, triangulation)
-    counts = check_counts(torus, triangulation, mesh.k, mesh.min_size)
-    precondition_ok, precondition_note = check_precondition(
-        torus.vertices[np.asarray(mesh.torus.kinds) == 0], torus, mesh.k, mesh.tau, torus.period
-    )
-    rng = np.random.default_rng(seed)
-    probes = make_probes(torus, triangulation, samples, n_random, max_point_probes, rng)
-    ratio = measure_ratio(torus, probes)
-    size = measure_size(torus, probes)
-    alpha, beta = theorem6_constants(mesh.tau)
-    sites = floor_sites(
-        np.concatenate(
-            [triangulation.centres[counts.floor_balls], torus.vertices[counts.floor_cells]]
-        ),
-        10.0 * max(mesh.min_size, 1e-300),
-        torus.period,
-        torus.origin,
-        mesh,
-    )
-    return Certificate(
-        n=torus.n,
-        m=len(mesh.vertices),
-        k=mesh.k,
-        tau=mesh.tau,
-        periodic=tuple(mesh.periodic),
-        box=tuple(mesh.box),
-        min_size=mesh.min_size,
-        triangulation_ok=not triangulation.problems,
-        triangulation_problems=triangulation.problems,
-        max_aspect=max_aspect,
-        max_cell_count=counts.max_cell,
-        max_ball_count=counts.max_ball,
-        alpha=alpha,
-        beta=beta,
-        alpha_hat=ratio.alpha_hat,
-        beta_hat=ratio.beta_hat,
-        alpha_hat_at=ratio.alpha_hat_at,
-        beta_hat_at=ratio.beta_hat_at,
-        n_probes=ratio.n_probes,
-        size_integral=size.integral,
-        size_integral_stderr=size.stderr,
-        size_ratio=len(mesh.vertices) / size.integral if size.integral > 0 else float("nan"),
-        floor_circumballs=int(counts.floor_balls.sum()),
-        floor_cells=int(counts.floor_cells.sum()),
-        floor_sites=sites,
-        under_floor=ratio.under_floor,
-        mesh_problems=verify_returned_mesh(mesh),
-        precondition_ok=precondition_ok,
-        precondition_note=precondition_note,
-        seconds=time.perf_counter() - t0,
-        weight=torus.total if torus.weighted else None,
-        count_slack=4.0 * float(np.spacing(float(mesh.k))) if torus.weighted else 0.0,
-    )
+    def __init__(self, mesh, threads):
+        super().__init__(mesh, threads)
+        self.frame = BoxMetric((0.0, 0.0, *self.period), (True, True)).frame
+        self.periodic = np.array(mesh.periodic, bool)
+
+    def triangulation(self):
+        """The torus triangulation (``verify_triangulation``), its circumcircles and each
+        vertex's outradius R(v) (the largest circumradius around it); ``extra``: the
+        triangles' corners."""
+        t = self.mesh.torus
+        problems, corners, centres, radii = verify_triangulation(
+            self.vertices, t.triangles, t.offsets, t.neighbors, self.period
+        )
+        outradii = np.zeros(len(self.vertices))
+        for c in range(3):
+            np.maximum.at(outradii, t.triangles[:, c], radii)
+        return Triangulation(problems, centres, radii, outradii, corners)
+
+    def returned_problems(self):
+        return verify_returned_mesh(self.mesh)
+
+    def in_box(self, x):
+        return _in_box(x, self.lo, self.hi, self.periodic)
+
+    def probes(self, tri, points, samples, n_random, max_point_probes, rng):
+        """Stratified samples inside every triangle (with their area weights: the Monte
+        Carlo samples of the size integral), input points, and the vertices,
+        circumcentres, edge midpoints and uniform points of the box; those in the box."""
+        corners = tri.extra
+        per_triangle = max(4, -(-samples // max(len(corners), 1)))
+        inside, weights = _triangle_samples(corners, per_triangle, rng)
+        inside = self.frame(inside)
+        sampled = points.sample_points(max_point_probes, rng)
+        mids = 0.5 * (corners + corners[:, [1, 2, 0]]).reshape(-1, 2)
+        others = np.concatenate(
+            [
+                self.vertices,
+                tri.centres,
+                self.frame(mids),
+                self.lo + rng.random((n_random, 2)) * (self.hi - self.lo),
+            ]
+        )
+        in_box = self.in_box(inside)
+        sampled = sampled[self.in_box(sampled)]
+        others = others[self.in_box(others)]
+        x = np.concatenate([inside[in_box], sampled, others])
+        mask = np.zeros(len(x), bool)
+        n_in = int(in_box.sum())
+        mask[n_in : n_in + len(sampled)] = True
+        return Probes(x, mask, (in_box, weights, len(corners)))
+
+    def returned_d_m2(self, x):
+        return self.vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1], []
+
+    def size(self, probes, d_pk, points, rng):
+        """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size),
+        stratified over the triangles: each sample weighted by its share of its
+        triangle's area, samples outside the box counting 0; with its standard error."""
+        in_box, weights, triangles = probes.extra
+        f = np.zeros(len(in_box))
+        f[in_box] = 1.0 / np.maximum(d_pk[: int(in_box.sum())], self.floor) ** 2
+        per_triangle = (weights * f).reshape(triangles, -1)
+        integral = float(per_triangle.sum())
+        var = (
+            (per_triangle.var(axis=1, ddof=1) * per_triangle.shape[1]).sum()
+            if per_triangle.shape[1] > 1
+            else 0.0
+        )
+        return integral, float(np.sqrt(var))
 
 
-class TorusPoints:
-    """What every check reads: the mesh's torus (vertices relative to its origin), the input
-    points wrapped into it by the package's one rule, and kd-trees over both."""
+class Points:
+    """What every check reads of the input points in the plane: the points wrapped into
+    the mesh's torus by the package's one rule, and a kd-tree over them."""
 
     def __init__(self, mesh, pts, threads, weights=None):
-        self._mesh(mesh, threads)
+        self.k = mesh.k
+        self.threads = threads
+        self.period = np.asarray(mesh.torus.period, float)
+        self.origin = np.asarray(mesh.torus.origin, float)
+        self.input_frame = TorusFrame(self.origin, self.period)
         self.weights = weights
         self.weighted = weights is not None
         self.n = len(pts)
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
         self.points = self.input_frame(pts)
         self.point_tree = cKDTree(self.points, boxsize=self.period)
+        self._weight_tree = None
 
-    def _mesh(self, mesh, threads):
-        self.mesh = mesh
-        self.k = mesh.k
-        self.min_size = mesh.min_size
-        self.threads = threads
-        self.period = np.asarray(mesh.torus.period, float)
-        self.origin = np.asarray(mesh.torus.origin, float)
-        self.vertices = np.asarray(mesh.torus.vertices, float)
-        self.frame = BoxMetric((0.0, 0.0, *self.period), (True, True)).frame
-        self.input_frame = TorusFrame(self.origin, self.period)
-        self.vertex_tree = cKDTree(self.vertices, boxsize=self.period)
-        self.lo = np.array(mesh.box[:2]) - self.origin
-        self.hi = np.array(mesh.box[2:]) - self.origin
-        self.periodic = np.array(mesh.periodic, bool)
-
-    def in_box(self, x):
-        return _in_box(x, self.lo, self.hi, self.periodic)
-
-    def d_m2(self, x):
-        return self.vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
+    def _weights(self):
+        if self._weight_tree is None and self.weights is not None:
+            self._weight_tree = weight_tree(self.point_tree, self.weights)
+        return self._weight_tree
 
     def d_pk(self, x):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
         if self.weights is None:
             return self.point_tree.query(x, k=[self.k], workers=self.threads)[0][:, 0]
-        return weighted_kth(self.point_tree, self.weights, x, self.k, self.threads)
+        return weighted_kth(self.point_tree, self._weights(), x, self.k, self.threads)
 
     def held(self, centres, radii):
         """What each closed disk (centre, radius) holds: its number of points, or their
         weight."""
-        return held_in_balls(self.point_tree, self.weights, centres, radii, self.threads)
+        return held_in_balls(self.point_tree, self._weights(), centres, radii, self.threads)
 
-    def cell_counts(self, outradii):
+    def cell_counts(self, vertices, outradii):
         """What each vertex's closed Voronoi cell holds (points equidistant to several
         vertices count for each)."""
-        m = len(self.vertices)
-        dd, ii = self.vertex_tree.query(self.points, k=min(3, m), workers=self.threads)
-        return cell_tally(dd, ii, self.weights, m)
+        tree = cKDTree(vertices, boxsize=self.period)
+        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.threads)
+        return cell_tally(dd, ii, self.weights, len(vertices))
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points, drawn at random."""
         P = self.points
         return P if len(P) <= count else P[rng.choice(len(P), count, False)]
-
-
-Triangulation = namedtuple("Triangulation", ["problems", "corners", "centres", "radii", "outradii"])
-Counts = namedtuple("Counts", ["max_ball", "max_cell", "floor_balls", "floor_cells"])
-Probes = namedtuple("Probes", ["samples", "weights", "in_box", "sample_dpk", "points", "others"])
-Ratio = namedtuple(
-    "Ratio", ["alpha_hat", "beta_hat", "alpha_hat_at", "beta_hat_at", "n_probes", "under_floor"]
-)
-Size = namedtuple("Size", ["integral", "stderr"])
-
-
-def check_triangulation(torus):
-    """The torus triangulation (see ``verify_triangulation``), its circumcircles and each
-    vertex's outradius R(v) (the largest circumradius around it)."""
-    t = torus.mesh.torus
-    problems, corners, centres, radii = verify_triangulation(
-        torus.vertices, t.triangles, t.offsets, t.neighbors, torus.period
-    )
-    outradii = np.zeros(len(torus.vertices))
-    for c in range(3):
-        np.maximum.at(outradii, t.triangles[:, c], radii)
-    return Triangulation(problems, corners, centres, radii, outradii)
-
-
-def check_well_spaced(torus, triangulation):
-    """The largest aspect 2 R(v) / d_{M,2}(v) over the vertices."""
-    d_m2 = torus.vertex_tree.query(torus.vertices, k=2, workers=torus.threads)[0][:, 1]
-    return float(np.max(2.0 * triangulation.outradii / d_m2))
-
-
-def check_counts(torus, triangulation, k, min_size):
-    """The most input points in a closed circumball and in a closed Voronoi cell (points
-    equidistant to several vertices count for each), over elements at or above the floor,
-    and the floor elements (>= k points below min_size)."""
-    r = triangulation.radii
-    ball = torus.held(triangulation.centres, r)
-    floor_balls = (ball >= k) & (r < min_size)
-    above = r >= min_size
-    exact = float if torus.weighted else int
-    max_ball = exact(ball[above].max()) if above.any() else 0
-    cell = torus.cell_counts(triangulation.outradii)
-    R = triangulation.outradii
-    floor_cells = (cell >= k) & (R < min_size)
-    max_cell = exact(cell[R >= min_size].max()) if (R >= min_size).any() else 0
-    return Counts(max_ball, max_cell, floor_balls, floor_cells)
-
-
-def make_probes(torus, triangulation, samples, n_random, max_point_probes, rng):
-    """The probes of the achieved constants, in the box: stratified samples inside every
-    triangle (with their area weights: the Monte Carlo samples of the size integral), input
-    points, and the vertices, circumcentres, edge midpoints and uniform points of the box.
-    ``sample_dpk``: d_{P,k} at the samples in the box, measured once for both uses (empty
-    when there are fewer than k points)."""
-    corners = triangulation.corners
-    per_triangle = max(4, -(-samples // max(len(corners), 1)))
-    inside, weights = _triangle_samples(corners, per_triangle, rng)
-    inside = torus.frame(inside)
-    points = torus.sample_points(max_point_probes, rng)
-    mids = 0.5 * (corners + corners[:, [1, 2, 0]]).reshape(-1, 2)
-    others = np.concatenate(
-        [
-            torus.vertices,
-            triangulation.centres,
-            torus.frame(mids),
-            torus.lo + rng.random((n_random, 2)) * (torus.hi - torus.lo),
-        ]
-    )
-    in_box = torus.in_box(inside)
-    return Probes(
-        samples=inside,
-        weights=weights,
-        in_box=in_box,
-        sample_dpk=torus.d_pk(inside[in_box]) if torus.total >= torus.k else np.zeros(0),
-        points=points[torus.in_box(points)],
-        others=others[torus.in_box(others)],
-    )
-
-
-def measure_ratio(torus, probes):
-    """alpha_hat = min and beta_hat = max of d_{M,2} / d_{P,k} over the probes where
-    d_{P,k} >= min_size, where each was found, and the share of the sampled input points
-    where d_{P,k} < min_size."""
-    nan = float("nan")
-    if torus.total < torus.k:
-        return Ratio(nan, nan, (nan, nan), (nan, nan), 0, 0.0)
-    dpk_points = torus.d_pk(probes.points)
-    under_floor = float(np.mean(dpk_points < torus.min_size)) if len(dpk_points) else 0.0
-    x = np.concatenate([probes.samples[probes.in_box], probes.points, probes.others])
-    dpk = np.concatenate([probes.sample_dpk, dpk_points, torus.d_pk(probes.others)])
-    ok = dpk >= torus.min_size
-    if not ok.any():
-        return Ratio(nan, nan, (nan, nan), (nan, nan), 0, under_floor)
-    ratio = torus.d_m2(x[ok]) / dpk[ok]
-    i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
-    at = to_input(x[ok][[i, j]], torus.origin, torus.mesh)
-    return Ratio(
-        float(ratio[i]),
-        float(ratio[j]),
-        tuple(float(v) for v in at[0]),
-        tuple(float(v) for v in at[1]),
-        int(ok.sum()),
-        under_floor,
-    )
-
-
-def measure_size(torus, probes):
-    """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size), stratified
-    over the triangles: each sample weighted by its share of its triangle's area, samples
-    outside the box counting 0; with its standard error. It reads only the samples' own
-    values, so it does not depend on how the other probes are ordered."""
-    if torus.total < torus.k:
-        return Size(0.0, 0.0)
-    f = np.zeros(len(probes.samples))
-    f[probes.in_box] = 1.0 / np.maximum(probes.sample_dpk, torus.min_size) ** 2
-    per_triangle = (probes.weights * f).reshape(len(torus.mesh.torus.triangles), -1)
-    integral = float(per_triangle.sum())
-    var = (
-        (per_triangle.var(axis=1, ddof=1) * per_triangle.shape[1]).sum()
-        if per_triangle.shape[1] > 1
-        else 0.0
-    )
-    return Size(integral, float(np.sqrt(var)))
 
 
 def verify_returned_mesh(mesh):

@@ -21,25 +21,21 @@ d_{P,k} >= min_size.
 """
 
 import math
-import time
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..engine.predicates3 import insphere, orient3d
-from ..mesh import theorem6_constants
-from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weighted_kth
-from ..validation import as_points
-from .certificate import Certificate, floor_sites, to_input
+from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
 from .common import (
+    TorusGeometry,
     cell_array_problem,
     check_cells_tile,
-    check_points_are_the_meshs,
-    check_precondition,
     find_rows,
     sorted_rows,
 )
+from .steps import Probes, Triangulation
 
 
 @kernel(entry=True, lazy=True)
@@ -108,7 +104,7 @@ def _circumspheres(c):
     return a + u, (u**2).sum(axis=1)
 
 
-class SpacePoints:
+class Points:
     """Every question certify asks about the input points in space, answered in this process
     from scipy's kd-trees (``scale.checks.TiledSpacePoints`` asks the same where the points
     are): what closed balls of the torus hold (``held``: a count, or a weight), what each
@@ -127,9 +123,17 @@ class SpacePoints:
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
         self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
         self._box_tree = self.tree if all(mesh.periodic) else self.metric.tree(pts)
+        self._weight_trees = {}
+
+    def _weights(self, tree):
+        if self.weights is None:
+            return None
+        if id(tree) not in self._weight_trees:
+            self._weight_trees[id(tree)] = weight_tree(tree, self.weights)
+        return self._weight_trees[id(tree)]
 
     def held(self, centres, radii):
-        return held_in_balls(self.tree, self.weights, centres, radii, self.threads)
+        return held_in_balls(self.tree, self._weights(self.tree), centres, radii, self.threads)
 
     def cell_counts(self, vertices, outradii):
         """What the closed Voronoi cell of each vertex (torus frame) holds: every point
@@ -143,7 +147,8 @@ class SpacePoints:
         straight along non-periodic axes, so the embedding's claim is tested."""
         if self.weights is None:
             return self._box_tree.query(x, k=[self.k], workers=self.threads)[0][:, 0]
-        return weighted_kth(self._box_tree, self.weights, x, self.k, self.threads)
+        return weighted_kth(self._box_tree, self._weights(self._box_tree), x, self.k,
+                            self.threads)  # fmt: skip
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points (torus frame), drawn at random."""
@@ -240,154 +245,110 @@ def _tetrahedron_samples(c, per, rng):
     return np.einsum("tpi,tia->tpa", w, c).reshape(-1, 3)
 
 
-def certify3(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
-             seed=0, weights=None, threads=-1):  # fmt: skip
-    """``certify`` in space in this process (``run_checks3`` on ``SpacePoints``)."""
-    t0 = time.perf_counter()
-    pts = as_points(points, 3)
-    weights = check_points_are_the_meshs(mesh, pts, weights)
-    return run_checks3(mesh, SpacePoints(mesh, pts, weights, threads), samples=samples,
-                       n_random=n_random, max_point_probes=max_point_probes, seed=seed,
-                       threads=threads, t0=t0)  # fmt: skip
+class Geometry(TorusGeometry):
+    """Space's questions about a mesh (``steps.run_checks`` asks them): its torus
+    tetrahedralisation checked exactly (faces matched again from the corners and offsets,
+    every tetrahedron positively oriented and locally Delaunay, the volumes adding up to the
+    torus' once), the returned tetrahedra, circumballs, probes as dense as the plane's in
+    the box's own metric, d_{M,2} from the returned vertices (straight along non-periodic
+    axes, so the embedding's claim is tested), the size integral of 1 / d_{P,k}^3."""
 
+    def __init__(self, mesh, threads):
+        super().__init__(mesh, threads)
+        torus = mesh.torus
+        self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
+        self.local = self.vertices
+        self.corners = torus.cells
+        self.offsets = torus.offsets.astype(np.int64)
 
-def run_checks3(mesh, points, *, samples, n_random, max_point_probes, seed, threads, t0):
-    """Check ``mesh`` (from ``knnrefine.refine`` with (n, 3) points) against ``points``;
-    returns a ``Certificate`` (nothing is raised when a check fails: see ``.passed``).
+    def triangulation(self):
+        """Faces paired, orientation, local Delaunay, volume; circumballs (centres wrapped
+        into the torus), R(v); ``extra``: the tetrahedra's corners."""
+        local, corners, offsets, period = self.local, self.corners, self.offsets, self.period
+        neighbours = _neighbours(corners, offsets)
+        bad_o = bad_d = -1
+        if neighbours is not None:
+            bad_o, bad_d = _exact_faces(local, corners.astype(np.int64), offsets, neighbours,
+                                        period)  # fmt: skip
+        c = local[corners] + offsets * period
+        volume = np.abs(np.linalg.det(c[:, 1:] - c[:, :1])).sum() / 6.0 / np.prod(period)
+        problems = []
+        if neighbours is None:
+            problems.append("the tetrahedra's faces do not pair up")
+        if bad_o > 0:
+            problems.append(f"{bad_o} tetrahedra not positively oriented")
+        if bad_d > 0:
+            problems.append(f"{bad_d} faces not locally Delaunay")
+        if abs(volume - 1.0) >= 1e-9:
+            problems.append(f"the volumes add up to {volume:.12g} tori")
+        centres, r2 = _circumspheres(c)
+        outer = np.zeros(len(local))
+        np.maximum.at(outer, corners.ravel(), np.repeat(r2, 4))
+        return Triangulation(problems, np.mod(centres, period), np.sqrt(r2), np.sqrt(outer), c)
 
-    The torus mesh (``mesh.torus``: the box's own along periodic axes, the embedding torus
-    along the others) is checked as refined: exact tetrahedralisation, counts, aspect and
-    Lemma 2's precondition on the torus. What the user received is checked to be that mesh
-    (``verify_returned_mesh3``), and the promise the user reads is checked in the box's own
-    metric (straight along non-periodic axes, so the embedding's claim is tested, not
-    assumed): d_{P,k} from the points, d_{M,2} from the returned vertices, at probes in the
-    box: ``samples`` stratified points in the tetrahedra (at least 4 in each), every vertex,
-    circumcentre and edge midpoint, up to ``max_point_probes`` input points and ``n_random``
-    uniform points. ``points`` answers every question about the input points
-    (``SpacePoints`` here, ``scale.checks.TiledSpacePoints`` where they are spread over
-    workers); with weights counts are sums of weights and d_{P,k} the least radius holding
-    weight k. ``threads``: the kd-tree queries' threads (-1: all cores)."""
-    torus = mesh.torus
-    origin, period = np.asarray(torus.origin, float), np.asarray(torus.period, float)
-    metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)  # the torus' frame
-    k = mesh.k
-    corners, offsets, local = torus.cells, torus.offsets.astype(np.int64), torus.vertices
-    neighbours = _neighbours(corners, offsets)
-    ok_faces = neighbours is not None
-    bad_o = bad_d = -1
-    if ok_faces:
-        bad_o, bad_d = _exact_faces(local, corners.astype(np.int64), offsets, neighbours, period)
-    c = local[corners] + offsets * period
-    volume = np.abs(np.linalg.det(c[:, 1:] - c[:, :1])).sum() / 6.0 / np.prod(period)
-    triangulation = ok_faces and bad_o == 0 and bad_d == 0 and abs(volume - 1.0) < 1e-9
+    def returned_problems(self):
+        return verify_returned_mesh3(self.mesh)
 
-    centres, r2 = _circumspheres(c)
-    held = points.held(np.mod(centres, period), np.sqrt(r2))
-    vertex_tree = cKDTree(local, boxsize=period)
-    outer = np.zeros(len(local))
-    np.maximum.at(outer, corners.ravel(), np.repeat(r2, 4))
-    cells = points.cell_counts(local, np.sqrt(outer))
-    # elements below the resolution floor may hold k points (refinement leaves them)
-    floor_balls = (held >= k) & (np.sqrt(r2) < mesh.min_size)
-    floor_cells = (cells >= k) & (np.sqrt(outer) < mesh.min_size)
-    exact = float if points.weighted else int
-    max_held = exact(held[~floor_balls].max(initial=0))
-    max_cell = exact(cells[~floor_cells].max(initial=0))
-    d_m2 = vertex_tree.query(local, k=2, workers=threads)[0][:, 1]
-    aspect = float((2.0 * np.sqrt(outer) / d_m2).max())
-    precondition = check_precondition(
-        local[np.asarray(torus.kinds) == 0], points, k, mesh.tau, period
-    )
+    def probes(self, tri, points, samples, n_random, max_point_probes, rng):
+        """Stratified samples in every tetrahedron (at least 4 in each), uniform points of
+        the box, every vertex, circumcentre and edge midpoint, input points; those in the
+        box (periodic axes wrapped)."""
+        c, period = tri.extra, self.period
+        per_tetrahedron = max(4, -(-int(samples) // max(len(c), 1)))
+        side = np.array(self.mesh.box[3:]) - np.array(self.mesh.box[:3])
+        samples_at = np.mod(_tetrahedron_samples(c, per_tetrahedron, rng), period)
+        sample_weight = np.repeat(
+            np.abs(np.linalg.det(c[:, 1:] - c[:, :1])) / 6.0 / per_tetrahedron, per_tetrahedron
+        )
+        point_probes_at = points.sample_points(max_point_probes, rng)
+        probes = np.concatenate([
+            samples_at, self.lo + rng.random((n_random, 3)) * side, self.local, tri.centres,
+            np.mod(_edge_midpoints(self.local, self.corners, self.offsets, period), period),
+            point_probes_at,
+        ])  # fmt: skip
+        free = ~np.array(self.mesh.periodic)
+        in_box = (((probes >= self.lo) & (probes <= self.hi)) | ~free).all(axis=1)
+        sample_in_box = in_box[: len(samples_at)]
+        point_probes = np.zeros(len(probes), bool)
+        point_probes[len(probes) - len(point_probes_at) :] = True
+        extra = (sample_in_box, sample_weight, len(c))
+        return Probes(probes[in_box], point_probes[in_box], extra)
 
-    # the promise in the box, in its own metric, from the returned vertices
-    rng = np.random.default_rng(seed)
-    per_tetrahedron = max(4, -(-int(samples) // max(len(c), 1)))
-    lo = np.array(mesh.box[:3]) - origin
-    hi = np.array(mesh.box[3:]) - origin
-    side = np.array(mesh.box[3:]) - np.array(mesh.box[:3])
-    samples_at = np.mod(_tetrahedron_samples(c, per_tetrahedron, rng), period)
-    sample_weight = np.repeat(
-        np.abs(np.linalg.det(c[:, 1:] - c[:, :1])) / 6.0 / per_tetrahedron, per_tetrahedron
-    )
-    point_probes_at = points.sample_points(max_point_probes, rng)
-    probes = np.concatenate([
-        samples_at, lo + rng.random((n_random, 3)) * side, local, np.mod(centres, period),
-        np.mod(_edge_midpoints(local, corners, offsets, period), period), point_probes_at,
-    ])  # fmt: skip
-    del c
-    free = ~np.array(mesh.periodic)
-    in_box = (((probes >= lo) & (probes <= hi)) | ~free).all(axis=1)
-    sample_in_box = in_box[: len(samples_at)]
-    point_probes = np.zeros(len(probes), bool)
-    point_probes[len(probes) - len(point_probes_at) :] = True
-    probes, point_probes = probes[in_box], point_probes[in_box]
-    mesh_problems = verify_returned_mesh3(mesh)
-    returned = np.asarray(mesh.vertices, float)
-    coordinates = returned.ndim == 2 and returned.shape[1] == 3 and np.isfinite(returned).all()
-    if coordinates:
-        returned = metric.frame(returned)  # relative to the origin, periodic axes wrapped
-    else:  # not coordinates at all (a failed check already): the torus' own, for the ratio
-        returned = local
-    box_boxsize = np.where(mesh.periodic, period, 0.0) if any(mesh.periodic) else None
-    box_vertices = cKDTree(returned, boxsize=box_boxsize)
-    dm2 = box_vertices.query(probes, k=min(2, len(returned)), workers=threads)[0]
-    dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(probes), np.inf)
-    if coordinates and len(returned) >= 2:  # the copies near the box hold its two nearest
-        on_torus = vertex_tree.query(probes, k=2, workers=threads)[0][:, 1]  # wraps queries
-        if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
-            mesh_problems.append(
-                "d_M2 from the returned vertices differs from the torus mesh's in the box"
-            )
-    dpk = points.d_pk(probes)
-    use = dpk >= mesh.min_size
-    ratio = dm2[use] / dpk[use]
-    nan = float("nan")
-    alpha_hat = beta_hat = nan
-    alpha_hat_at = beta_hat_at = (nan, nan, nan)
-    if len(ratio):
-        i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
-        alpha_hat, beta_hat = float(ratio[i]), float(ratio[j])
-        at = to_input(probes[use][[i, j]], origin, mesh)
-        alpha_hat_at, beta_hat_at = (tuple(float(v) for v in x) for x in at)
-    # the integral of 1 / d_Pk^3 over the box, stratified over the tetrahedra (d_Pk clipped
-    # at min_size), with its standard error
-    f = np.zeros(len(samples_at))
-    f[sample_in_box] = 1.0 / np.maximum(dpk[: int(sample_in_box.sum())], mesh.min_size) ** 3
-    per_tet = (sample_weight * f).reshape(len(corners), -1)
-    size = float(per_tet.sum())
-    stderr = (
-        float(np.sqrt((per_tet.var(axis=1, ddof=1) * per_tet.shape[1]).sum()))
-        if per_tet.shape[1] > 1
-        else 0.0
-    )
-    problems = []
-    if not ok_faces:
-        problems.append("the tetrahedra's faces do not pair up")
-    if bad_o > 0:
-        problems.append(f"{bad_o} tetrahedra not positively oriented")
-    if bad_d > 0:
-        problems.append(f"{bad_d} faces not locally Delaunay")
-    if abs(volume - 1.0) >= 1e-9:
-        problems.append(f"the volumes add up to {volume:.12g} tori")
-    alpha, beta = theorem6_constants(mesh.tau)
-    point_dpk = dpk[point_probes]
-    sites = floor_sites(
-        np.concatenate([np.mod(centres[floor_balls], period), local[floor_cells]]),
-        10.0 * max(mesh.min_size, 1e-300), period, origin, mesh,
-    )  # fmt: skip
-    return Certificate(
-        n=points.n, m=len(mesh.vertices), k=k, tau=mesh.tau, periodic=tuple(mesh.periodic),
-        box=tuple(mesh.box), min_size=mesh.min_size, triangulation_ok=triangulation,
-        triangulation_problems=problems, max_aspect=aspect, max_cell_count=max_cell,
-        max_ball_count=max_held, alpha=alpha, beta=beta, alpha_hat=alpha_hat,
-        beta_hat=beta_hat, alpha_hat_at=alpha_hat_at, beta_hat_at=beta_hat_at,
-        n_probes=int(use.sum()), size_integral=size, size_integral_stderr=stderr,
-        size_ratio=len(mesh.vertices) / size if size > 0 else nan,
-        floor_circumballs=int(floor_balls.sum()), floor_cells=int(floor_cells.sum()),
-        floor_sites=sites,
-        under_floor=float(np.mean(point_dpk < mesh.min_size)) if len(point_dpk) else 0.0,
-        mesh_problems=mesh_problems, precondition_ok=bool(precondition[0]),
-        precondition_note=precondition[1], seconds=time.perf_counter() - t0,
-        weight=points.total if points.weighted else None,
-        count_slack=4.0 * float(np.spacing(float(k))) if points.weighted else 0.0,
-    )  # fmt: skip
+    def returned_d_m2(self, x):
+        """d_{M,2} at x from the returned vertices in the box's own metric, and a problem
+        when it differs from the torus mesh's (a copy near the box missing)."""
+        returned = np.asarray(self.mesh.vertices, float)
+        coordinates = (returned.ndim == 2 and returned.shape[1] == 3
+                       and np.isfinite(returned).all())  # fmt: skip
+        if not coordinates:  # not coordinates at all (a failed check already): the torus'
+            returned = self.local
+        else:
+            returned = self.metric.frame(returned)  # relative to the origin, periodic wrapped
+        periodic = self.mesh.periodic
+        box_boxsize = np.where(periodic, self.period, 0.0) if any(periodic) else None
+        dm2 = cKDTree(returned, boxsize=box_boxsize).query(
+            x, k=min(2, len(returned)), workers=self.threads
+        )[0]
+        dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(x), np.inf)
+        problems = []
+        if coordinates and len(returned) >= 2:  # the copies near the box hold its two nearest
+            on_torus = self.vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
+            if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
+                problems.append(
+                    "d_M2 from the returned vertices differs from the torus mesh's in the box"
+                )
+        return dm2, problems
+
+    def size(self, probes, d_pk, points, rng):
+        """The integral of 1 / d_Pk^3 over the box, stratified over the tetrahedra (d_Pk
+        clipped at min_size), with its standard error."""
+        sample_in_box, sample_weight, tetrahedra = probes.extra
+        f = np.zeros(len(sample_in_box))
+        f[sample_in_box] = 1.0 / np.maximum(d_pk[: int(sample_in_box.sum())], self.floor) ** 3
+        per_tet = (sample_weight * f).reshape(tetrahedra, -1)
+        stderr = (
+            float(np.sqrt((per_tet.var(axis=1, ddof=1) * per_tet.shape[1]).sum()))
+            if per_tet.shape[1] > 1
+            else 0.0
+        )
+        return float(per_tet.sum()), stderr

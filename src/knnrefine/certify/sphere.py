@@ -28,7 +28,6 @@ beta] wherever d_{P,k} >= min_size, beta from the largest circumcap measured her
 """
 
 import math
-import time
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -45,11 +44,11 @@ from ..metric import (
     chord_to_angle,
     held_in_balls,
     lonlat_of,
+    weight_tree,
     weighted_kth,
 )
-from ..validation import as_sphere_points, check_made_from, weights_of_run
-from .certificate import Certificate
 from .common import check_precondition
+from .steps import Probes, Triangulation
 
 
 @kernel(entry=True, lazy=True)
@@ -221,20 +220,38 @@ def check_triangulation(mesh):
     return problems, mesh_problems
 
 
-class SpherePoints:
+class Points:
     """The questions ``certify`` asks about the points, on the unit sphere: counts in caps
     (balls about unit vectors), d_{P,k} (an angle), cell tallies."""
 
-    def __init__(self, unit, weights, threads):
-        self.unit, self.weights, self.threads = unit, weights, threads
+    def __init__(self, unit, weights, threads, k):
+        self.unit, self.weights, self.threads, self.k = unit, weights, threads, k
         self.tree = cKDTree(unit)
         self.n = len(unit)
+        self.weighted = weights is not None
         self.total = self.n if weights is None else float(weights.sum())
+        self._weight_tree = None
+
+    def _weights(self):
+        if self._weight_tree is None and self.weights is not None:
+            self._weight_tree = weight_tree(self.tree, self.weights)
+        return self._weight_tree
 
     def held(self, centres, angles):
         """What each closed cap (centre, angle) holds, inflated by a relative 1e-12."""
         chord = angle_to_chord(np.asarray(angles, float)) * (1.0 + 1e-12)
-        return held_in_balls(self.tree, self.weights, centres, chord, self.threads)
+        return held_in_balls(self.tree, self._weights(), centres, chord, self.threads)
+
+    def cell_counts(self, vertices, outradii):
+        """What each vertex's closed Voronoi cell holds: each point counts for every vertex
+        as near as its nearest, up to the unit vectors' rounding (``CELL_TIES``)."""
+        dd, ii = cKDTree(vertices).query(self.unit, k=min(3, len(vertices)),
+                                         workers=self.threads)  # fmt: skip
+        return cell_tally(dd, ii, self.weights, len(vertices), slack2=CELL_TIES)
+
+    def d_pk(self, x):
+        """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
+        return self.kth(x, self.k)
 
     def kth(self, x, k):
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
@@ -243,8 +260,13 @@ class SpherePoints:
         if self.weights is None:
             d = self.tree.query(x, k=[int(k)], workers=self.threads)[0][:, 0]
         else:
-            d = weighted_kth(self.tree, self.weights, x, k, self.threads)
+            d = weighted_kth(self.tree, self._weights(), x, k, self.threads)
         return chord_to_angle(d)
+
+    def sample_points(self, count, rng):
+        """Up to ``count`` of the points' unit vectors, drawn at random."""
+        take = rng.choice(self.n, min(self.n, int(count)), replace=False)
+        return self.unit[take]
 
 
 def _spacing(vertices):
@@ -272,112 +294,90 @@ def _floor_sites(sites, angle):
     return [(float(x[0]), float(x[1]), int(counts[c])) for x, c in zip(where, order, strict=True)]
 
 
-def certify_sphere(mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
-                   seed=0, weights=None, threads=-1):  # fmt: skip
-    """``knnrefine.certify`` for a mesh on the sphere (its parameters)."""
-    t0 = time.perf_counter()
-    unit = as_sphere_points(points)
-    check_made_from(mesh.stats, len(unit), "certify a mesh against")
-    weights = weights_of_run(mesh.stats, len(unit), weights)
-    pts = SpherePoints(unit, weights, threads)
-    k, tau = mesh.k, mesh.tau
-    min_angle = mesh.min_size / mesh.radius
-    problems, mesh_problems = check_triangulation(mesh)
-    xyz = np.asarray(mesh.xyz, float)
-    tri = np.asarray(mesh.triangles, np.int64)
-    m = len(xyz)
-    centres, chords, cap = _caps(xyz, tri)
-    # well-spacedness: R(v) the largest cap angle about v, d_M2(v) the nearest other vertex
-    vtree = cKDTree(xyz)
-    outradius = np.zeros(m)
-    for j in range(3):
-        np.maximum.at(outradius, tri[:, j], cap)
-    nearest = chord_to_angle(vtree.query(xyz, k=2)[0][:, 1])
-    max_aspect = float(np.max(2.0 * outradius / nearest))
-    # counts in circumcaps and Voronoi cells above the floor
-    big = cap >= min_angle
-    if problems:  # no triangulation to count in: the kd-tree's caps (the verdict is FAILED)
-        held_caps = pts.held(centres, cap)
-    else:
-        held_caps = _held_in_caps(xyz, tri, centres, chords, unit, pts.tree, weights, threads)
-    floor_caps = (~big) & (held_caps >= k)
-    dd, ii = vtree.query(unit, k=min(3, m), workers=threads)
-    cells = cell_tally(dd, ii, weights, m, slack2=CELL_TIES)
-    big_cells = outradius >= min_angle
-    floor_cells = (~big_cells) & (cells >= k)
-    max_ball = float(held_caps[big].max(initial=0))
-    max_cell = float(cells[big_cells].max(initial=0))
-    precondition_ok, note = check_precondition(xyz[np.asarray(mesh.kinds) == 0], pts, k, tau,
-                                               spacing=_spacing)  # fmt: skip
-    # probes: vertices, cap centres, edge midpoints, stratified samples, data, uniform
-    rng = np.random.default_rng(seed)
-    per = max(4, int(math.ceil(samples / max(len(tri), 1))))
-    u = rng.random((len(tri), per, 2))
-    fold = u.sum(-1) > 1
-    u[fold] = 1.0 - u[fold]
-    a = xyz[tri[:, 0]][:, None]
-    inside = a + u[..., :1] * (xyz[tri[:, 1]][:, None] - a) + u[..., 1:] * (
-        xyz[tri[:, 2]][:, None] - a
-    )  # fmt: skip
-    mids = np.concatenate([xyz[tri[:, i]] + xyz[tri[:, (i + 1) % 3]] for i in range(3)])
-    take = rng.choice(len(unit), min(len(unit), int(max_point_probes)), replace=False)
-    probes = np.concatenate([xyz, centres, mids, inside.reshape(-1, 3), unit[take],
-                             _uniform_on_sphere(int(n_random), rng)])  # fmt: skip
-    probes /= np.linalg.norm(probes, axis=1, keepdims=True)
-    d_pk = pts.kth(probes, k)
-    d_m2 = chord_to_angle(vtree.query(probes, k=2, workers=threads)[0][:, 1])
-    above = d_pk >= min_angle
-    alpha, beta = sphere_constants(tau, float(cap.max(initial=0.0)))
-    if above.any():
-        ratio = d_m2[above] / d_pk[above]
-        lo, hi = int(np.argmin(ratio)), int(np.argmax(ratio))
-        at = lonlat_of(probes[above])
-        alpha_hat, beta_hat = float(ratio[lo]), float(ratio[hi])
-        alpha_at, beta_at = tuple(at[lo].tolist()), tuple(at[hi].tolist())
-    else:
-        alpha_hat = beta_hat = float("nan")
-        alpha_at = beta_at = ()
-    at_points = pts.kth(unit[take], k)
-    under = float(np.mean(at_points < min_angle)) if len(take) else 0.0
-    # the size integral over the sphere of 1 / d_Pk^2 (area 4 pi), Monte Carlo
-    uniform = _uniform_on_sphere(max(int(n_random), 1000), rng)
-    inv = 1.0 / np.maximum(pts.kth(uniform, k), 1e-300) ** 2
-    integral = 4.0 * np.pi * float(inv.mean())
-    stderr = 4.0 * np.pi * float(inv.std() / np.sqrt(len(inv)))
-    sites = _floor_sites(np.concatenate([centres[floor_caps], xyz[floor_cells]]),
-                         10.0 * max(min_angle, 1e-300))  # fmt: skip
-    return Certificate(
-        n=pts.n,
-        m=m,
-        k=k,
-        tau=tau,
-        periodic=tuple(mesh.periodic),
-        box=tuple(mesh.box),
-        min_size=mesh.min_size,
-        triangulation_ok=not problems,
-        triangulation_problems=problems,
-        max_aspect=max_aspect,
-        max_cell_count=max_cell,
-        max_ball_count=max_ball,
-        alpha=alpha,
-        beta=beta,
-        alpha_hat=alpha_hat,
-        beta_hat=beta_hat,
-        alpha_hat_at=alpha_at,
-        beta_hat_at=beta_at,
-        n_probes=int(above.sum()),
-        size_integral=integral,
-        size_integral_stderr=stderr,
-        size_ratio=m / integral if integral > 0 else float("nan"),
-        floor_circumballs=int(floor_caps.sum()),
-        floor_cells=int(floor_cells.sum()),
-        floor_sites=sites,
-        under_floor=under,
-        mesh_problems=mesh_problems,
-        precondition_ok=precondition_ok,
-        precondition_note=note,
-        seconds=time.perf_counter() - t0,
-        weight=pts.total if weights is not None else None,
-        count_slack=4.0 * float(np.spacing(float(k))) if weights is not None else 0.0,
-        domain="sphere",
-    )
+class Geometry:
+    """The sphere's questions about a mesh (``steps.run_checks`` asks them): its
+    triangulation checked exactly on the unit vectors the user received, circumcaps
+    counted exactly, probes over the sphere, d_{M,2} from the vertices, the size integral
+    over the sphere, beta from the largest circumcap. Lengths are angles (radians)."""
+
+    no_position = ()
+
+    def __init__(self, mesh, threads):
+        self.mesh, self.threads = mesh, threads
+        self.floor = mesh.min_size / mesh.radius
+        self.xyz = np.asarray(mesh.xyz, float)
+        self.tri = np.asarray(mesh.triangles, np.int64)
+        self.vtree = cKDTree(self.xyz)
+        self._returned = []  # the returned mesh's problems, found with the triangulation's
+
+    def triangulation(self):
+        """The exact checks (``check_triangulation``); the caps (centres, angles), R(v);
+        ``extra``: the caps' chords."""
+        problems, self._returned = check_triangulation(self.mesh)
+        centres, chords, cap = _caps(self.xyz, self.tri)
+        outradius = np.zeros(len(self.xyz))
+        for j in range(3):
+            np.maximum.at(outradius, self.tri[:, j], cap)
+        return Triangulation(problems, centres, cap, outradius, chords)
+
+    def returned_problems(self):
+        return list(self._returned)
+
+    def vertex_d_m2(self):
+        return chord_to_angle(self.vtree.query(self.xyz, k=2)[0][:, 1])
+
+    def cell_vertices(self):
+        return self.xyz
+
+    def held(self, points, tri):
+        """Each closed circumcap's points, decided exactly (on or above the plane of its
+        corners); the kd-tree's caps where there is no triangulation to count in (the
+        verdict is FAILED already)."""
+        if tri.problems:
+            return points.held(tri.centres, tri.radii)
+        return _held_in_caps(self.xyz, self.tri, tri.centres, tri.extra, points.unit,
+                             points.tree, points.weights, self.threads)  # fmt: skip
+
+    def precondition(self, points, k, tau):
+        initial = self.xyz[np.asarray(self.mesh.kinds) == 0]
+        return check_precondition(initial, points, k, tau, spacing=_spacing)
+
+    def probes(self, tri, points, samples, n_random, max_point_probes, rng):
+        """Every vertex, cap centre and edge midpoint, stratified samples in every
+        triangle, input points and uniform points of the sphere."""
+        xyz, tri_ = self.xyz, self.tri
+        per = max(4, int(math.ceil(samples / max(len(tri_), 1))))
+        u = rng.random((len(tri_), per, 2))
+        fold = u.sum(-1) > 1
+        u[fold] = 1.0 - u[fold]
+        a = xyz[tri_[:, 0]][:, None]
+        inside = a + u[..., :1] * (xyz[tri_[:, 1]][:, None] - a) + u[..., 1:] * (
+            xyz[tri_[:, 2]][:, None] - a
+        )  # fmt: skip
+        mids = np.concatenate([xyz[tri_[:, i]] + xyz[tri_[:, (i + 1) % 3]] for i in range(3)])
+        sampled = points.sample_points(max_point_probes, rng)
+        probes = np.concatenate([xyz, tri.centres, mids, inside.reshape(-1, 3), sampled,
+                                 _uniform_on_sphere(int(n_random), rng)])  # fmt: skip
+        probes /= np.linalg.norm(probes, axis=1, keepdims=True)
+        mask = np.zeros(len(probes), bool)
+        start = len(probes) - int(n_random) - len(sampled)
+        mask[start : start + len(sampled)] = True
+        return Probes(probes, mask, int(n_random))
+
+    def returned_d_m2(self, x):
+        return chord_to_angle(self.vtree.query(x, k=2, workers=self.threads)[0][:, 1]), []
+
+    def size(self, probes, d_pk, points, rng):
+        """The integral over the sphere of 1 / d_Pk^2 (area 4 pi), Monte Carlo."""
+        uniform = _uniform_on_sphere(max(probes.extra, 1000), rng)
+        inv = 1.0 / np.maximum(points.d_pk(uniform), 1e-300) ** 2
+        return 4.0 * np.pi * float(inv.mean()), 4.0 * np.pi * float(inv.std() / np.sqrt(len(inv)))
+
+    def constants(self, tri):
+        return sphere_constants(self.mesh.tau, float(tri.radii.max(initial=0.0)))
+
+    def floor_sites(self, centres, vertices):
+        return _floor_sites(np.concatenate([centres, vertices]), 10.0 * max(self.floor, 1e-300))
+
+    def to_input(self, x):
+        return lonlat_of(x)

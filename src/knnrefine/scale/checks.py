@@ -1,7 +1,7 @@
 """certify strip by strip: every question about the points (counts in disks and cells,
 d_{P,k}) asked where the points are, in worker processes (``LocalStore``) or on a Dask
 cluster (``distributed.DaskStore``), never gathering them; the mesh's own checks run in this
-process (``certify.plane.run_checks``). The same checks and the same verdict as one process.
+process (``certify.steps.run_checks``). The same checks and the same verdict as one process.
 """
 
 import time
@@ -9,10 +9,9 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..certify import plane, space, steps
 from ..certify.certificate import Certificate
 from ..certify.common import check_points_are_the_meshs, check_source
-from ..certify.plane import TorusPoints, run_checks
-from ..certify.space import run_checks3
 from ..metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
 from ..validation import as_points
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
@@ -46,13 +45,16 @@ def certify_local(mesh, points, weights, workers, threads, *, samples, n_random,
 
 
 def check_store(mesh, store, tiles, threads, *, samples, n_random, max_point_probes, seed, t0):
-    """The checks of either dimension with the points' questions asked of ``store``."""
-    options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
-                   seed=seed, t0=t0)  # fmt: skip
+    """certify's steps (``certify.steps.run_checks``) in either dimension with the points'
+    questions asked of ``store``."""
     if mesh.dim == 3:
-        points = TiledSpacePoints(mesh, store, tiles, threads)
-        return run_checks3(mesh, points, threads=threads, **options)
-    return run_checks(mesh, TiledTorusPoints(mesh, store, tiles, threads), **options)
+        geometry, points = space.Geometry(mesh, threads), TiledSpacePoints(mesh, store, tiles,
+                                                                          threads)  # fmt: skip
+    else:
+        geometry, points = plane.Geometry(mesh, threads), TiledTorusPoints(mesh, store, tiles,
+                                                                          threads)  # fmt: skip
+    return steps.run_checks(mesh, geometry, points, samples=samples, n_random=n_random,
+                            max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
 
 
 def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
@@ -152,17 +154,21 @@ class StripQuestions:
         return out
 
 
-class TiledTorusPoints(TorusPoints):
-    """A ``TorusPoints`` whose input points stay in a store: every question about them is a
-    ``StripQuestions``."""
+class TiledTorusPoints:
+    """The plane's ``certify.plane.Points`` for points held in a store: every question
+    about them is a ``StripQuestions``."""
 
     def __init__(self, mesh, store, tiles, threads):
-        self._mesh(mesh, threads)
-        self.store = store
+        torus = mesh.torus
+        self.origin = np.asarray(torus.origin, float)
+        self.period = np.asarray(torus.period, float)
+        self.k, self.threads, self.store = mesh.k, threads, store
+        self.input_frame = TorusFrame(self.origin, self.period)
         self.n = store.n
         self.weighted = store.weight is not None
         self.total = float(store.n) if store.weight is None else float(store.weight)
         self.questions = StripQuestions(store, self.origin, self.period, self.k, tiles)
+        self._vertex_tree = cKDTree(np.asarray(torus.vertices, float), boxsize=self.period)
 
     @property
     def passes(self):
@@ -170,14 +176,16 @@ class TiledTorusPoints(TorusPoints):
 
     def d_pk(self, x):
         # a first pad from the mesh (a guess only: what the strips decide is exact)
-        pad = float(np.quantile(4.0 * self.d_m2(x), 0.99)) if len(x) else 0.0
-        return self.questions.d_pk(x, pad)
+        if len(x) == 0:
+            return np.zeros(0)
+        d_m2 = self._vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
+        return self.questions.d_pk(x, float(np.quantile(4.0 * d_m2, 0.99)))
 
     def held(self, centres, radii):
         return self.questions.held(centres, radii)
 
-    def cell_counts(self, outradii):
-        return self.questions.cell_counts(self.vertices, outradii)
+    def cell_counts(self, vertices, outradii):
+        return self.questions.cell_counts(vertices, outradii)
 
     def sample_points(self, count, rng):
         sx = self.store.sample(min(1.0, count / self.n))[0]
@@ -185,7 +193,7 @@ class TiledTorusPoints(TorusPoints):
 
 
 class TiledSpacePoints:
-    """``certify.space.SpacePoints`` for points held in a store: every question about them a
+    """Space's ``certify.space.Points`` for points held in a store: every question about them a
     ``StripQuestions`` (slabs). d_{P,k} is asked in the box's own metric, as in one process:
     each slab's kd-tree is straight along the non-periodic axes (the box lies unwrapped in
     the torus frame there, and a point within a pad in the box's metric is within it on the

@@ -1,0 +1,206 @@
+"""certify's steps, written once for every domain: what a mesh promises (Theorem 6), checked
+in order against its domain's answers.
+
+A domain gives two objects (``plane.py``, ``space.py``, ``sphere.py``, the same names in
+each): its ``Geometry``, the questions about the mesh itself (its triangulation checked
+exactly, the cells the user received, circumballs, the probes of the achieved constants,
+d_{M,2}, the size integral, Theorem 6's constants), and its ``Points``, the questions about
+the input points (what balls and Voronoi cells hold, d_{P,k}, some of the points), answered
+in this process or, where the points stay in worker processes, strip by strip
+(``scale.checks``). Lengths are the geometry's own: input units in a box, angles on the
+sphere, where ``Geometry.floor`` is the resolution floor.
+
+The steps: the triangulation, exactly; the returned cells; the aspect 2 R(v) / d_{M,2}(v);
+the points in every closed circumball and Voronoi cell, below k above the floor (elements
+below it that hold k are floor elements, reported); Lemma 2's precondition on the initial
+vertices; d_{M,2} / d_{P,k} at the probes where d_{P,k} >= the floor, within [alpha, beta];
+the size integral; the floor's sites.
+"""
+
+from collections import namedtuple
+from typing import Protocol
+
+import numpy as np
+
+from .certificate import Certificate
+
+# the triangulation as a geometry checked it: its problems, each cell's circumcentre and
+# circumradius, each vertex's outradius R(v), and what else its later steps read (``extra``)
+Triangulation = namedtuple("Triangulation", ["problems", "centres", "radii", "outradii", "extra"])
+# the probes of the achieved constants, in the geometry's frame: ``x`` all of them (only
+# those in the domain), ``points`` the mask of the input points among them, ``extra``
+# what the geometry's size integral reads of them (their first rows, say)
+Probes = namedtuple("Probes", ["x", "points", "extra"])
+
+
+class PointQuestions(Protocol):
+    """What certify asks of the input points (each domain's ``Points``, or a tiled one)."""
+
+    n: int
+    total: float
+    weighted: bool
+
+    def held(self, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """What each closed ball holds: a count, or a weight."""
+
+    def cell_counts(self, vertices: np.ndarray, outradii: np.ndarray) -> np.ndarray:
+        """What each vertex's closed Voronoi cell holds."""
+
+    def d_pk(self, x: np.ndarray) -> np.ndarray:
+        """d_{P,k} at x, in the geometry's lengths."""
+
+    def sample_points(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """Up to ``count`` of the points, drawn at random."""
+
+
+class Geometry(Protocol):
+    """What certify asks of a mesh in its domain (each domain's ``Geometry``)."""
+
+    floor: float
+    no_position: tuple
+
+    def triangulation(self) -> Triangulation:
+        """The triangulation checked exactly, its circumballs and outradii."""
+
+    def returned_problems(self) -> list:
+        """What is wrong with the cells and vertices the user received."""
+
+    def vertex_d_m2(self) -> np.ndarray:
+        """d_{M,2} at the mesh's vertices."""
+
+    def cell_vertices(self) -> np.ndarray:
+        """The vertices whose Voronoi cells are counted, in the points' frame."""
+
+    def held(self, points: PointQuestions, tri: Triangulation) -> np.ndarray:
+        """What each closed circumball holds."""
+
+    def precondition(self, points: PointQuestions, k: float, tau: float) -> tuple:
+        """Lemma 2's precondition on the initial vertices: (ok, note)."""
+
+    def probes(self, tri: Triangulation, points: PointQuestions, samples: int, n_random: int,
+               max_point_probes: int, rng: np.random.Generator) -> Probes:  # fmt: skip
+        """The probes of the achieved constants."""
+
+    def returned_d_m2(self, x: np.ndarray) -> tuple:
+        """(d_{M,2} at x from the vertices returned, what is wrong with them)."""
+
+    def size(self, probes: Probes, d_pk: np.ndarray, points: PointQuestions,
+             rng: np.random.Generator) -> tuple:  # fmt: skip
+        """The integral of 1 / d_{P,k}^dim over the domain and its standard error."""
+
+    def constants(self, tri: Triangulation) -> tuple:
+        """Theorem 6's (alpha, beta) for this mesh."""
+
+    def floor_sites(self, centres: np.ndarray, vertices: np.ndarray) -> list:
+        """The floor elements grouped by site, in input coordinates."""
+
+    def to_input(self, x: np.ndarray) -> np.ndarray:
+        """Positions in input coordinates."""
+
+
+def run_checks(
+    mesh,
+    geometry: Geometry,
+    points: PointQuestions,
+    *,
+    samples,
+    n_random,
+    max_point_probes,
+    seed,
+    t0,
+):
+    """The certificate of ``mesh``: every step above, with ``geometry`` the domain's
+    questions about the mesh and ``points`` about the input points.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    geometry : the domain's Geometry
+    points : the domain's Points (or a tiled one)
+    samples, n_random, max_point_probes, seed
+        As for ``knnrefine.certify``.
+    t0 : float
+        When the call began (``time.perf_counter()``).
+
+    Returns
+    -------
+    Certificate
+    """
+    import time
+
+    k, tau, floor = mesh.k, mesh.tau, geometry.floor
+    tri = geometry.triangulation()
+    mesh_problems = geometry.returned_problems()
+    max_aspect = float(np.max(2.0 * tri.outradii / geometry.vertex_d_m2()))
+    # counts: below k above the floor; elements below it holding k are floor elements
+    held = geometry.held(points, tri)
+    cells = points.cell_counts(geometry.cell_vertices(), tri.outradii)
+    floor_balls = (held >= k) & (tri.radii < floor)
+    floor_cells = (cells >= k) & (tri.outradii < floor)
+    exact = float if points.weighted else int
+    above_balls, above_cells = tri.radii >= floor, tri.outradii >= floor
+    max_ball = exact(held[above_balls].max()) if above_balls.any() else exact(0)
+    max_cell = exact(cells[above_cells].max()) if above_cells.any() else exact(0)
+    precondition_ok, precondition_note = geometry.precondition(points, k, tau)
+    # the achieved constants at the probes where d_Pk >= the floor
+    rng = np.random.default_rng(seed)
+    probes = geometry.probes(tri, points, samples, n_random, max_point_probes, rng)
+    nan = float("nan")
+    alpha_hat = beta_hat = nan
+    alpha_at = beta_at = geometry.no_position
+    n_probes, under_floor = 0, 0.0
+    if points.total >= k:
+        d_pk = points.d_pk(probes.x)
+        d_m2, late = geometry.returned_d_m2(probes.x)
+        mesh_problems += late
+        at_points = d_pk[probes.points]
+        under_floor = float(np.mean(at_points < floor)) if len(at_points) else 0.0
+        use = d_pk >= floor
+        n_probes = int(use.sum())
+        if n_probes:
+            ratio = d_m2[use] / d_pk[use]
+            i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
+            alpha_hat, beta_hat = float(ratio[i]), float(ratio[j])
+            at = geometry.to_input(probes.x[use][[i, j]])
+            alpha_at, beta_at = (tuple(float(v) for v in x) for x in at)
+        integral, stderr = geometry.size(probes, d_pk, points, rng)
+    else:
+        integral, stderr = 0.0, 0.0
+    alpha, beta = geometry.constants(tri)
+    sites = geometry.floor_sites(tri.centres[floor_balls], geometry.cell_vertices()[floor_cells])
+    m = len(mesh.vertices)
+    return Certificate(
+        n=points.n,
+        m=m,
+        k=k,
+        tau=tau,
+        periodic=tuple(mesh.periodic),
+        box=tuple(mesh.box),
+        min_size=mesh.min_size,
+        triangulation_ok=not tri.problems,
+        triangulation_problems=tri.problems,
+        max_aspect=max_aspect,
+        max_cell_count=max_cell,
+        max_ball_count=max_ball,
+        alpha=alpha,
+        beta=beta,
+        alpha_hat=alpha_hat,
+        beta_hat=beta_hat,
+        alpha_hat_at=alpha_at,
+        beta_hat_at=beta_at,
+        n_probes=n_probes,
+        size_integral=integral,
+        size_integral_stderr=stderr,
+        size_ratio=m / integral if integral > 0 else nan,
+        floor_circumballs=int(floor_balls.sum()),
+        floor_cells=int(floor_cells.sum()),
+        floor_sites=sites,
+        under_floor=under_floor,
+        mesh_problems=mesh_problems,
+        precondition_ok=bool(precondition_ok),
+        precondition_note=precondition_note,
+        seconds=time.perf_counter() - t0,
+        weight=points.total if points.weighted else None,
+        count_slack=4.0 * float(np.spacing(float(k))) if points.weighted else 0.0,
+        domain=mesh.domain,
+    )
