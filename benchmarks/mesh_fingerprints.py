@@ -115,7 +115,7 @@ def plane():
                     print(f"{label}: refused ({str(exc)[:40]})")
                     continue
                 t = mesh.torus
-                torus = digest(t.vertices, t.triangles, t.offsets, t.neighbors, t.kinds)
+                torus = digest(t.vertices, t.triangles, t.offsets, t.neighbours, t.kinds)
                 user = digest(
                     mesh.vertices,
                     mesh.triangles,

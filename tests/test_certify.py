@@ -201,12 +201,12 @@ def test_reports_failures(dim):
     bad = dataclasses.replace(mesh, torus=dataclasses.replace(torus, vertices=moved))
     c = certify(bad, points)
     assert not c.triangulation_ok and not c.passed
-    if torus.neighbors is None:  # in space the torus carries no neighbour links
+    if torus.neighbours is None:  # in space the torus carries no neighbour links
         return
     # a neighbour link broken
-    nb = torus.neighbors.copy()
+    nb = torus.neighbours.copy()
     nb[0, 0] = nb[0, 1]
-    c = certify(dataclasses.replace(mesh, torus=dataclasses.replace(torus, neighbors=nb)), points)
+    c = certify(dataclasses.replace(mesh, torus=dataclasses.replace(torus, neighbours=nb)), points)
     assert any("symmetric" in p for p in c.triangulation_problems)
 
 

@@ -110,7 +110,7 @@ def test_certify3_honours_samples_and_weights():
     without them (``workers``: test_certify_tiled.py)."""
     pts = np.random.default_rng(6).random((3000, 3))
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
-    few = knnrefine.certify(mesh, pts, samples=10, threads=1)
+    few = knnrefine.certify(mesh, pts, samples=10, workers=1)
     many = knnrefine.certify(mesh, pts, samples=40 * len(mesh.tetrahedra))
     assert many.n_probes - few.n_probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
     with pytest.raises(knnrefine.InputError, match="refined without weights"):

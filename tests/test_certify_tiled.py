@@ -1,6 +1,9 @@
-"""certify strip by strip (certify(..., workers=N), certify_store, distributed.certify):
+"""certify strip by strip (certify(..., workers=N, executor=...), certify_store,
+distributed.certify):
 every answer about the points (disk counts, cell counts, d_{P,k}) equals the one-process
 certify's, which reads one cKDTree of all points; and a bad mesh fails the same way."""
+
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
@@ -37,6 +40,13 @@ def test_split_strips_with_a_pad_per_row_against_brute_force():
             assert np.array_equal(np.flatnonzero(owner == j), np.flatnonzero(d < w))
 
 
+@pytest.fixture(scope="module")
+def pool():
+    """Local processes for certify's strips (``executor=``)."""
+    with ProcessPoolExecutor(2) as executor:
+        yield executor
+
+
 def _tori(mesh, pts, tiles, weights=None):
     store = LocalStore(pts, weights, tiles)
     return TorusPoints(mesh, pts, -1, weights), TiledTorusPoints(mesh, store, tiles, -1), store
@@ -68,7 +78,7 @@ def test_strip_answers_equal_one_tree(tiles, weighted):
         store.close()
 
 
-def test_a_wrong_mesh_fails_the_same_strip_by_strip():
+def test_a_wrong_mesh_fails_the_same_strip_by_strip(pool):
     """A mesh of other points (dense where these are sparse): the guesses of d_{P,k} from
     the mesh are far too small, the strips ask again with wider pads, and the certificate
     (failed) equals the one-process certificate in every count and ratio."""
@@ -77,7 +87,7 @@ def test_a_wrong_mesh_fails_the_same_strip_by_strip():
     mesh = knnrefine.refine(made_from, 10, periodic=True, box=(0, 0, 1, 1))
     other = np.mod(rng.random((20000, 2)) * 0.3, 1.0)  # all in one corner
     a = knnrefine.certify(mesh, other, samples=5000, n_random=1000)
-    b = knnrefine.certify(mesh, other, samples=5000, n_random=1000, workers=3)
+    b = knnrefine.certify(mesh, other, samples=5000, n_random=1000, workers=3, executor=pool)
     assert not a.passed and not b.passed
     for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
         assert getattr(a, field) == getattr(b, field), field
@@ -91,11 +101,11 @@ def test_a_wrong_mesh_fails_the_same_strip_by_strip():
 
 
 @pytest.mark.parametrize("periodic", [True, False])
-def test_certify_in_tiles_equals_certify(periodic):
+def test_certify_in_tiles_equals_certify(periodic, pool):
     pts = gaussian_clusters(40000, 8)
     mesh = knnrefine.refine(pts, 30, periodic=periodic, box=(0, 0, 1, 1))
     a = knnrefine.certify(mesh, pts, samples=10000, n_random=2000)
-    b = knnrefine.certify(mesh, pts, samples=10000, n_random=2000, workers=2)
+    b = knnrefine.certify(mesh, pts, samples=10000, n_random=2000, workers=2, executor=pool)
     assert a.passed and b.passed
     for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral",
                   "precondition_ok", "n", "m"):  # fmt: skip
@@ -108,12 +118,43 @@ def test_bad_workers_are_refused(bad):
     mesh = knnrefine.refine(pts, 10)
     with pytest.raises(InputError, match="workers must be a positive integer"):
         knnrefine.certify(mesh, pts, workers=bad)
-    with pytest.raises(InputError, match="threads must be -1"):
-        knnrefine.certify(mesh, pts, threads=0)
+
+
+def test_an_executor_is_checked_before_any_work(pool):
+    """certify's executor as refine's: something with a map, for workers >= 2 strips, in a
+    box (the sphere has no strips); each refused with what to do."""
+    pts = gaussian_clusters(2000, 9)
+    mesh = knnrefine.refine(pts, 10)
+    with pytest.raises(InputError, match="concurrent.futures.Executor"):
+        knnrefine.certify(mesh, pts, workers=2, executor="pool")
+    with pytest.raises(InputError, match="workers >= 2"):
+        knnrefine.certify(mesh, pts, executor=pool)
+    lonlat = np.column_stack([pts[:, 0] * 360 - 180, pts[:, 1] * 180 - 90])
+    on_sphere = knnrefine.refine(lonlat, 10, sphere=True)
+    with pytest.raises(InputError, match="drop executor="):
+        knnrefine.certify(on_sphere, lonlat, workers=2, executor=pool)
+
+
+@pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
+def test_certify_with_workers_threads_equals_one_thread(domain):
+    """workers is threads in every domain, refine's and certify's: workers=2 accepted and
+    certified, the same certificate at 1 and 2 threads."""
+    rng = np.random.default_rng(14)
+    if domain == "sphere":
+        pts = np.column_stack([rng.uniform(-180, 180, 3000), rng.uniform(-60, 60, 3000)])
+        mesh = knnrefine.refine(pts, 10, sphere=True, workers=2)
+    else:
+        pts = gaussian_clusters(3000, 14, dim=2 if domain == "plane" else 3)
+        mesh = knnrefine.refine(pts, 10, workers=2)
+    a = knnrefine.certify(mesh, pts, workers=1, samples=5000)
+    b = knnrefine.certify(mesh, pts, workers=2, samples=5000)
+    assert a.passed and b.passed
+    for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
+        assert getattr(a, field) == getattr(b, field), field
 
 
 @pytest.mark.parametrize("workers", [2, 8])
-def test_strips_that_hold_no_point(workers):
+def test_strips_that_hold_no_point(workers, pool):
     """regression (issue 28): certify(mesh, points, workers=2) crashed ('cannot reshape array
     of size 0') when a strip held no point, as with more strips than points. Points in a
     third of the torus, and five points at ten workers: the same verdict as in one process."""
@@ -121,12 +162,12 @@ def test_strips_that_hold_no_point(workers):
     pts = rng.random((300, 2)) * [0.3, 1.0]
     mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
     one = knnrefine.certify(mesh, pts)
-    tiled = knnrefine.certify(mesh, pts, workers=workers)
+    tiled = knnrefine.certify(mesh, pts, workers=workers, executor=pool)
     assert one.passed and tiled.passed
     assert (tiled.max_ball_count, tiled.max_cell_count) == (one.max_ball_count, one.max_cell_count)
     few = rng.random((5, 2))
     small = knnrefine.refine(few, 2, periodic=True, box=(0, 0, 1, 1))
-    assert knnrefine.certify(small, few, workers=10).passed
+    assert knnrefine.certify(small, few, workers=10, executor=pool).passed
 
 
 # -- in space: the same questions asked of slabs -----------------------------------------------
@@ -167,7 +208,7 @@ def test_slab_answers_in_space_equal_one_tree():
 
 
 @pytest.mark.slow
-def test_certify_in_space_with_workers_equals_certify():
+def test_certify_in_space_with_workers_equals_certify(pool):
     """workers > 1 in space: the same certificate as one process, field by field; a mesh of
     other points fails in both, with the same figures (a box periodic along y only: the
     slabs' kd-trees straight along x and z; the answers' equality on such a torus is
@@ -177,13 +218,13 @@ def test_certify_in_space_with_workers_equals_certify():
     mesh = knnrefine.refine(pts, 15, periodic=periodic, box=BOX3)
     options = dict(samples=10_000, n_random=2_000)
     a = knnrefine.certify(mesh, pts, **options)
-    b = knnrefine.certify(mesh, pts, workers=2, **options)
+    b = knnrefine.certify(mesh, pts, workers=2, executor=pool, **options)
     assert a.passed and b.passed
     for field in FIELDS3:
         assert getattr(a, field) == getattr(b, field), field
     other = np.random.default_rng(12).random((4000, 3)) * 0.3  # all in one corner
     a = knnrefine.certify(mesh, other, **options)
-    b = knnrefine.certify(mesh, other, workers=3, **options)
+    b = knnrefine.certify(mesh, other, workers=3, executor=pool, **options)
     assert not a.passed and not b.passed
     for field in FIELDS3:
         assert getattr(a, field) == getattr(b, field), field

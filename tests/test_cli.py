@@ -72,7 +72,7 @@ def test_refine_writes_every_format(tmp_path, csv, points, capsys):
         direct.box,
         direct.min_size,
     )
-    for name in ("vertices", "triangles", "offsets", "neighbors", "kinds"):
+    for name in ("vertices", "triangles", "offsets", "neighbours", "kinds"):
         np.testing.assert_array_equal(getattr(mesh.torus, name), getattr(direct.torus, name))
     assert mesh.stats["moves"] == direct.stats["moves"]
     assert knnrefine.certify(mesh, points).passed
@@ -288,7 +288,7 @@ def test_a_failed_write_leaves_nothing(tmp_path, monkeypatch):
 
 
 def test_usage_errors_exit_2(capsys):
-    for argv in (["no-such-command"], ["refine"], ["refine", "x.csv"], []):
+    for argv in (["no-such-command"], ["refine"], ["refine", "x.csv", "-k", "ten"], []):
         with pytest.raises(SystemExit) as info:
             main(argv)
         assert info.value.code == 2

@@ -237,7 +237,7 @@ def test_knn_cdf_for_several_k_matches_monte_carlo_at_its_noise(periodic):
     errors of a 5 x 10^5-point Monte Carlo truth at every radius, its 95% band narrow
     (median width < 0.05; the issue's target), the mesh's rigorous bounds holding the truth."""
     from knnrefine.density import knn_cdf
-    from knnrefine.density.adaptive import generator
+    from knnrefine.validation import random_generator
 
     pts = _thomas_like()
     r = np.linspace(0.01, 0.2, 20)
@@ -250,7 +250,7 @@ def test_knn_cdf_for_several_k_matches_monte_carlo_at_its_noise(periodic):
     res.vertices.update(forced.vertices)
     tree = cKDTree(pts, boxsize=1.0 if periodic else None)
     # Monte Carlo's way: the same uniform points as the seed draws
-    q = generator(0).random((200_000, 3))
+    q = random_generator(0).random((200_000, 3))
     d1 = np.sort(tree.query(q, k=[1])[0][:, 0])
     np.testing.assert_array_equal(res.cdf[0], np.searchsorted(d1, r, side="right") / len(q))
     far = np.random.default_rng(9).random((500_000, 3))

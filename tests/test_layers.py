@@ -12,14 +12,14 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "knnrefine"
 # the layers, lowest first: a module may import its own layer's modules (without a circle)
 # and those below; the key is the module's path under the package, a folder for all in it
 LAYERS = [
-    ["errors.py", "datasets.py", "data/"],
+    ["errors.py", "data/"],
     ["engine/"],
     ["metric.py"],
     ["validation.py"],
     ["options.py", "mesh.py"],
     ["run.py", "run3.py", "run_sphere.py"],
     ["pipeline.py"],
-    ["certify/", "density/", "cluster.py", "topology.py", "plot.py", "io.py"],
+    ["certify/", "density/", "cluster.py", "topology.py", "plot.py", "io.py", "datasets.py"],
     ["scale/"],
     ["api.py"],
     ["__init__.py"],

@@ -19,7 +19,7 @@ def assert_same_mesh(a, b):
         assert (x is None) == (y is None), name
         if x is not None:
             assert x.dtype == y.dtype and np.array_equal(x, y), name
-    for name in ("vertices", "cells", "offsets", "neighbors", "kinds"):
+    for name in ("vertices", "cells", "offsets", "neighbours", "kinds"):
         x, y = getattr(a.torus, name), getattr(b.torus, name)
         assert (x is None) == (y is None), name  # the torus in space keeps no neighbours
         if x is not None:

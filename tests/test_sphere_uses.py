@@ -381,7 +381,7 @@ def test_a_density_map_of_the_sphere_projects_its_grid_once(monkeypatch):
 
     def theirs(ax):
         masses = np.sort(HDR_MASSES)[::-1]
-        levels = hdr_levels(values, masses, np.cos(np.radians(lat))[:, None])
+        levels = hdr_levels(values, masses, areas=np.cos(np.radians(lat))[:, None])
         bounds = np.append(levels, values.max() * (1 + 1e-9))
         colours = colormaps["Blues"](np.linspace(0.35, 0.95, len(levels)))
         ax.contourf(np.radians(lon), np.radians(lat), values, levels=bounds, colors=colours)

@@ -158,7 +158,7 @@ def test_refined_meshes_are_valid_triangulations():
         mesh = knnrefine.refine(pts, 5, 3.0, periodic=periodic, box=(0, 0, 1, 1))
         t = mesh.torus
         problems = verify_triangulation(
-            t.vertices, t.triangles, t.offsets, t.neighbors, np.array(t.period)
+            t.vertices, t.triangles, t.offsets, t.neighbours, np.array(t.period)
         )[0]
         assert not problems, problems
         if periodic:

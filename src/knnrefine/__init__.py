@@ -24,17 +24,40 @@ from .scale.parts import PartitionedMesh, write_partitioned
 
 __version__ = "0.1.0"
 
+_LAZY = {"knn_cdf": ("density.cdf", "knn_cdf"), "plot": ("plot", None)}
+
+
+def __getattr__(name: str):
+    """``knn_cdf`` and ``plot`` on first use (``plot`` imports matplotlib, which
+    ``import knnrefine`` does not need)."""
+    if name not in _LAZY:
+        raise AttributeError(f"module 'knnrefine' has no attribute {name!r}")
+    import importlib
+
+    module, attr = _LAZY[name]
+    value = importlib.import_module(f".{module}", __name__)
+    value = value if attr is None else getattr(value, attr)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
 __all__ = [
     "refine",
     "certify",
     "Certificate",
     "KnnDistance",
+    "knn_cdf",
     "cluster",
     "Clustering",
     "KnnDensity",
     "KnnDensityEstimator",
     "datasets",
     "io",
+    "plot",
     "Mesh",
     "Torus",
     "PartitionedMesh",

@@ -127,6 +127,7 @@ def refine(
         faster than one core (``KNNREFINE_THREADS=1``); the slabs in space
         1.15-1.41x faster than one process at 10^6 points (k = 10 and 100), 1.09x faster on
         10^6 points on a plane in space (docs/benchmarks.md).
+        On the sphere there are no tiles yet: N > 1 runs the one process of None.
     executor : concurrent.futures.Executor, optional
         Run the tiles of a run with ``workers`` > 1 on this executor instead (processes or
         machines, each tile with a copy of its strip's points): its ``map`` is called once
@@ -138,8 +139,8 @@ def refine(
         latitude in degrees (or (n, 3) unit vectors), every distance is great-circle, and the
         guarantee holds on the whole sphere (no box, no periodic axes; docs/algorithm.md, "On
         the sphere"). The mesh has ``domain="sphere"``, vertices in longitude/latitude,
-        ``xyz`` unit vectors and ``triangles`` over them. One process only (``workers`` is
-        refused).
+        ``xyz`` unit vectors and ``triangles`` over them. In this process (``workers`` are
+        its threads; ``executor`` is refused).
     radius : float, optional
         On the sphere, its radius in the unit lengths are wanted in (``min_size``,
         ``Mesh.d_m2``): 1 (the default) gives angles in radians, 6371.0088 kilometres on the
@@ -156,25 +157,20 @@ def refine(
     by ``run3.refine3`` into the same ``Mesh`` type, weights, workers and executor (slabs)
     included.
     """
-    if pipeline.domain_of(points, sphere, radius) == "sphere":
-        pipeline.check_sphere_options(periodic, box, workers, executor)
-    elif workers is not None or executor is not None:  # tiles where they pay
+    domain = pipeline.domain_of(points, sphere, radius)
+    tiles = V.check_workers(workers)
+    V.check_executor(executor, tiles, domain)
+    if domain == "sphere":
+        pipeline.check_sphere_options(periodic, box)
+    elif tiles > 1:  # tiles where they pay
         pts, w, opt = pipeline.checked(points, weights, k=k, tau=tau, periodic=periodic,
                                        box=box, min_size=min_size, max_vertices=max_vertices,
                                        time_limit=time_limit, progress=progress)  # fmt: skip
-        workers = V.check_workers(workers)
-        if executor is not None and not callable(getattr(executor, "map", None)):
-            raise InputError(
-                "executor must be a concurrent.futures.Executor (with a map method), got "
-                f"{executor!r}"
-            )
-        if executor is not None and workers < 2:
-            raise InputError("an executor runs the tiles of a tiled run: give workers >= 2 with it")
         from .scale.shared import refine_local
         from .scale.tiled import tiles_pay
 
-        if workers > 1 and (executor is not None or tiles_pay(pts.shape[1], len(pts))):
-            return refine_local(pts, w, opt, workers, executor)
+        if executor is not None or tiles_pay(pts.shape[1], len(pts)):
+            return refine_local(pts, w, opt, tiles, executor)
     return pipeline.refine(points, k, tau, periodic=periodic, box=box, weights=weights,
                            min_size=min_size, max_vertices=max_vertices, time_limit=time_limit,
                            progress=progress, sphere=sphere, radius=radius)  # fmt: skip
@@ -187,12 +183,12 @@ def certify(
     samples: int = 100_000,
     n_random: int = 20_000,
     max_point_probes: int = 100_000,
-    seed: int = 0,
+    random_state: int | np.random.Generator | np.random.RandomState | None = 0,
     weights: ArrayLike | None = None,
     workers: int | None = None,
-    threads: int = -1,
+    executor: Executor | None = None,
 ) -> Certificate:
-    """Check a mesh against Theorem 6, independently of the engine, in the plane or in space.
+    """Check a mesh against Theorem 6, independently of the engine, in every domain.
 
     Counts and d_{P,k} come from scipy's cKDTree, never the engine (with weights, counts are
     sums of weights and d_{P,k} the least radius holding weight k). The checks, in order: the
@@ -211,20 +207,21 @@ def certify(
         is small, which is where the ratio has its extremes); every vertex, circumcentre and
         edge midpoint is probed too.
     n_random : int
-        Uniform probes in the box.
+        Uniform probes in the box (on the sphere, on the whole sphere).
     max_point_probes : int
         Input points probed, at most.
-    seed : int
-        The probes' random seed.
+    random_state : None, int, numpy Generator or RandomState
+        Where the probes' random draws come from (0: the same probes every call).
     weights : array-like (n,), optional
-        The weights of a weighted run (required for one, refused otherwise; the plane).
+        The weights of a weighted run (required for one, refused otherwise).
     workers : int, optional
-        Processes: None or 1 asks every question in this process; N > 1 asks the questions
-        about the points strip by strip in N local processes (what
-        ``scale.distributed.certify`` does on a cluster): same checks, same verdict (the
-        plane).
-    threads : int
-        Threads of the kd-tree queries (-1: all cores).
+        Threads of this process for the kd-tree questions, as refine's and scipy's
+        ``workers``: None (every core) or N. With ``executor``, the number of strips the
+        points' questions are asked in.
+    executor : concurrent.futures.Executor, optional
+        Ask the questions about the points strip by strip (``workers`` >= 2 strips), each a
+        task of this executor (local processes; ``scale.distributed.certify`` on a Dask
+        cluster): the same checks, the same verdict. In a box only: the sphere has no strips.
 
     Returns
     -------
@@ -237,20 +234,18 @@ def certify(
         Points, weights or options that are not the mesh's or not valid.
     """
     _check_certifiable(mesh)
-    workers = V.check_workers(workers)
-    if (
-        isinstance(threads, bool)
-        or not isinstance(threads, (int, np.integer))
-        or not (threads == -1 or threads >= 1)
-    ):
-        raise InputError(f"threads must be -1 (all cores) or a positive integer, got {threads!r}")
+    V.random_generator(random_state)  # refused before any work
+    strips = V.check_workers(workers)
+    on_sphere = getattr(mesh, "on_sphere", False)
+    V.check_executor(executor, strips, "sphere" if on_sphere else "box")
     options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
-                   seed=seed)  # fmt: skip
-    if workers == 1 or getattr(mesh, "on_sphere", False):  # the sphere: one process
-        return certify_points(mesh, points, weights=weights, threads=threads, **options)
+                   random_state=random_state)  # fmt: skip
+    if executor is None:
+        threads = -1 if workers is None else strips
+        return certify_points(mesh, points, weights=weights, workers=threads, **options)
     from .scale.checks import certify_local
 
-    return certify_local(mesh, points, weights, workers, threads, **options)
+    return certify_local(mesh, points, weights, strips, executor, **options)
 
 
 def _check_certifiable(mesh):

@@ -99,6 +99,7 @@ def significance_threshold(n, k):
 def cluster(
     mesh: Mesh,
     points: ArrayLike,
+    *,
     n_clusters: int | None = None,
     merge_threshold: float | None = None,
     noise: bool = False,

@@ -5,6 +5,8 @@ from importlib import resources
 
 import numpy as np
 
+from .validation import random_generator
+
 TRP_BOX = (0.0, 0.0, 360.0, 360.0)
 QUAKES_BOX = (-180.0, -90.0, 180.0, 90.0)
 
@@ -38,7 +40,12 @@ def earthquakes() -> np.ndarray:
     return _load("quakes_1965_2016.csv.gz")
 
 
-def ring(n: int = 2000, outliers: float = 0.2, seed: int = 0) -> np.ndarray:
+def ring(
+    n: int = 2000,
+    *,
+    outliers: float = 0.2,
+    random_state: int | np.random.Generator | np.random.RandomState | None = 0,
+) -> np.ndarray:
     """A synthetic noisy circle of radius 1 with a fraction of uniform outliers in
     [-1.5, 1.5]^2: the persistence showcase (its loop survives the outliers at k = 30).
 
@@ -48,32 +55,34 @@ def ring(n: int = 2000, outliers: float = 0.2, seed: int = 0) -> np.ndarray:
         Points in all.
     outliers : float
         Their share that is uniform.
-    seed : int
+    random_state : None, int, numpy Generator or RandomState
 
     Returns
     -------
     ndarray (n, 2)
     """
-    rng = np.random.default_rng(seed)
+    rng = random_generator(random_state)
     m = int(round(n * (1 - outliers)))
     angle = rng.random(m) * 2 * np.pi
     circle = np.column_stack([np.cos(angle), np.sin(angle)]) + rng.normal(0, 0.03, (m, 2))
     return np.concatenate([circle, rng.uniform(-1.5, 1.5, (n - m, 2))])
 
 
-def blobs(seed: int = 0) -> np.ndarray:
+def blobs(
+    *, random_state: int | np.random.Generator | np.random.RandomState | None = 0
+) -> np.ndarray:
     """Synthetic clusters: four Gaussian blobs of different widths (2,000 points each) on a
     uniform background of 2,000 points in the unit square.
 
     Parameters
     ----------
-    seed : int
+    random_state : None, int, numpy Generator or RandomState
 
     Returns
     -------
     ndarray (10000, 2)
     """
-    rng = np.random.default_rng(seed)
+    rng = random_generator(random_state)
     centres = np.array([[0.2, 0.2], [0.8, 0.3], [0.5, 0.8], [0.2, 0.75]])
     widths = [0.04, 0.05, 0.03, 0.06]
     parts = [rng.normal(c, w, (2000, 2)) for c, w in zip(centres, widths, strict=True)]

@@ -414,7 +414,7 @@ def _read_parquet(path, cols):
 # --- meshes -------------------------------------------------------------------------------
 
 
-def write_mesh(mesh: Mesh, path: str | os.PathLike, force: bool = False) -> None:
+def write_mesh(mesh: Mesh, path: str | os.PathLike, *, force: bool = False) -> None:
     """Write a mesh in the format its extension names (``WRITERS``; in space ``WRITERS3``),
     atomically.
 
@@ -589,7 +589,7 @@ def atomic_write(path: str | os.PathLike, force: bool, write: Callable) -> None:
         raise
 
 
-def write_table(path: str | os.PathLike, columns: dict, force: bool = False) -> None:
+def write_table(path: str | os.PathLike, columns: dict, *, force: bool = False) -> None:
     """A CSV file with a header line and one line per row, written atomically; floats with
     the fewest digits that read back to the same double (pandas' default), integers as
     integers.
@@ -608,7 +608,7 @@ def write_table(path: str | os.PathLike, columns: dict, force: bool = False) -> 
     atomic_write(path, force, lambda tmp: frame.to_csv(tmp, index=False))
 
 
-def write_text(path: str | os.PathLike, text: str, force: bool = False) -> None:
+def write_text(path: str | os.PathLike, text: str, *, force: bool = False) -> None:
     """A text file, written atomically.
 
     Parameters
@@ -637,7 +637,7 @@ def _write_npz(mesh, path):
         return
     t = mesh.torus
     d = mesh.dim
-    neighbors = {} if t.neighbors is None else {"torus_neighbors": t.neighbors}
+    neighbours = {} if t.neighbours is None else {"torus_neighbours": t.neighbours}
     with open(path, "wb") as f:
         np.savez_compressed(
             f,
@@ -661,7 +661,7 @@ def _write_npz(mesh, path):
             torus_cells=t.cells,
             torus_offsets=t.offsets,
             torus_kinds=t.kinds,
-            **neighbors,
+            **neighbours,
         )
 
 
@@ -701,7 +701,9 @@ def _mesh_of_npz(d, path):
         cells=d["torus_" + cells],
         offsets=d["torus_offsets"],
         kinds=d["torus_kinds"],
-        neighbors=d["torus_neighbors"] if "torus_neighbors" in d.files else None,
+        neighbours=next(
+            (d[key] for key in ("torus_neighbours", "torus_neighbors") if key in d.files), None
+        ),  # files of knnrefine 0.1 spell it "neighbors"
     )
     return Mesh(
         vertices=d["vertices"],

@@ -112,7 +112,7 @@ class Torus(Cells):
     with a margin (see ``knnrefine.engine.embedding``). ``vertices`` are relative to
     ``origin`` (in [0, period), exact, so that they keep full precision whatever the offset
     of the data); corner i of cell t sits at ``origin + vertices[cells[t, i]] + offsets[t, i]
-    * period``, and ``neighbors[t, i]`` (kept in the plane, None in space) is the cell across
+    * period``, and ``neighbours[t, i]`` (kept in the plane, None in space) is the cell across
     the facet opposite corner i. ``triangles`` (plane) and ``tetrahedra`` (space) name the
     cells.
 
@@ -126,7 +126,7 @@ class Torus(Cells):
     offsets : ndarray (t, d + 1, d) int8
     kinds : ndarray (m,) int8
         How each vertex came (``KIND_NAMES``).
-    neighbors : ndarray (t, d + 1) or None
+    neighbours : ndarray (t, d + 1) or None
     """
 
     origin: tuple
@@ -135,7 +135,7 @@ class Torus(Cells):
     cells: np.ndarray
     offsets: np.ndarray
     kinds: np.ndarray
-    neighbors: np.ndarray | None = None
+    neighbours: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -368,7 +368,7 @@ class Mesh(Cells):
         out.sort(key=lambda piece: piece[0])
         return out
 
-    def covering(self, sources: bool = False) -> tuple:
+    def covering(self, *, sources: bool = False) -> tuple:
         """A plain planar triangulation covering the box (the plane only): the triangles
         plus, along periodic axes, their copies one period back that still meet the box
         (corners only ever reach past the upper side of the box), one index per distinct

@@ -144,8 +144,7 @@ class RunOptions:
         elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
             raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
         max_vertices = V.check_max_vertices(max_vertices)
-        if progress is not None and not callable(progress):
-            raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
+        check_progress(progress)
         V.check_resolution(box, per)
         options = cls(k, tau, tuple(per), tuple(box), float(min_size), max_vertices,
                       time_limit, progress, t_start, deadline)  # fmt: skip
@@ -188,14 +187,55 @@ def check_initial_budget(box, per, budget):
 LARGE_RUN_BYTES = 2e9  # runs expected to need more memory than this say so up front
 
 
+def check_progress(progress):
+    """``progress`` as every call takes it: None (silent), True (a progress bar) or a
+    callable; else InputError, before any work."""
+    if progress is None or isinstance(progress, (bool, np.bool_)) or callable(progress):
+        return progress
+    raise InputError(
+        "progress must be True (a progress bar) or a callable(vertices, pending[, phase]), "
+        f"got {progress!r}"
+    )
+
+
+class ProgressBar:
+    """``progress=True``: a tqdm bar of the vertices so far (``tqdm.auto``: a widget in
+    notebooks, text in a terminal), shown only after a second, gone when the mesh is done;
+    the phases (compiling, assembling, an application's stage) as its description."""
+
+    def __init__(self, desc="refining", unit=" vertices"):
+        self.desc, self.unit, self.bar = desc, unit, None
+
+    def __call__(self, count, pending, phase="refining"):
+        if self.bar is None:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=None, unit=self.unit, delay=1.0, desc=self.desc, leave=False,
+                            dynamic_ncols=True)  # fmt: skip
+        bar = self.bar
+        if phase == "refining":
+            bar.set_postfix_str(f"{pending} queued", refresh=False)
+        else:
+            bar.set_description_str(phase, refresh=False)
+            bar.set_postfix_str("", refresh=False)
+        bar.update(max(count - bar.n, 0))  # honours the delay: short runs show no bar
+        if phase == "done":
+            bar.close()
+
+
 class Progress:
     """The user's progress callback: progress(vertices, pending) while refining; if it takes
     a ``phase`` argument, also phase="compiling" before a first compilation,
     phase="assembling" / "done" while the mesh is assembled, and progress(count, 0, phase)
     for an application's work after it (``stage``: the density estimator's "choosing the
-    smoothing", pairs scored)."""
+    smoothing", pairs scored). ``True`` is a bar (``ProgressBar``), False and None nothing."""
 
     def __init__(self, callback):
+        callback = check_progress(callback)
+        if callback is True:
+            callback = ProgressBar()
+        elif callback is False:
+            callback = None
         self.callback = callback
         self.phases = False
         if callback is not None:

@@ -16,7 +16,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import run
-from . import validation as V
 from .errors import InputError
 from .mesh import Mesh
 from .options import RunOptions
@@ -93,22 +92,19 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Me
     return run.refine_plane(pts, w, opt)
 
 
-def check_sphere_options(periodic, box, workers, executor):
+def check_sphere_options(periodic, box):
     """The options a sphere has no use for, refused before any work."""
     if periodic is not False or box is not None:
         raise InputError(
             "the sphere has no box and no periodic axes: drop box= and periodic= with "
             "sphere=True (longitudes wrap by themselves)"
         )
-    if V.check_workers(workers) > 1 or executor is not None:
-        raise InputError("refinement on the sphere runs in one process: drop workers= and "
-                         "executor= with sphere=True")  # fmt: skip
 
 
 def _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertices, time_limit,
                    progress, radius):  # fmt: skip
     """``refine`` on the sphere."""
-    check_sphere_options(periodic, box, None, None)
+    check_sphere_options(periodic, box)
     from .run_sphere import refine_sphere
 
     return refine_sphere(points, k, tau, weights=weights, radius=radius, min_size=min_size,

@@ -1,31 +1,55 @@
 """Pictures of a mesh with matplotlib: the input points, the triangles, and the triangles or the
 Voronoi cells coloured by d_{M,2} (log scale). Periodic meshes are drawn across the seam."""
 
+from __future__ import annotations
+
 import os
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import InputError
 from .mesh import edges
 from .metric import BoxMetric, lonlat_of, unit_vectors
 from .validation import as_sphere_points
 
+if TYPE_CHECKING:
+    from .mesh import Mesh
+
+__all__ = [
+    "plot_mesh",
+    "plot_sphere_mesh",
+    "plot_orthographic",
+    "plot_density",
+    "plot_projections",
+    "plot_slices",
+    "plot_clusters",
+    "plot_clusters_projected",
+    "plot_diagram",
+    "hdr_levels",
+    "save_plot",
+    "save_slices",
+    "save_figure",
+]
+
 
 def plot_mesh(
-    mesh,
-    points=None,
+    mesh: Mesh,
+    points: ArrayLike | None = None,
     *,
-    ax=None,
-    cells="triangles",
-    show_mesh=True,
-    show_points=True,
-    max_points=200_000,
-    cmap="viridis",
-    title=None,
-    labels=("x", "y"),
-    value_range=None,
-    show_colour_bar=True,
-):
+    ax: Any = None,
+    cells: str = "triangles",
+    show_mesh: bool = True,
+    show_points: bool = True,
+    max_points: int = 200_000,
+    cmap: str = "viridis",
+    title: str | None = None,
+    labels: Sequence[str] = ("x", "y"),
+    value_range: tuple[float, float] | None = None,
+    show_colour_bar: bool = True,
+) -> Any:
     """Draw ``mesh`` on ``ax`` (a new figure if None); returns the axes.
 
     cells: "triangles" (coloured by d_{M,2} at their centroid), "voronoi" (each vertex's cell
@@ -141,7 +165,15 @@ def colour_bar(ax, mappable, label):
     return cbar
 
 
-def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
+def save_plot(
+    mesh: Mesh,
+    path: str | os.PathLike,
+    points: ArrayLike | None = None,
+    *,
+    force: bool = False,
+    dpi: int = 150,
+    **kwargs: Any,
+) -> None:
     """Draw the mesh and write the picture; PNG, SVG or PDF by the extension (a mesh on the
     sphere on an equal-area Mollweide map)."""
     save_figure(
@@ -154,7 +186,16 @@ def save_plot(mesh, path, points=None, force=False, dpi=150, **kwargs):
     )
 
 
-def save_figure(path, figsize, draw, force=False, dpi=150, panels=1, projection=None):
+def save_figure(
+    path: str | os.PathLike,
+    figsize: tuple[float, float],
+    draw: Callable,
+    *,
+    force: bool = False,
+    dpi: int = 150,
+    panels: int = 1,
+    projection: str | None = None,
+) -> None:
     """Make a figure, let ``draw(ax)`` fill it (``draw(axes)`` with a row of ``panels`` axes
     when more than one), write it atomically (PNG, SVG or PDF); ``projection``: matplotlib's
     (``"mollweide"`` for maps of the sphere)."""
@@ -182,7 +223,9 @@ HDR_MASSES = (0.5, 0.8, 0.95)  # the highest-density regions drawn by default
 IMAGE_MASS = 0.99  # an image's colour scale reaches down to this region's level
 
 
-def hdr_levels(values, masses=HDR_MASSES, areas=None):
+def hdr_levels(
+    values: ArrayLike, masses: Sequence[float] = HDR_MASSES, *, areas: ArrayLike | None = None
+) -> np.ndarray:
     """The density levels whose superlevel sets hold the given shares of the mass of a grid
     of values: level t_p is the least value such that the cells at or above it hold p of the
     grid's total (Hyndman 1996's highest-density regions). Returns the levels, in the order
@@ -217,9 +260,18 @@ def hdr_levels(values, masses=HDR_MASSES, areas=None):
 
 
 def plot_density(
-    density, ax, shape=(512, 512), labels=None, cmap=None, grid=None, style="hdr",
-    masses=HDR_MASSES, points=None, max_points=20_000,
-):  # fmt: skip
+    density: Any,
+    ax: Any,
+    *,
+    shape: int | tuple = (512, 512),
+    labels: Sequence[str] | None = None,
+    cmap: str | None = None,
+    grid: tuple | None = None,
+    style: str = "hdr",
+    masses: Sequence[float] = HDR_MASSES,
+    points: ArrayLike | None = None,
+    max_points: int = 20_000,
+) -> Any:
     """Draw a density estimate the way statisticians publish one.
 
     Parameters
@@ -414,9 +466,19 @@ def _projected_polygons(ax, polygons, step=2.0):
     return np.split(flat, ends[:-1])
 
 
-def plot_sphere_mesh(mesh, points=None, *, ax=None, cells="triangles", show_mesh=True,
-                     show_points=True, max_points=200_000, cmap="viridis", title=None,
-                     show_colour_bar=True):  # fmt: skip
+def plot_sphere_mesh(
+    mesh: Mesh,
+    points: ArrayLike | None = None,
+    *,
+    ax: Any = None,
+    cells: str = "triangles",
+    show_mesh: bool = True,
+    show_points: bool = True,
+    max_points: int = 200_000,
+    cmap: str = "viridis",
+    title: str | None = None,
+    show_colour_bar: bool = True,
+) -> Any:
     """Draw a mesh on the sphere on an equal-area map (Mollweide unless ``ax`` has another
     geographic projection): its triangles in longitude and latitude (``Mesh.pieces_in_box``:
     cut at the antimeridian), coloured by d_{M,2} at their centroids (log scale), the points
@@ -485,7 +547,7 @@ def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, 
     if style == "hdr":
         order = np.argsort(masses)[::-1]
         masses = np.asarray(masses, float)[order]
-        levels = hdr_levels(f, masses, areas)
+        levels = hdr_levels(f, masses, areas=areas)
         top = float(np.nanmax(f))
         bounds = np.append(levels, top * (1 + 1e-9))
         colours = colormaps[cmap or "Blues"](np.linspace(0.35, 0.95, len(levels)))
@@ -499,7 +561,7 @@ def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, 
         bar.set_label("highest-density region holding this share of the mass")
     else:
         top = float(np.nanmax(f))
-        floor = min(float(hdr_levels(f, [IMAGE_MASS], areas)[0]), 0.1 * top)
+        floor = min(float(hdr_levels(f, [IMAGE_MASS], areas=areas)[0]), 0.1 * top)
         mesh = ax.pcolormesh(x, y, np.where(np.isfinite(f) & (f > floor), f, floor),
                              cmap=cmap or "magma", norm=LogNorm(vmin=floor, vmax=top, clip=True),
                              shading="auto", rasterized=True, transform=on_map)  # fmt: skip
@@ -520,8 +582,15 @@ def _plot_sphere_density(density, ax, shape, cmap, grid, style, masses, points, 
     return ax
 
 
-def plot_orthographic(mesh, ax=None, centre=(0.0, 0.0), points=None, cmap="viridis",
-                      max_points=50_000):  # fmt: skip
+def plot_orthographic(
+    mesh: Mesh,
+    ax: Any = None,
+    *,
+    centre: tuple[float, float] = (0.0, 0.0),
+    points: ArrayLike | None = None,
+    cmap: str = "viridis",
+    max_points: int = 50_000,
+) -> Any:
     """The mesh on the sphere seen from far away above ``centre`` (longitude, latitude in
     degrees): the triangles of the facing hemisphere coloured by d_{M,2} (log scale), the
     points there over them. Returns the axes (ordinary, equal aspect)."""
@@ -565,7 +634,7 @@ def plot_orthographic(mesh, ax=None, centre=(0.0, 0.0), points=None, cmap="virid
     return ax
 
 
-def plot_diagram(persistence, ax, dims=(0, 1)):
+def plot_diagram(persistence: Any, ax: Any, *, dims: Sequence[int] = (0, 1)) -> Any:
     """Persistence diagram: birth against death per dimension; classes that never die on a
     line at the top."""
     colours = {0: "tab:blue", 1: "tab:orange", 2: "tab:green", 3: "tab:red"}
@@ -602,7 +671,15 @@ def plot_diagram(persistence, ax, dims=(0, 1)):
     return ax
 
 
-def plot_clusters(mesh, points, labels, ax, max_points=200_000, labels_xy=("x", "y")):
+def plot_clusters(
+    mesh: Mesh,
+    points: ArrayLike,
+    labels: ArrayLike,
+    ax: Any,
+    *,
+    max_points: int = 200_000,
+    labels_xy: Sequence[str] = ("x", "y"),
+) -> Any:
     """Input points coloured by cluster (noise, label -1, in grey) over the mesh's edges, with
     a legend of the clusters and their sizes; on the sphere, on a Mollweide map (``ax`` with
     that projection)."""
@@ -717,7 +794,14 @@ def _voronoi_cells(mesh, lo, hi):
 VIEWS = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
 
 
-def save_slices(mesh, path, points=None, force=False, dpi=150):
+def save_slices(
+    mesh: Mesh,
+    path: str | os.PathLike,
+    points: ArrayLike | None = None,
+    *,
+    force: bool = False,
+    dpi: int = 150,
+) -> None:
     """A mesh in space as three slices through the box's centre coloured by d_{M,2}, with
     the points near each (``plot_slices``); PNG, SVG or PDF by the extension."""
     save_figure(
@@ -758,7 +842,17 @@ def _points_near(points, box, periodic, axis, at, slab):
     return pts[gap <= slab]
 
 
-def plot_slices(field, mesh, axes, label, points=None, shape=256, cmap="viridis", title=""):
+def plot_slices(
+    field: Callable,
+    mesh: Any,
+    axes: Any,
+    label: str,
+    *,
+    points: ArrayLike | None = None,
+    shape: int = 256,
+    cmap: str = "viridis",
+    title: str = "",
+) -> Any:
     """Three slices of ``field`` (values at points (q, 3)) through the box's centre, one
     per pair of axes, log colour scale shared by the three, with the ``points`` (if given)
     within a slab of 1/50 of the box around each plane drawn as dots."""
@@ -796,7 +890,15 @@ def plot_slices(field, mesh, axes, label, points=None, shape=256, cmap="viridis"
     return axes
 
 
-def plot_projections(density, axes, grid=None, points=None, max_points=20_000, cmap="magma"):
+def plot_projections(
+    density: Any,
+    axes: Any,
+    *,
+    grid: tuple | None = None,
+    points: ArrayLike | None = None,
+    max_points: int = 20_000,
+    cmap: str = "magma",
+) -> Any:
     """A density in space (``KnnDensity`` or ``AdaptiveDensity``) projected along each axis:
     the marginal density of each pair of axes (the grid summed across the third times its
     cell), log colour scale shared by the three, with up to ``max_points`` of the points as
@@ -835,7 +937,9 @@ def plot_projections(density, axes, grid=None, points=None, max_points=20_000, c
     return axes
 
 
-def plot_clusters_projected(mesh, points, labels, axes, max_points=200_000):
+def plot_clusters_projected(
+    mesh: Mesh, points: ArrayLike, labels: ArrayLike, axes: Any, *, max_points: int = 200_000
+) -> Any:
     """Points in space coloured by cluster (noise in grey) in the three views of the box."""
     pts = BoxMetric(mesh.box, mesh.periodic).wrap(np.asarray(points, float))
     lab = np.asarray(labels)

@@ -302,7 +302,7 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, ind
         vertices=res.vxy / emb.scale,
         cells=res.tv,
         offsets=res.to,
-        neighbors=res.tn,
+        neighbours=res.tn,
         kinds=res.kind,
     )
     return Mesh(

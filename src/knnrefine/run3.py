@@ -22,6 +22,7 @@ from .engine.state import (
     C_DISK_TESTS,
     C_FAILED,
     C_MAX_VERTICES,
+    C_NV,
     STATUS_DONE,
     STATUS_MAX_VERTICES,
 )
@@ -181,9 +182,10 @@ def refine3(pts, opt, weights=None):
     an initial mesh that cannot fit is refused before any work (``RunOptions.check``),
     time_limit and Ctrl-C hold during the setup too, a refusal names the largest k and tau
     that would certify, and a FloorWarning says when most points lie below the floor."""
-    k, tau, min_size, progress = opt.k, opt.tau, opt.min_size, opt.progress
+    k, tau, min_size = opt.k, opt.tau, opt.min_size
+    report = Progress(opt.progress)
     budget = opt.start_budget(len(pts))
-    with ahead.compiling("space", Progress(progress).compiling), Interrupts() as interrupts:
+    with ahead.compiling("space", report.compiling), Interrupts() as interrupts:
         start = Start3(pts, opt, budget, interrupts, weights)
         found = start.find(k, reach_factor(tau))
         if found is None:
@@ -200,9 +202,11 @@ def refine3(pts, opt, weights=None):
         run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
                           grid, emb.grid)  # fmt: skip
         del run_index, grid
-        status = run.run(opt.deadline, progress, interrupts)
+        status = run.run(opt.deadline, report.refining, interrupts)
     total = None if weights is None else math.fsum(weights)
+    report.assembling(int(run.cnt[C_NV]))
     mesh = finish3(run, status, emb, opt, lambda: pts, len(pts), total)
+    report.assembling(len(mesh.vertices), done=True)
     mesh.stats["estimated_vertices"] = int(estimated)
     mesh.stats["max_vertices"] = budget
     return mesh

@@ -62,7 +62,7 @@ from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
 from .errors import BudgetError, EngineError, FloorWarning, InputError
 from .mesh import Mesh
 from .metric import angle_to_chord, chord_to_angle, lonlat_of
-from .options import Progress, warn_k1
+from .options import Progress, check_progress, warn_k1
 
 STEPS = 20_000  # insertions per kernel call
 DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the default floor: a millionth of half a great circle
@@ -97,9 +97,7 @@ class SphereOptions:
                     f"time_limit must be a positive number of seconds, got {time_limit!r}"
                 )
             self.deadline = self.t_start + float(time_limit)
-        if progress is not None and not callable(progress):
-            raise InputError(f"progress must be a callable(vertices, pending), got {progress!r}")
-        self.progress = progress
+        self.progress = check_progress(progress)
 
     @property
     def floor_angle(self):

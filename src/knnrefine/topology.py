@@ -168,6 +168,7 @@ class Persistence:
         self,
         mesh: Mesh,
         points: ArrayLike,
+        *,
         log: bool = True,
         subdivide: bool = True,
         function: str = "d_pk",

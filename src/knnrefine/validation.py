@@ -290,8 +290,44 @@ def check_workers(workers):
     if workers is None:
         return 1
     if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:
-        raise InputError(f"workers must be a positive integer (processes), got {workers!r}")
+        raise InputError(
+            f"workers must be a positive integer (threads of this process), got {workers!r}"
+        )
     return int(workers)
+
+
+def check_executor(executor, workers, domain):
+    """An executor (anything with a ``map``) for the tiles or strips of a call with
+    ``workers`` >= 2, in a box: the sphere has neither."""
+    if executor is None:
+        return
+    if not callable(getattr(executor, "map", None)):
+        raise InputError(
+            f"executor must be a concurrent.futures.Executor (with a map method), got {executor!r}"
+        )
+    if domain == "sphere":
+        raise InputError(
+            "the sphere runs in this process (its workers are threads): drop executor= with "
+            "sphere=True"
+        )
+    if workers < 2:
+        raise InputError("an executor runs the tiles (strips) of a call: give workers >= 2 with it")
+
+
+def random_generator(random_state):
+    """The numpy Generator of a ``random_state`` as scikit-learn takes one (None, an int, a
+    Generator or a RandomState): the one seed argument of every call that draws."""
+    if isinstance(random_state, np.random.RandomState):
+        return np.random.default_rng(random_state.randint(0, 2**63 - 1, dtype=np.int64))
+    if isinstance(random_state, (bool, np.bool_, float)):
+        random_state = object()  # refused below: a bool or a float is not a seed
+    try:
+        return np.random.default_rng(random_state)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"random_state must be None, an int, a numpy Generator or RandomState, got "
+            f"{random_state!r}"
+        ) from None
 
 
 def check_periodic(periodic, dim=2):

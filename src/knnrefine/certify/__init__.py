@@ -22,16 +22,16 @@ __all__ = [
 
 
 def certify_points(
-    mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000, seed=0,
-    weights=None, threads=-1,
+    mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
+    random_state=0, weights=None, workers=-1,
 ) -> Certificate:  # fmt: skip
     """``knnrefine.certify`` in this process: the points checked to be the mesh's, then
     ``steps.run_checks`` with the mesh's domain's geometry and points; the caller has
-    checked ``threads``.
+    checked ``workers`` (threads: -1 for every core).
 
     Parameters
     ----------
-    mesh, points, samples, n_random, max_point_probes, seed, weights, threads
+    mesh, points, samples, n_random, max_point_probes, random_state, weights, workers
         As for ``knnrefine.certify``.
 
     Returns
@@ -39,20 +39,16 @@ def certify_points(
     Certificate
     """
     t0 = time.perf_counter()
-    geometry: steps.Geometry
-    answers: steps.PointQuestions
+    domain = sphere if mesh.on_sphere else plane if mesh.dim == 2 else space
     if mesh.on_sphere:
-        unit = as_sphere_points(points)
-        check_made_from(mesh.stats, len(unit), "certify a mesh against")
-        weights = weights_of_run(mesh.stats, len(unit), weights)
-        geometry = sphere.Geometry(mesh, threads)
-        answers = sphere.Points(unit, weights, threads, mesh.k)
+        pts = as_sphere_points(points)
+        check_made_from(mesh.stats, len(pts), "certify a mesh against")
+        weights = weights_of_run(mesh.stats, len(pts), weights)
     else:
         pts = as_points(points, mesh.dim)
         weights = check_points_are_the_meshs(mesh, pts, weights)
-        domain = plane if mesh.dim == 2 else space
-        geometry = domain.Geometry(mesh, threads)
-        answers = (plane.Points(mesh, pts, threads, weights) if mesh.dim == 2
-                   else space.Points(mesh, pts, weights, threads))  # fmt: skip
+    geometry: steps.Geometry = domain.Geometry(mesh, workers)
+    answers: steps.PointQuestions = domain.Points(mesh, pts, weights, workers)
     return steps.run_checks(mesh, geometry, answers, samples=samples, n_random=n_random,
-                            max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+                            max_point_probes=max_point_probes, random_state=random_state,
+                            t0=t0)  # fmt: skip

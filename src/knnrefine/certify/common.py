@@ -264,8 +264,8 @@ class TorusGeometry:
     circumballs counted by the points, Lemma 2's precondition on the initial vertices,
     Theorem 6's constants, the floor's sites and positions back in input coordinates."""
 
-    def __init__(self, mesh, threads):
-        self.mesh, self.threads = mesh, threads
+    def __init__(self, mesh, workers):
+        self.mesh, self.workers = mesh, workers
         self.floor = mesh.min_size
         self.origin = np.asarray(mesh.torus.origin, float)
         self.period = np.asarray(mesh.torus.period, float)
@@ -277,7 +277,7 @@ class TorusGeometry:
         self.no_position = (float("nan"),) * dim
 
     def vertex_d_m2(self):
-        return self.vertex_tree.query(self.vertices, k=2, workers=self.threads)[0][:, 1]
+        return self.vertex_tree.query(self.vertices, k=2, workers=self.workers)[0][:, 1]
 
     def cell_vertices(self):
         return self.vertices

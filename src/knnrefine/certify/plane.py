@@ -31,8 +31,8 @@ class Geometry(TorusGeometry):
     from the torus' vertices, the size integral over the box. Lengths in input units,
     positions relative to the torus' origin with both axes wrapped."""
 
-    def __init__(self, mesh, threads):
-        super().__init__(mesh, threads)
+    def __init__(self, mesh, workers):
+        super().__init__(mesh, workers)
         self.frame = BoxMetric((0.0, 0.0, *self.period), (True, True)).frame
         self.periodic = np.array(mesh.periodic, bool)
 
@@ -42,7 +42,7 @@ class Geometry(TorusGeometry):
         triangles' corners."""
         t = self.mesh.torus
         problems, corners, centres, radii = verify_triangulation(
-            self.vertices, t.triangles, t.offsets, t.neighbors, self.period
+            self.vertices, t.triangles, t.offsets, t.neighbours, self.period
         )
         outradii = np.zeros(len(self.vertices))
         for c in range(3):
@@ -83,7 +83,7 @@ class Geometry(TorusGeometry):
         return Probes(x, mask, (in_box, weights, len(corners)))
 
     def returned_d_m2(self, x):
-        return self.vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1], []
+        return self.vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1], []
 
     def size(self, probes, d_pk, points, rng):
         """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size),
@@ -106,9 +106,9 @@ class Points:
     """What every check reads of the input points in the plane: the points wrapped into
     the mesh's torus by the package's one rule, and a kd-tree over them."""
 
-    def __init__(self, mesh, pts, threads, weights=None):
+    def __init__(self, mesh, pts, weights, workers):
         self.k = mesh.k
-        self.threads = threads
+        self.workers = workers
         self.period = np.asarray(mesh.torus.period, float)
         self.origin = np.asarray(mesh.torus.origin, float)
         self.input_frame = TorusFrame(self.origin, self.period)
@@ -128,19 +128,19 @@ class Points:
     def d_pk(self, x):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
         if self.weights is None:
-            return self.point_tree.query(x, k=[self.k], workers=self.threads)[0][:, 0]
-        return weighted_kth(self.point_tree, self._weights(), x, self.k, self.threads)
+            return self.point_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
+        return weighted_kth(self.point_tree, self._weights(), x, self.k, self.workers)
 
     def held(self, centres, radii):
         """What each closed disk (centre, radius) holds: its number of points, or their
         weight."""
-        return held_in_balls(self.point_tree, self._weights(), centres, radii, self.threads)
+        return held_in_balls(self.point_tree, self._weights(), centres, radii, self.workers)
 
     def cell_counts(self, vertices, outradii):
         """What each vertex's closed Voronoi cell holds (points equidistant to several
         vertices count for each)."""
         tree = cKDTree(vertices, boxsize=self.period)
-        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.threads)
+        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.workers)
         return cell_tally(dd, ii, self.weights, len(vertices))
 
     def sample_points(self, count, rng):
@@ -213,15 +213,15 @@ def _rotate(rows, r):
     return np.take_along_axis(rows, idx.reshape(idx.shape + (1,) * (rows.ndim - 2)), axis=1)
 
 
-def verify_triangulation(vertices, triangles, offsets, neighbors, period):
-    """Problems (a list of strings, empty if none) that stop (triangles, offsets, neighbors)
+def verify_triangulation(vertices, triangles, offsets, neighbours, period):
+    """Problems (a list of strings, empty if none) that stop (triangles, offsets, neighbours)
     from being a Delaunay triangulation of the torus; also the realised corners, circumcenters
     (wrapped into the domain) and circumradii."""
     problems = []
     m, t = len(vertices), len(triangles)
     tri = np.asarray(triangles)
     off = np.asarray(offsets, np.int64)
-    nb = np.asarray(neighbors)
+    nb = np.asarray(neighbours)
     if t != 2 * m:
         problems.append(f"{t} triangles for {m} vertices (a torus has F = 2V)")
     if not np.all(np.isin(np.arange(m), tri)):

@@ -112,13 +112,13 @@ class Points:
     metric (``d_pk``; weighted: the least radius holding weight k), and some of the points
     (``sample_points``), all in the frame of the mesh's torus."""
 
-    def __init__(self, mesh, pts, weights, threads):
+    def __init__(self, mesh, pts, weights, workers):
         torus = mesh.torus
         self.origin = np.asarray(torus.origin, float)
         self.period = np.asarray(torus.period, float)
         self.points = TorusFrame(self.origin, self.period)(pts)
         self.tree = cKDTree(self.points, boxsize=self.period)
-        self.weights, self.threads, self.k, self.n = weights, threads, mesh.k, len(pts)
+        self.weights, self.workers, self.k, self.n = weights, workers, mesh.k, len(pts)
         self.weighted = weights is not None
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
         self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
@@ -133,22 +133,22 @@ class Points:
         return self._weight_trees[id(tree)]
 
     def held(self, centres, radii):
-        return held_in_balls(self.tree, self._weights(self.tree), centres, radii, self.threads)
+        return held_in_balls(self.tree, self._weights(self.tree), centres, radii, self.workers)
 
     def cell_counts(self, vertices, outradii):
         """What the closed Voronoi cell of each vertex (torus frame) holds: every point
         counts for each vertex as near as its nearest (``metric.cell_tally``)."""
         tree = cKDTree(vertices, boxsize=self.period)
-        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.threads)
+        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.workers)
         return cell_tally(dd, ii, self.weights, len(vertices))
 
     def d_pk(self, x):
         """d_{P,k} at x (the torus frame, periodic axes wrapped) in the box's own metric:
         straight along non-periodic axes, so the embedding's claim is tested."""
         if self.weights is None:
-            return self._box_tree.query(x, k=[self.k], workers=self.threads)[0][:, 0]
+            return self._box_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
         return weighted_kth(self._box_tree, self._weights(self._box_tree), x, self.k,
-                            self.threads)  # fmt: skip
+                            self.workers)  # fmt: skip
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points (torus frame), drawn at random."""
@@ -253,8 +253,8 @@ class Geometry(TorusGeometry):
     the box's own metric, d_{M,2} from the returned vertices (straight along non-periodic
     axes, so the embedding's claim is tested), the size integral of 1 / d_{P,k}^3."""
 
-    def __init__(self, mesh, threads):
-        super().__init__(mesh, threads)
+    def __init__(self, mesh, workers):
+        super().__init__(mesh, workers)
         torus = mesh.torus
         self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
         self.local = self.vertices
@@ -327,12 +327,12 @@ class Geometry(TorusGeometry):
         periodic = self.mesh.periodic
         box_boxsize = np.where(periodic, self.period, 0.0) if any(periodic) else None
         dm2 = cKDTree(returned, boxsize=box_boxsize).query(
-            x, k=min(2, len(returned)), workers=self.threads
+            x, k=min(2, len(returned)), workers=self.workers
         )[0]
         dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(x), np.inf)
         problems = []
         if coordinates and len(returned) >= 2:  # the copies near the box hold its two nearest
-            on_torus = self.vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
+            on_torus = self.vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
             if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
                 problems.append(
                     "d_M2 from the returned vertices differs from the torus mesh's in the box"

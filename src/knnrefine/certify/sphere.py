@@ -123,7 +123,7 @@ def _held_exactly(xyz, tri, unit, weights, members, bounds, first):
     return out
 
 
-def _held_in_caps(xyz, tri, centres, chords, unit, tree, weights, threads, chunk=20_000):
+def _held_in_caps(xyz, tri, centres, chords, unit, tree, weights, workers, chunk=20_000):
     """What each closed circumcap holds, decided exactly (``_held_exactly``) among the
     points a kd-tree finds in a ball a little larger than the cap (``CAP_CANDIDATES``)."""
     reach = np.sqrt(chords**2 * (1.0 + 1e-6) + CAP_CANDIDATES)
@@ -131,7 +131,7 @@ def _held_in_caps(xyz, tri, centres, chords, unit, tree, weights, threads, chunk
     out = np.zeros(len(tri))
     for lo in range(0, len(tri), chunk):
         hi = min(len(tri), lo + chunk)
-        lists = tree.query_ball_point(centres[lo:hi], reach[lo:hi], workers=threads)
+        lists = tree.query_ball_point(centres[lo:hi], reach[lo:hi], workers=workers)
         sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
         bounds = np.concatenate([[0], np.cumsum(sizes)])
         members = (np.concatenate([np.asarray(a, np.int64) for a in lists]) if bounds[-1]
@@ -224,8 +224,8 @@ class Points:
     """The questions ``certify`` asks about the points, on the unit sphere: counts in caps
     (balls about unit vectors), d_{P,k} (an angle), cell tallies."""
 
-    def __init__(self, unit, weights, threads, k):
-        self.unit, self.weights, self.threads, self.k = unit, weights, threads, k
+    def __init__(self, mesh, unit, weights, workers):
+        self.unit, self.weights, self.workers, self.k = unit, weights, workers, mesh.k
         self.tree = cKDTree(unit)
         self.n = len(unit)
         self.weighted = weights is not None
@@ -240,13 +240,13 @@ class Points:
     def held(self, centres, angles):
         """What each closed cap (centre, angle) holds, inflated by a relative 1e-12."""
         chord = angle_to_chord(np.asarray(angles, float)) * (1.0 + 1e-12)
-        return held_in_balls(self.tree, self._weights(), centres, chord, self.threads)
+        return held_in_balls(self.tree, self._weights(), centres, chord, self.workers)
 
     def cell_counts(self, vertices, outradii):
         """What each vertex's closed Voronoi cell holds: each point counts for every vertex
         as near as its nearest, up to the unit vectors' rounding (``CELL_TIES``)."""
         dd, ii = cKDTree(vertices).query(self.unit, k=min(3, len(vertices)),
-                                         workers=self.threads)  # fmt: skip
+                                         workers=self.workers)  # fmt: skip
         return cell_tally(dd, ii, self.weights, len(vertices), slack2=CELL_TIES)
 
     def d_pk(self, x):
@@ -258,9 +258,9 @@ class Points:
         if self.total < k:
             return np.full(len(x), np.inf)
         if self.weights is None:
-            d = self.tree.query(x, k=[int(k)], workers=self.threads)[0][:, 0]
+            d = self.tree.query(x, k=[int(k)], workers=self.workers)[0][:, 0]
         else:
-            d = weighted_kth(self.tree, self._weights(), x, k, self.threads)
+            d = weighted_kth(self.tree, self._weights(), x, k, self.workers)
         return chord_to_angle(d)
 
     def sample_points(self, count, rng):
@@ -302,8 +302,8 @@ class Geometry:
 
     no_position = ()
 
-    def __init__(self, mesh, threads):
-        self.mesh, self.threads = mesh, threads
+    def __init__(self, mesh, workers):
+        self.mesh, self.workers = mesh, workers
         self.floor = mesh.min_size / mesh.radius
         self.xyz = np.asarray(mesh.xyz, float)
         self.tri = np.asarray(mesh.triangles, np.int64)
@@ -336,7 +336,7 @@ class Geometry:
         if tri.problems:
             return points.held(tri.centres, tri.radii)
         return _held_in_caps(self.xyz, self.tri, tri.centres, tri.extra, points.unit,
-                             points.tree, points.weights, self.threads)  # fmt: skip
+                             points.tree, points.weights, self.workers)  # fmt: skip
 
     def precondition(self, points, k, tau):
         initial = self.xyz[np.asarray(self.mesh.kinds) == 0]
@@ -365,7 +365,7 @@ class Geometry:
         return Probes(probes, mask, int(n_random))
 
     def returned_d_m2(self, x):
-        return chord_to_angle(self.vtree.query(x, k=2, workers=self.threads)[0][:, 1]), []
+        return chord_to_angle(self.vtree.query(x, k=2, workers=self.workers)[0][:, 1]), []
 
     def size(self, probes, d_pk, points, rng):
         """The integral over the sphere of 1 / d_Pk^2 (area 4 pi), Monte Carlo."""

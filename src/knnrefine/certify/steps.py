@@ -22,6 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ..validation import random_generator
 from .certificate import Certificate
 
 # the triangulation as a geometry checked it: its problems, each cell's circumcentre and
@@ -106,7 +107,7 @@ def run_checks(
     samples,
     n_random,
     max_point_probes,
-    seed,
+    random_state,
     t0,
 ):
     """The certificate of ``mesh``: every step above, with ``geometry`` the domain's
@@ -117,7 +118,7 @@ def run_checks(
     mesh : Mesh
     geometry : the domain's Geometry
     points : the domain's Points (or a tiled one)
-    samples, n_random, max_point_probes, seed
+    samples, n_random, max_point_probes, random_state
         As for ``knnrefine.certify``.
     t0 : float
         When the call began (``time.perf_counter()``).
@@ -143,7 +144,7 @@ def run_checks(
     max_cell = exact(cells[above_cells].max()) if above_cells.any() else exact(0)
     precondition_ok, precondition_note = geometry.precondition(points, k, tau)
     # the achieved constants at the probes where d_Pk >= the floor
-    rng = np.random.default_rng(seed)
+    rng = random_generator(random_state)
     probes = geometry.probes(tri, points, samples, n_random, max_point_probes, rng)
     nan = float("nan")
     alpha_hat = beta_hat = nan

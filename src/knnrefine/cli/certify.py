@@ -2,7 +2,7 @@
 
 import json
 
-from .common import add_input_options
+from .common import add_input_options, add_random_state_option, add_workers_option
 
 HELP = "certify a mesh (.npz) against its points"
 EXAMPLES = """examples:
@@ -27,6 +27,8 @@ def add_arguments(parser):
         default=100_000,
         help="stratified probes inside the triangles (default 100000)",
     )
+    add_workers_option(parser)
+    add_random_state_option(parser, "the probes")
     parser.add_argument("--force", action="store_true", help="overwrite an existing JSON file")
 
 
@@ -40,11 +42,12 @@ def run(args):
         check_outputs([(args.json, (".json",), "certificates")], args)
     mesh = io.read_mesh(args.mesh)
     args.sphere = mesh.on_sphere  # its points: longitude and latitude, found by name
-    points, _ = read_input(args)
-    cert = certify(mesh, points, samples=args.samples)
+    points, weights, _ = read_input(args)
+    cert = certify(mesh, points, samples=args.samples, weights=weights, workers=args.workers,
+                   random_state=args.random_state)  # fmt: skip
     if args.json:
         text = json.dumps(cert.to_dict(), indent=1)
-        io.write_text(args.json, text, args.force)
+        io.write_text(args.json, text, force=args.force)
     if not args.quiet:
         print(cert)
     return 0 if cert.passed else 3

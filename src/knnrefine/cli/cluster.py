@@ -20,9 +20,7 @@ are drawn in three views. Outputs: .csv (row, the columns, label) or .npy (label
 
 def add_arguments(parser):
     add_input_options(parser)
-    add_refine_options(
-        parser, k_required=False, k_help="which nearest neighbour (default: sqrt(n) / 2, >= 10)"
-    )
+    add_refine_options(parser)
     add_mesh_option(parser)
     parser.add_argument("--n-clusters", type=int, help="how many clusters to keep")
     parser.add_argument("--noise", action="store_true", help="label -1 the points between clusters")
@@ -52,9 +50,9 @@ def run(args):
     outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
     check_outputs(outputs, args)
     require_gudhi()
-    points, names = read_input(args, dim=dim_of(args))
-    mesh, _ = mesh_for(args, points, default_k)
-    cl = cluster(mesh, points, n_clusters=args.n_clusters, noise=args.noise)
+    points, weights, names = read_input(args, dim=dim_of(args))
+    mesh, _ = mesh_for(args, points, default_k, weights)
+    cl = cluster(mesh, points, n_clusters=args.n_clusters, noise=args.noise, weights=weights)
     if args.output:
         if os.path.splitext(args.output)[1].lower() == ".csv":
             io.write_table(
@@ -64,7 +62,7 @@ def run(args):
                     **{name: points[:, a] for a, name in enumerate(names)},
                     "label": cl.labels,
                 },
-                args.force,
+                force=args.force,
             )
         else:
             io.atomic_write(args.output, args.force, lambda tmp: np.save(tmp, cl.labels))

@@ -1,5 +1,6 @@
 """Options and helpers shared by the subcommands."""
 
+import argparse
 import contextlib
 import os
 import sys
@@ -7,6 +8,7 @@ import time
 import warnings
 
 from ..errors import InputError, KnnRefineError
+from ..options import ProgressBar
 
 PICTURES = (".png", ".svg", ".pdf")
 MESHES = (".npz", ".vtu", ".vtk", ".xdmf", ".geojson", ".csv")
@@ -59,13 +61,17 @@ def check_outputs(outputs, args):
 
 
 def read_input(args, path=None, dim=None):
-    """(points, the columns' names) from the command's input options: the columns' names for
-    axes and output headers come from --columns or the file's header, else x, y (and z).
-    Three columns (the first three unless --columns names them) for points in space: three
-    --columns, a six-number --box, or ``dim`` = 3 (a mesh in space)."""
+    """(points, weights or None, the columns' names) from the command's input options: the
+    columns' names for axes and output headers come from --columns or the file's header,
+    else x, y (and z); the weights from --weights. Three columns (the first three unless
+    --columns names them) for points in space: three --columns, a six-number --box, or
+    ``dim`` = 3 (a mesh in space)."""
     from .. import io
 
-    return io.read_points_named(path or args.points, space_columns(args, dim), args.delimiter)
+    return io.read_weighted_points(
+        path or args.points, space_columns(args, dim), getattr(args, "weights", None),
+        args.delimiter,
+    )  # fmt: skip
 
 
 def space_columns(args, dim=None):
@@ -85,6 +91,12 @@ def add_input_options(parser, positional="points"):
         positional, help="points: CSV/TSV/text, .npy, .npz, .parquet, or - for standard input"
     )
     parser.add_argument(
+        "--weights",
+        metavar="COLUMN",
+        help="a column of weights >= 0 (counts, survey weights), by name or index; "
+        "a point of weight w counts as w points (as refine's weights=)",
+    )
+    parser.add_argument(
         "--columns",
         metavar="A,B[,C]",
         help="the x and y columns, by name (lon,lat) or zero-based index (2,3); "
@@ -98,18 +110,33 @@ def add_input_options(parser, positional="points"):
     )
 
 
-def add_refine_options(parser, k_required=True, k_help="which nearest neighbour (k >= 1)"):
-    parser.add_argument("-k", type=int, required=k_required, help=k_help)
+def number(text):
+    """-k as refine takes it: a whole number, or any positive number with --weights."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    return int(value) if value.is_integer() else value
+
+
+def add_refine_options(
+    parser,
+    k_help="which nearest neighbour, k >= 1 (any number up to the total weight with "
+    "--weights; default sqrt(n) / 2, at least 10)",
+):
+    parser.add_argument("-k", type=number, help=k_help)
     parser.add_argument("--tau", type=float, default=3.0, help="well-spacedness, > 2 (default 3)")
-    per = parser.add_mutually_exclusive_group()
-    per.add_argument(
+    parser.add_argument(
         "--periodic", action="store_true", help="the box is a flat torus (needs --box)"
     )
-    per.add_argument("--periodic-x", action="store_true", help="periodic in x only")
-    per.add_argument("--periodic-y", action="store_true", help="periodic in y only")
-    per.add_argument(
-        "--periodic-z", action="store_true", help="periodic in z only (points in space)"
-    )
+    for axis in "xyz":
+        parser.add_argument(
+            f"--periodic-{axis}",
+            action="store_true",
+            help=f"periodic in {axis} (any of --periodic-x/y/z together"
+            + (", points in space)" if axis == "z" else ")"),
+        )
+    add_workers_option(parser)
     parser.add_argument(
         "--box",
         type=float,
@@ -138,8 +165,29 @@ def add_refine_options(parser, k_required=True, k_help="which nearest neighbour 
         "radians)",
     )
     parser.add_argument("--max-vertices", type=int, help="vertex budget")
+
     parser.add_argument(
         "--time-limit", type=float, metavar="SECONDS", help="time budget for the refinement"
+    )
+
+
+def add_workers_option(parser):
+    parser.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="threads of this process (as refine's and certify's workers=; default: one run "
+        "whose kernels use every core)",
+    )
+
+
+def add_random_state_option(parser, what):
+    parser.add_argument(
+        "--random-state",
+        type=int,
+        default=0,
+        metavar="SEED",
+        help=f"the seed of {what} (as the API's random_state=; default 0)",
     )
 
 
@@ -240,28 +288,8 @@ def refine_with_progress(points, args, quiet, weights=None):
     else:
         domain = "space" if len(shape) == 2 and shape[1] == 3 else "plane"
     announce_compilation(quiet, domain)
-    bar = None
-    if not quiet and sys.stderr.isatty():  # no carriage returns in a redirected stderr
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=None,
-            unit=" vertices",
-            delay=1.0,
-            desc="refining",
-            leave=False,
-            dynamic_ncols=True,
-        )
-
-    def progress(vertices, pending, phase="refining"):
-        if bar is not None:  # update() honours the delay: short runs show no bar at all
-            if phase == "refining":
-                bar.set_postfix_str(f"{pending} queued", refresh=False)
-            else:
-                bar.set_description_str(phase, refresh=False)
-                bar.set_postfix_str("", refresh=False)
-            bar.update(vertices - bar.n)
-
+    # a bar only on a terminal: no carriage returns in a redirected stderr
+    bar = ProgressBar() if not quiet and sys.stderr.isatty() else None
     t0 = time.perf_counter()
     caught = []
     try:
@@ -280,12 +308,13 @@ def refine_with_progress(points, args, quiet, weights=None):
                 min_size=args.min_size,
                 max_vertices=args.max_vertices,
                 time_limit=args.time_limit,
-                progress=progress,
+                progress=bar,
                 weights=weights,
+                workers=getattr(args, "workers", None),
             )
     finally:
-        if bar is not None:
-            bar.close()
+        if bar is not None and bar.bar is not None:
+            bar.bar.close()
         for w in caught:  # after the bar is gone, so that the two do not interleave
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     return mesh, time.perf_counter() - t0

@@ -70,7 +70,7 @@ def run(args):
         "blobs.csv": (datasets.blobs(), ("x", "y")),
     }
     for name, (table, (a, b)) in examples.items():
-        io.write_table(os.path.join(args.out, name), {a: table[:, 0], b: table[:, 1]}, True)
+        io.write_table(os.path.join(args.out, name), {a: table[:, 0], b: table[:, 1]}, force=True)
     io.write_mesh(mesh, files["mesh.npz"], force=True)
     io.write_mesh(mesh, files["mesh.vtu"], force=True)
     save_plot(

@@ -5,7 +5,13 @@ import time
 
 import numpy as np
 
-from .common import add_input_options, add_mesh_option, add_refine_options, mesh_for
+from .common import (
+    add_input_options,
+    add_mesh_option,
+    add_random_state_option,
+    add_refine_options,
+    mesh_for,
+)
 
 HELP = "estimate the density (adaptive kernel, or kNN k / (n V_d d_Pk^d)) on a grid"
 EXAMPLES = """examples:
@@ -35,16 +41,10 @@ def add_arguments(parser):
     add_input_options(parser)
     add_refine_options(
         parser,
-        k_required=False,
         k_help="which nearest neighbour (default 2 sqrt(n) adaptive, sqrt(n) / 2 knn)",
     )
     add_mesh_option(parser)
-    parser.add_argument(
-        "--weights",
-        metavar="COLUMN",
-        help="a column of weights >= 0 (counts, survey weights), by name or index; "
-        "a point of weight w counts as w points",
-    )
+    add_random_state_option(parser, "the points the smoothing is chosen at")
     parser.add_argument(
         "--method",
         choices=("adaptive", "knn"),
@@ -221,8 +221,9 @@ def run(args):
         if len(alphas) > 1 or len(cs) > 1:
             with stage_bar(args.quiet, "choosing the smoothing", " pairs scored") as update:
                 table = choose_smoothing(
-                    density, alphas, cs, criterion=args.criterion, progress=update
-                )[2]
+                    density, alphas, cs, criterion=args.criterion, progress=update,
+                    random_state=args.random_state,
+                )[2]  # fmt: skip
             scored = len(table)
         f = density.grid(tuple(cells[::-1]))[-1]
     else:
@@ -264,7 +265,7 @@ def run(args):
                     "density": f.ravel(),
                     "d_pk": d.ravel(),
                 },
-                args.force,
+                force=args.force,
             )
     if args.plot and dim == 3:  # projections along each axis, with the points
         save_figure(

@@ -18,9 +18,7 @@ space (three --columns, a six-number --box or a --mesh in space) give classes H0
 
 def add_arguments(parser):
     add_input_options(parser)
-    add_refine_options(
-        parser, k_required=False, k_help="which nearest neighbour (default: sqrt(n) / 2, >= 10)"
-    )
+    add_refine_options(parser)
     add_mesh_option(parser)
     parser.add_argument("--linear", action="store_true", help="d_Pk itself, not its logarithm")
     parser.add_argument("-o", "--output", metavar="FILE", help="write the diagram (.csv)")
@@ -40,9 +38,9 @@ def run(args):
     outputs += [(args.plot, PICTURES, "pictures")] if args.plot else []
     check_outputs(outputs, args)
     require_gudhi()
-    points, _ = read_input(args, dim=dim_of(args))
-    mesh, _ = mesh_for(args, points, default_k)
-    ph = Persistence(mesh, points, log=not args.linear)
+    points, weights, _ = read_input(args, dim=dim_of(args))
+    mesh, _ = mesh_for(args, points, default_k, weights)
+    ph = Persistence(mesh, points, log=not args.linear, weights=weights)
     dims = tuple(range(mesh.dim + 1))  # classes up to the top dimension: H0-H2, or H0-H3
     if args.output:
         rows = np.concatenate(
@@ -51,7 +49,7 @@ def run(args):
         io.write_table(
             args.output,
             {"dimension": rows[:, 0].astype(int), "birth": rows[:, 1], "death": rows[:, 2]},
-            args.force,
+            force=args.force,
         )
     if args.plot:
         save_figure(

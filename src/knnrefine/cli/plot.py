@@ -43,7 +43,7 @@ def run(args):
             "--cells and --no-mesh draw planar meshes; a mesh in space is drawn as slices "
             "coloured by d_M2"
         )
-    points, labels = read_input(args, args.points, mesh.dim) if args.points else (None, None)
+    points, _, labels = read_input(args, args.points, mesh.dim) if args.points else (None,) * 3
     if mesh.dim == 3:
         from ..plot import save_slices
 

@@ -8,6 +8,7 @@ from .common import (
     MESHES,
     PICTURES,
     add_input_options,
+    add_random_state_option,
     add_refine_options,
     check_outputs,
     in_space,
@@ -48,6 +49,7 @@ def add_arguments(parser):
     parser.add_argument(
         "--certify", action="store_true", help="also certify the mesh and print the report"
     )
+    add_random_state_option(parser, "--certify's probes")
     parser.add_argument("--force", action="store_true", help="overwrite existing files")
 
 
@@ -71,13 +73,13 @@ def run(args):
                     f"{path}: a mesh in space is written as {', '.join(sorted(WRITERS3))}"
                 )
     t0 = time.perf_counter()
-    points, names = read_input(args)
+    points, weights, names = read_input(args)
     if not args.quiet:
         print(
             f"read {plural(len(points), 'point')} from {args.points} in "
             f"{time.perf_counter() - t0:.2f} s"
         )
-    mesh, seconds = refine_with_progress(points, args, args.quiet)
+    mesh, seconds = refine_with_progress(points, args, args.quiet, weights)
     for path in outputs:
         io.write_mesh(mesh, path, force=args.force)
     if args.plot and mesh.dim == 3:
@@ -88,7 +90,8 @@ def run(args):
         print(summary(mesh, seconds))
         print("  wrote " + ", ".join(outputs + ([args.plot] if args.plot else [])))
     if args.certify:
-        cert = certify(mesh, points)
+        cert = certify(mesh, points, weights=weights, workers=args.workers,
+                       random_state=args.random_state)  # fmt: skip
         print(cert)
         return 0 if cert.passed else 3
     return 0
@@ -96,4 +99,4 @@ def run(args):
 
 def _default_output(points, k):
     stem = "points" if points == "-" else os.path.splitext(os.path.basename(points))[0]
-    return f"{stem}-k{k}.npz"
+    return f"{stem}-k{k}.npz" if k is not None else f"{stem}-mesh.npz"

@@ -15,6 +15,7 @@ from ..validation import (
     as_points,
     as_queries,
     check_in_a_box,
+    random_generator,
     sphere_points_of_run,
     weights_of_run,
 )
@@ -484,13 +485,13 @@ def choose_smoothing(
 
     n = len(density.pilot)
     m = min(n, int(loo_points))
-    sample = None if m == n else np.sort(generator(random_state).choice(n, m, False))
+    sample = None if m == n else np.sort(random_generator(random_state).choice(n, m, False))
     i = int(np.argmin(np.abs(np.asarray(alphas) - 0.5)))
     j = int(np.argmin(np.abs(np.log(bandwidths))))
     binned = _binned_scores(density, sample, criterion, binned)
     if m > 2 * COARSE and not binned:  # binned passes cost about O(n), whatever m
         pool = np.arange(n) if sample is None else sample
-        coarse = np.sort(generator(random_state).choice(pool, max(COARSE, m // 5), False))
+        coarse = np.sort(random_generator(random_state).choice(pool, max(COARSE, m // 5), False))
         coarse_scores = Scores(density, coarse, criterion, scored_one, binned)
         i, j, _ = _climb(coarse_scores, alphas, bandwidths, i, j)
     scores = Scores(density, sample, criterion, scored_one, binned)
@@ -678,19 +679,6 @@ def check_criterion(criterion):
 def check_cv(cv):
     if isinstance(cv, bool) or not isinstance(cv, (int, np.integer)) or cv < 2:
         raise InputError(f"cv must be an integer >= 2, got {cv!r}")
-
-
-def generator(random_state):
-    """A numpy Generator from scikit-learn-style random_state values."""
-    if isinstance(random_state, np.random.RandomState):
-        return np.random.default_rng(random_state.randint(0, 2**63 - 1, dtype=np.int64))
-    try:
-        return np.random.default_rng(random_state)
-    except (TypeError, ValueError):
-        raise InputError(
-            f"random_state must be None, an int, a numpy Generator or RandomState, got "
-            f"{random_state!r}"
-        ) from None
 
 
 # the kernel tree holds unit vectors shifted into its box [0, 2 OFFSET)^3, far from the

@@ -38,8 +38,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from ..errors import BudgetError, InputError
-from ..validation import as_points, check_box, check_k
-from .adaptive import generator
+from ..validation import as_points, check_box, check_k, random_generator
 
 MESH_K = 80  # "auto": the mesh from this k on at n = 10^5 points and 10^6 queries (space)
 METHODS = ("auto", "mesh", "monte-carlo")
@@ -147,7 +146,7 @@ def knn_cdf(
         pts = lo + np.mod(pts - lo, side)
     elif np.any(pts < lo) or np.any(pts > hi):
         raise InputError("points lie outside the box: enlarge the box or use periodic=True")
-    rng = generator(random_state)
+    rng = random_generator(random_state)
 
     # the mesh's cost grows as n / k (its vertices), Monte Carlo's as queries * k: even at
     # k = MESH_K sqrt((n / 10^5) / (queries / 10^6)) (the module docstring's measures)

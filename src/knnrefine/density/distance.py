@@ -27,7 +27,13 @@ from ..engine.index3 import build_index3, kth_distances3
 from ..engine.threads import in_chunks
 from ..errors import InputError
 from ..metric import BoxMetric, lonlat_of, unit_vectors, weighted_kth
-from ..validation import as_queries, check_inside, points_of_run, sphere_points_of_run
+from ..validation import (
+    as_queries,
+    check_inside,
+    points_of_run,
+    random_generator,
+    sphere_points_of_run,
+)
 from .plane import PlanePieces, index_values, linear_pieces
 from .space import SpacePieces
 from .sphere import SphereIndex, SpherePieces, equal_area_radius
@@ -83,6 +89,7 @@ class KnnDistance:
         self,
         mesh: Mesh,
         points: ArrayLike,
+        *,
         subdivide: bool = True,
         weights: ArrayLike | None = None,
     ) -> None:
@@ -317,7 +324,13 @@ class KnnDistance:
             out[missed] = self(x)
         return (*axes, out)
 
-    def error(self, probes: ArrayLike | None = None, n_random: int = 20000, seed: int = 0) -> dict:
+    def error(
+        self,
+        probes: ArrayLike | None = None,
+        *,
+        n_random: int = 20000,
+        random_state: int | np.random.Generator | np.random.RandomState | None = 0,
+    ) -> dict:
         """Relative error of the estimate against exact d_{P,k}.
 
         Parameters
@@ -325,8 +338,10 @@ class KnnDistance:
         probes : array-like (q, d), optional
             Where to compare (default: ``n_random`` uniform points of the box and as many of
             the input points).
-        n_random, seed : int
-            The default probes' number and seed.
+        n_random : int
+            The default probes' number.
+        random_state : None, int, numpy Generator or RandomState
+            Where the default probes are drawn from.
 
         Returns
         -------
@@ -334,7 +349,7 @@ class KnnDistance:
             ``median``, ``p99`` (99th percentile), ``worst``, ``probes`` (how many counted).
         """
         if probes is None:
-            rng = np.random.default_rng(seed)
+            rng = random_generator(random_state)
             uniform = self.lo + rng.random((n_random, self.dim)) * (self.hi - self.lo)
             data = self._points[rng.choice(self.n, min(n_random, self.n), replace=False)]
             probes = np.concatenate([uniform, data])
@@ -370,19 +385,21 @@ class KnnDistance:
             return self.pieces.integrate(func, None if region is None else _sphere_region(region))
         return float(sum(self.pieces.integrate(func, rect) for rect in self._region(region)))
 
-    def sample_pieces(self, n: int, rng: np.random.Generator) -> np.ndarray:
+    def sample_pieces(
+        self, n: int, random_state: int | np.random.Generator | np.random.RandomState | None = None
+    ) -> np.ndarray:
         """Points from the density proportional to 1 / d^dim over the box (``KnnDensity``).
 
         Parameters
         ----------
         n : int
-        rng : numpy.random.Generator
+        random_state : None, int, numpy Generator or RandomState
 
         Returns
         -------
         ndarray (n, d)
         """
-        return self.pieces.sample(n, rng)
+        return self.pieces.sample(n, random_generator(random_state))
 
     # -- the kNN-CDF (space) -----------------------------------------------------------------
     def cdf(self, r: ArrayLike) -> np.ndarray:

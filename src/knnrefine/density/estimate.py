@@ -32,7 +32,9 @@ class DistanceLike(Protocol):
 
     def integrate(self, func: Callable, region: Any = None) -> float: ...
 
-    def sample_pieces(self, n: int, rng: np.random.Generator) -> np.ndarray: ...
+    def sample_pieces(
+        self, n: int, random_state: int | np.random.Generator | np.random.RandomState | None = None
+    ) -> np.ndarray: ...
 
 
 def default_pilot_k(n: float) -> int:
@@ -85,13 +87,14 @@ class KnnDensity:
     -----
     Evaluate with ``density(x)`` (x of shape (..., d); NaN outside the box along
     non-periodic axes), on a grid with ``grid()``, integrate over a box with
-    ``mass(region)``, draw from it with ``sample(n, rng)``.
+    ``mass(region)``, draw from it with ``sample(n)``.
     """
 
     def __init__(
         self,
         mesh: Mesh,
         points: ArrayLike,
+        *,
         normalized: bool = True,
         subdivide: bool = True,
         weights: ArrayLike | None = None,
@@ -101,7 +104,7 @@ class KnnDensity:
 
     @classmethod
     def of_distance(
-        cls, distance: KnnDistance | DistanceLike, normalized: bool = True
+        cls, distance: KnnDistance | DistanceLike, *, normalized: bool = True
     ) -> KnnDensity:
         """The estimate from a d_{P,k} already built.
 
@@ -197,7 +200,9 @@ class KnnDensity:
         """
         return self.distance.integrate(self._of_d(self.constant), region)
 
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+    def sample(
+        self, n: int, random_state: int | np.random.Generator | np.random.RandomState | None = None
+    ) -> np.ndarray:
         """Points drawn from the normalised estimate: a piece of the mesh chosen by an upper
         bound of its mass, a uniform point in it, kept with probability density / bound
         (exact rejection sampling of the piecewise estimate; the pieces are well shaped, so
@@ -206,10 +211,10 @@ class KnnDensity:
         Parameters
         ----------
         n : int
-        rng : numpy.random.Generator
+        random_state : None, int, numpy Generator or RandomState
 
         Returns
         -------
         ndarray (n, d)
         """
-        return self.distance.sample_pieces(n, rng)
+        return self.distance.sample_pieces(n, random_state)

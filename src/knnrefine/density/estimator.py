@@ -18,6 +18,7 @@ from ..validation import (
     check_radius,
     check_weights,
     default_box,
+    random_generator,
 )
 from .adaptive import (
     BANDWIDTHS,
@@ -30,7 +31,6 @@ from .adaptive import (
     check_sensitivity,
     check_shape,
     choose_smoothing,
-    generator,
     square_integral,
 )
 from .distance import grid_shape
@@ -564,7 +564,7 @@ class KnnDensityEstimator:
             raise InputError(f"level must lie in (0, 1), got {level!r}")
         flat, shape = self._queries(X)
         pts, weight = self._train  # in the fitted (scaled) coordinates
-        rng = generator(random_state)
+        rng = random_generator(random_state)
         box = None if self.sphere else self.mesh_.box
         params = {**self.get_params(), "k": self.k_, "box": box, "whiten": False}
         if self.method_ == "adaptive":
@@ -647,7 +647,7 @@ class KnnDensityEstimator:
             raise InputError(f"n_samples must be an integer >= 0, got {n_samples!r}")
         if n_samples < 0:
             raise InputError(f"n_samples must be >= 0, got {n_samples}")
-        rng = generator(random_state)
+        rng = random_generator(random_state)
         tail = getattr(self, "tail_", None)
         if self.sphere:  # lon/lat draws, as unit vectors when fitted on them
             drawn = density.sample(int(n_samples), rng)
@@ -780,7 +780,7 @@ def cv_folds(n, cv, random_state):
     check_cv(cv)
     if cv > n:
         raise InputError(f"cv must be an integer in [2, n = {n}], got {cv!r}")
-    order = generator(random_state).permutation(n)
+    order = random_generator(random_state).permutation(n)
     return np.array_split(order, int(cv))
 
 

@@ -17,17 +17,19 @@ from ..validation import as_points
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
 
 
-def certify_local(mesh, points, weights, workers, threads, *, samples, n_random,
-                  max_point_probes, seed) -> Certificate:  # fmt: skip
-    """``knnrefine.certify`` with ``workers`` > 1: the points in that many local processes,
-    asked strip by strip.
+def certify_local(mesh, points, weights, strips, executor, *, samples, n_random,
+                  max_point_probes, random_state) -> Certificate:  # fmt: skip
+    """``knnrefine.certify`` with an executor: the points' questions asked strip by strip,
+    ``strips`` strips, each a task of ``executor`` (processes or machines).
 
     Parameters
     ----------
-    mesh, points, weights, samples, n_random, max_point_probes, seed, threads
+    mesh, points, weights, samples, n_random, max_point_probes, random_state
         As for ``knnrefine.certify``.
-    workers : int
-        Local processes (strips), >= 2.
+    strips : int
+        Strips of the points, >= 2 (certify's ``workers``).
+    executor : concurrent.futures.Executor
+        Runs the strips (its ``map``).
 
     Returns
     -------
@@ -36,37 +38,41 @@ def certify_local(mesh, points, weights, workers, threads, *, samples, n_random,
     t0 = time.perf_counter()
     pts = as_points(points, mesh.dim)
     weights = check_points_are_the_meshs(mesh, pts, weights)
-    store = LocalStore(pts, weights, workers)
+    store = LocalStore(pts, weights, strips, executor)
     try:
-        return check_store(mesh, store, workers, threads, samples=samples, n_random=n_random,
-                           max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+        return check_store(mesh, store, strips, -1, samples=samples, n_random=n_random,
+                           max_point_probes=max_point_probes, random_state=random_state,
+                           t0=t0)  # fmt: skip
     finally:
         store.close()
 
 
-def check_store(mesh, store, tiles, threads, *, samples, n_random, max_point_probes, seed, t0):
+def check_store(mesh, store, tiles, workers, *, samples, n_random, max_point_probes,
+                random_state, t0):  # fmt: skip
     """certify's steps (``certify.steps.run_checks``) in either dimension with the points'
-    questions asked of ``store``."""
+    questions asked of ``store`` (``workers``: this process' threads)."""
     if mesh.dim == 3:
-        geometry, points = space.Geometry(mesh, threads), TiledSpacePoints(mesh, store, tiles,
-                                                                          threads)  # fmt: skip
+        geometry, points = space.Geometry(mesh, workers), TiledSpacePoints(mesh, store, tiles,
+                                                                          workers)  # fmt: skip
     else:
-        geometry, points = plane.Geometry(mesh, threads), TiledTorusPoints(mesh, store, tiles,
-                                                                          threads)  # fmt: skip
+        geometry, points = plane.Geometry(mesh, workers), TiledTorusPoints(mesh, store, tiles,
+                                                                          workers)  # fmt: skip
     return steps.run_checks(mesh, geometry, points, samples=samples, n_random=n_random,
-                            max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+                            max_point_probes=max_point_probes, random_state=random_state,
+                            t0=t0)  # fmt: skip
 
 
 def certify_store(mesh, store, tiles, *, samples=100_000, n_random=20_000,
-                  max_point_probes=100_000, seed=0, threads=-1) -> Certificate:  # fmt: skip
+                  max_point_probes=100_000, random_state=0, workers=-1) -> Certificate:  # fmt: skip
     """``certify`` of a mesh against the points of ``store`` (``scale/tiled.py``:
     ``LocalStore`` or ``distributed.DaskStore``), which never come to this process: counts
     and d_{P,k} are asked strip by strip (``tiles`` strips of equal share), each strip where
     its points are. The caller has checked that the points lie in the mesh's box."""
     t0 = time.perf_counter()
     check_source(mesh.stats, store.n, store.weight)
-    return check_store(mesh, store, int(tiles), threads, samples=samples, n_random=n_random,
-                       max_point_probes=max_point_probes, seed=seed, t0=t0)  # fmt: skip
+    return check_store(mesh, store, int(tiles), workers, samples=samples, n_random=n_random,
+                       max_point_probes=max_point_probes, random_state=random_state,
+                       t0=t0)  # fmt: skip
 
 
 class StripQuestions:
@@ -158,11 +164,11 @@ class TiledTorusPoints:
     """The plane's ``certify.plane.Points`` for points held in a store: every question
     about them is a ``StripQuestions``."""
 
-    def __init__(self, mesh, store, tiles, threads):
+    def __init__(self, mesh, store, tiles, workers):
         torus = mesh.torus
         self.origin = np.asarray(torus.origin, float)
         self.period = np.asarray(torus.period, float)
-        self.k, self.threads, self.store = mesh.k, threads, store
+        self.k, self.workers, self.store = mesh.k, workers, store
         self.input_frame = TorusFrame(self.origin, self.period)
         self.n = store.n
         self.weighted = store.weight is not None
@@ -178,7 +184,7 @@ class TiledTorusPoints:
         # a first pad from the mesh (a guess only: what the strips decide is exact)
         if len(x) == 0:
             return np.zeros(0)
-        d_m2 = self._vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
+        d_m2 = self._vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
         return self.questions.d_pk(x, float(np.quantile(4.0 * d_m2, 0.99)))
 
     def held(self, centres, radii):
@@ -199,12 +205,12 @@ class TiledSpacePoints:
     the torus frame there, and a point within a pad in the box's metric is within it on the
     torus, so a slab widened by the pad holds every point it needs)."""
 
-    def __init__(self, mesh, store, tiles, threads):
+    def __init__(self, mesh, store, tiles, workers):
         torus = mesh.torus
         self.origin = np.asarray(torus.origin, float)
         self.period = np.asarray(torus.period, float)
         self.boxsize = tuple(np.where(mesh.periodic, self.period, 0.0))
-        self.store, self.k, self.n, self.threads = store, mesh.k, store.n, threads
+        self.store, self.k, self.n, self.workers = store, mesh.k, store.n, workers
         self.weighted = store.weight is not None
         self.total = float(store.n) if store.weight is None else float(store.weight)
         self.input_frame = TorusFrame(self.origin, self.period)
@@ -221,7 +227,7 @@ class TiledSpacePoints:
         # a first pad from the mesh (a guess only: what the slabs decide is exact)
         if len(x) == 0:
             return np.zeros(0)
-        d_m2 = self._vertex_tree.query(x, k=2, workers=self.threads)[0][:, 1]
+        d_m2 = self._vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
         return self.questions.d_pk(x, float(np.quantile(4.0 * d_m2, 0.99)), self.boxsize)
 
     def sample_points(self, count, rng):

@@ -370,7 +370,7 @@ def certify(
     samples: int = 100_000,
     n_random: int = 20_000,
     max_point_probes: int = 100_000,
-    seed: int = 0,
+    random_state: int | np.random.Generator | None = 0,
 ) -> Certificate:
     """``knnrefine.certify`` of a mesh against the points of ``source`` on a Dask cluster,
     the points never gathered here: every count and d_{P,k} is asked strip by strip on the
@@ -383,7 +383,7 @@ def certify(
     mesh : Mesh
     source, client, workers, columns, weights, retries
         As for ``refine``.
-    samples, n_random, max_point_probes, seed
+    samples, n_random, max_point_probes, random_state
         As for ``knnrefine.certify``.
 
     Returns
@@ -395,7 +395,8 @@ def certify(
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         store.check_inside(mesh.box, mesh.periodic)
         return certify_store(mesh, store, tiles, samples=samples, n_random=n_random,
-                             max_point_probes=max_point_probes, seed=seed)  # fmt: skip
+                             max_point_probes=max_point_probes,
+                             random_state=random_state)  # fmt: skip
 
 
 def density(
@@ -446,7 +447,7 @@ def density(
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         store.check_inside(pmesh.box, pmesh.periodic)
         distance = PartitionedDistance.of_store(pmesh, store, tiles, subdivide)
-    return KnnDensity.of_distance(distance, normalized)
+    return KnnDensity.of_distance(distance, normalized=normalized)
 
 
 @contextlib.contextmanager

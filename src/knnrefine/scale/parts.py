@@ -174,7 +174,7 @@ def _write_parts(mesh, folder, parts):
     t_coord = metric.frame(np.asarray(torus.vertices) + np.array(torus.origin))[:, axis]
     t_owner = _owner(t_coord, cuts)
     tt_owner = t_owner[torus.cells[:, 0]]
-    no_neighbors = np.zeros((0, dim + 1), np.int64)  # the torus in space keeps none
+    no_neighbours = np.zeros((0, dim + 1), np.int64)  # the torus in space keeps none
     f_owner = _owner(metric.frame(mesh.floor_points)[:, axis], cuts)
     d_range = [np.inf, 0.0]
     files = []
@@ -212,7 +212,7 @@ def _write_parts(mesh, folder, parts):
             "torus_vertex_ids": tv, "torus_vertices": torus.vertices[tv],
             "torus_kinds": torus.kinds[tv], "torus_triangle_ids": tt,
             "torus_triangles": torus.cells[tt], "torus_offsets": torus.offsets[tt],
-            "torus_neighbors": no_neighbors if torus.neighbors is None else torus.neighbors[tt],
+            "torus_neighbours": no_neighbours if torus.neighbours is None else torus.neighbours[tt],
         })  # fmt: skip
         name = f"part-{j:05d}.npz"
         with open(os.path.join(folder, name), "wb") as f:
@@ -232,7 +232,7 @@ def _write_parts(mesh, folder, parts):
         "m": len(mesh.vertices), "triangles": len(cells),
         "torus": {"origin": list(torus.origin), "period": list(torus.period),
                   "m": len(torus.vertices), "triangles": len(torus.cells),
-                  "neighbors": torus.neighbors is not None},
+                  "neighbours": torus.neighbours is not None},
         "has_offsets": mesh.offsets is not None, "d_m2_range": d_range, "stats": mesh.stats,
     }  # fmt: skip
 
@@ -497,7 +497,7 @@ class PartitionedMesh:
             As for ``distance``.
         """
         distance = self.distance(points, weights=weights, subdivide=subdivide, workers=workers)
-        return KnnDensity.of_distance(distance, normalized)
+        return KnnDensity.of_distance(distance, normalized=normalized)
 
     def to_mesh(self) -> Mesh:
         """The whole mesh again, as written (every array equal).
@@ -518,7 +518,7 @@ class PartitionedMesh:
             out[name][ids] = values
 
         parts = [self._arrays(j) for j in range(len(self))]
-        has_neighbors = t.get("neighbors", True)  # the torus in space keeps none
+        has_neighbours = t.get("neighbours", t.get("neighbors", True))  # none in space
         floor_count = sum(len(d["floor_ids"]) for d in parts)
         for d in parts:
             own = d["vertex_ids"][: int(d["owned"])]
@@ -532,16 +532,16 @@ class PartitionedMesh:
                 put(
                     "torus_" + name, d["torus_vertex_ids"], d["torus_" + name], rows["torus_vertex"]
                 )
-            for name in ("triangles", "offsets", "neighbors")[: 3 if has_neighbors else 2]:
-                put("torus_" + name, d["torus_triangle_ids"], d["torus_" + name],
-                    rows["torus_triangle"])  # fmt: skip
+            for name in ("triangles", "offsets", "neighbours")[: 3 if has_neighbours else 2]:
+                key = "torus_" + name if "torus_" + name in d else "torus_neighbors"  # 0.1's
+                put("torus_" + name, d["torus_triangle_ids"], d[key], rows["torus_triangle"])
             put("floor_points", d["floor_ids"], d["floor_points"].reshape(-1, self.dim),
                 floor_count)  # fmt: skip
-        neighbors = out["torus_neighbors"] if has_neighbors else None
+        neighbours = out["torus_neighbours"] if has_neighbours else None
         torus = Torus(origin=tuple(t["origin"]), period=tuple(t["period"]),
                       vertices=out["torus_vertices"], cells=out["torus_triangles"],
                       offsets=out["torus_offsets"], kinds=out["torus_kinds"],
-                      neighbors=neighbors)  # fmt: skip
+                      neighbours=neighbours)  # fmt: skip
         return Mesh(
             vertices=out["vertices"], cells=out["triangles"],
             offsets=out["offsets"] if m["has_offsets"] else None, kinds=out["kinds"],
