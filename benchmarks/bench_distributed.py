@@ -71,7 +71,7 @@ def main(argv=None):
                 times.append(mesh.stats["time"])
                 sizes.append((m_one, len(mesh.vertices)))
             del source
-            setup = [t["index"] for t in times]
+            setup = [t["setup"] for t in times]
             rounds = [sum(r["seconds"] for r in rep if r["round"] != "final") for rep in reports]
             final = [sum(r["seconds"] for r in rep if r["round"] == "final") for rep in reports]
             final_new = [

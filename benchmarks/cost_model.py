@@ -78,9 +78,9 @@ def measure(n, workers, repeat, tasks, k):
             wall = time.perf_counter() - t
             rounds = [r for r in mesh.stats["rounds"] if r["round"] != "final"]
             final = mesh.stats["rounds"][-1]["seconds"]
-            after = wall - mesh.stats["time"]["index"] - sum(r["seconds"] for r in rounds)
+            after = wall - mesh.stats["time"]["setup"] - sum(r["seconds"] for r in rounds)
             runs.append((sum(max(r["tiles"]) for r in rounds), after, len(mesh.vertices),
-                         mesh.stats["time"]["index"], len(rounds), final))  # fmt: skip
+                         mesh.stats["time"]["setup"], len(rounds), final))  # fmt: skip
         tile_s, after_s, m, setup, rounds, _ = (
             statistics.median(v) for v in zip(*runs, strict=True)
         )

@@ -52,7 +52,7 @@ def test_mesh_contents(points):
     st = mesh.stats
     assert sum(st["moves"].values()) == st["m_torus"]
     assert st["moves"]["break_circumball"] > 0
-    assert set(st["time"]) >= {"index", "refine", "total"}
+    assert set(st["time"]) >= {"setup", "refine", "assemble", "total"}
     # triangles are counter-clockwise
     c = mesh.vertices[mesh.triangles]
     cross = signed_area2(c)

@@ -49,7 +49,7 @@ def pool():
 
 def _tori(mesh, pts, tiles, weights=None):
     store = LocalStore(pts, weights, tiles)
-    return TorusPoints(mesh, pts, -1, weights), TiledTorusPoints(mesh, store, tiles, -1), store
+    return TorusPoints(mesh, pts, weights, -1), TiledTorusPoints(mesh, store, tiles, -1), store
 
 
 @pytest.mark.parametrize("weighted", [False, True])

@@ -63,7 +63,7 @@ def test_tiled_mesh_is_certified_and_the_size_of_a_single_run(name, make, k, per
     if periodic is True:
         assert rounds[-1]["stitched"]
     # the tiles' moves are carried to the mesh: only the initial mesh counts as initial
-    assert tiled.stats["moves"]["initial"] == tiled.stats["m0"]["vertices"]
+    assert tiled.stats["moves"]["initial"] == tiled.stats["initial_vertices"]
     assert tiled.stats["moves"]["break_circumball"] > 0
 
 

@@ -57,7 +57,6 @@ __all__ = [
     "KnnDensityEstimator",
     "datasets",
     "io",
-    "plot",
     "Mesh",
     "Torus",
     "PartitionedMesh",

@@ -632,7 +632,7 @@ def _write_npz(mesh, path):
                 cells=mesh.cells, kinds=mesh.kinds, order=mesh.order, k=np.array(mesh.k),
                 tau=np.array(mesh.tau), periodic=np.array(mesh.periodic),
                 box=np.array(mesh.box), min_size=np.array(mesh.min_size),
-                floor_points=mesh.floor_points, stats=np.array(json.dumps(mesh.stats)),
+                floor_points=mesh.floor_points, stats=np.array(json.dumps(mesh.stats.to_dict())),
             )  # fmt: skip
         return
     t = mesh.torus
@@ -654,7 +654,7 @@ def _write_npz(mesh, path):
             box=np.array(mesh.box),
             min_size=np.array(mesh.min_size),
             floor_points=mesh.floor_points,
-            stats=np.array(json.dumps(mesh.stats)),
+            stats=np.array(json.dumps(mesh.stats.to_dict())),
             torus_origin=np.array(t.origin),
             torus_period=np.array(t.period),
             torus_vertices=t.vertices,

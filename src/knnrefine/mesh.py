@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 
 import numpy as np
@@ -69,6 +70,126 @@ def sphere_constants(tau: float, largest_cap: float) -> tuple[float, float]:
     if theta >= 1.0:
         return alpha, float("inf")
     return alpha, float((3.0 - theta) / (1.0 - theta))
+
+
+RUN_TIMES = ("setup", "refine", "assemble", "total")
+
+
+@dataclass
+class Stats(Mapping):
+    """What a run did: one record with the same keys in every domain (the plane, space,
+    the sphere; one process, threads or tiles), read as attributes or as a mapping
+    (``stats["n"]``, ``stats.get("weight")``, ``dict(stats)``).
+
+    Attributes
+    ----------
+    n : int
+        Input points.
+    weight : float or None
+        Their total weight (a weighted run), else None.
+    m, m_torus, cells : int
+        Vertices returned, vertices the engine refined (the torus'; on the sphere m), cells
+        returned.
+    initial_vertices : int
+        Vertices of the initial mesh.
+    moves : dict
+        Vertices by the move that made them (``KIND_NAMES``).
+    circumball_tests, cell_tests : int
+        Counting queries of circumballs (circumcaps on the sphere) and of Voronoi cells.
+    failed_insertions : int
+        Insertions the triangulation refused (a vertex too close to another).
+    floor_circumballs, floor_cells : int
+        Elements left at the resolution floor still holding k points.
+    points_under_floor : int
+        Input points in them.
+    largest_circumball : float
+        The largest circumradius of the mesh, in input units (on the sphere: the largest
+        circumcap's angular radius times ``radius``; the sphere's beta depends on it).
+    estimated_vertices, max_vertices : int
+        The size estimated before refining (0 where none is made: a tiled run in space)
+        and the vertex budget.
+    rounds : list or None
+        A tiled run's turns and last step; None for one process.
+    time : dict
+        Seconds: ``setup`` (index, embedding, initial mesh), ``refine``, ``assemble``,
+        ``total`` (the call).
+    """
+
+    n: int = 0
+    weight: float | None = None
+    m: int = 0
+    m_torus: int = 0
+    cells: int = 0
+    initial_vertices: int = 0
+    moves: dict = field(default_factory=dict)
+    circumball_tests: int = 0
+    cell_tests: int = 0
+    failed_insertions: int = 0
+    floor_circumballs: int = 0
+    floor_cells: int = 0
+    points_under_floor: int = 0
+    largest_circumball: float = 0.0
+    estimated_vertices: int = 0
+    max_vertices: int = 0
+    rounds: list | None = None
+    time: dict = field(default_factory=dict)
+
+    # the keys of knnrefine 0.1's per-domain dictionaries (files written then still read)
+    RENAMED = {
+        "disk_tests": "circumball_tests",
+        "circumcap_tests": "circumball_tests",
+        "failed": "failed_insertions",
+        "floor_circumcaps": "floor_circumballs",
+        "triangles": "cells",
+    }
+
+    @property
+    def seconds(self) -> float:
+        """The whole call's seconds (``time["total"]``)."""
+        return float(self.time.get("total", 0.0))
+
+    def __getitem__(self, key: str):
+        if key not in _STATS_KEYS:
+            raise KeyError(f"{key!r}: Mesh.stats has {', '.join(_STATS_KEYS)}")
+        return getattr(self, key)
+
+    def __setitem__(self, key: str, value) -> None:
+        self[key]  # a known key, else KeyError
+        setattr(self, key, value)
+
+    def __iter__(self):
+        return iter(_STATS_KEYS)
+
+    def __len__(self) -> int:
+        return len(_STATS_KEYS)
+
+    def to_dict(self) -> dict:
+        """The record as plain Python values (what .npz and JSON files keep)."""
+        return {key: getattr(self, key) for key in _STATS_KEYS}
+
+    @classmethod
+    def from_dict(cls, d: Mapping, radius: float = 1.0) -> Stats:
+        """The record of a file's dictionary, of this version or of 0.1's per-domain keys
+        (``radius``: a sphere mesh's, whose 0.1 files kept the largest circumcap in
+        radians)."""
+        if isinstance(d, Stats):
+            return d
+        given = dict(d)
+        for old, new in cls.RENAMED.items():
+            if old in given:
+                given.setdefault(new, given.pop(old))
+        if "largest_circumcap" in given:
+            given.setdefault("largest_circumball", given.pop("largest_circumcap") * radius)
+        if "m0" in given:
+            given.setdefault("initial_vertices", given.pop("m0").get("vertices", 0))
+        if "seconds" in given:
+            given.setdefault("time", {"total": given.pop("seconds")})
+        if "index" in given.get("time", {}):
+            given["time"] = {("setup" if k == "index" else k): v for k, v in given["time"].items()}
+        return cls(**{key: given[key] for key in _STATS_KEYS if key in given})
+
+
+_STATS_KEYS = tuple(f.name for f in fields(Stats))
 
 
 class Cells:
@@ -170,8 +291,9 @@ class Mesh(Cells):
         Where refinement stopped at the resolution floor ``min_size``: circumcenters of
         circumballs and vertices of cells that still hold >= k points but are smaller than
         ``min_size``. Empty when the guarantee holds everywhere.
-    stats : dict
-        Moves of each kind, counting tests, timings (seconds), sizes.
+    stats : Stats
+        What the run did (the same keys in every domain): moves of each kind, counting
+        tests, the floor, sizes, timings (seconds).
     torus : Torus
         The triangulation of the whole torus that the engine refined (``certify`` checks it).
     index : PointIndex or None
@@ -204,12 +326,16 @@ class Mesh(Cells):
     box: tuple
     min_size: float
     floor_points: np.ndarray
-    stats: dict = field(default_factory=dict)
+    stats: Stats = field(default_factory=Stats)
     torus: Torus | None = None
     index: object = field(default=None, repr=False)
     domain: str = "box"
     radius: float = 1.0
     xyz: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if not isinstance(self.stats, Stats):  # a dictionary (of a file, or of 0.1's keys)
+            object.__setattr__(self, "stats", Stats.from_dict(self.stats, self.radius))
 
     @property
     def alpha(self) -> float:
@@ -218,7 +344,7 @@ class Mesh(Cells):
     @property
     def beta(self) -> float:
         if self.on_sphere:  # spherical Pythagoras: from the largest circumcap
-            return sphere_constants(self.tau, self.stats.get("largest_circumcap", 0.0))[1]
+            return sphere_constants(self.tau, self.stats.largest_circumball / self.radius)[1]
         return theorem6_constants(self.tau)[1]
 
     @property

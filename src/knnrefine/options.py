@@ -314,6 +314,27 @@ def vertex_budget(estimated, opt, m0, n):
     return budget
 
 
+def warn_floor(under, n, k, min_size, default):
+    """The one FloorWarning rule of every domain, after the run: when more than half of the
+    ``n`` input points lie in elements left at the floor still holding k points (``under``
+    of them), the bounds are not claimed for most of the data. k = 1 was said before the run
+    (``warn_k1``). ``default``: how the domain's default min_size is set, for the advice.
+    Shown at the caller's line."""
+    if not under > n / 2 or k == 1:
+        return
+    frame, stacklevel = sys._getframe(0), 1
+    while frame is not None and frame.f_globals.get("__name__", "").startswith("knnrefine"):
+        frame, stacklevel = frame.f_back, stacklevel + 1
+    warnings.warn(
+        f"{under} of the {n} points ({100 * under / n:.0f}%) lie in circumballs or cells "
+        f"smaller than min_size = {min_size:.3g} that still hold k = {k} points: the bounds "
+        f"are not claimed there (Mesh.floor_points says where); min_size defaults to "
+        f"{default}: pass a smaller min_size",
+        FloorWarning,
+        stacklevel=stacklevel,
+    )
+
+
 def warn_k1(k, estimated, n, min_size):
     """Up front, a FloorWarning that k = 1 refines around every input point down to the
     floor (d_{P,1} vanishes on P), with the vertices expected (``estimated``, of ``n``

@@ -6,7 +6,6 @@ the initial mesh: ``Start``), the engine's run (``refine_plane``), and the mesh 
 
 import math
 import time
-import warnings
 
 import numpy as np
 
@@ -26,9 +25,9 @@ from .engine.initial import (
     refusal_message,
 )
 from .engine.interrupt import Interrupts
-from .errors import BudgetError, FloorWarning, InputError
-from .mesh import Mesh, Torus
-from .options import Progress, RunOptions, vertex_budget
+from .errors import BudgetError, InputError
+from .mesh import Mesh, Stats, Torus
+from .options import Progress, RunOptions, vertex_budget, warn_floor
 
 
 def is_spatial(points):
@@ -135,22 +134,14 @@ def finish(run, status, emb, opt, plan, report, interrupts, kept, weight, rounds
     t_assemble = time.perf_counter()
     report.assembling(run.vertices)
     res = run.result()
-    m0_stats = {
-        "vertices": int(len(m0_order)),
-        "per_period": int(m0_grid[0]),
-        "shift": float(m0_grid[2]),
-        "reach_factor": reach_factor(tau),
-    }
-    mesh = _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, kept)
+    mesh = _assemble(res, emb, k, tau, min_size, run, len(m0_order), report, interrupts, kept)
     stats = mesh.stats
-    if weight is not None:
-        stats["weight"] = float(weight)
-    stats["estimated_vertices"] = int(estimated)
-    if rounds is not None:
-        stats["rounds"] = rounds
-    stats["max_vertices"] = budget
-    stats["time"] = {
-        "index": run.time_index,
+    stats.weight = None if weight is None else float(weight)
+    stats.estimated_vertices = int(estimated)
+    stats.rounds = rounds
+    stats.max_vertices = int(budget)
+    stats.time = {
+        "setup": run.time_index,
         "refine": run.time_refine,
         "assemble": time.perf_counter() - t_assemble,
         "total": time.perf_counter() - t_start,
@@ -260,7 +251,7 @@ def _points_under_floor(res, run):
     )
 
 
-def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, index=None):
+def _assemble(res, emb, k, tau, min_size, run, initial, report, interrupts, index=None):
     """The Mesh the user receives, from the torus mesh (progress reported between steps)."""
     out_v, pos, tri, offsets = unfold(res.vxy, res.tv, res.to, emb)
     report.assembling(run.vertices)
@@ -270,32 +261,23 @@ def _assemble(res, emb, k, tau, min_size, run, m0_stats, report, interrupts, ind
     floor_pts = emb.to_input(wrap(floor_int, L)) if len(floor_int) else np.zeros((0, 2))
     under = _points_under_floor(res, run)
     report.assembling(run.vertices)
-    stats = {
-        "n": run.n,
-        "m": int(len(out_v)),
-        "m_torus": int(res.vxy.shape[0]),
-        "triangles": int(len(tri)),
-        **res.counters,
-        "floor_circumballs": res.floor_balls,
-        "floor_cells": len(res.floor_radii2) - res.floor_balls,
-        "clean_floor": res.clean_floor,
-        "points_under_floor": under,
-        "m0": m0_stats,
-    }
-    if under > run.n / 2 and k != 1:  # k = 1 was said before the run (warn_k1)
-        warnings.warn(
-            f"{under} of the {run.n} points ({100 * under / run.n:.0f}%) lie in circumballs or "
-            f"cells smaller than min_size = {min_size:.3g} that still hold k = {k} points: the "
-            "bounds are not claimed there"
-            + (
-                " (k = 1 makes every input point such a place; use k >= 2)"
-                if k == 1
-                else f"; min_size defaults to 1e-6 of the box {emb.box}, not of the data: pass a "
-                "smaller min_size or a box fitted to the data"
-            ),
-            FloorWarning,
-            stacklevel=3,
-        )
+    c = res.counters
+    stats = Stats(
+        n=run.n,
+        m=int(len(out_v)),
+        m_torus=int(res.vxy.shape[0]),
+        cells=int(len(tri)),
+        initial_vertices=int(initial),
+        moves=c["moves"],
+        circumball_tests=c["disk_tests"],
+        cell_tests=c["cell_tests"],
+        failed_insertions=c["failed_insertions"],
+        floor_circumballs=int(res.floor_balls),
+        floor_cells=int(len(res.floor_radii2) - res.floor_balls),
+        points_under_floor=int(under),
+        largest_circumball=float(np.sqrt(res.largest_radius2)) / emb.scale,
+    )
+    warn_floor(under, run.n, k, min_size, f"1e-6 of the box {emb.box}, not of the data")
     torus = Torus(
         origin=tuple(float(o) for o in emb.origin),
         period=emb.period,

@@ -5,7 +5,6 @@ non-periodic axes the box is embedded in a longer torus, as in the plane
 
 import math
 import time
-import warnings
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -23,13 +22,14 @@ from .engine.state import (
     C_FAILED,
     C_MAX_VERTICES,
     C_NV,
+    KIND_NAMES,
     STATUS_DONE,
     STATUS_MAX_VERTICES,
 )
-from .errors import BudgetError, FloorWarning, InputError
-from .mesh import Mesh, Torus
+from .errors import BudgetError, InputError
+from .mesh import Mesh, Stats, Torus
 from .metric import BoxMetric, held_in_balls, weighted_kth
-from .options import Progress, vertex_budget
+from .options import Progress, vertex_budget, warn_floor
 
 
 def holds_k(index, x, reach, k, period):
@@ -202,13 +202,14 @@ def refine3(pts, opt, weights=None):
         run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
                           grid, emb.grid)  # fmt: skip
         del run_index, grid
+        run.t_setup = time.perf_counter()
         status = run.run(opt.deadline, report.refining, interrupts)
     total = None if weights is None else math.fsum(weights)
     report.assembling(int(run.cnt[C_NV]))
     mesh = finish3(run, status, emb, opt, lambda: pts, len(pts), total)
     report.assembling(len(mesh.vertices), done=True)
-    mesh.stats["estimated_vertices"] = int(estimated)
-    mesh.stats["max_vertices"] = budget
+    mesh.stats.estimated_vertices = int(estimated)
+    mesh.stats.max_vertices = int(budget)
     return mesh
 
 
@@ -230,23 +231,14 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
             f"stopped at {what} before the mesh was done; raise it, or use a larger k or min_size",
             progress={**run.progress(), "seconds": time.perf_counter() - t_start},
         )
+    t_assemble = time.perf_counter()
+    t_setup = getattr(run, "t_setup", t_start)  # when the refinement began
+    setup = t_setup - t_start
     xyz, corners, offsets, kinds, cnt, floor = run.take_result()
+    largest = float(np.sqrt(run.largest_radius2))
     del run
     under = _points_under_floor(points, floor, emb, n)
-    if under > n / 2 and k != 1:  # k = 1 was said before the run (options.warn_k1)
-        warnings.warn(
-            f"{under} of the {n} points ({100 * under / n:.0f}%) lie in "
-            f"circumballs or cells smaller than min_size = {min_size:.3g} that still hold k = "
-            f"{k} points: the bounds are not claimed there"
-            + (
-                " (k = 1 makes every input point such a place; use k >= 2)"
-                if k == 1
-                else f"; min_size defaults to 1e-6 of the box {tuple(box)}, not of the data: "
-                "pass a smaller min_size or a box fitted to the data"
-            ),
-            FloorWarning,
-            stacklevel=4,
-        )
+    warn_floor(under, n, k, min_size, f"1e-6 of the box {tuple(box)}, not of the data")
     out_v, pos, tetrahedra, out_offsets = unfold(xyz, corners, offsets, emb, copy=False)
     # the torus' vertices first: when every axis is periodic pos is xyz, converted in place
     torus = Torus(
@@ -254,15 +246,20 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
         vertices=xyz / emb.scale, cells=corners, offsets=offsets, kinds=kinds,
     )  # fmt: skip
     floor_points = emb.to_input(floor[0]) if len(floor[0]) else np.zeros((0, 3))
-    stats = {"n": n, "m": len(out_v), "m_torus": len(xyz),
-             "disk_tests": int(cnt[C_DISK_TESTS]), "cell_tests": int(cnt[C_CELL_TESTS]),
-             "failed": int(cnt[C_FAILED]), "floor_circumballs": int(floor[2]),
-             "floor_cells": int(len(floor[1]) - floor[2]), "points_under_floor": under,
-             "seconds": time.perf_counter() - t_start}  # fmt: skip
-    if weight is not None:
-        stats["weight"] = float(weight)
-    if rounds is not None:
-        stats["rounds"] = rounds
+    stats = Stats(
+        n=int(n), weight=None if weight is None else float(weight), m=int(len(out_v)),
+        m_torus=int(len(xyz)), cells=int(len(tetrahedra)),
+        initial_vertices=int(np.count_nonzero(kinds == 0)),
+        moves={name: int(c) for name, c in zip(KIND_NAMES, np.bincount(
+            kinds, minlength=len(KIND_NAMES)), strict=True)},
+        circumball_tests=int(cnt[C_DISK_TESTS]), cell_tests=int(cnt[C_CELL_TESTS]),
+        failed_insertions=int(cnt[C_FAILED]), floor_circumballs=int(floor[2]),
+        floor_cells=int(len(floor[1]) - floor[2]), points_under_floor=int(under),
+        largest_circumball=largest / emb.scale, rounds=rounds,
+        time={"setup": setup, "refine": t_assemble - t_setup,
+              "assemble": time.perf_counter() - t_assemble,
+              "total": time.perf_counter() - t_start},
+    )  # fmt: skip
     return Mesh(
         vertices=emb.to_input(pos, copy=False), cells=tetrahedra, offsets=out_offsets,
         kinds=kinds[out_v], order=out_v, k=k, tau=tau, periodic=per, box=box,

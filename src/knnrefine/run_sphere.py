@@ -59,10 +59,10 @@ from .engine.state import (
     grown,
 )
 from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
-from .errors import BudgetError, EngineError, FloorWarning, InputError
-from .mesh import Mesh
+from .errors import BudgetError, EngineError, InputError
+from .mesh import Mesh, Stats
 from .metric import angle_to_chord, chord_to_angle, lonlat_of
-from .options import Progress, check_progress, warn_k1
+from .options import Progress, check_progress, warn_floor, warn_k1
 
 STEPS = 20_000  # insertions per kernel call
 DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the default floor: a millionth of half a great circle
@@ -245,11 +245,35 @@ def _refine_checked(xyz_p, w, total, opt, report):
                 )
             if status == STATUS_DONE:
                 break
-    seconds = time.perf_counter() - t0
+    t1 = time.perf_counter()
     report.assembling(int(run.cnt[C_NV]))
-    mesh = _assemble(run, opt, index, seconds, n, total)
+    times = {"setup": t0 - opt.t_start, "refine": t1 - t0}
+    mesh = _assemble(run, opt, index, times, xyz_p, total, budget)
+    mesh.stats.time = {**times, "assemble": time.perf_counter() - t1,
+                       "total": time.perf_counter() - opt.t_start}  # fmt: skip
     report.assembling(len(mesh.vertices), done=True)
     return mesh
+
+
+def _points_under_floor(xyz_p, xyz, corners, chord2, normal, floor_t, floor_v):
+    """How many input points (unit vectors) lie in a floor element: a floor circumcap
+    (centre ``normal``), or the cap of chord R(v) about a floor cell's vertex (R(v): the
+    largest circumcap chord of the triangles at v, whose caps cover v's Voronoi cell). The
+    plane's and space's rule (``run._points_under_floor``), asked of a kd-tree."""
+    if not len(floor_t) and not len(floor_v):
+        return 0
+    from scipy.spatial import cKDTree
+
+    reach2 = np.zeros(len(xyz))
+    for i in range(3):
+        np.maximum.at(reach2, corners[:, i], chord2)
+    centres = np.concatenate([normal, xyz[floor_v]])
+    radii = np.sqrt(np.concatenate([chord2[floor_t], reach2[floor_v]])) * (1.0 + 1e-9)
+    hits = cKDTree(xyz_p).query_ball_point(centres, radii)
+    marked = np.zeros(len(xyz_p), bool)
+    for rows in hits:
+        marked[rows] = True
+    return int(marked.sum())
 
 
 def _progress(run, t0):
@@ -262,8 +286,9 @@ def _progress(run, t0):
     }
 
 
-def _assemble(run, opt, index, seconds, n, total):
+def _assemble(run, opt, index, times, xyz_p, total, budget):
     nv, nt = int(run.cnt[C_NV]), int(run.cnt[C_NT])
+    n = len(xyz_p)
     xyz = run.mesh.xyz[:nv].copy()
     kinds = run.book.kinds[:nv].copy()
     floor_t = np.flatnonzero(run.book.ball_state[:nt] == FLOOR)
@@ -272,32 +297,24 @@ def _assemble(run, opt, index, seconds, n, total):
     normal = np.cross(b - a, c - a)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
     sites = np.concatenate([normal, xyz[floor_v]])
-    stats = {
-        "moves": {name: int((kinds == i).sum()) for i, name in enumerate(KIND_NAMES)},
-        "circumcap_tests": int(run.cnt[C_DISK_TESTS]),
-        "cell_tests": int(run.cnt[C_CELL_TESTS]),
-        "failed_insertions": int(run.cnt[C_FAILED]),
-        "largest_circumcap": float(chord_to_angle(np.sqrt(run.mesh.chord2[:nt].max()))),
-        "floor_circumcaps": int(len(floor_t)),
-        "floor_cells": int(len(floor_v)),
-        "seconds": seconds,
-        "vertices": nv,
-        "m_torus": nv,  # the engine's vertices (in a box, the torus'): all of them here
-        "triangles": nt,
-        "n": n,
-    }
-    if total is not None:
-        stats["weight"] = total
-    if len(sites) and opt.k != 1:  # k = 1 was said before the run (options.warn_k1)
-        import warnings
-
-        warnings.warn(
-            f"{len(sites)} circumcaps or cells still hold >= k points but are smaller than "
-            f"min_size = {opt.min_size:.3g}: the guarantee holds above that floor "
-            "(Mesh.floor_points says where)",
-            FloorWarning,
-            stacklevel=3,
-        )
+    chord2 = run.mesh.chord2[:nt]
+    under = _points_under_floor(xyz_p, xyz, run.mesh.corners[:nt], chord2, normal, floor_t,
+                                floor_v)  # fmt: skip
+    warn_floor(under, n, opt.k, opt.min_size, "pi 1e-6 radians (20 m on the Earth)")
+    mass = n if total is None else total
+    stats = Stats(
+        n=n, weight=total, m=nv, m_torus=nv, cells=nt,
+        initial_vertices=int(np.count_nonzero(kinds == 0)),
+        moves={name: int((kinds == i).sum()) for i, name in enumerate(KIND_NAMES)},
+        circumball_tests=int(run.cnt[C_DISK_TESTS]), cell_tests=int(run.cnt[C_CELL_TESTS]),
+        failed_insertions=int(run.cnt[C_FAILED]),
+        floor_circumballs=int(len(floor_t)), floor_cells=int(len(floor_v)),
+        points_under_floor=under,
+        largest_circumball=float(chord_to_angle(np.sqrt(chord2.max()))) * opt.radius,
+        # about 2.5 (n / k) vertices on uniform points (the first allocation's rule)
+        estimated_vertices=int(2.5 * mass / max(opt.k, 1e-300)),
+        max_vertices=int(budget),
+    )  # fmt: skip
     return Mesh(
         vertices=lonlat_of(xyz),
         cells=run.mesh.corners[:nt].copy(),

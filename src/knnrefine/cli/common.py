@@ -321,35 +321,22 @@ def refine_with_progress(points, args, quiet, weights=None):
 
 
 def summary(mesh, seconds):
+    """The refine command's report, the same lines in every domain (one stats record)."""
+    st = mesh.stats
+    t, moves = st.time, st.moves
+    cells = "tetrahedra" if mesh.dim == 3 and not mesh.on_sphere else "triangles"
+    where = {True: " on the sphere", False: " in space" if mesh.dim == 3 else ""}[mesh.on_sphere]
+    unit = ""
     if mesh.on_sphere:
-        moves = mesh.kind_counts
-        unit = "radians" if mesh.radius == 1.0 else f"radius {mesh.radius:g}"
-        return (
-            f"refined n = {mesh.stats['n']:,} points on the sphere (k = {mesh.k}, tau = "
-            f"{mesh.tau:g}, {unit}) into m = {len(mesh.vertices):,} vertices and "
-            f"{len(mesh.triangles):,} triangles in {seconds:.2f} s\n"
-            f"  moves: {moves['break_circumball']:,} circumcap breaks, "
-            f"{moves['break_cell']:,} cell breaks, {moves['clean']:,} cleans; Theorem 6: "
-            f"alpha = {mesh.alpha:.4f}, beta = {mesh.beta:.2f}"
-        )
-    if mesh.dim == 3:
-        moves = mesh.kind_counts
-        return (
-            f"refined n = {mesh.stats['n']:,} points in space (k = {mesh.k}, tau = "
-            f"{mesh.tau:g}) into m = {len(mesh.vertices):,} vertices and "
-            f"{len(mesh.tetrahedra):,} tetrahedra in {seconds:.2f} s\n"
-            f"  moves: {moves['break_circumball']:,} circumball breaks, "
-            f"{moves['break_cell']:,} cell breaks, {moves['clean']:,} cleans; Theorem 6: "
-            f"alpha = {mesh.alpha:.4f}, beta = {mesh.beta:.2f}"
-        )
-    t = mesh.stats["time"]
-    moves = mesh.stats["moves"]
-    floor = mesh.stats["floor_circumballs"] + mesh.stats["floor_cells"]
+        unit = ", radians" if mesh.radius == 1.0 else f", radius {mesh.radius:g}"
+    ball = "circumcap" if mesh.on_sphere else "circumball"
+    floor = st.floor_circumballs + st.floor_cells
     lines = [
-        f"refined n = {mesh.stats['n']:,} points (k = {mesh.k}, tau = {mesh.tau:g}) into "
-        f"m = {len(mesh.vertices):,} vertices and {len(mesh.triangles):,} triangles in "
-        f"{seconds:.2f} s (index {t['index']:.2f} s, refinement {t['refine']:.2f} s)",
-        f"  moves: {moves['break_circumball']:,} circumball breaks, {moves['break_cell']:,} "
+        f"refined n = {st.n:,} points{where} (k = {mesh.k}, tau = {mesh.tau:g}{unit}) into "
+        f"m = {len(mesh.vertices):,} vertices and {len(mesh.cells):,} {cells} in "
+        f"{seconds:.2f} s (setup {t.get('setup', 0.0):.2f} s, refinement "
+        f"{t.get('refine', 0.0):.2f} s)",
+        f"  moves: {moves['break_circumball']:,} {ball} breaks, {moves['break_cell']:,} "
         f"cell breaks, {moves['clean']:,} cleans; Theorem 6: alpha = {mesh.alpha:.4f}, "
         f"beta = {mesh.beta:.2f}",
     ]

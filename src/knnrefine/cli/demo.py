@@ -97,7 +97,7 @@ def run(args):
     round_earth = certify(world, quakes)
     say(
         f"  on the sphere: the {len(quakes):,} earthquakes (k = 30, great-circle km) into "
-        f"m = {len(world.vertices):,} vertices in {world.stats['seconds']:.2f} s, certified: "
+        f"m = {len(world.vertices):,} vertices in {world.stats.seconds:.2f} s, certified: "
         f"d_M2 / d_Pk in [{round_earth.alpha_hat:.3f}, {round_earth.beta_hat:.3f}]: "
         f"{'PASSED' if round_earth.passed else 'FAILED'}"
     )

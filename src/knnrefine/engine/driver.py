@@ -81,6 +81,7 @@ class RunResult:
     floor_radii2: np.ndarray  # (f,) their squared radii (circumradius; R(v) for a cell)
     floor_balls: int  # how many of them are circumballs
     clean_floor: int  # vertices whose Clean was below the Clean floor
+    largest_radius2: float  # the largest squared circumradius
     counters: dict = field(default_factory=dict)
     status: str = "done"
 
@@ -451,6 +452,7 @@ class Refinement(TileRun):
             floor_radii2=np.concatenate([centres[:, 2], mesh.outradius2[floor_v]]),
             floor_balls=len(floor_t),
             clean_floor=int(np.count_nonzero(book.flags[:nv] & S.CLEAN_BELOW_FLOOR)),
+            largest_radius2=float(mesh.radius2[:nt].max()) if nt else 0.0,
             counters=counters,
         )
         self.mesh = self.book = self.queues = self.scratch = self.probe = None

@@ -371,6 +371,7 @@ class Refinement3(TileRun):
         nv, nt = int(self.cnt[C_NV]), int(self.cnt[C_NT])
         cnt = self.cnt.copy()
         kinds = self.book.kinds[:nv].copy()
+        self.largest_radius2 = float(self.mesh.radius2[:nt].max()) if nt else 0.0
         balls = np.flatnonzero(self.book.ball_state[:nt] == FLOOR)
         cells = np.flatnonzero(self.book.cell_state[:nv] == FLOOR)
         c = self.mesh.xyz[self.mesh.corners[balls]] + unpack_offsets(

@@ -233,7 +233,8 @@ def _write_parts(mesh, folder, parts):
         "torus": {"origin": list(torus.origin), "period": list(torus.period),
                   "m": len(torus.vertices), "triangles": len(torus.cells),
                   "neighbours": torus.neighbours is not None},
-        "has_offsets": mesh.offsets is not None, "d_m2_range": d_range, "stats": mesh.stats,
+        "has_offsets": mesh.offsets is not None, "d_m2_range": d_range,
+        "stats": mesh.stats.to_dict(),
     }  # fmt: skip
 
 

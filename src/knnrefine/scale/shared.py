@@ -542,7 +542,10 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
                        "tile_seconds": seconds, "seams": [float(h / emb.scale) for h in half],
                        "fetched_points": False})  # fmt: skip
         if dim == 3:
-            return finish3(run, status, emb, opt, lambda: pts, store.n, store.weight, rounds)
+            run.t_setup = t0 + setup
+            mesh = finish3(run, status, emb, opt, lambda: pts, store.n, store.weight, rounds)
+            mesh.stats.max_vertices = int(budget)  # no size estimate in space (plan)
+            return mesh
         run.n = store.n
         run.time_index = setup
         run.time_refine = time.perf_counter() - t0 - setup

@@ -728,8 +728,11 @@ def refine_store(store, opt, workers) -> Mesh:
             "seconds": time.perf_counter() - t1, "unsettled": unsettled, "fetched_points": fetched,
         })  # fmt: skip
         if dim == 3:
-            return finish3(run, status, emb, opt, lambda: store.points()[0], n, store.weight,
+            run.t_setup = t0 + setup
+            mesh = finish3(run, status, emb, opt, lambda: store.points()[0], n, store.weight,
                            rounds)  # fmt: skip
+            mesh.stats.max_vertices = int(budget)  # no size estimate in space (plan)
+            return mesh
         run.n = n
         run.time_index = setup
         run.time_refine = time.perf_counter() - t0 - setup

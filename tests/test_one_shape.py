@@ -1,0 +1,122 @@
+"""Issue 51: what one domain records, warns and certifies, every domain does. One suite over
+a ``domain`` fixture (the plane, space, the sphere): one stats record with one key set, one
+FloorWarning rule, the same certify verdicts on tampered meshes."""
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+from conftest import gaussian_clusters
+
+import knnrefine
+from knnrefine import io
+from knnrefine.mesh import Stats
+
+KEYS = tuple(f.name for f in dataclasses.fields(Stats))
+
+
+@pytest.fixture(params=["plane", "space", "sphere"])
+def domain(request):
+    return request.param
+
+
+def points_in(domain, n=2000, seed=0):
+    rng = np.random.default_rng(seed)
+    if domain == "sphere":
+        return np.column_stack([rng.uniform(-180, 180, n), rng.uniform(-70, 70, n)])
+    return gaussian_clusters(n, seed, dim=2 if domain == "plane" else 3)
+
+
+def refine_in(domain, pts, k=10, **options):
+    return knnrefine.refine(pts, k, sphere=domain == "sphere", **options)
+
+
+def test_stats_have_one_key_set_in_every_domain(domain, tmp_path):
+    pts = points_in(domain)
+    w = np.random.default_rng(1).integers(1, 3, len(pts)).astype(float)
+    for mesh, weight in ((refine_in(domain, pts), None), (refine_in(domain, pts, weights=w), w)):
+        st = mesh.stats
+        assert isinstance(st, Stats) and tuple(st) == KEYS
+        assert st.n == len(pts) and st.m == len(mesh.vertices) and st.cells == len(mesh.cells)
+        assert st.weight == (None if weight is None else pytest.approx(weight.sum()))
+        assert sum(st.moves.values()) == st.m_torus
+        assert st.initial_vertices == st.moves["initial"] > 0
+        assert st.circumball_tests > 0 and st.cell_tests > 0
+        assert st.estimated_vertices > 0 and st.max_vertices >= st.m_torus
+        assert 0 < st.largest_circumball < np.inf
+        assert set(st.time) == {"setup", "refine", "assemble", "total"}
+        assert st.seconds == st.time["total"] >= st.time["refine"]
+        assert st.rounds is None
+        path = tmp_path / f"{domain}.npz"
+        io.write_mesh(mesh, path, force=True)
+        assert io.read_mesh(path).stats == st
+
+
+def test_tiled_runs_keep_the_key_set(tiles_always):
+    for dim in (2, 3):
+        pts = gaussian_clusters(6000, 3, dim=dim)
+        mesh = knnrefine.refine(pts, 10, workers=2)
+        assert tuple(mesh.stats) == KEYS and mesh.stats.rounds
+        assert set(mesh.stats.time) == {"setup", "refine", "assemble", "total"}
+
+
+def test_files_of_the_per_domain_keys_still_read():
+    """knnrefine 0.1 wrote seconds / failed / disk_tests / floor_circumcaps / m0 ..."""
+    old_space = {"n": 5, "m": 3, "m_torus": 4, "disk_tests": 7, "failed": 1, "seconds": 2.0}
+    st = Stats.from_dict(old_space)
+    assert (st.circumball_tests, st.failed_insertions, st.seconds) == (7, 1, 2.0)
+    old_sphere = {"circumcap_tests": 3, "floor_circumcaps": 2, "largest_circumcap": 0.1,
+                  "triangles": 9, "vertices": 4}  # fmt: skip
+    st = Stats.from_dict(old_sphere, radius=10.0)
+    assert (st.circumball_tests, st.floor_circumballs, st.cells) == (3, 2, 9)
+    assert st.largest_circumball == pytest.approx(1.0)
+    old_plane = {"m0": {"vertices": 20}, "time": {"index": 0.1, "total": 0.3}}
+    st = Stats.from_dict(old_plane)
+    assert st.initial_vertices == 20 and st.time == {"setup": 0.1, "total": 0.3}
+    with pytest.raises(KeyError, match="Mesh.stats has"):
+        st["seconds"]  # noqa: B018
+
+
+def test_one_floor_warning_rule_in_every_domain(domain):
+    """Most points under the floor: a FloorWarning naming how many, in every domain; a few
+    floor elements among many points: none (the rule of the plane, now everyone's)."""
+    pts = points_in(domain, 2000)
+    crowd = np.repeat(pts[:1], 100, axis=0)
+    with pytest.warns(knnrefine.FloorWarning, match="100 of the 100 points"):
+        mesh = refine_in(domain, crowd, 10)
+    assert mesh.stats.points_under_floor == 100 and len(mesh.floor_points)
+    some = np.concatenate([pts, crowd[:30]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", knnrefine.FloorWarning)
+        mesh = refine_in(domain, some, 10)
+    assert 30 <= mesh.stats.points_under_floor < len(some) / 2
+    assert mesh.stats.floor_circumballs + mesh.stats.floor_cells > 0
+
+
+@pytest.mark.parametrize("tamper", ["drop", "copy", "move"])
+def test_certify_fails_the_same_tampering_in_every_domain(domain, tamper):
+    pts = points_in(domain, 3000)
+    mesh = refine_in(domain, pts)
+    assert knnrefine.certify(mesh, pts, samples=3000).passed
+    cells = mesh.cells.copy()
+    if tamper == "drop":
+        cells = cells[1:]
+    elif tamper == "copy":
+        cells = np.concatenate([cells, cells[:1]])
+    bad = dataclasses.replace(mesh, cells=cells)
+    if tamper == "move":  # two vertices trade places: the cells no longer fit them
+        swap = np.arange(len(mesh.vertices))
+        swap[[0, len(swap) // 2]] = swap[[len(swap) // 2, 0]]
+        moved = {"vertices": mesh.vertices[swap]}
+        if domain == "sphere":
+            moved["xyz"] = mesh.xyz[swap]
+        bad = dataclasses.replace(mesh, **moved)
+    offsets = None if mesh.offsets is None else (
+        mesh.offsets[1:] if tamper == "drop" else np.concatenate([mesh.offsets, mesh.offsets[:1]])
+        if tamper == "copy" else mesh.offsets)  # fmt: skip
+    if mesh.offsets is not None:
+        bad = dataclasses.replace(bad, offsets=offsets)
+    cert = knnrefine.certify(bad, pts, samples=3000)
+    assert not cert.passed, str(cert)
+    assert cert.triangulation_problems or cert.mesh_problems or cert.max_aspect > mesh.tau
