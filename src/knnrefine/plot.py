@@ -8,7 +8,6 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import ArrayLike
 
 from .errors import InputError
 from .mesh import edges
@@ -37,7 +36,7 @@ __all__ = [
 
 def plot_mesh(
     mesh: Mesh,
-    points: ArrayLike | None = None,
+    points: Any = None,
     *,
     ax: Any = None,
     cells: str = "triangles",
@@ -168,7 +167,7 @@ def colour_bar(ax, mappable, label):
 def save_plot(
     mesh: Mesh,
     path: str | os.PathLike,
-    points: ArrayLike | None = None,
+    points: Any = None,
     *,
     force: bool = False,
     dpi: int = 150,
@@ -223,9 +222,7 @@ HDR_MASSES = (0.5, 0.8, 0.95)  # the highest-density regions drawn by default
 IMAGE_MASS = 0.99  # an image's colour scale reaches down to this region's level
 
 
-def hdr_levels(
-    values: ArrayLike, masses: Sequence[float] = HDR_MASSES, *, areas: ArrayLike | None = None
-) -> np.ndarray:
+def hdr_levels(values: Any, masses: Any = HDR_MASSES, *, areas: Any = None) -> np.ndarray:
     """The density levels whose superlevel sets hold the given shares of the mass of a grid
     of values: level t_p is the least value such that the cells at or above it hold p of the
     grid's total (Hyndman 1996's highest-density regions). Returns the levels, in the order
@@ -268,8 +265,8 @@ def plot_density(
     cmap: str | None = None,
     grid: tuple | None = None,
     style: str = "hdr",
-    masses: Sequence[float] = HDR_MASSES,
-    points: ArrayLike | None = None,
+    masses: Any = HDR_MASSES,
+    points: Any = None,
     max_points: int = 20_000,
 ) -> Any:
     """Draw a density estimate the way statisticians publish one.
@@ -468,7 +465,7 @@ def _projected_polygons(ax, polygons, step=2.0):
 
 def plot_sphere_mesh(
     mesh: Mesh,
-    points: ArrayLike | None = None,
+    points: Any = None,
     *,
     ax: Any = None,
     cells: str = "triangles",
@@ -494,7 +491,7 @@ def plot_sphere_mesh(
     if cells == "triangles" or show_mesh:
         if cells == "triangles":
             tri = np.array([t for t, _ in pieces])
-            centroid = mesh.xyz[mesh.triangles[tri]].sum(axis=1)
+            centroid = np.asarray(mesh.xyz)[mesh.triangles[tri]].sum(axis=1)
             values = mesh.d_m2(lonlat_of(centroid))
             values = np.maximum(values, values[values > 0].min() if (values > 0).any() else 1.0)
             norm = LogNorm(vmin=values.min(), vmax=max(values.max(), values.min() * 1.0001))
@@ -587,7 +584,7 @@ def plot_orthographic(
     ax: Any = None,
     *,
     centre: tuple[float, float] = (0.0, 0.0),
-    points: ArrayLike | None = None,
+    points: Any = None,
     cmap: str = "viridis",
     max_points: int = 50_000,
 ) -> Any:
@@ -605,13 +602,13 @@ def plot_orthographic(
     east = np.cross([0.0, 0.0, 1.0], view)
     east = east / np.linalg.norm(east) if np.linalg.norm(east) > 1e-12 else np.array([0, 1.0, 0])
     north = np.cross(view, east)
-    xyz = mesh.xyz
+    xyz = np.asarray(mesh.xyz)
     corners = xyz[mesh.triangles]
     facing = (corners @ view).min(axis=1) > 0
     flat = np.stack([corners[facing] @ east, corners[facing] @ north], axis=-1)
     values = mesh.d_m2(lonlat_of(corners[facing].sum(axis=1)))
     values = np.maximum(values, values[values > 0].min() if (values > 0).any() else 1.0)
-    coll = PolyCollection(flat, array=values, cmap=cmap,
+    coll = PolyCollection(list(flat), array=values, cmap=cmap,
                           norm=LogNorm(vmin=values.min(), vmax=max(values.max(),
                                                                    values.min() * 1.0001)),
                           edgecolors="0.1", linewidths=0.15)  # fmt: skip
@@ -673,8 +670,8 @@ def plot_diagram(persistence: Any, ax: Any, *, dims: Sequence[int] = (0, 1)) -> 
 
 def plot_clusters(
     mesh: Mesh,
-    points: ArrayLike,
-    labels: ArrayLike,
+    points: Any,
+    labels: Any,
     ax: Any,
     *,
     max_points: int = 200_000,
@@ -797,7 +794,7 @@ VIEWS = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
 def save_slices(
     mesh: Mesh,
     path: str | os.PathLike,
-    points: ArrayLike | None = None,
+    points: Any = None,
     *,
     force: bool = False,
     dpi: int = 150,
@@ -848,7 +845,7 @@ def plot_slices(
     axes: Any,
     label: str,
     *,
-    points: ArrayLike | None = None,
+    points: Any = None,
     shape: int = 256,
     cmap: str = "viridis",
     title: str = "",
@@ -895,7 +892,7 @@ def plot_projections(
     axes: Any,
     *,
     grid: tuple | None = None,
-    points: ArrayLike | None = None,
+    points: Any = None,
     max_points: int = 20_000,
     cmap: str = "magma",
 ) -> Any:
@@ -938,7 +935,7 @@ def plot_projections(
 
 
 def plot_clusters_projected(
-    mesh: Mesh, points: ArrayLike, labels: ArrayLike, axes: Any, *, max_points: int = 200_000
+    mesh: Mesh, points: Any, labels: Any, axes: Any, *, max_points: int = 200_000
 ) -> Any:
     """Points in space coloured by cluster (noise in grey) in the three views of the box."""
     pts = BoxMetric(mesh.box, mesh.periodic).wrap(np.asarray(points, float))

@@ -50,6 +50,7 @@ from ..validation import (
     as_queries,
     check_inside,
     check_workers,
+    random_generator,
     weights_of_run,
 )
 
@@ -745,10 +746,10 @@ class PartitionedDistance:
         """``KnnDistance.integrate``: the parts' integrals over their own pieces, added."""
         return float(sum(self.part(j).integrate(func, region) for j in range(len(self.pmesh))))
 
-    def sample_pieces(self, n, rng):
+    def sample_pieces(self, n: int, random_state: Any = None) -> np.ndarray:
         """n points from the density proportional to 1 / d^dim over the box: each part's
         share drawn by its exact mass, then from its own pieces."""
-
+        rng = random_generator(random_state)
         parts = [self.part(j) for j in range(len(self.pmesh))]
         dim = self.dim
         mass = np.array([p.integrate(lambda d: 1.0 / d**dim) for p in parts])
