@@ -63,7 +63,8 @@ def _digest(mesh, points, weights):
 def certify_every_mesh(monkeypatch):
     import sys
 
-    original = knnrefine.pipeline.refine  # every refine goes through it: the API's, the uses'
+    pipeline = knnrefine.pipeline  # every run in this process goes through its two entries
+    in_a_box, on_sphere = pipeline.refine_checked, pipeline.refine_on_sphere
     package = sys.modules["knnrefine.certify"]  # the entry's own names, read at each call
     made, seen = [], set()
 
@@ -79,9 +80,13 @@ def certify_every_mesh(monkeypatch):
             CERTIFIED["skipped"] += 1
         return mesh
 
-    @functools.wraps(original)
-    def refine_and_register(points, k=None, *args, **kwargs):
-        return register(original(points, k, *args, **kwargs), points, kwargs)
+    @functools.wraps(in_a_box)
+    def in_a_box_and_register(pts, w, opt):
+        return register(in_a_box(pts, w, opt), pts, {"weights": w})
+
+    @functools.wraps(on_sphere)
+    def on_sphere_and_register(points, k, tau, **kwargs):
+        return register(on_sphere(points, k, tau, **kwargs), points, kwargs)
 
     def seen_by(check):
         @functools.wraps(check)
@@ -91,7 +96,8 @@ def certify_every_mesh(monkeypatch):
 
         return wrapped
 
-    monkeypatch.setattr(knnrefine.pipeline, "refine", refine_and_register)
+    monkeypatch.setattr(pipeline, "refine_checked", in_a_box_and_register)
+    monkeypatch.setattr(pipeline, "refine_on_sphere", on_sphere_and_register)
     # tiled runs (workers, executors) come from scale's one entry
     import knnrefine.scale.shared as shared
 
@@ -215,6 +221,46 @@ def gaussian_clusters(n, seed=0, clusters=30, dim=2):
     widths = 10 ** rng.uniform(-3, -1.5, clusters)
     j = rng.integers(0, clusters, n)
     return np.mod(centres[j] + rng.normal(size=(n, dim)) * widths[j, None], 1.0)
+
+
+DOMAINS = ["plane", "space", "sphere"]
+
+
+@pytest.fixture(params=DOMAINS)
+def domain(request):
+    """The domain a test runs in: one suite for the plane, space and the sphere."""
+    return request.param
+
+
+def points_in(domain, n=2000, seed=0):
+    """Clustered points of a domain: ``gaussian_clusters`` in the unit box of the plane or
+    of space; on the sphere, longitudes and latitudes (below 70 degrees) uniform."""
+    rng = np.random.default_rng(seed)
+    if domain == "sphere":
+        return np.column_stack([rng.uniform(-180, 180, n), rng.uniform(-70, 70, n)])
+    return gaussian_clusters(n, seed, dim=2 if domain == "plane" else 3)
+
+
+def degenerate_in(domain, n=1500, seed=0):
+    """Degenerate points of a domain: a third on a line (the equator and the antimeridian's
+    great circle on the sphere, the seam x = 0 of the box), a third duplicates of ten
+    points, the rest as ``points_in``."""
+    pts = points_in(domain, n, seed)
+    third = n // 3
+    line = np.linspace(0.0, 1.0, third, endpoint=False)
+    if domain == "sphere":
+        pts[:third] = np.column_stack([line * 360 - 180, np.zeros(third)])
+        pts[third : third + 50] = np.column_stack([np.full(50, 180.0), np.linspace(-60, 60, 50)])
+    else:
+        pts[:third, 0] = 0.0
+        pts[:third, 1] = line
+    pts[third : 2 * third] = pts[2 * third : 2 * third + 10][np.arange(third) % 10]
+    return pts
+
+
+def refine_in(domain, pts, k=10, **options):
+    """``knnrefine.refine`` of a domain's points."""
+    return knnrefine.refine(pts, k, sphere=domain == "sphere", **options)
 
 
 def on_lines(n, share, xs, seed=0, axis=0, dim=2):

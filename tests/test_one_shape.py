@@ -7,29 +7,13 @@ import warnings
 
 import numpy as np
 import pytest
-from conftest import gaussian_clusters
+from conftest import degenerate_in, gaussian_clusters, points_in, refine_in
 
 import knnrefine
 from knnrefine import io
 from knnrefine.mesh import Stats
 
 KEYS = tuple(f.name for f in dataclasses.fields(Stats))
-
-
-@pytest.fixture(params=["plane", "space", "sphere"])
-def domain(request):
-    return request.param
-
-
-def points_in(domain, n=2000, seed=0):
-    rng = np.random.default_rng(seed)
-    if domain == "sphere":
-        return np.column_stack([rng.uniform(-180, 180, n), rng.uniform(-70, 70, n)])
-    return gaussian_clusters(n, seed, dim=2 if domain == "plane" else 3)
-
-
-def refine_in(domain, pts, k=10, **options):
-    return knnrefine.refine(pts, k, sphere=domain == "sphere", **options)
 
 
 def test_stats_have_one_key_set_in_every_domain(domain, tmp_path):
@@ -120,3 +104,30 @@ def test_certify_fails_the_same_tampering_in_every_domain(domain, tamper):
     cert = knnrefine.certify(bad, pts, samples=3000)
     assert not cert.passed, str(cert)
     assert cert.triangulation_problems or cert.mesh_problems or cert.max_aspect > mesh.tau
+
+
+def test_the_stats_and_the_floor_rule_hold_on_degenerate_points(domain):
+    """Points on a line (a seam, the equator, the antimeridian) and duplicates: the same key
+    set, and the points under the floor counted as in every domain."""
+    pts = degenerate_in(domain)
+    mesh = refine_in(domain, pts, 10)
+    assert tuple(mesh.stats) == KEYS
+    assert mesh.stats.points_under_floor <= len(pts) / 2  # no FloorWarning was due
+    assert knnrefine.certify(mesh, pts, samples=3000).passed
+
+
+def test_the_command_line_takes_weights_on_degenerate_points(tmp_path, capsys):
+    """--weights with duplicated rows and points on a line: the API's mesh, certified."""
+    from knnrefine.cli.main import main
+
+    pts = degenerate_in("plane")
+    w = np.random.default_rng(3).integers(0, 3, len(pts)).astype(float)
+    path = tmp_path / "p.csv"
+    np.savetxt(path, np.column_stack([pts, w]), delimiter=",", header="x,y,w", comments="")
+    out = tmp_path / "m.npz"
+    argv = ["refine", str(path), "--weights", "w", "-k", "10", "-o", str(out), "--certify"]
+    assert main(argv + ["--quiet"]) == 0
+    np.testing.assert_array_equal(
+        io.read_mesh(out).vertices, knnrefine.refine(pts, 10, weights=w).vertices
+    )
+    capsys.readouterr()

@@ -8,26 +8,13 @@ import io as std_io
 
 import numpy as np
 import pytest
-from conftest import gaussian_clusters
+from conftest import DOMAINS, degenerate_in, points_in, refine_in
 
 import knnrefine
 import knnrefine.scale.distributed
 from knnrefine import io
 from knnrefine.cli.main import main
 from knnrefine.errors import InputError
-
-DOMAINS = ["plane", "space", "sphere"]
-
-
-def points_in(domain, n=2000, seed=0):
-    rng = np.random.default_rng(seed)
-    if domain == "sphere":
-        return np.column_stack([rng.uniform(-180, 180, n), rng.uniform(-70, 70, n)])
-    return gaussian_clusters(n, seed, dim=2 if domain == "plane" else 3)
-
-
-def refine_in(domain, pts, k=10, **options):
-    return knnrefine.refine(pts, k, sphere=domain == "sphere", **options)
 
 
 def test_knn_cdf_and_plot_are_reachable_after_import_knnrefine():
@@ -94,12 +81,18 @@ def test_random_state_takes_what_scikit_learn_takes():
             knnrefine.certify(mesh, pts, random_state=bad)
 
 
+@pytest.mark.parametrize("degenerate", [False, True])
 @pytest.mark.parametrize("domain", DOMAINS)
-def test_workers_2_is_accepted_and_certified_in_every_domain(domain):
-    pts = points_in(domain)
+def test_workers_2_is_accepted_and_certified_in_every_domain(domain, degenerate, tiles_always):
+    """workers=2 in every domain, in tiles where a domain has them (KNNREFINE_TILES=always),
+    on clustered points and on degenerate ones (a third on a line or a seam, a third
+    duplicates): accepted, and certified with workers=2 threads."""
+    pts = (degenerate_in if degenerate else points_in)(domain)
     mesh = refine_in(domain, pts, workers=2)
     cert = knnrefine.certify(mesh, pts, workers=2, samples=3000)
     assert cert.passed, str(cert)
+    if domain != "sphere":
+        assert mesh.stats.rounds  # the tiled path ran
     with pytest.raises(InputError, match="positive integer"):
         refine_in(domain, pts, workers=0)
 
@@ -138,7 +131,10 @@ def test_progress_true_draws_a_bar_and_a_bad_progress_is_refused(domain, monkeyp
     monkeypatch.setattr(tqdm.auto, "tqdm", recording)
     pts = points_in(domain, 3000)
     mesh = refine_in(domain, pts, progress=True)
-    assert made and made[-1].n == len(mesh.vertices) or made[-1].n > 0
+    assert len(made) == 1  # one bar for the run
+    bar = made[0]
+    assert bar.n >= len(mesh.vertices) > 0  # the vertices so far (the torus' may be more)
+    assert bar.disable  # closed when the mesh was done
     with pytest.raises(InputError, match="progress must be True"):
         refine_in(domain, pts, progress="yes")
 
@@ -163,7 +159,7 @@ def test_the_cli_takes_weights_workers_random_state_and_k_as_the_api(tmp_path, c
     mesh = io.read_mesh(out)
     assert mesh.k == 12.5
     assert mesh.stats["weight"] == pytest.approx(w.sum())
-    want = knnrefine.refine(pts, 12.5, weights=w)
+    want = knnrefine.refine(pts, 12.5, weights=w, workers=2)  # the path the CLI takes
     np.testing.assert_array_equal(mesh.vertices, want.vertices)
     assert main(["certify", str(out), str(csv), "--weights", "w", "--workers", "2",
                  "--random-state", "1"]) == 0  # fmt: skip

@@ -160,20 +160,21 @@ def refine(
     domain = pipeline.domain_of(points, sphere, radius)
     tiles = V.check_workers(workers)
     V.check_executor(executor, tiles, domain)
-    if domain == "sphere":
-        pipeline.check_sphere_options(periodic, box)
-    elif tiles > 1:  # tiles where they pay
-        pts, w, opt = pipeline.checked(points, weights, k=k, tau=tau, periodic=periodic,
-                                       box=box, min_size=min_size, max_vertices=max_vertices,
-                                       time_limit=time_limit, progress=progress)  # fmt: skip
+    if domain == "sphere":  # no tiles on the sphere: its workers are its kernels' threads
+        return pipeline.refine_on_sphere(points, k, tau, periodic=periodic, box=box,
+                                         weights=weights, min_size=min_size,
+                                         max_vertices=max_vertices, time_limit=time_limit,
+                                         progress=progress, radius=radius)  # fmt: skip
+    pts, w, opt = pipeline.checked(points, weights, k=k, tau=tau, periodic=periodic, box=box,
+                                   min_size=min_size, max_vertices=max_vertices,
+                                   time_limit=time_limit, progress=progress)  # fmt: skip
+    if tiles > 1:  # tiles where they pay
         from .scale.shared import refine_local
         from .scale.tiled import tiles_pay
 
         if executor is not None or tiles_pay(pts.shape[1], len(pts)):
             return refine_local(pts, w, opt, tiles, executor)
-    return pipeline.refine(points, k, tau, periodic=periodic, box=box, weights=weights,
-                           min_size=min_size, max_vertices=max_vertices, time_limit=time_limit,
-                           progress=progress, sphere=sphere, radius=radius)  # fmt: skip
+    return pipeline.refine_checked(pts, w, opt)
 
 
 def certify(
@@ -234,12 +235,12 @@ def certify(
         Points, weights or options that are not the mesh's or not valid.
     """
     _check_certifiable(mesh)
-    V.random_generator(random_state)  # refused before any work
+    rng = V.random_generator(random_state)  # refused before any work, drawn from once
     strips = V.check_workers(workers)
     on_sphere = getattr(mesh, "on_sphere", False)
     V.check_executor(executor, strips, "sphere" if on_sphere else "box")
     options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
-                   random_state=random_state)  # fmt: skip
+                   random_state=rng)  # fmt: skip
     if executor is None:
         threads = -1 if workers is None else strips
         return certify_points(mesh, points, weights=weights, workers=threads, **options)

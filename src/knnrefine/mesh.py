@@ -72,7 +72,10 @@ def sphere_constants(tau: float, largest_cap: float) -> tuple[float, float]:
     return alpha, float((3.0 - theta) / (1.0 - theta))
 
 
-RUN_TIMES = ("setup", "refine", "assemble", "total")
+def moves_of(kinds) -> dict:
+    """Vertices by the move that made them (``KIND_NAMES``), from their kinds."""
+    counts = np.bincount(np.asarray(kinds, np.int64), minlength=len(KIND_NAMES))
+    return {name: int(counts[i]) for i, name in enumerate(KIND_NAMES)}
 
 
 @dataclass
@@ -103,11 +106,14 @@ class Stats(Mapping):
     points_under_floor : int
         Input points in them.
     largest_circumball : float
-        The largest circumradius of the mesh, in input units (on the sphere: the largest
-        circumcap's angular radius times ``radius``; the sphere's beta depends on it).
+        The largest circumradius of the triangulation the engine refined (in a box the
+        torus', margins included), in input units; on the sphere the largest circumcap's
+        angular radius times ``radius`` (the sphere's beta depends on it).
     estimated_vertices, max_vertices : int
-        The size estimated before refining (0 where none is made: a tiled run in space)
-        and the vertex budget.
+        The size estimated before refining and the vertex budget. In a box the estimate is
+        ``engine.size``'s (0 where none is made: a tiled run in space); on the sphere it is
+        2.5 n / k, the uniform points' figure its first allocation uses, and the budget
+        max(10^6, 4 n) unless max_vertices is given.
     rounds : list or None
         A tiled run's turns and last step; None for one process.
     time : dict
@@ -350,7 +356,7 @@ class Mesh(Cells):
     @property
     def kind_counts(self) -> dict:
         """How many vertices came by each move (``KIND_NAMES``)."""
-        return {name: int((self.kinds == i).sum()) for i, name in enumerate(KIND_NAMES)}
+        return moves_of(self.kinds)
 
     @property
     def period(self) -> tuple:

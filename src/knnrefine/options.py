@@ -220,7 +220,12 @@ class ProgressBar:
             bar.set_postfix_str("", refresh=False)
         bar.update(max(count - bar.n, 0))  # honours the delay: short runs show no bar
         if phase == "done":
-            bar.close()
+            self.close()
+
+    def close(self):
+        """Take the bar away (a run that stopped early never says "done")."""
+        if self.bar is not None:
+            self.bar.close()
 
 
 class Progress:
@@ -314,6 +319,15 @@ def vertex_budget(estimated, opt, m0, n):
     return budget
 
 
+def user_stacklevel():
+    """The ``stacklevel`` that shows a warning at the user's line: the first frame outside
+    knnrefine, counted from the caller of ``warnings.warn``."""
+    frame, level = sys._getframe(2), 2
+    while frame is not None and frame.f_globals.get("__name__", "").startswith("knnrefine"):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def warn_floor(under, n, k, min_size, default):
     """The one FloorWarning rule of every domain, after the run: when more than half of the
     ``n`` input points lie in elements left at the floor still holding k points (``under``
@@ -322,16 +336,13 @@ def warn_floor(under, n, k, min_size, default):
     Shown at the caller's line."""
     if not under > n / 2 or k == 1:
         return
-    frame, stacklevel = sys._getframe(0), 1
-    while frame is not None and frame.f_globals.get("__name__", "").startswith("knnrefine"):
-        frame, stacklevel = frame.f_back, stacklevel + 1
     warnings.warn(
         f"{under} of the {n} points ({100 * under / n:.0f}%) lie in circumballs or cells "
         f"smaller than min_size = {min_size:.3g} that still hold k = {k} points: the bounds "
         f"are not claimed there (Mesh.floor_points says where); min_size defaults to "
         f"{default}: pass a smaller min_size",
         FloorWarning,
-        stacklevel=stacklevel,
+        stacklevel=user_stacklevel(),
     )
 
 
@@ -341,14 +352,11 @@ def warn_k1(k, estimated, n, min_size):
     points): several per point, thousands in space. Shown at the caller's line."""
     if k != 1:
         return
-    frame, stacklevel = sys._getframe(0), 1
-    while frame is not None and frame.f_globals.get("__name__", "").startswith("knnrefine"):
-        frame, stacklevel = frame.f_back, stacklevel + 1
     warnings.warn(
         f"k = 1 refines around every input point down to min_size = {min_size:.3g} (d_P1 is 0 "
         f"at each point): about {estimated:,.0f} vertices are expected, {estimated / n:,.0f} "
         "per point; the bounds are not claimed below the floor. Use k >= 2 or a larger "
         "min_size",
         FloorWarning,
-        stacklevel=stacklevel,
+        stacklevel=user_stacklevel(),
     )

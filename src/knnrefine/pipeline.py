@@ -19,6 +19,7 @@ from . import run
 from .errors import InputError
 from .mesh import Mesh
 from .options import RunOptions
+from .run import checked  # noqa: F401  (a run in a box: its points and options checked)
 
 
 def refine(
@@ -44,10 +45,11 @@ def refine(
     -------
     Mesh
     """
-    domain = domain_of(points, sphere, radius)
-    if domain == "sphere":
-        return _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertices,
-                              time_limit, progress, radius)  # fmt: skip
+    if domain_of(points, sphere, radius) == "sphere":
+        return refine_on_sphere(points, k, tau, periodic=periodic, box=box, weights=weights,
+                                min_size=min_size, max_vertices=max_vertices,
+                                time_limit=time_limit, progress=progress,
+                                radius=radius)  # fmt: skip
     return refine_checked(*checked(points, weights, k=k, tau=tau, periodic=periodic, box=box,
                                    min_size=min_size, max_vertices=max_vertices,
                                    time_limit=time_limit, progress=progress))  # fmt: skip
@@ -63,12 +65,6 @@ def domain_of(points, sphere=False, radius=None):
     if radius is not None:
         raise InputError("radius is the sphere's: give it with sphere=True")
     return "space" if run.is_spatial(points) else "plane"
-
-
-def checked(points, weights, **asked):
-    """(points, weights, ``RunOptions``) of a run in a box, checked before any work
-    (``run.checked``)."""
-    return run.checked(points, weights, **asked)
 
 
 def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
@@ -101,9 +97,9 @@ def check_sphere_options(periodic, box):
         )
 
 
-def _refine_sphere(points, k, tau, periodic, box, weights, min_size, max_vertices, time_limit,
-                   progress, radius):  # fmt: skip
-    """``refine`` on the sphere."""
+def refine_on_sphere(points, k, tau, *, periodic, box, weights, min_size, max_vertices,
+                     time_limit, progress, radius) -> Mesh:  # fmt: skip
+    """``refine`` on the sphere: the options it has no use for refused, then its run."""
     check_sphere_options(periodic, box)
     from .run_sphere import refine_sphere
 

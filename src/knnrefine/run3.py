@@ -22,13 +22,12 @@ from .engine.state import (
     C_FAILED,
     C_MAX_VERTICES,
     C_NV,
-    KIND_NAMES,
     STATUS_DONE,
     STATUS_MAX_VERTICES,
 )
 from .errors import BudgetError, InputError
-from .mesh import Mesh, Stats, Torus
-from .metric import BoxMetric, held_in_balls, weighted_kth
+from .mesh import Mesh, Stats, Torus, moves_of
+from .metric import BoxMetric, held_in_balls, points_in_balls, weighted_kth
 from .options import Progress, vertex_budget, warn_floor
 
 
@@ -163,14 +162,9 @@ def _points_under_floor(points, floor, emb, n):
     centres, radii2, _ = floor
     if len(radii2) == 0:
         return 0
-    pts = points()
     period = np.array(emb.period_internal)
-    tree = cKDTree(emb.to_internal(pts) % period, boxsize=period)
-    found = tree.query_ball_point(centres % period, np.sqrt(radii2) * (1.0 + 1e-9))
-    hit = np.zeros(n, bool)
-    for f in found:
-        hit[np.asarray(f, np.int64)] = True
-    return int(hit.sum())
+    tree = cKDTree(emb.to_internal(points()) % period, boxsize=period)
+    return points_in_balls(tree, centres % period, np.sqrt(radii2))
 
 
 def refine3(pts, opt, weights=None):
@@ -202,7 +196,7 @@ def refine3(pts, opt, weights=None):
         run = Refinement3(run_index, emb.period_internal, k, tau, min_size * emb.scale, budget,
                           grid, emb.grid)  # fmt: skip
         del run_index, grid
-        run.t_setup = time.perf_counter()
+        run.time_index = time.perf_counter() - opt.t_start
         status = run.run(opt.deadline, report.refining, interrupts)
     total = None if weights is None else math.fsum(weights)
     report.assembling(int(run.cnt[C_NV]))
@@ -232,8 +226,7 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
             progress={**run.progress(), "seconds": time.perf_counter() - t_start},
         )
     t_assemble = time.perf_counter()
-    t_setup = getattr(run, "t_setup", t_start)  # when the refinement began
-    setup = t_setup - t_start
+    setup, refined = run.time_index, run.time_refine
     xyz, corners, offsets, kinds, cnt, floor = run.take_result()
     largest = float(np.sqrt(run.largest_radius2))
     del run
@@ -250,13 +243,12 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
         n=int(n), weight=None if weight is None else float(weight), m=int(len(out_v)),
         m_torus=int(len(xyz)), cells=int(len(tetrahedra)),
         initial_vertices=int(np.count_nonzero(kinds == 0)),
-        moves={name: int(c) for name, c in zip(KIND_NAMES, np.bincount(
-            kinds, minlength=len(KIND_NAMES)), strict=True)},
+        moves=moves_of(kinds),
         circumball_tests=int(cnt[C_DISK_TESTS]), cell_tests=int(cnt[C_CELL_TESTS]),
         failed_insertions=int(cnt[C_FAILED]), floor_circumballs=int(floor[2]),
         floor_cells=int(len(floor[1]) - floor[2]), points_under_floor=int(under),
         largest_circumball=largest / emb.scale, rounds=rounds,
-        time={"setup": setup, "refine": t_assemble - t_setup,
+        time={"setup": setup, "refine": refined,
               "assemble": time.perf_counter() - t_assemble,
               "total": time.perf_counter() - t_start},
     )  # fmt: skip

@@ -14,6 +14,7 @@ import math
 import time
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from . import validation as V
 from .engine import ahead
@@ -47,7 +48,6 @@ from .engine.state import (
     C_STAMP,
     ERRORS,
     FLOOR,
-    KIND_NAMES,
     N_COUNTERS,
     STATUS_DONE,
     STATUS_ERROR,
@@ -60,8 +60,8 @@ from .engine.state import (
 )
 from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
 from .errors import BudgetError, EngineError, InputError
-from .mesh import Mesh, Stats
-from .metric import angle_to_chord, chord_to_angle, lonlat_of
+from .mesh import Mesh, Stats, moves_of
+from .metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls
 from .options import Progress, check_progress, warn_floor, warn_k1
 
 STEPS = 20_000  # insertions per kernel call
@@ -258,22 +258,16 @@ def _refine_checked(xyz_p, w, total, opt, report):
 def _points_under_floor(xyz_p, xyz, corners, chord2, normal, floor_t, floor_v):
     """How many input points (unit vectors) lie in a floor element: a floor circumcap
     (centre ``normal``), or the cap of chord R(v) about a floor cell's vertex (R(v): the
-    largest circumcap chord of the triangles at v, whose caps cover v's Voronoi cell). The
-    plane's and space's rule (``run._points_under_floor``), asked of a kd-tree."""
+    largest circumcap chord of the triangles at v, whose caps cover v's Voronoi cell): the
+    rule of every domain (``metric.points_in_balls``)."""
     if not len(floor_t) and not len(floor_v):
         return 0
-    from scipy.spatial import cKDTree
-
     reach2 = np.zeros(len(xyz))
     for i in range(3):
         np.maximum.at(reach2, corners[:, i], chord2)
     centres = np.concatenate([normal, xyz[floor_v]])
-    radii = np.sqrt(np.concatenate([chord2[floor_t], reach2[floor_v]])) * (1.0 + 1e-9)
-    hits = cKDTree(xyz_p).query_ball_point(centres, radii)
-    marked = np.zeros(len(xyz_p), bool)
-    for rows in hits:
-        marked[rows] = True
-    return int(marked.sum())
+    radii = np.sqrt(np.concatenate([chord2[floor_t], reach2[floor_v]]))
+    return points_in_balls(cKDTree(xyz_p), centres, radii)
 
 
 def _progress(run, t0):
@@ -281,7 +275,7 @@ def _progress(run, t0):
     kinds = run.book.kinds[:nv]
     return {
         "vertices": nv,
-        "moves": {name: int((kinds == i).sum()) for i, name in enumerate(KIND_NAMES)},
+        "moves": moves_of(kinds),
         "seconds": time.perf_counter() - t0,
     }
 
@@ -305,7 +299,7 @@ def _assemble(run, opt, index, times, xyz_p, total, budget):
     stats = Stats(
         n=n, weight=total, m=nv, m_torus=nv, cells=nt,
         initial_vertices=int(np.count_nonzero(kinds == 0)),
-        moves={name: int((kinds == i).sum()) for i, name in enumerate(KIND_NAMES)},
+        moves=moves_of(kinds),
         circumball_tests=int(run.cnt[C_DISK_TESTS]), cell_tests=int(run.cnt[C_CELL_TESTS]),
         failed_insertions=int(run.cnt[C_FAILED]),
         floor_circumballs=int(len(floor_t)), floor_cells=int(len(floor_v)),

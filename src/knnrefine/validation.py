@@ -319,15 +319,16 @@ def random_generator(random_state):
     Generator or a RandomState): the one seed argument of every call that draws."""
     if isinstance(random_state, np.random.RandomState):
         return np.random.default_rng(random_state.randint(0, 2**63 - 1, dtype=np.int64))
-    if isinstance(random_state, (bool, np.bool_, float)):
-        random_state = object()  # refused below: a bool or a float is not a seed
-    try:
-        return np.random.default_rng(random_state)
-    except (TypeError, ValueError):
+    ok = random_state is None or isinstance(random_state, np.random.Generator) or (
+        isinstance(random_state, numbers.Integral) and not isinstance(random_state, bool)
+        and random_state >= 0
+    )  # fmt: skip
+    if not ok:
         raise InputError(
-            f"random_state must be None, an int, a numpy Generator or RandomState, got "
+            f"random_state must be None, an int >= 0, a numpy Generator or RandomState, got "
             f"{random_state!r}"
-        ) from None
+        )
+    return np.random.default_rng(random_state)
 
 
 def check_periodic(periodic, dim=2):

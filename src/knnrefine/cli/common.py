@@ -313,8 +313,8 @@ def refine_with_progress(points, args, quiet, weights=None):
                 workers=getattr(args, "workers", None),
             )
     finally:
-        if bar is not None and bar.bar is not None:
-            bar.bar.close()
+        if bar is not None:
+            bar.close()
         for w in caught:  # after the bar is gone, so that the two do not interleave
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     return mesh, time.perf_counter() - t0

@@ -108,6 +108,8 @@ class Refinement3(TileRun):
     ):
         self.period = np.asarray(period, float)
         self.index = index
+        self.time_index = 0.0  # seconds of the setup (set by the caller), as in the plane
+        self.time_refine = 0.0  # seconds in ``run``
         estimate = max(4096, len(grid[0]) * 4) if capacity is None else capacity
         self.mesh, self.scratch, self.cnt = new_torus3(self.period, grid, estimate, 7 * estimate)
         t_cap = self.mesh.corners.shape[0]
@@ -153,6 +155,7 @@ class Refinement3(TileRun):
         import time
 
         steps = min(2000, STEPS)
+        t0 = time.perf_counter()
         with contextlib.ExitStack() as stack:
             if interrupts is None:
                 interrupts = stack.enter_context(Interrupts())
@@ -186,11 +189,13 @@ class Refinement3(TileRun):
                         f"{int(self.cnt[C_NV])} vertices); please report it with the input"
                     )
                 if status in (STATUS_DONE, STATUS_MAX_VERTICES):
+                    self.time_refine = time.perf_counter() - t0
                     return status
                 interrupts.check()
                 if status == STATUS_GROW:
                     self._grow()
                 if not idle and deadline is not None and time.perf_counter() > deadline:
+                    self.time_refine = time.perf_counter() - t0
                     return STATUS_STEPS
 
     def _sweep_threads(self):

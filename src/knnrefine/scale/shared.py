@@ -541,14 +541,13 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
                        "unsettled": unsettled,
                        "tile_seconds": seconds, "seams": [float(h / emb.scale) for h in half],
                        "fetched_points": False})  # fmt: skip
+        run.time_index = setup  # the tiles and rounds count as the refinement
+        run.time_refine = time.perf_counter() - t0 - setup
         if dim == 3:
-            run.t_setup = t0 + setup
             mesh = finish3(run, status, emb, opt, lambda: pts, store.n, store.weight, rounds)
             mesh.stats.max_vertices = int(budget)  # no size estimate in space (plan)
             return mesh
         run.n = store.n
-        run.time_index = setup
-        run.time_refine = time.perf_counter() - t0 - setup
         return finish(
             run, status, emb, opt, (p.m0_order, p.m0_grid, p.estimated, budget), report,
             interrupts, None, store.weight, rounds,

@@ -727,15 +727,14 @@ def refine_store(store, opt, workers) -> Mesh:
             "round": "final", "new_vertices": run.vertices - before,
             "seconds": time.perf_counter() - t1, "unsettled": unsettled, "fetched_points": fetched,
         })  # fmt: skip
+        run.time_index = setup  # the tiles and rounds count as the refinement
+        run.time_refine = time.perf_counter() - t0 - setup
         if dim == 3:
-            run.t_setup = t0 + setup
             mesh = finish3(run, status, emb, opt, lambda: store.points()[0], n, store.weight,
                            rounds)  # fmt: skip
             mesh.stats.max_vertices = int(budget)  # no size estimate in space (plan)
             return mesh
         run.n = n
-        run.time_index = setup
-        run.time_refine = time.perf_counter() - t0 - setup
         return finish(
             run, status, emb, opt, (m0_order, m0_grid, estimated, budget), report, interrupts,
             None, store.weight, rounds,
