@@ -115,7 +115,10 @@ def plane():
                     print(f"{label}: refused ({str(exc)[:40]})")
                     continue
                 t = mesh.torus
-                torus = digest(t.vertices, t.triangles, t.offsets, t.neighbours, t.kinds)
+                links = getattr(t, "neighbours", None)
+                if links is None:
+                    links = getattr(t, "neighbors", None)  # a tree before the spelling changed
+                torus = digest(t.vertices, t.triangles, t.offsets, links, t.kinds)
                 user = digest(
                     mesh.vertices,
                     mesh.triangles,
