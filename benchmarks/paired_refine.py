@@ -4,7 +4,7 @@ run in a fresh process after a warm-up call on 20,000 of the points, refine only
 over --repeat pairs. Mesh sizes are printed too (the same when a change leaves the moves
 alone). ``--dim 3``: the periodic unit cube, ``bench_refine3.py``'s points (``--ordinary``:
 the cube not periodic); ``--dim 2``: the unit square (not periodic), ``bench_refine.py``'s
-points; ``--workers``: refine's.
+points; ``--sphere``: the sphere, ``bench_sphere.py``'s points; ``--workers``: refine's.
 
     git worktree add /tmp/before <commit>
     python benchmarks/paired_refine.py --before /tmp/before/src --dim 3 --n 1e6 --k 10 \\
@@ -21,11 +21,15 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def one(dim, kind, n, k, workers, ordinary=False):
+def one(dim, kind, n, k, workers, ordinary=False, sphere=False):
     sys.path.insert(0, HERE)
     import knnrefine
 
-    if dim == 3:
+    if sphere:
+        from bench_sphere import make_points as sphere_points
+
+        pts, where = sphere_points(kind, n), {"sphere": True}
+    elif dim == 3:
         from bench_refine3 import make_points3
 
         pts = make_points3(kind, n)
@@ -46,6 +50,7 @@ def main(argv=None):
     ap.add_argument("--dim", type=int, choices=[2, 3], default=3)
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--ordinary", action="store_true", help="in space: the cube not periodic")
+    ap.add_argument("--sphere", action="store_true", help="on the sphere (--dim is ignored)")
     ap.add_argument("--n", type=float, default=1e6)
     ap.add_argument("--k", type=int, default=10)
     ap.add_argument("--kind", choices=["uniform", "clustered"], default="uniform")
@@ -53,7 +58,7 @@ def main(argv=None):
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
-        one(args.dim, args.kind, int(args.n), args.k, args.workers, args.ordinary)
+        one(args.dim, args.kind, int(args.n), args.k, args.workers, args.ordinary, args.sphere)
         return
     trees = {"before": os.path.abspath(args.before),
              "after": os.path.join(os.path.dirname(HERE), "src")}  # fmt: skip
@@ -64,6 +69,8 @@ def main(argv=None):
         cmd += ["--workers", str(args.workers)]
     if args.ordinary:
         cmd += ["--ordinary"]
+    if args.sphere:
+        cmd += ["--sphere"]
     for _ in range(args.repeat):
         for name, src in trees.items():
             env = dict(os.environ, PYTHONPATH=src)
@@ -72,8 +79,9 @@ def main(argv=None):
             times[name].append(float(seconds))
             print(f"{name}: {float(seconds):.3f} s, m = {int(m):,}", flush=True)
     a, b = (statistics.median(times[x]) for x in ("before", "after"))
+    where = "sphere" if args.sphere else f"d={args.dim}"
     print(
-        f"{args.kind} d={args.dim} n={args.n:.0e} k={args.k} workers={args.workers}: "
+        f"{args.kind} {where} n={args.n:.0e} k={args.k} workers={args.workers}: "
         f"before {a:.2f} s, after {b:.2f} s, "
         f"after / before {b / a:.3f} (medians of {args.repeat})"
     )
