@@ -17,7 +17,7 @@ KEYS = tuple(f.name for f in dataclasses.fields(Stats))
 
 
 def test_stats_have_one_key_set_in_every_domain(domain, tmp_path):
-    pts = points_in(domain)
+    pts = points_in(domain, 1000)
     w = np.random.default_rng(1).integers(1, 3, len(pts)).astype(float)
     for mesh, weight in ((refine_in(domain, pts), None), (refine_in(domain, pts, weights=w), w)):
         st = mesh.stats
@@ -39,7 +39,7 @@ def test_stats_have_one_key_set_in_every_domain(domain, tmp_path):
 
 def test_tiled_runs_keep_the_key_set(tiles_always):
     for dim in (2, 3):
-        pts = gaussian_clusters(6000, 3, dim=dim)
+        pts = gaussian_clusters(3000, 3, dim=dim)
         mesh = knnrefine.refine(pts, 10, workers=2)
         assert tuple(mesh.stats) == KEYS and mesh.stats.rounds
         assert set(mesh.stats.time) == {"setup", "refine", "assemble", "total"}
@@ -65,7 +65,7 @@ def test_files_of_the_per_domain_keys_still_read():
 def test_one_floor_warning_rule_in_every_domain(domain):
     """Most points under the floor: a FloorWarning naming how many, in every domain; a few
     floor elements among many points: none (the rule of the plane, now everyone's)."""
-    pts = points_in(domain, 2000)
+    pts = points_in(domain, 1000)
     crowd = np.repeat(pts[:1], 100, axis=0)
     with pytest.warns(knnrefine.FloorWarning, match="100 of the 100 points"):
         mesh = refine_in(domain, crowd, 10)
@@ -80,9 +80,9 @@ def test_one_floor_warning_rule_in_every_domain(domain):
 
 @pytest.mark.parametrize("tamper", ["drop", "copy", "move"])
 def test_certify_fails_the_same_tampering_in_every_domain(domain, tamper):
-    pts = points_in(domain, 3000)
+    pts = points_in(domain, 800)
     mesh = refine_in(domain, pts)
-    assert knnrefine.certify(mesh, pts, samples=3000).passed
+    assert knnrefine.certify(mesh, pts, samples=1000).passed
     cells = mesh.cells.copy()
     if tamper == "drop":
         cells = cells[1:]
@@ -101,7 +101,7 @@ def test_certify_fails_the_same_tampering_in_every_domain(domain, tamper):
         if tamper == "copy" else mesh.offsets)  # fmt: skip
     if mesh.offsets is not None:
         bad = dataclasses.replace(bad, offsets=offsets)
-    cert = knnrefine.certify(bad, pts, samples=3000)
+    cert = knnrefine.certify(bad, pts, samples=1000)
     assert not cert.passed, str(cert)
     assert cert.triangulation_problems or cert.mesh_problems or cert.max_aspect > mesh.tau
 
@@ -109,11 +109,11 @@ def test_certify_fails_the_same_tampering_in_every_domain(domain, tamper):
 def test_the_stats_and_the_floor_rule_hold_on_degenerate_points(domain):
     """Points on a line (a seam, the equator, the antimeridian) and duplicates: the same key
     set, and the points under the floor counted as in every domain."""
-    pts = degenerate_in(domain)
+    pts = degenerate_in(domain, 900)
     mesh = refine_in(domain, pts, 10)
     assert tuple(mesh.stats) == KEYS
     assert mesh.stats.points_under_floor <= len(pts) / 2  # no FloorWarning was due
-    assert knnrefine.certify(mesh, pts, samples=3000).passed
+    assert knnrefine.certify(mesh, pts, samples=1000).passed
 
 
 def test_the_command_line_takes_weights_on_degenerate_points(tmp_path, capsys):

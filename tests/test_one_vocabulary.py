@@ -87,9 +87,9 @@ def test_workers_2_is_accepted_and_certified_in_every_domain(domain, degenerate,
     """workers=2 in every domain, in tiles where a domain has them (KNNREFINE_TILES=always),
     on clustered points and on degenerate ones (a third on a line or a seam, a third
     duplicates): accepted, and certified with workers=2 threads."""
-    pts = (degenerate_in if degenerate else points_in)(domain)
+    pts = (degenerate_in if degenerate else points_in)(domain, 900)
     mesh = refine_in(domain, pts, workers=2)
-    cert = knnrefine.certify(mesh, pts, workers=2, samples=3000)
+    cert = knnrefine.certify(mesh, pts, workers=2, samples=1000)
     assert cert.passed, str(cert)
     if domain != "sphere":
         assert mesh.stats.rounds  # the tiled path ran
@@ -129,7 +129,7 @@ def test_progress_true_draws_a_bar_and_a_bad_progress_is_refused(domain, monkeyp
         return bar
 
     monkeypatch.setattr(tqdm.auto, "tqdm", recording)
-    pts = points_in(domain, 3000)
+    pts = points_in(domain, 1500)
     mesh = refine_in(domain, pts, progress=True)
     assert len(made) == 1  # one bar for the run
     bar = made[0]
@@ -178,7 +178,7 @@ def test_the_cli_takes_weights_workers_random_state_and_k_as_the_api(tmp_path, c
     (["--periodic-x", "--periodic-y", "--periodic-z"], (True, True, True)),
 ])  # fmt: skip
 def test_the_cli_combines_periodic_axes(tmp_path, flags, want, capsys):
-    pts = points_in("space", 1500)
+    pts = points_in("space", 600)
     csv = _csv(tmp_path / "p.csv", pts)
     out = tmp_path / "m.npz"
     argv = ["refine", str(csv), "-k", "10", "--box", "0", "0", "0", "1", "1", "1", "-o", str(out)]
