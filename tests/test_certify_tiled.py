@@ -144,10 +144,10 @@ def test_certify_with_workers_threads_equals_one_thread(domain):
         pts = np.column_stack([rng.uniform(-180, 180, 3000), rng.uniform(-60, 60, 3000)])
         mesh = knnrefine.refine(pts, 10, sphere=True, workers=2)
     else:
-        pts = gaussian_clusters(3000, 14, dim=2 if domain == "plane" else 3)
+        pts = gaussian_clusters(1500, 14, dim=2 if domain == "plane" else 3)
         mesh = knnrefine.refine(pts, 10, workers=2)
-    a = knnrefine.certify(mesh, pts, workers=1, samples=5000)
-    b = knnrefine.certify(mesh, pts, workers=2, samples=5000)
+    a = knnrefine.certify(mesh, pts, workers=1, samples=2000)
+    b = knnrefine.certify(mesh, pts, workers=2, samples=2000)
     assert a.passed and b.passed
     for field in ("max_ball_count", "max_cell_count", "alpha_hat", "beta_hat", "size_integral"):
         assert getattr(a, field) == getattr(b, field), field
