@@ -3,6 +3,7 @@ a ``domain`` fixture (the plane, space, the sphere): one stats record with one k
 FloorWarning rule, the same certify verdicts on tampered meshes."""
 
 import dataclasses
+import os
 import warnings
 
 import numpy as np
@@ -131,3 +132,29 @@ def test_the_command_line_takes_weights_on_degenerate_points(tmp_path, capsys):
         io.read_mesh(out).vertices, knnrefine.refine(pts, 10, weights=w).vertices
     )
     capsys.readouterr()
+
+
+def test_every_domain_refuses_a_run_far_beyond_its_budget_or_memory(domain, monkeypatch):
+    """The up-front promises of a run's size, once (options.check_size) for every domain:
+    a run expected far beyond max_vertices, or (without it) beyond twice the memory, is
+    refused before any work with the same message; one expected to need more than 2 GB
+    says so (LargeRunWarning), shown outside knnrefine. The sphere had none of them."""
+    from knnrefine.engine import size
+
+    pts = points_in(domain, 2000)
+    expected = refine_in(domain, pts, 10).stats.estimated_vertices
+    with pytest.raises(knnrefine.BudgetError, match="far beyond max_vertices=60;"):
+        refine_in(domain, pts, 10, max_vertices=60)  # above every initial mesh
+    per_vertex = {"plane": size.BYTES_PER_VERTEX, "space": size.BYTES_PER_VERTEX3,
+                  "sphere": size.BYTES_PER_VERTEX_SPHERE}[domain]  # fmt: skip
+    memory = expected * per_vertex // 3  # the run needs 3 times the memory
+    monkeypatch.setattr(size, "memory_bytes", lambda: memory)
+    with pytest.raises(knnrefine.BudgetError, match="far more than this machine's"):
+        refine_in(domain, pts, 10)
+    monkeypatch.setattr(size, "memory_bytes", lambda: 10**12)
+    monkeypatch.setattr("knnrefine.options.LARGE_RUN_BYTES", 1.0)
+    with pytest.warns(knnrefine.LargeRunWarning, match="GB of memory") as caught:
+        refine_in(domain, pts, 10)
+    shown = [w.filename for w in caught if w.category is knnrefine.LargeRunWarning]
+    package = os.path.join("src", "knnrefine", "")
+    assert shown and all(package not in f for f in shown), shown

@@ -111,9 +111,10 @@ class Stats(Mapping):
         angular radius times ``radius`` (the sphere's beta depends on it).
     estimated_vertices, max_vertices : int
         The size estimated before refining and the vertex budget. In a box the estimate is
-        ``engine.size``'s (0 where none is made: a tiled run in space); on the sphere it is
-        2.5 n / k, the uniform points' figure its first allocation uses, and the budget
-        max(10^6, 4 n) unless max_vertices is given.
+        ``engine.size``'s (0 where none is made: a tiled run in space); on the sphere
+        ``run_sphere.estimate_sphere``'s (2.5 n / k, the uniform points' figure), and the
+        budget max(10^6, 4 n) unless max_vertices is given. Every domain refuses a run
+        whose estimate is far beyond the budget or memory, before any work.
     rounds : list or None
         A tiled run's turns and last step; None for one process.
     time : dict

@@ -52,6 +52,11 @@ class RunOptions:
     def dim(self) -> int:
         return len(self.periodic)
 
+    @property
+    def bytes_per_vertex(self) -> int:
+        """A run's peak memory per mesh vertex (``engine.size``), for its budget."""
+        return size.BYTES_PER_VERTEX if self.dim == 2 else size.BYTES_PER_VERTEX3
+
     def start_budget(self, n: int) -> int:
         """The vertex budget the initial mesh must fit: the user's, else max(10^6, 2 n) in
         the plane and max(10^6, 4 n) in space."""
@@ -281,9 +286,21 @@ def vertex_budget(estimated, opt, m0, n):
     points but off by up to 8x on clustered data (benchmarks/mesh_size.py), so only a run
     whose estimate exceeds twice the memory (by default) or eight times the user's budget is
     refused before any work; one expected to need more than 2 GB says so (LargeRunWarning)."""
+    check_size(estimated, opt, n)
+    if opt.max_vertices is not None:
+        return int(opt.max_vertices)
+    fits = int(0.9 * size.memory_bytes() / opt.bytes_per_vertex)
+    return int(max(10**6, 2 * m0, min(10 * estimated, fits)))
+
+
+def check_size(estimated, opt, n):
+    """What every domain says of a run's expected size (``estimated`` vertices) before any
+    work: the k = 1 notice (``warn_k1``); a refusal (BudgetError) of a run far beyond the
+    user's max_vertices (8 times) or, without one, beyond twice the machine's memory; a
+    LargeRunWarning for one expected to need more than 2 GB. ``opt``: the run's options
+    (k, max_vertices, min_size, bytes_per_vertex)."""
     k, max_vertices, min_size = opt.k, opt.max_vertices, opt.min_size
-    per_vertex = size.BYTES_PER_VERTEX if opt.dim == 2 else size.BYTES_PER_VERTEX3
-    need = estimated * per_vertex
+    need = estimated * opt.bytes_per_vertex
     memory = size.memory_bytes()
     warn_k1(k, estimated, n, min_size)
     hint = (
@@ -291,32 +308,26 @@ def vertex_budget(estimated, opt, m0, n):
         if k == 1
         else "use a larger k or a larger min_size"
     )
-    if max_vertices is not None:
-        if estimated > 8 * max_vertices:
-            raise BudgetError(
-                f"this run needs about {estimated:.3g} vertices, far beyond "
-                f"max_vertices={max_vertices}; {hint}, or raise max_vertices",
-                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
-            )
-        budget = int(max_vertices)
-    else:
-        if need > 2 * memory:
-            raise BudgetError(
-                f"this run needs about {estimated:.3g} vertices, about {need / 1e9:.3g} GB, far "
-                f"more than this machine's {memory / 1e9:.3g} GB; {hint}, or pass max_vertices "
-                "to insist",
-                progress={"vertices": 0, "moves": {}, "seconds": 0.0},
-            )
-        fits = int(0.9 * memory / per_vertex)
-        budget = int(max(10**6, 2 * m0, min(10 * estimated, fits)))
+    if max_vertices is not None and estimated > 8 * max_vertices:
+        raise BudgetError(
+            f"this run needs about {estimated:.3g} vertices, far beyond "
+            f"max_vertices={max_vertices}; {hint}, or raise max_vertices",
+            progress={"vertices": 0, "moves": {}, "seconds": 0.0},
+        )
+    if max_vertices is None and need > 2 * memory:
+        raise BudgetError(
+            f"this run needs about {estimated:.3g} vertices, about {need / 1e9:.3g} GB, far "
+            f"more than this machine's {memory / 1e9:.3g} GB; {hint}, or pass max_vertices "
+            "to insist",
+            progress={"vertices": 0, "moves": {}, "seconds": 0.0},
+        )
     if need > LARGE_RUN_BYTES:
         warnings.warn(
             f"this run will need about {estimated:.3g} vertices and {need / 1e9:.2g} GB of memory "
             f"(n = {n}, k = {k}, min_size = {min_size:.3g})",
             LargeRunWarning,
-            stacklevel=3,
+            stacklevel=user_stacklevel(),
         )
-    return budget
 
 
 def user_stacklevel():

@@ -36,7 +36,7 @@ from .engine.refine_sphere import (
     queue_all_sphere,
     refine_steps_sphere,
 )
-from .engine.size import floored_per_site
+from .engine.size import BYTES_PER_VERTEX_SPHERE, floored_per_site
 from .engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -62,7 +62,7 @@ from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
 from .errors import BudgetError, EngineError, InputError
 from .mesh import Mesh, Stats, moves_of
 from .metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls
-from .options import Progress, check_progress, warn_floor, warn_k1
+from .options import Progress, check_progress, check_size, warn_floor
 
 STEPS = 20_000  # insertions per kernel call
 DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the default floor: a millionth of half a great circle
@@ -73,6 +73,8 @@ STAMP_LIMIT_SPHERE = 2**30  # a kernel call makes at most STEPS insertions: far 
 
 class SphereOptions:
     """What a run on the sphere was asked, checked before any work."""
+
+    bytes_per_vertex = BYTES_PER_VERTEX_SPHERE  # a run's peak memory per vertex
 
     def __init__(self, n, total, k, tau, radius, min_size, max_vertices, time_limit, progress):
         self.t_start = time.perf_counter()
@@ -190,10 +192,9 @@ def _refine_checked(xyz_p, w, total, opt, report):
     options."""
     n = len(xyz_p)
     budget = opt.max_vertices if opt.max_vertices is not None else max(10**6, 4 * n)
-    if opt.k == 1:  # every point refined around down to the floor: the plane's count of it
-        spacing = math.sqrt(4.0 * math.pi / n)
-        octaves = max(1.0, math.log2(max(spacing / opt.floor_angle, 2.0)))
-        warn_k1(opt.k, n * floored_per_site(octaves, 2) + 64.0, n, opt.min_size)
+    mass = n if total is None else total
+    estimated = estimate_sphere(n, mass, opt)
+    check_size(estimated, opt, n)  # the k = 1 notice, refusals and warnings of every domain
     index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
     prm = np.zeros(N_PARAMS_SPHERE)
     prm[PS_TAU2] = opt.tau**2 * (1.0 - 1e-12)
@@ -202,8 +203,7 @@ def _refine_checked(xyz_p, w, total, opt, report):
     prm[PS_INFLATE] = 1.0 + 1e-9
     prm[PS_K] = float(opt.k)
     prm[PS_SLACK2] = SLACK2
-    # about 2.5 (n / k) vertices on uniform points: room for 3 (n / k), grown when short
-    mass = n if total is None else total
+    # room for 3 (n / k) vertices, a little more than the estimate, grown when short
     first = int(max(1024, min(budget, 3.0 * mass / max(opt.k, 1e-300) + 1024)))
     run = SphereRun(first, 2 * first, first + 4 * QUEUE_HEADROOM)
     run.cnt[C_MAX_VERTICES] = budget
@@ -248,11 +248,22 @@ def _refine_checked(xyz_p, w, total, opt, report):
     t1 = time.perf_counter()
     report.assembling(int(run.cnt[C_NV]))
     times = {"setup": t0 - opt.t_start, "refine": t1 - t0}
-    mesh = _assemble(run, opt, index, times, xyz_p, total, budget)
+    mesh = _assemble(run, opt, index, times, xyz_p, total, budget, estimated)
     mesh.stats.time = {**times, "assemble": time.perf_counter() - t1,
                        "total": time.perf_counter() - opt.t_start}  # fmt: skip
     report.assembling(len(mesh.vertices), done=True)
     return mesh
+
+
+def estimate_sphere(n, mass, opt):
+    """The vertices a run on the sphere is expected to make: about 2.5 (n / k) on uniform
+    points (1.8x more at k = 3, right from k = 10), and for k = 1 every point refined
+    around down to the floor (the plane's count of it)."""
+    if opt.k == 1:
+        spacing = math.sqrt(4.0 * math.pi / n)
+        octaves = max(1.0, math.log2(max(spacing / opt.floor_angle, 2.0)))
+        return n * floored_per_site(octaves, 2) + 64.0
+    return 2.5 * mass / opt.k
 
 
 def _points_under_floor(xyz_p, xyz, corners, chord2, normal, floor_t, floor_v):
@@ -280,7 +291,7 @@ def _progress(run, t0):
     }
 
 
-def _assemble(run, opt, index, times, xyz_p, total, budget):
+def _assemble(run, opt, index, times, xyz_p, total, budget, estimated):
     nv, nt = int(run.cnt[C_NV]), int(run.cnt[C_NT])
     n = len(xyz_p)
     xyz = run.mesh.xyz[:nv].copy()
@@ -295,7 +306,6 @@ def _assemble(run, opt, index, times, xyz_p, total, budget):
     under = _points_under_floor(xyz_p, xyz, run.mesh.corners[:nt], chord2, normal, floor_t,
                                 floor_v)  # fmt: skip
     warn_floor(under, n, opt.k, opt.min_size, "pi 1e-6 radians (20 m on the Earth)")
-    mass = n if total is None else total
     stats = Stats(
         n=n, weight=total, m=nv, m_torus=nv, cells=nt,
         initial_vertices=int(np.count_nonzero(kinds == 0)),
@@ -305,8 +315,7 @@ def _assemble(run, opt, index, times, xyz_p, total, budget):
         floor_circumballs=int(len(floor_t)), floor_cells=int(len(floor_v)),
         points_under_floor=under,
         largest_circumball=float(chord_to_angle(np.sqrt(chord2.max()))) * opt.radius,
-        # about 2.5 (n / k) vertices on uniform points (the first allocation's rule)
-        estimated_vertices=int(2.5 * mass / max(opt.k, 1e-300)),
+        estimated_vertices=int(estimated),
         max_vertices=int(budget),
     )  # fmt: skip
     return Mesh(

@@ -49,6 +49,9 @@ def floored_per_site(octaves, dim):
 
 BYTES_PER_VERTEX = 600  # peak memory of a run per mesh vertex (measured: 530 at k = 1, n = 1e5)
 BYTES_PER_VERTEX3 = 1500  # in space (about 6.5 tetrahedra per vertex)
+# on the sphere (tracemalloc's peak over a run, the index included: 300-420 bytes at
+# n = 4e5 uniform points, k = 3-10)
+BYTES_PER_VERTEX_SPHERE = 450
 SAMPLE = 2000
 
 
