@@ -1,6 +1,6 @@
 """Exact d_{P,k} in space at a mesh's nodes: knnrefine's counting tree with windows about
-sampled guesses (``TreeIndex``'s path from k = WINDOWS_FROM_K on) against scipy's periodic
-cKDTree k-nearest query, in the same process, interleaved, medians of three.
+sampled guesses (space's ``density.Index``'s path from k = WINDOWS_FROM_K on) against scipy's
+periodic cKDTree k-nearest query, in the same process, interleaved, medians of three.
 
     python benchmarks/exact_kth3.py                       # 10^5 points, k = 64, 128, 632
     python benchmarks/exact_kth3.py --n 1e6 --ks 2000
@@ -24,7 +24,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from knn_cdf3 import clustered, thomas  # noqa: E402
 
 import knnrefine  # noqa: E402
-from knnrefine.density.distance import TreeIndex  # noqa: E402
+from knnrefine.domains.space.density import Index as TreeIndex  # noqa: E402
 from knnrefine.metric import BoxMetric  # noqa: E402
 
 

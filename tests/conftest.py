@@ -63,8 +63,8 @@ def _digest(mesh, points, weights):
 def certify_every_mesh(monkeypatch):
     import sys
 
-    pipeline = knnrefine.pipeline  # every run in this process goes through its two entries
-    in_a_box, on_sphere = pipeline.refine_checked, pipeline.refine_on_sphere
+    pipeline = knnrefine.pipeline  # every run in this process goes through its one entry
+    refine_checked = pipeline.refine_checked
     package = sys.modules["knnrefine.certify"]  # the entry's own names, read at each call
     made, seen = [], set()
 
@@ -80,13 +80,9 @@ def certify_every_mesh(monkeypatch):
             CERTIFIED["skipped"] += 1
         return mesh
 
-    @functools.wraps(in_a_box)
-    def in_a_box_and_register(pts, w, opt):
-        return register(in_a_box(pts, w, opt), pts, {"weights": w})
-
-    @functools.wraps(on_sphere)
-    def on_sphere_and_register(points, k, tau, **kwargs):
-        return register(on_sphere(points, k, tau, **kwargs), points, kwargs)
+    @functools.wraps(refine_checked)
+    def refine_and_register(pts, w, opt):
+        return register(refine_checked(pts, w, opt), pts, {"weights": w})
 
     def seen_by(check):
         @functools.wraps(check)
@@ -96,8 +92,7 @@ def certify_every_mesh(monkeypatch):
 
         return wrapped
 
-    monkeypatch.setattr(pipeline, "refine_checked", in_a_box_and_register)
-    monkeypatch.setattr(pipeline, "refine_on_sphere", on_sphere_and_register)
+    monkeypatch.setattr(pipeline, "refine_checked", refine_and_register)
     # tiled runs (workers, executors) come from scale's one entry
     import knnrefine.scale.shared as shared
 

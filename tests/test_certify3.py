@@ -122,7 +122,8 @@ def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
     sorting the face keys (``common.sorted_rows``, which replaced ``np.unique(axis=0)``, its
     oracle here, for speed); a tetrahedron dropped or doubled leaves a face once or three
     times: not a triangulation."""
-    from knnrefine.certify import common, space
+    from knnrefine.certify import common
+    from knnrefine.domains.space import certify as space
 
     mesh, _ = case
     corners, offsets = mesh.torus.cells, mesh.torus.offsets.astype(np.int64)

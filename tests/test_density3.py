@@ -12,7 +12,8 @@ from scipy.spatial import cKDTree
 
 import knnrefine
 from knnrefine import KnnDensity, KnnDistance
-from knnrefine.density.space import SpacePieces, clip_below, share_below
+from knnrefine.domains.space.density import Pieces as SpacePieces
+from knnrefine.domains.space.density import clip_below, share_below
 from knnrefine.errors import InputError
 
 BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
@@ -189,12 +190,12 @@ def test_the_uses_example_in_space_runs():
 
 @pytest.mark.parametrize("periodic", [True, False, (True, False, True)])
 def test_edge_midpoints_are_queried_once_per_edge(periodic):
-    """density.space.edges3 names each edge once (its two vertices and the offset between
+    """space's density.edges3 names each edge once (its two vertices and the offset between
     them): on the 3-torus there are exactly V + T of them (Euler, V - E + F - T = 0 with
     F = 2T); in every box the count equals a brute-force set of canonical edges, every
     occurrence maps to its own edge, and the midpoint values equal one query per
     tetrahedron's edge."""
-    from knnrefine.density.space import edges3
+    from knnrefine.domains.space.density import edges3
 
     pts = clustered(6000, 31)
     mesh = knnrefine.refine(pts, 10, periodic=periodic, box=BOX)

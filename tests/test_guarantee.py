@@ -352,7 +352,7 @@ def test_the_initial_mesh_choice_looks_at_the_clock_while_it_peels(monkeypatch):
     Now a candidate is built when tried and the clock is read in every peeling round: a
     deadline met right after the index is built stops the run with one candidate built and
     no peeling round done."""
-    from knnrefine import run
+    from knnrefine.domains.plane import run
     from knnrefine.engine import initial
 
     built, rounds, checks = [], [], []

@@ -186,7 +186,7 @@ def test_certify_judges_a_sphere_triangulation_by_exact_signs_not_qhull():
 
     from scipy.spatial import ConvexHull
 
-    from knnrefine.certify.sphere import check_triangulation
+    from knnrefine.domains.sphere.certify import check_triangulation
     from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS
     from knnrefine.engine.triangulation_sphere import (
         insert_points_sphere,

@@ -3,6 +3,7 @@ functions too, read from the source; no module imports one above its layer, and 
 import each other in a circle (issue 51)."""
 
 import ast
+from fnmatch import fnmatch
 from pathlib import Path
 
 import pytest
@@ -10,15 +11,19 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "knnrefine"
 
 # the layers, lowest first: a module may import its own layer's modules (without a circle)
-# and those below; the key is the module's path under the package, a folder for all in it
+# and those below; the key is the module's path under the package, a folder for all in it,
+# ``*`` for any one folder (each domain's package: ``knnrefine.domains``)
 LAYERS = [
     ["errors.py", "data/"],
     ["engine/"],
     ["metric.py"],
     ["validation.py"],
     ["options.py", "mesh.py"],
-    ["run.py", "run3.py", "run_sphere.py"],
+    ["domains/__init__.py", "domains/box.py"],
+    ["domains/*/run.py"],
     ["pipeline.py"],
+    ["certify/certificate.py", "certify/common.py", "certify/steps.py"],
+    ["domains/*/certify.py", "domains/*/density.py", "domains/*/__init__.py"],
     ["certify/", "density/", "cluster.py", "topology.py", "plot.py", "io.py", "datasets.py"],
     ["scale/"],
     ["api.py"],
@@ -30,7 +35,7 @@ LAYERS = [
 def _layer(module):
     for i, names in enumerate(LAYERS):
         for name in names:
-            if module == name or (name.endswith("/") and module.startswith(name)):
+            if fnmatch(module, name) or (name.endswith("/") and module.startswith(name)):
                 return i
     raise AssertionError(f"{module} is in no layer of tests/test_layers.py: add it")
 
@@ -122,3 +127,47 @@ def test_every_module_is_in_a_layer_and_on_the_map(module):
     _layer(module)
     text = (PACKAGE.parents[1] / "docs" / "data-structure.md").read_text()
     assert Path(module).name in text, f"{module} is not on docs/data-structure.md's map"
+
+
+# what every domain's package offers (``knnrefine.domains``): the same modules, the same names
+PROTOCOL = {
+    "run.py": ("checked", "refine"),
+    "certify.py": ("Geometry", "Points", "checked_points"),
+    "density.py": (
+        "Pieces",
+        "index_of",
+        "points_of",
+        "to_frame",
+        "flat_radius",
+        "build",
+        "complex_of",
+    ),  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
+def test_every_domain_is_a_package_of_the_same_modules_and_names(domain):
+    import importlib
+
+    from knnrefine.domains import NAMES, PARTS
+
+    assert set(NAMES) == {p.name for p in (PACKAGE / "domains").iterdir() if p.is_dir()
+                          and p.name != "__pycache__"}  # fmt: skip
+    files = {p.name for p in (PACKAGE / "domains" / domain).glob("*.py")}
+    assert files == {"__init__.py", *(f"{name}.py" for name in PARTS)} == {"__init__.py", *PROTOCOL}
+    for module, names in PROTOCOL.items():
+        loaded = importlib.import_module(f"knnrefine.domains.{domain}.{module[:-3]}")
+        missing = [name for name in names if not callable(getattr(loaded, name, None))]
+        assert missing == [], f"domains/{domain}/{module} lacks {missing}"
+
+
+def test_no_domain_imports_another():
+    across = [
+        f"{module} -> {target}"
+        for module, targets in imports().items()
+        if module.startswith("domains/") and module.count("/") == 2
+        for target in targets
+        if target.startswith("domains/") and target.count("/") == 2
+        and target.split("/")[1] != module.split("/")[1]
+    ]  # fmt: skip
+    assert across == []

@@ -258,16 +258,16 @@ def test_workers_below_the_tiles_size_run_one_process(monkeypatch):
     b = knnrefine.refine(xyz, 10, periodic=True, box=box3, workers=3)
     assert b.stats["rounds"] is None
     np.testing.assert_array_equal(a.vertices, b.vertices)
-    monkeypatch.setitem(tiled.TILES_FROM, 2, 10000)  # at and above it: the tiles
+    monkeypatch.setitem(tiled.TILES_FROM, "plane", 10000)  # at and above it: the tiles
     assert knnrefine.refine(pts, 10, workers=2).stats["rounds"]
-    monkeypatch.setitem(tiled.TILES_FROM, 3, 3000)  # in space too: the stitched slabs
+    monkeypatch.setitem(tiled.TILES_FROM, "space", 3000)  # in space too: the stitched slabs
     assert knnrefine.refine(xyz, 10, periodic=True, box=box3, workers=2).stats["rounds"][-1][
         "stitched"
     ]
     assert knnrefine.refine(xyz[:2999], 10, periodic=True, box=box3,
                             workers=2).stats["rounds"] is None  # fmt: skip
     assert knnrefine.refine(pts[:9999], 10, workers=2).stats["rounds"] is None
-    monkeypatch.setitem(tiled.TILES_FROM, 2, 2_000_000)
+    monkeypatch.setitem(tiled.TILES_FROM, "plane", 2_000_000)
     monkeypatch.setenv("KNNREFINE_TILES", "always")
     assert knnrefine.refine(pts, 10, workers=2).stats["rounds"]
     monkeypatch.setenv("KNNREFINE_TILES", "sometimes")

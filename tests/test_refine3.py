@@ -236,8 +236,8 @@ def test_the_initial_mesh_check_counts_balls_of_every_size():
     """run3.holds_k (does the closed ball of radius r about x hold k points?) against a
     periodic kd-tree, for radii below half the period (the index), up to the torus'
     diameter (a direct count) and beyond it (every point)."""
+    from knnrefine.domains.space.run import holds_k
     from knnrefine.engine.index3 import build_index3
-    from knnrefine.run3 import holds_k
 
     period = np.array([1.0, 0.5, 2.0])
     u = np.mod(multiscale(5000, 9) * period, period)
@@ -317,10 +317,10 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
 
 
 def _start_run(pts, k=10):
+    from knnrefine.domains.space.run import holds_k
     from knnrefine.engine.driver3 import Refinement3, choose_grid3
     from knnrefine.engine.index3 import build_index3
     from knnrefine.engine.initial import reach_factor
-    from knnrefine.run3 import holds_k
 
     period = np.ones(3)
     index = build_index3(pts)
@@ -583,7 +583,7 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
     """run3.Start3 tries the default margin first and builds the data bound on max d_Pk (a
     kd-tree over all points) only if that torus cannot start; the bound is >= d_Pk at 20,000
     random points of the box (a brute kd-tree, straight metric)."""
-    from knnrefine import run3 as api3
+    from knnrefine.domains.space import run as api3
     from knnrefine.engine.initial import reach_factor
     from knnrefine.engine.interrupt import Interrupts
     from knnrefine.options import RunOptions
@@ -591,7 +591,7 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
     def start(pts, box, per, k, tau):
         opt = RunOptions.check(len(pts), None, lambda: box, lambda b, p: None, k=k, tau=tau,
                                periodic=per, box=box, dim=3)  # fmt: skip
-        return api3.Start3(pts, opt, 10**6, Interrupts()).find(k, reach_factor(tau))
+        return api3.Start(pts, opt, 10**6, Interrupts()).find(k, reach_factor(tau))
 
     pts = multiscale(3000, 20)
     calls = []
@@ -627,7 +627,7 @@ def test_the_counting_index_is_freed_before_the_unfolding(monkeypatch, periodic)
     import gc
     import weakref
 
-    from knnrefine import run3 as api3
+    from knnrefine.domains.space import run as api3
 
     refs, dead = [], []
     build, unfold = api3.build_index3, api3.unfold

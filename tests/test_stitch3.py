@@ -9,12 +9,12 @@ import pytest
 from conftest import as_tile, assert_certified, simplices_of
 
 import knnrefine
+from knnrefine.domains.space.run import holds_k
 from knnrefine.engine import state as S
 from knnrefine.engine.driver3 import Refinement3, choose_grid3
 from knnrefine.engine.index3 import build_index3
 from knnrefine.engine.initial import reach_factor
 from knnrefine.engine.triangulation3 import new_torus3, unpack_offsets, vertex_caches_from_tets3
-from knnrefine.run3 import holds_k
 from knnrefine.scale import shared
 
 pytestmark = pytest.mark.usefixtures("tiles_always")  # the slabs at every size

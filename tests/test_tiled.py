@@ -415,11 +415,11 @@ def test_a_seeded_run_in_space_rebuilds_the_mesh_and_finds_nothing_to_do():
     a finished run in space, seeded into a fresh run from the same initial mesh, give the
     same vertices and as many tetrahedra, and running it inserts nothing; a vertex given
     twice is skipped, and with a region of width 0 a run inserts nothing."""
+    from knnrefine.domains.space.run import holds_k
     from knnrefine.engine.driver3 import Refinement3, choose_grid3
     from knnrefine.engine.index3 import build_index3
     from knnrefine.engine.initial import reach_factor
     from knnrefine.engine.state import C_NT, STATUS_DONE
-    from knnrefine.run3 import holds_k
 
     X = gaussian_clusters(8000, seed=8, clusters=6, dim=3)
     period = np.ones(3)

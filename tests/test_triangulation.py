@@ -7,7 +7,7 @@ import oracle
 import pytest
 
 import knnrefine
-from knnrefine.certify.plane import verify_triangulation
+from knnrefine.domains.plane.certify import verify_triangulation
 from knnrefine.engine import driver, geometry, triangulation
 from knnrefine.engine.geometry import Q
 from knnrefine.engine.index import build_index

@@ -256,7 +256,7 @@ def test_a_heavy_point_does_not_swallow_light_ones():
                 cells.setdefault(v, []).append(w[p])
     assert max(math.fsum(c) for c in cells.values()) < k
     # d_Pk by exact sums in distance order, against certify's (compensated) one
-    from knnrefine.certify.plane import Points as TorusPoints
+    from knnrefine.domains.plane.certify import Points as TorusPoints
 
     d, i = tree.query(local, k=len(pts))
     exact = [d[p][next(j for j in range(len(pts)) if math.fsum(w[i[p][: j + 1]]) >= k)]
@@ -272,7 +272,7 @@ def test_a_heavy_point_does_not_swallow_light_ones_in_space():
 
     from scipy.spatial import cKDTree
 
-    from knnrefine.certify.space import _circumspheres
+    from knnrefine.domains.space.certify import _circumspheres
 
     pts = np.random.default_rng(0).random((300, 3))
     w = np.ones(300)

@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike
 from . import pipeline
 from . import validation as V
 from .certify import Certificate, certify_points
+from .domains import domain_of
 from .errors import InputError
 from .mesh import Mesh
 
@@ -154,25 +155,21 @@ def refine(
     kernel call during setup).
 
     Points in space ((n, 3), a box of six numbers, ``periodic`` a bool or three) are refined
-    by ``run3.refine3`` into the same ``Mesh`` type, weights, workers and executor (slabs)
+    by ``domains.space.run`` into the same ``Mesh`` type, weights, workers and executor (slabs)
     included.
     """
-    domain = pipeline.domain_of(points, sphere, radius)
+    domain = domain_of(points, sphere, radius)
     tiles = V.check_workers(workers)
     V.check_executor(executor, tiles, domain)
-    if domain == "sphere":  # no tiles on the sphere: its workers are its kernels' threads
-        return pipeline.refine_on_sphere(points, k, tau, periodic=periodic, box=box,
-                                         weights=weights, min_size=min_size,
-                                         max_vertices=max_vertices, time_limit=time_limit,
-                                         progress=progress, radius=radius)  # fmt: skip
-    pts, w, opt = pipeline.checked(points, weights, k=k, tau=tau, periodic=periodic, box=box,
-                                   min_size=min_size, max_vertices=max_vertices,
-                                   time_limit=time_limit, progress=progress)  # fmt: skip
+    pts, w, opt = pipeline.checked(domain, points, weights, k=k, tau=tau, periodic=periodic,
+                                   box=box, min_size=min_size, max_vertices=max_vertices,
+                                   time_limit=time_limit, progress=progress,
+                                   radius=radius)  # fmt: skip
     if tiles > 1:  # tiles where they pay
         from .scale.shared import refine_local
         from .scale.tiled import tiles_pay
 
-        if executor is not None or tiles_pay(pts.shape[1], len(pts)):
+        if executor is not None or tiles_pay(domain, len(pts)):
             return refine_local(pts, w, opt, tiles, executor)
     return pipeline.refine_checked(pts, w, opt)
 
@@ -237,8 +234,7 @@ def certify(
     _check_certifiable(mesh)
     rng = V.random_generator(random_state)  # refused before any work, drawn from once
     strips = V.check_workers(workers)
-    on_sphere = getattr(mesh, "on_sphere", False)
-    V.check_executor(executor, strips, "sphere" if on_sphere else "box")
+    V.check_executor(executor, strips, getattr(mesh, "domain", None))
     options = dict(samples=samples, n_random=n_random, max_point_probes=max_point_probes,
                    random_state=rng)  # fmt: skip
     if executor is None:

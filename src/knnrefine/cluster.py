@@ -46,15 +46,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .density.distance import point_index
 from .density.estimate import unit_ball_volume
-from .density.sphere import SphereIndex, equal_area_radius
+from .domains import part
 from .engine.superlevel import superlevel_noise
 from .errors import InputError
 from .mesh import cell_edges
 from .metric import BoxMetric
 from .topology import require_gudhi
-from .validation import points_of_run, sphere_points_of_run
 
 
 @dataclass
@@ -142,10 +140,8 @@ def cluster(
     gudhi = require_gudhi()
     from gudhi.clustering.tomato import Tomato
 
-    if mesh.on_sphere:
-        pts, weights, total = sphere_points_of_run(mesh, points, weights)
-    else:
-        pts, weights, total = points_of_run(mesh, points, weights)
+    domain = part(mesh.domain, "density")
+    pts, weights, total = domain.points_of(mesh, points, weights)
     if n_clusters is not None and (
         isinstance(n_clusters, bool) or int(n_clusters) != n_clusters or n_clusters < 1
     ):
@@ -168,13 +164,10 @@ def cluster(
     indptr = np.concatenate([[0], np.cumsum(np.bincount(both[:, 0], minlength=m))])
     neighbours = np.split(both[:, 1], indptr[1:-1])
     dim = mesh.dim
-    if mesh.on_sphere:  # great-circle d_Pk; the cap's area is pi chord^2
-        index = SphereIndex(pts, weights, mesh.radius)
-        unit = np.asarray(mesh.xyz)[used]
-        d = equal_area_radius(index.kth_unit(unit, mesh.k), mesh.radius)
-    else:
-        metric = BoxMetric(mesh.box, mesh.periodic)
-        d = point_index(mesh, pts, weights).kth(metric.wrap(vertices), mesh.k)
+    # d_Pk at the used vertices, exactly, in the index's frame (on the sphere the engine's
+    # unit vectors); the density from the flat ball as large (on the sphere: pi chord^2)
+    at = mesh.xyz[used] if mesh.xyz is not None else domain.to_frame(mesh)(vertices)
+    d = domain.flat_radius(mesh, domain.index_of(mesh, pts, weights).kth(at, mesh.k))
     log_density = np.log(mesh.k / (total * unit_ball_volume(dim))) - dim * np.log(d)
     tomato = Tomato(graph_type="manual", density_type="manual")
     tomato.fit(neighbours, weights=log_density)
@@ -219,8 +212,9 @@ def cluster(
     if noise:
         vertex_labels = np.where(kept_leaf, vertex_labels, -1)
     if mesh.on_sphere:  # each point takes its nearest vertex's label (chords order as angles)
-        labels = vertex_labels[cKDTree(unit).query(pts, workers=-1)[1]]
+        labels = vertex_labels[cKDTree(at).query(pts, workers=-1)[1]]
     else:
+        metric = BoxMetric(mesh.box, mesh.periodic)
         labels = vertex_labels[metric.tree(vertices).query(metric.frame(pts), workers=-1)[1]]
     all_labels = np.full(len(mesh.vertices), -1)
     all_labels[used] = vertex_labels

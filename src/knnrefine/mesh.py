@@ -112,7 +112,7 @@ class Stats(Mapping):
     estimated_vertices, max_vertices : int
         The size estimated before refining and the vertex budget. In a box the estimate is
         ``engine.size``'s (0 where none is made: a tiled run in space); on the sphere
-        ``run_sphere.estimate_sphere``'s (2.5 n / k, the uniform points' figure), and the
+        ``domains.sphere.run.estimate_sphere``'s (2.5 n / k, the uniform points' figure), and the
         budget max(10^6, 4 n) unless max_vertices is given. Every domain refuses a run
         whose estimate is far beyond the budget or memory, before any work.
     rounds : list or None
@@ -309,7 +309,9 @@ class Mesh(Cells):
         about 20 bytes per input point. None for a mesh read from a file;
         ``dataclasses.replace(mesh, index=None)`` gives a copy without it.
     domain : str
-        "box" (the plane or space, the box above) or "sphere" (``refine(..., sphere=True)``):
+        "plane" or "space" (a box of two or three dimensions, the box above; "box", the
+        default, gives the one of the box's dimension) or "sphere" (``refine(...,
+        sphere=True)``):
         then ``vertices`` are (longitude, latitude) in degrees, ``xyz`` their unit vectors,
         ``triangles`` the spherical Delaunay triangulation (the convex hull of ``xyz``,
         counter-clockwise seen from outside), and every length (``d_m2``, ``min_size``) a
@@ -341,6 +343,10 @@ class Mesh(Cells):
     xyz: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
+        if self.domain == "box":  # a box: the plane or space, by its dimension
+            object.__setattr__(self, "domain", "plane" if len(self.periodic) == 2 else "space")
+        elif self.domain not in ("plane", "space", "sphere"):
+            raise InputError(f"domain must be 'plane', 'space' or 'sphere', got {self.domain!r}")
         if not isinstance(self.stats, Stats):  # a dictionary (of a file, or of 0.1's keys)
             object.__setattr__(self, "stats", Stats.from_dict(self.stats, self.radius))
 
@@ -758,6 +764,23 @@ def circumspheres(corners):
     edges = corners[:, 1:] - a[:, None, :]
     u = np.linalg.solve(edges, 0.5 * (edges**2).sum(-1)[..., None])[..., 0]
     return a + u, np.sqrt((u**2).sum(-1))
+
+
+# Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
+TRIANGLE_RULE_WEIGHTS = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
+_a, _b = 0.059715871789770, 0.470142064105115
+_c, _d = 0.797426985353087, 0.101286507323456
+TRIANGLE_RULE_POINTS = np.array(
+    [
+        [1 / 3, 1 / 3, 1 / 3],
+        [_a, _b, _b],
+        [_b, _a, _b],
+        [_b, _b, _a],
+        [_c, _d, _d],
+        [_d, _c, _d],
+        [_d, _d, _c],
+    ]
+)
 
 
 def triangle_areas(corners):

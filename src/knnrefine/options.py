@@ -10,6 +10,7 @@ mesh of the torus the box makes must fit the vertex budget and memory).
 """
 
 import inspect
+import math
 import numbers
 import sys
 import time
@@ -22,10 +23,12 @@ import numpy as np
 from . import validation as V
 from .engine import size
 from .engine.embedding import Embedding
+from .engine.geometry import RESOLUTION_ANGLE
 from .engine.initial import GRIDS, GRIDS3, grid_shape, grid_shape3
 from .errors import BudgetError, FloorWarning, InputError, LargeRunWarning
 
 DEFAULT_MIN_SIZE = 1e-6  # resolution floor, relative to the box's longer side
+DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the sphere's floor: a millionth of half a great circle
 INITIAL_BYTES3 = 2500  # peak memory per initial vertex while an M0 is built in space (2.3 KB)
 
 
@@ -51,6 +54,11 @@ class RunOptions:
     @property
     def dim(self) -> int:
         return len(self.periodic)
+
+    @property
+    def domain(self) -> str:
+        """The domain the run is in: "plane" or "space" (``knnrefine.domains``)."""
+        return "plane" if self.dim == 2 else "space"
 
     @property
     def bytes_per_vertex(self) -> int:
@@ -114,22 +122,8 @@ class RunOptions:
             box, an initial mesh that cannot fit the budget or memory.
         """
         t_start = time.perf_counter()
-        deadline = None
-        if time_limit is not None:
-            if (
-                isinstance(time_limit, bool)
-                or not isinstance(time_limit, numbers.Real)
-                or not (np.isfinite(float(time_limit)) and float(time_limit) > 0)
-            ):
-                raise InputError(
-                    f"time_limit must be a positive number of seconds, got {time_limit!r}"
-                )
-            time_limit = float(time_limit)
-            deadline = t_start + time_limit
-        if k is None:  # the default: sqrt(n) / 2 of the points or their total weight
-            k = V.default_k(n if total is None else total)
-        k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
-        tau = V.check_tau(tau)
+        time_limit, deadline = check_time_limit(time_limit, t_start)
+        k, tau = check_k_tau(k, tau, n, total)
         per = V.check_periodic(periodic, dim)
         if box is None:
             if any(per):
@@ -144,10 +138,7 @@ class RunOptions:
             box = V.check_box(box, dim)
             check_inside(box, per)
         side = max(box[dim + a] - box[a] for a in range(dim))
-        if min_size is None:
-            min_size = DEFAULT_MIN_SIZE * side
-        elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
-            raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
+        min_size = DEFAULT_MIN_SIZE * side if min_size is None else check_min_size(min_size)
         max_vertices = V.check_max_vertices(max_vertices)
         check_progress(progress)
         V.check_resolution(box, per)
@@ -155,6 +146,105 @@ class RunOptions:
                       time_limit, progress, t_start, deadline)  # fmt: skip
         check_initial_budget(options.box, options.periodic, options.start_budget(n))
         return options
+
+
+def check_box_run(points, weights, dim, *, radius=None, **asked):
+    """A run in a box (the plane's or space's ``run.checked``): its points (n, dim), weights
+    and options checked before any work.
+
+    Returns
+    -------
+    pts : ndarray (n, dim), w : ndarray (n,) or None, options : RunOptions
+    """
+    if radius is not None:
+        raise InputError("radius is the sphere's: give it with sphere=True")
+    pts = V.as_points(points, dim)
+    n = len(pts)
+    w = None if weights is None else V.check_weights(weights, n)
+    total = None if w is None else math.fsum(w)
+    bounds, inside = lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p)
+    return pts, w, RunOptions.check(n, total, bounds, inside, **asked, dim=dim)
+
+
+def check_sphere_run(points, weights, *, periodic=False, box=None, **asked):
+    """A run on the sphere (its ``run.checked``): its points as unit vectors (n, 3), weights
+    and options checked before any work; the options it has no use for refused.
+
+    Returns
+    -------
+    xyz : ndarray (n, 3), w : ndarray (n,) or None, options : SphereOptions
+    """
+    if periodic is not False or box is not None:
+        raise InputError(
+            "the sphere has no box and no periodic axes: drop box= and periodic= with "
+            "sphere=True (longitudes wrap by themselves)"
+        )
+    xyz = V.as_sphere_points(points)
+    n = len(xyz)
+    w = None if weights is None else V.check_weights(weights, n)
+    total = None if w is None else math.fsum(w)
+    return xyz, w, SphereOptions(n, total, **asked)
+
+
+class SphereOptions:
+    """What a run on the sphere was asked, checked before any work: ``RunOptions``' options
+    but the box and the periodic axes, with a radius; lengths are the radius' units, the
+    floor an angle (``floor_angle``)."""
+
+    domain = "sphere"
+    dim = 3  # unit vectors
+    bytes_per_vertex = size.BYTES_PER_VERTEX_SPHERE  # a run's peak memory per vertex
+
+    def __init__(self, n, total, *, k, tau=3.0, radius=None, min_size=None,
+                 max_vertices=None, time_limit=None, progress=None):  # fmt: skip
+        self.t_start = time.perf_counter()
+        self.radius = V.check_radius(radius)
+        self.k, self.tau = check_k_tau(k, tau, n, total)
+        if min_size is None:
+            self.min_angle = DEFAULT_MIN_ANGLE
+        else:
+            self.min_angle = check_min_size(min_size) / self.radius
+        self.max_vertices = V.check_max_vertices(max_vertices)
+        self.time_limit, self.deadline = check_time_limit(time_limit, self.t_start)
+        self.progress = check_progress(progress)
+
+    @property
+    def floor_angle(self) -> float:
+        """The Break floor in effect: ``min_size`` as an angle, at least the engine's
+        resolution (``refine_sphere.RESOLUTION_ANGLE``), below which nothing is split."""
+        return max(self.min_angle, RESOLUTION_ANGLE)
+
+    @property
+    def min_size(self) -> float:
+        return self.floor_angle * self.radius
+
+
+def check_time_limit(time_limit, t_start):
+    """(time_limit as a float or None, its deadline on ``time.perf_counter``'s clock)."""
+    if time_limit is None:
+        return None, None
+    if (
+        isinstance(time_limit, bool)
+        or not isinstance(time_limit, numbers.Real)
+        or not (np.isfinite(float(time_limit)) and float(time_limit) > 0)
+    ):
+        raise InputError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+    return float(time_limit), t_start + float(time_limit)
+
+
+def check_k_tau(k, tau, n, total):
+    """k (default sqrt(n) / 2 of the points or their total weight) and tau, checked."""
+    if k is None:
+        k = V.default_k(n if total is None else total)
+    k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
+    return k, V.check_tau(tau)
+
+
+def check_min_size(min_size):
+    """A resolution floor given by the user: a finite number >= 0."""
+    if isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
+        raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
+    return float(min_size)
 
 
 def check_initial_budget(box, per, budget):

@@ -22,13 +22,10 @@ from itertools import combinations
 
 import numpy as np
 
-from .density.distance import point_index
-from .density.space import SpacePieces, edges3
-from .density.sphere import SphereIndex
+from .domains import part
 from .errors import InputError
-from .mesh import edges, split_in_four
-from .metric import BoxMetric, lonlat_of
-from .validation import as_points, points_of_run, sphere_points_of_run
+from .metric import BoxMetric
+from .validation import as_points
 
 
 def require_gudhi():
@@ -45,7 +42,8 @@ def require_gudhi():
 
 
 def mesh_complex(mesh, subdivide=True):
-    """The triangulated domain of the filtration: (positions (p, d), cells (t, d + 1)).
+    """The triangulated domain of the filtration: (nodes (p, d) in the frame of the domain's
+    exact index, as its ``density.complex_of`` gives them, cells (t, d + 1)).
 
     The mesh's cells, which are those that meet the box (the package's one rule: all of the
     torus' in periodic mode, as an abstract complex with positions in the box). With
@@ -53,79 +51,8 @@ def mesh_complex(mesh, subdivide=True):
     edge midpoints. Raises EngineError if two edges join the same pair of vertices, or an
     edge a vertex to itself (the complex would then not be simplicial: only on a torus a few
     cells across)."""
-    if mesh.on_sphere:
-        return _sphere_complex(mesh, subdivide)
-    if mesh.dim == 2:
-        return _plane_complex(mesh, subdivide)
-    return _space_complex(mesh, subdivide)
-
-
-def _sphere_complex(mesh, subdivide):
-    """The sphere's triangulation (closed: every edge borders two triangles), its positions
-    as unit vectors; subdivided through the edge midpoints pushed onto the sphere."""
-    tri = mesh.triangles.astype(np.int64)
-    xyz = np.asarray(mesh.xyz, float)
-    if not subdivide:
-        return xyz, tri
-    pairs, _, tri = split_in_four(tri, len(xyz))
-    mids = xyz[pairs[:, 0]] + xyz[pairs[:, 1]]
-    return np.concatenate([xyz, mids / np.linalg.norm(mids, axis=1, keepdims=True)]), tri
-
-
-def _not_simplicial():
-    from .errors import EngineError
-
-    return EngineError(
-        "two edges join the same pair of vertices: the mesh is not a simplicial complex"
-    )
-
-
-def _plane_complex(mesh, subdivide):
-    corners = mesh.corners()
-    tri = mesh.triangles.astype(np.int64)
-    pairs, edge_of = edges(tri)
-    # in a triangulated surface an edge borders two triangles (one on a boundary); a vertex
-    # pair used more often means two different edges join it
-    uses = np.bincount(edge_of.reshape(-1))
-    if uses.max(initial=0) > 2 or (all(mesh.periodic) and np.any(uses != 2)):
-        raise _not_simplicial()
-    if not subdivide:
-        used = np.unique(tri)
-        return mesh.vertices[used], np.searchsorted(used, tri)
-    # midpoints of the geometric edges (offsets applied: across the seam where need be)
-    pairs, edge_of, tri = split_in_four(tri, len(mesh.vertices))
-    mid_pos = np.zeros((len(pairs), 2))
-    for corner in range(3):
-        a, b = (corner + 1) % 3, (corner + 2) % 3
-        mid_pos[edge_of[:, corner]] = 0.5 * (corners[:, a] + corners[:, b])
-    positions = np.concatenate([mesh.vertices, BoxMetric(mesh.box, mesh.periodic).wrap(mid_pos)])
-    used = np.unique(tri)  # drop the vertices of triangles left out (non-periodic mode)
-    return positions[used], np.searchsorted(used, tri)
-
-
-def _space_complex(mesh, subdivide):
-    tets = mesh.tetrahedra.astype(np.int64)
-    pairs = SpacePieces.PAIRS
-    # a geometric edge is its two vertices and the offset between them; the complex is
-    # simplicial when no two of them join the same vertex pair and none a vertex to itself
-    first, inverse = edges3(tets, mesh.offsets, pairs)
-    a = tets[:, pairs[:, 0]].ravel()[first]
-    b = tets[:, pairs[:, 1]].ravel()[first]
-    if np.any(a == b) or len(
-        np.unique(np.minimum(a, b) * len(mesh.vertices) + np.maximum(a, b))
-    ) < len(first):
-        raise _not_simplicial()
-    if not subdivide:
-        used = np.unique(tets)
-        return mesh.vertices[used], np.searchsorted(used, tets)
-    corners = mesh.corners()
-    mids = 0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]]).reshape(-1, 3)[first]
-    mid_ids = len(mesh.vertices) + inverse.reshape(len(tets), 6)
-    nodes = np.concatenate([tets, mid_ids], axis=1)  # corners 0-3, midpoints 4-9
-    cells = nodes[:, SpacePieces.EIGHT].reshape(-1, 4)
-    positions = np.concatenate([mesh.vertices, BoxMetric(mesh.box, mesh.periodic).wrap(mids)])
-    used = np.unique(cells)
-    return positions[used], np.searchsorted(used, cells)
+    positions, nodes, cells = part(mesh.domain, "density").complex_of(mesh, subdivide)
+    return nodes, cells
 
 
 class Persistence:
@@ -180,22 +107,13 @@ class Persistence:
             raise InputError(f"function must be 'd_pk' or 'd_m2', got {function!r}")
         self.mesh = mesh
         self.log = log
-        if mesh.on_sphere:  # great-circle d_Pk at unit vectors; positions in lon/lat
-            unit, weights, _ = sphere_points_of_run(mesh, points, weights)
-            nodes, self.cells = mesh_complex(mesh, subdivide)
-            self.positions = lonlat_of(nodes)
-            if function == "d_pk":
-                d = SphereIndex(unit, weights, mesh.radius).kth_unit(nodes, mesh.k)
-            else:
-                d = mesh.d_m2(self.positions)
-        else:
-            pts, weights, _ = points_of_run(mesh, points, weights)
-            self.positions, self.cells = mesh_complex(mesh, subdivide)
-            if function == "d_pk":
-                index = point_index(mesh, pts, weights)
-                d = index.kth(BoxMetric(mesh.box, mesh.periodic).wrap(self.positions), mesh.k)
-            else:  # the mesh's own sizing: within [alpha, beta] d_Pk, free
-                d = mesh.d_m2(self.positions)
+        domain = part(mesh.domain, "density")
+        pts, weights, _ = domain.points_of(mesh, points, weights)
+        self.positions, nodes, self.cells = domain.complex_of(mesh, subdivide)
+        if function == "d_pk":  # exact, at the nodes in the index's frame
+            d = domain.index_of(mesh, pts, weights).kth(nodes, mesh.k)
+        else:  # the mesh's own sizing: within [alpha, beta] d_Pk, free
+            d = mesh.d_m2(self.positions)
         self.values = np.log(d) if log else d
         st = gudhi.SimplexTree()
         n = len(self.positions)

@@ -1,17 +1,17 @@
 """Checks of a mesh against Theorem 6, independently of the refinement: the steps written once
-(``steps.run_checks``) over each domain's answers (``plane``, ``space``, ``sphere``: a
-``Geometry`` of the mesh and the ``Points``' questions in each); what they share is in
-``common``, the ``Certificate`` in ``certificate``. Nothing here calls the refinement
+(``steps.run_checks``) over each domain's answers (``domains.<domain>.certify``: a
+``Geometry`` of the mesh and the ``Points``' questions in each); what the box domains share
+is in ``common``, the ``Certificate`` in ``certificate``. Nothing here calls the refinement
 kernels: counts and distances come from kd-trees. ``knnrefine.certify`` (``api.certify``)
 checks its options and calls ``certify_points`` in this process, or ``scale.checks`` strip
 by strip in worker processes (the same steps, the points' questions asked where they are)."""
 
 import time
 
-from ..validation import as_points, as_sphere_points, check_made_from, weights_of_run
-from . import plane, space, sphere, steps
+from ..domains import part
+from . import steps
 from .certificate import Certificate
-from .common import check_points_are_the_meshs, check_precondition, check_source
+from .common import check_precondition, check_source
 
 __all__ = [
     "certify_points",
@@ -39,14 +39,8 @@ def certify_points(
     Certificate
     """
     t0 = time.perf_counter()
-    domain = sphere if mesh.on_sphere else plane if mesh.dim == 2 else space
-    if mesh.on_sphere:
-        pts = as_sphere_points(points)
-        check_made_from(mesh.stats, len(pts), "certify a mesh against")
-        weights = weights_of_run(mesh.stats, len(pts), weights)
-    else:
-        pts = as_points(points, mesh.dim)
-        weights = check_points_are_the_meshs(mesh, pts, weights)
+    domain = part(mesh.domain, "certify")
+    pts, weights = domain.checked_points(mesh, points, weights)
     geometry: steps.Geometry = domain.Geometry(mesh, workers)
     answers: steps.PointQuestions = domain.Points(mesh, pts, weights, workers)
     return steps.run_checks(mesh, geometry, answers, samples=samples, n_random=n_random,

@@ -80,7 +80,9 @@ class Certificate:
     # sums of real weights are rounded (compensated: within two ulps, engine and certify
     # alike): a weighted count passes below k plus this, 0 for counts of points
     count_slack: float = 0.0
-    domain: str = "box"  # "sphere": circumcaps, great-circle distances, no box
+    domain: str = (
+        "plane"  # "plane", "space" or "sphere" (circumcaps, great-circle distances, no box)
+    )
 
     @property
     def dim(self) -> int:

@@ -4,6 +4,7 @@ sensitivity by cross-validation (``choose_smoothing``)."""
 
 import numpy as np
 
+from ..domains.sphere.density import equal_area_radius
 from ..engine import kernelsum, kernelsum3, lattice
 from ..engine.binned import BinnedSums
 from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  # plane
@@ -20,7 +21,6 @@ from ..validation import (
     weights_of_run,
 )
 from .estimate import KnnDensity, unit_ball_volume
-from .sphere import equal_area_radius
 
 
 class AdaptiveDensity:
@@ -740,7 +740,7 @@ class SphereAdaptiveDensity:
         d = knn.distance.pieces.interpolate(unit)
         lost = ~np.isfinite(d)
         if lost.any():
-            d[lost] = knn.distance.index.kth_unit(unit[lost], self.k)
+            d[lost] = knn.distance.index.kth(unit[lost], self.k)
         chord = equal_area_radius(d, self.radius) / self.radius
         self.pilot = d
         n = len(unit)

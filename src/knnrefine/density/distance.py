@@ -1,12 +1,12 @@
-"""d_{P,k} everywhere in the box, from a mesh of P and P: ``KnnDistance``, the same in the
-plane and in space.
+"""d_{P,k} everywhere in the domain, from a mesh of P and P: ``KnnDistance``, the same in
+the plane, in space and on the sphere.
 
 The mesh is graded like d_{P,k} (Theorem 6), so a few exact evaluations per cell carry
-d_{P,k} across the whole box: exact values at the vertices and edge midpoints, then linear
-interpolation over the pieces (``plane.PlanePieces``: triangles split in four;
-``space.SpacePieces``: tetrahedra split in eight). Evaluation, grids, integrals over boxes
-(wrapping across periodic seams), sampling and the error against exact values are the same
-calls in both dimensions.
+d_{P,k} across the whole domain: exact values at the vertices and edge midpoints, then
+linear interpolation over the pieces (each domain's ``density.Pieces``: triangles split in
+four in the plane and on the sphere, tetrahedra split in eight in space). Evaluation, grids,
+integrals over boxes (wrapping across periodic seams), sampling and the error against exact
+values are the same calls in every domain.
 """
 
 from __future__ import annotations
@@ -21,22 +21,16 @@ if TYPE_CHECKING:  # the annotations' types only
 
 import numpy as np
 
+from ..domains import part
+from ..domains.plane.density import Pieces as PlanePieces
+from ..domains.space.density import Pieces as SpacePieces
 from ..engine.embedding import wrap_offsets
-from ..engine.index import PointIndex
-from ..engine.index3 import build_index3, kth_distances3
-from ..engine.threads import in_chunks
 from ..errors import InputError
-from ..metric import BoxMetric, lonlat_of, unit_vectors, weighted_kth
+from ..metric import BoxMetric
 from ..validation import (
     as_queries,
-    check_inside,
-    points_of_run,
     random_generator,
-    sphere_points_of_run,
 )
-from .plane import PlanePieces, index_values, linear_pieces
-from .space import SpacePieces
-from .sphere import SphereIndex, SpherePieces, equal_area_radius
 
 
 class MeshFrame(Protocol):
@@ -94,35 +88,10 @@ class KnnDistance:
         weights: ArrayLike | None = None,
     ) -> None:
         """See the class docstring."""
-        if getattr(mesh, "on_sphere", False):
-            self._on_sphere(mesh, points, subdivide, weights)
-            return
-        dim = mesh.dim
-        pts, weights, total = points_of_run(mesh, points, weights)
-        self._frame(mesh, len(pts), total)
-        self._points = pts
-        self.index = point_index(mesh, pts, weights)
-        if dim == 2:
-            nodes, triangles = mesh.covering()
-            at_vertices, at_midpoints = index_values(self.index, self.k)
-            nodes, triangles, values = linear_pieces(
-                nodes, triangles, at_vertices, at_midpoints, subdivide
-            )
-            self.pieces: PlanePieces | SpacePieces = PlanePieces(
-                nodes, triangles, values, mesh.box, mesh.periodic
-            )
-        else:
-            self.pieces = SpacePieces(mesh, self.index.kth_local, subdivide)
-        self.values = self.pieces.values
-
-    def _on_sphere(self, mesh, points, subdivide, weights):
-        """On the sphere: exact values from a kd-tree over the points' unit vectors, linear
-        pieces over the spherical triangles (``sphere.SpherePieces``)."""
-        unit, weights, total = sphere_points_of_run(mesh, points, weights)
-        self._frame(mesh, len(unit), total)
-        self._points = lonlat_of(unit)
-        self.index = SphereIndex(unit, weights, mesh.radius)
-        self.pieces = SpherePieces(mesh, self.index, mesh.k, subdivide)
+        domain = part(mesh.domain, "density")
+        self._points, self.index, self.pieces, total = domain.build(mesh, points, weights,
+                                                                    subdivide)  # fmt: skip
+        self._frame(mesh, len(self._points), total)
         self.values = self.pieces.values
 
     def equal_area_radius(self, d: ArrayLike) -> np.ndarray:
@@ -139,13 +108,13 @@ class KnnDistance:
         -------
         ndarray
         """
-        if self.on_sphere:
-            return equal_area_radius(d, self.mesh.radius)
-        return np.asarray(d, float)
+        return self._domain.flat_radius(self.mesh, d)
 
     def _frame(self, mesh, n, total):
         self.mesh = mesh
-        self.on_sphere = bool(getattr(mesh, "on_sphere", False))
+        self._domain = part(mesh.domain, "density")
+        self._to_frame = self._domain.to_frame(mesh)
+        self.on_sphere = mesh.domain == "sphere"
         self.dim = mesh.dim
         self.k = mesh.k
         self.n = n
@@ -245,10 +214,7 @@ class KnnDistance:
         flat, shape = as_queries(x, self.dim)
         out = np.full(len(flat), np.nan)
         inside = self._inside(flat)
-        if self.on_sphere:  # the pieces and the index take unit vectors
-            out[inside] = evaluate(unit_vectors(flat[inside]))
-        else:
-            out[inside] = evaluate(self._metric.wrap(flat[inside]))
+        out[inside] = evaluate(self._to_frame(flat[inside]))  # the pieces' and index's frame
         return out.reshape(shape)
 
     def interpolate(self, x: np.ndarray, values: ArrayLike) -> np.ndarray:
@@ -295,9 +261,7 @@ class KnnDistance:
                 "this d_Pk was built from node values alone (a part of a partitioned mesh): "
                 "exact values need the points; build KnnDistance(mesh, points)"
             )
-        if self.on_sphere:
-            return self._where_inside(x, lambda unit: index.kth_unit(unit, self.k))
-        return self._where_inside(x, lambda wrapped: index.kth(wrapped, self.k))
+        return self._where_inside(x, lambda q: index.kth(q, self.k))
 
     def grid(self, shape: int | tuple | None = None) -> tuple:
         """The estimate at the centres of a grid over the box.
@@ -404,7 +368,7 @@ class KnnDistance:
     # -- the kNN-CDF (space) -----------------------------------------------------------------
     def cdf(self, r: ArrayLike) -> np.ndarray:
         """The kNN-CDF of cosmology, CDF(r) = vol{x : d(x) <= r} / vol(box), exact for the
-        interpolated d (space: ``space.SpacePieces.cdf``).
+        interpolated d (space: its ``Pieces.cdf``).
 
         Parameters
         ----------
@@ -502,133 +466,6 @@ def _sphere_region(region):
             "lon0 + 360 (longitudes wrap: (170, -10, 190, 10) crosses the antimeridian)"
         )
     return lon0, lat0, lon1, lat1
-
-
-def point_index(mesh, pts, weights=None):
-    """Exact d_{P,k} for the mesh's points: an index with ``kth(x, k)`` at points x in the
-    box (input coordinates, periodic axes wrapped). In the plane the engine's counting index
-    that refined the mesh when it indexes these points (and weights), else a new one over
-    them (a box wide enough for them along non-periodic axes); in space a periodic kd-tree
-    (``TreeIndex``; the points must lie in the box along non-periodic axes)."""
-    if mesh.dim == 3:
-        check_inside(pts, mesh.box, mesh.periodic, warn=False)
-        return TreeIndex(mesh, pts, weights)
-    kept = getattr(mesh, "index", None)
-    if kept is not None and kept.indexes(pts, weights):
-        return kept
-    box = np.array(mesh.box, float)
-    per = np.array(mesh.periodic, bool)
-    if len(pts):
-        box[:2] = np.where(per, box[:2], np.minimum(box[:2], pts.min(axis=0)))
-        box[2:] = np.where(per, box[2:], np.maximum(box[2:], pts.max(axis=0)))
-    return PointIndex.build(pts, tuple(box), mesh.periodic, weights)
-
-
-class TreeIndex:
-    """Exact d_{P,k} in space from the engine's counting kd-tree over the points in the
-    frame of the mesh's torus (relative to its origin, periodic axes wrapping): ``kth`` at
-    input coordinates, ``kth_local`` at torus-frame ones (the pieces'). Each query collects
-    the points in a window of radii about a guess and selects the k-th
-    (``index3.kth_distances3``, as ``PointIndex.kth`` in the plane): nodes inside the inner
-    radius count whole, so a query costs about the points in the window, not k log k as a
-    k-nearest query does; below k = WINDOWS_FROM_K (unweighted) scipy's query is the
-    faster. Weighted points: d_{P,k} is the least radius whose closed ball holds weight k.
-    ``frame``: the torus' (origin, period) for a mesh that keeps none (a mesh in parts)."""
-
-    def __init__(self, mesh, pts, weights=None, frame=None):
-        origin, period = (mesh.torus.origin, mesh.torus.period) if frame is None else frame
-        origin = np.asarray(origin, float)
-        period = np.asarray(period, float)
-        self.k = mesh.k
-        self._origin = origin
-        self._metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)
-        self._period = np.where(self._metric.periodic, period, np.inf)
-        self._points = pts
-        self._weights = weights
-        local = np.ascontiguousarray(self._metric.frame(pts))
-        self._tree = build_index3(local, copy=False, weights=weights)
-        self.n = len(pts)
-        self.total = float(len(pts) if weights is None else np.sum(weights))
-        span = np.ptp(local, axis=0) if len(local) else np.ones(3)
-        self._volume = float(np.prod(np.where(span > 0, span, max(span.max(), 1e-300))))
-
-    def kth(self, x, k):
-        """d_{P,k} at points x (q, 3) in input coordinates."""
-        return self.kth_local(self._metric.frame(x), k)
-
-    def kth_local(self, x, k=None):
-        """d_{P,k} at points x (q, 3) relative to the torus origin (periodic coordinates
-        wrapped here), on every core."""
-        k = float(self.k if k is None else k)
-        q = np.ascontiguousarray(self._metric.frame(np.asarray(x, float) + self._origin))
-        if self._weights is None and k < WINDOWS_FROM_K:  # scipy's k-nearest query is faster
-            return self._scipy_tree().query(q, k=[int(k)], workers=-1)[0][:, 0]
-        return self.windows(q, k)
-
-    def windows(self, q, k):
-        """d_{P,k} at points q (q, 3) of the frame (periodic coordinates in [0, period)) by
-        the counting tree's windows, whatever k (``kth_local`` takes scipy's query below
-        WINDOWS_FROM_K; ``benchmarks/exact_kth3.py`` times both)."""
-        k = float(k)
-        q = np.ascontiguousarray(q, np.float64)
-        m = len(q)
-        guess, width = self._guess(q, k)
-        r_in, r_out = guess / width, guess * width
-        per_point = self.total / max(self.n, 1) if self._weights is not None else 1.0
-        cap = int(min(self.n, 4.0 * k / max(per_point, 1e-300) + 1024)) + 1
-        periodic = np.asarray(self._metric.periodic, bool)
-        out = np.empty(m)
-        tree, period = self._tree, self._period
-
-        def chunk(a, b):
-            kth_distances3(tree, q, k, r_in, r_out, period, periodic, cap, out, a, b)
-
-        in_chunks(chunk, m)
-        lost = np.flatnonzero(np.isnan(out))
-        if len(lost):  # more ties than a window holds (rare): scipy's tree
-            ck = self._scipy_tree()
-            if self._weights is None:
-                out[lost] = ck.query(q[lost], k=[int(k)], workers=-1)[0][:, 0]
-            else:
-                out[lost] = weighted_kth(ck, self._weights, q[lost], k, -1)
-        return out
-
-    def _scipy_tree(self):
-        """scipy's periodic kd-tree of the points (frame coordinates), built once."""
-        if getattr(self, "_ck", None) is None:
-            self._ck = self._metric.tree(self._points)
-        return self._ck
-
-    def _guess(self, q, k):
-        """(a guess of d_{P,k} at the queries q (frame), the window's factor about it): the
-        k_s-th distance in a seeded sample of an eighth of P, at most GUESS_SAMPLE points
-        (k_s: the sample's share of the points that hold weight k, at least 1), scaled by the
-        cube root of the ratio of the two counts (a ball's count grows with its volume), in
-        a window of about two of its standard deviations (the count's relative noise
-        1 / sqrt(k_s), a third of it in the radius); below 8000 points, the radius holding k
-        points at the mean density, halved and doubled. A poor guess costs only retries
-        (wider windows), never a wrong answer."""
-        s = min(self.n // 8, GUESS_SAMPLE)
-        if s < 1000:  # few points: any window is cheap
-            uniform = k * self._volume / (4.0 / 3.0 * np.pi * max(self.total, 1e-300))
-            return np.full(len(q), uniform ** (1 / 3)), 2.0
-        if getattr(self, "_sample_tree", None) is None:
-            pick = np.random.default_rng(0).choice(self.n, s, replace=False)
-            self._sample_tree = self._metric.tree(self._points[pick])
-        points = k * self.n / max(self.total, 1e-300)  # points holding weight k, on average
-        ks = max(int(round(points * s / self.n)), 1)
-        d = self._sample_tree.query(q, k=[ks], workers=-1)[0][:, 0]
-        d = d * (points * s / (ks * self.n)) ** (1 / 3)
-        fine = np.isfinite(d) & (d > 0)
-        width = float(np.clip(1.0 + 2.0 / (3.0 * np.sqrt(ks)), 1.03, 2.0))
-        return np.where(fine, d, np.max(d[fine]) if fine.any() else 1.0), width
-
-
-GUESS_SAMPLE = 30000  # points of P sampled for TreeIndex's guesses of d_Pk
-# TreeIndex's windows from this k on (unweighted; below it scipy's k-nearest query was
-# faster: ``benchmarks/exact_kth3.py`` at 10^5 clustered points, k = 64, 0.95 against 0.78 s;
-# k = 128, 0.98 against 1.10 s)
-WINDOWS_FROM_K = 100
 
 
 def grid_shape(shape, dim=2):

@@ -2,9 +2,9 @@
 
 A uniform point of a tetrahedron whose corners carry the values d_0 < d_1 < d_2 < d_3 has
 the linear interpolant's value distributed as the cubic B-spline with those knots (the
-volume below r is a piecewise cubic in r). ``density.space`` adds these shares over the mesh's
-pieces for the kNN-CDF; each knot interval is evaluated from its stable side (the near end's
-truncated power), so that close knots do not cancel.
+volume below r is a piecewise cubic in r). ``domains.space.density`` adds these shares over
+the mesh's pieces for the kNN-CDF; each knot interval is evaluated from its stable side (the
+near end's truncated power), so that close knots do not cancel.
 """
 
 from .jit import kernel

@@ -12,6 +12,13 @@ from .jit import kernel
 GRID_BITS = 50
 Q = 2.0**-GRID_BITS
 FLOOR_BITS = 14  # the engine's resolution floor is 2^14 q: elements below it are never split
+# The smallest cap or cell the engine refines (radians, 2^-20: 0.95 micro-radians, 6.1 m on
+# the Earth): there refine_sphere's slack inflates a cap's radius by 0.2%, and a cap is 2^-41 deep
+# (its centre that far above the plane of its corners), 2^12 times the rounding of a unit
+# vector, so an inserted centre is strictly inside its cap. Below it the vectors' rounding
+# is the size of the caps themselves: the hull of rounded vectors is no longer the sphere's
+# Delaunay triangulation of the points they stand for.
+RESOLUTION_ANGLE = 2.0**-20
 
 
 @kernel(inline="always")

@@ -72,13 +72,6 @@ N_PARAMS_SPHERE = 6
 # squared chord, not only a relative one. SLACK2 is four times the bound. Against a cap of
 # angle theta it is a relative 2^-48 / theta^2: 2^-8 at the resolution floor below.
 SLACK2 = 2.0**-48
-# The smallest cap or cell the engine refines (radians, 2^-20: 0.95 micro-radians, 6.1 m on
-# the Earth): there the slack above inflates a cap's radius by 0.2%, and a cap is 2^-41 deep
-# (its centre that far above the plane of its corners), 2^12 times the rounding of a unit
-# vector, so an inserted centre is strictly inside its cap. Below it the vectors' rounding
-# is the size of the caps themselves: the hull of rounded vectors is no longer the sphere's
-# Delaunay triangulation of the points they stand for.
-RESOLUTION_ANGLE = 2.0**-20
 
 HEADROOM_SPHERE = 8  # free vertex slots required before an insertion (triangles: 2 per vertex)
 MAX_CAVITY_SPHERE = 4096  # the most triangles a cavity may have (scratch.cavity holds 2 more)

@@ -9,9 +9,10 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..certify import plane, space, steps
+from ..certify import steps
 from ..certify.certificate import Certificate
 from ..certify.common import check_points_are_the_meshs, check_source
+from ..domains import part
 from ..metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
 from ..validation import as_points
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
@@ -51,12 +52,9 @@ def check_store(mesh, store, tiles, workers, *, samples, n_random, max_point_pro
                 random_state, t0):  # fmt: skip
     """certify's steps (``certify.steps.run_checks``) in either dimension with the points'
     questions asked of ``store`` (``workers``: this process' threads)."""
-    if mesh.dim == 3:
-        geometry, points = space.Geometry(mesh, workers), TiledSpacePoints(mesh, store, tiles,
-                                                                          workers)  # fmt: skip
-    else:
-        geometry, points = plane.Geometry(mesh, workers), TiledTorusPoints(mesh, store, tiles,
-                                                                          workers)  # fmt: skip
+    geometry = part(mesh.domain, "certify").Geometry(mesh, workers)
+    tiled = TiledSpacePoints if mesh.domain == "space" else TiledTorusPoints
+    points = tiled(mesh, store, tiles, workers)
     return steps.run_checks(mesh, geometry, points, samples=samples, n_random=n_random,
                             max_point_probes=max_point_probes, random_state=random_state,
                             t0=t0)  # fmt: skip
@@ -161,7 +159,7 @@ class StripQuestions:
 
 
 class TiledTorusPoints:
-    """The plane's ``certify.plane.Points`` for points held in a store: every question
+    """The plane's ``certify.Points`` for points held in a store: every question
     about them is a ``StripQuestions``."""
 
     def __init__(self, mesh, store, tiles, workers):
@@ -199,7 +197,7 @@ class TiledTorusPoints:
 
 
 class TiledSpacePoints:
-    """Space's ``certify.space.Points`` for points held in a store: every question about them a
+    """Space's ``certify.Points`` for points held in a store: every question about them a
     ``StripQuestions`` (slabs). d_{P,k} is asked in the box's own metric, as in one process:
     each slab's kd-tree is straight along the non-periodic axes (the box lies unwrapped in
     the torus frame there, and a point within a pad in the box's metric is within it on the

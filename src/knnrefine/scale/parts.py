@@ -35,10 +35,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from ..density.distance import KnnDistance, TreeIndex, grid_shape, point_index
+from ..density.distance import KnnDistance, grid_shape
 from ..density.estimate import KnnDensity
-from ..density.plane import index_values, midpoints, node_guesses
-from ..density.space import SpacePieces, grid3, nodes3
+from ..domains import part
+from ..domains.plane.density import index_values, midpoints, node_guesses
+from ..domains.space.density import Index as SpaceIndex
+from ..domains.space.density import Pieces as SpacePieces
+from ..domains.space.density import grid3, nodes3
 from ..engine.raster import rasterise
 from ..errors import InputError
 from ..io import UNREADABLE, unreadable
@@ -293,6 +296,11 @@ class PartitionedMesh:
         self.periodic, self.box = tuple(m["periodic"]), tuple(m["box"])
         self.stats = m["stats"]
         self._cache: dict = {}
+
+    @property
+    def domain(self) -> str:
+        """ "plane" or "space": the box domain of its dimension (``knnrefine.domains``)."""
+        return "plane" if len(self.periodic) == 2 else "space"
 
     @property
     def dim(self) -> int:
@@ -557,10 +565,10 @@ class PartitionedDistance:
     """d_{P,k} over a partitioned mesh, part by part, in the plane or in space.
 
     Each part carries the linear pieces of the cells that meet its strip, exact at their
-    nodes and edge midpoints. In the plane (``density.linear_pieces``: copies across periodic
-    seams included) ``vertex_values(nodes, near)`` and ``midpoint_values(mids, guess, low,
+    nodes and edge midpoints. In the plane (its ``density.linear_pieces``: copies across
+    periodic seams included) ``vertex_values(nodes, near)`` and ``midpoint_values(mids, guess, low,
     high)`` answer for all parts' nodes at once, then for all their midpoints; in space
-    (``density.space.SpacePieces``) ``kth(x)`` answers for all parts' vertices and distinct
+    (space's ``density.Pieces``) ``kth(x)`` answers for all parts' vertices and distinct
     edge midpoints at once, in the frame of the torus (``of_index``: the points in this
     process; ``of_store``: asked strip by strip where they are). A query is answered by its
     strip's part (the piece holding it meets the strip); integrals, grids and samples add up
@@ -637,9 +645,9 @@ class PartitionedDistance:
         if pmesh.dim == 3:  # a periodic kd-tree in the frame of the torus
             check_inside(pts, pmesh.box, pmesh.periodic, warn=False)
             t = pmesh.manifest["torus"]
-            tree = TreeIndex(pmesh, pts, weights, frame=(t["origin"], t["period"]))
+            tree = SpaceIndex(pmesh, pts, weights, frame=(t["origin"], t["period"]))
             return cls(pmesh, None, None, len(pts), total, subdivide, kth=tree.kth_local)
-        index = point_index(pmesh, pts, weights)
+        index = part(pmesh.domain, "density").index_of(pmesh, pts, weights)
         return cls(pmesh, *index_values(index, pmesh.k), len(pts), total, subdivide)
 
     @classmethod

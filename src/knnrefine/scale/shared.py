@@ -39,6 +39,7 @@ import time
 
 import numpy as np
 
+from ..domains import part
 from ..engine import ahead
 from ..engine import state as S
 from ..engine.driver import Refinement
@@ -57,8 +58,6 @@ from ..engine.triangulation3 import unpack_offsets
 from ..errors import EngineError
 from ..mesh import Mesh
 from ..options import Progress
-from ..run import finish
-from ..run3 import finish3
 from .tiled import (
     LocalStore,
     ThreadStore,
@@ -419,7 +418,7 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
     pts : ndarray (n, 2) or (n, 3)
     w : ndarray (n,) or None
     opt : RunOptions
-        Checked (``run.checked``).
+        Checked (``pipeline.checked``).
     workers : int
         Threads, and strips (slabs in space).
 
@@ -430,8 +429,7 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
     store = ThreadStore(pts, w, workers)
     report = Progress(opt.progress)
     dim = pts.shape[1]
-    domain = "plane" if dim == 2 else "space"
-    with ahead.compiling(domain, report.compiling), Interrupts() as interrupts:
+    with ahead.compiling(opt.domain, report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         p = plan(store, opt, workers, interrupts, COARSE_SHARE)
         emb, common = p.emb, p.common
@@ -543,15 +541,11 @@ def refine_threads(pts, w, opt, workers) -> Mesh:
                        "fetched_points": False})  # fmt: skip
         run.time_index = setup  # the tiles and rounds count as the refinement
         run.time_refine = time.perf_counter() - t0 - setup
-        if dim == 3:
-            mesh = finish3(run, status, emb, opt, lambda: pts, store.n, store.weight, rounds)
-            mesh.stats.max_vertices = int(budget)  # no size estimate in space (plan)
-            return mesh
-        run.n = store.n
-        return finish(
-            run, status, emb, opt, (p.m0_order, p.m0_grid, p.estimated, budget), report,
-            interrupts, None, store.weight, rounds,
-        )  # fmt: skip
+        finish = part(opt.domain, "run").finish
+        return finish(run, status, emb, opt, n=store.n, weight=store.weight,
+                      points=lambda: pts, report=report, estimated=p.reported_estimate,
+                      budget=budget, initial=len(p.m0_order), rounds=rounds,
+                      interrupts=interrupts)  # fmt: skip
 
 
 def _stitched_run(joined, vertices, index, common, budget):
@@ -610,7 +604,7 @@ def refine_local(pts, w, opt, workers, executor=None) -> Mesh:
     pts : ndarray (n, 2) or (n, 3)
     w : ndarray (n,) or None
     opt : RunOptions
-        Checked (``run.checked``).
+        Checked (``pipeline.checked``).
     workers : int
     executor : concurrent.futures.Executor, optional
 

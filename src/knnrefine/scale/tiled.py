@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..domains import part
 from ..engine import ahead, size
 from ..engine import state as S
 from ..engine.driver import Refinement
@@ -48,8 +49,6 @@ from ..engine.threads import in_chunks
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
 from ..options import Progress, vertex_budget
-from ..run import Start, finish
-from ..run3 import Start3, finish3
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
 COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the points ...
@@ -585,19 +584,18 @@ class ThreadStore(LocalStore):
 # slabs take 1.06-1.62x one process's time at 10^5 points, 0.88-1.02x at 3 x 10^5 (two runs)
 # and 0.71-0.87x at 10^6.
 # ``KNNREFINE_TILES=always`` tiles at every size (to measure them, or with more cores).
-TILES_FROM = {2: 2_000_000, 3: 300_000}
+TILES_FROM = {"plane": 2_000_000, "space": 300_000, "sphere": None}  # None: no tiles yet
 
 
-def tiles_pay(dim, n):
-    """Whether ``workers`` > 1 without an executor runs tiles for n points in ``dim``
-    dimensions (else one process): ``TILES_FROM``, or always when KNNREFINE_TILES=always."""
+def tiles_pay(domain, n):
+    """Whether ``workers`` > 1 without an executor runs tiles for n points in ``domain``
+    (else one process): ``TILES_FROM``, or always when KNNREFINE_TILES=always in a domain
+    that has tiles (the sphere has none: its workers are its kernels' threads)."""
     env = os.environ.get("KNNREFINE_TILES", "").strip().lower()
     if env not in ("", "auto", "always"):
         raise InputError(f"KNNREFINE_TILES must be 'auto' or 'always', got {env!r}")
-    if env == "always":
-        return True
-    least = TILES_FROM[dim]
-    return least is not None and n >= least
+    least = TILES_FROM[domain]
+    return least is not None and (env == "always" or n >= least)
 
 
 def _plan_start(sx, sw, store, opt, budget, interrupts):
@@ -605,7 +603,7 @@ def _plan_start(sx, sw, store, opt, budget, interrupts):
     sample, else from all points (the sample may be too sparse): d_{S,k} >= d_{P,k} for a
     subset S, so an initial mesh the sample accepts is accepted. InputError when none is."""
     k, factor = opt.k, reach_factor(opt.tau)
-    begin = Start if opt.dim == 2 else Start3
+    begin = part(opt.domain, "run").Start
     start = begin(sx, opt, budget, interrupts, sw)
     found = start.find(k, factor)
     if found is None and len(sx) < store.n:
@@ -642,6 +640,12 @@ class Plan:
     kinds: np.ndarray
     everything: bool
     seconds: float
+
+    @property
+    def reported_estimate(self) -> float:
+        """The size estimate the mesh's stats report: none (0) in space, where the plan
+        has only the start's budget."""
+        return self.estimated if self.emb.dim == 2 else 0
 
 
 def plan(store, opt, workers, interrupts, coarse_share=COARSE_SHARE) -> Plan:
@@ -690,14 +694,12 @@ def refine_store(store, opt, workers) -> Mesh:
     mesh, size, strips), a coarse pass on part of it, rounds of tiles, then whatever no
     round settled on the index of all points, fetched only then."""
     n = store.n
-    dim = opt.dim
     deadline = opt.deadline
     report = Progress(opt.progress)
-    domain = "plane" if dim == 2 else "space"
-    with ahead.compiling(domain, report.compiling), Interrupts() as interrupts:
+    with ahead.compiling(opt.domain, report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         p = plan(store, opt, workers, interrupts)
-        emb, s_index, m0, m0_order, m0_grid = p.emb, p.s_index, p.m0, p.m0_order, p.m0_grid
+        emb, s_index, m0, m0_order = p.emb, p.s_index, p.m0, p.m0_order
         estimated, budget, sets, common, xy, kinds = (p.estimated, p.budget, p.sets, p.common,
                                                       p.xy, p.kinds)  # fmt: skip
         everything = p.everything
@@ -729,13 +731,8 @@ def refine_store(store, opt, workers) -> Mesh:
         })  # fmt: skip
         run.time_index = setup  # the tiles and rounds count as the refinement
         run.time_refine = time.perf_counter() - t0 - setup
-        if dim == 3:
-            mesh = finish3(run, status, emb, opt, lambda: store.points()[0], n, store.weight,
-                           rounds)  # fmt: skip
-            mesh.stats.max_vertices = int(budget)  # no size estimate in space (plan)
-            return mesh
-        run.n = n
-        return finish(
-            run, status, emb, opt, (m0_order, m0_grid, estimated, budget), report, interrupts,
-            None, store.weight, rounds,
-        )  # fmt: skip
+        finish = part(opt.domain, "run").finish
+        return finish(run, status, emb, opt, n=n, weight=store.weight,
+                      points=lambda: store.points()[0], report=report,
+                      estimated=p.reported_estimate, budget=budget, initial=len(m0_order),
+                      rounds=rounds, interrupts=interrupts)  # fmt: skip

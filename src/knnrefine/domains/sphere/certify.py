@@ -34,11 +34,13 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ..engine.geometry import plus_compensated
-from ..engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from ..engine.predicates3 import orient3d
-from ..mesh import sphere_constants
-from ..metric import (
+from ...certify.common import check_precondition
+from ...certify.steps import Probes, Triangulation
+from ...engine.geometry import plus_compensated
+from ...engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
+from ...engine.predicates3 import orient3d
+from ...mesh import sphere_constants
+from ...metric import (
     angle_to_chord,
     cell_tally,
     chord_to_angle,
@@ -47,8 +49,7 @@ from ..metric import (
     weight_tree,
     weighted_kth,
 )
-from .common import check_precondition
-from .steps import Probes, Triangulation
+from ...validation import as_sphere_points, check_made_from, weights_of_run
 
 
 @kernel(entry=True, lazy=True)
@@ -218,6 +219,15 @@ def check_triangulation(mesh):
                 f"vertices (degrees) differ from their vectors by up to {gap.max():.3g} degrees"
             )
     return problems, mesh_problems
+
+
+def checked_points(mesh, points, weights):
+    """The points a mesh is certified against, checked to be the ones it was made from (as
+    many, with weights exactly when it was refined with
+    them), in the frame its ``Points`` take: (points, weights as float64 or None)."""
+    unit = as_sphere_points(points)
+    check_made_from(mesh.stats, len(unit), "certify a mesh against")
+    return unit, weights_of_run(mesh.stats, len(unit), weights)
 
 
 class Points:

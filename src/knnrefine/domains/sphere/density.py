@@ -1,5 +1,5 @@
 """d_{P,k} on the sphere from a mesh: linear pieces over the spherical triangles
-(``SpherePieces``), the sphere's counterpart of ``plane.PlanePieces``.
+(``Pieces``, as in the plane and in space).
 
 The nodes are the mesh's unit vectors and, subdivided, its edges' midpoints pushed onto the
 sphere; each triangle is split in four through them. A query is located by the ray through
@@ -16,35 +16,64 @@ pi (chord)^2 (Archimedes), through ``equal_area_radius``.
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..mesh import edges, split_in_four
-from ..metric import chord_to_angle, lonlat_of, unit_vectors, weighted_kth
-from .plane import TRIANGLE_RULE_POINTS, TRIANGLE_RULE_WEIGHTS
+from ...mesh import TRIANGLE_RULE_POINTS, TRIANGLE_RULE_WEIGHTS, edges, split_in_four
+from ...metric import chord_to_angle, lonlat_of, unit_vectors, weighted_kth
+from ...validation import sphere_points_of_run
 
 CANDIDATES = (8, 32)  # pieces tried per query, by the nearest centroids, before all of them
 
 
-class SphereIndex:
+class Index:
     """Exact d_{P,k} on the sphere: a kd-tree over the points' unit vectors (chords order
-    points as great-circle angles do); ``kth`` at lon/lat points or unit vectors, in the
-    sphere's length unit (angle times ``radius``)."""
+    points as great-circle angles do); ``kth`` at unit vectors (the domain's ``to_frame``), in
+    the sphere's length unit (angle times ``radius``)."""
 
     def __init__(self, unit, weights, radius):
         self.tree = cKDTree(unit)
         self.weights = weights
         self.radius = float(radius)
 
-    def kth_unit(self, x, k):
+    def kth(self, x, k):
         if self.weights is None:
             chord = self.tree.query(x, k=[int(k)], workers=-1)[0][:, 0]
         else:
             chord = weighted_kth(self.tree, self.weights, x, k, -1)
         return chord_to_angle(chord) * self.radius
 
-    def kth(self, lonlat, k):
-        return self.kth_unit(unit_vectors(lonlat), k)
+
+def to_frame(mesh):
+    """The map from (longitude, latitude) degrees (q, 2) to the frame of the pieces and the
+    index: unit vectors."""
+    return unit_vectors
 
 
-class SpherePieces:
+def flat_radius(mesh, d):
+    """The radius of the flat disk as large as the cap of great-circle radius d: the chord
+    (``equal_area_radius``)."""
+    return equal_area_radius(d, mesh.radius)
+
+
+def points_of(mesh, points, weights):
+    """The points as unit vectors (n, 3), weights and total of the run a mesh was refined
+    from, checked (``validation.sphere_points_of_run``)."""
+    return sphere_points_of_run(mesh, points, weights)
+
+
+def index_of(mesh, unit, weights=None):
+    """Exact d_{P,k} for the mesh's points (unit vectors): ``Index``, ``kth(x, k)`` at unit
+    vectors."""
+    return Index(unit, weights, mesh.radius)
+
+
+def build(mesh, points, weights, subdivide):
+    """What ``KnnDistance`` keeps of a mesh on the sphere: (the points in lon/lat, the exact
+    index, the pieces, the points' number or total weight)."""
+    unit, weights, total = points_of(mesh, points, weights)
+    index = index_of(mesh, unit, weights)
+    return lonlat_of(unit), index, Pieces(mesh, index, mesh.k, subdivide), total
+
+
+class Pieces:
     """Linear pieces of d_{P,k} over the sphere (module docstring): ``nodes`` (p, 3) unit
     vectors, ``triangles`` (t, 3), ``values`` (p,) exact d_{P,k} at the nodes."""
 
@@ -59,7 +88,7 @@ class SpherePieces:
             xyz = np.concatenate([xyz, mids / np.linalg.norm(mids, axis=1, keepdims=True)])
         self.nodes, self.triangles = xyz, tri
         self.radius = index.radius
-        self.values = index.kth_unit(xyz, k)
+        self.values = index.kth(xyz, k)
         corners = xyz[tri]  # (t, 3 corners, 3 axes)
         # x = corners^T l: l = inverse(corners^T) x, one 3 x 3 inverse per piece
         self._inverse = np.linalg.inv(np.transpose(corners, (0, 2, 1)))
@@ -184,3 +213,17 @@ def equal_area_radius(d, radius):
     d on the sphere of ``radius``: the chord 2 R sin(d / 2R) (Archimedes: the cap's area is
     pi chord^2), so that the kNN density is k / (n pi chord^2) per unit area."""
     return 2.0 * radius * np.sin(0.5 * np.minimum(np.asarray(d, float) / radius, np.pi))
+
+
+def complex_of(mesh, subdivide=True):
+    """The sphere's triangulation as a complex (closed: every edge borders two triangles),
+    subdivided through the edge midpoints pushed onto the sphere: (positions in lon/lat,
+    the nodes as unit vectors, the triangles)."""
+    tri = mesh.triangles.astype(np.int64)
+    xyz = np.asarray(mesh.xyz, float)
+    if not subdivide:
+        return lonlat_of(xyz), xyz, tri
+    pairs, _, tri = split_in_four(tri, len(xyz))
+    mids = xyz[pairs[:, 0]] + xyz[pairs[:, 1]]
+    nodes = np.concatenate([xyz, mids / np.linalg.norm(mids, axis=1, keepdims=True)])
+    return lonlat_of(nodes), nodes, tri

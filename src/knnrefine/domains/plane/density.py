@@ -2,30 +2,55 @@
 midpoints (each triangle split in four), carried linearly over the triangles; located by a
 kd-tree on the pieces' centroids, drawn into grids by the engine's rasteriser, integrated by
 Dunavant's 7-point rule on triangles clipped to rectangles, and sampled by rejection
-(``PlanePieces``). ``KnnDistance`` builds these for a mesh in the plane."""
+(``Pieces``). ``KnnDistance`` builds these for a mesh in the plane."""
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..engine.raster import clip_triangles, fans, rasterise, walk_to
-from ..engine.threads import in_chunks
-from ..mesh import edges, split_in_four, triangle_areas, uniform_in_triangles
-
-# Dunavant's 7-point rule (degree 5) on the reference triangle: barycentric points, weights
-TRIANGLE_RULE_WEIGHTS = np.array([0.225, *[0.132394152788506] * 3, *[0.125939180544827] * 3])
-_a, _b = 0.059715871789770, 0.470142064105115
-_c, _d = 0.797426985353087, 0.101286507323456
-TRIANGLE_RULE_POINTS = np.array(
-    [
-        [1 / 3, 1 / 3, 1 / 3],
-        [_a, _b, _b],
-        [_b, _a, _b],
-        [_b, _b, _a],
-        [_c, _d, _d],
-        [_d, _c, _d],
-        [_d, _d, _c],
-    ]
+from ...engine.index import PointIndex
+from ...engine.raster import clip_triangles, fans, rasterise, walk_to
+from ...engine.threads import in_chunks
+from ...mesh import (
+    TRIANGLE_RULE_POINTS,
+    TRIANGLE_RULE_WEIGHTS,
+    edges,
+    split_in_four,
+    triangle_areas,
+    uniform_in_triangles,
 )
+from ..box import (  # the box domains' own; flat_radius is this domain's as every box's
+    flat_radius,  # noqa: F401
+    not_simplicial,
+    points_of,
+    to_frame,
+)
+
+
+def index_of(mesh, pts, weights=None):
+    """Exact d_{P,k} for the mesh's points: an index with ``kth(x, k)`` at points x in the
+    box (input coordinates, periodic axes wrapped): the engine's counting index that refined
+    the mesh when it indexes these points (and weights), else a new one over them (a box
+    wide enough for them along non-periodic axes)."""
+    kept = getattr(mesh, "index", None)
+    if kept is not None and kept.indexes(pts, weights):
+        return kept
+    box = np.array(mesh.box, float)
+    per = np.array(mesh.periodic, bool)
+    if len(pts):
+        box[:2] = np.where(per, box[:2], np.minimum(box[:2], pts.min(axis=0)))
+        box[2:] = np.where(per, box[2:], np.maximum(box[2:], pts.max(axis=0)))
+    return PointIndex.build(pts, tuple(box), mesh.periodic, weights)
+
+
+def build(mesh, points, weights, subdivide):
+    """What ``KnnDistance`` keeps of a mesh in the plane: (the points, the exact index, the
+    pieces, the points' number or total weight)."""
+    pts, weights, total = points_of(mesh, points, weights)
+    index = index_of(mesh, pts, weights)
+    nodes, triangles = mesh.covering()
+    at_vertices, at_midpoints = index_values(index, mesh.k)
+    nodes, triangles, values = linear_pieces(nodes, triangles, at_vertices, at_midpoints, subdivide)
+    return pts, index, Pieces(nodes, triangles, values, mesh.box, mesh.periodic), total
 
 
 def linear_pieces(nodes, triangles, vertex_values, midpoint_values, subdivide=True):
@@ -86,7 +111,7 @@ def midpoints(nodes, pairs, length, values):
     return mids, 0.5 * (da + db), low, high
 
 
-class PlanePieces:
+class Pieces:
     """Linear pieces over the plane's box: ``nodes`` (p, 2), ``triangles`` (t, 3) and the
     node ``values``; points are located in ``located`` (pieces over the same nodes; default:
     ``triangles``). Coordinates are the box's, periodic axes wrapped into it."""
@@ -289,3 +314,30 @@ def quadrature(corners, d, func):
     area = np.abs(triangle_areas(corners))
     dq = d @ TRIANGLE_RULE_POINTS.T  # (t, 7): d at the quadrature points
     return area * (func(dq) @ TRIANGLE_RULE_WEIGHTS)
+
+
+def complex_of(mesh, subdivide=True):
+    """The mesh's cells as a complex (all of the torus' in periodic mode, as an abstract
+    complex with positions in the box), subdivided in four through the edge midpoints:
+    (positions, the same as nodes in the index's frame, the triangles). EngineError where
+    it would not be simplicial (only on a torus a few cells across)."""
+    corners = mesh.corners()
+    tri = mesh.triangles.astype(np.int64)
+    pairs, edge_of = edges(tri)
+    # in a triangulated surface an edge borders two triangles (one on a boundary); a vertex
+    # pair used more often means two different edges join it
+    uses = np.bincount(edge_of.reshape(-1))
+    if uses.max(initial=0) > 2 or (all(mesh.periodic) and np.any(uses != 2)):
+        raise not_simplicial()
+    if not subdivide:
+        used = np.unique(tri)
+        return mesh.vertices[used], mesh.vertices[used], np.searchsorted(used, tri)
+    # midpoints of the geometric edges (offsets applied: across the seam where need be)
+    pairs, edge_of, tri = split_in_four(tri, len(mesh.vertices))
+    mid_pos = np.zeros((len(pairs), 2))
+    for corner in range(3):
+        a, b = (corner + 1) % 3, (corner + 2) % 3
+        mid_pos[edge_of[:, corner]] = 0.5 * (corners[:, a] + corners[:, b])
+    positions = np.concatenate([mesh.vertices, to_frame(mesh)(mid_pos)])
+    used = np.unique(tri)  # drop the vertices of triangles left out (non-periodic mode)
+    return positions[used], positions[used], np.searchsorted(used, tri)

@@ -19,10 +19,17 @@ from fractions import Fraction
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..mesh import circumcircles, triangle_areas, uniform_in_triangles
-from ..metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
-from .common import TorusGeometry, cell_array_problem, check_cells_tile, find_rows
-from .steps import Probes, Triangulation
+from ...certify.common import (
+    TorusGeometry,
+    cell_array_problem,
+    check_cells_tile,
+    check_points_are_the_meshs,
+    find_rows,
+)
+from ...certify.steps import Probes, Triangulation
+from ...mesh import circumcircles, triangle_areas, uniform_in_triangles
+from ...metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
+from ...validation import as_points
 
 
 class Geometry(TorusGeometry):
@@ -100,6 +107,14 @@ class Geometry(TorusGeometry):
             else 0.0
         )
         return integral, float(np.sqrt(var))
+
+
+def checked_points(mesh, points, weights):
+    """The points a mesh is certified against, checked to be the ones it was made from (as
+    many, inside its box along non-periodic axes, with weights exactly when it was refined with
+    them), in the frame its ``Points`` take: (points, weights as float64 or None)."""
+    pts = as_points(points, 2)
+    return pts, check_points_are_the_meshs(mesh, pts, weights)
 
 
 class Points:

@@ -16,12 +16,12 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import validation as V
-from .engine import ahead
-from .engine.index3 import build_index3
-from .engine.interrupt import Interrupts
-from .engine.queue import Q_SIZE, Q_USED, new_queue
-from .engine.refine_sphere import (
+from ...engine import ahead
+from ...engine.geometry import RESOLUTION_ANGLE
+from ...engine.index3 import build_index3
+from ...engine.interrupt import Interrupts
+from ...engine.queue import Q_SIZE, Q_USED, new_queue
+from ...engine.refine_sphere import (
     MAX_CAVITY_SPHERE,
     N_PARAMS_SPHERE,
     PS_CLEAN_FLOOR2,
@@ -31,13 +31,12 @@ from .engine.refine_sphere import (
     PS_SLACK2,
     PS_TAU2,
     QUEUE_HEADROOM,
-    RESOLUTION_ANGLE,
     SLACK2,
     queue_all_sphere,
     refine_steps_sphere,
 )
-from .engine.size import BYTES_PER_VERTEX_SPHERE, floored_per_site
-from .engine.state import (
+from ...engine.size import floored_per_site
+from ...engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
     C_ERROR,
@@ -58,58 +57,16 @@ from .engine.state import (
     Queues,
     grown,
 )
-from .engine.triangulation_sphere import new_sphere, new_sphere_scratch
-from .errors import BudgetError, EngineError, InputError
-from .mesh import Mesh, Stats, moves_of
-from .metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls
-from .options import Progress, check_progress, check_size, warn_floor
+from ...engine.triangulation_sphere import new_sphere, new_sphere_scratch
+from ...errors import BudgetError, EngineError
+from ...mesh import Mesh, Stats, moves_of
+from ...metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls
+from ...options import Progress, SphereOptions, check_size, check_sphere_run, warn_floor
 
 STEPS = 20_000  # insertions per kernel call
-DEFAULT_MIN_ANGLE = 1e-6 * math.pi  # the default floor: a millionth of half a great circle
 MAX_DEGREE = 256
 SPHERE_BOX = (-180.0, -90.0, 180.0, 90.0)
 STAMP_LIMIT_SPHERE = 2**30  # a kernel call makes at most STEPS insertions: far below 2^31
-
-
-class SphereOptions:
-    """What a run on the sphere was asked, checked before any work."""
-
-    bytes_per_vertex = BYTES_PER_VERTEX_SPHERE  # a run's peak memory per vertex
-
-    def __init__(self, n, total, k, tau, radius, min_size, max_vertices, time_limit, progress):
-        self.t_start = time.perf_counter()
-        self.radius = V.check_radius(radius)
-        if k is None:
-            k = V.default_k(n if total is None else total)
-        self.k = V.check_k(k, n) if total is None else V.check_weighted_k(k, total)
-        self.tau = V.check_tau(tau)
-        if min_size is None:
-            self.min_angle = DEFAULT_MIN_ANGLE
-        elif isinstance(min_size, bool) or not np.isfinite(min_size) or min_size < 0:
-            raise InputError(f"min_size must be a finite number >= 0, got {min_size!r}")
-        else:
-            self.min_angle = float(min_size) / self.radius
-        self.max_vertices = V.check_max_vertices(max_vertices)
-        self.deadline = None
-        if time_limit is not None:
-            if isinstance(time_limit, bool) or not isinstance(
-                time_limit, (int, float, np.integer, np.floating)
-            ) or not (np.isfinite(time_limit) and time_limit > 0):  # fmt: skip
-                raise InputError(
-                    f"time_limit must be a positive number of seconds, got {time_limit!r}"
-                )
-            self.deadline = self.t_start + float(time_limit)
-        self.progress = check_progress(progress)
-
-    @property
-    def floor_angle(self):
-        """The Break floor in effect: ``min_size`` as an angle, at least the engine's
-        resolution (``refine_sphere.RESOLUTION_ANGLE``), below which nothing is split."""
-        return max(self.min_angle, RESOLUTION_ANGLE)
-
-    @property
-    def min_size(self):
-        return self.floor_angle * self.radius
 
 
 class SphereRun:
@@ -174,22 +131,29 @@ class SphereRun:
                                    prm, index, steps)  # fmt: skip
 
 
-def refine_sphere(points, k=None, tau=3.0, *, weights=None, radius=None, min_size=None,
-                  max_vertices=None, time_limit=None, progress=None):  # fmt: skip
-    """kNNRefine on the sphere (``knnrefine.refine(..., sphere=True)`` documents it)."""
-    xyz_p = V.as_sphere_points(points)
-    n = len(xyz_p)
-    w = None if weights is None else V.check_weights(weights, n)
-    total = None if w is None else math.fsum(w)
-    opt = SphereOptions(n, total, k, tau, radius, min_size, max_vertices, time_limit, progress)
+def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, SphereOptions]:
+    """The points as unit vectors (n, 3), weights and options of a run on the sphere,
+    checked before any work (``options.check_sphere_run``; ``asked`` as ``knnrefine.refine``
+    takes them)."""
+    return check_sphere_run(points, weights, **asked)
+
+
+def refine(xyz_p: np.ndarray, w: np.ndarray | None, opt: SphereOptions) -> Mesh:
+    """A run on the sphere in this process on checked unit vectors, weights and options
+    (``checked``), through ``pipeline.refine_checked``.
+
+    Returns
+    -------
+    Mesh
+    """
     report = Progress(opt.progress)
     with ahead.compiling("sphere", report.compiling):
-        return _refine_checked(xyz_p, w, total, opt, report)
+        return _refine(xyz_p, w, opt, report)
 
 
-def _refine_checked(xyz_p, w, total, opt, report):
-    """``refine_sphere`` on checked unit vectors, weights (or None) and their total, and
-    options."""
+def _refine(xyz_p, w, opt, report):
+    """``refine`` in the compiling notice's scope."""
+    total = None if w is None else math.fsum(w)
     n = len(xyz_p)
     budget = opt.max_vertices if opt.max_vertices is not None else max(10**6, 4 * n)
     mass = n if total is None else total

@@ -1,22 +1,20 @@
 """A run of kNNRefine in the plane in this process: the points and options checked
-(``checked``, for the plane and space), the start (the embedding torus, the counting index,
-the initial mesh: ``Start``), the engine's run (``refine_plane``), and the mesh assembled
-(``finish``); in space ``run3``. ``pipeline`` chooses between them, and the tiled runs of
-``scale.tiled`` use their starts and finishes."""
+(``checked``), the start (the embedding torus, the counting index, the initial mesh:
+``Start``), the engine's run (``refine``), and the mesh assembled (``finish``). The tiled
+runs of ``scale.tiled`` use its start and finish."""
 
 import math
 import time
 
 import numpy as np
 
-from . import validation as V
-from .engine import ahead, size
-from .engine import state as S
-from .engine.driver import Refinement
-from .engine.embedding import Embedding, diameter, unfold, wrap
-from .engine.geometry import FLOOR_BITS
-from .engine.index import PointIndex, build_index, mark_in_disks
-from .engine.initial import (
+from ...engine import ahead, size
+from ...engine import state as S
+from ...engine.driver import Refinement
+from ...engine.embedding import Embedding, diameter, unfold, wrap
+from ...engine.geometry import FLOOR_BITS
+from ...engine.index import PointIndex, build_index, mark_in_disks
+from ...engine.initial import (
     candidate_grids,
     choose_initial_mesh,
     largest_passing,
@@ -24,51 +22,21 @@ from .engine.initial import (
     reach_factor,
     refusal_message,
 )
-from .engine.interrupt import Interrupts
-from .errors import BudgetError, InputError
-from .mesh import Mesh, Stats, Torus
-from .options import Progress, RunOptions, vertex_budget, warn_floor
-
-
-def is_spatial(points):
-    """Whether points are (n, 3): a run in space."""
-    shape = np.shape(points) if isinstance(points, np.ndarray) or hasattr(points, "shape") else None
-    if shape is None:
-        try:
-            shape = np.shape(np.asarray(points, dtype=object))
-        except Exception:
-            return False
-    return len(shape) == 2 and shape[1] == 3
+from ...engine.interrupt import Interrupts
+from ...errors import BudgetError, InputError
+from ...mesh import Mesh, Stats, Torus
+from ...options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 
 
 def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, RunOptions]:
-    """The points, weights and options of a run, checked before any work (``RunOptions``):
-    (pts (n, d) float64, weights (n,) float64 or None, the options).
-
-    Parameters
-    ----------
-    points : array-like (n, 2) or (n, 3)
-    weights : array-like (n,), optional
-    **asked
-        ``k``, ``tau``, ``periodic``, ``box``, ``min_size``, ``max_vertices``,
-        ``time_limit``, ``progress`` as ``knnrefine.refine`` takes them.
-
-    Returns
-    -------
-    pts, weights, options
-    """
-    dim = 3 if is_spatial(points) else 2
-    pts = V.as_points(points, dim)
-    n = len(pts)
-    w = None if weights is None else V.check_weights(weights, n)
-    total = None if w is None else math.fsum(w)
-    bounds, inside = lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p)
-    return pts, w, RunOptions.check(n, total, bounds, inside, **asked, dim=dim)
+    """The points (n, 2), weights and options of a run in the plane, checked before any work
+    (``options.check_box_run``; ``asked`` as ``knnrefine.refine`` takes them)."""
+    return check_box_run(points, weights, 2, **asked)
 
 
-def refine_plane(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
+def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
     """A run in the plane in this process on checked points, weights and options
-    (``checked``; ``pipeline.refine_checked`` chooses it).
+    (``checked``), through ``pipeline.refine_checked``.
 
     Parameters
     ----------
@@ -102,17 +70,21 @@ def refine_plane(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh
         run.time_index = start.seconds
         status = run.run(deadline=opt.deadline, progress=report.refining, interrupts=interrupts)
         kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, w))
-        return finish(
-            run, status, emb, opt, (m0_order, m0_grid, estimated, budget), report, interrupts,
-            kept, total, None,
-        )  # fmt: skip
+        return finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts,
+                      report=report, estimated=estimated, budget=budget,
+                      initial=len(m0_order), interrupts=interrupts, kept=kept)  # fmt: skip
 
 
-def finish(run, status, emb, opt, plan, report, interrupts, kept, weight, rounds):
-    """The Mesh of a finished run, or BudgetError for one stopped by a budget. ``plan``:
-    (the initial mesh's order and grid, the estimated size, the vertex budget)."""
-    m0_order, m0_grid, estimated, budget = plan
+def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budget, initial,
+           rounds=None, interrupts=None, kept=None) -> Mesh:  # fmt: skip
+    """The Mesh of a finished run (``Refinement``), or BudgetError for one stopped by a
+    budget; every domain's ``finish`` takes the same arguments. ``n``, ``weight``: the
+    points' number and total weight (None: unweighted); ``points()`` gives them (unused
+    here: the run's index counts under the floor); ``estimated``, ``budget``: the size
+    estimate (0: none) and the vertex budget; ``initial``: the initial mesh's vertices;
+    ``rounds``: a tiled run's report; ``kept``: the index the mesh keeps."""
     k, tau, t_start = opt.k, opt.tau, opt.t_start
+    run.n = n
     # below the engine's resolution limit nothing is split whatever min_size says
     min_size = max(opt.min_size, run.floor / emb.scale)
     if status != S.STATUS_DONE:
@@ -134,7 +106,7 @@ def finish(run, status, emb, opt, plan, report, interrupts, kept, weight, rounds
     t_assemble = time.perf_counter()
     report.assembling(run.vertices)
     res = run.result()
-    mesh = _assemble(res, emb, k, tau, min_size, run, len(m0_order), report, interrupts, kept)
+    mesh = _assemble(res, emb, k, tau, min_size, run, initial, report, interrupts, kept)
     stats = mesh.stats
     stats.weight = None if weight is None else float(weight)
     stats.estimated_vertices = int(estimated)

@@ -9,14 +9,14 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .engine import ahead, size
-from .engine.driver3 import Refinement3, choose_grid3
-from .engine.embedding import Embedding, diameter, unfold
-from .engine.geometry import FLOOR_BITS
-from .engine.index3 import build_index3, holds_k_within3
-from .engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
-from .engine.interrupt import Interrupts
-from .engine.state import (
+from ...engine import ahead, size
+from ...engine.driver3 import Refinement3, choose_grid3
+from ...engine.embedding import Embedding, diameter, unfold
+from ...engine.geometry import FLOOR_BITS
+from ...engine.index3 import build_index3, holds_k_within3
+from ...engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
+from ...engine.interrupt import Interrupts
+from ...engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
     C_FAILED,
@@ -25,10 +25,10 @@ from .engine.state import (
     STATUS_DONE,
     STATUS_MAX_VERTICES,
 )
-from .errors import BudgetError, InputError
-from .mesh import Mesh, Stats, Torus, moves_of
-from .metric import BoxMetric, held_in_balls, points_in_balls, weighted_kth
-from .options import Progress, vertex_budget, warn_floor
+from ...errors import BudgetError, InputError
+from ...mesh import Mesh, Stats, Torus, moves_of
+from ...metric import BoxMetric, held_in_balls, points_in_balls, weighted_kth
+from ...options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 
 
 def holds_k(index, x, reach, k, period):
@@ -68,8 +68,8 @@ def _reach(pts, box, per, k, weights=None):
 LIMITS_EFFORT3 = 300_000  # initial vertices above which a refusal skips the limits search
 
 
-class Start3:
-    """Where a run in space starts (the plane's ``run.Start``): the embedding torus, the
+class Start:
+    """Where a run in space starts (as the plane's): the embedding torus, the
     counting index over the points in it, and an initial mesh that satisfies Lemma 2's
     precondition. The default torus (a margin of 1.05 x the box's diameter along
     non-periodic axes) first, then, as in the plane, 1.05 x a bound on max d_Pk over the box
@@ -167,9 +167,15 @@ def _points_under_floor(points, floor, emb, n):
     return points_in_balls(tree, centres % period, np.sqrt(radii2))
 
 
-def refine3(pts, opt, weights=None):
+def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, RunOptions]:
+    """The points (n, 3), weights and options of a run in space, checked before any work
+    (``options.check_box_run``; ``asked`` as ``knnrefine.refine`` takes them)."""
+    return check_box_run(points, weights, 3, **asked)
+
+
+def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
     """kNNRefine in a box of three dimensions (``knnrefine.refine`` with (n, 3) points, its
-    options checked into ``opt``, a ``RunOptions``, and the points' checked weights or None):
+    its points, their weights or None and its options checked by ``checked``):
     a ``Mesh`` whose vertices M satisfy
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} in the box, tau-well-spaced, no Voronoi cell
     and no closed circumball holding k points (checked by ``certify``). As in the plane:
@@ -180,7 +186,7 @@ def refine3(pts, opt, weights=None):
     report = Progress(opt.progress)
     budget = opt.start_budget(len(pts))
     with ahead.compiling("space", report.compiling), Interrupts() as interrupts:
-        start = Start3(pts, opt, budget, interrupts, weights)
+        start = Start(pts, opt, budget, interrupts, w)
         found = start.find(k, reach_factor(tau))
         if found is None:
             raise InputError(start.refusal(k, tau))
@@ -198,21 +204,20 @@ def refine3(pts, opt, weights=None):
         del run_index, grid
         run.time_index = time.perf_counter() - opt.t_start
         status = run.run(opt.deadline, report.refining, interrupts)
-    total = None if weights is None else math.fsum(weights)
-    report.assembling(int(run.cnt[C_NV]))
-    mesh = finish3(run, status, emb, opt, lambda: pts, len(pts), total)
-    report.assembling(len(mesh.vertices), done=True)
-    mesh.stats.estimated_vertices = int(estimated)
-    mesh.stats.max_vertices = int(budget)
-    return mesh
+    total = None if w is None else math.fsum(w)
+    return finish(run, status, emb, opt, n=len(pts), weight=total, points=lambda: pts,
+                  report=report, estimated=estimated, budget=budget, initial=0)  # fmt: skip
 
 
-def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
+def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budget, initial,
+           rounds=None, interrupts=None, kept=None) -> Mesh:  # fmt: skip
     """The Mesh of a finished run in space (``Refinement3``, consumed), or BudgetError for
-    one stopped by a budget (the plane's ``run.finish``). ``points()`` gives the input
+    one stopped by a budget; the plane's ``finish`` arguments. ``points()`` gives the input
     points, asked only when elements were left below the floor (to count the points in
-    them); ``n`` their number, ``weight`` their total weight (None: unweighted), ``rounds``
-    a tiled run's report."""
+    them); ``n`` their number, ``weight`` their total weight (None: unweighted);
+    ``estimated`` (0: none) and ``budget`` are reported in the stats; ``initial``,
+    ``interrupts`` and ``kept`` are the plane's (the initial vertices are counted from the
+    kinds here), ``rounds`` a tiled run's report."""
     k, tau, per, box, min_size = opt.k, opt.tau, opt.periodic, opt.box, opt.min_size
     t_start, time_limit = opt.t_start, opt.time_limit
     if status != STATUS_DONE:
@@ -226,6 +231,7 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
             progress={**run.progress(), "seconds": time.perf_counter() - t_start},
         )
     t_assemble = time.perf_counter()
+    report.assembling(int(run.cnt[C_NV]))
     setup, refined = run.time_index, run.time_refine
     xyz, corners, offsets, kinds, cnt, floor = run.take_result()
     largest = float(np.sqrt(run.largest_radius2))
@@ -248,13 +254,16 @@ def finish3(run, status, emb, opt, points, n, weight=None, rounds=None) -> Mesh:
         failed_insertions=int(cnt[C_FAILED]), floor_circumballs=int(floor[2]),
         floor_cells=int(len(floor[1]) - floor[2]), points_under_floor=int(under),
         largest_circumball=largest / emb.scale, rounds=rounds,
+        estimated_vertices=int(estimated), max_vertices=int(budget),
         time={"setup": setup, "refine": refined,
               "assemble": time.perf_counter() - t_assemble,
               "total": time.perf_counter() - t_start},
     )  # fmt: skip
-    return Mesh(
+    mesh = Mesh(
         vertices=emb.to_input(pos, copy=False), cells=tetrahedra, offsets=out_offsets,
         kinds=kinds[out_v], order=out_v, k=k, tau=tau, periodic=per, box=box,
         min_size=max(min_size, emb.resolution), floor_points=floor_points, torus=torus,
         stats=stats,
     )  # fmt: skip
+    report.assembling(len(mesh.vertices), done=True)
+    return mesh

@@ -1,4 +1,4 @@
-"""d_{P,k} in space as linear pieces (``SpacePieces``), what ``KnnDistance`` builds for a
+"""d_{P,k} in space as linear pieces (``Pieces``), what ``KnnDistance`` builds for a
 ``Mesh`` in space, and the kNN-CDF over them.
 
 As in the plane (``plane.py``): exact d_{P,k} at the mesh's vertices (one query of a
@@ -23,14 +23,145 @@ import copy
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..engine.bspline import shares_below, weighted_shares
-from ..engine.raster import first_holding3, rasterise3
-from ..engine.threads import in_chunks
-from ..errors import InputError
-from ..metric import BoxMetric
+from ...engine.bspline import shares_below, weighted_shares
+from ...engine.index3 import build_index3, kth_distances3
+from ...engine.raster import first_holding3, rasterise3
+from ...engine.threads import in_chunks
+from ...errors import InputError
+from ...metric import BoxMetric, weighted_kth
+from ...validation import check_inside
+from ..box import (  # the box domains' own; flat_radius is this domain's as every box's
+    flat_radius,  # noqa: F401
+    not_simplicial,
+    points_of,
+    to_frame,
+)
 
 
-class SpacePieces:
+def index_of(mesh, pts, weights=None):
+    """Exact d_{P,k} for the mesh's points: a periodic kd-tree (``Index``) with
+    ``kth(x, k)`` at points x in the box; the points must lie in it along non-periodic
+    axes."""
+    check_inside(pts, mesh.box, mesh.periodic, warn=False)
+    return Index(mesh, pts, weights)
+
+
+def build(mesh, points, weights, subdivide):
+    """What ``KnnDistance`` keeps of a mesh in space: (the points, the exact index, the
+    pieces, the points' number or total weight)."""
+    pts, weights, total = points_of(mesh, points, weights)
+    index = index_of(mesh, pts, weights)
+    return pts, index, Pieces(mesh, index.kth_local, subdivide), total
+
+
+class Index:
+    """Exact d_{P,k} in space from the engine's counting kd-tree over the points in the
+    frame of the mesh's torus (relative to its origin, periodic axes wrapping): ``kth`` at
+    input coordinates, ``kth_local`` at torus-frame ones (the pieces'). Each query collects
+    the points in a window of radii about a guess and selects the k-th
+    (``index3.kth_distances3``, as ``PointIndex.kth`` in the plane): nodes inside the inner
+    radius count whole, so a query costs about the points in the window, not k log k as a
+    k-nearest query does; below k = WINDOWS_FROM_K (unweighted) scipy's query is the
+    faster. Weighted points: d_{P,k} is the least radius whose closed ball holds weight k.
+    ``frame``: the torus' (origin, period) for a mesh that keeps none (a mesh in parts)."""
+
+    def __init__(self, mesh, pts, weights=None, frame=None):
+        origin, period = (mesh.torus.origin, mesh.torus.period) if frame is None else frame
+        origin = np.asarray(origin, float)
+        period = np.asarray(period, float)
+        self.k = mesh.k
+        self._origin = origin
+        self._metric = BoxMetric((*origin, *(origin + period)), mesh.periodic)
+        self._period = np.where(self._metric.periodic, period, np.inf)
+        self._points = pts
+        self._weights = weights
+        local = np.ascontiguousarray(self._metric.frame(pts))
+        self._tree = build_index3(local, copy=False, weights=weights)
+        self.n = len(pts)
+        self.total = float(len(pts) if weights is None else np.sum(weights))
+        span = np.ptp(local, axis=0) if len(local) else np.ones(3)
+        self._volume = float(np.prod(np.where(span > 0, span, max(span.max(), 1e-300))))
+
+    def kth(self, x, k):
+        """d_{P,k} at points x (q, 3) in input coordinates."""
+        return self.kth_local(self._metric.frame(x), k)
+
+    def kth_local(self, x, k=None):
+        """d_{P,k} at points x (q, 3) relative to the torus origin (periodic coordinates
+        wrapped here), on every core."""
+        k = float(self.k if k is None else k)
+        q = np.ascontiguousarray(self._metric.frame(np.asarray(x, float) + self._origin))
+        if self._weights is None and k < WINDOWS_FROM_K:  # scipy's k-nearest query is faster
+            return self._scipy_tree().query(q, k=[int(k)], workers=-1)[0][:, 0]
+        return self.windows(q, k)
+
+    def windows(self, q, k):
+        """d_{P,k} at points q (q, 3) of the frame (periodic coordinates in [0, period)) by
+        the counting tree's windows, whatever k (``kth_local`` takes scipy's query below
+        WINDOWS_FROM_K; ``benchmarks/exact_kth3.py`` times both)."""
+        k = float(k)
+        q = np.ascontiguousarray(q, np.float64)
+        m = len(q)
+        guess, width = self._guess(q, k)
+        r_in, r_out = guess / width, guess * width
+        per_point = self.total / max(self.n, 1) if self._weights is not None else 1.0
+        cap = int(min(self.n, 4.0 * k / max(per_point, 1e-300) + 1024)) + 1
+        periodic = np.asarray(self._metric.periodic, bool)
+        out = np.empty(m)
+        tree, period = self._tree, self._period
+
+        def chunk(a, b):
+            kth_distances3(tree, q, k, r_in, r_out, period, periodic, cap, out, a, b)
+
+        in_chunks(chunk, m)
+        lost = np.flatnonzero(np.isnan(out))
+        if len(lost):  # more ties than a window holds (rare): scipy's tree
+            ck = self._scipy_tree()
+            if self._weights is None:
+                out[lost] = ck.query(q[lost], k=[int(k)], workers=-1)[0][:, 0]
+            else:
+                out[lost] = weighted_kth(ck, self._weights, q[lost], k, -1)
+        return out
+
+    def _scipy_tree(self):
+        """scipy's periodic kd-tree of the points (frame coordinates), built once."""
+        if getattr(self, "_ck", None) is None:
+            self._ck = self._metric.tree(self._points)
+        return self._ck
+
+    def _guess(self, q, k):
+        """(a guess of d_{P,k} at the queries q (frame), the window's factor about it): the
+        k_s-th distance in a seeded sample of an eighth of P, at most GUESS_SAMPLE points
+        (k_s: the sample's share of the points that hold weight k, at least 1), scaled by the
+        cube root of the ratio of the two counts (a ball's count grows with its volume), in
+        a window of about two of its standard deviations (the count's relative noise
+        1 / sqrt(k_s), a third of it in the radius); below 8000 points, the radius holding k
+        points at the mean density, halved and doubled. A poor guess costs only retries
+        (wider windows), never a wrong answer."""
+        s = min(self.n // 8, GUESS_SAMPLE)
+        if s < 1000:  # few points: any window is cheap
+            uniform = k * self._volume / (4.0 / 3.0 * np.pi * max(self.total, 1e-300))
+            return np.full(len(q), uniform ** (1 / 3)), 2.0
+        if getattr(self, "_sample_tree", None) is None:
+            pick = np.random.default_rng(0).choice(self.n, s, replace=False)
+            self._sample_tree = self._metric.tree(self._points[pick])
+        points = k * self.n / max(self.total, 1e-300)  # points holding weight k, on average
+        ks = max(int(round(points * s / self.n)), 1)
+        d = self._sample_tree.query(q, k=[ks], workers=-1)[0][:, 0]
+        d = d * (points * s / (ks * self.n)) ** (1 / 3)
+        fine = np.isfinite(d) & (d > 0)
+        width = float(np.clip(1.0 + 2.0 / (3.0 * np.sqrt(ks)), 1.03, 2.0))
+        return np.where(fine, d, np.max(d[fine]) if fine.any() else 1.0), width
+
+
+GUESS_SAMPLE = 30000  # points of P sampled for Index's guesses of d_Pk
+# Index's windows from this k on (unweighted; below it scipy's k-nearest query was
+# faster: ``benchmarks/exact_kth3.py`` at 10^5 clustered points, k = 64, 0.95 against 0.78 s;
+# k = 128, 0.98 against 1.10 s)
+WINDOWS_FROM_K = 100
+
+
+class Pieces:
     """Linear pieces over the box in space, from a ``Mesh`` in space and exact d_{P,k}
     (``kth(x)``: at points given relative to the torus origin). It works in the frame of the
     mesh's torus: relative to its origin, periodic axes wrapped (``metric.BoxMetric``), where
@@ -324,21 +455,21 @@ def grid3(evaluate, lo, hi, shape):
 
 
 def nodes3(mesh, metric, period, subdivide=True):
-    """Where ``SpacePieces`` needs exact d_{P,k}: (local, corners, mids, asked, inverse).
+    """Where ``Pieces`` needs exact d_{P,k}: (local, corners, mids, asked, inverse).
     ``local`` (m, 3) the vertices relative to the torus origin (``metric``: its frame),
     ``corners`` (t, 4, 3) the tetrahedra's there (unwrapped by their offsets), ``mids`` (t, 6,
     3) their edges' midpoints (None without ``subdivide``); ``asked`` the vertices then, with
     ``subdivide``, each distinct edge's midpoint once (7.4 edges per vertex, against 38
     tetrahedron edges: the same edge seen from two tetrahedra may be shifted by whole periods,
     where the periodic kd-tree gives the same distance); ``inverse`` each tetrahedron edge's
-    (in ``SpacePieces.PAIRS`` order) row among those midpoints."""
+    (in ``Pieces.PAIRS`` order) row among those midpoints."""
     local = metric.frame(mesh.vertices)  # exact: the engine's grid
     corners = local[mesh.tetrahedra]  # relative to the origin, unwrapped
     if mesh.offsets is not None:
         corners = corners + mesh.offsets * period
     if not subdivide:
         return local, corners, None, local, None
-    pairs = SpacePieces.PAIRS
+    pairs = Pieces.PAIRS
     mids = 0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]])
     first, inverse = edges3(mesh.tetrahedra, mesh.offsets, pairs)
     return local, corners, mids, np.concatenate([local, mids.reshape(-1, 3)[first]]), inverse
@@ -440,3 +571,31 @@ def quadrature3(corners, d, func):
         return np.zeros(0)
     volume = np.abs(np.linalg.det(corners[:, 1:] - corners[:, :1])) / 6.0
     return volume * func(d @ _QP.T).mean(axis=1)
+
+
+def complex_of(mesh, subdivide=True):
+    """The mesh's cells as a complex (as the plane's), each tetrahedron subdivided in eight
+    through its edge midpoints: (positions, the same as nodes in the index's frame, the
+    tetrahedra). EngineError where it would not be simplicial."""
+    tets = mesh.tetrahedra.astype(np.int64)
+    pairs = Pieces.PAIRS
+    # a geometric edge is its two vertices and the offset between them; the complex is
+    # simplicial when no two of them join the same vertex pair and none a vertex to itself
+    first, inverse = edges3(tets, mesh.offsets, pairs)
+    a = tets[:, pairs[:, 0]].ravel()[first]
+    b = tets[:, pairs[:, 1]].ravel()[first]
+    if np.any(a == b) or len(
+        np.unique(np.minimum(a, b) * len(mesh.vertices) + np.maximum(a, b))
+    ) < len(first):
+        raise not_simplicial()
+    if not subdivide:
+        used = np.unique(tets)
+        return mesh.vertices[used], mesh.vertices[used], np.searchsorted(used, tets)
+    corners = mesh.corners()
+    mids = 0.5 * (corners[:, pairs[:, 0]] + corners[:, pairs[:, 1]]).reshape(-1, 3)[first]
+    mid_ids = len(mesh.vertices) + inverse.reshape(len(tets), 6)
+    nodes = np.concatenate([tets, mid_ids], axis=1)  # corners 0-3, midpoints 4-9
+    cells = nodes[:, Pieces.EIGHT].reshape(-1, 4)
+    positions = np.concatenate([mesh.vertices, to_frame(mesh)(mids)])
+    used = np.unique(cells)
+    return positions[used], positions[used], np.searchsorted(used, cells)

@@ -1,0 +1,35 @@
+"""What the two box domains (the plane and space) share, written once: the frame their
+pieces and exact indexes take (input coordinates, periodic axes wrapped), the flat balls
+of their densities, and the points a mesh in a box was made from. Each box domain's
+modules re-export these under the names every domain has."""
+
+import numpy as np
+
+from ..errors import EngineError
+from ..metric import BoxMetric
+from ..validation import points_of_run
+
+
+def to_frame(mesh):
+    """The map from input coordinates (q, d) to the frame of the domain's pieces and index:
+    periodic axes wrapped into the box."""
+    return BoxMetric(mesh.box, mesh.periodic).wrap
+
+
+def flat_radius(mesh, d):
+    """The radius of the flat ball as large as the ball of radius d: d itself in a box."""
+    return np.asarray(d, float)
+
+
+def points_of(mesh, points, weights):
+    """The points, weights and total of the run a mesh in a box was refined from, checked
+    (``validation.points_of_run``)."""
+    return points_of_run(mesh, points, weights)
+
+
+def not_simplicial():
+    """The error of a complex in a box that is not simplicial: two edges join the same pair
+    of vertices (a torus only a few cells across)."""
+    return EngineError(
+        "two edges join the same pair of vertices: the mesh is not a simplicial complex"
+    )

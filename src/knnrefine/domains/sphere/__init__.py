@@ -1,0 +1,2 @@
+"""The sphere S^2 at a radius: its run, certify's questions and d_{P,k}'s pieces
+(``knnrefine.domains`` documents the modules every domain has)."""
