@@ -125,7 +125,7 @@ def test_a_sphere_cluster_below_a_metre_certifies_and_agrees_with_brute_force(
     and every mesh certifies and agrees with brute force: exact in-cap counts, atan2 angles."""
     from oracle import sphere_facts, unit_vectors_of
 
-    from knnrefine.engine.refine_sphere import RESOLUTION_ANGLE
+    from knnrefine.engine.geometry import RESOLUTION_ANGLE
 
     rng = np.random.default_rng(seed)
     pts = _cluster(10.0**-exponent, where, n, rng)
@@ -162,7 +162,7 @@ def test_the_sphere_reports_the_floor_it_honours():
     """Item 1: min_size below the engine's resolution is raised to it, as in the plane: the
     mesh's min_size is the floor in effect, and the elements left there are floor points
     with a FloorWarning."""
-    from knnrefine.engine.refine_sphere import RESOLUTION_ANGLE
+    from knnrefine.engine.geometry import RESOLUTION_ANGLE
 
     pts = _cluster(1e-5, "equator", 300, np.random.default_rng(0))
     with pytest.warns(knnrefine.FloorWarning, match="smaller than min_size"):

@@ -158,3 +158,33 @@ def test_every_domain_refuses_a_run_far_beyond_its_budget_or_memory(domain, monk
     shown = [w.filename for w in caught if w.category is knnrefine.LargeRunWarning]
     package = os.path.join("src", "knnrefine", "")
     assert shown and all(package not in f for f in shown), shown
+
+
+def test_a_mesh_names_its_domain_and_carries_no_stand_ins(domain, tmp_path):
+    """Issue 51: ``Mesh.domain`` is the domain's name in every domain ("box", the
+    constructor's default, resolves by dimension), and a sphere mesh has no box and no
+    periodic axes (0.x gave it a stand-in box and periodic=(True, False)); ``extent`` is the
+    region its coordinates span. The same after a round trip through a file, and 0.x's
+    sphere files read without the stand-ins."""
+    pts = points_in(domain, 1500)
+    mesh = refine_in(domain, pts)
+    assert mesh.domain == domain
+    if domain == "sphere":
+        assert mesh.box == () and mesh.periodic == () and mesh.period == ()
+        assert mesh.extent == (-180.0, -90.0, 180.0, 90.0)
+    else:
+        assert mesh.extent == mesh.box and len(mesh.box) == 2 * mesh.dim
+        assert dataclasses.replace(mesh, domain="box").domain == domain
+    io.write_mesh(mesh, tmp_path / "m.npz")
+    back = io.read_mesh(tmp_path / "m.npz")
+    assert (back.domain, back.box, back.periodic) == (mesh.domain, mesh.box, mesh.periodic)
+    assert knnrefine.certify(back, pts, samples=2000, n_random=500).passed
+    if domain == "sphere":  # a file of 0.x, with the stand-ins
+        with np.load(tmp_path / "m.npz") as d:
+            arrays = dict(d)
+        arrays.update(periodic=np.array([True, False]), box=np.array([-180.0, -90, 180, 90]))
+        np.savez(tmp_path / "old.npz", **arrays)
+        old = io.read_mesh(tmp_path / "old.npz")
+        assert (old.box, old.periodic, old.domain) == ((), (), "sphere")
+    with pytest.raises(knnrefine.InputError, match="domain must be"):
+        dataclasses.replace(mesh, domain="torus")

@@ -630,8 +630,7 @@ def _write_npz(mesh, path):
                 f, format=np.array(FORMAT_VERSION), domain=np.array("sphere"),
                 radius=np.array(mesh.radius), vertices=mesh.vertices, xyz=mesh.xyz,
                 cells=mesh.cells, kinds=mesh.kinds, order=mesh.order, k=np.array(mesh.k),
-                tau=np.array(mesh.tau), periodic=np.array(mesh.periodic),
-                box=np.array(mesh.box), min_size=np.array(mesh.min_size),
+                tau=np.array(mesh.tau), min_size=np.array(mesh.min_size),
                 floor_points=mesh.floor_points, stats=np.array(json.dumps(mesh.stats.to_dict())),
             )  # fmt: skip
         return
@@ -688,8 +687,7 @@ def _mesh_of_npz(d, path):
         return Mesh(
             vertices=d["vertices"], cells=d["cells"], offsets=None, kinds=d["kinds"],
             order=d["order"], k=d["k"].item(), tau=float(d["tau"]),
-            periodic=tuple(bool(p) for p in d["periodic"]),
-            box=tuple(float(b) for b in d["box"]), min_size=float(d["min_size"]),
+            periodic=(), box=(), min_size=float(d["min_size"]),  # no box (0.x wrote a chart's)
             floor_points=d["floor_points"], stats=json.loads(str(d["stats"])), torus=None,
             domain="sphere", radius=check_radius(float(d["radius"])), xyz=d["xyz"],
         )  # fmt: skip
@@ -806,11 +804,13 @@ def _write_geojson(mesh, path):
                 {
                     "k": mesh.k,
                     "tau": mesh.tau,
-                    "periodic": list(mesh.periodic),
-                    "box": list(mesh.box),
                     "alpha": mesh.alpha,
                     "beta": mesh.beta,
-                    **({"domain": "sphere", "radius": mesh.radius} if mesh.on_sphere else {}),
+                    **(
+                        {"domain": "sphere", "radius": mesh.radius}
+                        if mesh.on_sphere
+                        else {"periodic": list(mesh.periodic), "box": list(mesh.box)}
+                    ),
                 }
             )
         )

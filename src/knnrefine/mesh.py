@@ -15,6 +15,8 @@ from .errors import InputError
 from .metric import BoxMetric, chord_to_angle, unit_vectors
 from .validation import answerable, as_queries
 
+SPHERE_EXTENT = (-180.0, -90.0, 180.0, 90.0)  # a sphere mesh's coordinates: lon/lat degrees
+
 
 def theorem6_constants(tau: float) -> tuple[float, float]:
     """Theorem 6's constants for a refinement at tau.
@@ -376,6 +378,13 @@ class Mesh(Cells):
             else tuple(self.box[a + d] - self.box[a] for a in range(d))
         )
         return tuple(float(sides[a]) if self.periodic[a] else 0.0 for a in range(d))
+
+    @property
+    def extent(self) -> tuple:
+        """The region the vertices' coordinates span, (lower corner, upper corner): the box
+        in the plane and in space; on the sphere, which has no box, longitude and latitude
+        (-180, -90, 180, 90)."""
+        return SPHERE_EXTENT if self.on_sphere else tuple(self.box)
 
     @property
     def on_sphere(self) -> bool:

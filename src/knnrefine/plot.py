@@ -69,8 +69,8 @@ def plot_mesh(
         from matplotlib.figure import Figure
 
         ax = Figure(figsize=figure_size(mesh), layout="constrained").add_subplot()
-    lo = np.array(mesh.box[:2])
-    hi = np.array(mesh.box[2:])
+    lo = np.array(mesh.extent[:2])
+    hi = np.array(mesh.extent[2:])
     nodes, covering = mesh.covering()
     tris = nodes[covering]
     norm = None
@@ -369,7 +369,7 @@ def _density_grid(density, shape, grid):
         knn = getattr(density, "knn", density)  # the adaptive estimate's pilot
         k = density.k
         what = "kNN density" if knn is density else "adaptive kernel density"
-        box = knn.distance.mesh.box
+        box = knn.distance.mesh.extent
     m = len(knn.distance.mesh.vertices)
     effective = hasattr(density, "density_")
     return (
@@ -749,8 +749,8 @@ def _palette(n):
 
 def figure_size(mesh, width=9.0):
     """Inches for a picture of the box at equal aspect, with room for the colour bar."""
-    w = mesh.box[2] - mesh.box[0]
-    h = mesh.box[3] - mesh.box[1]
+    w = mesh.extent[2] - mesh.extent[0]
+    h = mesh.extent[3] - mesh.extent[1]
     ratio = min(max(h / w, 0.3), 1.6)
     return width, 1.0 + (width - 2.0) * ratio
 

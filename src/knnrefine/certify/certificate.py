@@ -87,7 +87,7 @@ class Certificate:
     @property
     def dim(self) -> int:
         """2 in the plane, 3 in space."""
-        return len(self.box) // 2
+        return 3 if self.domain == "space" else 2
 
     @property
     def total(self):

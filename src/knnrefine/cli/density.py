@@ -249,7 +249,7 @@ def run(args):
                     d_pk=d,
                     k=mesh.k,
                     n=n,
-                    box=np.array(mesh.box),
+                    box=np.array(mesh.extent),
                     periodic=np.array(mesh.periodic),
                     method=args.method,
                     **extra,

@@ -11,7 +11,7 @@ from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  
 from ..engine.lattice import plan_levels, read_grid
 from ..engine.threads import in_chunks
 from ..errors import InputError
-from ..metric import lonlat_of, unit_vectors
+from ..metric import BoxMetric, lonlat_of, unit_vectors
 from ..validation import (
     as_points,
     as_queries,
@@ -80,7 +80,7 @@ class AdaptiveDensity:
         self.total = float(w.sum())
         self.eps = 1.0 / self.total
         self.n_eff = self.total**2 / float((w * w).sum())
-        self._metric = dist._metric
+        self._metric = BoxMetric(mesh.box, mesh.periodic)
         self.lo, self.hi = dist.lo, dist.hi
         self.periodic = tuple(bool(p) for p in mesh.periodic)
         frame = self._metric.frame(pts)

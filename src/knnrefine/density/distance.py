@@ -26,7 +26,6 @@ from ..domains.plane.density import Pieces as PlanePieces
 from ..domains.space.density import Pieces as SpacePieces
 from ..engine.embedding import wrap_offsets
 from ..errors import InputError
-from ..metric import BoxMetric
 from ..validation import (
     as_queries,
     random_generator,
@@ -41,6 +40,8 @@ class MeshFrame(Protocol):
     k: float
     box: tuple
     periodic: tuple
+    domain: str
+    extent: tuple
 
 
 #: a grid's default cells along each axis, by dimension
@@ -48,8 +49,8 @@ DEFAULT_GRID = {2: 512, 3: 64}
 
 
 class KnnDistance:
-    """d_{P,k} at any point of the box, from a mesh of P and P itself, in the plane or in
-    space (the mesh's dimension).
+    """d_{P,k} at any point of the domain, from a mesh of P and P itself, in the plane, in
+    space or on the sphere (the mesh's domain).
 
     Parameters
     ----------
@@ -119,9 +120,9 @@ class KnnDistance:
         self.k = mesh.k
         self.n = n
         self.total = total  # the points' number, or their total weight
-        self.lo = np.array(mesh.box[: self.dim], float)
-        self.hi = np.array(mesh.box[self.dim :], float)
-        self._metric = BoxMetric(mesh.box, mesh.periodic)
+        self.lo = np.array(mesh.extent[: self.dim], float)
+        self.hi = np.array(mesh.extent[self.dim :], float)
+        self._answerable = self._domain.answerable(mesh)
 
     @classmethod
     def of_pieces(
@@ -235,7 +236,7 @@ class KnnDistance:
         values = np.asarray(values, float)
         inside = self._inside(x)
         out = np.full((len(x), *values.shape[1:]), np.nan)
-        out[inside] = self.pieces.interpolate(self._metric.wrap(x[inside]), values)
+        out[inside] = self.pieces.interpolate(self._to_frame(x[inside]), values)
         return out
 
     def exact(self, x: ArrayLike) -> np.ndarray:
@@ -407,12 +408,9 @@ class KnnDistance:
 
     # -- helpers -----------------------------------------------------------------------------
     def _inside(self, x):
-        """Mask of the points in the box along its non-periodic axes (sides included)."""
-        ok = np.all(np.isfinite(x), axis=1)
-        for a in range(self.dim):
-            if not self.mesh.periodic[a]:
-                ok &= (x[:, a] >= self.lo[a]) & (x[:, a] <= self.hi[a])
-        return ok
+        """Mask of the query points the estimate answers (the domain's rule: in the box along
+        its non-periodic axes, sides included; on the sphere, latitudes within +-90)."""
+        return self._answerable(x)
 
     def _region(self, region):
         """The boxes, inside the box, that make up ``region``: clipped along non-periodic

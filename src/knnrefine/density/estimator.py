@@ -347,7 +347,7 @@ class KnnDensityEstimator:
         self.k_ = int(k)
         self.scale_ = tuple(float(v) for v in scale)
         if self.sphere:  # longitude and latitude: the whole sphere
-            self.box_ = tuple(float(b) for b in self.mesh_.box)
+            self.box_ = tuple(float(b) for b in self.mesh_.extent)
         else:
             self.box_ = tuple(float(b) for b in np.array(self.mesh_.box) * np.tile(scale, 2))
         self.n_samples_ = n

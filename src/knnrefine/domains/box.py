@@ -16,6 +16,22 @@ def to_frame(mesh):
     return BoxMetric(mesh.box, mesh.periodic).wrap
 
 
+def answerable(mesh):
+    """The rule of the query points the uses answer (``validation.answerable``'s, with the
+    box): finite, and in the box along its non-periodic axes (sides included)."""
+    lo = np.array(mesh.box[: len(mesh.periodic)], float)
+    hi = np.array(mesh.box[len(mesh.periodic) :], float)
+    bounded = ~np.array(mesh.periodic, bool)
+
+    def inside(x):
+        ok = np.all(np.isfinite(x), axis=1)
+        with np.errstate(invalid="ignore"):
+            ok &= np.all(((x >= lo) & (x <= hi)) | ~bounded, axis=1)
+        return ok
+
+    return inside
+
+
 def flat_radius(mesh, d):
     """The radius of the flat ball as large as the ball of radius d: d itself in a box."""
     return np.asarray(d, float)

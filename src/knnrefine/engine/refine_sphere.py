@@ -15,10 +15,10 @@ else a vertex whose closed cell does: its far corner), largest first by size cla
 (``queue.py``); counting regions inflated by a relative 1e-9 and an absolute ``SLACK2`` (the
 rounding of unit vectors) and tau^2 lowered by 1e-12, so that the output passes the strict
 and exact checks of independent code; the Break floor (``min_size``, at least
-``RESOLUTION_ANGLE``) and the Clean floor (``RESOLUTION_ANGLE``) leave elements smaller than
-them and report them. Each insertion queues
-its new triangles (entries carry the slot's fill count, ``mesh.gen``: a refilled slot makes
-the entry stale) and re-examines the vertices joined to the new one, whose cells changed.
+``geometry.RESOLUTION_ANGLE``) and the Clean floor (``RESOLUTION_ANGLE``) leave elements
+smaller than them and report them. Each insertion queues its new triangles (entries carry
+the slot's fill count, ``mesh.gen``: a refilled slot makes the entry stale) and re-examines
+the vertices joined to the new one, whose cells changed.
 """
 
 import numpy as np

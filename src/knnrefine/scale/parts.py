@@ -299,8 +299,13 @@ class PartitionedMesh:
 
     @property
     def domain(self) -> str:
-        """ "plane" or "space": the box domain of its dimension (``knnrefine.domains``)."""
+        """The box domain of its dimension, plane or space (``knnrefine.domains``)."""
         return "plane" if len(self.periodic) == 2 else "space"
+
+    @property
+    def extent(self) -> tuple:
+        """The region its coordinates span: its box (as ``Mesh.extent``)."""
+        return tuple(self.box)
 
     @property
     def dim(self) -> int:

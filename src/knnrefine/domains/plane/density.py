@@ -18,7 +18,8 @@ from ...mesh import (
     triangle_areas,
     uniform_in_triangles,
 )
-from ..box import (  # the box domains' own; flat_radius is this domain's as every box's
+from ..box import (  # the box domains' own; these are this domain's as every box's
+    answerable,  # noqa: F401
     flat_radius,  # noqa: F401
     not_simplicial,
     points_of,

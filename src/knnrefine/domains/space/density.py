@@ -30,7 +30,8 @@ from ...engine.threads import in_chunks
 from ...errors import InputError
 from ...metric import BoxMetric, weighted_kth
 from ...validation import check_inside
-from ..box import (  # the box domains' own; flat_radius is this domain's as every box's
+from ..box import (  # the box domains' own; these are this domain's as every box's
+    answerable,  # noqa: F401
     flat_radius,  # noqa: F401
     not_simplicial,
     points_of,

@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from ...mesh import TRIANGLE_RULE_POINTS, TRIANGLE_RULE_WEIGHTS, edges, split_in_four
 from ...metric import chord_to_angle, lonlat_of, unit_vectors, weighted_kth
+from ...validation import answerable as answerable_on_sphere
 from ...validation import sphere_points_of_run
 
 CANDIDATES = (8, 32)  # pieces tried per query, by the nearest centroids, before all of them
@@ -45,6 +46,12 @@ def to_frame(mesh):
     """The map from (longitude, latitude) degrees (q, 2) to the frame of the pieces and the
     index: unit vectors."""
     return unit_vectors
+
+
+def answerable(mesh):
+    """The rule of the query points the uses answer: ``validation.answerable``'s on the
+    sphere (finite, latitudes within +-90; longitudes wrap)."""
+    return lambda x: answerable_on_sphere(x, True)
 
 
 def flat_radius(mesh, d):

@@ -65,7 +65,6 @@ from ...options import Progress, SphereOptions, check_size, check_sphere_run, wa
 
 STEPS = 20_000  # insertions per kernel call
 MAX_DEGREE = 256
-SPHERE_BOX = (-180.0, -90.0, 180.0, 90.0)
 STAMP_LIMIT_SPHERE = 2**30  # a kernel call makes at most STEPS insertions: far below 2^31
 
 
@@ -290,8 +289,8 @@ def _assemble(run, opt, index, times, xyz_p, total, budget, estimated):
         order=np.arange(nv, dtype=np.int64),
         k=opt.k,
         tau=opt.tau,
-        periodic=(True, False),
-        box=SPHERE_BOX,
+        periodic=(),
+        box=(),
         min_size=opt.min_size,
         floor_points=lonlat_of(sites).reshape(-1, 2),
         stats=stats,
