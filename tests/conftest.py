@@ -65,7 +65,7 @@ def certify_every_mesh(monkeypatch):
 
     pipeline = knnrefine.pipeline  # every run in this process goes through its one entry
     refine_checked = pipeline.refine_checked
-    package = sys.modules["knnrefine.certify"]  # the entry's own names, read at each call
+    steps = sys.modules["knnrefine.certify.steps"]  # its names are read at each call
     made, seen = [], set()
 
     def register(mesh, points, kwargs):
@@ -104,7 +104,7 @@ def certify_every_mesh(monkeypatch):
 
     monkeypatch.setattr(shared, "refine_local", tiled_and_register)
     # every certificate, in every domain, in this process or strip by strip: certify's steps
-    monkeypatch.setattr(package.steps, "run_checks", seen_by(package.steps.run_checks))
+    monkeypatch.setattr(steps, "run_checks", seen_by(steps.run_checks))
     yield
     for mesh, points, weights in made:
         if id(mesh) in seen:

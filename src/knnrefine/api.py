@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 
 from . import pipeline
 from . import validation as V
-from .certify import Certificate, certify_points
+from .certify import Certificate
 from .domains import domain_of
 from .errors import InputError
 from .mesh import Mesh
@@ -239,7 +239,7 @@ def certify(
                    random_state=rng)  # fmt: skip
     if executor is None:
         threads = -1 if workers is None else strips
-        return certify_points(mesh, points, weights=weights, workers=threads, **options)
+        return pipeline.certify_points(mesh, points, weights=weights, workers=threads, **options)
     from .scale.checks import certify_local
 
     return certify_local(mesh, points, weights, strips, executor, **options)

@@ -1,18 +1,26 @@
-"""The run of kNNRefine in this process, one path for every domain: the domain decided once
-from what ``refine`` is given (``domains.domain_of``: ``sphere``, the points' columns), the
-points and options checked before any work (the domain's ``run.checked``), then the
-domain's run (its ``run.refine``: start, engine, assembled ``Mesh``). ``api.refine`` calls
-it (and ``scale`` where workers or an executor run tiles); the applications that refine
-(the density estimator, the kNN-CDF) call it too.
+"""The run of kNNRefine and its certificate in this process, one path for every domain.
+
+A run: the domain decided once from what ``refine`` is given (``domains.domain_of``:
+``sphere``, the points' columns), the points and options checked before any work (the
+domain's ``run.checked``), then the domain's run (its ``run.refine``: start, engine,
+assembled ``Mesh``). ``api.refine`` calls it (and ``scale`` where workers or an executor
+run tiles); the applications that refine (the density estimator, the kNN-CDF) call it too.
+
+A certificate: the points checked to be the mesh's (the domain's
+``certify.checked_points``), then certify's steps (``certify.steps.run_checks``) over the
+domain's ``Geometry`` and ``Points`` (``certify_points``, which ``api.certify`` calls).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .certify import steps
+from .certify.certificate import Certificate
 from .domains import domain_of, part
 from .mesh import Mesh
 
@@ -80,3 +88,30 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt) -> Mesh:
     Mesh
     """
     return part(opt.domain, "run").refine(pts, w, opt)
+
+
+def certify_points(
+    mesh, points, *, samples=100_000, n_random=20_000, max_point_probes=100_000,
+    random_state=0, weights=None, workers=-1,
+) -> Certificate:  # fmt: skip
+    """``knnrefine.certify`` in this process: the points checked to be the mesh's, then
+    ``certify.steps.run_checks`` with the mesh's domain's geometry and points; the caller
+    has checked ``workers`` (threads: -1 for every core).
+
+    Parameters
+    ----------
+    mesh, points, samples, n_random, max_point_probes, random_state, weights, workers
+        As for ``knnrefine.certify``.
+
+    Returns
+    -------
+    Certificate
+    """
+    t0 = time.perf_counter()
+    domain = part(mesh.domain, "certify")
+    pts, weights = domain.checked_points(mesh, points, weights)
+    geometry: steps.Geometry = domain.Geometry(mesh, workers)
+    answers: steps.PointQuestions = domain.Points(mesh, pts, weights, workers)
+    return steps.run_checks(mesh, geometry, answers, samples=samples, n_random=n_random,
+                            max_point_probes=max_point_probes, random_state=random_state,
+                            t0=t0)  # fmt: skip

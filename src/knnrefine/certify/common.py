@@ -1,7 +1,7 @@
 """What the plane's and space's certificates share: that the points are the run's own
 (``check_source``), Lemma 2's precondition on the initial vertices (``check_precondition``) and
 finding rows of integers in a table (``find_rows``), and that the points given to certify are
-the mesh's (``check_points_are_the_meshs``). Weighted counts from kd-trees are
+the mesh's (``checked_points``). Weighted counts from kd-trees are
 ``metric``'s (``held_in_balls``, ``cell_tally``, ``weighted_kth``)."""
 
 import numpy as np
@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..mesh import theorem6_constants
-from ..validation import check_inside, check_made_from, weights_of_run
+from ..validation import as_points, check_inside, check_made_from, weights_of_run
 from .certificate import floor_sites, to_input
 
 
@@ -31,11 +31,13 @@ def check_source(stats, n, weight):
         )
 
 
-def check_points_are_the_meshs(mesh, pts, weights=None):
+def checked_points(mesh, points, weights=None):
     """A mesh is certified against the points it was made from: as many as it records, inside
     its box along non-periodic axes, with weights exactly when it was refined with weights
     (of the total it records). Anything else is an input error, not a failed certificate.
-    Returns the weights as float64, or None."""
+    Returns (the points (n, d) as float64, the weights as float64 or None): a box domain's
+    ``certify.checked_points``."""
+    pts = as_points(points, mesh.dim)
     check_made_from(mesh.stats, len(pts), "certify a mesh against")
     weights = weights_of_run(mesh.stats, len(pts), weights)
     dim = mesh.dim
@@ -51,7 +53,7 @@ def check_points_are_the_meshs(mesh, pts, weights=None):
                 "are not the points the mesh was refined from"
             )
     check_inside(pts, mesh.box, mesh.periodic, warn=False)  # periodic positions not lost
-    return weights
+    return pts, weights
 
 
 def check_precondition(initial, torus, k, tau, period=None, spacing=None):

@@ -11,10 +11,9 @@ from scipy.spatial import cKDTree
 
 from ..certify import steps
 from ..certify.certificate import Certificate
-from ..certify.common import check_points_are_the_meshs, check_source
+from ..certify.common import check_source, checked_points
 from ..domains import part
 from ..metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
-from ..validation import as_points
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
 
 
@@ -37,8 +36,7 @@ def certify_local(mesh, points, weights, strips, executor, *, samples, n_random,
     Certificate
     """
     t0 = time.perf_counter()
-    pts = as_points(points, mesh.dim)
-    weights = check_points_are_the_meshs(mesh, pts, weights)
+    pts, weights = checked_points(mesh, points, weights)
     store = LocalStore(pts, weights, strips, executor)
     try:
         return check_store(mesh, store, strips, -1, samples=samples, n_random=n_random,

@@ -23,13 +23,12 @@ from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
     check_cells_tile,
-    check_points_are_the_meshs,
+    checked_points,  # noqa: F401  (the box domains' own)
     find_rows,
 )
 from ...certify.steps import Probes, Triangulation
 from ...mesh import circumcircles, triangle_areas, uniform_in_triangles
 from ...metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
-from ...validation import as_points
 
 
 class Geometry(TorusGeometry):
@@ -107,14 +106,6 @@ class Geometry(TorusGeometry):
             else 0.0
         )
         return integral, float(np.sqrt(var))
-
-
-def checked_points(mesh, points, weights):
-    """The points a mesh is certified against, checked to be the ones it was made from (as
-    many, inside its box along non-periodic axes, with weights exactly when it was refined with
-    them), in the frame its ``Points`` take: (points, weights as float64 or None)."""
-    pts = as_points(points, 2)
-    return pts, check_points_are_the_meshs(mesh, pts, weights)
 
 
 class Points:

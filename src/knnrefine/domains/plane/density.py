@@ -18,13 +18,7 @@ from ...mesh import (
     triangle_areas,
     uniform_in_triangles,
 )
-from ..box import (  # the box domains' own; these are this domain's as every box's
-    answerable,  # noqa: F401
-    flat_radius,  # noqa: F401
-    not_simplicial,
-    points_of,
-    to_frame,
-)
+from ..box import answerable, flat_radius, not_simplicial, points_of, to_frame  # noqa: F401
 
 
 def index_of(mesh, pts, weights=None):

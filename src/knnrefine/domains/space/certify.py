@@ -29,7 +29,7 @@ from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
     check_cells_tile,
-    check_points_are_the_meshs,
+    checked_points,  # noqa: F401  (the box domains' own)
     find_rows,
     sorted_rows,
 )
@@ -37,7 +37,6 @@ from ...certify.steps import Probes, Triangulation
 from ...engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ...engine.predicates3 import insphere, orient3d
 from ...metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
-from ...validation import as_points
 
 
 @kernel(entry=True, lazy=True)
@@ -104,14 +103,6 @@ def _circumspheres(c):
     rhs = 0.5 * (m**2).sum(axis=2)
     u = np.linalg.solve(m, rhs[..., None])[..., 0]
     return a + u, (u**2).sum(axis=1)
-
-
-def checked_points(mesh, points, weights):
-    """The points a mesh is certified against, checked to be the ones it was made from (as
-    many, inside its box along non-periodic axes, with weights exactly when it was refined with
-    them), in the frame its ``Points`` take: (points, weights as float64 or None)."""
-    pts = as_points(points, 3)
-    return pts, check_points_are_the_meshs(mesh, pts, weights)
 
 
 class Points:

@@ -30,13 +30,7 @@ from ...engine.threads import in_chunks
 from ...errors import InputError
 from ...metric import BoxMetric, weighted_kth
 from ...validation import check_inside
-from ..box import (  # the box domains' own; these are this domain's as every box's
-    answerable,  # noqa: F401
-    flat_radius,  # noqa: F401
-    not_simplicial,
-    points_of,
-    to_frame,
-)
+from ..box import answerable, flat_radius, not_simplicial, points_of, to_frame  # noqa: F401
 
 
 def index_of(mesh, pts, weights=None):
