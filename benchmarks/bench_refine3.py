@@ -101,7 +101,7 @@ def worker(kind, n, k, repeat, budget, box_kind="torus", workers=1):
             m_tiled = len(mesh.vertices)
             del mesh
     peak = float(np.median(peaks))
-    from knnrefine.engine.index3 import build_index3
+    from knnrefine._engine.index3 import build_index3
 
     index_mb = sum(a.nbytes for a in build_index3(pts)) / 2**20
     return {

@@ -52,7 +52,7 @@ def measure(n, workers, repeat, tasks, k):
     import dask.array as da
     from distributed import Client
 
-    from knnrefine.engine.embedding import Embedding
+    from knnrefine._engine.embedding import Embedding
     from knnrefine.scale import distributed
     from knnrefine.scale.distributed import _cut
     from knnrefine.scale.tiled import strips, tile_index

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 import knnrefine
-from knnrefine.metric import BoxMetric
+from knnrefine._metric import BoxMetric
 
 
 def points(n=100_000, seed=0):

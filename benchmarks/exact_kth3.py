@@ -24,8 +24,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from knn_cdf3 import clustered, thomas  # noqa: E402
 
 import knnrefine  # noqa: E402
-from knnrefine.domains.space.density import Index as TreeIndex  # noqa: E402
-from knnrefine.metric import BoxMetric  # noqa: E402
+from knnrefine._domains.space.density import Index as TreeIndex  # noqa: E402
+from knnrefine._metric import BoxMetric  # noqa: E402
 
 
 def timed(f, repeat=3):

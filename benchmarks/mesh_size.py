@@ -3,7 +3,7 @@
     python benchmarks/mesh_size.py                 # uniform points, then the real data sets
 
 For uniform points (n = 10^5, k from 2 to 100; k = 1 at n = 10^4) it prints m / n next to the
-model of ``knnrefine.engine.size`` (m / n = 2.3 / (k - 1.47)) and refine's estimate; for the
+model of ``knnrefine._engine.size`` (m / n = 2.3 / (k - 1.47)) and refine's estimate; for the
 real data sets of ../shared/data (when present) the estimate against the actual torus mesh
 size at k = 2, 10 and 100. The estimate sets the default vertex budget (three times it) and
 the large-run warning, so what matters is that it is never far below the truth.

@@ -21,12 +21,12 @@ from numba import njit
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_refine3 import make_points3  # noqa: E402
 
-from knnrefine.domains.space.run import holds_k  # noqa: E402
-from knnrefine.engine.driver3 import Refinement3, choose_grid3  # noqa: E402
-from knnrefine.engine.index3 import build_index3, holds_k_within3  # noqa: E402
-from knnrefine.engine.initial import reach_factor  # noqa: E402
-from knnrefine.engine.refine3 import count_cell3  # noqa: E402
-from knnrefine.engine.triangulation3 import star3, vertex_star3  # noqa: E402
+from knnrefine._domains.space.run import holds_k  # noqa: E402
+from knnrefine._engine.driver3 import Refinement3, choose_grid3  # noqa: E402
+from knnrefine._engine.index3 import build_index3, holds_k_within3  # noqa: E402
+from knnrefine._engine.initial import reach_factor  # noqa: E402
+from knnrefine._engine.refine3 import count_cell3  # noqa: E402
+from knnrefine._engine.triangulation3 import star3, vertex_star3  # noqa: E402
 
 
 @njit

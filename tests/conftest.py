@@ -63,7 +63,7 @@ def _digest(mesh, points, weights):
 def certify_every_mesh(monkeypatch):
     import sys
 
-    pipeline = knnrefine.pipeline  # every run in this process goes through its one entry
+    pipeline = knnrefine._pipeline  # every run in this process goes through its one entry
     refine_checked = pipeline.refine_checked
     steps = sys.modules["knnrefine.certify.steps"]  # its names are read at each call
     made, seen = [], set()
@@ -302,7 +302,7 @@ def torus_frame(mesh):
     """Points in input coordinates -> the frame of the mesh's torus: relative to its origin,
     periodic axes wrapped into [0, period) (where the torus' vertices and the mesh's offsets
     live)."""
-    from knnrefine.metric import BoxMetric
+    from knnrefine._metric import BoxMetric
 
     origin, period = np.asarray(mesh.torus.origin), np.asarray(mesh.torus.period)
     return BoxMetric((*origin, *(origin + period)), mesh.periodic).frame

@@ -590,12 +590,12 @@ def test_bad_options_are_refused_before_work():
 def test_infinite_bandwidth_is_refused_before_work(monkeypatch):
     """regression: bandwidth=inf passed the estimator's check (inf > 0) and failed only after
     refinement, in set_bandwidth."""
-    import knnrefine.pipeline
+    import knnrefine._pipeline
 
     def no_work(*args, **kwargs):
         raise AssertionError("refine ran before the options were checked")
 
-    monkeypatch.setattr(knnrefine.pipeline, "refine", no_work)
+    monkeypatch.setattr(knnrefine._pipeline, "refine", no_work)
     with pytest.raises(InputError, match="finite"):
         KnnDensityEstimator(k=10, bandwidth=float("inf")).fit(mixture(300))
 
@@ -695,7 +695,7 @@ def test_binned_leave_one_out_matches_the_exact_sums(case, monkeypatch):
     point's density within a few per cent, the mean log-likelihood within 1e-3 (1e-2 on a
     line), at three sensitivities and bandwidths, narrow ones included (points few other
     kernels reach are summed exactly)."""
-    from knnrefine.engine import binned
+    from knnrefine._engine import binned
 
     if case == "narrow-exact":
         monkeypatch.setattr(binned, "VALUES_PER_CENTRE", 0.5)
@@ -715,7 +715,7 @@ def test_binned_leave_one_out_matches_the_exact_sums(case, monkeypatch):
         # on a line binning's tent reaches across it: the shape differs, not the variance
         assert abs(got.mean() - exact.mean()) < (1e-2 if case == "line" else 1e-3)
     if case == "narrow-exact":  # the budget did send lattices to exact sums
-        from knnrefine.engine import kernelsum as ks
+        from knnrefine._engine import kernelsum as ks
 
         rows = ad._rows
         mass = rows[:, ks.W] / ad.total

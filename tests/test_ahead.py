@@ -1,4 +1,4 @@
-"""Compile ahead (``engine/ahead.py``): a first call's large kernels compiled by a helper
+"""Compile ahead (``_engine/ahead.py``): a first call's large kernels compiled by a helper
 process into the shared numba cache while the caller compiles the rest."""
 
 import os
@@ -11,8 +11,8 @@ import pytest
 from numba import types
 
 import knnrefine
-from knnrefine.engine import ahead, jit
-from knnrefine.engine.state import Probe, TorusMesh
+from knnrefine._engine import ahead, jit
+from knnrefine._engine.state import Probe, TorusMesh
 
 
 def _array(dtype, ndim, layout="C", readonly=False):
@@ -44,7 +44,7 @@ def _compiled(dispatcher):
 def test_the_recorded_signatures_are_the_ones_a_run_compiles(domain):
     """``ahead.json`` is current: after the recorded first call, every kernel on the helper's
     list has the recorded signature compiled or cached. A kernel whose arguments changed
-    fails here (then: ``python -c "from knnrefine.engine import ahead; ahead.record()"``)."""
+    fails here (then: ``python -c "from knnrefine._engine import ahead; ahead.record()"``)."""
     manifest = ahead.load_manifest()
     assert manifest is not None
     assert [name for name, _ in manifest[domain]] == ahead.AHEAD[domain]
@@ -133,7 +133,7 @@ def test_a_first_call_loads_the_helpers_kernels(tmp_path):
     and loaded them: no cache miss), and its mesh certifies."""
     code = """
 import numpy as np, knnrefine
-from knnrefine.engine import ahead
+from knnrefine._engine import ahead
 p = np.random.default_rng(0).random((2000, 2)) * [360, 180] - [180, 90]
 mesh = knnrefine.refine(p, 10, sphere=True)
 for name in ahead.AHEAD["sphere"]:

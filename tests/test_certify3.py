@@ -59,7 +59,7 @@ def test_certify3_probes_at_least_the_edge_midpoints(case):
     the ratio at every vertex, circumcentre and edge midpoint in the box (brute force)."""
     mesh, pts = case
     cert = knnrefine.certify(mesh, pts)
-    metric = knnrefine.metric.BoxMetric(mesh.box, mesh.periodic)
+    metric = knnrefine._metric.BoxMetric(mesh.box, mesh.periodic)
     c = mesh.corners()  # the returned tetrahedra, input units
     mids = np.concatenate([0.5 * (c[:, i] + c[:, j]) for i in range(4) for j in range(i)])
     centres = c.mean(axis=1)
@@ -122,8 +122,8 @@ def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
     sorting the face keys (``common.sorted_rows``, which replaced ``np.unique(axis=0)``, its
     oracle here, for speed); a tetrahedron dropped or doubled leaves a face once or three
     times: not a triangulation."""
+    from knnrefine._domains.space import certify as space
     from knnrefine.certify import common
-    from knnrefine.domains.space import certify as space
 
     mesh, _ = case
     corners, offsets = mesh.torus.cells, mesh.torus.offsets.astype(np.int64)

@@ -10,7 +10,7 @@ import pytest
 from conftest import gaussian_clusters, unit_box
 
 import knnrefine
-from knnrefine.domains.plane.certify import Points as TorusPoints
+from knnrefine._domains.plane.certify import Points as TorusPoints
 from knnrefine.errors import InputError
 from knnrefine.scale.checks import TiledTorusPoints
 from knnrefine.scale.tiled import LocalStore, split_strips, strip_owner, strips
@@ -181,7 +181,7 @@ def test_slab_answers_in_space_equal_one_tree():
     """Balls of every size, every cell, d_{P,k} in the box's own metric at probes in the box
     (a torus shorter than twice the box along x and z, where the torus' and the box's
     metrics differ): the slabs' sums and decisions equal one process's kd-trees, exactly."""
-    from knnrefine.domains.space.certify import Points as SpacePoints
+    from knnrefine._domains.space.certify import Points as SpacePoints
     from knnrefine.scale.checks import TiledSpacePoints
 
     pts = gaussian_clusters(4000, 4, clusters=25, dim=3)

@@ -658,17 +658,17 @@ def test_no_carriage_returns_in_a_redirected_stderr(tmp_path):
 def test_first_run_in_space_asks_about_the_kernels_of_space(capsys, monkeypatch):
     """Issue 32: the CLI's notice asked whether the plane's kernels were compiled, also for
     points in space; each domain now asks about its own."""
+    from knnrefine._engine.refine import refine_steps
+    from knnrefine._engine.refine3 import refine_steps3
+    from knnrefine._engine.refine_sphere import refine_steps_sphere
     from knnrefine.cli import common
-    from knnrefine.engine.refine import refine_steps
-    from knnrefine.engine.refine3 import refine_steps3
-    from knnrefine.engine.refine_sphere import refine_steps_sphere
 
     for domain, steps in (("plane", refine_steps), ("space", refine_steps3),
                           ("sphere", refine_steps_sphere)):  # fmt: skip
-        monkeypatch.setattr("knnrefine.engine.jit.is_ready", lambda d, steps=steps: d is not steps)
+        monkeypatch.setattr("knnrefine._engine.jit.is_ready", lambda d, steps=steps: d is not steps)
         common.announce_compilation(quiet=False, domain=domain)
         assert "compiling the kernels" in capsys.readouterr().err, domain
-        monkeypatch.setattr("knnrefine.engine.jit.is_ready", lambda d, steps=steps: d is steps)
+        monkeypatch.setattr("knnrefine._engine.jit.is_ready", lambda d, steps=steps: d is steps)
         common.announce_compilation(quiet=False, domain=domain)
         assert capsys.readouterr().err == "", domain
 
@@ -677,14 +677,14 @@ def test_first_run_says_it_compiles(capsys, monkeypatch):
     """First run: the kernels compiled for 16-58 s with nothing on screen."""
     from knnrefine.cli import common
 
-    monkeypatch.setattr("knnrefine.engine.jit.is_ready", lambda dispatcher: False)
+    monkeypatch.setattr("knnrefine._engine.jit.is_ready", lambda dispatcher: False)
     common.announce_compilation(quiet=False)
     assert "compiling the kernels for their first use" in capsys.readouterr().err
     common.announce_compilation(quiet=True)
     assert capsys.readouterr().err == ""
     monkeypatch.undo()
-    from knnrefine.engine.jit import is_ready
-    from knnrefine.engine.refine import refine_steps
+    from knnrefine._engine.jit import is_ready
+    from knnrefine._engine.refine import refine_steps
 
     knnrefine.refine(np.random.default_rng(0).random((50, 2)), 3)
     assert is_ready(refine_steps)  # compiled in this process now (or cached before)

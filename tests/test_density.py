@@ -190,7 +190,7 @@ def test_node_values_reuse_the_engine_index_and_never_trust_other_points():
 def test_clip_triangles_partitions_the_rectangle_and_carries_values():
     # the pieces of a triangulated square clipped to a rectangle tile the rectangle exactly;
     # values at every clipped corner are the plane through the triangle's corners
-    from knnrefine.engine.raster import clip_triangles, fans
+    from knnrefine._engine.raster import clip_triangles, fans
     from knnrefine.mesh import triangle_areas
 
     rng = np.random.default_rng(9)

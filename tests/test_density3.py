@@ -12,8 +12,8 @@ from scipy.spatial import cKDTree
 
 import knnrefine
 from knnrefine import KnnDensity, KnnDistance
-from knnrefine.domains.space.density import Pieces as SpacePieces
-from knnrefine.domains.space.density import clip_below, share_below
+from knnrefine._domains.space.density import Pieces as SpacePieces
+from knnrefine._domains.space.density import clip_below, share_below
 from knnrefine.errors import InputError
 
 BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
@@ -195,7 +195,7 @@ def test_edge_midpoints_are_queried_once_per_edge(periodic):
     F = 2T); in every box the count equals a brute-force set of canonical edges, every
     occurrence maps to its own edge, and the midpoint values equal one query per
     tetrahedron's edge."""
-    from knnrefine.domains.space.density import edges3
+    from knnrefine._domains.space.density import edges3
 
     pts = clustered(6000, 31)
     mesh = knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
@@ -237,8 +237,8 @@ def test_knn_cdf_for_several_k_matches_monte_carlo_at_its_noise(periodic):
     above it: the interpolated CDF corrected by a control sample, within four standard
     errors of a 5 x 10^5-point Monte Carlo truth at every radius, its 95% band narrow
     (median width < 0.05; the issue's target), the mesh's rigorous bounds holding the truth."""
+    from knnrefine._validation import random_generator
     from knnrefine.density import knn_cdf
-    from knnrefine.validation import random_generator
 
     pts = _thomas_like()
     r = np.linspace(0.01, 0.2, 20)

@@ -277,7 +277,7 @@ def test_exact_d_pk_in_space_by_windows_matches_scipy(periodic):
     """KnnDistance.exact in space at k >= WINDOWS_FROM_K goes through the counting tree's
     windows about sampled guesses (issue 30): scipy's answer at clustered points with
     duplicates, on the box and on the torus, at query points anywhere and at the points."""
-    from knnrefine.domains.space.density import WINDOWS_FROM_K
+    from knnrefine._domains.space.density import WINDOWS_FROM_K
 
     pts = blobs(3, 20000, 11)
     pts[:300] = pts[300:600]  # duplicates

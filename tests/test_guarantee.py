@@ -14,10 +14,10 @@ from numpy.random import default_rng as rng
 
 import knnrefine
 from knnrefine import BudgetError, InputError, certify
-from knnrefine.engine import index as engine_index
-from knnrefine.engine.embedding import wrap_offsets
-from knnrefine.engine.index import STACK_SIZE, build_index
-from knnrefine.engine.jit import python_entry
+from knnrefine._engine import index as engine_index
+from knnrefine._engine.embedding import wrap_offsets
+from knnrefine._engine.index import STACK_SIZE, build_index
+from knnrefine._engine.jit import python_entry
 
 count_in_torus_disk = python_entry(engine_index.count_in_torus_disk)
 
@@ -257,7 +257,7 @@ def test_k2_on_many_points_fits_the_default_budget():
 def test_k1_on_many_points_is_refused_before_any_work_when_memory_cannot_hold_it(monkeypatch):
     """k = 1 on 10^5 points needs about 2.3 x 10^7 vertices (11.7 GB, 3 minutes): with less
     than half that memory, refused up front; with an explicit budget far below, too."""
-    from knnrefine.engine import size
+    from knnrefine._engine import size
 
     monkeypatch.setattr(size, "memory_bytes", lambda: 4 * 10**9)
     P = rng(14).random((100_000, 2))
@@ -290,7 +290,7 @@ def test_progress_stays_alive_through_assembly():
 
 def test_progress_says_compiling_before_a_first_compilation(monkeypatch):
     """Issue 10: a first compilation (10-60 s) shows in progress, not only on the CLI."""
-    from knnrefine.engine import jit
+    from knnrefine._engine import jit
 
     seen = []
 
@@ -352,8 +352,8 @@ def test_the_initial_mesh_choice_looks_at_the_clock_while_it_peels(monkeypatch):
     Now a candidate is built when tried and the clock is read in every peeling round: a
     deadline met right after the index is built stops the run with one candidate built and
     no peeling round done."""
-    from knnrefine.domains.plane import run
-    from knnrefine.engine import initial
+    from knnrefine._domains.plane import run
+    from knnrefine._engine import initial
 
     built, rounds, checks = [], [], []
     original_grid, original_holds = initial.initial_grid, initial.holds_k_within
@@ -415,8 +415,8 @@ def test_one_point_on_a_thin_x_periodic_strip():
 def test_progress_says_compiling_in_space_too(monkeypatch):
     """Issue 32: a first 3-D call compiled for about 21 s with nothing on screen; it now says
     "compiling" first, as the plane does, and only when the 3-D kernels are not ready."""
-    from knnrefine.engine import jit
-    from knnrefine.engine.refine3 import refine_steps3
+    from knnrefine._engine import jit
+    from knnrefine._engine.refine3 import refine_steps3
 
     seen = []
 

@@ -125,7 +125,7 @@ def test_a_sphere_cluster_below_a_metre_certifies_and_agrees_with_brute_force(
     and every mesh certifies and agrees with brute force: exact in-cap counts, atan2 angles."""
     from oracle import sphere_facts, unit_vectors_of
 
-    from knnrefine.engine.geometry import RESOLUTION_ANGLE
+    from knnrefine._engine.geometry import RESOLUTION_ANGLE
 
     rng = np.random.default_rng(seed)
     pts = _cluster(10.0**-exponent, where, n, rng)
@@ -162,7 +162,7 @@ def test_the_sphere_reports_the_floor_it_honours():
     """Item 1: min_size below the engine's resolution is raised to it, as in the plane: the
     mesh's min_size is the floor in effect, and the elements left there are floor points
     with a FloorWarning."""
-    from knnrefine.engine.geometry import RESOLUTION_ANGLE
+    from knnrefine._engine.geometry import RESOLUTION_ANGLE
 
     pts = _cluster(1e-5, "equator", 300, np.random.default_rng(0))
     with pytest.warns(knnrefine.FloorWarning, match="smaller than min_size"):
@@ -186,14 +186,14 @@ def test_certify_judges_a_sphere_triangulation_by_exact_signs_not_qhull():
 
     from scipy.spatial import ConvexHull
 
-    from knnrefine.domains.sphere.certify import check_triangulation
-    from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS
-    from knnrefine.engine.triangulation_sphere import (
+    from knnrefine._domains.sphere.certify import check_triangulation
+    from knnrefine._engine.state import C_NT, C_NV, N_COUNTERS
+    from knnrefine._engine.triangulation_sphere import (
         insert_points_sphere,
         new_sphere,
         new_sphere_scratch,
     )
-    from knnrefine.metric import lonlat_of
+    from knnrefine._metric import lonlat_of
 
     rng = np.random.default_rng(0)
     spread = rng.standard_normal((50, 3))
@@ -256,7 +256,7 @@ def test_weighted_counts_agree_with_brute_force_whatever_the_weights(weighting, 
     read) agree with every pair, on weights that leave most points weightless or light."""
     from scipy.spatial import cKDTree
 
-    from knnrefine.metric import held_in_balls, weight_tree, weighted_kth
+    from knnrefine._metric import held_in_balls, weight_tree, weighted_kth
 
     rng = np.random.default_rng(len(weighting) + (0 if boxsize is None else len(boxsize)))
     dim = 3 if boxsize is not None and len(boxsize) == 3 else 2
@@ -306,7 +306,7 @@ def test_certify_with_mostly_zero_weights_is_not_quadratic():
     sphere."""
     from scipy.spatial import cKDTree
 
-    from knnrefine.metric import weighted_kth
+    from knnrefine._metric import weighted_kth
 
     rng = np.random.default_rng(3)
     n = 20_000
@@ -576,14 +576,14 @@ def test_knn_cdf_by_the_mesh_bounds_its_memory_before_the_work(monkeypatch):
     8.9 GB. Now the mesh's memory is estimated for each k before any work and a k that
     would take more than half the machine is refused, naming knn_cdf's own options; a
     budget hit inside says the same, never max_vertices."""
+    from knnrefine._engine import size
     from knnrefine.density import cdf, knn_cdf
-    from knnrefine.engine import size
 
     pts = np.random.default_rng(5).random((20_000, 3))
     radii = np.linspace(0.0, 0.1, 5)
     monkeypatch.setattr(size, "memory_bytes", lambda: 2 * 10**9)  # a 2 GB machine
     refined = []
-    monkeypatch.setattr(knnrefine.pipeline, "refine", lambda *a, **k: refined.append(a))
+    monkeypatch.setattr(knnrefine._pipeline, "refine", lambda *a, **k: refined.append(a))
     with pytest.raises(knnrefine.InputError, match='method="monte-carlo"') as info:
         knn_cdf(pts, [2, 30], radii, (0, 0, 0, 1, 1, 1), method="mesh", queries=1000)
     assert "max_vertices" not in str(info.value) and "k = 2" in str(info.value)
@@ -597,7 +597,7 @@ def test_knn_cdf_by_the_mesh_bounds_its_memory_before_the_work(monkeypatch):
             "the run reached max_vertices=10; raise max_vertices", {"vertices": 10}
         )
 
-    monkeypatch.setattr(knnrefine.pipeline, "refine", over_budget)
+    monkeypatch.setattr(knnrefine._pipeline, "refine", over_budget)
     monkeypatch.setattr(size, "memory_bytes", lambda: 10**12)
     with pytest.raises(knnrefine.BudgetError, match='method="monte-carlo"') as info:
         knn_cdf(pts, [30], radii, (0, 0, 0, 1, 1, 1), method="mesh", queries=1000)

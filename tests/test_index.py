@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from knnrefine.engine import index as engine_index
-from knnrefine.engine.index import LEAF_SIZE, STACK_SIZE, build_index
-from knnrefine.engine.jit import python_entry
+from knnrefine._engine import index as engine_index
+from knnrefine._engine.index import LEAF_SIZE, STACK_SIZE, build_index
+from knnrefine._engine.jit import python_entry
 
 count_in_cell = python_entry(engine_index.count_in_cell)
 count_in_disk = python_entry(engine_index.count_in_disk)
@@ -179,7 +179,7 @@ def _preorder(index):
 def test_parallel_build_is_the_one_thread_tree(workers, monkeypatch):
     """Subtrees built by threads give the same permutation and nodes as one thread, also where
     coincident points stop splitting early (gaps in the node blocks, closed afterwards)."""
-    import knnrefine.engine.index as I
+    import knnrefine._engine.index as I
 
     monkeypatch.setattr(I, "PARALLEL_MIN", 0)
     rng = np.random.default_rng(workers)

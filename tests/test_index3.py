@@ -1,4 +1,4 @@
-"""The 3-D counting index (engine/index3.py) against scipy's cKDTree with boxsize: closed
+"""The 3-D counting index (_engine/index3.py) against scipy's cKDTree with boxsize: closed
 balls anywhere on the 3-torus (across its faces, edges and corners), exact below k and at
 least k when the count stops early, counting points or summing their weights; closed
 Voronoi cells of a refined periodic triangulation against each point's nearest mesh
@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from knnrefine.engine import index3, triangulation3
-from knnrefine.engine.geometry import Q
-from knnrefine.engine.index3 import build_index3
-from knnrefine.engine.initial import initial_grid3
-from knnrefine.engine.jit import python_entry
-from knnrefine.engine.triangulation3 import insert_largest3, new_torus3
+from knnrefine._engine import index3, triangulation3
+from knnrefine._engine.geometry import Q
+from knnrefine._engine.index3 import build_index3
+from knnrefine._engine.initial import initial_grid3
+from knnrefine._engine.jit import python_entry
+from knnrefine._engine.triangulation3 import insert_largest3, new_torus3
 
 _ball = python_entry(index3.count_in_ball3)
 _cell = python_entry(index3.count_in_cell3)

@@ -25,7 +25,7 @@ PROBE = textwrap.dedent("""
     with warnings.catch_warnings(record=True) as caught:
         import numpy as np
         import knnrefine
-        from knnrefine.engine import refine as R
+        from knnrefine._engine import refine as R
         mesh = knnrefine.refine(np.random.default_rng(0).random((300, 2)), 5)
     print(json.dumps({
         "m": len(mesh.vertices),
@@ -120,7 +120,7 @@ def test_read_only_install_uses_the_kernels_shipped_with_it(tmp_path, read_only)
     site = _copy_package(tmp_path)
     warm = _run([sys.executable, "-c", PROBE], _environment(site))  # compiles into the copy
     assert warm["misses"] == 1
-    assert list((site / "knnrefine" / "engine" / "__pycache__").glob("*.nbi"))
+    assert list((site / "knnrefine" / "_engine" / "__pycache__").glob("*.nbi"))
     result = read_only(site)
     assert result["m"] == warm["m"]
     assert result["misses"] == 0 and result["hits"] == 1

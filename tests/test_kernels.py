@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import knnrefine
-from knnrefine.engine import index, refine, triangulation
+from knnrefine._engine import index, refine, triangulation
 
 HOT = [
     refine.refine_steps,
@@ -48,7 +48,7 @@ def own_refcounts(dispatcher, **options):
 
 def type_callees():
     """Type the internal kernels here: a refinement loaded from numba's cache does not."""
-    from knnrefine.engine.jit import python_entry
+    from knnrefine._engine.jit import python_entry
 
     own_refcounts(refine.refine_steps)  # a fresh compile types its direct callees
 
@@ -83,8 +83,8 @@ def test_the_option_matters():
 def test_internal_kernels_refuse_python_calls():
     """Kernels compiled without numba's Python wrapper (all but the entry points) would crash
     the interpreter if called from Python; they raise instead, and python_entry calls them."""
-    from knnrefine.engine import predicates
-    from knnrefine.engine.jit import InternalKernel, python_entry
+    from knnrefine._engine import predicates
+    from knnrefine._engine.jit import InternalKernel, python_entry
 
     assert isinstance(predicates.orient2d, InternalKernel)
     with pytest.raises(TypeError, match="internal engine kernel"):
@@ -114,7 +114,7 @@ def test_kernels_compile_once_for_constants_and_narrower_integers():
     """A kernel called from others with a constant, an int32 and an int64 is compiled once
     (for int64), not once per type: a first call in space compiled eleven such copies, among
     them the 3-D cell count twice (first call 44 -> 32 s)."""
-    from knnrefine.engine.jit import kernel
+    from knnrefine._engine.jit import kernel
 
     callee = _called(kernel(cache=False), kernel(entry=True, cache=False))
     assert len(callee.signatures) == 1
@@ -141,8 +141,8 @@ def test_the_ball_count_in_space_and_the_cell_count_share_one_compile(tmp_path):
 
     code = """
 import numpy as np
-from knnrefine.engine import index3
-from knnrefine.engine.jit import python_entry
+from knnrefine._engine import index3
+from knnrefine._engine.jit import python_entry
 idx = index3.build_index3(np.random.default_rng(0).random((300, 3)))
 stack = np.zeros(128, np.int64)
 period = np.ones(3)
@@ -170,8 +170,8 @@ def test_the_exact_insphere_compiles_no_error_message(tmp_path):
 
     code = """
 import numpy as np
-from knnrefine.engine import predicates3
-from knnrefine.engine.jit import python_entry
+from knnrefine._engine import predicates3
+from knnrefine._engine.jit import python_entry
 p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float) / 2
 print(python_entry(predicates3.insphere)(p))
 ir = "".join(predicates3._insphere_exact.inspect_llvm().values())
@@ -203,7 +203,7 @@ def test_a_kernel_cached_before_its_callee_changed_is_compiled_again(tmp_path):
                     ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
     code = """
 import numpy as np, knnrefine
-from knnrefine.metric import running_sums
+from knnrefine._metric import running_sums
 print(knnrefine.__file__)
 print(running_sums(np.ones((1, 3))).tolist())
 """
@@ -218,7 +218,7 @@ print(running_sums(np.ones((1, 3))).tolist())
 
     where, before = run()[:2]
     assert where.startswith(str(copy)) and before == "[[1.0, 2.0, 3.0]]"
-    geometry = copy / "engine" / "geometry.py"
+    geometry = copy / "_engine" / "geometry.py"
     text = geometry.read_text()
     assert text.count("    return t, c\n") == 1
     geometry.write_text(text.replace("    return t, c\n", "    return t + 1.0, c\n"))
@@ -227,18 +227,18 @@ print(running_sums(np.ones((1, 3))).tolist())
 
 def test_the_sources_fingerprint_covers_what_kernels_hold(tmp_path):
     """Every kernel's cache index is stamped with ``jit.sources_fingerprint()``: it changes
-    with any file of ``engine/`` (constants such as ``state.py``'s are compiled into the
+    with any file of ``_engine/`` (constants such as ``state.py``'s are compiled into the
     kernels) and any other file that defines kernels, not with the rest (the API)."""
     import shutil
 
-    from knnrefine.engine import jit, refine
+    from knnrefine._engine import jit, refine
 
     stamp = refine.refine_steps._cache._cache_file._source_stamp
     assert stamp[1] == jit.sources_fingerprint()
     root = tmp_path / "knnrefine"
     shutil.copytree(jit.PACKAGE, root, ignore=shutil.ignore_patterns("__pycache__", "data"))
     before = jit.sources_fingerprint(str(root))
-    for name, changes in (("engine/state.py", True), ("metric.py", True), ("api.py", False)):
+    for name, changes in (("_engine/state.py", True), ("_metric.py", True), ("api.py", False)):
         path = root / name
         text = path.read_text()
         path.write_text(text + "\n# edited\n")

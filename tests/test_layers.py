@@ -12,18 +12,18 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "knnrefine"
 
 # the layers, lowest first: a module may import its own layer's modules (without a circle)
 # and those below; the key is the module's path under the package, a folder for all in it,
-# ``*`` for any one folder (each domain's package: ``knnrefine.domains``)
+# ``*`` for any one folder (each domain's package: ``knnrefine._domains``)
 LAYERS = [
     ["errors.py", "data/"],
-    ["engine/"],
-    ["metric.py"],
-    ["validation.py"],
-    ["options.py", "mesh.py"],
-    ["domains/__init__.py", "domains/box.py"],
-    ["domains/*/run.py"],
+    ["_engine/"],
+    ["_metric.py"],
+    ["_validation.py"],
+    ["_options.py", "mesh.py"],
+    ["_domains/__init__.py", "_domains/box.py"],
+    ["_domains/*/run.py"],
     ["certify/certificate.py", "certify/common.py", "certify/steps.py", "certify/__init__.py"],
-    ["domains/*/certify.py", "domains/*/density.py", "domains/*/__init__.py"],
-    ["pipeline.py"],
+    ["_domains/*/certify.py", "_domains/*/density.py", "_domains/*/__init__.py"],
+    ["_pipeline.py"],
     ["certify/", "density/", "cluster.py", "topology.py", "plot.py", "io.py", "datasets.py"],
     ["scale/"],
     ["api.py"],
@@ -129,7 +129,7 @@ def test_every_module_is_in_a_layer_and_on_the_map(module):
     assert Path(module).name in text, f"{module} is not on docs/data-structure.md's map"
 
 
-# what every domain's package offers (``knnrefine.domains``): the same modules, the same names
+# what every domain's package offers (``knnrefine._domains``): the same modules, the same names
 PROTOCOL = {
     "run.py": ("checked", "refine"),
     "certify.py": ("Geometry", "Points", "checked_points"),
@@ -149,25 +149,25 @@ PROTOCOL = {
 def test_every_domain_is_a_package_of_the_same_modules_and_names(domain):
     import importlib
 
-    from knnrefine.domains import NAMES, PARTS
+    from knnrefine._domains import NAMES, PARTS
 
-    assert set(NAMES) == {p.name for p in (PACKAGE / "domains").iterdir() if p.is_dir()
+    assert set(NAMES) == {p.name for p in (PACKAGE / "_domains").iterdir() if p.is_dir()
                           and p.name != "__pycache__"}  # fmt: skip
-    files = {p.name for p in (PACKAGE / "domains" / domain).glob("*.py")}
+    files = {p.name for p in (PACKAGE / "_domains" / domain).glob("*.py")}
     assert files == {"__init__.py", *(f"{name}.py" for name in PARTS)} == {"__init__.py", *PROTOCOL}
     for module, names in PROTOCOL.items():
-        loaded = importlib.import_module(f"knnrefine.domains.{domain}.{module[:-3]}")
+        loaded = importlib.import_module(f"knnrefine._domains.{domain}.{module[:-3]}")
         missing = [name for name in names if not callable(getattr(loaded, name, None))]
-        assert missing == [], f"domains/{domain}/{module} lacks {missing}"
+        assert missing == [], f"_domains/{domain}/{module} lacks {missing}"
 
 
 def test_no_domain_imports_another():
     across = [
         f"{module} -> {target}"
         for module, targets in imports().items()
-        if module.startswith("domains/") and module.count("/") == 2
+        if module.startswith("_domains/") and module.count("/") == 2
         for target in targets
-        if target.startswith("domains/") and target.count("/") == 2
+        if target.startswith("_domains/") and target.count("/") == 2
         and target.split("/")[1] != module.split("/")[1]
     ]  # fmt: skip
     assert across == []

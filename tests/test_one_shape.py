@@ -139,7 +139,7 @@ def test_every_domain_refuses_a_run_far_beyond_its_budget_or_memory(domain, monk
     a run expected far beyond max_vertices, or (without it) beyond twice the memory, is
     refused before any work with the same message; one expected to need more than 2 GB
     says so (LargeRunWarning), shown outside knnrefine. The sphere had none of them."""
-    from knnrefine.engine import size
+    from knnrefine._engine import size
 
     pts = points_in(domain, 2000)
     expected = refine_in(domain, pts, 10).stats.estimated_vertices
@@ -152,7 +152,7 @@ def test_every_domain_refuses_a_run_far_beyond_its_budget_or_memory(domain, monk
     with pytest.raises(knnrefine.BudgetError, match="far more than this machine's"):
         refine_in(domain, pts, 10)
     monkeypatch.setattr(size, "memory_bytes", lambda: 10**12)
-    monkeypatch.setattr("knnrefine.options.LARGE_RUN_BYTES", 1.0)
+    monkeypatch.setattr("knnrefine._options.LARGE_RUN_BYTES", 1.0)
     with pytest.warns(knnrefine.LargeRunWarning, match="GB of memory") as caught:
         refine_in(domain, pts, 10)
     shown = [w.filename for w in caught if w.category is knnrefine.LargeRunWarning]

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from knnrefine.engine import predicates
-from knnrefine.engine.jit import python_entry
+from knnrefine._engine import predicates
+from knnrefine._engine.jit import python_entry
 
 # internal kernels, called from Python through jitted entries
 expansion_product = python_entry(predicates.expansion_product)

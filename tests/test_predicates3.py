@@ -1,4 +1,4 @@
-"""orient3d and insphere (engine/predicates3.py) against exact rational arithmetic
+"""orient3d and insphere (_engine/predicates3.py) against exact rational arithmetic
 (fractions.Fraction determinants), on random, exactly coplanar / cospherical and
 one-ulp-perturbed inputs: the floating-point filter never decides a sign wrongly and the
 exact fallback decides the rest."""
@@ -9,8 +9,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from knnrefine.engine import predicates3
-from knnrefine.engine.jit import python_entry
+from knnrefine._engine import predicates3
+from knnrefine._engine.jit import python_entry
 
 _insphere = python_entry(predicates3.insphere)
 _orient3d = python_entry(predicates3.orient3d)

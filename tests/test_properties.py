@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 import knnrefine
 from knnrefine import InputError, certify
-from knnrefine.validation import MIN_SIDE
+from knnrefine._validation import MIN_SIDE
 
 unit = st.floats(0.0, 1.0, allow_nan=False)
 

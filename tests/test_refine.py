@@ -8,7 +8,7 @@ from conftest import assert_certified, load_shared
 from scipy.spatial import cKDTree
 
 import knnrefine
-from knnrefine.engine import driver
+from knnrefine._engine import driver
 
 
 def uniform(rng, n=400):
@@ -188,7 +188,7 @@ def test_cell_sweep_leaves_the_mesh_unchanged(kind, monkeypatch):
 def test_threads_leave_the_mesh_unchanged(threads, monkeypatch):
     """The index is built and cells are swept by threads (engine.threads): any number of them
     gives the same mesh and the same counts as the default."""
-    import knnrefine.engine.index as I
+    import knnrefine._engine.index as I
 
     rng = np.random.default_rng(6)
     centres = rng.random((8, 2))
@@ -205,7 +205,7 @@ def test_threads_leave_the_mesh_unchanged(threads, monkeypatch):
 
 
 def test_knnrefine_threads_must_be_a_number(monkeypatch):
-    from knnrefine.engine.threads import workers
+    from knnrefine._engine.threads import workers
 
     monkeypatch.setenv("KNNREFINE_THREADS", "two")
     with pytest.raises(ValueError, match="KNNREFINE_THREADS"):

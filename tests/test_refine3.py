@@ -197,8 +197,8 @@ def test_time_limit_and_budget_stop_the_run(monkeypatch):
     progress and raised TypeError instead); progress reports growing vertex counts."""
     import time
 
-    from knnrefine.engine import driver3
-    from knnrefine.engine.refine import STATUS_DONE, STATUS_STEPS
+    from knnrefine._engine import driver3
+    from knnrefine._engine.refine import STATUS_DONE, STATUS_STEPS
     from knnrefine.errors import BudgetError
 
     pts = multiscale(20000, 23)
@@ -236,8 +236,8 @@ def test_the_initial_mesh_check_counts_balls_of_every_size():
     """run3.holds_k (does the closed ball of radius r about x hold k points?) against a
     periodic kd-tree, for radii below half the period (the index), up to the torus'
     diameter (a direct count) and beyond it (every point)."""
-    from knnrefine.domains.space.run import holds_k
-    from knnrefine.engine.index3 import build_index3
+    from knnrefine._domains.space.run import holds_k
+    from knnrefine._engine.index3 import build_index3
 
     period = np.array([1.0, 0.5, 2.0])
     u = np.mod(multiscale(5000, 9) * period, period)
@@ -317,10 +317,10 @@ def test_command_line_in_space_writes_vtu_and_npz(tmp_path, flags, periodic):
 
 
 def _start_run(pts, k=10):
-    from knnrefine.domains.space.run import holds_k
-    from knnrefine.engine.driver3 import Refinement3, choose_grid3
-    from knnrefine.engine.index3 import build_index3
-    from knnrefine.engine.initial import reach_factor
+    from knnrefine._domains.space.run import holds_k
+    from knnrefine._engine.driver3 import Refinement3, choose_grid3
+    from knnrefine._engine.index3 import build_index3
+    from knnrefine._engine.initial import reach_factor
 
     period = np.ones(3)
     index = build_index3(pts)
@@ -346,10 +346,10 @@ def test_every_untested_circumball_is_queued_at_one_of_its_corners(steps):
     its size class or a larger ball's, so none is forgotten; and the queue holds at most an
     entry per vertex beyond the initial mesh's (not one per tetrahedron). Then the run
     finishes certified."""
-    from knnrefine.engine.jit import python_entry
-    from knnrefine.engine.queue import N_CLASSES, size_class
-    from knnrefine.engine.refine import UNTESTED
-    from knnrefine.engine.refine3 import refine_steps3
+    from knnrefine._engine.jit import python_entry
+    from knnrefine._engine.queue import N_CLASSES, size_class
+    from knnrefine._engine.refine import UNTESTED
+    from knnrefine._engine.refine3 import refine_steps3
 
     classify = python_entry(size_class)
     pts = multiscale(20000, 13)
@@ -382,7 +382,7 @@ def test_mesh_independent_of_growth_policy(monkeypatch):
     tetrahedra was purged of stale entries as it grew, and an entry for a reused slot could
     test a new tetrahedron early). With a queue of vertices nothing refers to a capacity:
     growing by 1/64 from the smallest start gives the mesh that growing by 1/8 gives."""
-    from knnrefine.engine import driver3
+    from knnrefine._engine import driver3
 
     pts = multiscale(20000, 17)
     meshes = []
@@ -477,7 +477,7 @@ def test_restarting_the_32_bit_stamps_changes_nothing(monkeypatch):
     """The tetrahedra's marks are 32-bit stamps that the driver restarts past STAMP_LIMIT
     (clearing the marks but the free slots' and the link table): restarted after every
     call of 50 insertions, the run gives the same mesh, array for array."""
-    from knnrefine.engine import driver3
+    from knnrefine._engine import driver3
 
     pts = multiscale(4000, 19)
     want = knnrefine.refine(pts, 10, periodic=True, box=BOX)
@@ -505,7 +505,7 @@ def test_growing_in_place_keeps_the_rows_and_zero_fills():
     too."""
     from types import SimpleNamespace
 
-    from knnrefine.engine.state import Queue, _mapping, grow
+    from knnrefine._engine.state import Queue, _mapping, grow
 
     for rows in (6, 3_000_000):
         owner = SimpleNamespace(s=Queue(head=None, ident=None, aux=None, next=None,
@@ -547,7 +547,7 @@ def test_growing_without_mremap_or_mappings_copies(monkeypatch):
     from collections import namedtuple
     from types import SimpleNamespace
 
-    from knnrefine.engine import driver3, state
+    from knnrefine._engine import driver3, state
 
     def cannot(mm, nbytes):
         raise SystemError("mmap: resizing not available--no mremap()")
@@ -583,10 +583,10 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
     """run3.Start3 tries the default margin first and builds the data bound on max d_Pk (a
     kd-tree over all points) only if that torus cannot start; the bound is >= d_Pk at 20,000
     random points of the box (a brute kd-tree, straight metric)."""
-    from knnrefine.domains.space import run as api3
-    from knnrefine.engine.initial import reach_factor
-    from knnrefine.engine.interrupt import Interrupts
-    from knnrefine.options import RunOptions
+    from knnrefine._domains.space import run as api3
+    from knnrefine._engine.initial import reach_factor
+    from knnrefine._engine.interrupt import Interrupts
+    from knnrefine._options import RunOptions
 
     def start(pts, box, per, k, tau):
         opt = RunOptions.check(len(pts), None, lambda: box, lambda b, p: None, k=k, tau=tau,
@@ -627,7 +627,7 @@ def test_the_counting_index_is_freed_before_the_unfolding(monkeypatch, periodic)
     import gc
     import weakref
 
-    from knnrefine.domains.space import run as api3
+    from knnrefine._domains.space import run as api3
 
     refs, dead = [], []
     build, unfold = api3.build_index3, api3.unfold
@@ -657,7 +657,7 @@ def test_sweeps_count_in_bulk_and_change_no_move(kind):
     random, clustered and degenerate points (all on the torus' seam z = 0; each four
     times), and in uniform points they take a good part of the counting off the sequential
     path."""
-    from knnrefine.engine.state import C_CELL_TESTS, C_DISK_TESTS
+    from knnrefine._engine.state import C_CELL_TESTS, C_DISK_TESTS
 
     rng = np.random.default_rng(31)
     pts = rng.random((20000, 3)) if kind == "uniform" else multiscale(20000, 31)

@@ -91,8 +91,8 @@ def test_sphere_mesh_meets_the_guarantee_by_brute_force(name, k):
 
 def test_sphere_triangulation_is_the_convex_hull():
     """The engine's incremental insertion against qhull, vertex by vertex order kept."""
-    from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS
-    from knnrefine.engine.triangulation_sphere import (
+    from knnrefine._engine.state import C_NT, C_NV, N_COUNTERS
+    from knnrefine._engine.triangulation_sphere import (
         insert_points_sphere,
         new_sphere,
         new_sphere_scratch,
@@ -115,8 +115,8 @@ def test_sphere_triangulation_is_the_convex_hull():
 
 def test_sphere_insertion_too_close_to_a_vertex_is_refused():
     """A point within rounding of a vertex must not swallow it: refused, nothing changed."""
-    from knnrefine.engine.state import C_NT, C_NV, N_COUNTERS
-    from knnrefine.engine.triangulation_sphere import (
+    from knnrefine._engine.state import C_NT, C_NV, N_COUNTERS
+    from knnrefine._engine.triangulation_sphere import (
         insert_points_sphere,
         new_sphere,
         new_sphere_scratch,

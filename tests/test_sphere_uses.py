@@ -12,17 +12,17 @@ from test_sphere import haversine, uniform
 
 import knnrefine
 from knnrefine import io
+from knnrefine._metric import lonlat_of
 from knnrefine.cli.main import main
 from knnrefine.datasets import earthquakes
 from knnrefine.density import KnnDensity, KnnDistance
-from knnrefine.metric import lonlat_of
 
 RNG = np.random.default_rng(311)
 
 
 def vmf(n, mu_lonlat, kappa, rng):
     """n draws of the von Mises-Fisher distribution about mu (Wood's method on S^2)."""
-    mu = knnrefine.metric.unit_vectors(np.array([mu_lonlat], float))[0]
+    mu = knnrefine._metric.unit_vectors(np.array([mu_lonlat], float))[0]
     u = rng.random(n)
     w = 1.0 + np.log(u + (1.0 - u) * np.exp(-2.0 * kappa)) / kappa
     phi = rng.uniform(0, 2 * np.pi, n)
@@ -36,8 +36,8 @@ def vmf(n, mu_lonlat, kappa, rng):
 
 def vmf_pdf(lonlat, mu_lonlat, kappa):
     """Per steradian."""
-    x = knnrefine.metric.unit_vectors(np.asarray(lonlat, float))
-    mu = knnrefine.metric.unit_vectors(np.array([mu_lonlat], float))[0]
+    x = knnrefine._metric.unit_vectors(np.asarray(lonlat, float))
+    mu = knnrefine._metric.unit_vectors(np.array([mu_lonlat], float))[0]
     return kappa / (2 * np.pi * (1 - np.exp(-2 * kappa))) * np.exp(kappa * (x @ mu - 1))
 
 
@@ -404,7 +404,7 @@ def test_adaptive_leave_one_out_on_the_sphere_against_direct_sums():
     pts = np.concatenate([pts, pts[:5]])  # copies: left out with the point
     mesh = knnrefine.refine(pts, 60, sphere=True)
     a = SphereAdaptiveDensity(mesh, pts, bandwidth=1.2, sensitivity=0.3)
-    u = knnrefine.metric.unit_vectors(pts)
+    u = knnrefine._metric.unit_vectors(pts)
     d = a.pilot  # great-circle d_Pk at the points (radius 1): chords 2 sin(d / 2)
     chord = 2 * np.sin(d / 2)
     g = np.exp(np.mean(np.log(chord)))
@@ -445,7 +445,7 @@ def test_estimator_on_the_sphere():
     l1_knn = np.mean(np.abs(np.exp(knn.score_samples(probes)) / truth.pdf(probes) - 1))
     assert l1 < 0.1 and l1 < 0.7 * l1_knn, (l1, l1_knn)
     assert est.score(probes) > knn.score(probes)
-    unit = knnrefine.metric.unit_vectors(pts)
+    unit = knnrefine._metric.unit_vectors(pts)
     km = knnrefine.KnnDensityEstimator(sphere=True, radius=6371.0088).fit(unit)
     np.testing.assert_allclose(
         np.exp(km.score_samples(unit[:50])) * 6371.0088**2,

@@ -1,4 +1,4 @@
-"""Tiles in threads, stitched (``scale/shared.py``, ``engine/stitch.py``): the stitch against
+"""Tiles in threads, stitched (``scale/shared.py``, ``_engine/stitch.py``): the stitch against
 the mesh it should give back, its refusals, and the runs through it against certify."""
 
 import os
@@ -12,9 +12,9 @@ import pytest
 from conftest import as_tile, assert_certified, gaussian_clusters, simplices_of, uniform
 
 import knnrefine
-from knnrefine.engine import state as S
-from knnrefine.engine.driver import Refinement
-from knnrefine.engine.index import build_index
+from knnrefine._engine import state as S
+from knnrefine._engine.driver import Refinement
+from knnrefine._engine.index import build_index
 from knnrefine.scale import shared
 
 pytestmark = pytest.mark.usefixtures("tiles_always")  # the tiles at every size
@@ -225,7 +225,7 @@ def test_stitched_outradii_are_their_triangles_circumradii_bit_for_bit():
     and again. R(v)^2 is now the largest radius2 at v, bit for bit."""
     from conftest import DEGENERATE
 
-    from knnrefine.engine import driver
+    from knnrefine._engine import driver
 
     made = []
     init = driver.Refinement.__init__

@@ -1,4 +1,4 @@
-"""Slabs in threads, stitched, in space (``scale/shared.py``, ``engine/stitch3.py``): the
+"""Slabs in threads, stitched, in space (``scale/shared.py``, ``_engine/stitch3.py``): the
 stitch against the mesh it should give back, its refusals, and runs through it against
 certify (issue 32)."""
 
@@ -9,12 +9,12 @@ import pytest
 from conftest import as_tile, assert_certified, simplices_of
 
 import knnrefine
-from knnrefine.domains.space.run import holds_k
-from knnrefine.engine import state as S
-from knnrefine.engine.driver3 import Refinement3, choose_grid3
-from knnrefine.engine.index3 import build_index3
-from knnrefine.engine.initial import reach_factor
-from knnrefine.engine.triangulation3 import new_torus3, unpack_offsets, vertex_caches_from_tets3
+from knnrefine._domains.space.run import holds_k
+from knnrefine._engine import state as S
+from knnrefine._engine.driver3 import Refinement3, choose_grid3
+from knnrefine._engine.index3 import build_index3
+from knnrefine._engine.initial import reach_factor
+from knnrefine._engine.triangulation3 import new_torus3, unpack_offsets, vertex_caches_from_tets3
 from knnrefine.scale import shared
 
 pytestmark = pytest.mark.usefixtures("tiles_always")  # the slabs at every size
@@ -236,7 +236,7 @@ def test_settled_tetrahedra_are_found_by_another_tile_and_only_they():
     (``stitch3.settled_table3`` / ``take_settled3``): a second mesh of the same vertices,
     inserted in another order (other local ids), finds every tetrahedron of the first's
     settled table; one more vertex's tetrahedra are found in no table and stay untested."""
-    from knnrefine.engine.stitch3 import settled_table3, take_settled3
+    from knnrefine._engine.stitch3 import settled_table3, take_settled3
 
     pts = np.random.default_rng(3).random((3000, 3))
     period = np.ones(3)

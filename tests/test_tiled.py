@@ -1,4 +1,4 @@
-"""Tiled refinement (refine(..., workers=N), engine/tiles.py and partition.py) against the
+"""Tiled refinement (refine(..., workers=N), _engine/tiles.py and partition.py) against the
 same oracle as a run in one process: certify (the torus triangulation checked to be Delaunay
 in exact arithmetic, counts and ratios from scipy's cKDTree), and the mesh size against the
 single-process run's."""
@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import knnrefine
-from knnrefine.engine.region import in_rectangle
+from knnrefine._engine.region import in_rectangle
 from knnrefine.scale.tiled import strips
 
 pytestmark = pytest.mark.usefixtures("tiles_always")  # the tiles at every size
@@ -167,7 +167,7 @@ def test_margin_bands_hold_no_point_and_settle_the_margin():
     """regression (tiled non-periodic runs fetched every point for the last step): the bands
     outside the points' extent hold none of them, and a uniform periodic-in-x run settles
     everything without the points (the last step inserts nothing and fetches nothing)."""
-    from knnrefine.engine.embedding import Embedding
+    from knnrefine._engine.embedding import Embedding
     from knnrefine.scale.tiled import margin_bands
 
     X = uniform(60000)
@@ -189,9 +189,9 @@ def test_seeded_vertices_are_queued_again():
     """regression: queue_all kept the 'queued' flags of the initial mesh's vertices while it
     emptied the queues, so a seeded run (a tile, the last step) never looked at their cells
     again. After seeding and running, every cell has been tested."""
-    from knnrefine.engine import refine as R
-    from knnrefine.engine.driver import Refinement
-    from knnrefine.engine.index import build_index
+    from knnrefine._engine import refine as R
+    from knnrefine._engine.driver import Refinement
+    from knnrefine._engine.index import build_index
 
     X = uniform(20000)
     run = Refinement(build_index(X.copy()), 10, 1.0, 1.0, 3.0, 0.0, 10**6)
@@ -232,10 +232,10 @@ def test_tiled_run_with_every_point_on_two_lines_at_four_workers_certifies():
 def test_a_region_of_width_zero_holds_no_element():
     """regression: the engine read a region of width 0 as "no region" (the whole torus). A
     run whose region has width 0 inserts nothing; one without a region (NO_REGION) refines."""
-    from knnrefine.engine import refine as R
-    from knnrefine.engine.driver import Refinement
-    from knnrefine.engine.index import build_index
-    from knnrefine.engine.state import NO_REGION, P_REGION_H, P_REGION_W, P_REGION_X0
+    from knnrefine._engine import refine as R
+    from knnrefine._engine.driver import Refinement
+    from knnrefine._engine.index import build_index
+    from knnrefine._engine.state import NO_REGION, P_REGION_H, P_REGION_W, P_REGION_X0
 
     X = uniform(5000)
     empty = Refinement(build_index(X.copy()), 10, 1.0, 1.0, 3.0, 0.0, 10**6)
@@ -392,7 +392,7 @@ def test_slabs_interleave_and_balance_the_points_in_space():
     """Each set of slabs tiles the torus across its longest period and spans the others;
     each holds about 1 / T of the points; every border of one set lies strictly inside a
     slab of the other."""
-    from knnrefine.engine.region3 import in_box3
+    from knnrefine._engine.region3 import in_box3
     from knnrefine.scale.tiled import regions_axis
 
     period = np.array([0.6, 0.9, 0.5])
@@ -415,11 +415,11 @@ def test_a_seeded_run_in_space_rebuilds_the_mesh_and_finds_nothing_to_do():
     a finished run in space, seeded into a fresh run from the same initial mesh, give the
     same vertices and as many tetrahedra, and running it inserts nothing; a vertex given
     twice is skipped, and with a region of width 0 a run inserts nothing."""
-    from knnrefine.domains.space.run import holds_k
-    from knnrefine.engine.driver3 import Refinement3, choose_grid3
-    from knnrefine.engine.index3 import build_index3
-    from knnrefine.engine.initial import reach_factor
-    from knnrefine.engine.state import C_NT, STATUS_DONE
+    from knnrefine._domains.space.run import holds_k
+    from knnrefine._engine.driver3 import Refinement3, choose_grid3
+    from knnrefine._engine.index3 import build_index3
+    from knnrefine._engine.initial import reach_factor
+    from knnrefine._engine.state import C_NT, STATUS_DONE
 
     X = gaussian_clusters(8000, seed=8, clusters=6, dim=3)
     period = np.ones(3)

@@ -7,13 +7,13 @@ import oracle
 import pytest
 
 import knnrefine
-from knnrefine.domains.plane.certify import verify_triangulation
-from knnrefine.engine import driver, geometry, triangulation
-from knnrefine.engine.geometry import Q
-from knnrefine.engine.index import build_index
-from knnrefine.engine.jit import python_entry
-from knnrefine.engine.state import C_NT, C_NV, INSERT_NOT_IN_SEED
-from knnrefine.engine.triangulation import circumcentres
+from knnrefine._domains.plane.certify import verify_triangulation
+from knnrefine._engine import driver, geometry, triangulation
+from knnrefine._engine.geometry import Q
+from knnrefine._engine.index import build_index
+from knnrefine._engine.jit import python_entry
+from knnrefine._engine.state import C_NT, C_NV, INSERT_NOT_IN_SEED
+from knnrefine._engine.triangulation import circumcentres
 
 snap = python_entry(geometry.snap)
 in_circumcircle = python_entry(triangulation.in_circumcircle)

@@ -10,11 +10,11 @@ import pytest
 from numba import njit
 from scipy.spatial import cKDTree
 
-from knnrefine.engine import predicates3
-from knnrefine.engine.geometry import Q
-from knnrefine.engine.initial import face_neighbours, initial_grid3
-from knnrefine.engine.jit import python_entry
-from knnrefine.engine.triangulation3 import (
+from knnrefine._engine import predicates3
+from knnrefine._engine.geometry import Q
+from knnrefine._engine.initial import face_neighbours, initial_grid3
+from knnrefine._engine.jit import python_entry
+from knnrefine._engine.triangulation3 import (
     circumspheres,
     insert_largest3,
     insert_points3,

@@ -8,10 +8,10 @@ import pytest
 from conftest import unit_box
 
 import knnrefine
+from knnrefine._engine import index as engine_index
+from knnrefine._engine.index import LEAF_SIZE, STACK_SIZE, build_index
+from knnrefine._engine.jit import python_entry
 from knnrefine.density import KnnDensity, KnnDistance
-from knnrefine.engine import index as engine_index
-from knnrefine.engine.index import LEAF_SIZE, STACK_SIZE, build_index
-from knnrefine.engine.jit import python_entry
 from knnrefine.errors import InputError
 
 count_in_disk = python_entry(engine_index.count_in_disk)
@@ -256,7 +256,7 @@ def test_a_heavy_point_does_not_swallow_light_ones():
                 cells.setdefault(v, []).append(w[p])
     assert max(math.fsum(c) for c in cells.values()) < k
     # d_Pk by exact sums in distance order, against certify's (compensated) one
-    from knnrefine.domains.plane.certify import Points as TorusPoints
+    from knnrefine._domains.plane.certify import Points as TorusPoints
 
     d, i = tree.query(local, k=len(pts))
     exact = [d[p][next(j for j in range(len(pts)) if math.fsum(w[i[p][: j + 1]]) >= k)]
@@ -272,7 +272,7 @@ def test_a_heavy_point_does_not_swallow_light_ones_in_space():
 
     from scipy.spatial import cKDTree
 
-    from knnrefine.domains.space.certify import _circumspheres
+    from knnrefine._domains.space.certify import _circumspheres
 
     pts = np.random.default_rng(0).random((300, 3))
     w = np.ones(300)

@@ -11,10 +11,10 @@ from concurrent.futures import Executor
 import numpy as np
 from numpy.typing import ArrayLike
 
-from . import pipeline
-from . import validation as V
+from . import _pipeline as pipeline
+from . import _validation as V
+from ._domains import domain_of
 from .certify import Certificate
-from .domains import domain_of
 from .errors import InputError
 from .mesh import Mesh
 
@@ -114,7 +114,7 @@ def refine(
         pay, all counting in one index of all points (the kernels release the GIL): from
         ``scale.tiled.TILES_FROM`` points on (2 x 10^6 in the plane, 3 x 10^5 in space), N
         strips of the torus (slabs in space), balanced by point count, each refining only
-        what lies inside it (``engine/region.py``), then a seam at each cut, in turns, each
+        what lies inside it (``_engine/region.py``), then a seam at each cut, in turns, each
         tile keeping its mesh and inserting only the others' vertices near it; the meshes
         are stitched into one triangulation (checked: every facet has its twin) and one last
         run finishes what no tile could decide (docs/algorithm.md, "In threads, stitched":

@@ -46,12 +46,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ._domains import part
+from ._engine.superlevel import superlevel_noise
+from ._metric import BoxMetric
 from .density.estimate import unit_ball_volume
-from .domains import part
-from .engine.superlevel import superlevel_noise
 from .errors import InputError
 from .mesh import cell_edges
-from .metric import BoxMetric
 from .topology import require_gudhi
 
 

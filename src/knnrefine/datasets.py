@@ -5,7 +5,7 @@ from importlib import resources
 
 import numpy as np
 
-from .validation import random_generator
+from ._validation import random_generator
 
 TRP_BOX = (0.0, 0.0, 360.0, 360.0)
 QUAKES_BOX = (-180.0, -90.0, 180.0, 90.0)

@@ -28,9 +28,9 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
+from ._validation import check_radius
 from .errors import InputError
 from .mesh import Mesh, Torus
-from .validation import check_radius
 
 FORMAT_VERSION = 2  # 2: one layout for the plane and space (cells); 1 is still read
 # what NumPy raises on a truncated or corrupted .npy / .npz (a zip of .npy members, each

@@ -9,11 +9,11 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .engine.raster import clip_triangles
-from .engine.state import KIND_NAMES  # how each vertex came: the insertion moves
+from ._engine.raster import clip_triangles
+from ._engine.state import KIND_NAMES  # how each vertex came: the insertion moves
+from ._metric import BoxMetric, chord_to_angle, unit_vectors
+from ._validation import answerable, as_queries
 from .errors import InputError
-from .metric import BoxMetric, chord_to_angle, unit_vectors
-from .validation import answerable, as_queries
 
 SPHERE_EXTENT = (-180.0, -90.0, 180.0, 90.0)  # a sphere mesh's coordinates: lon/lat degrees
 
@@ -239,7 +239,7 @@ class Torus(Cells):
     plane or in space (the dimension is ``vertices.shape[1]``).
 
     In a periodic box it is the mesh itself; along non-periodic axes the box sits inside it
-    with a margin (see ``knnrefine.engine.embedding``). ``vertices`` are relative to
+    with a margin (see ``knnrefine._engine.embedding``). ``vertices`` are relative to
     ``origin`` (in [0, period), exact, so that they keep full precision whatever the offset
     of the data); corner i of cell t sits at ``origin + vertices[cells[t, i]] + offsets[t, i]
     * period``, and ``neighbours[t, i]`` (kept in the plane, None in space) is the cell across
@@ -598,7 +598,7 @@ def lonlat_pieces(xyz, triangles):
     the quadrilateral a, b, (lon b, +-90), (lon a, +-90), where the pole is a line in these
     coordinates. Edges are straight in longitude and latitude (GeoJSON's rule; the
     triangles are small)."""
-    from .metric import lonlat_of
+    from ._metric import lonlat_of
 
     xyz = np.asarray(xyz, float)
     tri = np.asarray(triangles, np.int64)

@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._metric import BoxMetric, lonlat_of, unit_vectors
+from ._validation import as_sphere_points
 from .errors import InputError
 from .mesh import edges
-from .metric import BoxMetric, lonlat_of, unit_vectors
-from .validation import as_sphere_points
 
 if TYPE_CHECKING:
     from .mesh import Mesh

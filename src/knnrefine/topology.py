@@ -22,10 +22,10 @@ from itertools import combinations
 
 import numpy as np
 
-from .domains import part
+from ._domains import part
+from ._metric import BoxMetric
+from ._validation import as_points
 from .errors import InputError
-from .metric import BoxMetric
-from .validation import as_points
 
 
 def require_gudhi():

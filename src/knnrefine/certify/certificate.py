@@ -8,7 +8,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ..metric import BoxMetric
+from .._metric import BoxMetric
 
 
 @dataclass

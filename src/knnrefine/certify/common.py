@@ -7,9 +7,9 @@ the mesh's (``checked_points``). Weighted counts from kd-trees are
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
-from ..validation import as_points, check_inside, check_made_from, weights_of_run
 from .certificate import floor_sites, to_input
 
 

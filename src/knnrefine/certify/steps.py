@@ -22,7 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..validation import random_generator
+from .._validation import random_generator
 from .certificate import Certificate
 
 # the triangulation as a geometry checked it: its problems, each cell's circumcentre and

@@ -33,6 +33,7 @@ def run(args):
     import os
 
     from .. import io
+    from .._validation import default_k
     from ..cluster import cluster
     from ..plot import (
         MAP_PROJECTION,
@@ -43,7 +44,6 @@ def run(args):
         space_figure_size,
     )
     from ..topology import require_gudhi
-    from ..validation import default_k
     from .common import PICTURES, check_outputs, dim_of, plural, read_input
 
     outputs = [(args.output, (".csv", ".npy"), "labels")] if args.output else []

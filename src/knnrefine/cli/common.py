@@ -7,8 +7,8 @@ import sys
 import time
 import warnings
 
+from .._options import ProgressBar
 from ..errors import InputError, KnnRefineError
-from ..options import ProgressBar
 
 PICTURES = (".png", ".svg", ".pdf")
 MESHES = (".npz", ".vtu", ".vtk", ".xdmf", ".geojson", ".csv")
@@ -238,14 +238,14 @@ def periodic_of(args):
 def announce_compilation(quiet, domain="plane"):
     """Say so when the kernels of ``domain`` ("plane", "space" or "sphere") are about to be
     compiled (the first run: 10-60 s, once)."""
-    from ..engine.jit import is_ready
+    from .._engine.jit import is_ready
 
     if domain == "sphere":
-        from ..engine.refine_sphere import refine_steps_sphere as steps
+        from .._engine.refine_sphere import refine_steps_sphere as steps
     elif domain == "space":
-        from ..engine.refine3 import refine_steps3 as steps
+        from .._engine.refine3 import refine_steps3 as steps
     else:
-        from ..engine.refine import refine_steps as steps
+        from .._engine.refine import refine_steps as steps
 
     if not quiet and not is_ready(steps):
         print(

@@ -140,6 +140,7 @@ def _check_smoothing(args):
 
 def run(args):
     from .. import io
+    from .._validation import check_weights
     from ..density import (
         BANDWIDTHS,
         SENSITIVITIES,
@@ -158,7 +159,6 @@ def run(args):
         save_figure,
         space_figure_size,
     )
-    from ..validation import check_weights
     from .common import (
         PICTURES,
         UsageError,

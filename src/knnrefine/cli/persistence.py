@@ -29,9 +29,9 @@ def add_arguments(parser):
 
 def run(args):
     from .. import io
+    from .._validation import default_k
     from ..plot import plot_diagram, save_figure
     from ..topology import Persistence, require_gudhi
-    from ..validation import default_k
     from .common import PICTURES, check_outputs, dim_of, plural, read_input
 
     outputs = [(args.output, (".csv",), "diagrams")] if args.output else []

@@ -4,15 +4,14 @@ sensitivity by cross-validation (``choose_smoothing``)."""
 
 import numpy as np
 
-from ..domains.sphere.density import equal_area_radius
-from ..engine import kernelsum, kernelsum3, lattice
-from ..engine.binned import BinnedSums
-from ..engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  # plane
-from ..engine.lattice import plan_levels, read_grid
-from ..engine.threads import in_chunks
-from ..errors import InputError
-from ..metric import BoxMetric, lonlat_of, unit_vectors
-from ..validation import (
+from .._domains.sphere.density import equal_area_radius
+from .._engine import kernelsum, kernelsum3, lattice
+from .._engine.binned import BinnedSums
+from .._engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  # plane
+from .._engine.lattice import plan_levels, read_grid
+from .._engine.threads import in_chunks
+from .._metric import BoxMetric, lonlat_of, unit_vectors
+from .._validation import (
     as_points,
     as_queries,
     check_in_a_box,
@@ -20,6 +19,7 @@ from ..validation import (
     sphere_points_of_run,
     weights_of_run,
 )
+from ..errors import InputError
 from .estimate import KnnDensity, unit_ball_volume
 
 

@@ -37,8 +37,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
+from .. import _pipeline as pipeline
+from .._validation import as_points, check_box, check_k, random_generator
 from ..errors import BudgetError, InputError
-from ..validation import as_points, check_box, check_k, random_generator
 
 MESH_K = 80  # "auto": the mesh from this k on at n = 10^5 points and 10^6 queries (space)
 METHODS = ("auto", "mesh", "monte-carlo")
@@ -201,7 +202,7 @@ def _check_mesh_memory(n, k, dim, periodic):
     """InputError, before any work, when the mesh's way at k would need more than half of
     this machine's memory (``size.expected_vertices`` vertices at MESH_BYTES_PER_VERTEX),
     saying which options do the job instead."""
-    from ..engine import size
+    from .._engine import size
 
     vertices = size.expected_vertices(n, k, dim) * (1.0 if periodic else ORDINARY_BOX)
     need = vertices * MESH_BYTES_PER_VERTEX
@@ -219,7 +220,6 @@ def _check_mesh_memory(n, k, dim, periodic):
 def _by_mesh(pts, k, r, lo, hi, periodic, q, exact):
     """(CDF, its 95% half-band, rigorous bounds, vertices) at radii r by the mesh at k with
     the control sample q (exact d_{P,k} there: ``exact``)."""
-    from .. import pipeline
     from .distance import KnnDistance
 
     try:

@@ -21,15 +21,15 @@ if TYPE_CHECKING:  # the annotations' types only
 
 import numpy as np
 
-from ..domains import part
-from ..domains.plane.density import Pieces as PlanePieces
-from ..domains.space.density import Pieces as SpacePieces
-from ..engine.embedding import wrap_offsets
-from ..errors import InputError
-from ..validation import (
+from .._domains import part
+from .._domains.plane.density import Pieces as PlanePieces
+from .._domains.space.density import Pieces as SpacePieces
+from .._engine.embedding import wrap_offsets
+from .._validation import (
     as_queries,
     random_generator,
 )
+from ..errors import InputError
 
 
 class MeshFrame(Protocol):

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from ..validation import default_k  # noqa: F401  (the rule lives with the validation of k)
+from .._validation import default_k  # noqa: F401  (the rule lives with the validation of k)
 from .distance import KnnDistance
 
 

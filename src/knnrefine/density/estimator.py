@@ -9,9 +9,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import InputError
-from ..metric import lonlat_of, unit_vectors
-from ..validation import (
+from .. import _pipeline as pipeline
+from .._metric import lonlat_of, unit_vectors
+from .._validation import (
     as_points,
     as_queries,
     as_sphere_points,
@@ -20,6 +20,7 @@ from ..validation import (
     default_box,
     random_generator,
 )
+from ..errors import InputError
 from .adaptive import (
     BANDWIDTHS,
     SENSITIVITIES,
@@ -406,8 +407,7 @@ class KnnDensityEstimator:
     def _estimate(self, pts, weights, box, k):
         """(density, mesh) at this k: the kNN estimate, or the adaptive one with its
         bandwidth given or chosen by leave-one-out likelihood (recording the curve)."""
-        from .. import pipeline
-        from ..options import Progress
+        from .._options import Progress
 
         if self.sphere:
             mesh = pipeline.refine(pts, k, self.tau, weights=weights, radius=self.radius,

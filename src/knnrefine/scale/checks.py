@@ -9,11 +9,11 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._domains import part
+from .._metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
 from ..certify import steps
 from ..certify.certificate import Certificate
 from ..certify.common import check_source, checked_points
-from ..domains import part
-from ..metric import TorusFrame, cell_tally, held_in_balls, weighted_kth
 from .tiled import SAMPLE_MIN, LocalStore, regions_axis, split_strips, strip_owner, strips
 
 

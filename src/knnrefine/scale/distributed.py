@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .. import validation as V
+from .. import _validation as V
+from .._options import RunOptions
 from ..errors import InputError
-from ..options import RunOptions
 from .parts import check_output, write_partitioned
 from .tiled import canonical, refine_store, run_tile, sample_keys, split_strips, tile_index
 

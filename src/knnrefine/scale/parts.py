@@ -35,19 +35,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from ..density.distance import KnnDistance, grid_shape
-from ..density.estimate import KnnDensity
-from ..domains import part
-from ..domains.plane.density import index_values, midpoints, node_guesses
-from ..domains.space.density import Index as SpaceIndex
-from ..domains.space.density import Pieces as SpacePieces
-from ..domains.space.density import grid3, nodes3
-from ..engine.raster import rasterise
-from ..errors import InputError
-from ..io import UNREADABLE, unreadable
-from ..mesh import Mesh, Torus, circumspheres, split_in_four
-from ..metric import BoxMetric
-from ..validation import (
+from .._domains import part
+from .._domains.plane.density import index_values, midpoints, node_guesses
+from .._domains.space.density import Index as SpaceIndex
+from .._domains.space.density import Pieces as SpacePieces
+from .._domains.space.density import grid3, nodes3
+from .._engine.raster import rasterise
+from .._metric import BoxMetric
+from .._validation import (
     answerable,
     as_points,
     as_queries,
@@ -56,6 +51,11 @@ from ..validation import (
     random_generator,
     weights_of_run,
 )
+from ..density.distance import KnnDistance, grid_shape
+from ..density.estimate import KnnDensity
+from ..errors import InputError
+from ..io import UNREADABLE, unreadable
+from ..mesh import Mesh, Torus, circumspheres, split_in_four
 
 FORMAT_VERSION = 2  # 2: each part also lists the others' triangles meeting its strip
 FINISHED = "_SUCCESS"
@@ -299,7 +299,7 @@ class PartitionedMesh:
 
     @property
     def domain(self) -> str:
-        """The box domain of its dimension, plane or space (``knnrefine.domains``)."""
+        """The box domain of its dimension, plane or space (``knnrefine._domains``)."""
         return "plane" if len(self.periodic) == 2 else "space"
 
     @property

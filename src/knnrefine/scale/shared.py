@@ -7,7 +7,7 @@ the initial mesh, the strips, a coarse pass), then:
   its own mesh, all of them counting in one index of all points (the kernels release the
   GIL). The plan's second set of cuts is used: inner quantiles of the data, so a margin
   lies inside a strip. A tile keeps its mesh from turn to turn.
-* **Seams.** What a strip left (elements crossing its borders: ``engine/region.py``'s rule,
+* **Seams.** What a strip left (elements crossing its borders: ``_engine/region.py``'s rule,
   ``region3.py`` in space) lies near the N cuts. Each cut gets a seam, SEAM_SIZES times the
   largest element the strips settled near it (``stitch.largest_near``), refined by a tile
   of its own from the vertices near it. Seams and strips then take turns, each first
@@ -21,7 +21,7 @@ the initial mesh, the strips, a coarse pass), then:
   beside them do not (a margin as wide as the largest element near a cut took every
   vertex of a plane of points in space into every tile).
 * **Stitch.** The run's Delaunay triangulation is the union of the tiles' shares
-  (``engine/stitch.py``, ``engine/stitch3.py``): the cores of the strips and seams (the
+  (``_engine/stitch.py``, ``_engine/stitch3.py``): the cores of the strips and seams (the
   middle half of each seam) partition the torus, margins included, and each simplex is
   handed in by the tile whose core holds its corner of lowest id, whose star there is the
   run's. The join is checked (each facet has one twin; 2 m triangles on the torus, the
@@ -39,25 +39,25 @@ import time
 
 import numpy as np
 
-from ..domains import part
-from ..engine import ahead
-from ..engine import state as S
-from ..engine.driver import Refinement
-from ..engine.driver3 import Refinement3
-from ..engine.interrupt import Interrupts
-from ..engine.stitch import hand_in, largest_near, owned_triangles
-from ..engine.stitch3 import (
+from .._domains import part
+from .._engine import ahead
+from .._engine import state as S
+from .._engine.driver import Refinement
+from .._engine.driver3 import Refinement3
+from .._engine.interrupt import Interrupts
+from .._engine.stitch import hand_in, largest_near, owned_triangles
+from .._engine.stitch3 import (
     hand_in3,
     largest_near3,
     owned_tetrahedra,
     settled_table3,
     take_settled3,
 )
-from ..engine.threads import run_all
-from ..engine.triangulation3 import unpack_offsets
+from .._engine.threads import run_all
+from .._engine.triangulation3 import unpack_offsets
+from .._options import Progress
 from ..errors import EngineError
 from ..mesh import Mesh
-from ..options import Progress
 from .tiled import (
     LocalStore,
     ThreadStore,

@@ -1,5 +1,5 @@
 """A tiled run: its plan from a sample, its rounds of strips, and the last step (the rule
-that makes the union of the tiles' moves a kNNRefine run is ``engine/region.py``'s).
+that makes the union of the tiles' moves a kNNRefine run is ``_engine/region.py``'s).
 
 * The sample: the points whose key (``sample_keys``, a hash of their coordinates' bits) is
   below a fraction. It is the same set whatever the partitioning of the input (a NumPy
@@ -31,24 +31,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..domains import part
-from ..engine import ahead, size
-from ..engine import state as S
-from ..engine.driver import Refinement
-from ..engine.driver3 import Refinement3
-from ..engine.embedding import Embedding
-from ..engine.geometry import FLOOR_BITS
-from ..engine.index import build_index
-from ..engine.index3 import build_index3
-from ..engine.initial import reach_factor
-from ..engine.interrupt import Interrupts
-from ..engine.jit import kernel
-from ..engine.region import in_rectangle
-from ..engine.region3 import in_box3
-from ..engine.threads import in_chunks
+from .._domains import part
+from .._engine import ahead, size
+from .._engine import state as S
+from .._engine.driver import Refinement
+from .._engine.driver3 import Refinement3
+from .._engine.embedding import Embedding
+from .._engine.geometry import FLOOR_BITS
+from .._engine.index import build_index
+from .._engine.index3 import build_index3
+from .._engine.initial import reach_factor
+from .._engine.interrupt import Interrupts
+from .._engine.jit import kernel
+from .._engine.region import in_rectangle
+from .._engine.region3 import in_box3
+from .._engine.threads import in_chunks
+from .._options import Progress, vertex_budget
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
-from ..options import Progress, vertex_budget
 
 MAX_ROUNDS = 6  # rounds of strips before the final pass takes whatever is left
 COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the points ...
@@ -415,7 +415,7 @@ def run_rounds(store, sets, xy, kinds, common, expected, m0_count, progress, int
 
 
 def check_seams(regions, inserted, period):
-    """The premise of a round (``engine/region.py``), checked on what it returned: the strips
+    """The premise of a round (``_engine/region.py``), checked on what it returned: the strips
     of the set tile the period (positive widths, in order, adding up to it), and every
     vertex a tile inserted lies in its own strip (at the centre of a ball inside it, so at
     most within rounding of its border). EngineError otherwise: no mesh is made from the

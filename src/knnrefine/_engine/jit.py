@@ -129,7 +129,7 @@ class InternalKernel(Kernel):
         raise TypeError(
             f"{self.py_func.__module__}.{self.py_func.__name__} is an internal engine kernel, "
             "compiled to be called from other kernels only; call it through "
-            "knnrefine.engine.jit.python_entry(kernel) from Python"
+            "knnrefine._engine.jit.python_entry(kernel) from Python"
         )
 
 
@@ -148,7 +148,7 @@ def kernel(entry=False, lazy=False, **options):
     nowhere to keep compiled code. ``entry``: the kernel is called from Python (see the module
     docstring); otherwise only from other kernels. ``lazy`` (entry kernels only): numba sees
     the function at its first call, not at import, so that a module of rarely used kernels
-    outside ``engine/`` (whose ``__pycache__`` a read-only install may ship without them)
+    outside ``_engine/`` (whose ``__pycache__`` a read-only install may ship without them)
     imports without a ``KernelCacheWarning``."""
     if lazy:
         return lambda func: _LazyKernel(func, options)
@@ -212,7 +212,7 @@ _fingerprint: list = []
 
 def sources_fingerprint(root=PACKAGE):
     """A hash, by relative path and content, of the source files under ``root`` that a
-    compiled kernel may hold code or constants of: every file of ``engine/`` and every
+    compiled kernel may hold code or constants of: every file of ``_engine/`` and every
     other file that defines kernels (``@kernel``)."""
     if root == PACKAGE and _fingerprint:
         return _fingerprint[0]
@@ -223,7 +223,7 @@ def sources_fingerprint(root=PACKAGE):
             path = os.path.join(folder, name)
             with open(path, "rb") as f:
                 text = f.read()
-            if b"@kernel" in text or os.path.basename(folder) == "engine":
+            if b"@kernel" in text or os.path.basename(folder) == "_engine":
                 digest.update(os.path.relpath(path, root).encode() + b"\0" + text + b"\0")
     value = digest.hexdigest()
     if root == PACKAGE:

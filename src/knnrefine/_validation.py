@@ -6,8 +6,8 @@ import warnings
 
 import numpy as np
 
+from ._metric import unit_vectors
 from .errors import InputError, WrapWarning
-from .metric import unit_vectors
 
 # squared distances of coordinates up to 1e100 stay far from overflow and underflow
 MAX_COORDINATE = 1e100
@@ -514,7 +514,7 @@ def check_resolution(box, per):
     """The box must be wide compared with the spacing of doubles at its coordinates: the
     engine works on a grid no finer than that spacing (so that every vertex is returned
     exactly), and its resolution floor is 2^14 grid steps."""
-    from .engine.embedding import Embedding
+    from ._engine.embedding import Embedding
 
     emb = Embedding.make(box, per)
     step = emb.grid / emb.scale

@@ -132,7 +132,7 @@ def disk_in_rectangle(cx, cy, r, x0, y0, w, h, prm):
 
 @kernel(inline="always")
 def in_region(cx, cy, r, prm):
-    """True when the closed disk (cx, cy, r) lies in the tile's region (``engine/region.py``): a
+    """True when the closed disk (cx, cy, r) lies in the tile's region (``_engine/region.py``): a
     tile decides only elements whose every count and every neighbour it knows. Always true
     without a region (a whole run: w = NO_REGION), never for a region of width 0."""
     w = prm[P_REGION_W]

@@ -19,6 +19,7 @@ from fractions import Fraction
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..._metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
 from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
@@ -28,7 +29,6 @@ from ...certify.common import (
 )
 from ...certify.steps import Probes, Triangulation
 from ...mesh import circumcircles, triangle_areas, uniform_in_triangles
-from ...metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
 
 
 class Geometry(TorusGeometry):

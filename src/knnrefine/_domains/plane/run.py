@@ -8,13 +8,13 @@ import time
 
 import numpy as np
 
-from ...engine import ahead, size
-from ...engine import state as S
-from ...engine.driver import Refinement
-from ...engine.embedding import Embedding, diameter, unfold, wrap
-from ...engine.geometry import FLOOR_BITS
-from ...engine.index import PointIndex, build_index, mark_in_disks
-from ...engine.initial import (
+from ..._engine import ahead, size
+from ..._engine import state as S
+from ..._engine.driver import Refinement
+from ..._engine.embedding import Embedding, diameter, unfold, wrap
+from ..._engine.geometry import FLOOR_BITS
+from ..._engine.index import PointIndex, build_index, mark_in_disks
+from ..._engine.initial import (
     candidate_grids,
     choose_initial_mesh,
     largest_passing,
@@ -22,10 +22,10 @@ from ...engine.initial import (
     reach_factor,
     refusal_message,
 )
-from ...engine.interrupt import Interrupts
+from ..._engine.interrupt import Interrupts
+from ..._options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 from ...errors import BudgetError, InputError
 from ...mesh import Mesh, Stats, Torus
-from ...options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 
 
 def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, RunOptions]:

@@ -16,10 +16,10 @@ pi (chord)^2 (Archimedes), through ``equal_area_radius``.
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..._metric import chord_to_angle, lonlat_of, unit_vectors, weighted_kth
+from ..._validation import answerable as answerable_on_sphere
+from ..._validation import sphere_points_of_run
 from ...mesh import TRIANGLE_RULE_POINTS, TRIANGLE_RULE_WEIGHTS, edges, split_in_four
-from ...metric import chord_to_angle, lonlat_of, unit_vectors, weighted_kth
-from ...validation import answerable as answerable_on_sphere
-from ...validation import sphere_points_of_run
 
 CANDIDATES = (8, 32)  # pieces tried per query, by the nearest centroids, before all of them
 

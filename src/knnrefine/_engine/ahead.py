@@ -18,7 +18,7 @@ cache (nothing to share), on one core or with ``KNNREFINE_THREADS=1`` (``threads
 without a Python interpreter to start (a frozen application), or with
 ``KNNREFINE_COMPILE_AHEAD=0``.
 
-``ahead.json`` is written by ``python -c "from knnrefine.engine import ahead; ahead.record()"``
+``ahead.json`` is written by ``python -c "from knnrefine._engine import ahead; ahead.record()"``
 (after a change to these kernels' arguments; a first call in
 each domain in a fresh process with an empty cache, reading the signatures numba compiled);
 ``tests/test_ahead.py`` checks that a run compiles exactly those signatures.
@@ -44,7 +44,7 @@ MANIFEST = os.path.join(os.path.dirname(os.path.abspath(__file__)), "ahead.json"
 ENV = "KNNREFINE_COMPILE_AHEAD"
 WAIT_LIMIT = 120.0  # seconds after the helper's start that the caller waits for it at most
 
-# the helper's kernels, in its order ("module:name" in knnrefine.engine): the costliest the
+# the helper's kernels, in its order ("module:name" in knnrefine._engine): the costliest the
 # refinement loop calls (compiled while the caller builds the index and the initial mesh),
 # then those that assemble the mesh after the loop (while the caller compiles the loop)
 AHEAD = {
@@ -71,7 +71,7 @@ RECORD_CALLS = {
 
 
 def kernel_named(name):
-    """The dispatcher "module:name" of ``knnrefine.engine``."""
+    """The dispatcher "module:name" of ``knnrefine._engine``."""
     module, attr = name.split(":")
     return getattr(importlib.import_module(f"{__package__}.{module}"), attr)
 
@@ -213,13 +213,13 @@ def run_helper(domain, folder):
             pass
 
 
-HELPER = "import sys; from knnrefine.engine.ahead import run_helper; run_helper(*sys.argv[1:])"
+HELPER = "import sys; from knnrefine._engine.ahead import run_helper; run_helper(*sys.argv[1:])"
 
 RECORDER = """
 import json, sys
 import numpy as np
 import knnrefine
-from knnrefine.engine import ahead
+from knnrefine._engine import ahead
 {call}
 out = []
 for name in ahead.AHEAD[{domain!r}]:

@@ -19,9 +19,9 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ._domains import domain_of, part
 from .certify import steps
 from .certify.certificate import Certificate
-from .domains import domain_of, part
 from .mesh import Mesh
 
 

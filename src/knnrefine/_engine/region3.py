@@ -1,4 +1,4 @@
-"""Partitioned refinement in space: the plane's rule (``engine/region.py``) one dimension up.
+"""Partitioned refinement in space: the plane's rule (``_engine/region.py``) one dimension up.
 
 A tile with region R (a box of the 3-torus) moves only for an element inside R: a
 tetrahedron whose closed circumball is in R, or a vertex v whose ball of radius 2 R(v) is in R

@@ -334,7 +334,7 @@ class Refinement(TileRun):
                 break
         return S.STATUS_STEPS
 
-    # -- a tile of a tiled run (``engine/region.py``; the same methods as ``Refinement3``) --
+    # -- a tile of a tiled run (``_engine/region.py``; the same methods as ``Refinement3``) --
 
     @property
     def period(self):

@@ -7,9 +7,9 @@ Dunavant's 7-point rule on triangles clipped to rectangles, and sampled by rejec
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ...engine.index import PointIndex
-from ...engine.raster import clip_triangles, fans, rasterise, walk_to
-from ...engine.threads import in_chunks
+from ..._engine.index import PointIndex
+from ..._engine.raster import clip_triangles, fans, rasterise, walk_to
+from ..._engine.threads import in_chunks
 from ...mesh import (
     TRIANGLE_RULE_POINTS,
     TRIANGLE_RULE_WEIGHTS,

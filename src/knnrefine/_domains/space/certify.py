@@ -5,7 +5,7 @@ embedding torus along the others; the bounds in the box's own metric).
 The tetrahedralisation is checked exactly in the mesh's own frame (vertices relative to the
 box's corner, exact): its faces are matched again from the corners and offsets, every
 tetrahedron is positively oriented and locally Delaunay (the exact predicates of
-``engine/predicates3.py``, themselves tested against rational arithmetic), and the volumes
+``_engine/predicates3.py``, themselves tested against rational arithmetic), and the volumes
 add up to the torus' once. Counts come from scipy's cKDTree with the box as its periods:
 points in every closed circumball and in every closed Voronoi cell (each point counting for
 every vertex as near as its nearest), below k except for elements smaller than the
@@ -25,6 +25,9 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
+from ..._engine.predicates3 import insphere, orient3d
+from ..._metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
 from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
@@ -34,9 +37,6 @@ from ...certify.common import (
     sorted_rows,
 )
 from ...certify.steps import Probes, Triangulation
-from ...engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from ...engine.predicates3 import insphere, orient3d
-from ...metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
 
 
 @kernel(entry=True, lazy=True)

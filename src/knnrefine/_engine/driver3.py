@@ -246,7 +246,7 @@ class Refinement3(TileRun):
         (``triangulation3``)."""
         return np.sqrt(np.abs(self.mesh.outradius2[: self.vertices]))
 
-    # -- a tile of a tiled run (``engine/region3.py``; the same methods as ``Refinement``) --
+    # -- a tile of a tiled run (``_engine/region3.py``; the same methods as ``Refinement``) --
 
     @property
     def vertices(self):

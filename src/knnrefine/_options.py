@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import validation as V
-from .engine import size
-from .engine.embedding import Embedding
-from .engine.geometry import RESOLUTION_ANGLE
-from .engine.initial import GRIDS, GRIDS3, grid_shape, grid_shape3
+from . import _validation as V
+from ._engine import size
+from ._engine.embedding import Embedding
+from ._engine.geometry import RESOLUTION_ANGLE
+from ._engine.initial import GRIDS, GRIDS3, grid_shape, grid_shape3
 from .errors import BudgetError, FloorWarning, InputError, LargeRunWarning
 
 DEFAULT_MIN_SIZE = 1e-6  # resolution floor, relative to the box's longer side
@@ -57,7 +57,7 @@ class RunOptions:
 
     @property
     def domain(self) -> str:
-        """The domain the run is in: "plane" or "space" (``knnrefine.domains``)."""
+        """The domain the run is in: "plane" or "space" (``knnrefine._domains``)."""
         return "plane" if self.dim == 2 else "space"
 
     @property

@@ -23,13 +23,13 @@ import copy
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ...engine.bspline import shares_below, weighted_shares
-from ...engine.index3 import build_index3, kth_distances3
-from ...engine.raster import first_holding3, rasterise3
-from ...engine.threads import in_chunks
+from ..._engine.bspline import shares_below, weighted_shares
+from ..._engine.index3 import build_index3, kth_distances3
+from ..._engine.raster import first_holding3, rasterise3
+from ..._engine.threads import in_chunks
+from ..._metric import BoxMetric, weighted_kth
+from ..._validation import check_inside
 from ...errors import InputError
-from ...metric import BoxMetric, weighted_kth
-from ...validation import check_inside
 from ..box import answerable, flat_radius, not_simplicial, points_of, to_frame  # noqa: F401
 
 

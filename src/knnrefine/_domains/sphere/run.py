@@ -1,6 +1,6 @@
 """``knnrefine.refine(..., sphere=True)``: kNNRefine on the sphere S^2, behind the same
 options as in the plane. Points come as (longitude, latitude) in degrees or as unit vectors;
-the engine (``engine/refine_sphere.py``) refines the spherical Delaunay triangulation from
+the engine (``_engine/refine_sphere.py``) refines the spherical Delaunay triangulation from
 the regular tetrahedron, counting the points' unit vectors with the 3-D index, in bounded
 steps (progress, time limit and Ctrl-C between them), and the result is the one ``Mesh``
 with ``domain="sphere"``.
@@ -16,12 +16,12 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ...engine import ahead
-from ...engine.geometry import RESOLUTION_ANGLE
-from ...engine.index3 import build_index3
-from ...engine.interrupt import Interrupts
-from ...engine.queue import Q_SIZE, Q_USED, new_queue
-from ...engine.refine_sphere import (
+from ..._engine import ahead
+from ..._engine.geometry import RESOLUTION_ANGLE
+from ..._engine.index3 import build_index3
+from ..._engine.interrupt import Interrupts
+from ..._engine.queue import Q_SIZE, Q_USED, new_queue
+from ..._engine.refine_sphere import (
     MAX_CAVITY_SPHERE,
     N_PARAMS_SPHERE,
     PS_CLEAN_FLOOR2,
@@ -35,8 +35,8 @@ from ...engine.refine_sphere import (
     queue_all_sphere,
     refine_steps_sphere,
 )
-from ...engine.size import floored_per_site
-from ...engine.state import (
+from ..._engine.size import floored_per_site
+from ..._engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
     C_ERROR,
@@ -57,11 +57,11 @@ from ...engine.state import (
     Queues,
     grown,
 )
-from ...engine.triangulation_sphere import new_sphere, new_sphere_scratch
+from ..._engine.triangulation_sphere import new_sphere, new_sphere_scratch
+from ..._metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls
+from ..._options import Progress, SphereOptions, check_size, check_sphere_run, warn_floor
 from ...errors import BudgetError, EngineError
 from ...mesh import Mesh, Stats, moves_of
-from ...metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls
-from ...options import Progress, SphereOptions, check_size, check_sphere_run, warn_floor
 
 STEPS = 20_000  # insertions per kernel call
 MAX_DEGREE = 256

@@ -10,11 +10,11 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .engine.embedding import wrap_offsets
-from .engine.geometry import plus_compensated
-from .engine.jit import kernel
-from .engine.weight_tree import WeightTree, ball_weights, kth_radius
-from .engine.weight_tree import build as build_weight_tree
+from ._engine.embedding import wrap_offsets
+from ._engine.geometry import plus_compensated
+from ._engine.jit import kernel
+from ._engine.weight_tree import WeightTree, ball_weights, kth_radius
+from ._engine.weight_tree import build as build_weight_tree
 
 
 class BoxMetric:

@@ -1,7 +1,7 @@
 """``knnrefine.refine`` for points in space ((n, 3) points, a box of six numbers): the
-engine's 3-D run (``engine/driver3.py``) behind the same options as in the plane. Along
+engine's 3-D run (``_engine/driver3.py``) behind the same options as in the plane. Along
 non-periodic axes the box is embedded in a longer torus, as in the plane
-(``engine/embedding.py``), and the mesh unfolded back (``embedding.unfold``)."""
+(``_engine/embedding.py``), and the mesh unfolded back (``embedding.unfold``)."""
 
 import math
 import time
@@ -9,14 +9,14 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ...engine import ahead, size
-from ...engine.driver3 import Refinement3, choose_grid3
-from ...engine.embedding import Embedding, diameter, unfold
-from ...engine.geometry import FLOOR_BITS
-from ...engine.index3 import build_index3, holds_k_within3
-from ...engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
-from ...engine.interrupt import Interrupts
-from ...engine.state import (
+from ..._engine import ahead, size
+from ..._engine.driver3 import Refinement3, choose_grid3
+from ..._engine.embedding import Embedding, diameter, unfold
+from ..._engine.geometry import FLOOR_BITS
+from ..._engine.index3 import build_index3, holds_k_within3
+from ..._engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
+from ..._engine.interrupt import Interrupts
+from ..._engine.state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
     C_FAILED,
@@ -25,10 +25,10 @@ from ...engine.state import (
     STATUS_DONE,
     STATUS_MAX_VERTICES,
 )
+from ..._metric import BoxMetric, held_in_balls, points_in_balls, weighted_kth
+from ..._options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 from ...errors import BudgetError, InputError
 from ...mesh import Mesh, Stats, Torus, moves_of
-from ...metric import BoxMetric, held_in_balls, points_in_balls, weighted_kth
-from ...options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 
 
 def holds_k(index, x, reach, k, period):

@@ -16,7 +16,7 @@ the untested tetrahedra at v of that class are due: popping it walks v's star, t
 and queues v again at the class of its largest untested tetrahedron left. An insertion
 queues its new vertex once (every new tetrahedron has it as a corner); a tetrahedron moved to
 another slot (``triangulation3._move``) keeps its corners, so no entry goes stale. A tile of
-a tiled run (``engine/region3.py``) moves only for elements inside its region, as in the
+a tiled run (``_engine/region3.py``) moves only for elements inside its region, as in the
 plane; the others are DEFERRED.
 
 Circumballs in bulk: most of a run's counts are circumball counts (8.5 per vertex at k = 10
@@ -95,7 +95,7 @@ P3_CLEAN_FLOOR2 = 5  # the Clean floor squared
 P3_INFLATE = 6  # 1 + 1e-9
 P3_GRID = 7  # the grid step q
 P3_K = 8
-P3_REGION = 9  # a tile's region (``engine/region3.py``): its lower corner, 3 numbers, ...
+P3_REGION = 9  # a tile's region (``_engine/region3.py``): its lower corner, 3 numbers, ...
 P3_REGION_W = 12  # ... and its widths, 3 numbers; widths[0] = state.NO_REGION: no region
 N_PARAMS3 = 15
 
@@ -118,7 +118,7 @@ def ball_in_box3(c, r, corner, widths, prm):
 
 @kernel(inline="always")
 def in_region3(c, r, prm):
-    """True when the closed ball (c, r) lies in the tile's region (``engine/region3.py``), as
+    """True when the closed ball (c, r) lies in the tile's region (``_engine/region3.py``), as
     ``refine.in_region`` in the plane; always without a region (a whole run)."""
     if prm[P3_REGION_W] < 0.0:
         return True

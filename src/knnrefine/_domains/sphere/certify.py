@@ -34,13 +34,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ...certify.common import check_precondition
-from ...certify.steps import Probes, Triangulation
-from ...engine.geometry import plus_compensated
-from ...engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from ...engine.predicates3 import orient3d
-from ...mesh import sphere_constants
-from ...metric import (
+from ..._engine.geometry import plus_compensated
+from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
+from ..._engine.predicates3 import orient3d
+from ..._metric import (
     angle_to_chord,
     cell_tally,
     chord_to_angle,
@@ -49,7 +46,10 @@ from ...metric import (
     weight_tree,
     weighted_kth,
 )
-from ...validation import as_sphere_points, check_made_from, weights_of_run
+from ..._validation import as_sphere_points, check_made_from, weights_of_run
+from ...certify.common import check_precondition
+from ...certify.steps import Probes, Triangulation
+from ...mesh import sphere_constants
 
 
 @kernel(entry=True, lazy=True)
@@ -144,7 +144,7 @@ def _held_in_caps(xyz, tri, centres, chords, unit, tree, weights, workers, chunk
 # A cap's candidates: the points within its chord, squared, plus this (and a relative 1e-6):
 # the points on or above the plane of a triangle's corners lie within |a - n|^2 +
 # (|p|^2 - |a|^2) + O(ulp) of its computed centre n, the middle term 2^-50 at most for unit
-# vectors as rounded (engine/refine_sphere.py derives it); this is 2^10 times that.
+# vectors as rounded (_engine/refine_sphere.py derives it); this is 2^10 times that.
 CAP_CANDIDATES = 2.0**-40
 # Points count for every Voronoi cell their squared chord to its vertex is within this of
 # their nearest's: the unit vectors' rounding (|v|^2 = 1 +- 2^-52 each) makes the chord's

@@ -5,9 +5,9 @@ modules re-export these under the names every domain has."""
 
 import numpy as np
 
+from .._metric import BoxMetric
+from .._validation import points_of_run
 from ..errors import EngineError
-from ..metric import BoxMetric
-from ..validation import points_of_run
 
 
 def to_frame(mesh):

@@ -169,7 +169,7 @@ C_FAILED = 28  # insertions refused (the point rounds onto a vertex)
 C_ERROR = 29  # the code of a broken invariant (see ERRORS)
 C_CELLS_QUEUED = 30  # cells ever queued
 C_CELLS_SWEPT = 31  # C_CELLS_QUEUED at the last sweep (refine.sweep_cells)
-C_DEFERRED = 32  # elements popped outside the region (``engine/region.py``): left for another tile
+C_DEFERRED = 32  # elements popped outside the region (``_engine/region.py``): left for another tile
 N_COUNTERS = 33
 
 # -- parameters (float64 array ``prm``) -------------------------------------------------------
@@ -181,7 +181,7 @@ P_CLEAN_FLOOR2 = 4  # the Clean floor squared: 2^14 grid steps
 P_INFLATE = 5  # 1 + 1e-9: the counting regions' inflation
 P_GRID = 6  # the grid step q every vertex is snapped to
 P_K = 7  # the k of d_{P,k}: a count, or a weight for weighted points
-# a tile's region (``engine/region.py``): moves only for elements inside the rectangle
+# a tile's region (``_engine/region.py``): moves only for elements inside the rectangle
 # [x0, x0 + w] x [y0, y0 + h] of the torus (wrapping); w = NO_REGION: the whole torus. A
 # region of width 0 holds no element (it never means the whole torus: two tiles would then
 # both move everywhere)
@@ -314,7 +314,7 @@ UNTESTED = 0
 GOOD = 1  # holds < k points: settled
 FLOOR = 2  # holds >= k points but is smaller than min_size: left alone
 FAILED = 3  # its split point landed on an existing vertex (grid resolution)
-DEFERRED = 4  # outside the tile's region (engine/region.py): left to another tile or pass
+DEFERRED = 4  # outside the tile's region (_engine/region.py): left to another tile or pass
 
 # book.flags bits
 IN_CELL_QUEUE = 1

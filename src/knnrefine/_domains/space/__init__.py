@@ -1,0 +1,2 @@
+"""Space, a box or flat torus in three dimensions: its run, certify's questions and
+d_{P,k}'s pieces (``knnrefine._domains`` documents the modules every domain has)."""

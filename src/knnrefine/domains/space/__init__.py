@@ -1,2 +1,0 @@
-"""Space, a box or flat torus in three dimensions: its run, certify's questions and
-d_{P,k}'s pieces (``knnrefine.domains`` documents the modules every domain has)."""
