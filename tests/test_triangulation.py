@@ -164,3 +164,40 @@ def test_refined_meshes_are_valid_triangulations():
         if periodic:
             # F = 2V on the torus for the returned mesh itself
             assert len(mesh.triangles) == 2 * len(mesh.vertices)
+
+
+@pytest.mark.parametrize("lattice", [False, True], ids=["random", "lattice"])
+def test_near_circles_lists_every_non_corner_vertex_a_ball_query_lists(lattice):
+    """Issue 52's first step: certify's empty-circle candidates come from a 4-nearest query,
+    with a ball query only where the 4th nearest vertex is within reach. Against the plain
+    ball query of every circle (the oracle), on a refined torus (cocircular vertices on a
+    lattice included) and with circles grown to hold extra vertices: the same non-corner
+    candidates, triangle by triangle."""
+    from scipy.spatial import cKDTree
+
+    from knnrefine._domains.plane.certify import _near_circles
+    from knnrefine.mesh import circumcircles
+
+    rng = np.random.default_rng(7)
+    if lattice:
+        g = (np.arange(30) + 0.5) / 30
+        pts = np.column_stack([np.repeat(g, 30), np.tile(g, 30)])
+    else:
+        pts = rng.random((3000, 2))
+    mesh = knnrefine.refine(pts, 5, 3.0, periodic=True, box=(0, 0, 1, 1))
+    t = mesh.torus
+    period = np.array(t.period)
+    tri = np.asarray(t.triangles, np.int64)
+    cc, r = circumcircles(t.vertices[tri] + t.offsets * period)
+    cc = np.mod(cc, period)
+    tree = cKDTree(t.vertices, boxsize=period)
+    for grow in (1.0, 1.7):  # 1.7: most circles then hold vertices besides their corners
+        reach = grow * r * (1 + 1e-6) + 1e-9 * r.max()
+        face, cand = _near_circles(tree, tri, cc, reach)
+        got = {(int(f), int(v)) for f, v in zip(face, cand, strict=True) if v not in tri[f]}
+        want = {
+            (f, v) for f, near in enumerate(tree.query_ball_point(cc, reach)) for v in near
+            if v not in tri[f]
+        }  # fmt: skip
+        assert got == want
+        assert want or grow == 1.0  # grown circles hold other vertices: the test can fail
