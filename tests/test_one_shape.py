@@ -188,3 +188,48 @@ def test_a_mesh_names_its_domain_and_carries_no_stand_ins(domain, tmp_path):
         assert (old.box, old.periodic, old.domain) == ((), (), "sphere")
     with pytest.raises(knnrefine.InputError, match="domain must be"):
         dataclasses.replace(mesh, domain="torus")
+
+
+def test_the_uses_ask_the_domain_on_degenerate_points(domain):
+    """Issue 51's review: d_Pk, persistence and clustering build from the domain's parts
+    (``_domains.<domain>.density``: points, exact index, frame, query rule), on points on a
+    line or seam, on the antimeridian and duplicated. Exact d_Pk against a brute-force
+    k-nearest distance (great-circle on the sphere), NaN only off the domain, and the
+    persistence's d_Pk at its nodes the same brute force."""
+    from scipy.spatial import cKDTree
+
+    from knnrefine.density import KnnDistance
+    from knnrefine.topology import Persistence
+
+    def unit_vectors(lonlat):  # the oracle's own
+        lon, lat = np.radians(lonlat[:, 0]), np.radians(lonlat[:, 1])
+        return np.column_stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+
+    pts = degenerate_in(domain, 1200)
+    mesh = refine_in(domain, pts)
+    dist = KnnDistance(mesh, pts)
+    rng = np.random.default_rng(3)
+    if domain == "sphere":
+        q = np.column_stack([rng.uniform(-180, 180, 300), rng.uniform(-89, 89, 300)])
+        chord = cKDTree(unit_vectors(pts)).query(unit_vectors(q), k=[10])[0][:, 0]
+        want = 2 * np.arcsin(np.minimum(chord / 2, 1.0))
+        off = np.array([[0.0, 95.0], [np.nan, 0.0]])
+    else:
+        lo, hi = np.array(mesh.box[: mesh.dim]), np.array(mesh.box[mesh.dim :])
+        q = lo + rng.random((300, mesh.dim)) * (hi - lo)
+        want = cKDTree(pts).query(q, k=[10])[0][:, 0]
+        off = np.stack([hi + 1.0, np.full(mesh.dim, np.nan)])
+    np.testing.assert_allclose(dist.exact(q), want, rtol=1e-12)
+    assert np.isfinite(dist(q)).all() and np.isnan(dist(off)).all()
+    assert np.isnan(dist.exact(off)).all()
+    pytest.importorskip("gudhi")
+    persistence = Persistence(mesh, pts, log=False, subdivide=False)
+    nodes = persistence.positions
+    if domain == "sphere":
+        chord = cKDTree(unit_vectors(pts)).query(unit_vectors(nodes), k=[10])[0][:, 0]
+        at_nodes = 2 * np.arcsin(np.minimum(chord / 2, 1.0))
+    else:
+        at_nodes = cKDTree(pts).query(nodes, k=[10])[0][:, 0]
+    np.testing.assert_allclose(persistence.values, at_nodes, rtol=1e-9, atol=1e-12)
+    clusters = knnrefine.cluster(mesh, pts)
+    assert len(clusters.labels) == len(pts) and clusters.n_clusters >= 1
