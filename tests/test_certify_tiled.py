@@ -10,6 +10,7 @@ import pytest
 from conftest import gaussian_clusters, unit_box
 
 import knnrefine
+from knnrefine._domains.plane.certify import Geometry
 from knnrefine._domains.plane.certify import Points as TorusPoints
 from knnrefine.errors import InputError
 from knnrefine.scale.checks import TiledTorusPoints
@@ -67,11 +68,9 @@ def test_strip_answers_equal_one_tree(tiles, weighted):
         centres = rng.random((3000, 2)) * one.period
         radii = 10 ** rng.uniform(-3, 0.2, len(centres))
         np.testing.assert_array_equal(tiled.held(centres, radii), one.held(centres, radii))
-        vertices = np.asarray(mesh.torus.vertices)
-        out = np.zeros(len(vertices))
-        np.testing.assert_array_equal(
-            tiled.cell_counts(vertices, out), one.cell_counts(vertices, out)
-        )
+        geometry = Geometry(mesh, -1)
+        cells = geometry.cells(geometry.triangulation())
+        np.testing.assert_array_equal(tiled.cell_counts(cells), one.cell_counts(cells))
         x = rng.random((5000, 2)) * one.period
         np.testing.assert_array_equal(tiled.d_pk(x), one.d_pk(x))
     finally:
@@ -181,6 +180,7 @@ def test_slab_answers_in_space_equal_one_tree():
     """Balls of every size, every cell, d_{P,k} in the box's own metric at probes in the box
     (a torus shorter than twice the box along x and z, where the torus' and the box's
     metrics differ): the slabs' sums and decisions equal one process's kd-trees, exactly."""
+    from knnrefine._domains.space.certify import Geometry as SpaceGeometry
     from knnrefine._domains.space.certify import Points as SpacePoints
     from knnrefine.scale.checks import TiledSpacePoints
 
@@ -196,11 +196,9 @@ def test_slab_answers_in_space_equal_one_tree():
         centres = rng.random((2000, 3)) * one.period
         radii = 10 ** rng.uniform(-3, 0.2, len(centres))
         np.testing.assert_array_equal(tiled.held(centres, radii), one.held(centres, radii))
-        vertices = np.asarray(mesh.torus.vertices)
-        out = np.zeros(len(vertices))
-        np.testing.assert_array_equal(
-            tiled.cell_counts(vertices, out), one.cell_counts(vertices, out)
-        )
+        geometry = SpaceGeometry(mesh, -1)
+        cells = geometry.cells(geometry.triangulation())
+        np.testing.assert_array_equal(tiled.cell_counts(cells), one.cell_counts(cells))
         x = one.metric.frame(rng.random((3000, 3)))  # probes in the box
         np.testing.assert_array_equal(tiled.d_pk(x), one.d_pk(x))
     finally:

@@ -167,37 +167,66 @@ def test_refined_meshes_are_valid_triangulations():
 
 
 @pytest.mark.parametrize("lattice", [False, True], ids=["random", "lattice"])
-def test_near_circles_lists_every_non_corner_vertex_a_ball_query_lists(lattice):
-    """Issue 52's first step: certify's empty-circle candidates come from a 4-nearest query,
-    with a ball query only where the 4th nearest vertex is within reach. Against the plain
-    ball query of every circle (the oracle), on a refined torus (cocircular vertices on a
-    lattice included) and with circles grown to hold extra vertices: the same non-corner
-    candidates, triangle by triangle."""
-    from scipy.spatial import cKDTree
-
-    from knnrefine._domains.plane.certify import _near_circles
-    from knnrefine.mesh import circumcircles
-
+def test_local_delaunay_check_agrees_with_every_circle_against_every_vertex(lattice):
+    """Issue 52: certify decides the empty-circle property edge by edge (filtered incircle,
+    integers where the filter cannot tell; the Delaunay lemma on the periodic cover). Against
+    the brute-force oracle (every circumcircle against every copy of every vertex, exact
+    rationals), on a refined torus (cocircular vertices on a lattice included) and after a
+    flip that breaks it: the same verdict, and a broken flip is caught."""
     rng = np.random.default_rng(7)
     if lattice:
-        g = (np.arange(30) + 0.5) / 30
-        pts = np.column_stack([np.repeat(g, 30), np.tile(g, 30)])
+        g = (np.arange(20) + 0.5) / 20
+        pts = np.column_stack([np.repeat(g, 20), np.tile(g, 20)])
     else:
-        pts = rng.random((3000, 2))
+        pts = rng.random((1500, 2))
     mesh = knnrefine.refine(pts, 5, 3.0, periodic=True, box=(0, 0, 1, 1))
     t = mesh.torus
     period = np.array(t.period)
-    tri = np.asarray(t.triangles, np.int64)
-    cc, r = circumcircles(t.vertices[tri] + t.offsets * period)
-    cc = np.mod(cc, period)
-    tree = cKDTree(t.vertices, boxsize=period)
-    for grow in (1.0, 1.7):  # 1.7: most circles then hold vertices besides their corners
-        reach = grow * r * (1 + 1e-6) + 1e-9 * r.max()
-        face, cand = _near_circles(tree, tri, cc, reach)
-        got = {(int(f), int(v)) for f, v in zip(face, cand, strict=True) if v not in tri[f]}
-        want = {
-            (f, v) for f, near in enumerate(tree.query_ball_point(cc, reach)) for v in near
-            if v not in tri[f]
-        }  # fmt: skip
-        assert got == want
-        assert want or grow == 1.0  # grown circles hold other vertices: the test can fail
+    tri, off, nb = (np.array(a, np.int64) for a in (t.triangles, t.offsets, t.neighbours))
+    problems = verify_triangulation(t.vertices, tri, off, nb, period)[0]
+    torus = SimpleNamespace(period=period, origin=(0.0, 0.0), vertices=t.vertices,
+                            triangles=tri, offsets=off)  # fmt: skip
+    assert not problems and oracle.torus_facts(torus, np.zeros((0, 2)))["empty"]
+    # flip one edge of a convex quad whose far corner lies strictly outside: the two new
+    # triangles are valid and counter-clockwise, but not Delaunay
+    for f in range(len(tri)):
+        i = 0
+        n = nb[f, i]
+        j = int(np.flatnonzero(nb[n] == f)[0])
+        a, b, c = tri[f, i], tri[f, (i + 1) % 3], tri[f, (i + 2) % 3]
+        shift = off[f, (i + 1) % 3] - off[n, (j + 2) % 3]
+        d, od = tri[n, j], off[n, j] + shift
+        pa, pb, pc = (
+            t.vertices[v] + o * period
+            for v, o in ((a, off[f, i]), (b, off[f, (i + 1) % 3]), (c, off[f, (i + 2) % 3]))
+        )
+        pd = t.vertices[d] + od * period  # fmt: skip
+        cross = lambda u, v, w: (v[0] - u[0]) * (w[1] - u[1]) - (v[1] - u[1]) * (w[0] - u[0])  # noqa: E731
+        if cross(pa, pb, pd) > 1e-9 and cross(pa, pd, pc) > 1e-9:
+            break
+    flipped = tri.copy()
+    flipped_off = off.copy()
+    flipped[f] = [a, b, d]
+    flipped_off[f] = [off[f, i], off[f, (i + 1) % 3], od]
+    flipped[n] = [a, d, c]
+    flipped_off[n] = [off[f, i], od, off[f, (i + 2) % 3]]
+    # neighbours rebuilt by brute force over edges with offsets
+    new_nb = oracle_neighbours(flipped, flipped_off)
+    problems = verify_triangulation(t.vertices, flipped, flipped_off, new_nb, period)[0]
+    assert any("locally Delaunay" in p for p in problems), problems
+
+
+def oracle_neighbours(tri, off):
+    """The triangle across each edge, by brute force over edges and relative offsets."""
+    found = {}
+    for f in range(len(tri)):
+        for i in range(3):
+            a, b = (i + 1) % 3, (i + 2) % 3
+            key = (tri[f, a], tri[f, b], *(off[f, b] - off[f, a]))
+            found[key] = (f, i)
+    nb = np.full(tri.shape, -1, np.int64)
+    for (va, vb, *d), (f, i) in found.items():
+        g = found.get((vb, va, *(-np.array(d))))
+        if g is not None:
+            nb[f, i] = g[0]
+    return nb

@@ -10,7 +10,9 @@ from scipy.spatial import cKDTree
 from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
+from ._tree import neighbour_lists
 from .certificate import floor_sites, to_input
+from .steps import Cells
 
 
 def check_source(stats, n, weight):
@@ -281,11 +283,25 @@ class TorusGeometry:
     def vertex_d_m2(self):
         return self.vertex_tree.query(self.vertices, k=2, workers=self.workers)[0][:, 1]
 
-    def cell_vertices(self):
-        return self.vertices
+    def cells(self, tri):
+        """The Voronoi cells of the torus' vertices: each one's neighbours across the
+        cells' edges, as vectors on the torus."""
+        torus = self.mesh.torus
+        corners = np.asarray(torus.cells, np.int64)
+        off = np.asarray(torus.offsets, np.int64)
+        nc = corners.shape[1]
+        pairs = [(i, j) for i in range(nc) for j in range(nc) if i != j]
+        a = np.concatenate([corners[:, i] for i, _ in pairs])
+        b = np.concatenate([corners[:, j] for _, j in pairs])
+        shift = np.concatenate([off[:, j] - off[:, i] for i, j in pairs])
+        m = len(self.vertices)
+        first, nb, nshift = neighbour_lists(a, b, np.ascontiguousarray(shift), m)
+        site = np.repeat(np.arange(m), np.diff(first))
+        edges = self.vertices[nb] - self.vertices[site] + nshift * self.period
+        return Cells(self.vertices, first, edges, tri.outradii, 2e-12, 0.0)
 
-    def held(self, points, tri):
-        return points.held(tri.centres, tri.radii)
+    def held(self, points, tri, stop=np.inf):
+        return points.held(tri.centres, tri.radii, stop)
 
     def precondition(self, points, k, tau):
         initial = self.vertices[np.asarray(self.mesh.torus.kinds) == 0]

@@ -122,11 +122,12 @@ class StripQuestions:
             pad *= 4.0
         return out
 
-    def cell_counts(self, vertices, outradii):
+    def cell_counts(self, cells, stop=np.inf):
         """What the closed Voronoi cell of each of the vertices (torus frame, R(v) =
         ``outradii``) holds: each point counts for every vertex as near as its nearest, asked
         of the strip that owns it with the vertices within a pad, the pad widened until every
-        point's nearest vertex lies within it."""
+        point's nearest vertex lies within it (``stop`` is not needed: exact everywhere)."""
+        vertices, outradii = cells.sites, cells.outradii
         m = len(vertices)
         out = np.zeros(m, float if self.store.weight is not None else np.int64)
         # Voronoi cell of v lies within R(v) of v: a first vertex pad from the outradii
@@ -143,8 +144,9 @@ class StripQuestions:
                 return out
             before, pad = pad, 4.0 * pad
 
-    def held(self, centres, radii):
-        """What each closed ball (torus frame) holds: a count, or a weight."""
+    def held(self, centres, radii, stop=np.inf):
+        """What each closed ball (torus frame) holds: a count, or a weight (exact, whatever
+        ``stop``)."""
         radii = np.broadcast_to(np.asarray(radii, float), len(centres))
         out = np.zeros(len(centres), np.int64 if self.store.weight is None else float)
         if len(centres) == 0:
@@ -183,11 +185,11 @@ class TiledTorusPoints:
         d_m2 = self._vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
         return self.questions.d_pk(x, float(np.quantile(4.0 * d_m2, 0.99)))
 
-    def held(self, centres, radii):
+    def held(self, centres, radii, stop=np.inf):
         return self.questions.held(centres, radii)
 
-    def cell_counts(self, vertices, outradii):
-        return self.questions.cell_counts(vertices, outradii)
+    def cell_counts(self, cells, stop=np.inf):
+        return self.questions.cell_counts(cells)
 
     def sample_points(self, count, rng):
         sx = self.store.sample(min(1.0, count / self.n))[0]
@@ -213,11 +215,11 @@ class TiledSpacePoints:
         self.questions = StripQuestions(store, self.origin, self.period, self.k, tiles)
         self._vertex_tree = cKDTree(np.asarray(torus.vertices, float), boxsize=self.period)
 
-    def held(self, centres, radii):
+    def held(self, centres, radii, stop=np.inf):
         return self.questions.held(centres, radii)
 
-    def cell_counts(self, vertices, outradii):
-        return self.questions.cell_counts(vertices, outradii)
+    def cell_counts(self, cells, stop=np.inf):
+        return self.questions.cell_counts(cells)
 
     def d_pk(self, x):
         # a first pad from the mesh (a guess only: what the slabs decide is exact)

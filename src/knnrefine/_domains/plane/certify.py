@@ -14,12 +14,13 @@ box. Only probes in the box count, and only where d_{P,k} >= min_size (the floor
 """
 
 import math
-from fractions import Fraction
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from ..._metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
+from ..._engine.jit import kernel
+from ..._metric import BoxMetric, TorusFrame
+from ...certify._predicates import UNSURE, exact_sign, incircle, orient2d
+from ...certify._tree import Tree
 from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
@@ -111,7 +112,8 @@ class Geometry(TorusGeometry):
 
 class Points:
     """What every check reads of the input points in the plane: the points wrapped into
-    the mesh's torus by the package's one rule, and a kd-tree over them."""
+    the mesh's torus by the package's one rule, in certify's own kd-tree (``_tree.Tree``;
+    weighted, the points of positive weight: the others hold nothing)."""
 
     def __init__(self, mesh, pts, weights, workers):
         self.k = mesh.k
@@ -119,36 +121,28 @@ class Points:
         self.period = np.asarray(mesh.torus.period, float)
         self.origin = np.asarray(mesh.torus.origin, float)
         self.input_frame = TorusFrame(self.origin, self.period)
-        self.weights = weights
         self.weighted = weights is not None
         self.n = len(pts)
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
         self.points = self.input_frame(pts)
-        self.point_tree = cKDTree(self.points, boxsize=self.period)
-        self._weight_tree = None
-
-    def _weights(self):
-        if self._weight_tree is None and self.weights is not None:
-            self._weight_tree = weight_tree(self.point_tree, self.weights)
-        return self._weight_tree
+        heavy = None if weights is None else weights > 0
+        self.tree = Tree(self.points if heavy is None else self.points[heavy],
+                         None if heavy is None else weights[heavy], self.period,
+                         workers)  # fmt: skip
 
     def d_pk(self, x):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
-        if self.weights is None:
-            return self.point_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
-        return weighted_kth(self.point_tree, self._weights(), x, self.k, self.workers)
+        return self.tree.kth(x, self.k)
 
-    def held(self, centres, radii):
+    def held(self, centres, radii, stop=np.inf):
         """What each closed disk (centre, radius) holds: its number of points, or their
-        weight."""
-        return held_in_balls(self.point_tree, self._weights(), centres, radii, self.workers)
+        weight; exact below ``stop``."""
+        return self.tree.held(centres, radii, stop)
 
-    def cell_counts(self, vertices, outradii):
-        """What each vertex's closed Voronoi cell holds (points equidistant to several
-        vertices count for each)."""
-        tree = cKDTree(vertices, boxsize=self.period)
-        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.workers)
-        return cell_tally(dd, ii, self.weights, len(vertices))
+    def cell_counts(self, cells, stop=np.inf):
+        """What each closed Voronoi cell (``steps.Cells``) holds; exact below ``stop``."""
+        return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
+                                    stop, cells.relative, cells.slack2)  # fmt: skip
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points, drawn at random."""
@@ -267,58 +261,75 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period):
         problems.append(f"Euler characteristic {m - n_edges + t} (a torus has 0)")
     corners = vertices[tri] + off * period
     area = triangle_areas(corners)
-    if np.any(area <= 0):
-        problems.append(f"{int((area <= 0).sum())} triangles are not counter-clockwise")
     if abs(area.sum() - period.prod()) > 1e-9 * period.prod():
         problems.append("the triangles do not tile the torus (areas do not add up)")
     cc, r = circumcircles(corners)
     ccw = BoxMetric((0.0, 0.0, *period), (True, True)).frame(cc)
-    # empty circles: floating point finds the vertices near each circle, rationals decide.
-    # A circle whose 4th nearest vertex lies beyond the reach holds only its 3 corners
-    # there (distinct corners lie within it): only the others are listed, by a ball query
-    face, cand = _near_circles(cKDTree(vertices, boxsize=period), tri, ccw,
-                               r * (1 + 1e-6) + 1e-9 * r.max())  # fmt: skip
-    other = (cand != tri[face, 0]) & (cand != tri[face, 1]) & (cand != tri[face, 2])
-    inside = 0
-    for f_, v in zip(face[other], cand[other], strict=True):
-        p = vertices[v] + np.round((cc[f_] - vertices[v]) / period) * period
-        if _incircle_exact(corners[f_], p) > 0:
-            inside += 1
-    if inside:
-        problems.append(f"{inside} circumcircles hold a vertex (not Delaunay)")
+    ccw_bad, not_delaunay = _local_checks(vertices, tri, off, nb, period)
+    if ccw_bad:
+        problems.append(f"{ccw_bad} triangles are not counter-clockwise")
+    if not_delaunay:
+        problems.append(f"{not_delaunay} edges are not locally Delaunay (a vertex inside a "
+                        "circumcircle)")  # fmt: skip
     return problems, corners, ccw, r
 
 
-def _near_circles(tree, tri, centres, reach):
-    """(triangle, vertex) pairs with the vertex within ``reach`` of the triangle's
-    circumcentre (the tree's metric): a 4-nearest query for every circle, a ball query only
-    for those whose 4th nearest vertex is within reach or whose corners repeat a vertex."""
+@kernel(entry=True, lazy=True)
+def _local_signs(vertices, tri, off, nb, period, orient, circle):
+    """orient[f]: the sign of orient2d of triangle f's corners (UNSURE where the filter
+    cannot tell); circle[f, i]: the sign of incircle of f's corners and the corner of its
+    neighbour across edge i opposite that edge, placed by the edge's own offsets (3: no
+    neighbour matches that edge back, a problem reported with the links)."""
+    for f in range(tri.shape[0]):
+        ax = vertices[tri[f, 0], 0] + off[f, 0, 0] * period[0]
+        ay = vertices[tri[f, 0], 1] + off[f, 0, 1] * period[1]
+        bx = vertices[tri[f, 1], 0] + off[f, 1, 0] * period[0]
+        by = vertices[tri[f, 1], 1] + off[f, 1, 1] * period[1]
+        cx = vertices[tri[f, 2], 0] + off[f, 2, 0] * period[0]
+        cy = vertices[tri[f, 2], 1] + off[f, 2, 1] * period[1]
+        orient[f] = orient2d(ax, ay, bx, by, cx, cy)
+        for i in range(3):
+            n = nb[f, i]
+            circle[f, i] = 3
+            if n < 0 or n >= tri.shape[0]:
+                continue
+            a, b = tri[f, (i + 1) % 3], tri[f, (i + 2) % 3]
+            for j in range(3):
+                if nb[n, j] == f and tri[n, (j + 1) % 3] == b and tri[n, (j + 2) % 3] == a:
+                    sx = off[f, (i + 1) % 3, 0] - off[n, (j + 2) % 3, 0]
+                    sy = off[f, (i + 1) % 3, 1] - off[n, (j + 2) % 3, 1]
+                    px = vertices[tri[n, j], 0] + (off[n, j, 0] + sx) * period[0]
+                    py = vertices[tri[n, j], 1] + (off[n, j, 1] + sy) * period[1]
+                    circle[f, i] = incircle(ax, ay, bx, by, cx, cy, px, py)
+                    break
+
+
+def _local_checks(vertices, tri, off, nb, period):
+    """(triangles not counter-clockwise, edge sides whose far corner lies inside the
+    circumcircle), exactly: filtered predicates (``_local_signs``), rational only where the
+    filter cannot tell. A triangulation of the torus (the links, Euler characteristic,
+    orientation and area checks) whose every edge is locally Delaunay is Delaunay (the
+    Delaunay lemma, on the periodic cover): its circumcircles hold no vertex."""
     t = len(tri)
-    if t == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    k = min(4, tree.n)
-    d4 = tree.query(centres, k=[k], workers=-1)[0][:, 0]
-    repeated = (tri[:, 0] == tri[:, 1]) | (tri[:, 1] == tri[:, 2]) | (tri[:, 0] == tri[:, 2])
-    listed = np.flatnonzero((d4 <= reach) | repeated | (k < 4))
-    near = tree.query_ball_point(centres[listed], reach[listed]) if len(listed) else []
-    sizes = np.fromiter((len(c) for c in near), np.int64, len(near))
-    if not sizes.sum():
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    cand = np.concatenate([np.asarray(c, np.int64) for c in near])
-    face = np.repeat(listed, sizes)
-    return face, cand
-
-
-def _incircle_exact(c, d):
-    (ax, ay), (bx, by), (cx, cy) = ((Fraction(float(u)), Fraction(float(w))) for u, w in c)
-    dx, dy = Fraction(float(d[0])), Fraction(float(d[1]))
-    adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
-    det = (
-        (adx * adx + ady * ady) * (bdx * cdy - cdx * bdy)
-        + (bdx * bdx + bdy * bdy) * (cdx * ady - adx * cdy)
-        + (cdx * cdx + cdy * cdy) * (adx * bdy - bdx * ady)
-    )
-    return (det > 0) - (det < 0)
+    if t == 0 or nb.shape != tri.shape or nb.min() < 0 or nb.max() >= t:
+        return 0, 0
+    orient = np.empty(t, np.int8)
+    circle = np.empty((t, 3), np.int8)
+    _local_signs(np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(tri, np.int64),
+                 np.ascontiguousarray(off, np.int64), np.ascontiguousarray(nb, np.int64),
+                 np.ascontiguousarray(period, np.float64), orient, circle)  # fmt: skip
+    corners = lambda f: vertices[tri[f]] + off[f] * period  # noqa: E731
+    for f in np.flatnonzero(orient == UNSURE):
+        orient[f] = exact_sign("orient2d", corners(f))
+    for f, i in zip(*np.nonzero(circle == UNSURE), strict=True):
+        n = nb[f, i]
+        a, b = tri[f, (i + 1) % 3], tri[f, (i + 2) % 3]
+        j = next(jj for jj in range(3) if nb[n, jj] == f and tri[n, (jj + 1) % 3] == b
+                 and tri[n, (jj + 2) % 3] == a)  # fmt: skip
+        shift = off[f, (i + 1) % 3] - off[n, (j + 2) % 3]
+        p = vertices[tri[n, j]] + (off[n, j] + shift) * period
+        circle[f, i] = exact_sign("incircle", np.vstack([corners(f), p]))
+    return int((orient <= 0).sum()), int((circle == 1).sum())
 
 
 def _in_box(x, lo, hi, per):

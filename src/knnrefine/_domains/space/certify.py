@@ -26,8 +26,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from ..._engine.predicates3 import insphere, orient3d
-from ..._metric import BoxMetric, TorusFrame, cell_tally, held_in_balls, weight_tree, weighted_kth
+from ..._metric import BoxMetric, TorusFrame
+from ...certify._predicates import UNSURE, exact_sign, insphere, orient3d
+from ...certify._tree import Tree
 from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
@@ -40,17 +41,16 @@ from ...certify.steps import Probes, Triangulation
 
 
 @kernel(entry=True, lazy=True)
-def _exact_faces(local, corners, offsets, neighbours, period):
-    """(tetrahedra not positively oriented, faces not locally Delaunay)."""
-    bad_orient = 0
-    bad_delaunay = 0
+def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far):
+    """orient[t]: the sign of orient3d of tetrahedron t's corners (UNSURE where the filter
+    cannot tell); sphere[t, i]: that of insphere of its corners and the far corner of the
+    tetrahedron across face i, placed by the face's own offsets (written to far[t, i])."""
     pts = np.empty((5, 3))
     for t in range(corners.shape[0]):
         for i in range(4):
             for a in range(3):
                 pts[i, a] = local[corners[t, i], a] + offsets[t, i, a] * period[a]
-        if orient3d(pts) <= 0:
-            bad_orient += 1
+        orient[t] = orient3d(pts, 0, 1, 2, 3)
         for i in range(4):
             n = neighbours[t, i]
             shared = corners[t, (i + 1) % 4]
@@ -64,9 +64,24 @@ def _exact_faces(local, corners, offsets, neighbours, period):
             for a in range(3):
                 s = offsets[t, (i + 1) % 4, a] - offsets[n, ia, a]
                 pts[4, a] = local[corners[n, jj], a] + (offsets[n, jj, a] + s) * period[a]
-            if insphere(pts) > 0:
-                bad_delaunay += 1
-    return bad_orient, bad_delaunay
+                far[t, i, a] = pts[4, a]
+            sphere[t, i] = insphere(pts, 0, 1, 2, 3, 4)
+
+
+def _exact_faces(local, corners, offsets, neighbours, period):
+    """(tetrahedra not positively oriented, faces not locally Delaunay), exactly: filtered
+    signs (``_local_signs``), integers where the filter cannot tell."""
+    t = len(corners)
+    orient = np.empty(t, np.int8)
+    sphere = np.empty((t, 4), np.int8)
+    far = np.empty((t, 4, 3))
+    _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far)
+    at = lambda c: local[corners[c]] + offsets[c] * period  # noqa: E731
+    for c in np.flatnonzero(orient == UNSURE):
+        orient[c] = exact_sign("orient3d", at(c))
+    for c, i in zip(*np.nonzero(sphere == UNSURE), strict=True):
+        sphere[c, i] = exact_sign("insphere", np.vstack([at(c), far[c, i]]))
+    return int((orient <= 0).sum()), int((sphere > 0).sum())
 
 
 def _neighbours(corners, offsets):
@@ -107,49 +122,42 @@ def _circumspheres(c):
 
 class Points:
     """Every question certify asks about the input points in space, answered in this process
-    from scipy's kd-trees (``scale.checks.TiledSpacePoints`` asks the same where the points
+    from certify's own kd-tree (``_tree.Tree``, on the mesh's torus; weighted, the points of
+    positive weight) (``scale.checks.TiledSpacePoints`` asks the same where the points
     are): what closed balls of the torus hold (``held``: a count, or a weight), what each
     vertex's closed Voronoi cell holds (``cell_counts``), d_{P,k} at probes in the box's own
-    metric (``d_pk``; weighted: the least radius holding weight k), and some of the points
-    (``sample_points``), all in the frame of the mesh's torus."""
+    metric (``d_pk``, straight along non-periodic axes; weighted: the least radius holding
+    weight k), and some of the points (``sample_points``), all in the frame of the mesh's
+    torus."""
 
     def __init__(self, mesh, pts, weights, workers):
         torus = mesh.torus
         self.origin = np.asarray(torus.origin, float)
         self.period = np.asarray(torus.period, float)
         self.points = TorusFrame(self.origin, self.period)(pts)
-        self.tree = cKDTree(self.points, boxsize=self.period)
-        self.weights, self.workers, self.k, self.n = weights, workers, mesh.k, len(pts)
+        self.workers, self.k, self.n = workers, mesh.k, len(pts)
         self.weighted = weights is not None
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
+        self.box_period = np.where(mesh.periodic, self.period, 0.0)
         self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
-        self._box_tree = self.tree if all(mesh.periodic) else self.metric.tree(pts)
-        self._weight_trees = {}
+        heavy = None if weights is None else weights > 0
+        self.tree = Tree(self.points if heavy is None else self.points[heavy],
+                         None if heavy is None else weights[heavy], self.period,
+                         workers)  # fmt: skip
 
-    def _weights(self, tree):
-        if self.weights is None:
-            return None
-        if id(tree) not in self._weight_trees:
-            self._weight_trees[id(tree)] = weight_tree(tree, self.weights)
-        return self._weight_trees[id(tree)]
+    def held(self, centres, radii, stop=np.inf):
+        return self.tree.held(centres, radii, stop)
 
-    def held(self, centres, radii):
-        return held_in_balls(self.tree, self._weights(self.tree), centres, radii, self.workers)
-
-    def cell_counts(self, vertices, outradii):
-        """What the closed Voronoi cell of each vertex (torus frame) holds: every point
-        counts for each vertex as near as its nearest (``metric.cell_tally``)."""
-        tree = cKDTree(vertices, boxsize=self.period)
-        dd, ii = tree.query(self.points, k=min(3, len(vertices)), workers=self.workers)
-        return cell_tally(dd, ii, self.weights, len(vertices))
+    def cell_counts(self, cells, stop=np.inf):
+        """What the closed Voronoi cell of each vertex (``steps.Cells``, torus frame) holds:
+        every point counts for each vertex as near as its nearest; exact below ``stop``."""
+        return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
+                                    stop, cells.relative, cells.slack2)  # fmt: skip
 
     def d_pk(self, x):
         """d_{P,k} at x (the torus frame, periodic axes wrapped) in the box's own metric:
         straight along non-periodic axes, so the embedding's claim is tested."""
-        if self.weights is None:
-            return self._box_tree.query(x, k=[self.k], workers=self.workers)[0][:, 0]
-        return weighted_kth(self._box_tree, self._weights(self._box_tree), x, self.k,
-                            self.workers)  # fmt: skip
+        return self.tree.kth(x, self.k, period=self.box_period)
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points (torus frame), drawn at random."""

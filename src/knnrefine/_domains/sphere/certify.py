@@ -34,46 +34,44 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ..._engine.geometry import plus_compensated
 from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from ..._engine.predicates3 import orient3d
-from ..._metric import (
-    angle_to_chord,
-    cell_tally,
-    chord_to_angle,
-    held_in_balls,
-    lonlat_of,
-    weight_tree,
-    weighted_kth,
-)
+from ..._metric import angle_to_chord, chord_to_angle, lonlat_of
 from ..._validation import as_sphere_points, check_made_from, weights_of_run
+from ...certify._predicates import UNSURE, exact_sign, orient3d_at
+from ...certify._tree import Tree, neighbour_lists, sums_by
 from ...certify.common import check_precondition
-from ...certify.steps import Probes, Triangulation
+from ...certify.steps import Cells, Probes, Triangulation
 from ...mesh import sphere_constants
 
 
 @kernel(entry=True, lazy=True)
-def _exact_edges(xyz, corners, twin_tri, twin_corner):
-    """(triangles not positively oriented about the centre, edges not locally convex)."""
-    bad_orient = 0
-    bad_convex = 0
-    pts = np.empty((4, 3))
+def _local_signs(xyz, corners, twin_tri, twin_corner, orient, convex):
+    """orient[t]: the sign of orient3d of triangle t's corners and the centre (UNSURE where
+    the filter cannot tell); convex[t, i]: that of its corners and the far corner of the
+    triangle across edge i."""
     for t in range(corners.shape[0]):
+        a, b, c = corners[t, 0], corners[t, 1], corners[t, 2]
+        orient[t] = orient3d_at(xyz[a, 0], xyz[a, 1], xyz[a, 2], xyz[b, 0], xyz[b, 1], xyz[b, 2],
+                                xyz[c, 0], xyz[c, 1], xyz[c, 2], 0.0, 0.0, 0.0)  # fmt: skip
         for i in range(3):
-            for a in range(3):
-                pts[i, a] = xyz[corners[t, i], a]
-        for a in range(3):
-            pts[3, a] = 0.0
-        if orient3d(pts) <= 0:
-            bad_orient += 1
-        for i in range(3):
-            u = twin_tri[t, i]
-            d = corners[u, twin_corner[t, i]]
-            for a in range(3):
-                pts[3, a] = xyz[d, a]
-            if orient3d(pts) < 0:
-                bad_convex += 1
-    return bad_orient, bad_convex
+            d = corners[twin_tri[t, i], twin_corner[t, i]]
+            convex[t, i] = orient3d_at(xyz[a, 0], xyz[a, 1], xyz[a, 2], xyz[b, 0], xyz[b, 1],
+                                       xyz[b, 2], xyz[c, 0], xyz[c, 1], xyz[c, 2], xyz[d, 0],
+                                       xyz[d, 1], xyz[d, 2])  # fmt: skip
+
+
+def _exact_edges(xyz, tri, twin_tri, twin_corner):
+    """(triangles not positively oriented about the centre, edges not locally convex),
+    exactly: filtered signs (``_local_signs``), integers where the filter cannot tell."""
+    orient = np.empty(len(tri), np.int8)
+    convex = np.empty((len(tri), 3), np.int8)
+    _local_signs(xyz, tri, twin_tri, twin_corner, orient, convex)
+    for t in np.flatnonzero(orient == UNSURE):
+        orient[t] = exact_sign("orient3d", np.vstack([xyz[tri[t]], np.zeros(3)]))
+    for t, i in zip(*np.nonzero(convex == UNSURE), strict=True):
+        d = tri[twin_tri[t, i], twin_corner[t, i]]
+        convex[t, i] = exact_sign("orient3d", xyz[[*tri[t], d]])
+    return int((orient <= 0).sum()), int((convex < 0).sum())
 
 
 def _twins(tri, m):
@@ -95,49 +93,17 @@ def _twins(tri, m):
     return (twin % t).reshape(3, t).T.copy(), (twin // t).reshape(3, t).T.copy()
 
 
-@kernel(entry=True, lazy=True)
-def _held_exactly(xyz, tri, unit, weights, members, bounds, first):
-    """What the closed circumcap of each triangle first + i holds of its candidates
-    ``members[bounds[i]:bounds[i + 1]]``: the points on or above the plane of its corners
-    (``orient3d(a, b, c, p) <= 0``, exact), counted, or their weights summed (compensated;
-    ``weights`` empty: counts)."""
-    out = np.zeros(bounds.shape[0] - 1)
-    pts = np.empty((4, 3))
-    weighted = weights.shape[0] > 0
-    for i in range(out.shape[0]):
-        t = first + i
-        for j in range(3):
-            for a in range(3):
-                pts[j, a] = xyz[tri[t, j], a]
-        s = 0.0
-        c = 0.0
-        for e in range(bounds[i], bounds[i + 1]):
-            p = members[e]
-            for a in range(3):
-                pts[3, a] = unit[p, a]
-            if orient3d(pts) <= 0:
-                if weighted:
-                    s, c = plus_compensated(s, c, weights[p])
-                else:
-                    s += 1.0
-        out[i] = s + c
-    return out
-
-
-def _held_in_caps(xyz, tri, centres, chords, unit, tree, weights, workers, chunk=20_000):
-    """What each closed circumcap holds, decided exactly (``_held_exactly``) among the
-    points a kd-tree finds in a ball a little larger than the cap (``CAP_CANDIDATES``)."""
+def _held_in_caps(xyz, tri, centres, chords, points, stop):
+    """What each closed circumcap holds: the points on or above the plane of its corners,
+    decided by the filtered orient3d (integers where it cannot tell) among the points
+    within a ball a little larger than the cap (``CAP_CANDIDATES``); exact below ``stop``."""
     reach = np.sqrt(chords**2 * (1.0 + 1e-6) + CAP_CANDIDATES)
-    w = np.zeros(0) if weights is None else np.ascontiguousarray(weights, float)
-    out = np.zeros(len(tri))
-    for lo in range(0, len(tri), chunk):
-        hi = min(len(tri), lo + chunk)
-        lists = tree.query_ball_point(centres[lo:hi], reach[lo:hi], workers=workers)
-        sizes = np.fromiter((len(a) for a in lists), np.int64, len(lists))
-        bounds = np.concatenate([[0], np.cumsum(sizes)])
-        members = (np.concatenate([np.asarray(a, np.int64) for a in lists]) if bounds[-1]
-                   else np.zeros(0, np.int64))  # fmt: skip
-        out[lo:hi] = _held_exactly(xyz, tri, unit, w, members, bounds, lo)
+    tree = points.tree
+    out, caps, members = tree.held_caps(centres, reach, xyz[tri], stop)
+    if len(caps):
+        above = np.array([exact_sign("orient3d", np.vstack([xyz[tri[q]], tree.pts[j]])) <= 0
+                          for q, j in zip(caps, members, strict=True)])  # fmt: skip
+        out = out + sums_by(caps[above], tree.w[members[above]], len(tri))
     return out
 
 
@@ -232,32 +198,30 @@ def checked_points(mesh, points, weights):
 
 class Points:
     """The questions ``certify`` asks about the points, on the unit sphere: counts in caps
-    (balls about unit vectors), d_{P,k} (an angle), cell tallies."""
+    (balls about unit vectors), d_{P,k} (an angle), cell tallies, from certify's own
+    kd-tree over the unit vectors (``_tree.Tree``; weighted, those of positive weight)."""
 
     def __init__(self, mesh, unit, weights, workers):
-        self.unit, self.weights, self.workers, self.k = unit, weights, workers, mesh.k
-        self.tree = cKDTree(unit)
+        self.unit, self.workers, self.k = unit, workers, mesh.k
         self.n = len(unit)
         self.weighted = weights is not None
         self.total = self.n if weights is None else float(weights.sum())
-        self._weight_tree = None
+        heavy = None if weights is None else weights > 0
+        self.tree = Tree(unit if heavy is None else unit[heavy],
+                         None if heavy is None else weights[heavy], None, workers)  # fmt: skip
 
-    def _weights(self):
-        if self._weight_tree is None and self.weights is not None:
-            self._weight_tree = weight_tree(self.tree, self.weights)
-        return self._weight_tree
-
-    def held(self, centres, angles):
-        """What each closed cap (centre, angle) holds, inflated by a relative 1e-12."""
+    def held(self, centres, angles, stop=np.inf):
+        """What each closed cap (centre, angle) holds, inflated by a relative 1e-12; exact
+        below ``stop``."""
         chord = angle_to_chord(np.asarray(angles, float)) * (1.0 + 1e-12)
-        return held_in_balls(self.tree, self._weights(), centres, chord, self.workers)
+        return self.tree.held(centres, chord, stop)
 
-    def cell_counts(self, vertices, outradii):
-        """What each vertex's closed Voronoi cell holds: each point counts for every vertex
-        as near as its nearest, up to the unit vectors' rounding (``CELL_TIES``)."""
-        dd, ii = cKDTree(vertices).query(self.unit, k=min(3, len(vertices)),
-                                         workers=self.workers)  # fmt: skip
-        return cell_tally(dd, ii, self.weights, len(vertices), slack2=CELL_TIES)
+    def cell_counts(self, cells, stop=np.inf):
+        """What each vertex's closed Voronoi cell holds (``steps.Cells``): each point counts
+        for every vertex as near as its nearest, up to the unit vectors' rounding
+        (``CELL_TIES``); exact below ``stop``."""
+        return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
+                                    stop, cells.relative, cells.slack2)  # fmt: skip
 
     def d_pk(self, x):
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
@@ -267,11 +231,7 @@ class Points:
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
         if self.total < k:
             return np.full(len(x), np.inf)
-        if self.weights is None:
-            d = self.tree.query(x, k=[int(k)], workers=self.workers)[0][:, 0]
-        else:
-            d = weighted_kth(self.tree, self._weights(), x, k, self.workers)
-        return chord_to_angle(d)
+        return chord_to_angle(self.tree.kth(x, k))
 
     def sample_points(self, count, rng):
         """Up to ``count`` of the points' unit vectors, drawn at random."""
@@ -336,17 +296,27 @@ class Geometry:
     def vertex_d_m2(self):
         return chord_to_angle(self.vtree.query(self.xyz, k=2)[0][:, 1])
 
-    def cell_vertices(self):
-        return self.xyz
+    def cells(self, tri):
+        """The Voronoi cells of the vertices: each one's neighbours across the triangles'
+        edges, as chord vectors; a point counts for each vertex as near as its nearest up
+        to the unit vectors' rounding (``CELL_TIES``)."""
+        t = self.tri
+        a = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
+        b = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
+        m = len(self.xyz)
+        first, nb, _ = neighbour_lists(a, b, np.zeros((len(a), 0), np.int64), m)
+        site = np.repeat(np.arange(m), np.diff(first))
+        edges = self.xyz[nb] - self.xyz[site]
+        # the cell lies within its outradius (an angle) of the vertex: as a chord
+        return Cells(self.xyz, first, edges, angle_to_chord(tri.outradii), 2e-12, CELL_TIES)
 
-    def held(self, points, tri):
+    def held(self, points, tri, stop=np.inf):
         """Each closed circumcap's points, decided exactly (on or above the plane of its
         corners); the kd-tree's caps where there is no triangulation to count in (the
         verdict is FAILED already)."""
         if tri.problems:
-            return points.held(tri.centres, tri.radii)
-        return _held_in_caps(self.xyz, self.tri, tri.centres, tri.extra, points.unit,
-                             points.tree, points.weights, self.workers)  # fmt: skip
+            return points.held(tri.centres, tri.radii, stop)
+        return _held_in_caps(self.xyz, self.tri, tri.centres, tri.extra, points, stop)
 
     def precondition(self, points, k, tau):
         initial = self.xyz[np.asarray(self.mesh.kinds) == 0]

@@ -1,0 +1,1040 @@
+"""certify's own kd-tree, apart from the engine's index: what closed balls hold (stopping once
+they hold enough), k-th nearest distances, and each point's nearest sites with their ties.
+
+The engine's counting index answers the refinement's questions; a certificate that asked it
+would check the engine with itself. This tree is built another way and shares nothing with
+it: in any dimension, on axes that may wrap (a torus, ``period[a] > 0``) or not, over points
+that may carry weights (a point of weight 0 holds nothing and is left out by the caller).
+
+Built by the sliding-midpoint rule (Maneewongvatana and Mount): a node of more than ``LEAF``
+points splits its tight bounding box in the middle of its widest side, so that a clustered
+or duplicated input never makes a long thin node; a node whose points all coincide is never
+split, whatever its size, and is asked about as one weighted point. Every node keeps its
+tight box and its compensated weight total, so a ball that covers a node adds the total
+without visiting its points.
+
+Queries (each ``nogil``, over a range of queries, run on every core by ``in_chunks``):
+
+* ``held``: what each closed ball holds, a depth-first walk that adds whole nodes inside the
+  ball and stops once the sum reaches ``stop`` (certify asks "below k?": it needs the count
+  exactly only where it is below k, and the counts at or above k again, in full, only where
+  a check fails);
+* ``kth``: the least radius whose closed ball holds weight k (d_{P,k}; unweighted, the k-th
+  nearest distance), best first: nodes and points leave a heap in order of distance until
+  the weight reaches k, so the work follows k and the points near the query, not n, and a
+  bound known beforehand (1-Lipschitz from a neighbour's answer) prunes the heap;
+* ``nearest``: each query's nearest site and every site as near up to a tie tolerance (the
+  closed Voronoi cells a point counts for).
+
+A node's box is tested with the same rounded arithmetic as its points (distances along an
+axis and their squares are monotone in the coordinates), so adding or skipping a whole node
+gives what testing its points one by one gives.
+"""
+
+import math
+
+import numpy as np
+
+from .._engine.jit import kernel
+from .._engine.threads import in_chunks
+from ._predicates import UNSURE, orient3d_at
+
+LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
+
+
+@kernel(inline="always")
+def _plus(s, c, x):
+    """Neumaier's compensated s + x, its error gathered in c: the running total of weights
+    >= 0 stays within two ulps of the exact sum in any order (plain sums lose a weight of 1
+    beside one of 1e16); counts add exactly."""
+    t = s + x
+    if abs(s) >= abs(x):
+        c += (s - t) + x
+    else:
+        c += (x - t) + s
+    return t, c
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _build(pts, w, leaf):
+    """The tree over ``pts`` (n, d) with weights ``w`` (n,): (points and weights permuted so
+    that each node owns a contiguous range, their original indices, nodes (lo, hi, first
+    child or -1; the second child follows the first), tight boxes (mins, maxes), weight
+    totals, the depth)."""
+    n, d = pts.shape
+    pts = pts.copy()
+    w = w.copy()
+    ids = np.arange(n)
+    cap = 2 * (n // max(leaf, 1)) + 64
+    node = np.empty((cap, 3), np.int64)
+    box = np.empty((cap, 2 * d))
+    total = np.empty(cap)
+    level = np.zeros(cap, np.int64)
+    node[0, 0], node[0, 1], node[0, 2] = 0, n, -1
+    count = 1
+    deepest = 0
+    todo = np.empty(64, np.int64)  # nodes to split, last in first out: a subtree's nodes
+    todo[0] = 0  # lie together (depth first), as a query walks them
+    top = 1
+    while top > 0:
+        top -= 1
+        i = todo[top]
+        lo, hi = node[i, 0], node[i, 1]
+        s = 0.0
+        c = 0.0
+        for a in range(d):
+            box[i, a] = np.inf
+            box[i, d + a] = -np.inf
+        for j in range(lo, hi):
+            for a in range(d):
+                x = pts[j, a]
+                if x < box[i, a]:
+                    box[i, a] = x
+                if x > box[i, d + a]:
+                    box[i, d + a] = x
+            s, c = _plus(s, c, w[j])
+        total[i] = s + c
+        if hi - lo > leaf:
+            axis = 0
+            width = -1.0
+            for a in range(d):
+                if box[i, d + a] - box[i, a] > width:
+                    width = box[i, d + a] - box[i, a]
+                    axis = a
+            if width > 0.0:
+                low, high = box[i, axis], box[i, d + axis]
+                split = 0.5 * (low + high)
+                if split <= low:  # neighbouring floats: the larger goes right
+                    split = high
+                a_ = lo
+                b_ = hi - 1
+                while a_ <= b_:
+                    if pts[a_, axis] < split:
+                        a_ += 1
+                    else:
+                        for t in range(d):
+                            pts[a_, t], pts[b_, t] = pts[b_, t], pts[a_, t]
+                        w[a_], w[b_] = w[b_], w[a_]
+                        ids[a_], ids[b_] = ids[b_], ids[a_]
+                        b_ -= 1
+                if count + 2 > cap:
+                    cap = 2 * cap
+                    node2 = np.empty((cap, 3), np.int64)
+                    node2[:count] = node[:count]
+                    box2 = np.empty((cap, 2 * d))
+                    box2[:count] = box[:count]
+                    total2 = np.empty(cap)
+                    total2[:count] = total[:count]
+                    level2 = np.zeros(cap, np.int64)
+                    level2[:count] = level[:count]
+                    node, box, total, level = node2, box2, total2, level2
+                node[i, 2] = count
+                node[count, 0], node[count, 1], node[count, 2] = lo, a_, -1
+                node[count + 1, 0], node[count + 1, 1], node[count + 1, 2] = a_, hi, -1
+                level[count] = level[count + 1] = level[i] + 1
+                deepest = max(deepest, level[i] + 1)
+                if top + 2 > todo.shape[0]:
+                    todo2 = np.empty(2 * todo.shape[0], np.int64)
+                    todo2[:top] = todo[:top]
+                    todo = todo2
+                todo[top] = count + 1
+                todo[top + 1] = count
+                top += 2
+                count += 2
+    return pts, w, ids, node[:count].copy(), box[:count].copy(), total[:count].copy(), deepest
+
+
+@kernel(inline="always")
+def _gap(x, lo, hi, p):
+    """The distance along one axis from x to [lo, hi] (on a circle of period p > 0, all
+    three in [0, p))."""
+    if x < lo:
+        g = lo - x
+        if p > 0.0:
+            g = min(g, x + p - hi)
+        return g
+    if x > hi:
+        g = x - hi
+        if p > 0.0:
+            g = min(g, lo + p - x)
+        return g
+    return 0.0
+
+
+@kernel(inline="always")
+def _along(x, y, p):
+    """The distance along one axis from x to y (on a circle of period p > 0)."""
+    g = abs(x - y)
+    if p > 0.0 and g > p - g:
+        g = p - g
+    return g
+
+
+@kernel(inline="always")
+def _reach(x, lo, hi, p):
+    """The largest distance along one axis from x to a point of [lo, hi]."""
+    if p > 0.0:
+        far = x + 0.5 * p if x + 0.5 * p < p else x - 0.5 * p  # the point opposite x
+        if lo <= far <= hi:
+            return 0.5 * p
+        return max(_along(x, lo, p), _along(x, hi, p))
+    return max(abs(x - lo), abs(x - hi))
+
+
+@kernel(inline="always")
+def _box_near2(box, i, x, period):
+    d = x.shape[0]
+    s = 0.0
+    for a in range(d):
+        g = _gap(x[a], box[i, a], box[i, d + a], period[a])
+        s += g * g
+    return s
+
+
+@kernel(inline="always")
+def _box_far2(box, i, x, period):
+    d = x.shape[0]
+    s = 0.0
+    for a in range(d):
+        g = _reach(x[a], box[i, a], box[i, d + a], period[a])
+        s += g * g
+    return s
+
+
+@kernel(inline="always")
+def _point2(pts, j, x, period):
+    s = 0.0
+    for a in range(x.shape[0]):
+        g = _along(x[a], pts[j, a], period[a])
+        s += g * g
+    return s
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _held(pts, w, node, box, total, depth, period, x, r2, stop, out, start, end):
+    """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])),
+    exact below stop[q], at least stop[q] otherwise (the walk stops there)."""
+    stack = np.empty(2 * depth + 4, np.int64)
+    for q in range(start, end):
+        xq = x[q]
+        rq = r2[q]
+        s = 0.0
+        c = 0.0
+        top = 1
+        stack[0] = 0
+        while top > 0 and s + c < stop[q]:
+            top -= 1
+            i = stack[top]
+            if _box_near2(box, i, xq, period) > rq:
+                continue
+            if _box_far2(box, i, xq, period) <= rq:
+                s, c = _plus(s, c, total[i])
+                continue
+            child = node[i, 2]
+            if child >= 0:
+                stack[top] = child
+                stack[top + 1] = child + 1
+                top += 2
+                continue
+            for j in range(node[i, 0], node[i, 1]):
+                if _point2(pts, j, xq, period) <= rq:
+                    s, c = _plus(s, c, w[j])
+        out[q] = s + c
+
+
+@kernel(inline="always")
+def _push(keys, items, size, key, item):
+    """Push onto the binary min-heap (keys, items) of ``size`` entries, growing it when
+    full; returns the arrays and the new size."""
+    if size == keys.shape[0]:
+        k2 = np.empty(2 * size)
+        i2 = np.empty(2 * size, np.int64)
+        k2[:size] = keys
+        i2[:size] = items
+        keys, items = k2, i2
+    j = size
+    while j > 0:
+        parent = (j - 1) >> 1
+        if keys[parent] <= key:
+            break
+        keys[j] = keys[parent]
+        items[j] = items[parent]
+        j = parent
+    keys[j] = key
+    items[j] = item
+    return keys, items, size + 1
+
+
+@kernel(inline="always")
+def _pop(keys, items, size):
+    """Remove the least entry of the heap; returns (key, item, new size)."""
+    key, item = keys[0], items[0]
+    size -= 1
+    last_key, last_item = keys[size], items[size]
+    j = 0
+    while True:
+        child = 2 * j + 1
+        if child >= size:
+            break
+        if child + 1 < size and keys[child + 1] < keys[child]:
+            child += 1
+        if keys[child] >= last_key:
+            break
+        keys[j] = keys[child]
+        items[j] = items[child]
+        j = child
+    keys[j] = last_key
+    items[j] = last_item
+    return key, item, size
+
+
+@kernel(inline="always")
+def _expand(node, box, pts, i, xq, period, bound, keys, items, size):
+    """Push what node i holds: its points (a leaf) or its two children, those within
+    ``bound`` (squared); a node whose points coincide is pushed as one (item -2 - i)."""
+    child = node[i, 2]
+    if child >= 0:
+        for c in range(child, child + 2):
+            key = _box_near2(box, c, xq, period)
+            if key <= bound:
+                flat = True
+                for a in range(xq.shape[0]):
+                    if box[c, a] != box[c, xq.shape[0] + a]:
+                        flat = False
+                keys, items, size = _push(keys, items, size, key, -2 - c if flat else c)
+        return keys, items, size
+    for j in range(node[i, 0], node[i, 1]):
+        key = _point2(pts, j, xq, period)
+        if key <= bound:
+            keys, items, size = _push(keys, items, size, key, node.shape[0] + j)
+    return keys, items, size
+
+
+@kernel(inline="always")
+def _sift_up(hk, hw, n):
+    """Restore the max-heap hk[:n] (weights hw alongside) after appending at n - 1."""
+    j = n - 1
+    key, wt = hk[j], hw[j]
+    while j > 0:
+        parent = (j - 1) >> 1
+        if hk[parent] >= key:
+            break
+        hk[j], hw[j] = hk[parent], hw[parent]
+        j = parent
+    hk[j], hw[j] = key, wt
+
+
+@kernel(inline="always")
+def _drop_top(hk, hw, n):
+    """Remove the largest entry of the max-heap hk[:n]; returns the new size."""
+    n -= 1
+    key, wt = hk[n], hw[n]
+    j = 0
+    while True:
+        child = 2 * j + 1
+        if child >= n:
+            break
+        if child + 1 < n and hk[child + 1] > hk[child]:
+            child += 1
+        if hk[child] <= key:
+            break
+        hk[j], hw[j] = hk[child], hw[child]
+        j = child
+    if n > 0:
+        hk[j], hw[j] = key, wt
+    return n
+
+
+@kernel(inline="always")
+def _settle(hk, hw, n, k):
+    """The weighted candidates hk[:n] (squared distances, weights hw) cut to those needed:
+    sorted, the least squared radius holding weight k found (compensated running sum), the
+    farther ones dropped. Returns (that squared radius or inf, the new size)."""
+    order = np.argsort(hk[:n])
+    keys = hk[:n][order]
+    wts = hw[:n][order]
+    s = 0.0
+    c = 0.0
+    for j in range(n):
+        s, c = _plus(s, c, wts[j])
+        if s + c >= k:
+            hk[: j + 1] = keys[: j + 1]
+            hw[: j + 1] = wts[: j + 1]
+            return keys[j], j + 1
+    hk[:n] = keys
+    hw[:n] = wts
+    return np.inf, n
+
+
+@kernel(inline="always")
+def _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit, stack, stack_key, hk, hw):
+    """The least radius about xq holding weight k (inf where the points hold less), depth
+    first, the nearer child first, pruned by the best radius so far. ``unit`` (every weight
+    1): the k nearest kept in a max-heap. Weighted: the candidates within the radius so far,
+    cut back (``_settle``) each time they double. ``limit``: a squared bound from above (inf:
+    none); where rounding made it too tight, the walk runs again without it. Returns (the
+    radius, hk, hw)."""
+    dim = xq.shape[0]
+    kk = int(math.ceil(k)) if unit else 0
+    answer = np.inf
+    for _attempt in range(2):
+        r2 = limit
+        n = 0
+        settled = 64
+        top = 1
+        stack[0] = 0
+        stack_key[0] = _box_near2(box, 0, xq, period)
+        while top > 0:
+            top -= 1
+            i = stack[top]
+            if stack_key[top] > r2:
+                continue
+            child = node[i, 2]
+            flat = True
+            for a in range(dim):
+                if box[i, a] != box[i, dim + a]:
+                    flat = False
+            if child >= 0 and not flat:
+                k0 = _box_near2(box, child, xq, period)
+                k1 = _box_near2(box, child + 1, xq, period)
+                if k0 <= k1:
+                    stack[top], stack_key[top] = child + 1, k1
+                    stack[top + 1], stack_key[top + 1] = child, k0
+                else:
+                    stack[top], stack_key[top] = child, k0
+                    stack[top + 1], stack_key[top + 1] = child + 1, k1
+                top += 2
+                continue
+            lo = node[i, 0]
+            hi = node[i, 1] if not flat else node[i, 0] + 1
+            for j in range(lo, hi):
+                d2 = _point2(pts, j, xq, period)
+                if d2 > r2:
+                    continue
+                if unit:
+                    copies = min(int(total[i]), kk) if flat else 1
+                    for _ in range(copies):  # coinciding points: a copy for each
+                        if n < kk:
+                            hk[n], hw[n] = d2, 1.0
+                            n += 1
+                            _sift_up(hk, hw, n)
+                            if n == kk:
+                                r2 = min(r2, hk[0])
+                        elif d2 < hk[0]:
+                            n = _drop_top(hk, hw, n)
+                            hk[n], hw[n] = d2, 1.0
+                            n += 1
+                            _sift_up(hk, hw, n)
+                            r2 = hk[0]
+                else:
+                    if n == hk.shape[0]:
+                        hk2 = np.empty(2 * n)
+                        hw2 = np.empty(2 * n)
+                        hk2[:n] = hk
+                        hw2[:n] = hw
+                        hk, hw = hk2, hw2
+                    hk[n], hw[n] = d2, (w[j] if not flat else total[i])
+                    n += 1
+                    if n >= 2 * settled:
+                        bound, n = _settle(hk, hw, n, k)
+                        r2 = min(r2, bound)
+                        settled = max(n, 32)
+        if unit:
+            if n == kk and kk > 0:
+                answer = math.sqrt(hk[0])
+        else:
+            bound, n = _settle(hk, hw, n, k)
+            if bound < np.inf:
+                answer = math.sqrt(bound)
+        if answer < np.inf or limit == np.inf:
+            break
+        limit = np.inf
+    return answer, hk, hw
+
+
+@kernel(inline="always")
+def _select(v, n, kth):
+    """The kth smallest (0-based) of v[:n], v partly reordered (Hoare's quickselect)."""
+    lo = 0
+    hi = n - 1
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        a, b, c = v[lo], v[mid], v[hi]
+        pivot = max(min(a, b), min(max(a, b), c))
+        i = lo
+        j = hi
+        while i <= j:
+            while v[i] < pivot:
+                i += 1
+            while v[j] > pivot:
+                j -= 1
+            if i <= j:
+                v[i], v[j] = v[j], v[i]
+                i += 1
+                j -= 1
+        if kth <= j:
+            hi = j
+        elif kth >= i:
+            lo = i
+        else:
+            return v[kth]
+    return v[kth]
+
+
+@kernel(inline="always")
+def _kth_bracket(pts, w, node, box, total, period, xq, k, unit, low, high, stack, ring, rw):
+    """The least radius about xq holding weight k, known to lie in [low, high]: the weight
+    within ``low`` summed (whole nodes without their points), the points between ``low``
+    and ``high`` (the ring) gathered, and the rest selected among them. Returns the radius,
+    or -1 where the bracket cannot answer (rounding, or a ring longer than the buffers)."""
+    low2 = low * low
+    high2 = high * high
+    s = 0.0
+    c = 0.0
+    n = 0
+    top = 1
+    stack[0] = 0
+    while top > 0:
+        top -= 1
+        i = stack[top]
+        if _box_near2(box, i, xq, period) > high2:
+            continue
+        if _box_far2(box, i, xq, period) <= low2:
+            s, c = _plus(s, c, total[i])
+            continue
+        child = node[i, 2]
+        if child >= 0:
+            stack[top] = child
+            stack[top + 1] = child + 1
+            top += 2
+            continue
+        for j in range(node[i, 0], node[i, 1]):
+            d2 = _point2(pts, j, xq, period)
+            if d2 <= low2:
+                s, c = _plus(s, c, w[j])
+            elif d2 <= high2:
+                if n == ring.shape[0]:
+                    return -1.0
+                ring[n] = d2
+                rw[n] = w[j]
+                n += 1
+    inside = s + c
+    if inside >= k:
+        return -1.0
+    if unit:
+        need = int(math.ceil(k - inside))  # counts: exact
+        if need > n:
+            return -1.0
+        return math.sqrt(_select(ring, n, need - 1))
+    order = np.argsort(ring[:n])
+    for j in order:
+        s, c = _plus(s, c, rw[j])
+        if s + c >= k:
+            return math.sqrt(ring[j])
+    return -1.0
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _kth(pts, w, node, box, total, depth, period, x, k, unit, upper2, out, start, end):
+    """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
+    weight k (inf where the points hold less). Queries come in an order where neighbours
+    are near (``spatial_order``): with delta the distance from the one before, whose answer
+    is a, the answer lies in [a - delta, a + delta] (d_{P,k} is 1-Lipschitz), and only the
+    points in that ring are looked at (``_kth_bracket``); the first query, one far from the
+    one before, or a ring that cannot answer: depth first (``_kth_dfs``), pruned by
+    ``upper2[q]`` (a squared bound from above, inf: none)."""
+    stack = np.empty(2 * depth + 4, np.int64)
+    stack_key = np.empty(2 * depth + 4)
+    kk = int(math.ceil(k)) if unit else 0
+    hk = np.empty(max(kk, 64))
+    hw = np.empty(max(kk, 64))
+    ring = np.empty(max(64 * kk, 4096))
+    rw = np.empty(ring.shape[0])
+    for q in range(start, end):
+        xq = x[q]
+        answer = -1.0
+        if q > start and out[q - 1] < np.inf:
+            a = out[q - 1]
+            delta = math.sqrt(_point2(x, q - 1, xq, period))
+            if delta <= a:
+                answer = _kth_bracket(pts, w, node, box, total, period, xq, k, unit,
+                                      max(a - delta, 0.0) * (1.0 - 1e-12),
+                                      (a + delta) * (1.0 + 1e-12), stack, ring, rw)  # fmt: skip
+        if answer < 0.0:
+            limit = upper2[q] * (1.0 + 1e-12) + 1e-300 if upper2[q] < np.inf else np.inf
+            answer, hk, hw = _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit,
+                                      stack, stack_key, hk, hw)  # fmt: skip
+        out[q] = answer
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _nearest(pts, ids, node, box, period, x, relative, slack2, out, start, end):
+    """out[q, :] for q in [start, end): the (original) indices of the tree's points as near
+    to x[q] as its nearest, up to squared distance d0^2 * (1 + relative) + slack2, -1 after
+    them; more than fit are left out (out[q, -1] = -2 marks that)."""
+    keys = np.empty(256)
+    items = np.empty(256, np.int64)
+    nn = node.shape[0]
+    width = out.shape[1]
+    for q in range(start, end):
+        xq = x[q]
+        for j in range(width):
+            out[q, j] = -1
+        size = 0
+        keys, items, size = _push(keys, items, size, _box_near2(box, 0, xq, period), 0)
+        bound = np.inf
+        found = 0
+        while size > 0:
+            key, item, size = _pop(keys, items, size)
+            if key > bound:
+                break
+            if item >= nn:
+                if found == 0:
+                    bound = key * (1.0 + relative) + slack2
+                if found < width:
+                    out[q, found] = ids[item - nn]
+                else:
+                    out[q, width - 1] = -2
+                found += 1
+            elif item <= -2:  # coinciding points, each its own site: open the node
+                i = -2 - item
+                for j in range(node[i, 0], node[i, 1]):
+                    keys, items, size = _push(keys, items, size, key, nn + j)
+            else:
+                keys, items, size = _expand(node, box, pts, item, xq, period, bound,
+                                            keys, items, size)  # fmt: skip
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _cells_held(pts, w, node, box, total, depth, period, v, first, edges, outradii, relative,
+                slack2, stop, out, start, end):  # fmt: skip
+    """out[s] for s in [start, end): the weight in the closed Voronoi cell of site v[s]
+    (``Tree.cells_held``). A node is skipped when it lies beyond the outradius or wholly
+    beyond one bisector (with a margin past the tolerance), added whole when it lies within
+    the outradius and inside every bisector with a margin, and otherwise opened; on a torus
+    the bisector tests use the copy of the node nearest the site and are made only for
+    nodes narrower than half a period (the others are opened)."""
+    dim = v.shape[1]
+    stack = np.empty(2 * depth + 4, np.int64)
+    rlo = np.empty(dim)
+    rhi = np.empty(dim)
+    for q in range(start, end):
+        vq = v[q]
+        big = outradii[q] * (1.0 + 1e-9)
+        big2 = big * big
+        e0, e1 = first[q], first[q + 1]
+        s = 0.0
+        c = 0.0
+        top = 1
+        stack[0] = 0
+        while top > 0 and s + c < stop[q]:
+            top -= 1
+            i = stack[top]
+            if _box_near2(box, i, vq, period) > big2:
+                continue
+            # the node relative to the site, on a torus its copy nearest the site
+            shifted = True
+            for a in range(dim):
+                lo = box[i, a] - vq[a]
+                hi = box[i, dim + a] - vq[a]
+                p = period[a]
+                if p > 0.0:
+                    if hi - lo >= 0.5 * p:
+                        shifted = False
+                    mid = 0.5 * (lo + hi)
+                    shift = p * np.floor(mid / p + 0.5)
+                    lo -= shift
+                    hi -= shift
+                rlo[a] = lo
+                rhi[a] = hi
+            inside = _box_far2(box, i, vq, period) <= big2 and shifted
+            outside = False
+            if shifted:
+                for j in range(e0, e1):
+                    ee = 0.0
+                    most = 0.0
+                    least = 0.0
+                    for a in range(dim):
+                        ea = edges[j, a]
+                        ee += ea * ea
+                        if ea >= 0.0:
+                            most += rhi[a] * ea
+                            least += rlo[a] * ea
+                        else:
+                            most += rlo[a] * ea
+                            least += rhi[a] * ea
+                    if 2.0 * most > ee * (1.0 - 1e-9):
+                        inside = False
+                    reach = big + math.sqrt(ee)
+                    if 2.0 * least - ee > 1e-9 * ee + 4.0 * relative * reach * reach + 4.0 * slack2:
+                        outside = True
+                        break
+            if outside:
+                continue
+            if inside:
+                s, c = _plus(s, c, total[i])
+                continue
+            child = node[i, 2]
+            if child >= 0:
+                stack[top] = child
+                stack[top + 1] = child + 1
+                top += 2
+                continue
+            for j in range(node[i, 0], node[i, 1]):
+                d2 = _point2(pts, j, vq, period)
+                if d2 > big2:
+                    continue
+                ok = True
+                for t in range(e0, e1):
+                    o2 = 0.0
+                    for a in range(dim):
+                        g = pts[j, a] - vq[a]
+                        if period[a] > 0.0:
+                            g -= period[a] * np.floor(g / period[a] + 0.5)
+                        g -= edges[t, a]
+                        o2 += g * g
+                    if d2 > o2 * (1.0 + relative) + slack2:
+                        ok = False
+                        break
+                if ok:
+                    s, c = _plus(s, c, w[j])
+        out[q] = s + c
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _held_caps(pts, w, node, box, total, depth, x, outer2, corners, stop, out, start, end):
+    """out[q] for q in [start, end): the weight of the points on or above the plane through
+    corners[q] (three points (3, 3), counter-clockwise seen from above) among those within
+    sqrt(outer2[q]) of x[q], each decided by the filtered orient3d, stopping once it
+    reaches stop[q]; returns the (query, point) pairs the filter could not decide, of the
+    queries still below their stop (for exact arithmetic)."""
+    period = np.zeros(3)
+    stack = np.empty(2 * depth + 4, np.int64)
+    qs = np.empty(64, np.int64)
+    ps = np.empty(64, np.int64)
+    used = 0
+    for q in range(start, end):
+        xq = x[q]
+        r_out = outer2[q]
+        a = corners[q]
+        s = 0.0
+        c = 0.0
+        top = 1
+        stack[0] = 0
+        mark = used
+        while top > 0 and s + c < stop[q]:
+            top -= 1
+            i = stack[top]
+            if _box_near2(box, i, xq, period) > r_out:
+                continue
+            child = node[i, 2]
+            if child >= 0:
+                stack[top] = child
+                stack[top + 1] = child + 1
+                top += 2
+                continue
+            for j in range(node[i, 0], node[i, 1]):
+                if _point2(pts, j, xq, period) > r_out:
+                    continue
+                sign = orient3d_at(a[0, 0], a[0, 1], a[0, 2], a[1, 0], a[1, 1], a[1, 2],
+                                   a[2, 0], a[2, 1], a[2, 2], pts[j, 0], pts[j, 1],
+                                   pts[j, 2])  # fmt: skip
+                if sign == UNSURE:
+                    if used == qs.shape[0]:
+                        qs2 = np.empty(2 * used, np.int64)
+                        ps2 = np.empty(2 * used, np.int64)
+                        qs2[:used] = qs
+                        ps2[:used] = ps
+                        qs, ps = qs2, ps2
+                    qs[used] = q
+                    ps[used] = j
+                    used += 1
+                elif sign <= 0:
+                    s, c = _plus(s, c, w[j])
+        out[q] = s + c
+        if s + c >= stop[q]:
+            used = mark  # decided: what it left open is not needed
+    return qs[:used].copy(), ps[:used].copy()
+
+
+@kernel(entry=True, lazy=True)
+def sums_by(cell, w, m):
+    """The weights ``w`` summed into ``m`` bins by ``cell`` (-1: none), compensated."""
+    s = np.zeros(m)
+    c = np.zeros(m)
+    for j in range(cell.shape[0]):
+        b = cell[j]
+        if b >= 0:
+            s[b], c[b] = _plus(s[b], c[b], w[j])
+    return s + c
+
+
+class Tree:
+    """certify's kd-tree over ``points`` (n, d), with ``weights`` (n,) or None (every point
+    weighs 1), on the torus of ``period`` (per axis; 0 or None: that axis does not wrap;
+    coordinates along wrapping axes in [0, period))."""
+
+    def __init__(self, points, weights=None, period=None, threads=None):
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        self.n, self.dim = pts.shape
+        self.period = (np.zeros(self.dim) if period is None
+                       else np.ascontiguousarray(period, dtype=np.float64))  # fmt: skip
+        self.threads = threads
+        w = np.ones(self.n) if weights is None else np.ascontiguousarray(weights, np.float64)
+        if self.n == 0:  # a node must exist: one far away holding nothing
+            pts, w = np.full((1, self.dim), np.inf), np.zeros(1)
+        (self.pts, self.w, self.ids, self.node, self.box, self.total,
+         self.depth) = _build(pts, w, LEAF)  # fmt: skip
+
+    def _queries(self, x):
+        return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)
+
+    def _period(self, period):
+        return self.period if period is None else np.ascontiguousarray(period, np.float64)
+
+    def _run(self, call, m):
+        in_chunks(call, m, threads=_threads(self.threads), least=512)
+
+    def held(self, centres, radii, stop=np.inf, period=None):
+        """What each closed ball (centre, radius) holds: its points' weight (their number
+        unweighted), exact where below ``stop`` (a number or one per ball), at least
+        ``stop`` otherwise."""
+        x = self._queries(centres)
+        r = np.asarray(radii, np.float64)
+        r2 = np.ascontiguousarray(np.broadcast_to(r * r, len(x)))
+        st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(x)))
+        out = np.empty(len(x))
+        p = self._period(period)
+
+        def call(a, b):
+            _held(self.pts, self.w, self.node, self.box, self.total, self.depth, p, x, r2, st,
+                  out, a, b)  # fmt: skip
+
+        self._run(call, len(x))
+        return out
+
+    def kth(self, x, k, upper=None, period=None):
+        """The least radius whose closed ball about each x holds weight k (the k-th
+        nearest distance, unweighted; inf where the points hold less); ``upper``: a bound
+        known from above for each (it prunes; a wrong one costs time, not the answer). The
+        queries are taken in ``spatial_order``, so that each brackets the next."""
+        x = self._queries(x)
+        order = spatial_order(x)
+        xs = np.ascontiguousarray(x[order])
+        u2 = np.full(len(x), np.inf)
+        if upper is not None:
+            u2 = np.square(np.broadcast_to(np.asarray(upper, np.float64), len(x))[order])
+        u2 = np.ascontiguousarray(u2)
+        res = np.empty(len(x))
+        p = self._period(period)
+        unit = bool((self.w == 1.0).all())
+
+        def call(a, b):
+            _kth(self.pts, self.w, self.node, self.box, self.total, self.depth, p, xs, float(k),
+                 unit, u2, res, a, b)  # fmt: skip
+
+        self._run(call, len(x))
+        out = np.empty(len(x))
+        out[order] = res
+        return out
+
+    def held_caps(self, centres, outer, corners, stop=np.inf):
+        """(what each closed cap holds: the points on or above the plane through its three
+        ``corners`` (t, 3, 3), among those within ``outer`` of ``centres``, exact below
+        ``stop``; the (cap, point) pairs the float filter left undecided, for caps still
+        below ``stop``, points as the tree holds them: ``pts[j]`` weighing ``w[j]``)."""
+        x = self._queries(centres)
+        outer2 = np.ascontiguousarray(np.broadcast_to(np.square(outer, dtype=float), len(x)))
+        st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(x)))
+        c = np.ascontiguousarray(corners, np.float64)
+        out = np.empty(len(x))
+
+        def call(a, b):
+            return _held_caps(self.pts, self.w, self.node, self.box, self.total, self.depth,
+                              x, outer2, c, st, out, a, b)  # fmt: skip
+
+        parts = in_chunks(call, len(x), threads=_threads(self.threads), least=512)
+        caps = np.concatenate([q for q, _ in parts]) if parts else np.zeros(0, np.int64)
+        members = np.concatenate([j for _, j in parts]) if parts else np.zeros(0, np.int64)
+        return out, caps, members
+
+    def cells_held(self, sites, first, edges, outradii, stop=np.inf, relative=2e-12,
+                   slack2=0.0):  # fmt: skip
+        """What the closed Voronoi cell of each site holds: the points p within its
+        outradius with |p - v|^2 <= |p - u|^2 (1 + relative) + slack2 for each neighbour u at
+        v + edges[first[v]:first[v + 1]] (its Delaunay neighbours, as vectors from it: a
+        point as near as its nearest counts for each), exact below ``stop``. Whole nodes
+        inside every bisector are added without their points."""
+        v = self._queries(sites)
+        e = np.ascontiguousarray(edges, np.float64).reshape(-1, self.dim)
+        r = np.ascontiguousarray(outradii, np.float64)
+        st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(v)))
+        first = np.ascontiguousarray(first, np.int64)
+        out = np.empty(len(v))
+
+        def call(a, b):
+            _cells_held(self.pts, self.w, self.node, self.box, self.total, self.depth,
+                        self.period, v, first, e, r, float(relative), float(slack2), st, out,
+                        a, b)  # fmt: skip
+
+        self._run(call, len(v))
+        return out
+
+    def nearest(self, x, width=4, relative=2e-12, slack2=0.0):
+        """(q, width) indices of the points as near to each x as its nearest, up to a squared
+        distance d0^2 (1 + relative) + slack2 (ties), -1 after them; -2 in the last column
+        where more were as near than fit."""
+        x = self._queries(x)
+        out = np.empty((len(x), width), np.int64)
+
+        def call(a, b):
+            _nearest(self.pts, self.ids, self.node, self.box, self.period, x, float(relative),
+                     float(slack2), out, a, b)  # fmt: skip
+
+        self._run(call, len(x))
+        return out
+
+
+def _threads(threads):
+    """Threads for a query: None or -1 every core (``in_chunks``' default), else N."""
+    return None if threads is None or threads < 0 else max(1, int(threads))
+
+
+@kernel(inline="always")
+def _spread2(v):
+    """The low 32 bits of v with a zero between each (bit i to bit 2 i)."""
+    v &= np.uint64(0xFFFFFFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x0000FFFF0000FFFF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x00FF00FF00FF00FF)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x3333333333333333)
+    v = (v | (v << np.uint64(1))) & np.uint64(0x5555555555555555)
+    return v
+
+
+@kernel(inline="always")
+def _spread3(v):
+    """The low 21 bits of v with two zeros between each (bit i to bit 3 i)."""
+    v &= np.uint64(0x1FFFFF)
+    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+    return v
+
+
+@kernel(entry=True, lazy=True)
+def _morton_order(x, lo, scale):
+    """The order of the rows of x (n, 2 or 3) along a Morton curve: each coordinate less
+    ``lo`` times ``scale`` as an integer (31 bits in the plane, 21 in space), interleaved,
+    and the codes sorted by a radix sort of eight 8-bit digits."""
+    n, d = x.shape
+    top = 2.0**31 - 1.0 if d == 2 else 2.0**21 - 1.0
+    code = np.empty(n, np.uint64)
+    for i in range(n):
+        c = np.uint64(0)
+        for a in range(d):
+            v = (x[i, a] - lo[a]) * scale[a]
+            v = min(max(v, 0.0), top) if v == v else 0.0
+            q = np.uint64(v)
+            c |= (_spread2(q) if d == 2 else _spread3(q)) << np.uint64(a)
+        code[i] = c
+    order = np.arange(n)
+    keys2 = np.empty(n, np.uint64)
+    order2 = np.empty(n, np.int64)
+    count = np.empty(257, np.int64)
+    for shift in range(0, 64, 8):
+        count[:] = 0
+        for i in range(n):
+            count[((code[i] >> np.uint64(shift)) & np.uint64(0xFF)) + 1] += 1
+        if count.max() == n:  # one digit for every code: nothing moves
+            continue
+        for b in range(256):
+            count[b + 1] += count[b]
+        for i in range(n):
+            digit = (code[i] >> np.uint64(shift)) & np.uint64(0xFF)
+            keys2[count[digit]] = code[i]
+            order2[count[digit]] = order[i]
+            count[digit] += 1
+        code, keys2 = keys2, code
+        order, order2 = order2, order
+    return order
+
+
+def spatial_order(x):
+    """An order of the rows of ``x`` (n, d) along a Morton curve over their bounding box:
+    neighbours in it are near each other, as groups of queries need."""
+    x = np.ascontiguousarray(x, np.float64)
+    if len(x) < 2:
+        return np.arange(len(x))
+    if x.shape[1] not in (2, 3):
+        return np.arange(len(x))
+    bits = 31 if x.shape[1] == 2 else 21
+    finite = np.where(np.isfinite(x), x, np.nan)
+    lo = np.nan_to_num(np.nanmin(finite, axis=0))
+    span = np.nan_to_num(np.nanmax(finite, axis=0)) - lo
+    scale = np.where(span > 0, (2.0**bits - 1) / np.where(span > 0, span, 1.0), 0.0)
+    return _morton_order(x, lo, scale)
+
+
+@kernel(entry=True, lazy=True)
+def neighbour_lists(a, b, shift, m):
+    """Each site's neighbours, once each, from directed edges a -> b (b moved by the whole
+    periods ``shift`` (e, d)): (first (m + 1,): site v's are rows first[v]:first[v + 1] of
+    the next two, their indices, their shifts). A counting sort by site, then each site's
+    few rows sorted (insertion) and repeats dropped."""
+    e, d = shift.shape
+    first = np.zeros(m + 1, np.int64)
+    for j in range(e):
+        first[a[j] + 1] += 1
+    for v in range(m):
+        first[v + 1] += first[v]
+    place = first[:m].copy()
+    nb = np.empty(e, np.int64)
+    sh = np.empty((e, d), np.int64)
+    for j in range(e):
+        p = place[a[j]]
+        place[a[j]] += 1
+        nb[p] = b[j]
+        for t in range(d):
+            sh[p, t] = shift[j, t]
+    out_first = np.zeros(m + 1, np.int64)
+    used = 0
+    row = np.empty(d, np.int64)
+    for v in range(m):
+        lo, hi = first[v], first[v + 1]
+        for j in range(lo + 1, hi):  # insertion sort of the block by (b, shift)
+            key = nb[j]
+            for t in range(d):
+                row[t] = sh[j, t]
+            i = j - 1
+            while i >= lo:
+                less = nb[i] > key
+                if nb[i] == key:
+                    for t in range(d):
+                        if sh[i, t] != row[t]:
+                            less = sh[i, t] > row[t]
+                            break
+                if not less:
+                    break
+                nb[i + 1] = nb[i]
+                for t in range(d):
+                    sh[i + 1, t] = sh[i, t]
+                i -= 1
+            nb[i + 1] = key
+            for t in range(d):
+                sh[i + 1, t] = row[t]
+        for j in range(lo, hi):
+            same = j > lo and nb[j] == nb[j - 1]
+            if same:
+                for t in range(d):
+                    if sh[j, t] != sh[j - 1, t]:
+                        same = False
+            if not same:
+                nb[used] = nb[j]
+                for t in range(d):
+                    sh[used, t] = sh[j, t]
+                used += 1
+        out_first[v + 1] = used
+    return out_first, nb[:used].copy(), sh[:used].copy()
