@@ -482,55 +482,62 @@ def _select(v, n, kth):
 
 
 @kernel(inline="always")
-def _kth_bracket(pts, w, node, box, total, period, xq, k, unit, low, high, stack, ring, rw):
-    """The least radius about xq holding weight k, known to lie in [low, high]: the weight
-    within ``low`` summed (whole nodes without their points), the points between ``low``
-    and ``high`` (the ring) gathered, and the rest selected among them. Returns the radius,
-    or -1 where the bracket cannot answer (rounding, or a ring longer than the buffers)."""
-    low2 = low * low
-    high2 = high * high
-    s = 0.0
-    c = 0.0
+def _gather(pts, w, node, box, period, c, r2, stack, gx, gw):
+    """The points (and weights) within the closed ball (c, sqrt(r2)) copied to gx, gw;
+    their number, or -1 where they do not fit."""
+    d = c.shape[0]
     n = 0
     top = 1
     stack[0] = 0
     while top > 0:
         top -= 1
         i = stack[top]
-        if _box_near2(box, i, xq, period) > high2:
-            continue
-        if _box_far2(box, i, xq, period) <= low2:
-            s, c = _plus(s, c, total[i])
+        if _box_near2(box, i, c, period) > r2:
             continue
         child = node[i, 2]
-        if child >= 0:
+        whole = _box_far2(box, i, c, period) <= r2
+        if child >= 0 and not whole:
             stack[top] = child
             stack[top + 1] = child + 1
             top += 2
             continue
         for j in range(node[i, 0], node[i, 1]):
-            d2 = _point2(pts, j, xq, period)
-            if d2 <= low2:
-                s, c = _plus(s, c, w[j])
-            elif d2 <= high2:
-                if n == ring.shape[0]:
-                    return -1.0
-                ring[n] = d2
-                rw[n] = w[j]
+            if whole or _point2(pts, j, c, period) <= r2:
+                if n == gx.shape[0]:
+                    return -1
+                for a in range(d):
+                    gx[n, a] = pts[j, a]
+                gw[n] = w[j]
                 n += 1
-    inside = s + c
-    if inside >= k:
-        return -1.0
+    return n
+
+
+@kernel(inline="always")
+def _kth_in(gx, gw, n, xq, period, k, unit, high2, d2, dw):
+    """The least radius about xq holding weight k among the gathered points gx[:n] (those
+    within sqrt(high2) of it), or -1 where they hold less."""
+    m = 0
+    for j in range(n):
+        s = 0.0
+        for a in range(xq.shape[0]):
+            g = _along(xq[a], gx[j, a], period[a])
+            s += g * g
+        if s <= high2:
+            d2[m] = s
+            dw[m] = gw[j]
+            m += 1
     if unit:
-        need = int(math.ceil(k - inside))  # counts: exact
-        if need > n:
+        need = int(math.ceil(k))
+        if need > m:
             return -1.0
-        return math.sqrt(_select(ring, n, need - 1))
-    order = np.argsort(ring[:n])
+        return math.sqrt(_select(d2, m, need - 1))
+    order = np.argsort(d2[:m])
+    s = 0.0
+    c = 0.0
     for j in order:
-        s, c = _plus(s, c, rw[j])
+        s, c = _plus(s, c, dw[j])
         if s + c >= k:
-            return math.sqrt(ring[j])
+            return math.sqrt(d2[j])
     return -1.0
 
 
@@ -539,17 +546,26 @@ def _kth(pts, w, node, box, total, depth, period, x, k, unit, upper2, out, start
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less). Queries come in an order where neighbours
     are near (``spatial_order``): with delta the distance from the one before, whose answer
-    is a, the answer lies in [a - delta, a + delta] (d_{P,k} is 1-Lipschitz), and only the
-    points in that ring are looked at (``_kth_bracket``); the first query, one far from the
-    one before, or a ring that cannot answer: depth first (``_kth_dfs``), pruned by
-    ``upper2[q]`` (a squared bound from above, inf: none)."""
+    is a, the answer is at most a + delta (d_{P,k} is 1-Lipschitz), so it is found among
+    the points within a + delta of the query. Those are taken from a window, the points
+    within twice that of an earlier query, gathered once and kept while later queries'
+    balls stay inside it; the first query, one far from the one before, or a window too
+    large for its buffer: depth first (``_kth_dfs``), pruned by ``upper2[q]`` (a squared
+    bound from above, inf: none)."""
+    dim = x.shape[1]
     stack = np.empty(2 * depth + 4, np.int64)
     stack_key = np.empty(2 * depth + 4)
     kk = int(math.ceil(k)) if unit else 0
     hk = np.empty(max(kk, 64))
     hw = np.empty(max(kk, 64))
-    ring = np.empty(max(64 * kk, 4096))
-    rw = np.empty(ring.shape[0])
+    size = max(64 * kk, 4096)
+    gx = np.empty((size, dim))
+    gw = np.empty(size)
+    d2 = np.empty(size)
+    dw = np.empty(size)
+    n = 0
+    centre = np.empty(dim)
+    reach = -1.0  # the window: the points within reach of centre (none yet)
     for q in range(start, end):
         xq = x[q]
         answer = -1.0
@@ -557,14 +573,30 @@ def _kth(pts, w, node, box, total, depth, period, x, k, unit, upper2, out, start
             a = out[q - 1]
             delta = math.sqrt(_point2(x, q - 1, xq, period))
             if delta <= a:
-                answer = _kth_bracket(pts, w, node, box, total, period, xq, k, unit,
-                                      max(a - delta, 0.0) * (1.0 - 1e-12),
-                                      (a + delta) * (1.0 + 1e-12), stack, ring, rw)  # fmt: skip
+                high = (a + delta) * (1.0 + 1e-12)
+                if reach < 0.0 or math.sqrt(_dist_to(centre, xq, period)) + high > reach:
+                    for t in range(dim):
+                        centre[t] = xq[t]
+                    reach = 2.0 * high
+                    n = _gather(pts, w, node, box, period, centre, reach * reach, stack, gx, gw)
+                    if n < 0:
+                        reach = -1.0
+                if reach >= 0.0:
+                    answer = _kth_in(gx, gw, n, xq, period, k, unit, high * high, d2, dw)
         if answer < 0.0:
             limit = upper2[q] * (1.0 + 1e-12) + 1e-300 if upper2[q] < np.inf else np.inf
             answer, hk, hw = _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit,
                                       stack, stack_key, hk, hw)  # fmt: skip
         out[q] = answer
+
+
+@kernel(inline="always")
+def _dist_to(c, xq, period):
+    s = 0.0
+    for a in range(c.shape[0]):
+        g = _along(c[a], xq[a], period[a])
+        s += g * g
+    return s
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -813,13 +845,14 @@ class Tree:
         self._run(call, len(x))
         return out
 
-    def kth(self, x, k, upper=None, period=None):
+    def kth(self, x, k, upper=None, period=None, sort=True):
         """The least radius whose closed ball about each x holds weight k (the k-th
         nearest distance, unweighted; inf where the points hold less); ``upper``: a bound
         known from above for each (it prunes; a wrong one costs time, not the answer). The
-        queries are taken in ``spatial_order``, so that each brackets the next."""
+        queries are taken in ``spatial_order`` (``sort=False``: in the order given, one
+        where neighbours are near), so that each brackets the next."""
         x = self._queries(x)
-        order = spatial_order(x)
+        order = spatial_order(x) if sort else np.arange(len(x))
         xs = np.ascontiguousarray(x[order])
         u2 = np.full(len(x), np.inf)
         if upper is not None:
@@ -1038,3 +1071,25 @@ def neighbour_lists(a, b, shift, m):
                 used += 1
         out_first[v + 1] = used
     return out_first, nb[:used].copy(), sh[:used].copy()
+
+
+@kernel(entry=True, lazy=True)
+def order_by_owner(key, m):
+    """The indices sorted by ``key`` in [0, m) (stably, a counting sort), those of key -1
+    after them."""
+    count = np.zeros(m + 2, np.int64)
+    for i in range(key.shape[0]):
+        count[key[i] + 2] += 1
+    count[1] = 0
+    for b in range(m + 1):
+        count[b + 1] += count[b]
+    out = np.empty(key.shape[0], np.int64)
+    tail = count[m + 1]
+    for i in range(key.shape[0]):
+        if key[i] < 0:
+            out[tail] = i
+            tail += 1
+        else:
+            out[count[key[i] + 1]] = i
+            count[key[i] + 1] += 1
+    return out

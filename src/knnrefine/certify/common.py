@@ -10,7 +10,8 @@ from scipy.spatial import cKDTree
 from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
-from ._tree import neighbour_lists
+from ._rows import class_sizes, row_classes
+from ._tree import Tree, neighbour_lists
 from .certificate import floor_sites, to_input
 from .steps import Cells
 
@@ -87,51 +88,31 @@ def check_precondition(initial, torus, k, tau, period=None, spacing=None):
 
 
 def find_rows(table, rows):
-    """Index of each of ``rows`` (rows of integers, as wide as ``table``'s) in ``table``, -1
-    if absent: rows compared as bytes, one sort of the table."""
+    """Index of each of ``rows`` (rows of integers, as wide as ``table``'s, their first
+    columns >= 0: vertex indices) in ``table``, -1 if absent: rows matched by
+    ``_rows.row_classes``, grouped by their first column."""
     if len(rows) == 0 or len(table) == 0:
         return np.full(len(rows), -1, np.int64)
-    view = np.dtype((np.void, 8 * np.shape(table)[1]))
-    a = np.ascontiguousarray(table, np.int64).view(view).ravel()
-    b = np.ascontiguousarray(rows, np.int64).view(view).ravel()
-    order = np.argsort(a, kind="stable")  # byte order, consistent for both searches
-    i = np.minimum(np.searchsorted(a[order], b), len(a) - 1)
-    return np.where(a[order][i] == b, order[i], -1)
+    both = np.ascontiguousarray(np.concatenate([table, rows]), np.int64)
+    group = both[:, 0]
+    if group.min() < 0:
+        group = group - group.min()
+    label = row_classes(both, group, int(group.max()) + 1)[len(table) :]
+    return np.where(label < len(table), label, -1)
 
 
-def sorted_rows(rows):
-    """(the order sorting the integer rows lexicographically, stably; whether each sorted
-    row equals the one before it). ``np.unique(axis=0)`` answers the same through a sort of
-    the rows as opaque bytes, several times slower on the 10^5-10^6 faces of a mesh; the
-    columns are packed into as few 63-bit keys as their ranges allow (a face's three
-    vertices and nine offsets: two), which sort faster than thirteen."""
-    keys = packed_keys(rows)
-    by = np.lexsort(keys[::-1])
-    ordered = [k[by] for k in keys]
-    same = np.ones(max(len(rows) - 1, 0), np.bool_)
-    for k in ordered:
-        same &= k[1:] == k[:-1]
-    return by, same
-
-
-def packed_keys(rows):
-    """The columns of the integer rows (m, c), each shifted to start at 0 and given the bits
-    its range needs, packed in order into int64 keys of at most 63 bits: comparing the keys
-    in turn compares the rows lexicographically."""
-    lo = rows.min(axis=0) if len(rows) else np.zeros(rows.shape[1], np.int64)
-    span = (rows.max(axis=0) - lo) if len(rows) else lo
-    keys, key, used = [], np.zeros(len(rows), np.int64), 0
-    for c in range(rows.shape[1]):
-        bits = int(span[c]).bit_length()
-        if bits == 0:
-            continue
-        if used + bits > 63:
-            keys.append(key)
-            key, used = np.zeros(len(rows), np.int64), 0
-        key = (key << bits) | (rows[:, c].astype(np.int64) - lo[c])
-        used += bits
-    keys.append(key)
-    return keys
+def repeated_rows(x):
+    """How many rows of the float array ``x`` (n, d) repeat an earlier one exactly (their
+    bits compared, grouped by a hash of them)."""
+    if len(x) < 2:
+        return 0
+    bits = np.ascontiguousarray(x, np.float64).view(np.int64)
+    mixed = np.zeros(len(x), np.uint64)
+    for a in range(bits.shape[1]):
+        mixed = (mixed ^ bits[:, a].astype(np.uint64)) * np.uint64(0x9E3779B97F4A7C15)
+    group = (mixed % np.uint64(len(x))).astype(np.int64)
+    label = row_classes(bits, group, len(x))
+    return int((label != np.arange(len(x))).sum())
 
 
 def check_cells_tile(mesh):
@@ -163,19 +144,21 @@ def check_cells_tile(mesh):
     keys, spread = _corner_codes(cells, off, range(nc))
     if spread:
         return [f"{spread} cells span more than {CODE_BASE - 1} periods"]
-    _, same = sorted_rows(keys)
-    if same.any():
-        problems.append(f"{int(same.sum())} cells are listed more than once")
+    shift = CODE_BASE.bit_length() - 1  # bits of a code that are offsets, per axis
+    m = len(v)
+    label = row_classes(keys, keys[:, 0] >> (shift * dim), m)
+    repeats = int((label != np.arange(len(keys))).sum())
+    if repeats:
+        problems.append(f"{repeats} cells are listed more than once")
     rows = np.concatenate(
         [_corner_codes(cells, off, [j for j in range(nc) if j != i])[0] for i in range(nc)]
     )
-    by, same = sorted_rows(rows)
-    start = np.concatenate([[True], ~same])  # the first of each run of equal facets
-    first = np.flatnonzero(start)
-    size = np.diff(np.concatenate([first, [len(rows)]]))
-    if (size > 2).any():
-        problems.append(f"{int((size > 2).sum())} facets are shared by more than two cells")
-    single = by[first[size == 1]]  # flat index: facet i of cell c at i * t + c
+    size, first = class_sizes(row_classes(rows, rows[:, 0] >> (shift * dim), m))
+    if (first & (size > 2)).any():
+        problems.append(
+            f"{int((first & (size > 2)).sum())} facets are shared by more than two cells"
+        )
+    single = np.flatnonzero(size == 1)  # flat index: facet i of cell c at i * t + c
     if len(single):
         t = len(cells)
         cell, i = single % t, single // t
@@ -274,18 +257,24 @@ class TorusGeometry:
         self.origin = np.asarray(mesh.torus.origin, float)
         self.period = np.asarray(mesh.torus.period, float)
         self.vertices = np.asarray(mesh.torus.vertices, float)
-        self.vertex_tree = cKDTree(self.vertices, boxsize=self.period)
+        self.vertex_tree = Tree(self.vertices, None, self.period, workers)
+        self._cells = None
         dim = self.vertices.shape[1]
         self.lo = np.array(mesh.box[:dim]) - self.origin
         self.hi = np.array(mesh.box[dim:]) - self.origin
         self.no_position = (float("nan"),) * dim
 
     def vertex_d_m2(self):
-        return self.vertex_tree.query(self.vertices, k=2, workers=self.workers)[0][:, 1]
+        """d_{M,2} at each vertex: its distance to its nearest other vertex, a Delaunay
+        neighbour (the triangulation is checked first; where it failed, the verdict has)."""
+        return nearest_neighbour(self.cells(None))
 
     def cells(self, tri):
         """The Voronoi cells of the torus' vertices: each one's neighbours across the
-        cells' edges, as vectors on the torus."""
+        cells' edges, as vectors on the torus (their outradii from ``tri``; worked out
+        once)."""
+        if self._cells is not None:
+            return self._cells if tri is None else self._cells._replace(outradii=tri.outradii)
         torus = self.mesh.torus
         corners = np.asarray(torus.cells, np.int64)
         off = np.asarray(torus.offsets, np.int64)
@@ -298,7 +287,8 @@ class TorusGeometry:
         first, nb, nshift = neighbour_lists(a, b, np.ascontiguousarray(shift), m)
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.vertices[nb] - self.vertices[site] + nshift * self.period
-        return Cells(self.vertices, first, edges, tri.outradii, 2e-12, 0.0)
+        self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0)
+        return self.cells(tri)
 
     def held(self, points, tri, stop=np.inf):
         return points.held(tri.centres, tri.radii, stop)
@@ -317,3 +307,52 @@ class TorusGeometry:
 
     def to_input(self, x):
         return to_input(x, self.origin, self.mesh)
+
+
+def nearest_neighbour(cells):
+    """Each site's distance to its nearest neighbour among ``cells``' (a Delaunay
+    triangulation's: the nearest other vertex), inf for a site with none."""
+    length = np.sqrt(np.einsum("ij,ij->i", cells.edges, cells.edges))
+    length[length == 0] = np.inf  # a site is not its own neighbour
+    out = np.full(len(cells.sites), np.inf)
+    has = np.diff(cells.first) > 0
+    if len(length):
+        out[has] = np.minimum.reduceat(length, cells.first[:-1][has])
+    return out
+
+
+def edge_midpoints(cells):
+    """(the midpoint of every edge once, the edge's first vertex): of the two directions
+    of an edge, the one whose vector is lexicographically positive."""
+    e = cells.edges
+    site = np.repeat(np.arange(len(cells.sites)), np.diff(cells.first))
+    positive = np.zeros(len(e), bool)
+    decided = np.zeros(len(e), bool)
+    for a in range(e.shape[1]):
+        positive |= ~decided & (e[:, a] > 0)
+        decided |= e[:, a] != 0
+    return cells.sites[site[positive]] + 0.5 * e[positive], site[positive]
+
+
+def size_sample(t, samples, rng):
+    """The cells whose one random point each samples the size integral: all t when
+    ``samples`` >= t, else ``samples`` of them drawn without replacement."""
+    if samples >= t:
+        return np.arange(t)
+    return np.sort(rng.choice(t, int(samples), replace=False))
+
+
+def size_estimate(y, t):
+    """(the integral, its standard error) from y: one term per sampled cell, its area times
+    the integrand at its random point times t / len(y). All cells sampled (a stratified
+    sample of one per cell): the error from neighbouring cells paired (collapsed strata,
+    conservative); some of them (a simple random sample of cells): with the finite
+    population correction."""
+    s = len(y)
+    if s == 0:
+        return 0.0, 0.0
+    if s >= t:
+        pairs = y[: s - s % 2].reshape(-1, 2)
+        return float(y.sum()), float(np.sqrt(((pairs[:, 0] - pairs[:, 1]) ** 2).sum()))
+    var = s * (1.0 - s / t) * float(np.var(y, ddof=1)) if s > 1 else 0.0
+    return float(y.sum()), float(np.sqrt(var))

@@ -23,15 +23,18 @@ from typing import Protocol
 import numpy as np
 
 from .._validation import random_generator
+from ._tree import order_by_owner, spatial_order
 from .certificate import Certificate
 
 # the triangulation as a geometry checked it: its problems, each cell's circumcentre and
 # circumradius, each vertex's outradius R(v), and what else its later steps read (``extra``)
 Triangulation = namedtuple("Triangulation", ["problems", "centres", "radii", "outradii", "extra"])
 # the probes of the achieved constants, in the geometry's frame: ``x`` all of them (only
-# those in the domain), ``points`` the mask of the input points among them, ``extra``
-# what the geometry's size integral reads of them (their first rows, say)
-Probes = namedtuple("Probes", ["x", "points", "extra"])
+# those in the domain), ``points`` the mask of the input points among them, ``owner`` the
+# cell each lies in or beside (-1: none; probes are asked in the order of their cells,
+# neighbours near each other), ``extra`` what the geometry's size integral reads of them
+# (their first rows, say)
+Probes = namedtuple("Probes", ["x", "points", "owner", "extra"])
 # the closed Voronoi cells as certify counts them: each vertex (``sites``, the points' frame),
 # its Delaunay neighbours as vectors from it (rows first[v]:first[v + 1] of ``edges``), its
 # outradius R(v) (the cell lies within it), and the tie tolerance: a point p counts for v
@@ -54,8 +57,9 @@ class PointQuestions(Protocol):
     def cell_counts(self, cells: Cells, stop=np.inf) -> np.ndarray:
         """What each vertex's closed Voronoi cell holds; exact below ``stop``."""
 
-    def d_pk(self, x: np.ndarray) -> np.ndarray:
-        """d_{P,k} at x, in the geometry's lengths."""
+    def d_pk(self, x: np.ndarray, sort: bool = True) -> np.ndarray:
+        """d_{P,k} at x, in the geometry's lengths (``sort=False``: x comes in an order
+        where neighbours are near, ``probe_order``'s)."""
 
     def sample_points(self, count: int, rng: np.random.Generator) -> np.ndarray:
         """Up to ``count`` of the points, drawn at random."""
@@ -89,7 +93,7 @@ class Geometry(Protocol):
                max_point_probes: int, rng: np.random.Generator) -> Probes:  # fmt: skip
         """The probes of the achieved constants."""
 
-    def returned_d_m2(self, x: np.ndarray) -> tuple:
+    def returned_d_m2(self, x: np.ndarray, sort: bool = True) -> tuple:
         """(d_{M,2} at x from the vertices returned, what is wrong with them)."""
 
     def size(self, probes: Probes, d_pk: np.ndarray, points: PointQuestions,
@@ -160,8 +164,12 @@ def run_checks(
     alpha_at = beta_at = geometry.no_position
     n_probes, under_floor = 0, 0.0
     if points.total >= k:
-        d_pk = points.d_pk(probes.x)
-        d_m2, late = geometry.returned_d_m2(probes.x)
+        # asked in the order of their cells (neighbours near each other: each bounds the next)
+        order = probe_order(probes.owner, tri.centres, probes.x)
+        x = np.ascontiguousarray(probes.x[order])
+        d_pk, d_m2 = np.empty(len(x)), np.empty(len(x))
+        d_pk[order] = points.d_pk(x, sort=False)
+        d_m2[order], late = geometry.returned_d_m2(x, sort=False)
         mesh_problems += late
         at_points = d_pk[probes.points]
         under_floor = float(np.mean(at_points < floor)) if len(at_points) else 0.0
@@ -223,3 +231,15 @@ def _counted(ask, k):
     if over.any():
         counts[over] = np.asarray(ask(np.where(over, np.inf, 0.0)), float)[over]
     return counts
+
+
+def probe_order(owner, centres, x):
+    """An order of the probes in which neighbours are near each other: those of each cell
+    together, the cells along a Morton curve of their centres (``owner``: the probe's
+    cell), then the probes of no cell along their own curve."""
+    rank = np.empty(len(centres), np.int64)
+    rank[spatial_order(centres)] = np.arange(len(centres))
+    owned = owner >= 0
+    order = order_by_owner(np.where(owned, rank[np.maximum(owner, 0)], -1), len(centres))
+    free = np.flatnonzero(~owned)
+    return np.concatenate([order[: int(owned.sum())], free[spatial_order(x[free])]])

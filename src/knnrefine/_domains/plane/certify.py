@@ -20,14 +20,18 @@ import numpy as np
 from ..._engine.jit import kernel
 from ..._metric import BoxMetric, TorusFrame
 from ...certify._predicates import UNSURE, exact_sign, incircle, orient2d
+from ...certify._rows import row_classes
 from ...certify._tree import Tree
 from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
     check_cells_tile,
     checked_points,  # noqa: F401  (the box domains' own)
+    edge_midpoints,
     find_rows,
-    sorted_rows,
+    repeated_rows,
+    size_estimate,
+    size_sample,
 )
 from ...certify.steps import Probes, Triangulation
 from ...mesh import circumcircles, triangle_areas, uniform_in_triangles
@@ -64,50 +68,49 @@ class Geometry(TorusGeometry):
         return _in_box(x, self.lo, self.hi, self.periodic)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Stratified samples inside every triangle (with their area weights: the Monte
-        Carlo samples of the size integral), input points, and the vertices,
-        circumcentres, edge midpoints and uniform points of the box; those in the box."""
+        """Every vertex, circumcentre and edge midpoint (once each), one random point in
+        each of ``samples`` triangles (all of them when there are fewer: the Monte Carlo
+        samples of the size integral), up to min(``max_point_probes``, m) input points
+        and min(``n_random``, m) uniform points of the box; those in the box."""
         corners = tri.extra
-        per_triangle = max(4, -(-samples // max(len(corners), 1)))
-        inside, weights = _triangle_samples(corners, per_triangle, rng)
+        t, m = len(corners), len(self.vertices)
+        chosen = size_sample(t, samples, rng)
+        inside, _ = uniform_in_triangles(corners[chosen], rng.random((len(chosen), 2)))
         inside = self.frame(inside)
-        sampled = points.sample_points(max_point_probes, rng)
-        mids = 0.5 * (corners + corners[:, [1, 2, 0]]).reshape(-1, 2)
-        others = np.concatenate(
-            [
-                self.vertices,
-                tri.centres,
-                self.frame(mids),
-                self.lo + rng.random((n_random, 2)) * (self.hi - self.lo),
-            ]
+        weights = np.abs(triangle_areas(corners[chosen])) * (t / max(len(chosen), 1))
+        mids, mid_site = edge_midpoints(self.cells(tri))
+        owner_of = np.zeros(m, np.int64)
+        owner_of[self.mesh.torus.triangles.ravel()] = np.repeat(np.arange(t), 3)
+        sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
+        uniform = self.lo + rng.random((min(int(n_random), m), 2)) * (self.hi - self.lo)
+        parts = [
+            (inside, chosen, False),
+            (sampled, np.full(len(sampled), -1), True),
+            (self.vertices, owner_of, False),
+            (tri.centres, np.arange(t), False),
+            (self.frame(mids), owner_of[mid_site], False),
+            (uniform, np.full(len(uniform), -1), False),
+        ]
+        keep = [self.in_box(x) for x, _, _ in parts]
+        x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
+        owner = np.concatenate([p[1][k] for p, k in zip(parts, keep, strict=True)])
+        mask = np.concatenate(
+            [np.full(int(k.sum()), p[2]) for p, k in zip(parts, keep, strict=True)]
         )
-        in_box = self.in_box(inside)
-        sampled = sampled[self.in_box(sampled)]
-        others = others[self.in_box(others)]
-        x = np.concatenate([inside[in_box], sampled, others])
-        mask = np.zeros(len(x), bool)
-        n_in = int(in_box.sum())
-        mask[n_in : n_in + len(sampled)] = True
-        return Probes(x, mask, (in_box, weights, len(corners)))
+        return Probes(x, mask, owner, (keep[0], weights, t))
 
-    def returned_d_m2(self, x):
-        return self.vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1], []
+    def returned_d_m2(self, x, sort=True):
+        return self.vertex_tree.kth(x, 2, sort=sort), []
 
     def size(self, probes, d_pk, points, rng):
-        """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size),
-        stratified over the triangles: each sample weighted by its share of its
-        triangle's area, samples outside the box counting 0; with its standard error."""
-        in_box, weights, triangles = probes.extra
-        f = np.zeros(len(in_box))
-        f[in_box] = 1.0 / np.maximum(d_pk[: int(in_box.sum())], self.floor) ** 2
-        per_triangle = (weights * f).reshape(triangles, -1)
-        integral = float(per_triangle.sum())
-        var = (
-            (per_triangle.var(axis=1, ddof=1) * per_triangle.shape[1]).sum()
-            if per_triangle.shape[1] > 1
-            else 0.0
-        )
-        return integral, float(np.sqrt(var))
+        """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size): one
+        random point in each sampled triangle, weighted by its triangle's area (``t / s``
+        of it when s of the t triangles are sampled), a point outside the box counting 0;
+        with its standard error (``common.size_estimate``)."""
+        in_box, weights, t = probes.extra
+        y = np.zeros(len(in_box))
+        y[in_box] = weights[in_box] / np.maximum(d_pk[: int(in_box.sum())], self.floor) ** 2
+        return size_estimate(y, t)
 
 
 class Points:
@@ -130,9 +133,9 @@ class Points:
                          None if heavy is None else weights[heavy], self.period,
                          workers)  # fmt: skip
 
-    def d_pk(self, x):
+    def d_pk(self, x, sort=True):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
-        return self.tree.kth(x, self.k)
+        return self.tree.kth(x, self.k, sort=sort)
 
     def held(self, centres, radii, stop=np.inf):
         """What each closed disk (centre, radius) holds: its number of points, or their
@@ -160,7 +163,7 @@ def verify_returned_mesh(mesh):
     v = np.asarray(mesh.vertices, float)
     if v.ndim != 2 or v.shape[1] != 2 or not np.isfinite(v).all():
         return ["vertices are not finite (m, 2) coordinates"]
-    repeated = len(v) - len(np.unique(v, axis=0))
+    repeated = repeated_rows(v)
     if repeated:
         problems.append(f"{repeated} repeated vertices")
     origin = np.asarray(torus.origin, float)
@@ -225,25 +228,22 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period):
     nb = np.asarray(neighbours)
     if t != 2 * m:
         problems.append(f"{t} triangles for {m} vertices (a torus has F = 2V)")
-    if not np.all(np.isin(np.arange(m), tri)):
+    if m and (np.bincount(tri.ravel(), minlength=m) == 0).any():
         problems.append("a vertex belongs to no triangle")
+    if t and (nb.shape != tri.shape or nb.min() < 0 or nb.max() >= t):
+        problems.append("neighbour links name triangles that do not exist")
+        ccw_bad = not_delaunay = asymmetric = disagree = 0
+    else:
+        ccw_bad, not_delaunay, asymmetric, disagree = _local_checks(vertices, tri, off, nb,
+                                                                    period)  # fmt: skip
+    if asymmetric:
+        problems.append(f"{asymmetric} neighbour links are not symmetric")
+    if disagree:
+        problems.append("neighbours disagree on the periodic offset of a shared edge")
     f = np.repeat(np.arange(t), 3)
     i = np.tile(np.arange(3), t)
     a = tri[f, (i + 1) % 3]
     b = tri[f, (i + 2) % 3]
-    n = nb[f, i]
-    found = np.zeros(len(f), int)
-    same_edge = np.ones(len(f), bool)
-    for j in range(3):
-        hit = (nb[n, j] == f) & (tri[n, (j + 1) % 3] == b) & (tri[n, (j + 2) % 3] == a)
-        found += hit
-        da = off[f, (i + 1) % 3] - off[n, (j + 2) % 3]
-        db = off[f, (i + 2) % 3] - off[n, (j + 1) % 3]
-        same_edge &= ~hit | np.all(da == db, axis=1)
-    if np.any(found != 1):
-        problems.append(f"{int((found != 1).sum())} neighbour links are not symmetric")
-    if not np.all(same_edge):
-        problems.append("neighbours disagree on the periodic offset of a shared edge")
     d = off[f, (i + 2) % 3] - off[f, (i + 1) % 3]
     flip = a > b
     key = np.stack(
@@ -255,8 +255,8 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period):
         ],
         1,
     )
-    _, repeats = sorted_rows(key)
-    n_edges = len(key) - int(repeats.sum()) if len(key) else 0
+    label = row_classes(np.ascontiguousarray(key, np.int64), key[:, 0].astype(np.int64), max(m, 1))
+    n_edges = int((label == np.arange(len(key))).sum())
     if m - n_edges + t != 0:
         problems.append(f"Euler characteristic {m - n_edges + t} (a torus has 0)")
     corners = vertices[tri] + off * period
@@ -265,7 +265,6 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period):
         problems.append("the triangles do not tile the torus (areas do not add up)")
     cc, r = circumcircles(corners)
     ccw = BoxMetric((0.0, 0.0, *period), (True, True)).frame(cc)
-    ccw_bad, not_delaunay = _local_checks(vertices, tri, off, nb, period)
     if ccw_bad:
         problems.append(f"{ccw_bad} triangles are not counter-clockwise")
     if not_delaunay:
@@ -279,7 +278,11 @@ def _local_signs(vertices, tri, off, nb, period, orient, circle):
     """orient[f]: the sign of orient2d of triangle f's corners (UNSURE where the filter
     cannot tell); circle[f, i]: the sign of incircle of f's corners and the corner of its
     neighbour across edge i opposite that edge, placed by the edge's own offsets (3: no
-    neighbour matches that edge back, a problem reported with the links)."""
+    neighbour links back across that edge). Returns (the (triangle, edge) pairs whose
+    neighbour does not link back exactly once, those whose neighbour puts the shared edge
+    at other relative offsets)."""
+    asymmetric = 0
+    disagree = 0
     for f in range(tri.shape[0]):
         ax = vertices[tri[f, 0], 0] + off[f, 0, 0] * period[0]
         ay = vertices[tri[f, 0], 1] + off[f, 0, 1] * period[1]
@@ -291,33 +294,40 @@ def _local_signs(vertices, tri, off, nb, period, orient, circle):
         for i in range(3):
             n = nb[f, i]
             circle[f, i] = 3
-            if n < 0 or n >= tri.shape[0]:
-                continue
             a, b = tri[f, (i + 1) % 3], tri[f, (i + 2) % 3]
+            found = 0
             for j in range(3):
                 if nb[n, j] == f and tri[n, (j + 1) % 3] == b and tri[n, (j + 2) % 3] == a:
+                    found += 1
                     sx = off[f, (i + 1) % 3, 0] - off[n, (j + 2) % 3, 0]
                     sy = off[f, (i + 1) % 3, 1] - off[n, (j + 2) % 3, 1]
-                    px = vertices[tri[n, j], 0] + (off[n, j, 0] + sx) * period[0]
-                    py = vertices[tri[n, j], 1] + (off[n, j, 1] + sy) * period[1]
-                    circle[f, i] = incircle(ax, ay, bx, by, cx, cy, px, py)
-                    break
+                    if (sx != off[f, (i + 2) % 3, 0] - off[n, (j + 1) % 3, 0]
+                            or sy != off[f, (i + 2) % 3, 1] - off[n, (j + 1) % 3, 1]):  # fmt: skip
+                        disagree += 1
+                    if found == 1:
+                        px = vertices[tri[n, j], 0] + (off[n, j, 0] + sx) * period[0]
+                        py = vertices[tri[n, j], 1] + (off[n, j, 1] + sy) * period[1]
+                        circle[f, i] = incircle(ax, ay, bx, by, cx, cy, px, py)
+            if found != 1:
+                asymmetric += 1
+    return asymmetric, disagree
 
 
 def _local_checks(vertices, tri, off, nb, period):
     """(triangles not counter-clockwise, edge sides whose far corner lies inside the
-    circumcircle), exactly: filtered predicates (``_local_signs``), rational only where the
-    filter cannot tell. A triangulation of the torus (the links, Euler characteristic,
-    orientation and area checks) whose every edge is locally Delaunay is Delaunay (the
-    Delaunay lemma, on the periodic cover): its circumcircles hold no vertex."""
+    circumcircle, links not symmetric, offsets disagreeing), exactly: filtered predicates
+    (``_local_signs``), integers only where the filter cannot tell. A triangulation of the
+    torus (the links, Euler characteristic, orientation and area checks) whose every edge
+    is locally Delaunay is Delaunay (the Delaunay lemma, on the periodic cover): its
+    circumcircles hold no vertex."""
     t = len(tri)
-    if t == 0 or nb.shape != tri.shape or nb.min() < 0 or nb.max() >= t:
-        return 0, 0
     orient = np.empty(t, np.int8)
     circle = np.empty((t, 3), np.int8)
-    _local_signs(np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(tri, np.int64),
-                 np.ascontiguousarray(off, np.int64), np.ascontiguousarray(nb, np.int64),
-                 np.ascontiguousarray(period, np.float64), orient, circle)  # fmt: skip
+    asymmetric, disagree = _local_signs(
+        np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(tri, np.int64),
+        np.ascontiguousarray(off, np.int64), np.ascontiguousarray(nb, np.int64),
+        np.ascontiguousarray(period, np.float64), orient, circle,
+    )  # fmt: skip
     corners = lambda f: vertices[tri[f]] + off[f] * period  # noqa: E731
     for f in np.flatnonzero(orient == UNSURE):
         orient[f] = exact_sign("orient2d", corners(f))
@@ -329,7 +339,7 @@ def _local_checks(vertices, tri, off, nb, period):
         shift = off[f, (i + 1) % 3] - off[n, (j + 2) % 3]
         p = vertices[tri[n, j]] + (off[n, j] + shift) * period
         circle[f, i] = exact_sign("incircle", np.vstack([corners(f), p]))
-    return int((orient <= 0).sum()), int((circle == 1).sum())
+    return int((orient <= 0).sum()), int((circle == 1).sum()), asymmetric, disagree
 
 
 def _in_box(x, lo, hi, per):
@@ -340,12 +350,3 @@ def _in_box(x, lo, hi, per):
         if not per[a]:
             ok &= (x[:, a] >= lo[a]) & (x[:, a] <= hi[a])
     return ok
-
-
-def _triangle_samples(corners, per_triangle, rng):
-    """per_triangle uniform points in every triangle (triangle-major order) and the weight of
-    each: its triangle's area / per_triangle, so that sum(weight * f) estimates the integral
-    of f. The mesh is graded like d_{P,k}, so samples are dense where d_{P,k} is small."""
-    x, _ = uniform_in_triangles(corners[:, None], rng.random((len(corners), per_triangle, 2)))
-    area = np.abs(triangle_areas(corners))
-    return x.reshape(-1, 2), np.repeat(area / per_triangle, per_triangle)

@@ -6,7 +6,7 @@ The tetrahedralisation is checked exactly in the mesh's own frame (vertices rela
 box's corner, exact): its faces are matched again from the corners and offsets, every
 tetrahedron is positively oriented and locally Delaunay (the exact predicates of
 ``_engine/predicates3.py``, themselves tested against rational arithmetic), and the volumes
-add up to the torus' once. Counts come from scipy's cKDTree with the box as its periods:
+add up to the torus' once. Counts come from certify's own kd-tree (``certify._tree``) on the torus:
 points in every closed circumball and in every closed Voronoi cell (each point counting for
 every vertex as near as its nearest), below k except for elements smaller than the
 resolution floor (``min_size``: counted and reported). Aspect 2 R(v) / d_{M,2}(v) from
@@ -23,19 +23,22 @@ d_{P,k} >= min_size.
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..._metric import BoxMetric, TorusFrame
 from ...certify._predicates import UNSURE, exact_sign, insphere, orient3d
+from ...certify._rows import class_sizes, row_classes
 from ...certify._tree import Tree
 from ...certify.common import (
     TorusGeometry,
     cell_array_problem,
     check_cells_tile,
     checked_points,  # noqa: F401  (the box domains' own)
+    edge_midpoints,
     find_rows,
-    sorted_rows,
+    repeated_rows,
+    size_estimate,
+    size_sample,
 )
 from ...certify.steps import Probes, Triangulation
 
@@ -101,13 +104,16 @@ def _neighbours(corners, offsets):
                  np.take_along_axis(o, order[..., None], 1).reshape(t, 9)], axis=1,
             )
         )  # fmt: skip
-    order, same = sorted_rows(np.concatenate(rows))
-    # every face exactly twice: the sorted keys come in equal pairs, unequal between pairs
-    if len(order) % 2 or not same[0::2].all() or same[1::2].any():
+    rows = np.ascontiguousarray(np.concatenate(rows))
+    label = row_classes(rows, rows[:, 0], int(corners.max(initial=0)) + 1)
+    size, first = class_sizes(label)
+    # every face exactly twice: each class of equal keys a pair
+    if len(rows) % 2 or (size != 2).any():
         return None
+    second = np.flatnonzero(~first)
     out = np.empty(4 * t, np.int64)
-    out[order[0::2]] = order[1::2] % t
-    out[order[1::2]] = order[0::2] % t
+    out[second] = label[second] % t
+    out[label[second]] = second % t
     return out.reshape(4, t).T
 
 
@@ -154,10 +160,10 @@ class Points:
         return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
                                     stop, cells.relative, cells.slack2)  # fmt: skip
 
-    def d_pk(self, x):
+    def d_pk(self, x, sort=True):
         """d_{P,k} at x (the torus frame, periodic axes wrapped) in the box's own metric:
         straight along non-periodic axes, so the embedding's claim is tested."""
-        return self.tree.kth(x, self.k, period=self.box_period)
+        return self.tree.kth(x, self.k, period=self.box_period, sort=sort)
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points (torus frame), drawn at random."""
@@ -186,7 +192,7 @@ def verify_returned_mesh3(mesh):
     if v.ndim != 2 or v.shape[1] != 3 or not np.isfinite(v).all():
         return ["vertices are not finite (m, 3) coordinates"]
     problems = []
-    repeated = len(v) - len(np.unique(v, axis=0))
+    repeated = repeated_rows(v)
     if repeated:
         problems.append(f"{repeated} repeated vertices")
     origin, period = np.asarray(torus.origin, float), np.asarray(torus.period, float)
@@ -228,22 +234,6 @@ def verify_returned_mesh3(mesh):
     if (~same).any():
         problems.append(f"{int((~same).sum())} tetrahedra have corners off their torus tetrahedron")
     return problems
-
-
-def _edge_midpoints(local, corners, offsets, period):
-    """The midpoint of every edge of the torus mesh, once (edges keyed by their two
-    vertices and the periods between them)."""
-    pairs = [(i, j) for i in range(4) for j in range(i + 1, 4)]
-    a = np.concatenate([corners[:, i] for i, _ in pairs]).astype(np.int64)
-    b = np.concatenate([corners[:, j] for _, j in pairs]).astype(np.int64)
-    d = np.concatenate([offsets[:, j] - offsets[:, i] for i, j in pairs]).astype(np.int64)
-    flip = a > b
-    key = np.column_stack([np.where(flip, b, a), np.where(flip, a, b),
-                           np.where(flip[:, None], -d, d)])  # fmt: skip
-    by, same = sorted_rows(key)
-    first = by[np.concatenate([[True], ~same])]  # each key's first row, in the keys' order
-    a, b, d = a[first], b[first], d[first]
-    return local[a] + 0.5 * (local[b] + d * period - local[a])
 
 
 def _tetrahedron_samples(c, per, rng):
@@ -299,31 +289,42 @@ class Geometry(TorusGeometry):
         return verify_returned_mesh3(self.mesh)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Stratified samples in every tetrahedron (at least 4 in each), uniform points of
-        the box, every vertex, circumcentre and edge midpoint, input points; those in the
-        box (periodic axes wrapped)."""
+        """Every vertex, circumcentre and edge midpoint (once each), one random point in
+        each of ``samples`` tetrahedra (all of them when there are fewer: the Monte Carlo
+        samples of the size integral), up to min(``max_point_probes``, m) input points and
+        min(``n_random``, m) uniform points of the box; those in the box (periodic axes
+        wrapped)."""
         c, period = tri.extra, self.period
-        per_tetrahedron = max(4, -(-int(samples) // max(len(c), 1)))
+        t, m = len(c), len(self.local)
+        chosen = size_sample(t, samples, rng)
         side = np.array(self.mesh.box[3:]) - np.array(self.mesh.box[:3])
-        samples_at = np.mod(_tetrahedron_samples(c, per_tetrahedron, rng), period)
-        sample_weight = np.repeat(
-            np.abs(np.linalg.det(c[:, 1:] - c[:, :1])) / 6.0 / per_tetrahedron, per_tetrahedron
+        inside = np.mod(_tetrahedron_samples(c[chosen], 1, rng), period)
+        weights = (
+            np.abs(np.linalg.det(c[chosen, 1:] - c[chosen, :1])) / 6.0 * (t / max(len(chosen), 1))
         )
-        point_probes_at = points.sample_points(max_point_probes, rng)
-        probes = np.concatenate([
-            samples_at, self.lo + rng.random((n_random, 3)) * side, self.local, tri.centres,
-            np.mod(_edge_midpoints(self.local, self.corners, self.offsets, period), period),
-            point_probes_at,
-        ])  # fmt: skip
+        mids, mid_site = edge_midpoints(self.cells(tri))
+        owner_of = np.zeros(m, np.int64)
+        owner_of[np.asarray(self.corners).ravel()] = np.repeat(np.arange(t), 4)
+        sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
+        uniform = self.lo + rng.random((min(int(n_random), m), 3)) * side
+        parts = [
+            (inside, chosen, False),
+            (sampled, np.full(len(sampled), -1), True),
+            (self.local, owner_of, False),
+            (tri.centres, np.arange(t), False),
+            (np.mod(mids, period), owner_of[mid_site], False),
+            (uniform, np.full(len(uniform), -1), False),
+        ]
         free = ~np.array(self.mesh.periodic)
-        in_box = (((probes >= self.lo) & (probes <= self.hi)) | ~free).all(axis=1)
-        sample_in_box = in_box[: len(samples_at)]
-        point_probes = np.zeros(len(probes), bool)
-        point_probes[len(probes) - len(point_probes_at) :] = True
-        extra = (sample_in_box, sample_weight, len(c))
-        return Probes(probes[in_box], point_probes[in_box], extra)
+        keep = [(((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1) for x, _, _ in parts]
+        x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
+        owner = np.concatenate([p[1][k] for p, k in zip(parts, keep, strict=True)])
+        mask = np.concatenate(
+            [np.full(int(k.sum()), p[2]) for p, k in zip(parts, keep, strict=True)]
+        )
+        return Probes(x, mask, owner, (keep[0], weights, t))
 
-    def returned_d_m2(self, x):
+    def returned_d_m2(self, x, sort=True):
         """d_{M,2} at x from the returned vertices in the box's own metric, and a problem
         when it differs from the torus mesh's (a copy near the box missing)."""
         returned = np.asarray(self.mesh.vertices, float)
@@ -333,15 +334,13 @@ class Geometry(TorusGeometry):
             returned = self.local
         else:
             returned = self.metric.frame(returned)  # relative to the origin, periodic wrapped
-        periodic = self.mesh.periodic
-        box_boxsize = np.where(periodic, self.period, 0.0) if any(periodic) else None
-        dm2 = cKDTree(returned, boxsize=box_boxsize).query(
-            x, k=min(2, len(returned)), workers=self.workers
-        )[0]
-        dm2 = dm2[:, 1] if dm2.ndim == 2 else np.full(len(x), np.inf)
+        box_period = np.where(self.mesh.periodic, self.period, 0.0)
+        if len(returned) < 2:
+            return np.full(len(x), np.inf), []
+        dm2 = Tree(returned, None, box_period, self.workers).kth(x, 2, sort=sort)
         problems = []
-        if coordinates and len(returned) >= 2:  # the copies near the box hold its two nearest
-            on_torus = self.vertex_tree.query(x, k=2, workers=self.workers)[0][:, 1]
+        if coordinates:  # the copies near the box hold its two nearest
+            on_torus = self.vertex_tree.kth(x, 2, sort=sort)
             if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
                 problems.append(
                     "d_M2 from the returned vertices differs from the torus mesh's in the box"
@@ -349,15 +348,11 @@ class Geometry(TorusGeometry):
         return dm2, problems
 
     def size(self, probes, d_pk, points, rng):
-        """The integral of 1 / d_Pk^3 over the box, stratified over the tetrahedra (d_Pk
-        clipped at min_size), with its standard error."""
-        sample_in_box, sample_weight, tetrahedra = probes.extra
-        f = np.zeros(len(sample_in_box))
-        f[sample_in_box] = 1.0 / np.maximum(d_pk[: int(sample_in_box.sum())], self.floor) ** 3
-        per_tet = (sample_weight * f).reshape(tetrahedra, -1)
-        stderr = (
-            float(np.sqrt((per_tet.var(axis=1, ddof=1) * per_tet.shape[1]).sum()))
-            if per_tet.shape[1] > 1
-            else 0.0
-        )
-        return float(per_tet.sum()), stderr
+        """The integral of 1 / d_Pk^3 over the box (d_Pk clipped at min_size): one random
+        point in each sampled tetrahedron, weighted by its volume (``t / s`` of it when s of
+        the t are sampled), a point outside the box counting 0; with its standard error
+        (``common.size_estimate``)."""
+        in_box, weights, t = probes.extra
+        y = np.zeros(len(in_box))
+        y[in_box] = weights[in_box] / np.maximum(d_pk[: int(in_box.sum())], self.floor) ** 3
+        return size_estimate(y, t)

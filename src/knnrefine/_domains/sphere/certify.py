@@ -27,8 +27,6 @@ beta] wherever d_{P,k} >= min_size, beta from the largest circumcap measured her
 (``mesh.sphere_constants``: spherical Pythagoras widens the plane's).
 """
 
-import math
-
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -39,7 +37,13 @@ from ..._metric import angle_to_chord, chord_to_angle, lonlat_of
 from ..._validation import as_sphere_points, check_made_from, weights_of_run
 from ...certify._predicates import UNSURE, exact_sign, orient3d_at
 from ...certify._tree import Tree, neighbour_lists, sums_by
-from ...certify.common import check_precondition
+from ...certify.common import (
+    check_precondition,
+    edge_midpoints,
+    nearest_neighbour,
+    size_estimate,
+    size_sample,
+)
 from ...certify.steps import Cells, Probes, Triangulation
 from ...mesh import sphere_constants
 
@@ -223,15 +227,15 @@ class Points:
         return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
                                     stop, cells.relative, cells.slack2)  # fmt: skip
 
-    def d_pk(self, x):
+    def d_pk(self, x, sort=True):
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
-        return self.kth(x, self.k)
+        return self.kth(x, self.k, sort)
 
-    def kth(self, x, k):
+    def kth(self, x, k, sort=True):
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
         if self.total < k:
             return np.full(len(x), np.inf)
-        return chord_to_angle(self.tree.kth(x, k))
+        return chord_to_angle(self.tree.kth(x, k, sort=sort))
 
     def sample_points(self, count, rng):
         """Up to ``count`` of the points' unit vectors, drawn at random."""
@@ -277,7 +281,8 @@ class Geometry:
         self.floor = mesh.min_size / mesh.radius
         self.xyz = np.asarray(mesh.xyz, float)
         self.tri = np.asarray(mesh.triangles, np.int64)
-        self.vtree = cKDTree(self.xyz)
+        self.vtree = Tree(self.xyz, None, None, workers)
+        self._cells = None
         self._returned = []  # the returned mesh's problems, found with the triangulation's
 
     def triangulation(self):
@@ -294,12 +299,18 @@ class Geometry:
         return list(self._returned)
 
     def vertex_d_m2(self):
-        return chord_to_angle(self.vtree.query(self.xyz, k=2)[0][:, 1])
+        """d_{M,2} at each vertex: the angle to its nearest other vertex, a Delaunay
+        neighbour (the triangulation is checked first)."""
+        return chord_to_angle(nearest_neighbour(self.cells(None)))
 
     def cells(self, tri):
         """The Voronoi cells of the vertices: each one's neighbours across the triangles'
         edges, as chord vectors; a point counts for each vertex as near as its nearest up
-        to the unit vectors' rounding (``CELL_TIES``)."""
+        to the unit vectors' rounding (``CELL_TIES``). Worked out once."""
+        if self._cells is not None:
+            if tri is None:
+                return self._cells
+            return self._cells._replace(outradii=angle_to_chord(tri.outradii))
         t = self.tri
         a = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
         b = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
@@ -308,7 +319,8 @@ class Geometry:
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.xyz[nb] - self.xyz[site]
         # the cell lies within its outradius (an angle) of the vertex: as a chord
-        return Cells(self.xyz, first, edges, angle_to_chord(tri.outradii), 2e-12, CELL_TIES)
+        self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES)
+        return self.cells(tri)
 
     def held(self, points, tri, stop=np.inf):
         """Each closed circumcap's points, decided exactly (on or above the plane of its
@@ -323,35 +335,55 @@ class Geometry:
         return check_precondition(initial, points, k, tau, spacing=_spacing)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Every vertex, cap centre and edge midpoint, stratified samples in every
-        triangle, input points and uniform points of the sphere."""
+        """Every vertex, cap centre and edge midpoint (once each), one random point in each
+        of ``samples`` triangles (all of them when there are fewer: the size integral's
+        samples), up to min(``max_point_probes``, m) input points and min(``n_random``, m)
+        uniform points of the sphere."""
         xyz, tri_ = self.xyz, self.tri
-        per = max(4, int(math.ceil(samples / max(len(tri_), 1))))
-        u = rng.random((len(tri_), per, 2))
+        t, m = len(tri_), len(xyz)
+        chosen = size_sample(t, samples, rng)
+        u = rng.random((len(chosen), 2))
         fold = u.sum(-1) > 1
         u[fold] = 1.0 - u[fold]
-        a = xyz[tri_[:, 0]][:, None]
-        inside = a + u[..., :1] * (xyz[tri_[:, 1]][:, None] - a) + u[..., 1:] * (
-            xyz[tri_[:, 2]][:, None] - a
-        )  # fmt: skip
-        mids = np.concatenate([xyz[tri_[:, i]] + xyz[tri_[:, (i + 1) % 3]] for i in range(3)])
-        sampled = points.sample_points(max_point_probes, rng)
-        probes = np.concatenate([xyz, tri.centres, mids, inside.reshape(-1, 3), sampled,
-                                 _uniform_on_sphere(int(n_random), rng)])  # fmt: skip
+        a, b, c = (xyz[tri_[chosen, j]] for j in range(3))
+        flat = a + u[:, :1] * (b - a) + u[:, 1:] * (c - a)  # uniform in the flat triangle
+        # seen from the centre, the flat triangle's area element dA is the sphere's
+        # h / |y|^3 dA (h: the plane's distance from the centre)
+        normal = np.cross(b - a, c - a)
+        twice_area = np.linalg.norm(normal, axis=1)
+        h = np.abs(np.einsum("ij,ij->i", normal, a)) / np.where(twice_area > 0, twice_area, 1.0)
+        norm = np.linalg.norm(flat, axis=1)
+        weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3 * (t / max(len(chosen), 1))
+        mids, mid_site = edge_midpoints(self.cells(tri))
+        owner_of = np.zeros(m, np.int64)
+        owner_of[tri_.ravel()] = np.repeat(np.arange(t), 3)
+        sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
+        uniform = _uniform_on_sphere(min(int(n_random), m), rng)
+        parts = [
+            (flat, chosen, False),
+            (sampled, np.full(len(sampled), -1), True),
+            (xyz, owner_of, False),
+            (tri.centres, np.arange(t), False),
+            (mids, owner_of[mid_site], False),
+            (uniform, np.full(len(uniform), -1), False),
+        ]
+        probes = np.concatenate([p[0] for p in parts])
         probes /= np.linalg.norm(probes, axis=1, keepdims=True)
-        mask = np.zeros(len(probes), bool)
-        start = len(probes) - int(n_random) - len(sampled)
-        mask[start : start + len(sampled)] = True
-        return Probes(probes, mask, int(n_random))
+        owner = np.concatenate([p[1] for p in parts])
+        mask = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
+        return Probes(probes, mask, owner, (weights, t))
 
-    def returned_d_m2(self, x):
-        return chord_to_angle(self.vtree.query(x, k=2, workers=self.workers)[0][:, 1]), []
+    def returned_d_m2(self, x, sort=True):
+        return chord_to_angle(self.vtree.kth(x, 2, sort=sort)), []
 
     def size(self, probes, d_pk, points, rng):
-        """The integral over the sphere of 1 / d_Pk^2 (area 4 pi), Monte Carlo."""
-        uniform = _uniform_on_sphere(max(probes.extra, 1000), rng)
-        inv = 1.0 / np.maximum(points.d_pk(uniform), 1e-300) ** 2
-        return 4.0 * np.pi * float(inv.mean()), 4.0 * np.pi * float(inv.std() / np.sqrt(len(inv)))
+        """The integral over the sphere of 1 / d_Pk^2 (d_Pk clipped at min_size): one random
+        point in each sampled triangle, weighted by its triangle's area on the sphere
+        (``t / s`` of it when s of the t are sampled), with its standard error
+        (``common.size_estimate``)."""
+        weights, t = probes.extra
+        y = weights / np.maximum(d_pk[: len(weights)], max(self.floor, 1e-300)) ** 2
+        return size_estimate(y, t)
 
     def constants(self, tri):
         return sphere_constants(self.mesh.tau, float(tri.radii.max(initial=0.0)))

@@ -1,0 +1,72 @@
+"""Rows of integers matched in linear time, for certify's checks of a mesh's combinatorics
+(cells listed once, facets shared by two, edges counted, returned cells found in the torus):
+rows are grouped by a small integer each carries (a vertex index: a counting sort), and
+compared only within their group, by a hash first. ``np.unique(axis=0)`` and sorts of the
+rows as bytes answered the same several times slower at 10^5-10^6 cells."""
+
+import numpy as np
+
+from .._engine.jit import kernel
+
+
+@kernel(entry=True, lazy=True)
+def row_classes(rows, group, m):
+    """For each row of ``rows`` (n, c) int64, the index of the first row equal to it (in
+    row order): equal rows share it. ``group`` (n,) in [0, m): equal rows have equal groups
+    (a vertex of the row, say); only rows of a group are compared."""
+    n, c = rows.shape
+    start = np.zeros(m + 1, np.int64)
+    for i in range(n):
+        start[group[i] + 1] += 1
+    for v in range(m):
+        start[v + 1] += start[v]
+    place = start[:m].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[place[group[i]]] = i
+        place[group[i]] += 1
+    hashes = np.empty(n, np.uint64)
+    for i in range(n):
+        h = np.uint64(1469598103934665603)
+        for j in range(c):
+            h = (h ^ np.uint64(rows[i, j] & 0xFFFFFFFFFFFF)) * np.uint64(1099511628211)
+        hashes[i] = h
+    label = np.arange(n)
+    for v in range(m):
+        lo, hi = start[v], start[v + 1]
+        for a in range(lo + 1, hi):  # insertion sort of the group by (hash, index)
+            i = order[a]
+            b = a - 1
+            while b >= lo and (hashes[order[b]] > hashes[i]
+                               or (hashes[order[b]] == hashes[i] and order[b] > i)):  # fmt: skip
+                order[b + 1] = order[b]
+                b -= 1
+            order[b + 1] = i
+        a = lo
+        while a < hi:  # runs of equal hash: rows compared in full, the first index labels
+            b = a + 1
+            while b < hi and hashes[order[b]] == hashes[order[a]]:
+                b += 1
+            for x in range(a + 1, b):
+                i = order[x]
+                for y in range(a, x):
+                    p = order[y]
+                    if label[p] != p:
+                        continue
+                    same = True
+                    for j in range(c):
+                        if rows[i, j] != rows[p, j]:
+                            same = False
+                            break
+                    if same:
+                        label[i] = p
+                        break
+            a = b
+    return label
+
+
+def class_sizes(label):
+    """(each row's class size, whether each row is the first of its class)."""
+    first = label == np.arange(len(label))
+    sizes = np.bincount(label, minlength=len(label))
+    return sizes[label], first
