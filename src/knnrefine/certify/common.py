@@ -13,7 +13,7 @@ from ..mesh import theorem6_constants
 from ._rows import class_sizes, row_classes
 from ._tree import Tree, neighbour_lists
 from .certificate import floor_sites, to_input
-from .steps import Cells
+from .steps import Cells, Probes
 
 
 def check_source(stats, n, weight):
@@ -259,6 +259,7 @@ class TorusGeometry:
         self.vertices = np.asarray(mesh.torus.vertices, float)
         self.vertex_tree = Tree(self.vertices, None, self.period, workers)
         self._cells = None
+        self._d_m2 = None
         dim = self.vertices.shape[1]
         self.lo = np.array(mesh.box[:dim]) - self.origin
         self.hi = np.array(mesh.box[dim:]) - self.origin
@@ -267,7 +268,9 @@ class TorusGeometry:
     def vertex_d_m2(self):
         """d_{M,2} at each vertex: its distance to its nearest other vertex, a Delaunay
         neighbour (the triangulation is checked first; where it failed, the verdict has)."""
-        return nearest_neighbour(self.cells(None))
+        if self._d_m2 is None:
+            self._d_m2 = nearest_neighbour(self.cells(None))
+        return self._d_m2
 
     def cells(self, tri):
         """The Voronoi cells of the torus' vertices: each one's neighbours across the
@@ -332,6 +335,20 @@ def edge_midpoints(cells):
         positive |= ~decided & (e[:, a] > 0)
         decided |= e[:, a] != 0
     return cells.sites[site[positive]] + 0.5 * e[positive], site[positive]
+
+
+def gathered_probes(parts, inside, extra):
+    """``steps.Probes`` from parts (x, owner cell, whether input points, d_{M,2} known or
+    NaN), the first the size integral's samples, each kept where ``inside(x)``; ``extra``
+    follows the samples' mask of those kept."""
+    keep = [inside(p[0]) for p in parts]
+    x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
+    owner = np.concatenate(
+        [np.asarray(p[1], np.int64)[k] for p, k in zip(parts, keep, strict=True)]
+    )
+    mask = np.concatenate([np.full(int(k.sum()), p[2]) for p, k in zip(parts, keep, strict=True)])
+    d_m2 = np.concatenate([np.asarray(p[3], float)[k] for p, k in zip(parts, keep, strict=True)])
+    return Probes(x, mask, owner, d_m2, (keep[0], *extra))
 
 
 def size_sample(t, samples, rng):

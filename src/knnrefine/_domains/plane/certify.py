@@ -29,11 +29,12 @@ from ...certify.common import (
     checked_points,  # noqa: F401  (the box domains' own)
     edge_midpoints,
     find_rows,
+    gathered_probes,
     repeated_rows,
     size_estimate,
     size_sample,
 )
-from ...certify.steps import Probes, Triangulation
+from ...certify.steps import Triangulation
 from ...mesh import circumcircles, triangle_areas, uniform_in_triangles
 
 
@@ -68,10 +69,11 @@ class Geometry(TorusGeometry):
         return _in_box(x, self.lo, self.hi, self.periodic)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Every vertex, circumcentre and edge midpoint (once each), one random point in
-        each of ``samples`` triangles (all of them when there are fewer: the Monte Carlo
-        samples of the size integral), up to min(``max_point_probes``, m) input points
-        and min(``n_random``, m) uniform points of the box; those in the box."""
+        """Every vertex and edge midpoint (once each), one random point in each of
+        ``samples`` triangles (all of them when there are fewer: the Monte Carlo samples of
+        the size integral), up to min(``max_point_probes``, 2 m) input points and
+        min(``n_random``, m) uniform points of the box; those in the box (``steps.Probes``:
+        why these)."""
         corners = tri.extra
         t, m = len(corners), len(self.vertices)
         chosen = size_sample(t, samples, rng)
@@ -83,21 +85,18 @@ class Geometry(TorusGeometry):
         owner_of[self.mesh.torus.triangles.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((min(int(n_random), m), 2)) * (self.hi - self.lo)
-        parts = [
-            (inside, chosen, False),
-            (sampled, np.full(len(sampled), -1), True),
-            (self.vertices, owner_of, False),
-            (tri.centres, np.arange(t), False),
-            (self.frame(mids), owner_of[mid_site], False),
-            (uniform, np.full(len(uniform), -1), False),
-        ]
-        keep = [self.in_box(x) for x, _, _ in parts]
-        x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
-        owner = np.concatenate([p[1][k] for p, k in zip(parts, keep, strict=True)])
-        mask = np.concatenate(
-            [np.full(int(k.sum()), p[2]) for p, k in zip(parts, keep, strict=True)]
+        unknown = np.full(len(uniform) + len(mids) + len(sampled) + len(inside), np.nan)
+        return gathered_probes(
+            [
+                (inside, chosen, False, unknown[: len(inside)]),
+                (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
+                (self.vertices, owner_of, False, self.vertex_d_m2()),
+                (self.frame(mids), owner_of[mid_site], False, unknown[: len(mids)]),
+                (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
+            ],
+            self.in_box,
+            (weights, t),
         )
-        return Probes(x, mask, owner, (keep[0], weights, t))
 
     def returned_d_m2(self, x, sort=True):
         return self.vertex_tree.kth(x, 2, sort=sort), []

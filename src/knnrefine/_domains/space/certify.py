@@ -36,11 +36,12 @@ from ...certify.common import (
     checked_points,  # noqa: F401  (the box domains' own)
     edge_midpoints,
     find_rows,
+    gathered_probes,
     repeated_rows,
     size_estimate,
     size_sample,
 )
-from ...certify.steps import Probes, Triangulation
+from ...certify.steps import Triangulation
 
 
 @kernel(entry=True, lazy=True)
@@ -289,11 +290,12 @@ class Geometry(TorusGeometry):
         return verify_returned_mesh3(self.mesh)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Every vertex, circumcentre and edge midpoint (once each), one random point in
-        each of ``samples`` tetrahedra (all of them when there are fewer: the Monte Carlo
-        samples of the size integral), up to min(``max_point_probes``, m) input points and
+        """Every vertex and edge midpoint (once each), one random point in each of
+        ``samples`` tetrahedra (all of them when there are fewer: the Monte Carlo samples of
+        the size integral), up to min(``max_point_probes``, 2 m) input points and
         min(``n_random``, m) uniform points of the box; those in the box (periodic axes
-        wrapped)."""
+        wrapped; ``steps.Probes``: why these). d_{M,2} is asked at each, in the box's own
+        metric."""
         c, period = tri.extra, self.period
         t, m = len(c), len(self.local)
         chosen = size_sample(t, samples, rng)
@@ -307,22 +309,19 @@ class Geometry(TorusGeometry):
         owner_of[np.asarray(self.corners).ravel()] = np.repeat(np.arange(t), 4)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((min(int(n_random), m), 3)) * side
-        parts = [
-            (inside, chosen, False),
-            (sampled, np.full(len(sampled), -1), True),
-            (self.local, owner_of, False),
-            (tri.centres, np.arange(t), False),
-            (np.mod(mids, period), owner_of[mid_site], False),
-            (uniform, np.full(len(uniform), -1), False),
-        ]
         free = ~np.array(self.mesh.periodic)
-        keep = [(((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1) for x, _, _ in parts]
-        x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
-        owner = np.concatenate([p[1][k] for p, k in zip(parts, keep, strict=True)])
-        mask = np.concatenate(
-            [np.full(int(k.sum()), p[2]) for p, k in zip(parts, keep, strict=True)]
+        unknown = np.full(len(inside) + len(sampled) + m + len(mids) + len(uniform), np.nan)
+        return gathered_probes(
+            [
+                (inside, chosen, False, unknown[: len(inside)]),
+                (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
+                (self.local, owner_of, False, unknown[:m]),
+                (np.mod(mids, period), owner_of[mid_site], False, unknown[: len(mids)]),
+                (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
+            ],
+            lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
+            (weights, t),
         )
-        return Probes(x, mask, owner, (keep[0], weights, t))
 
     def returned_d_m2(self, x, sort=True):
         """d_{M,2} at x from the returned vertices in the box's own metric, and a problem

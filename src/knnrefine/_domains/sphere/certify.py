@@ -40,11 +40,12 @@ from ...certify._tree import Tree, neighbour_lists, sums_by
 from ...certify.common import (
     check_precondition,
     edge_midpoints,
+    gathered_probes,
     nearest_neighbour,
     size_estimate,
     size_sample,
 )
-from ...certify.steps import Cells, Probes, Triangulation
+from ...certify.steps import Cells, Triangulation
 from ...mesh import sphere_constants
 
 
@@ -283,6 +284,7 @@ class Geometry:
         self.tri = np.asarray(mesh.triangles, np.int64)
         self.vtree = Tree(self.xyz, None, None, workers)
         self._cells = None
+        self._d_m2 = None
         self._returned = []  # the returned mesh's problems, found with the triangulation's
 
     def triangulation(self):
@@ -301,7 +303,9 @@ class Geometry:
     def vertex_d_m2(self):
         """d_{M,2} at each vertex: the angle to its nearest other vertex, a Delaunay
         neighbour (the triangulation is checked first)."""
-        return chord_to_angle(nearest_neighbour(self.cells(None)))
+        if self._d_m2 is None:
+            self._d_m2 = chord_to_angle(nearest_neighbour(self.cells(None)))
+        return self._d_m2
 
     def cells(self, tri):
         """The Voronoi cells of the vertices: each one's neighbours across the triangles'
@@ -335,10 +339,10 @@ class Geometry:
         return check_precondition(initial, points, k, tau, spacing=_spacing)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Every vertex, cap centre and edge midpoint (once each), one random point in each
-        of ``samples`` triangles (all of them when there are fewer: the size integral's
-        samples), up to min(``max_point_probes``, m) input points and min(``n_random``, m)
-        uniform points of the sphere."""
+        """Every vertex and edge midpoint (once each), one random point in each of
+        ``samples`` triangles (all of them when there are fewer: the size integral's
+        samples), up to min(``max_point_probes``, 2 m) input points and min(``n_random``, m)
+        uniform points of the sphere (``steps.Probes``: why these)."""
         xyz, tri_ = self.xyz, self.tri
         t, m = len(tri_), len(xyz)
         chosen = size_sample(t, samples, rng)
@@ -359,19 +363,20 @@ class Geometry:
         owner_of[tri_.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = _uniform_on_sphere(min(int(n_random), m), rng)
-        parts = [
-            (flat, chosen, False),
-            (sampled, np.full(len(sampled), -1), True),
-            (xyz, owner_of, False),
-            (tri.centres, np.arange(t), False),
-            (mids, owner_of[mid_site], False),
-            (uniform, np.full(len(uniform), -1), False),
-        ]
-        probes = np.concatenate([p[0] for p in parts])
-        probes /= np.linalg.norm(probes, axis=1, keepdims=True)
-        owner = np.concatenate([p[1] for p in parts])
-        mask = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
-        return Probes(probes, mask, owner, (weights, t))
+        unknown = np.full(len(flat) + len(sampled) + len(mids) + len(uniform), np.nan)
+        probes = gathered_probes(
+            [
+                (flat, chosen, False, unknown[: len(flat)]),
+                (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
+                (xyz, owner_of, False, self.vertex_d_m2()),
+                (mids, owner_of[mid_site], False, unknown[: len(mids)]),
+                (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
+            ],
+            lambda x: np.ones(len(x), bool),
+            (weights, t),
+        )
+        unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
+        return probes._replace(x=unit)
 
     def returned_d_m2(self, x, sort=True):
         return chord_to_angle(self.vtree.kth(x, 2, sort=sort)), []
@@ -381,7 +386,7 @@ class Geometry:
         point in each sampled triangle, weighted by its triangle's area on the sphere
         (``t / s`` of it when s of the t are sampled), with its standard error
         (``common.size_estimate``)."""
-        weights, t = probes.extra
+        _, weights, t = probes.extra
         y = weights / np.maximum(d_pk[: len(weights)], max(self.floor, 1e-300)) ** 2
         return size_estimate(y, t)
 
