@@ -58,9 +58,10 @@ def _plus(s, c, x):
 @kernel(entry=True, lazy=True, nogil=True)
 def _build(pts, w, leaf):
     """The tree over ``pts`` (n, d) with weights ``w`` (n,): (points and weights permuted so
-    that each node owns a contiguous range, their original indices, nodes (lo, hi, first
-    child or -1; the second child follows the first), tight boxes (mins, maxes), weight
-    totals, the depth)."""
+    that each node owns a contiguous range, their original indices, the nodes, the depth).
+    A node is one row of ``T`` (nodes, 4 + 2 d), all a query reads of it in one or two cache
+    lines: lo, hi, its first child (-1 at a leaf; the second follows the first), its weight
+    total, its tight box (mins, then maxes)."""
     n, d = pts.shape
     pts = pts.copy()
     w = w.copy()
@@ -141,7 +142,12 @@ def _build(pts, w, leaf):
                 todo[top + 1] = count
                 top += 2
                 count += 2
-    return pts, w, ids, node[:count].copy(), box[:count].copy(), total[:count].copy(), deepest
+    T = np.empty((count, 4 + 2 * d))
+    for i in range(count):
+        T[i, 0], T[i, 1], T[i, 2], T[i, 3] = node[i, 0], node[i, 1], node[i, 2], total[i]
+        for a in range(2 * d):
+            T[i, 4 + a] = box[i, a]
+    return pts, w, ids, T, deepest
 
 
 @kernel(inline="always")
@@ -182,21 +188,21 @@ def _reach(x, lo, hi, p):
 
 
 @kernel(inline="always")
-def _box_near2(box, i, x, period):
+def _box_near2(T, i, x, period):
     d = x.shape[0]
     s = 0.0
     for a in range(d):
-        g = _gap(x[a], box[i, a], box[i, d + a], period[a])
+        g = _gap(x[a], T[i, 4 + a], T[i, 4 + d + a], period[a])
         s += g * g
     return s
 
 
 @kernel(inline="always")
-def _box_far2(box, i, x, period):
+def _box_far2(T, i, x, period):
     d = x.shape[0]
     s = 0.0
     for a in range(d):
-        g = _reach(x[a], box[i, a], box[i, d + a], period[a])
+        g = _reach(x[a], T[i, 4 + a], T[i, 4 + d + a], period[a])
         s += g * g
     return s
 
@@ -211,7 +217,7 @@ def _point2(pts, j, x, period):
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _held(pts, w, node, box, total, depth, period, x, r2, stop, out, start, end):
+def _held(pts, w, T, depth, period, x, r2, stop, out, start, end):
     """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])),
     exact below stop[q], at least stop[q] otherwise (the walk stops there)."""
     stack = np.empty(2 * depth + 4, np.int64)
@@ -225,89 +231,21 @@ def _held(pts, w, node, box, total, depth, period, x, r2, stop, out, start, end)
         while top > 0 and s + c < stop[q]:
             top -= 1
             i = stack[top]
-            if _box_near2(box, i, xq, period) > rq:
+            if _box_near2(T, i, xq, period) > rq:
                 continue
-            if _box_far2(box, i, xq, period) <= rq:
-                s, c = _plus(s, c, total[i])
+            if _box_far2(T, i, xq, period) <= rq:
+                s, c = _plus(s, c, T[i, 3])
                 continue
-            child = node[i, 2]
+            child = int(T[i, 2])
             if child >= 0:
                 stack[top] = child
                 stack[top + 1] = child + 1
                 top += 2
                 continue
-            for j in range(node[i, 0], node[i, 1]):
+            for j in range(int(T[i, 0]), int(T[i, 1])):
                 if _point2(pts, j, xq, period) <= rq:
                     s, c = _plus(s, c, w[j])
         out[q] = s + c
-
-
-@kernel(inline="always")
-def _push(keys, items, size, key, item):
-    """Push onto the binary min-heap (keys, items) of ``size`` entries, growing it when
-    full; returns the arrays and the new size."""
-    if size == keys.shape[0]:
-        k2 = np.empty(2 * size)
-        i2 = np.empty(2 * size, np.int64)
-        k2[:size] = keys
-        i2[:size] = items
-        keys, items = k2, i2
-    j = size
-    while j > 0:
-        parent = (j - 1) >> 1
-        if keys[parent] <= key:
-            break
-        keys[j] = keys[parent]
-        items[j] = items[parent]
-        j = parent
-    keys[j] = key
-    items[j] = item
-    return keys, items, size + 1
-
-
-@kernel(inline="always")
-def _pop(keys, items, size):
-    """Remove the least entry of the heap; returns (key, item, new size)."""
-    key, item = keys[0], items[0]
-    size -= 1
-    last_key, last_item = keys[size], items[size]
-    j = 0
-    while True:
-        child = 2 * j + 1
-        if child >= size:
-            break
-        if child + 1 < size and keys[child + 1] < keys[child]:
-            child += 1
-        if keys[child] >= last_key:
-            break
-        keys[j] = keys[child]
-        items[j] = items[child]
-        j = child
-    keys[j] = last_key
-    items[j] = last_item
-    return key, item, size
-
-
-@kernel(inline="always")
-def _expand(node, box, pts, i, xq, period, bound, keys, items, size):
-    """Push what node i holds: its points (a leaf) or its two children, those within
-    ``bound`` (squared); a node whose points coincide is pushed as one (item -2 - i)."""
-    child = node[i, 2]
-    if child >= 0:
-        for c in range(child, child + 2):
-            key = _box_near2(box, c, xq, period)
-            if key <= bound:
-                flat = True
-                for a in range(xq.shape[0]):
-                    if box[c, a] != box[c, xq.shape[0] + a]:
-                        flat = False
-                keys, items, size = _push(keys, items, size, key, -2 - c if flat else c)
-        return keys, items, size
-    for j in range(node[i, 0], node[i, 1]):
-        key = _point2(pts, j, xq, period)
-        if key <= bound:
-            keys, items, size = _push(keys, items, size, key, node.shape[0] + j)
-    return keys, items, size
 
 
 @kernel(inline="always")
@@ -367,7 +305,7 @@ def _settle(hk, hw, n, k):
 
 
 @kernel(inline="always")
-def _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit, stack, stack_key, hk, hw):
+def _kth_dfs(pts, w, T, period, xq, k, unit, limit, stack, stack_key, hk, hw):
     """The least radius about xq holding weight k (inf where the points hold less), depth
     first, the nearer child first, pruned by the best radius so far. ``unit`` (every weight
     1): the k nearest kept in a max-heap. Weighted: the candidates within the radius so far,
@@ -383,20 +321,20 @@ def _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit, stack, stack_
         settled = 64
         top = 1
         stack[0] = 0
-        stack_key[0] = _box_near2(box, 0, xq, period)
+        stack_key[0] = _box_near2(T, 0, xq, period)
         while top > 0:
             top -= 1
             i = stack[top]
             if stack_key[top] > r2:
                 continue
-            child = node[i, 2]
+            child = int(T[i, 2])
             flat = True
             for a in range(dim):
-                if box[i, a] != box[i, dim + a]:
+                if T[i, 4 + a] != T[i, 4 + dim + a]:
                     flat = False
             if child >= 0 and not flat:
-                k0 = _box_near2(box, child, xq, period)
-                k1 = _box_near2(box, child + 1, xq, period)
+                k0 = _box_near2(T, child, xq, period)
+                k1 = _box_near2(T, child + 1, xq, period)
                 if k0 <= k1:
                     stack[top], stack_key[top] = child + 1, k1
                     stack[top + 1], stack_key[top + 1] = child, k0
@@ -405,14 +343,14 @@ def _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit, stack, stack_
                     stack[top + 1], stack_key[top + 1] = child + 1, k1
                 top += 2
                 continue
-            lo = node[i, 0]
-            hi = node[i, 1] if not flat else node[i, 0] + 1
+            lo = int(T[i, 0])
+            hi = int(T[i, 1]) if not flat else int(T[i, 0]) + 1
             for j in range(lo, hi):
                 d2 = _point2(pts, j, xq, period)
                 if d2 > r2:
                     continue
                 if unit:
-                    copies = min(int(total[i]), kk) if flat else 1
+                    copies = min(int(T[i, 3]), kk) if flat else 1
                     for _ in range(copies):  # coinciding points: a copy for each
                         if n < kk:
                             hk[n], hw[n] = d2, 1.0
@@ -433,7 +371,7 @@ def _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit, stack, stack_
                         hk2[:n] = hk
                         hw2[:n] = hw
                         hk, hw = hk2, hw2
-                    hk[n], hw[n] = d2, (w[j] if not flat else total[i])
+                    hk[n], hw[n] = d2, (w[j] if not flat else T[i, 3])
                     n += 1
                     if n >= 2 * settled:
                         bound, n = _settle(hk, hw, n, k)
@@ -482,7 +420,7 @@ def _select(v, n, kth):
 
 
 @kernel(inline="always")
-def _gather(pts, w, node, box, period, c, r2, stack, gx, gw):
+def _gather(pts, w, T, period, c, r2, stack, gx, gw):
     """The points (and weights) within the closed ball (c, sqrt(r2)) copied to gx, gw;
     their number, or -1 where they do not fit."""
     d = c.shape[0]
@@ -492,16 +430,16 @@ def _gather(pts, w, node, box, period, c, r2, stack, gx, gw):
     while top > 0:
         top -= 1
         i = stack[top]
-        if _box_near2(box, i, c, period) > r2:
+        if _box_near2(T, i, c, period) > r2:
             continue
-        child = node[i, 2]
-        whole = _box_far2(box, i, c, period) <= r2
+        child = int(T[i, 2])
+        whole = _box_far2(T, i, c, period) <= r2
         if child >= 0 and not whole:
             stack[top] = child
             stack[top + 1] = child + 1
             top += 2
             continue
-        for j in range(node[i, 0], node[i, 1]):
+        for j in range(int(T[i, 0]), int(T[i, 1])):
             if whole or _point2(pts, j, c, period) <= r2:
                 if n == gx.shape[0]:
                     return -1
@@ -542,23 +480,23 @@ def _kth_in(gx, gw, n, xq, period, k, unit, high2, d2, dw):
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _kth(pts, w, node, box, total, depth, period, x, k, unit, upper2, out, start, end):
+def _kth(pts, w, T, depth, period, x, k, unit, upper2, out, start, end):
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less). Queries come in an order where neighbours
     are near (``spatial_order``): with delta the distance from the one before, whose answer
     is a, the answer is at most a + delta (d_{P,k} is 1-Lipschitz), so it is found among
     the points within a + delta of the query. Those are taken from a window, the points
-    within twice that of an earlier query, gathered once and kept while later queries'
-    balls stay inside it; the first query, one far from the one before, or a window too
-    large for its buffer: depth first (``_kth_dfs``), pruned by ``upper2[q]`` (a squared
-    bound from above, inf: none)."""
+    within 1.5 times that of an earlier query, gathered once and kept while later queries'
+    balls stay inside it; the first query, one far from the one before (delta > 3 a), or a
+    window too large for its buffer: depth first (``_kth_dfs``), pruned by ``upper2[q]`` (a
+    squared bound from above, inf: none)."""
     dim = x.shape[1]
     stack = np.empty(2 * depth + 4, np.int64)
     stack_key = np.empty(2 * depth + 4)
     kk = int(math.ceil(k)) if unit else 0
     hk = np.empty(max(kk, 64))
     hw = np.empty(max(kk, 64))
-    size = max(64 * kk, 4096)
+    size = max(256 * kk, 8192)
     gx = np.empty((size, dim))
     gw = np.empty(size)
     d2 = np.empty(size)
@@ -572,20 +510,20 @@ def _kth(pts, w, node, box, total, depth, period, x, k, unit, upper2, out, start
         if q > start and out[q - 1] < np.inf:
             a = out[q - 1]
             delta = math.sqrt(_point2(x, q - 1, xq, period))
-            if delta <= a:
+            if delta <= 3.0 * a:  # else the bound is loose: depth first
                 high = (a + delta) * (1.0 + 1e-12)
                 if reach < 0.0 or math.sqrt(_dist_to(centre, xq, period)) + high > reach:
                     for t in range(dim):
                         centre[t] = xq[t]
-                    reach = 2.0 * high
-                    n = _gather(pts, w, node, box, period, centre, reach * reach, stack, gx, gw)
+                    reach = 1.5 * high
+                    n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
                     if n < 0:
                         reach = -1.0
                 if reach >= 0.0:
                     answer = _kth_in(gx, gw, n, xq, period, k, unit, high * high, d2, dw)
         if answer < 0.0:
             limit = upper2[q] * (1.0 + 1e-12) + 1e-300 if upper2[q] < np.inf else np.inf
-            answer, hk, hw = _kth_dfs(pts, w, node, box, total, period, xq, k, unit, limit,
+            answer, hk, hw = _kth_dfs(pts, w, T, period, xq, k, unit, limit,
                                       stack, stack_key, hk, hw)  # fmt: skip
         out[q] = answer
 
@@ -600,45 +538,7 @@ def _dist_to(c, xq, period):
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _nearest(pts, ids, node, box, period, x, relative, slack2, out, start, end):
-    """out[q, :] for q in [start, end): the (original) indices of the tree's points as near
-    to x[q] as its nearest, up to squared distance d0^2 * (1 + relative) + slack2, -1 after
-    them; more than fit are left out (out[q, -1] = -2 marks that)."""
-    keys = np.empty(256)
-    items = np.empty(256, np.int64)
-    nn = node.shape[0]
-    width = out.shape[1]
-    for q in range(start, end):
-        xq = x[q]
-        for j in range(width):
-            out[q, j] = -1
-        size = 0
-        keys, items, size = _push(keys, items, size, _box_near2(box, 0, xq, period), 0)
-        bound = np.inf
-        found = 0
-        while size > 0:
-            key, item, size = _pop(keys, items, size)
-            if key > bound:
-                break
-            if item >= nn:
-                if found == 0:
-                    bound = key * (1.0 + relative) + slack2
-                if found < width:
-                    out[q, found] = ids[item - nn]
-                else:
-                    out[q, width - 1] = -2
-                found += 1
-            elif item <= -2:  # coinciding points, each its own site: open the node
-                i = -2 - item
-                for j in range(node[i, 0], node[i, 1]):
-                    keys, items, size = _push(keys, items, size, key, nn + j)
-            else:
-                keys, items, size = _expand(node, box, pts, item, xq, period, bound,
-                                            keys, items, size)  # fmt: skip
-
-
-@kernel(entry=True, lazy=True, nogil=True)
-def _cells_held(pts, w, node, box, total, depth, period, v, first, edges, outradii, relative,
+def _cells_held(pts, w, T, depth, period, v, first, edges, outradii, relative,
                 slack2, stop, out, start, end):  # fmt: skip
     """out[s] for s in [start, end): the weight in the closed Voronoi cell of site v[s]
     (``Tree.cells_held``). A node is skipped when it lies beyond the outradius or wholly
@@ -662,13 +562,13 @@ def _cells_held(pts, w, node, box, total, depth, period, v, first, edges, outrad
         while top > 0 and s + c < stop[q]:
             top -= 1
             i = stack[top]
-            if _box_near2(box, i, vq, period) > big2:
+            if _box_near2(T, i, vq, period) > big2:
                 continue
             # the node relative to the site, on a torus its copy nearest the site
             shifted = True
             for a in range(dim):
-                lo = box[i, a] - vq[a]
-                hi = box[i, dim + a] - vq[a]
+                lo = T[i, 4 + a] - vq[a]
+                hi = T[i, 4 + dim + a] - vq[a]
                 p = period[a]
                 if p > 0.0:
                     if hi - lo >= 0.5 * p:
@@ -679,7 +579,7 @@ def _cells_held(pts, w, node, box, total, depth, period, v, first, edges, outrad
                     hi -= shift
                 rlo[a] = lo
                 rhi[a] = hi
-            inside = _box_far2(box, i, vq, period) <= big2 and shifted
+            inside = _box_far2(T, i, vq, period) <= big2 and shifted
             outside = False
             if shifted:
                 for j in range(e0, e1):
@@ -704,15 +604,15 @@ def _cells_held(pts, w, node, box, total, depth, period, v, first, edges, outrad
             if outside:
                 continue
             if inside:
-                s, c = _plus(s, c, total[i])
+                s, c = _plus(s, c, T[i, 3])
                 continue
-            child = node[i, 2]
+            child = int(T[i, 2])
             if child >= 0:
                 stack[top] = child
                 stack[top + 1] = child + 1
                 top += 2
                 continue
-            for j in range(node[i, 0], node[i, 1]):
+            for j in range(int(T[i, 0]), int(T[i, 1])):
                 d2 = _point2(pts, j, vq, period)
                 if d2 > big2:
                     continue
@@ -734,7 +634,7 @@ def _cells_held(pts, w, node, box, total, depth, period, v, first, edges, outrad
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _held_caps(pts, w, node, box, total, depth, x, outer2, corners, stop, out, start, end):
+def _held_caps(pts, w, T, depth, x, outer2, corners, stop, out, start, end):
     """out[q] for q in [start, end): the weight of the points on or above the plane through
     corners[q] (three points (3, 3), counter-clockwise seen from above) among those within
     sqrt(outer2[q]) of x[q], each decided by the filtered orient3d, stopping once it
@@ -757,15 +657,15 @@ def _held_caps(pts, w, node, box, total, depth, x, outer2, corners, stop, out, s
         while top > 0 and s + c < stop[q]:
             top -= 1
             i = stack[top]
-            if _box_near2(box, i, xq, period) > r_out:
+            if _box_near2(T, i, xq, period) > r_out:
                 continue
-            child = node[i, 2]
+            child = int(T[i, 2])
             if child >= 0:
                 stack[top] = child
                 stack[top + 1] = child + 1
                 top += 2
                 continue
-            for j in range(node[i, 0], node[i, 1]):
+            for j in range(int(T[i, 0]), int(T[i, 1])):
                 if _point2(pts, j, xq, period) > r_out:
                     continue
                 sign = orient3d_at(a[0, 0], a[0, 1], a[0, 2], a[1, 0], a[1, 1], a[1, 2],
@@ -815,8 +715,7 @@ class Tree:
         w = np.ones(self.n) if weights is None else np.ascontiguousarray(weights, np.float64)
         if self.n == 0:  # a node must exist: one far away holding nothing
             pts, w = np.full((1, self.dim), np.inf), np.zeros(1)
-        (self.pts, self.w, self.ids, self.node, self.box, self.total,
-         self.depth) = _build(pts, w, LEAF)  # fmt: skip
+        self.pts, self.w, self.ids, self.T, self.depth = _build(pts, w, LEAF)  # fmt: skip
 
     def _queries(self, x):
         return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)
@@ -839,7 +738,7 @@ class Tree:
         p = self._period(period)
 
         def call(a, b):
-            _held(self.pts, self.w, self.node, self.box, self.total, self.depth, p, x, r2, st,
+            _held(self.pts, self.w, self.T, self.depth, p, x, r2, st,
                   out, a, b)  # fmt: skip
 
         self._run(call, len(x))
@@ -863,7 +762,7 @@ class Tree:
         unit = bool((self.w == 1.0).all())
 
         def call(a, b):
-            _kth(self.pts, self.w, self.node, self.box, self.total, self.depth, p, xs, float(k),
+            _kth(self.pts, self.w, self.T, self.depth, p, xs, float(k),
                  unit, u2, res, a, b)  # fmt: skip
 
         self._run(call, len(x))
@@ -883,7 +782,7 @@ class Tree:
         out = np.empty(len(x))
 
         def call(a, b):
-            return _held_caps(self.pts, self.w, self.node, self.box, self.total, self.depth,
+            return _held_caps(self.pts, self.w, self.T, self.depth,
                               x, outer2, c, st, out, a, b)  # fmt: skip
 
         parts = in_chunks(call, len(x), threads=_threads(self.threads), least=512)
@@ -906,25 +805,11 @@ class Tree:
         out = np.empty(len(v))
 
         def call(a, b):
-            _cells_held(self.pts, self.w, self.node, self.box, self.total, self.depth,
+            _cells_held(self.pts, self.w, self.T, self.depth,
                         self.period, v, first, e, r, float(relative), float(slack2), st, out,
                         a, b)  # fmt: skip
 
         self._run(call, len(v))
-        return out
-
-    def nearest(self, x, width=4, relative=2e-12, slack2=0.0):
-        """(q, width) indices of the points as near to each x as its nearest, up to a squared
-        distance d0^2 (1 + relative) + slack2 (ties), -1 after them; -2 in the last column
-        where more were as near than fit."""
-        x = self._queries(x)
-        out = np.empty((len(x), width), np.int64)
-
-        def call(a, b):
-            _nearest(self.pts, self.ids, self.node, self.box, self.period, x, float(relative),
-                     float(slack2), out, a, b)  # fmt: skip
-
-        self._run(call, len(x))
         return out
 
 
