@@ -105,14 +105,15 @@ def test_certify3_with_no_probe_above_the_floor():
 
 
 def test_certify3_honours_samples_and_weights():
-    """certify's options in space: ``samples`` sets the probes in the tetrahedra (at least
-    4 each), ``threads`` the queries' threads; weights are refused for a mesh refined
-    without them (``workers``: test_certify_tiled.py)."""
+    """certify's options in space: ``samples`` sets the size integral's random points in
+    the tetrahedra (one in each of ``samples`` of them, or samples // t in each), ``threads`` the
+    queries' threads; weights are refused for a mesh refined without them (``workers``:
+    test_certify_tiled.py)."""
     pts = np.random.default_rng(6).random((3000, 3))
     mesh = knnrefine.refine(pts, 10, periodic=True, box=BOX)
     few = knnrefine.certify(mesh, pts, samples=10, workers=1)
     many = knnrefine.certify(mesh, pts, samples=40 * len(mesh.tetrahedra))
-    assert many.n_probes - few.n_probes == pytest.approx(36 * len(mesh.tetrahedra), rel=0.01)
+    assert many.n_probes - few.n_probes == 40 * len(mesh.tetrahedra) - 10
     with pytest.raises(knnrefine.InputError, match="refined without weights"):
         knnrefine.certify(mesh, pts, weights=np.ones(len(pts)))
 

@@ -21,7 +21,7 @@ LAYERS = [
     ["_options.py", "mesh.py"],
     ["_domains/__init__.py", "_domains/box.py"],
     ["_domains/*/run.py"],
-    ["certify/_predicates.py", "certify/_tree.py"],
+    ["certify/_predicates.py", "certify/_tree.py", "certify/_rows.py"],
     ["certify/certificate.py", "certify/common.py", "certify/steps.py", "certify/__init__.py"],
     ["_domains/*/certify.py", "_domains/*/density.py", "_domains/*/__init__.py"],
     ["_pipeline.py"],

@@ -352,22 +352,27 @@ def gathered_probes(parts, inside, extra):
 
 
 def size_sample(t, samples, rng):
-    """The cells whose one random point each samples the size integral: all t when
-    ``samples`` >= t, else ``samples`` of them drawn without replacement."""
+    """The cell of each random point of the size integral: ``samples`` // t points in every
+    cell when there are fewer cells than ``samples`` (a small mesh is sampled densely: the
+    ratio's largest values can hide in regions of 10^-5 of its area), or one in each of
+    ``samples`` cells drawn without replacement (a large mesh, once per cell)."""
     if samples >= t:
-        return np.arange(t)
+        return np.repeat(np.arange(t), max(int(samples) // max(t, 1), 1))
     return np.sort(rng.choice(t, int(samples), replace=False))
 
 
 def size_estimate(y, t):
-    """(the integral, its standard error) from y: one term per sampled cell, its area times
-    the integrand at its random point times t / len(y). All cells sampled (a stratified
-    sample of one per cell): the error from neighbouring cells paired (collapsed strata,
-    conservative); some of them (a simple random sample of cells): with the finite
-    population correction."""
+    """(the integral, its standard error) from y: one term per random point, its cell's
+    area (volume, solid angle) times the integrand there times t / len(y). Every cell
+    sampled r times (``size_sample``): stratified, the error from the spread within cells
+    (r >= 2) or from neighbouring cells paired (r = 1: collapsed strata, conservative);
+    some of the cells (a simple random sample): with the finite population correction."""
     s = len(y)
     if s == 0:
         return 0.0, 0.0
+    if s >= t and s % t == 0 and s // t >= 2:
+        per = y.reshape(t, s // t)
+        return float(y.sum()), float(np.sqrt((per.var(axis=1, ddof=1) * per.shape[1]).sum()))
     if s >= t:
         pairs = y[: s - s % 2].reshape(-1, 2)
         return float(y.sum()), float(np.sqrt(((pairs[:, 0] - pairs[:, 1]) ** 2).sum()))

@@ -69,11 +69,10 @@ class Geometry(TorusGeometry):
         return _in_box(x, self.lo, self.hi, self.periodic)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Every vertex and edge midpoint (once each), one random point in each of
-        ``samples`` triangles (all of them when there are fewer: the Monte Carlo samples of
-        the size integral), up to min(``max_point_probes``, 2 m) input points and
-        min(``n_random``, m) uniform points of the box; those in the box (``steps.Probes``:
-        why these)."""
+        """Every vertex and edge midpoint (once each), the size integral's random points
+        in the cells (``common.size_sample``: ``samples`` of them, at least one in each
+        cell sampled), up to min(``max_point_probes``, 2 m) input points and ``n_random``
+        uniform points of the domain (``steps.Probes``: why these)."""
         corners = tri.extra
         t, m = len(corners), len(self.vertices)
         chosen = size_sample(t, samples, rng)
@@ -84,7 +83,7 @@ class Geometry(TorusGeometry):
         owner_of = np.zeros(m, np.int64)
         owner_of[self.mesh.torus.triangles.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
-        uniform = self.lo + rng.random((min(int(n_random), m), 2)) * (self.hi - self.lo)
+        uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
         unknown = np.full(len(uniform) + len(mids) + len(sampled) + len(inside), np.nan)
         return gathered_probes(
             [

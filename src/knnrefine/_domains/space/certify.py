@@ -290,12 +290,10 @@ class Geometry(TorusGeometry):
         return verify_returned_mesh3(self.mesh)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Every vertex and edge midpoint (once each), one random point in each of
-        ``samples`` tetrahedra (all of them when there are fewer: the Monte Carlo samples of
-        the size integral), up to min(``max_point_probes``, 2 m) input points and
-        min(``n_random``, m) uniform points of the box; those in the box (periodic axes
-        wrapped; ``steps.Probes``: why these). d_{M,2} is asked at each, in the box's own
-        metric."""
+        """Every vertex and edge midpoint (once each), the size integral's random points
+        in the cells (``common.size_sample``: ``samples`` of them, at least one in each
+        cell sampled), up to min(``max_point_probes``, 2 m) input points and ``n_random``
+        uniform points of the domain (``steps.Probes``: why these)."""
         c, period = tri.extra, self.period
         t, m = len(c), len(self.local)
         chosen = size_sample(t, samples, rng)
@@ -308,7 +306,7 @@ class Geometry(TorusGeometry):
         owner_of = np.zeros(m, np.int64)
         owner_of[np.asarray(self.corners).ravel()] = np.repeat(np.arange(t), 4)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
-        uniform = self.lo + rng.random((min(int(n_random), m), 3)) * side
+        uniform = self.lo + rng.random((int(n_random), 3)) * side
         free = ~np.array(self.mesh.periodic)
         unknown = np.full(len(inside) + len(sampled) + m + len(mids) + len(uniform), np.nan)
         return gathered_probes(

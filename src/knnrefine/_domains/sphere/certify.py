@@ -339,10 +339,10 @@ class Geometry:
         return check_precondition(initial, points, k, tau, spacing=_spacing)
 
     def probes(self, tri, points, samples, n_random, max_point_probes, rng):
-        """Every vertex and edge midpoint (once each), one random point in each of
-        ``samples`` triangles (all of them when there are fewer: the size integral's
-        samples), up to min(``max_point_probes``, 2 m) input points and min(``n_random``, m)
-        uniform points of the sphere (``steps.Probes``: why these)."""
+        """Every vertex and edge midpoint (once each), the size integral's random points
+        in the cells (``common.size_sample``: ``samples`` of them, at least one in each
+        cell sampled), up to min(``max_point_probes``, 2 m) input points and ``n_random``
+        uniform points of the domain (``steps.Probes``: why these)."""
         xyz, tri_ = self.xyz, self.tri
         t, m = len(tri_), len(xyz)
         chosen = size_sample(t, samples, rng)
@@ -362,7 +362,7 @@ class Geometry:
         owner_of = np.zeros(m, np.int64)
         owner_of[tri_.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
-        uniform = _uniform_on_sphere(min(int(n_random), m), rng)
+        uniform = _uniform_on_sphere(int(n_random), rng)
         unknown = np.full(len(flat) + len(sampled) + len(mids) + len(uniform), np.nan)
         probes = gathered_probes(
             [
