@@ -25,7 +25,7 @@ _ORIENT3D = (7.0 + 56.0 * _EPS) * _EPS
 _INSPHERE = (16.0 + 224.0 * _EPS) * _EPS
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _decide(det, bound):
     if det > bound:
         return 1
@@ -36,7 +36,7 @@ def _decide(det, bound):
     return UNSURE
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def orient2d(ax, ay, bx, by, cx, cy):
     """The sign of orient2d, or UNSURE."""
     left = (ax - cx) * (by - cy)
@@ -44,7 +44,7 @@ def orient2d(ax, ay, bx, by, cx, cy):
     return _decide(left - right, _ORIENT2D * (abs(left) + abs(right)))
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def incircle(ax, ay, bx, by, cx, cy, dx, dy):
     """The sign of incircle, or UNSURE."""
     adx, ady, bdx, bdy, cdx, cdy = ax - dx, ay - dy, bx - dx, by - dy, cx - dx, cy - dy
@@ -60,14 +60,14 @@ def incircle(ax, ay, bx, by, cx, cy, dx, dy):
     return _decide(det, _INCIRCLE * permanent)
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def orient3d(p, a, b, c, d):
     """The sign of orient3d of rows a, b, c, d of p (n, 3), or UNSURE."""
     return orient3d_at(p[a, 0], p[a, 1], p[a, 2], p[b, 0], p[b, 1], p[b, 2], p[c, 0], p[c, 1],
                        p[c, 2], p[d, 0], p[d, 1], p[d, 2])  # fmt: skip
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def orient3d_at(ax, ay, az, bx, by, bz, cx, cy, cz, dx, dy, dz):
     """The sign of orient3d of the points (ax, ay, az), ..., or UNSURE."""
     adx, ady, adz = ax - dx, ay - dy, az - dz
@@ -82,7 +82,7 @@ def orient3d_at(ax, ay, az, bx, by, bz, cx, cy, cz, dx, dy, dz):
     return _decide(det, _ORIENT3D * permanent)
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def insphere(p, a, b, c, d, e):
     """The sign of insphere of rows a, b, c, d, e of p (n, 3), or UNSURE."""
     aex, aey, aez = p[a, 0] - p[e, 0], p[a, 1] - p[e, 1], p[a, 2] - p[e, 2]

@@ -42,7 +42,7 @@ from ._predicates import UNSURE, orient3d_at
 LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _plus(s, c, x):
     """Neumaier's compensated s + x, its error gathered in c: the running total of weights
     >= 0 stays within two ulps of the exact sum in any order (plain sums lose a weight of 1
@@ -150,7 +150,7 @@ def _build(pts, w, leaf):
     return pts, w, ids, T, deepest
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _gap(x, lo, hi, p):
     """The distance along one axis from x to [lo, hi] (on a circle of period p > 0, all
     three in [0, p))."""
@@ -167,7 +167,7 @@ def _gap(x, lo, hi, p):
     return 0.0
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _along(x, y, p):
     """The distance along one axis from x to y (on a circle of period p > 0)."""
     g = abs(x - y)
@@ -176,7 +176,7 @@ def _along(x, y, p):
     return g
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _reach(x, lo, hi, p):
     """The largest distance along one axis from x to a point of [lo, hi]."""
     if p > 0.0:
@@ -187,7 +187,7 @@ def _reach(x, lo, hi, p):
     return max(abs(x - lo), abs(x - hi))
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _box_near2(T, i, x, period):
     d = x.shape[0]
     s = 0.0
@@ -197,7 +197,7 @@ def _box_near2(T, i, x, period):
     return s
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _box_far2(T, i, x, period):
     d = x.shape[0]
     s = 0.0
@@ -207,7 +207,7 @@ def _box_far2(T, i, x, period):
     return s
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _point2(pts, j, x, period):
     s = 0.0
     for a in range(x.shape[0]):
@@ -248,7 +248,7 @@ def _held(pts, w, T, depth, period, x, r2, stop, out, start, end):
         out[q] = s + c
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _sift_up(hk, hw, n):
     """Restore the max-heap hk[:n] (weights hw alongside) after appending at n - 1."""
     j = n - 1
@@ -262,7 +262,7 @@ def _sift_up(hk, hw, n):
     hk[j], hw[j] = key, wt
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _drop_top(hk, hw, n):
     """Remove the largest entry of the max-heap hk[:n]; returns the new size."""
     n -= 1
@@ -283,7 +283,7 @@ def _drop_top(hk, hw, n):
     return n
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _settle(hk, hw, n, k):
     """The weighted candidates hk[:n] (squared distances, weights hw) cut to those needed:
     sorted, the least squared radius holding weight k found (compensated running sum), the
@@ -304,7 +304,7 @@ def _settle(hk, hw, n, k):
     return np.inf, n
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _kth_dfs(pts, w, T, period, xq, k, unit, limit, stack, stack_key, hk, hw):
     """The least radius about xq holding weight k (inf where the points hold less), depth
     first, the nearer child first, pruned by the best radius so far. ``unit`` (every weight
@@ -390,7 +390,7 @@ def _kth_dfs(pts, w, T, period, xq, k, unit, limit, stack, stack_key, hk, hw):
     return answer, hk, hw
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _select(v, n, kth):
     """The kth smallest (0-based) of v[:n], v partly reordered (Hoare's quickselect)."""
     lo = 0
@@ -419,7 +419,7 @@ def _select(v, n, kth):
     return v[kth]
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _gather(pts, w, T, period, c, r2, stack, gx, gw):
     """The points (and weights) within the closed ball (c, sqrt(r2)) copied to gx, gw;
     their number, or -1 where they do not fit."""
@@ -450,7 +450,7 @@ def _gather(pts, w, T, period, c, r2, stack, gx, gw):
     return n
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _kth_in(gx, gw, n, xq, period, k, unit, high2, d2, dw):
     """The least radius about xq holding weight k among the gathered points gx[:n] (those
     within sqrt(high2) of it), or -1 where they hold less."""
@@ -487,12 +487,14 @@ def _kth(pts, w, T, depth, period, x, k, unit, upper2, out, start, end):
     is a, the answer is at most a + delta (d_{P,k} is 1-Lipschitz), so it is found among
     the points within a + delta of the query. Those are taken from a window, the points
     within 1.5 times that of an earlier query, gathered once and kept while later queries'
-    balls stay inside it; the first query, one far from the one before (delta > 3 a), or a
-    window too large for its buffer: depth first (``_kth_dfs``), pruned by ``upper2[q]`` (a
-    squared bound from above, inf: none)."""
+    balls stay inside it (only the query's own ball where that window would hold more than
+    16 k points: the rim of a void); the first query, one far from the one before (delta >
+    3 a), or a window too large for its buffer: depth first (``_kth_dfs``), pruned by
+    ``upper2[q]`` (a squared bound from above, inf: none)."""
     dim = x.shape[1]
     stack = np.empty(2 * depth + 4, np.int64)
     stack_key = np.empty(2 * depth + 4)
+    crowd = 16 * int(math.ceil(k)) + 64  # a window of more points than this is too wide
     kk = int(math.ceil(k)) if unit else 0
     hk = np.empty(max(kk, 64))
     hw = np.empty(max(kk, 64))
@@ -517,6 +519,9 @@ def _kth(pts, w, T, depth, period, x, k, unit, upper2, out, start, end):
                         centre[t] = xq[t]
                     reach = 1.5 * high
                     n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
+                    if n < 0 or n > crowd:  # crowded past the ball (a void's rim):
+                        reach = high  # this query's ball only
+                        n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
                     if n < 0:
                         reach = -1.0
                 if reach >= 0.0:
@@ -528,7 +533,7 @@ def _kth(pts, w, T, depth, period, x, k, unit, upper2, out, start, end):
         out[q] = answer
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _dist_to(c, xq, period):
     s = 0.0
     for a in range(c.shape[0]):
@@ -818,7 +823,7 @@ def _threads(threads):
     return None if threads is None or threads < 0 else max(1, int(threads))
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _spread2(v):
     """The low 32 bits of v with a zero between each (bit i to bit 2 i)."""
     v &= np.uint64(0xFFFFFFFF)
@@ -830,7 +835,7 @@ def _spread2(v):
     return v
 
 
-@kernel(inline="always")
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _spread3(v):
     """The low 21 bits of v with two zeros between each (bit i to bit 3 i)."""
     v &= np.uint64(0x1FFFFF)
