@@ -35,6 +35,7 @@ import math
 
 import numpy as np
 
+from .._engine.geometry import plus_compensated  # shared with the engine, as _metric's sums
 from .._engine.jit import kernel
 from .._engine.threads import in_chunks
 from ._predicates import UNSURE, orient3d_at
@@ -42,30 +43,16 @@ from ._predicates import UNSURE, orient3d_at
 LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
 
 
-@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _plus(s, c, x):
-    """Neumaier's compensated s + x, its error gathered in c: the running total of weights
-    >= 0 stays within two ulps of the exact sum in any order (plain sums lose a weight of 1
-    beside one of 1e16); counts add exactly."""
-    t = s + x
-    if abs(s) >= abs(x):
-        c += (s - t) + x
-    else:
-        c += (x - t) + s
-    return t, c
-
-
 @kernel(entry=True, lazy=True, nogil=True)
 def _build(pts, w, leaf):
     """The tree over ``pts`` (n, d) with weights ``w`` (n,): (points and weights permuted so
-    that each node owns a contiguous range, their original indices, the nodes, the depth).
+    that each node owns a contiguous range, the nodes, the depth).
     A node is one row of ``T`` (nodes, 4 + 2 d), all a query reads of it in one or two cache
     lines: lo, hi, its first child (-1 at a leaf; the second follows the first), its weight
     total, its tight box (mins, then maxes)."""
     n, d = pts.shape
     pts = pts.copy()
     w = w.copy()
-    ids = np.arange(n)
     cap = 2 * (n // max(leaf, 1)) + 64
     node = np.empty((cap, 3), np.int64)
     box = np.empty((cap, 2 * d))
@@ -93,7 +80,7 @@ def _build(pts, w, leaf):
                     box[i, a] = x
                 if x > box[i, d + a]:
                     box[i, d + a] = x
-            s, c = _plus(s, c, w[j])
+            s, c = plus_compensated(s, c, w[j])
         total[i] = s + c
         if hi - lo > leaf:
             axis = 0
@@ -116,7 +103,6 @@ def _build(pts, w, leaf):
                         for t in range(d):
                             pts[a_, t], pts[b_, t] = pts[b_, t], pts[a_, t]
                         w[a_], w[b_] = w[b_], w[a_]
-                        ids[a_], ids[b_] = ids[b_], ids[a_]
                         b_ -= 1
                 if count + 2 > cap:
                     cap = 2 * cap
@@ -147,7 +133,7 @@ def _build(pts, w, leaf):
         T[i, 0], T[i, 1], T[i, 2], T[i, 3] = node[i, 0], node[i, 1], node[i, 2], total[i]
         for a in range(2 * d):
             T[i, 4 + a] = box[i, a]
-    return pts, w, ids, T, deepest
+    return pts, w, T, deepest
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -234,7 +220,7 @@ def _held(pts, w, T, depth, period, x, r2, stop, out, start, end):
             if _box_near2(T, i, xq, period) > rq:
                 continue
             if _box_far2(T, i, xq, period) <= rq:
-                s, c = _plus(s, c, T[i, 3])
+                s, c = plus_compensated(s, c, T[i, 3])
                 continue
             child = int(T[i, 2])
             if child >= 0:
@@ -244,7 +230,7 @@ def _held(pts, w, T, depth, period, x, r2, stop, out, start, end):
                 continue
             for j in range(int(T[i, 0]), int(T[i, 1])):
                 if _point2(pts, j, xq, period) <= rq:
-                    s, c = _plus(s, c, w[j])
+                    s, c = plus_compensated(s, c, w[j])
         out[q] = s + c
 
 
@@ -294,7 +280,7 @@ def _settle(hk, hw, n, k):
     s = 0.0
     c = 0.0
     for j in range(n):
-        s, c = _plus(s, c, wts[j])
+        s, c = plus_compensated(s, c, wts[j])
         if s + c >= k:
             hk[: j + 1] = keys[: j + 1]
             hw[: j + 1] = wts[: j + 1]
@@ -305,88 +291,82 @@ def _settle(hk, hw, n, k):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _kth_dfs(pts, w, T, period, xq, k, unit, limit, stack, stack_key, hk, hw):
+def _kth_dfs(pts, w, T, period, xq, k, unit, stack, stack_key, hk, hw):
     """The least radius about xq holding weight k (inf where the points hold less), depth
     first, the nearer child first, pruned by the best radius so far. ``unit`` (every weight
     1): the k nearest kept in a max-heap. Weighted: the candidates within the radius so far,
-    cut back (``_settle``) each time they double. ``limit``: a squared bound from above (inf:
-    none); where rounding made it too tight, the walk runs again without it. Returns (the
-    radius, hk, hw)."""
+    cut back (``_settle``) each time they double. Returns (the radius, hk, hw)."""
     dim = xq.shape[0]
     kk = int(math.ceil(k)) if unit else 0
     answer = np.inf
-    for _attempt in range(2):
-        r2 = limit
-        n = 0
-        settled = 64
-        top = 1
-        stack[0] = 0
-        stack_key[0] = _box_near2(T, 0, xq, period)
-        while top > 0:
-            top -= 1
-            i = stack[top]
-            if stack_key[top] > r2:
+    r2 = np.inf
+    n = 0
+    settled = 64
+    top = 1
+    stack[0] = 0
+    stack_key[0] = _box_near2(T, 0, xq, period)
+    while top > 0:
+        top -= 1
+        i = stack[top]
+        if stack_key[top] > r2:
+            continue
+        child = int(T[i, 2])
+        flat = True
+        for a in range(dim):
+            if T[i, 4 + a] != T[i, 4 + dim + a]:
+                flat = False
+        if child >= 0 and not flat:
+            k0 = _box_near2(T, child, xq, period)
+            k1 = _box_near2(T, child + 1, xq, period)
+            if k0 <= k1:
+                stack[top], stack_key[top] = child + 1, k1
+                stack[top + 1], stack_key[top + 1] = child, k0
+            else:
+                stack[top], stack_key[top] = child, k0
+                stack[top + 1], stack_key[top + 1] = child + 1, k1
+            top += 2
+            continue
+        lo = int(T[i, 0])
+        hi = int(T[i, 1]) if not flat else int(T[i, 0]) + 1
+        for j in range(lo, hi):
+            d2 = _point2(pts, j, xq, period)
+            if d2 > r2:
                 continue
-            child = int(T[i, 2])
-            flat = True
-            for a in range(dim):
-                if T[i, 4 + a] != T[i, 4 + dim + a]:
-                    flat = False
-            if child >= 0 and not flat:
-                k0 = _box_near2(T, child, xq, period)
-                k1 = _box_near2(T, child + 1, xq, period)
-                if k0 <= k1:
-                    stack[top], stack_key[top] = child + 1, k1
-                    stack[top + 1], stack_key[top + 1] = child, k0
-                else:
-                    stack[top], stack_key[top] = child, k0
-                    stack[top + 1], stack_key[top + 1] = child + 1, k1
-                top += 2
-                continue
-            lo = int(T[i, 0])
-            hi = int(T[i, 1]) if not flat else int(T[i, 0]) + 1
-            for j in range(lo, hi):
-                d2 = _point2(pts, j, xq, period)
-                if d2 > r2:
-                    continue
-                if unit:
-                    copies = min(int(T[i, 3]), kk) if flat else 1
-                    for _ in range(copies):  # coinciding points: a copy for each
-                        if n < kk:
-                            hk[n], hw[n] = d2, 1.0
-                            n += 1
-                            _sift_up(hk, hw, n)
-                            if n == kk:
-                                r2 = min(r2, hk[0])
-                        elif d2 < hk[0]:
-                            n = _drop_top(hk, hw, n)
-                            hk[n], hw[n] = d2, 1.0
-                            n += 1
-                            _sift_up(hk, hw, n)
-                            r2 = hk[0]
-                else:
-                    if n == hk.shape[0]:
-                        hk2 = np.empty(2 * n)
-                        hw2 = np.empty(2 * n)
-                        hk2[:n] = hk
-                        hw2[:n] = hw
-                        hk, hw = hk2, hw2
-                    hk[n], hw[n] = d2, (w[j] if not flat else T[i, 3])
-                    n += 1
-                    if n >= 2 * settled:
-                        bound, n = _settle(hk, hw, n, k)
-                        r2 = min(r2, bound)
-                        settled = max(n, 32)
-        if unit:
-            if n == kk and kk > 0:
-                answer = math.sqrt(hk[0])
-        else:
-            bound, n = _settle(hk, hw, n, k)
-            if bound < np.inf:
-                answer = math.sqrt(bound)
-        if answer < np.inf or limit == np.inf:
-            break
-        limit = np.inf
+            if unit:
+                copies = min(int(T[i, 3]), kk) if flat else 1
+                for _ in range(copies):  # coinciding points: a copy for each
+                    if n < kk:
+                        hk[n], hw[n] = d2, 1.0
+                        n += 1
+                        _sift_up(hk, hw, n)
+                        if n == kk:
+                            r2 = min(r2, hk[0])
+                    elif d2 < hk[0]:
+                        n = _drop_top(hk, hw, n)
+                        hk[n], hw[n] = d2, 1.0
+                        n += 1
+                        _sift_up(hk, hw, n)
+                        r2 = hk[0]
+            else:
+                if n == hk.shape[0]:
+                    hk2 = np.empty(2 * n)
+                    hw2 = np.empty(2 * n)
+                    hk2[:n] = hk
+                    hw2[:n] = hw
+                    hk, hw = hk2, hw2
+                hk[n], hw[n] = d2, (w[j] if not flat else T[i, 3])
+                n += 1
+                if n >= 2 * settled:
+                    bound, n = _settle(hk, hw, n, k)
+                    r2 = min(r2, bound)
+                    settled = max(n, 32)
+    if unit:
+        if n == kk and kk > 0:
+            answer = math.sqrt(hk[0])
+    else:
+        bound, n = _settle(hk, hw, n, k)
+        if bound < np.inf:
+            answer = math.sqrt(bound)
     return answer, hk, hw
 
 
@@ -473,14 +453,14 @@ def _kth_in(gx, gw, n, xq, period, k, unit, high2, d2, dw):
     s = 0.0
     c = 0.0
     for j in order:
-        s, c = _plus(s, c, dw[j])
+        s, c = plus_compensated(s, c, dw[j])
         if s + c >= k:
             return math.sqrt(d2[j])
     return -1.0
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _kth(pts, w, T, depth, period, x, k, unit, upper2, out, start, end):
+def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less). Queries come in an order where neighbours
     are near (``spatial_order``): with delta the distance from the one before, whose answer
@@ -489,8 +469,7 @@ def _kth(pts, w, T, depth, period, x, k, unit, upper2, out, start, end):
     within 1.5 times that of an earlier query, gathered once and kept while later queries'
     balls stay inside it (only the query's own ball where that window would hold more than
     16 k points: the rim of a void); the first query, one far from the one before (delta >
-    3 a), or a window too large for its buffer: depth first (``_kth_dfs``), pruned by
-    ``upper2[q]`` (a squared bound from above, inf: none)."""
+    3 a), or a window too large for its buffer: depth first (``_kth_dfs``)."""
     dim = x.shape[1]
     stack = np.empty(2 * depth + 4, np.int64)
     stack_key = np.empty(2 * depth + 4)
@@ -527,8 +506,7 @@ def _kth(pts, w, T, depth, period, x, k, unit, upper2, out, start, end):
                 if reach >= 0.0:
                     answer = _kth_in(gx, gw, n, xq, period, k, unit, high * high, d2, dw)
         if answer < 0.0:
-            limit = upper2[q] * (1.0 + 1e-12) + 1e-300 if upper2[q] < np.inf else np.inf
-            answer, hk, hw = _kth_dfs(pts, w, T, period, xq, k, unit, limit,
+            answer, hk, hw = _kth_dfs(pts, w, T, period, xq, k, unit,
                                       stack, stack_key, hk, hw)  # fmt: skip
         out[q] = answer
 
@@ -609,7 +587,7 @@ def _cells_held(pts, w, T, depth, period, v, first, edges, outradii, relative,
             if outside:
                 continue
             if inside:
-                s, c = _plus(s, c, T[i, 3])
+                s, c = plus_compensated(s, c, T[i, 3])
                 continue
             child = int(T[i, 2])
             if child >= 0:
@@ -634,7 +612,7 @@ def _cells_held(pts, w, T, depth, period, v, first, edges, outradii, relative,
                         ok = False
                         break
                 if ok:
-                    s, c = _plus(s, c, w[j])
+                    s, c = plus_compensated(s, c, w[j])
         out[q] = s + c
 
 
@@ -687,7 +665,7 @@ def _held_caps(pts, w, T, depth, x, outer2, corners, stop, out, start, end):
                     ps[used] = j
                     used += 1
                 elif sign <= 0:
-                    s, c = _plus(s, c, w[j])
+                    s, c = plus_compensated(s, c, w[j])
         out[q] = s + c
         if s + c >= stop[q]:
             used = mark  # decided: what it left open is not needed
@@ -702,7 +680,7 @@ def sums_by(cell, w, m):
     for j in range(cell.shape[0]):
         b = cell[j]
         if b >= 0:
-            s[b], c[b] = _plus(s[b], c[b], w[j])
+            s[b], c[b] = plus_compensated(s[b], c[b], w[j])
     return s + c
 
 
@@ -720,7 +698,7 @@ class Tree:
         w = np.ones(self.n) if weights is None else np.ascontiguousarray(weights, np.float64)
         if self.n == 0:  # a node must exist: one far away holding nothing
             pts, w = np.full((1, self.dim), np.inf), np.zeros(1)
-        self.pts, self.w, self.ids, self.T, self.depth = _build(pts, w, LEAF)  # fmt: skip
+        self.pts, self.w, self.T, self.depth = _build(pts, w, LEAF)
 
     def _queries(self, x):
         return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)
@@ -749,26 +727,20 @@ class Tree:
         self._run(call, len(x))
         return out
 
-    def kth(self, x, k, upper=None, period=None, sort=True):
+    def kth(self, x, k, period=None, sort=True):
         """The least radius whose closed ball about each x holds weight k (the k-th
-        nearest distance, unweighted; inf where the points hold less); ``upper``: a bound
-        known from above for each (it prunes; a wrong one costs time, not the answer). The
-        queries are taken in ``spatial_order`` (``sort=False``: in the order given, one
-        where neighbours are near), so that each brackets the next."""
+        nearest distance, unweighted; inf where the points hold less). The queries are
+        taken in ``spatial_order`` (``sort=False``: in the order given, one where
+        neighbours are near), so that each brackets the next."""
         x = self._queries(x)
         order = spatial_order(x) if sort else np.arange(len(x))
         xs = np.ascontiguousarray(x[order])
-        u2 = np.full(len(x), np.inf)
-        if upper is not None:
-            u2 = np.square(np.broadcast_to(np.asarray(upper, np.float64), len(x))[order])
-        u2 = np.ascontiguousarray(u2)
         res = np.empty(len(x))
         p = self._period(period)
         unit = bool((self.w == 1.0).all())
 
         def call(a, b):
-            _kth(self.pts, self.w, self.T, self.depth, p, xs, float(k),
-                 unit, u2, res, a, b)  # fmt: skip
+            _kth(self.pts, self.w, self.T, self.depth, p, xs, float(k), unit, res, a, b)
 
         self._run(call, len(x))
         out = np.empty(len(x))
