@@ -3,6 +3,7 @@ the plane and in space (the ``dim`` fixture; space's own regressions: test_certi
 
 import dataclasses
 import json
+import warnings
 
 import numpy as np
 import oracle
@@ -271,3 +272,56 @@ def test_the_size_integral_reads_only_its_own_samples(dim):
     a = certify(mesh, points, n_random=0, max_point_probes=10)
     b = certify(mesh, points, n_random=20_000, max_point_probes=3000)
     assert a.size_integral == b.size_integral and a.size_integral_stderr == b.size_integral_stderr
+
+
+@pytest.mark.parametrize(
+    "domain", ["plane", "plane-weighted", "plane-floor", "space-box", "space-torus", "sphere"]
+)
+def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monkeypatch):
+    """The midpoints' d_{P,k} bounded from their vertex's (steps.bounded_d_pk) skips only
+    probes that cannot hold an extreme: every field of the certificate (the achieved
+    constants, where they lie, the number of probes, the share under the floor, the size
+    integral) is the one of asking d_{P,k} at every probe (SEED = 1), and over a third of
+    the midpoints are not asked."""
+    from knnrefine.certify import steps
+
+    rng = np.random.default_rng(53)
+    weights, check = None, {}
+    if domain.startswith("plane"):
+        centres = rng.random((30, 2))
+        pts = np.mod(centres[rng.integers(0, 30, 20000)] + rng.normal(0, 0.02, (20000, 2)), 1)
+        run = dict(k=10, box=(0, 0, 1, 1))
+        if domain == "plane-weighted":
+            weights = rng.random(len(pts))
+            run.update(k=5.0, weights=weights)
+            check = dict(weights=weights)
+        if domain == "plane-floor":
+            run.update(k=1, min_size=3e-3)
+    elif domain.startswith("space"):
+        pts = rng.random((6000, 3)) ** 2
+        run = dict(k=10, box=(0, 0, 0, 1, 1, 1), periodic=domain == "space-torus")
+    else:
+        lat = rng.normal(0, 30, 20000).clip(-90, 90)
+        pts = np.column_stack([rng.uniform(-180, 180, 20000), lat])
+        run = dict(k=10, sphere=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mesh = knnrefine.refine(pts, **run)
+    asked = []
+    real = steps.bounded_d_pk
+
+    def spy(points, geometry, probes, order, d_m2, floor):
+        d_pk, lo = real(points, geometry, probes, order, d_m2, floor)
+        asked.append((int(np.isnan(d_pk).sum()), int((probes.near >= 0).all(axis=1).sum())))
+        return d_pk, lo
+
+    monkeypatch.setattr(steps, "bounded_d_pk", spy)
+    bounded = certify(mesh, pts, **check)
+    monkeypatch.setattr(steps, "SEED", 1.0)
+    every = certify(mesh, pts, **check)
+    skipped, midpoints = asked[0]
+    assert asked[1][0] == 0  # SEED = 1: every probe asked
+    assert skipped > 0.35 * midpoints
+    for field in dataclasses.fields(every):
+        if field.name != "seconds":
+            assert getattr(bounded, field.name) == getattr(every, field.name), field.name

@@ -119,3 +119,21 @@ def test_filtered_predicates_agree_with_rationals(lattice):
             else:
                 assert got == want
     assert unsure > 0 or not lattice  # the lattice reaches the fallback: the test can fail
+
+
+def test_neighbour_lists_keep_each_neighbour_once_sorted():
+    """``neighbour_lists`` (a site's rows deduplicated by stamps, then sorted) against sets:
+    every (index, shift) of a site's directed edges once, in sorted order, on random
+    multigraphs with repeats, shifts in 0 to 3 dimensions and sites with no edge."""
+    from knnrefine.certify._tree import neighbour_lists
+
+    rng = np.random.default_rng(54)
+    for _ in range(200):
+        m, e, d = int(rng.integers(1, 30)), int(rng.integers(0, 300)), int(rng.integers(0, 4))
+        a, b = rng.integers(0, m, e), rng.integers(0, m, e)
+        shift = np.ascontiguousarray(rng.integers(-1, 2, (e, d)))
+        first, nb, sh = neighbour_lists(a, b, shift, m)
+        for v in range(m):
+            want = sorted({(int(b[j]), *map(int, shift[j])) for j in range(e) if a[j] == v})
+            got = [(int(nb[i]), *map(int, sh[i])) for i in range(first[v], first[v + 1])]
+            assert got == want

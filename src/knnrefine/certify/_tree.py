@@ -877,8 +877,9 @@ def spatial_order(x):
 def neighbour_lists(a, b, shift, m):
     """Each site's neighbours, once each, from directed edges a -> b (b moved by the whole
     periods ``shift`` (e, d)): (first (m + 1,): site v's are rows first[v]:first[v + 1] of
-    the next two, their indices, their shifts). A counting sort by site, then each site's
-    few rows sorted (insertion) and repeats dropped."""
+    the next two, their indices, their shifts, sorted by index then shift). A counting sort
+    by site; within a site's rows, a repeat is found among the rows kept since its index
+    was first seen (stamped), and the few rows kept are sorted (insertion)."""
     e, d = shift.shape
     first = np.zeros(m + 1, np.int64)
     for j in range(e):
@@ -895,16 +896,40 @@ def neighbour_lists(a, b, shift, m):
         for t in range(d):
             sh[p, t] = shift[j, t]
     out_first = np.zeros(m + 1, np.int64)
-    used = 0
+    stamp = np.full(m, -1, np.int64)  # the site whose rows last saw this index
+    seen_at = np.zeros(m, np.int64)  # where that site's rows first kept it
     row = np.empty(d, np.int64)
+    used = 0
     for v in range(m):
-        lo, hi = first[v], first[v + 1]
-        for j in range(lo + 1, hi):  # insertion sort of the block by (b, shift)
+        start = used
+        for j in range(first[v], first[v + 1]):  # kept rows [start, used): used <= j
+            key = nb[j]
+            repeat = False
+            if stamp[key] == v:
+                for i in range(seen_at[key], used):
+                    if nb[i] == key:
+                        same = True
+                        for t in range(d):
+                            if sh[i, t] != sh[j, t]:
+                                same = False
+                                break
+                        if same:
+                            repeat = True
+                            break
+            else:
+                stamp[key] = v
+                seen_at[key] = used
+            if not repeat:
+                nb[used] = key
+                for t in range(d):
+                    sh[used, t] = sh[j, t]
+                used += 1
+        for j in range(start + 1, used):  # insertion sort of the kept rows by (b, shift)
             key = nb[j]
             for t in range(d):
                 row[t] = sh[j, t]
             i = j - 1
-            while i >= lo:
+            while i >= start:
                 less = nb[i] > key
                 if nb[i] == key:
                     for t in range(d):
@@ -920,17 +945,6 @@ def neighbour_lists(a, b, shift, m):
             nb[i + 1] = key
             for t in range(d):
                 sh[i + 1, t] = row[t]
-        for j in range(lo, hi):
-            same = j > lo and nb[j] == nb[j - 1]
-            if same:
-                for t in range(d):
-                    if sh[j, t] != sh[j - 1, t]:
-                        same = False
-            if not same:
-                nb[used] = nb[j]
-                for t in range(d):
-                    sh[used, t] = sh[j, t]
-                used += 1
         out_first[v + 1] = used
     return out_first, nb[:used].copy(), sh[:used].copy()
 

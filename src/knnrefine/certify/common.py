@@ -258,6 +258,7 @@ class TorusGeometry:
         self.period = np.asarray(mesh.torus.period, float)
         self.vertices = np.asarray(mesh.torus.vertices, float)
         self.vertex_tree = Tree(self.vertices, None, self.period, workers)
+        self.pk_period = self.period  # d_{P,k}'s metric: the torus' (space: the box's own)
         self._cells = None
         self._d_m2 = None
         dim = self.vertices.shape[1]
@@ -290,11 +291,19 @@ class TorusGeometry:
         first, nb, nshift = neighbour_lists(a, b, np.ascontiguousarray(shift), m)
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.vertices[nb] - self.vertices[site] + nshift * self.period
-        self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0)
+        self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb)
         return self.cells(tri)
 
     def held(self, points, tri, stop=np.inf):
         return points.held(tri.centres, tri.radii, stop)
+
+    def separation(self, x, y):
+        """Distances between the rows of x and y in d_{P,k}'s metric (``pk_period``: the
+        torus', or the box's own: 0 on straight axes)."""
+        g = np.asarray(x, float) - y
+        p = self.pk_period
+        g -= np.where(p > 0, p * np.round(g / np.where(p > 0, p, 1.0)), 0.0)
+        return np.sqrt(np.einsum("ij,ij->i", g, g))
 
     def precondition(self, points, k, tau):
         initial = self.vertices[np.asarray(self.mesh.torus.kinds) == 0]
@@ -325,8 +334,8 @@ def nearest_neighbour(cells):
 
 
 def edge_midpoints(cells):
-    """(the midpoint of every edge once, the edge's first vertex): of the two directions
-    of an edge, the one whose vector is lexicographically positive."""
+    """(the midpoint of every edge once, the edge's two vertices (e, 2)): of the two
+    directions of an edge, the one whose vector is lexicographically positive."""
     e = cells.edges
     site = np.repeat(np.arange(len(cells.sites)), np.diff(cells.first))
     positive = np.zeros(len(e), bool)
@@ -334,13 +343,17 @@ def edge_midpoints(cells):
     for a in range(e.shape[1]):
         positive |= ~decided & (e[:, a] > 0)
         decided |= e[:, a] != 0
-    return cells.sites[site[positive]] + 0.5 * e[positive], site[positive]
+    ends = np.column_stack([site[positive], cells.neighbours[positive]])
+    return cells.sites[site[positive]] + 0.5 * e[positive], ends
 
 
-def gathered_probes(parts, inside, extra):
+def gathered_probes(parts, inside, extra, near=None):
     """``steps.Probes`` from parts (x, owner cell, whether input points, d_{M,2} known or
     NaN), the first the size integral's samples, each kept where ``inside(x)``; ``extra``
-    follows the samples' mask of those kept."""
+    follows the samples' mask of those kept. ``near``: {part: (other part, rows)}, the
+    rows of the other part near each of that part's probes (an edge's midpoint: its two
+    vertices); ``Probes.near`` holds those probes' indices once gathered (-1 where one was
+    dropped, and for the other parts)."""
     keep = [inside(p[0]) for p in parts]
     x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
     owner = np.concatenate(
@@ -348,7 +361,19 @@ def gathered_probes(parts, inside, extra):
     )
     mask = np.concatenate([np.full(int(k.sum()), p[2]) for p, k in zip(parts, keep, strict=True)])
     d_m2 = np.concatenate([np.asarray(p[3], float)[k] for p, k in zip(parts, keep, strict=True)])
-    return Probes(x, mask, owner, d_m2, (keep[0], *extra))
+    start = np.concatenate([[0], np.cumsum([int(k.sum()) for k in keep])])
+    index = []  # each part's rows -> their index among the probes kept (-1: dropped)
+    for i, k in enumerate(keep):
+        at = np.full(len(k), -1, np.int64)
+        at[k] = start[i] + np.arange(int(k.sum()))
+        index.append(at)
+    width = max([np.shape(rows)[1] for _, rows in (near or {}).values() if np.ndim(rows) == 2]
+                + [1])  # fmt: skip
+    gathered = [np.full((int(k.sum()), width), -1, np.int64) for k in keep]
+    for i, (j, rows) in (near or {}).items():
+        rows = np.asarray(rows, np.int64).reshape(len(keep[i]), -1)
+        gathered[i] = index[j][rows][keep[i]]
+    return Probes(x, mask, owner, d_m2, (keep[0], *extra), np.concatenate(gathered))
 
 
 def size_sample(t, samples, rng):

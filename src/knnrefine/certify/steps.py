@@ -47,13 +47,23 @@ Triangulation = namedtuple("Triangulation", ["problems", "centres", "radii", "ou
 # vertices or input points (beta_hat), never at a circumcentre, a cell's sample or a
 # uniform point; circumcentres are no longer probed. Both bounds are checked where they
 # are attained, not proven between probes (Theorem 6 proves them).
-Probes = namedtuple("Probes", ["x", "points", "owner", "d_m2", "extra"])
+#
+# ``near``: for each probe the indices (a row) of other probes near it whose d_{P,k} is asked
+# first (an edge's midpoint: its two vertices; -1: none). d_{P,k} is 1-Lipschitz in its metric,
+# so within ``geometry.separation`` s of that probe it lies in [d - s, d + s]; a probe whose
+# ratio d_{M,2} / d_{P,k} then lies strictly between the extremes found so far (and whose
+# d_{P,k} is above the floor) cannot be an extreme and is not asked (``bounded_d_pk``).
+# The achieved constants, where they lie and the number of probes are those of asking all.
+Probes = namedtuple("Probes", ["x", "points", "owner", "d_m2", "extra", "near"])
 # the closed Voronoi cells as certify counts them: each vertex (``sites``, the points' frame),
 # its Delaunay neighbours as vectors from it (rows first[v]:first[v + 1] of ``edges``), its
 # outradius R(v) (the cell lies within it), and the tie tolerance: a point p counts for v
 # when |p - v|^2 <= |p - u|^2 (1 + relative) + slack2 for every neighbour u (one as near as
 # its nearest counts for each)
-Cells = namedtuple("Cells", ["sites", "first", "edges", "outradii", "relative", "slack2"])
+# (``neighbours``: the index of each edge's far vertex)
+Cells = namedtuple(
+    "Cells", ["sites", "first", "edges", "outradii", "relative", "slack2", "neighbours"]
+)
 
 
 class PointQuestions(Protocol):
@@ -108,6 +118,9 @@ class Geometry(Protocol):
 
     def returned_d_m2(self, x: np.ndarray, sort: bool = True) -> tuple:
         """(d_{M,2} at x from the vertices returned, what is wrong with them)."""
+
+    def separation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Distances between the rows of x and y in d_{P,k}'s metric."""
 
     def size(self, probes: Probes, d_pk: np.ndarray, points: PointQuestions,
              rng: np.random.Generator) -> tuple:  # fmt: skip
@@ -179,22 +192,20 @@ def run_checks(
     if points.total >= k:
         # asked in the order of their cells (neighbours near each other: each bounds the next)
         order = probe_order(probes.owner, tri.centres, probes.x)
-        x = np.ascontiguousarray(probes.x[order])
-        d_pk = np.empty(len(x))
-        d_pk[order] = points.d_pk(x, sort=False)
         d_m2 = np.array(probes.d_m2, float)
-        ask = np.isnan(d_m2[order])
-        d_m2[order[ask]], late = geometry.returned_d_m2(x[ask], sort=False)
+        ask = order[np.isnan(d_m2[order])]
+        d_m2[ask], late = geometry.returned_d_m2(np.ascontiguousarray(probes.x[ask]), sort=False)
         mesh_problems += late
+        d_pk, lo = bounded_d_pk(points, geometry, probes, order, d_m2, floor)
         at_points = d_pk[probes.points]
         under_floor = float(np.mean(at_points < floor)) if len(at_points) else 0.0
-        use = d_pk >= floor
-        n_probes = int(use.sum())
+        asked = d_pk >= floor
+        n_probes = int(asked.sum() + (np.isnan(d_pk) & (lo >= floor)).sum())
         if n_probes:
-            ratio = d_m2[use] / d_pk[use]
+            ratio = d_m2[asked] / d_pk[asked]
             i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
             alpha_hat, beta_hat = float(ratio[i]), float(ratio[j])
-            at = geometry.to_input(probes.x[use][[i, j]])
+            at = geometry.to_input(probes.x[asked][[i, j]])
             alpha_at, beta_at = (tuple(float(v) for v in x) for x in at)
         integral, stderr = geometry.size(probes, d_pk, points, rng)
     else:
@@ -246,6 +257,56 @@ def _counted(ask, k):
     if over.any():
         counts[over] = np.asarray(ask(np.where(over, np.inf, 0.0)), float)[over]
     return counts
+
+
+SEED = 0.01  # of the bounded probes, asked first at each end (their bounds most extreme)
+
+
+def bounded_d_pk(points, geometry, probes, order, d_m2, floor):
+    """(d_{P,k} at the probes, NaN where it cannot change the certificate; a lower bound
+    of it): asked first at every probe with no ``near`` one, then, from each other probe's
+    bounds [d - s, d + s] (``Probes``: d its near probe's, s their separation), at the
+    SEED share with the lowest and the highest ratio bounds (the extremes found so far
+    move out), then at every probe whose bounds do not settle it: one whose d_{P,k} may be
+    below the floor while its bound is not, or whose ratio may reach the extremes."""
+    x = probes.x
+    near = probes.near.reshape(len(x), -1)
+    d_pk = np.full(len(x), np.nan)
+    bounded = (near[order] >= 0).all(axis=1)
+    first, later = order[~bounded], order[bounded]
+    d_pk[first] = points.d_pk(np.ascontiguousarray(x[first]), sort=False)
+    lo = d_pk.copy()
+    if len(later) == 0:
+        return d_pk, lo
+    hi = np.full(len(later), np.inf)
+    lo[later] = -np.inf
+    for ref in near[later].T:
+        reach = geometry.separation(x[later], x[ref])
+        slack = 1e-9 * (d_pk[ref] + reach)  # rounding in d_{P,k} and the separation
+        lo[later] = np.maximum(lo[later], d_pk[ref] - reach - slack)
+        hi = np.minimum(hi, d_pk[ref] + reach + slack)
+    ratio_lo = d_m2[later] / hi
+    with np.errstate(divide="ignore"):
+        ratio_hi = np.where(lo[later] > 0, d_m2[later] / lo[later], np.inf)
+    seen = d_pk >= floor
+    alpha = float(np.min(d_m2[seen] / d_pk[seen])) if seen.any() else np.inf
+    beta = float(np.max(d_m2[seen] / d_pk[seen])) if seen.any() else -np.inf
+    seed = max(16, int(SEED * len(later)))
+    pick = np.zeros(len(later), bool)
+    pick[np.argsort(ratio_lo)[:seed]] = True
+    pick[np.argsort(-ratio_hi)[:seed]] = True
+    for rows in (np.flatnonzero(pick), None):
+        if rows is None:  # with the extremes the seeds moved
+            settled = (hi < floor) | ((lo[later] >= floor) & (ratio_lo > alpha) & (ratio_hi < beta))
+            rows = np.flatnonzero(~settled & ~pick)
+        got = later[rows]
+        d_pk[got] = points.d_pk(np.ascontiguousarray(x[got]), sort=False)
+        lo[got] = d_pk[got]
+        use = got[d_pk[got] >= floor]
+        if len(use):
+            r = d_m2[use] / d_pk[use]
+            alpha, beta = min(alpha, float(r.min())), max(beta, float(r.max()))
+    return d_pk, lo
 
 
 def probe_order(owner, centres, x):

@@ -79,7 +79,7 @@ class Geometry(TorusGeometry):
         inside, _ = uniform_in_triangles(corners[chosen], rng.random((len(chosen), 2)))
         inside = self.frame(inside)
         weights = np.abs(triangle_areas(corners[chosen])) * (t / max(len(chosen), 1))
-        mids, mid_site = edge_midpoints(self.cells(tri))
+        mids, ends = edge_midpoints(self.cells(tri))
         owner_of = np.zeros(m, np.int64)
         owner_of[self.mesh.torus.triangles.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
@@ -90,11 +90,12 @@ class Geometry(TorusGeometry):
                 (inside, chosen, False, unknown[: len(inside)]),
                 (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
                 (self.vertices, owner_of, False, self.vertex_d_m2()),
-                (self.frame(mids), owner_of[mid_site], False, unknown[: len(mids)]),
+                (self.frame(mids), owner_of[ends[:, 0]], False, unknown[: len(mids)]),
                 (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
             ],
             self.in_box,
             (weights, t),
+            near={3: (2, ends)},  # a midpoint's two vertices
         )
 
     def returned_d_m2(self, x, sort=True):

@@ -260,6 +260,7 @@ class Geometry(TorusGeometry):
         self.local = self.vertices
         self.corners = torus.cells
         self.offsets = torus.offsets.astype(np.int64)
+        self.pk_period = np.where(mesh.periodic, self.period, 0.0)  # the box's own metric
 
     def triangulation(self):
         """Faces paired, orientation, local Delaunay, volume; circumballs (centres wrapped
@@ -302,7 +303,7 @@ class Geometry(TorusGeometry):
         weights = (
             np.abs(np.linalg.det(c[chosen, 1:] - c[chosen, :1])) / 6.0 * (t / max(len(chosen), 1))
         )
-        mids, mid_site = edge_midpoints(self.cells(tri))
+        mids, ends = edge_midpoints(self.cells(tri))
         owner_of = np.zeros(m, np.int64)
         owner_of[np.asarray(self.corners).ravel()] = np.repeat(np.arange(t), 4)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
@@ -314,11 +315,12 @@ class Geometry(TorusGeometry):
                 (inside, chosen, False, unknown[: len(inside)]),
                 (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
                 (self.local, owner_of, False, unknown[:m]),
-                (np.mod(mids, period), owner_of[mid_site], False, unknown[: len(mids)]),
+                (np.mod(mids, period), owner_of[ends[:, 0]], False, unknown[: len(mids)]),
                 (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
             ],
             lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
             (weights, t),
+            near={3: (2, ends)},  # a midpoint's two vertices
         )
 
     def returned_d_m2(self, x, sort=True):

@@ -323,7 +323,7 @@ class Geometry:
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.xyz[nb] - self.xyz[site]
         # the cell lies within its outradius (an angle) of the vertex: as a chord
-        self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES)
+        self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES, nb)
         return self.cells(tri)
 
     def held(self, points, tri, stop=np.inf):
@@ -358,7 +358,7 @@ class Geometry:
         h = np.abs(np.einsum("ij,ij->i", normal, a)) / np.where(twice_area > 0, twice_area, 1.0)
         norm = np.linalg.norm(flat, axis=1)
         weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3 * (t / max(len(chosen), 1))
-        mids, mid_site = edge_midpoints(self.cells(tri))
+        mids, ends = edge_midpoints(self.cells(tri))
         owner_of = np.zeros(m, np.int64)
         owner_of[tri_.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
@@ -369,17 +369,23 @@ class Geometry:
                 (flat, chosen, False, unknown[: len(flat)]),
                 (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
                 (xyz, owner_of, False, self.vertex_d_m2()),
-                (mids, owner_of[mid_site], False, unknown[: len(mids)]),
+                (mids, owner_of[ends[:, 0]], False, unknown[: len(mids)]),
                 (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
             ],
             lambda x: np.ones(len(x), bool),
             (weights, t),
+            near={3: (2, ends)},  # a midpoint's two vertices
         )
         unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
         return probes._replace(x=unit)
 
     def returned_d_m2(self, x, sort=True):
         return chord_to_angle(self.vtree.kth(x, 2, sort=sort)), []
+
+    def separation(self, x, y):
+        """Angles between the rows of x and y (unit vectors): d_{P,k}'s metric."""
+        cross = np.linalg.norm(np.cross(x, y), axis=1)
+        return np.arctan2(cross, np.einsum("ij,ij->i", x, y))
 
     def size(self, probes, d_pk, points, rng):
         """The integral over the sphere of 1 / d_Pk^2 (d_Pk clipped at min_size): one random
