@@ -310,8 +310,8 @@ def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monke
     asked = []
     real = steps.bounded_d_pk
 
-    def spy(points, geometry, probes, order, d_m2, floor):
-        d_pk, lo = real(points, geometry, probes, order, d_m2, floor)
+    def spy(points, geometry, probes, d_m2, floor):
+        d_pk, lo = real(points, geometry, probes, d_m2, floor)
         asked.append((int(np.isnan(d_pk).sum()), int((probes.near >= 0).all(axis=1).sum())))
         return d_pk, lo
 

@@ -947,25 +947,3 @@ def neighbour_lists(a, b, shift, m):
                 sh[i + 1, t] = row[t]
         out_first[v + 1] = used
     return out_first, nb[:used].copy(), sh[:used].copy()
-
-
-@kernel(entry=True, lazy=True)
-def order_by_owner(key, m):
-    """The indices sorted by ``key`` in [0, m) (stably, a counting sort), those of key -1
-    after them."""
-    count = np.zeros(m + 2, np.int64)
-    for i in range(key.shape[0]):
-        count[key[i] + 2] += 1
-    count[1] = 0
-    for b in range(m + 1):
-        count[b + 1] += count[b]
-    out = np.empty(key.shape[0], np.int64)
-    tail = count[m + 1]
-    for i in range(key.shape[0]):
-        if key[i] < 0:
-            out[tail] = i
-            tail += 1
-        else:
-            out[count[key[i] + 1]] = i
-            count[key[i] + 1] += 1
-    return out

@@ -348,19 +348,16 @@ def edge_midpoints(cells):
 
 
 def gathered_probes(parts, inside, extra, near=None):
-    """``steps.Probes`` from parts (x, owner cell, whether input points, d_{M,2} known or
-    NaN), the first the size integral's samples, each kept where ``inside(x)``; ``extra``
-    follows the samples' mask of those kept. ``near``: {part: (other part, rows)}, the
-    rows of the other part near each of that part's probes (an edge's midpoint: its two
-    vertices); ``Probes.near`` holds those probes' indices once gathered (-1 where one was
-    dropped, and for the other parts)."""
+    """``steps.Probes`` from parts (x, whether input points, d_{M,2} known or NaN), the
+    first the size integral's samples, each kept where ``inside(x)``; ``extra`` follows the
+    samples' mask of those kept. ``near``: {part: (other part, rows)}, the rows of the other
+    part near each of that part's probes (an edge's midpoint: its two vertices);
+    ``Probes.near`` holds those probes' indices once gathered (-1 where one was dropped, and
+    for the other parts)."""
     keep = [inside(p[0]) for p in parts]
     x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
-    owner = np.concatenate(
-        [np.asarray(p[1], np.int64)[k] for p, k in zip(parts, keep, strict=True)]
-    )
-    mask = np.concatenate([np.full(int(k.sum()), p[2]) for p, k in zip(parts, keep, strict=True)])
-    d_m2 = np.concatenate([np.asarray(p[3], float)[k] for p, k in zip(parts, keep, strict=True)])
+    mask = np.concatenate([np.full(int(k.sum()), p[1]) for p, k in zip(parts, keep, strict=True)])
+    d_m2 = np.concatenate([np.asarray(p[2], float)[k] for p, k in zip(parts, keep, strict=True)])
     start = np.concatenate([[0], np.cumsum([int(k.sum()) for k in keep])])
     index = []  # each part's rows -> their index among the probes kept (-1: dropped)
     for i, k in enumerate(keep):
@@ -373,7 +370,7 @@ def gathered_probes(parts, inside, extra, near=None):
     for i, (j, rows) in (near or {}).items():
         rows = np.asarray(rows, np.int64).reshape(len(keep[i]), -1)
         gathered[i] = index[j][rows][keep[i]]
-    return Probes(x, mask, owner, d_m2, (keep[0], *extra), np.concatenate(gathered))
+    return Probes(x, mask, d_m2, (keep[0], *extra), np.concatenate(gathered))
 
 
 def size_sample(t, samples, rng):

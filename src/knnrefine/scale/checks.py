@@ -178,7 +178,7 @@ class TiledTorusPoints:
     def passes(self):
         return self.questions.passes
 
-    def d_pk(self, x, sort=True):
+    def d_pk(self, x):
         # a first pad from the mesh (a guess only: what the strips decide is exact)
         if len(x) == 0:
             return np.zeros(0)
@@ -221,7 +221,7 @@ class TiledSpacePoints:
     def cell_counts(self, cells, stop=np.inf):
         return self.questions.cell_counts(cells)
 
-    def d_pk(self, x, sort=True):
+    def d_pk(self, x):
         # a first pad from the mesh (a guess only: what the slabs decide is exact)
         if len(x) == 0:
             return np.zeros(0)

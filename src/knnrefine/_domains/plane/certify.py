@@ -80,26 +80,24 @@ class Geometry(TorusGeometry):
         inside = self.frame(inside)
         weights = np.abs(triangle_areas(corners[chosen])) * (t / max(len(chosen), 1))
         mids, ends = edge_midpoints(self.cells(tri))
-        owner_of = np.zeros(m, np.int64)
-        owner_of[self.mesh.torus.triangles.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
         unknown = np.full(len(uniform) + len(mids) + len(sampled) + len(inside), np.nan)
         return gathered_probes(
             [
-                (inside, chosen, False, unknown[: len(inside)]),
-                (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
-                (self.vertices, owner_of, False, self.vertex_d_m2()),
-                (self.frame(mids), owner_of[ends[:, 0]], False, unknown[: len(mids)]),
-                (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
+                (inside, False, unknown[: len(inside)]),
+                (sampled, True, unknown[: len(sampled)]),
+                (self.vertices, False, self.vertex_d_m2()),
+                (self.frame(mids), False, unknown[: len(mids)]),
+                (uniform, False, unknown[: len(uniform)]),
             ],
             self.in_box,
             (weights, t),
             near={3: (2, ends)},  # a midpoint's two vertices
         )
 
-    def returned_d_m2(self, x, sort=True):
-        return self.vertex_tree.kth(x, 2, sort=sort), []
+    def returned_d_m2(self, x):
+        return self.vertex_tree.kth(x, 2), []
 
     def size(self, probes, d_pk, points, rng):
         """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size): one
@@ -132,9 +130,9 @@ class Points:
                          None if heavy is None else weights[heavy], self.period,
                          workers)  # fmt: skip
 
-    def d_pk(self, x, sort=True):
+    def d_pk(self, x):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""
-        return self.tree.kth(x, self.k, sort=sort)
+        return self.tree.kth(x, self.k)
 
     def held(self, centres, radii, stop=np.inf):
         """What each closed disk (centre, radius) holds: its number of points, or their

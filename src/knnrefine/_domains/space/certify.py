@@ -161,10 +161,10 @@ class Points:
         return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
                                     stop, cells.relative, cells.slack2)  # fmt: skip
 
-    def d_pk(self, x, sort=True):
+    def d_pk(self, x):
         """d_{P,k} at x (the torus frame, periodic axes wrapped) in the box's own metric:
         straight along non-periodic axes, so the embedding's claim is tested."""
-        return self.tree.kth(x, self.k, period=self.box_period, sort=sort)
+        return self.tree.kth(x, self.k, period=self.box_period)
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points (torus frame), drawn at random."""
@@ -304,26 +304,24 @@ class Geometry(TorusGeometry):
             np.abs(np.linalg.det(c[chosen, 1:] - c[chosen, :1])) / 6.0 * (t / max(len(chosen), 1))
         )
         mids, ends = edge_midpoints(self.cells(tri))
-        owner_of = np.zeros(m, np.int64)
-        owner_of[np.asarray(self.corners).ravel()] = np.repeat(np.arange(t), 4)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 3)) * side
         free = ~np.array(self.mesh.periodic)
         unknown = np.full(len(inside) + len(sampled) + m + len(mids) + len(uniform), np.nan)
         return gathered_probes(
             [
-                (inside, chosen, False, unknown[: len(inside)]),
-                (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
-                (self.local, owner_of, False, unknown[:m]),
-                (np.mod(mids, period), owner_of[ends[:, 0]], False, unknown[: len(mids)]),
-                (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
+                (inside, False, unknown[: len(inside)]),
+                (sampled, True, unknown[: len(sampled)]),
+                (self.local, False, unknown[:m]),
+                (np.mod(mids, period), False, unknown[: len(mids)]),
+                (uniform, False, unknown[: len(uniform)]),
             ],
             lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
             (weights, t),
             near={3: (2, ends)},  # a midpoint's two vertices
         )
 
-    def returned_d_m2(self, x, sort=True):
+    def returned_d_m2(self, x):
         """d_{M,2} at x from the returned vertices in the box's own metric, and a problem
         when it differs from the torus mesh's (a copy near the box missing)."""
         returned = np.asarray(self.mesh.vertices, float)
@@ -336,10 +334,10 @@ class Geometry(TorusGeometry):
         box_period = np.where(self.mesh.periodic, self.period, 0.0)
         if len(returned) < 2:
             return np.full(len(x), np.inf), []
-        dm2 = Tree(returned, None, box_period, self.workers).kth(x, 2, sort=sort)
+        dm2 = Tree(returned, None, box_period, self.workers).kth(x, 2)
         problems = []
         if coordinates:  # the copies near the box hold its two nearest
-            on_torus = self.vertex_tree.kth(x, 2, sort=sort)
+            on_torus = self.vertex_tree.kth(x, 2)
             if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
                 problems.append(
                     "d_M2 from the returned vertices differs from the torus mesh's in the box"

@@ -228,15 +228,15 @@ class Points:
         return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
                                     stop, cells.relative, cells.slack2)  # fmt: skip
 
-    def d_pk(self, x, sort=True):
+    def d_pk(self, x):
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
-        return self.kth(x, self.k, sort)
+        return self.kth(x, self.k)
 
-    def kth(self, x, k, sort=True):
+    def kth(self, x, k):
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
         if self.total < k:
             return np.full(len(x), np.inf)
-        return chord_to_angle(self.tree.kth(x, k, sort=sort))
+        return chord_to_angle(self.tree.kth(x, k))
 
     def sample_points(self, count, rng):
         """Up to ``count`` of the points' unit vectors, drawn at random."""
@@ -359,18 +359,16 @@ class Geometry:
         norm = np.linalg.norm(flat, axis=1)
         weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3 * (t / max(len(chosen), 1))
         mids, ends = edge_midpoints(self.cells(tri))
-        owner_of = np.zeros(m, np.int64)
-        owner_of[tri_.ravel()] = np.repeat(np.arange(t), 3)
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = _uniform_on_sphere(int(n_random), rng)
         unknown = np.full(len(flat) + len(sampled) + len(mids) + len(uniform), np.nan)
         probes = gathered_probes(
             [
-                (flat, chosen, False, unknown[: len(flat)]),
-                (sampled, np.full(len(sampled), -1), True, unknown[: len(sampled)]),
-                (xyz, owner_of, False, self.vertex_d_m2()),
-                (mids, owner_of[ends[:, 0]], False, unknown[: len(mids)]),
-                (uniform, np.full(len(uniform), -1), False, unknown[: len(uniform)]),
+                (flat, False, unknown[: len(flat)]),
+                (sampled, True, unknown[: len(sampled)]),
+                (xyz, False, self.vertex_d_m2()),
+                (mids, False, unknown[: len(mids)]),
+                (uniform, False, unknown[: len(uniform)]),
             ],
             lambda x: np.ones(len(x), bool),
             (weights, t),
@@ -379,8 +377,8 @@ class Geometry:
         unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
         return probes._replace(x=unit)
 
-    def returned_d_m2(self, x, sort=True):
-        return chord_to_angle(self.vtree.kth(x, 2, sort=sort)), []
+    def returned_d_m2(self, x):
+        return chord_to_angle(self.vtree.kth(x, 2)), []
 
     def separation(self, x, y):
         """Angles between the rows of x and y (unit vectors): d_{P,k}'s metric."""
