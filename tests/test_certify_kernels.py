@@ -137,3 +137,24 @@ def test_neighbour_lists_keep_each_neighbour_once_sorted():
             want = sorted({(int(b[j]), *map(int, shift[j])) for j in range(e) if a[j] == v})
             got = [(int(nb[i]), *map(int, sh[i])) for i in range(first[v], first[v + 1])]
             assert got == want
+
+
+def test_corner_codes_equal_numpys():
+    """``common._corner_codes`` (a kernel, a cell at a time) against numpy's: each cell's
+    corners as codes (vertex, then offsets relative to the least, base CODE_BASE) sorted,
+    and the count of cells whose offsets spread over CODE_BASE periods, in 2 and 3
+    dimensions, for all corners and for facets."""
+    from knnrefine.certify.common import CODE_BASE, _corner_codes
+
+    rng = np.random.default_rng(55)
+    for d in (2, 3):
+        cells = rng.integers(0, 50, (400, d + 1))
+        off = rng.integers(-9, 9, (400, d + 1, d))
+        for corners in (list(range(d + 1)), [0, 2], list(range(1, d + 1))):
+            o = off[:, corners] - off[:, corners].min(axis=1, keepdims=True)
+            code = cells[:, corners].astype(np.int64)
+            for a in range(d):
+                code = code * CODE_BASE + o[:, :, a]
+            got, spread = _corner_codes(cells, off, corners)
+            assert spread == int((o.max(axis=(1, 2)) >= CODE_BASE).sum()) > 0
+            np.testing.assert_array_equal(got, np.sort(code, axis=1))

@@ -7,6 +7,7 @@ the mesh's (``checked_points``). Weighted counts from kd-trees are
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._engine.jit import kernel
 from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
@@ -186,14 +187,39 @@ def _corner_codes(cells, off, corners):
     """(the ``corners`` of each cell as sorted integer codes, vertex * CODE_BASE^d + its
     offset relative to the least of them, digit by axis; how many cells spread their
     offsets over CODE_BASE periods or more: no code for those)."""
-    v = cells[:, corners]
-    o = off[:, corners]
-    o = o - o.min(axis=1, keepdims=True)
-    spread = int((o.max(axis=(1, 2)) >= CODE_BASE).sum()) if len(o) else 0
-    code = v.astype(np.int64)
-    for a in range(off.shape[2]):
-        code = code * CODE_BASE + o[:, :, a]
-    return np.sort(code, axis=1), spread
+    return _codes(np.ascontiguousarray(cells, np.int64), np.ascontiguousarray(off, np.int64),
+                  np.asarray(list(corners), np.int64), CODE_BASE)  # fmt: skip
+
+
+@kernel(entry=True, lazy=True)
+def _codes(cells, off, corners, base):
+    """``_corner_codes``' work, one cell at a time (a few corners: insertion sort)."""
+    t, d = cells.shape[0], off.shape[2]
+    c = corners.shape[0]
+    out = np.empty((t, c), np.int64)
+    low = np.empty(d, np.int64)
+    spread = 0
+    for q in range(t):
+        for a in range(d):
+            low[a] = off[q, corners[0], a]
+            for i in range(1, c):
+                low[a] = min(low[a], off[q, corners[i], a])
+        wide = False
+        for i in range(c):
+            code = cells[q, corners[i]]
+            for a in range(d):
+                digit = off[q, corners[i], a] - low[a]
+                if digit >= base:
+                    wide = True
+                code = code * base + digit
+            j = i - 1
+            while j >= 0 and out[q, j] > code:
+                out[q, j + 1] = out[q, j]
+                j -= 1
+            out[q, j + 1] = code
+        if wide:
+            spread += 1
+    return out, spread
 
 
 def cell_array_problem(mesh):

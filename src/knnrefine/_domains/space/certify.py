@@ -92,20 +92,9 @@ def _neighbours(corners, offsets):
     """The tetrahedron across each face, from face keys (sorted vertices and their offsets
     relative to each other); None unless every face is shared by exactly two."""
     t = len(corners)
-    rows = []
-    for i in range(4):
-        other = [j for j in range(4) if j != i]
-        v = corners[:, other].astype(np.int64)
-        o = offsets[:, other].astype(np.int64)
-        o -= o.min(axis=1, keepdims=True)
-        order = np.argsort(v, axis=1)
-        rows.append(
-            np.concatenate(
-                [np.take_along_axis(v, order, 1),
-                 np.take_along_axis(o, order[..., None], 1).reshape(t, 9)], axis=1,
-            )
-        )  # fmt: skip
-    rows = np.ascontiguousarray(np.concatenate(rows))
+    rows = _face_rows(
+        np.ascontiguousarray(corners, np.int64), np.ascontiguousarray(offsets, np.int64)
+    )
     label = row_classes(rows, rows[:, 0], int(corners.max(initial=0)) + 1)
     size, first = class_sizes(label)
     # every face exactly twice: each class of equal keys a pair
@@ -116,6 +105,52 @@ def _neighbours(corners, offsets):
     out[second] = label[second] % t
     out[label[second]] = second % t
     return out.reshape(4, t).T
+
+
+@kernel(entry=True, lazy=True)
+def _face_rows(corners, offsets):
+    """Row i * t + c: the key of face i of tetrahedron c (the face opposite corner i): its
+    three vertices sorted (by vertex, then offset), then their offsets relative to the least
+    along each axis (3 x 3)."""
+    t = corners.shape[0]
+    rows = np.empty((4 * t, 12), np.int64)
+    v = np.empty(3, np.int64)
+    o = np.empty((3, 3), np.int64)
+    for i in range(4):
+        for c in range(t):
+            n = 0
+            for j in range(4):
+                if j == i:
+                    continue
+                v[n] = corners[c, j]
+                for a in range(3):
+                    o[n, a] = offsets[c, j, a]
+                n += 1
+            for a in range(3):
+                least = min(o[0, a], o[1, a], o[2, a])
+                for j in range(3):
+                    o[j, a] -= least
+            for j in range(1, 3):  # insertion sort of the three by (vertex, offsets)
+                b = j
+                while b > 0:
+                    less = v[b] < v[b - 1]
+                    if v[b] == v[b - 1]:
+                        for a in range(3):
+                            if o[b, a] != o[b - 1, a]:
+                                less = o[b, a] < o[b - 1, a]
+                                break
+                    if not less:
+                        break
+                    v[b], v[b - 1] = v[b - 1], v[b]
+                    for a in range(3):
+                        o[b, a], o[b - 1, a] = o[b - 1, a], o[b, a]
+                    b -= 1
+            r = i * t + c
+            for j in range(3):
+                rows[r, j] = v[j]
+                for a in range(3):
+                    rows[r, 3 + 3 * j + a] = o[j, a]
+    return rows
 
 
 def _circumspheres(c):
