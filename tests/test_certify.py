@@ -325,3 +325,24 @@ def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monke
     for field in dataclasses.fields(every):
         if field.name != "seconds":
             assert getattr(bounded, field.name) == getattr(every, field.name), field.name
+
+
+def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner():
+    """A periodic mesh returned as its torus (the triangles row for row: the fast path of
+    ``verify_returned_mesh``) passes; a vertex moved by a whole period (still a copy of its
+    torus vertex) leaves its triangles' corners off their torus triangles, and a triangle's
+    offsets changed the same, and both are reported."""
+    from knnrefine._domains.plane.certify import verify_returned_mesh
+
+    rng = np.random.default_rng(56)
+    mesh = knnrefine.refine(rng.random((3000, 2)), 10, periodic=True, box=(0, 0, 1, 1))
+    assert np.array_equal(np.asarray(mesh.order)[mesh.triangles], mesh.torus.triangles)
+    assert verify_returned_mesh(mesh) == []
+    v = np.array(mesh.vertices)
+    v[0, 0] += 1.0
+    moved = verify_returned_mesh(dataclasses.replace(mesh, vertices=v))
+    assert any("corners off their torus triangle" in p for p in moved)
+    off = np.array(mesh.offsets)
+    off[7, 1, 0] += 1
+    shifted = verify_returned_mesh(dataclasses.replace(mesh, offsets=off))
+    assert any("corners off their torus triangle" in p for p in shifted)
