@@ -346,3 +346,48 @@ def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner():
     off[7, 1, 0] += 1
     shifted = verify_returned_mesh(dataclasses.replace(mesh, offsets=off))
     assert any("corners off their torus triangle" in p for p in shifted)
+
+
+DEGENERATE = ["plane-line-duplicates", "plane-lattice", "plane-line-workers",
+              "space-coplanar", "space-coplanar-workers", "sphere-seam"]  # fmt: skip
+
+
+@pytest.mark.parametrize("case", DEGENERATE)
+def test_bounded_probes_on_degenerate_input_and_in_strips(case, monkeypatch):
+    """The bounded probes on degenerate input (points on a line and repeated, a lattice
+    whose ratios tie, points on a plane in space, on the sphere's seam and poles) and with
+    the points asked strip by strip in worker processes (``workers=2``: each round of
+    probes a round of strips): the certificate, field by field, is the one of asking every
+    probe (SEED = 1)."""
+    from knnrefine.certify import steps
+
+    rng = np.random.default_rng(57)
+    if case.startswith("plane-line"):
+        line = np.column_stack([rng.random(3000), np.full(3000, 0.5)])
+        pts = np.concatenate([line, np.repeat(rng.random((200, 2)), 10, axis=0)])
+        run = dict(k=10, periodic=True, box=(0, 0, 1, 1))
+    elif case == "plane-lattice":
+        g = (np.arange(40) + 0.5) / 40
+        pts = np.column_stack([np.repeat(g, 40), np.tile(g, 40)])
+        run = dict(k=4, periodic=True, box=(0, 0, 1, 1))
+    elif case.startswith("space"):
+        flat = np.column_stack([rng.random((4000, 2)), np.full(4000, 0.5)])
+        pts = np.concatenate([flat, rng.random((1000, 3))])
+        run = dict(k=10, periodic=True, box=(0, 0, 0, 1, 1, 1))
+    else:
+        seam = np.column_stack([np.full(2000, 180.0), rng.uniform(-90, 90, 2000)])
+        poles = np.column_stack([rng.uniform(-180, 180, 400), np.repeat([90.0, -90.0], 200)])
+        band = np.column_stack([rng.uniform(-180, 180, 3000), rng.uniform(-60, 60, 3000)])
+        pts = np.concatenate([seam, poles, band])
+        run = dict(k=10, sphere=True)
+    check = dict(workers=2) if case.endswith("workers") else {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mesh = knnrefine.refine(pts, **run)
+        bounded = certify(mesh, pts, **check)
+        monkeypatch.setattr(steps, "SEED", 1.0)
+        every = certify(mesh, pts, **check)
+    assert bounded.passed
+    for field in dataclasses.fields(every):
+        if field.name != "seconds":
+            assert getattr(bounded, field.name) == getattr(every, field.name), field.name

@@ -9,6 +9,15 @@ import numpy as np
 from .._engine.jit import kernel
 
 
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def rows_equal(a, i, b, j):
+    """Whether row i of a equals row j of b (as wide)."""
+    for c in range(a.shape[1]):
+        if a[i, c] != b[j, c]:
+            return False
+    return True
+
+
 @kernel(entry=True, lazy=True)
 def row_classes(rows, group, m):
     """For each row of ``rows`` (n, c) int64, the index of the first row equal to it (in
@@ -53,12 +62,7 @@ def row_classes(rows, group, m):
                     p = order[y]
                     if label[p] != p:
                         continue
-                    same = True
-                    for j in range(c):
-                        if rows[i, j] != rows[p, j]:
-                            same = False
-                            break
-                    if same:
+                    if rows_equal(rows, i, rows, p):
                         label[i] = p
                         break
             a = b

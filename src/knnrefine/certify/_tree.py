@@ -39,6 +39,7 @@ from .._engine.geometry import plus_compensated  # shared with the engine, as _m
 from .._engine.jit import kernel
 from .._engine.threads import in_chunks
 from ._predicates import UNSURE, orient3d_at
+from ._rows import rows_equal
 
 LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
 
@@ -907,15 +908,9 @@ def neighbour_lists(a, b, shift, m):
             repeat = False
             if stamp[key] == v:
                 for i in range(seen_at[key], used):
-                    if nb[i] == key:
-                        same = True
-                        for t in range(d):
-                            if sh[i, t] != sh[j, t]:
-                                same = False
-                                break
-                        if same:
-                            repeat = True
-                            break
+                    if nb[i] == key and rows_equal(sh, i, sh, j):
+                        repeat = True
+                        break
             else:
                 stamp[key] = v
                 seen_at[key] = used

@@ -376,8 +376,8 @@ def edge_midpoints(cells):
 def gathered_probes(parts, inside, extra, near=None):
     """``steps.Probes`` from parts (x, whether input points, d_{M,2} known or NaN), the
     first the size integral's samples, each kept where ``inside(x)``; ``extra`` follows the
-    samples' mask of those kept. ``near``: {part: (other part, rows)}, the rows of the other
-    part near each of that part's probes (an edge's midpoint: its two vertices);
+    samples' mask of those kept. ``near``: {part: (other part, rows (count, r))}, the rows of
+    the other part near each of that part's probes (an edge's midpoint: its two vertices);
     ``Probes.near`` holds those probes' indices once gathered (-1 where one was dropped, and
     for the other parts)."""
     keep = [inside(p[0]) for p in parts]
@@ -390,12 +390,10 @@ def gathered_probes(parts, inside, extra, near=None):
         at = np.full(len(k), -1, np.int64)
         at[k] = start[i] + np.arange(int(k.sum()))
         index.append(at)
-    width = max([np.shape(rows)[1] for _, rows in (near or {}).values() if np.ndim(rows) == 2]
-                + [1])  # fmt: skip
+    width = max((np.shape(rows)[1] for _, rows in (near or {}).values()), default=1)
     gathered = [np.full((int(k.sum()), width), -1, np.int64) for k in keep]
     for i, (j, rows) in (near or {}).items():
-        rows = np.asarray(rows, np.int64).reshape(len(keep[i]), -1)
-        gathered[i] = index[j][rows][keep[i]]
+        gathered[i] = index[j][np.asarray(rows, np.int64)][keep[i]]
     return Probes(x, mask, d_m2, (keep[0], *extra), np.concatenate(gathered))
 
 

@@ -265,17 +265,24 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
     SEED share with the lowest and the highest ratio bounds (the extremes found so far
     move out), then at every probe whose bounds do not settle it: one whose d_{P,k} may be
     below the floor while its bound is not, or whose ratio may reach the extremes."""
-    x = probes.x
-    near = probes.near.reshape(len(x), -1)
+    x, near = probes.x, probes.near
     d_pk = np.full(len(x), np.nan)
+    extremes = [np.inf, -np.inf]  # alpha, beta so far
+
+    def ask(rows):
+        d_pk[rows] = points.d_pk(x[rows])
+        use = rows[d_pk[rows] >= floor]
+        if len(use):
+            r = d_m2[use] / d_pk[use]
+            extremes[:] = min(extremes[0], float(r.min())), max(extremes[1], float(r.max()))
+
     bounded = (near >= 0).all(axis=1)
-    first, later = np.flatnonzero(~bounded), np.flatnonzero(bounded)
-    d_pk[first] = points.d_pk(x[first])
+    later = np.flatnonzero(bounded)
+    ask(np.flatnonzero(~bounded))
     lo = d_pk.copy()
     if len(later) == 0:
         return d_pk, lo
-    hi = np.full(len(later), np.inf)
-    lo[later] = -np.inf
+    lo[later], hi = -np.inf, np.full(len(later), np.inf)
     for ref in near[later].T:
         reach = geometry.separation(x[later], x[ref])
         slack = 1e-9 * (d_pk[ref] + reach)  # rounding in d_{P,k} and the separation
@@ -284,22 +291,12 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
     ratio_lo = d_m2[later] / hi
     with np.errstate(divide="ignore"):
         ratio_hi = np.where(lo[later] > 0, d_m2[later] / lo[later], np.inf)
-    seen = d_pk >= floor
-    alpha = float(np.min(d_m2[seen] / d_pk[seen])) if seen.any() else np.inf
-    beta = float(np.max(d_m2[seen] / d_pk[seen])) if seen.any() else -np.inf
     seed = max(16, int(SEED * len(later)))
     pick = np.zeros(len(later), bool)
     pick[np.argsort(ratio_lo)[:seed]] = True
     pick[np.argsort(-ratio_hi)[:seed]] = True
-    for rows in (np.flatnonzero(pick), None):
-        if rows is None:  # with the extremes the seeds moved
-            settled = (hi < floor) | ((lo[later] >= floor) & (ratio_lo > alpha) & (ratio_hi < beta))
-            rows = np.flatnonzero(~settled & ~pick)
-        got = later[rows]
-        d_pk[got] = points.d_pk(x[got])
-        lo[got] = d_pk[got]
-        use = got[d_pk[got] >= floor]
-        if len(use):
-            r = d_m2[use] / d_pk[use]
-            alpha, beta = min(alpha, float(r.min())), max(beta, float(r.max()))
-    return d_pk, lo
+    ask(later[pick])
+    alpha, beta = extremes  # with the seeds asked, the rest settled against them
+    inside = (lo[later] >= floor) & (ratio_lo > alpha) & (ratio_hi < beta)
+    ask(later[~pick & ~((hi < floor) | inside)])
+    return d_pk, np.where(np.isnan(d_pk), lo, d_pk)
