@@ -278,11 +278,12 @@ def test_the_size_integral_reads_only_its_own_samples(dim):
     "domain", ["plane", "plane-weighted", "plane-floor", "space-box", "space-torus", "sphere"]
 )
 def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monkeypatch):
-    """The midpoints' d_{P,k} bounded from their vertex's (steps.bounded_d_pk) skips only
-    probes that cannot hold an extreme: every field of the certificate (the achieved
-    constants, where they lie, the number of probes, the share under the floor, the size
-    integral) is the one of asking d_{P,k} at every probe (SEED = 1), and over a third of
-    the midpoints are not asked."""
+    """d_{P,k} bounded from nearby vertices' (steps.bounded_d_pk: a midpoint's two ends, a
+    uniform point's nearest vertex, a further sample's cell corners) skips only probes
+    that cannot hold an extreme: every field of the certificate (the achieved constants,
+    where they lie, the number of probes, the share under the floor, the size integral) is
+    the one of asking d_{P,k} at every probe (SEED = 1), and over a third of the bounded
+    probes are not asked."""
     from knnrefine.certify import steps
 
     rng = np.random.default_rng(53)
@@ -312,16 +313,16 @@ def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monke
 
     def spy(points, geometry, probes, d_m2, floor):
         d_pk, lo = real(points, geometry, probes, d_m2, floor)
-        asked.append((int(np.isnan(d_pk).sum()), int((probes.near >= 0).all(axis=1).sum())))
+        asked.append((int(np.isnan(d_pk).sum()), int((probes.near >= 0).any(axis=1).sum())))
         return d_pk, lo
 
     monkeypatch.setattr(steps, "bounded_d_pk", spy)
     bounded = certify(mesh, pts, **check)
     monkeypatch.setattr(steps, "SEED", 1.0)
     every = certify(mesh, pts, **check)
-    skipped, midpoints = asked[0]
+    skipped, bounded = asked[0]
     assert asked[1][0] == 0  # SEED = 1: every probe asked
-    assert skipped > 0.35 * midpoints
+    assert skipped > 0.35 * bounded
     for field in dataclasses.fields(every):
         if field.name != "seconds":
             assert getattr(bounded, field.name) == getattr(every, field.name), field.name

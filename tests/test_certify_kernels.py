@@ -158,3 +158,23 @@ def test_corner_codes_equal_numpys():
             got, spread = _corner_codes(cells, off, corners)
             assert spread == int((o.max(axis=(1, 2)) >= CODE_BASE).sum()) > 0
             np.testing.assert_array_equal(got, np.sort(code, axis=1))
+
+
+def test_size_sample_gives_the_integral_two_points_a_cell_and_the_rest_to_the_ratio():
+    """Issue 52: the size integral asks d_{P,k} at 1 or 2 random points per cell (2: its
+    standard error from the spread within cells); a small mesh's further samples (up to
+    ``samples`` // t per cell in all) only probe the ratio, bounded by their cell's
+    corners; a large mesh gets one point in each of ``samples`` distinct cells."""
+    from knnrefine.certify.common import size_estimate, size_sample
+
+    rng = np.random.default_rng(0)
+    chosen, dense = size_sample(100, 40, rng)
+    assert len(chosen) == 40 == len(np.unique(chosen)) and len(dense) == 0
+    chosen, dense = size_sample(100, 150, rng)
+    assert np.array_equal(chosen, np.arange(100)) and len(dense) == 0
+    chosen, dense = size_sample(100, 1000, rng)
+    assert np.array_equal(np.bincount(chosen, minlength=100), np.full(100, 2))
+    assert np.array_equal(np.bincount(dense, minlength=100), np.full(100, 8))
+    # the integral's stratified estimate reads its two points per cell as strata
+    y = np.repeat(np.arange(100.0), 2)
+    assert size_estimate(y, 100) == (float(y.sum()), 0.0)

@@ -201,9 +201,10 @@ def certify(
     points : array-like (n, d)
         The points it was refined from.
     samples : int
-        Stratified random probes inside the cells (at least 4 per cell: dense where d_{P,k}
-        is small, which is where the ratio has its extremes); every vertex, circumcentre and
-        edge midpoint is probed too.
+        Random probes inside the cells: one in each of ``samples`` cells of a large mesh,
+        ``samples`` // t in each of the t cells of a small one (the size integral reads two
+        of them per cell; the others probe the ratio, asked only where their bounds could
+        reach an extreme); every vertex and edge midpoint is probed too.
     n_random : int
         Uniform probes in the box (on the sphere, on the whole sphere).
     max_point_probes : int

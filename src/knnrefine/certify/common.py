@@ -373,13 +373,22 @@ def edge_midpoints(cells):
     return cells.sites[site[positive]] + 0.5 * e[positive], ends
 
 
+def nearest_site(sites, x):
+    """The row of ``sites`` nearest each row of x, as a column (n, 1), in plain
+    coordinates (across a period the nearest may be missed: any site is a valid bound of
+    d_{P,k} at x, ``steps.bounded_d_pk``, the nearest only the tightest)."""
+    if len(sites) == 0 or len(x) == 0:
+        return np.full((len(x), 1), -1, np.int64)
+    return cKDTree(sites).query(x)[1].astype(np.int64)[:, None]
+
+
 def gathered_probes(parts, inside, extra, near=None):
     """``steps.Probes`` from parts (x, whether input points, d_{M,2} known or NaN), the
     first the size integral's samples, each kept where ``inside(x)``; ``extra`` follows the
     samples' mask of those kept. ``near``: {part: (other part, rows (count, r))}, the rows of
     the other part near each of that part's probes (an edge's midpoint: its two vertices);
-    ``Probes.near`` holds those probes' indices once gathered (-1 where one was dropped, and
-    for the other parts)."""
+    ``Probes.near`` holds those probes' indices once gathered (-1 where one was dropped,
+    beyond a part's own r columns, and for the other parts)."""
     keep = [inside(p[0]) for p in parts]
     x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
     mask = np.concatenate([np.full(int(k.sum()), p[1]) for p, k in zip(parts, keep, strict=True)])
@@ -393,18 +402,26 @@ def gathered_probes(parts, inside, extra, near=None):
     width = max((np.shape(rows)[1] for _, rows in (near or {}).values()), default=1)
     gathered = [np.full((int(k.sum()), width), -1, np.int64) for k in keep]
     for i, (j, rows) in (near or {}).items():
-        gathered[i] = index[j][np.asarray(rows, np.int64)][keep[i]]
+        rows = np.asarray(rows, np.int64)
+        gathered[i][:, : rows.shape[1]] = index[j][rows][keep[i]]
     return Probes(x, mask, d_m2, (keep[0], *extra), np.concatenate(gathered))
 
 
 def size_sample(t, samples, rng):
-    """The cell of each random point of the size integral: ``samples`` // t points in every
-    cell when there are fewer cells than ``samples`` (a small mesh is sampled densely: the
-    ratio's largest values can hide in regions of 10^-5 of its area), or one in each of
-    ``samples`` cells drawn without replacement (a large mesh, once per cell)."""
-    if samples >= t:
-        return np.repeat(np.arange(t), max(int(samples) // max(t, 1), 1))
-    return np.sort(rng.choice(t, int(samples), replace=False))
+    """(the cell of each random point of the size integral, the cell of each further
+    point that only probes the ratio). A large mesh (``samples`` < t): one point in each
+    of ``samples`` cells drawn without replacement, none further. A small one: one or two
+    points in every cell for the integral (two give the spread within cells, so its
+    standard error), and ``samples`` // t - 2 further in each: a small mesh is probed
+    densely, as its ratio's largest values can hide in small regions (300 uniform points,
+    k = 5: 264 points per cell found beta_hat 1.96, 4 per cell 1.65). The further ones are
+    bounded by their cell's corners (``steps.bounded_d_pk``) and asked only where they
+    could be extremes, so that what is asked of the points grows with the mesh."""
+    if samples < t:
+        return np.sort(rng.choice(t, int(samples), replace=False)), np.zeros(0, np.int64)
+    each = int(samples) // max(t, 1)
+    cells = np.arange(t)
+    return np.repeat(cells, min(each, 2)), np.repeat(cells, max(each - 2, 0))
 
 
 def size_estimate(y, t):

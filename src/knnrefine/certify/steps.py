@@ -48,7 +48,9 @@ Triangulation = namedtuple("Triangulation", ["problems", "centres", "radii", "ou
 # are attained, not proven between probes (Theorem 6 proves them).
 #
 # ``near``: for each probe the indices (a row) of other probes near it whose d_{P,k} is asked
-# first (an edge's midpoint: its two vertices; -1: none). d_{P,k} is 1-Lipschitz in its metric,
+# first (an edge's midpoint: its two vertices; a uniform point: its nearest vertex; a cell's
+# further random points, beyond the size integral's: the cell's corners; -1: none, and
+# where a row is shorter than the widest). d_{P,k} is 1-Lipschitz in its metric,
 # so within ``geometry.separation`` s of that probe it lies in [d - s, d + s]; a probe whose
 # ratio d_{M,2} / d_{P,k} then lies strictly between the extremes found so far (and whose
 # d_{P,k} is above the floor) cannot be an extreme and is not asked (``bounded_d_pk``).
@@ -276,18 +278,20 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
             r = d_m2[use] / d_pk[use]
             extremes[:] = min(extremes[0], float(r.min())), max(extremes[1], float(r.max()))
 
-    bounded = (near >= 0).all(axis=1)
+    bounded = (near >= 0).any(axis=1)
     later = np.flatnonzero(bounded)
     ask(np.flatnonzero(~bounded))
     lo = d_pk.copy()
     if len(later) == 0:
         return d_pk, lo
     lo[later], hi = -np.inf, np.full(len(later), np.inf)
-    for ref in near[later].T:
-        reach = geometry.separation(x[later], x[ref])
-        slack = 1e-9 * (d_pk[ref] + reach)  # rounding in d_{P,k} and the separation
-        lo[later] = np.maximum(lo[later], d_pk[ref] - reach - slack)
-        hi = np.minimum(hi, d_pk[ref] + reach + slack)
+    for ref in near[later].T:  # each column of references (-1: none in that column)
+        has = np.flatnonzero(ref >= 0)
+        reach = geometry.separation(x[later[has]], x[ref[has]])
+        d = d_pk[ref[has]]
+        slack = 1e-9 * (d + reach)  # rounding in d_{P,k} and the separation
+        lo[later[has]] = np.maximum(lo[later[has]], d - reach - slack)
+        hi[has] = np.minimum(hi[has], d + reach + slack)
     ratio_lo = d_m2[later] / hi
     with np.errstate(divide="ignore"):
         ratio_hi = np.where(lo[later] > 0, d_m2[later] / lo[later], np.inf)

@@ -30,6 +30,7 @@ from ...certify.common import (
     edge_midpoints,
     find_rows,
     gathered_probes,
+    nearest_site,
     repeated_rows,
     size_estimate,
     size_sample,
@@ -75,25 +76,34 @@ class Geometry(TorusGeometry):
         uniform points of the domain (``steps.Probes``: why these)."""
         corners = tri.extra
         t, m = len(corners), len(self.vertices)
-        chosen = size_sample(t, samples, rng)
-        inside, _ = uniform_in_triangles(corners[chosen], rng.random((len(chosen), 2)))
+        chosen, dense = size_sample(t, samples, rng)
+        cells = np.concatenate([chosen, dense])
+        inside, _ = uniform_in_triangles(corners[cells], rng.random((len(cells), 2)))
         inside = self.frame(inside)
         weights = np.abs(triangle_areas(corners[chosen])) * (t / max(len(chosen), 1))
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
         unknown = np.full(len(uniform) + len(mids) + len(sampled) + len(inside), np.nan)
+        s = len(chosen)
         return gathered_probes(
             [
-                (inside, False, unknown[: len(inside)]),
+                (inside[:s], False, unknown[:s]),
                 (sampled, True, unknown[: len(sampled)]),
                 (self.vertices, False, self.vertex_d_m2()),
                 (self.frame(mids), False, unknown[: len(mids)]),
                 (uniform, False, unknown[: len(uniform)]),
+                (inside[s:], False, unknown[: len(dense)]),
             ],
             self.in_box,
             (weights, t),
-            near={3: (2, ends)},  # a midpoint's two vertices
+            # near: a midpoint's two vertices, a uniform point's nearest vertex, a
+            # further sample's cell's corners
+            near={
+                3: (2, ends),
+                4: (2, nearest_site(self.vertices, uniform)),
+                5: (2, self.mesh.torus.triangles[dense]),
+            },
         )
 
     def returned_d_m2(self, x):

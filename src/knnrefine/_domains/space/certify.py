@@ -37,6 +37,7 @@ from ...certify.common import (
     edge_midpoints,
     find_rows,
     gathered_probes,
+    nearest_site,
     repeated_rows,
     size_estimate,
     size_sample,
@@ -339,9 +340,9 @@ class Geometry(TorusGeometry):
         uniform points of the domain (``steps.Probes``: why these)."""
         c, period = tri.extra, self.period
         t, m = len(c), len(self.local)
-        chosen = size_sample(t, samples, rng)
+        chosen, dense = size_sample(t, samples, rng)
         side = np.array(self.mesh.box[3:]) - np.array(self.mesh.box[:3])
-        inside = np.mod(_tetrahedron_samples(c[chosen], 1, rng), period)
+        inside = np.mod(_tetrahedron_samples(c[np.concatenate([chosen, dense])], 1, rng), period)
         weights = (
             np.abs(np.linalg.det(c[chosen, 1:] - c[chosen, :1])) / 6.0 * (t / max(len(chosen), 1))
         )
@@ -350,17 +351,25 @@ class Geometry(TorusGeometry):
         uniform = self.lo + rng.random((int(n_random), 3)) * side
         free = ~np.array(self.mesh.periodic)
         unknown = np.full(len(inside) + len(sampled) + m + len(mids) + len(uniform), np.nan)
+        s = len(chosen)
         return gathered_probes(
             [
-                (inside, False, unknown[: len(inside)]),
+                (inside[:s], False, unknown[:s]),
                 (sampled, True, unknown[: len(sampled)]),
                 (self.local, False, unknown[:m]),
                 (np.mod(mids, period), False, unknown[: len(mids)]),
                 (uniform, False, unknown[: len(uniform)]),
+                (inside[s:], False, unknown[: len(dense)]),
             ],
             lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
             (weights, t),
-            near={3: (2, ends)},  # a midpoint's two vertices
+            # near: a midpoint's two vertices, a uniform point's nearest vertex, a
+            # further sample's cell's corners
+            near={
+                3: (2, ends),
+                4: (2, nearest_site(self.local, uniform)),
+                5: (2, self.corners[dense]),
+            },
         )
 
     def returned_d_m2(self, x):

@@ -42,6 +42,7 @@ from ...certify.common import (
     edge_midpoints,
     gathered_probes,
     nearest_neighbour,
+    nearest_site,
     size_estimate,
     size_sample,
 )
@@ -345,34 +346,40 @@ class Geometry:
         uniform points of the domain (``steps.Probes``: why these)."""
         xyz, tri_ = self.xyz, self.tri
         t, m = len(tri_), len(xyz)
-        chosen = size_sample(t, samples, rng)
-        u = rng.random((len(chosen), 2))
+        chosen, dense = size_sample(t, samples, rng)
+        cells = np.concatenate([chosen, dense])
+        u = rng.random((len(cells), 2))
         fold = u.sum(-1) > 1
         u[fold] = 1.0 - u[fold]
-        a, b, c = (xyz[tri_[chosen, j]] for j in range(3))
+        a, b, c = (xyz[tri_[cells, j]] for j in range(3))
         flat = a + u[:, :1] * (b - a) + u[:, 1:] * (c - a)  # uniform in the flat triangle
         # seen from the centre, the flat triangle's area element dA is the sphere's
         # h / |y|^3 dA (h: the plane's distance from the centre)
+        s = len(chosen)
+        a, b, c, y = a[:s], b[:s], c[:s], flat[:s]
         normal = np.cross(b - a, c - a)
         twice_area = np.linalg.norm(normal, axis=1)
         h = np.abs(np.einsum("ij,ij->i", normal, a)) / np.where(twice_area > 0, twice_area, 1.0)
-        norm = np.linalg.norm(flat, axis=1)
-        weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3 * (t / max(len(chosen), 1))
+        norm = np.linalg.norm(y, axis=1)
+        weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3 * (t / max(s, 1))
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = _uniform_on_sphere(int(n_random), rng)
         unknown = np.full(len(flat) + len(sampled) + len(mids) + len(uniform), np.nan)
         probes = gathered_probes(
             [
-                (flat, False, unknown[: len(flat)]),
+                (y, False, unknown[:s]),
                 (sampled, True, unknown[: len(sampled)]),
                 (xyz, False, self.vertex_d_m2()),
                 (mids, False, unknown[: len(mids)]),
                 (uniform, False, unknown[: len(uniform)]),
+                (flat[s:], False, unknown[: len(dense)]),
             ],
             lambda x: np.ones(len(x), bool),
             (weights, t),
-            near={3: (2, ends)},  # a midpoint's two vertices
+            # near: a midpoint's two vertices, a uniform point's nearest vertex, a
+            # further sample's cell's corners
+            near={3: (2, ends), 4: (2, nearest_site(xyz, uniform)), 5: (2, tri_[dense])},
         )
         unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
         return probes._replace(x=unit)
