@@ -54,6 +54,46 @@ def test_tree_answers_equal_brute_force(dim, periodic):
     np.testing.assert_allclose(wt.held(x, r), (w * (d2 <= r[:, None] ** 2)).sum(1), rtol=1e-12)
 
 
+def _brute_kth(x, pts, period, k, w=None):
+    """The least radius about each x holding weight k, by brute force in chunks."""
+    out = np.empty(len(x))
+    for a in range(0, len(x), 100):
+        d2 = _brute_d2(x[a : a + 100], pts, period)
+        order = np.argsort(d2, axis=1)
+        run = np.cumsum((np.ones(len(pts)) if w is None else w)[order], axis=1)
+        first = np.argmax(run >= k - 1e-9 * k, axis=1)
+        out[a : a + 100] = np.sqrt(np.take_along_axis(d2, order, 1)[np.arange(len(d2)), first])
+    return out
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("periodic", [False, True], ids=["box", "torus"])
+def test_kth_read_from_bucketed_windows_equals_brute_force(dim, periodic):
+    """Issue 52: a k-th query reads the ball of (1 + GUESS) times the answer before it from
+    a window sorted into buckets. Windows of hundreds of points (k up to 150, so that
+    buckets are used), points and queries on the cut (0 and just below the period), in
+    clusters and coinciding: the distances are brute force's."""
+    rng = np.random.default_rng(17 + dim + 2 * periodic)
+    n = 12_000
+    centres = rng.random((20, dim))
+    pts = np.concatenate([
+        rng.random((n // 2, dim)),
+        np.mod(centres[rng.integers(0, 20, n // 4)] + rng.normal(0, 0.01, (n // 4, dim)), 1),
+        np.column_stack([rng.choice([0.0, 1.0 - 2**-40], n // 4),
+                         rng.random((n // 4, dim - 1))]),
+    ])  # fmt: skip
+    pts[:30] = pts[-1]  # coinciding, on the cut
+    period = np.ones(dim) if periodic else None
+    x = np.concatenate([rng.random((600, dim)), pts[rng.integers(0, n, 400)]])
+    x[:50, 0] = 0.0
+    tree = Tree(pts, None, period, 2)
+    for k in (60, 150):
+        np.testing.assert_allclose(tree.kth(x, k), _brute_kth(x, pts, period, k), rtol=1e-12)
+    w = rng.random(n) + 0.01
+    np.testing.assert_allclose(Tree(pts, w, period, 2).kth(x, 40.0),
+                               _brute_kth(x, pts, period, 40.0, w), rtol=1e-12)  # fmt: skip
+
+
 def test_cells_held_equals_each_points_nearest_sites():
     """Closed Voronoi cells from each site's Delaunay neighbours (scipy's triangulation of
     the sites here) against every point's nearest sites by brute force, ties counted for

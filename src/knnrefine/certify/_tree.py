@@ -20,9 +20,11 @@ Queries (each ``nogil``, over a range of queries, run on every core by ``in_chun
   exactly only where it is below k, and the counts at or above k again, in full, only where
   a check fails);
 * ``kth``: the least radius whose closed ball holds weight k (d_{P,k}; unweighted, the k-th
-  nearest distance), best first: nodes and points leave a heap in order of distance until
-  the weight reaches k, so the work follows k and the points near the query, not n, and a
-  bound known beforehand (1-Lipschitz from a neighbour's answer) prunes the heap;
+  nearest distance). Queries come along a Morton curve, so each answer bounds the next
+  (1-Lipschitz): the points near a run of queries are gathered once into a window sorted
+  into buckets, and each query reads only the buckets its ball can reach, first the ball
+  of 1 + GUESS times the answer before it; depth first, nearer child first, where there
+  is no bound;
 * ``nearest``: each query's nearest site and every site as near up to a tie tolerance (the
   closed Voronoi cells a point counts for).
 
@@ -42,6 +44,8 @@ from ._predicates import UNSURE, orient3d_at
 from ._rows import rows_equal
 
 LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
+GRID = 16  # buckets a side of a k-th query's window, at most
+GUESS = 0.1  # a k-th query first reads the ball of (1 + GUESS) times the answer before it
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -432,19 +436,106 @@ def _gather(pts, w, T, period, c, r2, stack, gx, gw):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _kth_in(gx, gw, n, xq, period, k, unit, high2, d2, dw):
-    """The least radius about xq holding weight k among the gathered points gx[:n] (those
-    within sqrt(high2) of it), or -1 where they hold less."""
-    m = 0
+def _offset(x, c, p):
+    """The signed distance along one axis from c to x (the nearer way round a circle of
+    period p > 0)."""
+    g = x - c
+    if p > 0.0:
+        if g > 0.5 * p:
+            g -= p
+        elif g < -0.5 * p:
+            g += p
+    return g
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell):
+    """The window's points gx[:n] (within ``reach`` of ``centre``) sorted into a grid of
+    G buckets a side over the cube about centre: copied to bx, bw in bucket order, bucket
+    b's rows first[b]:first[b + 1]. G follows n (about 4 points a bucket, at most
+    GRID), and is 1 (one bucket: the points left in gx, gw) for fewer than 128 points,
+    beyond three dimensions or where an axis wraps at less than 4 reach (offsets would be
+    ambiguous). Returns G."""
+    dim = gx.shape[1]
+    G = 1
+    if dim <= 3 and reach > 0.0 and n >= 128:  # fewer points: read them all
+        G = max(1, min(int((n / 4.0) ** (1.0 / dim)), GRID))
+        for a in range(dim):
+            if period[a] > 0.0 and 4.0 * reach > period[a]:
+                G = 1
+    if G == 1:  # one bucket: the points where they are (gx, gw)
+        first[0] = 0
+        first[1] = n
+        return 1
+    side = 2.0 * reach / G
+    nb = G**dim
+    for b in range(nb + 1):
+        first[b] = 0
     for j in range(n):
-        s = 0.0
-        for a in range(xq.shape[0]):
-            g = _along(xq[a], gx[j, a], period[a])
-            s += g * g
-        if s <= high2:
-            d2[m] = s
-            dw[m] = gw[j]
-            m += 1
+        b = 0
+        for a in range(dim):
+            i = 0
+            if G > 1:
+                i = min(
+                    max(int((_offset(gx[j, a], centre[a], period[a]) + reach) / side), 0), G - 1
+                )
+            b = b * G + i
+        cell[j] = b
+        first[b + 1] += 1
+    for b in range(nb):
+        first[b + 1] += first[b]
+    for j in range(n):  # placed from each bucket's end backwards
+        b = cell[j]
+        first[b + 1] -= 1
+        at = first[b + 1]
+        for a in range(dim):
+            bx[at, a] = gx[j, a]
+        bw[at] = gw[j]
+    for b in range(nb):  # first[b + 1] now holds bucket b's start
+        first[b] = first[b + 1]
+    first[nb] = n
+    return G
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _kth_in(bx, bw, first, G, centre, reach, xq, period, k, unit, r, d2, dw, lo, hi, stride):
+    """The least radius about xq holding weight k among the window's points within r of
+    it (``_bucketed``: only the buckets the ball can reach are read), or -1 where they
+    hold less. Distances are those of the points one by one, so the buckets decide only
+    which points are read: a margin covers the offsets' rounding. lo, hi, stride: room
+    for three bucket indices."""
+    dim = xq.shape[0]
+    lo[:] = 0
+    hi[:] = 0
+    stride[:] = 0
+    if G > 1:
+        side = 2.0 * reach / G
+        scale = 0.0
+        for a in range(dim):
+            scale = max(scale, abs(centre[a]) + abs(xq[a]) + period[a] + reach)
+        wide = r * (1.0 + 1e-9) + 1e-14 * scale
+        step = 1
+        for a in range(dim - 1, -1, -1):
+            o = _offset(xq[a], centre[a], period[a]) + reach
+            lo[a] = min(max(int((o - wide) / side), 0), G - 1) if o - wide > 0.0 else 0
+            hi[a] = min(max(int((o + wide) / side), 0), G - 1) if o + wide > 0.0 else 0
+            stride[a] = step
+            step *= G
+    r2 = r * r
+    m = 0
+    for i0 in range(lo[0], hi[0] + 1):
+        for i1 in range(lo[1], hi[1] + 1):
+            for i2 in range(lo[2], hi[2] + 1):
+                b = i0 * stride[0] + i1 * stride[1] + i2 * stride[2]
+                for j in range(first[b], first[b + 1]):
+                    s = 0.0
+                    for a in range(dim):
+                        g = _along(xq[a], bx[j, a], period[a])
+                        s += g * g
+                    if s <= r2:
+                        d2[m] = s
+                        dw[m] = bw[j]
+                        m += 1
     if unit:
         need = int(math.ceil(k))
         if need > m:
@@ -465,12 +556,14 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less). Queries come in an order where neighbours
     are near (``spatial_order``): with delta the distance from the one before, whose answer
-    is a, the answer is at most a + delta (d_{P,k} is 1-Lipschitz), so it is found among
-    the points within a + delta of the query. Those are taken from a window, the points
-    within 1.5 times that of an earlier query, gathered once and kept while later queries'
-    balls stay inside it (only the query's own ball where that window would hold more than
-    16 k points: the rim of a void); the first query, one far from the one before (delta >
-    3 a), or a window too large for its buffer: depth first (``_kth_dfs``)."""
+    is a, the answer is at most high = a + delta (d_{P,k} is 1-Lipschitz), so it is found
+    among the points within high of the query, and most often among those within (1 +
+    GUESS) a, read first. Those are taken from a window, the points within 1.5 high of an
+    earlier query, gathered once, sorted into buckets (``_bucketed``) and kept while later
+    queries' balls stay inside it (only the query's own ball where that window would hold
+    more than 16 k points: the rim of a void); the first query, one far from the one
+    before (delta > 3 a), or a window too large for its buffer: depth first
+    (``_kth_dfs``)."""
     dim = x.shape[1]
     stack = np.empty(2 * depth + 4, np.int64)
     stack_key = np.empty(2 * depth + 4)
@@ -481,9 +574,17 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
     size = max(256 * kk, 8192)
     gx = np.empty((size, dim))
     gw = np.empty(size)
+    bx = np.empty((size, dim))
+    bw = np.empty(size)
+    cell = np.empty(size, np.int64)
+    first = np.empty(GRID**3 + 1, np.int64)
+    lo = np.zeros(3, np.int64)
+    hi = np.zeros(3, np.int64)
+    stride = np.zeros(3, np.int64)
     d2 = np.empty(size)
     dw = np.empty(size)
     n = 0
+    G = 1
     centre = np.empty(dim)
     reach = -1.0  # the window: the points within reach of centre (none yet)
     for q in range(start, end):
@@ -494,18 +595,29 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
             delta = math.sqrt(_point2(x, q - 1, xq, period))
             if delta <= 3.0 * a:  # else the bound is loose: depth first
                 high = (a + delta) * (1.0 + 1e-12)
-                if reach < 0.0 or math.sqrt(_dist_to(centre, xq, period)) + high > reach:
-                    for t in range(dim):
-                        centre[t] = xq[t]
-                    reach = 1.5 * high
-                    n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
-                    if n < 0 or n > crowd:  # crowded past the ball (a void's rim):
-                        reach = high  # this query's ball only
+                guess = min(high, a * (1.0 + GUESS))
+                for attempt in range(2 if guess < high else 1):
+                    r = guess if attempt == 0 else high
+                    if reach < 0.0 or math.sqrt(_dist_to(centre, xq, period)) + r > reach:
+                        for t in range(dim):
+                            centre[t] = xq[t]
+                        reach = 1.5 * high
                         n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
-                    if n < 0:
-                        reach = -1.0
-                if reach >= 0.0:
-                    answer = _kth_in(gx, gw, n, xq, period, k, unit, high * high, d2, dw)
+                        if n < 0 or n > crowd:  # crowded past the ball (a void's rim):
+                            reach = high  # this query's ball only
+                            n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
+                        if n < 0:
+                            reach = -1.0
+                            break
+                        G = _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell)
+                    if G > 1:
+                        answer = _kth_in(bx, bw, first, G, centre, reach, xq, period, k,
+                                         unit, r, d2, dw, lo, hi, stride)  # fmt: skip
+                    else:
+                        answer = _kth_in(gx, gw, first, G, centre, reach, xq, period, k,
+                                         unit, r, d2, dw, lo, hi, stride)  # fmt: skip
+                    if answer >= 0.0:
+                        break
         if answer < 0.0:
             answer, hk, hw = _kth_dfs(pts, w, T, period, xq, k, unit,
                                       stack, stack_key, hk, hw)  # fmt: skip
