@@ -349,6 +349,34 @@ def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner():
     assert any("corners off their torus triangle" in p for p in shifted)
 
 
+def test_a_space_torus_returned_row_for_row_is_still_checked_corner_by_corner():
+    """Space's fast path (``verify_returned_mesh3``: tetrahedra row for row the torus', the
+    corners compared in one kernel, the tiling taken from the verified torus): a vertex
+    moved by a whole period, one corner's offset changed, a tetrahedron listed twice and
+    two corners swapped (the orientation reversed) are each reported."""
+    from knnrefine._domains.space.certify import verify_returned_mesh3
+
+    rng = np.random.default_rng(57)
+    mesh = knnrefine.refine(rng.random((3000, 3)), 10, periodic=True, box=(0, 0, 0, 1, 1, 1))
+    assert np.array_equal(np.asarray(mesh.order)[mesh.cells], mesh.torus.cells)
+    assert verify_returned_mesh3(mesh) == []
+    v = np.array(mesh.vertices)
+    v[0, 0] += 1.0
+    moved = verify_returned_mesh3(dataclasses.replace(mesh, vertices=v))
+    assert any("corners off their torus tetrahedron" in p for p in moved)
+    off = np.array(mesh.offsets)
+    off[7, 1, 0] += 1
+    shifted = verify_returned_mesh3(dataclasses.replace(mesh, offsets=off))
+    assert any("corners off their torus tetrahedron" in p for p in shifted)
+    cells = np.concatenate([mesh.cells, mesh.cells[:1]])
+    twice = dataclasses.replace(mesh, cells=cells, offsets=np.concatenate([off, off[:1]]))
+    assert any("listed more than once" in p for p in verify_returned_mesh3(twice))
+    cells, off = np.array(mesh.cells), np.array(mesh.offsets)
+    cells[3, [0, 1]], off[3, [0, 1]] = cells[3, [1, 0]], off[3, [1, 0]]
+    swapped = verify_returned_mesh3(dataclasses.replace(mesh, cells=cells, offsets=off))
+    assert any("corners off their torus tetrahedron" in p for p in swapped)
+
+
 DEGENERATE = ["plane-line-duplicates", "plane-lattice", "plane-line-workers",
               "space-coplanar", "space-coplanar-workers", "sphere-seam"]  # fmt: skip
 
