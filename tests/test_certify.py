@@ -347,6 +347,10 @@ def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner():
     off[7, 1, 0] += 1
     shifted = verify_returned_mesh(dataclasses.replace(mesh, offsets=off))
     assert any("corners off their torus triangle" in p for p in shifted)
+    # the tiling is taken from the verified torus only for its own triangles, row for row
+    cells = np.concatenate([mesh.triangles, mesh.triangles[:1]])
+    twice = dataclasses.replace(mesh, cells=cells, offsets=np.concatenate([off, off[:1]]))
+    assert any("listed more than once" in p for p in verify_returned_mesh(twice))
 
 
 def test_a_space_torus_returned_row_for_row_is_still_checked_corner_by_corner():
