@@ -218,3 +218,43 @@ def test_size_sample_gives_the_integral_two_points_a_cell_and_the_rest_to_the_ra
     # the integral's stratified estimate reads its two points per cell as strata
     y = np.repeat(np.arange(100.0), 2)
     assert size_estimate(y, 100) == (float(y.sum()), 0.0)
+
+
+@pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
+def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
+    """Issue 52: d_{M,2} at the probes walked on the verified triangulation (to the nearest
+    vertex by nearer neighbours, the second nearest among its neighbours) against every
+    vertex by brute force: on the torus across its cut and at its vertices, on the sphere
+    at its poles; where the triangulation failed its check, the kd-tree answers."""
+    import knnrefine
+    from knnrefine._domains.plane import certify as plane
+    from knnrefine._domains.space import certify as space
+    from knnrefine._domains.sphere import certify as sphere
+
+    rng = np.random.default_rng(23)
+    if domain == "sphere":
+        lon, lat = rng.uniform(-180, 180, 4000), rng.normal(60, 20, 4000).clip(-90, 90)
+        mesh = knnrefine.refine(np.column_stack([lon, lat]), 5, sphere=True)
+        geometry = sphere.Geometry(mesh, 2)
+        sites, period = geometry.xyz, None
+        x = rng.normal(size=(3000, 3))
+        x[:2] = [[0, 0, 1], [0, 0, -1]]
+        x = np.concatenate([x / np.linalg.norm(x, axis=1, keepdims=True), sites[:100]])
+    else:
+        dim = 2 if domain == "plane" else 3
+        box = (0,) * dim + (1,) * dim
+        mesh = knnrefine.refine(rng.random((3000, dim)) ** 2, 5, periodic=True, box=box)
+        geometry = (plane if dim == 2 else space).Geometry(mesh, 2)
+        sites, period = geometry.vertices, geometry.period
+        x = rng.random((3000, dim)) * period
+        x[:200, 0] = rng.choice([0.0, period[0] * (1 - 1e-16)], 200)  # on the cut
+        x = np.concatenate([x, sites[:100]])
+    tri = geometry.triangulation()
+    assert not tri.problems
+    want = np.sqrt(np.sort(_brute_d2(x, sites, period), axis=1)[:, 1])
+    got = geometry.returned_d_m2(x, tri)[0]
+    if domain == "sphere":
+        want = 2 * np.arcsin(np.minimum(want / 2, 1.0))
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    failed = geometry.returned_d_m2(x, tri._replace(problems=["a test"]))[0]
+    np.testing.assert_allclose(failed, want, rtol=1e-12)

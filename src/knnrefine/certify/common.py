@@ -4,15 +4,19 @@ finding rows of integers in a table (``find_rows``), and that the points given t
 the mesh's (``checked_points``). Weighted counts from kd-trees are
 ``metric``'s (``held_in_balls``, ``cell_tally``, ``weighted_kth``)."""
 
+import math
+from functools import cached_property
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .._engine.jit import kernel
+from .._engine.threads import in_chunks
 from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
 from ._rows import class_sizes, row_classes
-from ._tree import Tree, neighbour_lists
+from ._tree import Tree, neighbour_lists, spatial_order
 from .certificate import floor_sites, to_input
 from .steps import Cells, Probes
 
@@ -283,7 +287,6 @@ class TorusGeometry:
         self.origin = np.asarray(mesh.torus.origin, float)
         self.period = np.asarray(mesh.torus.period, float)
         self.vertices = np.asarray(mesh.torus.vertices, float)
-        self.vertex_tree = Tree(self.vertices, None, self.period, workers)
         self.pk_period = self.period  # d_{P,k}'s metric: the torus' (space: the box's own)
         self._cells = None
         self._d_m2 = None
@@ -320,6 +323,24 @@ class TorusGeometry:
         self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb)
         return self.cells(tri)
 
+    @cached_property
+    def vertex_tree(self):
+        """A periodic kd-tree over the torus' vertices (built only where asked: d_{M,2}
+        is walked on a verified triangulation)."""
+        return Tree(self.vertices, None, self.period, self.workers)
+
+    def torus_d_m2(self, x, tri):
+        """d_{M,2} at x on the torus from its vertices: walked on the triangulation
+        where that was verified (``walked_d_m2``), the kd-tree's where not or where a
+        walk did not settle."""
+        if tri.problems or len(self.vertices) < 4:
+            return self.vertex_tree.kth(x, 2)
+        out = walked_d_m2(self.cells(None), x, self.period, self.workers)
+        lost = np.isnan(out)
+        if lost.any():
+            out[lost] = self.vertex_tree.kth(x[lost], 2)
+        return out
+
     def held(self, points, tri, stop=np.inf):
         return points.held(tri.centres, tri.radii, stop)
 
@@ -345,6 +366,84 @@ class TorusGeometry:
 
     def to_input(self, x):
         return to_input(x, self.origin, self.mesh)
+
+
+def walked_d_m2(cells, x, period, workers):
+    """d_{M,2} at each x from a verified Delaunay triangulation's ``cells`` (sites,
+    neighbour lists and edge vectors; ``period`` per axis, 0 where none): the walk to
+    x's nearest site, from the nearest of the query before along a Morton curve, moves to
+    any nearer neighbour until none is (a Delaunay vertex with no nearer neighbour is the
+    nearest), and the second nearest is the nearest of that site's neighbours. NaN where
+    a walk did not settle (the caller asks a kd-tree there)."""
+    x = np.ascontiguousarray(x, np.float64)
+    order = spatial_order(x)
+    xs = np.ascontiguousarray(x[order])
+    res = np.empty(len(x))
+    sites = np.ascontiguousarray(cells.sites, np.float64)
+    edges = np.ascontiguousarray(cells.edges, np.float64)
+    first = np.ascontiguousarray(cells.first, np.int64)
+    neighbours = np.ascontiguousarray(cells.neighbours, np.int64)
+    period = np.ascontiguousarray(period, np.float64)
+
+    def call(a, b):
+        _walk_d_m2(sites, first, edges, neighbours, period, xs, res, a, b)
+
+    threads = None if workers is None or workers == -1 else int(workers)
+    in_chunks(call, len(x), threads=threads, least=512)
+    out = np.empty(len(x))
+    out[order] = res
+    return out
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _wrapped(g, p):
+    """g on a circle of period p > 0 taken the nearer way round (as it is where p = 0)."""
+    if p > 0.0:
+        g -= p * math.floor(g / p + 0.5)
+    return g
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
+    """``walked_d_m2``'s work for queries [start, end), NaN where a walk took more steps
+    than there are sites (rounding in a near tie that never settles)."""
+    d = x.shape[1]
+    m = len(first) - 1
+    dx = np.empty(d)
+    v = 0
+    for q in range(start, end):
+        best = 0.0
+        for a in range(d):
+            dx[a] = _wrapped(x[q, a] - sites[v, a], period[a])
+            best += dx[a] * dx[a]
+        steps = 0
+        while steps <= m:
+            move = -1
+            for j in range(first[v], first[v + 1]):
+                s = 0.0
+                for a in range(d):
+                    g = _wrapped(dx[a] - edges[j, a], period[a])
+                    s += g * g
+                if s < best:
+                    best, move = s, j
+            if move < 0:
+                break
+            for a in range(d):
+                dx[a] = _wrapped(dx[a] - edges[move, a], period[a])
+            v = neighbours[move]
+            steps += 1
+        if steps > m:
+            out[q] = np.nan
+            v = 0
+            continue
+        second = np.inf
+        for j in range(first[v], first[v + 1]):
+            s = 0.0
+            for a in range(d):
+                g = _wrapped(dx[a] - edges[j, a], period[a])
+                s += g * g
+            second = min(second, s)
+        out[q] = math.sqrt(second)
 
 
 def nearest_neighbour(cells):

@@ -116,8 +116,9 @@ class Geometry(Protocol):
                max_point_probes: int, rng: np.random.Generator) -> Probes:  # fmt: skip
         """The probes of the achieved constants."""
 
-    def returned_d_m2(self, x: np.ndarray) -> tuple:
-        """(d_{M,2} at x from the vertices returned, what is wrong with them)."""
+    def returned_d_m2(self, x: np.ndarray, tri: Triangulation) -> tuple:
+        """(d_{M,2} at x from the vertices returned, what is wrong with them); ``tri``
+        says whether the triangulation may be walked (verified: no problems)."""
 
     def separation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distances between the rows of x and y in d_{P,k}'s metric."""
@@ -192,7 +193,7 @@ def run_checks(
     if points.total >= k:
         d_m2 = np.array(probes.d_m2, float)
         ask = np.isnan(d_m2)
-        d_m2[ask], late = geometry.returned_d_m2(probes.x[ask])
+        d_m2[ask], late = geometry.returned_d_m2(probes.x[ask], tri)
         mesh_problems += late
         d_pk, lo = bounded_d_pk(points, geometry, probes, d_m2, floor)
         at_points = d_pk[probes.points]

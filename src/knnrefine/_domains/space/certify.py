@@ -423,7 +423,7 @@ class Geometry(TorusGeometry):
             },
         )
 
-    def returned_d_m2(self, x):
+    def returned_d_m2(self, x, tri):
         """d_{M,2} at x from the returned vertices in the box's own metric, and a problem
         when it differs from the torus mesh's (a copy near the box missing)."""
         returned = np.asarray(self.mesh.vertices, float)
@@ -437,11 +437,11 @@ class Geometry(TorusGeometry):
         if len(returned) < 2:
             return np.full(len(x), np.inf), []
         if coordinates and np.all(self.mesh.periodic) and _same_rows(returned, self.local):
-            return self.vertex_tree.kth(x, 2), []  # the torus' own vertices and metric
+            return self.torus_d_m2(x, tri), []  # the torus' own vertices and metric
         dm2 = Tree(returned, None, box_period, self.workers).kth(x, 2)
         problems = []
         if coordinates:  # the copies near the box hold its two nearest
-            on_torus = self.vertex_tree.kth(x, 2)
+            on_torus = self.torus_d_m2(x, tri)
             if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
                 problems.append(
                     "d_M2 from the returned vertices differs from the torus mesh's in the box"

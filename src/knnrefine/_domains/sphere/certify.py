@@ -27,6 +27,8 @@ beta] wherever d_{P,k} >= min_size, beta from the largest circumcap measured her
 (``mesh.sphere_constants``: spherical Pythagoras widens the plane's).
 """
 
+from functools import cached_property
+
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -45,6 +47,7 @@ from ...certify.common import (
     nearest_site,
     size_estimate,
     size_sample,
+    walked_d_m2,
 )
 from ...certify.steps import Cells, Triangulation
 from ...mesh import sphere_constants
@@ -283,7 +286,6 @@ class Geometry:
         self.floor = mesh.min_size / mesh.radius
         self.xyz = np.asarray(mesh.xyz, float)
         self.tri = np.asarray(mesh.triangles, np.int64)
-        self.vtree = Tree(self.xyz, None, None, workers)
         self._cells = None
         self._d_m2 = None
         self._returned = []  # the returned mesh's problems, found with the triangulation's
@@ -384,8 +386,22 @@ class Geometry:
         unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
         return probes._replace(x=unit)
 
-    def returned_d_m2(self, x):
-        return chord_to_angle(self.vtree.kth(x, 2)), []
+    @cached_property
+    def vtree(self):
+        """A kd-tree over the vertices' unit vectors (built only where asked: d_{M,2} is
+        walked on a verified triangulation)."""
+        return Tree(self.xyz, None, None, self.workers)
+
+    def returned_d_m2(self, x, tri):
+        """d_{M,2} at x (unit vectors), an angle: walked on the triangulation where that
+        was verified (``common.walked_d_m2``, chords), the kd-tree's where not."""
+        if tri.problems or len(self.xyz) < 4:
+            return chord_to_angle(self.vtree.kth(x, 2)), []
+        chord = walked_d_m2(self.cells(None), x, np.zeros(3), self.workers)
+        lost = np.isnan(chord)
+        if lost.any():
+            chord[lost] = self.vtree.kth(x[lost], 2)
+        return chord_to_angle(chord), []
 
     def separation(self, x, y):
         """Angles between the rows of x and y (unit vectors): d_{P,k}'s metric."""
