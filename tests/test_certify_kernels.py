@@ -258,3 +258,30 @@ def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
     np.testing.assert_allclose(got, want, rtol=1e-12)
     failed = geometry.returned_d_m2(x, tri._replace(problems=["a test"]))[0]
     np.testing.assert_allclose(failed, want, rtol=1e-12)
+
+
+def test_a_tree_built_in_the_background_answers_as_one_built_in_place(monkeypatch):
+    """Issue 52: the points' tree is built in a thread beside the mesh's checks; its answers
+    are those of one built in place (threads asking at once included), and an error in
+    the build reaches the caller at the first question."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from knnrefine.certify import _tree
+
+    rng = np.random.default_rng(31)
+    pts = rng.random((20_000, 2))
+    x = rng.random((2_000, 2))
+    here = Tree(pts, None, np.ones(2), 2)
+    there = Tree(pts, None, np.ones(2), 2, background=True)
+    with ThreadPoolExecutor(4) as pool:
+        answers = list(pool.map(lambda k: there.kth(x, k), [1, 5, 30, 30]))
+    for k, got in zip([1, 5, 30, 30], answers, strict=True):
+        np.testing.assert_array_equal(got, here.kth(x, k))
+
+    def broken(*args):
+        raise MemoryError("no room for the tree")
+
+    monkeypatch.setattr(_tree, "_build", broken)
+    failing = Tree(pts, None, None, 2, background=True)
+    with pytest.raises(MemoryError, match="no room"):
+        failing.kth(x, 3)

@@ -34,6 +34,7 @@ gives what testing its points one by one gives.
 """
 
 import math
+import threading
 
 import numpy as np
 
@@ -797,12 +798,30 @@ def sums_by(cell, w, m):
     return s + c
 
 
+def _built_in_thread(pts, w):
+    """(a thread building the tree of pts, w; its result, {"tree": ...} or {"error": ...},
+    once joined). A thread of its own that ends with the build: none is left waiting."""
+    out = {}
+
+    def build():
+        try:
+            out["tree"] = _build(pts, w, LEAF)
+        except BaseException as e:  # handed to the caller, who asks for the tree
+            out["error"] = e
+
+    thread = threading.Thread(target=build, name="knnrefine-certify-tree", daemon=True)
+    thread.start()
+    return thread, out
+
+
 class Tree:
     """certify's kd-tree over ``points`` (n, d), with ``weights`` (n,) or None (every point
     weighs 1), on the torus of ``period`` (per axis; 0 or None: that axis does not wrap;
-    coordinates along wrapping axes in [0, period))."""
+    coordinates along wrapping axes in [0, period)). ``background``: built in a thread of
+    its own (the build holds no lock), so that the caller's work on the mesh goes on
+    beside it; the first question waits for it."""
 
-    def __init__(self, points, weights=None, period=None, threads=None):
+    def __init__(self, points, weights=None, period=None, threads=None, background=False):
         pts = np.ascontiguousarray(points, dtype=np.float64)
         self.n, self.dim = pts.shape
         self.period = (np.zeros(self.dim) if period is None
@@ -811,7 +830,25 @@ class Tree:
         w = np.ones(self.n) if weights is None else np.ascontiguousarray(weights, np.float64)
         if self.n == 0:  # a node must exist: one far away holding nothing
             pts, w = np.full((1, self.dim), np.inf), np.zeros(1)
-        self.pts, self.w, self.T, self.depth = _build(pts, w, LEAF)
+        if background:
+            self._job = _built_in_thread(pts, w)
+        else:
+            self._built = _build(pts, w, LEAF)
+
+    def _parts(self):
+        built = self.__dict__.get("_built")
+        if built is None:  # (threads may ask at once: each joins, each sets the same)
+            thread, out = self._job
+            thread.join()
+            if "error" in out:
+                raise out["error"]
+            built = self._built = out["tree"]
+        return built
+
+    pts = property(lambda self: self._parts()[0], doc="the points, in the tree's order")
+    w = property(lambda self: self._parts()[1], doc="their weights, in the tree's order")
+    T = property(lambda self: self._parts()[2], doc="the nodes")
+    depth = property(lambda self: self._parts()[3], doc="the tree's depth")
 
     def _queries(self, x):
         return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)

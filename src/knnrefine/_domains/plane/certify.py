@@ -136,9 +136,10 @@ class Points:
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
         self.points = self.input_frame(pts)
         heavy = None if weights is None else weights > 0
+        # built beside the mesh's checks, which come first
         self.tree = Tree(self.points if heavy is None else self.points[heavy],
                          None if heavy is None else weights[heavy], self.period,
-                         workers)  # fmt: skip
+                         workers, background=True)  # fmt: skip
 
     def d_pk(self, x):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""

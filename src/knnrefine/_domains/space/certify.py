@@ -184,9 +184,10 @@ class Points:
         self.box_period = np.where(mesh.periodic, self.period, 0.0)
         self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
         heavy = None if weights is None else weights > 0
+        # built beside the mesh's checks, which come first
         self.tree = Tree(self.points if heavy is None else self.points[heavy],
                          None if heavy is None else weights[heavy], self.period,
-                         workers)  # fmt: skip
+                         workers, background=True)  # fmt: skip
 
     def held(self, centres, radii, stop=np.inf):
         return self.tree.held(centres, radii, stop)

@@ -216,8 +216,10 @@ class Points:
         self.weighted = weights is not None
         self.total = self.n if weights is None else float(weights.sum())
         heavy = None if weights is None else weights > 0
+        # built beside the mesh's checks, which come first
         self.tree = Tree(unit if heavy is None else unit[heavy],
-                         None if heavy is None else weights[heavy], None, workers)  # fmt: skip
+                         None if heavy is None else weights[heavy], None, workers,
+                         background=True)  # fmt: skip
 
     def held(self, centres, angles, stop=np.inf):
         """What each closed cap (centre, angle) holds, inflated by a relative 1e-12; exact
