@@ -25,6 +25,7 @@ import math
 import numpy as np
 
 from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
+from ..._engine.threads import in_chunks
 from ..._metric import BoxMetric, TorusFrame
 from ...certify._predicates import UNSURE, exact_sign, insphere, orient3d
 from ...certify._rows import class_sizes, row_classes
@@ -45,13 +46,14 @@ from ...certify.common import (
 from ...certify.steps import Triangulation
 
 
-@kernel(entry=True, lazy=True)
-def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far):
-    """orient[t]: the sign of orient3d of tetrahedron t's corners (UNSURE where the filter
-    cannot tell); sphere[t, i]: that of insphere of its corners and the far corner of the
-    tetrahedron across face i, placed by the face's own offsets (written to far[t, i])."""
+@kernel(entry=True, lazy=True, nogil=True)
+def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far, start, end):
+    """For tetrahedra t in [start, end): orient[t], the sign of orient3d of its corners
+    (UNSURE where the filter cannot tell); sphere[t, i], that of insphere of its corners
+    and the far corner of the tetrahedron across face i, placed by the face's own offsets
+    (written to far[t, i])."""
     pts = np.empty((5, 3))
-    for t in range(corners.shape[0]):
+    for t in range(start, end):
         for i in range(4):
             for a in range(3):
                 pts[i, a] = local[corners[t, i], a] + offsets[t, i, a] * period[a]
@@ -73,14 +75,19 @@ def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, fa
             sphere[t, i] = insphere(pts, 0, 1, 2, 3, 4)
 
 
-def _exact_faces(local, corners, offsets, neighbours, period):
+def _exact_faces(local, corners, offsets, neighbours, period, workers=None):
     """(tetrahedra not positively oriented, faces not locally Delaunay), exactly: filtered
-    signs (``_local_signs``), integers where the filter cannot tell."""
+    signs (``_local_signs``, on ``workers`` threads: None or -1 every core), integers where
+    the filter cannot tell."""
     t = len(corners)
     orient = np.empty(t, np.int8)
     sphere = np.empty((t, 4), np.int8)
     far = np.empty((t, 4, 3))
-    _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far)
+
+    def call(a, b):
+        _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far, a, b)
+
+    in_chunks(call, t, threads=None if workers in (None, -1) else int(workers), least=4096)
     at = lambda c: local[corners[c]] + offsets[c] * period  # noqa: E731
     for c in np.flatnonzero(orient == UNSURE):
         orient[c] = exact_sign("orient3d", at(c))
@@ -365,7 +372,7 @@ class Geometry(TorusGeometry):
         bad_o = bad_d = -1
         if neighbours is not None:
             bad_o, bad_d = _exact_faces(local, corners.astype(np.int64), offsets, neighbours,
-                                        period)  # fmt: skip
+                                        period, self.workers)  # fmt: skip
         c = local[corners] + offsets * period
         volume = np.abs(np.linalg.det(c[:, 1:] - c[:, :1])).sum() / 6.0 / np.prod(period)
         problems = []
