@@ -328,57 +328,38 @@ def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monke
             assert getattr(bounded, field.name) == getattr(every, field.name), field.name
 
 
-def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner():
-    """A periodic mesh returned as its torus (the triangles row for row: the fast path of
-    ``verify_returned_mesh``) passes; a vertex moved by a whole period (still a copy of its
-    torus vertex) leaves its triangles' corners off their torus triangles, and a triangle's
-    offsets changed the same, and both are reported."""
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner(dim):
+    """A periodic mesh returned as its torus (cells row for row: the fast path of
+    ``verify_returned_mesh`` and ``verify_returned_mesh3``, the corners compared directly,
+    the tiling taken from the verified torus) passes; a vertex moved by a whole period
+    (still a copy of its torus vertex) leaves its cells' corners off their torus cells, a
+    cell's offsets changed the same, a cell listed twice and two corners swapped (the
+    orientation reversed) are each reported."""
     from knnrefine._domains.plane.certify import verify_returned_mesh
-
-    rng = np.random.default_rng(56)
-    mesh = knnrefine.refine(rng.random((3000, 2)), 10, periodic=True, box=(0, 0, 1, 1))
-    assert np.array_equal(np.asarray(mesh.order)[mesh.triangles], mesh.torus.triangles)
-    assert verify_returned_mesh(mesh) == []
-    v = np.array(mesh.vertices)
-    v[0, 0] += 1.0
-    moved = verify_returned_mesh(dataclasses.replace(mesh, vertices=v))
-    assert any("corners off their torus triangle" in p for p in moved)
-    off = np.array(mesh.offsets)
-    off[7, 1, 0] += 1
-    shifted = verify_returned_mesh(dataclasses.replace(mesh, offsets=off))
-    assert any("corners off their torus triangle" in p for p in shifted)
-    # the tiling is taken from the verified torus only for its own triangles, row for row
-    cells = np.concatenate([mesh.triangles, mesh.triangles[:1]])
-    twice = dataclasses.replace(mesh, cells=cells, offsets=np.concatenate([off, off[:1]]))
-    assert any("listed more than once" in p for p in verify_returned_mesh(twice))
-
-
-def test_a_space_torus_returned_row_for_row_is_still_checked_corner_by_corner():
-    """Space's fast path (``verify_returned_mesh3``: tetrahedra row for row the torus', the
-    corners compared in one kernel, the tiling taken from the verified torus): a vertex
-    moved by a whole period, one corner's offset changed, a tetrahedron listed twice and
-    two corners swapped (the orientation reversed) are each reported."""
     from knnrefine._domains.space.certify import verify_returned_mesh3
 
-    rng = np.random.default_rng(57)
-    mesh = knnrefine.refine(rng.random((3000, 3)), 10, periodic=True, box=(0, 0, 0, 1, 1, 1))
+    verify = verify_returned_mesh if dim == 2 else verify_returned_mesh3
+    off_cells = "corners off their torus " + ("triangle" if dim == 2 else "tetrahedron")
+    rng = np.random.default_rng(54 + dim)
+    box = (0,) * dim + (1,) * dim
+    mesh = knnrefine.refine(rng.random((3000, dim)), 10, periodic=True, box=box)
     assert np.array_equal(np.asarray(mesh.order)[mesh.cells], mesh.torus.cells)
-    assert verify_returned_mesh3(mesh) == []
+    assert verify(mesh) == []
     v = np.array(mesh.vertices)
     v[0, 0] += 1.0
-    moved = verify_returned_mesh3(dataclasses.replace(mesh, vertices=v))
-    assert any("corners off their torus tetrahedron" in p for p in moved)
+    assert any(off_cells in p for p in verify(dataclasses.replace(mesh, vertices=v)))
     off = np.array(mesh.offsets)
     off[7, 1, 0] += 1
-    shifted = verify_returned_mesh3(dataclasses.replace(mesh, offsets=off))
-    assert any("corners off their torus tetrahedron" in p for p in shifted)
+    assert any(off_cells in p for p in verify(dataclasses.replace(mesh, offsets=off)))
     cells = np.concatenate([mesh.cells, mesh.cells[:1]])
     twice = dataclasses.replace(mesh, cells=cells, offsets=np.concatenate([off, off[:1]]))
-    assert any("listed more than once" in p for p in verify_returned_mesh3(twice))
+    assert any("listed more than once" in p for p in verify(twice))
     cells, off = np.array(mesh.cells), np.array(mesh.offsets)
     cells[3, [0, 1]], off[3, [0, 1]] = cells[3, [1, 0]], off[3, [1, 0]]
-    swapped = verify_returned_mesh3(dataclasses.replace(mesh, cells=cells, offsets=off))
-    assert any("corners off their torus tetrahedron" in p for p in swapped)
+    swapped = verify(dataclasses.replace(mesh, cells=cells, offsets=off))
+    reversed_cell = off_cells if dim == 3 else "are not triangles of the torus mesh"
+    assert any(reversed_cell in p for p in swapped)
 
 
 DEGENERATE = ["plane-line-duplicates", "plane-lattice", "plane-line-workers",

@@ -220,12 +220,13 @@ def test_size_sample_gives_the_integral_two_points_a_cell_and_the_rest_to_the_ra
     assert size_estimate(y, 100) == (float(y.sum()), 0.0)
 
 
-@pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
+@pytest.mark.parametrize("domain", ["plane", "plane-lattice", "plane-line", "space", "sphere"])
 def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
     """Issue 52: d_{M,2} at the probes walked on the verified triangulation (to the nearest
     vertex by nearer neighbours, the second nearest among its neighbours) against every
-    vertex by brute force: on the torus across its cut and at its vertices, on the sphere
-    at its poles; where the triangulation failed its check, the kd-tree answers."""
+    vertex by brute force: on the torus across its cut and at its vertices, on a lattice
+    (every distance tied) and on points on a line with repeats, on the sphere at its
+    poles; where the triangulation failed its check, the kd-tree answers."""
     import knnrefine
     from knnrefine._domains.plane import certify as plane
     from knnrefine._domains.space import certify as space
@@ -241,9 +242,15 @@ def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
         x[:2] = [[0, 0, 1], [0, 0, -1]]
         x = np.concatenate([x / np.linalg.norm(x, axis=1, keepdims=True), sites[:100]])
     else:
-        dim = 2 if domain == "plane" else 3
+        dim = 3 if domain == "space" else 2
         box = (0,) * dim + (1,) * dim
-        mesh = knnrefine.refine(rng.random((3000, dim)) ** 2, 5, periodic=True, box=box)
+        pts = rng.random((3000, dim)) ** 2
+        if domain == "plane-lattice":
+            pts = np.stack(np.meshgrid(*[np.arange(40) / 40] * 2), -1).reshape(-1, 2)
+        if domain == "plane-line":
+            pts = np.column_stack([rng.random(3000), np.full(3000, 0.5)])
+            pts[1000:1500] = pts[:500]
+        mesh = knnrefine.refine(pts, 5, periodic=True, box=box)
         geometry = (plane if dim == 2 else space).Geometry(mesh, 2)
         sites, period = geometry.vertices, geometry.period
         x = rng.random((3000, dim)) * period

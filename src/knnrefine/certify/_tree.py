@@ -437,15 +437,13 @@ def _gather(pts, w, T, period, c, r2, stack, gx, gw):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _offset(x, c, p):
-    """The signed distance along one axis from c to x (the nearer way round a circle of
-    period p > 0)."""
+def offset(x, c, p):
+    """The signed distance along one axis from c to x, taken the nearer way round a circle
+    of period p > 0 (by whole periods, however many). certify's own, as the engine's
+    ``_wrapped`` is the engine's: certify calls no engine kernel."""
     g = x - c
     if p > 0.0:
-        if g > 0.5 * p:
-            g -= p
-        elif g < -0.5 * p:
-            g += p
+        g -= p * math.floor(g / p + 0.5)
     return g
 
 
@@ -477,9 +475,7 @@ def _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell):
         for a in range(dim):
             i = 0
             if G > 1:
-                i = min(
-                    max(int((_offset(gx[j, a], centre[a], period[a]) + reach) / side), 0), G - 1
-                )
+                i = min(max(int((offset(gx[j, a], centre[a], period[a]) + reach) / side), 0), G - 1)
             b = b * G + i
         cell[j] = b
         first[b + 1] += 1
@@ -517,7 +513,7 @@ def _kth_in(bx, bw, first, G, centre, reach, xq, period, k, unit, r, d2, dw, lo,
         wide = r * (1.0 + 1e-9) + 1e-14 * scale
         step = 1
         for a in range(dim - 1, -1, -1):
-            o = _offset(xq[a], centre[a], period[a]) + reach
+            o = offset(xq[a], centre[a], period[a]) + reach
             lo[a] = min(max(int((o - wide) / side), 0), G - 1) if o - wide > 0.0 else 0
             hi[a] = min(max(int((o + wide) / side), 0), G - 1) if o + wide > 0.0 else 0
             stride[a] = step
@@ -611,12 +607,9 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
                             reach = -1.0
                             break
                         G = _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell)
-                    if G > 1:
-                        answer = _kth_in(bx, bw, first, G, centre, reach, xq, period, k,
-                                         unit, r, d2, dw, lo, hi, stride)  # fmt: skip
-                    else:
-                        answer = _kth_in(gx, gw, first, G, centre, reach, xq, period, k,
-                                         unit, r, d2, dw, lo, hi, stride)  # fmt: skip
+                    px, pw = (bx, bw) if G > 1 else (gx, gw)  # one bucket: left in place
+                    answer = _kth_in(px, pw, first, G, centre, reach, xq, period, k, unit, r,
+                                     d2, dw, lo, hi, stride)  # fmt: skip
                     if answer >= 0.0:
                         break
         if answer < 0.0:

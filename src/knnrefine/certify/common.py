@@ -16,7 +16,7 @@ from .._validation import as_points, check_inside, check_made_from, weights_of_r
 from ..errors import InputError
 from ..mesh import theorem6_constants
 from ._rows import class_sizes, row_classes
-from ._tree import Tree, neighbour_lists, spatial_order
+from ._tree import Tree, neighbour_lists, offset, spatial_order
 from .certificate import floor_sites, to_input
 from .steps import Cells, Probes
 
@@ -330,16 +330,9 @@ class TorusGeometry:
         return Tree(self.vertices, None, self.period, self.workers)
 
     def torus_d_m2(self, x, tri):
-        """d_{M,2} at x on the torus from its vertices: walked on the triangulation
-        where that was verified (``walked_d_m2``), the kd-tree's where not or where a
-        walk did not settle."""
-        if tri.problems or len(self.vertices) < 4:
-            return self.vertex_tree.kth(x, 2)
-        out = walked_d_m2(self.cells(None), x, self.period, self.workers)
-        lost = np.isnan(out)
-        if lost.any():
-            out[lost] = self.vertex_tree.kth(x[lost], 2)
-        return out
+        """d_{M,2} at x on the torus from its vertices (``walked_d_m2``)."""
+        return walked_d_m2(self.cells(None), x, self.period, self.workers, tri,
+                           self.vertex_tree)  # fmt: skip
 
     def held(self, points, tri, stop=np.inf):
         return points.held(tri.centres, tri.radii, stop)
@@ -368,13 +361,25 @@ class TorusGeometry:
         return to_input(x, self.origin, self.mesh)
 
 
-def walked_d_m2(cells, x, period, workers):
-    """d_{M,2} at each x from a verified Delaunay triangulation's ``cells`` (sites,
-    neighbour lists and edge vectors; ``period`` per axis, 0 where none): the walk to
-    x's nearest site, from the nearest of the query before along a Morton curve, moves to
-    any nearer neighbour until none is (a Delaunay vertex with no nearer neighbour is the
-    nearest), and the second nearest is the nearest of that site's neighbours. NaN where
-    a walk did not settle (the caller asks a kd-tree there)."""
+def walked_d_m2(cells, x, period, workers, tri, tree):
+    """d_{M,2} at each x from a Delaunay triangulation's ``cells`` (sites, neighbour lists
+    and edge vectors; ``period`` per axis, 0 where none), where ``tri`` verified it: the
+    walk to x's nearest site, from the nearest of the query before along a Morton curve,
+    moves to any nearer neighbour until none is (a Delaunay vertex with no nearer
+    neighbour is the nearest), and the second nearest is the nearest of that site's
+    neighbours. ``tree`` (a kd-tree over the sites) answers where the triangulation failed
+    its check or a walk did not settle."""
+    if tri.problems or len(cells.sites) < 4:
+        return tree.kth(x, 2)
+    out = _walked(cells, x, period, workers)
+    lost = np.isnan(out)
+    if lost.any():
+        out[lost] = tree.kth(x[lost], 2)
+    return out
+
+
+def _walked(cells, x, period, workers):
+    """``walked_d_m2``'s walks, on every core; NaN where one did not settle."""
     x = np.ascontiguousarray(x, np.float64)
     order = spatial_order(x)
     xs = np.ascontiguousarray(x[order])
@@ -395,14 +400,6 @@ def walked_d_m2(cells, x, period, workers):
     return out
 
 
-@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _wrapped(g, p):
-    """g on a circle of period p > 0 taken the nearer way round (as it is where p = 0)."""
-    if p > 0.0:
-        g -= p * math.floor(g / p + 0.5)
-    return g
-
-
 @kernel(entry=True, lazy=True, nogil=True)
 def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
     """``walked_d_m2``'s work for queries [start, end), NaN where a walk took more steps
@@ -414,7 +411,7 @@ def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
     for q in range(start, end):
         best = 0.0
         for a in range(d):
-            dx[a] = _wrapped(x[q, a] - sites[v, a], period[a])
+            dx[a] = offset(x[q, a], sites[v, a], period[a])
             best += dx[a] * dx[a]
         steps = 0
         while steps <= m:
@@ -422,14 +419,14 @@ def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
             for j in range(first[v], first[v + 1]):
                 s = 0.0
                 for a in range(d):
-                    g = _wrapped(dx[a] - edges[j, a], period[a])
+                    g = offset(dx[a], edges[j, a], period[a])
                     s += g * g
                 if s < best:
                     best, move = s, j
             if move < 0:
                 break
             for a in range(d):
-                dx[a] = _wrapped(dx[a] - edges[move, a], period[a])
+                dx[a] = offset(dx[a], edges[move, a], period[a])
             v = neighbours[move]
             steps += 1
         if steps > m:
@@ -440,7 +437,7 @@ def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
         for j in range(first[v], first[v + 1]):
             s = 0.0
             for a in range(d):
-                g = _wrapped(dx[a] - edges[j, a], period[a])
+                g = offset(dx[a], edges[j, a], period[a])
                 s += g * g
             second = min(second, s)
         out[q] = math.sqrt(second)
@@ -512,8 +509,8 @@ def size_sample(t, samples, rng):
     of ``samples`` cells drawn without replacement, none further. A small one: one or two
     points in every cell for the integral (two give the spread within cells, so its
     standard error), and ``samples`` // t - 2 further in each: a small mesh is probed
-    densely, as its ratio's largest values can hide in small regions (300 uniform points,
-    k = 5: 264 points per cell found beta_hat 1.96, 4 per cell 1.65). The further ones are
+    densely, as its ratio's largest values can hide in small regions (with 4 per cell,
+    test_achieved_constants_are_what_they_claim fails on 300 points). The further ones are
     bounded by their cell's corners (``steps.bounded_d_pk``) and asked only where they
     could be extremes, so that what is asked of the points grows with the mesh."""
     if samples < t:

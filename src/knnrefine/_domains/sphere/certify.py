@@ -395,14 +395,8 @@ class Geometry:
         return Tree(self.xyz, None, None, self.workers)
 
     def returned_d_m2(self, x, tri):
-        """d_{M,2} at x (unit vectors), an angle: walked on the triangulation where that
-        was verified (``common.walked_d_m2``, chords), the kd-tree's where not."""
-        if tri.problems or len(self.xyz) < 4:
-            return chord_to_angle(self.vtree.kth(x, 2)), []
-        chord = walked_d_m2(self.cells(None), x, np.zeros(3), self.workers)
-        lost = np.isnan(chord)
-        if lost.any():
-            chord[lost] = self.vtree.kth(x[lost], 2)
+        """d_{M,2} at x (unit vectors), an angle, from chords (``common.walked_d_m2``)."""
+        chord = walked_d_m2(self.cells(None), x, np.zeros(3), self.workers, tri, self.vtree)
         return chord_to_angle(chord), []
 
     def separation(self, x, y):
