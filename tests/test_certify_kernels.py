@@ -226,11 +226,13 @@ def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
     vertex by nearer neighbours, the second nearest among its neighbours) against every
     vertex by brute force: on the torus across its cut and at its vertices, on a lattice
     (every distance tied) and on points on a line with repeats, on the sphere at its
-    poles; where the triangulation failed its check, the kd-tree answers."""
+    poles; where the triangulation failed its check, the kd-tree answers. The nearest
+    vertex the walk ends at (the bound of a uniform probe's d_{P,k}) is the nearest."""
     import knnrefine
     from knnrefine._domains.plane import certify as plane
     from knnrefine._domains.space import certify as space
     from knnrefine._domains.sphere import certify as sphere
+    from knnrefine.certify.common import nearest_site
 
     rng = np.random.default_rng(23)
     if domain == "sphere":
@@ -265,6 +267,14 @@ def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
     np.testing.assert_allclose(got, want, rtol=1e-12)
     failed = geometry.returned_d_m2(x, tri._replace(problems=["a test"]))[0]
     np.testing.assert_allclose(failed, want, rtol=1e-12)
+    cells = geometry.cells(tri)
+    walk_period = np.zeros(sites.shape[1]) if period is None else period
+    near = nearest_site(cells, x, walk_period, 2, tri)[:, 0]
+    d2 = _brute_d2(x, sites, period)
+    np.testing.assert_allclose(d2[np.arange(len(x)), near], d2.min(axis=1), rtol=1e-12)
+    if period is None:  # the kd-tree's fallback reads plain coordinates
+        near = nearest_site(cells, x, walk_period, 2, tri._replace(problems=["a test"]))[:, 0]
+        np.testing.assert_allclose(d2[np.arange(len(x)), near], d2.min(axis=1), rtol=1e-12)
 
 
 def test_a_tree_built_in_the_background_answers_as_one_built_in_place(monkeypatch):

@@ -332,7 +332,7 @@ class TorusGeometry:
     def torus_d_m2(self, x, tri):
         """d_{M,2} at x on the torus from its vertices (``walked_d_m2``)."""
         return walked_d_m2(self.cells(None), x, self.period, self.workers, tri,
-                           self.vertex_tree)  # fmt: skip
+                           lambda: self.vertex_tree)  # fmt: skip
 
     def held(self, points, tri, stop=np.inf):
         return points.held(tri.centres, tri.radii, stop)
@@ -363,27 +363,29 @@ class TorusGeometry:
 
 def walked_d_m2(cells, x, period, workers, tri, tree):
     """d_{M,2} at each x from a Delaunay triangulation's ``cells`` (sites, neighbour lists
-    and edge vectors; ``period`` per axis, 0 where none), where ``tri`` verified it: the
-    walk to x's nearest site, from the nearest of the query before along a Morton curve,
-    moves to any nearer neighbour until none is (a Delaunay vertex with no nearer
-    neighbour is the nearest), and the second nearest is the nearest of that site's
-    neighbours. ``tree`` (a kd-tree over the sites) answers where the triangulation failed
-    its check or a walk did not settle."""
+    and edge vectors; ``period`` per axis, 0 where none), where ``tri`` verified it
+    (``walked``). ``tree()`` (a kd-tree over the sites, built only when called) answers
+    where the triangulation failed its check or a walk did not settle."""
     if tri.problems or len(cells.sites) < 4:
-        return tree.kth(x, 2)
-    out = _walked(cells, x, period, workers)
+        return tree().kth(x, 2)
+    out, _ = walked(cells, x, period, workers)
     lost = np.isnan(out)
     if lost.any():
-        out[lost] = tree.kth(x[lost], 2)
+        out[lost] = tree().kth(x[lost], 2)
     return out
 
 
-def _walked(cells, x, period, workers):
-    """``walked_d_m2``'s walks, on every core; NaN where one did not settle."""
+def walked(cells, x, period, workers):
+    """(d_{M,2} at each x, x's nearest site) from a verified Delaunay triangulation's
+    ``cells``, on every core: the walk to x's nearest site, from the nearest of the query
+    before along a Morton curve, moves to any nearer neighbour until none is (a Delaunay
+    vertex with no nearer neighbour is the nearest), and the second nearest is the nearest
+    of that site's neighbours. NaN and -1 where a walk did not settle."""
     x = np.ascontiguousarray(x, np.float64)
     order = spatial_order(x)
     xs = np.ascontiguousarray(x[order])
     res = np.empty(len(x))
+    site = np.empty(len(x), np.int64)
     sites = np.ascontiguousarray(cells.sites, np.float64)
     edges = np.ascontiguousarray(cells.edges, np.float64)
     first = np.ascontiguousarray(cells.first, np.int64)
@@ -391,19 +393,21 @@ def _walked(cells, x, period, workers):
     period = np.ascontiguousarray(period, np.float64)
 
     def call(a, b):
-        _walk_d_m2(sites, first, edges, neighbours, period, xs, res, a, b)
+        _walk_d_m2(sites, first, edges, neighbours, period, xs, res, site, a, b)
 
     threads = None if workers is None or workers == -1 else int(workers)
     in_chunks(call, len(x), threads=threads, least=512)
     out = np.empty(len(x))
     out[order] = res
-    return out
+    nearest = np.empty(len(x), np.int64)
+    nearest[order] = site
+    return out, nearest
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
-    """``walked_d_m2``'s work for queries [start, end), NaN where a walk took more steps
-    than there are sites (rounding in a near tie that never settles)."""
+def _walk_d_m2(sites, first, edges, neighbours, period, x, out, site, start, end):
+    """``walked``'s work for queries [start, end), NaN (site -1) where a walk took more
+    steps than there are sites (rounding in a near tie that never settles)."""
     d = x.shape[1]
     m = len(first) - 1
     dx = np.empty(d)
@@ -431,6 +435,7 @@ def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
             steps += 1
         if steps > m:
             out[q] = np.nan
+            site[q] = -1
             v = 0
             continue
         second = np.inf
@@ -441,6 +446,7 @@ def _walk_d_m2(sites, first, edges, neighbours, period, x, out, start, end):
                 s += g * g
             second = min(second, s)
         out[q] = math.sqrt(second)
+        site[q] = v
 
 
 def nearest_neighbour(cells):
@@ -469,13 +475,21 @@ def edge_midpoints(cells):
     return cells.sites[site[positive]] + 0.5 * e[positive], ends
 
 
-def nearest_site(sites, x):
-    """The row of ``sites`` nearest each row of x, as a column (n, 1), in plain
-    coordinates (across a period the nearest may be missed: any site is a valid bound of
-    d_{P,k} at x, ``steps.bounded_d_pk``, the nearest only the tightest)."""
+def nearest_site(cells, x, period, workers, tri):
+    """The site of ``cells`` nearest each row of x, as a column (n, 1): walked
+    (``walked``) where ``tri`` verified the triangulation, else from scipy's cKDTree in
+    plain coordinates (across a period the nearest may be missed: any site is a valid
+    bound of d_{P,k} at x, ``steps.bounded_d_pk``, the nearest only the tightest)."""
+    sites = cells.sites
     if len(sites) == 0 or len(x) == 0:
         return np.full((len(x), 1), -1, np.int64)
-    return cKDTree(sites).query(x)[1].astype(np.int64)[:, None]
+    near = np.full(len(x), -1, np.int64)
+    if not tri.problems and len(sites) >= 4:
+        near = walked(cells, x, period, workers)[1]
+    lost = near < 0
+    if lost.any():
+        near[lost] = cKDTree(sites).query(x[lost])[1]
+    return near[:, None]
 
 
 def gathered_probes(parts, inside, extra, near=None):

@@ -101,7 +101,7 @@ class Geometry(TorusGeometry):
             # further sample's cell's corners
             near={
                 3: (2, ends),
-                4: (2, nearest_site(self.vertices, uniform)),
+                4: (2, nearest_site(self.cells(tri), uniform, self.period, self.workers, tri)),
                 5: (2, self.mesh.torus.triangles[dense]),
             },
         )

@@ -383,7 +383,11 @@ class Geometry:
             (weights, t),
             # near: a midpoint's two vertices, a uniform point's nearest vertex, a
             # further sample's cell's corners
-            near={3: (2, ends), 4: (2, nearest_site(xyz, uniform)), 5: (2, tri_[dense])},
+            near={
+                3: (2, ends),
+                4: (2, nearest_site(self.cells(tri), uniform, np.zeros(3), self.workers, tri)),
+                5: (2, tri_[dense]),
+            },
         )
         unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
         return probes._replace(x=unit)
@@ -396,7 +400,8 @@ class Geometry:
 
     def returned_d_m2(self, x, tri):
         """d_{M,2} at x (unit vectors), an angle, from chords (``common.walked_d_m2``)."""
-        chord = walked_d_m2(self.cells(None), x, np.zeros(3), self.workers, tri, self.vtree)
+        chord = walked_d_m2(self.cells(None), x, np.zeros(3), self.workers, tri,
+                            lambda: self.vtree)  # fmt: skip
         return chord_to_angle(chord), []
 
     def separation(self, x, y):
