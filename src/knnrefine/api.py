@@ -202,9 +202,11 @@ def certify(
         The points it was refined from.
     samples : int
         Random probes inside the cells: one in each of ``samples`` cells of a large mesh,
-        ``samples`` // t in each of the t cells of a small one (the size integral reads two
-        of them per cell; the others probe the ratio, asked only where their bounds could
-        reach an extreme); every vertex and edge midpoint is probed too.
+        ``samples`` // t in each of the t cells of a small one (the size integral reads one
+        in each of ``samples`` // 4 cells, all where fewer, beside its control variate, the
+        integrand's mean over each cell's corners; the others probe the ratio, asked only
+        where their bounds could reach an extreme); every vertex and edge midpoint is probed
+        too.
     n_random : int
         Uniform probes in the box (on the sphere, on the whole sphere).
     max_point_probes : int

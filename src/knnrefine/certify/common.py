@@ -5,6 +5,7 @@ the mesh's (``checked_points``). Weighted counts from kd-trees are
 ``metric``'s (``held_in_balls``, ``cell_tally``, ``weighted_kth``)."""
 
 import math
+from collections import namedtuple
 from functools import cached_property
 
 import numpy as np
@@ -492,13 +493,23 @@ def nearest_site(cells, x, period, workers, tri):
     return near[:, None]
 
 
-def gathered_probes(parts, inside, extra, near=None):
+# the size integral's sample (``Probes.extra``): ``kept`` the mask of its points kept
+# (the first probes), ``w`` each point's weight (its cell's measure, or on the sphere the
+# weight that makes a point uniform in the flat triangle uniform on the sphere), ``cells``
+# each point's cell, ``corners`` (t, c) each cell's corners as rows of the probes (-1 where
+# one was not kept), ``measure`` every cell's area (volume, solid angle), ``t`` the cells
+SizeSample = namedtuple("SizeSample", ["kept", "w", "cells", "corners", "measure", "t"])
+
+
+def gathered_probes(parts, inside, size, near=None, vertices=2):
     """``steps.Probes`` from parts (x, whether input points, d_{M,2} known or NaN), the
-    first the size integral's samples, each kept where ``inside(x)``; ``extra`` follows the
-    samples' mask of those kept. ``near``: {part: (other part, rows (count, r))}, the rows of
-    the other part near each of that part's probes (an edge's midpoint: its two vertices);
-    ``Probes.near`` holds those probes' indices once gathered (-1 where one was dropped,
-    beyond a part's own r columns, and for the other parts)."""
+    first the size integral's samples, each kept where ``inside(x)``; ``size`` a
+    ``SizeSample`` whose ``corners`` are indices into the part ``vertices`` (the mesh's
+    vertices), returned as the rows of the probes kept. ``near``: {part: (other part,
+    rows (count, r))}, the rows of the other part near each of that part's probes (an
+    edge's midpoint: its two vertices); ``Probes.near`` holds those probes' indices once
+    gathered (-1 where one was dropped, beyond a part's own r columns, and for the other
+    parts)."""
     keep = [inside(p[0]) for p in parts]
     x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
     mask = np.concatenate([np.full(int(k.sum()), p[1]) for p, k in zip(parts, keep, strict=True)])
@@ -514,40 +525,58 @@ def gathered_probes(parts, inside, extra, near=None):
     for i, (j, rows) in (near or {}).items():
         rows = np.asarray(rows, np.int64)
         gathered[i][:, : rows.shape[1]] = index[j][rows][keep[i]]
-    return Probes(x, mask, d_m2, (keep[0], *extra), np.concatenate(gathered))
+    size = size._replace(kept=keep[0], corners=index[vertices][np.asarray(size.corners)])
+    return Probes(x, mask, d_m2, size, np.concatenate(gathered))
+
+
+SIZE_SHARE = 4  # the size integral reads one point in each of samples // SIZE_SHARE cells
 
 
 def size_sample(t, samples, rng):
     """(the cell of each random point of the size integral, the cell of each further
-    point that only probes the ratio). A large mesh (``samples`` < t): one point in each
-    of ``samples`` cells drawn without replacement, none further. A small one: one or two
-    points in every cell for the integral (two give the spread within cells, so its
-    standard error), and ``samples`` // t - 2 further in each: a small mesh is probed
-    densely, as its ratio's largest values can hide in small regions (with 4 per cell,
-    test_achieved_constants_are_what_they_claim fails on 300 points). The further ones are
-    bounded by their cell's corners (``steps.bounded_d_pk``) and asked only where they
-    could be extremes, so that what is asked of the points grows with the mesh."""
+    point that only probes the ratio), of ``samples`` points in all. A large mesh
+    (``samples`` < t): one point in each of ``samples`` cells drawn without replacement;
+    a small one: ``samples`` // t in every cell (a small mesh is probed densely, as its
+    ratio's largest values can hide in small regions: with 4 per cell,
+    test_achieved_constants_are_what_they_claim fails on 300 points). The integral reads
+    one of them in each of min(t, ``samples`` // SIZE_SHARE) cells drawn without
+    replacement (``size_integral``: its error is that of the integrand's spread about
+    its cells' corners, so a share of the cells suffices). The further points are bounded
+    by their cell's corners (``steps.bounded_d_pk``) and asked only where they could be
+    extremes, so that what is asked of the points grows with the mesh."""
+    share = min(t, max(int(samples) // SIZE_SHARE, 1))
     if samples < t:
-        return np.sort(rng.choice(t, int(samples), replace=False)), np.zeros(0, np.int64)
-    each = int(samples) // max(t, 1)
-    cells = np.arange(t)
-    return np.repeat(cells, min(each, 2)), np.repeat(cells, max(each - 2, 0))
+        pool = rng.choice(t, int(samples), replace=False)
+        return np.sort(pool[:share]), np.sort(pool[share:])
+    chosen = np.sort(rng.choice(t, share, replace=False))
+    each = np.full(t, int(samples) // max(t, 1))
+    each[chosen] -= 1
+    return chosen, np.repeat(np.arange(t), each)
 
 
-def size_estimate(y, t):
-    """(the integral, its standard error) from y: one term per random point, its cell's
-    area (volume, solid angle) times the integrand there times t / len(y). Every cell
-    sampled r times (``size_sample``): stratified, the error from the spread within cells
-    (r >= 2) or from neighbouring cells paired (r = 1: collapsed strata, conservative);
-    some of the cells (a simple random sample): with the finite population correction."""
-    s = len(y)
+def size_integral(sample, d_pk, floor, dim):
+    """(the integral of 1 / d_{P,k}^dim over the domain, d_{P,k} clipped at ``floor``; its
+    standard error) from a ``SizeSample`` and d_{P,k} at the probes. The integrand's mean
+    over each cell's corners, h, is a control variate whose integral is exact (the sum of
+    the cells' measures times h); the random points estimate the rest, the integral of the
+    integrand minus h, whose spread is the integrand's within cells, not between them
+    (where its corners are not all kept, a cell's h is 0: estimated whole). One point in
+    each of s of the t cells: the estimate is sum(measure h) + t / s sum(w (f - h)), its
+    standard error t sd(w (f - h)) / sqrt(s) (with replacement: conservative)."""
+    kept, w, cells, corners, measure, t = sample
+    s = len(kept)
     if s == 0:
         return 0.0, 0.0
-    if s >= t and s % t == 0 and s // t >= 2:
-        per = y.reshape(t, s // t)
-        return float(y.sum()), float(np.sqrt((per.var(axis=1, ddof=1) * per.shape[1]).sum()))
-    if s >= t:
-        pairs = y[: s - s % 2].reshape(-1, 2)
-        return float(y.sum()), float(np.sqrt(((pairs[:, 0] - pairs[:, 1]) ** 2).sum()))
-    var = s * (1.0 - s / t) * float(np.var(y, ddof=1)) if s > 1 else 0.0
-    return float(y.sum()), float(np.sqrt(var))
+    low = max(floor, 1e-300)
+    f = np.zeros(s)
+    f[kept] = 1.0 / np.maximum(d_pk[: int(kept.sum())], low) ** dim
+    h = np.zeros(t)
+    whole = (corners >= 0).all(axis=1)
+    if whole.any():
+        at = 1.0 / np.maximum(d_pk[corners[whole]], low) ** dim
+        h[whole] = at.mean(axis=1)
+    h[~np.isfinite(h)] = 0.0  # a corner with d_{P,k} unknown: that cell estimated whole
+    y = np.where(kept, w * (f - h[cells]), 0.0)
+    total = float(np.dot(measure, h)) + t / s * float(y.sum())
+    stderr = t * float(np.std(y, ddof=1)) / np.sqrt(s) if s > 1 else 0.0
+    return total, stderr

@@ -23,6 +23,7 @@ from ...certify._predicates import UNSURE, exact_sign, incircle, orient2d
 from ...certify._rows import row_classes
 from ...certify._tree import Tree
 from ...certify.common import (
+    SizeSample,
     TorusGeometry,
     cell_array_problem,
     check_cells_tile,
@@ -32,7 +33,7 @@ from ...certify.common import (
     gathered_probes,
     nearest_site,
     repeated_rows,
-    size_estimate,
+    size_integral,
     size_sample,
 )
 from ...certify.steps import Triangulation
@@ -80,7 +81,7 @@ class Geometry(TorusGeometry):
         cells = np.concatenate([chosen, dense])
         inside, _ = uniform_in_triangles(corners[cells], rng.random((len(cells), 2)))
         inside = self.frame(inside)
-        weights = np.abs(triangle_areas(corners[chosen])) * (t / max(len(chosen), 1))
+        areas = np.abs(triangle_areas(corners))
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
@@ -96,7 +97,7 @@ class Geometry(TorusGeometry):
                 (inside[s:], False, unknown[: len(dense)]),
             ],
             self.in_box,
-            (weights, t),
+            SizeSample(None, areas[chosen], chosen, self.mesh.torus.triangles, areas, t),
             # near: a midpoint's two vertices, a uniform point's nearest vertex, a
             # further sample's cell's corners
             near={
@@ -110,14 +111,10 @@ class Geometry(TorusGeometry):
         return self.torus_d_m2(x, tri), []
 
     def size(self, probes, d_pk, points, rng):
-        """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size): one
-        random point in each sampled triangle, weighted by its triangle's area (``t / s``
-        of it when s of the t triangles are sampled), a point outside the box counting 0;
-        with its standard error (``common.size_estimate``)."""
-        in_box, weights, t = probes.extra
-        y = np.zeros(len(in_box))
-        y[in_box] = weights[in_box] / np.maximum(d_pk[: int(in_box.sum())], self.floor) ** 2
-        return size_estimate(y, t)
+        """The integral of 1 / d_{P,k}^2 over the box (d_{P,k} clipped at min_size) and its
+        standard error (``common.size_integral``): a point outside the box counts 0, and a
+        triangle with a corner outside it is estimated whole."""
+        return size_integral(probes.extra, d_pk, self.floor, 2)
 
 
 class Points:

@@ -31,6 +31,7 @@ from ...certify._predicates import UNSURE, exact_sign, insphere, orient3d
 from ...certify._rows import class_sizes, row_classes
 from ...certify._tree import Tree
 from ...certify.common import (
+    SizeSample,
     TorusGeometry,
     cell_array_problem,
     check_cells_tile,
@@ -40,7 +41,7 @@ from ...certify.common import (
     gathered_probes,
     nearest_site,
     repeated_rows,
-    size_estimate,
+    size_integral,
     size_sample,
 )
 from ...certify.steps import Triangulation
@@ -402,9 +403,8 @@ class Geometry(TorusGeometry):
         chosen, dense = size_sample(t, samples, rng)
         side = np.array(self.mesh.box[3:]) - np.array(self.mesh.box[:3])
         inside = np.mod(_tetrahedron_samples(c[np.concatenate([chosen, dense])], 1, rng), period)
-        weights = (
-            np.abs(np.linalg.det(c[chosen, 1:] - c[chosen, :1])) / 6.0 * (t / max(len(chosen), 1))
-        )
+        e = c[:, 1:] - c[:, :1]
+        volumes = np.abs(np.einsum("ij,ij->i", e[:, 0], np.cross(e[:, 1], e[:, 2]))) / 6.0
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 3)) * side
@@ -421,7 +421,7 @@ class Geometry(TorusGeometry):
                 (inside[s:], False, unknown[: len(dense)]),
             ],
             lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
-            (weights, t),
+            SizeSample(None, volumes[chosen], chosen, self.corners, volumes, t),
             # near: a midpoint's two vertices, a uniform point's nearest vertex, a
             # further sample's cell's corners
             near={
@@ -457,11 +457,7 @@ class Geometry(TorusGeometry):
         return dm2, problems
 
     def size(self, probes, d_pk, points, rng):
-        """The integral of 1 / d_Pk^3 over the box (d_Pk clipped at min_size): one random
-        point in each sampled tetrahedron, weighted by its volume (``t / s`` of it when s of
-        the t are sampled), a point outside the box counting 0; with its standard error
-        (``common.size_estimate``)."""
-        in_box, weights, t = probes.extra
-        y = np.zeros(len(in_box))
-        y[in_box] = weights[in_box] / np.maximum(d_pk[: int(in_box.sum())], self.floor) ** 3
-        return size_estimate(y, t)
+        """The integral of 1 / d_{P,k}^3 over the box (d_{P,k} clipped at min_size) and its
+        standard error (``common.size_integral``): a point outside the box counts 0, and a
+        tetrahedron with a corner outside it is estimated whole."""
+        return size_integral(probes.extra, d_pk, self.floor, 3)

@@ -40,12 +40,13 @@ from ..._validation import as_sphere_points, check_made_from, weights_of_run
 from ...certify._predicates import UNSURE, exact_sign, orient3d_at
 from ...certify._tree import Tree, neighbour_lists, sums_by
 from ...certify.common import (
+    SizeSample,
     check_precondition,
     edge_midpoints,
     gathered_probes,
     nearest_neighbour,
     nearest_site,
-    size_estimate,
+    size_integral,
     size_sample,
     walked_d_m2,
 )
@@ -365,7 +366,11 @@ class Geometry:
         twice_area = np.linalg.norm(normal, axis=1)
         h = np.abs(np.einsum("ij,ij->i", normal, a)) / np.where(twice_area > 0, twice_area, 1.0)
         norm = np.linalg.norm(y, axis=1)
-        weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3 * (t / max(s, 1))
+        weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3
+        a, b, c = (xyz[tri_[:, j]] for j in range(3))  # every cell's solid angle
+        triple = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
+        dots = 1.0 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c)
+        solid = 2.0 * np.arctan2(triple, dots + np.einsum("ij,ij->i", c, a))
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = _uniform_on_sphere(int(n_random), rng)
@@ -380,7 +385,7 @@ class Geometry:
                 (flat[s:], False, unknown[: len(dense)]),
             ],
             lambda x: np.ones(len(x), bool),
-            (weights, t),
+            SizeSample(None, weights, chosen, tri_, solid, t),
             # near: a midpoint's two vertices, a uniform point's nearest vertex, a
             # further sample's cell's corners
             near={
@@ -410,13 +415,9 @@ class Geometry:
         return np.arctan2(cross, np.einsum("ij,ij->i", x, y))
 
     def size(self, probes, d_pk, points, rng):
-        """The integral over the sphere of 1 / d_Pk^2 (d_Pk clipped at min_size): one random
-        point in each sampled triangle, weighted by its triangle's area on the sphere
-        (``t / s`` of it when s of the t are sampled), with its standard error
-        (``common.size_estimate``)."""
-        _, weights, t = probes.extra
-        y = weights / np.maximum(d_pk[: len(weights)], max(self.floor, 1e-300)) ** 2
-        return size_estimate(y, t)
+        """The integral over the sphere of 1 / d_{P,k}^2 (d_{P,k} clipped at min_size) and
+        its standard error (``common.size_integral``)."""
+        return size_integral(probes.extra, d_pk, self.floor, 2)
 
     def constants(self, tri):
         return sphere_constants(self.mesh.tau, float(tri.radii.max(initial=0.0)))
