@@ -147,3 +147,40 @@ def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
     assert space._neighbours(corners[1:], offsets[1:]) is None
     doubled = np.concatenate([corners, corners[:1]])
     assert space._neighbours(doubled, np.concatenate([offsets, offsets[:1]])) is None
+
+
+def test_a_floor_site_in_a_space_box_is_not_a_missing_copy():
+    """Issue 52 (a regression the size integral's new probes found): in an ordinary box,
+    d_M2 from the returned vertices and from the torus' differ by rounding in their last
+    digits, which at a floor site (vertices 1e-6 apart at coordinates near 1) is more
+    than 1e-12 of d_M2, and was reported as a copy missing near the box. The comparison's
+    tolerance is now also absolute, at the coordinates' scale; a vertex truly missing is
+    still reported."""
+    import warnings
+
+    from knnrefine._domains.space import certify as space
+
+    rng = np.random.default_rng(3)
+    n = 20_000
+    for shape in ((n, 2), (5000, 2), (5000, 2), (n, 2)):  # test_hostile_round3's draws
+        rng.random(shape)
+    p = rng.random((n, 3))
+    w = np.zeros(n)
+    w[0] = n  # every point but one weightless: a floor site at p[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", knnrefine.FloorWarning)
+        mesh = knnrefine.refine(p, 10, weights=w)
+    cert = knnrefine.certify(mesh, p, weights=w, samples=20_000)  # probes that found it
+    assert cert.mesh_problems == [] and cert.passed
+    geometry = space.Geometry(mesh, 2)
+    tri = geometry.triangulation()
+    near = geometry.metric.frame(np.asarray(mesh.vertices, float))
+    site = near[np.linalg.norm(near - geometry.metric.frame(p[:1]), axis=1) < 1e-4]
+    assert len(site) >= 4
+    x = np.repeat(site, 50, axis=0) + rng.normal(0, 3e-7, (50 * len(site), 3))
+    # one of the site's vertices left out of the returned mesh: reported
+    keep = np.ones(len(mesh.vertices), bool)
+    keep[np.flatnonzero(np.linalg.norm(near - site[0], axis=1) == 0)[0]] = False
+    short = dataclasses.replace(mesh, vertices=np.asarray(mesh.vertices)[keep])
+    _, problems = space.Geometry(short, 2).returned_d_m2(x, tri)
+    assert problems == ["d_M2 from the returned vertices differs from the torus mesh's in the box"]

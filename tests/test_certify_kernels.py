@@ -162,19 +162,25 @@ def test_filtered_predicates_agree_with_rationals(lattice):
 
 
 def test_neighbour_lists_keep_each_neighbour_once_sorted():
-    """``neighbour_lists`` (a site's rows deduplicated by stamps, then sorted) against sets:
-    every (index, shift) of a site's directed edges once, in sorted order, on random
-    multigraphs with repeats, shifts in 0 to 3 dimensions and sites with no edge."""
+    """``neighbour_lists`` (every corner of a cell a neighbour of every other, a site's
+    rows deduplicated by stamps, then sorted) against sets: every (index, shift) once, in
+    sorted order, the shift the neighbour's offset less the site's, on random cells of 2
+    to 4 corners with repeated cells and vertices, offsets in 0 to 3 dimensions and sites
+    in no cell."""
     from knnrefine.certify._tree import neighbour_lists
 
     rng = np.random.default_rng(54)
     for _ in range(200):
-        m, e, d = int(rng.integers(1, 30)), int(rng.integers(0, 300)), int(rng.integers(0, 4))
-        a, b = rng.integers(0, m, e), rng.integers(0, m, e)
-        shift = np.ascontiguousarray(rng.integers(-1, 2, (e, d)))
-        first, nb, sh = neighbour_lists(a, b, shift, m)
+        m, t, d = int(rng.integers(1, 30)), int(rng.integers(0, 80)), int(rng.integers(0, 4))
+        c = int(rng.integers(2, 5))
+        cells = rng.integers(0, m, (t, c))
+        cells[t // 2 :] = cells[: t - t // 2]  # cells repeated
+        off = np.ascontiguousarray(rng.integers(-1, 2, (t, c, d)))
+        first, nb, sh = neighbour_lists(cells, off, m)
         for v in range(m):
-            want = sorted({(int(b[j]), *map(int, shift[j])) for j in range(e) if a[j] == v})
+            want = sorted({(int(cells[i, y]), *map(int, off[i, y] - off[i, x]))
+                           for i in range(t) for x in range(c) for y in range(c)
+                           if x != y and cells[i, x] == v})  # fmt: skip
             got = [(int(nb[i]), *map(int, sh[i])) for i in range(first[v], first[v + 1])]
             assert got == want
 

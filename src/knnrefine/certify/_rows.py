@@ -7,6 +7,7 @@ rows as bytes answered the same several times slower at 10^5-10^6 cells."""
 import numpy as np
 
 from .._engine.jit import kernel
+from .._engine.threads import in_chunks
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -18,12 +19,27 @@ def rows_equal(a, i, b, j):
     return True
 
 
-@kernel(entry=True, lazy=True)
 def row_classes(rows, group, m):
     """For each row of ``rows`` (n, c) int64, the index of the first row equal to it (in
     row order): equal rows share it. ``group`` (n,) in [0, m): equal rows have equal groups
-    (a vertex of the row, say); only rows of a group are compared."""
-    n, c = rows.shape
+    (a vertex of the row, say); only rows of a group are compared, the groups on every
+    core."""
+    rows = np.ascontiguousarray(rows, np.int64)
+    start, order = _grouped(np.ascontiguousarray(group, np.int64), m)
+    hashes = np.empty(len(rows), np.uint64)
+    label = np.arange(len(rows))
+
+    def call(a, b):
+        _label_groups(rows, start, order, hashes, label, a, b)
+
+    in_chunks(call, m, least=4096)
+    return label
+
+
+@kernel(entry=True, lazy=True)
+def _grouped(group, m):
+    """(each group's first place, the rows in group order): a counting sort."""
+    n = len(group)
     start = np.zeros(m + 1, np.int64)
     for i in range(n):
         start[group[i] + 1] += 1
@@ -34,15 +50,22 @@ def row_classes(rows, group, m):
     for i in range(n):
         order[place[group[i]]] = i
         place[group[i]] += 1
-    hashes = np.empty(n, np.uint64)
-    for i in range(n):
-        h = np.uint64(1469598103934665603)
-        for j in range(c):
-            h = (h ^ np.uint64(rows[i, j] & 0xFFFFFFFFFFFF)) * np.uint64(1099511628211)
-        hashes[i] = h
-    label = np.arange(n)
-    for v in range(m):
+    return start, order
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _label_groups(rows, start, order, hashes, label, v0, v1):
+    """``row_classes``' work for groups [v0, v1): each row hashed, the group sorted by
+    (hash, index), rows of equal hash compared in full, the first index labelling."""
+    c = rows.shape[1]
+    for v in range(v0, v1):
         lo, hi = start[v], start[v + 1]
+        for a in range(lo, hi):
+            i = order[a]
+            h = np.uint64(1469598103934665603)
+            for j in range(c):
+                h = (h ^ np.uint64(rows[i, j] & 0xFFFFFFFFFFFF)) * np.uint64(1099511628211)
+            hashes[i] = h
         for a in range(lo + 1, hi):  # insertion sort of the group by (hash, index)
             i = order[a]
             b = a - 1
@@ -66,7 +89,6 @@ def row_classes(rows, group, m):
                         label[i] = p
                         break
             a = b
-    return label
 
 
 def class_sizes(label):

@@ -1017,27 +1017,43 @@ def spatial_order(x):
 
 
 @kernel(entry=True, lazy=True)
-def neighbour_lists(a, b, shift, m):
-    """Each site's neighbours, once each, from directed edges a -> b (b moved by the whole
-    periods ``shift`` (e, d)): (first (m + 1,): site v's are rows first[v]:first[v + 1] of
-    the next two, their indices, their shifts, sorted by index then shift). A counting sort
-    by site; within a site's rows, a repeat is found among the rows kept since its index
-    was first seen (stamped), and the few rows kept are sorted (insertion)."""
-    e, d = shift.shape
+def neighbour_lists(cells, off, m):
+    """Each site's neighbours, once each, from the cells (t, c) of a triangulation and
+    their corners' offsets (t, c, d) in whole periods (d = 0: none): (first (m + 1,):
+    site v's are rows first[v]:first[v + 1] of the next two, their indices, their shifts
+    (the neighbour's offset less the site's), sorted by index then shift). Every corner of
+    a cell is a neighbour of every other; a counting sort by site, then within a site's
+    rows a repeat is found among the rows kept since its index was first seen (stamped),
+    and the few rows kept are sorted (insertion)."""
+    t, c = cells.shape
+    d = off.shape[2]
     first = np.zeros(m + 1, np.int64)
-    for j in range(e):
-        first[a[j] + 1] += 1
+    for i in range(t):
+        for x in range(c):
+            first[cells[i, x] + 1] += c - 1
     for v in range(m):
         first[v + 1] += first[v]
     place = first[:m].copy()
-    nb = np.empty(e, np.int64)
-    sh = np.empty((e, d), np.int64)
-    for j in range(e):
-        p = place[a[j]]
-        place[a[j]] += 1
-        nb[p] = b[j]
-        for t in range(d):
-            sh[p, t] = shift[j, t]
+    nb = np.empty(first[m], np.int64)
+    sh = np.empty((first[m], d), np.int64)
+    for i in range(t):
+        for x in range(c):
+            v = cells[i, x]
+            for y in range(c):
+                if y == x:
+                    continue
+                p = place[v]
+                place[v] += 1
+                nb[p] = cells[i, y]
+                for a in range(d):
+                    sh[p, a] = off[i, y, a] - off[i, x, a]
+    return _unique_rows(first, nb, sh, m)
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _unique_rows(first, nb, sh, m):
+    """``neighbour_lists``' rows of each site kept once each and sorted, in place."""
+    d = sh.shape[1]
     out_first = np.zeros(m + 1, np.int64)
     stamp = np.full(m, -1, np.int64)  # the site whose rows last saw this index
     seen_at = np.zeros(m, np.int64)  # where that site's rows first kept it

@@ -310,15 +310,10 @@ class TorusGeometry:
         if self._cells is not None:
             return self._cells if tri is None else self._cells._replace(outradii=tri.outradii)
         torus = self.mesh.torus
-        corners = np.asarray(torus.cells, np.int64)
-        off = np.asarray(torus.offsets, np.int64)
-        nc = corners.shape[1]
-        pairs = [(i, j) for i in range(nc) for j in range(nc) if i != j]
-        a = np.concatenate([corners[:, i] for i, _ in pairs])
-        b = np.concatenate([corners[:, j] for _, j in pairs])
-        shift = np.concatenate([off[:, j] - off[:, i] for i, j in pairs])
+        corners = np.ascontiguousarray(torus.cells, np.int64)
+        off = np.ascontiguousarray(torus.offsets, np.int64)
         m = len(self.vertices)
-        first, nb, nshift = neighbour_lists(a, b, np.ascontiguousarray(shift), m)
+        first, nb, nshift = neighbour_lists(corners, off, m)
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.vertices[nb] - self.vertices[site] + nshift * self.period
         self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb)

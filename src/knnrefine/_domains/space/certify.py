@@ -450,7 +450,9 @@ class Geometry(TorusGeometry):
         problems = []
         if coordinates:  # the copies near the box hold its two nearest
             on_torus = self.torus_d_m2(x, tri)
-            if not np.allclose(dm2, on_torus, rtol=1e-12, atol=0.0):
+            # both from coordinates as large as the box's: their rounding is absolute
+            scale = float(np.max(np.abs(self.mesh.box))) + float(self.period.max())
+            if not np.allclose(dm2, on_torus, rtol=1e-12, atol=1e-12 * scale):
                 problems.append(
                     "d_M2 from the returned vertices differs from the torus mesh's in the box"
                 )

@@ -321,11 +321,9 @@ class Geometry:
             if tri is None:
                 return self._cells
             return self._cells._replace(outradii=angle_to_chord(tri.outradii))
-        t = self.tri
-        a = np.concatenate([t[:, 0], t[:, 1], t[:, 2], t[:, 1], t[:, 2], t[:, 0]])
-        b = np.concatenate([t[:, 1], t[:, 2], t[:, 0], t[:, 0], t[:, 1], t[:, 2]])
+        t = np.ascontiguousarray(self.tri, np.int64)
         m = len(self.xyz)
-        first, nb, _ = neighbour_lists(a, b, np.zeros((len(a), 0), np.int64), m)
+        first, nb, _ = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int64), m)
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.xyz[nb] - self.xyz[site]
         # the cell lies within its outradius (an angle) of the vertex: as a chord
