@@ -94,15 +94,27 @@ def test_kth_read_from_bucketed_windows_equals_brute_force(dim, periodic):
                                _brute_kth(x, pts, period, 40.0, w), rtol=1e-12)  # fmt: skip
 
 
-def test_cells_held_equals_each_points_nearest_sites():
+@pytest.mark.parametrize("layout", ["random", "lattice"])
+def test_cells_held_equals_each_points_nearest_sites(layout):
     """Closed Voronoi cells from each site's Delaunay neighbours (scipy's triangulation of
     the sites here) against every point's nearest sites by brute force, ties counted for
-    each."""
+    each: asked of the tree cell by cell (``cells_held``) and, issue 52, walked point by
+    point to the nearest site with its ties (``nearest_counts``). On a lattice every point
+    at a square's centre ties with four sites, two of them not neighbours of the other
+    two (the square's other diagonal), and the points on its edges with two; weighted
+    too."""
     from scipy.spatial import Delaunay
 
     rng = np.random.default_rng(3)
-    sites = rng.random((300, 2)) * 1.2 - 0.1
-    pts = np.concatenate([rng.random((5000, 2)), sites[:20]])  # points on sites, too
+    if layout == "random":
+        sites = rng.random((300, 2)) * 1.2 - 0.1
+        pts = np.concatenate([rng.random((5000, 2)), sites[:20]])  # points on sites, too
+    else:
+        g = np.arange(-2, 23) / 20
+        sites = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+        h = np.arange(0, 40) / 40  # the sites, the squares' centres and edges' midpoints
+        pts = np.concatenate([np.stack(np.meshgrid(h, h), -1).reshape(-1, 2),
+                              rng.random((2000, 2))])  # fmt: skip
     tri = Delaunay(sites).simplices
     a = np.concatenate([tri[:, i] for i in range(3) for _ in range(2)])
     b = np.concatenate([tri[:, (i + s) % 3] for i in range(3) for s in (1, 2)])
@@ -111,9 +123,15 @@ def test_cells_held_equals_each_points_nearest_sites():
     first = np.searchsorted(a, np.arange(len(sites) + 1))
     d2 = _brute_d2(pts, sites, None)
     near = d2 <= d2.min(1, keepdims=True) * (1 + 2e-12)
-    got = Tree(pts, None, None, 2).cells_held(sites, first, sites[b] - sites[a],
-                                              np.full(len(sites), 3.0))  # fmt: skip
-    np.testing.assert_array_equal(got, near.sum(0))
+    assert layout == "random" or near.sum(1).max() == 4
+    w = rng.random(len(pts))
+    for weights in (None, w):
+        tree = Tree(pts, weights, None, 2)
+        want = near.sum(0) if weights is None else (near * w[:, None]).sum(0)
+        got = tree.cells_held(sites, first, sites[b] - sites[a], np.full(len(sites), 3.0))
+        np.testing.assert_allclose(got, want, rtol=1e-12)
+        walked = tree.nearest_counts(sites, first, sites[b] - sites[a], b, np.zeros(2))
+        np.testing.assert_allclose(walked, want, rtol=1e-12)
 
 
 def _exact(kind, rows):

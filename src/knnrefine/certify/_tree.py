@@ -448,6 +448,96 @@ def offset(x, c, p):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def walk_nearest(sites, first, edges, neighbours, period, xq, v, dx):
+    """(the site nearest xq, its squared distance) by a walk on a verified Delaunay
+    triangulation's neighbour lists from site v: to any nearer neighbour until none is (a
+    Delaunay vertex with no nearer neighbour is the nearest); dx is left holding xq less
+    that site, by whole periods. (-1, its distance) where the walk took more steps than
+    there are sites (rounding in a near tie that never settles)."""
+    d = xq.shape[0]
+    m = len(first) - 1
+    best = 0.0
+    for a in range(d):
+        dx[a] = offset(xq[a], sites[v, a], period[a])
+        best += dx[a] * dx[a]
+    for _ in range(m + 1):
+        move = -1
+        for j in range(first[v], first[v + 1]):
+            s = 0.0
+            for a in range(d):
+                g = offset(dx[a], edges[j, a], period[a])
+                s += g * g
+            if s < best:
+                best, move = s, j
+        if move < 0:
+            return v, best
+        for a in range(d):
+            dx[a] = offset(dx[a], edges[move, a], period[a])
+        v = neighbours[move]
+    return -1, best
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _nearest_sites(pts, sites, first, edges, neighbours, period, relative, slack2, owner,
+                   start, end):  # fmt: skip
+    """For points [start, end) (in the tree's order: each near the one before): owner[i]
+    its nearest site (walked from the one before's), and (points, sites) of the other
+    sites as near up to the tie tolerance, |p - u|^2 <= |p - v|^2 (1 + relative) +
+    slack2 with v the nearest, found from v through such ties (cocircular sites: a tie
+    need not be v's neighbour). Returns (ties found, or -1 where a walk did not settle or
+    the ties' room ran out, their points, their sites)."""
+    d = pts.shape[1]
+    m = len(first) - 1
+    dx = np.empty(d)
+    g = np.empty(d)
+    stamp = np.full(m, -1, np.int64)  # the point whose ties last saw this site
+    room = 2 * (end - start) + 64
+    tie_p = np.empty(room, np.int64)
+    tie_v = np.empty(room, np.int64)
+    sv = np.empty(64, np.int64)
+    sdx = np.empty((64, d))
+    ties = 0
+    v = 0
+    for i in range(start, end):
+        v, best = walk_nearest(sites, first, edges, neighbours, period, pts[i], v, dx)
+        if v < 0:
+            return -1, tie_p[:0], tie_v[:0]
+        owner[i] = v
+        limit = best * (1.0 + relative) + slack2
+        stamp[v] = i
+        sv[0] = v
+        for a in range(d):
+            sdx[0, a] = dx[a]
+        top = 1
+        while top > 0:
+            top -= 1
+            t = sv[top]
+            for a in range(d):
+                dx[a] = sdx[top, a]
+            for j in range(first[t], first[t + 1]):
+                u = neighbours[j]
+                if stamp[u] == i:
+                    continue
+                s = 0.0
+                for a in range(d):
+                    g[a] = offset(dx[a], edges[j, a], period[a])
+                    s += g[a] * g[a]
+                if s <= limit:
+                    if ties == room or top == 64:
+                        return -1, tie_p[:0], tie_v[:0]
+                    stamp[u] = i
+                    tie_p[ties] = i
+                    tie_v[ties] = u
+                    ties += 1
+                    sv[top] = u
+                    for a in range(d):
+                        sdx[top, a] = g[a]
+                    top += 1
+        v = owner[i]
+    return ties, tie_p[:ties].copy(), tie_v[:ties].copy()
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell):
     """The window's points gx[:n] (within ``reach`` of ``centre``) sorted into a grid of
     G buckets a side over the cube about centre: copied to bx, bw in bucket order, bucket
@@ -909,6 +999,40 @@ class Tree:
         caps = np.concatenate([q for q, _ in parts]) if parts else np.zeros(0, np.int64)
         members = np.concatenate([j for _, j in parts]) if parts else np.zeros(0, np.int64)
         return out, caps, members
+
+    def nearest_counts(self, sites, first, edges, neighbours, period, relative=2e-12,
+                       slack2=0.0):  # fmt: skip
+        """What each site's closed Voronoi cell holds, from a verified Delaunay
+        triangulation's neighbour lists (``cells_held``'s arguments and each edge's far
+        site, ``neighbours``; the sites' ``period``): every point's nearest site walked
+        (``walk_nearest``), the point counting for it and every site as near up to the tie
+        tolerance. Exact in full; None where a walk did not settle (then ask
+        ``cells_held``)."""
+        m = len(first) - 1
+        if self.n == 0:
+            return np.zeros(m)
+        pts = self.pts
+        owner = np.empty(len(pts), np.int64)
+        args = (
+            pts,
+            np.ascontiguousarray(sites, np.float64),
+            np.ascontiguousarray(first, np.int64),
+            np.ascontiguousarray(edges, np.float64).reshape(-1, self.dim),
+            np.ascontiguousarray(neighbours, np.int64),
+            np.ascontiguousarray(period, np.float64),
+            float(relative),
+            float(slack2),
+        )
+
+        def call(a, b):
+            return _nearest_sites(*args, owner, a, b)
+
+        parts = in_chunks(call, len(pts), threads=_threads(self.threads), least=4096)
+        if any(found < 0 for found, _, _ in parts):
+            return None
+        p = np.concatenate([np.arange(len(pts))] + [q for _, q, _ in parts])
+        v = np.concatenate([owner] + [u for _, _, u in parts])
+        return sums_by(v, self.w[p], m)
 
     def cells_held(self, sites, first, edges, outradii, stop=np.inf, relative=2e-12,
                    slack2=0.0):  # fmt: skip

@@ -17,7 +17,7 @@ from .._validation import as_points, check_inside, check_made_from, weights_of_r
 from ..errors import InputError
 from ..mesh import theorem6_constants
 from ._rows import class_sizes, row_classes
-from ._tree import Tree, neighbour_lists, offset, spatial_order
+from ._tree import Tree, neighbour_lists, offset, spatial_order, walk_nearest
 from .certificate import floor_sites, to_input
 from .steps import Cells, Probes
 
@@ -308,7 +308,10 @@ class TorusGeometry:
         cells' edges, as vectors on the torus (their outradii from ``tri``; worked out
         once)."""
         if self._cells is not None:
-            return self._cells if tri is None else self._cells._replace(outradii=tri.outradii)
+            if tri is None:
+                return self._cells
+            walkable = not tri.problems and len(self.vertices) >= 4
+            return self._cells._replace(outradii=tri.outradii, walkable=walkable)
         torus = self.mesh.torus
         corners = np.ascontiguousarray(torus.cells, np.int64)
         off = np.ascontiguousarray(torus.offsets, np.int64)
@@ -316,7 +319,7 @@ class TorusGeometry:
         first, nb, nshift = neighbour_lists(corners, off, m)
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.vertices[nb] - self.vertices[site] + nshift * self.period
-        self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb)
+        self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb, self.period)
         return self.cells(tri)
 
     @cached_property
@@ -402,34 +405,14 @@ def walked(cells, x, period, workers):
 
 @kernel(entry=True, lazy=True, nogil=True)
 def _walk_d_m2(sites, first, edges, neighbours, period, x, out, site, start, end):
-    """``walked``'s work for queries [start, end), NaN (site -1) where a walk took more
-    steps than there are sites (rounding in a near tie that never settles)."""
+    """``walked``'s work for queries [start, end) (``_tree.walk_nearest``), NaN (site -1)
+    where a walk did not settle."""
     d = x.shape[1]
-    m = len(first) - 1
     dx = np.empty(d)
     v = 0
     for q in range(start, end):
-        best = 0.0
-        for a in range(d):
-            dx[a] = offset(x[q, a], sites[v, a], period[a])
-            best += dx[a] * dx[a]
-        steps = 0
-        while steps <= m:
-            move = -1
-            for j in range(first[v], first[v + 1]):
-                s = 0.0
-                for a in range(d):
-                    g = offset(dx[a], edges[j, a], period[a])
-                    s += g * g
-                if s < best:
-                    best, move = s, j
-            if move < 0:
-                break
-            for a in range(d):
-                dx[a] = offset(dx[a], edges[move, a], period[a])
-            v = neighbours[move]
-            steps += 1
-        if steps > m:
+        v, _ = walk_nearest(sites, first, edges, neighbours, period, x[q], v, dx)
+        if v < 0:
             out[q] = np.nan
             site[q] = -1
             v = 0
@@ -443,6 +426,21 @@ def _walk_d_m2(sites, first, edges, neighbours, period, x, out, site, start, end
             second = min(second, s)
         out[q] = math.sqrt(second)
         site[q] = v
+
+
+def cell_counts(tree, cells, stop):
+    """What each closed Voronoi cell (``steps.Cells``) holds of the points in ``tree``:
+    where the triangulation was verified (``cells.walkable``), each point's nearest vertex
+    walked, ties added (``Tree.nearest_counts``: exact in full, one pass over the points);
+    otherwise, or where a walk did not settle, each cell asked of the tree (exact below
+    ``stop``)."""
+    if cells.walkable:
+        counts = tree.nearest_counts(cells.sites, cells.first, cells.edges, cells.neighbours,
+                                     cells.period, cells.relative, cells.slack2)  # fmt: skip
+        if counts is not None:
+            return counts
+    return tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii, stop,
+                           cells.relative, cells.slack2)  # fmt: skip
 
 
 def nearest_neighbour(cells):

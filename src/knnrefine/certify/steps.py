@@ -61,10 +61,15 @@ Probes = namedtuple("Probes", ["x", "points", "d_m2", "extra", "near"])
 # outradius R(v) (the cell lies within it), and the tie tolerance: a point p counts for v
 # when |p - v|^2 <= |p - u|^2 (1 + relative) + slack2 for every neighbour u (one as near as
 # its nearest counts for each)
-# (``neighbours``: the index of each edge's far vertex)
+# (``neighbours``: the index of each edge's far vertex; ``period``: the sites' per axis, 0
+# where none; ``walkable``: the triangulation was verified, so a walk along the neighbours
+# finds a point's nearest site)
 Cells = namedtuple(
-    "Cells", ["sites", "first", "edges", "outradii", "relative", "slack2", "neighbours"]
-)
+    "Cells",
+    ["sites", "first", "edges", "outradii", "relative", "slack2", "neighbours", "period",
+     "walkable"],
+    defaults=(None, False),
+)  # fmt: skip
 
 
 class PointQuestions(Protocol):

@@ -26,6 +26,7 @@ from ...certify.common import (
     SizeSample,
     TorusGeometry,
     cell_array_problem,
+    cell_counts,
     check_cells_tile,
     checked_points,  # noqa: F401  (the box domains' own)
     edge_midpoints,
@@ -149,8 +150,7 @@ class Points:
 
     def cell_counts(self, cells, stop=np.inf):
         """What each closed Voronoi cell (``steps.Cells``) holds; exact below ``stop``."""
-        return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
-                                    stop, cells.relative, cells.slack2)  # fmt: skip
+        return cell_counts(self.tree, cells, stop)
 
     def sample_points(self, count, rng):
         """Up to ``count`` input points, drawn at random."""

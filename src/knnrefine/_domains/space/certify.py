@@ -34,6 +34,7 @@ from ...certify.common import (
     SizeSample,
     TorusGeometry,
     cell_array_problem,
+    cell_counts,
     check_cells_tile,
     checked_points,  # noqa: F401  (the box domains' own)
     edge_midpoints,
@@ -203,8 +204,7 @@ class Points:
     def cell_counts(self, cells, stop=np.inf):
         """What the closed Voronoi cell of each vertex (``steps.Cells``, torus frame) holds:
         every point counts for each vertex as near as its nearest; exact below ``stop``."""
-        return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
-                                    stop, cells.relative, cells.slack2)  # fmt: skip
+        return cell_counts(self.tree, cells, stop)
 
     def d_pk(self, x):
         """d_{P,k} at x (the torus frame, periodic axes wrapped) in the box's own metric:

@@ -41,6 +41,7 @@ from ...certify._predicates import UNSURE, exact_sign, orient3d_at
 from ...certify._tree import Tree, neighbour_lists, sums_by
 from ...certify.common import (
     SizeSample,
+    cell_counts,
     check_precondition,
     edge_midpoints,
     gathered_probes,
@@ -232,8 +233,7 @@ class Points:
         """What each vertex's closed Voronoi cell holds (``steps.Cells``): each point counts
         for every vertex as near as its nearest, up to the unit vectors' rounding
         (``CELL_TIES``); exact below ``stop``."""
-        return self.tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii,
-                                    stop, cells.relative, cells.slack2)  # fmt: skip
+        return cell_counts(self.tree, cells, stop)
 
     def d_pk(self, x):
         """d_{P,k} at unit vectors x, an angle (inf where P holds less than k)."""
@@ -320,14 +320,15 @@ class Geometry:
         if self._cells is not None:
             if tri is None:
                 return self._cells
-            return self._cells._replace(outradii=angle_to_chord(tri.outradii))
+            walkable = not tri.problems and len(self.xyz) >= 4
+            return self._cells._replace(outradii=angle_to_chord(tri.outradii), walkable=walkable)
         t = np.ascontiguousarray(self.tri, np.int64)
         m = len(self.xyz)
         first, nb, _ = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int64), m)
         site = np.repeat(np.arange(m), np.diff(first))
         edges = self.xyz[nb] - self.xyz[site]
         # the cell lies within its outradius (an angle) of the vertex: as a chord
-        self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES, nb)
+        self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES, nb, np.zeros(3))
         return self.cells(tri)
 
     def held(self, points, tri, stop=np.inf):
