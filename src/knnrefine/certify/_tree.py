@@ -1087,12 +1087,27 @@ def _spread3(v):
 
 
 @kernel(entry=True, lazy=True)
-def _morton_order(x, lo, scale):
-    """The order of the rows of x (n, 2 or 3) along a Morton curve: each coordinate less
-    ``lo`` times ``scale`` as an integer (31 bits in the plane, 21 in space), interleaved,
-    and the codes sorted by a radix sort of eight 8-bit digits."""
+def _morton_order(x):
+    """The order of the rows of x (n, 2 or 3) along a Morton curve over their finite
+    bounding box: each coordinate less the box's least, scaled to an integer (31 bits in
+    the plane, 21 in space; a coordinate not finite as the least), interleaved, and the
+    codes sorted by a radix sort of eight 8-bit digits."""
     n, d = x.shape
     top = 2.0**31 - 1.0 if d == 2 else 2.0**21 - 1.0
+    lo = np.full(d, np.inf)
+    hi = np.full(d, -np.inf)
+    for i in range(n):
+        for a in range(d):
+            v = x[i, a]
+            if np.isfinite(v):
+                lo[a] = min(lo[a], v)
+                hi[a] = max(hi[a], v)
+    scale = np.zeros(d)
+    for a in range(d):
+        if hi[a] > lo[a]:
+            scale[a] = top / (hi[a] - lo[a])
+        else:
+            lo[a] = 0.0
     code = np.empty(n, np.uint64)
     for i in range(n):
         c = np.uint64(0)
@@ -1132,12 +1147,7 @@ def spatial_order(x):
         return np.arange(len(x))
     if x.shape[1] not in (2, 3):
         return np.arange(len(x))
-    bits = 31 if x.shape[1] == 2 else 21
-    finite = np.where(np.isfinite(x), x, np.nan)
-    lo = np.nan_to_num(np.nanmin(finite, axis=0))
-    span = np.nan_to_num(np.nanmax(finite, axis=0)) - lo
-    scale = np.where(span > 0, (2.0**bits - 1) / np.where(span > 0, span, 1.0), 0.0)
-    return _morton_order(x, lo, scale)
+    return _morton_order(x)
 
 
 @kernel(entry=True, lazy=True)

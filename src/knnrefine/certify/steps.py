@@ -301,10 +301,11 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
     ratio_lo = d_m2[later] / hi
     with np.errstate(divide="ignore"):
         ratio_hi = np.where(lo[later] > 0, d_m2[later] / lo[later], np.inf)
-    seed = max(16, int(SEED * len(later)))
+    seed = min(max(16, int(SEED * len(later))), len(later))
     pick = np.zeros(len(later), bool)
-    pick[np.argsort(ratio_lo)[:seed]] = True
-    pick[np.argsort(-ratio_hi)[:seed]] = True
+    if seed:  # the seed lowest and highest bounds (in no order: argpartition)
+        pick[np.argpartition(ratio_lo, seed - 1)[:seed]] = True
+        pick[np.argpartition(-ratio_hi, seed - 1)[:seed]] = True
     ask(later[pick])
     alpha, beta = extremes  # with the seeds asked, the rest settled against them
     inside = (lo[later] >= floor) & (ratio_lo > alpha) & (ratio_hi < beta)
