@@ -375,3 +375,28 @@ def test_a_tree_built_in_the_background_answers_as_one_built_in_place(monkeypatc
     failing = Tree(pts, None, None, 2, background=True)
     with pytest.raises(MemoryError, match="no room"):
         failing.kth(x, 3)
+
+
+def test_sphere_edge_twins_against_a_dictionary():
+    """Issue 52: each directed edge's reversed twin on the sphere found by a counting sort
+    (``_twins``) against a dictionary of the edges: on a mesh's triangles, and None where a
+    triangle is dropped (an edge without its twin), doubled or reversed (an edge twice)."""
+    import knnrefine
+    from knnrefine._domains.sphere.certify import _twins
+
+    rng = np.random.default_rng(41)
+    lonlat = np.column_stack([rng.uniform(-180, 180, 500), rng.uniform(-90, 90, 500)])
+    tri = np.asarray(knnrefine.refine(lonlat, 5, sphere=True).triangles, np.int64)
+    m, t = int(tri.max()) + 1, len(tri)
+    got_tri, got_corner = _twins(tri, m)
+    at = {(int(tri[f, (c + 1) % 3]), int(tri[f, (c + 2) % 3])): (f, c)
+          for f in range(t) for c in range(3)}  # fmt: skip
+    for f in range(t):
+        for c in range(3):
+            a, b = int(tri[f, (c + 1) % 3]), int(tri[f, (c + 2) % 3])
+            assert (got_tri[f, c], got_corner[f, c]) == at[(b, a)]
+    assert _twins(tri[1:], m) is None  # dropped
+    assert _twins(np.concatenate([tri, tri[:1]]), m) is None  # doubled
+    flipped = tri.copy()
+    flipped[0] = flipped[0, ::-1]
+    assert _twins(flipped, m) is None  # reversed: its edges repeat its neighbours'

@@ -91,17 +91,42 @@ def _twins(tri, m):
     t = len(tri)
     a = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]]).astype(np.int64)
     b = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]]).astype(np.int64)
-    own = a * m + b
-    order = np.argsort(own, kind="stable")
-    sorted_own = own[order]
-    if len(sorted_own) > 1 and (np.diff(sorted_own) == 0).any():
-        return None
-    where = np.minimum(np.searchsorted(sorted_own, b * m + a), len(own) - 1)
-    found = sorted_own[where] == b * m + a
-    if not found.all():
-        return None
-    twin = order[where]  # flat index: corner * t + triangle
+    twin = _edge_twins(a, b, m)
+    if len(twin) == 0 or twin.min() < 0:
+        return None if len(twin) else (np.zeros((0, 3), np.int64), np.zeros((0, 3), np.int64))
     return (twin % t).reshape(3, t).T.copy(), (twin // t).reshape(3, t).T.copy()
+
+
+@kernel(entry=True, lazy=True)
+def _edge_twins(a, b, m):
+    """twin[e]: the directed edge b[e] -> a[e], found among the edges leaving b[e] (a
+    counting sort by tail); -1 where there is none, and -1 everywhere where a directed edge
+    is repeated (``_twins``: then no twin is exactly one)."""
+    n = len(a)
+    start = np.zeros(m + 1, np.int64)
+    for e in range(n):
+        start[a[e] + 1] += 1
+    for v in range(m):
+        start[v + 1] += start[v]
+    place = start[:m].copy()
+    order = np.empty(n, np.int64)
+    for e in range(n):
+        order[place[a[e]]] = e
+        place[a[e]] += 1
+    twin = np.full(n, -1, np.int64)
+    for v in range(m):
+        for i in range(start[v], start[v + 1]):
+            e = order[i]
+            for j in range(i + 1, start[v + 1]):
+                if b[order[j]] == b[e]:  # the edge v -> b[e] twice
+                    twin[:] = -1
+                    return twin
+            w = b[e]
+            for j in range(start[w], start[w + 1]):
+                if b[order[j]] == v:
+                    twin[e] = order[j]
+                    break
+    return twin
 
 
 def _held_in_caps(xyz, tri, centres, chords, points, stop):
@@ -165,7 +190,7 @@ def check_triangulation(mesh):
         return ["a triangle names a vertex that does not exist"], mesh_problems
     if len(tri) != 2 * m - 4:
         problems.append(f"{len(tri)} triangles over {m} vertices, not 2 m - 4 = {2 * m - 4}")
-    unused = m - len(np.unique(tri))
+    unused = int((np.bincount(tri.ravel(), minlength=m) == 0).sum())
     if unused:
         problems.append(f"{unused} vertices are in no triangle")
     twins = _twins(tri, m)
