@@ -362,6 +362,27 @@ def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner(dim):
     assert any(reversed_cell in p for p in swapped)
 
 
+def test_triangles_matched_by_their_corners_are_checked_corner_by_corner():
+    """Issue 52 (the plane's corner check now one kernel, ``_triangles_moved``): on a mesh
+    periodic along one axis only (its triangles matched to the torus' by their vertex
+    triples, rotated), a corner's offset changed by a period and a vertex's coordinate
+    changed by 1e-9 each leave triangles off their torus triangles, and are reported."""
+    from knnrefine._domains.plane.certify import verify_returned_mesh
+
+    rng = np.random.default_rng(1)
+    mesh = knnrefine.refine(rng.random((3000, 2)), 10, periodic=(True, False), box=(0, 0, 1, 1))
+    assert not np.array_equal(np.asarray(mesh.order)[mesh.cells], mesh.torus.cells)
+    assert verify_returned_mesh(mesh) == []
+    off = np.array(mesh.offsets)
+    off[7, 1, 0] += 1
+    found = verify_returned_mesh(dataclasses.replace(mesh, offsets=off))
+    assert "1 triangles have corners off their torus triangle" in found
+    v = np.array(mesh.vertices)
+    v[0, 1] += 1e-9
+    found = verify_returned_mesh(dataclasses.replace(mesh, vertices=v))
+    assert any("triangles have corners off their torus triangle" in p for p in found)
+
+
 DEGENERATE = ["plane-line-duplicates", "plane-lattice", "plane-line-workers",
               "space-coplanar", "space-coplanar-workers", "sphere-seam"]  # fmt: skip
 

@@ -195,13 +195,13 @@ def verify_returned_mesh(mesh):
     # each returned triangle is a torus triangle (same corners, same cyclic order) shifted by
     # whole periods
     off = np.zeros(tri.shape + (2,)) if mesh.offsets is None else np.asarray(mesh.offsets, float)
-    user_corners = v[tri] + off * np.array(mesh.period, float)
-    tcorners = tv[ttri] + np.asarray(torus.offsets, float) * period
+    toff = np.asarray(torus.offsets, float)
     if as_torus:
         # the torus' triangles, row for row, corners in the same order (a torus returned
         # as it is): each matches its own row, no rotation needed
-        unmatched, target, mine = 0, origin + tcorners, user_corners
-        tcorners_hit = tcorners
+        unmatched = 0
+        pos = np.arange(len(tri))
+        u_rot = t_rot = np.zeros(len(tri), np.int64)
     else:
         # match by the vertex triple in canonical rotation (smallest index first): in a
         # torus triangulation that is a simplicial complex a triple names one triangle
@@ -209,20 +209,46 @@ def verify_returned_mesh(mesh):
         u_rot = np.argmin(order[tri], axis=1) if len(tri) else np.zeros(0, np.int64)
         pos = find_rows(_rotate(ttri, t_rot), _rotate(order[tri], u_rot))
         unmatched = int((pos < 0).sum())
-        hit = pos >= 0
-        t = pos[hit]
-        tcorners_hit = _rotate(tcorners[t], t_rot[t])
-        target = origin + tcorners_hit
-        mine = _rotate(user_corners[hit], u_rot[hit])
-    d = np.rint((mine - target) / period)
-    same_shift = np.all(d == d[:, :1], axis=(1, 2))
-    exact = np.all(mine == origin + (tcorners_hit + d * period), axis=(1, 2))
-    moved = int((~(same_shift & exact)).sum())
+    moved = _triangles_moved(v, tri, np.ascontiguousarray(off), np.array(mesh.period, float),
+                             origin, tv, ttri, np.ascontiguousarray(toff), period,
+                             np.ascontiguousarray(pos, np.int64), u_rot.astype(np.int64),
+                             t_rot.astype(np.int64))  # fmt: skip
     if unmatched:
         problems.append(f"{unmatched} triangles are not triangles of the torus mesh")
     if moved:
         problems.append(f"{moved} triangles have corners off their torus triangle")
     return problems
+
+
+@kernel(entry=True, lazy=True)
+def _triangles_moved(v, tri, off, user_period, origin, tv, ttri, toff, period, pos, u_rot,
+                     t_rot):  # fmt: skip
+    """How many returned triangles matched to a torus triangle (pos >= 0) do not have
+    their corners (v + off user_period, from corner u_rot on) exactly at the torus
+    triangle's (origin + tv + toff period, from corner t_rot on) moved by one whole number
+    of periods along each axis, the same for every corner."""
+    moved = 0
+    shift = np.empty(2)
+    for i in range(len(pos)):
+        t = pos[i]
+        if t < 0:
+            continue
+        ok = True
+        for c in range(3):
+            cu, ct = (c + u_rot[i]) % 3, (c + t_rot[t]) % 3
+            for a in range(2):
+                mine = v[tri[i, cu], a] + off[i, cu, a] * user_period[a]
+                corner = tv[ttri[t, ct], a] + toff[t, ct, a] * period[a]
+                d = np.rint((mine - (origin[a] + corner)) / period[a])
+                if c == 0:
+                    shift[a] = d
+                elif d != shift[a]:
+                    ok = False
+                if mine != origin[a] + (corner + d * period[a]):
+                    ok = False
+        if not ok:
+            moved += 1
+    return moved
 
 
 def _rotate(rows, r):
