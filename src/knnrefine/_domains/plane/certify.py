@@ -280,22 +280,8 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period):
         problems.append(f"{asymmetric} neighbour links are not symmetric")
     if disagree:
         problems.append("neighbours disagree on the periodic offset of a shared edge")
-    f = np.repeat(np.arange(t), 3)
-    i = np.tile(np.arange(3), t)
-    a = tri[f, (i + 1) % 3]
-    b = tri[f, (i + 2) % 3]
-    d = off[f, (i + 2) % 3] - off[f, (i + 1) % 3]
-    flip = a > b
-    key = np.stack(
-        [
-            np.where(flip, b, a),
-            np.where(flip, a, b),
-            np.where(flip, -d[:, 0], d[:, 0]),
-            np.where(flip, -d[:, 1], d[:, 1]),
-        ],
-        1,
-    )
-    label = row_classes(np.ascontiguousarray(key, np.int64), key[:, 0].astype(np.int64), max(m, 1))
+    key = _edge_keys(np.ascontiguousarray(tri, np.int64), np.ascontiguousarray(off))
+    label = row_classes(key, key[:, 0].copy(), max(m, 1))
     n_edges = int((label == np.arange(len(key))).sum())
     if m - n_edges + t != 0:
         problems.append(f"Euler characteristic {m - n_edges + t} (a torus has 0)")
@@ -311,6 +297,26 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period):
         problems.append(f"{not_delaunay} edges are not locally Delaunay (a vertex inside a "
                         "circumcircle)")  # fmt: skip
     return problems, corners, ccw, r
+
+
+@kernel(entry=True, lazy=True)
+def _edge_keys(tri, off):
+    """Each triangle's three edges as keys (lesser vertex, greater, the greater's offset
+    less the lesser's per axis), row 3 f + i for the edge opposite corner i of triangle f:
+    an edge shared by two triangles has one key."""
+    t = tri.shape[0]
+    key = np.empty((3 * t, 4), np.int64)
+    for f in range(t):
+        for i in range(3):
+            j, k = (i + 1) % 3, (i + 2) % 3
+            a, b = tri[f, j], tri[f, k]
+            d0, d1 = off[f, k, 0] - off[f, j, 0], off[f, k, 1] - off[f, j, 1]
+            r = 3 * f + i
+            if a > b:
+                key[r, 0], key[r, 1], key[r, 2], key[r, 3] = b, a, -d0, -d1
+            else:
+                key[r, 0], key[r, 1], key[r, 2], key[r, 3] = a, b, d0, d1
+    return key
 
 
 @kernel(entry=True, lazy=True)
