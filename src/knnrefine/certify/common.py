@@ -340,8 +340,9 @@ class TorusGeometry:
         """Distances between the rows of x and y in d_{P,k}'s metric (``pk_period``: the
         torus', or the box's own: 0 on straight axes)."""
         g = np.asarray(x, float) - y
-        p = self.pk_period
-        g -= np.where(p > 0, p * np.round(g / np.where(p > 0, p, 1.0)), 0.0)
+        for a, p in enumerate(self.pk_period):  # the nearer way round, axis by axis
+            if p > 0:
+                g[:, a] -= p * np.rint(g[:, a] / p)
         return np.sqrt(np.einsum("ij,ij->i", g, g))
 
     def precondition(self, points, k, tau):

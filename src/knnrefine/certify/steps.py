@@ -290,17 +290,18 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
     lo = d_pk.copy()
     if len(later) == 0:
         return d_pk, lo
-    lo[later], hi = -np.inf, np.full(len(later), np.inf)
+    low, hi = np.full(len(later), -np.inf), np.full(len(later), np.inf)
     for ref in near[later].T:  # each column of references (-1: none in that column)
         has = np.flatnonzero(ref >= 0)
         reach = geometry.separation(x[later[has]], x[ref[has]])
         d = d_pk[ref[has]]
         slack = 1e-9 * (d + reach)  # rounding in d_{P,k} and the separation
-        lo[later[has]] = np.maximum(lo[later[has]], d - reach - slack)
+        low[has] = np.maximum(low[has], d - reach - slack)
         hi[has] = np.minimum(hi[has], d + reach + slack)
+    lo[later] = low
     ratio_lo = d_m2[later] / hi
     with np.errstate(divide="ignore"):
-        ratio_hi = np.where(lo[later] > 0, d_m2[later] / lo[later], np.inf)
+        ratio_hi = np.where(low > 0, d_m2[later] / low, np.inf)
     seed = min(max(16, int(SEED * len(later))), len(later))
     pick = np.zeros(len(later), bool)
     if seed:  # the seed lowest and highest bounds (in no order: argpartition)
@@ -308,6 +309,6 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
         pick[np.argpartition(-ratio_hi, seed - 1)[:seed]] = True
     ask(later[pick])
     alpha, beta = extremes  # with the seeds asked, the rest settled against them
-    inside = (lo[later] >= floor) & (ratio_lo > alpha) & (ratio_hi < beta)
+    inside = (low >= floor) & (ratio_lo > alpha) & (ratio_hi < beta)
     ask(later[~pick & ~((hi < floor) | inside)])
     return d_pk, np.where(np.isnan(d_pk), lo, d_pk)
