@@ -667,3 +667,32 @@ def test_a_weighted_density_plot_names_its_sample_size():
     assert label.startswith("n = 2,000 weighted (total weight ")
     plain = knnrefine.KnnDensity(knnrefine.refine(pts, 10), pts)
     assert sample_label(plain) == "n = 2,000"
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_certify_refuses_a_torus_whose_cells_name_no_vertex(dim):
+    """A torus altered so that a cell names a vertex that does not exist (10^7, or -3)
+    crashed certify in a kernel (a segmentation fault in the plane: the kernels index by
+    the cells) or raised numpy's error; offsets of the wrong shape and a neighbour link to
+    no cell likewise. Each is now an InputError that says what is wrong, before any
+    kernel reads the arrays."""
+    rng = np.random.default_rng(11)
+    pts = rng.random((1500, dim))
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=(0,) * dim + (1,) * dim)
+    torus = mesh.torus
+    for value, says in ((10**7, "names vertex 10000000"), (-3, "names vertex -3")):
+        cells = np.array(torus.cells)
+        cells[5, 1] = value
+        bad = dataclasses.replace(mesh, torus=dataclasses.replace(torus, cells=cells))
+        with pytest.raises(knnrefine.InputError, match=says):
+            knnrefine.certify(bad, pts)
+    off = np.asarray(torus.offsets)[:-1]
+    bad = dataclasses.replace(mesh, torus=dataclasses.replace(torus, offsets=off))
+    with pytest.raises(knnrefine.InputError, match="offsets"):
+        knnrefine.certify(bad, pts)
+    if torus.neighbours is not None:
+        nb = np.array(torus.neighbours)
+        nb[0, 0] = len(nb)
+        bad = dataclasses.replace(mesh, torus=dataclasses.replace(torus, neighbours=nb))
+        with pytest.raises(knnrefine.InputError, match="neighbour link"):
+            knnrefine.certify(bad, pts)

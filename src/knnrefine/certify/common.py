@@ -246,6 +246,35 @@ def cell_array_problem(mesh):
     return None
 
 
+def torus_array_problem(torus):
+    """What stops a torus' arrays from being read at all by certify's kernels (cells naming
+    a vertex that does not exist, offsets or neighbours of the wrong shape, neighbours
+    naming a cell that does not exist), or None. Whether they form a triangulation is
+    checked later, exactly."""
+    v = np.asarray(torus.vertices)
+    cells = np.asarray(torus.cells)
+    if v.ndim != 2 or v.shape[1] not in (2, 3):
+        return f"its vertices have shape {v.shape}, not (m, 2) or (m, 3)"
+    nc = v.shape[1] + 1
+    if cells.ndim != 2 or cells.shape[1] != nc or not np.isfinite(cells).all():
+        return f"its cells have shape {cells.shape}, not (t, {nc})"
+    if len(cells) and (cells.min() < 0 or cells.max() >= len(v)):
+        return (f"a cell names vertex {int(cells.min()) if cells.min() < 0 else int(cells.max())}"
+                f" of {len(v)}")  # fmt: skip
+    off = np.asarray(torus.offsets)
+    want = cells.shape + (v.shape[1],)
+    if off.shape != want or not np.isfinite(off).all():
+        return f"its offsets have shape {off.shape}, not {want}"
+    nb = torus.neighbours
+    if nb is not None:
+        nb = np.asarray(nb)
+        if nb.shape != cells.shape or not np.isfinite(nb).all():
+            return f"its neighbours have shape {nb.shape}, not {cells.shape}"
+        if len(nb) and (nb.min() < 0 or nb.max() >= len(cells)):
+            return "a neighbour link names a cell that does not exist"
+    return None
+
+
 def _cells_meet_the_box(v, cells, off, period, per, box):
     """Whether some cell meets the open box: a corner strictly inside it along the
     non-periodic axes, or (where no vertex is inside, a box smaller than its cells) a cell
@@ -283,6 +312,10 @@ class TorusGeometry:
     Theorem 6's constants, the floor's sites and positions back in input coordinates."""
 
     def __init__(self, mesh, workers):
+        broken = torus_array_problem(mesh.torus)
+        if broken:  # certify's kernels index by these arrays: refused before any is read
+            raise InputError(f"the mesh's torus cannot be checked: {broken}; it was altered "
+                             "after knnrefine.refine made it (refine again)")  # fmt: skip
         self.mesh, self.workers = mesh, workers
         self.floor = mesh.min_size
         self.origin = np.asarray(mesh.torus.origin, float)
