@@ -25,7 +25,7 @@ def row_classes(rows, group, m):
     (a vertex of the row, say); only rows of a group are compared, the groups on every
     core."""
     rows = np.ascontiguousarray(rows, np.int64)
-    start, order = _grouped(np.ascontiguousarray(group, np.int64), m)
+    start, order = grouped(np.ascontiguousarray(group, np.int64), m)
     hashes = np.empty(len(rows), np.uint64)
     label = np.arange(len(rows))
 
@@ -37,7 +37,7 @@ def row_classes(rows, group, m):
 
 
 @kernel(entry=True, lazy=True)
-def _grouped(group, m):
+def grouped(group, m):
     """(each group's first place, the rows in group order): a counting sort."""
     n = len(group)
     start = np.zeros(m + 1, np.int64)

@@ -38,6 +38,7 @@ from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only
 from ..._metric import angle_to_chord, chord_to_angle, lonlat_of
 from ..._validation import as_sphere_points, check_made_from, weights_of_run
 from ...certify._predicates import UNSURE, exact_sign, orient3d_at
+from ...certify._rows import grouped
 from ...certify._tree import Tree, neighbour_lists, sums_by
 from ...certify.common import (
     SizeSample,
@@ -91,28 +92,21 @@ def _twins(tri, m):
     t = len(tri)
     a = np.concatenate([tri[:, 1], tri[:, 2], tri[:, 0]]).astype(np.int64)
     b = np.concatenate([tri[:, 2], tri[:, 0], tri[:, 1]]).astype(np.int64)
-    twin = _edge_twins(a, b, m)
+    start, order = grouped(a, m)  # the edges by tail
+    twin = _edge_twins(b, start, order)
     if len(twin) == 0 or twin.min() < 0:
         return None if len(twin) else (np.zeros((0, 3), np.int64), np.zeros((0, 3), np.int64))
     return (twin % t).reshape(3, t).T.copy(), (twin // t).reshape(3, t).T.copy()
 
 
 @kernel(entry=True, lazy=True)
-def _edge_twins(a, b, m):
-    """twin[e]: the directed edge b[e] -> a[e], found among the edges leaving b[e] (a
-    counting sort by tail); -1 where there is none, and -1 everywhere where a directed edge
-    is repeated (``_twins``: then no twin is exactly one)."""
-    n = len(a)
-    start = np.zeros(m + 1, np.int64)
-    for e in range(n):
-        start[a[e] + 1] += 1
-    for v in range(m):
-        start[v + 1] += start[v]
-    place = start[:m].copy()
-    order = np.empty(n, np.int64)
-    for e in range(n):
-        order[place[a[e]]] = e
-        place[a[e]] += 1
+def _edge_twins(b, start, order):
+    """twin[e]: the directed edge b[e] -> a[e], found among the edges leaving b[e] (edges
+    by tail a: vertex v's are order[start[v]:start[v + 1]], ``_rows.grouped``); -1 where
+    there is none, and -1 everywhere where a directed edge is repeated (``_twins``: then no
+    twin is exactly one)."""
+    n = len(b)
+    m = len(start) - 1
     twin = np.full(n, -1, np.int64)
     for v in range(m):
         for i in range(start[v], start[v + 1]):
