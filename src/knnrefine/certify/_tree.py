@@ -45,8 +45,13 @@ from ._predicates import UNSURE, orient3d_at
 from ._rows import rows_equal
 
 LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
-GRID = 16  # buckets a side of a k-th query's window, at most
+GRID = 16  # buckets a side of a k-th query's window in space, at most
+GRID2 = 32  # and in the plane
 GUESS = 0.1  # a k-th query first reads the ball of (1 + GUESS) times the answer before it
+SPAN = 8.0  # a block of k-th queries lies in a box of side SPAN times its first's answer
+SPAN3 = 2.5  # (in space: a window grows as the cube of its side)
+MARGIN = 1.25  # and reads the points within MARGIN times that answer of the box
+HISTOGRAM = 64  # bins of the histogram that finds the k-th of a query's distances
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -541,14 +546,15 @@ def _nearest_sites(pts, sites, first, edges, neighbours, period, relative, slack
 def _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell):
     """The window's points gx[:n] (within ``reach`` of ``centre``) sorted into a grid of
     G buckets a side over the cube about centre: copied to bx, bw in bucket order, bucket
-    b's rows first[b]:first[b + 1]. G follows n (about 4 points a bucket, at most
-    GRID), and is 1 (one bucket: the points left in gx, gw) for fewer than 128 points,
-    beyond three dimensions or where an axis wraps at less than 4 reach (offsets would be
+    b's rows first[b]:first[b + 1] (b = (i0 G + i1) G + i2: a run of buckets along the
+    last axis is one run of rows). G follows n (about 4 points a bucket, at most GRID[dim]),
+    and is 1 (one bucket: the points left in gx, gw) for fewer than 128 points, beyond
+    three dimensions (or in one) or where an axis wraps at less than 4 reach (offsets would be
     ambiguous). Returns G."""
     dim = gx.shape[1]
     G = 1
-    if dim <= 3 and reach > 0.0 and n >= 128:  # fewer points: read them all
-        G = max(1, min(int((n / 4.0) ** (1.0 / dim)), GRID))
+    if 2 <= dim <= 3 and reach > 0.0 and n >= 128:  # fewer points: read them all
+        G = max(1, min(int((n / 4.0) ** (1.0 / dim)), GRID2 if dim == 2 else GRID))
         for a in range(dim):
             if period[a] > 0.0 and 4.0 * reach > period[a]:
                 G = 1
@@ -563,9 +569,7 @@ def _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell):
     for j in range(n):
         b = 0
         for a in range(dim):
-            i = 0
-            if G > 1:
-                i = min(max(int((offset(gx[j, a], centre[a], period[a]) + reach) / side), 0), G - 1)
+            i = min(max(int((offset(gx[j, a], centre[a], period[a]) + reach) / side), 0), G - 1)
             b = b * G + i
         cell[j] = b
         first[b + 1] += 1
@@ -585,49 +589,98 @@ def _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _kth_in(bx, bw, first, G, centre, reach, xq, period, k, unit, r, d2, dw, lo, hi, stride):
-    """The least radius about xq holding weight k among the window's points within r of
-    it (``_bucketed``: only the buckets the ball can reach are read), or -1 where they
-    hold less. Distances are those of the points one by one, so the buckets decide only
-    which points are read: a margin covers the offsets' rounding. lo, hi, stride: room
-    for three bucket indices."""
+def _bucket_span(o, wide, side, G):
+    """The buckets [lo, hi] of a grid of G of ``side`` that [o - wide, o + wide] meets."""
+    lo = min(max(int((o - wide) / side), 0), G - 1) if o - wide > 0.0 else 0
+    hi = min(max(int((o + wide) / side), 0), G - 1) if o + wide > 0.0 else 0
+    return lo, hi
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _read_rows(bx, bw, j0, j1, xq, far, r2, d2, dw, m):
+    """The points bx[j0:j1] within sqrt(r2) of xq appended to d2 (squared distances), dw
+    (weights) from m; returns the new m. ``far``: each axis' period, inf where it does not
+    wrap, so that the distance along it, min(g, far - g), is ``_along``'s without a
+    branch; every point is written, the count moving only for those inside."""
     dim = xq.shape[0]
-    lo[:] = 0
-    hi[:] = 0
-    stride[:] = 0
-    if G > 1:
+    for j in range(j0, j1):
+        s = 0.0
+        for a in range(dim):
+            g = abs(xq[a] - bx[j, a])
+            g = min(g, far[a] - g)
+            s += g * g
+        d2[m] = s
+        dw[m] = bw[j]
+        m += s <= r2
+    return m
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _kth_in(bx, bw, first, G, centre, reach, xq, period, far, k, unit, r, d2, dw, hist):
+    """The least radius about xq holding weight k among the window's points within r of
+    it (``_bucketed``: only the buckets the ball meets are read, row by row along the
+    first axes, each row's run along the last axis cut to the ball's chord), or -1 where
+    they hold less. Distances are those of the points one by one (``_read_rows``), so the
+    buckets decide only which points are read: a margin covers the offsets' rounding.
+    Unweighted, the k-th of the squared distances is found through a histogram of them
+    (``hist``: the bin holding it, then that bin's few values selected)."""
+    dim = xq.shape[0]
+    r2 = r * r
+    m = 0
+    if G == 1:
+        m = _read_rows(bx, bw, first[0], first[1], xq, far, r2, d2, dw, 0)
+    else:
         side = 2.0 * reach / G
         scale = 0.0
         for a in range(dim):
             scale = max(scale, abs(centre[a]) + abs(xq[a]) + period[a] + reach)
         wide = r * (1.0 + 1e-9) + 1e-14 * scale
-        step = 1
-        for a in range(dim - 1, -1, -1):
-            o = offset(xq[a], centre[a], period[a]) + reach
-            lo[a] = min(max(int((o - wide) / side), 0), G - 1) if o - wide > 0.0 else 0
-            hi[a] = min(max(int((o + wide) / side), 0), G - 1) if o + wide > 0.0 else 0
-            stride[a] = step
-            step *= G
-    r2 = r * r
-    m = 0
-    for i0 in range(lo[0], hi[0] + 1):
-        for i1 in range(lo[1], hi[1] + 1):
-            for i2 in range(lo[2], hi[2] + 1):
-                b = i0 * stride[0] + i1 * stride[1] + i2 * stride[2]
-                for j in range(first[b], first[b + 1]):
-                    s = 0.0
-                    for a in range(dim):
-                        g = _along(xq[a], bx[j, a], period[a])
-                        s += g * g
-                    if s <= r2:
-                        d2[m] = s
-                        dw[m] = bw[j]
-                        m += 1
+        w2 = wide * wide
+        o0 = offset(xq[0], centre[0], period[0]) + reach
+        o1 = offset(xq[1], centre[1], period[1]) + reach
+        o2 = offset(xq[dim - 1], centre[dim - 1], period[dim - 1]) + reach
+        l0, h0 = _bucket_span(o0, wide, side, G)
+        for i0 in range(l0, h0 + 1):
+            g0 = max(0.0, i0 * side - o0, o0 - (i0 + 1) * side)
+            rem0 = w2 - g0 * g0
+            if rem0 < 0.0:
+                continue
+            l1, h1 = _bucket_span(o1, math.sqrt(rem0), side, G)
+            if dim == 2:
+                m = _read_rows(bx, bw, first[i0 * G + l1], first[i0 * G + h1 + 1], xq, far,
+                               r2, d2, dw, m)  # fmt: skip
+                continue
+            for i1 in range(l1, h1 + 1):
+                g1 = max(0.0, i1 * side - o1, o1 - (i1 + 1) * side)
+                rem1 = rem0 - g1 * g1
+                if rem1 < 0.0:
+                    continue
+                l2, h2 = _bucket_span(o2, math.sqrt(rem1), side, G)
+                row = (i0 * G + i1) * G
+                m = _read_rows(bx, bw, first[row + l2], first[row + h2 + 1], xq, far, r2,
+                               d2, dw, m)  # fmt: skip
     if unit:
         need = int(math.ceil(k))
         if need > m:
             return -1.0
-        return math.sqrt(_select(d2, m, need - 1))
+        if r2 <= 0.0 or m < 4 * hist.shape[0]:  # a few: selected directly
+            return math.sqrt(_select(d2, m, need - 1))
+        nb = hist.shape[0]
+        hist[:] = 0
+        per = nb / r2
+        for j in range(m):
+            hist[min(int(d2[j] * per), nb - 1)] += 1
+        below = 0
+        b = 0
+        while below + hist[b] < need:
+            below += hist[b]
+            b += 1
+        c = 0
+        for j in range(m):  # bin b's values, moved to the front
+            v = d2[j]
+            d2[c] = v
+            c += min(int(v * per), nb - 1) == b
+        return math.sqrt(_select(d2, c, need - below - 1))
     order = np.argsort(d2[:m])
     s = 0.0
     c = 0.0
@@ -642,70 +695,107 @@ def _kth_in(bx, bw, first, G, centre, reach, xq, period, k, unit, r, d2, dw, lo,
 def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less). Queries come in an order where neighbours
-    are near (``spatial_order``): with delta the distance from the one before, whose answer
-    is a, the answer is at most high = a + delta (d_{P,k} is 1-Lipschitz), so it is found
-    among the points within high of the query, and most often among those within (1 +
-    GUESS) a, read first. Those are taken from a window, the points within 1.5 high of an
-    earlier query, gathered once, sorted into buckets (``_bucketed``) and kept while later
-    queries' balls stay inside it (only the query's own ball where that window would hold
-    more than 16 k points: the rim of a void); the first query, one far from the one
-    before (delta > 3 a), or a window too large for its buffer: depth first
-    (``_kth_dfs``)."""
+    are near (``spatial_order``) and are answered in blocks: a run of them within a box
+    of side SPAN a (SPAN3 a in space; a the answer at the run's first, asked depth first: ``_kth_dfs``), whose
+    window, every point within half the box's diagonal plus MARGIN a of its centre, is
+    gathered once and sorted into buckets (``_bucketed``). Each query then reads the ball
+    of (1 + GUESS) times the answer before it (or, d_{P,k} being 1-Lipschitz, that answer
+    plus their distance, where less), then the largest the window holds about it; one
+    whose answer lies beyond, or in a window too crowded for its buffer (a void's rim:
+    the run is halved until it fits), depth first."""
     dim = x.shape[1]
     stack = np.empty(2 * depth + 4, np.int64)
     stack_key = np.empty(2 * depth + 4)
-    crowd = 16 * int(math.ceil(k)) + 64  # a window of more points than this is too wide
     kk = int(math.ceil(k)) if unit else 0
     hk = np.empty(max(kk, 64))
     hw = np.empty(max(kk, 64))
-    size = max(256 * kk, 8192)
+    size = max(64 * int(math.ceil(k)), 8192)
+    span = SPAN if dim <= 2 else SPAN3
     gx = np.empty((size, dim))
     gw = np.empty(size)
     bx = np.empty((size, dim))
     bw = np.empty(size)
     cell = np.empty(size, np.int64)
-    first = np.empty(GRID**3 + 1, np.int64)
-    lo = np.zeros(3, np.int64)
-    hi = np.zeros(3, np.int64)
-    stride = np.zeros(3, np.int64)
+    first = np.empty(max(GRID2**2, GRID**3) + 1, np.int64)
     d2 = np.empty(size)
     dw = np.empty(size)
-    n = 0
-    G = 1
+    hist = np.empty(HISTOGRAM, np.int64)
+    far = np.empty(dim)
+    for a in range(dim):
+        far[a] = period[a] if period[a] > 0.0 else np.inf
     centre = np.empty(dim)
-    reach = -1.0  # the window: the points within reach of centre (none yet)
-    for q in range(start, end):
-        xq = x[q]
-        answer = -1.0
-        if q > start and out[q - 1] < np.inf:
-            a = out[q - 1]
-            delta = math.sqrt(_point2(x, q - 1, xq, period))
-            if delta <= 3.0 * a:  # else the bound is loose: depth first
-                high = (a + delta) * (1.0 + 1e-12)
-                guess = min(high, a * (1.0 + GUESS))
-                for attempt in range(2 if guess < high else 1):
-                    r = guess if attempt == 0 else high
-                    if reach < 0.0 or math.sqrt(_dist_to(centre, xq, period)) + r > reach:
-                        for t in range(dim):
-                            centre[t] = xq[t]
-                        reach = 1.5 * high
-                        n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
-                        if n < 0 or n > crowd:  # crowded past the ball (a void's rim):
-                            reach = high  # this query's ball only
-                            n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
-                        if n < 0:
-                            reach = -1.0
-                            break
-                        G = _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell)
-                    px, pw = (bx, bw) if G > 1 else (gx, gw)  # one bucket: left in place
-                    answer = _kth_in(px, pw, first, G, centre, reach, xq, period, k, unit, r,
-                                     d2, dw, lo, hi, stride)  # fmt: skip
-                    if answer >= 0.0:
-                        break
-        if answer < 0.0:
-            answer, hk, hw = _kth_dfs(pts, w, T, period, xq, k, unit,
-                                      stack, stack_key, hk, hw)  # fmt: skip
-        out[q] = answer
+    lo = np.empty(dim)
+    hi = np.empty(dim)
+    q = start
+    while q < end:
+        out[q], hk, hw = _kth_dfs(pts, w, T, period, x[q], k, unit, stack, stack_key, hk, hw)
+        a = out[q]
+        q += 1
+        if not a < np.inf:
+            continue
+        b = q  # the block: queries [q, b) within a box of side SPAN a about x[q - 1]
+        for t in range(dim):
+            lo[t] = 0.0
+            hi[t] = 0.0
+        while b < end:
+            fits = True
+            for t in range(dim):
+                o = offset(x[b, t], x[q - 1, t], period[t])
+                if max(hi[t], o) - min(lo[t], o) > span * a:
+                    fits = False
+            if not fits:
+                break
+            for t in range(dim):
+                o = offset(x[b, t], x[q - 1, t], period[t])
+                lo[t] = min(lo[t], o)
+                hi[t] = max(hi[t], o)
+            b += 1
+        n = -1
+        while n < 0 and b > q:
+            half = 0.0
+            for t in range(dim):
+                c = x[q - 1, t] + 0.5 * (lo[t] + hi[t])
+                if period[t] > 0.0:
+                    c = c % period[t]
+                centre[t] = c
+                half += (0.5 * (hi[t] - lo[t])) ** 2
+            reach = math.sqrt(half) * (1.0 + 1e-12) + MARGIN * a
+            n = _gather(pts, w, T, period, centre, reach * reach, stack, gx, gw)
+            if n < 0:  # crowded: half the block, its box again
+                b = q + (b - q) // 2
+                for t in range(dim):
+                    lo[t] = 0.0
+                    hi[t] = 0.0
+                for j in range(q, b):
+                    for t in range(dim):
+                        o = offset(x[j, t], x[q - 1, t], period[t])
+                        lo[t] = min(lo[t], o)
+                        hi[t] = max(hi[t], o)
+        if n < 0:
+            continue
+        G = _bucketed(gx, gw, n, centre, reach, period, bx, bw, first, cell)
+        px, pw = (bx, bw) if G > 1 else (gx, gw)  # one bucket: left in place
+        for j in range(q, b):
+            xq = x[j]
+            answer = -1.0
+            before = out[j - 1]
+            if before < np.inf:
+                delta = math.sqrt(_point2(x, j - 1, xq, period))
+                room = reach * (1.0 - 1e-12) - math.sqrt(_dist_to(centre, xq, period)) * (
+                    1.0 + 1e-12)
+                top = min(room, (before + delta) * (1.0 + 1e-12))
+                r = min(top, before * (1.0 + GUESS))
+                if r > 0.0:
+                    answer = _kth_in(px, pw, first, G, centre, reach, xq, period, far, k,
+                                     unit, r, d2, dw, hist)  # fmt: skip
+                if answer < 0.0 and r < top:
+                    answer = _kth_in(px, pw, first, G, centre, reach, xq, period, far, k,
+                                     unit, top, d2, dw, hist)  # fmt: skip
+            if answer < 0.0:
+                answer, hk, hw = _kth_dfs(pts, w, T, period, xq, k, unit,
+                                          stack, stack_key, hk, hw)  # fmt: skip
+            out[j] = answer
+        q = b
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
