@@ -400,3 +400,80 @@ def test_sphere_edge_twins_against_a_dictionary():
     flipped = tri.copy()
     flipped[0] = flipped[0, ::-1]
     assert _twins(flipped, m) is None  # reversed: its edges repeat its neighbours'
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_tree_built_along_a_morton_curve_keeps_its_invariants(dim):
+    """Issue 52: the tree is built from the points sorted along a Morton curve, split at
+    their codes' highest differing bit, and by the sliding midpoint where the codes no
+    longer tell them apart (points 1e-12 apart, below the codes' resolution), never
+    between coinciding points. Every node's range is its children's, its box the tight
+    box of its points, its total their weight; a leaf holds at most LEAF points unless
+    they coincide; the points are the input's, permuted."""
+    from knnrefine.certify import _tree
+
+    rng = np.random.default_rng(5 + dim)
+    pts = np.concatenate([
+        rng.random((3000, dim)),
+        0.3 + 1e-12 * rng.random((200, dim)),  # closer than the codes resolve
+        np.repeat(rng.random((1, dim)), 100, axis=0),  # coinciding
+        np.mod(rng.random((1, dim)) + rng.normal(0, 1e-4, (500, dim)), 1),  # a cluster
+    ])  # fmt: skip
+    w = rng.random(len(pts)) + 0.5
+    for weights in (None, w):
+        tree = Tree(pts, weights, None, 2)
+        P, W, T = tree.pts, tree.w, tree.T
+        order = np.lexsort(P.T)
+        want = np.lexsort(pts.T)
+        np.testing.assert_array_equal(P[order], pts[want])
+        lo, hi, child = T[:, 0].astype(int), T[:, 1].astype(int), T[:, 2].astype(int)
+        assert lo[0] == 0 and hi[0] == len(pts)
+        for i in range(len(T)):
+            mine = P[lo[i] : hi[i]]
+            np.testing.assert_array_equal(T[i, 4 : 4 + dim], mine.min(0))
+            np.testing.assert_array_equal(T[i, 4 + dim :], mine.max(0))
+            np.testing.assert_allclose(T[i, 3], W[lo[i] : hi[i]].sum(), rtol=1e-13)
+            if child[i] >= 0:
+                c = child[i]
+                assert lo[c] == lo[i] and hi[c] == lo[c + 1] and hi[c + 1] == hi[i]
+                assert lo[c] < hi[c] and lo[c + 1] < hi[c + 1]  # no empty child
+            else:
+                assert hi[i] - lo[i] <= _tree.LEAF or (mine == mine[0]).all()
+        assert tree.depth >= int(np.log2(len(pts) / _tree.LEAF))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_kth_blocks_across_a_cluster_beside_a_void_equal_brute_force(dim):
+    """Issue 52: k-th queries in blocks, each block's window sized by its first answer.
+    Queries sweeping from a void into a dense cluster (a window sized in the void floods
+    its buffer there: the block is halved) and along a line through both, k = 1, 30, 120,
+    unweighted and weighted: brute force's distances."""
+    rng = np.random.default_rng(23 + dim)
+    pts = np.concatenate([
+        rng.random((2000, dim)),
+        0.5 + 0.01 * rng.standard_normal((20_000, dim)),
+    ])  # fmt: skip
+    t = np.linspace(0, 1, 1500)[:, None]
+    x = np.concatenate([rng.random((1500, dim)), 0.1 + t * (np.full(dim, 0.8))])
+    for k in (1, 30, 120):
+        np.testing.assert_allclose(Tree(pts, None, None, 2).kth(x, k),
+                                   _brute_kth(x, pts, None, k), rtol=1e-12)  # fmt: skip
+    w = rng.random(len(pts)) + 0.25
+    np.testing.assert_allclose(Tree(pts, w, np.ones(dim), 2).kth(x, 50.0),
+                               _brute_kth(x, pts, np.ones(dim), 50.0, w), rtol=1e-12)  # fmt: skip
+
+
+def test_kth_window_sized_by_the_points_not_by_k():
+    """Regression (issue 52): a block's window buffer was 64 k points, so k = 1e16 + 8 with
+    weights (test_weights' heavy point) asked numpy for an array beyond any memory. The
+    buffers follow min(k, n): k beyond the points' count or weight gives inf, and a heavy
+    point's k its brute-force distance."""
+    rng = np.random.default_rng(9)
+    pts = rng.random((3000, 2))
+    x = rng.random((700, 2))
+    assert np.isinf(Tree(pts, None, None, 2).kth(x, 10**9)).all()
+    w = np.ones(len(pts))
+    w[0] = 1e16
+    got = Tree(pts, w, None, 2).kth(x, 1e16 + 8)
+    np.testing.assert_allclose(got, _brute_kth(x, pts, None, 1e16 + 8, w), rtol=1e-12)
+    assert np.isinf(Tree(pts, w, None, 2).kth(x, 1e17)).all()

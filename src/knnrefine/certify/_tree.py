@@ -6,9 +6,12 @@ would check the engine with itself. This tree is built another way and shares no
 it: in any dimension, on axes that may wrap (a torus, ``period[a] > 0``) or not, over points
 that may carry weights (a point of weight 0 holds nothing and is left out by the caller).
 
-Built by the sliding-midpoint rule (Maneewongvatana and Mount): a node of more than ``LEAF``
-points splits its tight bounding box in the middle of its widest side, so that a clustered
-or duplicated input never makes a long thin node; a node whose points all coincide is never
+Built along a Morton curve: the points are sorted by their Morton codes (TREE_BITS bits a
+coordinate over their bounding box, a radix sort) and a node of more than ``LEAF`` points
+splits where its codes' highest differing bit turns, a quadtree's midpoint split of its cell,
+so that no node is long and thin and the build is a sort and one pass; where the codes no
+longer tell the points apart, the sliding-midpoint rule (Maneewongvatana and Mount) splits
+on: the middle of the tight box's widest side. A node whose points all coincide is never
 split, whatever its size, and is asked about as one weighted point. Every node keeps its
 tight box and its compensated weight total, so a ball that covers a node adds the total
 without visiting its points.
@@ -20,11 +23,11 @@ Queries (each ``nogil``, over a range of queries, run on every core by ``in_chun
   exactly only where it is below k, and the counts at or above k again, in full, only where
   a check fails);
 * ``kth``: the least radius whose closed ball holds weight k (d_{P,k}; unweighted, the k-th
-  nearest distance). Queries come along a Morton curve, so each answer bounds the next
-  (1-Lipschitz): the points near a run of queries are gathered once into a window sorted
-  into buckets, and each query reads only the buckets its ball can reach, first the ball
-  of 1 + GUESS times the answer before it; depth first, nearer child first, where there
-  is no bound;
+  nearest distance). Queries come along a Morton curve and are answered in blocks: a run of
+  them in a small box reads one window of points, gathered once and sorted into buckets,
+  and each query reads only the buckets its ball meets, first the ball of 1 + GUESS times
+  the answer before it (d_{P,k} is 1-Lipschitz, so each answer bounds the next); depth
+  first, nearer child first, where a block starts or its window cannot answer;
 * ``nearest``: each query's nearest site and every site as near up to a tie tolerance (the
   closed Voronoi cells a point counts for).
 
@@ -52,26 +55,52 @@ SPAN = 8.0  # a block of k-th queries lies in a box of side SPAN times its first
 SPAN3 = 2.5  # (in space: a window grows as the cube of its side)
 MARGIN = 1.25  # and reads the points within MARGIN times that answer of the box
 HISTOGRAM = 64  # bins of the histogram that finds the k-th of a query's distances
+TREE_BITS = 20  # bits of each coordinate in the tree's Morton codes in the plane
+TREE_BITS3 = 14  # and in space (below them, nodes split by the sliding midpoint)
+
+
+def _build(pts, w, leaf):
+    """The tree over ``pts`` (n, d) with weights ``w`` (n,): (points and weights permuted so
+    that each node owns a contiguous range, the nodes, the depth). The points are sorted
+    along a Morton curve (``_morton_sorted``, TREE_BITS a coordinate), then split by
+    ``_split_sorted``."""
+    d = pts.shape[1]
+    code, order = _morton_sorted(pts, TREE_BITS if d == 2 else TREE_BITS3)
+    return _split_sorted(pts, w, code, order, leaf)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _build(pts, w, leaf):
-    """The tree over ``pts`` (n, d) with weights ``w`` (n,): (points and weights permuted so
-    that each node owns a contiguous range, the nodes, the depth).
-    A node is one row of ``T`` (nodes, 4 + 2 d), all a query reads of it in one or two cache
-    lines: lo, hi, its first child (-1 at a leaf; the second follows the first), its weight
-    total, its tight box (mins, then maxes)."""
+def _split_sorted(pts, w, code, order, leaf):
+    """The tree over pts[order], w[order] (``_build``), ``code`` their Morton codes, sorted.
+    A node of more than ``leaf`` points splits where its codes' highest differing bit
+    turns to 1 (a quadtree's midpoint split of its cell, so no node is long and thin;
+    a run of equal halves is one split); a node whose codes are all equal (points closer
+    than the codes resolve) splits by the sliding-midpoint rule (Maneewongvatana and
+    Mount): the middle of its tight box's widest side, moved to the points where one side
+    would be empty; a node whose points all coincide is never split. Then, from the leaves
+    up, each node's tight box and weight total (compensated: the sum of its points).
+    A node is one row of ``T`` (nodes, 4 + 2 d), all a query reads of it in one or two
+    cache lines: lo, hi, its first child (-1 at a leaf; the second follows the first), its
+    weight total, its tight box (mins, then maxes)."""
     n, d = pts.shape
-    pts = pts.copy()
-    w = w.copy()
+    p = np.empty((n, d))
+    ww = np.empty(n)
+    unit = True
+    for i in range(n):
+        j = order[i]
+        for a in range(d):
+            p[i, a] = pts[j, a]
+        ww[i] = w[j]
+        if w[j] != 1.0:
+            unit = False
     cap = 2 * (n // max(leaf, 1)) + 64
     node = np.empty((cap, 3), np.int64)
-    box = np.empty((cap, 2 * d))
-    total = np.empty(cap)
     level = np.zeros(cap, np.int64)
     node[0, 0], node[0, 1], node[0, 2] = 0, n, -1
     count = 1
     deepest = 0
+    lo_ = np.empty(d)
+    hi_ = np.empty(d)
     todo = np.empty(64, np.int64)  # nodes to split, last in first out: a subtree's nodes
     todo[0] = 0  # lie together (depth first), as a query walks them
     top = 1
@@ -79,72 +108,106 @@ def _build(pts, w, leaf):
         top -= 1
         i = todo[top]
         lo, hi = node[i, 0], node[i, 1]
-        s = 0.0
-        c = 0.0
-        for a in range(d):
-            box[i, a] = np.inf
-            box[i, d + a] = -np.inf
-        for j in range(lo, hi):
+        if hi - lo <= leaf:
+            continue
+        cut = -1
+        if code[lo] != code[hi - 1]:  # the first row whose highest differing bit is 1
+            bit = np.uint64(1) << np.uint64(63 - _leading_zeros(code[lo] ^ code[hi - 1]))
+            a_, b_ = lo, hi - 1  # code[a_] has the bit clear, code[b_] set
+            while b_ - a_ > 1:
+                mid = (a_ + b_) >> 1
+                if code[mid] & bit:
+                    b_ = mid
+                else:
+                    a_ = mid
+            cut = b_
+        else:  # the sliding midpoint of the tight box's widest side
             for a in range(d):
-                x = pts[j, a]
-                if x < box[i, a]:
-                    box[i, a] = x
-                if x > box[i, d + a]:
-                    box[i, d + a] = x
-            s, c = plus_compensated(s, c, w[j])
-        total[i] = s + c
-        if hi - lo > leaf:
+                lo_[a] = np.inf
+                hi_[a] = -np.inf
+            for j in range(lo, hi):
+                for a in range(d):
+                    lo_[a] = min(lo_[a], p[j, a])
+                    hi_[a] = max(hi_[a], p[j, a])
             axis = 0
             width = -1.0
             for a in range(d):
-                if box[i, d + a] - box[i, a] > width:
-                    width = box[i, d + a] - box[i, a]
+                if hi_[a] - lo_[a] > width:
+                    width = hi_[a] - lo_[a]
                     axis = a
-            if width > 0.0:
-                low, high = box[i, axis], box[i, d + axis]
-                split = 0.5 * (low + high)
-                if split <= low:  # neighbouring floats: the larger goes right
-                    split = high
-                a_ = lo
-                b_ = hi - 1
-                while a_ <= b_:
-                    if pts[a_, axis] < split:
-                        a_ += 1
-                    else:
-                        for t in range(d):
-                            pts[a_, t], pts[b_, t] = pts[b_, t], pts[a_, t]
-                        w[a_], w[b_] = w[b_], w[a_]
-                        b_ -= 1
-                if count + 2 > cap:
-                    cap = 2 * cap
-                    node2 = np.empty((cap, 3), np.int64)
-                    node2[:count] = node[:count]
-                    box2 = np.empty((cap, 2 * d))
-                    box2[:count] = box[:count]
-                    total2 = np.empty(cap)
-                    total2[:count] = total[:count]
-                    level2 = np.zeros(cap, np.int64)
-                    level2[:count] = level[:count]
-                    node, box, total, level = node2, box2, total2, level2
-                node[i, 2] = count
-                node[count, 0], node[count, 1], node[count, 2] = lo, a_, -1
-                node[count + 1, 0], node[count + 1, 1], node[count + 1, 2] = a_, hi, -1
-                level[count] = level[count + 1] = level[i] + 1
-                deepest = max(deepest, level[i] + 1)
-                if top + 2 > todo.shape[0]:
-                    todo2 = np.empty(2 * todo.shape[0], np.int64)
-                    todo2[:top] = todo[:top]
-                    todo = todo2
-                todo[top] = count + 1
-                todo[top + 1] = count
-                top += 2
-                count += 2
+            if not width > 0.0:  # every point coincides: never split
+                continue
+            split = 0.5 * (lo_[axis] + hi_[axis])
+            if split <= lo_[axis]:  # neighbouring floats: the larger goes right
+                split = hi_[axis]
+            a_ = lo
+            b_ = hi - 1
+            while a_ <= b_:
+                if p[a_, axis] < split:
+                    a_ += 1
+                else:
+                    for t in range(d):
+                        p[a_, t], p[b_, t] = p[b_, t], p[a_, t]
+                    ww[a_], ww[b_] = ww[b_], ww[a_]
+                    b_ -= 1
+            cut = a_
+        if count + 2 > cap:
+            cap = 2 * cap
+            node2 = np.empty((cap, 3), np.int64)
+            node2[:count] = node[:count]
+            level2 = np.zeros(cap, np.int64)
+            level2[:count] = level[:count]
+            node, level = node2, level2
+        node[i, 2] = count
+        node[count, 0], node[count, 1], node[count, 2] = lo, cut, -1
+        node[count + 1, 0], node[count + 1, 1], node[count + 1, 2] = cut, hi, -1
+        level[count] = level[count + 1] = level[i] + 1
+        deepest = max(deepest, level[i] + 1)
+        if top + 2 > todo.shape[0]:
+            todo2 = np.empty(2 * todo.shape[0], np.int64)
+            todo2[:top] = todo[:top]
+            todo = todo2
+        todo[top] = count + 1
+        todo[top + 1] = count
+        top += 2
+        count += 2
     T = np.empty((count, 4 + 2 * d))
-    for i in range(count):
-        T[i, 0], T[i, 1], T[i, 2], T[i, 3] = node[i, 0], node[i, 1], node[i, 2], total[i]
-        for a in range(2 * d):
-            T[i, 4 + a] = box[i, a]
-    return pts, w, T, deepest
+    for i in range(count - 1, -1, -1):  # children after their parent: from the leaves up
+        lo, hi, child = node[i, 0], node[i, 1], node[i, 2]
+        T[i, 0], T[i, 1], T[i, 2] = lo, hi, child
+        if child < 0:
+            for a in range(d):
+                lo_[a] = np.inf
+                hi_[a] = -np.inf
+            for j in range(lo, hi):
+                for a in range(d):
+                    lo_[a] = min(lo_[a], p[j, a])
+                    hi_[a] = max(hi_[a], p[j, a])
+            for a in range(d):
+                T[i, 4 + a] = lo_[a]
+                T[i, 4 + d + a] = hi_[a]
+        else:
+            for a in range(d):
+                T[i, 4 + a] = min(T[child, 4 + a], T[child + 1, 4 + a])
+                T[i, 4 + d + a] = max(T[child, 4 + d + a], T[child + 1, 4 + d + a])
+        if unit:
+            T[i, 3] = hi - lo
+        else:
+            s = 0.0
+            c = 0.0
+            for j in range(lo, hi):
+                s, c = plus_compensated(s, c, ww[j])
+            T[i, 3] = s + c
+    return p, ww, T, deepest
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _leading_zeros(v):
+    """The number of leading zero bits of the 64-bit v > 0."""
+    z = 0
+    while not v & (np.uint64(1) << np.uint64(63 - z)):
+        z += 1
+    return z
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -211,38 +274,6 @@ def _point2(pts, j, x, period):
         g = _along(x[a], pts[j, a], period[a])
         s += g * g
     return s
-
-
-@kernel(entry=True, lazy=True, nogil=True)
-def _held(pts, w, T, depth, period, x, r2, stop, out, start, end):
-    """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])),
-    exact below stop[q], at least stop[q] otherwise (the walk stops there)."""
-    stack = np.empty(2 * depth + 4, np.int64)
-    for q in range(start, end):
-        xq = x[q]
-        rq = r2[q]
-        s = 0.0
-        c = 0.0
-        top = 1
-        stack[0] = 0
-        while top > 0 and s + c < stop[q]:
-            top -= 1
-            i = stack[top]
-            if _box_near2(T, i, xq, period) > rq:
-                continue
-            if _box_far2(T, i, xq, period) <= rq:
-                s, c = plus_compensated(s, c, T[i, 3])
-                continue
-            child = int(T[i, 2])
-            if child >= 0:
-                stack[top] = child
-                stack[top + 1] = child + 1
-                top += 2
-                continue
-            for j in range(int(T[i, 0]), int(T[i, 1])):
-                if _point2(pts, j, xq, period) <= rq:
-                    s, c = plus_compensated(s, c, w[j])
-        out[q] = s + c
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -707,9 +738,10 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
     stack = np.empty(2 * depth + 4, np.int64)
     stack_key = np.empty(2 * depth + 4)
     kk = int(math.ceil(k)) if unit else 0
-    hk = np.empty(max(kk, 64))
-    hw = np.empty(max(kk, 64))
-    size = max(64 * int(math.ceil(k)), 8192)
+    npts = pts.shape[0]
+    hk = np.empty(max(min(kk, npts), 64))  # (k beyond the points: the heap never fills)
+    hw = np.empty(max(min(kk, npts), 64))
+    size = min(max(64 * int(math.ceil(min(k, npts))), 8192), npts + 1)  # a window's points
     span = SPAN if dim <= 2 else SPAN3
     gx = np.empty((size, dim))
     gw = np.empty(size)
@@ -796,6 +828,43 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
                                           stack, stack_key, hk, hw)  # fmt: skip
             out[j] = answer
         q = b
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _held_one(pts, w, T, period, xq, rq, stop, stack):
+    """The weight in the closed ball (xq, sqrt(rq)), exact below stop, at least stop
+    otherwise: depth first, whole nodes inside added without their points."""
+    s = 0.0
+    c = 0.0
+    top = 1
+    stack[0] = 0
+    while top > 0 and s + c < stop:
+        top -= 1
+        i = stack[top]
+        if _box_near2(T, i, xq, period) > rq:
+            continue
+        if _box_far2(T, i, xq, period) <= rq:
+            s, c = plus_compensated(s, c, T[i, 3])
+            continue
+        child = int(T[i, 2])
+        if child >= 0:
+            stack[top] = child
+            stack[top + 1] = child + 1
+            top += 2
+            continue
+        for j in range(int(T[i, 0]), int(T[i, 1])):
+            if _point2(pts, j, xq, period) <= rq:
+                s, c = plus_compensated(s, c, w[j])
+    return s + c
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _held(pts, w, T, depth, period, x, r2, stop, out, start, end):
+    """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])),
+    exact below stop[q], at least stop[q] otherwise (``_held_one``)."""
+    stack = np.empty(2 * depth + 4, np.int64)
+    for q in range(start, end):
+        out[q] = _held_one(pts, w, T, period, x[q], r2[q], stop[q], stack)
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -1035,20 +1104,31 @@ class Tree:
     def held(self, centres, radii, stop=np.inf, period=None):
         """What each closed ball (centre, radius) holds: its points' weight (their number
         unweighted), exact where below ``stop`` (a number or one per ball), at least
-        ``stop`` otherwise."""
+        ``stop`` otherwise. Asked along a Morton curve (``spatial_order``): neighbouring
+        balls read the same nodes, from the cache."""
         x = self._queries(centres)
-        r = np.asarray(radii, np.float64)
-        r2 = np.ascontiguousarray(np.broadcast_to(r * r, len(x)))
-        st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(x)))
-        out = np.empty(len(x))
+        r = np.broadcast_to(np.asarray(radii, np.float64), len(x))
+        order = spatial_order(x)
+        xs = np.ascontiguousarray(x[order])
+        r2 = np.ascontiguousarray(np.square(r[order]))
+        st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(x))[order])
+        res = np.empty(len(x))
         p = self._period(period)
 
         def call(a, b):
-            _held(self.pts, self.w, self.T, self.depth, p, x, r2, st,
-                  out, a, b)  # fmt: skip
+            _held(self.pts, self.w, self.T, self.depth, p, xs, r2, st, res, a, b)
 
         self._run(call, len(x))
+        out = np.empty(len(x))
+        out[order] = res
         return out
+
+    @property
+    def unit(self):
+        """Whether every point weighs 1."""
+        if "_unit" not in self.__dict__:
+            self._unit = bool((self.w == 1.0).all())
+        return self._unit
 
     def kth(self, x, k, period=None, sort=True):
         """The least radius whose closed ball about each x holds weight k (the k-th
@@ -1060,7 +1140,7 @@ class Tree:
         xs = np.ascontiguousarray(x[order])
         res = np.empty(len(x))
         p = self._period(period)
-        unit = bool((self.w == 1.0).all())
+        unit = self.unit
 
         def call(a, b):
             _kth(self.pts, self.w, self.T, self.depth, p, xs, float(k), unit, res, a, b)
@@ -1176,14 +1256,15 @@ def _spread3(v):
     return v
 
 
-@kernel(entry=True, lazy=True)
-def _morton_order(x):
-    """The order of the rows of x (n, 2 or 3) along a Morton curve over their finite
-    bounding box: each coordinate less the box's least, scaled to an integer (31 bits in
-    the plane, 21 in space; a coordinate not finite as the least), interleaved, and the
-    codes sorted by a radix sort of eight 8-bit digits."""
+@kernel(entry=True, lazy=True, nogil=True)
+def _morton_sorted(x, bits):
+    """(the Morton codes of the rows of x (n, 2 or 3) over their finite bounding box,
+    sorted; the order that sorts them): each coordinate less the box's least, scaled to an
+    integer of ``bits`` bits (a coordinate not finite as the least), interleaved, and the
+    codes sorted by a radix sort of 8-bit digits (their counts all taken in one pass; a
+    digit the same in every code skipped)."""
     n, d = x.shape
-    top = 2.0**31 - 1.0 if d == 2 else 2.0**21 - 1.0
+    top = 2.0**bits - 1.0
     lo = np.full(d, np.inf)
     hi = np.full(d, -np.inf)
     for i in range(n):
@@ -1198,6 +1279,8 @@ def _morton_order(x):
             scale[a] = top / (hi[a] - lo[a])
         else:
             lo[a] = 0.0
+    digits = (bits * d + 7) // 8
+    count = np.zeros((digits, 257), np.int64)
     code = np.empty(n, np.uint64)
     for i in range(n):
         c = np.uint64(0)
@@ -1207,37 +1290,38 @@ def _morton_order(x):
             q = np.uint64(v)
             c |= (_spread2(q) if d == 2 else _spread3(q)) << np.uint64(a)
         code[i] = c
+        for g in range(digits):
+            count[g, ((c >> np.uint64(8 * g)) & np.uint64(0xFF)) + 1] += 1
     order = np.arange(n)
     keys2 = np.empty(n, np.uint64)
     order2 = np.empty(n, np.int64)
-    count = np.empty(257, np.int64)
-    for shift in range(0, 64, 8):
-        count[:] = 0
-        for i in range(n):
-            count[((code[i] >> np.uint64(shift)) & np.uint64(0xFF)) + 1] += 1
-        if count.max() == n:  # one digit for every code: nothing moves
+    for g in range(digits):
+        if count[g].max() == n:  # one digit for every code: nothing moves
             continue
+        shift = np.uint64(8 * g)
+        at = count[g]
         for b in range(256):
-            count[b + 1] += count[b]
+            at[b + 1] += at[b]
         for i in range(n):
-            digit = (code[i] >> np.uint64(shift)) & np.uint64(0xFF)
-            keys2[count[digit]] = code[i]
-            order2[count[digit]] = order[i]
-            count[digit] += 1
+            digit = (code[i] >> shift) & np.uint64(0xFF)
+            keys2[at[digit]] = code[i]
+            order2[at[digit]] = order[i]
+            at[digit] += 1
         code, keys2 = keys2, code
         order, order2 = order2, order
-    return order
+    return code, order
 
 
 def spatial_order(x):
-    """An order of the rows of ``x`` (n, d) along a Morton curve over their bounding box:
-    neighbours in it are near each other, as groups of queries need."""
+    """An order of the rows of ``x`` (n, d) along a Morton curve over their bounding box
+    (31 bits a coordinate in the plane, 21 in space): neighbours in it are near each
+    other, as groups of queries need."""
     x = np.ascontiguousarray(x, np.float64)
     if len(x) < 2:
         return np.arange(len(x))
     if x.shape[1] not in (2, 3):
         return np.arange(len(x))
-    return _morton_order(x)
+    return _morton_sorted(x, 31 if x.shape[1] == 2 else 21)[1]
 
 
 @kernel(entry=True, lazy=True)
