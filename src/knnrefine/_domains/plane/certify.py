@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from ..._engine.jit import kernel
+from ..._engine.threads import in_chunks
 from ..._metric import BoxMetric, TorusFrame
 from ...certify._predicates import UNSURE, exact_sign, incircle, orient2d
 from ...certify._rows import row_classes
@@ -58,7 +59,7 @@ class Geometry(TorusGeometry):
         triangles' corners."""
         t = self.mesh.torus
         problems, corners, centres, radii = verify_triangulation(
-            self.vertices, t.triangles, t.offsets, t.neighbours, self.period
+            self.vertices, t.triangles, t.offsets, t.neighbours, self.period, self.workers
         )
         outradii = np.zeros(len(self.vertices))
         for c in range(3):
@@ -257,10 +258,11 @@ def _rotate(rows, r):
     return np.take_along_axis(rows, idx.reshape(idx.shape + (1,) * (rows.ndim - 2)), axis=1)
 
 
-def verify_triangulation(vertices, triangles, offsets, neighbours, period):
+def verify_triangulation(vertices, triangles, offsets, neighbours, period, workers=None):
     """Problems (a list of strings, empty if none) that stop (triangles, offsets, neighbours)
     from being a Delaunay triangulation of the torus; also the realised corners, circumcenters
-    (wrapped into the domain) and circumradii."""
+    (wrapped into the domain) and circumradii. ``workers``: threads for the local checks
+    (None or -1: every core)."""
     problems = []
     m, t = len(vertices), len(triangles)
     tri = np.asarray(triangles)
@@ -275,7 +277,7 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period):
         ccw_bad = not_delaunay = asymmetric = disagree = 0
     else:
         ccw_bad, not_delaunay, asymmetric, disagree = _local_checks(vertices, tri, off, nb,
-                                                                    period)  # fmt: skip
+                                                                    period, workers)  # fmt: skip
     if asymmetric:
         problems.append(f"{asymmetric} neighbour links are not symmetric")
     if disagree:
@@ -319,17 +321,17 @@ def _edge_keys(tri, off):
     return key
 
 
-@kernel(entry=True, lazy=True)
-def _local_signs(vertices, tri, off, nb, period, orient, circle):
+@kernel(entry=True, lazy=True, nogil=True)
+def _local_signs(vertices, tri, off, nb, period, orient, circle, start, end):
     """orient[f]: the sign of orient2d of triangle f's corners (UNSURE where the filter
     cannot tell); circle[f, i]: the sign of incircle of f's corners and the corner of its
     neighbour across edge i opposite that edge, placed by the edge's own offsets (3: no
-    neighbour links back across that edge). Returns (the (triangle, edge) pairs whose
-    neighbour does not link back exactly once, those whose neighbour puts the shared edge
-    at other relative offsets)."""
+    neighbour links back across that edge), for the triangles f in [start, end). Returns
+    (the (triangle, edge) pairs whose neighbour does not link back exactly once, those
+    whose neighbour puts the shared edge at other relative offsets)."""
     asymmetric = 0
     disagree = 0
-    for f in range(tri.shape[0]):
+    for f in range(start, end):
         ax = vertices[tri[f, 0], 0] + off[f, 0, 0] * period[0]
         ay = vertices[tri[f, 0], 1] + off[f, 0, 1] * period[1]
         bx = vertices[tri[f, 1], 0] + off[f, 1, 0] * period[0]
@@ -359,21 +361,25 @@ def _local_signs(vertices, tri, off, nb, period, orient, circle):
     return asymmetric, disagree
 
 
-def _local_checks(vertices, tri, off, nb, period):
+def _local_checks(vertices, tri, off, nb, period, workers=None):
     """(triangles not counter-clockwise, edge sides whose far corner lies inside the
     circumcircle, links not symmetric, offsets disagreeing), exactly: filtered predicates
-    (``_local_signs``), integers only where the filter cannot tell. A triangulation of the
+    (``_local_signs``, on every core), integers only where the filter cannot tell. A triangulation of the
     torus (the links, Euler characteristic, orientation and area checks) whose every edge
     is locally Delaunay is Delaunay (the Delaunay lemma, on the periodic cover): its
     circumcircles hold no vertex."""
     t = len(tri)
     orient = np.empty(t, np.int8)
     circle = np.empty((t, 3), np.int8)
-    asymmetric, disagree = _local_signs(
+    args = (
         np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(tri, np.int64),
         np.ascontiguousarray(off, np.int64), np.ascontiguousarray(nb, np.int64),
         np.ascontiguousarray(period, np.float64), orient, circle,
     )  # fmt: skip
+    threads = None if workers is None or workers == -1 else int(workers)
+    parts = in_chunks(lambda a, b: _local_signs(*args, a, b), t, threads=threads, least=4096)
+    asymmetric = sum(p[0] for p in parts)
+    disagree = sum(p[1] for p in parts)
     corners = lambda f: vertices[tri[f]] + off[f] * period  # noqa: E731
     for f in np.flatnonzero(orient == UNSURE):
         orient[f] = exact_sign("orient2d", corners(f))
