@@ -727,9 +727,10 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less). Queries come in an order where neighbours
     are near (``spatial_order``) and are answered in blocks: a run of them within a box
-    of side SPAN a (SPAN3 a in space; a the answer at the run's first, asked depth first: ``_kth_dfs``), whose
-    window, every point within half the box's diagonal plus MARGIN a of its centre, is
-    gathered once and sorted into buckets (``_bucketed``). Each query then reads the ball
+    of side SPAN a (SPAN3 a in space; a the answer at the run's first, asked depth first:
+    ``_kth_dfs``), whose window, every point within half the box's diagonal plus MARGIN a
+    of its centre, is gathered once and sorted into buckets (``_bucketed``). Each query
+    then reads the ball
     of (1 + GUESS) times the answer before it (or, d_{P,k} being 1-Lipschitz, that answer
     plus their distance, where less), then the largest the window holds about it; one
     whose answer lies beyond, or in a window too crowded for its buffer (a void's rim:
@@ -813,8 +814,8 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
             before = out[j - 1]
             if before < np.inf:
                 delta = math.sqrt(_point2(x, j - 1, xq, period))
-                room = reach * (1.0 - 1e-12) - math.sqrt(_dist_to(centre, xq, period)) * (
-                    1.0 + 1e-12)
+                gap = math.sqrt(_dist_to(centre, xq, period))
+                room = reach * (1.0 - 1e-12) - gap * (1.0 + 1e-12)
                 top = min(room, (before + delta) * (1.0 + 1e-12))
                 r = min(top, before * (1.0 + GUESS))
                 if r > 0.0:

@@ -364,10 +364,10 @@ def _local_signs(vertices, tri, off, nb, period, orient, circle, start, end):
 def _local_checks(vertices, tri, off, nb, period, workers=None):
     """(triangles not counter-clockwise, edge sides whose far corner lies inside the
     circumcircle, links not symmetric, offsets disagreeing), exactly: filtered predicates
-    (``_local_signs``, on every core), integers only where the filter cannot tell. A triangulation of the
-    torus (the links, Euler characteristic, orientation and area checks) whose every edge
-    is locally Delaunay is Delaunay (the Delaunay lemma, on the periodic cover): its
-    circumcircles hold no vertex."""
+    (``_local_signs``, on every core), integers only where the filter cannot tell. A
+    triangulation of the torus (the links, Euler characteristic, orientation and area
+    checks) whose every edge is locally Delaunay is Delaunay (the Delaunay lemma, on the
+    periodic cover): its circumcircles hold no vertex."""
     t = len(tri)
     orient = np.empty(t, np.int8)
     circle = np.empty((t, 3), np.int8)
