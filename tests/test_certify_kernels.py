@@ -477,3 +477,26 @@ def test_kth_window_sized_by_the_points_not_by_k():
     got = Tree(pts, w, None, 2).kth(x, 1e16 + 8)
     np.testing.assert_allclose(got, _brute_kth(x, pts, None, 1e16 + 8, w), rtol=1e-12)
     assert np.isinf(Tree(pts, w, None, 2).kth(x, 1e17)).all()
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("periodic", [False, True], ids=["box", "torus"])
+def test_tree_on_points_on_a_line_equals_brute_force(dim, periodic):
+    """Issue 52, degenerate input for the Morton-built tree and the k-th blocks: every point
+    on one line (a box of zero width on the other axes: Morton codes vary along one axis),
+    a tenth of them coinciding, some at 0 on a torus (the cut); queries on the line and
+    off it. k-th distances and ball counts equal brute force's."""
+    rng = np.random.default_rng(61 + dim + 2 * periodic)
+    t = rng.random(6000)
+    t[:600] = t[0]
+    t[600:700] = 0.0
+    pts = np.zeros((len(t), dim)) + 0.3
+    pts[:, 0] = t
+    period = np.ones(dim) if periodic else None
+    x = np.concatenate([pts[rng.integers(0, len(t), 300)], rng.random((300, dim))])
+    tree = Tree(pts, None, period, 2)
+    for k in (1, 30, 700):
+        np.testing.assert_allclose(tree.kth(x, k), _brute_kth(x, pts, period, k), rtol=1e-12)
+    r = rng.random(len(x)) * 0.05
+    want = (_brute_d2(x, pts, period) <= r[:, None] ** 2).sum(1)
+    np.testing.assert_array_equal(tree.held(x, r), want)

@@ -59,18 +59,18 @@ TREE_BITS = 20  # bits of each coordinate in the tree's Morton codes in the plan
 TREE_BITS3 = 14  # and in space (below them, nodes split by the sliding midpoint)
 
 
-def _build(pts, w, leaf):
-    """The tree over ``pts`` (n, d) with weights ``w`` (n,): (points and weights permuted so
-    that each node owns a contiguous range, the nodes, the depth). The points are sorted
-    along a Morton curve (``_morton_sorted``, TREE_BITS a coordinate), then split by
-    ``_split_sorted``."""
+def _build(pts, w, leaf, unit):
+    """The tree over ``pts`` (n, d) with weights ``w`` (n,), ``unit`` whether each is 1:
+    (points and weights permuted so that each node owns a contiguous range, the nodes, the
+    depth). The points are sorted along a Morton curve (``_morton_sorted``, TREE_BITS a
+    coordinate), then split by ``_split_sorted``."""
     d = pts.shape[1]
     code, order = _morton_sorted(pts, TREE_BITS if d == 2 else TREE_BITS3)
-    return _split_sorted(pts, w, code, order, leaf)
+    return _split_sorted(pts, w, code, order, leaf, unit)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _split_sorted(pts, w, code, order, leaf):
+def _split_sorted(pts, w, code, order, leaf, unit):
     """The tree over pts[order], w[order] (``_build``), ``code`` their Morton codes, sorted.
     A node of more than ``leaf`` points splits where its codes' highest differing bit
     turns to 1 (a quadtree's midpoint split of its cell, so no node is long and thin;
@@ -78,21 +78,19 @@ def _split_sorted(pts, w, code, order, leaf):
     than the codes resolve) splits by the sliding-midpoint rule (Maneewongvatana and
     Mount): the middle of its tight box's widest side, moved to the points where one side
     would be empty; a node whose points all coincide is never split. Then, from the leaves
-    up, each node's tight box and weight total (compensated: the sum of its points).
+    up, each node's tight box and weight total (its count where ``unit``, else compensated:
+    the sum of its points).
     A node is one row of ``T`` (nodes, 4 + 2 d), all a query reads of it in one or two
     cache lines: lo, hi, its first child (-1 at a leaf; the second follows the first), its
     weight total, its tight box (mins, then maxes)."""
     n, d = pts.shape
     p = np.empty((n, d))
     ww = np.empty(n)
-    unit = True
     for i in range(n):
         j = order[i]
         for a in range(d):
             p[i, a] = pts[j, a]
         ww[i] = w[j]
-        if w[j] != 1.0:
-            unit = False
     cap = 2 * (n // max(leaf, 1)) + 64
     node = np.empty((cap, 3), np.int64)
     level = np.zeros(cap, np.int64)
@@ -730,9 +728,9 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
     of side SPAN a (SPAN3 a in space; a the answer at the run's first, asked depth first:
     ``_kth_dfs``), whose window, every point within half the box's diagonal plus MARGIN a
     of its centre, is gathered once and sorted into buckets (``_bucketed``). Each query
-    then reads the ball
-    of (1 + GUESS) times the answer before it (or, d_{P,k} being 1-Lipschitz, that answer
-    plus their distance, where less), then the largest the window holds about it; one
+    then reads the ball of (1 + GUESS) times the answer before it (or, d_{P,k} being
+    1-Lipschitz, that answer plus their distance, where less), then the largest the
+    window holds about it; one
     whose answer lies beyond, or in a window too crowded for its buffer (a void's rim:
     the run is halved until it fits), depth first."""
     dim = x.shape[1]
@@ -1041,14 +1039,14 @@ def sums_by(cell, w, m):
     return s + c
 
 
-def _built_in_thread(pts, w):
+def _built_in_thread(pts, w, unit):
     """(a thread building the tree of pts, w; its result, {"tree": ...} or {"error": ...},
     once joined). A thread of its own that ends with the build: none is left waiting."""
     out = {}
 
     def build():
         try:
-            out["tree"] = _build(pts, w, LEAF)
+            out["tree"] = _build(pts, w, LEAF, unit)
         except BaseException as e:  # handed to the caller, who asks for the tree
             out["error"] = e
 
@@ -1073,10 +1071,11 @@ class Tree:
         w = np.ones(self.n) if weights is None else np.ascontiguousarray(weights, np.float64)
         if self.n == 0:  # a node must exist: one far away holding nothing
             pts, w = np.full((1, self.dim), np.inf), np.zeros(1)
+        self.unit = bool((w == 1.0).all())  # every point weighs 1: counts are integers
         if background:
-            self._job = _built_in_thread(pts, w)
+            self._job = _built_in_thread(pts, w, self.unit)
         else:
-            self._built = _build(pts, w, LEAF)
+            self._built = _build(pts, w, LEAF, self.unit)
 
     def _parts(self):
         built = self.__dict__.get("_built")
@@ -1123,13 +1122,6 @@ class Tree:
         out = np.empty(len(x))
         out[order] = res
         return out
-
-    @property
-    def unit(self):
-        """Whether every point weighs 1."""
-        if "_unit" not in self.__dict__:
-            self._unit = bool((self.w == 1.0).all())
-        return self._unit
 
     def kth(self, x, k, period=None, sort=True):
         """The least radius whose closed ball about each x holds weight k (the k-th
