@@ -311,8 +311,8 @@ def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monke
     asked = []
     real = steps.bounded_d_pk
 
-    def spy(points, geometry, probes, d_m2, floor):
-        d_pk, lo = real(points, geometry, probes, d_m2, floor)
+    def spy(points, geometry, probes, d_m2, floor, k):
+        d_pk, lo = real(points, geometry, probes, d_m2, floor, k)
         asked.append((int(np.isnan(d_pk).sum()), int((probes.near >= 0).any(axis=1).sum())))
         return d_pk, lo
 

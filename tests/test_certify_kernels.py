@@ -500,3 +500,58 @@ def test_tree_on_points_on_a_line_equals_brute_force(dim, periodic):
     r = rng.random(len(x)) * 0.05
     want = (_brute_d2(x, pts, period) <= r[:, None] ** 2).sum(1)
     np.testing.assert_array_equal(tree.held(x, r), want)
+
+
+@pytest.mark.parametrize(
+    "layout",
+    ["uniform", "torus", "half-torus", "clustered", "line", "coinciding", "offset", "space",
+     "space-torus", "sphere"],
+)  # fmt: skip
+def test_grid_counts_equal_brute_force(layout):
+    """Balls counted from the grid of the tree's Morton runs (``_grid_held``: cells
+    inside added whole, cells cut read or split into children, crowded finest cells and
+    radii not finite left to the tree) equal brute force, exact below ``stop`` and at least
+    ``stop`` above it: radii from 0 to past the whole torus, points on a line (an axis
+    of one coordinate), clusters finer than the table's cells, thousands of coinciding
+    points, coordinates far from the origin against their spread."""
+    from knnrefine.certify._tree import Tree
+
+    rng = np.random.default_rng(17)
+    dim = 3 if layout.startswith(("space", "sphere")) else 2
+    n = 6000
+    pts = rng.random((n, dim))
+    period = None
+    x = rng.random((600, dim))
+    r = rng.random(600) * 0.08
+    if layout in ("torus", "space-torus"):
+        period = np.ones(dim)
+        r[:100] = rng.random(100) * 0.8  # past half the period: the ball wraps onto itself
+    if layout == "half-torus":
+        period = np.array([1.0, 0.0])
+    if layout == "clustered":
+        centres = rng.random((12, dim))
+        pts = centres[rng.integers(0, 12, n)] + rng.normal(0, 1e-4, (n, dim))
+        x = pts[:600] + rng.normal(0, 1e-4, (600, dim))
+        r = rng.random(600) * 3e-4
+    if layout == "line":
+        pts[:, 1] = 0.3
+    if layout == "coinciding":
+        pts = np.repeat(rng.random((3, dim)), n // 3, axis=0)
+        x = np.concatenate([pts[::20] + 1e-9, x[:300]])
+        r = np.concatenate([np.full(300, 1e-9), np.zeros(100), r[:200]])
+    if layout == "offset":
+        pts, x, r = pts * 1e-6 + 1e6, x * 1e-6 + 1e6, r * 1e-6
+    if layout == "sphere":
+        pts = rng.standard_normal((n, dim))
+        pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+        x = pts[:600] + rng.normal(0, 1e-3, (600, dim))
+    r[:5] = 0.0
+    r[5:8] = [np.inf, 10.0, 1e-300]
+    tree = Tree(pts, None, period)
+    assert tree.grid is not None
+    want = (_brute_d2(x, pts, period) <= np.square(r)[:, None]).sum(axis=1)
+    assert np.array_equal(tree.held(x, r), want)
+    stop = 7.0
+    got = tree.held(x, r, stop)
+    assert np.array_equal(np.minimum(got, stop), np.minimum(want, stop))
+    assert np.all(got[want >= stop] >= stop)

@@ -18,10 +18,12 @@ without visiting its points.
 
 Queries (each ``nogil``, over a range of queries, run on every core by ``in_chunks``):
 
-* ``held``: what each closed ball holds, a depth-first walk that adds whole nodes inside the
-  ball and stops once the sum reaches ``stop`` (certify asks "below k?": it needs the count
-  exactly only where it is below k, and the counts at or above k again, in full, only where
-  a check fails);
+* ``held``: what each closed ball holds, stopping once the sum reaches ``stop`` (certify
+  asks "below k?": it needs the count exactly only where it is below k, and the counts at
+  or above k again, in full, only where a check fails). Unweighted, read from the grid of
+  the points' Morton runs (``_grid_held``: the cells of about the ball's size, no walk
+  from a root); weighted, and where the grid leaves a ball, a depth-first walk that adds
+  whole nodes inside the ball;
 * ``kth``: the least radius whose closed ball holds weight k (d_{P,k}; unweighted, the k-th
   nearest distance). Queries come along a Morton curve and are answered in blocks: a run of
   them in a small box reads one window of points, gathered once and sorted into buckets,
@@ -38,6 +40,7 @@ gives what testing its points one by one gives.
 
 import math
 import threading
+from collections import namedtuple
 
 import numpy as np
 
@@ -62,11 +65,37 @@ TREE_BITS3 = 14  # and in space (below them, nodes split by the sliding midpoint
 def _build(pts, w, leaf, unit):
     """The tree over ``pts`` (n, d) with weights ``w`` (n,), ``unit`` whether each is 1:
     (points and weights permuted so that each node owns a contiguous range, the nodes, the
-    depth). The points are sorted along a Morton curve (``_morton_sorted``, TREE_BITS a
-    coordinate), then split by ``_split_sorted``."""
+    depth, the ``Grid`` of its Morton runs where ``unit``, else None). The points are
+    sorted along a Morton curve (``_morton_sorted``, TREE_BITS a coordinate), then split
+    by ``_split_sorted``."""
     d = pts.shape[1]
-    code, order = _morton_sorted(pts, TREE_BITS if d == 2 else TREE_BITS3)
-    return _split_sorted(pts, w, code, order, leaf, unit)
+    bits = TREE_BITS if d == 2 else TREE_BITS3
+    code, order, lo, scale = _morton_sorted(pts, bits)
+    p, ww, T, depth = _split_sorted(pts, w, code, order, leaf, unit)
+    finite = bool(np.isfinite(T[0, 4:]).all())  # (no points: one far away, no grid)
+    box = T[0, 4 : 4 + d], T[0, 4 + d :]
+    grid = _grid_of(p, code, lo, scale, bits, *box) if unit and finite else None
+    return p, ww, T, depth, grid
+
+
+Grid = namedtuple("Grid", ["code", "table", "level0", "bits", "lo", "scale", "pmin", "pmax",
+                           "margin"])  # fmt: skip
+
+
+def _grid_of(p, code, lo, scale, bits, pmin, pmax):
+    """The grid over the tree's points ``p`` (sorted along the Morton curve of ``code``,
+    whose frame is ``lo``, ``scale``; within [pmin, pmax], the root's box): its table at
+    the coarsest level of at most GRID_FILL points a cell on average (and at most
+    2^GRID_TABLE cells), and how far a point may lie outside its cell's rounded box."""
+    n, d = p.shape
+    level0 = 0
+    while (1 << (d * level0)) * GRID_FILL < n and d * (level0 + 1) <= GRID_TABLE and level0 < bits:
+        level0 += 1
+    table = _grid_table(code, d, level0, bits)
+    pmin, pmax = np.ascontiguousarray(pmin), np.ascontiguousarray(pmax)
+    step = np.divide(1.0, scale, out=np.zeros(d), where=scale > 0)
+    margin = 2.0 * step + 8.0 * np.finfo(float).eps * (np.abs(lo) + np.abs(pmin) + np.abs(pmax))
+    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -1039,6 +1068,222 @@ def sums_by(cell, w, m):
     return s + c
 
 
+# ---- the grid: the tree's points as runs of a Morton curve --------------------------------
+#
+# The build sorts the points by Morton code, so the points of any cell of the code's grid
+# (2^L cells a side at level L) lie together: a run. A table gives the runs of the cells at
+# one level (GRID_FILL points a cell on average); a finer cell's run is found by binary
+# search in its parent's. A ball is counted from the cells of side about GRID_SIDE times its
+# radius that its box meets, with no walk from a root: a cell inside the ball adds its run's
+# length, a cell outside is skipped, a cell it cuts is read point by point or, where it
+# holds more than GRID_DESCEND points, as its 2^d children. Unit weights only (a weighted
+# tree is asked by its nodes, whose totals are compensated).
+
+GRID_FILL = 4  # points a cell of the table's level holds, on average, at least
+GRID_TABLE = 22  # the table's level has at most 2^GRID_TABLE cells
+GRID_SIDE = 0.5  # a ball is first cut into cells of side at least GRID_SIDE its radius
+GRID_SIDE3 = 1.0  # (in space: a box of 27 cells, not 125)
+GRID_AXIS = 64  # cells along one axis a ball reads at most (coarser cells where more)
+GRID_DESCEND = 24  # a cell the ball's sphere cuts is read as its children above this
+GRID_CROWD = 4096  # a finest cell the sphere cuts and holding more: asked of the tree
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _grid_table(code, d, level, bits):
+    """start[c], c in [0, 2^(d level)]: the first of the sorted ``code`` whose cell at
+    ``level`` is c or after (the run of cell c is start[c]:start[c + 1])."""
+    cells = 1 << (d * level)
+    start = np.empty(cells + 1, np.int64)
+    shift = np.uint64(d * (bits - level))
+    n = code.shape[0]
+    j = 0
+    for c in range(cells + 1):
+        while j < n and (code[j] >> shift) < np.uint64(c):
+            j += 1
+        start[c] = j
+    return start
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _lower_bound(code, a, b, key):
+    """The first i in [a, b) with code[i] >= key (b where none)."""
+    while a < b:
+        mid = (a + b) >> 1
+        if code[mid] < key:
+            a = mid + 1
+        else:
+            b = mid
+    return a
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _cell_run(code, table, level0, bits, d, cell, level):
+    """The run (first, end) of the points of cell ``cell`` (its Morton code) at ``level``."""
+    if level <= level0:
+        s = np.uint64(d * (level0 - level))
+        return table[np.int64(cell << s)], table[np.int64((cell + np.uint64(1)) << s)]
+    parent = np.int64(cell >> np.uint64(d * (level - level0)))
+    a, b = table[parent], table[parent + 1]
+    if a == b:
+        return a, a
+    s = np.uint64(d * (bits - level))
+    a = _lower_bound(code, a, b, cell << s)
+    return a, _lower_bound(code, a, b, (cell + np.uint64(1)) << s)
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _cell_side(ci, level, bits, lo, scale, pmin, pmax, margin):
+    """The interval along one axis that holds every point of cell ``ci`` at ``level``."""
+    if scale == 0.0:
+        return pmin, pmax
+    s = bits - level
+    a = lo + np.float64(ci << s) / scale - margin
+    b = lo + np.float64((ci + 1) << s) / scale + margin
+    return max(a, pmin), min(b, pmax)
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _axis_cells(xa, reach, lo, scale, pmin, pmax, p, top, s, out):
+    """The cells (at level bits - s) along one axis that [xa - reach, xa + reach] meets,
+    with its images a period p away (p > 0), in out, increasing: their number, or -1 where
+    more than out holds."""
+    if scale == 0.0:
+        out[0] = 0
+        return 1
+    m = 0
+    last = -1
+    for j in range(-1, 2):
+        if p > 0.0:
+            if reach >= 0.5 * p:
+                if j != 0:
+                    continue
+                u0, u1 = pmin, pmax
+            else:
+                u0, u1 = xa + j * p - reach, xa + j * p + reach
+        else:
+            if j != 0:
+                continue
+            u0, u1 = xa - reach, xa + reach
+        u0, u1 = max(u0, pmin), min(u1, pmax)
+        if u0 > u1:
+            continue
+        v0 = min(max((u0 - lo) * scale, -1.0), top + 1.0)
+        v1 = min(max((u1 - lo) * scale, -1.0), top + 1.0)
+        q0 = min(max(np.int64(math.floor(v0)) - 1, 0), np.int64(top))
+        q1 = min(max(np.int64(math.floor(v1)) + 1, 0), np.int64(top))
+        for c in range(max(q0 >> s, last + 1), (q1 >> s) + 1):
+            if m == out.shape[0]:
+                return -1
+            out[m] = c
+            m += 1
+            last = c
+    return m
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _cell_code(cx, cy, cz, d):
+    """The Morton code of the cell (cx, cy[, cz]) at its level (its bits interleaved as
+    the points' codes are)."""
+    if d == 2:
+        return _spread2(np.uint64(cx)) | (_spread2(np.uint64(cy)) << np.uint64(1))
+    return (_spread3(np.uint64(cx)) | (_spread3(np.uint64(cy)) << np.uint64(1))
+            | (_spread3(np.uint64(cz)) << np.uint64(2)))  # fmt: skip
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _grid_held(pts, code, table, level0, bits, lo, scale, pmin, pmax, margin, period,
+               side, x, r2, stop, out, start, end):  # fmt: skip
+    """out[q] for q in [start, end): the number of points in the closed ball (x[q],
+    sqrt(r2[q])), exact below stop[q], at least stop[q] otherwise; -1 where the grid
+    leaves it to the tree (a radius not finite, a crowded finest cell the sphere cuts)."""
+    n, d = pts.shape
+    top = 2.0**bits - 1.0
+    ext = 0.0
+    for a in range(d):
+        if scale[a] > 0.0:
+            ext = max(ext, top / scale[a])
+    cells = np.zeros((3, GRID_AXIS), np.int64)
+    na = np.ones(3, np.int64)
+    cap = GRID_AXIS**2 * (GRID_AXIS if d == 3 else 1) + 8 * (bits + 2)
+    stack = np.empty((min(cap, 4096 + 8 * (bits + 2)), 4), np.int64)
+    for q in range(start, end):
+        rq2 = r2[q]
+        r = math.sqrt(rq2)
+        if not (r >= 0.0 and r < np.inf):
+            out[q] = -1.0
+            continue
+        xq = x[q]
+        level = bits
+        if r > 0.0 and ext > 0.0:
+            t = ext / (side * r)
+            if t < 2.0**bits:
+                level = max(int(math.floor(math.log2(t))), 0) if t >= 1.0 else 0
+        while True:  # the finest level whose box of cells is within the stack
+            total = 1
+            for a in range(d):
+                reach = r * (1.0 + 1e-12) + margin[a] + 4e-16 * abs(xq[a])
+                na[a] = _axis_cells(xq[a], reach, lo[a], scale[a], pmin[a], pmax[a],
+                                    period[a], top, bits - level, cells[a])  # fmt: skip
+                if na[a] < 0:
+                    total = -1
+                    break
+                total *= na[a]
+            if (total >= 0 and total <= stack.shape[0] - 8 * (bits + 2)) or level == 0:
+                break
+            level -= 1
+        if total < 0:
+            out[q] = -1.0
+            continue
+        sp = 0
+        for i0 in range(na[0]):
+            for i1 in range(na[1]):
+                for i2 in range(na[2] if d == 3 else 1):
+                    stack[sp, 0] = cells[0, i0]
+                    stack[sp, 1] = cells[1, i1]
+                    stack[sp, 2] = cells[2, i2] if d == 3 else 0
+                    stack[sp, 3] = level
+                    sp += 1
+        count = 0.0
+        crowded = False
+        while sp > 0 and count < stop[q]:
+            sp -= 1
+            lv = stack[sp, 3]
+            near2 = 0.0
+            far2 = 0.0
+            for a in range(d):
+                b0, b1 = _cell_side(stack[sp, a], lv, bits, lo[a], scale[a], pmin[a],
+                                    pmax[a], margin[a])  # fmt: skip
+                g = _gap(xq[a], b0, b1, period[a])
+                near2 += g * g
+                g = _reach(xq[a], b0, b1, period[a])
+                far2 += g * g
+            if near2 > rq2:
+                continue
+            c = _cell_code(stack[sp, 0], stack[sp, 1], stack[sp, 2], d)
+            i, e = _cell_run(code, table, level0, bits, d, c, lv)
+            if i == e:
+                continue
+            if far2 <= rq2:
+                count += e - i
+                continue
+            if e - i > GRID_DESCEND and lv < bits:
+                cx, cy, cz = stack[sp, 0], stack[sp, 1], stack[sp, 2]
+                for j in range(1 << d):
+                    stack[sp, 0] = 2 * cx + (j & 1)
+                    stack[sp, 1] = 2 * cy + ((j >> 1) & 1)
+                    stack[sp, 2] = 2 * cz + ((j >> 2) & 1) if d == 3 else 0
+                    stack[sp, 3] = lv + 1
+                    sp += 1
+                continue
+            if e - i > GRID_CROWD:
+                crowded = True
+                break
+            for j in range(i, e):
+                if _point2(pts, j, xq, period) <= rq2:
+                    count += 1.0
+        out[q] = -1.0 if crowded else count
+
+
 def _built_in_thread(pts, w, unit):
     """(a thread building the tree of pts, w; its result, {"tree": ...} or {"error": ...},
     once joined). A thread of its own that ends with the build: none is left waiting."""
@@ -1091,6 +1336,7 @@ class Tree:
     w = property(lambda self: self._parts()[1], doc="their weights, in the tree's order")
     T = property(lambda self: self._parts()[2], doc="the nodes")
     depth = property(lambda self: self._parts()[3], doc="the tree's depth")
+    grid = property(lambda self: self._parts()[4], doc="the grid of its runs (unit weights)")
 
     def _queries(self, x):
         return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)
@@ -1114,11 +1360,28 @@ class Tree:
         st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(x))[order])
         res = np.empty(len(x))
         p = self._period(period)
+        g = self.grid
+        if g is not None:  # the grid first, the tree where it leaves a ball
+            side = GRID_SIDE if self.dim == 2 else GRID_SIDE3
 
-        def call(a, b):
-            _held(self.pts, self.w, self.T, self.depth, p, xs, r2, st, res, a, b)
+            def call(a, b):
+                _grid_held(self.pts, g.code, g.table, g.level0, g.bits, g.lo, g.scale,
+                           g.pmin, g.pmax, g.margin, p, side, xs, r2, st, res, a, b)  # fmt: skip
 
-        self._run(call, len(x))
+            self._run(call, len(x))
+            left = np.flatnonzero(res < 0)
+        if g is None or len(left):
+            xl = xs if g is None else np.ascontiguousarray(xs[left])
+            r2l = r2 if g is None else np.ascontiguousarray(r2[left])
+            stl = st if g is None else np.ascontiguousarray(st[left])
+            resl = res if g is None else np.empty(len(left))
+
+            def call(a, b):
+                _held(self.pts, self.w, self.T, self.depth, p, xl, r2l, stl, resl, a, b)
+
+            self._run(call, len(xl))
+            if g is not None:
+                res[left] = resl
         out = np.empty(len(x))
         out[order] = res
         return out
@@ -1252,10 +1515,10 @@ def _spread3(v):
 @kernel(entry=True, lazy=True, nogil=True)
 def _morton_sorted(x, bits):
     """(the Morton codes of the rows of x (n, 2 or 3) over their finite bounding box,
-    sorted; the order that sorts them): each coordinate less the box's least, scaled to an
-    integer of ``bits`` bits (a coordinate not finite as the least), interleaved, and the
-    codes sorted by a radix sort of 8-bit digits (their counts all taken in one pass; a
-    digit the same in every code skipped)."""
+    sorted; the order that sorts them; the frame: each axis's origin and scale): each
+    coordinate less the box's least, scaled to an integer of ``bits`` bits (a coordinate
+    not finite as the least), interleaved, and the codes sorted by a radix sort of 8-bit
+    digits (their counts all taken in one pass; a digit the same in every code skipped)."""
     n, d = x.shape
     top = 2.0**bits - 1.0
     lo = np.full(d, np.inf)
@@ -1302,7 +1565,7 @@ def _morton_sorted(x, bits):
             at[digit] += 1
         code, keys2 = keys2, code
         order, order2 = order2, order
-    return code, order
+    return code, order, lo, scale
 
 
 def spatial_order(x):

@@ -536,7 +536,8 @@ def gathered_probes(parts, inside, size, near=None, vertices=2):
     rows (count, r))}, the rows of the other part near each of that part's probes (an
     edge's midpoint: its two vertices); ``Probes.near`` holds those probes' indices once
     gathered (-1 where one was dropped, beyond a part's own r columns, and for the other
-    parts)."""
+    parts); ``Probes.exact`` marks the first part and the part ``vertices``, whose d_{P,k}
+    the size integral reads."""
     keep = [inside(p[0]) for p in parts]
     x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
     mask = np.concatenate([np.full(int(k.sum()), p[1]) for p, k in zip(parts, keep, strict=True)])
@@ -553,7 +554,10 @@ def gathered_probes(parts, inside, size, near=None, vertices=2):
         rows = np.asarray(rows, np.int64)
         gathered[i][:, : rows.shape[1]] = index[j][rows][keep[i]]
     size = size._replace(kept=keep[0], corners=index[vertices][np.asarray(size.corners)])
-    return Probes(x, mask, d_m2, size, np.concatenate(gathered))
+    exact = np.zeros(len(x), bool)  # what the size integral reads: its samples, the corners
+    exact[: int(keep[0].sum())] = True
+    exact[index[vertices][index[vertices] >= 0]] = True
+    return Probes(x, mask, d_m2, size, np.concatenate(gathered), exact)
 
 
 SIZE_SHARE = 4  # the size integral reads one point in each of samples // SIZE_SHARE cells

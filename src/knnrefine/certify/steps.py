@@ -17,6 +17,7 @@ vertices; d_{M,2} / d_{P,k} at the probes where d_{P,k} >= the floor, within [al
 the size integral; the floor's sites.
 """
 
+import math
 from collections import namedtuple
 from typing import Protocol
 
@@ -55,7 +56,7 @@ Triangulation = namedtuple("Triangulation", ["problems", "centres", "radii", "ou
 # ratio d_{M,2} / d_{P,k} then lies strictly between the extremes found so far (and whose
 # d_{P,k} is above the floor) cannot be an extreme and is not asked (``bounded_d_pk``).
 # The achieved constants, where they lie and the number of probes are those of asking all.
-Probes = namedtuple("Probes", ["x", "points", "d_m2", "extra", "near"])
+Probes = namedtuple("Probes", ["x", "points", "d_m2", "extra", "near", "exact"])
 # the closed Voronoi cells as certify counts them: each vertex (``sites``, the points' frame),
 # its Delaunay neighbours as vectors from it (rows first[v]:first[v + 1] of ``edges``), its
 # outradius R(v) (the cell lies within it), and the tie tolerance: a point p counts for v
@@ -200,7 +201,7 @@ def run_checks(
         ask = np.isnan(d_m2)
         d_m2[ask], late = geometry.returned_d_m2(probes.x[ask], tri)
         mesh_problems += late
-        d_pk, lo = bounded_d_pk(points, geometry, probes, d_m2, floor)
+        d_pk, lo = bounded_d_pk(points, geometry, probes, d_m2, floor, k)
         at_points = d_pk[probes.points]
         under_floor = float(np.mean(at_points < floor)) if len(at_points) else 0.0
         asked = d_pk >= floor
@@ -264,15 +265,24 @@ def _counted(ask, k):
 
 
 SEED = 0.01  # of the bounded probes, asked first at each end (their bounds most extreme)
+TIE = 1e-9  # relative: a radius a count decides moved this far from an extreme's
 
 
-def bounded_d_pk(points, geometry, probes, d_m2, floor):
+def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
     """(d_{P,k} at the probes, NaN where it cannot change the certificate; a lower bound
-    of it): asked first at every probe with no ``near`` one, then, from each other probe's
+    of it). Asked first at the probes whose value the size integral reads
+    (``Probes.exact``) and those others are bounded from; then, from each bounded probe's
     bounds [d - s, d + s] (``Probes``: d its near probe's, s their separation), at the
-    SEED share with the lowest and the highest ratio bounds (the extremes found so far
-    move out), then at every probe whose bounds do not settle it: one whose d_{P,k} may be
-    below the floor while its bound is not, or whose ratio may reach the extremes."""
+    SEED share with the lowest and the highest ratio bounds, and at the SEED share of the
+    unbounded others: the extremes alpha, beta found so far move out. A probe not yet
+    asked cannot be an extreme where its ratio d_{M,2} / d_{P,k} lies strictly between
+    them and d_{P,k} at or above the floor: where its bounds do not show that, two counts
+    may: a ball of radius r holds less than k (weight) exactly where d_{P,k} > r, at least
+    k where d_{P,k} <= r, so fewer than k in the ball of d_{M,2} / beta (or the floor) and
+    k in the ball of d_{M,2} / alpha settle it (each radius moved TIE towards the middle,
+    and a weighted count by TIE past k, so that rounding decides nothing). It is asked
+    where neither does. The extremes, where they lie and the number of probes are those
+    of asking every probe."""
     x, near = probes.x, probes.near
     d_pk = np.full(len(x), np.nan)
     extremes = [np.inf, -np.inf]  # alpha, beta so far
@@ -285,9 +295,11 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
             extremes[:] = min(extremes[0], float(r.min())), max(extremes[1], float(r.max()))
 
     bounded = (near >= 0).any(axis=1)
-    later = np.flatnonzero(bounded)
-    ask(np.flatnonzero(~bounded))
+    first = np.array(probes.exact, bool, copy=True)
+    first[near[bounded & ~first][near[bounded & ~first] >= 0]] = True  # their references
+    ask(np.flatnonzero(first))
     lo = d_pk.copy()
+    later = np.flatnonzero(~first)
     if len(later) == 0:
         return d_pk, lo
     low, hi = np.full(len(later), -np.inf), np.full(len(later), np.inf)
@@ -298,17 +310,47 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor):
         slack = 1e-9 * (d + reach)  # rounding in d_{P,k} and the separation
         low[has] = np.maximum(low[has], d - reach - slack)
         hi[has] = np.minimum(hi[has], d + reach + slack)
-    lo[later] = low
     ratio_lo = d_m2[later] / hi
     with np.errstate(divide="ignore"):
         ratio_hi = np.where(low > 0, d_m2[later] / low, np.inf)
-    seed = min(max(16, int(SEED * len(later))), len(later))
     pick = np.zeros(len(later), bool)
-    if seed:  # the seed lowest and highest bounds (in no order: argpartition)
-        pick[np.argpartition(ratio_lo, seed - 1)[:seed]] = True
-        pick[np.argpartition(-ratio_hi, seed - 1)[:seed]] = True
+    has_bounds = bounded[later]
+    for group in (np.flatnonzero(has_bounds), np.flatnonzero(~has_bounds)):
+        seed = min(max(16, int(math.ceil(SEED * len(group)))), len(group))
+        if seed == len(group):
+            pick[group] = True
+        elif seed and len(group) and has_bounds[group[0]]:  # the seed lowest and highest
+            pick[group[np.argpartition(ratio_lo[group], seed - 1)[:seed]]] = True
+            pick[group[np.argpartition(-ratio_hi[group], seed - 1)[:seed]]] = True
+        elif seed:  # unbounded (input points, drawn at random): the first seed of them
+            pick[group[:seed]] = True
     ask(later[pick])
     alpha, beta = extremes  # with the seeds asked, the rest settled against them
-    inside = (low >= floor) & (ratio_lo > alpha) & (ratio_hi < beta)
-    ask(later[~pick & ~((hi < floor) | inside)])
+    rest = np.flatnonzero(~pick)
+    below = (low[rest] >= floor) & (ratio_hi[rest] < beta)  # d_pk above floor and d_m2 / beta
+    above = ratio_lo[rest] > alpha  # d_pk below d_m2 / alpha
+    low_at = low[rest]
+    if alpha < beta and np.isfinite(beta) and len(rest):
+        probe = later[rest]
+        weighted = bool(points.weighted)
+        # fewer than k in the closed ball of radius r: d_pk > r
+        r_lo = np.maximum(d_m2[probe] / beta * (1.0 + TIE), floor)
+        r_hi = d_m2[probe] / alpha * (1.0 - TIE) if alpha > 0 else np.full(len(rest), np.inf)
+        hopeful = r_lo < r_hi
+        count = np.flatnonzero(hopeful & ~below)
+        if len(count):
+            need = k * (1.0 - TIE) if weighted else k
+            held = points.held(x[probe[count]], r_lo[count], stop=float(k))
+            ok = held < need
+            below[count[ok]] = True
+            low_at[count[ok]] = np.maximum(low_at[count[ok]], r_lo[count[ok]])
+        count = np.flatnonzero(hopeful & below & ~above)
+        if len(count):
+            need = k * (1.0 + TIE) if weighted else k
+            held = points.held(x[probe[count]], r_hi[count], stop=float(need))
+            above[count[held >= need]] = True
+    settled = below & above
+    ask(later[rest[~settled]])
+    lo[later] = low
+    lo[later[rest[settled]]] = low_at[settled]
     return d_pk, np.where(np.isnan(d_pk), lo, d_pk)
