@@ -20,10 +20,9 @@ Queries (each ``nogil``, over a range of queries, run on every core by ``in_chun
 
 * ``held``: what each closed ball holds, stopping once the sum reaches ``stop`` (certify
   asks "below k?": it needs the count exactly only where it is below k, and the counts at
-  or above k again, in full, only where a check fails). Unweighted, read from the grid of
-  the points' Morton runs (``_grid_held``: the cells of about the ball's size, no walk
-  from a root); weighted, and where the grid leaves a ball, a depth-first walk that adds
-  whole nodes inside the ball;
+  or above k again, in full, only where a check fails). Read from the grid of the points'
+  Morton runs (``_grid_held``: the cells of about the ball's size, no walk from a root);
+  where the grid leaves a ball, a depth-first walk that adds whole nodes inside it;
 * ``kth``: the least radius whose closed ball holds weight k (d_{P,k}; unweighted, the k-th
   nearest distance). Queries come along a Morton curve and are answered in blocks: a run of
   them in a small box reads one window of points, gathered once and sorted into buckets,
@@ -74,19 +73,21 @@ def _build(pts, w, leaf, unit):
     p, ww, T, depth = _split_sorted(pts, w, code, order, leaf, unit)
     finite = bool(np.isfinite(T[0, 4:]).all())  # (no points: one far away, no grid)
     box = T[0, 4 : 4 + d], T[0, 4 + d :]
-    grid = _grid_of(p, code, lo, scale, bits, *box) if unit and finite else None
+    grid = _grid_of(p, ww, unit, code, lo, scale, bits, *box) if finite else None
     return p, ww, T, depth, grid
 
 
 Grid = namedtuple("Grid", ["code", "table", "level0", "bits", "lo", "scale", "pmin", "pmax",
-                           "margin"])  # fmt: skip
+                           "margin", "unit", "prefix"])  # fmt: skip
 
 
-def _grid_of(p, code, lo, scale, bits, pmin, pmax):
-    """The grid over the tree's points ``p`` (sorted along the Morton curve of ``code``,
-    whose frame is ``lo``, ``scale``; within [pmin, pmax], the root's box): its table at
-    the coarsest level of at most GRID_FILL points a cell on average (and at most
-    2^GRID_TABLE cells), and how far a point may lie outside its cell's rounded box."""
+def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
+    """The grid over the tree's points ``p`` weighing ``w`` (sorted along the Morton
+    curve of ``code``, whose frame is ``lo``, ``scale``; within [pmin, pmax], the root's
+    box): its table at the coarsest level of at most GRID_FILL points a cell on average
+    (and at most 2^GRID_TABLE cells), how far a point may lie outside its cell's rounded
+    box, and (weighted, ``unit`` False) the weights' compensated prefix sums (``prefix``
+    (2, n + 1): a run's weight is a difference of two, in double-double)."""
     n, d = p.shape
     level0 = 0
     while (1 << (d * level0)) * GRID_FILL < n and d * (level0 + 1) <= GRID_TABLE and level0 < bits:
@@ -95,7 +96,21 @@ def _grid_of(p, code, lo, scale, bits, pmin, pmax):
     pmin, pmax = np.ascontiguousarray(pmin), np.ascontiguousarray(pmax)
     step = np.divide(1.0, scale, out=np.zeros(d), where=scale > 0)
     margin = 2.0 * step + 8.0 * np.finfo(float).eps * (np.abs(lo) + np.abs(pmin) + np.abs(pmax))
-    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin)
+    prefix = np.zeros((2, 1)) if unit else _prefix_sums(w)
+    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin, unit, prefix)
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _prefix_sums(w):
+    """(2, n + 1): the sums of w[:j], each as a total and its compensation."""
+    out = np.zeros((2, w.shape[0] + 1))
+    s = 0.0
+    c = 0.0
+    for j in range(w.shape[0]):
+        s, c = plus_compensated(s, c, w[j])
+        out[0, j + 1] = s
+        out[1, j + 1] = c
+    return out
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -1074,10 +1089,11 @@ def sums_by(cell, w, m):
 # (2^L cells a side at level L) lie together: a run. A table gives the runs of the cells at
 # one level (GRID_FILL points a cell on average); a finer cell's run is found by binary
 # search in its parent's. A ball is counted from the cells of side about GRID_SIDE times its
-# radius that its box meets, with no walk from a root: a cell inside the ball adds its run's
-# length, a cell outside is skipped, a cell it cuts is read point by point or, where it
-# holds more than GRID_DESCEND points, as its 2^d children. Unit weights only (a weighted
-# tree is asked by its nodes, whose totals are compensated).
+# radius (no finer than the table's) that its box meets, with no walk from a root: a cell
+# inside the ball adds its run's length (weighted: the difference of two compensated prefix
+# sums, as exact as a node's compensated total), a cell outside is skipped, a cell it cuts
+# is read point by point or, where it holds more than GRID_DESCEND points, as its 2^d
+# children.
 
 GRID_FILL = 4  # points a cell of the table's level holds, on average, at least
 GRID_TABLE = 22  # the table's level has at most 2^GRID_TABLE cells
@@ -1191,11 +1207,12 @@ def _cell_code(cx, cy, cz, d):
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _grid_held(pts, code, table, level0, bits, lo, scale, pmin, pmax, margin, period,
-               side, x, r2, stop, out, start, end):  # fmt: skip
-    """out[q] for q in [start, end): the number of points in the closed ball (x[q],
-    sqrt(r2[q])), exact below stop[q], at least stop[q] otherwise; -1 where the grid
-    leaves it to the tree (a radius not finite, a crowded finest cell the sphere cuts)."""
+def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, unit,
+               prefix, period, side, x, r2, stop, out, start, end):  # fmt: skip
+    """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])) (its
+    number of points where ``unit``; compensated otherwise, a run inside from ``prefix``),
+    exact below stop[q], at least stop[q] otherwise; -1 where the grid leaves it to the
+    tree (a radius not finite, a crowded finest cell the sphere cuts)."""
     n, d = pts.shape
     top = 2.0**bits - 1.0
     ext = 0.0
@@ -1218,6 +1235,7 @@ def _grid_held(pts, code, table, level0, bits, lo, scale, pmin, pmax, margin, pe
             t = ext / (side * r)
             if t < 2.0**bits:
                 level = max(int(math.floor(math.log2(t))), 0) if t >= 1.0 else 0
+        level = min(level, level0)  # no finer than the table's to start: a few points a cell
         while True:  # the finest level whose box of cells is within the stack
             total = 1
             for a in range(d):
@@ -1244,8 +1262,9 @@ def _grid_held(pts, code, table, level0, bits, lo, scale, pmin, pmax, margin, pe
                     stack[sp, 3] = level
                     sp += 1
         count = 0.0
+        fix = 0.0  # the compensation of a weighted count
         crowded = False
-        while sp > 0 and count < stop[q]:
+        while sp > 0 and count + fix < stop[q]:
             sp -= 1
             lv = stack[sp, 3]
             near2 = 0.0
@@ -1264,7 +1283,12 @@ def _grid_held(pts, code, table, level0, bits, lo, scale, pmin, pmax, margin, pe
             if i == e:
                 continue
             if far2 <= rq2:
-                count += e - i
+                if unit:
+                    count += e - i
+                else:
+                    count, fix = plus_compensated(count, fix, prefix[0, e])
+                    count, fix = plus_compensated(count, fix, -prefix[0, i])
+                    count, fix = plus_compensated(count, fix, prefix[1, e] - prefix[1, i])
                 continue
             if e - i > GRID_DESCEND and lv < bits:
                 cx, cy, cz = stack[sp, 0], stack[sp, 1], stack[sp, 2]
@@ -1280,8 +1304,11 @@ def _grid_held(pts, code, table, level0, bits, lo, scale, pmin, pmax, margin, pe
                 break
             for j in range(i, e):
                 if _point2(pts, j, xq, period) <= rq2:
-                    count += 1.0
-        out[q] = -1.0 if crowded else count
+                    if unit:
+                        count += 1.0
+                    else:
+                        count, fix = plus_compensated(count, fix, w[j])
+        out[q] = -1.0 if crowded else count + fix
 
 
 def _built_in_thread(pts, w, unit):
@@ -1336,7 +1363,7 @@ class Tree:
     w = property(lambda self: self._parts()[1], doc="their weights, in the tree's order")
     T = property(lambda self: self._parts()[2], doc="the nodes")
     depth = property(lambda self: self._parts()[3], doc="the tree's depth")
-    grid = property(lambda self: self._parts()[4], doc="the grid of its runs (unit weights)")
+    grid = property(lambda self: self._parts()[4], doc="the grid of its Morton runs")
 
     def _queries(self, x):
         return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)
@@ -1365,8 +1392,9 @@ class Tree:
             side = GRID_SIDE if self.dim == 2 else GRID_SIDE3
 
             def call(a, b):
-                _grid_held(self.pts, g.code, g.table, g.level0, g.bits, g.lo, g.scale,
-                           g.pmin, g.pmax, g.margin, p, side, xs, r2, st, res, a, b)  # fmt: skip
+                _grid_held(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo,
+                           g.scale, g.pmin, g.pmax, g.margin, g.unit, g.prefix, p, side, xs,
+                           r2, st, res, a, b)  # fmt: skip
 
             self._run(call, len(x))
             left = np.flatnonzero(res < 0)

@@ -54,7 +54,9 @@ Triangulation = namedtuple("Triangulation", ["problems", "centres", "radii", "ou
 # where a row is shorter than the widest). d_{P,k} is 1-Lipschitz in its metric,
 # so within ``geometry.separation`` s of that probe it lies in [d - s, d + s]; a probe whose
 # ratio d_{M,2} / d_{P,k} then lies strictly between the extremes found so far (and whose
-# d_{P,k} is above the floor) cannot be an extreme and is not asked (``bounded_d_pk``).
+# d_{P,k} is above the floor), by those bounds or by two ball counts, cannot be an extreme
+# and is not asked (``bounded_d_pk``). ``exact``: the probes whose d_{P,k} the size integral
+# reads (its samples, the vertices), always asked.
 # The achieved constants, where they lie and the number of probes are those of asking all.
 Probes = namedtuple("Probes", ["x", "points", "d_m2", "extra", "near", "exact"])
 # the closed Voronoi cells as certify counts them: each vertex (``sites``, the points' frame),
@@ -303,9 +305,10 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
     if len(later) == 0:
         return d_pk, lo
     low, hi = np.full(len(later), -np.inf), np.full(len(later), np.inf)
+    x_later = x[later]
     for ref in near[later].T:  # each column of references (-1: none in that column)
         has = np.flatnonzero(ref >= 0)
-        reach = geometry.separation(x[later[has]], x[ref[has]])
+        reach = geometry.separation(x_later[has], x[ref[has]])
         d = d_pk[ref[has]]
         slack = 1e-9 * (d + reach)  # rounding in d_{P,k} and the separation
         low[has] = np.maximum(low[has], d - reach - slack)
