@@ -1220,6 +1220,8 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         if scale[a] > 0.0:
             ext = max(ext, top / scale[a])
     cells = np.zeros((3, GRID_AXIS), np.int64)
+    gap = np.zeros((3, GRID_AXIS))
+    far = np.zeros((3, GRID_AXIS))
     na = np.ones(3, np.int64)
     cap = GRID_AXIS**2 * (GRID_AXIS if d == 3 else 1) + 8 * (bits + 2)
     stack = np.empty((min(cap, 4096 + 8 * (bits + 2)), 4), np.int64)
@@ -1252,15 +1254,31 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         if total < 0:
             out[q] = -1.0
             continue
+        for a in range(d):  # each axis's cells: their gap to xq and their farthest reach
+            for i in range(na[a]):
+                b0, b1 = _cell_side(cells[a, i], level, bits, lo[a], scale[a], pmin[a],
+                                    pmax[a], margin[a])  # fmt: skip
+                gap[a, i] = _gap(xq[a], b0, b1, period[a])
+                far[a, i] = _reach(xq[a], b0, b1, period[a])
+        # the cells the sphere cuts stacked first, those inside last: these are taken first
+        # (a count that reaches stop with them reads no point)
         sp = 0
-        for i0 in range(na[0]):
-            for i1 in range(na[1]):
-                for i2 in range(na[2] if d == 3 else 1):
-                    stack[sp, 0] = cells[0, i0]
-                    stack[sp, 1] = cells[1, i1]
-                    stack[sp, 2] = cells[2, i2] if d == 3 else 0
-                    stack[sp, 3] = level
-                    sp += 1
+        for inner in range(2):
+            for i0 in range(na[0]):
+                for i1 in range(na[1]):
+                    for i2 in range(na[2] if d == 3 else 1):
+                        near2 = gap[0, i0] * gap[0, i0] + gap[1, i1] * gap[1, i1]
+                        far2 = far[0, i0] * far[0, i0] + far[1, i1] * far[1, i1]
+                        if d == 3:
+                            near2 += gap[2, i2] * gap[2, i2]
+                            far2 += far[2, i2] * far[2, i2]
+                        if near2 > rq2 or (far2 <= rq2) != (inner == 1):
+                            continue
+                        stack[sp, 0] = cells[0, i0]
+                        stack[sp, 1] = cells[1, i1]
+                        stack[sp, 2] = cells[2, i2] if d == 3 else 0
+                        stack[sp, 3] = level
+                        sp += 1
         count = 0.0
         fix = 0.0  # the compensation of a weighted count
         crowded = False
@@ -1302,11 +1320,14 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
             if e - i > GRID_CROWD:
                 crowded = True
                 break
-            for j in range(i, e):
-                if _point2(pts, j, xq, period) <= rq2:
-                    if unit:
-                        count += 1.0
-                    else:
+            if unit:  # (two loops: the branch out of the one that counts)
+                hits = 0
+                for j in range(i, e):
+                    hits += _point2(pts, j, xq, period) <= rq2
+                count += hits
+            else:
+                for j in range(i, e):
+                    if _point2(pts, j, xq, period) <= rq2:
                         count, fix = plus_compensated(count, fix, w[j])
         out[q] = -1.0 if crowded else count + fix
 
