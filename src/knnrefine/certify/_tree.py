@@ -754,9 +754,22 @@ def _kth_in(bx, bw, first, G, centre, reach, xq, period, far, k, unit, r, d2, dw
             d2[c] = v
             c += min(int(v * per), nb - 1) == b
         return math.sqrt(_select(d2, c, need - below - 1))
-    order = np.argsort(d2[:m])
     s = 0.0
     c = 0.0
+    if m <= 64:  # a few: sorted in place with their weights (no array made)
+        for j in range(1, m):
+            v, u = d2[j], dw[j]
+            i = j - 1
+            while i >= 0 and d2[i] > v:
+                d2[i + 1], dw[i + 1] = d2[i], dw[i]
+                i -= 1
+            d2[i + 1], dw[i + 1] = v, u
+        for j in range(m):
+            s, c = plus_compensated(s, c, dw[j])
+            if s + c >= k:
+                return math.sqrt(d2[j])
+        return -1.0
+    order = np.argsort(d2[:m])
     for j in order:
         s, c = plus_compensated(s, c, dw[j])
         if s + c >= k:
