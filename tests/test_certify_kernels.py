@@ -179,14 +179,17 @@ def test_filtered_predicates_agree_with_rationals(lattice):
     assert unsure > 0 or not lattice  # the lattice reaches the fallback: the test can fail
 
 
-def test_neighbour_lists_keep_each_neighbour_once_sorted():
+@pytest.mark.parametrize("threads", [1, 3])
+def test_neighbour_lists_keep_each_neighbour_once_sorted(threads, monkeypatch):
     """``neighbour_lists`` (every corner of a cell a neighbour of every other, a site's
     rows deduplicated by stamps, then sorted) against sets: every (index, shift) once, in
     sorted order, the shift the neighbour's offset less the site's, on random cells of 2
     to 4 corners with repeated cells and vertices, offsets in 0 to 3 dimensions and sites
-    in no cell."""
+    in no cell; with three threads each placing its own range of a few cells."""
+    from knnrefine.certify import _tree
     from knnrefine.certify._tree import neighbour_lists
 
+    monkeypatch.setattr(_tree, "CELL_RANGE", 4)
     rng = np.random.default_rng(54)
     for _ in range(200):
         m, t, d = int(rng.integers(1, 30)), int(rng.integers(0, 80)), int(rng.integers(0, 4))
@@ -194,7 +197,7 @@ def test_neighbour_lists_keep_each_neighbour_once_sorted():
         cells = rng.integers(0, m, (t, c))
         cells[t // 2 :] = cells[: t - t // 2]  # cells repeated
         off = np.ascontiguousarray(rng.integers(-1, 2, (t, c, d)))
-        first, nb, sh = neighbour_lists(cells, off, m)
+        first, nb, sh = neighbour_lists(cells, off, m, threads)
         for v in range(m):
             want = sorted({(int(cells[i, y]), *map(int, off[i, y] - off[i, x]))
                            for i in range(t) for x in range(c) for y in range(c)

@@ -45,7 +45,7 @@ import numpy as np
 
 from .._engine.geometry import plus_compensated  # shared with the engine, as _metric's sums
 from .._engine.jit import kernel
-from .._engine.threads import in_chunks
+from .._engine.threads import in_chunks, run_all, workers
 from ._predicates import UNSURE, orient3d_at
 from ._rows import rows_equal
 
@@ -59,6 +59,7 @@ MARGIN = 1.25  # and reads the points within MARGIN times that answer of the box
 HISTOGRAM = 64  # bins of the histogram that finds the k-th of a query's distances
 TREE_BITS = 20  # bits of each coordinate in the tree's Morton codes in the plane
 TREE_BITS3 = 14  # and in space (below them, nodes split by the sliding midpoint)
+CELL_RANGE = 65536  # cells a thread of ``neighbour_lists`` places, at least
 
 
 def _build(pts, w, leaf, unit):
@@ -1642,27 +1643,72 @@ def spatial_order(x):
     return _morton_sorted(x, 31 if x.shape[1] == 2 else 21)[1]
 
 
-@kernel(entry=True, lazy=True)
-def neighbour_lists(cells, off, m):
+def neighbour_lists(cells, off, m, threads=None):
     """Each site's neighbours, once each, from the cells (t, c) of a triangulation and
     their corners' offsets (t, c, d) in whole periods (d = 0: none): (first (m + 1,):
     site v's are rows first[v]:first[v + 1] of the next two, their indices, their shifts
     (the neighbour's offset less the site's), sorted by index then shift). Every corner of
-    a cell is a neighbour of every other; a counting sort by site, then within a site's
-    rows a repeat is found among the rows kept since its index was first seen (stamped),
-    and the few rows kept are sorted (insertion)."""
-    t, c = cells.shape
-    d = off.shape[2]
-    first = np.zeros(m + 1, np.int64)
-    for i in range(t):
-        for x in range(c):
-            first[cells[i, x] + 1] += c - 1
-    for v in range(m):
-        first[v + 1] += first[v]
-    place = first[:m].copy()
+    a cell is a neighbour of every other: a counting sort by site, each thread placing the
+    rows of its own range of cells after those of the ranges before (the order of one
+    thread); then, a range of sites a thread, within a site's rows a repeat is found among
+    the rows kept since its index was first seen (stamped), the few rows kept are sorted
+    (insertion), and the kept rows are gathered."""
+    cells = np.ascontiguousarray(cells, np.int64)
+    off = np.ascontiguousarray(off, np.int64)
+    t, d = len(cells), off.shape[2]
+    parts = max(1, min(workers() if _threads(threads) is None else _threads(threads),
+                       t // CELL_RANGE))  # fmt: skip
+    edges = np.linspace(0, t, parts + 1).astype(np.int64)
+    counts = np.zeros((parts, m), np.int64)
+    run_all(lambda j: _site_counts(cells, counts[j], edges[j], edges[j + 1]), parts)
+    first, place = _row_places(counts)
     nb = np.empty(first[m], np.int64)
     sh = np.empty((first[m], d), np.int64)
-    for i in range(t):
+    run_all(lambda j: _scatter_rows(cells, off, place[j], nb, sh, edges[j], edges[j + 1]), parts)
+    kept = np.empty(m, np.int64)
+    in_chunks(lambda a, b: _unique_sites(first, nb, sh, kept, a, b), m,
+              threads=_threads(threads), least=16384, per_thread=1)  # fmt: skip
+    out_first = np.zeros(m + 1, np.int64)
+    np.cumsum(kept, out=out_first[1:])
+    out_nb = np.empty(out_first[m], np.int64)
+    out_sh = np.empty((out_first[m], d), np.int64)
+    in_chunks(lambda a, b: _gather_rows(first, out_first, nb, sh, out_nb, out_sh, a, b), m,
+              threads=_threads(threads), least=16384, per_thread=1)  # fmt: skip
+    return out_first, out_nb, out_sh
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _site_counts(cells, count, start, end):
+    """count[v] += the rows cells [start, end) give site v (c - 1 a corner)."""
+    c = cells.shape[1]
+    for i in range(start, end):
+        for x in range(c):
+            count[cells[i, x]] += c - 1
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _row_places(counts):
+    """(first (m + 1,): where each site's rows begin; place (parts, m): where each range
+    of cells places its first row of each site, after the ranges before)."""
+    parts, m = counts.shape
+    first = np.zeros(m + 1, np.int64)
+    place = np.empty((parts, m), np.int64)
+    at = 0
+    for v in range(m):
+        first[v] = at
+        for j in range(parts):
+            place[j, v] = at
+            at += counts[j, v]
+    first[m] = at
+    return first, place
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _scatter_rows(cells, off, place, nb, sh, start, end):
+    """The rows of cells [start, end), each corner's other corners, at ``place``."""
+    c = cells.shape[1]
+    d = off.shape[2]
+    for i in range(start, end):
         for x in range(c):
             v = cells[i, x]
             for y in range(c):
@@ -1673,21 +1719,21 @@ def neighbour_lists(cells, off, m):
                 nb[p] = cells[i, y]
                 for a in range(d):
                     sh[p, a] = off[i, y, a] - off[i, x, a]
-    return _unique_rows(first, nb, sh, m)
 
 
-@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _unique_rows(first, nb, sh, m):
-    """``neighbour_lists``' rows of each site kept once each and sorted, in place."""
+@kernel(entry=True, lazy=True, nogil=True)
+def _unique_sites(first, nb, sh, kept, start, end):
+    """The rows of sites [start, end) kept once each and sorted by (index, shift), at the
+    front of each site's own rows; kept[v] how many."""
+    m = len(first) - 1
     d = sh.shape[1]
-    out_first = np.zeros(m + 1, np.int64)
     stamp = np.full(m, -1, np.int64)  # the site whose rows last saw this index
     seen_at = np.zeros(m, np.int64)  # where that site's rows first kept it
     row = np.empty(d, np.int64)
-    used = 0
-    for v in range(m):
-        start = used
-        for j in range(first[v], first[v + 1]):  # kept rows [start, used): used <= j
+    for v in range(start, end):
+        begin = first[v]
+        used = begin
+        for j in range(first[v], first[v + 1]):  # kept rows [begin, used): used <= j
             key = nb[j]
             repeat = False
             if stamp[key] == v:
@@ -1703,12 +1749,12 @@ def _unique_rows(first, nb, sh, m):
                 for t in range(d):
                     sh[used, t] = sh[j, t]
                 used += 1
-        for j in range(start + 1, used):  # insertion sort of the kept rows by (b, shift)
+        for j in range(begin + 1, used):  # insertion sort of the kept rows by (b, shift)
             key = nb[j]
             for t in range(d):
                 row[t] = sh[j, t]
             i = j - 1
-            while i >= start:
+            while i >= begin:
                 less = nb[i] > key
                 if nb[i] == key:
                     for t in range(d):
@@ -1724,5 +1770,16 @@ def _unique_rows(first, nb, sh, m):
             nb[i + 1] = key
             for t in range(d):
                 sh[i + 1, t] = row[t]
-        out_first[v + 1] = used
-    return out_first, nb[:used].copy(), sh[:used].copy()
+        kept[v] = used - begin
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _gather_rows(first, out_first, nb, sh, out_nb, out_sh, start, end):
+    """Sites [start, end)'s kept rows, from the front of their own, to their place."""
+    d = sh.shape[1]
+    for v in range(start, end):
+        o = out_first[v]
+        for j in range(out_first[v + 1] - o):
+            out_nb[o + j] = nb[first[v] + j]
+            for t in range(d):
+                out_sh[o + j, t] = sh[first[v] + j, t]
