@@ -582,3 +582,33 @@ def test_grid_weights_equal_exact_sums(dim, periodic):
     inside = _brute_d2(x, pts, period) <= np.square(r)[:, None]
     want = np.array([math.fsum(w[row]) for row in inside])
     assert np.array_equal(tree.held(x, r), want)
+
+
+def test_separations_equal_numpys_in_every_metric():
+    """The Lipschitz bounds' separations (``common.separations`` on a torus, a half torus
+    and a box; the sphere's ``_angles``) equal numpy's formulas, NaN where a probe has no
+    reference."""
+    from knnrefine._domains.sphere.certify import Geometry as SphereGeometry
+    from knnrefine.certify.common import separations
+
+    rng = np.random.default_rng(5)
+    x = rng.random((300, 2)) * 3.0
+    rows = rng.integers(0, 300, 200)
+    refs = rng.integers(-1, 300, (200, 3))
+    for period in ([3.0, 3.0], [3.0, 0.0], [0.0, 0.0]):
+        got = separations(x, rows, refs, np.array(period), None)
+        g = x[rows][:, None, :] - x[np.maximum(refs, 0)]
+        p = np.array(period)
+        g = np.where(p > 0, g - p * np.rint(g / np.where(p > 0, p, 1.0)), g)
+        want = np.where(refs >= 0, np.sqrt((g**2).sum(-1)), np.nan)
+        assert np.allclose(got, want, rtol=1e-14, atol=0, equal_nan=True)
+    u = rng.standard_normal((300, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u[1] = -u[0]  # antipodal: pi
+    geometry = SphereGeometry.__new__(SphereGeometry)
+    geometry.workers = None
+    got = geometry.separation(u, np.array([0, 2, 5]), np.array([[1, -1], [2, 7], [9, 4]]))
+    a, b = u[[0, 2, 2, 5, 5]], u[[1, 2, 7, 9, 4]]
+    want = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))
+    assert np.allclose(got[~np.isnan(got)], want, rtol=1e-13, atol=1e-15)
+    assert np.isnan(got[0, 1]) and abs(got[0, 0] - np.pi) < 1e-12 and got[1, 0] == 0.0

@@ -369,14 +369,10 @@ class TorusGeometry:
     def held(self, points, tri, stop=np.inf):
         return points.held(tri.centres, tri.radii, stop)
 
-    def separation(self, x, y):
-        """Distances between the rows of x and y in d_{P,k}'s metric (``pk_period``: the
-        torus', or the box's own: 0 on straight axes)."""
-        g = np.asarray(x, float) - y
-        for a, p in enumerate(self.pk_period):  # the nearer way round, axis by axis
-            if p > 0:
-                g[:, a] -= p * np.rint(g[:, a] / p)
-        return np.sqrt(np.einsum("ij,ij->i", g, g))
+    def separation(self, x, rows, refs):
+        """Distances from x[rows] to x[refs] (refs (r, w); NaN where -1) in d_{P,k}'s
+        metric (``pk_period``: the torus', or the box's own: 0 on straight axes)."""
+        return separations(x, rows, refs, self.pk_period, self.workers)
 
     def precondition(self, points, k, tau):
         initial = self.vertices[np.asarray(self.mesh.torus.kinds) == 0]
@@ -392,6 +388,42 @@ class TorusGeometry:
 
     def to_input(self, x):
         return to_input(x, self.origin, self.mesh)
+
+
+def separations(x, rows, refs, period, workers):
+    """Distances from x[rows] to x[refs] (refs (r, w); NaN where -1), the nearer way round
+    each axis of ``period`` > 0 (``_separations``, on every core)."""
+    x = np.ascontiguousarray(x, np.float64)
+    rows = np.ascontiguousarray(rows, np.int64)
+    refs = np.ascontiguousarray(refs, np.int64).reshape(len(rows), -1)
+    p = np.ascontiguousarray(period, np.float64)
+    out = np.empty(refs.shape)
+    threads = None if workers is None or workers == -1 else int(workers)
+    in_chunks(lambda a, b: _separations(x, rows, refs, p, out, a, b), len(rows),
+              threads=threads, least=8192)  # fmt: skip
+    return out
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _separations(x, rows, refs, period, out, start, end):
+    """out[r, c] for r in [start, end): the distance from x[rows[r]] to x[refs[r, c]]
+    (NaN where refs[r, c] < 0), each axis's difference taken the nearer way round where
+    period > 0 (less the nearest whole number of periods)."""
+    d = x.shape[1]
+    for r in range(start, end):
+        i = rows[r]
+        for c in range(refs.shape[1]):
+            j = refs[r, c]
+            if j < 0:
+                out[r, c] = np.nan
+                continue
+            s = 0.0
+            for a in range(d):
+                g = x[i, a] - x[j, a]
+                if period[a] > 0.0:
+                    g -= period[a] * np.rint(g / period[a])
+                s += g * g
+            out[r, c] = math.sqrt(s)
 
 
 def walked_d_m2(cells, x, period, workers, tri, tree):

@@ -128,8 +128,9 @@ class Geometry(Protocol):
         """(d_{M,2} at x from the vertices returned, what is wrong with them); ``tri``
         says whether the triangulation may be walked (verified: no problems)."""
 
-    def separation(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Distances between the rows of x and y in d_{P,k}'s metric."""
+    def separation(self, x: np.ndarray, rows: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        """Distances from x[rows] to x[refs] (refs (r, w); NaN where -1) in d_{P,k}'s
+        metric."""
 
     def size(self, probes: Probes, d_pk: np.ndarray, points: PointQuestions,
              rng: np.random.Generator) -> tuple:  # fmt: skip
@@ -304,15 +305,14 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
     later = np.flatnonzero(~first)
     if len(later) == 0:
         return d_pk, lo
+    refs = near[later]  # (-1: none in that column)
+    reach = geometry.separation(x, later, refs).T
     low, hi = np.full(len(later), -np.inf), np.full(len(later), np.inf)
-    x_later = x[later]
-    for ref in near[later].T:  # each column of references (-1: none in that column)
-        has = np.flatnonzero(ref >= 0)
-        reach = geometry.separation(x_later[has], x[ref[has]])
-        d = d_pk[ref[has]]
-        slack = 1e-9 * (d + reach)  # rounding in d_{P,k} and the separation
-        low[has] = np.maximum(low[has], d - reach - slack)
-        hi[has] = np.minimum(hi[has], d + reach + slack)
+    for ref, s in zip(refs.T, reach, strict=True):  # each column of references
+        d = d_pk[ref]  # (where ref is -1, s is NaN: the bounds stay as they were)
+        slack = 1e-9 * (d + s)  # rounding in d_{P,k} and the separation
+        np.fmax(low, d - s - slack, out=low)
+        np.fmin(hi, d + s + slack, out=hi)
     ratio_lo = d_m2[later] / hi
     with np.errstate(divide="ignore"):
         ratio_hi = np.where(low > 0, d_m2[later] / low, np.inf)
