@@ -328,6 +328,43 @@ def test_bounded_probes_give_the_certificate_of_asking_every_probe(domain, monke
             assert getattr(bounded, field.name) == getattr(every, field.name), field.name
 
 
+def test_bounded_probes_below_the_floor_are_not_asked(monkeypatch):
+    """A bounded probe whose upper bound d + s lies below the floor is no probe of the
+    ratio (d_{P,k} < min_size there): it is neither asked nor counted, and its lower bound
+    stays below the floor (so ``n_probes`` leaves it out). The shortcut was lost once when
+    the ball counts came in: such probes were asked one by one."""
+    from knnrefine.certify import steps
+
+    rng = np.random.default_rng(53)
+    centres = rng.random((30, 2))
+    pts = np.mod(centres[rng.integers(0, 30, 20000)] + rng.normal(0, 0.02, (20000, 2)), 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mesh = knnrefine.refine(pts, k=1, box=(0, 0, 1, 1), min_size=3e-3)
+    seen = {}
+    real = steps.bounded_d_pk
+
+    def spy(points, geometry, probes, d_m2, floor, k):
+        asked = []
+        d_pk_of = points.d_pk
+        monkeypatch.setattr(points, "d_pk", lambda x: (asked.append(x), d_pk_of(x))[1])
+        d_pk, lo = real(points, geometry, probes, d_m2, floor, k)
+        seen.update(probes=probes, d_pk=d_pk, lo=lo, floor=floor, asked=asked, true=d_pk_of)
+        return d_pk, lo
+
+    monkeypatch.setattr(steps, "bounded_d_pk", spy)
+    certify(mesh, pts)
+    probes, d_pk, lo, floor = seen["probes"], seen["d_pk"], seen["lo"], seen["floor"]
+    later = ~np.isnan(d_pk)
+    skipped = np.flatnonzero(np.isnan(d_pk))
+    true = seen["true"](probes.x[skipped])
+    under = skipped[true < floor]
+    assert len(under) > 100  # the floor's probes exist here, and are not asked
+    assert np.all(lo[under] < floor)
+    assert np.all(true[true >= floor] >= lo[skipped][true >= floor] - 1e-12)
+    assert sum(len(a) for a in seen["asked"]) == int(later.sum())
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_a_torus_returned_row_for_row_is_still_checked_corner_by_corner(dim):
     """A periodic mesh returned as its torus (cells row for row: the fast path of

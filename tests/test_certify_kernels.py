@@ -514,9 +514,10 @@ def test_grid_counts_equal_brute_force(layout):
     """Balls counted from the grid of the tree's Morton runs (``_grid_held``: cells
     inside added whole, cells cut read or split into children, crowded finest cells and
     radii not finite left to the tree) equal brute force, exact below ``stop`` and at least
-    ``stop`` above it: radii from 0 to past the whole torus, points on a line (an axis
-    of one coordinate), clusters finer than the table's cells, thousands of coinciding
-    points, coordinates far from the origin against their spread."""
+    ``stop`` above it: radii from 0 to past the whole torus, points and centres on its
+    cut, points on a line (an axis of one coordinate), clusters finer than the table's
+    cells, thousands of coinciding points, coordinates far from the origin against their
+    spread."""
     from knnrefine.certify._tree import Tree
 
     rng = np.random.default_rng(17)
@@ -529,6 +530,9 @@ def test_grid_counts_equal_brute_force(layout):
     if layout in ("torus", "space-torus"):
         period = np.ones(dim)
         r[:100] = rng.random(100) * 0.8  # past half the period: the ball wraps onto itself
+        pts[:300, 0] = 0.0  # on the cut, and balls about it from both sides
+        x[100:140, 0] = 0.0
+        x[140:180, 0] = np.nextafter(1.0, 0.0)
     if layout == "half-torus":
         period = np.array([1.0, 0.0])
     if layout == "clustered":
@@ -578,7 +582,7 @@ def test_grid_weights_equal_exact_sums(dim, periodic):
     x = rng.random((500, dim))
     r = rng.random(500) * 0.15
     tree = Tree(pts, w, period)
-    assert tree.grid is not None and not tree.grid.unit
+    assert tree.grid is not None and not tree.unit
     inside = _brute_d2(x, pts, period) <= np.square(r)[:, None]
     want = np.array([math.fsum(w[row]) for row in inside])
     assert np.array_equal(tree.held(x, r), want)
@@ -596,7 +600,7 @@ def test_separations_equal_numpys_in_every_metric():
     rows = rng.integers(0, 300, 200)
     refs = rng.integers(-1, 300, (200, 3))
     for period in ([3.0, 3.0], [3.0, 0.0], [0.0, 0.0]):
-        got = separations(x, rows, refs, np.array(period), None)
+        got = separations(x, rows, refs, None, np.array(period))
         g = x[rows][:, None, :] - x[np.maximum(refs, 0)]
         p = np.array(period)
         g = np.where(p > 0, g - p * np.rint(g / np.where(p > 0, p, 1.0)), g)

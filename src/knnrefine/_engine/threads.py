@@ -58,13 +58,20 @@ def run_all(task, count, meanwhile=None, every=0.05):
 PER_THREAD = 16  # ranges per thread: an interrupt waits for the ranges running only
 
 
+def thread_count(threads=None):
+    """How many threads ``threads`` asks for: None or -1 (scipy's "every core")
+    ``workers()``, else N (at least 1)."""
+    return workers() if threads is None or int(threads) < 0 else max(1, int(threads))
+
+
 def in_chunks(call, m, threads=None, least=256, per_thread=PER_THREAD):
     """[call(start, stop)] over ranges that split [0, m) evenly, ``per_thread`` ranges for
-    each of ``threads`` (default ``workers()``), each at least ``least`` long (one range when
-    m is small), run by at most ``threads`` threads at once: many short calls rather than
-    one long one per thread, so that an interrupt (Ctrl-C) waits only for the ranges running,
-    about 1 / per_thread of the work (the threads take no new range once it came)."""
-    threads = max(1, workers() if threads is None else int(threads))
+    each of ``threads`` (``thread_count``: None or -1 every core), each at least ``least``
+    long (one range when m is small), run by at most ``threads`` threads at once: many
+    short calls rather than one long one per thread, so that an interrupt (Ctrl-C) waits
+    only for the ranges running, about 1 / per_thread of the work (the threads take no new
+    range once it came)."""
+    threads = thread_count(threads)
     chunks = max(1, min(threads * int(per_thread), m // least))
     edges = np.linspace(0, m, chunks + 1).astype(np.int64)
     out = [None] * chunks

@@ -45,7 +45,7 @@ import numpy as np
 
 from .._engine.geometry import plus_compensated  # shared with the engine, as _metric's sums
 from .._engine.jit import kernel
-from .._engine.threads import in_chunks, run_all, workers
+from .._engine.threads import in_chunks, run_all, thread_count
 from ._predicates import UNSURE, orient3d_at
 from ._rows import rows_equal
 
@@ -57,6 +57,7 @@ SPAN = 8.0  # a block of k-th queries lies in a box of side SPAN times its first
 SPAN3 = 2.5  # (in space: a window grows as the cube of its side)
 MARGIN = 1.25  # and reads the points within MARGIN times that answer of the box
 HISTOGRAM = 64  # bins of the histogram that finds the k-th of a query's distances
+FEW = 64  # a weighted k-th query's distances sorted in place up to this many
 TREE_BITS = 20  # bits of each coordinate in the tree's Morton codes in the plane
 TREE_BITS3 = 14  # and in space (below them, nodes split by the sliding midpoint)
 CELL_RANGE = 65536  # cells a thread of ``neighbour_lists`` places, at least
@@ -79,7 +80,7 @@ def _build(pts, w, leaf, unit):
 
 
 Grid = namedtuple("Grid", ["code", "table", "level0", "bits", "lo", "scale", "pmin", "pmax",
-                           "margin", "unit", "prefix"])  # fmt: skip
+                           "margin", "prefix"])  # fmt: skip
 
 
 def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
@@ -98,7 +99,7 @@ def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
     step = np.divide(1.0, scale, out=np.zeros(d), where=scale > 0)
     margin = 2.0 * step + 8.0 * np.finfo(float).eps * (np.abs(lo) + np.abs(pmin) + np.abs(pmax))
     prefix = np.zeros((2, 1)) if unit else _prefix_sums(w)
-    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin, unit, prefix)
+    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin, prefix)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -757,7 +758,7 @@ def _kth_in(bx, bw, first, G, centre, reach, xq, period, far, k, unit, r, d2, dw
         return math.sqrt(_select(d2, c, need - below - 1))
     s = 0.0
     c = 0.0
-    if m <= 64:  # a few: sorted in place with their weights (no array made)
+    if m <= FEW:  # a few: sorted in place with their weights (no array made)
         for j in range(1, m):
             v, u = d2[j], dw[j]
             i = j - 1
@@ -1114,6 +1115,7 @@ GRID_TABLE = 22  # the table's level has at most 2^GRID_TABLE cells
 GRID_SIDE = 0.5  # a ball is first cut into cells of side at least GRID_SIDE its radius
 GRID_SIDE3 = 1.0  # (in space: a box of 27 cells, not 125)
 GRID_AXIS = 64  # cells along one axis a ball reads at most (coarser cells where more)
+GRID_CELLS = 4096  # cells a ball reads at first, at most (coarser cells where more)
 GRID_DESCEND = 24  # a cell the ball's sphere cuts is read as its children above this
 GRID_CROWD = 4096  # a finest cell the sphere cuts and holding more: asked of the tree
 
@@ -1227,7 +1229,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
     number of points where ``unit``; compensated otherwise, a run inside from ``prefix``),
     exact below stop[q], at least stop[q] otherwise; -1 where the grid leaves it to the
     tree (a radius not finite, a crowded finest cell the sphere cuts)."""
-    n, d = pts.shape
+    d = pts.shape[1]
     top = 2.0**bits - 1.0
     ext = 0.0
     for a in range(d):
@@ -1237,8 +1239,9 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
     gap = np.zeros((3, GRID_AXIS))
     far = np.zeros((3, GRID_AXIS))
     na = np.ones(3, np.int64)
-    cap = GRID_AXIS**2 * (GRID_AXIS if d == 3 else 1) + 8 * (bits + 2)
-    stack = np.empty((min(cap, 4096 + 8 * (bits + 2)), 4), np.int64)
+    # a cell: its coordinates, its level, what it is known to be (1 inside the ball, 0 cut
+    # by its sphere, -1 not yet tested: a child); a descent adds 2^d - 1 cells a level
+    stack = np.empty((GRID_CELLS + 8 * (bits + 2), 5), np.int64)
     for q in range(start, end):
         rq2 = r2[q]
         r = math.sqrt(rq2)
@@ -1262,7 +1265,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
                     total = -1
                     break
                 total *= na[a]
-            if (total >= 0 and total <= stack.shape[0] - 8 * (bits + 2)) or level == 0:
+            if 0 <= total <= GRID_CELLS or level == 0:
                 break
             level -= 1
         if total < 0:
@@ -1292,6 +1295,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
                         stack[sp, 1] = cells[1, i1]
                         stack[sp, 2] = cells[2, i2] if d == 3 else 0
                         stack[sp, 3] = level
+                        stack[sp, 4] = inner
                         sp += 1
         count = 0.0
         fix = 0.0  # the compensation of a weighted count
@@ -1299,22 +1303,25 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         while sp > 0 and count + fix < stop[q]:
             sp -= 1
             lv = stack[sp, 3]
-            near2 = 0.0
-            far2 = 0.0
-            for a in range(d):
-                b0, b1 = _cell_side(stack[sp, a], lv, bits, lo[a], scale[a], pmin[a],
-                                    pmax[a], margin[a])  # fmt: skip
-                g = _gap(xq[a], b0, b1, period[a])
-                near2 += g * g
-                g = _reach(xq[a], b0, b1, period[a])
-                far2 += g * g
-            if near2 > rq2:
-                continue
+            inside = stack[sp, 4] == 1
+            if stack[sp, 4] < 0:  # a child: its box tested here
+                near2 = 0.0
+                far2 = 0.0
+                for a in range(d):
+                    b0, b1 = _cell_side(stack[sp, a], lv, bits, lo[a], scale[a], pmin[a],
+                                        pmax[a], margin[a])  # fmt: skip
+                    g = _gap(xq[a], b0, b1, period[a])
+                    near2 += g * g
+                    g = _reach(xq[a], b0, b1, period[a])
+                    far2 += g * g
+                if near2 > rq2:
+                    continue
+                inside = far2 <= rq2
             c = _cell_code(stack[sp, 0], stack[sp, 1], stack[sp, 2], d)
             i, e = _cell_run(code, table, level0, bits, d, c, lv)
             if i == e:
                 continue
-            if far2 <= rq2:
+            if inside:
                 if unit:
                     count += e - i
                 else:
@@ -1329,6 +1336,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
                     stack[sp, 1] = 2 * cy + ((j >> 1) & 1)
                     stack[sp, 2] = 2 * cz + ((j >> 2) & 1) if d == 3 else 0
                     stack[sp, 3] = lv + 1
+                    stack[sp, 4] = -1
                     sp += 1
                 continue
             if e - i > GRID_CROWD:
@@ -1407,7 +1415,7 @@ class Tree:
         return self.period if period is None else np.ascontiguousarray(period, np.float64)
 
     def _run(self, call, m):
-        in_chunks(call, m, threads=_threads(self.threads), least=512)
+        in_chunks(call, m, threads=self.threads, least=512)
 
     def held(self, centres, radii, stop=np.inf, period=None):
         """What each closed ball (centre, radius) holds: its points' weight (their number
@@ -1420,7 +1428,7 @@ class Tree:
         xs = np.ascontiguousarray(x[order])
         r2 = np.ascontiguousarray(np.square(r[order]))
         st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(x))[order])
-        res = np.empty(len(x))
+        res = np.full(len(x), -1.0)  # -1: left to the tree
         p = self._period(period)
         g = self.grid
         if g is not None:  # the grid first, the tree where it leaves a ball
@@ -1428,23 +1436,20 @@ class Tree:
 
             def call(a, b):
                 _grid_held(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo,
-                           g.scale, g.pmin, g.pmax, g.margin, g.unit, g.prefix, p, side, xs,
-                           r2, st, res, a, b)  # fmt: skip
+                           g.scale, g.pmin, g.pmax, g.margin, self.unit, g.prefix, p, side,
+                           xs, r2, st, res, a, b)  # fmt: skip
 
             self._run(call, len(x))
-            left = np.flatnonzero(res < 0)
-        if g is None or len(left):
-            xl = xs if g is None else np.ascontiguousarray(xs[left])
-            r2l = r2 if g is None else np.ascontiguousarray(r2[left])
-            stl = st if g is None else np.ascontiguousarray(st[left])
-            resl = res if g is None else np.empty(len(left))
+        left = np.flatnonzero(res < 0)
+        if len(left):
+            xl, r2l, stl = (np.ascontiguousarray(v[left]) for v in (xs, r2, st))
+            resl = np.empty(len(left))
 
             def call(a, b):
                 _held(self.pts, self.w, self.T, self.depth, p, xl, r2l, stl, resl, a, b)
 
-            self._run(call, len(xl))
-            if g is not None:
-                res[left] = resl
+            self._run(call, len(left))
+            res[left] = resl
         out = np.empty(len(x))
         out[order] = res
         return out
@@ -1484,7 +1489,7 @@ class Tree:
             return _held_caps(self.pts, self.w, self.T, self.depth,
                               x, outer2, c, st, out, a, b)  # fmt: skip
 
-        parts = in_chunks(call, len(x), threads=_threads(self.threads), least=512)
+        parts = in_chunks(call, len(x), threads=self.threads, least=512)
         caps = np.concatenate([q for q, _ in parts]) if parts else np.zeros(0, np.int64)
         members = np.concatenate([j for _, j in parts]) if parts else np.zeros(0, np.int64)
         return out, caps, members
@@ -1516,7 +1521,7 @@ class Tree:
         def call(a, b):
             return _nearest_sites(*args, owner, a, b)
 
-        parts = in_chunks(call, len(pts), threads=_threads(self.threads), least=4096)
+        parts = in_chunks(call, len(pts), threads=self.threads, least=4096)
         if any(found < 0 for found, _, _ in parts):
             return None
         p = np.concatenate([np.arange(len(pts))] + [q for _, q, _ in parts])
@@ -1544,11 +1549,6 @@ class Tree:
 
         self._run(call, len(v))
         return out
-
-
-def _threads(threads):
-    """Threads for a query: None or -1 every core (``in_chunks``' default), else N."""
-    return None if threads is None or threads < 0 else max(1, int(threads))
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -1656,8 +1656,7 @@ def neighbour_lists(cells, off, m, threads=None):
     cells = np.ascontiguousarray(cells, np.int64)
     off = np.ascontiguousarray(off, np.int64)
     t, d = len(cells), off.shape[2]
-    parts = max(1, min(workers() if _threads(threads) is None else _threads(threads),
-                       t // CELL_RANGE))  # fmt: skip
+    parts = max(1, min(thread_count(threads), t // CELL_RANGE))
     edges = np.linspace(0, t, parts + 1).astype(np.int64)
     counts = np.zeros((parts, m), np.int64)
     run_all(lambda j: _site_counts(cells, counts[j], edges[j], edges[j + 1]), parts)
@@ -1667,13 +1666,13 @@ def neighbour_lists(cells, off, m, threads=None):
     run_all(lambda j: _scatter_rows(cells, off, place[j], nb, sh, edges[j], edges[j + 1]), parts)
     kept = np.empty(m, np.int64)
     in_chunks(lambda a, b: _unique_sites(first, nb, sh, kept, a, b), m,
-              threads=_threads(threads), least=16384, per_thread=1)  # fmt: skip
+              threads=threads, least=16384, per_thread=1)  # fmt: skip
     out_first = np.zeros(m + 1, np.int64)
     np.cumsum(kept, out=out_first[1:])
     out_nb = np.empty(out_first[m], np.int64)
     out_sh = np.empty((out_first[m], d), np.int64)
     in_chunks(lambda a, b: _gather_rows(first, out_first, nb, sh, out_nb, out_sh, a, b), m,
-              threads=_threads(threads), least=16384, per_thread=1)  # fmt: skip
+              threads=threads, least=16384, per_thread=1)  # fmt: skip
     return out_first, out_nb, out_sh
 
 

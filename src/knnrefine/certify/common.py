@@ -372,7 +372,7 @@ class TorusGeometry:
     def separation(self, x, rows, refs):
         """Distances from x[rows] to x[refs] (refs (r, w); NaN where -1) in d_{P,k}'s
         metric (``pk_period``: the torus', or the box's own: 0 on straight axes)."""
-        return separations(x, rows, refs, self.pk_period, self.workers)
+        return separations(x, rows, refs, self.workers, self.pk_period)
 
     def precondition(self, points, k, tau):
         initial = self.vertices[np.asarray(self.mesh.torus.kinds) == 0]
@@ -390,25 +390,28 @@ class TorusGeometry:
         return to_input(x, self.origin, self.mesh)
 
 
-def separations(x, rows, refs, period, workers):
-    """Distances from x[rows] to x[refs] (refs (r, w); NaN where -1), the nearer way round
-    each axis of ``period`` > 0 (``_separations``, on every core)."""
+def separations(x, rows, refs, workers, period=None):
+    """Distances from x[rows] to x[refs] (refs (r, w); NaN where -1) in d_{P,k}'s metric:
+    with ``period`` (per axis), straight lines, each axis taken the nearer way round where
+    its period is > 0 (the torus', the box's); without, angles between unit vectors (the
+    sphere's). ``_separations``, on every core (``workers``: None or -1)."""
     x = np.ascontiguousarray(x, np.float64)
     rows = np.ascontiguousarray(rows, np.int64)
     refs = np.ascontiguousarray(refs, np.int64).reshape(len(rows), -1)
-    p = np.ascontiguousarray(period, np.float64)
+    angles = period is None
+    p = np.zeros(x.shape[1]) if angles else np.ascontiguousarray(period, np.float64)
     out = np.empty(refs.shape)
-    threads = None if workers is None or workers == -1 else int(workers)
-    in_chunks(lambda a, b: _separations(x, rows, refs, p, out, a, b), len(rows),
-              threads=threads, least=8192)  # fmt: skip
+    in_chunks(lambda a, b: _separations(x, rows, refs, p, angles, out, a, b), len(rows),
+              threads=workers, least=8192)  # fmt: skip
     return out
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _separations(x, rows, refs, period, out, start, end):
-    """out[r, c] for r in [start, end): the distance from x[rows[r]] to x[refs[r, c]]
-    (NaN where refs[r, c] < 0), each axis's difference taken the nearer way round where
-    period > 0 (less the nearest whole number of periods)."""
+def _separations(x, rows, refs, period, angles, out, start, end):
+    """out[r, c] for r in [start, end): from x[rows[r]] to x[refs[r, c]] (NaN where
+    refs[r, c] < 0), the angle atan2(|a x b|, a . b) (accurate at every angle) where
+    ``angles``, else the distance, each axis's difference less the nearest whole number
+    of periods where its period is > 0."""
     d = x.shape[1]
     for r in range(start, end):
         i = rows[r]
@@ -416,14 +419,20 @@ def _separations(x, rows, refs, period, out, start, end):
             j = refs[r, c]
             if j < 0:
                 out[r, c] = np.nan
-                continue
-            s = 0.0
-            for a in range(d):
-                g = x[i, a] - x[j, a]
-                if period[a] > 0.0:
-                    g -= period[a] * np.rint(g / period[a])
-                s += g * g
-            out[r, c] = math.sqrt(s)
+            elif angles:
+                c0 = x[i, 1] * x[j, 2] - x[i, 2] * x[j, 1]
+                c1 = x[i, 2] * x[j, 0] - x[i, 0] * x[j, 2]
+                c2 = x[i, 0] * x[j, 1] - x[i, 1] * x[j, 0]
+                dot = x[i, 0] * x[j, 0] + x[i, 1] * x[j, 1] + x[i, 2] * x[j, 2]
+                out[r, c] = math.atan2(math.sqrt(c0 * c0 + c1 * c1 + c2 * c2), dot)
+            else:
+                s = 0.0
+                for a in range(d):
+                    g = x[i, a] - x[j, a]
+                    if period[a] > 0.0:
+                        g -= period[a] * np.rint(g / period[a])
+                    s += g * g
+                out[r, c] = math.sqrt(s)
 
 
 def walked_d_m2(cells, x, period, workers, tri, tree):
@@ -460,8 +469,7 @@ def walked(cells, x, period, workers):
     def call(a, b):
         _walk_d_m2(sites, first, edges, neighbours, period, xs, res, site, a, b)
 
-    threads = None if workers is None or workers == -1 else int(workers)
-    in_chunks(call, len(x), threads=threads, least=512)
+    in_chunks(call, len(x), threads=workers, least=512)
     out = np.empty(len(x))
     out[order] = res
     nearest = np.empty(len(x), np.int64)

@@ -277,8 +277,9 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
     (``Probes.exact``) and those others are bounded from; then, from each bounded probe's
     bounds [d - s, d + s] (``Probes``: d its near probe's, s their separation), at the
     SEED share with the lowest and the highest ratio bounds, and at the SEED share of the
-    unbounded others: the extremes alpha, beta found so far move out. A probe not yet
-    asked cannot be an extreme where its ratio d_{M,2} / d_{P,k} lies strictly between
+    unbounded others: the extremes alpha, beta found so far move out. A probe whose upper
+    bound lies below the floor is no probe and is not asked. A probe not yet asked cannot
+    be an extreme where its ratio d_{M,2} / d_{P,k} lies strictly between
     them and d_{P,k} at or above the floor: where its bounds do not show that, two counts
     may: a ball of radius r holds less than k (weight) exactly where d_{P,k} > r, at least
     k where d_{P,k} <= r, so fewer than k in the ball of d_{M,2} / beta (or the floor) and
@@ -299,7 +300,8 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
 
     bounded = (near >= 0).any(axis=1)
     first = np.array(probes.exact, bool, copy=True)
-    first[near[bounded & ~first][near[bounded & ~first] >= 0]] = True  # their references
+    refs = near[bounded & ~first]
+    first[refs[refs >= 0]] = True  # the references of the others
     ask(np.flatnonzero(first))
     lo = d_pk.copy()
     later = np.flatnonzero(~first)
@@ -317,19 +319,20 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
     with np.errstate(divide="ignore"):
         ratio_hi = np.where(low > 0, d_m2[later] / low, np.inf)
     pick = np.zeros(len(later), bool)
-    has_bounds = bounded[later]
-    for group in (np.flatnonzero(has_bounds), np.flatnonzero(~has_bounds)):
+    for group, by_bounds in ((np.flatnonzero(bounded[later]), True),
+                             (np.flatnonzero(~bounded[later]), False)):  # fmt: skip
         seed = min(max(16, int(math.ceil(SEED * len(group)))), len(group))
         if seed == len(group):
             pick[group] = True
-        elif seed and len(group) and has_bounds[group[0]]:  # the seed lowest and highest
+        elif by_bounds:  # the seed lowest and highest
             pick[group[np.argpartition(ratio_lo[group], seed - 1)[:seed]]] = True
             pick[group[np.argpartition(-ratio_hi[group], seed - 1)[:seed]]] = True
-        elif seed:  # unbounded (input points, drawn at random): the first seed of them
+        else:  # unbounded (input points, drawn at random): the first seed of them
             pick[group[:seed]] = True
     ask(later[pick])
     alpha, beta = extremes  # with the seeds asked, the rest settled against them
     rest = np.flatnonzero(~pick)
+    under = hi[rest] < floor  # below the floor: no probe
     below = (low[rest] >= floor) & (ratio_hi[rest] < beta)  # d_pk above floor and d_m2 / beta
     above = ratio_lo[rest] > alpha  # d_pk below d_m2 / alpha
     low_at = low[rest]
@@ -339,7 +342,7 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
         # fewer than k in the closed ball of radius r: d_pk > r
         r_lo = np.maximum(d_m2[probe] / beta * (1.0 + TIE), floor)
         r_hi = d_m2[probe] / alpha * (1.0 - TIE) if alpha > 0 else np.full(len(rest), np.inf)
-        hopeful = r_lo < r_hi
+        hopeful = (r_lo < r_hi) & ~under
         count = np.flatnonzero(hopeful & ~below)
         if len(count):
             need = k * (1.0 - TIE) if weighted else k
@@ -352,7 +355,7 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
             need = k * (1.0 + TIE) if weighted else k
             held = points.held(x[probe[count]], r_hi[count], stop=float(need))
             above[count[held >= need]] = True
-    settled = below & above
+    settled = (below & above) | under
     ask(later[rest[~settled]])
     lo[later] = low
     lo[later[rest[settled]]] = low_at[settled]

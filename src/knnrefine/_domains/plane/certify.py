@@ -376,8 +376,7 @@ def _local_checks(vertices, tri, off, nb, period, workers=None):
         np.ascontiguousarray(off, np.int64), np.ascontiguousarray(nb, np.int64),
         np.ascontiguousarray(period, np.float64), orient, circle,
     )  # fmt: skip
-    threads = None if workers is None or workers == -1 else int(workers)
-    parts = in_chunks(lambda a, b: _local_signs(*args, a, b), t, threads=threads, least=4096)
+    parts = in_chunks(lambda a, b: _local_signs(*args, a, b), t, threads=workers, least=4096)
     asymmetric = sum(p[0] for p in parts)
     disagree = sum(p[1] for p in parts)
     corners = lambda f: vertices[tri[f]] + off[f] * period  # noqa: E731

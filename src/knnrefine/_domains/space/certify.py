@@ -89,7 +89,7 @@ def _exact_faces(local, corners, offsets, neighbours, period, workers=None):
     def call(a, b):
         _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far, a, b)
 
-    in_chunks(call, t, threads=None if workers in (None, -1) else int(workers), least=4096)
+    in_chunks(call, t, threads=workers, least=4096)
     at = lambda c: local[corners[c]] + offsets[c] * period  # noqa: E731
     for c in np.flatnonzero(orient == UNSURE):
         orient[c] = exact_sign("orient3d", at(c))

@@ -27,7 +27,6 @@ beta] wherever d_{P,k} >= min_size, beta from the largest circumcap measured her
 (``mesh.sphere_constants``: spherical Pythagoras widens the plane's).
 """
 
-import math
 from functools import cached_property
 
 import numpy as np
@@ -36,7 +35,6 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
-from ..._engine.threads import in_chunks
 from ..._metric import angle_to_chord, chord_to_angle, lonlat_of
 from ..._validation import as_sphere_points, check_made_from, weights_of_run
 from ...certify._predicates import UNSURE, exact_sign, orient3d_at
@@ -50,32 +48,13 @@ from ...certify.common import (
     gathered_probes,
     nearest_neighbour,
     nearest_site,
+    separations,
     size_integral,
     size_sample,
     walked_d_m2,
 )
 from ...certify.steps import Cells, Triangulation
 from ...mesh import sphere_constants
-
-
-@kernel(entry=True, lazy=True, nogil=True)
-def _angles(x, rows, refs, out, start, end):
-    """out[r, c] for r in [start, end): the angle between x[rows[r]] and x[refs[r, c]]
-    (NaN where refs[r, c] < 0), atan2(|a x b|, a . b): accurate at every angle."""
-    for r in range(start, end):
-        i = rows[r]
-        for c in range(refs.shape[1]):
-            j = refs[r, c]
-            if j < 0:
-                out[r, c] = np.nan
-                continue
-            a0, a1, a2 = x[i, 0], x[i, 1], x[i, 2]
-            b0, b1, b2 = x[j, 0], x[j, 1], x[j, 2]
-            c0 = a1 * b2 - a2 * b1
-            c1 = a2 * b0 - a0 * b2
-            c2 = a0 * b1 - a1 * b0
-            out[r, c] = math.atan2(math.sqrt(c0 * c0 + c1 * c1 + c2 * c2),
-                                   a0 * b0 + a1 * b1 + a2 * b2)  # fmt: skip
 
 
 @kernel(entry=True, lazy=True)
@@ -451,15 +430,8 @@ class Geometry:
 
     def separation(self, x, rows, refs):
         """Angles from x[rows] to x[refs] (unit vectors; refs (r, w), NaN where -1):
-        d_{P,k}'s metric (``_angles``, on every core)."""
-        x = np.ascontiguousarray(x, np.float64)
-        rows = np.ascontiguousarray(rows, np.int64)
-        refs = np.ascontiguousarray(refs, np.int64).reshape(len(rows), -1)
-        out = np.empty(refs.shape)
-        threads = None if self.workers is None or self.workers == -1 else int(self.workers)
-        in_chunks(lambda a, b: _angles(x, rows, refs, out, a, b), len(rows),
-                  threads=threads, least=8192)  # fmt: skip
-        return out
+        d_{P,k}'s metric (``common.separations``)."""
+        return separations(x, rows, refs, self.workers)
 
     def size(self, probes, d_pk, points, rng):
         """The integral over the sphere of 1 / d_{P,k}^2 (d_{P,k} clipped at min_size) and
