@@ -564,6 +564,69 @@ def test_grid_counts_equal_brute_force(layout):
     assert np.all(got[want >= stop] >= stop)
 
 
+@pytest.mark.parametrize(
+    "layout",
+    ["uniform", "torus", "clustered", "line", "coinciding", "offset", "space", "space-torus",
+     "sphere"],
+)  # fmt: skip
+def test_grid_kth_equals_brute_force(layout, monkeypatch):
+    """k-th distances read from the grid's shells (``_grid_kth``: cells within the inner
+    radius added whole, the points between the radii kept and the k-th found among them,
+    the shell moved in or out until it holds the answer) equal brute force: along a Morton
+    curve and in a random order (each query far from the one before), k from 1 to past
+    the points (inf), on the same layouts as the counts; weighted too. Only crowded
+    finest cells (thousands of coinciding points) are left to the tree."""
+    from knnrefine.certify import _tree
+
+    asked = []
+    tree_kth = _tree._kth
+
+    def counted(pts, w, T, depth, period, x, k, unit, out, start, end):
+        asked.append(end - start)
+        return tree_kth(pts, w, T, depth, period, x, k, unit, out, start, end)
+
+    monkeypatch.setattr(_tree, "_kth", counted)
+    rng = np.random.default_rng(29)
+    dim = 3 if layout.startswith(("space", "sphere")) else 2
+    n = 4000
+    pts = rng.random((n, dim))
+    period = None
+    x = rng.random((500, dim))
+    if layout in ("torus", "space-torus"):
+        period = np.ones(dim)
+        pts[:300, 0] = 0.0
+        x[100:140, 0] = 0.0
+        x[140:180, 0] = np.nextafter(1.0, 0.0)
+    if layout == "clustered":
+        centres = rng.random((12, dim))
+        pts = centres[rng.integers(0, 12, n)] + rng.normal(0, 1e-4, (n, dim))
+        x = np.concatenate([pts[:400] + rng.normal(0, 1e-4, (400, dim)), x[:100]])
+    if layout == "line":
+        pts[:, 1] = 0.3
+    if layout == "coinciding":
+        pts = np.repeat(rng.random((3, dim)), n // 3, axis=0)
+        x = np.concatenate([pts[::20], x[:300]])
+    if layout == "offset":
+        pts, x = pts * 1e-6 + 1e6, x * 1e-6 + 1e6
+    if layout == "sphere":
+        pts = rng.standard_normal((n, dim))
+        pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+        x = pts[:500] + rng.normal(0, 1e-3, (500, dim))
+    tree = _tree.Tree(pts, None, period, 2)
+    assert tree.grid is not None
+    d2 = np.sort(_brute_d2(x, pts, period), axis=1)
+    shuffled = rng.permutation(len(x))
+    for k in (1, 7, 60, len(pts) + 1):
+        want = np.sqrt(d2[:, k - 1]) if k <= len(pts) else np.full(len(x), np.inf)
+        np.testing.assert_allclose(tree.kth(x, k), want, rtol=1e-12)
+        np.testing.assert_allclose(tree.kth(x[shuffled], k, sort=False), want[shuffled],
+                                   rtol=1e-12)  # fmt: skip
+    assert sum(asked) <= (len(x) * 8 if layout == "coinciding" else 0)
+    w = rng.random(len(pts)) * 2 + 1e-3
+    np.testing.assert_allclose(_tree.Tree(pts, w, period, 2).kth(x, 20.5),
+                               _brute_kth(x, pts, period, 20.5, w), rtol=1e-12)  # fmt: skip
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("periodic", [False, True], ids=["box", "torus"])
 def test_grid_weights_equal_exact_sums(dim, periodic):

@@ -734,30 +734,39 @@ def _kth_in(bx, bw, first, G, centre, reach, xq, period, far, k, unit, r, d2, dw
                 row = (i0 * G + i1) * G
                 m = _read_rows(bx, bw, first[row + l2], first[row + h2 + 1], xq, far, r2,
                                d2, dw, m)  # fmt: skip
+    s = _kth_of(d2, dw, m, k, unit, 0.0, r2, hist, 0.0, 0.0)
+    return math.sqrt(s) if s >= 0.0 else -1.0
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _kth_of(d2, dw, m, k, unit, lo2, r2, hist, s, c):
+    """The least of the squared distances d2[:m] (weights dw; each in [lo2, r2]) at which
+    the weight reaches k, s (compensation c) lying below them all; -1 where they hold
+    less. Unweighted, the (k - s)-th of them, found through a histogram (``hist``: the bin
+    holding it, then that bin's few values selected); weighted, in their order, a few
+    sorted in place. d2, dw are reordered."""
     if unit:
-        need = int(math.ceil(k))
+        need = int(math.ceil(k)) - int(s)
         if need > m:
             return -1.0
-        if r2 <= 0.0 or m < 4 * hist.shape[0]:  # a few: selected directly
-            return math.sqrt(_select(d2, m, need - 1))
+        if r2 <= lo2 or m < 4 * hist.shape[0]:  # a few: selected directly
+            return _select(d2, m, need - 1)
         nb = hist.shape[0]
         hist[:] = 0
-        per = nb / r2
+        per = nb / (r2 - lo2)
         for j in range(m):
-            hist[min(int(d2[j] * per), nb - 1)] += 1
+            hist[min(max(int((d2[j] - lo2) * per), 0), nb - 1)] += 1
         below = 0
         b = 0
         while below + hist[b] < need:
             below += hist[b]
             b += 1
-        c = 0
+        n = 0
         for j in range(m):  # bin b's values, moved to the front
             v = d2[j]
-            d2[c] = v
-            c += min(int(v * per), nb - 1) == b
-        return math.sqrt(_select(d2, c, need - below - 1))
-    s = 0.0
-    c = 0.0
+            d2[n] = v
+            n += min(max(int((v - lo2) * per), 0), nb - 1) == b
+        return _select(d2, n, need - below - 1)
     if m <= FEW:  # a few: sorted in place with their weights (no array made)
         for j in range(1, m):
             v, u = d2[j], dw[j]
@@ -769,13 +778,13 @@ def _kth_in(bx, bw, first, G, centre, reach, xq, period, far, k, unit, r, d2, dw
         for j in range(m):
             s, c = plus_compensated(s, c, dw[j])
             if s + c >= k:
-                return math.sqrt(d2[j])
+                return d2[j]
         return -1.0
     order = np.argsort(d2[:m])
     for j in order:
         s, c = plus_compensated(s, c, dw[j])
         if s + c >= k:
-            return math.sqrt(d2[j])
+            return d2[j]
     return -1.0
 
 
@@ -1118,6 +1127,7 @@ GRID_AXIS = 64  # cells along one axis a ball reads at most (coarser cells where
 GRID_CELLS = 4096  # cells a ball reads at first, at most (coarser cells where more)
 GRID_DESCEND = 24  # a cell the ball's sphere cuts is read as its children above this
 GRID_CROWD = 4096  # a finest cell the sphere cuts and holding more: asked of the tree
+GRID_TRIES = 64  # shells a k-th query reads from the grid before it is asked of the tree
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -1222,6 +1232,158 @@ def _cell_code(cx, cy, cz, d):
             | (_spread3(np.uint64(cz)) << np.uint64(2)))  # fmt: skip
 
 
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _grid_extent(bits, scale):
+    """The grid's largest side (2^bits - 1 code steps along the widest axis)."""
+    top = 2.0**bits - 1.0
+    ext = 0.0
+    for a in range(scale.shape[0]):
+        if scale[a] > 0.0:
+            ext = max(ext, top / scale[a])
+    return ext
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, period, side,
+                ext, xq, rq2, rin2, cells, gap, far, na, stack):  # fmt: skip
+    """The cells about the closed ball (xq, sqrt(rq2)) stacked as ``_grid_read`` takes
+    them: the cells the ball's sphere cuts first, those within sqrt(rin2) of xq last (so
+    taken first); their number, or -1 where the ball's box of cells is too large even at
+    level 0 for ``cells`` (then the tree). The level: cells of side about ``side`` times
+    the radius, no finer than the table's."""
+    d = xq.shape[0]
+    top = 2.0**bits - 1.0
+    r = math.sqrt(rq2)
+    level = bits
+    if r > 0.0 and ext > 0.0:
+        t = ext / (side * r)
+        if t < 2.0**bits:
+            level = max(int(math.floor(math.log2(t))), 0) if t >= 1.0 else 0
+    level = min(level, level0)  # no finer than the table's to start: a few points a cell
+    total = 1
+    while True:  # the finest level whose box of cells is within the stack
+        total = 1
+        for a in range(d):
+            reach = r * (1.0 + 1e-12) + margin[a] + 4e-16 * abs(xq[a])
+            na[a] = _axis_cells(xq[a], reach, lo[a], scale[a], pmin[a], pmax[a], period[a],
+                                top, bits - level, cells[a])  # fmt: skip
+            if na[a] < 0:
+                total = -1
+                break
+            total *= na[a]
+        if 0 <= total <= GRID_CELLS or level == 0:
+            break
+        level -= 1
+    if total < 0:
+        return -1
+    for a in range(d):  # each axis's cells: their gap to xq and their farthest reach
+        for i in range(na[a]):
+            b0, b1 = _cell_side(cells[a, i], level, bits, lo[a], scale[a], pmin[a], pmax[a],
+                                margin[a])  # fmt: skip
+            gap[a, i] = _gap(xq[a], b0, b1, period[a])
+            far[a, i] = _reach(xq[a], b0, b1, period[a])
+    sp = 0
+    for inner in range(2):
+        for i0 in range(na[0]):
+            for i1 in range(na[1]):
+                for i2 in range(na[2] if d == 3 else 1):
+                    near2 = gap[0, i0] * gap[0, i0] + gap[1, i1] * gap[1, i1]
+                    far2 = far[0, i0] * far[0, i0] + far[1, i1] * far[1, i1]
+                    if d == 3:
+                        near2 += gap[2, i2] * gap[2, i2]
+                        far2 += far[2, i2] * far[2, i2]
+                    if near2 > rq2 or (far2 <= rin2) != (inner == 1):
+                        continue
+                    stack[sp, 0] = cells[0, i0]
+                    stack[sp, 1] = cells[1, i1]
+                    stack[sp, 2] = cells[2, i2] if d == 3 else 0
+                    stack[sp, 3] = level
+                    stack[sp, 4] = inner
+                    sp += 1
+    return sp
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, unit,
+               prefix, period, xq, rq2, rin2, stop, stack, sp, keep, kw, m):  # fmt: skip
+    """The stacked cells (``_grid_stack``) read until what they hold within sqrt(rin2) of
+    xq reaches ``stop``: a cell within that adds its run (weighted: the difference of two
+    compensated prefix sums), a cell the ball's sphere cuts is read as its 2^d children
+    where it holds more than GRID_DESCEND points, point by point otherwise: a point within
+    sqrt(rin2) adds its weight, one beyond it but within sqrt(rq2) is kept (its squared
+    distance appended to ``keep``, its weight to ``kw``, from row m; with rin2 = rq2, none).
+    Returns (the weight within sqrt(rin2), its compensation, the rows kept, whether the
+    grid cannot answer: a crowded finest cell the sphere cuts, or ``keep`` full)."""
+    d = xq.shape[0]
+    count = 0.0
+    fix = 0.0  # the compensation of a weighted count
+    shell = rin2 < rq2
+    while sp > 0 and count + fix < stop:
+        sp -= 1
+        lv = stack[sp, 3]
+        inside = stack[sp, 4] == 1
+        if stack[sp, 4] < 0:  # a child: its box tested here
+            near2 = 0.0
+            far2 = 0.0
+            for a in range(d):
+                b0, b1 = _cell_side(stack[sp, a], lv, bits, lo[a], scale[a], pmin[a], pmax[a],
+                                    margin[a])  # fmt: skip
+                g = _gap(xq[a], b0, b1, period[a])
+                near2 += g * g
+                g = _reach(xq[a], b0, b1, period[a])
+                far2 += g * g
+            if near2 > rq2:
+                continue
+            inside = far2 <= rin2
+        c = _cell_code(stack[sp, 0], stack[sp, 1], stack[sp, 2], d)
+        i, e = _cell_run(code, table, level0, bits, d, c, lv)
+        if i == e:
+            continue
+        if inside:
+            if unit:
+                count += e - i
+            else:
+                count, fix = plus_compensated(count, fix, prefix[0, e])
+                count, fix = plus_compensated(count, fix, -prefix[0, i])
+                count, fix = plus_compensated(count, fix, prefix[1, e] - prefix[1, i])
+            continue
+        if e - i > GRID_DESCEND and lv < bits:
+            cx, cy, cz = stack[sp, 0], stack[sp, 1], stack[sp, 2]
+            for j in range(1 << d):
+                stack[sp, 0] = 2 * cx + (j & 1)
+                stack[sp, 1] = 2 * cy + ((j >> 1) & 1)
+                stack[sp, 2] = 2 * cz + ((j >> 2) & 1) if d == 3 else 0
+                stack[sp, 3] = lv + 1
+                stack[sp, 4] = -1
+                sp += 1
+            continue
+        if e - i > GRID_CROWD or (shell and m + (e - i) > keep.shape[0]):
+            return count, fix, m, True
+        if shell:  # (without branches: each point written, kept where in the shell)
+            hits = 0
+            for j in range(i, e):
+                s = _point2(pts, j, xq, period)
+                inner = s <= rin2
+                keep[m] = s
+                kw[m] = w[j]
+                m += (s <= rq2) & (s > rin2)
+                if unit:
+                    hits += inner
+                else:
+                    count, fix = plus_compensated(count, fix, w[j] if inner else 0.0)
+            count += hits
+        elif unit:  # (two loops: the branch out of the one that counts)
+            hits = 0
+            for j in range(i, e):
+                hits += _point2(pts, j, xq, period) <= rq2
+            count += hits
+        else:
+            for j in range(i, e):
+                if _point2(pts, j, xq, period) <= rq2:
+                    count, fix = plus_compensated(count, fix, w[j])
+    return count, fix, m, False
+
+
 @kernel(entry=True, lazy=True, nogil=True)
 def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, unit,
                prefix, period, side, x, r2, stop, out, start, end):  # fmt: skip
@@ -1229,12 +1391,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
     number of points where ``unit``; compensated otherwise, a run inside from ``prefix``),
     exact below stop[q], at least stop[q] otherwise; -1 where the grid leaves it to the
     tree (a radius not finite, a crowded finest cell the sphere cuts)."""
-    d = pts.shape[1]
-    top = 2.0**bits - 1.0
-    ext = 0.0
-    for a in range(d):
-        if scale[a] > 0.0:
-            ext = max(ext, top / scale[a])
+    ext = _grid_extent(bits, scale)
     cells = np.zeros((3, GRID_AXIS), np.int64)
     gap = np.zeros((3, GRID_AXIS))
     far = np.zeros((3, GRID_AXIS))
@@ -1242,116 +1399,102 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
     # a cell: its coordinates, its level, what it is known to be (1 inside the ball, 0 cut
     # by its sphere, -1 not yet tested: a child); a descent adds 2^d - 1 cells a level
     stack = np.empty((GRID_CELLS + 8 * (bits + 2), 5), np.int64)
+    none = np.empty(0)
     for q in range(start, end):
         rq2 = r2[q]
-        r = math.sqrt(rq2)
-        if not (r >= 0.0 and r < np.inf):
+        if not (rq2 >= 0.0 and rq2 < np.inf):
             out[q] = -1.0
             continue
         xq = x[q]
-        level = bits
-        if r > 0.0 and ext > 0.0:
-            t = ext / (side * r)
-            if t < 2.0**bits:
-                level = max(int(math.floor(math.log2(t))), 0) if t >= 1.0 else 0
-        level = min(level, level0)  # no finer than the table's to start: a few points a cell
-        while True:  # the finest level whose box of cells is within the stack
-            total = 1
-            for a in range(d):
-                reach = r * (1.0 + 1e-12) + margin[a] + 4e-16 * abs(xq[a])
-                na[a] = _axis_cells(xq[a], reach, lo[a], scale[a], pmin[a], pmax[a],
-                                    period[a], top, bits - level, cells[a])  # fmt: skip
-                if na[a] < 0:
-                    total = -1
-                    break
-                total *= na[a]
-            if 0 <= total <= GRID_CELLS or level == 0:
-                break
-            level -= 1
-        if total < 0:
+        sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, period,
+                         side, ext, xq, rq2, rq2, cells, gap, far, na, stack)  # fmt: skip
+        if sp < 0:
             out[q] = -1.0
             continue
-        for a in range(d):  # each axis's cells: their gap to xq and their farthest reach
-            for i in range(na[a]):
-                b0, b1 = _cell_side(cells[a, i], level, bits, lo[a], scale[a], pmin[a],
-                                    pmax[a], margin[a])  # fmt: skip
-                gap[a, i] = _gap(xq[a], b0, b1, period[a])
-                far[a, i] = _reach(xq[a], b0, b1, period[a])
-        # the cells the sphere cuts stacked first, those inside last: these are taken first
-        # (a count that reaches stop with them reads no point)
-        sp = 0
-        for inner in range(2):
-            for i0 in range(na[0]):
-                for i1 in range(na[1]):
-                    for i2 in range(na[2] if d == 3 else 1):
-                        near2 = gap[0, i0] * gap[0, i0] + gap[1, i1] * gap[1, i1]
-                        far2 = far[0, i0] * far[0, i0] + far[1, i1] * far[1, i1]
-                        if d == 3:
-                            near2 += gap[2, i2] * gap[2, i2]
-                            far2 += far[2, i2] * far[2, i2]
-                        if near2 > rq2 or (far2 <= rq2) != (inner == 1):
-                            continue
-                        stack[sp, 0] = cells[0, i0]
-                        stack[sp, 1] = cells[1, i1]
-                        stack[sp, 2] = cells[2, i2] if d == 3 else 0
-                        stack[sp, 3] = level
-                        stack[sp, 4] = inner
-                        sp += 1
-        count = 0.0
-        fix = 0.0  # the compensation of a weighted count
-        crowded = False
-        while sp > 0 and count + fix < stop[q]:
-            sp -= 1
-            lv = stack[sp, 3]
-            inside = stack[sp, 4] == 1
-            if stack[sp, 4] < 0:  # a child: its box tested here
-                near2 = 0.0
-                far2 = 0.0
-                for a in range(d):
-                    b0, b1 = _cell_side(stack[sp, a], lv, bits, lo[a], scale[a], pmin[a],
-                                        pmax[a], margin[a])  # fmt: skip
-                    g = _gap(xq[a], b0, b1, period[a])
-                    near2 += g * g
-                    g = _reach(xq[a], b0, b1, period[a])
-                    far2 += g * g
-                if near2 > rq2:
-                    continue
-                inside = far2 <= rq2
-            c = _cell_code(stack[sp, 0], stack[sp, 1], stack[sp, 2], d)
-            i, e = _cell_run(code, table, level0, bits, d, c, lv)
-            if i == e:
+        count, fix, _, lost = _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin,
+                                         pmax, margin, unit, prefix, period, xq, rq2, rq2,
+                                         stop[q], stack, sp, none, none, 0)  # fmt: skip
+        out[q] = -1.0 if lost else count + fix
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, unit, prefix,
+              period, side, x, k, out, start, end):  # fmt: skip
+    """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
+    weight k (inf where the points hold less), or -1 where the grid leaves it to the tree.
+    Each query reads a shell about it (``_grid_read``): the cells within its inner radius
+    add their runs, the points between its radii are kept, and the answer is found among
+    them (``_kth_of``). The shell: between (1 - GUESS) and (1 + GUESS) times the answer
+    before it, narrowed to that answer plus or minus their distance (d_{P,k} is
+    1-Lipschitz, and queries come along a Morton curve); where the inner ball holds k, the
+    shell moves in (its outer radius the inner one, its inner halved), where the outer
+    holds less, out (doubled, but not past the Lipschitz bound). A chunk's first query
+    starts from the ball that holds k on average."""
+    d = pts.shape[1]
+    n = pts.shape[0]
+    ext = _grid_extent(bits, scale)
+    cells = np.zeros((3, GRID_AXIS), np.int64)
+    gap = np.zeros((3, GRID_AXIS))
+    far = np.zeros((3, GRID_AXIS))
+    na = np.ones(3, np.int64)
+    stack = np.empty((GRID_CELLS + 8 * (bits + 2), 5), np.int64)
+    size = min(max(64 * int(math.ceil(min(k, n))), 8192), n + 1)  # the shell's points
+    keep = np.empty(size)
+    kw = np.empty(size)
+    hist = np.empty(HISTOGRAM, np.int64)
+    typical = ext * (min(k, n) / n) ** (1.0 / d) if n > 0 else 0.0
+    before = -1.0
+    for q in range(start, end):
+        xq = x[q]
+        all2 = 0.0  # every point lies within sqrt(all2)
+        for a in range(d):
+            g = _reach(xq[a], pmin[a], pmax[a], period[a])
+            all2 += g * g
+        bound = np.inf  # the Lipschitz bound: the answer lies within it
+        r_lo, r_hi = 0.0, typical
+        if 0.0 <= before < np.inf and q > start:
+            delta = math.sqrt(_point2(x, q - 1, xq, period))
+            if delta == 0.0:  # the same position: the same answer
+                out[q] = before
                 continue
-            if inside:
-                if unit:
-                    count += e - i
-                else:
-                    count, fix = plus_compensated(count, fix, prefix[0, e])
-                    count, fix = plus_compensated(count, fix, -prefix[0, i])
-                    count, fix = plus_compensated(count, fix, prefix[1, e] - prefix[1, i])
-                continue
-            if e - i > GRID_DESCEND and lv < bits:
-                cx, cy, cz = stack[sp, 0], stack[sp, 1], stack[sp, 2]
-                for j in range(1 << d):
-                    stack[sp, 0] = 2 * cx + (j & 1)
-                    stack[sp, 1] = 2 * cy + ((j >> 1) & 1)
-                    stack[sp, 2] = 2 * cz + ((j >> 2) & 1) if d == 3 else 0
-                    stack[sp, 3] = lv + 1
-                    stack[sp, 4] = -1
-                    sp += 1
-                continue
-            if e - i > GRID_CROWD:
-                crowded = True
+            bound = (before + delta) * (1.0 + 1e-12)
+            r_lo = max(before * (1.0 - GUESS), before - delta)
+            r_hi = min(before * (1.0 + GUESS), bound)
+        if not r_hi > 0.0:
+            r_hi = min(max(typical, 1e-300), bound)
+        answer = -1.0
+        for _ in range(GRID_TRIES):
+            rq2 = r_hi * r_hi
+            rin2 = r_lo * r_lo
+            sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, period,
+                             side, ext, xq, rq2, rin2, cells, gap, far, na, stack)  # fmt: skip
+            if sp < 0:
                 break
-            if unit:  # (two loops: the branch out of the one that counts)
-                hits = 0
-                for j in range(i, e):
-                    hits += _point2(pts, j, xq, period) <= rq2
-                count += hits
-            else:
-                for j in range(i, e):
-                    if _point2(pts, j, xq, period) <= rq2:
-                        count, fix = plus_compensated(count, fix, w[j])
-        out[q] = -1.0 if crowded else count + fix
+            count, fix, m, lost = _grid_read(pts, w, code, table, level0, bits, lo, scale,
+                                             pmin, pmax, margin, unit, prefix, period, xq,
+                                             rq2, rin2, k, stack, sp, keep, kw, 0)  # fmt: skip
+            if lost:
+                break
+            if count + fix >= k:  # the inner ball holds k: the shell moves in
+                if rin2 <= 0.0:
+                    answer = 0.0
+                    break
+                r_hi = r_lo
+                r_lo = 0.5 * r_lo if r_lo > 1e-300 else 0.0
+                continue
+            s = _kth_of(keep, kw, m, k, unit, rin2, rq2, hist, count, fix)
+            if s >= 0.0:
+                answer = math.sqrt(s)
+                break
+            if rq2 >= all2:  # every point read: they hold less than k
+                answer = np.inf
+                break
+            r_lo = r_hi  # the outer ball holds less than k: the shell moves out
+            r_hi = min(2.0 * r_hi, bound) if bound > r_hi else 2.0 * r_hi
+            if r_hi * r_hi >= all2:
+                r_hi = math.sqrt(all2) * (1.0 + 1e-12) + 1e-300
+        out[q] = answer
+        before = answer if answer >= 0.0 else -1.0
 
 
 def _built_in_thread(pts, w, unit):
@@ -1458,18 +1601,34 @@ class Tree:
         """The least radius whose closed ball about each x holds weight k (the k-th
         nearest distance, unweighted; inf where the points hold less). The queries are
         taken in ``spatial_order`` (``sort=False``: in the order given, one where
-        neighbours are near), so that each brackets the next."""
+        neighbours are near), so that each brackets the next. Read from the grid's shells
+        (``_grid_kth``); where it leaves a query, from the tree's blocks (``_kth``)."""
         x = self._queries(x)
         order = spatial_order(x) if sort else np.arange(len(x))
         xs = np.ascontiguousarray(x[order])
-        res = np.empty(len(x))
+        res = np.full(len(x), -1.0)  # -1: left to the tree
         p = self._period(period)
         unit = self.unit
+        g = self.grid
+        if g is not None:
+            side = GRID_SIDE if self.dim == 2 else GRID_SIDE3
 
-        def call(a, b):
-            _kth(self.pts, self.w, self.T, self.depth, p, xs, float(k), unit, res, a, b)
+            def call(a, b):
+                _grid_kth(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo, g.scale,
+                          g.pmin, g.pmax, g.margin, unit, g.prefix, p, side, xs, float(k),
+                          res, a, b)  # fmt: skip
 
-        self._run(call, len(x))
+            self._run(call, len(x))
+        left = np.flatnonzero(res < 0)
+        if len(left):
+            xl = np.ascontiguousarray(xs[left])
+            resl = np.empty(len(left))
+
+            def call(a, b):
+                _kth(self.pts, self.w, self.T, self.depth, p, xl, float(k), unit, resl, a, b)
+
+            self._run(call, len(left))
+            res[left] = resl
         out = np.empty(len(x))
         out[order] = res
         return out
