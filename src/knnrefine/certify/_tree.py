@@ -80,7 +80,7 @@ def _build(pts, w, leaf, unit):
 
 
 Grid = namedtuple("Grid", ["code", "table", "level0", "bits", "lo", "scale", "pmin", "pmax",
-                           "margin", "prefix"])  # fmt: skip
+                           "margin", "prefix", "radial"])  # fmt: skip
 
 
 def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
@@ -88,9 +88,13 @@ def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
     curve of ``code``, whose frame is ``lo``, ``scale``; within [pmin, pmax], the root's
     box): its table at the coarsest level of at most GRID_FILL points a cell on average
     (and at most 2^GRID_TABLE cells), how far a point may lie outside its cell's rounded
-    box, and (weighted, ``unit`` False) the weights' compensated prefix sums (``prefix``
-    (2, n + 1): a run's weight is a difference of two, in double-double)."""
+    box, (weighted, ``unit`` False) the weights' compensated prefix sums (``prefix``
+    (2, n + 1): a run's weight is a difference of two, in double-double), and the range
+    of the points' squared distances from the origin (``radial``: on a sphere, a thin
+    shell, so that a ball skips the cells off it unread)."""
     n, d = p.shape
+    if n >= 2**31 - 1:  # (the table's runs are int32)
+        return None
     level0 = 0
     while (1 << (d * level0)) * GRID_FILL < n and d * (level0 + 1) <= GRID_TABLE and level0 < bits:
         level0 += 1
@@ -99,7 +103,9 @@ def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
     step = np.divide(1.0, scale, out=np.zeros(d), where=scale > 0)
     margin = 2.0 * step + 8.0 * np.finfo(float).eps * (np.abs(lo) + np.abs(pmin) + np.abs(pmax))
     prefix = np.zeros((2, 1)) if unit else _prefix_sums(w)
-    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin, prefix)
+    norm2 = np.einsum("ij,ij->i", p, p)  # the points' squared distances from the origin
+    radial = np.array([norm2.min() * (1.0 - 1e-9), norm2.max() * (1.0 + 1e-9)])
+    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin, prefix, radial)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -1122,11 +1128,12 @@ def sums_by(cell, w, m):
 GRID_FILL = 4  # points a cell of the table's level holds, on average, at least
 GRID_TABLE = 22  # the table's level has at most 2^GRID_TABLE cells
 GRID_SIDE = 0.5  # a ball is first cut into cells of side at least GRID_SIDE its radius
-GRID_SIDE3 = 1.0  # (in space: a box of 27 cells, not 125)
+GRID_SIDE3 = 0.5  # (in space: a box of about 125 cells, most of them empty on a surface)
 GRID_AXIS = 64  # cells along one axis a ball reads at most (coarser cells where more)
 GRID_CELLS = 4096  # cells a ball reads at first, at most (coarser cells where more)
 GRID_DESCEND = 24  # a cell the ball's sphere cuts is read as its children above this
 GRID_CROWD = 4096  # a finest cell the sphere cuts and holding more: asked of the tree
+GRID_GUESS = 1.0  # a k-th query's first shell: 1 -+ GRID_GUESS / sqrt(k) the answer before
 GRID_TRIES = 64  # shells a k-th query reads from the grid before it is asked of the tree
 
 
@@ -1135,7 +1142,7 @@ def _grid_table(code, d, level, bits):
     """start[c], c in [0, 2^(d level)]: the first of the sorted ``code`` whose cell at
     ``level`` is c or after (the run of cell c is start[c]:start[c + 1])."""
     cells = 1 << (d * level)
-    start = np.empty(cells + 1, np.int64)
+    start = np.empty(cells + 1, np.int32)  # (half the cache lines of int64: n < 2^31)
     shift = np.uint64(d * (bits - level))
     n = code.shape[0]
     j = 0
@@ -1163,9 +1170,10 @@ def _cell_run(code, table, level0, bits, d, cell, level):
     """The run (first, end) of the points of cell ``cell`` (its Morton code) at ``level``."""
     if level <= level0:
         s = np.uint64(d * (level0 - level))
-        return table[np.int64(cell << s)], table[np.int64((cell + np.uint64(1)) << s)]
+        return (np.int64(table[np.int64(cell << s)]),
+                np.int64(table[np.int64((cell + np.uint64(1)) << s)]))  # fmt: skip
     parent = np.int64(cell >> np.uint64(d * (level - level0)))
-    a, b = table[parent], table[parent + 1]
+    a, b = np.int64(table[parent]), np.int64(table[parent + 1])
     if a == b:
         return a, a
     s = np.uint64(d * (bits - level))
@@ -1244,13 +1252,16 @@ def _grid_extent(bits, scale):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, period, side,
-                ext, xq, rq2, rin2, cells, gap, far, na, stack):  # fmt: skip
+def _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial, period,
+                side, ext, xq, rq2, rin2, cells, gap, far, na, stack):  # fmt: skip
     """The cells about the closed ball (xq, sqrt(rq2)) stacked as ``_grid_read`` takes
     them: the cells the ball's sphere cuts first, those within sqrt(rin2) of xq last (so
     taken first); their number, or -1 where the ball's box of cells is too large even at
     level 0 for ``cells`` (then the tree). The level: cells of side about ``side`` times
-    the radius, no finer than the table's."""
+    the radius, no finer than the table's. A cell none of whose points' distances from the
+    origin could lie in ``radial`` holds none and is not stacked (``gap``, ``far`` (6,
+    GRID_AXIS): the squared gaps and farthest reaches along each axis, rows 3 to 5 from
+    the origin)."""
     d = xq.shape[0]
     top = 2.0**bits - 1.0
     r = math.sqrt(rq2)
@@ -1276,36 +1287,67 @@ def _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, period
         level -= 1
     if total < 0:
         return -1
-    for a in range(d):  # each axis's cells: their gap to xq and their farthest reach
-        for i in range(na[a]):
+    for a in range(3):  # each axis's cells: their squared gaps to xq and to the origin,
+        for i in range(na[a] if a < d else 1):  # and their farthest reach (0: no axis)
+            if a == d:
+                gap[a, i] = far[a, i] = gap[3 + a, i] = far[3 + a, i] = 0.0
+                continue
             b0, b1 = _cell_side(cells[a, i], level, bits, lo[a], scale[a], pmin[a], pmax[a],
                                 margin[a])  # fmt: skip
-            gap[a, i] = _gap(xq[a], b0, b1, period[a])
-            far[a, i] = _reach(xq[a], b0, b1, period[a])
+            g = _gap(xq[a], b0, b1, period[a])
+            gap[a, i] = g * g
+            g = _reach(xq[a], b0, b1, period[a])
+            far[a, i] = g * g
+            g = _gap(0.0, b0, b1, 0.0)
+            gap[3 + a, i] = g * g
+            g = _reach(0.0, b0, b1, 0.0)
+            far[3 + a, i] = g * g
+    n2 = na[2] if d == 3 else 1
+    reach2 = 0.0
+    for i2 in range(n2):
+        reach2 = max(reach2, far[5, i2])
+    # one pass: the cut cells stacked from the bottom, those inside from row GRID_CELLS
+    # down, then moved after them (at most GRID_CELLS cells in all)
     sp = 0
-    for inner in range(2):
-        for i0 in range(na[0]):
-            for i1 in range(na[1]):
-                for i2 in range(na[2] if d == 3 else 1):
-                    near2 = gap[0, i0] * gap[0, i0] + gap[1, i1] * gap[1, i1]
-                    far2 = far[0, i0] * far[0, i0] + far[1, i1] * far[1, i1]
-                    if d == 3:
-                        near2 += gap[2, i2] * gap[2, i2]
-                        far2 += far[2, i2] * far[2, i2]
-                    if near2 > rq2 or (far2 <= rin2) != (inner == 1):
-                        continue
-                    stack[sp, 0] = cells[0, i0]
-                    stack[sp, 1] = cells[1, i1]
-                    stack[sp, 2] = cells[2, i2] if d == 3 else 0
-                    stack[sp, 3] = level
-                    stack[sp, 4] = inner
+    held = GRID_CELLS
+    for i0 in range(na[0]):
+        near0 = gap[0, i0]
+        if near0 > rq2 or gap[3, i0] > radial[1]:
+            continue
+        for i1 in range(na[1]):
+            near1 = near0 + gap[1, i1]
+            low1 = gap[3, i0] + gap[4, i1]
+            high1 = far[3, i0] + far[4, i1]
+            if near1 > rq2 or low1 > radial[1] or high1 + reach2 < radial[0]:
+                continue
+            for i2 in range(n2):
+                near2 = near1 + gap[2, i2]
+                if near2 > rq2 or low1 + gap[5, i2] > radial[1]:
+                    continue
+                if high1 + far[5, i2] < radial[0]:
+                    continue
+                inner = far[0, i0] + far[1, i1] + far[2, i2] <= rin2
+                if inner:
+                    held -= 1
+                    row = held
+                else:
+                    row = sp
                     sp += 1
+                stack[row, 0] = cells[0, i0]
+                stack[row, 1] = cells[1, i1]
+                stack[row, 2] = cells[2, i2] if d == 3 else 0
+                stack[row, 3] = level
+                stack[row, 4] = 1 if inner else 0
+    for j in range(held, GRID_CELLS):
+        for c in range(5):
+            stack[sp, c] = stack[j, c]
+        sp += 1
     return sp
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, unit,
-               prefix, period, xq, rq2, rin2, stop, stack, sp, keep, kw, m):  # fmt: skip
+def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+               unit, prefix, period, xq, rq2, rin2, stop, stack, sp, keep, kw, m):  # fmt: skip
     """The stacked cells (``_grid_stack``) read until what they hold within sqrt(rin2) of
     xq reaches ``stop``: a cell within that adds its run (weighted: the difference of two
     compensated prefix sums), a cell the ball's sphere cuts is read as its 2^d children
@@ -1325,6 +1367,8 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         if stack[sp, 4] < 0:  # a child: its box tested here
             near2 = 0.0
             far2 = 0.0
+            o0 = 0.0
+            o1 = 0.0
             for a in range(d):
                 b0, b1 = _cell_side(stack[sp, a], lv, bits, lo[a], scale[a], pmin[a], pmax[a],
                                     margin[a])  # fmt: skip
@@ -1332,7 +1376,11 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
                 near2 += g * g
                 g = _reach(xq[a], b0, b1, period[a])
                 far2 += g * g
-            if near2 > rq2:
+                g = _gap(0.0, b0, b1, 0.0)
+                o0 += g * g
+                g = _reach(0.0, b0, b1, 0.0)
+                o1 += g * g
+            if near2 > rq2 or o0 > radial[1] or o1 < radial[0]:
                 continue
             inside = far2 <= rin2
         c = _cell_code(stack[sp, 0], stack[sp, 1], stack[sp, 2], d)
@@ -1385,16 +1433,16 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, unit,
-               prefix, period, side, x, r2, stop, out, start, end):  # fmt: skip
+def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+               unit, prefix, period, side, x, r2, stop, out, start, end):  # fmt: skip
     """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])) (its
     number of points where ``unit``; compensated otherwise, a run inside from ``prefix``),
     exact below stop[q], at least stop[q] otherwise; -1 where the grid leaves it to the
     tree (a radius not finite, a crowded finest cell the sphere cuts)."""
     ext = _grid_extent(bits, scale)
     cells = np.zeros((3, GRID_AXIS), np.int64)
-    gap = np.zeros((3, GRID_AXIS))
-    far = np.zeros((3, GRID_AXIS))
+    gap = np.zeros((6, GRID_AXIS))
+    far = np.zeros((6, GRID_AXIS))
     na = np.ones(3, np.int64)
     # a cell: its coordinates, its level, what it is known to be (1 inside the ball, 0 cut
     # by its sphere, -1 not yet tested: a child); a descent adds 2^d - 1 cells a level
@@ -1406,26 +1454,27 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
             out[q] = -1.0
             continue
         xq = x[q]
-        sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, period,
-                         side, ext, xq, rq2, rq2, cells, gap, far, na, stack)  # fmt: skip
+        sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+                         period, side, ext, xq, rq2, rq2, cells, gap, far, na, stack)  # fmt: skip
         if sp < 0:
             out[q] = -1.0
             continue
         count, fix, _, lost = _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin,
-                                         pmax, margin, unit, prefix, period, xq, rq2, rq2,
-                                         stop[q], stack, sp, none, none, 0)  # fmt: skip
+                                         pmax, margin, radial, unit, prefix, period, xq, rq2,
+                                         rq2, stop[q], stack, sp, none, none, 0)  # fmt: skip
         out[q] = -1.0 if lost else count + fix
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, unit, prefix,
-              period, side, x, k, out, start, end):  # fmt: skip
+def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, radial, unit,
+              prefix, period, side, x, k, out, start, end):  # fmt: skip
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less), or -1 where the grid leaves it to the tree.
     Each query reads a shell about it (``_grid_read``): the cells within its inner radius
     add their runs, the points between its radii are kept, and the answer is found among
-    them (``_kth_of``). The shell: between (1 - GUESS) and (1 + GUESS) times the answer
-    before it, narrowed to that answer plus or minus their distance (d_{P,k} is
+    them (``_kth_of``). The shell: between 1 - g and 1 + g times the answer before it (g =
+    GRID_GUESS / sqrt(k), at most 1/2: d_{P,k}'s spread between neighbours shrinks as k
+    grows), narrowed to that answer plus or minus their distance (d_{P,k} is
     1-Lipschitz, and queries come along a Morton curve); where the inner ball holds k, the
     shell moves in (its outer radius the inner one, its inner halved), where the outer
     holds less, out (doubled, but not past the Lipschitz bound). A chunk's first query
@@ -1434,8 +1483,8 @@ def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, 
     n = pts.shape[0]
     ext = _grid_extent(bits, scale)
     cells = np.zeros((3, GRID_AXIS), np.int64)
-    gap = np.zeros((3, GRID_AXIS))
-    far = np.zeros((3, GRID_AXIS))
+    gap = np.zeros((6, GRID_AXIS))
+    far = np.zeros((6, GRID_AXIS))
     na = np.ones(3, np.int64)
     stack = np.empty((GRID_CELLS + 8 * (bits + 2), 5), np.int64)
     size = min(max(64 * int(math.ceil(min(k, n))), 8192), n + 1)  # the shell's points
@@ -1443,6 +1492,7 @@ def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, 
     kw = np.empty(size)
     hist = np.empty(HISTOGRAM, np.int64)
     typical = ext * (min(k, n) / n) ** (1.0 / d) if n > 0 else 0.0
+    guess = min(GRID_GUESS / math.sqrt(max(k, 1.0)), 0.5)
     before = -1.0
     for q in range(start, end):
         xq = x[q]
@@ -1458,21 +1508,22 @@ def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, 
                 out[q] = before
                 continue
             bound = (before + delta) * (1.0 + 1e-12)
-            r_lo = max(before * (1.0 - GUESS), before - delta)
-            r_hi = min(before * (1.0 + GUESS), bound)
+            r_lo = max(before * (1.0 - guess), before - delta)
+            r_hi = min(before * (1.0 + guess), bound)
         if not r_hi > 0.0:
             r_hi = min(max(typical, 1e-300), bound)
         answer = -1.0
         for _ in range(GRID_TRIES):
             rq2 = r_hi * r_hi
             rin2 = r_lo * r_lo
-            sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, period,
-                             side, ext, xq, rq2, rin2, cells, gap, far, na, stack)  # fmt: skip
+            sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+                             period, side, ext, xq, rq2, rin2, cells, gap, far, na,
+                             stack)  # fmt: skip
             if sp < 0:
                 break
             count, fix, m, lost = _grid_read(pts, w, code, table, level0, bits, lo, scale,
-                                             pmin, pmax, margin, unit, prefix, period, xq,
-                                             rq2, rin2, k, stack, sp, keep, kw, 0)  # fmt: skip
+                                             pmin, pmax, margin, radial, unit, prefix, period,
+                                             xq, rq2, rin2, k, stack, sp, keep, kw, 0)  # fmt: skip
             if lost:
                 break
             if count + fix >= k:  # the inner ball holds k: the shell moves in
@@ -1579,7 +1630,8 @@ class Tree:
 
             def call(a, b):
                 _grid_held(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo,
-                           g.scale, g.pmin, g.pmax, g.margin, self.unit, g.prefix, p, side,
+                           g.scale, g.pmin, g.pmax, g.margin, g.radial, self.unit, g.prefix, p,
+                           side,
                            xs, r2, st, res, a, b)  # fmt: skip
 
             self._run(call, len(x))
@@ -1615,7 +1667,8 @@ class Tree:
 
             def call(a, b):
                 _grid_kth(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo, g.scale,
-                          g.pmin, g.pmax, g.margin, unit, g.prefix, p, side, xs, float(k),
+                          g.pmin, g.pmax, g.margin, g.radial, unit, g.prefix, p, side, xs,
+                          float(k),
                           res, a, b)  # fmt: skip
 
             self._run(call, len(x))
