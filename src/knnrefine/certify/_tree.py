@@ -1128,7 +1128,7 @@ def sums_by(cell, w, m):
 GRID_FILL = 4  # points a cell of the table's level holds, on average, at least
 GRID_TABLE = 22  # the table's level has at most 2^GRID_TABLE cells
 GRID_SIDE = 0.5  # a ball is first cut into cells of side at least GRID_SIDE its radius
-GRID_SIDE3 = 0.5  # (in space: a box of about 125 cells, most of them empty on a surface)
+GRID_SIDE3 = 0.25  # (in space: no finer than the table, and a surface's empty cells are skipped)
 GRID_AXIS = 64  # cells along one axis a ball reads at most (coarser cells where more)
 GRID_CELLS = 4096  # cells a ball reads at first, at most (coarser cells where more)
 GRID_DESCEND = 24  # a cell the ball's sphere cuts is read as its children above this

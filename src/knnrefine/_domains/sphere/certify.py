@@ -46,6 +46,7 @@ from ...certify.common import (
     check_precondition,
     edge_midpoints,
     gathered_probes,
+    in_triangles,
     nearest_neighbour,
     nearest_site,
     separations,
@@ -372,15 +373,12 @@ class Geometry:
         t, m = len(tri_), len(xyz)
         chosen, dense = size_sample(t, samples, rng)
         cells = np.concatenate([chosen, dense])
-        u = rng.random((len(cells), 2))
-        fold = u.sum(-1) > 1
-        u[fold] = 1.0 - u[fold]
-        a, b, c = (xyz[tri_[cells, j]] for j in range(3))
-        flat = a + u[:, :1] * (b - a) + u[:, 1:] * (c - a)  # uniform in the flat triangle
+        flat = in_triangles(xyz[tri_], cells, rng.random((len(cells), 2)))  # flat triangles
         # seen from the centre, the flat triangle's area element dA is the sphere's
         # h / |y|^3 dA (h: the plane's distance from the centre)
         s = len(chosen)
-        a, b, c, y = a[:s], b[:s], c[:s], flat[:s]
+        a, b, c = (xyz[tri_[chosen, j]] for j in range(3))
+        y = flat[:s]
         normal = np.cross(b - a, c - a)
         twice_area = np.linalg.norm(normal, axis=1)
         h = np.abs(np.einsum("ij,ij->i", normal, a)) / np.where(twice_area > 0, twice_area, 1.0)
