@@ -562,6 +562,13 @@ def test_grid_counts_equal_brute_force(layout):
     got = tree.held(x, r, stop)
     assert np.array_equal(np.minimum(got, stop), np.minimum(want, stop))
     assert np.all(got[want >= stop] >= stop)
+    # fewer than k: settled by the cells' runs where they hold less in all (loose), or
+    # counted until k; the same answers either way
+    for k in (1.0, 7.0, 40.0):
+        assert np.array_equal(tree.fewer(x, r, k), want < k)
+        assert np.array_equal(tree.fewer(x, r, k, mostly=False), want < k)
+    loose = tree.held(x, r, stop, loose=True)
+    assert np.all(loose[want < stop] >= want[want < stop]) and np.all(loose[want >= stop] >= stop)
 
 
 @pytest.mark.parametrize(
@@ -649,6 +656,8 @@ def test_grid_weights_equal_exact_sums(dim, periodic):
     inside = _brute_d2(x, pts, period) <= np.square(r)[:, None]
     want = np.array([math.fsum(w[row]) for row in inside])
     assert np.array_equal(tree.held(x, r), want)
+    for k in (1e-6, 1.0, 30.0, 2e6):
+        assert np.array_equal(tree.fewer(x, r, k), want < k)
 
 
 def test_separations_equal_numpys_in_every_metric():

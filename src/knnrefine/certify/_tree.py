@@ -1434,11 +1434,15 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
 
 @kernel(entry=True, lazy=True, nogil=True)
 def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
-               unit, prefix, period, side, x, r2, stop, out, start, end):  # fmt: skip
+               unit, prefix, period, side, x, r2, stop, loose, out, start, end):  # fmt: skip
     """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])) (its
     number of points where ``unit``; compensated otherwise, a run inside from ``prefix``),
     exact below stop[q], at least stop[q] otherwise; -1 where the grid leaves it to the
-    tree (a radius not finite, a crowded finest cell the sphere cuts)."""
+    tree (a radius not finite, a crowded finest cell the sphere cuts). ``loose``: below
+    stop[q], an upper bound only: where the runs of all the cells the ball meets weigh
+    less than stop[q], their weight, no point read (a ball far below stop is settled by
+    its cells)."""
+    d = pts.shape[1]
     ext = _grid_extent(bits, scale)
     cells = np.zeros((3, GRID_AXIS), np.int64)
     gap = np.zeros((6, GRID_AXIS))
@@ -1459,6 +1463,21 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         if sp < 0:
             out[q] = -1.0
             continue
+        if loose:
+            bound = 0.0
+            fix = 0.0
+            for s in range(sp):
+                c = _cell_code(stack[s, 0], stack[s, 1], stack[s, 2], d)
+                i, e = _cell_run(code, table, level0, bits, d, c, stack[s, 3])
+                if unit:
+                    bound += e - i
+                else:
+                    bound, fix = plus_compensated(bound, fix, prefix[0, e])
+                    bound, fix = plus_compensated(bound, fix, -prefix[0, i])
+                    bound, fix = plus_compensated(bound, fix, prefix[1, e] - prefix[1, i])
+            if bound + fix < stop[q]:
+                out[q] = bound + fix
+                continue
         count, fix, _, lost = _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin,
                                          pmax, margin, radial, unit, prefix, period, xq, rq2,
                                          rq2, stop[q], stack, sp, none, none, 0)  # fmt: skip
@@ -1611,10 +1630,11 @@ class Tree:
     def _run(self, call, m):
         in_chunks(call, m, threads=self.threads, least=512)
 
-    def held(self, centres, radii, stop=np.inf, period=None):
+    def held(self, centres, radii, stop=np.inf, period=None, loose=False):
         """What each closed ball (centre, radius) holds: its points' weight (their number
         unweighted), exact where below ``stop`` (a number or one per ball), at least
-        ``stop`` otherwise. Asked along a Morton curve (``spatial_order``): neighbouring
+        ``stop`` otherwise (``loose``: below ``stop``, at least what it holds, perhaps
+        more: ``fewer``). Asked along a Morton curve (``spatial_order``): neighbouring
         balls read the same nodes, from the cache."""
         x = self._queries(centres)
         r = np.broadcast_to(np.asarray(radii, np.float64), len(x))
@@ -1631,8 +1651,7 @@ class Tree:
             def call(a, b):
                 _grid_held(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo,
                            g.scale, g.pmin, g.pmax, g.margin, g.radial, self.unit, g.prefix, p,
-                           side,
-                           xs, r2, st, res, a, b)  # fmt: skip
+                           side, xs, r2, st, bool(loose), res, a, b)  # fmt: skip
 
             self._run(call, len(x))
         left = np.flatnonzero(res < 0)
@@ -1648,6 +1667,13 @@ class Tree:
         out = np.empty(len(x))
         out[order] = res
         return out
+
+    def fewer(self, centres, radii, k, period=None, mostly=True):
+        """Whether each closed ball (centre, radius) holds less than weight k. ``mostly``
+        (most are expected to): each settled by the runs of the grid's cells it meets
+        where they weigh less in all, read point by point otherwise (``held``'s
+        ``loose``); else counted until it reaches k, the cells inside it first."""
+        return self.held(centres, radii, k, period, loose=mostly) < k
 
     def kth(self, x, k, period=None, sort=True):
         """The least radius whose closed ball about each x holds weight k (the k-th

@@ -86,6 +86,14 @@ class PointQuestions(Protocol):
         """What each closed ball holds: a count, or a weight; exact below ``stop`` (a
         number, or one per ball), at least ``stop`` otherwise."""
 
+    def fewer(
+        self, centres: np.ndarray, radii: np.ndarray, k: float, mostly: bool = True
+    ) -> np.ndarray:
+        """Whether each closed ball, in d_{P,k}'s metric, holds less than weight k (then
+        d_{P,k} > its radius at its centre, and <= it otherwise): no count is exact, so,
+        where most are expected to (``mostly``), a ball far below k may be settled by the
+        cells it meets."""
+
     def cell_counts(self, cells: Cells, stop=np.inf) -> np.ndarray:
         """What each vertex's closed Voronoi cell holds; exact below ``stop``."""
 
@@ -346,15 +354,13 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
         count = np.flatnonzero(hopeful & ~below)
         if len(count):
             need = k * (1.0 - TIE) if weighted else k
-            held = points.held(x[probe[count]], r_lo[count], stop=float(k))
-            ok = held < need
+            ok = points.fewer(x[probe[count]], r_lo[count], need)
             below[count[ok]] = True
             low_at[count[ok]] = np.maximum(low_at[count[ok]], r_lo[count[ok]])
         count = np.flatnonzero(hopeful & below & ~above)
         if len(count):
             need = k * (1.0 + TIE) if weighted else k
-            held = points.held(x[probe[count]], r_hi[count], stop=float(need))
-            above[count[held >= need]] = True
+            above[count[~points.fewer(x[probe[count]], r_hi[count], need, mostly=False)]] = True
     settled = (below & above) | under
     ask(later[rest[~settled]])
     lo[later] = low

@@ -144,15 +144,16 @@ class StripQuestions:
                 return out
             before, pad = pad, 4.0 * pad
 
-    def held(self, centres, radii, stop=np.inf):
+    def held(self, centres, radii, stop=np.inf, boxsize=None):
         """What each closed ball (torus frame) holds: a count, or a weight (exact, whatever
-        ``stop``)."""
+        ``stop``). ``boxsize``: a metric other than the torus' (``d_pk``'s)."""
         radii = np.broadcast_to(np.asarray(radii, float), len(centres))
         out = np.zeros(len(centres), np.int64 if self.store.weight is None else float)
         if len(centres) == 0:
             return out
         mine = self.route(centres, radii * (1.0 + 1e-9) + 1e-12 * self.axis_period)
-        got = self.ask([{"balls": (centres[r], radii[r])} for r in mine], 0.0)
+        got = self.ask([{"balls": (centres[r], radii[r]), "boxsize": boxsize} for r in mine],
+                       0.0)  # fmt: skip
         for r, g in zip(mine, got, strict=True):
             out[r] += g["held"]
         return out
@@ -188,6 +189,9 @@ class TiledTorusPoints:
     def held(self, centres, radii, stop=np.inf):
         return self.questions.held(centres, radii)
 
+    def fewer(self, centres, radii, k, mostly=True):
+        return self.questions.held(centres, radii) < k
+
     def cell_counts(self, cells, stop=np.inf):
         return self.questions.cell_counts(cells)
 
@@ -217,6 +221,10 @@ class TiledSpacePoints:
 
     def held(self, centres, radii, stop=np.inf):
         return self.questions.held(centres, radii)
+
+    def fewer(self, centres, radii, k, mostly=True):
+        """In d_{P,k}'s metric, the box's own (``boxsize``), as ``d_pk``."""
+        return self.questions.held(centres, radii, boxsize=self.boxsize) < k
 
     def cell_counts(self, cells, stop=np.inf):
         return self.questions.cell_counts(cells)
@@ -256,7 +264,9 @@ def certify_strip(points, weights, job):
     pts, w = points[own], None if weights is None else weights[own]
     if "balls" in job:
         centres, radii = job["balls"]
-        out["held"] = held_in_balls(cKDTree(pts, boxsize=period), w, centres, radii, 1)
+        boxsize = period if job.get("boxsize") is None else job["boxsize"]
+        tree = cKDTree(pts, boxsize=None if not any(boxsize) else boxsize)
+        out["held"] = held_in_balls(tree, w, centres, radii, 1)
     if "cells" in job:
         vxy, ids, pad, before, complete = job["cells"]
         if len(vxy) == 0 or len(pts) == 0:  # nothing to tally (a strip may hold no point)

@@ -150,6 +150,10 @@ class Points:
         weight; exact below ``stop``."""
         return self.tree.held(centres, radii, stop)
 
+    def fewer(self, centres, radii, k, mostly=True):
+        """Whether each closed disk holds less than weight k (the torus: d_{P,k}'s)."""
+        return self.tree.fewer(centres, radii, k, mostly=mostly)
+
     def cell_counts(self, cells, stop=np.inf):
         """What each closed Voronoi cell (``steps.Cells``) holds; exact below ``stop``."""
         return cell_counts(self.tree, cells, stop)

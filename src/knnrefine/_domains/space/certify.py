@@ -201,6 +201,11 @@ class Points:
     def held(self, centres, radii, stop=np.inf):
         return self.tree.held(centres, radii, stop)
 
+    def fewer(self, centres, radii, k, mostly=True):
+        """Whether each closed ball holds less than weight k in d_{P,k}'s metric, the
+        box's own (``d_pk``)."""
+        return self.tree.fewer(centres, radii, k, period=self.box_period, mostly=mostly)
+
     def cell_counts(self, cells, stop=np.inf):
         """What the closed Voronoi cell of each vertex (``steps.Cells``, torus frame) holds:
         every point counts for each vertex as near as its nearest; exact below ``stop``."""

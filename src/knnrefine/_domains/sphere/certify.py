@@ -250,6 +250,12 @@ class Points:
         chord = angle_to_chord(np.asarray(angles, float)) * (1.0 + 1e-12)
         return self.tree.held(centres, chord, stop)
 
+    def fewer(self, centres, angles, k, mostly=True):
+        """Whether each closed cap (centre, angle), inflated as ``held``'s, holds less
+        than weight k."""
+        chord = angle_to_chord(np.asarray(angles, float)) * (1.0 + 1e-12)
+        return self.tree.fewer(centres, chord, k, mostly=mostly)
+
     def cell_counts(self, cells, stop=np.inf):
         """What each vertex's closed Voronoi cell holds (``steps.Cells``): each point counts
         for every vertex as near as its nearest, up to the unit vectors' rounding
