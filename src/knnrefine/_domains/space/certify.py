@@ -102,9 +102,10 @@ def _neighbours(corners, offsets):
     """The tetrahedron across each face, from face keys (sorted vertices and their offsets
     relative to each other); None unless every face is shared by exactly two."""
     t = len(corners)
-    rows = _face_rows(
-        np.ascontiguousarray(corners, np.int64), np.ascontiguousarray(offsets, np.int64)
-    )
+    corners = np.ascontiguousarray(corners, np.int64)
+    offsets = np.ascontiguousarray(offsets, np.int64)
+    rows = np.empty((4 * t, 12), np.int64)
+    in_chunks(lambda a, b: _face_rows(corners, offsets, rows, a, b), t, least=8192)
     label = row_classes(rows, rows[:, 0], int(corners.max(initial=0)) + 1)
     size, first = class_sizes(label)
     # every face exactly twice: each class of equal keys a pair
@@ -117,17 +118,16 @@ def _neighbours(corners, offsets):
     return out.reshape(4, t).T
 
 
-@kernel(entry=True, lazy=True)
-def _face_rows(corners, offsets):
-    """Row i * t + c: the key of face i of tetrahedron c (the face opposite corner i): its
-    three vertices sorted (by vertex, then offset), then their offsets relative to the least
-    along each axis (3 x 3)."""
+@kernel(entry=True, lazy=True, nogil=True)
+def _face_rows(corners, offsets, rows, start, end):
+    """Rows i * t + c, c in [start, end): the key of face i of tetrahedron c (the face
+    opposite corner i): its three vertices sorted (by vertex, then offset), then their
+    offsets relative to the least along each axis (3 x 3)."""
     t = corners.shape[0]
-    rows = np.empty((4 * t, 12), np.int64)
     v = np.empty(3, np.int64)
     o = np.empty((3, 3), np.int64)
     for i in range(4):
-        for c in range(t):
+        for c in range(start, end):
             n = 0
             for j in range(4):
                 if j == i:
@@ -160,16 +160,46 @@ def _face_rows(corners, offsets):
                 rows[r, j] = v[j]
                 for a in range(3):
                     rows[r, 3 + 3 * j + a] = o[j, a]
-    return rows
 
 
-def _circumspheres(c):
-    """(centres (t, 3), squared radii) of the tetrahedra with corners c (t, 4, 3)."""
-    a = c[:, 0]
-    m = c[:, 1:] - a[:, None]
-    rhs = 0.5 * (m**2).sum(axis=2)
-    u = np.linalg.solve(m, rhs[..., None])[..., 0]
-    return a + u, (u**2).sum(axis=1)
+def _circumspheres(c, workers=None):
+    """(centres (t, 3), squared radii, signed volumes times 6) of the tetrahedra with
+    corners c (t, 4, 3), on every core (``_spheres``)."""
+    c = np.ascontiguousarray(c, np.float64)
+    t = len(c)
+    centres, r2, det = np.empty((t, 3)), np.empty(t), np.empty(t)
+    in_chunks(lambda a, b: _spheres(c, centres, r2, det, a, b), t, threads=workers,
+              least=8192)  # fmt: skip
+    return centres, r2, det
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _spheres(c, centres, r2, det, start, end):
+    """``_circumspheres`` for tetrahedra [start, end): with m0, m1, m2 the edges from corner
+    0 and h_i = |m_i|^2 / 2, the centre less corner 0 solves m u = h, u = (h0 m1 x m2 +
+    h1 m2 x m0 + h2 m0 x m1) / det (Cramer's rule: no LAPACK call per tetrahedron);
+    det = m0 . (m1 x m2), 0 for a flat one (its centre not finite)."""
+    m = np.empty((3, 3))
+    x = np.empty((3, 3))  # x[i]: the cross product of the two other edges
+    h = np.empty(3)
+    for t in range(start, end):
+        for i in range(3):
+            for a in range(3):
+                m[i, a] = c[t, i + 1, a] - c[t, 0, a]
+            h[i] = 0.5 * (m[i, 0] * m[i, 0] + m[i, 1] * m[i, 1] + m[i, 2] * m[i, 2])
+        for i in range(3):
+            j, k = (i + 1) % 3, (i + 2) % 3
+            x[i, 0] = m[j, 1] * m[k, 2] - m[j, 2] * m[k, 1]
+            x[i, 1] = m[j, 2] * m[k, 0] - m[j, 0] * m[k, 2]
+            x[i, 2] = m[j, 0] * m[k, 1] - m[j, 1] * m[k, 0]
+        d = m[0, 0] * x[0, 0] + m[0, 1] * x[0, 1] + m[0, 2] * x[0, 2]
+        det[t] = d
+        s = 0.0
+        for a in range(3):
+            u = (h[0] * x[0, a] + h[1] * x[1, a] + h[2] * x[2, a]) / d
+            centres[t, a] = c[t, 0, a] + u
+            s += u * u
+        r2[t] = s
 
 
 class Points:
@@ -380,7 +410,8 @@ class Geometry(TorusGeometry):
             bad_o, bad_d = _exact_faces(local, corners.astype(np.int64), offsets, neighbours,
                                         period, self.workers)  # fmt: skip
         c = local[corners] + offsets * period
-        volume = np.abs(np.linalg.det(c[:, 1:] - c[:, :1])).sum() / 6.0 / np.prod(period)
+        centres, r2, det = _circumspheres(c, self.workers)
+        volume = np.abs(det).sum() / 6.0 / np.prod(period)
         problems = []
         if neighbours is None:
             problems.append("the tetrahedra's faces do not pair up")
@@ -390,7 +421,6 @@ class Geometry(TorusGeometry):
             problems.append(f"{bad_d} faces not locally Delaunay")
         if abs(volume - 1.0) >= 1e-9:
             problems.append(f"the volumes add up to {volume:.12g} tori")
-        centres, r2 = _circumspheres(c)
         outer = np.zeros(len(local))
         np.maximum.at(outer, corners.ravel(), np.repeat(r2, 4))
         return Triangulation(problems, np.mod(centres, period), np.sqrt(r2), np.sqrt(outer), c)
