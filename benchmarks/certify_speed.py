@@ -6,7 +6,9 @@
 
 Each case: points drawn once (seeded), one warm-up refine + certify (kernels compiled and
 loaded), then ``repeats`` rounds of refine then certify of that mesh, alternating, in this
-process; the table gives the medians, the ratio certify / refine, and certify's probes. The
+process; the table gives the medians, the ratio certify / refine, each one's working memory
+(the peak resident memory above what the process held when the call began, after the heap
+was trimmed: ``bench_refine``'s measure; Linux), and certify's probes. The
 earthquakes (``../shared/data``, on the sphere) run when the file is there and are skipped
 otherwise. Times move 30% run to run on a shared 2-core machine; the ratio is the figure.
 """
@@ -14,12 +16,16 @@ otherwise. Times move 30% run to run on a shared 2-core machine; the ratio is th
 import argparse
 import os
 import statistics
+import sys
 import time
 import warnings
 
 import numpy as np
 
 import knnrefine
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_refine import _status_mb, _trim, reset_peak  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 QUAKES = os.path.join(HERE, "..", "..", "shared", "data", "earthquakes_global_1965_2016.csv")
@@ -78,25 +84,36 @@ def main(argv=None):
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")  # k = 1's floor warning: expected, and said here
     print(f"machine: {os.cpu_count()} cores; medians of {args.repeats}, warm, one process\n")
-    print("| case | n | m | refine | certify | certify / refine | probes | passed |")
-    print("|---|---:|---:|---:|---:|---:|---:|---|")
+    print("| case | n | m | refine | certify | certify / refine | memory: refine, certify "
+          "| probes | passed |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for name, (pts, run, check) in cases(0.1 if args.quick else 1.0).items():
         if args.cases and name not in args.cases:
             continue
         mesh = knnrefine.refine(pts, **run)
         knnrefine.certify(mesh, pts, **check)  # warm: kernels compiled and loaded
-        refine_t, certify_t = [], []
+        refine_t, certify_t, refine_mb, certify_mb = [], [], [], []
         for _ in range(args.repeats):
+            mesh = None
+            _trim()
+            base = _status_mb("VmRSS")
+            reset_peak()
             t0 = time.perf_counter()
             mesh = knnrefine.refine(pts, **run)
-            t1 = time.perf_counter()
+            refine_t.append(time.perf_counter() - t0)
+            refine_mb.append(_status_mb("VmHWM") - base)
+            _trim()
+            base = _status_mb("VmRSS")
+            reset_peak()
+            t0 = time.perf_counter()
             cert = knnrefine.certify(mesh, pts, **check)
-            t2 = time.perf_counter()
-            refine_t.append(t1 - t0)
-            certify_t.append(t2 - t1)
+            certify_t.append(time.perf_counter() - t0)
+            certify_mb.append(_status_mb("VmHWM") - base)
         r, c = statistics.median(refine_t), statistics.median(certify_t)
+        rm, cm = statistics.median(refine_mb), statistics.median(certify_mb)
         print(f"| {name} | {len(pts):,} | {len(mesh.vertices):,} | {r:.2f} s | {c:.2f} s | "
-              f"{c / r:.1f} | {cert.n_probes:,} | {cert.passed} |", flush=True)  # fmt: skip
+              f"{c / r:.1f} | {rm:.0f}, {cm:.0f} MiB | {cert.n_probes:,} | {cert.passed} |",
+              flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":
