@@ -1253,6 +1253,31 @@ def _grid_extent(bits, scale):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _grid_buffers(bits):
+    """A query's work arrays over the grid: each axis's cells, their squared gaps and
+    reaches (``_grid_stack``), how many an axis has, and the stack of cells: a row is a
+    cell's coordinates, its level and what it is known to be (1 inside the ball, 0 cut by
+    its sphere, -1 not yet tested: a child); a descent adds 2^d - 1 cells a level."""
+    cells = np.zeros((3, GRID_AXIS), np.int64)
+    gap = np.zeros((6, GRID_AXIS))
+    far = np.zeros((6, GRID_AXIS))
+    na = np.ones(3, np.int64)
+    stack = np.empty((GRID_CELLS + 8 * (bits + 2), 5), np.int64)
+    return cells, gap, far, na, stack
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _run_weight(count, fix, unit, prefix, i, e):
+    """(count, fix) plus the weight of the run [i, e): its length where ``unit``, else the
+    difference of its two compensated prefix sums."""
+    if unit:
+        return count + (e - i), fix
+    count, fix = plus_compensated(count, fix, prefix[0, e])
+    count, fix = plus_compensated(count, fix, -prefix[0, i])
+    return plus_compensated(count, fix, prefix[1, e] - prefix[1, i])
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial, period,
                 side, ext, xq, rq2, rin2, cells, gap, far, na, stack):  # fmt: skip
     """The cells about the closed ball (xq, sqrt(rq2)) stacked as ``_grid_read`` takes
@@ -1389,12 +1414,7 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         if i == e:
             continue
         if inside:
-            if unit:
-                count += e - i
-            else:
-                count, fix = plus_compensated(count, fix, prefix[0, e])
-                count, fix = plus_compensated(count, fix, -prefix[0, i])
-                count, fix = plus_compensated(count, fix, prefix[1, e] - prefix[1, i])
+            count, fix = _run_weight(count, fix, unit, prefix, i, e)
             continue
         if e - i > GRID_DESCEND and lv < bits:
             cx, cy, cz = stack[sp, 0], stack[sp, 1], stack[sp, 2]
@@ -1445,13 +1465,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
     its cells)."""
     d = pts.shape[1]
     ext = _grid_extent(bits, scale)
-    cells = np.zeros((3, GRID_AXIS), np.int64)
-    gap = np.zeros((6, GRID_AXIS))
-    far = np.zeros((6, GRID_AXIS))
-    na = np.ones(3, np.int64)
-    # a cell: its coordinates, its level, what it is known to be (1 inside the ball, 0 cut
-    # by its sphere, -1 not yet tested: a child); a descent adds 2^d - 1 cells a level
-    stack = np.empty((GRID_CELLS + 8 * (bits + 2), 5), np.int64)
+    cells, gap, far, na, stack = _grid_buffers(bits)
     none = np.empty(0)
     for q in range(start, end):
         rq2 = r2[q]
@@ -1470,12 +1484,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
             for s in range(sp):
                 c = _cell_code(stack[s, 0], stack[s, 1], stack[s, 2], d)
                 i, e = _cell_run(code, table, level0, bits, d, c, stack[s, 3])
-                if unit:
-                    bound += e - i
-                else:
-                    bound, fix = plus_compensated(bound, fix, prefix[0, e])
-                    bound, fix = plus_compensated(bound, fix, -prefix[0, i])
-                    bound, fix = plus_compensated(bound, fix, prefix[1, e] - prefix[1, i])
+                bound, fix = _run_weight(bound, fix, unit, prefix, i, e)
             if bound + fix < stop[q]:
                 out[q] = bound + fix
                 continue
@@ -1502,11 +1511,7 @@ def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, 
     d = pts.shape[1]
     n = pts.shape[0]
     ext = _grid_extent(bits, scale)
-    cells = np.zeros((3, GRID_AXIS), np.int64)
-    gap = np.zeros((6, GRID_AXIS))
-    far = np.zeros((6, GRID_AXIS))
-    na = np.ones(3, np.int64)
-    stack = np.empty((GRID_CELLS + 8 * (bits + 2), 5), np.int64)
+    cells, gap, far, na, stack = _grid_buffers(bits)
     size = min(max(64 * int(math.ceil(min(k, n))), 8192), n + 1)  # the shell's points
     keep = np.empty(size)
     kw = np.empty(size)
