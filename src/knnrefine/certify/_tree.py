@@ -1891,6 +1891,36 @@ def spatial_order(x):
     return _morton_sorted(x, 31 if x.shape[1] == 2 else 21)[1]
 
 
+def edge_vectors(sites, first, nb, shift, period, threads=None):
+    """Each neighbour as a vector from its site (``neighbour_lists``' rows): sites[nb[j]]
+    - sites[v] + shift[j] period for the rows j of site v (``shift`` (e, 0): none), on
+    every core, with no gathered copies of the sites."""
+    sites = np.ascontiguousarray(sites, np.float64)
+    first = np.ascontiguousarray(first, np.int64)
+    nb = np.ascontiguousarray(nb, np.int64)
+    shift = np.ascontiguousarray(shift, np.int64).reshape(len(nb), -1)
+    period = np.ascontiguousarray(period, np.float64)
+    out = np.empty((len(nb), sites.shape[1]))
+    in_chunks(lambda a, b: _edge_vectors(sites, first, nb, shift, period, out, a, b),
+              len(first) - 1, threads=threads, least=8192)  # fmt: skip
+    return out
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _edge_vectors(sites, first, nb, shift, period, out, start, end):
+    """``edge_vectors`` for the sites [start, end)."""
+    d = sites.shape[1]
+    shifted = shift.shape[1] == d
+    for v in range(start, end):
+        for j in range(first[v], first[v + 1]):
+            u = nb[j]
+            for a in range(d):
+                g = sites[u, a] - sites[v, a]
+                if shifted:
+                    g = g + np.float64(shift[j, a]) * period[a]
+                out[j, a] = g
+
+
 def neighbour_lists(cells, off, m, threads=None):
     """Each site's neighbours, once each, from the cells (t, c) of a triangulation and
     their corners' offsets (t, c, d) in whole periods (d = 0: none): (first (m + 1,):

@@ -17,7 +17,7 @@ from .._validation import as_points, check_inside, check_made_from, weights_of_r
 from ..errors import InputError
 from ..mesh import theorem6_constants
 from ._rows import class_sizes, row_classes
-from ._tree import Tree, neighbour_lists, offset, spatial_order, walk_nearest
+from ._tree import Tree, edge_vectors, neighbour_lists, offset, spatial_order, walk_nearest
 from .certificate import floor_sites, to_input
 from .steps import Cells, Probes
 
@@ -349,9 +349,8 @@ class TorusGeometry:
         corners = np.ascontiguousarray(torus.cells, np.int64)
         off = np.ascontiguousarray(torus.offsets, np.int64)
         m = len(self.vertices)
-        first, nb, nshift = neighbour_lists(corners, off, m)
-        site = np.repeat(np.arange(m), np.diff(first))
-        edges = self.vertices[nb] - self.vertices[site] + nshift * self.period
+        first, nb, nshift = neighbour_lists(corners, off, m, self.workers)
+        edges = edge_vectors(self.vertices, first, nb, nshift, self.period, self.workers)
         self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb, self.period)
         return self.cells(tri)
 

@@ -39,7 +39,7 @@ from ..._metric import angle_to_chord, chord_to_angle, lonlat_of
 from ..._validation import as_sphere_points, check_made_from, weights_of_run
 from ...certify._predicates import UNSURE, exact_sign, orient3d_at
 from ...certify._rows import grouped
-from ...certify._tree import Tree, neighbour_lists, sums_by
+from ...certify._tree import Tree, edge_vectors, neighbour_lists, sums_by
 from ...certify.common import (
     SizeSample,
     cell_counts,
@@ -351,9 +351,9 @@ class Geometry:
             return self._cells._replace(outradii=angle_to_chord(tri.outradii), walkable=walkable)
         t = np.ascontiguousarray(self.tri, np.int64)
         m = len(self.xyz)
-        first, nb, _ = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int64), m)
-        site = np.repeat(np.arange(m), np.diff(first))
-        edges = self.xyz[nb] - self.xyz[site]
+        first, nb, _ = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int64), m, self.workers)
+        edges = edge_vectors(self.xyz, first, nb, np.zeros((len(nb), 0), np.int64), np.zeros(3),
+                             self.workers)  # fmt: skip
         # the cell lies within its outradius (an angle) of the vertex: as a chord
         self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES, nb, np.zeros(3))
         return self.cells(tri)
