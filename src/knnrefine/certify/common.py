@@ -530,16 +530,36 @@ def nearest_neighbour(cells):
 
 def edge_midpoints(cells):
     """(the midpoint of every edge once, the edge's two vertices (e, 2)): of the two
-    directions of an edge, the one whose vector is lexicographically positive."""
-    e = cells.edges
-    site = np.repeat(np.arange(len(cells.sites)), np.diff(cells.first))
+    directions of an edge, the one whose vector is lexicographically positive; in a kernel
+    (``_midpoints``), with no gathered copies of the sites."""
+    e = np.ascontiguousarray(cells.edges, np.float64)
     positive = np.zeros(len(e), bool)
     decided = np.zeros(len(e), bool)
     for a in range(e.shape[1]):
         positive |= ~decided & (e[:, a] > 0)
         decided |= e[:, a] != 0
-    ends = np.column_stack([site[positive], cells.neighbours[positive]])
-    return cells.sites[site[positive]] + 0.5 * e[positive], ends
+    at = np.cumsum(positive) - 1  # each positive row's place among them
+    count = int(at[-1]) + 1 if len(at) else 0
+    mids, ends = np.empty((count, e.shape[1])), np.empty((count, 2), np.int64)
+    _midpoints(np.ascontiguousarray(cells.sites, np.float64),
+               np.ascontiguousarray(cells.first, np.int64),
+               np.ascontiguousarray(cells.neighbours, np.int64), e, positive, at, mids,
+               ends)  # fmt: skip
+    return mids, ends
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _midpoints(sites, first, neighbours, edges, positive, at, mids, ends):
+    """``edge_midpoints``' rows: for each positive row j of site v, at its place at[j],
+    sites[v] + 0.5 edges[j] and (v, its far site)."""
+    for v in range(first.shape[0] - 1):
+        for j in range(first[v], first[v + 1]):
+            if positive[j]:
+                i = at[j]
+                for a in range(sites.shape[1]):
+                    mids[i, a] = sites[v, a] + 0.5 * edges[j, a]
+                ends[i, 0] = v
+                ends[i, 1] = neighbours[j]
 
 
 def nearest_site(cells, x, period, workers, tri):
