@@ -9,6 +9,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ._engine.jit import kernel
 from ._engine.raster import clip_triangles
 from ._engine.state import KIND_NAMES  # how each vertex came: the insertion moves
 from ._metric import BoxMetric, chord_to_angle, unit_vectors
@@ -799,12 +800,29 @@ def triangle_areas(corners):
     return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
-def uniform_in_triangles(corners, u):
-    """Points uniform in triangles (..., 3, 2) from numbers u (..., 2) uniform in the unit
-    square, folded onto the triangle along the square's diagonal. Returns (points (..., 2),
-    the folded u: a point is corner 0 + u0 (corner 1 - corner 0) + u1 (corner 2 - corner 0))."""
-    u = np.array(u, dtype=float)
-    flip = u.sum(-1) > 1
-    u[flip] = 1.0 - u[flip]
-    a = corners[..., 0, :]
-    return a + u[..., :1] * (corners[..., 1, :] - a) + u[..., 1:] * (corners[..., 2, :] - a), u
+def uniform_in_triangles(corners, u, cells=None):
+    """Points uniform in triangles from numbers u (s, 2) uniform in the unit square, folded
+    onto each triangle along the square's diagonal: corner 0 + u0 (corner 1 - corner 0) +
+    u1 (corner 2 - corner 0). ``corners`` (t, 3, d); point i lies in triangle ``cells[i]``
+    (default: i), in one pass of a kernel (no (s, 3, d) copy of the corners). Returns
+    (points (s, d), the folded u)."""
+    corners = np.ascontiguousarray(corners, np.float64)
+    u = np.array(u, dtype=np.float64, order="C").reshape(-1, 2)
+    cells = np.zeros(0, np.int64) if cells is None else np.ascontiguousarray(cells, np.int64)
+    out = np.empty((len(u), corners.shape[-1]))
+    _in_triangles(corners, cells, u, out)
+    return out, u
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _in_triangles(corners, cells, u, out):
+    """``uniform_in_triangles``' points into ``out``, u folded in place (``cells`` empty:
+    point i in triangle i)."""
+    for i in range(u.shape[0]):
+        if u[i, 0] + u[i, 1] > 1.0:
+            u[i, 0], u[i, 1] = 1.0 - u[i, 0], 1.0 - u[i, 1]
+        u0, u1 = u[i, 0], u[i, 1]
+        t = cells[i] if cells.shape[0] else i
+        for a in range(out.shape[1]):
+            c0 = corners[t, 0, a]
+            out[i, a] = c0 + u0 * (corners[t, 1, a] - c0) + u1 * (corners[t, 2, a] - c0)

@@ -619,31 +619,6 @@ def gathered_probes(parts, inside, size, near=None, vertices=2):
     return Probes(x, mask, d_m2, size, np.concatenate(gathered), exact)
 
 
-def in_triangles(corners, cells, u):
-    """Points uniform in the triangles corners[cells] (corners (t, 3, d)) from numbers u
-    (len(cells), 2) uniform in the unit square, folded onto each triangle along the
-    square's diagonal: corner 0 + u0 (corner 1 - corner 0) + u1 (corner 2 - corner 0), one
-    pass in a kernel (no (len(cells), 3, d) copy of the corners)."""
-    corners = np.ascontiguousarray(corners, np.float64)
-    out = np.empty((len(cells), corners.shape[2]))
-    _in_triangles(corners, np.ascontiguousarray(cells, np.int64),
-                  np.ascontiguousarray(u, np.float64), out)  # fmt: skip
-    return out
-
-
-@kernel(entry=True, lazy=True, nogil=True)
-def _in_triangles(corners, cells, u, out):
-    """``in_triangles``'s points, into out."""
-    for i in range(cells.shape[0]):
-        u0, u1 = u[i, 0], u[i, 1]
-        if u0 + u1 > 1.0:
-            u0, u1 = 1.0 - u0, 1.0 - u1
-        t = cells[i]
-        for a in range(out.shape[1]):
-            c0 = corners[t, 0, a]
-            out[i, a] = c0 + u0 * (corners[t, 1, a] - c0) + u1 * (corners[t, 2, a] - c0)
-
-
 SIZE_SHARE = 4  # the size integral reads one point in each of samples // SIZE_SHARE cells
 
 

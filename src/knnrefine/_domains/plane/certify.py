@@ -33,14 +33,13 @@ from ...certify.common import (
     edge_midpoints,
     find_rows,
     gathered_probes,
-    in_triangles,
     nearest_site,
     repeated_rows,
     size_integral,
     size_sample,
 )
 from ...certify.steps import Triangulation
-from ...mesh import circumcircles, triangle_areas
+from ...mesh import circumcircles, triangle_areas, uniform_in_triangles
 
 
 class Geometry(TorusGeometry):
@@ -82,7 +81,7 @@ class Geometry(TorusGeometry):
         t, m = len(corners), len(self.vertices)
         chosen, dense = size_sample(t, samples, rng)
         cells = np.concatenate([chosen, dense])
-        inside = in_triangles(corners, cells, rng.random((len(cells), 2)))
+        inside, _ = uniform_in_triangles(corners, rng.random((len(cells), 2)), cells)
         inside = self.frame(inside)
         areas = np.abs(triangle_areas(corners))
         mids, ends = edge_midpoints(self.cells(tri))

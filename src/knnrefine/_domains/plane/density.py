@@ -291,7 +291,7 @@ def sample_pieces(nodes, triangles, values, lo, hi, n, rng):
     while filled < n:
         m = int(1.5 * (n - filled)) + 64
         t = np.minimum(np.searchsorted(cdf, rng.random(m) * cdf[-1], side="right"), len(cdf) - 1)
-        x, u = uniform_in_triangles(corners[t], rng.random((m, 2)))
+        x, u = uniform_in_triangles(corners, rng.random((m, 2)), t)
         dx = d[t, 0] * (1.0 - u[:, 0] - u[:, 1]) + d[t, 1] * u[:, 0] + d[t, 2] * u[:, 1]
         keep = rng.random(m) * dx**2 <= dmin[t] ** 2
         # pieces reach past the box; each point of the box lies in exactly one of them

@@ -46,7 +46,6 @@ from ...certify.common import (
     check_precondition,
     edge_midpoints,
     gathered_probes,
-    in_triangles,
     nearest_neighbour,
     nearest_site,
     separations,
@@ -55,7 +54,7 @@ from ...certify.common import (
     walked_d_m2,
 )
 from ...certify.steps import Cells, Triangulation
-from ...mesh import sphere_constants
+from ...mesh import sphere_constants, uniform_in_triangles
 
 
 @kernel(entry=True, lazy=True)
@@ -379,7 +378,7 @@ class Geometry:
         t, m = len(tri_), len(xyz)
         chosen, dense = size_sample(t, samples, rng)
         cells = np.concatenate([chosen, dense])
-        flat = in_triangles(xyz[tri_], cells, rng.random((len(cells), 2)))  # flat triangles
+        flat, _ = uniform_in_triangles(xyz[tri_[cells]], rng.random((len(cells), 2)))  # flat
         # seen from the centre, the flat triangle's area element dA is the sphere's
         # h / |y|^3 dA (h: the plane's distance from the centre)
         s = len(chosen)
