@@ -10,6 +10,25 @@ from .._engine.jit import kernel
 from .._engine.threads import in_chunks
 
 
+def as_index(a):
+    """``a`` as a contiguous integer array for certify's kernels: as it is where it is the
+    engine's int32, else int64 (a copy). Kernels are compiled for both; no copy of a mesh's
+    cells is made where it came from refine."""
+    a = np.asarray(a)
+    if a.dtype == np.int32:
+        return np.ascontiguousarray(a)
+    return np.ascontiguousarray(a, np.int64)
+
+
+def as_offsets(a):
+    """A mesh's offsets in whole periods for certify's kernels: as they are where they are
+    the engine's int8, else int64 (a copy)."""
+    a = np.asarray(a)
+    if a.dtype == np.int8:
+        return np.ascontiguousarray(a)
+    return np.ascontiguousarray(a, np.int64)
+
+
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
 def rows_equal(a, i, b, j):
     """Whether row i of a equals row j of b (as wide)."""

@@ -47,7 +47,7 @@ from .._engine.geometry import plus_compensated  # shared with the engine, as _m
 from .._engine.jit import kernel
 from .._engine.threads import in_chunks, run_all, thread_count
 from ._predicates import UNSURE, orient3d_at
-from ._rows import rows_equal
+from ._rows import as_index, as_offsets, rows_equal
 
 LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
 GRID = 16  # buckets a side of a k-th query's window in space, at most
@@ -1760,7 +1760,7 @@ class Tree:
             np.ascontiguousarray(sites, np.float64),
             np.ascontiguousarray(first, np.int64),
             np.ascontiguousarray(edges, np.float64).reshape(-1, self.dim),
-            np.ascontiguousarray(neighbours, np.int64),
+            as_index(neighbours),
             np.ascontiguousarray(period, np.float64),
             float(relative),
             float(slack2),
@@ -1897,8 +1897,10 @@ def edge_vectors(sites, first, nb, shift, period, threads=None):
     every core, with no gathered copies of the sites."""
     sites = np.ascontiguousarray(sites, np.float64)
     first = np.ascontiguousarray(first, np.int64)
-    nb = np.ascontiguousarray(nb, np.int64)
-    shift = np.ascontiguousarray(shift, np.int64).reshape(len(nb), -1)
+    nb = as_index(nb)
+    shift = np.asarray(shift)
+    shift = (shift if shift.dtype == np.int16 else shift.astype(np.int64)).reshape(len(nb), -1)
+    shift = np.ascontiguousarray(shift)
     period = np.ascontiguousarray(period, np.float64)
     out = np.empty((len(nb), sites.shape[1]))
     in_chunks(lambda a, b: _edge_vectors(sites, first, nb, shift, period, out, a, b),
@@ -1931,24 +1933,25 @@ def neighbour_lists(cells, off, m, threads=None):
     thread); then, a range of sites a thread, within a site's rows a repeat is found among
     the rows kept since its index was first seen (stamped), the few rows kept are sorted
     (insertion), and the kept rows are gathered."""
-    cells = np.ascontiguousarray(cells, np.int64)
-    off = np.ascontiguousarray(off, np.int64)
+    cells, off = as_index(cells), as_offsets(off)
     t, d = len(cells), off.shape[2]
+    index = np.int32 if m < 2**31 else np.int64
+    shifts = np.int16 if off.dtype == np.int8 else np.int64  # (a difference of two offsets)
     parts = max(1, min(thread_count(threads), t // CELL_RANGE))
     edges = np.linspace(0, t, parts + 1).astype(np.int64)
     counts = np.zeros((parts, m), np.int64)
     run_all(lambda j: _site_counts(cells, counts[j], edges[j], edges[j + 1]), parts)
     first, place = _row_places(counts)
-    nb = np.empty(first[m], np.int64)
-    sh = np.empty((first[m], d), np.int64)
+    nb = np.empty(first[m], index)
+    sh = np.empty((first[m], d), shifts)
     run_all(lambda j: _scatter_rows(cells, off, place[j], nb, sh, edges[j], edges[j + 1]), parts)
     kept = np.empty(m, np.int64)
     in_chunks(lambda a, b: _unique_sites(first, nb, sh, kept, a, b), m,
               threads=threads, least=16384, per_thread=1)  # fmt: skip
     out_first = np.zeros(m + 1, np.int64)
     np.cumsum(kept, out=out_first[1:])
-    out_nb = np.empty(out_first[m], np.int64)
-    out_sh = np.empty((out_first[m], d), np.int64)
+    out_nb = np.empty(out_first[m], index)
+    out_sh = np.empty((out_first[m], d), shifts)
     in_chunks(lambda a, b: _gather_rows(first, out_first, nb, sh, out_nb, out_sh, a, b), m,
               threads=threads, least=16384, per_thread=1)  # fmt: skip
     return out_first, out_nb, out_sh
@@ -2006,7 +2009,7 @@ def _unique_sites(first, nb, sh, kept, start, end):
     d = sh.shape[1]
     stamp = np.full(m, -1, np.int64)  # the site whose rows last saw this index
     seen_at = np.zeros(m, np.int64)  # where that site's rows first kept it
-    row = np.empty(d, np.int64)
+    row = np.empty(d, sh.dtype)
     for v in range(start, end):
         begin = first[v]
         used = begin

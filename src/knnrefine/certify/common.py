@@ -16,7 +16,7 @@ from .._engine.threads import in_chunks
 from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
-from ._rows import class_sizes, row_classes
+from ._rows import as_index, class_sizes, row_classes
 from ._tree import Tree, edge_vectors, neighbour_lists, offset, spatial_order, walk_nearest
 from .certificate import floor_sites, to_input
 from .steps import Cells, Probes
@@ -346,10 +346,8 @@ class TorusGeometry:
             walkable = not tri.problems and len(self.vertices) >= 4
             return self._cells._replace(outradii=tri.outradii, walkable=walkable)
         torus = self.mesh.torus
-        corners = np.ascontiguousarray(torus.cells, np.int64)
-        off = np.ascontiguousarray(torus.offsets, np.int64)
         m = len(self.vertices)
-        first, nb, nshift = neighbour_lists(corners, off, m, self.workers)
+        first, nb, nshift = neighbour_lists(torus.cells, torus.offsets, m, self.workers)
         edges = edge_vectors(self.vertices, first, nb, nshift, self.period, self.workers)
         self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb, self.period)
         return self.cells(tri)
@@ -462,7 +460,7 @@ def walked(cells, x, period, workers):
     sites = np.ascontiguousarray(cells.sites, np.float64)
     edges = np.ascontiguousarray(cells.edges, np.float64)
     first = np.ascontiguousarray(cells.first, np.int64)
-    neighbours = np.ascontiguousarray(cells.neighbours, np.int64)
+    neighbours = as_index(cells.neighbours)
     period = np.ascontiguousarray(period, np.float64)
 
     def call(a, b):
@@ -543,7 +541,7 @@ def edge_midpoints(cells):
     mids, ends = np.empty((count, e.shape[1])), np.empty((count, 2), np.int64)
     _midpoints(np.ascontiguousarray(cells.sites, np.float64),
                np.ascontiguousarray(cells.first, np.int64),
-               np.ascontiguousarray(cells.neighbours, np.int64), e, positive, at, mids,
+               as_index(cells.neighbours), e, positive, at, mids,
                ends)  # fmt: skip
     return mids, ends
 
@@ -604,13 +602,13 @@ def gathered_probes(parts, inside, size, near=None, vertices=2):
     start = np.concatenate([[0], np.cumsum([int(k.sum()) for k in keep])])
     index = []  # each part's rows -> their index among the probes kept (-1: dropped)
     for i, k in enumerate(keep):
-        at = np.full(len(k), -1, np.int64)
+        at = np.full(len(k), -1, np.int32 if len(x) < 2**31 else np.int64)
         at[k] = start[i] + np.arange(int(k.sum()))
         index.append(at)
     width = max((np.shape(rows)[1] for _, rows in (near or {}).values()), default=1)
-    gathered = [np.full((int(k.sum()), width), -1, np.int64) for k in keep]
+    gathered = [np.full((int(k.sum()), width), -1, index[0].dtype) for k in keep]
     for i, (j, rows) in (near or {}).items():
-        rows = np.asarray(rows, np.int64)
+        rows = np.asarray(rows)
         gathered[i][:, : rows.shape[1]] = index[j][rows][keep[i]]
     size = size._replace(kept=keep[0], corners=index[vertices][np.asarray(size.corners)])
     exact = np.zeros(len(x), bool)  # what the size integral reads: its samples, the corners

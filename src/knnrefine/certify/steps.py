@@ -295,8 +295,9 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
     and a weighted count by TIE past k, so that rounding decides nothing). It is asked
     where neither does. The extremes, where they lie and the number of probes are those
     of asking every probe."""
-    x, near = probes.x, probes.near
-    d_pk = np.full(len(x), np.nan)
+    x, near, exact = probes.x, probes.near, probes.exact
+    n = len(x)
+    d_pk = np.full(n, np.nan)
     extremes = [np.inf, -np.inf]  # alpha, beta so far
 
     def ask(rows):
@@ -306,63 +307,107 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
             r = d_m2[use] / d_pk[use]
             extremes[:] = min(extremes[0], float(r.min())), max(extremes[1], float(r.max()))
 
+    # the probes are read CHUNK at a time, so that what is held for each is its bounds
+    # (``lo``, ``hi``) and a few flags, not the arrays of every step at once
+    chunks = [(a, min(a + CHUNK, n)) for a in range(0, n, CHUNK)]
     bounded = (near >= 0).any(axis=1)
-    first = np.array(probes.exact, bool, copy=True)
-    refs = near[bounded & ~first]
-    first[refs[refs >= 0]] = True  # the references of the others
+    first = np.array(exact, bool, copy=True)
+    for a, b in chunks:  # the references of the others
+        refs = near[a:b][bounded[a:b] & ~exact[a:b]]
+        first[refs[refs >= 0]] = True
     ask(np.flatnonzero(first))
-    lo = d_pk.copy()
-    later = np.flatnonzero(~first)
-    if len(later) == 0:
+    lo = d_pk.copy()  # (d_pk where asked; elsewhere, below, its lower bound)
+    if first.all():
         return d_pk, lo
-    refs = near[later]  # (-1: none in that column)
-    reach = geometry.separation(x, later, refs).T
-    low, hi = np.full(len(later), -np.inf), np.full(len(later), np.inf)
-    for ref, s in zip(refs.T, reach, strict=True):  # each column of references
-        d = d_pk[ref]  # (where ref is -1, s is NaN: the bounds stay as they were)
-        slack = 1e-9 * (d + s)  # rounding in d_{P,k} and the separation
-        np.fmax(low, d - s - slack, out=low)
-        np.fmin(hi, d + s + slack, out=hi)
-    ratio_lo = d_m2[later] / hi
-    with np.errstate(divide="ignore"):
-        ratio_hi = np.where(low > 0, d_m2[later] / low, np.inf)
-    pick = np.zeros(len(later), bool)
-    for group, by_bounds in ((np.flatnonzero(bounded[later]), True),
-                             (np.flatnonzero(~bounded[later]), False)):  # fmt: skip
-        seed = min(max(16, int(math.ceil(SEED * len(group)))), len(group))
-        if seed == len(group):
-            pick[group] = True
-        elif by_bounds:  # the seed lowest and highest
-            pick[group[np.argpartition(ratio_lo[group], seed - 1)[:seed]]] = True
-            pick[group[np.argpartition(-ratio_hi[group], seed - 1)[:seed]]] = True
-        else:  # unbounded (input points, drawn at random): the first seed of them
-            pick[group[:seed]] = True
-    ask(later[pick])
+    hi = np.full(n, np.inf)
+
+    def later_of(a, b):
+        return a + np.flatnonzero(~first[a:b])
+
+    def ratios(rows):
+        with np.errstate(divide="ignore"):
+            return d_m2[rows] / hi[rows], np.where(lo[rows] > 0, d_m2[rows] / lo[rows], np.inf)
+
+    groups = [int((bounded & ~first).sum()), int((~bounded & ~first).sum())]
+    seeds = [min(max(16, int(math.ceil(SEED * g))), g) for g in groups]
+    lowest, highest, unbounded = _Seeds(seeds[0]), _Seeds(seeds[0]), [np.zeros(0, np.int64)]
+    taken = 0
+    for a, b in chunks:  # each probe's bounds [d - s, d + s] from its references
+        later = later_of(a, b)
+        if len(later) == 0:
+            continue
+        refs = near[later]  # (-1: none in that column)
+        reach = geometry.separation(x, later, refs).T
+        low, up = np.full(len(later), -np.inf), np.full(len(later), np.inf)
+        for ref, s in zip(refs.T, reach, strict=True):  # each column of references
+            d = d_pk[ref]  # (where ref is -1, s is NaN: the bounds stay as they were)
+            slack = 1e-9 * (d + s)  # rounding in d_{P,k} and the separation
+            np.fmax(low, d - s - slack, out=low)
+            np.fmin(up, d + s + slack, out=up)
+        lo[later], hi[later] = low, up
+        ratio_lo, ratio_hi = ratios(later)
+        by_bounds = bounded[later]
+        lowest.offer(ratio_lo[by_bounds], later[by_bounds])
+        highest.offer(-ratio_hi[by_bounds], later[by_bounds])
+        if taken < seeds[1]:  # unbounded (input points, drawn at random): the first seed
+            free = later[~by_bounds][: seeds[1] - taken]
+            unbounded.append(free)
+            taken += len(free)
+    pick = np.zeros(n, bool)
+    pick[lowest.rows()] = pick[highest.rows()] = True
+    pick[np.concatenate(unbounded)] = True
+    ask(np.flatnonzero(pick))
     alpha, beta = extremes  # with the seeds asked, the rest settled against them
-    rest = np.flatnonzero(~pick)
-    under = hi[rest] < floor  # below the floor: no probe
-    below = (low[rest] >= floor) & (ratio_hi[rest] < beta)  # d_pk above floor and d_m2 / beta
-    above = ratio_lo[rest] > alpha  # d_pk below d_m2 / alpha
-    low_at = low[rest]
-    if alpha < beta and np.isfinite(beta) and len(rest):
-        probe = later[rest]
-        weighted = bool(points.weighted)
-        # fewer than k in the closed ball of radius r: d_pk > r
-        r_lo = np.maximum(d_m2[probe] / beta * (1.0 + TIE), floor)
-        r_hi = d_m2[probe] / alpha * (1.0 - TIE) if alpha > 0 else np.full(len(rest), np.inf)
-        hopeful = (r_lo < r_hi) & ~under
-        count = np.flatnonzero(hopeful & ~below)
-        if len(count):
-            need = k * (1.0 - TIE) if weighted else k
-            ok = points.fewer(x[probe[count]], r_lo[count], need)
-            below[count[ok]] = True
-            low_at[count[ok]] = np.maximum(low_at[count[ok]], r_lo[count[ok]])
-        count = np.flatnonzero(hopeful & below & ~above)
-        if len(count):
-            need = k * (1.0 + TIE) if weighted else k
-            above[count[~points.fewer(x[probe[count]], r_hi[count], need, mostly=False)]] = True
-    settled = (below & above) | under
-    ask(later[rest[~settled]])
-    lo[later] = low
-    lo[later[rest[settled]]] = low_at[settled]
-    return d_pk, np.where(np.isnan(d_pk), lo, d_pk)
+    weighted = bool(points.weighted)
+    unsettled = [np.zeros(0, np.int64)]
+    for a, b in chunks:
+        rest = later_of(a, b)
+        rest = rest[~pick[rest]]
+        if len(rest) == 0:
+            continue
+        low, ratio_lo, ratio_hi = lo[rest], *ratios(rest)
+        under = hi[rest] < floor  # below the floor: no probe
+        below = (low >= floor) & (ratio_hi < beta)  # d_pk above floor and d_m2 / beta
+        above = ratio_lo > alpha  # d_pk below d_m2 / alpha
+        if alpha < beta and np.isfinite(beta):
+            # fewer than k in the closed ball of radius r: d_pk > r
+            r_lo = np.maximum(d_m2[rest] / beta * (1.0 + TIE), floor)
+            r_hi = d_m2[rest] / alpha * (1.0 - TIE) if alpha > 0 else np.full(len(rest), np.inf)
+            hopeful = (r_lo < r_hi) & ~under
+            count = np.flatnonzero(hopeful & ~below)
+            if len(count):
+                need = k * (1.0 - TIE) if weighted else k
+                ok = count[points.fewer(x[rest[count]], r_lo[count], need)]
+                below[ok] = True
+                lo[rest[ok]] = np.maximum(low[ok], r_lo[ok])
+            count = np.flatnonzero(hopeful & below & ~above)
+            if len(count):
+                need = k * (1.0 + TIE) if weighted else k
+                far = ~points.fewer(x[rest[count]], r_hi[count], need, mostly=False)
+                above[count[far]] = True
+        unsettled.append(rest[~((below & above) | under)])
+    ask(np.concatenate(unsettled))
+    asked = ~np.isnan(d_pk)
+    lo[asked] = d_pk[asked]
+    return d_pk, lo
+
+
+CHUNK = 1 << 17  # probes bounded and settled at once (``bounded_d_pk``)
+
+
+class _Seeds:
+    """The ``size`` rows of least value among those offered, kept as they come."""
+
+    def __init__(self, size):
+        self.size = size
+        self.values, self.at = np.zeros(0), np.zeros(0, np.int64)
+
+    def offer(self, values, rows):
+        values, rows = np.concatenate([self.values, values]), np.concatenate([self.at, rows])
+        if len(values) > self.size:
+            keep = np.argpartition(values, self.size - 1)[: self.size] if self.size else []
+            values, rows = values[keep], rows[keep]
+        self.values, self.at = values, rows
+
+    def rows(self):
+        return self.at

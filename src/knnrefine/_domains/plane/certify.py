@@ -21,7 +21,7 @@ from ..._engine.jit import kernel
 from ..._engine.threads import in_chunks
 from ..._metric import BoxMetric, TorusFrame
 from ...certify._predicates import UNSURE, exact_sign, incircle, orient2d
-from ...certify._rows import row_classes
+from ...certify._rows import as_index, as_offsets, row_classes
 from ...certify._tree import Tree
 from ...certify.common import (
     SizeSample,
@@ -39,7 +39,7 @@ from ...certify.common import (
     size_sample,
 )
 from ...certify.steps import Triangulation
-from ...mesh import circumcircles, triangle_areas, uniform_in_triangles
+from ...mesh import uniform_in_triangles
 
 
 class Geometry(TorusGeometry):
@@ -56,15 +56,15 @@ class Geometry(TorusGeometry):
     def triangulation(self):
         """The torus triangulation (``verify_triangulation``), its circumcircles and each
         vertex's outradius R(v) (the largest circumradius around it); ``extra``: the
-        triangles' corners."""
+        triangles' signed areas."""
         t = self.mesh.torus
-        problems, corners, centres, radii = verify_triangulation(
+        problems, areas, centres, radii = verify_triangulation(
             self.vertices, t.triangles, t.offsets, t.neighbours, self.period, self.workers
         )
         outradii = np.zeros(len(self.vertices))
         for c in range(3):
             np.maximum.at(outradii, t.triangles[:, c], radii)
-        return Triangulation(problems, centres, radii, outradii, corners)
+        return Triangulation(problems, centres, radii, outradii, areas)
 
     def returned_problems(self):
         return verify_returned_mesh(self.mesh)
@@ -77,13 +77,15 @@ class Geometry(TorusGeometry):
         in the cells (``common.size_sample``: ``samples`` of them, at least one in each
         cell sampled), up to min(``max_point_probes``, 2 m) input points and ``n_random``
         uniform points of the domain (``steps.Probes``: why these)."""
-        corners = tri.extra
-        t, m = len(corners), len(self.vertices)
+        t, m = len(tri.extra), len(self.vertices)
         chosen, dense = size_sample(t, samples, rng)
         cells = np.concatenate([chosen, dense])
-        inside, _ = uniform_in_triangles(corners, rng.random((len(cells), 2)), cells)
+        torus = self.mesh.torus
+        corners = self.vertices[torus.triangles[cells]] + torus.offsets[cells] * self.period
+        inside, _ = uniform_in_triangles(corners, rng.random((len(cells), 2)))
+        del corners
         inside = self.frame(inside)
-        areas = np.abs(triangle_areas(corners))
+        areas = np.abs(tri.extra)
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
@@ -185,8 +187,7 @@ def verify_returned_mesh(mesh):
     broken = cell_array_problem(mesh)
     if broken:
         return problems + [broken]
-    tri = np.asarray(mesh.triangles, np.int64)
-    ttri = np.asarray(torus.triangles, np.int64)
+    tri, ttri = as_index(mesh.triangles), as_index(torus.triangles)
     as_torus = tri.shape == ttri.shape and np.array_equal(order[tri], ttri)
     if not (as_torus and np.all(mesh.periodic)):
         # (on a torus, triangles that are its own moved by whole periods, checked below,
@@ -199,8 +200,8 @@ def verify_returned_mesh(mesh):
         problems.append(f"{bad} vertices differ from their torus vertex (rounded coordinates)")
     # each returned triangle is a torus triangle (same corners, same cyclic order) shifted by
     # whole periods
-    off = np.zeros(tri.shape + (2,)) if mesh.offsets is None else np.asarray(mesh.offsets, float)
-    toff = np.asarray(torus.offsets, float)
+    off = np.zeros(tri.shape + (2,), np.int8) if mesh.offsets is None else _offsets(mesh.offsets)
+    toff = _offsets(torus.offsets)
     if as_torus:
         # the torus' triangles, row for row, corners in the same order (a torus returned
         # as it is): each matches its own row, no rotation needed
@@ -214,8 +215,8 @@ def verify_returned_mesh(mesh):
         u_rot = np.argmin(order[tri], axis=1) if len(tri) else np.zeros(0, np.int64)
         pos = find_rows(_rotate(ttri, t_rot), _rotate(order[tri], u_rot))
         unmatched = int((pos < 0).sum())
-    moved = _triangles_moved(v, tri, np.ascontiguousarray(off), np.array(mesh.period, float),
-                             origin, tv, ttri, np.ascontiguousarray(toff), period,
+    moved = _triangles_moved(v, tri, off, np.array(mesh.period, float),
+                             origin, tv, ttri, toff, period,
                              np.ascontiguousarray(pos, np.int64), u_rot.astype(np.int64),
                              t_rot.astype(np.int64))  # fmt: skip
     if unmatched:
@@ -223,6 +224,13 @@ def verify_returned_mesh(mesh):
     if moved:
         problems.append(f"{moved} triangles have corners off their torus triangle")
     return problems
+
+
+def _offsets(a):
+    """Offsets as given to ``_triangles_moved``: integers as ``as_offsets`` keeps them, any
+    others as float64 (a fraction of a period is a problem found, not rounded away)."""
+    a = np.asarray(a)
+    return as_offsets(a) if np.issubdtype(a.dtype, np.integer) else np.ascontiguousarray(a, float)
 
 
 @kernel(entry=True, lazy=True)
@@ -264,14 +272,15 @@ def _rotate(rows, r):
 
 def verify_triangulation(vertices, triangles, offsets, neighbours, period, workers=None):
     """Problems (a list of strings, empty if none) that stop (triangles, offsets, neighbours)
-    from being a Delaunay triangulation of the torus; also the realised corners, circumcenters
-    (wrapped into the domain) and circumradii. ``workers``: threads for the local checks
-    (None or -1: every core)."""
+    from being a Delaunay triangulation of the torus; also the triangles' signed areas, their
+    circumcentres (wrapped into the domain) and circumradii (``_circles``: no (t, 3, 2)
+    copy of the corners). ``workers``: threads for the local checks (None or -1: every
+    core)."""
     problems = []
     m, t = len(vertices), len(triangles)
-    tri = np.asarray(triangles)
-    off = np.asarray(offsets, np.int64)
-    nb = np.asarray(neighbours)
+    vertices = np.ascontiguousarray(vertices, np.float64)
+    period = np.ascontiguousarray(period, np.float64)
+    tri, off, nb = as_index(triangles), as_offsets(offsets), as_index(neighbours)
     if t != 2 * m:
         problems.append(f"{t} triangles for {m} vertices (a torus has F = 2V)")
     if m and (np.bincount(tri.ravel(), minlength=m) == 0).any():
@@ -279,49 +288,94 @@ def verify_triangulation(vertices, triangles, offsets, neighbours, period, worke
     if t and (nb.shape != tri.shape or nb.min() < 0 or nb.max() >= t):
         problems.append("neighbour links name triangles that do not exist")
         ccw_bad = not_delaunay = asymmetric = disagree = 0
+        linked = False
     else:
         ccw_bad, not_delaunay, asymmetric, disagree = _local_checks(vertices, tri, off, nb,
                                                                     period, workers)  # fmt: skip
+        linked = not asymmetric
     if asymmetric:
         problems.append(f"{asymmetric} neighbour links are not symmetric")
     if disagree:
         problems.append("neighbours disagree on the periodic offset of a shared edge")
-    key = _edge_keys(np.ascontiguousarray(tri, np.int64), np.ascontiguousarray(off))
+    # the edges: each side's key, or where the links are symmetric (each side meets one
+    # other, its twin) one key of each twin pair; a key met twice is one edge
+    key = _edge_keys(tri, off, nb, linked)
     label = row_classes(key, key[:, 0].copy(), max(m, 1))
     n_edges = int((label == np.arange(len(key))).sum())
+    del key, label
     if m - n_edges + t != 0:
         problems.append(f"Euler characteristic {m - n_edges + t} (a torus has 0)")
-    corners = vertices[tri] + off * period
-    area = triangle_areas(corners)
+    area, centres, radii = np.empty(t), np.empty((t, 2)), np.empty(t)
+    in_chunks(lambda a, b: _circles(vertices, tri, off, period, area, centres, radii, a, b), t,
+              threads=workers, least=16384)  # fmt: skip
     if abs(area.sum() - period.prod()) > 1e-9 * period.prod():
         problems.append("the triangles do not tile the torus (areas do not add up)")
-    cc, r = circumcircles(corners)
-    ccw = BoxMetric((0.0, 0.0, *period), (True, True)).frame(cc)
+    centres = BoxMetric((0.0, 0.0, *period), (True, True)).frame(centres)
     if ccw_bad:
         problems.append(f"{ccw_bad} triangles are not counter-clockwise")
     if not_delaunay:
         problems.append(f"{not_delaunay} edges are not locally Delaunay (a vertex inside a "
                         "circumcircle)")  # fmt: skip
-    return problems, corners, ccw, r
+    return problems, area, centres, radii
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _circles(vertices, tri, off, period, area, centres, radii, start, end):
+    """For the triangles [start, end): the signed area, circumcentre (not wrapped) and
+    circumradius of the corners vertices[tri] + off period, by ``mesh.triangle_areas``'
+    and ``mesh.circumcircles``' formulas, operation for operation."""
+    for f in range(start, end):
+        ax = vertices[tri[f, 0], 0] + off[f, 0, 0] * period[0]
+        ay = vertices[tri[f, 0], 1] + off[f, 0, 1] * period[1]
+        bx = (vertices[tri[f, 1], 0] + off[f, 1, 0] * period[0]) - ax
+        by = (vertices[tri[f, 1], 1] + off[f, 1, 1] * period[1]) - ay
+        cx = (vertices[tri[f, 2], 0] + off[f, 2, 0] * period[0]) - ax
+        cy = (vertices[tri[f, 2], 1] + off[f, 2, 1] * period[1]) - ay
+        area[f] = 0.5 * (bx * cy - by * cx)
+        d = 2.0 * (bx * cy - by * cx)
+        b2 = bx * bx + by * by
+        c2 = cx * cx + cy * cy
+        ux = (cy * b2 - by * c2) / d
+        uy = (bx * c2 - cx * b2) / d
+        centres[f, 0] = ax + ux
+        centres[f, 1] = ay + uy
+        radii[f] = math.hypot(ux, uy)
 
 
 @kernel(entry=True, lazy=True)
-def _edge_keys(tri, off):
-    """Each triangle's three edges as keys (lesser vertex, greater, the greater's offset
-    less the lesser's per axis), row 3 f + i for the edge opposite corner i of triangle f:
-    an edge shared by two triangles has one key."""
+def _edge_keys(tri, off, nb, linked):
+    """Each triangle side's key (lesser vertex, greater, the greater's offset less the
+    lesser's per axis), for the edge opposite corner i of triangle f: an edge shared by two
+    triangles has one key. Every side's, or where ``linked`` (each side's neighbour links
+    back to it once) only the first of each twin pair's (f before its neighbour, or the
+    lower side within one triangle): half the rows."""
     t = tri.shape[0]
-    key = np.empty((3 * t, 4), np.int64)
+    keep = np.ones(3 * t, np.bool_)
+    if linked:
+        for f in range(t):
+            for i in range(3):
+                n = nb[f, i]
+                if n < f:
+                    keep[3 * f + i] = False
+                elif n == f:
+                    a, b = tri[f, (i + 1) % 3], tri[f, (i + 2) % 3]
+                    for j in range(3):
+                        if nb[n, j] == f and tri[n, (j + 1) % 3] == b and tri[n, (j + 2) % 3] == a:
+                            keep[3 * f + i] = i < j
+    key = np.empty((keep.sum(), 4), np.int64)
+    r = 0
     for f in range(t):
         for i in range(3):
+            if not keep[3 * f + i]:
+                continue
             j, k = (i + 1) % 3, (i + 2) % 3
             a, b = tri[f, j], tri[f, k]
             d0, d1 = off[f, k, 0] - off[f, j, 0], off[f, k, 1] - off[f, j, 1]
-            r = 3 * f + i
             if a > b:
                 key[r, 0], key[r, 1], key[r, 2], key[r, 3] = b, a, -d0, -d1
             else:
                 key[r, 0], key[r, 1], key[r, 2], key[r, 3] = a, b, d0, d1
+            r += 1
     return key
 
 
@@ -376,9 +430,8 @@ def _local_checks(vertices, tri, off, nb, period, workers=None):
     orient = np.empty(t, np.int8)
     circle = np.empty((t, 3), np.int8)
     args = (
-        np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(tri, np.int64),
-        np.ascontiguousarray(off, np.int64), np.ascontiguousarray(nb, np.int64),
-        np.ascontiguousarray(period, np.float64), orient, circle,
+        np.ascontiguousarray(vertices, np.float64), as_index(tri), as_offsets(off),
+        as_index(nb), np.ascontiguousarray(period, np.float64), orient, circle,
     )  # fmt: skip
     parts = in_chunks(lambda a, b: _local_signs(*args, a, b), t, threads=workers, least=4096)
     asymmetric = sum(p[0] for p in parts)

@@ -350,8 +350,8 @@ class Geometry:
             return self._cells._replace(outradii=angle_to_chord(tri.outradii), walkable=walkable)
         t = np.ascontiguousarray(self.tri, np.int64)
         m = len(self.xyz)
-        first, nb, _ = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int64), m, self.workers)
-        edges = edge_vectors(self.xyz, first, nb, np.zeros((len(nb), 0), np.int64), np.zeros(3),
+        first, nb, _ = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int8), m, self.workers)
+        edges = edge_vectors(self.xyz, first, nb, np.zeros((len(nb), 0), np.int16), np.zeros(3),
                              self.workers)  # fmt: skip
         # the cell lies within its outradius (an angle) of the vertex: as a chord
         self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES, nb, np.zeros(3))
