@@ -352,6 +352,11 @@ class TorusGeometry:
         self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb, self.period)
         return self.cells(tri)
 
+    def release(self):
+        """Drop the Voronoi cells and the vertices' tree (``steps.Geometry.release``)."""
+        self._cells = None
+        self.__dict__.pop("vertex_tree", None)
+
     @cached_property
     def vertex_tree(self):
         """A periodic kd-tree over the torus' vertices (built only where asked: d_{M,2}
@@ -439,39 +444,46 @@ def walked_d_m2(cells, x, period, workers, tri, tree):
     where the triangulation failed its check or a walk did not settle."""
     if tri.problems or len(cells.sites) < 4:
         return tree().kth(x, 2)
-    out, _ = walked(cells, x, period, workers)
+    out, _ = walked(cells, x, period, workers, sites=False)
     lost = np.isnan(out)
     if lost.any():
         out[lost] = tree().kth(x[lost], 2)
     return out
 
 
-def walked(cells, x, period, workers):
-    """(d_{M,2} at each x, x's nearest site) from a verified Delaunay triangulation's
-    ``cells``, on every core: the walk to x's nearest site, from the nearest of the query
-    before along a Morton curve, moves to any nearer neighbour until none is (a Delaunay
-    vertex with no nearer neighbour is the nearest), and the second nearest is the nearest
-    of that site's neighbours. NaN and -1 where a walk did not settle."""
-    x = np.ascontiguousarray(x, np.float64)
+def walked(cells, x, period, workers, sites=True):
+    """(d_{M,2} at each x, x's nearest site or None where ``sites`` is False) from a
+    verified Delaunay triangulation's ``cells``, on every core: the walk to x's nearest
+    site, from the nearest of the query before along a Morton curve, moves to any nearer
+    neighbour until none is (a Delaunay vertex with no nearer neighbour is the nearest),
+    and the second nearest is the nearest of that site's neighbours. NaN and -1 where a
+    walk did not settle. The queries are walked WALK at a time along the curve, so that
+    what is held beside x is a few numbers a query."""
+    x = np.asarray(x, np.float64)
     order = spatial_order(x)
-    xs = np.ascontiguousarray(x[order])
-    res = np.empty(len(x))
-    site = np.empty(len(x), np.int64)
-    sites = np.ascontiguousarray(cells.sites, np.float64)
+    sites_ = np.ascontiguousarray(cells.sites, np.float64)
     edges = np.ascontiguousarray(cells.edges, np.float64)
     first = np.ascontiguousarray(cells.first, np.int64)
     neighbours = as_index(cells.neighbours)
     period = np.ascontiguousarray(period, np.float64)
-
-    def call(a, b):
-        _walk_d_m2(sites, first, edges, neighbours, period, xs, res, site, a, b)
-
-    in_chunks(call, len(x), threads=workers, least=512)
     out = np.empty(len(x))
-    out[order] = res
-    nearest = np.empty(len(x), np.int64)
-    nearest[order] = site
+    nearest = np.empty(len(x), np.int64) if sites else None
+    for start in range(0, len(x), WALK):
+        rows = order[start : start + WALK]
+        xs = np.ascontiguousarray(x[rows])
+        res, site = np.empty(len(rows)), np.empty(len(rows), np.int64)
+
+        def call(a, b, xs=xs, res=res, site=site):
+            _walk_d_m2(sites_, first, edges, neighbours, period, xs, res, site, a, b)
+
+        in_chunks(call, len(rows), threads=workers, least=512)
+        out[rows] = res
+        if sites:
+            nearest[rows] = site
     return out, nearest
+
+
+WALK = 1 << 18  # queries walked at once (``walked``)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -536,9 +548,10 @@ def edge_midpoints(cells):
     for a in range(e.shape[1]):
         positive |= ~decided & (e[:, a] > 0)
         decided |= e[:, a] != 0
-    at = np.cumsum(positive) - 1  # each positive row's place among them
+    index = np.int32 if len(e) < 2**31 else np.int64
+    at = np.cumsum(positive, dtype=index) - 1  # each positive row's place among them
     count = int(at[-1]) + 1 if len(at) else 0
-    mids, ends = np.empty((count, e.shape[1])), np.empty((count, 2), np.int64)
+    mids, ends = np.empty((count, e.shape[1])), np.empty((count, 2), index)
     _midpoints(np.ascontiguousarray(cells.sites, np.float64),
                np.ascontiguousarray(cells.first, np.int64),
                as_index(cells.neighbours), e, positive, at, mids,
@@ -586,35 +599,40 @@ SizeSample = namedtuple("SizeSample", ["kept", "w", "cells", "corners", "measure
 
 
 def gathered_probes(parts, inside, size, near=None, vertices=2):
-    """``steps.Probes`` from parts (x, whether input points, d_{M,2} known or NaN), the
-    first the size integral's samples, each kept where ``inside(x)``; ``size`` a
-    ``SizeSample`` whose ``corners`` are indices into the part ``vertices`` (the mesh's
+    """``steps.Probes`` from parts (x, whether input points, d_{M,2} known, or None: NaN,
+    asked), the first the size integral's samples, each kept where ``inside(x)``; ``size``
+    a ``SizeSample`` whose ``corners`` are indices into the part ``vertices`` (the mesh's
     vertices), returned as the rows of the probes kept. ``near``: {part: (other part,
     rows (count, r))}, the rows of the other part near each of that part's probes (an
     edge's midpoint: its two vertices); ``Probes.near`` holds those probes' indices once
     gathered (-1 where one was dropped, beyond a part's own r columns, and for the other
     parts); ``Probes.exact`` marks the first part and the part ``vertices``, whose d_{P,k}
-    the size integral reads."""
+    the size integral reads. Each part is copied once, into its place."""
     keep = [inside(p[0]) for p in parts]
-    x = np.concatenate([p[0][k] for p, k in zip(parts, keep, strict=True)])
-    mask = np.concatenate([np.full(int(k.sum()), p[1]) for p, k in zip(parts, keep, strict=True)])
-    d_m2 = np.concatenate([np.asarray(p[2], float)[k] for p, k in zip(parts, keep, strict=True)])
-    start = np.concatenate([[0], np.cumsum([int(k.sum()) for k in keep])])
+    kept = [int(k.sum()) for k in keep]
+    start = np.concatenate([[0], np.cumsum(kept)]).astype(np.int64)
+    total, dim = int(start[-1]), parts[0][0].shape[1]
+    x, mask, d_m2 = np.empty((total, dim)), np.zeros(total, bool), np.full(total, np.nan)
+    for i, (p, k) in enumerate(zip(parts, keep, strict=True)):
+        np.compress(k, p[0], axis=0, out=x[start[i] : start[i + 1]])
+        mask[start[i] : start[i + 1]] = p[1]
+        if p[2] is not None:
+            np.compress(k, np.asarray(p[2], float), out=d_m2[start[i] : start[i + 1]])
     index = []  # each part's rows -> their index among the probes kept (-1: dropped)
     for i, k in enumerate(keep):
-        at = np.full(len(k), -1, np.int32 if len(x) < 2**31 else np.int64)
-        at[k] = start[i] + np.arange(int(k.sum()))
+        at = np.full(len(k), -1, np.int32 if total < 2**31 else np.int64)
+        at[k] = start[i] + np.arange(kept[i])
         index.append(at)
     width = max((np.shape(rows)[1] for _, rows in (near or {}).values()), default=1)
-    gathered = [np.full((int(k.sum()), width), -1, index[0].dtype) for k in keep]
+    gathered = np.full((total, width), -1, index[0].dtype)
     for i, (j, rows) in (near or {}).items():
         rows = np.asarray(rows)
-        gathered[i][:, : rows.shape[1]] = index[j][rows][keep[i]]
+        gathered[start[i] : start[i + 1], : rows.shape[1]] = index[j][rows[keep[i]]]
     size = size._replace(kept=keep[0], corners=index[vertices][np.asarray(size.corners)])
-    exact = np.zeros(len(x), bool)  # what the size integral reads: its samples, the corners
-    exact[: int(keep[0].sum())] = True
+    exact = np.zeros(total, bool)  # what the size integral reads: its samples, the corners
+    exact[: kept[0]] = True
     exact[index[vertices][index[vertices] >= 0]] = True
-    return Probes(x, mask, d_m2, size, np.concatenate(gathered), exact)
+    return Probes(x, mask, d_m2, size, gathered, exact)
 
 
 SIZE_SHARE = 4  # the size integral reads one point in each of samples // SIZE_SHARE cells

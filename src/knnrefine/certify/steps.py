@@ -136,6 +136,11 @@ class Geometry(Protocol):
         """(d_{M,2} at x from the vertices returned, what is wrong with them); ``tri``
         says whether the triangulation may be walked (verified: no problems)."""
 
+    def release(self) -> None:
+        """Drop what only the steps up to d_{M,2} at the probes read (the Voronoi cells,
+        a tree of the vertices), so that d_{P,k}'s bounds at the probes are not held
+        beside them."""
+
     def separation(self, x: np.ndarray, rows: np.ndarray, refs: np.ndarray) -> np.ndarray:
         """Distances from x[rows] to x[refs] (refs (r, w); NaN where -1) in d_{P,k}'s
         metric."""
@@ -200,6 +205,9 @@ def run_checks(
     max_ball = exact(held[above_balls].max()) if above_balls.any() else exact(0)
     max_cell = exact(cells[above_cells].max()) if above_cells.any() else exact(0)
     precondition_ok, precondition_note = geometry.precondition(points, k, tau)
+    alpha, beta = geometry.constants(tri)
+    sites = geometry.floor_sites(tri.centres[floor_balls], voronoi.sites[floor_cells])
+    problems = tri.problems
     # the achieved constants at the probes where d_Pk >= the floor
     rng = random_generator(random_state)
     probes = geometry.probes(tri, points, samples, n_random, max_point_probes, rng)
@@ -212,6 +220,8 @@ def run_checks(
         ask = np.isnan(d_m2)
         d_m2[ask], late = geometry.returned_d_m2(probes.x[ask], tri)
         mesh_problems += late
+        del ask, tri, voronoi  # (what follows reads neither: not held beside its bounds)
+        geometry.release()
         d_pk, lo = bounded_d_pk(points, geometry, probes, d_m2, floor, k)
         at_points = d_pk[probes.points]
         under_floor = float(np.mean(at_points < floor)) if len(at_points) else 0.0
@@ -226,8 +236,6 @@ def run_checks(
         integral, stderr = geometry.size(probes, d_pk, points, rng)
     else:
         integral, stderr = 0.0, 0.0
-    alpha, beta = geometry.constants(tri)
-    sites = geometry.floor_sites(tri.centres[floor_balls], voronoi.sites[floor_cells])
     m = len(mesh.vertices)
     return Certificate(
         n=points.n,
@@ -237,8 +245,8 @@ def run_checks(
         periodic=tuple(mesh.periodic),
         box=tuple(mesh.box),
         min_size=mesh.min_size,
-        triangulation_ok=not tri.problems,
-        triangulation_problems=tri.problems,
+        triangulation_ok=not problems,
+        triangulation_problems=problems,
         max_aspect=max_aspect,
         max_cell_count=max_cell,
         max_ball_count=max_ball,

@@ -89,16 +89,15 @@ class Geometry(TorusGeometry):
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
-        unknown = np.full(len(uniform) + len(mids) + len(sampled) + len(inside), np.nan)
         s = len(chosen)
         return gathered_probes(
             [
-                (inside[:s], False, unknown[:s]),
-                (sampled, True, unknown[: len(sampled)]),
+                (inside[:s], False, None),
+                (sampled, True, None),
                 (self.vertices, False, self.vertex_d_m2()),
-                (self.frame(mids), False, unknown[: len(mids)]),
-                (uniform, False, unknown[: len(uniform)]),
-                (inside[s:], False, unknown[: len(dense)]),
+                (self.frame(mids), False, None),
+                (uniform, False, None),
+                (inside[s:], False, None),
             ],
             self.in_box,
             SizeSample(None, areas[chosen], chosen, self.mesh.torus.triangles, areas, t),
@@ -135,10 +134,10 @@ class Points:
         self.weighted = weights is not None
         self.n = len(pts)
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
-        self.points = self.input_frame(pts)
+        framed = self.input_frame(pts)  # (held by the tree's build only)
         heavy = None if weights is None else weights > 0
         # built beside the mesh's checks, which come first
-        self.tree = Tree(self.points if heavy is None else self.points[heavy],
+        self.tree = Tree(framed if heavy is None else framed[heavy],
                          None if heavy is None else weights[heavy], self.period,
                          workers, background=True)  # fmt: skip
 
@@ -160,9 +159,8 @@ class Points:
         return cell_counts(self.tree, cells, stop)
 
     def sample_points(self, count, rng):
-        """Up to ``count`` input points, drawn at random."""
-        P = self.points
-        return P if len(P) <= count else P[rng.choice(len(P), count, False)]
+        """Up to ``count`` input points (of positive weight), drawn at random."""
+        return self.tree.sample(count, rng)
 
 
 def verify_returned_mesh(mesh):

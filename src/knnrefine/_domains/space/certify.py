@@ -216,7 +216,7 @@ class Points:
         torus = mesh.torus
         self.origin = np.asarray(torus.origin, float)
         self.period = np.asarray(torus.period, float)
-        self.points = TorusFrame(self.origin, self.period)(pts)
+        framed = TorusFrame(self.origin, self.period)(pts)  # (held by the tree's build only)
         self.workers, self.k, self.n = workers, mesh.k, len(pts)
         self.weighted = weights is not None
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
@@ -224,7 +224,7 @@ class Points:
         self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
         heavy = None if weights is None else weights > 0
         # built beside the mesh's checks, which come first
-        self.tree = Tree(self.points if heavy is None else self.points[heavy],
+        self.tree = Tree(framed if heavy is None else framed[heavy],
                          None if heavy is None else weights[heavy], self.period,
                          workers, background=True)  # fmt: skip
 
@@ -247,9 +247,9 @@ class Points:
         return self.tree.kth(x, self.k, period=self.box_period)
 
     def sample_points(self, count, rng):
-        """Up to ``count`` input points (torus frame), drawn at random."""
-        P = self.points
-        return P if len(P) <= count else P[rng.choice(len(P), count, replace=False)]
+        """Up to ``count`` input points (of positive weight; torus frame), drawn at
+        random."""
+        return self.tree.sample(count, rng)
 
 
 def _same_rows(a, b):
@@ -444,16 +444,15 @@ class Geometry(TorusGeometry):
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 3)) * side
         free = ~np.array(self.mesh.periodic)
-        unknown = np.full(len(inside) + len(sampled) + m + len(mids) + len(uniform), np.nan)
         s = len(chosen)
         return gathered_probes(
             [
-                (inside[:s], False, unknown[:s]),
-                (sampled, True, unknown[: len(sampled)]),
-                (self.local, False, unknown[:m]),
-                (np.mod(mids, period), False, unknown[: len(mids)]),
-                (uniform, False, unknown[: len(uniform)]),
-                (inside[s:], False, unknown[: len(dense)]),
+                (inside[:s], False, None),
+                (sampled, True, None),
+                (self.local, False, None),
+                (np.mod(mids, period), False, None),
+                (uniform, False, None),
+                (inside[s:], False, None),
             ],
             lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
             SizeSample(None, volumes[chosen], chosen, self.corners, volumes, t),

@@ -233,7 +233,7 @@ class Points:
     kd-tree over the unit vectors (``_tree.Tree``; weighted, those of positive weight)."""
 
     def __init__(self, mesh, unit, weights, workers):
-        self.unit, self.workers, self.k = unit, workers, mesh.k
+        self.workers, self.k = workers, mesh.k
         self.n = len(unit)
         self.weighted = weights is not None
         self.total = self.n if weights is None else float(weights.sum())
@@ -272,9 +272,9 @@ class Points:
         return chord_to_angle(self.tree.kth(x, k))
 
     def sample_points(self, count, rng):
-        """Up to ``count`` of the points' unit vectors, drawn at random."""
-        take = rng.choice(self.n, min(self.n, int(count)), replace=False)
-        return self.unit[take]
+        """Up to ``count`` of the points' unit vectors (of positive weight), drawn at
+        random."""
+        return self.tree.sample(count, rng)
 
 
 def _spacing(vertices):
@@ -396,15 +396,14 @@ class Geometry:
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = _uniform_on_sphere(int(n_random), rng)
-        unknown = np.full(len(flat) + len(sampled) + len(mids) + len(uniform), np.nan)
         probes = gathered_probes(
             [
-                (y, False, unknown[:s]),
-                (sampled, True, unknown[: len(sampled)]),
+                (y, False, None),
+                (sampled, True, None),
                 (xyz, False, self.vertex_d_m2()),
-                (mids, False, unknown[: len(mids)]),
-                (uniform, False, unknown[: len(uniform)]),
-                (flat[s:], False, unknown[: len(dense)]),
+                (mids, False, None),
+                (uniform, False, None),
+                (flat[s:], False, None),
             ],
             lambda x: np.ones(len(x), bool),
             SizeSample(None, weights, chosen, tri_, solid, t),
@@ -418,6 +417,11 @@ class Geometry:
         )
         unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
         return probes._replace(x=unit)
+
+    def release(self):
+        """Drop the Voronoi cells and the vertices' tree (``steps.Geometry.release``)."""
+        self._cells = None
+        self.__dict__.pop("vtree", None)
 
     @cached_property
     def vtree(self):
