@@ -185,21 +185,27 @@ def test_neighbour_lists_keep_each_neighbour_once_sorted(threads, monkeypatch):
     rows deduplicated by stamps, then sorted) against sets: every (index, shift) once, in
     sorted order, the shift the neighbour's offset less the site's, on random cells of 2
     to 4 corners with repeated cells and vertices, offsets in 0 to 3 dimensions and sites
-    in no cell; with three threads each placing its own range of a few cells."""
+    in no cell; with three threads each placing its own range of a few cells. In int64 and
+    in the engine's int32 cells with int8 offsets (read as they are; their differences,
+    up to 254, in int16)."""
     from knnrefine.certify import _tree
     from knnrefine.certify._tree import neighbour_lists
 
     monkeypatch.setattr(_tree, "CELL_RANGE", 4)
     rng = np.random.default_rng(54)
-    for _ in range(200):
+    for trial in range(200):
         m, t, d = int(rng.integers(1, 30)), int(rng.integers(0, 80)), int(rng.integers(0, 4))
         c = int(rng.integers(2, 5))
         cells = rng.integers(0, m, (t, c))
         cells[t // 2 :] = cells[: t - t // 2]  # cells repeated
         off = np.ascontiguousarray(rng.integers(-1, 2, (t, c, d)))
+        if trial % 2:  # the engine's types, offsets at int8's ends
+            off[rng.random(off.shape) < 0.2] = 127
+            off[rng.random(off.shape) < 0.2] = -128
+            cells, off = cells.astype(np.int32), off.astype(np.int8)
         first, nb, sh = neighbour_lists(cells, off, m, threads)
         for v in range(m):
-            want = sorted({(int(cells[i, y]), *map(int, off[i, y] - off[i, x]))
+            want = sorted({(int(cells[i, y]), *map(int, off[i, y].astype(int) - off[i, x]))
                            for i in range(t) for x in range(c) for y in range(c)
                            if x != y and cells[i, x] == v})  # fmt: skip
             got = [(int(nb[i]), *map(int, sh[i])) for i in range(first[v], first[v + 1])]
@@ -297,7 +303,7 @@ def test_size_integral_with_its_control_variate_is_unbiased_and_its_error_honest
 
 
 @pytest.mark.parametrize("domain", ["plane", "plane-lattice", "plane-line", "space", "sphere"])
-def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
+def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain, monkeypatch):
     """Issue 52: d_{M,2} at the probes walked on the verified triangulation (to the nearest
     vertex by nearer neighbours, the second nearest among its neighbours) against every
     vertex by brute force: on the torus across its cut and at its vertices, on a lattice
@@ -308,8 +314,10 @@ def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain):
     from knnrefine._domains.plane import certify as plane
     from knnrefine._domains.space import certify as space
     from knnrefine._domains.sphere import certify as sphere
+    from knnrefine.certify import common
     from knnrefine.certify.common import nearest_site
 
+    monkeypatch.setattr(common, "WALK", 700)  # walked in chunks along the curve
     rng = np.random.default_rng(23)
     if domain == "sphere":
         lon, lat = rng.uniform(-180, 180, 4000), rng.normal(60, 20, 4000).clip(-90, 90)
@@ -692,3 +700,83 @@ def test_separations_equal_numpys_in_every_metric():
     want = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))
     assert np.allclose(got[~np.isnan(got)], want, rtol=1e-13, atol=1e-15)
     assert np.isnan(got[0, 1]) and abs(got[0, 0] - np.pi) < 1e-12 and got[1, 0] == 0.0
+
+
+def test_plane_circles_and_areas_equal_numpys_on_the_engines_types():
+    """``verify_triangulation`` reads the engine's int32 triangles and neighbours and int8
+    offsets as they are (no int64 copies) and computes areas, circumcentres and radii in
+    one kernel without a corners copy: the same values bit for bit as ``mesh``'s numpy
+    formulas on the gathered corners, and the same answers from int64 copies."""
+    import knnrefine
+    from knnrefine._domains.plane.certify import verify_triangulation
+    from knnrefine._metric import BoxMetric
+    from knnrefine.mesh import circumcircles, triangle_areas
+
+    rng = np.random.default_rng(31)
+    pts = np.mod(rng.normal(0.5, 0.2, (5000, 2)), 1.0)
+    t = knnrefine.refine(pts, 5, periodic=True, box=(0, 0, 1, 1)).torus
+    assert t.triangles.dtype == np.int32 and t.offsets.dtype == np.int8
+    period = np.asarray(t.period, float)
+    got = verify_triangulation(t.vertices, t.triangles, t.offsets, t.neighbours, period)
+    wide = verify_triangulation(t.vertices, t.triangles.astype(np.int64),
+                                t.offsets.astype(np.int64), t.neighbours.astype(np.int64),
+                                period)  # fmt: skip
+    assert got[0] == wide[0] == []
+    corners = t.vertices[t.triangles] + t.offsets * period
+    centres, radii = circumcircles(corners)
+    np.testing.assert_array_equal(got[1], triangle_areas(corners))
+    np.testing.assert_array_equal(got[2], BoxMetric((0, 0, *period), (True, True)).frame(centres))
+    np.testing.assert_array_equal(got[3], radii)
+    for a, b in zip(got[1:], wide[1:], strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_edge_keys_one_of_each_twin_pair():
+    """Where the neighbour links are symmetric, ``_edge_keys`` keeps one side of each twin
+    pair: half the rows, and the same edges (keys) as every side's. A triangle whose
+    sides are all repeated in another (a doubled triangle) leaves the links asymmetric,
+    so every side is keyed and its keys are met twice."""
+    import knnrefine
+    from knnrefine._domains.plane.certify import _edge_keys, verify_triangulation
+    from knnrefine.certify._rows import row_classes
+
+    rng = np.random.default_rng(32)
+    t = knnrefine.refine(rng.random((3000, 2)), 5, periodic=True, box=(0, 0, 1, 1)).torus
+    tri, off, nb = t.triangles, t.offsets, t.neighbours
+
+    def edges(key):
+        return {tuple(r) for r in key}, int((row_classes(key, key[:, 0].copy(), len(t.vertices))
+                                            == np.arange(len(key))).sum())  # fmt: skip
+
+    every, half = _edge_keys(tri, off, nb, False), _edge_keys(tri, off, nb, True)
+    assert len(half) * 2 == len(every) == 3 * len(tri)
+    assert edges(half) == (edges(every)[0], len(half))
+    # a doubled triangle: its copy's links are not returned (so every side is keyed), its
+    # sides' keys are met twice, and the triangulation fails
+    doubled = np.concatenate([tri, tri[:1]]), np.concatenate([off, off[:1]])
+    links = np.concatenate([nb, nb[:1]])
+    keys = _edge_keys(*doubled, links, False)
+    assert edges(keys)[1] == len(half)
+    problems = verify_triangulation(t.vertices, *doubled, links, np.asarray(t.period, float))[0]
+    assert any("not symmetric" in p for p in problems), problems
+
+
+def test_uniform_in_triangles_by_cells_equals_a_gathered_copy():
+    """``mesh.uniform_in_triangles`` with the cells each point lies in gives, bit for bit,
+    what it gives on the gathered corners (and the folded numbers): the certificate's and
+    the density's samples need no (s, 3, d) copy. Every point lies in its triangle."""
+    from knnrefine.mesh import uniform_in_triangles
+
+    rng = np.random.default_rng(34)
+    for d in (2, 3):
+        corners = rng.normal(size=(50, 3, d))
+        cells = rng.integers(0, 50, 400)
+        u = rng.random((400, 2))
+        x, folded = uniform_in_triangles(corners, u, cells)
+        y, folded2 = uniform_in_triangles(corners[cells], u)
+        np.testing.assert_array_equal(x, y)
+        np.testing.assert_array_equal(folded, folded2)
+        assert np.all(folded.sum(axis=1) <= 1.0) and np.all(folded >= 0)
+        a = corners[cells, 0]
+        back = a + folded[:, :1] * (corners[cells, 1] - a) + folded[:, 1:] * (corners[cells, 2] - a)
+        np.testing.assert_allclose(x, back, rtol=0, atol=1e-12)

@@ -205,6 +205,94 @@ def test_slab_answers_in_space_equal_one_tree():
         store.close()
 
 
+def test_input_point_probes_are_the_same_in_one_process_and_in_strips():
+    """The input points certify probes (up to 2 m, drawn by ``_sampling``'s keys) are the
+    same in one process and over strips or slabs, in the same order, so that an extreme
+    attained at an input point is found on both paths. (A wrong mesh's beta_hat lies at
+    an input point; the paths drew their points apart, and agreed by chance until issue
+    52 drew the one-process sample from the tree: test_a_wrong_mesh_fails_the_same_strip_
+    by_strip failed.)"""
+    from knnrefine._domains.plane.certify import Points as PlanePoints
+    from knnrefine._domains.space.certify import Points as SpacePoints
+    from knnrefine.scale.checks import TiledSpacePoints
+
+    rng = np.random.default_rng(6)
+    pts = gaussian_clusters(6000, 6)
+    mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
+    one = PlanePoints(mesh, pts, None, -1)
+    _, tiled, store = _tori(mesh, pts, 3)
+    try:
+        for count in (100, 2 * len(mesh.vertices), 10**6):
+            a, b = one.sample_points(count, rng), tiled.sample_points(count, rng)
+            np.testing.assert_array_equal(a, b)
+            assert 0.5 * min(count, len(pts)) < len(a) <= len(pts)
+    finally:
+        store.close()
+    pts3 = gaussian_clusters(3000, 7, dim=3)
+    mesh3 = knnrefine.refine(pts3, 10, periodic=(False, True, False), box=BOX3)
+    store = LocalStore(pts3, None, 3)
+    try:
+        tiled3 = TiledSpacePoints(mesh3, store, 3, -1)
+        one3 = SpacePoints(mesh3, pts3, None, -1)
+        np.testing.assert_array_equal(
+            one3.sample_points(1000, rng), tiled3.sample_points(1000, rng)
+        )
+    finally:
+        store.close()
+
+
+def test_bound_counts_in_space_are_in_the_box_metric():
+    """Issue 52's bug: the Lipschitz bounds' ball counts (``Points.fewer``) were asked in the
+    torus' metric while d_{P,k} is in the box's own; on a torus shorter than twice the box
+    (the embedding's margin from a bound on d_Pk) balls near a face reached points across
+    it, so a count could settle a probe that might be an extreme. Balls about the faces
+    along the non-periodic axes, in one process (both modes) and over slabs, against the
+    box metric's brute force; the torus' metric decides some of them otherwise."""
+    from knnrefine._domains.space.certify import Points as SpacePoints
+    from knnrefine.scale.checks import TiledSpacePoints
+
+    pts = gaussian_clusters(4000, 4, clusters=25, dim=3)
+    w = np.random.default_rng(1).integers(1, 4, len(pts)).astype(float)
+    mesh = knnrefine.refine(pts, 30, periodic=(False, True, False), box=BOX3, weights=w)
+    one = SpacePoints(mesh, pts, w, -1)
+    assert one.period[2] < 2.0
+    rng = np.random.default_rng(11)
+    x = rng.random((400, 3))
+    x[:, 2] = rng.choice([0.01, 0.99], len(x))  # beside the faces z = 0 and z = 1
+    x[:100, 0] = rng.choice([0.01, 0.99], 100)  # and x = 0, x = 1
+    centres = one.metric.frame(x)
+    framed = one.metric.frame(pts)
+
+    def distances(period):
+        g = centres[:, None, :] - framed[None, :, :]
+        g -= np.where(period > 0, period, 1.0) * np.rint(g / np.where(period > 0, period, np.inf))
+        return np.sqrt((g**2).sum(-1))
+
+    radii = rng.uniform(0.3, 0.9, len(x))
+    box = (w * (distances(one.box_period) <= radii[:, None])).sum(axis=1)
+    torus = (w * (distances(one.period) <= radii[:, None])).sum(axis=1)
+    assert (torus > box).sum() > 50  # balls reaching across a face on the torus
+    # per ball: k just above its count in the box's metric (fewer; on the torus, not
+    # always), or at it (not fewer in either)
+    k = box + np.where(rng.random(len(x)) < 0.7, 1.0, 0.0)
+    want = box < k
+    assert want.sum() > 200 and (~want).sum() > 50
+    assert ((torus < k) != want).sum() > 30  # the torus' metric would decide these wrongly
+
+    def fewer(questions, **kw):
+        return np.array([questions.fewer(centres[i : i + 1], radii[i : i + 1], k[i], **kw)[0]
+                         for i in range(len(k))])  # fmt: skip
+
+    for mostly in (True, False):
+        np.testing.assert_array_equal(fewer(one, mostly=mostly), want)
+    store = LocalStore(pts, w, 3)
+    try:
+        tiled = TiledSpacePoints(mesh, store, 3, -1)
+        np.testing.assert_array_equal(fewer(tiled), want)
+    finally:
+        store.close()
+
+
 @pytest.mark.slow
 def test_certify_in_space_with_workers_equals_certify(pool):
     """workers > 1 in space: the same certificate as one process, field by field; a mesh of

@@ -148,7 +148,7 @@ def test_split_strips_holds_every_point_of_each_padded_strip():
 def test_sample_is_the_same_however_the_points_are_split():
     """sample_keys depends on a point's coordinates only: the sample of a shuffled, split
     input is the same set, and about the requested fraction."""
-    from knnrefine.scale.tiled import canonical, sample_keys
+    from knnrefine._sampling import canonical, sample_keys
 
     rng = np.random.default_rng(5)
     xy = rng.random((40000, 2))

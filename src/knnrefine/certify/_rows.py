@@ -43,8 +43,8 @@ def row_classes(rows, group, m):
     row order): equal rows share it. ``group`` (n,) in [0, m): equal rows have equal groups
     (a vertex of the row, say); only rows of a group are compared, the groups on every
     core."""
-    rows = np.ascontiguousarray(rows, np.int64)
-    start, order = grouped(np.ascontiguousarray(group, np.int64), m)
+    rows = as_index(rows)
+    start, order = grouped(as_index(group), m)
     hashes = np.empty(len(rows), np.uint64)
     label = np.arange(len(rows))
 

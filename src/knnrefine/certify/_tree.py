@@ -1627,13 +1627,6 @@ class Tree:
     depth = property(lambda self: self._parts()[3], doc="the tree's depth")
     grid = property(lambda self: self._parts()[4], doc="the grid of its Morton runs")
 
-    def sample(self, count, rng):
-        """Up to ``count`` of the tree's points, drawn at random (without replacement)."""
-        pts = self.pts[: self.n]  # (none: no points, not the far node's)
-        if len(pts) <= count:
-            return pts
-        return pts[np.sort(rng.choice(len(pts), int(count), replace=False))]
-
     def _queries(self, x):
         return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)
 

@@ -373,7 +373,8 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
         rest = rest[~pick[rest]]
         if len(rest) == 0:
             continue
-        low, ratio_lo, ratio_hi = lo[rest], *ratios(rest)
+        low = lo[rest]
+        ratio_lo, ratio_hi = ratios(rest)
         under = hi[rest] < floor  # below the floor: no probe
         below = (low >= floor) & (ratio_hi < beta)  # d_pk above floor and d_m2 / beta
         above = ratio_lo > alpha  # d_pk below d_m2 / alpha

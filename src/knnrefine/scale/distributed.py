@@ -26,9 +26,10 @@ import numpy as np
 
 from .. import _validation as V
 from .._options import RunOptions
+from .._sampling import canonical, sample_keys
 from ..errors import InputError
 from .parts import check_output, write_partitioned
-from .tiled import canonical, refine_store, run_tile, sample_keys, split_strips, tile_index
+from .tiled import refine_store, run_tile, split_strips, tile_index
 
 if TYPE_CHECKING:  # the annotations' types only
     from ..certify.certificate import Certificate

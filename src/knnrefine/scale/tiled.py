@@ -45,8 +45,8 @@ from .._engine.interrupt import Interrupts
 from .._engine.jit import kernel
 from .._engine.region import in_rectangle
 from .._engine.region3 import in_box3
-from .._engine.threads import in_chunks
 from .._options import Progress, vertex_budget
+from .._sampling import canonical, sample_keys
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
 
@@ -55,47 +55,6 @@ COARSE_SHARE = 8  # the coarse pass refines 1 / (COARSE_SHARE * tiles) of the po
 COARSE_MAX = 2_000_000  # ... but no more than this many (it runs in the calling process)
 SAMPLE_MIN = 100_000  # the plan's sample (strips, initial mesh, size) has at least this many
 STRIP_SAMPLE = 200_000  # points of the sample the strips are cut by, about
-
-
-@kernel(inline="always")
-def _mix(z):
-    """SplitMix64's finaliser: a bijection of 64-bit words that scatters every input bit."""
-    z = z + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
-
-
-NEG_ZERO = np.uint64(1 << 63)  # -0.0's bits: keyed as 0.0's
-
-
-@kernel(entry=True, nogil=True)
-def _keys(bits, out, start, stop):
-    d = bits.shape[1]
-    for i in range(start, stop):
-        b = bits[i, d - 1]
-        h = _mix(np.uint64(0) if b == NEG_ZERO else b)
-        for a in range(d - 2, -1, -1):
-            b = bits[i, a]
-            h = _mix((np.uint64(0) if b == NEG_ZERO else b) ^ h)
-        out[i] = np.float64(h >> np.uint64(11)) * 1.1102230246251565e-16  # 2^-53
-
-
-def sample_keys(xy):
-    """A key in [0, 1) for each point (n, d) that depends only on its coordinates (0.0 and
-    -0.0 alike): the points with key < f are a sample of about f n, the same one however
-    the points are split or ordered."""
-    bits = np.ascontiguousarray(xy, dtype=np.float64).view(np.uint64)
-    out = np.empty(len(bits))
-    in_chunks(lambda a, b: _keys(bits, out, a, b), len(bits), least=65536, per_thread=1)
-    return out
-
-
-def canonical(xy, weights, keys):
-    """The sample in an order that depends only on its points: by key, then x, then y
-    (then z)."""
-    order = np.lexsort((*(xy[:, a] for a in reversed(range(xy.shape[1]))), keys))
-    return xy[order], None if weights is None else weights[order], keys[order]
 
 
 MIN_GAP = 0.25  # the two sets' cuts, interleaved, are at least this share of an even spacing

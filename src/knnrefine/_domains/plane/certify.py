@@ -20,6 +20,7 @@ import numpy as np
 from ..._engine.jit import kernel
 from ..._engine.threads import in_chunks
 from ..._metric import BoxMetric, TorusFrame
+from ..._sampling import key_sample
 from ...certify._predicates import UNSURE, exact_sign, incircle, orient2d
 from ...certify._rows import as_index, as_offsets, row_classes
 from ...certify._tree import Tree
@@ -134,6 +135,7 @@ class Points:
         self.weighted = weights is not None
         self.n = len(pts)
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
+        self.source = pts  # (the caller's: not a copy)
         framed = self.input_frame(pts)  # (held by the tree's build only)
         heavy = None if weights is None else weights > 0
         # built beside the mesh's checks, which come first
@@ -159,8 +161,9 @@ class Points:
         return cell_counts(self.tree, cells, stop)
 
     def sample_points(self, count, rng):
-        """Up to ``count`` input points (of positive weight), drawn at random."""
-        return self.tree.sample(count, rng)
+        """About ``count`` input points, the same on every path (``_sampling``: those
+        whose key is below count / n, as ``scale.checks``' strips draw them)."""
+        return self.input_frame(key_sample(self.source, min(1.0, count / max(self.n, 1))))
 
 
 def verify_returned_mesh(mesh):

@@ -27,8 +27,9 @@ import numpy as np
 from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..._engine.threads import in_chunks
 from ..._metric import BoxMetric, TorusFrame
+from ..._sampling import key_sample
 from ...certify._predicates import UNSURE, exact_sign, insphere, orient3d
-from ...certify._rows import class_sizes, row_classes
+from ...certify._rows import as_index, as_offsets, class_sizes, row_classes
 from ...certify._tree import Tree
 from ...certify.common import (
     SizeSample,
@@ -102,11 +103,15 @@ def _neighbours(corners, offsets):
     """The tetrahedron across each face, from face keys (sorted vertices and their offsets
     relative to each other); None unless every face is shared by exactly two."""
     t = len(corners)
-    corners = np.ascontiguousarray(corners, np.int64)
-    offsets = np.ascontiguousarray(offsets, np.int64)
-    rows = np.empty((4 * t, 12), np.int64)
+    corners, offsets = as_index(corners), as_offsets(offsets)
+    m = int(corners.max(initial=0)) + 1
+    spread = int((offsets.max(axis=1) - offsets.min(axis=1)).max(initial=0)) if t else 0
+    # a key packed in three numbers where each relative offset fits 3 bits (every mesh
+    # refine makes): (v0, v1, v2 2^27 + the nine offsets); else written out in twelve
+    packed = spread <= 7 and m < 2**36
+    rows = np.empty((4 * t, 3 if packed else 12), np.int64)
     in_chunks(lambda a, b: _face_rows(corners, offsets, rows, a, b), t, least=8192)
-    label = row_classes(rows, rows[:, 0], int(corners.max(initial=0)) + 1)
+    label = row_classes(rows, rows[:, 0].copy(), m)
     size, first = class_sizes(label)
     # every face exactly twice: each class of equal keys a pair
     if len(rows) % 2 or (size != 2).any():
@@ -122,7 +127,8 @@ def _neighbours(corners, offsets):
 def _face_rows(corners, offsets, rows, start, end):
     """Rows i * t + c, c in [start, end): the key of face i of tetrahedron c (the face
     opposite corner i): its three vertices sorted (by vertex, then offset), then their
-    offsets relative to the least along each axis (3 x 3)."""
+    offsets relative to the least along each axis (3 x 3); with three columns, packed
+    (v0, v1, v2 2^27 + each offset times 8^(3 j + a))."""
     t = corners.shape[0]
     v = np.empty(3, np.int64)
     o = np.empty((3, 3), np.int64)
@@ -156,6 +162,13 @@ def _face_rows(corners, offsets, rows, start, end):
                         o[b, a], o[b - 1, a] = o[b - 1, a], o[b, a]
                     b -= 1
             r = i * t + c
+            if rows.shape[1] == 3:
+                key = v[2] << 27
+                for j in range(3):
+                    for a in range(3):
+                        key |= o[j, a] << (3 * (3 * j + a))
+                rows[r, 0], rows[r, 1], rows[r, 2] = v[0], v[1], key
+                continue
             for j in range(3):
                 rows[r, j] = v[j]
                 for a in range(3):
@@ -216,7 +229,8 @@ class Points:
         torus = mesh.torus
         self.origin = np.asarray(torus.origin, float)
         self.period = np.asarray(torus.period, float)
-        framed = TorusFrame(self.origin, self.period)(pts)  # (held by the tree's build only)
+        self.source, self.input_frame = pts, TorusFrame(self.origin, self.period)
+        framed = self.input_frame(pts)  # (held by the tree's build only)
         self.workers, self.k, self.n = workers, mesh.k, len(pts)
         self.weighted = weights is not None
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
@@ -247,9 +261,10 @@ class Points:
         return self.tree.kth(x, self.k, period=self.box_period)
 
     def sample_points(self, count, rng):
-        """Up to ``count`` input points (of positive weight; torus frame), drawn at
-        random."""
-        return self.tree.sample(count, rng)
+        """About ``count`` input points (torus frame), the same on every path
+        (``_sampling``: those whose key is below count / n, as ``scale.checks``' slabs draw
+        them)."""
+        return self.input_frame(key_sample(self.source, min(1.0, count / max(self.n, 1))))
 
 
 def _same_rows(a, b):
@@ -397,20 +412,19 @@ class Geometry(TorusGeometry):
         self.metric = BoxMetric((*self.origin, *(self.origin + self.period)), mesh.periodic)
         self.local = self.vertices
         self.corners = torus.cells
-        self.offsets = torus.offsets.astype(np.int64)
+        self.offsets = as_offsets(torus.offsets)
         self.pk_period = np.where(mesh.periodic, self.period, 0.0)  # the box's own metric
 
     def triangulation(self):
         """Faces paired, orientation, local Delaunay, volume; circumballs (centres wrapped
-        into the torus), R(v); ``extra``: the tetrahedra's corners."""
+        into the torus), R(v); ``extra``: the tetrahedra's volumes."""
         local, corners, offsets, period = self.local, self.corners, self.offsets, self.period
         neighbours = _neighbours(corners, offsets)
         bad_o = bad_d = -1
         if neighbours is not None:
-            bad_o, bad_d = _exact_faces(local, corners.astype(np.int64), offsets, neighbours,
-                                        period, self.workers)  # fmt: skip
-        c = local[corners] + offsets * period
-        centres, r2, det = _circumspheres(c, self.workers)
+            bad_o, bad_d = _exact_faces(local, as_index(corners), offsets, neighbours, period,
+                                        self.workers)  # fmt: skip
+        centres, r2, det = _circumspheres(local[corners] + offsets * period, self.workers)
         volume = np.abs(det).sum() / 6.0 / np.prod(period)
         problems = []
         if neighbours is None:
@@ -423,7 +437,9 @@ class Geometry(TorusGeometry):
             problems.append(f"the volumes add up to {volume:.12g} tori")
         outer = np.zeros(len(local))
         np.maximum.at(outer, corners.ravel(), np.repeat(r2, 4))
-        return Triangulation(problems, np.mod(centres, period), np.sqrt(r2), np.sqrt(outer), c)
+        volumes = np.abs(det) / 6.0
+        return Triangulation(problems, np.mod(centres, period), np.sqrt(r2), np.sqrt(outer),
+                             volumes)  # fmt: skip
 
     def returned_problems(self):
         return verify_returned_mesh3(self.mesh)
@@ -433,13 +449,14 @@ class Geometry(TorusGeometry):
         in the cells (``common.size_sample``: ``samples`` of them, at least one in each
         cell sampled), up to min(``max_point_probes``, 2 m) input points and ``n_random``
         uniform points of the domain (``steps.Probes``: why these)."""
-        c, period = tri.extra, self.period
-        t, m = len(c), len(self.local)
+        volumes, period = tri.extra, self.period
+        t, m = len(volumes), len(self.local)
         chosen, dense = size_sample(t, samples, rng)
         side = np.array(self.mesh.box[3:]) - np.array(self.mesh.box[:3])
-        inside = np.mod(_tetrahedron_samples(c[np.concatenate([chosen, dense])], 1, rng), period)
-        e = c[:, 1:] - c[:, :1]
-        volumes = np.abs(np.einsum("ij,ij->i", e[:, 0], np.cross(e[:, 1], e[:, 2]))) / 6.0
+        cells = np.concatenate([chosen, dense])
+        c = self.local[self.corners[cells]] + self.offsets[cells] * period
+        inside = np.mod(_tetrahedron_samples(c, 1, rng), period)
+        del c
         mids, ends = edge_midpoints(self.cells(tri))
         sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
         uniform = self.lo + rng.random((int(n_random), 3)) * side

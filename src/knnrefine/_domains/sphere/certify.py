@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from ..._engine.jit import kernel  # numba's njit(cache=True), also on read-only installs
 from ..._metric import angle_to_chord, chord_to_angle, lonlat_of
+from ..._sampling import key_sample
 from ..._validation import as_sphere_points, check_made_from, weights_of_run
 from ...certify._predicates import UNSURE, exact_sign, orient3d_at
 from ...certify._rows import grouped
@@ -233,7 +234,7 @@ class Points:
     kd-tree over the unit vectors (``_tree.Tree``; weighted, those of positive weight)."""
 
     def __init__(self, mesh, unit, weights, workers):
-        self.workers, self.k = workers, mesh.k
+        self.source, self.workers, self.k = unit, workers, mesh.k  # (the caller's)
         self.n = len(unit)
         self.weighted = weights is not None
         self.total = self.n if weights is None else float(weights.sum())
@@ -272,9 +273,9 @@ class Points:
         return chord_to_angle(self.tree.kth(x, k))
 
     def sample_points(self, count, rng):
-        """Up to ``count`` of the points' unit vectors (of positive weight), drawn at
-        random."""
-        return self.tree.sample(count, rng)
+        """About ``count`` of the points' unit vectors, the same whatever their order
+        (``_sampling``: those whose key is below count / n)."""
+        return key_sample(self.source, min(1.0, count / max(self.n, 1)))
 
 
 def _spacing(vertices):
