@@ -46,7 +46,9 @@ def row_classes(rows, group, m):
     rows = as_index(rows)
     start, order = grouped(as_index(group), m)
     hashes = np.empty(len(rows), np.uint64)
-    label = np.arange(len(rows))
+    if len(rows) >= 2**31:
+        raise ValueError("row_classes: at most 2^31 - 1 rows")
+    label = np.arange(len(rows), dtype=np.int32)
 
     def call(a, b):
         _label_groups(rows, start, order, hashes, label, a, b)
@@ -65,7 +67,7 @@ def grouped(group, m):
     for v in range(m):
         start[v + 1] += start[v]
     place = start[:m].copy()
-    order = np.empty(n, np.int64)
+    order = np.empty(n, np.int32)  # (rows < 2^31: a table of 2^31 rows holds 16 GB at least)
     for i in range(n):
         order[place[group[i]]] = i
         place[group[i]] += 1
@@ -112,6 +114,6 @@ def _label_groups(rows, start, order, hashes, label, v0, v1):
 
 def class_sizes(label):
     """(each row's class size, whether each row is the first of its class)."""
-    first = label == np.arange(len(label))
-    sizes = np.bincount(label, minlength=len(label))
+    first = label == np.arange(len(label), dtype=label.dtype)
+    sizes = np.bincount(label, minlength=len(label)).astype(label.dtype, copy=False)
     return sizes[label], first

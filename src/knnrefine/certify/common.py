@@ -16,7 +16,7 @@ from .._engine.threads import in_chunks
 from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
-from ._rows import as_index, class_sizes, row_classes
+from ._rows import as_index, as_offsets, class_sizes, row_classes
 from ._tree import Tree, edge_vectors, neighbour_lists, offset, spatial_order, walk_nearest
 from .certificate import floor_sites, to_input
 from .steps import Cells, Probes
@@ -136,14 +136,17 @@ def check_cells_tile(mesh):
     if broken:
         return [broken]
     v = np.asarray(mesh.vertices, float)
-    cells = np.asarray(mesh.cells, np.int64)
+    cells = as_index(mesh.cells)
     dim = v.shape[1]
     nc = dim + 1
     per = np.array(mesh.periodic, bool)
     period = np.where(per, np.asarray(mesh.box[dim:], float) - np.asarray(mesh.box[:dim]), 0.0)
-    off = np.zeros(cells.shape + (dim,), np.int64)
+    off = np.zeros(cells.shape + (dim,), np.int8)
     if mesh.offsets is not None:  # offsets along non-periodic axes mean nothing
-        off = np.where(per, np.asarray(mesh.offsets, np.int64), 0)
+        given = np.asarray(mesh.offsets)
+        off = as_offsets(
+            np.where(per, given if given.dtype == np.int8 else given.astype(np.int64), 0)
+        )
     problems = []
     # a cell, and each of its facets: its corners' codes (vertex and offset relative to the
     # least, in one integer: CODE_BASE values per axis) sorted
@@ -156,9 +159,10 @@ def check_cells_tile(mesh):
     repeats = int((label != np.arange(len(keys))).sum())
     if repeats:
         problems.append(f"{repeats} cells are listed more than once")
-    rows = np.concatenate(
-        [_corner_codes(cells, off, [j for j in range(nc) if j != i])[0] for i in range(nc)]
-    )
+    t = len(cells)
+    rows = np.empty((nc * t, dim), np.int64)  # facet i of cell c at row i * t + c
+    for i in range(nc):
+        rows[i * t : (i + 1) * t] = _corner_codes(cells, off, [j for j in range(nc) if j != i])[0]
     size, first = class_sizes(row_classes(rows, rows[:, 0] >> (shift * dim), m))
     if (first & (size > 2)).any():
         problems.append(
@@ -166,7 +170,6 @@ def check_cells_tile(mesh):
         )
     single = np.flatnonzero(size == 1)  # flat index: facet i of cell c at i * t + c
     if len(single):
-        t = len(cells)
         cell, i = single % t, single // t
         other = np.array([[j for j in range(nc) if j != ii] for ii in range(nc)])[i]
         corners = v[cells[cell[:, None], other]] + off[cell[:, None], other] * period
@@ -192,8 +195,8 @@ def _corner_codes(cells, off, corners):
     """(the ``corners`` of each cell as sorted integer codes, vertex * CODE_BASE^d + its
     offset relative to the least of them, digit by axis; how many cells spread their
     offsets over CODE_BASE periods or more: no code for those)."""
-    return _codes(np.ascontiguousarray(cells, np.int64), np.ascontiguousarray(off, np.int64),
-                  np.asarray(list(corners), np.int64), CODE_BASE)  # fmt: skip
+    return _codes(as_index(cells), as_offsets(off), np.asarray(list(corners), np.int64),
+                  CODE_BASE)  # fmt: skip
 
 
 @kernel(entry=True, lazy=True)

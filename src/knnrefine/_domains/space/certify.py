@@ -310,11 +310,11 @@ def verify_returned_mesh3(mesh):
     broken = cell_array_problem(mesh)
     if broken:
         return problems + [broken]
-    tet = np.asarray(mesh.cells, np.int64)
+    tet = as_index(mesh.cells)
     zeros = np.zeros(tet.shape + (3,), np.int8)
     offsets = zeros if mesh.offsets is None else np.ascontiguousarray(mesh.offsets)
-    ids = order[tet]
-    ttet = np.asarray(torus.cells, np.int64)
+    ids = as_index(order.astype(np.int32) if len(tl) < 2**31 else order)[tet]
+    ttet = as_index(torus.cells)
     toffsets = np.ascontiguousarray(torus.offsets)
     if ids.shape == ttet.shape and np.array_equal(ids, ttet):
         # the torus' tetrahedra, row for row, corners in the same order (a torus returned
