@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "knnrefine"
 LAYERS = [
     ["errors.py", "data/"],
     ["_engine/"],
-    ["_metric.py"],
+    ["_metric.py", "_sampling.py"],
     ["_validation.py"],
     ["_options.py", "mesh.py"],
     ["_domains/__init__.py", "_domains/box.py"],
