@@ -216,9 +216,13 @@ def run_checks(
     alpha_at = beta_at = geometry.no_position
     n_probes, under_floor = 0, 0.0
     if points.total >= k:
-        d_m2 = np.array(probes.d_m2, float)
-        ask = np.isnan(d_m2)
-        d_m2[ask], late = geometry.returned_d_m2(probes.x[ask], tri)
+        d_m2 = probes.d_m2  # (the probes' own, filled in place)
+        ask = np.flatnonzero(np.isnan(d_m2))
+        late: list = []
+        for start in range(0, len(ask), CHUNK):  # a chunk at a time: no copy of every x
+            rows = ask[start : start + CHUNK]
+            d_m2[rows], found = geometry.returned_d_m2(probes.x[rows], tri)
+            late += [p for p in found if p not in late]
         mesh_problems += late
         del ask, tri, voronoi  # (what follows reads neither: not held beside its bounds)
         geometry.release()

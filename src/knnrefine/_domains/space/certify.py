@@ -21,6 +21,7 @@ d_{P,k} >= min_size.
 """
 
 import math
+from functools import cached_property
 
 import numpy as np
 
@@ -485,19 +486,12 @@ class Geometry(TorusGeometry):
     def returned_d_m2(self, x, tri):
         """d_{M,2} at x from the returned vertices in the box's own metric, and a problem
         when it differs from the torus mesh's (a copy near the box missing)."""
-        returned = np.asarray(self.mesh.vertices, float)
-        coordinates = (returned.ndim == 2 and returned.shape[1] == 3
-                       and np.isfinite(returned).all())  # fmt: skip
-        if not coordinates:  # not coordinates at all (a failed check already): the torus'
-            returned = self.local
-        else:
-            returned = self.metric.frame(returned)  # relative to the origin, periodic wrapped
-        box_period = np.where(self.mesh.periodic, self.period, 0.0)
-        if len(returned) < 2:
+        coordinates, tree = self._returned
+        if tree is None:
+            if coordinates:
+                return self.torus_d_m2(x, tri), []  # the torus' own vertices and metric
             return np.full(len(x), np.inf), []
-        if coordinates and np.all(self.mesh.periodic) and _same_rows(returned, self.local):
-            return self.torus_d_m2(x, tri), []  # the torus' own vertices and metric
-        dm2 = Tree(returned, None, box_period, self.workers).kth(x, 2)
+        dm2 = tree.kth(x, 2)
         problems = []
         if coordinates:  # the copies near the box hold its two nearest
             on_torus = self.torus_d_m2(x, tri)
@@ -508,6 +502,30 @@ class Geometry(TorusGeometry):
                     "d_M2 from the returned vertices differs from the torus mesh's in the box"
                 )
         return dm2, problems
+
+    @cached_property
+    def _returned(self):
+        """(whether the returned vertices are finite (m, 3) coordinates, a kd-tree over
+        them, relative to the origin with periodic axes wrapped, in the box's own metric;
+        None where there are fewer than two, or, with the first True, where they are the
+        torus' own on a torus: d_{M,2} is the torus mesh's)."""
+        returned = np.asarray(self.mesh.vertices, float)
+        coordinates = (returned.ndim == 2 and returned.shape[1] == 3
+                       and np.isfinite(returned).all())  # fmt: skip
+        if not coordinates:  # not coordinates at all (a failed check already): the torus'
+            returned = self.local
+        else:
+            returned = self.metric.frame(returned)  # relative to the origin, periodic wrapped
+        if len(returned) < 2:
+            return False, None
+        if coordinates and np.all(self.mesh.periodic) and _same_rows(returned, self.local):
+            return True, None
+        box_period = np.where(self.mesh.periodic, self.period, 0.0)
+        return coordinates, Tree(returned, None, box_period, self.workers)
+
+    def release(self):
+        super().release()
+        self.__dict__.pop("_returned", None)
 
     def size(self, probes, d_pk, points, rng):
         """The integral of 1 / d_{P,k}^3 over the box (d_{P,k} clipped at min_size) and its
