@@ -30,7 +30,7 @@ class BoxMetric:
     def frame(self, x):
         """Coordinates relative to the box's lower corner, periodic axes wrapped into
         [0, period) by the engine's one wrapping rule (accurate whatever the magnitude)."""
-        x = np.array(x, float).reshape(-1, self.dim)
+        x = np.asarray(x, float).reshape(-1, self.dim)  # (read only: no copy made)
         out = x - self.lo
         for a in range(self.dim):
             if self.periodic[a]:

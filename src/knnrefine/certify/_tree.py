@@ -71,7 +71,7 @@ def _build(pts, w, leaf, unit):
     by ``_split_sorted``."""
     d = pts.shape[1]
     bits = TREE_BITS if d == 2 else TREE_BITS3
-    code, order, lo, scale = _morton_sorted(pts, bits)
+    code, order, lo, scale = morton_sorted(pts, bits)
     p, ww, T, depth = _split_sorted(pts, w, code, order, leaf, unit)
     finite = bool(np.isfinite(T[0, 4:]).all())  # (no points: one far away, no grid)
     box = T[0, 4 : 4 + d], T[0, 4 + d :]
@@ -103,8 +103,11 @@ def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
     step = np.divide(1.0, scale, out=np.zeros(d), where=scale > 0)
     margin = 2.0 * step + 8.0 * np.finfo(float).eps * (np.abs(lo) + np.abs(pmin) + np.abs(pmax))
     prefix = np.zeros((2, 1)) if unit else _prefix_sums(w)
-    norm2 = np.einsum("ij,ij->i", p, p)  # the points' squared distances from the origin
-    radial = np.array([norm2.min() * (1.0 - 1e-9), norm2.max() * (1.0 + 1e-9)])
+    low, high = np.inf, -np.inf  # the points' squared distances from the origin
+    for a in range(0, n, 1 << 16):  # (a chunk at a time: no n-long copy)
+        norm2 = np.einsum("ij,ij->i", p[a : a + (1 << 16)], p[a : a + (1 << 16)])
+        low, high = min(low, float(norm2.min())), max(high, float(norm2.max()))
+    radial = np.array([low * (1.0 - 1e-9), high * (1.0 + 1e-9)])
     return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin, prefix, radial)
 
 
@@ -1823,10 +1826,18 @@ def _spread3(v):
     return v
 
 
+def morton_sorted(x, bits):
+    """``_morton_sorted``: the order int32 where it can be (n < 2^31), half the memory."""
+    n = len(x)
+    order = np.arange(n, dtype=np.int32 if n < 2**31 else np.int64)
+    return _morton_sorted(x, bits, order, np.empty_like(order))
+
+
 @kernel(entry=True, lazy=True, nogil=True)
-def _morton_sorted(x, bits):
+def _morton_sorted(x, bits, order, order2):
     """(the Morton codes of the rows of x (n, 2 or 3) over their finite bounding box,
-    sorted; the order that sorts them; the frame: each axis's origin and scale): each
+    sorted; the order that sorts them (``order``, 0 to n - 1 on entry, or its buffer
+    ``order2``); the frame: each axis's origin and scale): each
     coordinate less the box's least, scaled to an integer of ``bits`` bits (a coordinate
     not finite as the least), interleaved, and the codes sorted by a radix sort of 8-bit
     digits (their counts all taken in one pass; a digit the same in every code skipped)."""
@@ -1859,9 +1870,7 @@ def _morton_sorted(x, bits):
         code[i] = c
         for g in range(digits):
             count[g, ((c >> np.uint64(8 * g)) & np.uint64(0xFF)) + 1] += 1
-    order = np.arange(n)
     keys2 = np.empty(n, np.uint64)
-    order2 = np.empty(n, np.int64)
     for g in range(digits):
         if count[g].max() == n:  # one digit for every code: nothing moves
             continue
@@ -1888,7 +1897,7 @@ def spatial_order(x):
         return np.arange(len(x))
     if x.shape[1] not in (2, 3):
         return np.arange(len(x))
-    return _morton_sorted(x, 31 if x.shape[1] == 2 else 21)[1]
+    return morton_sorted(x, 31 if x.shape[1] == 2 else 21)[1]
 
 
 def edge_vectors(sites, first, nb, shift, period, threads=None):
