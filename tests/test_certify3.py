@@ -118,7 +118,7 @@ def test_certify3_honours_samples_and_weights():
         knnrefine.certify(mesh, pts, weights=np.ones(len(pts)))
 
 
-def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
+def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case, monkeypatch):
     """The faces of the torus mesh pair up (each shared by exactly two tetrahedra), found by
     matching the face keys (``_rows.row_classes``: grouped by a vertex, compared by a hash
     then in full; ``np.unique(axis=0)`` is its oracle here); a tetrahedron dropped or
@@ -147,6 +147,29 @@ def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case):
     assert space._neighbours(corners[1:], offsets[1:]) is None
     doubled = np.concatenate([corners, corners[:1]])
     assert space._neighbours(doubled, np.concatenate([offsets, offsets[:1]])) is None
+    # the keys packed in three numbers (every refined mesh) and written out in twelve (a
+    # spread of offsets too wide to pack) pair the same faces, with the engine's int8 too
+    wide = space.PACK_SPREAD
+    monkeypatch.setattr(space, "PACK_SPREAD", -1)
+    np.testing.assert_array_equal(space._neighbours(corners, offsets), got)
+    assert space._neighbours(corners[1:], offsets[1:]) is None
+    monkeypatch.setattr(space, "PACK_SPREAD", wide)
+    np.testing.assert_array_equal(space._neighbours(corners, mesh.torus.offsets), got)
+    # the far corner across a face (placed by the face's own offsets, for the exact test):
+    # the tetrahedron across, so placed, holds the face's three corners and it
+    period = np.asarray(mesh.torus.period, float)
+    local = np.asarray(mesh.torus.vertices, float)
+    for c in range(0, t, max(t // 50, 1)):
+        for i in range(4):
+            far = space._far_corner(local, corners, offsets, got, period, c, i)
+            placed = local[corners[c]] + offsets[c] * period
+            n = got[c, i]
+            shared = [j for j in range(4) if j != i][0]
+            m = [j for j in range(4) if corners[n, j] == corners[c, shared]][-1]
+            moved = local[corners[n]] + (offsets[n] + offsets[c, shared] - offsets[n, m]) * period
+            rows = {tuple(r) for r in moved}
+            assert all(tuple(placed[j]) in rows for j in range(4) if j != i)
+            assert tuple(far) in rows and tuple(far) not in {tuple(r) for r in placed}
 
 
 def test_a_floor_site_in_a_space_box_is_not_a_missing_copy():

@@ -283,7 +283,7 @@ def test_a_heavy_point_does_not_swallow_light_ones_in_space():
     torus = mesh.torus
     period = np.array(torus.period)
     local = np.mod(pts - np.array(torus.origin), period)
-    centres, r2, _ = _circumspheres(torus.vertices[torus.cells] + torus.offsets * period)
+    centres, r2, _ = _circumspheres(torus.vertices, torus.cells, torus.offsets, period)
     found = cKDTree(local, boxsize=period).query_ball_point(np.mod(centres, period), np.sqrt(r2))
     assert max(math.fsum(w[i]) for i in found) < k
     # the heavy point with 8 light ones around it does hold k: some ball about it was split

@@ -51,11 +51,11 @@ from ...certify.steps import Triangulation
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far, start, end):
+def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, start, end):
     """For tetrahedra t in [start, end): orient[t], the sign of orient3d of its corners
     (UNSURE where the filter cannot tell); sphere[t, i], that of insphere of its corners
     and the far corner of the tetrahedron across face i, placed by the face's own offsets
-    (written to far[t, i])."""
+    (``_far_corner``, the same arithmetic)."""
     pts = np.empty((5, 3))
     for t in range(start, end):
         for i in range(4):
@@ -75,8 +75,19 @@ def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, fa
             for a in range(3):
                 s = offsets[t, (i + 1) % 4, a] - offsets[n, ia, a]
                 pts[4, a] = local[corners[n, jj], a] + (offsets[n, jj, a] + s) * period[a]
-                far[t, i, a] = pts[4, a]
             sphere[t, i] = insphere(pts, 0, 1, 2, 3, 4)
+
+
+def _far_corner(local, corners, offsets, neighbours, period, t, i):
+    """The corner of the tetrahedron across face i of tetrahedron t opposite that face,
+    placed by the face's own offsets (as ``_local_signs`` places it, for the exact
+    test where its filter cannot tell)."""
+    n = neighbours[t, i]
+    shared = corners[t, (i + 1) % 4]
+    ia = max((m for m in range(4) if corners[n, m] == shared), default=0)
+    jj = max((m for m in range(4) if neighbours[n, m] == t), default=0)
+    s = offsets[t, (i + 1) % 4].astype(np.int64) - offsets[n, ia]
+    return local[corners[n, jj]] + (offsets[n, jj] + s) * period
 
 
 def _exact_faces(local, corners, offsets, neighbours, period, workers=None):
@@ -86,18 +97,21 @@ def _exact_faces(local, corners, offsets, neighbours, period, workers=None):
     t = len(corners)
     orient = np.empty(t, np.int8)
     sphere = np.empty((t, 4), np.int8)
-    far = np.empty((t, 4, 3))
 
     def call(a, b):
-        _local_signs(local, corners, offsets, neighbours, period, orient, sphere, far, a, b)
+        _local_signs(local, corners, offsets, neighbours, period, orient, sphere, a, b)
 
     in_chunks(call, t, threads=workers, least=4096)
     at = lambda c: local[corners[c]] + offsets[c] * period  # noqa: E731
     for c in np.flatnonzero(orient == UNSURE):
         orient[c] = exact_sign("orient3d", at(c))
     for c, i in zip(*np.nonzero(sphere == UNSURE), strict=True):
-        sphere[c, i] = exact_sign("insphere", np.vstack([at(c), far[c, i]]))
+        far = _far_corner(local, corners, offsets, neighbours, period, c, i)
+        sphere[c, i] = exact_sign("insphere", np.vstack([at(c), far]))
     return int((orient <= 0).sum()), int((sphere > 0).sum())
+
+
+PACK_SPREAD = 7  # a face key is packed where no tetrahedron's offsets spread further
 
 
 def _neighbours(corners, offsets):
@@ -109,7 +123,7 @@ def _neighbours(corners, offsets):
     spread = int((offsets.max(axis=1) - offsets.min(axis=1)).max(initial=0)) if t else 0
     # a key packed in three numbers where each relative offset fits 3 bits (every mesh
     # refine makes): (v0, v1, v2 2^27 + the nine offsets); else written out in twelve
-    packed = spread <= 7 and m < 2**36
+    packed = spread <= PACK_SPREAD and m < 2**36
     rows = np.empty((4 * t, 3 if packed else 12), np.int64)
     in_chunks(lambda a, b: _face_rows(corners, offsets, rows, a, b), t, least=8192)
     label = row_classes(rows, rows[:, 0].copy(), m)
@@ -176,19 +190,25 @@ def _face_rows(corners, offsets, rows, start, end):
                     rows[r, 3 + 3 * j + a] = o[j, a]
 
 
-def _circumspheres(c, workers=None):
-    """(centres (t, 3), squared radii, signed volumes times 6) of the tetrahedra with
-    corners c (t, 4, 3), on every core (``_spheres``)."""
-    c = np.ascontiguousarray(c, np.float64)
-    t = len(c)
+def _circumspheres(local, cells, offsets, period, workers=None):
+    """(centres (t, 3), squared radii, signed volumes times 6) of the tetrahedra whose
+    corners are local[cells] + offsets period, on every core (``_spheres``: the corners
+    read where they are, no (t, 4, 3) copy)."""
+    local = np.ascontiguousarray(local, np.float64)
+    cells, offsets = as_index(cells), as_offsets(offsets)
+    period = np.ascontiguousarray(period, np.float64)
+    t = len(cells)
     centres, r2, det = np.empty((t, 3)), np.empty(t), np.empty(t)
-    in_chunks(lambda a, b: _spheres(c, centres, r2, det, a, b), t, threads=workers,
-              least=8192)  # fmt: skip
+
+    def call(a, b):
+        _spheres(local, cells, offsets, period, centres, r2, det, a, b)
+
+    in_chunks(call, t, threads=workers, least=8192)
     return centres, r2, det
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _spheres(c, centres, r2, det, start, end):
+def _spheres(local, cells, offsets, period, centres, r2, det, start, end):
     """``_circumspheres`` for tetrahedra [start, end): with m0, m1, m2 the edges from corner
     0 and h_i = |m_i|^2 / 2, the centre less corner 0 solves m u = h, u = (h0 m1 x m2 +
     h1 m2 x m0 + h2 m0 x m1) / det (Cramer's rule: no LAPACK call per tetrahedron);
@@ -196,10 +216,14 @@ def _spheres(c, centres, r2, det, start, end):
     m = np.empty((3, 3))
     x = np.empty((3, 3))  # x[i]: the cross product of the two other edges
     h = np.empty(3)
+    c = np.empty((4, 3))  # the corners
     for t in range(start, end):
+        for i in range(4):
+            for a in range(3):
+                c[i, a] = local[cells[t, i], a] + offsets[t, i, a] * period[a]
         for i in range(3):
             for a in range(3):
-                m[i, a] = c[t, i + 1, a] - c[t, 0, a]
+                m[i, a] = c[i + 1, a] - c[0, a]
             h[i] = 0.5 * (m[i, 0] * m[i, 0] + m[i, 1] * m[i, 1] + m[i, 2] * m[i, 2])
         for i in range(3):
             j, k = (i + 1) % 3, (i + 2) % 3
@@ -211,7 +235,7 @@ def _spheres(c, centres, r2, det, start, end):
         s = 0.0
         for a in range(3):
             u = (h[0] * x[0, a] + h[1] * x[1, a] + h[2] * x[2, a]) / d
-            centres[t, a] = c[t, 0, a] + u
+            centres[t, a] = c[0, a] + u
             s += u * u
         r2[t] = s
 
@@ -425,7 +449,7 @@ class Geometry(TorusGeometry):
         if neighbours is not None:
             bad_o, bad_d = _exact_faces(local, as_index(corners), offsets, neighbours, period,
                                         self.workers)  # fmt: skip
-        centres, r2, det = _circumspheres(local[corners] + offsets * period, self.workers)
+        centres, r2, det = _circumspheres(local, corners, offsets, period, self.workers)
         volume = np.abs(det).sum() / 6.0 / np.prod(period)
         problems = []
         if neighbours is None:
@@ -468,7 +492,7 @@ class Geometry(TorusGeometry):
                 (inside[:s], False, None),
                 (sampled, True, None),
                 (self.local, False, None),
-                (np.mod(mids, period), False, None),
+                (np.mod(mids, period, out=mids), False, None),
                 (uniform, False, None),
                 (inside[s:], False, None),
             ],
