@@ -4,11 +4,12 @@
     python benchmarks/certify_speed.py --repeats 5 --cases plane-uniform-k10 sphere-k100
     python benchmarks/certify_speed.py --quick          # sizes / 10, for a smoke run
 
-Each case: points drawn once (seeded), one warm-up refine + certify (kernels compiled and
-loaded), then ``repeats`` rounds of refine then certify of that mesh, alternating, in this
-process; the table gives the medians, the ratio certify / refine, each one's working memory
-(the peak resident memory above what the process held when the call began, after the heap
-was trimmed: ``bench_refine``'s measure; Linux), and certify's probes. The
+Each case runs in a process of its own (so that what one case left in the heap does not
+move the next one's memory figures): points drawn once (seeded), one warm-up refine +
+certify (kernels compiled and loaded), then ``repeats`` rounds of refine then certify of
+that mesh, alternating; the table gives the medians, the ratio certify / refine, each one's
+working memory (the peak resident memory above what the process held when the call began,
+after the heap was trimmed: ``bench_refine``'s measure; Linux), and certify's probes. The
 earthquakes (``../shared/data``, on the sphere) run when the file is there and are skipped
 otherwise. Times move 30% run to run on a shared 2-core machine; the ratio is the figure.
 """
@@ -16,6 +17,7 @@ otherwise. Times move 30% run to run on a shared 2-core machine; the ratio is th
 import argparse
 import os
 import statistics
+import subprocess
 import sys
 import time
 import warnings
@@ -81,39 +83,51 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--cases", nargs="*", help="names to run (default: all)")
     ap.add_argument("--quick", action="store_true", help="sizes / 10")
+    ap.add_argument("--one", help=argparse.SUPPRESS)  # (the case a child process runs)
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")  # k = 1's floor warning: expected, and said here
-    print(f"machine: {os.cpu_count()} cores; medians of {args.repeats}, warm, one process\n")
+    scale = 0.1 if args.quick else 1.0
+    if args.one:
+        _run_case(args.one, *cases(scale)[args.one], args.repeats)
+        return
+    print(f"machine: {os.cpu_count()} cores; medians of {args.repeats}, warm, a process a case\n")
     print("| case | n | m | refine | certify | certify / refine | memory: refine, certify "
           "| probes | passed |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
-    for name, (pts, run, check) in cases(0.1 if args.quick else 1.0).items():
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|", flush=True)
+    for name in cases(scale):
         if args.cases and name not in args.cases:
             continue
+        child = [sys.executable, os.path.abspath(__file__), "--one", name,
+                 "--repeats", str(args.repeats)] + (["--quick"] if args.quick else [])  # fmt: skip
+        subprocess.run(child, check=True)
+
+
+def _run_case(name, pts, run, check, repeats):
+    """One case's row of the table, in this process."""
+    mesh = knnrefine.refine(pts, **run)
+    knnrefine.certify(mesh, pts, **check)  # warm: kernels compiled and loaded
+    refine_t, certify_t, refine_mb, certify_mb = [], [], [], []
+    for _ in range(repeats):
+        mesh = None
+        _trim()
+        base = _status_mb("VmRSS")
+        reset_peak()
+        t0 = time.perf_counter()
         mesh = knnrefine.refine(pts, **run)
-        knnrefine.certify(mesh, pts, **check)  # warm: kernels compiled and loaded
-        refine_t, certify_t, refine_mb, certify_mb = [], [], [], []
-        for _ in range(args.repeats):
-            mesh = None
-            _trim()
-            base = _status_mb("VmRSS")
-            reset_peak()
-            t0 = time.perf_counter()
-            mesh = knnrefine.refine(pts, **run)
-            refine_t.append(time.perf_counter() - t0)
-            refine_mb.append(_status_mb("VmHWM") - base)
-            _trim()
-            base = _status_mb("VmRSS")
-            reset_peak()
-            t0 = time.perf_counter()
-            cert = knnrefine.certify(mesh, pts, **check)
-            certify_t.append(time.perf_counter() - t0)
-            certify_mb.append(_status_mb("VmHWM") - base)
-        r, c = statistics.median(refine_t), statistics.median(certify_t)
-        rm, cm = statistics.median(refine_mb), statistics.median(certify_mb)
-        print(f"| {name} | {len(pts):,} | {len(mesh.vertices):,} | {r:.2f} s | {c:.2f} s | "
-              f"{c / r:.1f} | {rm:.0f}, {cm:.0f} MiB | {cert.n_probes:,} | {cert.passed} |",
-              flush=True)  # fmt: skip
+        refine_t.append(time.perf_counter() - t0)
+        refine_mb.append(_status_mb("VmHWM") - base)
+        _trim()
+        base = _status_mb("VmRSS")
+        reset_peak()
+        t0 = time.perf_counter()
+        cert = knnrefine.certify(mesh, pts, **check)
+        certify_t.append(time.perf_counter() - t0)
+        certify_mb.append(_status_mb("VmHWM") - base)
+    r, c = statistics.median(refine_t), statistics.median(certify_t)
+    rm, cm = statistics.median(refine_mb), statistics.median(certify_mb)
+    print(f"| {name} | {len(pts):,} | {len(mesh.vertices):,} | {r:.2f} s | {c:.2f} s | "
+          f"{c / r:.1f} | {rm:.0f}, {cm:.0f} MiB | {cert.n_probes:,} | {cert.passed} |",
+          flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":
