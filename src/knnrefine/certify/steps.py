@@ -208,6 +208,10 @@ def run_checks(
     alpha, beta = geometry.constants(tri)
     sites = geometry.floor_sites(tri.centres[floor_balls], voronoi.sites[floor_cells])
     problems = tri.problems
+    n_floor_balls, n_floor_cells = int(floor_balls.sum()), int(floor_cells.sum())
+    # what follows reads neither the circumballs nor the counts: not held beside the probes
+    tri = tri._replace(centres=None, radii=None)
+    del held, cells, floor_balls, floor_cells, above_balls, above_cells
     # the achieved constants at the probes where d_Pk >= the floor
     rng = random_generator(random_state)
     probes = geometry.probes(tri, points, samples, n_random, max_point_probes, rng)
@@ -264,8 +268,8 @@ def run_checks(
         size_integral=integral,
         size_integral_stderr=stderr,
         size_ratio=m / integral if integral > 0 else nan,
-        floor_circumballs=int(floor_balls.sum()),
-        floor_cells=int(floor_cells.sum()),
+        floor_circumballs=n_floor_balls,
+        floor_cells=n_floor_cells,
         floor_sites=sites,
         under_floor=under_floor,
         mesh_problems=mesh_problems,
