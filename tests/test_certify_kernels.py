@@ -763,8 +763,9 @@ def test_edge_keys_one_of_each_twin_pair():
 
 def test_uniform_in_triangles_by_cells_equals_a_gathered_copy():
     """``mesh.uniform_in_triangles`` with the cells each point lies in gives, bit for bit,
-    what it gives on the gathered corners (and the folded numbers): the certificate's and
-    the density's samples need no (s, 3, d) copy. Every point lies in its triangle."""
+    what it gives on the gathered corners (and the folded numbers), and so does it given
+    (vertices, triangles): the certificate's and the density's samples need no (s, 3, d)
+    copy. Every point lies in its triangle."""
     from knnrefine.mesh import uniform_in_triangles
 
     rng = np.random.default_rng(34)
@@ -776,6 +777,13 @@ def test_uniform_in_triangles_by_cells_equals_a_gathered_copy():
         y, folded2 = uniform_in_triangles(corners[cells], u)
         np.testing.assert_array_equal(x, y)
         np.testing.assert_array_equal(folded, folded2)
+        vertices = corners.reshape(-1, d)  # as (vertices, triangles), read where they are
+        for triangles in (
+            np.arange(150).reshape(50, 3),
+            np.arange(150, dtype=np.int32).reshape(50, 3),
+        ):
+            z, _ = uniform_in_triangles((vertices, triangles), u, cells)
+            np.testing.assert_array_equal(x, z)
         assert np.all(folded.sum(axis=1) <= 1.0) and np.all(folded >= 0)
         a = corners[cells, 0]
         back = a + folded[:, :1] * (corners[cells, 1] - a) + folded[:, 1:] * (corners[cells, 2] - a)

@@ -161,6 +161,14 @@ def test_sample_is_the_same_however_the_points_are_split():
     np.testing.assert_array_equal(a, b[0])
     assert abs(len(a) / len(xy) - 0.1) < 0.01
     assert sample_keys(np.array([[0.0, 1.0]]))[0] == sample_keys(np.array([[-0.0, 1.0]]))[0]
+    # the order: by key (then by the coordinates where keys tie: repeated points), as a
+    # lexsort of all gives it, with ties or without
+    sel = xy[keys < 0.1]
+    np.testing.assert_array_equal(a, sel[np.lexsort((sel[:, 1], sel[:, 0], keys[keys < 0.1]))])
+    dup = np.concatenate([xy[:50], xy[:50][::-1] + 0.0, rng.random((20, 2)), xy[:3]])
+    k = sample_keys(dup)
+    np.testing.assert_array_equal(canonical(dup, None, k)[0],
+                                  dup[np.lexsort((dup[:, 1], dup[:, 0], k))])  # fmt: skip
 
 
 def test_margin_bands_hold_no_point_and_settle_the_margin():

@@ -46,8 +46,11 @@ def sample_keys(xy):
 
 def canonical(xy, weights, keys):
     """The sample in an order that depends only on its points: by key, then x, then y
-    (then z)."""
-    order = np.lexsort((*(xy[:, a] for a in reversed(range(xy.shape[1]))), keys))
+    (then z) where keys tie (by the key alone where none do: the same order, faster)."""
+    order = np.argsort(keys, kind="stable")
+    ordered = keys[order]
+    if len(ordered) > 1 and (ordered[1:] == ordered[:-1]).any():
+        order = np.lexsort((*(xy[:, a] for a in reversed(range(xy.shape[1]))), keys))
     return xy[order], None if weights is None else weights[order], keys[order]
 
 

@@ -803,19 +803,30 @@ def triangle_areas(corners):
 def uniform_in_triangles(corners, u, cells=None):
     """Points uniform in triangles from numbers u (s, 2) uniform in the unit square, folded
     onto each triangle along the square's diagonal: corner 0 + u0 (corner 1 - corner 0) +
-    u1 (corner 2 - corner 0). ``corners`` (t, 3, d); point i lies in triangle ``cells[i]``
+    u1 (corner 2 - corner 0). ``corners`` (t, 3, d), or a pair (vertices (m, d), triangles
+    (t, 3)) whose corners are read where they are; point i lies in triangle ``cells[i]``
     (default: i), in one pass of a kernel (no (s, 3, d) copy of the corners). Returns
     (points (s, d), the folded u)."""
-    corners = np.ascontiguousarray(corners, np.float64)
+    if isinstance(corners, tuple):
+        vertices, triangles = corners
+        vertices = np.ascontiguousarray(vertices, np.float64)
+        triangles = np.asarray(triangles)
+        triangles = np.ascontiguousarray(
+            triangles, np.int32 if triangles.dtype == np.int32 else np.int64
+        )
+    else:
+        corners = np.ascontiguousarray(corners, np.float64)
+        vertices = corners.reshape(-1, corners.shape[-1])
+        triangles = np.arange(len(vertices)).reshape(-1, 3)
     u = np.array(u, dtype=np.float64, order="C").reshape(-1, 2)
     cells = np.zeros(0, np.int64) if cells is None else np.ascontiguousarray(cells, np.int64)
-    out = np.empty((len(u), corners.shape[-1]))
-    _in_triangles(corners, cells, u, out)
+    out = np.empty((len(u), vertices.shape[-1]))
+    _in_triangles(vertices, triangles, cells, u, out)
     return out, u
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _in_triangles(corners, cells, u, out):
+def _in_triangles(vertices, triangles, cells, u, out):
     """``uniform_in_triangles``' points into ``out``, u folded in place (``cells`` empty:
     point i in triangle i)."""
     for i in range(u.shape[0]):
@@ -823,6 +834,7 @@ def _in_triangles(corners, cells, u, out):
             u[i, 0], u[i, 1] = 1.0 - u[i, 0], 1.0 - u[i, 1]
         u0, u1 = u[i, 0], u[i, 1]
         t = cells[i] if cells.shape[0] else i
+        p0, p1, p2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         for a in range(out.shape[1]):
-            c0 = corners[t, 0, a]
-            out[i, a] = c0 + u0 * (corners[t, 1, a] - c0) + u1 * (corners[t, 2, a] - c0)
+            c0 = vertices[p0, a]
+            out[i, a] = c0 + u0 * (vertices[p1, a] - c0) + u1 * (vertices[p2, a] - c0)

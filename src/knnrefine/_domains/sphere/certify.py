@@ -379,7 +379,7 @@ class Geometry:
         t, m = len(tri_), len(xyz)
         chosen, dense = size_sample(t, samples, rng)
         cells = np.concatenate([chosen, dense])
-        flat, _ = uniform_in_triangles(xyz[tri_[cells]], rng.random((len(cells), 2)))  # flat
+        flat, _ = uniform_in_triangles((xyz, tri_), rng.random((len(cells), 2)), cells)  # flat
         # seen from the centre, the flat triangle's area element dA is the sphere's
         # h / |y|^3 dA (h: the plane's distance from the centre)
         s = len(chosen)
@@ -416,8 +416,8 @@ class Geometry:
                 5: (2, tri_[dense]),
             },
         )
-        unit = probes.x / np.linalg.norm(probes.x, axis=1, keepdims=True)
-        return probes._replace(x=unit)
+        np.divide(probes.x, np.linalg.norm(probes.x, axis=1, keepdims=True), out=probes.x)
+        return probes
 
     def release(self):
         """Drop the Voronoi cells and the vertices' tree (``steps.Geometry.release``)."""
