@@ -145,7 +145,7 @@ def _split_sorted(pts, w, code, order, leaf, unit):
         j = order[i]
         for a in range(d):
             p[i, a] = pts[j, a]
-        ww[i] = w[j]
+        ww[i] = 1.0 if unit else w[j]  # (unit: w is not read, and may be a placeholder)
     cap = 2 * (n // max(leaf, 1)) + 64
     node = np.empty((cap, 3), np.int64)
     level = np.zeros(cap, np.int64)
@@ -1605,7 +1605,8 @@ class Tree:
         self.period = (np.zeros(self.dim) if period is None
                        else np.ascontiguousarray(period, dtype=np.float64))  # fmt: skip
         self.threads = threads
-        w = np.ones(self.n) if weights is None else np.ascontiguousarray(weights, np.float64)
+        # unweighted: every point weighs 1, and the build writes the ones (w a placeholder)
+        w = np.ones(1) if weights is None else np.ascontiguousarray(weights, np.float64)
         if self.n == 0:  # a node must exist: one far away holding nothing
             pts, w = np.full((1, self.dim), np.inf), np.zeros(1)
         self.unit = bool((w == 1.0).all())  # every point weighs 1: counts are integers
