@@ -159,17 +159,18 @@ def test_certify3_face_pairing_refuses_a_dropped_or_doubled_tetrahedron(case, mo
     # the tetrahedron across, so placed, holds the face's three corners and it
     period = np.asarray(mesh.torus.period, float)
     local = np.asarray(mesh.torus.vertices, float)
-    for c in range(0, t, max(t // 50, 1)):
-        for i in range(4):
-            far = space._far_corner(local, corners, offsets, got, period, c, i)
-            placed = local[corners[c]] + offsets[c] * period
-            n = got[c, i]
-            shared = [j for j in range(4) if j != i][0]
-            m = [j for j in range(4) if corners[n, j] == corners[c, shared]][-1]
-            moved = local[corners[n]] + (offsets[n] + offsets[c, shared] - offsets[n, m]) * period
-            rows = {tuple(r) for r in moved}
-            assert all(tuple(placed[j]) in rows for j in range(4) if j != i)
-            assert tuple(far) in rows and tuple(far) not in {tuple(r) for r in placed}
+    faces = np.array([(c, i) for c in range(0, t, max(t // 50, 1)) for i in range(4)])
+    fars = np.empty((len(faces), 3))
+    space._far_corners(local, corners, offsets, got, period, faces[:, 0], faces[:, 1], fars)
+    for (c, i), far in zip(faces, fars, strict=True):
+        placed = local[corners[c]] + offsets[c] * period
+        n = got[c, i]
+        shared = [j for j in range(4) if j != i][0]
+        m = [j for j in range(4) if corners[n, j] == corners[c, shared]][-1]
+        moved = local[corners[n]] + (offsets[n] + offsets[c, shared] - offsets[n, m]) * period
+        rows = {tuple(r) for r in moved}
+        assert all(tuple(placed[j]) in rows for j in range(4) if j != i)
+        assert tuple(far) in rows and tuple(far) not in {tuple(r) for r in placed}
 
 
 def test_a_floor_site_in_a_space_box_is_not_a_missing_copy():
@@ -207,3 +208,53 @@ def test_a_floor_site_in_a_space_box_is_not_a_missing_copy():
     short = dataclasses.replace(mesh, vertices=np.asarray(mesh.vertices)[keep])
     _, problems = space.Geometry(short, 2).returned_d_m2(x, tri)
     assert problems == ["d_M2 from the returned vertices differs from the torus mesh's in the box"]
+
+
+@pytest.mark.parametrize("layout", ["clustered", "lattice"])
+def test_space_circumspheres_and_volumes_equal_lapacks(layout):
+    """Space's circumspheres and volumes from one kernel that reads each tetrahedron's
+    corners where they are (``_circumspheres``, Cramer's rule) against LAPACK's solve and
+    determinant on the gathered corners, on clustered points and on a lattice's. The exact
+    insphere test's route where the filter cannot tell (the far corner by the filter's own
+    rule, ``_far_corners``, then exact arithmetic) finds faces drawn at random locally
+    Delaunay, the far corner a corner of the tetrahedron across."""
+    from knnrefine._domains.space import certify as space
+
+    rng = np.random.default_rng(35)
+    if layout == "lattice":
+        g = np.arange(10) / 10
+        pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    else:
+        c = rng.random((20, 3))
+        pts = np.mod(c[rng.integers(0, 20, 3000)] + rng.normal(0, 0.02, (3000, 3)), 1.0)
+    mesh = knnrefine.refine(pts, 5, periodic=True, box=(0, 0, 0, 1, 1, 1))
+    t = mesh.torus
+    period = np.asarray(t.period, float)
+    centres, r2, det = space._circumspheres(t.vertices, t.cells, t.offsets, period)
+    corners = t.vertices[t.cells] + t.offsets * period
+    edges = corners[:, 1:] - corners[:, :1]
+    u = np.linalg.solve(edges, 0.5 * (edges**2).sum(-1)[..., None])[..., 0]
+    scale = float(np.abs(corners).max())
+    np.testing.assert_allclose(centres, corners[:, 0] + u, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(r2, (u**2).sum(-1), rtol=1e-10)
+    np.testing.assert_allclose(det, np.linalg.det(edges), rtol=1e-10, atol=1e-15)
+    tri = space.Geometry(mesh, 2).triangulation()
+    assert not tri.problems, tri.problems
+    # the exact test's route where the filter cannot tell (``_far_corners``, then
+    # ``exact_sign``), taken here on faces drawn at random: each is locally Delaunay
+    neighbours = space._neighbours(t.cells, t.offsets)
+    cells = rng.integers(0, len(t.cells), 60)
+    faces = rng.integers(0, 4, 60)
+    far = np.empty((60, 3))
+    space._far_corners(t.vertices, t.cells, t.offsets, neighbours, period, cells, faces, far)
+    signs = [
+        space.exact_sign("insphere", np.vstack([corners[c], far[j]])) for j, c in enumerate(cells)
+    ]
+    assert max(signs) <= 0, signs
+    # and the far corner is a corner of the tetrahedron across, not one of this one's
+    for j, c in enumerate(cells):
+        across = t.vertices[t.cells[neighbours[c, faces[j]]]]
+        assert (
+            np.min(np.abs(np.mod(across - far[j] + 0.5 * period, period) - 0.5 * period).sum(1))
+            < 1e-12
+        )

@@ -788,3 +788,53 @@ def test_uniform_in_triangles_by_cells_equals_a_gathered_copy():
         a = corners[cells, 0]
         back = a + folded[:, :1] * (corners[cells, 1] - a) + folded[:, 1:] * (corners[cells, 2] - a)
         np.testing.assert_allclose(x, back, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("domain", ["plane", "plane-line", "sphere"])
+def test_edge_vectors_and_midpoints_equal_numpy_gathers(domain):
+    """The Voronoi cells' edge vectors (``_tree.edge_vectors``) and the edge midpoints
+    (``common.edge_midpoints``) from kernels, on every core, equal numpy's gathers bit for
+    bit: sites[nb] - sites[site] + shift period, and site + half the edge for the
+    lexicographically positive direction of each edge; on the torus across its cut, with
+    points on a line, and on the sphere."""
+    import knnrefine
+    from knnrefine._domains.plane import certify as plane
+    from knnrefine._domains.sphere import certify as sphere
+    from knnrefine.certify._tree import edge_vectors, neighbour_lists
+    from knnrefine.certify.common import edge_midpoints
+
+    rng = np.random.default_rng(36)
+    if domain == "sphere":
+        pts = np.column_stack([rng.uniform(-180, 180, 3000), rng.uniform(-90, 90, 3000)])
+        geometry = sphere.Geometry(knnrefine.refine(pts, 5, sphere=True), 2)
+        sites, period = geometry.xyz, np.zeros(3)
+        cells, off = geometry.tri, np.zeros((len(geometry.tri), 3, 0), np.int8)
+    else:
+        pts = rng.random((3000, 2))
+        pts[:200, 0] = 0.0  # on the cut
+        if domain == "plane-line":
+            pts[:, 1] = 0.5
+        geometry = plane.Geometry(knnrefine.refine(pts, 5, periodic=True, box=(0, 0, 1, 1)), 2)
+        sites, period = geometry.vertices, geometry.period
+        cells, off = geometry.mesh.torus.cells, geometry.mesh.torus.offsets
+    first, nb, shift = neighbour_lists(cells, off, len(sites), 2)
+    site = np.repeat(np.arange(len(sites)), np.diff(first))
+    want = sites[nb] - sites[site]
+    if shift.shape[1]:
+        want = want + shift * period
+    got = edge_vectors(sites, first, nb, shift, period, 2)
+    np.testing.assert_array_equal(got, want)
+    cells_ = geometry.cells(geometry.triangulation())
+    mids, ends = edge_midpoints(cells_)
+    e = cells_.edges
+    positive = np.zeros(len(e), bool)
+    decided = np.zeros(len(e), bool)
+    for a in range(e.shape[1]):
+        positive |= ~decided & (e[:, a] > 0)
+        decided |= e[:, a] != 0
+    owner = np.repeat(np.arange(len(cells_.sites)), np.diff(cells_.first))
+    np.testing.assert_array_equal(mids, cells_.sites[owner[positive]] + 0.5 * e[positive])
+    np.testing.assert_array_equal(
+        ends, np.column_stack([owner[positive], cells_.neighbours[positive]])
+    )
+    assert 2 * len(mids) == len(e)  # each edge once

@@ -207,8 +207,9 @@ def test_slab_answers_in_space_equal_one_tree():
 
 def test_input_point_probes_are_the_same_in_one_process_and_in_strips():
     """The input points certify probes (up to 2 m, drawn by ``_sampling``'s keys) are the
-    same in one process and over strips or slabs, in the same order, so that an extreme
-    attained at an input point is found on both paths. (A wrong mesh's beta_hat lies at
+    same in one process and over strips or slabs, in the same order (repeated points, points
+    on a line and on the cut among them), so that an extreme attained at an input point is
+    found on both paths. (A wrong mesh's beta_hat lies at
     an input point; the paths drew their points apart, and agreed by chance until issue
     52 drew the one-process sample from the tree: test_a_wrong_mesh_fails_the_same_strip_
     by_strip failed.)"""
@@ -218,6 +219,9 @@ def test_input_point_probes_are_the_same_in_one_process_and_in_strips():
 
     rng = np.random.default_rng(6)
     pts = gaussian_clusters(6000, 6)
+    line = np.column_stack([rng.random(300), np.full(300, 0.5)])  # on a line
+    line[:100, 0] = 0.0  # on the cut
+    pts = np.concatenate([pts, pts[:400], line])  # repeated points: keys tie
     mesh = knnrefine.refine(pts, 10, periodic=True, box=(0, 0, 1, 1))
     one = PlanePoints(mesh, pts, None, -1)
     _, tiled, store = _tori(mesh, pts, 3)

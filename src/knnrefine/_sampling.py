@@ -54,8 +54,10 @@ def canonical(xy, weights, keys):
     return xy[order], None if weights is None else weights[order], keys[order]
 
 
-def key_sample(xy, fraction):
-    """The points (n, d) whose key is below ``fraction``, in ``canonical`` order."""
+def key_sample(xy, fraction, weights=None):
+    """(the points (n, d) whose key is below ``fraction``, their weights (None: none), their
+    keys), in ``canonical`` order: the sample every path draws alike."""
+    xy = np.asarray(xy)
     keys = sample_keys(xy)
     pick = keys < fraction
-    return canonical(np.asarray(xy)[pick], None, keys[pick])[0]
+    return canonical(xy[pick], None if weights is None else weights[pick], keys[pick])

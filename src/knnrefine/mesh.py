@@ -814,10 +814,10 @@ def uniform_in_triangles(corners, u, cells=None):
         triangles = np.ascontiguousarray(
             triangles, np.int32 if triangles.dtype == np.int32 else np.int64
         )
-    else:
+    else:  # the corners' rows, three a triangle (no triangles: rows 3 t to 3 t + 2)
         corners = np.ascontiguousarray(corners, np.float64)
         vertices = corners.reshape(-1, corners.shape[-1])
-        triangles = np.arange(len(vertices)).reshape(-1, 3)
+        triangles = np.zeros((0, 3), np.int64)
     u = np.array(u, dtype=np.float64, order="C").reshape(-1, 2)
     cells = np.zeros(0, np.int64) if cells is None else np.ascontiguousarray(cells, np.int64)
     out = np.empty((len(u), vertices.shape[-1]))
@@ -828,13 +828,18 @@ def uniform_in_triangles(corners, u, cells=None):
 @kernel(entry=True, lazy=True, nogil=True)
 def _in_triangles(vertices, triangles, cells, u, out):
     """``uniform_in_triangles``' points into ``out``, u folded in place (``cells`` empty:
-    point i in triangle i)."""
+    point i in triangle i; ``triangles`` empty: triangle t's corners are rows 3 t to 3 t + 2
+    of ``vertices``)."""
+    listed = triangles.shape[0] > 0
     for i in range(u.shape[0]):
         if u[i, 0] + u[i, 1] > 1.0:
             u[i, 0], u[i, 1] = 1.0 - u[i, 0], 1.0 - u[i, 1]
         u0, u1 = u[i, 0], u[i, 1]
         t = cells[i] if cells.shape[0] else i
-        p0, p1, p2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        if listed:
+            p0, p1, p2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        else:
+            p0, p1, p2 = 3 * t, 3 * t + 1, 3 * t + 2
         for a in range(out.shape[1]):
             c0 = vertices[p0, a]
             out[i, a] = c0 + u0 * (vertices[p1, a] - c0) + u1 * (vertices[p2, a] - c0)

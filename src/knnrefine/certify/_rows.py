@@ -43,11 +43,11 @@ def row_classes(rows, group, m):
     row order): equal rows share it. ``group`` (n,) in [0, m): equal rows have equal groups
     (a vertex of the row, say); only rows of a group are compared, the groups on every
     core."""
+    if len(rows) >= 2**31:  # (labels and the group order are int32)
+        raise ValueError("row_classes: at most 2^31 - 1 rows")
     rows = as_index(rows)
     start, order = grouped(as_index(group), m)
     hashes = np.empty(len(rows), np.uint64)
-    if len(rows) >= 2**31:
-        raise ValueError("row_classes: at most 2^31 - 1 rows")
     label = np.arange(len(rows), dtype=np.int32)
 
     def call(a, b):

@@ -143,10 +143,7 @@ def check_cells_tile(mesh):
     period = np.where(per, np.asarray(mesh.box[dim:], float) - np.asarray(mesh.box[:dim]), 0.0)
     off = np.zeros(cells.shape + (dim,), np.int8)
     if mesh.offsets is not None:  # offsets along non-periodic axes mean nothing
-        given = np.asarray(mesh.offsets)
-        off = as_offsets(
-            np.where(per, given if given.dtype == np.int8 else given.astype(np.int64), 0)
-        )
+        off = as_offsets(np.where(per, np.asarray(mesh.offsets), 0))
     problems = []
     # a cell, and each of its facets: its corners' codes (vertex and offset relative to the
     # least, in one integer: CODE_BASE values per axis) sorted

@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import _validation as V
 from .._options import RunOptions
-from .._sampling import canonical, sample_keys
+from .._sampling import canonical, key_sample
 from ..errors import InputError
 from .parts import check_output, write_partitioned
 from .tiled import refine_store, run_tile, split_strips, tile_index
@@ -172,10 +172,9 @@ def _inside(part, box, per):
 
 
 def _sample(part, fraction):
+    """One partition's keyed sample (``_sampling.key_sample``), merged in ``canonical`` order."""
     xy, w = part
-    keys = sample_keys(xy)
-    pick = keys < fraction
-    return xy[pick], None if w is None else w[pick], keys[pick]
+    return key_sample(xy, fraction, w)
 
 
 def _cut(part, frame, period, sets, pad):

@@ -46,7 +46,7 @@ from .._engine.jit import kernel
 from .._engine.region import in_rectangle
 from .._engine.region3 import in_box3
 from .._options import Progress, vertex_budget
-from .._sampling import canonical, sample_keys
+from .._sampling import key_sample
 from ..errors import EngineError, InputError
 from ..mesh import Mesh
 
@@ -476,10 +476,7 @@ class LocalStore:
         self.framed = None
 
     def sample(self, fraction):
-        keys = sample_keys(self.pts)
-        pick = keys < fraction
-        w = None if self.weights is None else self.weights[pick]
-        return canonical(self.pts[pick], w, keys[pick])
+        return key_sample(self.pts, fraction, self.weights)
 
     def prepare(self, emb, sets, pad):
         """The points in torus coordinates and each set's rows per strip."""

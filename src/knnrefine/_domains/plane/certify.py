@@ -163,7 +163,7 @@ class Points:
     def sample_points(self, count, rng):
         """About ``count`` input points, the same on every path (``_sampling``: those
         whose key is below count / n, as ``scale.checks``' strips draw them)."""
-        return self.input_frame(key_sample(self.source, min(1.0, count / max(self.n, 1))))
+        return self.input_frame(key_sample(self.source, min(1.0, count / max(self.n, 1)))[0])
 
 
 def verify_returned_mesh(mesh):

@@ -63,31 +63,35 @@ def _local_signs(local, corners, offsets, neighbours, period, orient, sphere, st
                 pts[i, a] = local[corners[t, i], a] + offsets[t, i, a] * period[a]
         orient[t] = orient3d(pts, 0, 1, 2, 3)
         for i in range(4):
-            n = neighbours[t, i]
-            shared = corners[t, (i + 1) % 4]
-            ia = 0
-            jj = 0
-            for m in range(4):
-                if corners[n, m] == shared:
-                    ia = m
-                if neighbours[n, m] == t:
-                    jj = m
-            for a in range(3):
-                s = offsets[t, (i + 1) % 4, a] - offsets[n, ia, a]
-                pts[4, a] = local[corners[n, jj], a] + (offsets[n, jj, a] + s) * period[a]
+            _far_corner(local, corners, offsets, neighbours, period, t, i, pts[4])
             sphere[t, i] = insphere(pts, 0, 1, 2, 3, 4)
 
 
-def _far_corner(local, corners, offsets, neighbours, period, t, i):
-    """The corner of the tetrahedron across face i of tetrahedron t opposite that face,
-    placed by the face's own offsets (as ``_local_signs`` places it, for the exact
-    test where its filter cannot tell)."""
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _far_corner(local, corners, offsets, neighbours, period, t, i, out):
+    """Into ``out`` (3,): the corner of the tetrahedron across face i of tetrahedron t
+    opposite that face, placed by the face's own offsets (the one rule of the filtered
+    test, ``_local_signs``, and of the exact one, ``_far_corners``)."""
     n = neighbours[t, i]
     shared = corners[t, (i + 1) % 4]
-    ia = max((m for m in range(4) if corners[n, m] == shared), default=0)
-    jj = max((m for m in range(4) if neighbours[n, m] == t), default=0)
-    s = offsets[t, (i + 1) % 4].astype(np.int64) - offsets[n, ia]
-    return local[corners[n, jj]] + (offsets[n, jj] + s) * period
+    ia = 0
+    jj = 0
+    for m in range(4):
+        if corners[n, m] == shared:
+            ia = m
+        if neighbours[n, m] == t:
+            jj = m
+    for a in range(3):
+        s = offsets[t, (i + 1) % 4, a] - offsets[n, ia, a]
+        out[a] = local[corners[n, jj], a] + (offsets[n, jj, a] + s) * period[a]
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _far_corners(local, corners, offsets, neighbours, period, cells, faces, out):
+    """out[j]: ``_far_corner`` across face faces[j] of tetrahedron cells[j] (the faces
+    whose insphere sign the filter could not tell)."""
+    for j in range(cells.shape[0]):
+        _far_corner(local, corners, offsets, neighbours, period, cells[j], faces[j], out[j])
 
 
 def _exact_faces(local, corners, offsets, neighbours, period, workers=None):
@@ -105,9 +109,11 @@ def _exact_faces(local, corners, offsets, neighbours, period, workers=None):
     at = lambda c: local[corners[c]] + offsets[c] * period  # noqa: E731
     for c in np.flatnonzero(orient == UNSURE):
         orient[c] = exact_sign("orient3d", at(c))
-    for c, i in zip(*np.nonzero(sphere == UNSURE), strict=True):
-        far = _far_corner(local, corners, offsets, neighbours, period, c, i)
-        sphere[c, i] = exact_sign("insphere", np.vstack([at(c), far]))
+    cells, faces = np.nonzero(sphere == UNSURE)
+    far = np.empty((len(cells), 3))
+    _far_corners(local, corners, offsets, neighbours, period, cells, faces, far)
+    for j, (c, i) in enumerate(zip(cells, faces, strict=True)):
+        sphere[c, i] = exact_sign("insphere", np.vstack([at(c), far[j]]))
     return int((orient <= 0).sum()), int((sphere > 0).sum())
 
 
@@ -289,7 +295,7 @@ class Points:
         """About ``count`` input points (torus frame), the same on every path
         (``_sampling``: those whose key is below count / n, as ``scale.checks``' slabs draw
         them)."""
-        return self.input_frame(key_sample(self.source, min(1.0, count / max(self.n, 1))))
+        return self.input_frame(key_sample(self.source, min(1.0, count / max(self.n, 1)))[0])
 
 
 def _same_rows(a, b):

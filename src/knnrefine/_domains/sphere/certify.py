@@ -275,7 +275,7 @@ class Points:
     def sample_points(self, count, rng):
         """About ``count`` of the points' unit vectors, the same whatever their order
         (``_sampling``: those whose key is below count / n)."""
-        return key_sample(self.source, min(1.0, count / max(self.n, 1)))
+        return key_sample(self.source, min(1.0, count / max(self.n, 1)))[0]
 
 
 def _spacing(vertices):
