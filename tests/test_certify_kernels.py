@@ -433,7 +433,16 @@ def test_tree_built_along_a_morton_curve_keeps_its_invariants(dim):
     w = rng.random(len(pts)) + 0.5
     for weights in (None, w):
         tree = Tree(pts, weights, None, 2)
-        P, W, T = tree.pts, tree.w, tree.T
+        P, W, T = tree.pts, tree.weights_of(np.arange(len(pts))), tree.T
+        # sorted in place (a copy given away), the same tree; the caller's points untouched
+        given = pts.copy()
+        sorted_in_place = Tree(given, weights, None, 2, scratch=True)
+        assert sorted_in_place.pts is given
+        np.testing.assert_array_equal(sorted_in_place.pts, P)
+        np.testing.assert_array_equal(sorted_in_place.T, T)
+        assert not np.shares_memory(P, pts)
+        if weights is None:  # no n-long array of ones: one placeholder 1
+            assert tree.w.shape == (1,)
         order = np.lexsort(P.T)
         want = np.lexsort(pts.T)
         np.testing.assert_array_equal(P[order], pts[want])

@@ -63,35 +63,39 @@ TREE_BITS3 = 14  # and in space (below them, nodes split by the sliding midpoint
 CELL_RANGE = 65536  # cells a thread of ``neighbour_lists`` places, at least
 
 
-def _build(pts, w, leaf, unit):
+def _build(pts, w, leaf, unit, scratch=False):
     """The tree over ``pts`` (n, d) with weights ``w`` (n,), ``unit`` whether each is 1:
-    (points and weights permuted so that each node owns a contiguous range, the nodes, the
-    depth, the ``Grid`` of its Morton runs where ``unit``, else None). The points are
-    sorted along a Morton curve (``_morton_sorted``, TREE_BITS a coordinate), then split
-    by ``_split_sorted``."""
+    (points and weights permuted so that each node owns a contiguous range (unit: the
+    weights one placeholder 1, ``_weight``), the nodes, the depth, the ``Grid`` of its
+    Morton runs, or None). The points are sorted along a Morton curve (``_morton_sorted``,
+    TREE_BITS a coordinate), then split by ``_split_sorted``; ``scratch``: ``pts`` is
+    permuted in place, no copy. The codes are dropped once the grid's table is made: a
+    query works a point's code out again from its coordinates (``_code_of``)."""
     d = pts.shape[1]
     bits = TREE_BITS if d == 2 else TREE_BITS3
     code, order, lo, scale = morton_sorted(pts, bits)
-    p, ww, T, depth = _split_sorted(pts, w, code, order, leaf, unit)
+    p, ww, T, depth = _split_sorted(pts, w, code, order, leaf, unit, scratch)
+    del order
     finite = bool(np.isfinite(T[0, 4:]).all())  # (no points: one far away, no grid)
     box = T[0, 4 : 4 + d], T[0, 4 + d :]
     grid = _grid_of(p, ww, unit, code, lo, scale, bits, *box) if finite else None
     return p, ww, T, depth, grid
 
 
-Grid = namedtuple("Grid", ["code", "table", "level0", "bits", "lo", "scale", "pmin", "pmax",
+Grid = namedtuple("Grid", ["table", "level0", "bits", "lo", "scale", "pmin", "pmax",
                            "margin", "prefix", "radial"])  # fmt: skip
 
 
 def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
     """The grid over the tree's points ``p`` weighing ``w`` (sorted along the Morton
     curve of ``code``, whose frame is ``lo``, ``scale``; within [pmin, pmax], the root's
-    box): its table at the coarsest level of at most GRID_FILL points a cell on average
-    (and at most 2^GRID_TABLE cells), how far a point may lie outside its cell's rounded
-    box, (weighted, ``unit`` False) the weights' compensated prefix sums (``prefix``
-    (2, n + 1): a run's weight is a difference of two, in double-double), and the range
-    of the points' squared distances from the origin (``radial``: on a sphere, a thin
-    shell, so that a ball skips the cells off it unread)."""
+    box): its table (the codes themselves are not kept) at the coarsest level of at most
+    GRID_FILL points a cell on average (and at most 2^GRID_TABLE cells), how far a point
+    may lie outside its cell's rounded box, (weighted, ``unit`` False) the weights'
+    compensated prefix sums (``prefix`` (2, n + 1): a run's weight is a difference of
+    two, in double-double), and the range of the points' squared distances from the
+    origin (``radial``: on a sphere, a thin shell, so that a ball skips the cells off it
+    unread)."""
     n, d = p.shape
     if n >= 2**31 - 1:  # (the table's runs are int32)
         return None
@@ -108,7 +112,7 @@ def _grid_of(p, w, unit, code, lo, scale, bits, pmin, pmax):
         norm2 = np.einsum("ij,ij->i", p[a : a + (1 << 16)], p[a : a + (1 << 16)])
         low, high = min(low, float(norm2.min())), max(high, float(norm2.max()))
     radial = np.array([low * (1.0 - 1e-9), high * (1.0 + 1e-9)])
-    return Grid(code, table, level0, bits, lo, scale, pmin, pmax, margin, prefix, radial)
+    return Grid(table, level0, bits, lo, scale, pmin, pmax, margin, prefix, radial)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -125,8 +129,10 @@ def _prefix_sums(w):
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _split_sorted(pts, w, code, order, leaf, unit):
-    """The tree over pts[order], w[order] (``_build``), ``code`` their Morton codes, sorted.
+def _split_sorted(pts, w, code, order, leaf, unit, inplace):
+    """The tree over pts[order], w[order] (``_build``), ``code`` their Morton codes, sorted
+    (``inplace``: pts itself permuted, and ``order`` spent on it; ``unit``: no weights,
+    one placeholder 1 for all).
     A node of more than ``leaf`` points splits where its codes' highest differing bit
     turns to 1 (a quadtree's midpoint split of its cell, so no node is long and thin;
     a run of equal halves is one split); a node whose codes are all equal (points closer
@@ -139,13 +145,35 @@ def _split_sorted(pts, w, code, order, leaf, unit):
     cache lines: lo, hi, its first child (-1 at a leaf; the second follows the first), its
     weight total, its tight box (mins, then maxes)."""
     n, d = pts.shape
-    p = np.empty((n, d))
-    ww = np.empty(n)
-    for i in range(n):
-        j = order[i]
-        for a in range(d):
-            p[i, a] = pts[j, a]
-        ww[i] = 1.0 if unit else w[j]  # (unit: w is not read, and may be a placeholder)
+    ww = np.ones(1) if unit else np.empty(n)
+    if not unit:
+        for i in range(n):
+            ww[i] = w[order[i]]
+    if inplace:  # each cycle of the permutation in turn, its rows marked done (~order)
+        p = pts
+        held = np.empty(d)
+        for i in range(n):
+            if order[i] < 0:
+                continue
+            for a in range(d):
+                held[a] = p[i, a]
+            j = i
+            while True:
+                src = order[j]
+                order[j] = ~src
+                if src == i:
+                    for a in range(d):
+                        p[j, a] = held[a]
+                    break
+                for a in range(d):
+                    p[j, a] = p[src, a]
+                j = src
+    else:
+        p = np.empty((n, d))
+        for i in range(n):
+            j = order[i]
+            for a in range(d):
+                p[i, a] = pts[j, a]
     cap = 2 * (n // max(leaf, 1)) + 64
     node = np.empty((cap, 3), np.int64)
     level = np.zeros(cap, np.int64)
@@ -201,7 +229,8 @@ def _split_sorted(pts, w, code, order, leaf, unit):
                 else:
                     for t in range(d):
                         p[a_, t], p[b_, t] = p[b_, t], p[a_, t]
-                    ww[a_], ww[b_] = ww[b_], ww[a_]
+                    if not unit:
+                        ww[a_], ww[b_] = ww[b_], ww[a_]
                     b_ -= 1
             cut = a_
         if count + 2 > cap:
@@ -252,6 +281,14 @@ def _split_sorted(pts, w, code, order, leaf, unit):
                 s, c = plus_compensated(s, c, ww[j])
             T[i, 3] = s + c
     return p, ww, T, deepest
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _weight(w, j):
+    """The weight of the tree's point j: w[j], or w[0] where w is the one placeholder 1 of
+    an unweighted tree (no n-long array of ones; a weighted tree of one point reads its
+    own)."""
+    return w[j] if w.shape[0] > 1 else w[0]
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -449,7 +486,7 @@ def _kth_dfs(pts, w, T, period, xq, k, unit, stack, stack_key, hk, hw):
                     hk2[:n] = hk
                     hw2[:n] = hw
                     hk, hw = hk2, hw2
-                hk[n], hw[n] = d2, (w[j] if not flat else T[i, 3])
+                hk[n], hw[n] = d2, (_weight(w, j) if not flat else T[i, 3])
                 n += 1
                 if n >= 2 * settled:
                     bound, n = _settle(hk, hw, n, k)
@@ -520,7 +557,7 @@ def _gather(pts, w, T, period, c, r2, stack, gx, gw):
                     return -1
                 for a in range(d):
                     gx[n, a] = pts[j, a]
-                gw[n] = w[j]
+                gw[n] = _weight(w, j)
                 n += 1
     return n
 
@@ -930,7 +967,7 @@ def _held_one(pts, w, T, period, xq, rq, stop, stack):
             continue
         for j in range(int(T[i, 0]), int(T[i, 1])):
             if _point2(pts, j, xq, period) <= rq:
-                s, c = plus_compensated(s, c, w[j])
+                s, c = plus_compensated(s, c, _weight(w, j))
     return s + c
 
 
@@ -1044,7 +1081,7 @@ def _cells_held(pts, w, T, depth, period, v, first, edges, outradii, relative,
                         ok = False
                         break
                 if ok:
-                    s, c = plus_compensated(s, c, w[j])
+                    s, c = plus_compensated(s, c, _weight(w, j))
         out[q] = s + c
 
 
@@ -1097,7 +1134,7 @@ def _held_caps(pts, w, T, depth, x, outer2, corners, stop, out, start, end):
                     ps[used] = j
                     used += 1
                 elif sign <= 0:
-                    s, c = plus_compensated(s, c, w[j])
+                    s, c = plus_compensated(s, c, _weight(w, j))
         out[q] = s + c
         if s + c >= stop[q]:
             used = mark  # decided: what it left open is not needed
@@ -1158,11 +1195,11 @@ def _grid_table(code, d, level, bits):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _lower_bound(code, a, b, key):
-    """The first i in [a, b) with code[i] >= key (b where none)."""
+def _lower_bound(pts, lo, scale, top, a, b, key):
+    """The first i in [a, b) whose point's code (``_code_of``) is >= key (b where none)."""
     while a < b:
         mid = (a + b) >> 1
-        if code[mid] < key:
+        if _code_of(pts, mid, lo, scale, top) < key:
             a = mid + 1
         else:
             b = mid
@@ -1170,8 +1207,9 @@ def _lower_bound(code, a, b, key):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _cell_run(code, table, level0, bits, d, cell, level):
-    """The run (first, end) of the points of cell ``cell`` (its Morton code) at ``level``."""
+def _cell_run(pts, lo, scale, table, level0, bits, d, cell, level):
+    """The run (first, end) of the points of cell ``cell`` (its Morton code) at ``level``:
+    from the table at its level and above, by bisection of the points' codes below."""
     if level <= level0:
         s = np.uint64(d * (level0 - level))
         return (np.int64(table[np.int64(cell << s)]),
@@ -1181,8 +1219,9 @@ def _cell_run(code, table, level0, bits, d, cell, level):
     if a == b:
         return a, a
     s = np.uint64(d * (bits - level))
-    a = _lower_bound(code, a, b, cell << s)
-    return a, _lower_bound(code, a, b, (cell + np.uint64(1)) << s)
+    top = 2.0**bits - 1.0
+    a = _lower_bound(pts, lo, scale, top, a, b, cell << s)
+    return a, _lower_bound(pts, lo, scale, top, a, b, (cell + np.uint64(1)) << s)
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
@@ -1281,7 +1320,7 @@ def _run_weight(count, fix, unit, prefix, i, e):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial, period,
+def _grid_stack(table, level0, bits, lo, scale, pmin, pmax, margin, radial, period,
                 side, ext, xq, rq2, rin2, cells, gap, far, na, stack):  # fmt: skip
     """The cells about the closed ball (xq, sqrt(rq2)) stacked as ``_grid_read`` takes
     them: the cells the ball's sphere cuts first, those within sqrt(rin2) of xq last (so
@@ -1375,7 +1414,7 @@ def _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+def _grid_read(pts, w, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
                unit, prefix, period, xq, rq2, rin2, stop, stack, sp, keep, kw, m):  # fmt: skip
     """The stacked cells (``_grid_stack``) read until what they hold within sqrt(rin2) of
     xq reaches ``stop``: a cell within that adds its run (weighted: the difference of two
@@ -1413,7 +1452,7 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
                 continue
             inside = far2 <= rin2
         c = _cell_code(stack[sp, 0], stack[sp, 1], stack[sp, 2], d)
-        i, e = _cell_run(code, table, level0, bits, d, c, lv)
+        i, e = _cell_run(pts, lo, scale, table, level0, bits, d, c, lv)
         if i == e:
             continue
         if inside:
@@ -1437,12 +1476,12 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
                 s = _point2(pts, j, xq, period)
                 inner = s <= rin2
                 keep[m] = s
-                kw[m] = w[j]
+                kw[m] = _weight(w, j)
                 m += (s <= rq2) & (s > rin2)
                 if unit:
                     hits += inner
                 else:
-                    count, fix = plus_compensated(count, fix, w[j] if inner else 0.0)
+                    count, fix = plus_compensated(count, fix, _weight(w, j) if inner else 0.0)
             count += hits
         elif unit:  # (two loops: the branch out of the one that counts)
             hits = 0
@@ -1452,12 +1491,12 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         else:
             for j in range(i, e):
                 if _point2(pts, j, xq, period) <= rq2:
-                    count, fix = plus_compensated(count, fix, w[j])
+                    count, fix = plus_compensated(count, fix, _weight(w, j))
     return count, fix, m, False
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+def _grid_held(pts, w, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
                unit, prefix, period, side, x, r2, stop, loose, out, start, end):  # fmt: skip
     """out[q] for q in [start, end): the weight in the closed ball (x[q], sqrt(r2[q])) (its
     number of points where ``unit``; compensated otherwise, a run inside from ``prefix``),
@@ -1476,7 +1515,7 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
             out[q] = -1.0
             continue
         xq = x[q]
-        sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+        sp = _grid_stack(table, level0, bits, lo, scale, pmin, pmax, margin, radial,
                          period, side, ext, xq, rq2, rq2, cells, gap, far, na, stack)  # fmt: skip
         if sp < 0:
             out[q] = -1.0
@@ -1486,19 +1525,19 @@ def _grid_held(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
             fix = 0.0
             for s in range(sp):
                 c = _cell_code(stack[s, 0], stack[s, 1], stack[s, 2], d)
-                i, e = _cell_run(code, table, level0, bits, d, c, stack[s, 3])
+                i, e = _cell_run(pts, lo, scale, table, level0, bits, d, c, stack[s, 3])
                 bound, fix = _run_weight(bound, fix, unit, prefix, i, e)
             if bound + fix < stop[q]:
                 out[q] = bound + fix
                 continue
-        count, fix, _, lost = _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin,
+        count, fix, _, lost = _grid_read(pts, w, table, level0, bits, lo, scale, pmin,
                                          pmax, margin, radial, unit, prefix, period, xq, rq2,
                                          rq2, stop[q], stack, sp, none, none, 0)  # fmt: skip
         out[q] = -1.0 if lost else count + fix
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, radial, unit,
+def _grid_kth(pts, w, table, level0, bits, lo, scale, pmin, pmax, margin, radial, unit,
               prefix, period, side, x, k, out, start, end):  # fmt: skip
     """out[q] for q in [start, end): the least radius whose closed ball about x[q] holds
     weight k (inf where the points hold less), or -1 where the grid leaves it to the tree.
@@ -1544,12 +1583,12 @@ def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, 
         for _ in range(GRID_TRIES):
             rq2 = r_hi * r_hi
             rin2 = r_lo * r_lo
-            sp = _grid_stack(code, table, level0, bits, lo, scale, pmin, pmax, margin, radial,
+            sp = _grid_stack(table, level0, bits, lo, scale, pmin, pmax, margin, radial,
                              period, side, ext, xq, rq2, rin2, cells, gap, far, na,
                              stack)  # fmt: skip
             if sp < 0:
                 break
-            count, fix, m, lost = _grid_read(pts, w, code, table, level0, bits, lo, scale,
+            count, fix, m, lost = _grid_read(pts, w, table, level0, bits, lo, scale,
                                              pmin, pmax, margin, radial, unit, prefix, period,
                                              xq, rq2, rin2, k, stack, sp, keep, kw, 0)  # fmt: skip
             if lost:
@@ -1576,14 +1615,14 @@ def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, 
         before = answer if answer >= 0.0 else -1.0
 
 
-def _built_in_thread(pts, w, unit):
+def _built_in_thread(pts, w, unit, scratch):
     """(a thread building the tree of pts, w; its result, {"tree": ...} or {"error": ...},
     once joined). A thread of its own that ends with the build: none is left waiting."""
     out = {}
 
     def build():
         try:
-            out["tree"] = _build(pts, w, LEAF, unit)
+            out["tree"] = _build(pts, w, LEAF, unit, scratch)
         except BaseException as e:  # handed to the caller, who asks for the tree
             out["error"] = e
 
@@ -1597,10 +1636,14 @@ class Tree:
     weighs 1), on the torus of ``period`` (per axis; 0 or None: that axis does not wrap;
     coordinates along wrapping axes in [0, period)). ``background``: built in a thread of
     its own (the build holds no lock), so that the caller's work on the mesh goes on
-    beside it; the first question waits for it."""
+    beside it; the first question waits for it. ``scratch``: ``points`` is the caller's
+    to give away (a copy of its own, not read again): the tree sorts it in place (as it
+    does any copy ``points`` needs to be float64 and contiguous) rather than copy it."""
 
-    def __init__(self, points, weights=None, period=None, threads=None, background=False):
+    def __init__(self, points, weights=None, period=None, threads=None, background=False,
+                 scratch=False):  # fmt: skip
         pts = np.ascontiguousarray(points, dtype=np.float64)
+        scratch = scratch or pts is not points  # (a copy made here is the tree's own)
         self.n, self.dim = pts.shape
         self.period = (np.zeros(self.dim) if period is None
                        else np.ascontiguousarray(period, dtype=np.float64))  # fmt: skip
@@ -1610,10 +1653,12 @@ class Tree:
         if self.n == 0:  # a node must exist: one far away holding nothing
             pts, w = np.full((1, self.dim), np.inf), np.zeros(1)
         self.unit = bool((w == 1.0).all())  # every point weighs 1: counts are integers
+        if self.unit:
+            w = np.ones(1)
         if background:
-            self._job = _built_in_thread(pts, w, self.unit)
+            self._job = _built_in_thread(pts, w, self.unit, scratch)
         else:
-            self._built = _build(pts, w, LEAF, self.unit)
+            self._built = _build(pts, w, LEAF, self.unit, scratch)
 
     def _parts(self):
         built = self.__dict__.get("_built")
@@ -1626,10 +1671,18 @@ class Tree:
         return built
 
     pts = property(lambda self: self._parts()[0], doc="the points, in the tree's order")
-    w = property(lambda self: self._parts()[1], doc="their weights, in the tree's order")
+    w = property(
+        lambda self: self._parts()[1],
+        doc="their weights, in the tree's order (unweighted: one placeholder 1)",
+    )
     T = property(lambda self: self._parts()[2], doc="the nodes")
     depth = property(lambda self: self._parts()[3], doc="the tree's depth")
     grid = property(lambda self: self._parts()[4], doc="the grid of its Morton runs")
+
+    def weights_of(self, rows):
+        """The weights of the tree's points ``rows`` (an index array, the tree's order)."""
+        w = self.w
+        return np.ones(len(rows)) if self.unit else w[rows]
 
     def _queries(self, x):
         return np.ascontiguousarray(np.reshape(x, (-1, self.dim)), dtype=np.float64)
@@ -1659,7 +1712,7 @@ class Tree:
             side = GRID_SIDE if self.dim == 2 else GRID_SIDE3
 
             def call(a, b):
-                _grid_held(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo,
+                _grid_held(self.pts, self.w, g.table, g.level0, g.bits, g.lo,
                            g.scale, g.pmin, g.pmax, g.margin, g.radial, self.unit, g.prefix, p,
                            side, xs, r2, st, bool(loose), res, a, b)  # fmt: skip
 
@@ -1706,7 +1759,7 @@ class Tree:
             side = GRID_SIDE if self.dim == 2 else GRID_SIDE3
 
             def call(a, b):
-                _grid_kth(self.pts, self.w, g.code, g.table, g.level0, g.bits, g.lo, g.scale,
+                _grid_kth(self.pts, self.w, g.table, g.level0, g.bits, g.lo, g.scale,
                           g.pmin, g.pmax, g.margin, g.radial, unit, g.prefix, p, side, xs,
                           float(k),
                           res, a, b)  # fmt: skip
@@ -1778,7 +1831,7 @@ class Tree:
             return None
         p = np.concatenate([np.arange(len(pts))] + [q for _, q, _ in parts])
         v = np.concatenate([owner] + [u for _, _, u in parts])
-        return sums_by(v, self.w[p], m)
+        return sums_by(v, self.weights_of(p), m)
 
     def cells_held(self, sites, first, edges, outradii, stop=np.inf, relative=2e-12,
                    slack2=0.0):  # fmt: skip
@@ -1827,6 +1880,21 @@ def _spread3(v):
     return v
 
 
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def _code_of(x, i, lo, scale, top):
+    """The Morton code of row i of x in the frame (lo, scale): each coordinate less lo,
+    scaled and clamped to [0, top] (0 where not a number), its bits interleaved. One rule
+    for the sort and for the grid's queries, which work the codes out again."""
+    d = x.shape[1]
+    c = np.uint64(0)
+    for a in range(d):
+        v = (x[i, a] - lo[a]) * scale[a]
+        v = min(max(v, 0.0), top) if v == v else 0.0
+        q = np.uint64(v)
+        c |= (_spread2(q) if d == 2 else _spread3(q)) << np.uint64(a)
+    return c
+
+
 def morton_sorted(x, bits):
     """``_morton_sorted``: the order int32 where it can be (n < 2^31), half the memory."""
     n = len(x)
@@ -1862,12 +1930,7 @@ def _morton_sorted(x, bits, order, order2):
     count = np.zeros((digits, 257), np.int64)
     code = np.empty(n, np.uint64)
     for i in range(n):
-        c = np.uint64(0)
-        for a in range(d):
-            v = (x[i, a] - lo[a]) * scale[a]
-            v = min(max(v, 0.0), top) if v == v else 0.0
-            q = np.uint64(v)
-            c |= (_spread2(q) if d == 2 else _spread3(q)) << np.uint64(a)
+        c = _code_of(x, i, lo, scale, top)
         code[i] = c
         for g in range(digits):
             count[g, ((c >> np.uint64(8 * g)) & np.uint64(0xFF)) + 1] += 1

@@ -593,21 +593,25 @@ def nearest_site(cells, x, period, workers, tri):
 # the size integral's sample (``Probes.extra``): ``kept`` the mask of its points kept
 # (the first probes), ``w`` each point's weight (its cell's measure, or on the sphere the
 # weight that makes a point uniform in the flat triangle uniform on the sphere), ``cells``
-# each point's cell, ``corners`` (t, c) each cell's corners as rows of the probes (-1 where
-# one was not kept), ``measure`` every cell's area (volume, solid angle), ``t`` the cells
-SizeSample = namedtuple("SizeSample", ["kept", "w", "cells", "corners", "measure", "t"])
+# each point's cell, ``corners`` (t, c) each cell's corners (the mesh's vertices: its own
+# array, not a copy), ``measure`` every cell's area (volume, solid angle), ``t`` the cells,
+# ``at`` each vertex's row among the probes (-1 where it was not kept)
+SizeSample = namedtuple("SizeSample", ["kept", "w", "cells", "corners", "measure", "t", "at"],
+                        defaults=(None,))  # fmt: skip
+SIZE_CHUNK = 1 << 16  # cells whose corners ``size_integral`` reads at once
 
 
 def gathered_probes(parts, inside, size, near=None, vertices=2):
     """``steps.Probes`` from parts (x, whether input points, d_{M,2} known, or None: NaN,
     asked), the first the size integral's samples, each kept where ``inside(x)``; ``size``
     a ``SizeSample`` whose ``corners`` are indices into the part ``vertices`` (the mesh's
-    vertices), returned as the rows of the probes kept. ``near``: {part: (other part,
-    rows (count, r))}, the rows of the other part near each of that part's probes (an
-    edge's midpoint: its two vertices); ``Probes.near`` holds those probes' indices once
-    gathered (-1 where one was dropped, beyond a part's own r columns, and for the other
-    parts); ``Probes.exact`` marks the first part and the part ``vertices``, whose d_{P,k}
-    the size integral reads. Each part is copied once, into its place."""
+    vertices), returned with those vertices' rows among the probes kept (``at``).
+    ``near``: {part: (other part, rows (count, r))}, the rows of the other part near each
+    of that part's probes (an edge's midpoint: its two vertices); ``Probes.near`` holds
+    those probes' indices once gathered (-1 where one was dropped, beyond a part's own r
+    columns, and for the other parts); ``Probes.exact`` marks the first part and the part
+    ``vertices``, whose d_{P,k} the size integral reads. Each part is copied once, into
+    its place."""
     keep = [inside(p[0]) for p in parts]
     kept = [int(k.sum()) for k in keep]
     start = np.concatenate([[0], np.cumsum(kept)]).astype(np.int64)
@@ -628,7 +632,7 @@ def gathered_probes(parts, inside, size, near=None, vertices=2):
     for i, (j, rows) in (near or {}).items():
         rows = np.asarray(rows)
         gathered[start[i] : start[i + 1], : rows.shape[1]] = index[j][rows[keep[i]]]
-    size = size._replace(kept=keep[0], corners=index[vertices][np.asarray(size.corners)])
+    size = size._replace(kept=keep[0], at=index[vertices])
     exact = np.zeros(total, bool)  # what the size integral reads: its samples, the corners
     exact[: kept[0]] = True
     exact[index[vertices][index[vertices] >= 0]] = True
@@ -669,7 +673,7 @@ def size_integral(sample, d_pk, floor, dim):
     (where its corners are not all kept, a cell's h is 0: estimated whole). One point in
     each of s of the t cells: the estimate is sum(measure h) + t / s sum(w (f - h)), its
     standard error t sd(w (f - h)) / sqrt(s) (with replacement: conservative)."""
-    kept, w, cells, corners, measure, t = sample
+    kept, w, cells, corners, measure, t, _ = sample
     s = len(kept)
     if s == 0:
         return 0.0, 0.0
@@ -677,10 +681,12 @@ def size_integral(sample, d_pk, floor, dim):
     f = np.zeros(s)
     f[kept] = 1.0 / np.maximum(d_pk[: int(kept.sum())], low) ** dim
     h = np.zeros(t)
-    whole = (corners >= 0).all(axis=1)
-    if whole.any():
-        at = 1.0 / np.maximum(d_pk[corners[whole]], low) ** dim
-        h[whole] = at.mean(axis=1)
+    for a in range(0, t, SIZE_CHUNK):  # (a chunk of cells at a time: no (t, dim + 1) copies)
+        c = sample.at[corners[a : a + SIZE_CHUNK]]  # (their rows among the probes)
+        whole = (c >= 0).all(axis=1)
+        if whole.any():
+            at = 1.0 / np.maximum(d_pk[c[whole]], low) ** dim
+            h[a : a + SIZE_CHUNK][whole] = at.mean(axis=1)
     h[~np.isfinite(h)] = 0.0  # a corner with d_{P,k} unknown: that cell estimated whole
     y = np.where(kept, w * (f - h[cells]), 0.0)
     total = float(np.dot(measure, h)) + t / s * float(y.sum())

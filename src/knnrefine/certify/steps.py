@@ -230,11 +230,11 @@ def run_checks(
         mesh_problems += late
         del ask, tri, voronoi  # (what follows reads neither: not held beside its bounds)
         geometry.release()
-        d_pk, lo = bounded_d_pk(points, geometry, probes, d_m2, floor, k)
+        d_pk, settled = bounded_d_pk(points, geometry, probes, d_m2, floor, k)
         at_points = d_pk[probes.points]
         under_floor = float(np.mean(at_points < floor)) if len(at_points) else 0.0
         asked = d_pk >= floor
-        n_probes = int(asked.sum() + (np.isnan(d_pk) & (lo >= floor)).sum())
+        n_probes = int(asked.sum()) + settled
         if n_probes:
             ratio = d_m2[asked] / d_pk[asked]
             i, j = int(np.argmin(ratio)), int(np.argmax(ratio))
@@ -296,21 +296,26 @@ TIE = 1e-9  # relative: a radius a count decides moved this far from an extreme'
 
 
 def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
-    """(d_{P,k} at the probes, NaN where it cannot change the certificate; a lower bound
-    of it). Asked first at the probes whose value the size integral reads
-    (``Probes.exact``) and those others are bounded from; then, from each bounded probe's
-    bounds [d - s, d + s] (``Probes``: d its near probe's, s their separation), at the
-    SEED share with the lowest and the highest ratio bounds, and at the SEED share of the
-    unbounded others: the extremes alpha, beta found so far move out. A probe whose upper
-    bound lies below the floor is no probe and is not asked. A probe not yet asked cannot
-    be an extreme where its ratio d_{M,2} / d_{P,k} lies strictly between
-    them and d_{P,k} at or above the floor: where its bounds do not show that, two counts
-    may: a ball of radius r holds less than k (weight) exactly where d_{P,k} > r, at least
-    k where d_{P,k} <= r, so fewer than k in the ball of d_{M,2} / beta (or the floor) and
-    k in the ball of d_{M,2} / alpha settle it (each radius moved TIE towards the middle,
-    and a weighted count by TIE past k, so that rounding decides nothing). It is asked
-    where neither does. The extremes, where they lie and the number of probes are those
-    of asking every probe."""
+    """(d_{P,k} at the probes, NaN where it cannot change the certificate; the number of
+    those, d_{P,k} shown there to be at or above the floor). Asked first at the probes
+    whose value the size integral reads (``Probes.exact``) and those others are bounded
+    from; then, from each bounded probe's bounds [d - s, d + s] (``Probes``: d its near
+    probe's, s their separation), at the SEED share with the lowest and the highest ratio
+    bounds, and at the SEED share of the unbounded others: the extremes alpha, beta found
+    so far move out. A probe whose upper bound lies below the floor is no probe and is not
+    asked. A probe not yet asked cannot be an extreme where its ratio d_{M,2} / d_{P,k}
+    lies strictly between them and d_{P,k} at or above the floor: where its bounds do not
+    show that, two counts may: a ball of radius r holds less than k (weight) exactly where
+    d_{P,k} > r, at least k where d_{P,k} <= r, so fewer than k in the ball of d_{M,2} /
+    beta (or the floor) and k in the ball of d_{M,2} / alpha settle it (each radius moved
+    TIE towards the middle, and a weighted count by TIE past k, so that rounding decides
+    nothing). It is asked where neither does. The extremes, where they lie and the number
+    of probes are those of asking every probe.
+
+    The probes are read CHUNK at a time, and a probe's bounds are worked out from its
+    references where they are read (twice: for the seeds, then to settle it; the
+    references' d_{P,k} is asked first and does not change), so that what is held for
+    each probe is its d_{P,k} and a few flags."""
     x, near, exact = probes.x, probes.near, probes.exact
     n = len(x)
     d_pk = np.full(n, np.nan)
@@ -323,8 +328,6 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
             r = d_m2[use] / d_pk[use]
             extremes[:] = min(extremes[0], float(r.min())), max(extremes[1], float(r.max()))
 
-    # the probes are read CHUNK at a time, so that what is held for each is its bounds
-    # (``lo``, ``hi``) and a few flags, not the arrays of every step at once
     chunks = [(a, min(a + CHUNK, n)) for a in range(0, n, CHUNK)]
     bounded = (near >= 0).any(axis=1)
     first = np.array(exact, bool, copy=True)
@@ -332,17 +335,29 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
         refs = near[a:b][bounded[a:b] & ~exact[a:b]]
         first[refs[refs >= 0]] = True
     ask(np.flatnonzero(first))
-    lo = d_pk.copy()  # (d_pk where asked; elsewhere, below, its lower bound)
     if first.all():
-        return d_pk, lo
-    hi = np.full(n, np.inf)
+        return d_pk, 0
 
     def later_of(a, b):
         return a + np.flatnonzero(~first[a:b])
 
-    def ratios(rows):
+    def bounds(rows):
+        """(lower, upper bounds of d_{P,k} at the probes ``rows``, from their references)."""
+        low, up = np.full(len(rows), -np.inf), np.full(len(rows), np.inf)
+        if len(rows) == 0:
+            return low, up
+        refs = near[rows]  # (-1: none in that column)
+        reach = geometry.separation(x, rows, refs).T
+        for ref, s in zip(refs.T, reach, strict=True):  # each column of references
+            d = d_pk[ref]  # (where ref is -1, s is NaN: the bounds stay as they were)
+            slack = 1e-9 * (d + s)  # rounding in d_{P,k} and the separation
+            np.fmax(low, d - s - slack, out=low)
+            np.fmin(up, d + s + slack, out=up)
+        return low, up
+
+    def ratios(rows, low, up):
         with np.errstate(divide="ignore"):
-            return d_m2[rows] / hi[rows], np.where(lo[rows] > 0, d_m2[rows] / lo[rows], np.inf)
+            return d_m2[rows] / up, np.where(low > 0, d_m2[rows] / low, np.inf)
 
     groups = [int((bounded & ~first).sum()), int((~bounded & ~first).sum())]
     seeds = [min(max(16, int(math.ceil(SEED * g))), g) for g in groups]
@@ -352,19 +367,11 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
         later = later_of(a, b)
         if len(later) == 0:
             continue
-        refs = near[later]  # (-1: none in that column)
-        reach = geometry.separation(x, later, refs).T
-        low, up = np.full(len(later), -np.inf), np.full(len(later), np.inf)
-        for ref, s in zip(refs.T, reach, strict=True):  # each column of references
-            d = d_pk[ref]  # (where ref is -1, s is NaN: the bounds stay as they were)
-            slack = 1e-9 * (d + s)  # rounding in d_{P,k} and the separation
-            np.fmax(low, d - s - slack, out=low)
-            np.fmin(up, d + s + slack, out=up)
-        lo[later], hi[later] = low, up
-        ratio_lo, ratio_hi = ratios(later)
         by_bounds = bounded[later]
-        lowest.offer(ratio_lo[by_bounds], later[by_bounds])
-        highest.offer(-ratio_hi[by_bounds], later[by_bounds])
+        rows = later[by_bounds]
+        ratio_lo, ratio_hi = ratios(rows, *bounds(rows))
+        lowest.offer(ratio_lo, rows)
+        highest.offer(-ratio_hi, rows)
         if taken < seeds[1]:  # unbounded (input points, drawn at random): the first seed
             free = later[~by_bounds][: seeds[1] - taken]
             unbounded.append(free)
@@ -373,17 +380,19 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
     pick[lowest.rows()] = pick[highest.rows()] = True
     pick[np.concatenate(unbounded)] = True
     ask(np.flatnonzero(pick))
+    del pick
     alpha, beta = extremes  # with the seeds asked, the rest settled against them
     weighted = bool(points.weighted)
     unsettled = [np.zeros(0, np.int64)]
+    settled = 0
     for a, b in chunks:
         rest = later_of(a, b)
-        rest = rest[~pick[rest]]
+        rest = rest[np.isnan(d_pk[rest])]  # (the seeds asked)
         if len(rest) == 0:
             continue
-        low = lo[rest]
-        ratio_lo, ratio_hi = ratios(rest)
-        under = hi[rest] < floor  # below the floor: no probe
+        low, up = bounds(rest)
+        ratio_lo, ratio_hi = ratios(rest, low, up)
+        under = up < floor  # below the floor: no probe
         below = (low >= floor) & (ratio_hi < beta)  # d_pk above floor and d_m2 / beta
         above = ratio_lo > alpha  # d_pk below d_m2 / alpha
         if alpha < beta and np.isfinite(beta):
@@ -395,18 +404,17 @@ def bounded_d_pk(points, geometry, probes, d_m2, floor, k):
             if len(count):
                 need = k * (1.0 - TIE) if weighted else k
                 ok = count[points.fewer(x[rest[count]], r_lo[count], need)]
-                below[ok] = True
-                lo[rest[ok]] = np.maximum(low[ok], r_lo[ok])
+                below[ok] = True  # (d_pk > r_lo >= the floor there)
             count = np.flatnonzero(hopeful & below & ~above)
             if len(count):
                 need = k * (1.0 + TIE) if weighted else k
                 far = ~points.fewer(x[rest[count]], r_hi[count], need, mostly=False)
                 above[count[far]] = True
-        unsettled.append(rest[~((below & above) | under)])
+        done = below & above  # (d_pk at or above the floor: ``below`` says so)
+        settled += int(done.sum())
+        unsettled.append(rest[~(done | under)])
     ask(np.concatenate(unsettled))
-    asked = ~np.isnan(d_pk)
-    lo[asked] = d_pk[asked]
-    return d_pk, lo
+    return d_pk, settled
 
 
 CHUNK = 1 << 17  # probes bounded and settled at once (``bounded_d_pk``)

@@ -136,12 +136,12 @@ class Points:
         self.n = len(pts)
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
         self.source = pts  # (the caller's: not a copy)
-        framed = self.input_frame(pts)  # (held by the tree's build only)
+        framed = self.input_frame(pts)  # (the tree's: sorted in place)
         heavy = None if weights is None else weights > 0
         # built beside the mesh's checks, which come first
         self.tree = Tree(framed if heavy is None else framed[heavy],
                          None if heavy is None else weights[heavy], self.period,
-                         workers, background=True)  # fmt: skip
+                         workers, background=True, scratch=True)  # fmt: skip
 
     def d_pk(self, x):
         """d_{P,k} at x (in the torus frame); weighted: the least radius holding weight k."""

@@ -261,7 +261,7 @@ class Points:
         self.origin = np.asarray(torus.origin, float)
         self.period = np.asarray(torus.period, float)
         self.source, self.input_frame = pts, TorusFrame(self.origin, self.period)
-        framed = self.input_frame(pts)  # (held by the tree's build only)
+        framed = self.input_frame(pts)  # (the tree's: sorted in place)
         self.workers, self.k, self.n = workers, mesh.k, len(pts)
         self.weighted = weights is not None
         self.total = float(len(pts)) if weights is None else math.fsum(weights)
@@ -271,7 +271,7 @@ class Points:
         # built beside the mesh's checks, which come first
         self.tree = Tree(framed if heavy is None else framed[heavy],
                          None if heavy is None else weights[heavy], self.period,
-                         workers, background=True)  # fmt: skip
+                         workers, background=True, scratch=True)  # fmt: skip
 
     def held(self, centres, radii, stop=np.inf):
         return self.tree.held(centres, radii, stop)

@@ -135,7 +135,7 @@ def _held_in_caps(xyz, tri, centres, chords, points, stop):
     if len(caps):
         above = np.array([exact_sign("orient3d", np.vstack([xyz[tri[q]], tree.pts[j]])) <= 0
                           for q, j in zip(caps, members, strict=True)])  # fmt: skip
-        out = out + sums_by(caps[above], tree.w[members[above]], len(tri))
+        out = out + sums_by(caps[above], tree.weights_of(members[above]), len(tri))
     return out
 
 
@@ -234,15 +234,18 @@ class Points:
     kd-tree over the unit vectors (``_tree.Tree``; weighted, those of positive weight)."""
 
     def __init__(self, mesh, unit, weights, workers):
-        self.source, self.workers, self.k = unit, workers, mesh.k  # (the caller's)
+        self.workers, self.k = workers, mesh.k
         self.n = len(unit)
         self.weighted = weights is not None
         self.total = self.n if weights is None else float(weights.sum())
         heavy = None if weights is None else weights > 0
-        # built beside the mesh's checks, which come first
+        # built beside the mesh's checks, which come first; unweighted, the tree sorts
+        # ``unit`` (``checked_points``' own copy) in place, and its points are the source
+        # of the samples (keyed by coordinates: the same whatever their order)
+        self.source = None if heavy is None else unit
         self.tree = Tree(unit if heavy is None else unit[heavy],
                          None if heavy is None else weights[heavy], None, workers,
-                         background=True)  # fmt: skip
+                         background=True, scratch=True)  # fmt: skip
 
     def held(self, centres, angles, stop=np.inf):
         """What each closed cap (centre, angle) holds, inflated by a relative 1e-12; exact
@@ -275,7 +278,8 @@ class Points:
     def sample_points(self, count, rng):
         """About ``count`` of the points' unit vectors, the same whatever their order
         (``_sampling``: those whose key is below count / n)."""
-        return key_sample(self.source, min(1.0, count / max(self.n, 1)))[0]
+        source = self.tree.pts[: self.n] if self.source is None else self.source
+        return key_sample(source, min(1.0, count / max(self.n, 1)))[0]
 
 
 def _spacing(vertices):
