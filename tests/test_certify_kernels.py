@@ -128,9 +128,10 @@ def test_cells_held_equals_each_points_nearest_sites(layout):
     for weights in (None, w):
         tree = Tree(pts, weights, None, 2)
         want = near.sum(0) if weights is None else (near * w[:, None]).sum(0)
-        got = tree.cells_held(sites, first, sites[b] - sites[a], np.full(len(sites), 3.0))
+        none = np.zeros((len(b), 0), np.int16)  # (no shifts: the sites do not wrap)
+        got = tree.cells_held(sites, first, b, none, np.zeros(2), np.full(len(sites), 3.0))
         np.testing.assert_allclose(got, want, rtol=1e-12)
-        walked = tree.nearest_counts(sites, first, sites[b] - sites[a], b, np.zeros(2))
+        walked = tree.nearest_counts(sites, first, b, none, np.zeros(2))
         np.testing.assert_allclose(walked, want, rtol=1e-12)
 
 
@@ -281,16 +282,15 @@ def test_size_integral_with_its_control_variate_is_unbiased_and_its_error_honest
     rng = np.random.default_rng(5)
     s = 300
     for dropped in (False, True):
-        corners = T + s  # the vertices' rows follow the s samples
-        if dropped:
-            corners = corners.copy()
-            corners[::7, 1] = -1
+        at = s + np.arange(len(V))  # the vertices' rows follow the s samples
+        if dropped:  # vertices not kept: their cells estimated whole
+            at[::7] = -1
         est, err, plain = [], [], []
         for _ in range(400):
             cells = np.sort(rng.choice(t, s, replace=False))
             x, _ = uniform_in_triangles(V[T[cells]], rng.random((s, 2)))
             d_pk = np.concatenate([d(x), d(V)])
-            sample = SizeSample(np.ones(s, bool), area[cells], cells, corners, area, t)
+            sample = SizeSample(np.ones(s, bool), area[cells], cells, T, area, t, at)
             total, stderr = size_integral(sample, d_pk, 0.0, 2)
             est.append(total)
             err.append(stderr)
@@ -801,16 +801,17 @@ def test_uniform_in_triangles_by_cells_equals_a_gathered_copy():
 
 @pytest.mark.parametrize("domain", ["plane", "plane-line", "sphere"])
 def test_edge_vectors_and_midpoints_equal_numpy_gathers(domain):
-    """The Voronoi cells' edge vectors (``_tree.edge_vectors``) and the edge midpoints
-    (``common.edge_midpoints``) from kernels, on every core, equal numpy's gathers bit for
-    bit: sites[nb] - sites[site] + shift period, and site + half the edge for the
-    lexicographically positive direction of each edge; on the torus across its cut, with
-    points on a line, and on the sphere."""
+    """The Voronoi cells' edge vectors, worked out where they are read (``_tree.edge_at``,
+    issue 52: not held), as the edge midpoints (``common.edge_midpoints``) and each site's
+    nearest neighbour (``common.nearest_neighbour``) read them, equal numpy's gathers bit
+    for bit: sites[nb] - sites[site] + shift period, site + half the edge for the
+    lexicographically positive direction of each edge, the least edge length not 0; on
+    the torus across its cut, with points on a line, and on the sphere."""
     import knnrefine
     from knnrefine._domains.plane import certify as plane
     from knnrefine._domains.sphere import certify as sphere
-    from knnrefine.certify._tree import edge_vectors, neighbour_lists
-    from knnrefine.certify.common import edge_midpoints
+    from knnrefine.certify._tree import neighbour_lists
+    from knnrefine.certify.common import edge_midpoints, nearest_neighbour
 
     rng = np.random.default_rng(36)
     if domain == "sphere":
@@ -828,14 +829,18 @@ def test_edge_vectors_and_midpoints_equal_numpy_gathers(domain):
         cells, off = geometry.mesh.torus.cells, geometry.mesh.torus.offsets
     first, nb, shift = neighbour_lists(cells, off, len(sites), 2)
     site = np.repeat(np.arange(len(sites)), np.diff(first))
-    want = sites[nb] - sites[site]
+    e = sites[nb] - sites[site]
     if shift.shape[1]:
-        want = want + shift * period
-    got = edge_vectors(sites, first, nb, shift, period, 2)
-    np.testing.assert_array_equal(got, want)
+        e = e + shift * period
     cells_ = geometry.cells(geometry.triangulation())
+    np.testing.assert_array_equal(cells_.first, first)
+    np.testing.assert_array_equal(cells_.neighbours, nb)
+    np.testing.assert_array_equal(cells_.shift, shift)
+    length = np.sqrt(sum(e[:, a] * e[:, a] for a in range(e.shape[1])))  # (axis by axis)
+    length[length == 0] = np.inf
+    nearest = np.minimum.reduceat(length, first[:-1])  # (every site has neighbours here)
+    np.testing.assert_array_equal(nearest_neighbour(cells_), nearest)
     mids, ends = edge_midpoints(cells_)
-    e = cells_.edges
     positive = np.zeros(len(e), bool)
     decided = np.zeros(len(e), bool)
     for a in range(e.shape[1]):

@@ -574,7 +574,19 @@ def offset(x, c, p):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def walk_nearest(sites, first, edges, neighbours, period, xq, v, dx):
+def edge_at(sites, neighbours, shift, period, v, j, a):
+    """Axis a of the Voronoi cells' edge j of site v as a vector from it (``steps.Cells``):
+    sites[neighbours[j]] - sites[v], plus shift[j] whole periods where the sites wrap
+    (``shift`` (e, d); (e, 0) where none do). Worked out where it is read, the one rule,
+    rather than held: (e, d) vectors are the cells' largest array."""
+    g = sites[neighbours[j], a] - sites[v, a]
+    if shift.shape[1] > 0:
+        g = g + np.float64(shift[j, a]) * period[a]
+    return g
+
+
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def walk_nearest(sites, first, neighbours, shift, period, xq, v, dx):
     """(the site nearest xq, its squared distance) by a walk on a verified Delaunay
     triangulation's neighbour lists from site v: to any nearer neighbour until none is (a
     Delaunay vertex with no nearer neighbour is the nearest); dx is left holding xq less
@@ -591,20 +603,21 @@ def walk_nearest(sites, first, edges, neighbours, period, xq, v, dx):
         for j in range(first[v], first[v + 1]):
             s = 0.0
             for a in range(d):
-                g = offset(dx[a], edges[j, a], period[a])
+                g = offset(dx[a], edge_at(sites, neighbours, shift, period, v, j, a), period[a])
                 s += g * g
             if s < best:
                 best, move = s, j
         if move < 0:
             return v, best
         for a in range(d):
-            dx[a] = offset(dx[a], edges[move, a], period[a])
+            e = edge_at(sites, neighbours, shift, period, v, move, a)
+            dx[a] = offset(dx[a], e, period[a])
         v = neighbours[move]
     return -1, best
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _nearest_sites(pts, sites, first, edges, neighbours, period, relative, slack2, owner,
+def _nearest_sites(pts, sites, first, neighbours, shift, period, relative, slack2, owner,
                    start, end):  # fmt: skip
     """For points [start, end) (in the tree's order: each near the one before): owner[i]
     its nearest site (walked from the one before's), and (points, sites) of the other
@@ -625,7 +638,7 @@ def _nearest_sites(pts, sites, first, edges, neighbours, period, relative, slack
     ties = 0
     v = 0
     for i in range(start, end):
-        v, best = walk_nearest(sites, first, edges, neighbours, period, pts[i], v, dx)
+        v, best = walk_nearest(sites, first, neighbours, shift, period, pts[i], v, dx)
         if v < 0:
             return -1, tie_p[:0], tie_v[:0]
         owner[i] = v
@@ -646,7 +659,8 @@ def _nearest_sites(pts, sites, first, edges, neighbours, period, relative, slack
                     continue
                 s = 0.0
                 for a in range(d):
-                    g[a] = offset(dx[a], edges[j, a], period[a])
+                    e = edge_at(sites, neighbours, shift, period, t, j, a)
+                    g[a] = offset(dx[a], e, period[a])
                     s += g[a] * g[a]
                 if s <= limit:
                     if ties == room or top == 64:
@@ -990,23 +1004,32 @@ def _dist_to(c, xq, period):
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _cells_held(pts, w, T, depth, period, v, first, edges, outradii, relative,
-                slack2, stop, out, start, end):  # fmt: skip
+def _cells_held(pts, w, T, depth, period, v, first, neighbours, moved, cell_period, outradii,
+                relative, slack2, stop, out, start, end):  # fmt: skip
     """out[s] for s in [start, end): the weight in the closed Voronoi cell of site v[s]
     (``Tree.cells_held``). A node is skipped when it lies beyond the outradius or wholly
     beyond one bisector (with a margin past the tolerance), added whole when it lies within
     the outradius and inside every bisector with a margin, and otherwise opened; on a torus
     the bisector tests use the copy of the node nearest the site and are made only for
-    nodes narrower than half a period (the others are opened)."""
+    nodes narrower than half a period (the others are opened). A site's edges are worked
+    out once (``edge_at``: its neighbours ``moved`` whole periods of the sites' own
+    ``cell_period``) into rows of their own."""
     dim = v.shape[1]
     stack = np.empty(2 * depth + 4, np.int64)
     rlo = np.empty(dim)
     rhi = np.empty(dim)
+    most_edges = 0
+    for q in range(start, end):
+        most_edges = max(most_edges, first[q + 1] - first[q])
+    edges = np.empty((most_edges, dim))
     for q in range(start, end):
         vq = v[q]
         big = outradii[q] * (1.0 + 1e-9)
         big2 = big * big
-        e0, e1 = first[q], first[q + 1]
+        e0, e1 = 0, first[q + 1] - first[q]
+        for j in range(e1):
+            for a in range(dim):
+                edges[j, a] = edge_at(v, neighbours, moved, cell_period, q, first[q] + j, a)
         s = 0.0
         c = 0.0
         top = 1
@@ -1799,11 +1822,11 @@ class Tree:
         members = np.concatenate([j for _, j in parts]) if parts else np.zeros(0, np.int64)
         return out, caps, members
 
-    def nearest_counts(self, sites, first, edges, neighbours, period, relative=2e-12,
+    def nearest_counts(self, sites, first, neighbours, shift, period, relative=2e-12,
                        slack2=0.0):  # fmt: skip
         """What each site's closed Voronoi cell holds, from a verified Delaunay
-        triangulation's neighbour lists (``cells_held``'s arguments and each edge's far
-        site, ``neighbours``; the sites' ``period``): every point's nearest site walked
+        triangulation's neighbour lists (``cells_held``'s arguments): every point's nearest
+        site walked
         (``walk_nearest``), the point counting for it and every site as near up to the tie
         tolerance. Exact in full; None where a walk did not settle (then ask
         ``cells_held``)."""
@@ -1816,8 +1839,8 @@ class Tree:
             pts,
             np.ascontiguousarray(sites, np.float64),
             np.ascontiguousarray(first, np.int64),
-            np.ascontiguousarray(edges, np.float64).reshape(-1, self.dim),
             as_index(neighbours),
+            edge_shifts(shift, len(neighbours)),
             np.ascontiguousarray(period, np.float64),
             float(relative),
             float(slack2),
@@ -1833,24 +1856,26 @@ class Tree:
         v = np.concatenate([owner] + [u for _, _, u in parts])
         return sums_by(v, self.weights_of(p), m)
 
-    def cells_held(self, sites, first, edges, outradii, stop=np.inf, relative=2e-12,
-                   slack2=0.0):  # fmt: skip
+    def cells_held(self, sites, first, neighbours, shift, period, outradii, stop=np.inf,
+                   relative=2e-12, slack2=0.0):  # fmt: skip
         """What the closed Voronoi cell of each site holds: the points p within its
-        outradius with |p - v|^2 <= |p - u|^2 (1 + relative) + slack2 for each neighbour u at
-        v + edges[first[v]:first[v + 1]] (its Delaunay neighbours, as vectors from it: a
-        point as near as its nearest counts for each), exact below ``stop``. Whole nodes
-        inside every bisector are added without their points."""
+        outradius with |p - v|^2 <= |p - u|^2 (1 + relative) + slack2 for each neighbour u of
+        v (rows first[v]:first[v + 1] of ``neighbours``, each ``shift`` whole ``period``s
+        away, (e, 0) where the sites do not wrap: ``edge_at``; a point as near as its
+        nearest counts for each), exact below ``stop``. Whole nodes inside every bisector
+        are added without their points."""
         v = self._queries(sites)
-        e = np.ascontiguousarray(edges, np.float64).reshape(-1, self.dim)
+        nb, sh = as_index(neighbours), edge_shifts(shift, len(neighbours))
+        cell_period = np.ascontiguousarray(period, np.float64)
         r = np.ascontiguousarray(outradii, np.float64)
         st = np.ascontiguousarray(np.broadcast_to(np.asarray(stop, np.float64), len(v)))
         first = np.ascontiguousarray(first, np.int64)
         out = np.empty(len(v))
 
         def call(a, b):
-            _cells_held(self.pts, self.w, self.T, self.depth,
-                        self.period, v, first, e, r, float(relative), float(slack2), st, out,
-                        a, b)  # fmt: skip
+            _cells_held(self.pts, self.w, self.T, self.depth, self.period, v, first, nb, sh,
+                        cell_period, r, float(relative), float(slack2), st, out, a,
+                        b)  # fmt: skip
 
         self._run(call, len(v))
         return out
@@ -1964,36 +1989,12 @@ def spatial_order(x):
     return morton_sorted(x, 31 if x.shape[1] == 2 else 21)[1]
 
 
-def edge_vectors(sites, first, nb, shift, period, threads=None):
-    """Each neighbour as a vector from its site (``neighbour_lists``' rows): sites[nb[j]]
-    - sites[v] + shift[j] period for the rows j of site v (``shift`` (e, 0): none), on
-    every core, with no gathered copies of the sites."""
-    sites = np.ascontiguousarray(sites, np.float64)
-    first = np.ascontiguousarray(first, np.int64)
-    nb = as_index(nb)
+def edge_shifts(shift, e):
+    """The cells' edge shifts (e, d) as the kernels read them: int16 as they come from
+    ``neighbour_lists``, else int64; (e, 0) where none."""
     shift = np.asarray(shift)
-    shift = (shift if shift.dtype == np.int16 else shift.astype(np.int64)).reshape(len(nb), -1)
-    shift = np.ascontiguousarray(shift)
-    period = np.ascontiguousarray(period, np.float64)
-    out = np.empty((len(nb), sites.shape[1]))
-    in_chunks(lambda a, b: _edge_vectors(sites, first, nb, shift, period, out, a, b),
-              len(first) - 1, threads=threads, least=8192)  # fmt: skip
-    return out
-
-
-@kernel(entry=True, lazy=True, nogil=True)
-def _edge_vectors(sites, first, nb, shift, period, out, start, end):
-    """``edge_vectors`` for the sites [start, end)."""
-    d = sites.shape[1]
-    shifted = shift.shape[1] == d
-    for v in range(start, end):
-        for j in range(first[v], first[v + 1]):
-            u = nb[j]
-            for a in range(d):
-                g = sites[u, a] - sites[v, a]
-                if shifted:
-                    g = g + np.float64(shift[j, a]) * period[a]
-                out[j, a] = g
+    shift = shift if shift.dtype == np.int16 else shift.astype(np.int64)
+    return np.ascontiguousarray(shift.reshape(e, -1))
 
 
 def neighbour_lists(cells, off, m, threads=None):

@@ -17,7 +17,15 @@ from .._validation import as_points, check_inside, check_made_from, weights_of_r
 from ..errors import InputError
 from ..mesh import theorem6_constants
 from ._rows import as_index, as_offsets, class_sizes, row_classes
-from ._tree import Tree, edge_vectors, neighbour_lists, offset, spatial_order, walk_nearest
+from ._tree import (
+    Tree,
+    edge_at,
+    edge_shifts,
+    neighbour_lists,
+    offset,
+    spatial_order,
+    walk_nearest,
+)
 from .certificate import floor_sites, to_input
 from .steps import Cells, Probes
 
@@ -338,8 +346,8 @@ class TorusGeometry:
 
     def cells(self, tri):
         """The Voronoi cells of the torus' vertices: each one's neighbours across the
-        cells' edges, as vectors on the torus (their outradii from ``tri``; worked out
-        once)."""
+        cells' edges and the periods between them (their outradii from ``tri``; worked
+        out once)."""
         if self._cells is not None:
             if tri is None:
                 return self._cells
@@ -348,8 +356,7 @@ class TorusGeometry:
         torus = self.mesh.torus
         m = len(self.vertices)
         first, nb, nshift = neighbour_lists(torus.cells, torus.offsets, m, self.workers)
-        edges = edge_vectors(self.vertices, first, nb, nshift, self.period, self.workers)
-        self._cells = Cells(self.vertices, first, edges, None, 2e-12, 0.0, nb, self.period)
+        self._cells = Cells(self.vertices, first, nshift, None, 2e-12, 0.0, nb, self.period)
         return self.cells(tri)
 
     def release(self):
@@ -462,9 +469,9 @@ def walked(cells, x, period, workers, sites=True):
     x = np.asarray(x, np.float64)
     order = spatial_order(x)
     sites_ = np.ascontiguousarray(cells.sites, np.float64)
-    edges = np.ascontiguousarray(cells.edges, np.float64)
     first = np.ascontiguousarray(cells.first, np.int64)
     neighbours = as_index(cells.neighbours)
+    shift = edge_shifts(cells.shift, len(neighbours))
     period = np.ascontiguousarray(period, np.float64)
     out = np.empty(len(x))
     nearest = np.empty(len(x), np.int64) if sites else None
@@ -474,7 +481,7 @@ def walked(cells, x, period, workers, sites=True):
         res, site = np.empty(len(rows)), np.empty(len(rows), np.int64)
 
         def call(a, b, xs=xs, res=res, site=site):
-            _walk_d_m2(sites_, first, edges, neighbours, period, xs, res, site, a, b)
+            _walk_d_m2(sites_, first, neighbours, shift, period, xs, res, site, a, b)
 
         in_chunks(call, len(rows), threads=workers, least=512)
         out[rows] = res
@@ -487,14 +494,14 @@ WALK = 1 << 18  # queries walked at once (``walked``)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _walk_d_m2(sites, first, edges, neighbours, period, x, out, site, start, end):
+def _walk_d_m2(sites, first, neighbours, shift, period, x, out, site, start, end):
     """``walked``'s work for queries [start, end) (``_tree.walk_nearest``), NaN (site -1)
     where a walk did not settle."""
     d = x.shape[1]
     dx = np.empty(d)
     v = 0
     for q in range(start, end):
-        v, _ = walk_nearest(sites, first, edges, neighbours, period, x[q], v, dx)
+        v, _ = walk_nearest(sites, first, neighbours, shift, period, x[q], v, dx)
         if v < 0:
             out[q] = np.nan
             site[q] = -1
@@ -504,7 +511,7 @@ def _walk_d_m2(sites, first, edges, neighbours, period, x, out, site, start, end
         for j in range(first[v], first[v + 1]):
             s = 0.0
             for a in range(d):
-                g = offset(dx[a], edges[j, a], period[a])
+                g = offset(dx[a], edge_at(sites, neighbours, shift, period, v, j, a), period[a])
                 s += g * g
             second = min(second, s)
         out[q] = math.sqrt(second)
@@ -518,57 +525,86 @@ def cell_counts(tree, cells, stop):
     otherwise, or where a walk did not settle, each cell asked of the tree (exact below
     ``stop``)."""
     if cells.walkable:
-        counts = tree.nearest_counts(cells.sites, cells.first, cells.edges, cells.neighbours,
+        counts = tree.nearest_counts(cells.sites, cells.first, cells.neighbours, cells.shift,
                                      cells.period, cells.relative, cells.slack2)  # fmt: skip
         if counts is not None:
             return counts
-    return tree.cells_held(cells.sites, cells.first, cells.edges, cells.outradii, stop,
-                           cells.relative, cells.slack2)  # fmt: skip
+    return tree.cells_held(cells.sites, cells.first, cells.neighbours, cells.shift,
+                           cells.period, cells.outradii, stop, cells.relative,
+                           cells.slack2)  # fmt: skip
+
+
+def _edge_arrays(cells):
+    """(sites, first, neighbours, shift, period) of ``cells`` as the kernels read them."""
+    return (np.ascontiguousarray(cells.sites, np.float64),
+            np.ascontiguousarray(cells.first, np.int64), as_index(cells.neighbours),
+            edge_shifts(cells.shift, len(cells.neighbours)),
+            np.ascontiguousarray(cells.period, np.float64))  # fmt: skip
 
 
 def nearest_neighbour(cells):
     """Each site's distance to its nearest neighbour among ``cells``' (a Delaunay
     triangulation's: the nearest other vertex), inf for a site with none."""
-    length = np.sqrt(np.einsum("ij,ij->i", cells.edges, cells.edges))
-    length[length == 0] = np.inf  # a site is not its own neighbour
     out = np.full(len(cells.sites), np.inf)
-    has = np.diff(cells.first) > 0
-    if len(length):
-        out[has] = np.minimum.reduceat(length, cells.first[:-1][has])
+    _nearest_lengths(*_edge_arrays(cells), out)
     return out
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _nearest_lengths(sites, first, neighbours, shift, period, out):
+    """out[v]: the least length of site v's edges (``_tree.edge_at``; a site is not its
+    own neighbour: an edge of length 0 counts as none)."""
+    for v in range(first.shape[0] - 1):
+        for j in range(first[v], first[v + 1]):
+            s = 0.0
+            for a in range(sites.shape[1]):
+                g = edge_at(sites, neighbours, shift, period, v, j, a)
+                s += g * g
+            length = math.sqrt(s)
+            if length > 0.0:
+                out[v] = min(out[v], length)
 
 
 def edge_midpoints(cells):
     """(the midpoint of every edge once, the edge's two vertices (e, 2)): of the two
-    directions of an edge, the one whose vector is lexicographically positive; in a kernel
-    (``_midpoints``), with no gathered copies of the sites."""
-    e = np.ascontiguousarray(cells.edges, np.float64)
-    positive = np.zeros(len(e), bool)
-    decided = np.zeros(len(e), bool)
-    for a in range(e.shape[1]):
-        positive |= ~decided & (e[:, a] > 0)
-        decided |= e[:, a] != 0
-    index = np.int32 if len(e) < 2**31 else np.int64
+    directions of an edge, the one whose vector is lexicographically positive; in kernels
+    (``_positive_edges``, ``_midpoints``), with no gathered copies of the sites."""
+    arrays = _edge_arrays(cells)
+    e = len(arrays[2])
+    positive = np.zeros(e, bool)
+    _positive_edges(*arrays, positive)
+    index = np.int32 if e < 2**31 else np.int64
     at = np.cumsum(positive, dtype=index) - 1  # each positive row's place among them
     count = int(at[-1]) + 1 if len(at) else 0
-    mids, ends = np.empty((count, e.shape[1])), np.empty((count, 2), index)
-    _midpoints(np.ascontiguousarray(cells.sites, np.float64),
-               np.ascontiguousarray(cells.first, np.int64),
-               as_index(cells.neighbours), e, positive, at, mids,
-               ends)  # fmt: skip
+    mids, ends = np.empty((count, arrays[0].shape[1])), np.empty((count, 2), index)
+    _midpoints(*arrays, positive, at, mids, ends)
     return mids, ends
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _midpoints(sites, first, neighbours, edges, positive, at, mids, ends):
+def _positive_edges(sites, first, neighbours, shift, period, positive):
+    """positive[j]: whether edge j's vector (``_tree.edge_at``) is lexicographically
+    positive (its first component not 0 is > 0)."""
+    for v in range(first.shape[0] - 1):
+        for j in range(first[v], first[v + 1]):
+            for a in range(sites.shape[1]):
+                g = edge_at(sites, neighbours, shift, period, v, j, a)
+                if g != 0.0:
+                    positive[j] = g > 0.0
+                    break
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _midpoints(sites, first, neighbours, shift, period, positive, at, mids, ends):
     """``edge_midpoints``' rows: for each positive row j of site v, at its place at[j],
-    sites[v] + 0.5 edges[j] and (v, its far site)."""
+    sites[v] + 0.5 (its edge vector) and (v, its far site)."""
     for v in range(first.shape[0] - 1):
         for j in range(first[v], first[v + 1]):
             if positive[j]:
                 i = at[j]
                 for a in range(sites.shape[1]):
-                    mids[i, a] = sites[v, a] + 0.5 * edges[j, a]
+                    mids[i, a] = sites[v, a] + 0.5 * edge_at(sites, neighbours, shift, period,
+                                                             v, j, a)  # fmt: skip
                 ends[i, 0] = v
                 ends[i, 1] = neighbours[j]
 

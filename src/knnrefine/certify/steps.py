@@ -60,16 +60,16 @@ Triangulation = namedtuple("Triangulation", ["problems", "centres", "radii", "ou
 # The achieved constants, where they lie and the number of probes are those of asking all.
 Probes = namedtuple("Probes", ["x", "points", "d_m2", "extra", "near", "exact"])
 # the closed Voronoi cells as certify counts them: each vertex (``sites``, the points' frame),
-# its Delaunay neighbours as vectors from it (rows first[v]:first[v + 1] of ``edges``), its
-# outradius R(v) (the cell lies within it), and the tie tolerance: a point p counts for v
-# when |p - v|^2 <= |p - u|^2 (1 + relative) + slack2 for every neighbour u (one as near as
-# its nearest counts for each)
-# (``neighbours``: the index of each edge's far vertex; ``period``: the sites' per axis, 0
-# where none; ``walkable``: the triangulation was verified, so a walk along the neighbours
-# finds a point's nearest site)
+# its Delaunay neighbours (rows first[v]:first[v + 1] of ``neighbours``, their indices, and
+# of ``shift`` (e, d), the whole periods from v to each; (e, 0) where the sites do not
+# wrap: an edge's vector is worked out where it is read, ``_tree.edge_at``), its outradius
+# R(v) (the cell lies within it), and the tie tolerance: a point p counts for v when
+# |p - v|^2 <= |p - u|^2 (1 + relative) + slack2 for every neighbour u (one as near as its
+# nearest counts for each) (``period``: the sites' per axis, 0 where none; ``walkable``: the
+# triangulation was verified, so a walk along the neighbours finds a point's nearest site)
 Cells = namedtuple(
     "Cells",
-    ["sites", "first", "edges", "outradii", "relative", "slack2", "neighbours", "period",
+    ["sites", "first", "shift", "outradii", "relative", "slack2", "neighbours", "period",
      "walkable"],
     defaults=(None, False),
 )  # fmt: skip

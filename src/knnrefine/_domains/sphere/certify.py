@@ -40,7 +40,7 @@ from ..._sampling import key_sample
 from ..._validation import as_sphere_points, check_made_from, weights_of_run
 from ...certify._predicates import UNSURE, exact_sign, orient3d_at
 from ...certify._rows import grouped
-from ...certify._tree import Tree, edge_vectors, neighbour_lists, sums_by
+from ...certify._tree import Tree, neighbour_lists, sums_by
 from ...certify.common import (
     SizeSample,
     cell_counts,
@@ -346,8 +346,8 @@ class Geometry:
 
     def cells(self, tri):
         """The Voronoi cells of the vertices: each one's neighbours across the triangles'
-        edges, as chord vectors; a point counts for each vertex as near as its nearest up
-        to the unit vectors' rounding (``CELL_TIES``). Worked out once."""
+        edges (chords between unit vectors); a point counts for each vertex as near as its
+        nearest up to the unit vectors' rounding (``CELL_TIES``). Worked out once."""
         if self._cells is not None:
             if tri is None:
                 return self._cells
@@ -355,11 +355,10 @@ class Geometry:
             return self._cells._replace(outradii=angle_to_chord(tri.outradii), walkable=walkable)
         t = np.ascontiguousarray(self.tri, np.int64)
         m = len(self.xyz)
-        first, nb, _ = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int8), m, self.workers)
-        edges = edge_vectors(self.xyz, first, nb, np.zeros((len(nb), 0), np.int16), np.zeros(3),
-                             self.workers)  # fmt: skip
-        # the cell lies within its outradius (an angle) of the vertex: as a chord
-        self._cells = Cells(self.xyz, first, edges, None, 2e-12, CELL_TIES, nb, np.zeros(3))
+        first, nb, shift = neighbour_lists(t, np.zeros((len(t), 3, 0), np.int8), m, self.workers)
+        # (shift (e, 0): the sites do not wrap) the cell lies within its outradius (an
+        # angle) of the vertex: as a chord
+        self._cells = Cells(self.xyz, first, shift, None, 2e-12, CELL_TIES, nb, np.zeros(3))
         return self.cells(tri)
 
     def held(self, points, tri, stop=np.inf):
