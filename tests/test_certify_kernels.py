@@ -131,7 +131,7 @@ def test_cells_held_equals_each_points_nearest_sites(layout):
         none = np.zeros((len(b), 0), np.int16)  # (no shifts: the sites do not wrap)
         got = tree.cells_held(sites, first, b, none, np.zeros(2), np.full(len(sites), 3.0))
         np.testing.assert_allclose(got, want, rtol=1e-12)
-        walked = tree.nearest_counts(sites, first, b, none, np.zeros(2))
+        walked = tree.nearest_counts(sites, first, b, np.zeros(2))
         np.testing.assert_allclose(walked, want, rtol=1e-12)
 
 

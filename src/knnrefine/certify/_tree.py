@@ -586,83 +586,74 @@ def edge_at(sites, neighbours, shift, period, v, j, a):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def walk_nearest(sites, first, neighbours, shift, period, xq, v, dx):
+def walk_nearest(sites, first, neighbours, period, xq, v):
     """(the site nearest xq, its squared distance) by a walk on a verified Delaunay
     triangulation's neighbour lists from site v: to any nearer neighbour until none is (a
-    Delaunay vertex with no nearer neighbour is the nearest); dx is left holding xq less
-    that site, by whole periods. (-1, its distance) where the walk took more steps than
-    there are sites (rounding in a near tie that never settles)."""
-    d = xq.shape[0]
+    Delaunay vertex with no nearer neighbour is the nearest). Distances to each site's
+    nearest copy (``copy_distance2``): the walk moves only to a site nearer on the torus, and
+    where it stops no neighbour's copy is nearer, the cells' own among them. (-1, its
+    distance) where the walk took more steps than there are sites (rounding in a near tie
+    that never settles)."""
     m = len(first) - 1
-    best = 0.0
-    for a in range(d):
-        dx[a] = offset(xq[a], sites[v, a], period[a])
-        best += dx[a] * dx[a]
+    best = copy_distance2(sites, v, xq, period)
     for _ in range(m + 1):
         move = -1
         for j in range(first[v], first[v + 1]):
-            s = 0.0
-            for a in range(d):
-                g = offset(dx[a], edge_at(sites, neighbours, shift, period, v, j, a), period[a])
-                s += g * g
+            u = neighbours[j]
+            s = copy_distance2(sites, u, xq, period)
             if s < best:
-                best, move = s, j
+                best, move = s, u
         if move < 0:
             return v, best
-        for a in range(d):
-            e = edge_at(sites, neighbours, shift, period, v, move, a)
-            dx[a] = offset(dx[a], e, period[a])
-        v = neighbours[move]
+        v = move
     return -1, best
 
 
+@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
+def copy_distance2(sites, u, xq, period):
+    """The squared distance from xq to site u's nearest copy (``offset`` axis by axis)."""
+    s = 0.0
+    for a in range(xq.shape[0]):
+        g = offset(xq[a], sites[u, a], period[a])
+        s += g * g
+    return s
+
+
 @kernel(entry=True, lazy=True, nogil=True)
-def _nearest_sites(pts, sites, first, neighbours, shift, period, relative, slack2, owner,
-                   start, end):  # fmt: skip
+def _nearest_sites(pts, sites, first, neighbours, period, relative, slack2, owner, start,
+                   end):  # fmt: skip
     """For points [start, end) (in the tree's order: each near the one before): owner[i]
     its nearest site (walked from the one before's), and (points, sites) of the other
     sites as near up to the tie tolerance, |p - u|^2 <= |p - v|^2 (1 + relative) +
     slack2 with v the nearest, found from v through such ties (cocircular sites: a tie
     need not be v's neighbour). Returns (ties found, or -1 where a walk did not settle or
     the ties' room ran out, their points, their sites)."""
-    d = pts.shape[1]
     m = len(first) - 1
-    dx = np.empty(d)
-    g = np.empty(d)
     stamp = np.full(m, -1, np.int64)  # the point whose ties last saw this site
     room = 2 * (end - start) + 64
     tie_p = np.empty(room, np.int64)
     tie_v = np.empty(room, np.int64)
     sv = np.empty(64, np.int64)
-    sdx = np.empty((64, d))
     ties = 0
     v = 0
     for i in range(start, end):
-        v, best = walk_nearest(sites, first, neighbours, shift, period, pts[i], v, dx)
+        xq = pts[i]
+        v, best = walk_nearest(sites, first, neighbours, period, xq, v)
         if v < 0:
             return -1, tie_p[:0], tie_v[:0]
         owner[i] = v
         limit = best * (1.0 + relative) + slack2
         stamp[v] = i
         sv[0] = v
-        for a in range(d):
-            sdx[0, a] = dx[a]
         top = 1
         while top > 0:
             top -= 1
             t = sv[top]
-            for a in range(d):
-                dx[a] = sdx[top, a]
             for j in range(first[t], first[t + 1]):
                 u = neighbours[j]
                 if stamp[u] == i:
                     continue
-                s = 0.0
-                for a in range(d):
-                    e = edge_at(sites, neighbours, shift, period, t, j, a)
-                    g[a] = offset(dx[a], e, period[a])
-                    s += g[a] * g[a]
-                if s <= limit:
+                if copy_distance2(sites, u, xq, period) <= limit:
                     if ties == room or top == 64:
                         return -1, tie_p[:0], tie_v[:0]
                     stamp[u] = i
@@ -670,8 +661,6 @@ def _nearest_sites(pts, sites, first, neighbours, shift, period, relative, slack
                     tie_v[ties] = u
                     ties += 1
                     sv[top] = u
-                    for a in range(d):
-                        sdx[top, a] = g[a]
                     top += 1
         v = owner[i]
     return ties, tie_p[:ties].copy(), tie_v[:ties].copy()
@@ -1162,6 +1151,17 @@ def _held_caps(pts, w, T, depth, x, outer2, corners, stop, out, start, end):
         if s + c >= stop[q]:
             used = mark  # decided: what it left open is not needed
     return qs[:used].copy(), ps[:used].copy()
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _add_weights(rows, cell, w, s, c):
+    """The tree's points' weights ``w`` added, compensated, into bins (s, c) by ``cell``:
+    point rows[j] into bin cell[j] (``rows`` empty: point j; with ``cell`` empty too,
+    nothing)."""
+    every = rows.shape[0] == 0
+    for j in range(cell.shape[0]):
+        b = cell[j]
+        s[b], c[b] = plus_compensated(s[b], c[b], _weight(w, j if every else rows[j]))
 
 
 @kernel(entry=True, lazy=True)
@@ -1822,11 +1822,10 @@ class Tree:
         members = np.concatenate([j for _, j in parts]) if parts else np.zeros(0, np.int64)
         return out, caps, members
 
-    def nearest_counts(self, sites, first, neighbours, shift, period, relative=2e-12,
-                       slack2=0.0):  # fmt: skip
+    def nearest_counts(self, sites, first, neighbours, period, relative=2e-12, slack2=0.0):
         """What each site's closed Voronoi cell holds, from a verified Delaunay
-        triangulation's neighbour lists (``cells_held``'s arguments): every point's nearest
-        site walked
+        triangulation's neighbour lists (``cells_held``'s arguments but the shifts: a
+        walk measures each site's nearest copy): every point's nearest site walked
         (``walk_nearest``), the point counting for it and every site as near up to the tie
         tolerance. Exact in full; None where a walk did not settle (then ask
         ``cells_held``)."""
@@ -1834,13 +1833,12 @@ class Tree:
         if self.n == 0:
             return np.zeros(m)
         pts = self.pts
-        owner = np.empty(len(pts), np.int64)
+        owner = np.empty(len(pts), np.int32 if m < 2**31 else np.int64)
         args = (
             pts,
             np.ascontiguousarray(sites, np.float64),
             np.ascontiguousarray(first, np.int64),
             as_index(neighbours),
-            edge_shifts(shift, len(neighbours)),
             np.ascontiguousarray(period, np.float64),
             float(relative),
             float(slack2),
@@ -1852,9 +1850,16 @@ class Tree:
         parts = in_chunks(call, len(pts), threads=self.threads, least=4096)
         if any(found < 0 for found, _, _ in parts):
             return None
-        p = np.concatenate([np.arange(len(pts))] + [q for _, q, _ in parts])
-        v = np.concatenate([owner] + [u for _, _, u in parts])
-        return sums_by(v, self.weights_of(p), m)
+        if self.unit:  # counts: integers, exact
+            out = np.bincount(owner, minlength=m).astype(np.float64)
+            for _, _, u in parts:
+                out += np.bincount(u, minlength=m)
+            return out
+        s, c = np.zeros(m), np.zeros(m)  # each point's weight, then each tie's, compensated
+        _add_weights(np.arange(0), owner, self.w, s, c)
+        for _, q, u in parts:
+            _add_weights(q, u, self.w, s, c)
+        return s + c
 
     def cells_held(self, sites, first, neighbours, shift, period, outradii, stop=np.inf,
                    relative=2e-12, slack2=0.0):  # fmt: skip

@@ -19,10 +19,10 @@ from ..mesh import theorem6_constants
 from ._rows import as_index, as_offsets, class_sizes, row_classes
 from ._tree import (
     Tree,
+    copy_distance2,
     edge_at,
     edge_shifts,
     neighbour_lists,
-    offset,
     spatial_order,
     walk_nearest,
 )
@@ -471,7 +471,6 @@ def walked(cells, x, period, workers, sites=True):
     sites_ = np.ascontiguousarray(cells.sites, np.float64)
     first = np.ascontiguousarray(cells.first, np.int64)
     neighbours = as_index(cells.neighbours)
-    shift = edge_shifts(cells.shift, len(neighbours))
     period = np.ascontiguousarray(period, np.float64)
     out = np.empty(len(x))
     nearest = np.empty(len(x), np.int64) if sites else None
@@ -481,7 +480,7 @@ def walked(cells, x, period, workers, sites=True):
         res, site = np.empty(len(rows)), np.empty(len(rows), np.int64)
 
         def call(a, b, xs=xs, res=res, site=site):
-            _walk_d_m2(sites_, first, neighbours, shift, period, xs, res, site, a, b)
+            _walk_d_m2(sites_, first, neighbours, period, xs, res, site, a, b)
 
         in_chunks(call, len(rows), threads=workers, least=512)
         out[rows] = res
@@ -494,14 +493,14 @@ WALK = 1 << 18  # queries walked at once (``walked``)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _walk_d_m2(sites, first, neighbours, shift, period, x, out, site, start, end):
+def _walk_d_m2(sites, first, neighbours, period, x, out, site, start, end):
     """``walked``'s work for queries [start, end) (``_tree.walk_nearest``), NaN (site -1)
-    where a walk did not settle."""
-    d = x.shape[1]
-    dx = np.empty(d)
+    where a walk did not settle; the second nearest site is the nearest of the nearest's
+    neighbours (their nearest copies, as the walk measures them)."""
     v = 0
     for q in range(start, end):
-        v, _ = walk_nearest(sites, first, neighbours, shift, period, x[q], v, dx)
+        xq = x[q]
+        v, _ = walk_nearest(sites, first, neighbours, period, xq, v)
         if v < 0:
             out[q] = np.nan
             site[q] = -1
@@ -509,11 +508,7 @@ def _walk_d_m2(sites, first, neighbours, shift, period, x, out, site, start, end
             continue
         second = np.inf
         for j in range(first[v], first[v + 1]):
-            s = 0.0
-            for a in range(d):
-                g = offset(dx[a], edge_at(sites, neighbours, shift, period, v, j, a), period[a])
-                s += g * g
-            second = min(second, s)
+            second = min(second, copy_distance2(sites, neighbours[j], xq, period))
         out[q] = math.sqrt(second)
         site[q] = v
 
@@ -525,8 +520,8 @@ def cell_counts(tree, cells, stop):
     otherwise, or where a walk did not settle, each cell asked of the tree (exact below
     ``stop``)."""
     if cells.walkable:
-        counts = tree.nearest_counts(cells.sites, cells.first, cells.neighbours, cells.shift,
-                                     cells.period, cells.relative, cells.slack2)  # fmt: skip
+        counts = tree.nearest_counts(cells.sites, cells.first, cells.neighbours, cells.period,
+                                     cells.relative, cells.slack2)  # fmt: skip
         if counts is not None:
             return counts
     return tree.cells_held(cells.sites, cells.first, cells.neighbours, cells.shift,
