@@ -1493,19 +1493,22 @@ def _grid_read(pts, w, table, level0, bits, lo, scale, pmin, pmax, margin, radia
             continue
         if e - i > GRID_CROWD or (shell and m + (e - i) > keep.shape[0]):
             return count, fix, m, True
-        if shell:  # (without branches: each point written, kept where in the shell)
+        if shell and unit:  # (without branches: each point written, kept where in the shell)
             hits = 0
+            for j in range(i, e):
+                s = _point2(pts, j, xq, period)
+                keep[m] = s
+                m += (s <= rq2) & (s > rin2)
+                hits += s <= rin2
+            count += hits
+        elif shell:  # (weighted: each point's weight written beside it)
             for j in range(i, e):
                 s = _point2(pts, j, xq, period)
                 inner = s <= rin2
                 keep[m] = s
-                kw[m] = _weight(w, j)
+                kw[m] = w[j]
                 m += (s <= rq2) & (s > rin2)
-                if unit:
-                    hits += inner
-                else:
-                    count, fix = plus_compensated(count, fix, _weight(w, j) if inner else 0.0)
-            count += hits
+                count, fix = plus_compensated(count, fix, w[j] if inner else 0.0)
         elif unit:  # (two loops: the branch out of the one that counts)
             hits = 0
             for j in range(i, e):
