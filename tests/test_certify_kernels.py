@@ -852,3 +852,55 @@ def test_edge_vectors_and_midpoints_equal_numpy_gathers(domain):
         ends, np.column_stack([owner[positive], cells_.neighbours[positive]])
     )
     assert 2 * len(mids) == len(e)  # each edge once
+
+
+def test_gathered_probes_the_same_whatever_room_they_start_with():
+    """Issue 52: the probes are made a part at a time into arrays of the caller's bound
+    (``common.gathered_probes``), grown where it is short: with room for one row or for
+    all, the same probes, marks, d_{M,2}, near rows (a dropped vertex and a missing one
+    read -1) and the size sample's vertex rows; each as the parts kept, in order."""
+    from knnrefine.certify.common import SizeSample, gathered_probes
+
+    rng = np.random.default_rng(8)
+    verts = rng.random((50, 2))
+    samples, mids, others = rng.random((30, 2)), rng.random((70, 2)), rng.random((20, 2))
+    ends = rng.integers(0, 50, (70, 2))
+    near_one = rng.integers(-1, 50, (20, 1))  # -1: none
+    d_m2 = rng.random(50)
+
+    def inside(x):
+        return x[:, 0] < 0.8  # some of every part dropped, vertices among them
+
+    def parts():
+        return [
+            lambda: (samples, False, None, None),
+            lambda: (rng.random((0, 2)), True, None, None),
+            lambda: (verts, False, d_m2, None),
+            lambda: (mids, False, None, ends),
+            lambda: (others, False, None, near_one),
+        ]
+
+    size = SizeSample(None, np.ones(30), np.arange(30), np.zeros((30, 3), int), np.ones(30), 30)
+    small = gathered_probes(parts(), inside, size, 2, 1)
+    ample = gathered_probes(parts(), inside, size, 2, 1000)
+    kept = [inside(p) for p in (samples, verts, mids, others)]
+    parts_x = (samples, verts, mids, others)
+    want_x = np.concatenate([p[k] for p, k in zip(parts_x, kept, strict=True)])
+    at = np.full(50, -1)
+    at[kept[1]] = kept[0].sum() + np.arange(kept[1].sum())
+    for probes in (small, ample):
+        np.testing.assert_array_equal(probes.x, want_x)
+        np.testing.assert_array_equal(probes.extra.at, at)
+        np.testing.assert_array_equal(probes.extra.kept, kept[0])
+        a = int(kept[0].sum())
+        b = a + int(kept[1].sum())
+        np.testing.assert_array_equal(probes.d_m2[a:b], d_m2[kept[1]])
+        assert np.isnan(probes.d_m2[:a]).all() and np.isnan(probes.d_m2[b:]).all()
+        c = b + int(kept[2].sum())
+        np.testing.assert_array_equal(probes.near[b:c], at[ends[kept[2]]])
+        want = np.where(near_one[kept[3]] >= 0, at[near_one[kept[3]]], -1)
+        np.testing.assert_array_equal(probes.near[c:, :1], want)
+        assert (probes.near[c:, 1] == -1).all() and (probes.near[:b] == -1).all()
+        np.testing.assert_array_equal(np.flatnonzero(probes.exact),
+                                      np.concatenate([np.arange(a), np.arange(a, b)]))  # fmt: skip
+        assert not probes.points.any()

@@ -632,42 +632,86 @@ SizeSample = namedtuple("SizeSample", ["kept", "w", "cells", "corners", "measure
 SIZE_CHUNK = 1 << 16  # cells whose corners ``size_integral`` reads at once
 
 
-def gathered_probes(parts, inside, size, near=None, vertices=2):
-    """``steps.Probes`` from parts (x, whether input points, d_{M,2} known, or None: NaN,
-    asked), the first the size integral's samples, each kept where ``inside(x)``; ``size``
-    a ``SizeSample`` whose ``corners`` are indices into the part ``vertices`` (the mesh's
-    vertices), returned with those vertices' rows among the probes kept (``at``).
-    ``near``: {part: (other part, rows (count, r))}, the rows of the other part near each
-    of that part's probes (an edge's midpoint: its two vertices); ``Probes.near`` holds
-    those probes' indices once gathered (-1 where one was dropped, beyond a part's own r
-    columns, and for the other parts); ``Probes.exact`` marks the first part and the part
-    ``vertices``, whose d_{P,k} the size integral reads. Each part is copied once, into
-    its place."""
-    keep = [inside(p[0]) for p in parts]
-    kept = [int(k.sum()) for k in keep]
-    start = np.concatenate([[0], np.cumsum(kept)]).astype(np.int64)
-    total, dim = int(start[-1]), parts[0][0].shape[1]
-    x, mask, d_m2 = np.empty((total, dim)), np.zeros(total, bool), np.full(total, np.nan)
-    for i, (p, k) in enumerate(zip(parts, keep, strict=True)):
-        np.compress(k, p[0], axis=0, out=x[start[i] : start[i + 1]])
-        mask[start[i] : start[i + 1]] = p[1]
-        if p[2] is not None:
-            np.compress(k, np.asarray(p[2], float), out=d_m2[start[i] : start[i + 1]])
-    index = []  # each part's rows -> their index among the probes kept (-1: dropped)
-    for i, k in enumerate(keep):
-        at = np.full(len(k), -1, np.int32 if total < 2**31 else np.int64)
-        at[k] = start[i] + np.arange(kept[i])
-        index.append(at)
-    width = max((np.shape(rows)[1] for _, rows in (near or {}).values()), default=1)
-    gathered = np.full((total, width), -1, index[0].dtype)
-    for i, (j, rows) in (near or {}).items():
-        rows = np.asarray(rows)
-        gathered[start[i] : start[i + 1], : rows.shape[1]] = index[j][rows[keep[i]]]
-    size = size._replace(kept=keep[0], at=index[vertices])
-    exact = np.zeros(total, bool)  # what the size integral reads: its samples, the corners
-    exact[: kept[0]] = True
-    exact[index[vertices][index[vertices] >= 0]] = True
-    return Probes(x, mask, d_m2, size, gathered, exact)
+def gathered_probes(parts, inside, size, width, capacity, vertices=2):
+    """``steps.Probes`` from ``parts``, functions each making a part when called, in turn:
+    (x, whether input points, d_{M,2} known or None (NaN: asked), its near rows or None),
+    the first the size integral's samples, each kept where ``inside(x)``; ``size`` a
+    ``SizeSample`` whose ``corners`` are indices into the part ``vertices`` (the mesh's
+    vertices), returned with those vertices' rows among the probes kept (``at``). A
+    part's near rows (count, r <= ``width``) are rows of the part ``vertices`` (which
+    comes before them) near each of its probes (an edge's midpoint: its two vertices);
+    ``Probes.near`` holds those probes' indices (-1 where one was dropped, beyond a part's
+    own r columns, and for the other parts); ``Probes.exact`` marks the first part and the
+    part ``vertices``, whose d_{P,k} the size integral reads. Each part is copied into its
+    place and dropped before the next is made (what is held at once: the probes and one
+    part), in arrays of ``capacity`` rows (the caller's bound; more where it was short)."""
+    index = np.int32 if capacity < 2**31 - 2**20 else np.int64
+    rows = _ProbeRows(capacity, width, index)
+    first_kept = at = None
+    for i, make in enumerate(parts):
+        x, points, d_m2, near = make()
+        keep = inside(x)
+        place = rows.add(x, keep, points, d_m2, None if near is None else _rows_of(at, near[keep]))
+        del x, d_m2, near
+        if i == 0:
+            first_kept = keep
+        if i == vertices:
+            at = np.full(len(keep), -1, index)  # each vertex's probe row (-1: dropped)
+            at[keep] = place + np.arange(int(keep.sum()), dtype=index)
+    probes = rows.probes()
+    probes.exact[: int(first_kept.sum())] = True  # what the size integral reads: its
+    probes.exact[at[at >= 0]] = True  # samples and the corners
+    return probes._replace(extra=size._replace(kept=first_kept, at=at))
+
+
+def _rows_of(at, near):
+    """The probe rows ``at`` of the vertices ``near`` (-1 where none, or not kept)."""
+    return np.where(near >= 0, at[np.maximum(near, 0)] if len(at) else -1, -1).astype(at.dtype)
+
+
+class _ProbeRows:
+    """The probes' arrays filled part by part (``gathered_probes``): ``capacity`` rows,
+    grown by half where a part needs more."""
+
+    def __init__(self, capacity, width, index):
+        self.n, self.width, self.index = 0, width, index
+        self.x = None
+        self.size = max(int(capacity), 1)
+
+    def _arrays(self, dim):
+        size, width = self.size, self.width
+        return (np.empty((size, dim)), np.zeros(size, bool), np.full(size, np.nan),
+                np.full((size, width), -1, self.index))  # fmt: skip
+
+    def _room(self, rows, dim):
+        if self.x is None:
+            self.x, self.points, self.d_m2, self.near = self._arrays(dim)
+        if self.n + rows > self.size:
+            self.size = max(self.n + rows, self.size + self.size // 2)
+            grown = self._arrays(dim)
+            for new, old in zip(grown, (self.x, self.points, self.d_m2, self.near), strict=True):
+                new[: self.n] = old[: self.n]
+            self.x, self.points, self.d_m2, self.near = grown
+
+    def add(self, x, keep, points, d_m2, near):
+        """Append x[keep] (input points or not, d_{M,2} or None, near rows or None);
+        returns the first one's row."""
+        kept = int(keep.sum())
+        self._room(kept, x.shape[1])
+        a, b = self.n, self.n + kept
+        np.compress(keep, x, axis=0, out=self.x[a:b])
+        self.points[a:b] = points
+        if d_m2 is not None:
+            np.compress(keep, np.asarray(d_m2, float), out=self.d_m2[a:b])
+        if near is not None:
+            self.near[a:b, : near.shape[1]] = near
+        self.n = b
+        return a
+
+    def probes(self):
+        n = self.n
+        return Probes(self.x[:n], self.points[:n], self.d_m2[:n], None, self.near[:n],
+                      np.zeros(n, bool))  # fmt: skip
 
 
 SIZE_SHARE = 4  # the size integral reads one point in each of samples // SIZE_SHARE cells

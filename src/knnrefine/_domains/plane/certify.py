@@ -87,28 +87,36 @@ class Geometry(TorusGeometry):
         del corners
         inside = self.frame(inside)
         areas = np.abs(tri.extra)
-        mids, ends = edge_midpoints(self.cells(tri))
-        sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
-        uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
         s = len(chosen)
+        count = min(int(max_point_probes), 2 * m)
+        sampled = points.sample_points(count, rng)  # (drawn in this order: the probes')
+        uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
+        voronoi = self.cells(tri)
+
+        def midpoints():
+            mids, ends = edge_midpoints(voronoi)
+            return self.frame(mids), False, None, ends
+
+        # made one at a time (``gathered_probes``); near: a midpoint's two vertices, a
+        # uniform point's nearest vertex, a further sample's cell's corners
         return gathered_probes(
             [
-                (inside[:s], False, None),
-                (sampled, True, None),
-                (self.vertices, False, self.vertex_d_m2()),
-                (self.frame(mids), False, None),
-                (uniform, False, None),
-                (inside[s:], False, None),
+                lambda: (inside[:s], False, None, None),
+                lambda: (sampled, True, None, None),
+                lambda: (self.vertices, False, self.vertex_d_m2(), None),
+                midpoints,
+                lambda: (
+                    uniform,
+                    False,
+                    None,
+                    nearest_site(voronoi, uniform, self.period, self.workers, tri),
+                ),
+                lambda: (inside[s:], False, None, torus.triangles[dense]),
             ],
             self.in_box,
-            SizeSample(None, areas[chosen], chosen, self.mesh.torus.triangles, areas, t),
-            # near: a midpoint's two vertices, a uniform point's nearest vertex, a
-            # further sample's cell's corners
-            near={
-                3: (2, ends),
-                4: (2, nearest_site(self.cells(tri), uniform, self.period, self.workers, tri)),
-                5: (2, self.mesh.torus.triangles[dense]),
-            },
+            SizeSample(None, areas[chosen], chosen, torus.triangles, areas, t),
+            3,
+            len(cells) + len(sampled) + m + int(voronoi.first[-1]) // 2 + int(n_random),
         )
 
     def returned_d_m2(self, x, tri):

@@ -488,29 +488,37 @@ class Geometry(TorusGeometry):
         c = self.local[self.corners[cells]] + self.offsets[cells] * period
         inside = np.mod(_tetrahedron_samples(c, 1, rng), period)
         del c
-        mids, ends = edge_midpoints(self.cells(tri))
-        sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
+        count = min(int(max_point_probes), 2 * m)
+        sampled = points.sample_points(count, rng)  # (drawn in this order: the probes')
         uniform = self.lo + rng.random((int(n_random), 3)) * side
         free = ~np.array(self.mesh.periodic)
         s = len(chosen)
+        voronoi = self.cells(tri)
+
+        def midpoints():
+            mids, ends = edge_midpoints(voronoi)
+            return np.mod(mids, period, out=mids), False, None, ends
+
+        # made one at a time (``gathered_probes``); near: a midpoint's two vertices, a
+        # uniform point's nearest vertex, a further sample's cell's corners
         return gathered_probes(
             [
-                (inside[:s], False, None),
-                (sampled, True, None),
-                (self.local, False, None),
-                (np.mod(mids, period, out=mids), False, None),
-                (uniform, False, None),
-                (inside[s:], False, None),
+                lambda: (inside[:s], False, None, None),
+                lambda: (sampled, True, None, None),
+                lambda: (self.local, False, None, None),
+                midpoints,
+                lambda: (
+                    uniform,
+                    False,
+                    None,
+                    nearest_site(voronoi, uniform, self.period, self.workers, tri),
+                ),
+                lambda: (inside[s:], False, None, self.corners[dense]),
             ],
             lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
             SizeSample(None, volumes[chosen], chosen, self.corners, volumes, t),
-            # near: a midpoint's two vertices, a uniform point's nearest vertex, a
-            # further sample's cell's corners
-            near={
-                3: (2, ends),
-                4: (2, nearest_site(self.cells(tri), uniform, self.period, self.workers, tri)),
-                5: (2, self.corners[dense]),
-            },
+            4,
+            len(cells) + len(sampled) + m + int(voronoi.first[-1]) // 2 + int(n_random),
         )
 
     def returned_d_m2(self, x, tri):

@@ -27,6 +27,7 @@ beta] wherever d_{P,k} >= min_size, beta from the largest circumcap measured her
 (``mesh.sphere_constants``: spherical Pythagoras widens the plane's).
 """
 
+import math
 from functools import cached_property
 
 import numpy as np
@@ -282,6 +283,25 @@ class Points:
         return key_sample(source, min(1.0, count / max(self.n, 1)))[0]
 
 
+@kernel(entry=True, lazy=True, nogil=True)
+def _solid_angles(xyz, tri):
+    """The solid angle of each spherical triangle (its corners' unit vectors a, b, c):
+    2 atan2(|a . (b x c)|, 1 + a . b + b . c + c . a) (Van Oosterom and Strackee), read
+    where the corners are (no (t, 3) copies)."""
+    out = np.empty(tri.shape[0])
+    for t in range(tri.shape[0]):
+        i, j, k = tri[t, 0], tri[t, 1], tri[t, 2]
+        cx = xyz[j, 1] * xyz[k, 2] - xyz[j, 2] * xyz[k, 1]
+        cy = xyz[j, 2] * xyz[k, 0] - xyz[j, 0] * xyz[k, 2]
+        cz = xyz[j, 0] * xyz[k, 1] - xyz[j, 1] * xyz[k, 0]
+        triple = abs(xyz[i, 0] * cx + xyz[i, 1] * cy + xyz[i, 2] * cz)
+        ab = xyz[i, 0] * xyz[j, 0] + xyz[i, 1] * xyz[j, 1] + xyz[i, 2] * xyz[j, 2]
+        bc = xyz[j, 0] * xyz[k, 0] + xyz[j, 1] * xyz[k, 1] + xyz[j, 2] * xyz[k, 2]
+        ca = xyz[k, 0] * xyz[i, 0] + xyz[k, 1] * xyz[i, 1] + xyz[k, 2] * xyz[i, 2]
+        out[t] = 2.0 * math.atan2(triple, 1.0 + ab + bc + ca)
+    return out
+
+
 def _spacing(vertices):
     """Each unit vector's great-circle distance to its nearest other one."""
     return chord_to_angle(cKDTree(vertices).query(vertices, k=2)[0][:, 1])
@@ -393,33 +413,42 @@ class Geometry:
         h = np.abs(np.einsum("ij,ij->i", normal, a)) / np.where(twice_area > 0, twice_area, 1.0)
         norm = np.linalg.norm(y, axis=1)
         weights = 0.5 * twice_area * h / np.maximum(norm, 1e-300) ** 3
-        a, b, c = (xyz[tri_[:, j]] for j in range(3))  # every cell's solid angle
-        triple = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
-        dots = 1.0 + np.einsum("ij,ij->i", a, b) + np.einsum("ij,ij->i", b, c)
-        solid = 2.0 * np.arctan2(triple, dots + np.einsum("ij,ij->i", c, a))
-        mids, ends = edge_midpoints(self.cells(tri))
-        sampled = points.sample_points(min(int(max_point_probes), 2 * m), rng)
+        del a, b, c, normal, twice_area, h, norm
+        solid = _solid_angles(xyz, np.ascontiguousarray(tri_))  # every cell's
+        count = min(int(max_point_probes), 2 * m)
+        sampled = points.sample_points(count, rng)  # (drawn in this order: the probes')
         uniform = _uniform_on_sphere(int(n_random), rng)
+        voronoi = self.cells(tri)
+
+        def midpoints():
+            mids, ends = edge_midpoints(voronoi)
+            return mids, False, None, ends
+
+        # made one at a time (``gathered_probes``); near: a midpoint's two vertices, a
+        # uniform point's nearest vertex, a further sample's cell's corners
         probes = gathered_probes(
             [
-                (y, False, None),
-                (sampled, True, None),
-                (xyz, False, self.vertex_d_m2()),
-                (mids, False, None),
-                (uniform, False, None),
-                (flat[s:], False, None),
+                lambda: (y, False, None, None),
+                lambda: (sampled, True, None, None),
+                lambda: (xyz, False, self.vertex_d_m2(), None),
+                midpoints,
+                lambda: (
+                    uniform,
+                    False,
+                    None,
+                    nearest_site(voronoi, uniform, np.zeros(3), self.workers, tri),
+                ),
+                lambda: (flat[s:], False, None, tri_[dense]),
             ],
             lambda x: np.ones(len(x), bool),
             SizeSample(None, weights, chosen, tri_, solid, t),
-            # near: a midpoint's two vertices, a uniform point's nearest vertex, a
-            # further sample's cell's corners
-            near={
-                3: (2, ends),
-                4: (2, nearest_site(self.cells(tri), uniform, np.zeros(3), self.workers, tri)),
-                5: (2, tri_[dense]),
-            },
+            3,
+            len(cells) + len(sampled) + m + int(voronoi.first[-1]) // 2 + int(n_random),
         )
-        np.divide(probes.x, np.linalg.norm(probes.x, axis=1, keepdims=True), out=probes.x)
+        x = probes.x  # on the sphere: unit vectors, a chunk at a time (no (n, 3) copies)
+        for a in range(0, len(x), 1 << 16):
+            part = x[a : a + (1 << 16)]
+            np.divide(part, np.linalg.norm(part, axis=1, keepdims=True), out=part)
         return probes
 
     def release(self):
