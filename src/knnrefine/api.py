@@ -188,8 +188,9 @@ def certify(
 ) -> Certificate:
     """Check a mesh against Theorem 6, independently of the engine, in every domain.
 
-    Counts and d_{P,k} come from scipy's cKDTree, never the engine (with weights, counts are
-    sums of weights and d_{P,k} the least radius holding weight k). The checks, in order: the
+    Counts and d_{P,k} come from certify's own kd-tree over the points, never the engine's
+    index (with weights, counts are sums of weights and d_{P,k} the least radius holding
+    weight k; with ``executor``, strip by strip from scipy's cKDTree). The checks, in order: the
     points are the mesh's (else InputError), the torus triangulation, the returned mesh,
     well-spacedness, counts, Lemma 2's precondition, the achieved constants, the size
     integral, the floor.

@@ -4,13 +4,14 @@ Nothing here calls the refinement kernels. The torus triangulation that came wit
 first verified (so that its circumcircles and Voronoi vertices can be trusted): it must be a
 triangulation of the torus (symmetric neighbours, F = 2V, Euler characteristic 0, positive
 orientation, areas adding up to the torus) whose circumcircles hold no vertex, the latter
-decided in exact rational arithmetic wherever floating point is not conclusive. Distances and
-counts then come from scipy's cKDTree (``boxsize`` on the torus).
+decided by certify's own filtered predicates (integers wherever floating point is not
+conclusive). Distances and counts then come from certify's own kd-tree on the torus
+(``certify._tree``).
 
-Probes for the achieved constants alpha_hat = min and beta_hat = max of d_{M,2} / d_{P,k}: all
-mesh vertices, all circumcenters and all edge midpoints (where d_{M,2} has its local extremes),
-up to ``max_point_probes`` input points drawn at random, and ``n_random`` uniform points in the
-box. Only probes in the box count, and only where d_{P,k} >= min_size (the floor).
+Probes for the achieved constants alpha_hat = min and beta_hat = max of d_{M,2} / d_{P,k}
+(``steps.Probes``: why these): every vertex and edge midpoint, the size integral's random
+points in the cells, up to ``max_point_probes`` input points, and ``n_random`` uniform points
+in the box. Only probes in the box count, and only where d_{P,k} >= min_size (the floor).
 """
 
 import math

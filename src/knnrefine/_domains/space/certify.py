@@ -4,8 +4,8 @@ embedding torus along the others; the bounds in the box's own metric).
 
 The tetrahedralisation is checked exactly in the mesh's own frame (vertices relative to the
 box's corner, exact): its faces are matched again from the corners and offsets, every
-tetrahedron is positively oriented and locally Delaunay (the exact predicates of
-``_engine/predicates3.py``, themselves tested against rational arithmetic), and the volumes
+tetrahedron is positively oriented and locally Delaunay (certify's own filtered
+predicates, integers where floating point cannot decide), and the volumes
 add up to the torus' once. Counts come from certify's own kd-tree (``certify._tree``) on the torus:
 points in every closed circumball and in every closed Voronoi cell (each point counting for
 every vertex as near as its nearest), below k except for elements smaller than the
@@ -14,9 +14,9 @@ circumradii computed here and the vertices' own kd-tree. Lemma 2's precondition 
 initial vertices, as in the plane (``certify.check_precondition``). What the user received
 (``vertices``, ``tetrahedra``, ``offsets``, ``local``) must be, exactly and without a repeated
 vertex, copies of the torus mesh. The achieved constants: d_{M,2}, from the returned
-vertices, over d_{P,k} at probes as dense as the plane's (stratified samples in every
-tetrahedron, every vertex, circumcentre and edge midpoint, input points, uniform points of
-the box), whose extremes alpha_hat and beta_hat must lie within [alpha, beta] where
+vertices, over d_{P,k} at probes as the plane's (every vertex and edge midpoint, random
+points in the tetrahedra, input points, uniform points of the box: ``steps.Probes``), whose
+extremes alpha_hat and beta_hat must lie within [alpha, beta] where
 d_{P,k} >= min_size.
 """
 

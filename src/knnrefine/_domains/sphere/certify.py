@@ -5,8 +5,8 @@ The triangulation is checked exactly on the unit vectors the user received (``Me
 every edge is shared by exactly two triangles in opposite directions, there are 2 m - 4
 triangles over all m vertices (a closed surface of genus 0), every triangle is positively
 oriented about the centre, and every edge is locally convex (the far corner of the triangle
-across it is not strictly inside the triangle's circumcap), all signs from the exact
-``predicates3.orient3d`` (itself tested against rational arithmetic); and the triangles,
+across it is not strictly inside the triangle's circumcap), all signs exact (certify's own
+filtered ``orient3d``, integers where floating point cannot decide); and the triangles,
 seen from the centre, cover the sphere once (their solid angles add up to 4 pi: a float sum
 deciding an integer with a margin of 2 pi). Locally convex, facing out and covering once,
 the surface is the boundary of the vectors' convex hull, which is the spherical Delaunay
@@ -15,14 +15,14 @@ vertices inner ones, and a verdict rests on exact signs.) The vertices in degree
 vectors' longitude and latitude.
 
 Counts: the points in every closed circumcap are those on or above the plane of its corners,
-decided exactly (``orient3d``) among the candidates a cKDTree over the points' unit vectors
-finds in a slightly larger ball; the points in every closed Voronoi cell from the kd-tree
+decided exactly (``orient3d``) among the candidates certify's kd-tree over the points' unit
+vectors finds in a slightly larger ball; the points in every closed Voronoi cell from it
 (each point counting for every vertex as near as its nearest, up to the unit vectors'
 rounding). Both below k except for elements smaller than the resolution floor (counted and
 reported). The aspect 2 R(v) / d_{M,2}(v) in angles. Lemma 2's
 precondition on the initial vertices, ordered by peeling as in the plane. The achieved
-constants: d_{M,2} / d_{P,k} at every vertex, cap centre and edge midpoint, stratified
-samples in every triangle, input points and uniform points of the sphere, within [alpha,
+constants: d_{M,2} / d_{P,k} at every vertex and edge midpoint, random points in the
+triangles, input points and uniform points of the sphere (``steps.Probes``), within [alpha,
 beta] wherever d_{P,k} >= min_size, beta from the largest circumcap measured here
 (``mesh.sphere_constants``: spherical Pythagoras widens the plane's).
 """
