@@ -302,14 +302,19 @@ def test_size_integral_with_its_control_variate_is_unbiased_and_its_error_honest
             assert np.mean(err) < 0.2 * np.std(plain)
 
 
-@pytest.mark.parametrize("domain", ["plane", "plane-lattice", "plane-line", "space", "sphere"])
+@pytest.mark.parametrize(
+    "domain", ["plane", "plane-lattice", "plane-line", "plane-few", "space", "space-few", "sphere"]
+)
 def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain, monkeypatch):
     """Issue 52: d_{M,2} at the probes walked on the verified triangulation (to the nearest
     vertex by nearer neighbours, the second nearest among its neighbours) against every
     vertex by brute force: on the torus across its cut and at its vertices, on a lattice
     (every distance tied) and on points on a line with repeats, on the sphere at its
     poles; where the triangulation failed its check, the kd-tree answers. The nearest
-    vertex the walk ends at (the bound of a uniform probe's d_{P,k}) is the nearest."""
+    vertex the walk ends at (the bound of a uniform probe's d_{P,k}) is the nearest. The
+    walk measures each vertex's nearest copy: on a torus of a few vertices (its initial
+    ones: "few"), where a neighbour's nearest copy need not be the one its edge reaches,
+    too."""
     import knnrefine
     from knnrefine._domains.plane import certify as plane
     from knnrefine._domains.space import certify as space
@@ -328,15 +333,18 @@ def test_d_m2_walked_on_the_triangulation_equals_brute_force(domain, monkeypatch
         x[:2] = [[0, 0, 1], [0, 0, -1]]
         x = np.concatenate([x / np.linalg.norm(x, axis=1, keepdims=True), sites[:100]])
     else:
-        dim = 3 if domain == "space" else 2
+        dim = 3 if domain.startswith("space") else 2
         box = (0,) * dim + (1,) * dim
         pts = rng.random((3000, dim)) ** 2
+        k = 5
+        if domain.endswith("few"):  # k over half the points: the initial vertices only
+            pts, k = rng.random((60, dim)), 40
         if domain == "plane-lattice":
             pts = np.stack(np.meshgrid(*[np.arange(40) / 40] * 2), -1).reshape(-1, 2)
         if domain == "plane-line":
             pts = np.column_stack([rng.random(3000), np.full(3000, 0.5)])
             pts[1000:1500] = pts[:500]
-        mesh = knnrefine.refine(pts, 5, periodic=True, box=box)
+        mesh = knnrefine.refine(pts, k, periodic=True, box=box)
         geometry = (plane if dim == 2 else space).Geometry(mesh, 2)
         sites, period = geometry.vertices, geometry.period
         x = rng.random((3000, dim)) * period
