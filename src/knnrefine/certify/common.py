@@ -107,7 +107,7 @@ def find_rows(table, rows):
     ``_rows.row_classes``, grouped by their first column."""
     if len(rows) == 0 or len(table) == 0:
         return np.full(len(rows), -1, np.int64)
-    both = np.ascontiguousarray(np.concatenate([table, rows]), np.int64)
+    both = as_index(np.concatenate([table, rows]))  # (int32 where both are: half the rows)
     group = both[:, 0]
     if group.min() < 0:
         group = group - group.min()
@@ -164,11 +164,17 @@ def check_cells_tile(mesh):
     repeats = int((label != np.arange(len(keys))).sum())
     if repeats:
         problems.append(f"{repeats} cells are listed more than once")
+    del keys, label  # (not held beside the facets': each array is dropped once read)
     t = len(cells)
-    rows = np.empty((nc * t, dim), np.int64)  # facet i of cell c at row i * t + c
+    small = m * CODE_BASE**dim < 2**31  # every code fits int32: half the rows' memory
+    # facet i of cell c at row i * t + c
+    rows = np.empty((nc * t, dim), np.int32 if small else np.int64)
     for i in range(nc):
         rows[i * t : (i + 1) * t] = _corner_codes(cells, off, [j for j in range(nc) if j != i])[0]
-    size, first = class_sizes(row_classes(rows, rows[:, 0] >> (shift * dim), m))
+    label = row_classes(rows, rows[:, 0] >> (shift * dim), m)
+    del rows
+    size, first = class_sizes(label)
+    del label
     if (first & (size > 2)).any():
         problems.append(
             f"{int((first & (size > 2)).sum())} facets are shared by more than two cells"

@@ -355,13 +355,15 @@ def verify_returned_mesh3(mesh):
         if not np.all(mesh.periodic):
             problems += check_cells_tile(mesh)
         pos = np.arange(len(ids))
-        u_sort = t_sort = np.broadcast_to(np.arange(4), ids.shape)
+        u_sort = t_sort = np.broadcast_to(np.arange(4, dtype=np.int8), ids.shape)
         same = np.ones(len(ids), bool)
     else:
         # matched by the sorted corner quadruple (one tetrahedron in a simplicial complex),
         # the orientation by the parity of the sorting permutation
         problems += check_cells_tile(mesh)
-        u_sort, t_sort = np.argsort(ids, axis=1), np.argsort(ttet, axis=1)
+        # (each row's order held in int8: 4 values, not argsort's int64)
+        u_sort = np.argsort(ids, axis=1).astype(np.int8)
+        t_sort = np.argsort(ttet, axis=1).astype(np.int8)
         u_key = np.take_along_axis(ids, u_sort, 1)
         t_key = np.take_along_axis(ttet, t_sort, 1)
         pos = find_rows(t_key, u_key)
