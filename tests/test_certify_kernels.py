@@ -912,3 +912,31 @@ def test_gathered_probes_the_same_whatever_room_they_start_with():
         np.testing.assert_array_equal(np.flatnonzero(probes.exact),
                                       np.concatenate([np.arange(a), np.arange(a, b)]))  # fmt: skip
         assert not probes.points.any()
+
+
+def test_sphere_point_probes_are_the_keyed_sample_of_the_points_given():
+    """Issue 52: on the sphere the unweighted tree sorts the unit vectors in place and the
+    input-point probes are drawn from its points: the same sample, in the same order, as
+    ``_sampling.key_sample`` of the unit vectors in the caller's order, with repeated
+    points, points on one meridian and at the poles; the caller's points are untouched."""
+    import warnings
+
+    import knnrefine
+    from knnrefine._domains.sphere import certify as sphere
+    from knnrefine._sampling import key_sample
+
+    rng = np.random.default_rng(61)
+    pts = np.column_stack([rng.uniform(-180, 180, 3000), rng.uniform(-90, 90, 3000)])
+    pts[:300] = pts[300:600]  # repeated
+    pts[600:900, 0] = 12.5  # one meridian
+    pts[900:910, 1] = 90.0  # a pole
+    given = pts.copy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mesh = knnrefine.refine(pts, 5, sphere=True)
+    unit, weights = sphere.checked_points(mesh, pts, None)
+    want = key_sample(unit.copy(), 0.3)[0]
+    points = sphere.Points(mesh, unit, weights, 2)
+    got = points.sample_points(900, np.random.default_rng(0))
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(pts, given)

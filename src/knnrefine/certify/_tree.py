@@ -359,7 +359,10 @@ def _box_far2(T, i, x, period):
 
 
 @kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def _point2(pts, j, x, period):
+def point2(pts, j, x, period):
+    """The squared distance from x to pts[j], to its nearest copy along each axis of
+    period > 0 (``_along``: both in the frame [0, period), as the tree's points, the sites
+    and every query are)."""
     s = 0.0
     for a in range(x.shape[0]):
         g = _along(x[a], pts[j, a], period[a])
@@ -462,7 +465,7 @@ def _kth_dfs(pts, w, T, period, xq, k, unit, stack, stack_key, hk, hw):
         lo = int(T[i, 0])
         hi = int(T[i, 1]) if not flat else int(T[i, 0]) + 1
         for j in range(lo, hi):
-            d2 = _point2(pts, j, xq, period)
+            d2 = point2(pts, j, xq, period)
             if d2 > r2:
                 continue
             if unit:
@@ -553,7 +556,7 @@ def _gather(pts, w, T, period, c, r2, stack, gx, gw):
             top += 2
             continue
         for j in range(int(T[i, 0]), int(T[i, 1])):
-            if whole or _point2(pts, j, c, period) <= r2:
+            if whole or point2(pts, j, c, period) <= r2:
                 if n == gx.shape[0]:
                     return -1
                 for a in range(d):
@@ -591,33 +594,23 @@ def walk_nearest(sites, first, neighbours, period, xq, v):
     """(the site nearest xq, its squared distance) by a walk on a verified Delaunay
     triangulation's neighbour lists from site v: to any nearer neighbour until none is (a
     Delaunay vertex with no nearer neighbour is the nearest). Distances to each site's
-    nearest copy (``copy_distance2``): the walk moves only to a site nearer on the torus, and
+    nearest copy (``point2``): the walk moves only to a site nearer on the torus, and
     where it stops no neighbour's copy is nearer, the cells' own among them. (-1, its
     distance) where the walk took more steps than there are sites (rounding in a near tie
     that never settles)."""
     m = len(first) - 1
-    best = copy_distance2(sites, v, xq, period)
+    best = point2(sites, v, xq, period)
     for _ in range(m + 1):
         move = -1
         for j in range(first[v], first[v + 1]):
             u = neighbours[j]
-            s = copy_distance2(sites, u, xq, period)
+            s = point2(sites, u, xq, period)
             if s < best:
                 best, move = s, u
         if move < 0:
             return v, best
         v = move
     return -1, best
-
-
-@kernel(inline="always", cache=False)  # inlined: nothing of its own to cache
-def copy_distance2(sites, u, xq, period):
-    """The squared distance from xq to site u's nearest copy (``offset`` axis by axis)."""
-    s = 0.0
-    for a in range(xq.shape[0]):
-        g = offset(xq[a], sites[u, a], period[a])
-        s += g * g
-    return s
 
 
 @kernel(entry=True, lazy=True, nogil=True)
@@ -654,7 +647,7 @@ def _nearest_sites(pts, sites, first, neighbours, period, relative, slack2, owne
                 u = neighbours[j]
                 if stamp[u] == i:
                     continue
-                if copy_distance2(sites, u, xq, period) <= limit:
+                if point2(sites, u, xq, period) <= limit:
                     if ties == room or top == 64:
                         return -1, tie_p[:0], tie_v[:0]
                     stamp[u] = i
@@ -929,7 +922,7 @@ def _kth(pts, w, T, depth, period, x, k, unit, out, start, end):
             answer = -1.0
             before = out[j - 1]
             if before < np.inf:
-                delta = math.sqrt(_point2(x, j - 1, xq, period))
+                delta = math.sqrt(point2(x, j - 1, xq, period))
                 gap = math.sqrt(_dist_to(centre, xq, period))
                 room = reach * (1.0 - 1e-12) - gap * (1.0 + 1e-12)
                 top = min(room, (before + delta) * (1.0 + 1e-12))
@@ -970,7 +963,7 @@ def _held_one(pts, w, T, period, xq, rq, stop, stack):
             top += 2
             continue
         for j in range(int(T[i, 0]), int(T[i, 1])):
-            if _point2(pts, j, xq, period) <= rq:
+            if point2(pts, j, xq, period) <= rq:
                 s, c = plus_compensated(s, c, _weight(w, j))
     return s + c
 
@@ -1078,7 +1071,7 @@ def _cells_held(pts, w, T, depth, period, v, first, neighbours, moved, cell_peri
                 top += 2
                 continue
             for j in range(int(T[i, 0]), int(T[i, 1])):
-                d2 = _point2(pts, j, vq, period)
+                d2 = point2(pts, j, vq, period)
                 if d2 > big2:
                     continue
                 ok = True
@@ -1131,7 +1124,7 @@ def _held_caps(pts, w, T, depth, x, outer2, corners, stop, out, start, end):
                 top += 2
                 continue
             for j in range(int(T[i, 0]), int(T[i, 1])):
-                if _point2(pts, j, xq, period) > r_out:
+                if point2(pts, j, xq, period) > r_out:
                     continue
                 sign = orient3d_at(a[0, 0], a[0, 1], a[0, 2], a[1, 0], a[1, 1], a[1, 2],
                                    a[2, 0], a[2, 1], a[2, 2], pts[j, 0], pts[j, 1],
@@ -1496,14 +1489,14 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         if shell and unit:  # (without branches: each point written, kept where in the shell)
             hits = 0
             for j in range(i, e):
-                s = _point2(pts, j, xq, period)
+                s = point2(pts, j, xq, period)
                 keep[m] = s
                 m += (s <= rq2) & (s > rin2)
                 hits += s <= rin2
             count += hits
         elif shell:  # (weighted: each point's weight written beside it)
             for j in range(i, e):
-                s = _point2(pts, j, xq, period)
+                s = point2(pts, j, xq, period)
                 inner = s <= rin2
                 keep[m] = s
                 kw[m] = w[j]
@@ -1512,11 +1505,11 @@ def _grid_read(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin,
         elif unit:  # (two loops: the branch out of the one that counts)
             hits = 0
             for j in range(i, e):
-                hits += _point2(pts, j, xq, period) <= rq2
+                hits += point2(pts, j, xq, period) <= rq2
             count += hits
         else:
             for j in range(i, e):
-                if _point2(pts, j, xq, period) <= rq2:
+                if point2(pts, j, xq, period) <= rq2:
                     count, fix = plus_compensated(count, fix, _weight(w, j))
     return count, fix, m, False
 
@@ -1596,7 +1589,7 @@ def _grid_kth(pts, w, code, table, level0, bits, lo, scale, pmin, pmax, margin, 
         bound = np.inf  # the Lipschitz bound: the answer lies within it
         r_lo, r_hi = 0.0, typical
         if 0.0 <= before < np.inf and q > start:
-            delta = math.sqrt(_point2(x, q - 1, xq, period))
+            delta = math.sqrt(point2(x, q - 1, xq, period))
             if delta == 0.0:  # the same position: the same answer
                 out[q] = before
                 continue

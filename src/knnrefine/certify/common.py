@@ -19,10 +19,10 @@ from ..mesh import theorem6_constants
 from ._rows import as_index, as_offsets, class_sizes, row_classes
 from ._tree import (
     Tree,
-    copy_distance2,
     edge_at,
     edge_shifts,
     neighbour_lists,
+    point2,
     spatial_order,
     walk_nearest,
 )
@@ -514,7 +514,7 @@ def _walk_d_m2(sites, first, neighbours, period, x, out, site, start, end):
             continue
         second = np.inf
         for j in range(first[v], first[v + 1]):
-            second = min(second, copy_distance2(sites, neighbours[j], xq, period))
+            second = min(second, point2(sites, neighbours[j], xq, period))
         out[q] = math.sqrt(second)
         site[q] = v
 
