@@ -638,6 +638,43 @@ SizeSample = namedtuple("SizeSample", ["kept", "w", "cells", "corners", "measure
 SIZE_CHUNK = 1 << 16  # cells whose corners ``size_integral`` reads at once
 
 
+def probe_parts(
+    first,
+    sampled,
+    vertices,
+    vertex_d_m2,
+    voronoi,
+    wrap,
+    uniform,
+    period,
+    workers,
+    tri,
+    further,
+    corners,
+):
+    """(the parts ``gathered_probes`` makes, in its order, and their number of rows): the
+    size integral's samples ``first``, the input points ``sampled``, the vertices (with
+    d_{M,2} where known, else None), the edge midpoints of ``voronoi`` (put in the frame by
+    ``wrap``), ``uniform`` points and the further samples ``further``; near: a midpoint's
+    two vertices, a uniform point's nearest vertex (``nearest_site`` in ``period``), a
+    further sample's cell's ``corners``. The same six parts in every domain."""
+
+    def midpoints():
+        mids, ends = edge_midpoints(voronoi)
+        return wrap(mids), False, None, ends
+
+    parts = [
+        lambda: (first, False, None, None),
+        lambda: (sampled, True, None, None),
+        lambda: (vertices, False, vertex_d_m2, None),
+        midpoints,
+        lambda: (uniform, False, None, nearest_site(voronoi, uniform, period, workers, tri)),
+        lambda: (further, False, None, corners),
+    ]
+    rows = len(first) + len(sampled) + len(vertices) + int(voronoi.first[-1]) // 2
+    return parts, rows + len(uniform) + len(further)
+
+
 def gathered_probes(parts, inside, size, width, capacity, vertices=2):
     """``steps.Probes`` from ``parts``, functions each making a part when called, in turn:
     (x, whether input points, d_{M,2} known or None (NaN: asked), its near rows or None),

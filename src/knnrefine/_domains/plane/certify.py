@@ -32,10 +32,9 @@ from ...certify.common import (
     cell_counts,
     check_cells_tile,
     checked_points,  # noqa: F401  (the box domains' own)
-    edge_midpoints,
     find_rows,
     gathered_probes,
-    nearest_site,
+    probe_parts,
     repeated_rows,
     size_integral,
     size_sample,
@@ -92,33 +91,13 @@ class Geometry(TorusGeometry):
         count = min(int(max_point_probes), 2 * m)
         sampled = points.sample_points(count, rng)  # (drawn in this order: the probes')
         uniform = self.lo + rng.random((int(n_random), 2)) * (self.hi - self.lo)
-        voronoi = self.cells(tri)
-
-        def midpoints():
-            mids, ends = edge_midpoints(voronoi)
-            return self.frame(mids), False, None, ends
-
-        # made one at a time (``gathered_probes``); near: a midpoint's two vertices, a
-        # uniform point's nearest vertex, a further sample's cell's corners
-        return gathered_probes(
-            [
-                lambda: (inside[:s], False, None, None),
-                lambda: (sampled, True, None, None),
-                lambda: (self.vertices, False, self.vertex_d_m2(), None),
-                midpoints,
-                lambda: (
-                    uniform,
-                    False,
-                    None,
-                    nearest_site(voronoi, uniform, self.period, self.workers, tri),
-                ),
-                lambda: (inside[s:], False, None, torus.triangles[dense]),
-            ],
-            self.in_box,
-            SizeSample(None, areas[chosen], chosen, torus.triangles, areas, t),
-            3,
-            len(cells) + len(sampled) + m + int(voronoi.first[-1]) // 2 + int(n_random),
-        )
+        parts, rows = probe_parts(inside[:s], sampled, self.vertices, self.vertex_d_m2(),
+                                  self.cells(tri), self.frame, uniform, self.period,
+                                  self.workers, tri, inside[s:],
+                                  torus.triangles[dense])  # fmt: skip
+        return gathered_probes(parts, self.in_box,
+                               SizeSample(None, areas[chosen], chosen, torus.triangles, areas, t),
+                               3, rows)  # fmt: skip
 
     def returned_d_m2(self, x, tri):
         return self.torus_d_m2(x, tri), []

@@ -39,10 +39,9 @@ from ...certify.common import (
     cell_counts,
     check_cells_tile,
     checked_points,  # noqa: F401  (the box domains' own)
-    edge_midpoints,
     find_rows,
     gathered_probes,
-    nearest_site,
+    probe_parts,
     repeated_rows,
     size_integral,
     size_sample,
@@ -495,32 +494,16 @@ class Geometry(TorusGeometry):
         uniform = self.lo + rng.random((int(n_random), 3)) * side
         free = ~np.array(self.mesh.periodic)
         s = len(chosen)
-        voronoi = self.cells(tri)
-
-        def midpoints():
-            mids, ends = edge_midpoints(voronoi)
-            return np.mod(mids, period, out=mids), False, None, ends
-
-        # made one at a time (``gathered_probes``); near: a midpoint's two vertices, a
-        # uniform point's nearest vertex, a further sample's cell's corners
+        parts, rows = probe_parts(inside[:s], sampled, self.local, None, self.cells(tri),
+                                  lambda mids: np.mod(mids, period, out=mids), uniform,
+                                  self.period, self.workers, tri, inside[s:],
+                                  self.corners[dense])  # fmt: skip
         return gathered_probes(
-            [
-                lambda: (inside[:s], False, None, None),
-                lambda: (sampled, True, None, None),
-                lambda: (self.local, False, None, None),
-                midpoints,
-                lambda: (
-                    uniform,
-                    False,
-                    None,
-                    nearest_site(voronoi, uniform, self.period, self.workers, tri),
-                ),
-                lambda: (inside[s:], False, None, self.corners[dense]),
-            ],
+            parts,
             lambda x: (((x >= self.lo) & (x <= self.hi)) | ~free).all(axis=1),
             SizeSample(None, volumes[chosen], chosen, self.corners, volumes, t),
             4,
-            len(cells) + len(sampled) + m + int(voronoi.first[-1]) // 2 + int(n_random),
+            rows,
         )
 
     def returned_d_m2(self, x, tri):

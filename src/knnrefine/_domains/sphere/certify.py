@@ -46,10 +46,9 @@ from ...certify.common import (
     SizeSample,
     cell_counts,
     check_precondition,
-    edge_midpoints,
     gathered_probes,
     nearest_neighbour,
-    nearest_site,
+    probe_parts,
     separations,
     size_integral,
     size_sample,
@@ -418,33 +417,12 @@ class Geometry:
         count = min(int(max_point_probes), 2 * m)
         sampled = points.sample_points(count, rng)  # (drawn in this order: the probes')
         uniform = _uniform_on_sphere(int(n_random), rng)
-        voronoi = self.cells(tri)
-
-        def midpoints():
-            mids, ends = edge_midpoints(voronoi)
-            return mids, False, None, ends
-
-        # made one at a time (``gathered_probes``); near: a midpoint's two vertices, a
-        # uniform point's nearest vertex, a further sample's cell's corners
-        probes = gathered_probes(
-            [
-                lambda: (y, False, None, None),
-                lambda: (sampled, True, None, None),
-                lambda: (xyz, False, self.vertex_d_m2(), None),
-                midpoints,
-                lambda: (
-                    uniform,
-                    False,
-                    None,
-                    nearest_site(voronoi, uniform, np.zeros(3), self.workers, tri),
-                ),
-                lambda: (flat[s:], False, None, tri_[dense]),
-            ],
-            lambda x: np.ones(len(x), bool),
-            SizeSample(None, weights, chosen, tri_, solid, t),
-            3,
-            len(cells) + len(sampled) + m + int(voronoi.first[-1]) // 2 + int(n_random),
-        )
+        parts, rows = probe_parts(y, sampled, xyz, self.vertex_d_m2(), self.cells(tri),
+                                  lambda mids: mids, uniform, np.zeros(3), self.workers, tri,
+                                  flat[s:], tri_[dense])  # fmt: skip
+        probes = gathered_probes(parts, lambda x: np.ones(len(x), bool),
+                                 SizeSample(None, weights, chosen, tri_, solid, t), 3,
+                                 rows)  # fmt: skip
         x = probes.x  # on the sphere: unit vectors, a chunk at a time (no (n, 3) copies)
         for a in range(0, len(x), 1 << 16):
             part = x[a : a + (1 << 16)]
