@@ -183,16 +183,16 @@ def test_filtered_predicates_agree_with_rationals(lattice):
 @pytest.mark.parametrize("threads", [1, 3])
 def test_neighbour_lists_keep_each_neighbour_once_sorted(threads, monkeypatch):
     """``neighbour_lists`` (every corner of a cell a neighbour of every other, a site's
-    rows deduplicated by stamps, then sorted) against sets: every (index, shift) once, in
-    sorted order, the shift the neighbour's offset less the site's, on random cells of 2
-    to 4 corners with repeated cells and vertices, offsets in 0 to 3 dimensions and sites
-    in no cell; with three threads each placing its own range of a few cells. In int64 and
-    in the engine's int32 cells with int8 offsets (read as they are; their differences,
-    up to 254, in int16)."""
+    rows placed a range of sites at a time, deduplicated by stamps, then sorted) against sets:
+    every (index, shift) once, in sorted order, the shift the neighbour's offset less the
+    site's, on random cells of 2 to 4 corners with repeated cells and vertices, offsets in
+    0 to 3 dimensions and sites in no cell; in three ranges of sites, on one thread and
+    three. In int64 and in the engine's int32 cells with int8 offsets (read as they
+    are; their differences, up to 254, in int16)."""
     from knnrefine.certify import _tree
     from knnrefine.certify._tree import neighbour_lists
 
-    monkeypatch.setattr(_tree, "CELL_RANGE", 4)
+    monkeypatch.setattr(_tree, "SITE_BLOCKS", 3)
     rng = np.random.default_rng(54)
     for trial in range(200):
         m, t, d = int(rng.integers(1, 30)), int(rng.integers(0, 80)), int(rng.integers(0, 4))
@@ -860,13 +860,18 @@ def test_edge_vectors_and_midpoints_equal_numpy_gathers(domain):
         ends, np.column_stack([owner[positive], cells_.neighbours[positive]])
     )
     assert 2 * len(mids) == len(e)  # each edge once
+    # a range of sites at a time (``probe_parts``' pieces), together, the same rows
+    pieces = [edge_midpoints(cells_, a, a + 37) for a in range(0, len(cells_.sites), 37)]
+    np.testing.assert_array_equal(np.concatenate([p[0] for p in pieces]), mids)
+    np.testing.assert_array_equal(np.concatenate([p[1] for p in pieces]), ends)
 
 
 def test_gathered_probes_the_same_whatever_room_they_start_with():
-    """Issue 52: the probes are made a part at a time into arrays of the caller's bound
-    (``common.gathered_probes``), grown where it is short: with room for one row or for
-    all, the same probes, marks, d_{M,2}, near rows (a dropped vertex and a missing one
-    read -1) and the size sample's vertex rows; each as the parts kept, in order."""
+    """Issue 52: the probes are made a part at a time, a piece at a time, into arrays of
+    the caller's bound (``common.gathered_probes``), grown where it is short: with room
+    for one row or for all, the same probes, marks, d_{M,2}, near rows (a dropped vertex
+    and a missing one read -1) and the size sample's vertex rows; each as the parts kept,
+    in order."""
     from knnrefine.certify.common import SizeSample, gathered_probes
 
     rng = np.random.default_rng(8)
@@ -879,13 +884,13 @@ def test_gathered_probes_the_same_whatever_room_they_start_with():
     def inside(x):
         return x[:, 0] < 0.8  # some of every part dropped, vertices among them
 
-    def parts():
+    def parts():  # (the midpoints in pieces, as ``probe_parts`` makes them)
         return [
-            lambda: (samples, False, None, None),
-            lambda: (rng.random((0, 2)), True, None, None),
-            lambda: (verts, False, d_m2, None),
-            lambda: (mids, False, None, ends),
-            lambda: (others, False, None, near_one),
+            lambda: [(samples, False, None, None)],
+            lambda: [(rng.random((0, 2)), True, None, None)],
+            lambda: [(verts, False, d_m2, None)],
+            lambda: ((mids[a : a + 9], False, None, ends[a : a + 9]) for a in range(0, 70, 9)),
+            lambda: [(others, False, None, near_one)],
         ]
 
     size = SizeSample(None, np.ones(30), np.arange(30), np.zeros((30, 3), int), np.ones(30), 30)

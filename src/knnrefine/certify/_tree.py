@@ -45,9 +45,9 @@ import numpy as np
 
 from .._engine.geometry import plus_compensated  # shared with the engine, as _metric's sums
 from .._engine.jit import kernel
-from .._engine.threads import in_chunks, run_all, thread_count
+from .._engine.threads import in_chunks
 from ._predicates import UNSURE, orient3d_at
-from ._rows import as_index, as_offsets, rows_equal
+from ._rows import as_index, as_offsets
 
 LEAF = 16  # points in a leaf, at most (nodes of coinciding points excepted)
 GRID = 16  # buckets a side of a k-th query's window in space, at most
@@ -60,7 +60,6 @@ HISTOGRAM = 64  # bins of the histogram that finds the k-th of a query's distanc
 FEW = 64  # a weighted k-th query's distances sorted in place up to this many
 TREE_BITS = 20  # bits of each coordinate in the tree's Morton codes in the plane
 TREE_BITS3 = 14  # and in space (below them, nodes split by the sliding midpoint)
-CELL_RANGE = 65536  # cells a thread of ``neighbour_lists`` places, at least
 
 
 def _build(pts, w, leaf, unit, scratch=False):
@@ -1997,74 +1996,70 @@ def edge_shifts(shift, e):
     return np.ascontiguousarray(shift.reshape(e, -1))
 
 
+SITE_BLOCKS = 8  # ranges of sites ``neighbour_lists`` gathers, a thread each in turn, at most
+
+
 def neighbour_lists(cells, off, m, threads=None):
     """Each site's neighbours, once each, from the cells (t, c) of a triangulation and
     their corners' offsets (t, c, d) in whole periods (d = 0: none): (first (m + 1,):
     site v's are rows first[v]:first[v + 1] of the next two, their indices, their shifts
     (the neighbour's offset less the site's), sorted by index then shift). Every corner of
-    a cell is a neighbour of every other: a counting sort by site, each thread placing the
-    rows of its own range of cells after those of the ranges before (the order of one
-    thread); then, a range of sites a thread, within a site's rows a repeat is found among
-    the rows kept since its index was first seen (stamped), the few rows kept are sorted
-    (insertion), and the kept rows are gathered."""
+    a cell is a neighbour of every other. The sites are taken in SITE_BLOCKS ranges (a
+    thread each, ``_block_rows``): the cells are read in order and the rows of the
+    range's sites placed (a counting sort), deduplicated by stamps and sorted; the ranges'
+    rows are joined. What is held at once: a range's c - 1 rows a corner, not every
+    site's."""
     cells, off = as_index(cells), as_offsets(off)
-    t, d = len(cells), off.shape[2]
+    c, d = cells.shape[1], off.shape[2]
     index = np.int32 if m < 2**31 else np.int64
     shifts = np.int16 if off.dtype == np.int8 else np.int64  # (a difference of two offsets)
-    parts = max(1, min(thread_count(threads), t // CELL_RANGE))
-    edges = np.linspace(0, t, parts + 1).astype(np.int64)
-    counts = np.zeros((parts, m), np.int64)
-    run_all(lambda j: _site_counts(cells, counts[j], edges[j], edges[j + 1]), parts)
-    first, place = _row_places(counts)
-    nb = np.empty(first[m], index)
-    sh = np.empty((first[m], d), shifts)
-    run_all(lambda j: _scatter_rows(cells, off, place[j], nb, sh, edges[j], edges[j + 1]), parts)
-    kept = np.empty(m, np.int64)
-    in_chunks(lambda a, b: _unique_sites(first, nb, sh, kept, a, b), m,
-              threads=threads, least=16384, per_thread=1)  # fmt: skip
-    out_first = np.zeros(m + 1, np.int64)
-    np.cumsum(kept, out=out_first[1:])
-    out_nb = np.empty(out_first[m], index)
-    out_sh = np.empty((out_first[m], d), shifts)
-    in_chunks(lambda a, b: _gather_rows(first, out_first, nb, sh, out_nb, out_sh, a, b), m,
-              threads=threads, least=16384, per_thread=1)  # fmt: skip
-    return out_first, out_nb, out_sh
+    counts = np.zeros(m + 1, np.int64)
+    if len(cells):
+        counts[:m] = (c - 1) * np.bincount(cells.ravel(), minlength=m)
+    # ranges of about equal rows
+    bounds = np.searchsorted(np.cumsum(counts), np.linspace(0, counts.sum(), SITE_BLOCKS + 1))
+    bounds[0], bounds[-1] = 0, m
+    bounds = np.unique(bounds)
+    got = [None] * (len(bounds) - 1)
+    like = np.empty(0, index), np.empty((0, d), shifts)
 
+    def blocks(a, b):
+        for j in range(a, b):
+            got[j] = _block_rows(cells, off, counts, bounds[j], bounds[j + 1], *like)
 
-@kernel(entry=True, lazy=True, nogil=True)
-def _site_counts(cells, count, start, end):
-    """count[v] += the rows cells [start, end) give site v (c - 1 a corner)."""
-    c = cells.shape[1]
-    for i in range(start, end):
-        for x in range(c):
-            count[cells[i, x]] += c - 1
-
-
-@kernel(entry=True, lazy=True, nogil=True)
-def _row_places(counts):
-    """(first (m + 1,): where each site's rows begin; place (parts, m): where each range
-    of cells places its first row of each site, after the ranges before)."""
-    parts, m = counts.shape
+    in_chunks(blocks, len(got), threads=threads, least=1, per_thread=SITE_BLOCKS)
     first = np.zeros(m + 1, np.int64)
-    place = np.empty((parts, m), np.int64)
-    at = 0
-    for v in range(m):
-        first[v] = at
-        for j in range(parts):
-            place[j, v] = at
-            at += counts[j, v]
-    first[m] = at
-    return first, place
+    for j, (kept, _, _) in enumerate(got):
+        first[bounds[j] + 1 : bounds[j + 1] + 1] = kept
+    np.cumsum(first, out=first)
+    nb = np.concatenate([g[1] for g in got]) if got else np.zeros(0, index)
+    sh = np.concatenate([g[2] for g in got]) if got else np.zeros((0, d), shifts)
+    return first, nb, sh.reshape(len(nb), d)
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _scatter_rows(cells, off, place, nb, sh, start, end):
-    """The rows of cells [start, end), each corner's other corners, at ``place``."""
+def _block_rows(cells, off, counts, start, end, index, shifts):
+    """(each site's rows kept, their neighbours, their shifts) for the sites [start, end):
+    the cells read in order, each corner at such a site placed its cell's other corners
+    (index, offset less the site's) at the site's place (``counts``: its rows); a site's
+    rows kept once each (a repeat found among the rows kept since its index was first
+    seen, stamped) and sorted by (index, shift) (insertion), then gathered; in the types
+    of ``index`` and ``shifts``."""
     c = cells.shape[1]
     d = off.shape[2]
-    for i in range(start, end):
+    n = end - start
+    place = np.zeros(n + 1, np.int64)
+    for v in range(n):
+        place[v + 1] = place[v] + counts[start + v]
+    first = place[:-1].copy()
+    rows = place[n]
+    nb = np.empty(rows, index.dtype)
+    sh = np.empty((rows, d), shifts.dtype)
+    for i in range(cells.shape[0]):
         for x in range(c):
-            v = cells[i, x]
+            v = cells[i, x] - start
+            if v < 0 or v >= n:
+                continue
             for y in range(c):
                 if y == x:
                     continue
@@ -2073,67 +2068,95 @@ def _scatter_rows(cells, off, place, nb, sh, start, end):
                 nb[p] = cells[i, y]
                 for a in range(d):
                     sh[p, a] = off[i, y, a] - off[i, x, a]
-
-
-@kernel(entry=True, lazy=True, nogil=True)
-def _unique_sites(first, nb, sh, kept, start, end):
-    """The rows of sites [start, end) kept once each and sorted by (index, shift), at the
-    front of each site's own rows; kept[v] how many."""
-    m = len(first) - 1
-    d = sh.shape[1]
+    m = counts.shape[0] - 1
     stamp = np.full(m, -1, np.int64)  # the site whose rows last saw this index
     seen_at = np.zeros(m, np.int64)  # where that site's rows first kept it
-    row = np.empty(d, sh.dtype)
-    for v in range(start, end):
+    row = np.empty(d, shifts.dtype)
+    kept = np.zeros(n, np.int64)
+    for v in range(n):
         begin = first[v]
         used = begin
-        for j in range(first[v], first[v + 1]):  # kept rows [begin, used): used <= j
+        for j in range(first[v], place[v]):  # kept rows [begin, used): used <= j
             key = nb[j]
             repeat = False
             if stamp[key] == v:
                 for i in range(seen_at[key], used):
-                    if nb[i] == key and rows_equal(sh, i, sh, j):
-                        repeat = True
-                        break
+                    if nb[i] == key:
+                        same = True
+                        for a in range(d):
+                            if sh[i, a] != sh[j, a]:
+                                same = False
+                                break
+                        if same:
+                            repeat = True
+                            break
             else:
                 stamp[key] = v
                 seen_at[key] = used
             if not repeat:
                 nb[used] = key
-                for t in range(d):
-                    sh[used, t] = sh[j, t]
+                for a in range(d):
+                    sh[used, a] = sh[j, a]
                 used += 1
         for j in range(begin + 1, used):  # insertion sort of the kept rows by (b, shift)
             key = nb[j]
-            for t in range(d):
-                row[t] = sh[j, t]
+            for a in range(d):
+                row[a] = sh[j, a]
             i = j - 1
             while i >= begin:
                 less = nb[i] > key
                 if nb[i] == key:
-                    for t in range(d):
-                        if sh[i, t] != row[t]:
-                            less = sh[i, t] > row[t]
+                    for a in range(d):
+                        if sh[i, a] != row[a]:
+                            less = sh[i, a] > row[a]
                             break
                 if not less:
                     break
                 nb[i + 1] = nb[i]
-                for t in range(d):
-                    sh[i + 1, t] = sh[i, t]
+                for a in range(d):
+                    sh[i + 1, a] = sh[i, a]
                 i -= 1
             nb[i + 1] = key
-            for t in range(d):
-                sh[i + 1, t] = row[t]
+            for a in range(d):
+                sh[i + 1, a] = row[a]
         kept[v] = used - begin
+    total = 0
+    for v in range(n):
+        total += kept[v]
+    out_nb = np.empty(total, index.dtype)
+    out_sh = np.empty((total, d), shifts.dtype)
+    o = 0
+    for v in range(n):
+        for j in range(kept[v]):
+            out_nb[o] = nb[first[v] + j]
+            for a in range(d):
+                out_sh[o, a] = sh[first[v] + j, a]
+            o += 1
+    return kept, out_nb, out_sh
+
+
+def incidence(cells, m):
+    """(first (m + 1,), incident): the corners of the cells (t, c) at site v are
+    incident[first[v]:first[v + 1]], each as cell times c plus corner, in the cells'
+    order (a cell with v twice: two in a row); a counting sort (``_incidence``)."""
+    cells = as_index(cells)
+    t, c = cells.shape
+    first = np.zeros(m + 1, np.int64)
+    if t:
+        np.cumsum(np.bincount(cells.ravel(), minlength=m), out=first[1:])
+    incident = np.empty(c * t, np.int32 if c * t < 2**31 else np.int64)
+    _incidence(cells, first, incident)
+    return first, incident
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _gather_rows(first, out_first, nb, sh, out_nb, out_sh, start, end):
-    """Sites [start, end)'s kept rows, from the front of their own, to their place."""
-    d = sh.shape[1]
-    for v in range(start, end):
-        o = out_first[v]
-        for j in range(out_first[v + 1] - o):
-            out_nb[o + j] = nb[first[v] + j]
-            for t in range(d):
-                out_sh[o + j, t] = sh[first[v] + j, t]
+def _incidence(cells, first, incident):
+    """incident[first[v]:first[v + 1]]: the corners of the cells at site v, each as
+    cell c + corner (cell times c plus corner), in order."""
+    c = cells.shape[1]
+    place = first[:-1].copy()
+    for i in range(cells.shape[0]):
+        for x in range(c):
+            v = cells[i, x]
+            incident[place[v]] = i * c + x
+            place[v] += 1

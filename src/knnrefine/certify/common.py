@@ -566,43 +566,51 @@ def _nearest_lengths(sites, first, neighbours, shift, period, out):
                 out[v] = min(out[v], length)
 
 
-def edge_midpoints(cells):
-    """(the midpoint of every edge once, the edge's two vertices (e, 2)): of the two
-    directions of an edge, the one whose vector is lexicographically positive; in kernels
-    (``_positive_edges``, ``_midpoints``), with no gathered copies of the sites."""
+def edge_midpoints(cells, start=0, end=None):
+    """(the midpoint of every edge of the sites [start, end) once, the edge's two vertices
+    (e, 2)): of the two directions of an edge, the one whose vector is lexicographically
+    positive, in the order of the sites; in kernels (``_positive_edges``, ``_midpoints``),
+    with no gathered copies of the sites. Ranges of sites in turn give, together, the rows
+    of all of them at once (``probe_parts`` makes them a range at a time)."""
     arrays = _edge_arrays(cells)
-    e = len(arrays[2])
-    positive = np.zeros(e, bool)
-    _positive_edges(*arrays, positive)
-    index = np.int32 if e < 2**31 else np.int64
+    m = len(arrays[1]) - 1
+    end = m if end is None else min(end, m)
+    lo, hi = int(arrays[1][start]), int(arrays[1][end])
+    positive = np.zeros(hi - lo, bool)
+    _positive_edges(*arrays, start, end, positive)
+    index = np.int32 if len(arrays[2]) < 2**31 else np.int64
     at = np.cumsum(positive, dtype=index) - 1  # each positive row's place among them
     count = int(at[-1]) + 1 if len(at) else 0
     mids, ends = np.empty((count, arrays[0].shape[1])), np.empty((count, 2), index)
-    _midpoints(*arrays, positive, at, mids, ends)
+    _midpoints(*arrays, start, end, positive, at, mids, ends)
     return mids, ends
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _positive_edges(sites, first, neighbours, shift, period, positive):
-    """positive[j]: whether edge j's vector (``_tree.edge_at``) is lexicographically
-    positive (its first component not 0 is > 0)."""
-    for v in range(first.shape[0] - 1):
+def _positive_edges(sites, first, neighbours, shift, period, start, end, positive):
+    """positive[j - first[start]] for the rows j of the sites [start, end): whether edge
+    j's vector (``_tree.edge_at``) is lexicographically positive (its first component not
+    0 is > 0)."""
+    base = first[start]
+    for v in range(start, end):
         for j in range(first[v], first[v + 1]):
             for a in range(sites.shape[1]):
                 g = edge_at(sites, neighbours, shift, period, v, j, a)
                 if g != 0.0:
-                    positive[j] = g > 0.0
+                    positive[j - base] = g > 0.0
                     break
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _midpoints(sites, first, neighbours, shift, period, positive, at, mids, ends):
-    """``edge_midpoints``' rows: for each positive row j of site v, at its place at[j],
-    sites[v] + 0.5 (its edge vector) and (v, its far site)."""
-    for v in range(first.shape[0] - 1):
+def _midpoints(sites, first, neighbours, shift, period, start, end, positive, at, mids, ends):
+    """``edge_midpoints``' rows: for each positive row j of a site v in [start, end), at
+    its place at[j - first[start]], sites[v] + 0.5 (its edge vector) and (v, its far
+    site)."""
+    base = first[start]
+    for v in range(start, end):
         for j in range(first[v], first[v + 1]):
-            if positive[j]:
-                i = at[j]
+            if positive[j - base]:
+                i = at[j - base]
                 for a in range(sites.shape[1]):
                     mids[i, a] = sites[v, a] + 0.5 * edge_at(sites, neighbours, shift, period,
                                                              v, j, a)  # fmt: skip
@@ -659,52 +667,57 @@ def probe_parts(
     two vertices, a uniform point's nearest vertex (``nearest_site`` in ``period``), a
     further sample's cell's ``corners``. The same six parts in every domain."""
 
-    def midpoints():
-        mids, ends = edge_midpoints(voronoi)
-        return wrap(mids), False, None, ends
+    def midpoints():  # a range of sites at a time: no (e, d) array of them all at once
+        for start in range(0, len(voronoi.first) - 1, MIDPOINT_SITES):
+            mids, ends = edge_midpoints(voronoi, start, start + MIDPOINT_SITES)
+            yield wrap(mids), False, None, ends
 
     parts = [
-        lambda: (first, False, None, None),
-        lambda: (sampled, True, None, None),
-        lambda: (vertices, False, vertex_d_m2, None),
+        lambda: [(first, False, None, None)],
+        lambda: [(sampled, True, None, None)],
+        lambda: [(vertices, False, vertex_d_m2, None)],
         midpoints,
-        lambda: (uniform, False, None, nearest_site(voronoi, uniform, period, workers, tri)),
-        lambda: (further, False, None, corners),
+        lambda: [(uniform, False, None, nearest_site(voronoi, uniform, period, workers, tri))],
+        lambda: [(further, False, None, corners)],
     ]
     rows = len(first) + len(sampled) + len(vertices) + int(voronoi.first[-1]) // 2
     return parts, rows + len(uniform) + len(further)
 
 
 def gathered_probes(parts, inside, size, width, capacity, vertices=2):
-    """``steps.Probes`` from ``parts``, functions each making a part when called, in turn:
-    (x, whether input points, d_{M,2} known or None (NaN: asked), its near rows or None),
-    the first the size integral's samples, each kept where ``inside(x)``; ``size`` a
-    ``SizeSample`` whose ``corners`` are indices into the part ``vertices`` (the mesh's
-    vertices), returned with those vertices' rows among the probes kept (``at``). A
-    part's near rows (count, r <= ``width``) are rows of the part ``vertices`` (which
-    comes before them) near each of its probes (an edge's midpoint: its two vertices);
-    ``Probes.near`` holds those probes' indices (-1 where one was dropped, beyond a part's
-    own r columns, and for the other parts); ``Probes.exact`` marks the first part and the
-    part ``vertices``, whose d_{P,k} the size integral reads. Each part is copied into its
-    place and dropped before the next is made (what is held at once: the probes and one
-    part), in arrays of ``capacity`` rows (the caller's bound; more where it was short)."""
+    """``steps.Probes`` from ``parts``, functions each making a part when called, in turn,
+    as pieces (an iterable of (x, whether input points, d_{M,2} known or None (NaN:
+    asked), its near rows or None)), the first part the size integral's samples, each
+    kept where ``inside(x)``; ``size`` a ``SizeSample`` whose ``corners`` are indices into
+    the part ``vertices`` (the mesh's vertices), returned with those vertices' rows among
+    the probes kept (``at``). A part's near rows (count, r <= ``width``) are rows of the
+    part ``vertices`` (which comes before them) near each of its probes (an edge's
+    midpoint: its two vertices); ``Probes.near`` holds those probes' indices (-1 where one
+    was dropped, beyond a part's own r columns, and for the other parts);
+    ``Probes.exact`` marks the first part and the part ``vertices``, whose d_{P,k} the
+    size integral reads. Each piece is copied into its place and dropped before the next
+    is made (what is held at once: the probes and one piece), in arrays of ``capacity``
+    rows (the caller's bound; more where it was short)."""
     index = np.int32 if capacity < 2**31 - 2**20 else np.int64
     rows = _ProbeRows(capacity, width, index)
-    first_kept = at = None
+    kept = [0] * len(parts)
+    at = None
     for i, make in enumerate(parts):
-        x, points, d_m2, near = make()
-        keep = inside(x)
-        place = rows.add(x, keep, points, d_m2, None if near is None else _rows_of(at, near[keep]))
-        del x, d_m2, near
-        if i == 0:
-            first_kept = keep
+        start, keeps = rows.n, []
+        for x, points, d_m2, near in make():
+            keep = inside(x)
+            rows.add(x, keep, points, d_m2, None if near is None else _rows_of(at, near[keep]))
+            del x, d_m2, near
+            keeps.append(keep)
+        keep = np.concatenate(keeps) if keeps else np.zeros(0, bool)
+        kept[i] = keep if i in (0, vertices) else None  # (the others: not held)
         if i == vertices:
             at = np.full(len(keep), -1, index)  # each vertex's probe row (-1: dropped)
-            at[keep] = place + np.arange(int(keep.sum()), dtype=index)
+            at[keep] = start + np.arange(int(keep.sum()), dtype=index)
     probes = rows.probes()
-    probes.exact[: int(first_kept.sum())] = True  # what the size integral reads: its
+    probes.exact[: int(kept[0].sum())] = True  # what the size integral reads: its
     probes.exact[at[at >= 0]] = True  # samples and the corners
-    return probes._replace(extra=size._replace(kept=first_kept, at=at))
+    return probes._replace(extra=size._replace(kept=kept[0], at=at))
 
 
 def _rows_of(at, near):
@@ -757,6 +770,7 @@ class _ProbeRows:
                       np.zeros(n, bool))  # fmt: skip
 
 
+MIDPOINT_SITES = 1 << 15  # sites whose edges' midpoints ``probe_parts`` makes at once
 SIZE_SHARE = 4  # the size integral reads one point in each of samples // SIZE_SHARE cells
 
 

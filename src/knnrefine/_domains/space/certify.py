@@ -30,8 +30,8 @@ from ..._engine.threads import in_chunks
 from ..._metric import BoxMetric, TorusFrame
 from ..._sampling import key_sample
 from ...certify._predicates import UNSURE, exact_sign, insphere, orient3d
-from ...certify._rows import as_index, as_offsets, class_sizes, row_classes
-from ...certify._tree import Tree
+from ...certify._rows import as_index, as_offsets
+from ...certify._tree import Tree, incidence
 from ...certify.common import (
     SizeSample,
     TorusGeometry,
@@ -116,83 +116,129 @@ def _exact_faces(local, corners, offsets, neighbours, period, workers=None):
     return int((orient <= 0).sum()), int((sphere > 0).sum())
 
 
-PACK_SPREAD = 7  # a face key is packed where no tetrahedron's offsets spread further
-
-
-def _neighbours(corners, offsets):
-    """The tetrahedron across each face, from face keys (sorted vertices and their offsets
-    relative to each other); None unless every face is shared by exactly two."""
+def _neighbours(corners, offsets, workers=None):
+    """The tetrahedron across each face (t, 4), matched again from the corners and offsets;
+    None unless every face is shared by exactly two. A face's key is its three vertices
+    sorted (by vertex, then offset) and their offsets relative to the least along each
+    axis; a vertex's faces (those it is the least vertex of) are gathered from its
+    tetrahedra (``_tree.incidence``) and matched among
+    themselves, a range of vertices a thread (``_match_faces``, on ``workers`` threads):
+    what is held is the incidence and the answer, 8 t integers, not a key for every face."""
     t = len(corners)
     corners, offsets = as_index(corners), as_offsets(offsets)
-    m = int(corners.max(initial=0)) + 1
-    spread = int((offsets.max(axis=1) - offsets.min(axis=1)).max(initial=0)) if t else 0
-    # a key packed in three numbers where each relative offset fits 3 bits (every mesh
-    # refine makes): (v0, v1, v2 2^27 + the nine offsets); else written out in twelve
-    packed = spread <= PACK_SPREAD and m < 2**36
-    rows = np.empty((4 * t, 3 if packed else 12), np.int64)
-    in_chunks(lambda a, b: _face_rows(corners, offsets, rows, a, b), t, least=8192)
-    label = row_classes(rows, rows[:, 0].copy(), m)
-    size, first = class_sizes(label)
-    # every face exactly twice: each class of equal keys a pair
-    if len(rows) % 2 or (size != 2).any():
-        return None
-    second = np.flatnonzero(~first)
-    out = np.empty(4 * t, np.int64)
-    out[second] = label[second] % t
-    out[label[second]] = second % t
-    return out.reshape(4, t).T
+    index = np.int32 if 4 * t < 2**31 else np.int64
+    if t == 0:
+        return np.zeros((0, 4), index)
+    m = int(corners.max()) + 1
+    first, incident = incidence(corners, m)
+    out = np.empty((t, 4), index)
+    widest = 4 * int(np.diff(first).max())
+
+    def match(a, b):
+        _match_faces(corners, offsets, first, incident, widest, out, a, b)
+
+    in_chunks(match, m, threads=workers, least=2048)
+    return None if (out < 0).any() else out
+
+
+@kernel(inline="always", cache=False)
+def _face_key(corners, offsets, c, i, v, o):
+    """v (3,), o (3, 3): the key of face i of tetrahedron c (the face opposite corner i):
+    its vertices sorted by (vertex, offsets), their offsets less the least along each
+    axis."""
+    n = 0
+    for j in range(4):
+        if j == i:
+            continue
+        v[n] = corners[c, j]
+        for a in range(3):
+            o[n, a] = offsets[c, j, a]
+        n += 1
+    for a in range(3):
+        least = min(o[0, a], o[1, a], o[2, a])
+        for j in range(3):
+            o[j, a] -= least
+    for j in range(1, 3):  # insertion sort of the three by (vertex, offsets)
+        b = j
+        while b > 0:
+            less = v[b] < v[b - 1]
+            if v[b] == v[b - 1]:
+                for a in range(3):
+                    if o[b, a] != o[b - 1, a]:
+                        less = o[b, a] < o[b - 1, a]
+                        break
+            if not less:
+                break
+            v[b], v[b - 1] = v[b - 1], v[b]
+            for a in range(3):
+                o[b, a], o[b - 1, a] = o[b - 1, a], o[b, a]
+            b -= 1
 
 
 @kernel(entry=True, lazy=True, nogil=True)
-def _face_rows(corners, offsets, rows, start, end):
-    """Rows i * t + c, c in [start, end): the key of face i of tetrahedron c (the face
-    opposite corner i): its three vertices sorted (by vertex, then offset), then their
-    offsets relative to the least along each axis (3 x 3); with three columns, packed
-    (v0, v1, v2 2^27 + each offset times 8^(3 j + a))."""
-    t = corners.shape[0]
-    v = np.empty(3, np.int64)
-    o = np.empty((3, 3), np.int64)
-    for i in range(4):
-        for c in range(start, end):
-            n = 0
-            for j in range(4):
-                if j == i:
-                    continue
-                v[n] = corners[c, j]
-                for a in range(3):
-                    o[n, a] = offsets[c, j, a]
-                n += 1
-            for a in range(3):
-                least = min(o[0, a], o[1, a], o[2, a])
-                for j in range(3):
-                    o[j, a] -= least
-            for j in range(1, 3):  # insertion sort of the three by (vertex, offsets)
-                b = j
-                while b > 0:
-                    less = v[b] < v[b - 1]
-                    if v[b] == v[b - 1]:
-                        for a in range(3):
-                            if o[b, a] != o[b - 1, a]:
-                                less = o[b, a] < o[b - 1, a]
-                                break
-                    if not less:
-                        break
-                    v[b], v[b - 1] = v[b - 1], v[b]
-                    for a in range(3):
-                        o[b, a], o[b - 1, a] = o[b - 1, a], o[b, a]
-                    b -= 1
-            r = i * t + c
-            if rows.shape[1] == 3:
-                key = v[2] << 27
-                for j in range(3):
-                    for a in range(3):
-                        key |= o[j, a] << (3 * (3 * j + a))
-                rows[r, 0], rows[r, 1], rows[r, 2] = v[0], v[1], key
+def _match_faces(corners, offsets, first, incident, widest, out, start, end):
+    """out[c, i] for the faces whose least vertex is in [start, end): the tetrahedron
+    whose face has the key of face i of c (``_face_key``), -1 unless exactly one face
+    other than itself has it. A vertex's faces are gathered from its tetrahedra
+    (``incident``, at most ``widest`` faces), ordered by their other two vertices, and
+    keyed in full against the faces with the same three."""
+    w = np.empty(3, np.int64)
+    p = np.empty((3, 3), np.int64)
+    cell = np.empty(widest, np.int64)
+    face = np.empty(widest, np.int64)
+    keys = np.empty((widest, 9), np.int64)
+    pair = np.empty(widest, np.int64)
+    m = first.shape[0] - 1
+    for v in range(start, end):
+        n = 0
+        previous = -1
+        for r in range(first[v], first[v + 1]):
+            d = incident[r] // 4
+            if d == previous:  # (v twice in d: its faces already read)
                 continue
-            for j in range(3):
-                rows[r, j] = v[j]
-                for a in range(3):
-                    rows[r, 3 + 3 * j + a] = o[j, a]
+            previous = d
+            for f in range(4):
+                x0, x1, x2 = (corners[d, (f + 1) & 3], corners[d, (f + 2) & 3],
+                              corners[d, (f + 3) & 3])  # fmt: skip
+                if x0 > x1:
+                    x0, x1 = x1, x0
+                if x1 > x2:
+                    x1, x2 = x2, x1
+                if x0 > x1:
+                    x0, x1 = x1, x0
+                if x0 != v:  # (a face of the vertex its least)
+                    continue
+                _face_key(corners, offsets, d, f, w, p)
+                cell[n], face[n] = d, f
+                for j in range(3):
+                    for a in range(3):
+                        keys[n, 3 * j + a] = p[j, a]
+                pair[n] = w[1] * m + w[2]
+                n += 1
+        order = np.argsort(pair[:n])
+        a = 0
+        while a < n:  # runs of faces with the same three vertices
+            b = a + 1
+            while b < n and pair[order[b]] == pair[order[a]]:
+                b += 1
+            for x in range(a, b):
+                s = order[x]
+                found = -1
+                matches = 0
+                for y in range(a, b):
+                    u = order[y]
+                    if u == s:
+                        continue
+                    same = True
+                    for j in range(9):
+                        if keys[u, j] != keys[s, j]:
+                            same = False
+                            break
+                    if same:
+                        matches += 1
+                        found = cell[u]
+                out[cell[s], face[s]] = found if matches == 1 else -1
+            a = b
 
 
 def _circumspheres(local, cells, offsets, period, workers=None):
@@ -451,7 +497,7 @@ class Geometry(TorusGeometry):
         """Faces paired, orientation, local Delaunay, volume; circumballs (centres wrapped
         into the torus), R(v); ``extra``: the tetrahedra's volumes."""
         local, corners, offsets, period = self.local, self.corners, self.offsets, self.period
-        neighbours = _neighbours(corners, offsets)
+        neighbours = _neighbours(corners, offsets, self.workers)
         bad_o = bad_d = -1
         if neighbours is not None:
             bad_o, bad_d = _exact_faces(local, as_index(corners), offsets, neighbours, period,
@@ -468,9 +514,11 @@ class Geometry(TorusGeometry):
         if abs(volume - 1.0) >= 1e-9:
             problems.append(f"the volumes add up to {volume:.12g} tori")
         outer = np.zeros(len(local))
-        np.maximum.at(outer, corners.ravel(), np.repeat(r2, 4))
-        volumes = np.abs(det) / 6.0
-        return Triangulation(problems, np.mod(centres, period), np.sqrt(r2), np.sqrt(outer),
+        for j in range(4):  # (in place, a corner at a time: no copies of t rows)
+            np.maximum.at(outer, corners[:, j], r2)
+        np.mod(centres, period, out=centres)
+        volumes = np.divide(np.abs(det, out=det), 6.0, out=det)
+        return Triangulation(problems, centres, np.sqrt(r2, out=r2), np.sqrt(outer, out=outer),
                              volumes)  # fmt: skip
 
     def returned_problems(self):
