@@ -213,25 +213,51 @@ def test_neighbour_lists_keep_each_neighbour_once_sorted(threads, monkeypatch):
             assert got == want
 
 
-def test_corner_codes_equal_numpys():
-    """``common._corner_codes`` (a kernel, a cell at a time) against numpy's: each cell's
-    corners as codes (vertex, then offsets relative to the least, base CODE_BASE) sorted,
-    and the count of cells whose offsets spread over CODE_BASE periods, in 2 and 3
-    dimensions, for all corners and for facets."""
-    from knnrefine.certify.common import CODE_BASE, _corner_codes
+def test_tile_classes_against_dictionaries_of_keys():
+    """``common._tile_classes`` (check_cells_tile's classes, issue 52: each vertex's cells
+    and facets compared among themselves, no key held for every facet) against Python
+    dictionaries of every cell's and facet's key (its corners as (vertex, offsets less the
+    least) sorted): the cells equal to an earlier one, the classes of more than two equal
+    facets, the facets no other equals; in 2 and 3 dimensions, on few vertices (many
+    repeats, vertices twice in a cell) and many, on one thread and in ranges of a few
+    vertices."""
+    from knnrefine.certify._tree import incidence
+    from knnrefine.certify.common import CODE_BASE, _tile_classes
+
+    def key(cell, o, corners):
+        least = [min(o[j][a] for j in corners) for a in range(len(o[0]))]
+        return tuple(sorted((int(cell[j]), *(int(o[j][a] - least[a]) for a in range(len(least))))
+                            for j in corners))  # fmt: skip
 
     rng = np.random.default_rng(55)
     for d in (2, 3):
-        cells = rng.integers(0, 50, (400, d + 1))
-        off = rng.integers(-9, 9, (400, d + 1, d))
-        for corners in (list(range(d + 1)), [0, 2], list(range(1, d + 1))):
-            o = off[:, corners] - off[:, corners].min(axis=1, keepdims=True)
-            code = cells[:, corners].astype(np.int64)
-            for a in range(d):
-                code = code * CODE_BASE + o[:, :, a]
-            got, spread = _corner_codes(cells, off, corners)
-            assert spread == int((o.max(axis=(1, 2)) >= CODE_BASE).sum()) > 0
-            np.testing.assert_array_equal(got, np.sort(code, axis=1))
+        for m, t in ((4, 300), (60, 400)):
+            cells = rng.integers(0, m, (t, d + 1))
+            cells[t // 3 : t // 2] = cells[: t // 2 - t // 3]  # some cells again
+            off = rng.integers(-1, 2, (t, d + 1, d)).astype(np.int8)
+            off[t // 3 : t // 2] = off[: t // 2 - t // 3]
+            seen, facets = {}, {}
+            repeats = 0
+            for q in range(t):
+                k = key(cells[q], off[q], range(d + 1))
+                repeats += k in seen
+                seen.setdefault(k, q)
+                for i in range(d + 1):
+                    facets.setdefault(key(cells[q], off[q], [j for j in range(d + 1) if j != i]),
+                                      []).append(i * t + q)  # fmt: skip
+            many = sum(len(f) > 2 for f in facets.values())
+            alone_want = np.zeros((d + 1) * t, bool)
+            alone_want[[f[0] for f in facets.values() if len(f) == 1]] = True
+            first, incident = incidence(cells, m)
+            widest = (d + 1) * int(np.diff(first).max())
+            for ranges in (1, 7):
+                alone = np.zeros((d + 1) * t, bool)
+                edges = np.linspace(0, m, ranges + 1).astype(int)
+                got = [_tile_classes(cells, off, first, incident, widest, CODE_BASE, alone,
+                                     edges[j], edges[j + 1]) for j in range(ranges)]  # fmt: skip
+                assert sum(r for r, _ in got) == repeats > 0
+                assert sum(f for _, f in got) == many
+                np.testing.assert_array_equal(alone, alone_want)
 
 
 def test_size_sample_gives_the_integral_a_share_of_the_cells_and_the_rest_to_the_ratio():

@@ -110,10 +110,3 @@ def _label_groups(rows, start, order, hashes, label, v0, v1):
                         label[i] = p
                         break
             a = b
-
-
-def class_sizes(label):
-    """(each row's class size, whether each row is the first of its class)."""
-    first = label == np.arange(len(label), dtype=label.dtype)
-    sizes = np.bincount(label, minlength=len(label)).astype(label.dtype, copy=False)
-    return sizes[label], first

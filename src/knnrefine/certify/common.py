@@ -16,11 +16,12 @@ from .._engine.threads import in_chunks
 from .._validation import as_points, check_inside, check_made_from, weights_of_run
 from ..errors import InputError
 from ..mesh import theorem6_constants
-from ._rows import as_index, as_offsets, class_sizes, row_classes
+from ._rows import as_index, as_offsets, row_classes
 from ._tree import (
     Tree,
     edge_at,
     edge_shifts,
+    incidence,
     neighbour_lists,
     point2,
     spatial_order,
@@ -154,32 +155,29 @@ def check_cells_tile(mesh):
         off = as_offsets(np.where(per, np.asarray(mesh.offsets), 0))
     problems = []
     # a cell, and each of its facets: its corners' codes (vertex and offset relative to the
-    # least, in one integer: CODE_BASE values per axis) sorted
-    keys, spread = _corner_codes(cells, off, range(nc))
+    # least, in one integer: CODE_BASE values per axis) sorted, compared with the others
+    # at its least vertex (``_tile_classes``)
+    t = len(cells)
+    wide = off.max(axis=1).astype(np.int16) - off.min(axis=1)  # (int8's ends: 255 apart)
+    spread = int((wide >= CODE_BASE).any(axis=1).sum())
+    del wide
     if spread:
         return [f"{spread} cells span more than {CODE_BASE - 1} periods"]
-    shift = CODE_BASE.bit_length() - 1  # bits of a code that are offsets, per axis
     m = len(v)
-    label = row_classes(keys, keys[:, 0] >> (shift * dim), m)
-    repeats = int((label != np.arange(len(keys))).sum())
+    first, incident = incidence(cells, m)
+    widest = nc * int(np.diff(first).max(initial=0))
+    alone = np.zeros(nc * t, bool)  # facet i of cell c at i * t + c: on one cell only
+    counted = in_chunks(
+        lambda a, b: _tile_classes(cells, off, first, incident, widest, CODE_BASE, alone, a, b),
+        m, least=4096,
+    )  # fmt: skip
+    repeats = sum(r for r, _ in counted)
+    many = sum(f for _, f in counted)
     if repeats:
         problems.append(f"{repeats} cells are listed more than once")
-    del keys, label  # (not held beside the facets': each array is dropped once read)
-    t = len(cells)
-    small = m * CODE_BASE**dim < 2**31  # every code fits int32: half the rows' memory
-    # facet i of cell c at row i * t + c
-    rows = np.empty((nc * t, dim), np.int32 if small else np.int64)
-    for i in range(nc):
-        rows[i * t : (i + 1) * t] = _corner_codes(cells, off, [j for j in range(nc) if j != i])[0]
-    label = row_classes(rows, rows[:, 0] >> (shift * dim), m)
-    del rows
-    size, first = class_sizes(label)
-    del label
-    if (first & (size > 2)).any():
-        problems.append(
-            f"{int((first & (size > 2)).sum())} facets are shared by more than two cells"
-        )
-    single = np.flatnonzero(size == 1)  # flat index: facet i of cell c at i * t + c
+    if many:
+        problems.append(f"{many} facets are shared by more than two cells")
+    single = np.flatnonzero(alone)  # flat index: facet i of cell c at i * t + c
     if len(single):
         cell, i = single % t, single // t
         other = np.array([[j for j in range(nc) if j != ii] for ii in range(nc)])[i]
@@ -202,43 +200,105 @@ def check_cells_tile(mesh):
 CODE_BASE = 16  # values of a corner's offset (relative to the least) per axis in its code
 
 
-def _corner_codes(cells, off, corners):
-    """(the ``corners`` of each cell as sorted integer codes, vertex * CODE_BASE^d + its
-    offset relative to the least of them, digit by axis; how many cells spread their
-    offsets over CODE_BASE periods or more: no code for those)."""
-    return _codes(as_index(cells), as_offsets(off), np.asarray(list(corners), np.int64),
-                  CODE_BASE)  # fmt: skip
-
-
-@kernel(entry=True, lazy=True)
-def _codes(cells, off, corners, base):
-    """``_corner_codes``' work, one cell at a time (a few corners: insertion sort)."""
-    t, d = cells.shape[0], off.shape[2]
-    c = corners.shape[0]
-    out = np.empty((t, c), np.int64)
-    low = np.empty(d, np.int64)
-    spread = 0
-    for q in range(t):
+@kernel(inline="always", cache=False)
+def _facet_codes(cells, off, q, skip, base, out):
+    """out[:c']: the codes of cell q's corners other than ``skip`` (-1: none), each
+    vertex * base^d + its offset relative to the least of them (a digit an axis), sorted;
+    returns c'."""
+    c, d = cells.shape[1], off.shape[2]
+    n = 0
+    for i in range(c):
+        if i == skip:
+            continue
+        code = cells[q, i]
         for a in range(d):
-            low[a] = off[q, corners[0], a]
-            for i in range(1, c):
-                low[a] = min(low[a], off[q, corners[i], a])
-        wide = False
-        for i in range(c):
-            code = cells[q, corners[i]]
-            for a in range(d):
-                digit = off[q, corners[i], a] - low[a]
-                if digit >= base:
-                    wide = True
-                code = code * base + digit
-            j = i - 1
-            while j >= 0 and out[q, j] > code:
-                out[q, j + 1] = out[q, j]
-                j -= 1
-            out[q, j + 1] = code
-        if wide:
-            spread += 1
-    return out, spread
+            low = off[q, i, a]
+            for j in range(c):
+                if j != skip:
+                    low = min(low, off[q, j, a])
+            code = code * base + (off[q, i, a] - low)
+        j = n - 1
+        while j >= 0 and out[j] > code:
+            out[j + 1] = out[j]
+            j -= 1
+        out[j + 1] = code
+        n += 1
+    return n
+
+
+@kernel(entry=True, lazy=True, nogil=True)
+def _tile_classes(cells, off, first, incident, widest, base, alone, start, end):
+    """(cells equal to an earlier one, classes of more than two equal facets) among those
+    whose least vertex is in [start, end); alone[i t + c] for facet i of cell c where no
+    other equals it. A vertex's cells and facets (each once: from its first corner at the
+    vertex) are gathered from ``incident`` (``_tree.incidence``), hashed, ordered by hash,
+    and compared in full within a run of equal hashes."""
+    c = cells.shape[1]
+    t = cells.shape[0]
+    d = off.shape[2]
+    scale = 1
+    for _ in range(d):
+        scale *= base
+    keys = np.empty((max(widest, 1), c), np.int64)
+    flat = np.empty(max(widest, 1), np.int64)
+    hashes = np.empty(max(widest, 1), np.int64)
+    codes = np.empty(c, np.int64)
+    repeats = 0
+    many = 0
+    for v in range(start, end):
+        for facets in (False, True):
+            n = 0
+            for r in range(first[v], first[v + 1]):
+                q = incident[r] // c
+                x = incident[r] - q * c
+                for i in range(c if facets else 1):
+                    skip = i if facets else -1
+                    if skip == x:
+                        continue
+                    earlier = False  # (v at an earlier corner of this facet: read there)
+                    for j in range(x):
+                        if j != skip and cells[q, j] == v:
+                            earlier = True
+                    if earlier:
+                        continue
+                    w = _facet_codes(cells, off, q, skip, base, codes)
+                    if codes[0] // scale != v:  # (not its least vertex)
+                        continue
+                    h = 0
+                    for j in range(w):
+                        keys[n, j] = codes[j]
+                        h = h * 1000003 + codes[j]
+                    hashes[n] = h
+                    flat[n] = i * t + q
+                    n += 1
+            order = np.argsort(hashes[:n])
+            a = 0
+            while a < n:
+                b = a + 1
+                while b < n and hashes[order[b]] == hashes[order[a]]:
+                    b += 1
+                for y in range(a, b):
+                    s = order[y]
+                    size = 0
+                    least = flat[s]
+                    for z in range(a, b):
+                        u = order[z]
+                        same = True
+                        for j in range(c - 1 if facets else c):
+                            if keys[u, j] != keys[s, j]:
+                                same = False
+                                break
+                        if same:
+                            size += 1
+                            least = min(least, flat[u])
+                    if not facets:
+                        repeats += least != flat[s]
+                    elif size == 1:
+                        alone[flat[s]] = True
+                    elif size > 2 and least == flat[s]:
+                        many += 1
+                a = b
+    return repeats, many
 
 
 def cell_array_problem(mesh):
