@@ -231,17 +231,14 @@ def _tile_classes(cells, off, first, incident, widest, base, alone, start, end):
     """(cells equal to an earlier one, classes of more than two equal facets) among those
     whose least vertex is in [start, end); alone[i t + c] for facet i of cell c where no
     other equals it. A vertex's cells and facets (each once: from its first corner at the
-    vertex) are gathered from ``incident`` (``_tree.incidence``), hashed, ordered by hash,
-    and compared in full within a run of equal hashes."""
+    vertex) are gathered from ``incident`` (``_tree.incidence``), hashed, ordered by hash
+    (insertion), and compared in full within a run of equal hashes."""
     c = cells.shape[1]
     t = cells.shape[0]
-    d = off.shape[2]
-    scale = 1
-    for _ in range(d):
-        scale *= base
     keys = np.empty((max(widest, 1), c), np.int64)
     flat = np.empty(max(widest, 1), np.int64)
     hashes = np.empty(max(widest, 1), np.int64)
+    order = np.empty(max(widest, 1), np.int64)
     codes = np.empty(c, np.int64)
     repeats = 0
     many = 0
@@ -255,15 +252,14 @@ def _tile_classes(cells, off, first, incident, widest, base, alone, start, end):
                     skip = i if facets else -1
                     if skip == x:
                         continue
-                    earlier = False  # (v at an earlier corner of this facet: read there)
-                    for j in range(x):
-                        if j != skip and cells[q, j] == v:
-                            earlier = True
-                    if earlier:
+                    # read once, from its first corner at v, where v is its least vertex
+                    once = True
+                    for j in range(c):
+                        if j != skip and (cells[q, j] < v or (j < x and cells[q, j] == v)):
+                            once = False
+                    if not once:
                         continue
                     w = _facet_codes(cells, off, q, skip, base, codes)
-                    if codes[0] // scale != v:  # (not its least vertex)
-                        continue
                     h = 0
                     for j in range(w):
                         keys[n, j] = codes[j]
@@ -271,7 +267,13 @@ def _tile_classes(cells, off, first, incident, widest, base, alone, start, end):
                     hashes[n] = h
                     flat[n] = i * t + q
                     n += 1
-            order = np.argsort(hashes[:n])
+            for y in range(n):  # (insertion: a few dozen, no array made)
+                h = hashes[y]
+                z = y - 1
+                while z >= 0 and hashes[order[z]] > h:
+                    order[z + 1] = order[z]
+                    z -= 1
+                order[z + 1] = y
             a = 0
             while a < n:
                 b = a + 1
