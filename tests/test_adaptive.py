@@ -823,3 +823,33 @@ def test_binned_loo_at_a_point_on_a_lattice_line():
     got, exact = ad.loo(idx, binned=True), ad.loo(idx)
     assert np.isfinite(got).all()
     np.testing.assert_allclose(got, exact, atol=0.05)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_plan_levels_gives_each_kernel_its_lattice_by_counting(dim):
+    """Issue 53: ``lattice.plan_levels`` finds the levels present by counting (np.unique's
+    sort took 0.2 s of the grid at 10^6 kernels): each live kernel's level is the rank of
+    its m = max(floor(log2(r / (samples x the widest step))), 0) among the m present, a dead
+    kernel (radius 0) -1, and the levels' rows are one per m present, in order; against
+    numpy's unique, with dead kernels, gaps between the m present and every kernel dead."""
+    from knnrefine._engine.lattice import plan_levels
+
+    rng = np.random.default_rng(53)
+    step = np.full(dim, 1.0 / 64)
+    period = np.ones(dim)
+    for r in (np.where(rng.random(3000) < 0.2, 0.0, 10.0 ** rng.uniform(-3, -0.5, 3000)),
+              np.r_[np.zeros(5), np.full(7, 0.4), np.full(9, 0.02)],  # m = 0 and a gap
+              np.zeros(10)):  # fmt: skip
+        centres = rng.random((len(r), dim))
+        plan = plan_levels(centres, r, period, np.zeros(dim, bool), (step / 2, step), 2, 1e9)
+        level, levels, _ = plan
+        m = np.full(len(r), -1)
+        live = r > 0
+        m[live] = np.maximum(np.floor(np.log2(r[live] / (2 * step.max()))), 0)
+        present = np.unique(m[live])
+        want = np.full(len(r), -1)
+        want[live] = np.searchsorted(present, m[live])
+        np.testing.assert_array_equal(level, want)
+        assert len(levels) == len(present)
+        # each level's steps are the grid's times 2^m
+        np.testing.assert_allclose(levels[:, dim : 2 * dim], step * 2.0 ** present[:, None])

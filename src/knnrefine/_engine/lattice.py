@@ -47,11 +47,13 @@ def plan_levels(centres, r, period, periodic, grid, samples, max_values):
     key = np.full(len(r), -1, np.int64)  # m, the same on every axis (few levels to read)
     with np.errstate(divide="ignore"):
         key[live] = np.maximum(np.floor(np.log2(r[live] / (samples * step.max()))), 0)
-    keys, level = np.unique(key, return_inverse=True)
-    level = level.astype(np.int64)
-    if len(keys) and keys[0] < 0:
-        level -= 1  # the dead kernels' key sorts first
-        keys = keys[1:]
+    # the levels present, in order, and each kernel's among them (-1: dead), by counting:
+    # a few dozen keys at most (np.unique's sort took 0.2 s at 10^6 kernels)
+    present = np.bincount(key + 1)  # (the dead kernels' key -1 at 0)
+    keys = np.flatnonzero(present[1:])
+    remap = np.full(len(present), -1, np.int64)
+    remap[keys + 1] = np.arange(len(keys))
+    level = remap[key + 1]
     rows, total = [], 0
     for j, kk in enumerate(keys):
         mine = level == j
