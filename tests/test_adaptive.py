@@ -825,13 +825,16 @@ def test_binned_loo_at_a_point_on_a_lattice_line():
     np.testing.assert_allclose(got, exact, atol=0.05)
 
 
+@pytest.mark.parametrize("periodic", [False, True])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_plan_levels_gives_each_kernel_its_lattice_by_counting(dim):
+def test_plan_levels_gives_each_kernel_its_lattice_by_counting(dim, periodic):
     """Issue 53: ``lattice.plan_levels`` finds the levels present by counting (np.unique's
     sort took 0.2 s of the grid at 10^6 kernels): each live kernel's level is the rank of
     its m = max(floor(log2(r / (samples x the widest step))), 0) among the m present, a dead
-    kernel (radius 0) -1, and the levels' rows are one per m present, in order; against
-    numpy's unique, with dead kernels, gaps between the m present and every kernel dead."""
+    kernel (radius 0) -1, and the levels' rows are one per m present, in order, each
+    lattice spanning its kernels (``_level_bounds``, one pass); against numpy's unique and
+    masks, with dead kernels, gaps between the m present and every kernel dead, periodic
+    or not."""
     from knnrefine._engine.lattice import plan_levels
 
     rng = np.random.default_rng(53)
@@ -841,7 +844,7 @@ def test_plan_levels_gives_each_kernel_its_lattice_by_counting(dim):
               np.r_[np.zeros(5), np.full(7, 0.4), np.full(9, 0.02)],  # m = 0 and a gap
               np.zeros(10)):  # fmt: skip
         centres = rng.random((len(r), dim))
-        plan = plan_levels(centres, r, period, np.zeros(dim, bool), (step / 2, step), 2, 1e9)
+        plan = plan_levels(centres, r, period, np.full(dim, periodic), (step / 2, step), 2, 1e9)
         level, levels, _ = plan
         m = np.full(len(r), -1)
         live = r > 0
@@ -851,5 +854,22 @@ def test_plan_levels_gives_each_kernel_its_lattice_by_counting(dim):
         want[live] = np.searchsorted(present, m[live])
         np.testing.assert_array_equal(level, want)
         assert len(levels) == len(present)
-        # each level's steps are the grid's times 2^m
-        np.testing.assert_allclose(levels[:, dim : 2 * dim], step * 2.0 ** present[:, None])
+        # each level's lattice: steps the grid's times 2^m, spanning its kernels' supports
+        # (and the box two steps out where one reaches a side), by numpy per level
+        for j, mm in enumerate(present):
+            mine = want == j
+            s = step * 2.0**mm
+            cm, rm = centres[mine], r[mine][:, None]
+            lo = np.maximum((cm - rm).min(axis=0), -2 * s)
+            hi = np.minimum((cm + rm).max(axis=0), 1 + 2 * s)
+            near_lo = (cm < rm + 2 * s).any(axis=0)
+            near_hi = (cm > 1 - rm - 2 * s).any(axis=0)
+            if periodic:  # images one period away: the whole box and two steps
+                near_lo = near_hi = near_lo | near_hi
+            lo = np.where(near_lo, -2 * s, lo)
+            hi = np.where(near_hi, 1 + 2 * s, hi)
+            i0 = np.floor((lo - step / 2) / s)
+            np.testing.assert_array_equal(levels[j, :dim], step / 2 + i0 * s)
+            np.testing.assert_array_equal(levels[j, dim : 2 * dim], s)
+            np.testing.assert_array_equal(levels[j, 2 * dim : 3 * dim],
+                                          np.floor((hi - step / 2) / s) - i0 + 1)  # fmt: skip

@@ -54,23 +54,25 @@ def plan_levels(centres, r, period, periodic, grid, samples, max_values):
     remap = np.full(len(present), -1, np.int64)
     remap[keys + 1] = np.arange(len(keys))
     level = remap[key + 1]
+    pads = 2.0 * step[None, :] * 2.0 ** keys[:, None]  # (L, d): two steps of each lattice
+    low, high, near_lo, near_hi = _level_bounds(
+        np.ascontiguousarray(centres, float), np.ascontiguousarray(r, float), level,
+        np.asarray(period, float), pads,
+    )  # fmt: skip
     rows, total = [], 0
     for j, kk in enumerate(keys):
-        mine = level == j
-        rm = r[mine]
         spans = []
         for a in range(dim):
             ext, first = float(period[a]), origin[a]
             s = step[a] * 2.0 ** int(kk)
             pad = 2.0 * s
-            cm = centres[mine, a]
-            lo = max(float(np.min(cm - rm)), -pad)
-            hi = min(float(np.max(cm + rm)), ext + pad)
-            if periodic[a] and np.any((cm < rm + pad) | (cm > ext - rm - pad)):
+            lo = max(float(low[j, a]), -pad)
+            hi = min(float(high[j, a]), ext + pad)
+            if periodic[a] and (near_lo[j, a] or near_hi[j, a]):
                 lo, hi = -pad, ext + pad  # images one period away reach into the box
-            if not periodic[a] and np.any(cm < rm + pad):
+            if not periodic[a] and near_lo[j, a]:
                 lo = -pad  # mirror images in the lower side
-            if not periodic[a] and np.any(cm > ext - rm - pad):
+            if not periodic[a] and near_hi[j, a]:
                 hi = ext + pad
             i0 = np.floor((lo - first) / s)
             spans.append((first + i0 * s, s, int(np.floor((hi - first) / s) - i0) + 1))
@@ -80,6 +82,31 @@ def plan_levels(centres, r, period, periodic, grid, samples, max_values):
         if total > max_values:
             return None
     return level, np.array(rows, float).reshape(-1, 3 * dim + 1), total
+
+
+@kernel(entry=True, nogil=True)
+def _level_bounds(centres, r, level, period, pads):
+    """Per level j and axis a, over its kernels (``level``: -1 none): the least c - r, the
+    greatest c + r, and whether one lies within r + pads[j, a] of the lower side, of the
+    upper (``plan_levels``' lattice spans; one pass, no per-level copies)."""
+    levels, d = pads.shape
+    low = np.full((levels, d), np.inf)
+    high = np.full((levels, d), -np.inf)
+    near_lo = np.zeros((levels, d), np.bool_)
+    near_hi = np.zeros((levels, d), np.bool_)
+    for i in range(r.shape[0]):
+        j = level[i]
+        if j < 0:
+            continue
+        for a in range(d):
+            c, rad = centres[i, a], r[i]
+            low[j, a] = min(low[j, a], c - rad)
+            high[j, a] = max(high[j, a], c + rad)
+            if c < rad + pads[j, a]:
+                near_lo[j, a] = True
+            if c > period[a] - rad - pads[j, a]:
+                near_hi[j, a] = True
+    return low, high, near_lo, near_hi
 
 
 @kernel(entry=True, nogil=True)
