@@ -327,3 +327,33 @@ def test_plot_density_draws_the_regions_with_labels_and_title_inside(tmp_path):
     )
     with pytest.raises(knnrefine.InputError, match="style"):
         plot_density(est, image, style="contours")
+
+
+def test_box_query_rule_read_an_axis_at_a_time_is_the_rule():
+    """Issue 53: the box domains' query rule (``_domains.box.answerable``: finite, and in
+    the box along its non-periodic axes, sides included) is read an axis at a time (46 ->
+    3 ms at 10^6 points: numpy's row reductions over 2 columns were most of it); the same
+    answers as the rule written whole, with NaN, infinities and points on and beyond the
+    sides, in the plane and in space, periodic along some axes or none."""
+    from types import SimpleNamespace
+
+    from knnrefine._domains.box import answerable
+
+    rng = np.random.default_rng(53)
+    for dim in (2, 3):
+        lo, hi = -rng.random(dim), 1.0 + rng.random(dim)
+        x = rng.uniform(-1.5, 2.5, (4000, dim))
+        x[rng.random(x.shape) < 0.05] = np.nan
+        x[rng.random(x.shape) < 0.05] = np.inf
+        x[rng.random(x.shape) < 0.05] = -np.inf
+        sides = rng.random(x.shape) < 0.05
+        x[sides] = np.where(rng.random(int(sides.sum())) < 0.5, np.broadcast_to(lo, x.shape)[sides],
+                            np.broadcast_to(hi, x.shape)[sides])  # fmt: skip
+        for periodic in [(False,) * dim, (True,) + (False,) * (dim - 1), (True,) * dim]:
+            mesh = SimpleNamespace(box=(*lo, *hi), periodic=periodic)
+            bounded = ~np.array(periodic)
+            with np.errstate(invalid="ignore"):
+                want = np.isfinite(x).all(axis=1) & (((x >= lo) & (x <= hi)) | ~bounded).all(1)
+            got = answerable(mesh)(x)
+            np.testing.assert_array_equal(got, want)
+            assert want.any() and not want.all()
