@@ -762,7 +762,7 @@ def gathered_probes(parts, inside, size, width, capacity, vertices=2):
     rows (the caller's bound; more where it was short)."""
     index = np.int32 if capacity < 2**31 - 2**20 else np.int64
     rows = _ProbeRows(capacity, width, index)
-    kept = [0] * len(parts)
+    kept = {}  # the masks of the parts read later: the samples' and the vertices'
     at = None
     for i, make in enumerate(parts):
         start, keeps = rows.n, []
@@ -770,10 +770,12 @@ def gathered_probes(parts, inside, size, width, capacity, vertices=2):
             keep = inside(x)
             rows.add(x, keep, points, d_m2, None if near is None else _rows_of(at, near[keep]))
             del x, d_m2, near
-            keeps.append(keep)
-        keep = np.concatenate(keeps) if keeps else np.zeros(0, bool)
-        kept[i] = keep if i in (0, vertices) else None  # (the others: not held)
+            if i in (0, vertices):
+                keeps.append(keep)
+        if i in (0, vertices):
+            kept[i] = np.concatenate(keeps) if keeps else np.zeros(0, bool)
         if i == vertices:
+            keep = kept[i]
             at = np.full(len(keep), -1, index)  # each vertex's probe row (-1: dropped)
             at[keep] = start + np.arange(int(keep.sum()), dtype=index)
     probes = rows.probes()

@@ -123,7 +123,10 @@ def _neighbours(corners, offsets, workers=None):
     axis; a vertex's faces (those it is the least vertex of) are gathered from its
     tetrahedra (``_tree.incidence``) and matched among
     themselves, a range of vertices a thread (``_match_faces``, on ``workers`` threads):
-    what is held is the incidence and the answer, 8 t integers, not a key for every face."""
+    what is held is the incidence and the answer, 8 t integers, not a key for every face.
+    The key is written out (``_face_key``), not packed into ``common``'s corner codes as
+    ``check_cells_tile`` packs its own: codes need offsets within CODE_BASE periods, and
+    the torus' faces are paired whatever its offsets."""
     t = len(corners)
     corners, offsets = as_index(corners), as_offsets(offsets)
     index = np.int32 if 4 * t < 2**31 else np.int64
