@@ -658,6 +658,16 @@ def holds_k_within(index, xy, r2, k, lx, ly):
     return out
 
 
+@kernel(entry=True, nogil=True)
+def weights_at(index, qx, qy, out, start, stop):
+    """out[j]: the number of points of P (weighted P: their weight) at exactly the place
+    (qx[j], qy[j]), a point of the torus's fundamental domain: the closed disk of radius 0."""
+    stack = np.empty(STACK_SIZE, np.int64)
+    for j in range(start, stop):
+        out[j] = _count_disk(index, qx[j], qy[j], 0.0, np.inf, stack)
+    return 0
+
+
 # -- the k-th nearest distance itself (for evaluating d_{P,k}, not for refining) ---------------
 
 
@@ -886,6 +896,15 @@ class PointIndex:
         """Whether ``points`` (n, 2) float64 with ``weights`` are the ones indexed (by
         fingerprint)."""
         return self.fingerprint == self.fingerprint_of(points, weights)
+
+    def weight_at(self, x):
+        """The number of indexed points (weighted: their weight) at exactly each of the
+        indexed points x (q, 2), input units: one descent of the tree per point."""
+        q = self.embedding.to_internal(x)
+        qx, qy = q[:, 0].copy(), q[:, 1].copy()
+        out = np.empty(len(q))
+        in_chunks(lambda a, b: weights_at(self.index, qx, qy, out, a, b), len(q))
+        return out
 
     def kth(self, x, k, r_in=None, r_out=None, low=None, high=None, workers=None):
         """Exact d_{P,k} at the points x (q, 2) in input units (weighted P: the least radius

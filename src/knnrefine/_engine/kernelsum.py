@@ -44,6 +44,19 @@ def build_centres(points, weights, workers=None):
     return rows, box, node
 
 
+def one_leaf(rows, dim):
+    """(box, node) of a tree that is one leaf holding every row of a kernels' table (its
+    first ``dim`` columns the centres): a query visits every kernel, which costs less than
+    building the kd-tree for a few queries. Any dimension."""
+    n = len(rows)
+    centres = rows[:, :dim]
+    lo = centres.min(axis=0) if n else np.zeros(dim)
+    hi = centres.max(axis=0) if n else np.zeros(dim)
+    box = np.concatenate([lo, hi])[None, :]
+    node = np.array([[0, n, -1, 0]], np.int64)  # NODE_LO, NODE_HI, NODE_CHILD, NODE_AXIS
+    return box, node
+
+
 @kernel(entry=True)
 def node_extents(r, node, extent):
     """extent[t] = the largest kernel extent r[i] among node t's centres (children before

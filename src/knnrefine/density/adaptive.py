@@ -7,7 +7,7 @@ import numpy as np
 from .._domains.sphere.density import equal_area_radius
 from .._engine import kernelsum, kernelsum3, lattice
 from .._engine.binned import BinnedSums
-from .._engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents  # plane
+from .._engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents, one_leaf
 from .._engine.lattice import plan_levels, read_grid
 from .._engine.threads import in_chunks
 from .._metric import BoxMetric, lonlat_of, unit_vectors
@@ -84,11 +84,24 @@ class AdaptiveDensity:
         self.lo, self.hi = dist.lo, dist.hi
         self.periodic = tuple(bool(p) for p in mesh.periodic)
         frame = self._metric.frame(pts)
-        self._rows, self._box, self._node = self._kernels.build_centres(frame, w)
-        order = self._rows[:, self._kernels.ROW].astype(np.int64)
-        self._row_of = np.empty(len(pts), np.int64)
-        self._row_of[order] = np.arange(len(pts))
-        self._extent = np.zeros(len(self._node))
+        # the kernels' table, one row per point in input order until a query needs the
+        # kd-tree (``_exact_tree``): the smoothing search and grids through lattices do not
+        # the kernels are kept in one order, the kernels' order: the points' until a query
+        # needs the kd-tree (``_exact_tree``), the tree's then. Their centres (frame
+        # coordinates) and weights are columns; the table of every kernel column that exact
+        # sums read (``_rows``) is made when one asks for it: a smoothing search through
+        # binned sums and a grid through lattices read the columns alone
+        self._points = pts  # as given (the index counts copies by exact place)
+        self._frame = np.ascontiguousarray(frame)
+        self._weights = np.asarray(w, float).copy()
+        self._order = np.arange(len(pts))  # the point of each kernel
+        self._row_of = np.arange(len(pts))  # the kernel of each point
+        self._table = None
+        self._tree = None  # (box, node) once built
+        self._extent = None  # the tree's extents at this smoothing (``_exact_tree``)
+        if shape == "local":  # the covariance at the nodes counts points in disks: the tree
+            self._build_tree()
+        order = self._order
         # the pilot: d_{P,k} at every point, and the local covariance for shape="local"
         if shape == "local":
             cov = self._node_covariance(dist)
@@ -133,7 +146,7 @@ class AdaptiveDensity:
         lx, ly = self.hi - self.lo
         px, py = self.periodic
         qx, qy = q[:, 0].copy(), q[:, 1].copy()
-        rows, box, node = self._rows, self._box, self._node
+        rows, (box, node) = self._table, self._tree
         radius = np.asarray(dist.values, float)
         in_chunks(
             lambda a, b: ball_moments(rows, box, node, qx, qy, radius, lx, ly, px, py, out, a, b),
@@ -151,11 +164,83 @@ class AdaptiveDensity:
         c = check_bandwidth(bandwidth)
         alpha = self.sensitivity if sensitivity is None else check_sensitivity(sensitivity)
         self.bandwidth, self.sensitivity = c, alpha
-        rows = self._rows
-        self._kernels.scale_kernels(rows, self._q, self._amp, self._r, self._log_ratio, c, alpha,
-                                    self._cap)  # fmt: skip
-        self._extent_stale = True  # the tree's extents: at the next exact sums
+        self._stale = True  # the table's kernel columns: when next read (``_rows``)
         return self
+
+    @property
+    def _rows(self):
+        """The kernels' table (``kernelsum``'s or ``kernelsum3``'s columns) at this
+        smoothing: set_bandwidth only records it, so that a search through binned sums,
+        which reads the radii alone (``_radii``), writes no table per candidate."""
+        if self._table is None:
+            self._table = self._kernel_table()
+            self._stale = True
+        if self._stale:
+            self._kernels.scale_kernels(self._table, self._q, self._amp, self._r,
+                                        self._log_ratio, self.bandwidth, self.sensitivity,
+                                        self._cap)  # fmt: skip
+            self._stale = False
+            self._extent = None  # the tree's extents: at the next exact sums
+        return self._table
+
+    def _radii(self):
+        """The kernels' extents at this smoothing, in the table's order, without writing the
+        table: c times the unit extents at this sensitivity (kept per sensitivity), capped as
+        ``scale_kernels`` caps them."""
+        if self._table is not None and not self._stale:
+            return np.ascontiguousarray(self._table[:, self._kernels.R])
+        alpha = self.sensitivity
+        cache = self.__dict__.setdefault("_unit_radii", {})
+        if alpha not in cache:
+            cache.clear()  # one sensitivity at a time (a search's climb keeps to a few)
+            cache[alpha] = self._r * np.exp((self.dim * alpha - 1.0) * self._log_ratio)
+        return np.minimum(self.bandwidth * cache[alpha], self._cap)
+
+    def _kernel_table(self):
+        """The table of the kernels' columns (``kernel_table``) in the kernels' order: made
+        from the centres and weights, its kernel columns zero until ``_rows`` sets them."""
+        table = kernel_table(self._frame, self._weights, self._kernels)
+        table[:, self._kernels.ROW] = self._order
+        return table
+
+    def _build_tree(self):
+        """Order the kernels as their kd-tree (``build_centres``) and keep the tree; every
+        per-kernel array follows the new order."""
+        k = self._kernels
+        rows, box, node = k.build_centres(self._frame, self._weights)
+        order = rows[:, k.ROW].astype(np.int64)  # the kernels in the tree's order
+        self._table = rows
+        self._stale = True
+        self._frame = np.ascontiguousarray(rows[:, : self.dim])
+        for name in ("_q", "_r", "_amp", "_log_ratio", "_weights", "_order"):
+            if name in self.__dict__:
+                setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
+        rows[:, k.ROW] = self._order
+        self._row_of = np.empty(len(order), np.int64)
+        self._row_of[self._order] = np.arange(len(order))
+        self._tree = (box, node)
+        self._extent = None
+        for cached in ("_unit_radii", "_binned_columns"):
+            self.__dict__.pop(cached, None)
+
+    def _exact_tree(self, queries):
+        """(rows, box, node, extent) for exact sums at ``queries`` points: the kernels'
+        kd-tree, built at the first call that asks more than ONE_LEAF_QUERIES points (a
+        tree costs about as much as summing every kernel at that many), else the table as
+        one leaf (each query visits every kernel: the few points a binned search checks
+        exactly need no tree)."""
+        if self._tree is None and queries > ONE_LEAF_QUERIES:
+            self._build_tree()
+        rows = self._rows
+        if self._tree is None:
+            box, node = one_leaf(rows, self.dim)
+            extent = np.array([float(rows[:, self._kernels.R].max(initial=0.0))])
+            return rows, box, node, extent
+        box, node = self._tree
+        if self._extent is None:
+            self._extent = np.zeros(len(node))
+            node_extents(rows[:, self._kernels.R], node, self._extent)
+        return rows, box, node, self._extent
 
     @property
     def unit_extents(self):
@@ -174,10 +259,7 @@ class AdaptiveDensity:
         order = z_order(frame, period)  # neighbours in turn: the tree's leaves stay cached
         q = np.ascontiguousarray(frame[order])
         periodic = np.array(self.periodic, bool)
-        if self._extent_stale:
-            node_extents(self._rows[:, self._kernels.R], self._node, self._extent)
-            self._extent_stale = False
-        rows, box, node, extent = self._rows, self._box, self._node, self._extent
+        rows, box, node, extent = self._exact_tree(m)
         sums = self._kernels.kernel_sums
 
         def call(a, b):
@@ -232,9 +314,8 @@ class AdaptiveDensity:
         measures it)."""
         dim = self.dim
         shape = tuple(len(a) for a in axes[::-1])
-        rows, kernels = self._rows, self._kernels
         period = np.asarray(self.hi - self.lo, float)
-        r = np.ascontiguousarray(rows[:, kernels.R])
+        r = self._radii()
         step = np.array([a[1] - a[0] if len(a) > 1 else period[i] for i, a in enumerate(axes)])
         origin = np.array([a[0] for a in axes], float) - self.lo  # frame coordinates
         ball = unit_ball_volume(dim)
@@ -245,8 +326,10 @@ class AdaptiveDensity:
         plan = None
         if self.shape == "isotropic" and exact >= EXACT_TERMS and drawn < exact:
             periodic = np.array(self.periodic, bool)
-            centres = np.ascontiguousarray(rows[:, :dim])
-            amp = np.ascontiguousarray(rows[:, kernels.AMP])
+            centres = self._frame
+            # isotropic kernels keep their mass w / W, capped ones too: amp from the radius
+            with np.errstate(divide="ignore"):  # (radius 0: no kernel, on no level)
+                amp = self._weights / (self.total * self._kernels.MASS * r**dim)
             plan = plan_levels(
                 centres, r, period, periodic, (origin, step), LATTICE_SAMPLES, LATTICE_VALUES
             )
@@ -281,7 +364,7 @@ class AdaptiveDensity:
         if binned:
             s, w = self._binned_loo(rows)
         else:
-            s, w = self._sums(self._rows[rows, : self.dim], loo=True)
+            s, w = self._sums(self._frame[rows], loo=True)
         rest = np.maximum(self.total - w, 1e-300)
         knn = self.knn.constant / self.pilot[idx] ** self.dim
         f = (1.0 - self.eps) * s * self.total / rest + self.eps * knn
@@ -296,23 +379,20 @@ class AdaptiveDensity:
                 "binned leave-one-out sums are built for isotropic kernels in the plane; use "
                 "binned=False"
             )
-        table = self._rows
         if not hasattr(self, "_binned_columns"):  # the centres and masses (w / W), as columns
-            k = self._kernels
-            cx, cy = (np.ascontiguousarray(table[:, j]) for j in (k.X, k.Y))
-            self._binned_columns = (cx, cy, table[:, k.W] / self.total)
+            cx, cy = (np.ascontiguousarray(self._frame[:, j]) for j in range(2))
+            self._binned_columns = (cx, cy, self._weights / self.total)
         cx, cy, mass = self._binned_columns
         w = self._copies_of_rows(rows)
         period = np.asarray(self.hi - self.lo, float)
-        r = np.ascontiguousarray(table[:, self._kernels.R])
-        sums = BinnedSums(cx, cy, r, mass, period, np.array(self.periodic, bool))
+        sums = BinnedSums(cx, cy, self._radii(), mass, period, np.array(self.periodic, bool))
         total, own = sums.without(rows, w / self.total)
         s = np.maximum(total - own, 0.0)
         # where a point's own share is most of the binned sum (few other kernels reach it),
         # the difference is mostly binning's error: those points exactly
         check = np.flatnonzero(own > OWN_SHARE * total)
         if len(check):
-            s[check] = self._sums(table[rows[check], : self.dim], loo=True)[0]
+            s[check] = self._sums(self._frame[rows[check]], loo=True)[0]
         return s, w
 
     def _copies_at(self, idx):
@@ -321,26 +401,20 @@ class AdaptiveDensity:
         return self._copies_of_rows(self._row_of[np.asarray(idx)])
 
     def _copies_of_rows(self, rows):
-        """``_copies_at`` by the tree's rows: the weight within distance 0 of each
-        (``kernelsum.ball_moments``, one descent of the tree per point), kept for the last
-        rows asked (a search asks for the same sample at every smoothing)."""
+        """``_copies_at`` by the table's rows: the weight at exactly each place, counted by
+        the pilot's index of the points (``PointIndex.weight_at``: one descent of its tree
+        per point; it counts the run's weights, here scaled to this estimate's), kept for the
+        last rows asked (a search asks for the same sample at every smoothing)."""
         key = rows.tobytes()
         if getattr(self, "_copies", (None,))[0] != key:
-            table = self._rows
-            qx, qy = (np.ascontiguousarray(table[rows, j]) for j in (X, Y))
-            lx, ly = self.hi - self.lo
-            px, py = self.periodic
-            none, out = np.zeros(len(rows)), np.empty((len(rows), 6))
-            box, node = self._box, self._node
-            in_chunks(
-                lambda a, b: ball_moments(table, box, node, qx, qy, none, lx, ly, px, py, out,
-                                          a, b), len(rows))  # fmt: skip
-            self._copies = (key, out[:, 0])
+            index = self.knn.distance.index
+            held = index.weight_at(self._points[self._order[rows]])
+            self._copies = (key, held * (self.total / index.total))
         return self._copies[1]
 
     def weights_of(self, idx):
         """The weights of the points ``idx`` (indices into the points)."""
-        return self._rows[self._row_of[idx], self._kernels.W]
+        return self._weights[self._row_of[idx]]
 
     def loo_curve(self, bandwidths, sample=None, sensitivity=None):
         """Mean leave-one-out log-likelihood (per unit weight) of each candidate bandwidth at
@@ -375,8 +449,10 @@ class AdaptiveDensity:
         out = np.empty((n, self.dim))
         from_knn = rng.random(n) < self.eps
         m = int(n - from_knn.sum())
-        weight = rows[:, self._kernels.W]
-        i = rng.choice(len(rows), m, p=weight / weight.sum())
+        # a kernel chosen by weight among the points in input order (the table's order
+        # depends on whether a tree was built: the draws must not)
+        weight = self._weights[self._row_of]
+        i = self._row_of[rng.choice(len(rows), m, p=weight / weight.sum())]
         if self.dim == 2:
             u = rng.beta(1.0, 4.0, m)
             theta = rng.random(m) * 2 * np.pi
@@ -414,6 +490,18 @@ class AdaptiveDensity:
         return self._metric.wrap(frame + self.lo)
 
 
+def kernel_table(frame, weights, kernels):
+    """The kernels' table of ``kernels`` (``engine.kernelsum`` or ``kernelsum3``): a row per
+    centre (frame coordinates (n, d)) with its weight and original row, in that order, the
+    kernel columns zero."""
+    n, dim = frame.shape
+    rows = np.zeros((n, kernels.COLUMNS))
+    rows[:, :dim] = frame
+    rows[:, kernels.W] = weights
+    rows[:, kernels.ROW] = np.arange(n)
+    return rows
+
+
 def z_order(frame, period, bits=10):
     """An order of points (q, d) in the box [0, period] along the Z (Morton) curve of a
     2^bits grid per axis: points near each other come near each other."""
@@ -438,6 +526,7 @@ def _at_own_draws(density, draws, seed):
     return density(density.sample(int(draws), np.random.default_rng(seed)))
 
 
+ONE_LEAF_QUERIES = 64  # exact sums at more points than this build the kernels' kd-tree
 LATTICE_SAMPLES = 5  # lattice steps per kernel radius on the coarser lattices (``engine.lattice``)
 EXACT_TERMS = 2e7  # a grid's exact sums below this many kernel terms (about 0.05 s): exact
 LATTICE_VALUES = 1 << 22  # the most values the lattices may hold (32 MiB), per thread
