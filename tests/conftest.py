@@ -367,6 +367,18 @@ def assert_lattice_close(got, exact, worst, mean_rel=None):
         assert got.mean() == pytest.approx(exact.mean(), rel=mean_rel)
 
 
+def assert_binned_close(got, exact, mean_rel=1e-3):
+    """A grid's kernel sums read from binned lattices (``engine.binned``: each kernel's mass
+    binned on a lattice of its scale, its shape drawn once per lattice point) against the
+    exact sums at the same centres: never below 0; their L1 distance below 1 % of the exact
+    sums' (measured 0.4-0.8 % on a mixture, on a line and on duplicates); nowhere off by more
+    than 2.5 % of the peak; the mass within ``mean_rel``."""
+    assert (got >= 0).all()
+    assert np.abs(got - exact).sum() < 1e-2 * exact.sum()
+    assert np.abs(got - exact).max() < 2.5e-2 * exact.max()
+    assert got.mean() == pytest.approx(exact.mean(), rel=mean_rel)
+
+
 def assert_certified(mesh, points, label=""):
     """knnrefine.certify (validated against brute force in test_certify.py) must pass: the
     torus triangulation is Delaunay; aspect <= tau; every Voronoi cell and closed circumball

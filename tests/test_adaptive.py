@@ -5,7 +5,7 @@ counts of samples, Monte Carlo spread for the standard error."""
 
 import numpy as np
 import pytest
-from conftest import assert_lattice_close, load_shared
+from conftest import assert_binned_close, assert_lattice_close, load_shared
 
 import knnrefine
 from knnrefine import InputError, KnnDensityEstimator
@@ -612,13 +612,17 @@ def test_real_data_old_faithful_whitened():
     assert np.isfinite(white.score_samples(test)).all()
 
 
+@pytest.mark.parametrize("route", ["drawn", "binned"])
 @pytest.mark.parametrize("periodic", [(False, False), (True, True), (True, False)])
-def test_grid_through_lattices_matches_the_exact_sums(periodic, monkeypatch):
+def test_grid_through_lattices_matches_the_exact_sums(periodic, route, monkeypatch):
     """Grids through lattices (issue 30: kernels drawn once on lattices of their scale, read
-    by interpolation) give the exact sums at the centres to about 1e-3, never below 0, with
-    kernels near every side (folded or wrapped) and a rectangular grid of oblong cells; where
-    only kernels drawn on the grid itself reach, to rounding."""
+    by interpolation; issue 53: kernels binned on lattices, ``engine.binned``) give the exact
+    sums at the centres to about 1e-3, never below 0, with kernels near every side (folded
+    or wrapped) and a rectangular grid of oblong cells; drawn, where only kernels drawn on
+    the grid itself reach, to rounding."""
     from knnrefine.density import adaptive
+
+    monkeypatch.setattr(adaptive, "GRID_BINNED_CELLS", 0.0 if route == "binned" else np.inf)
 
     rng = np.random.default_rng(5)
     X = np.concatenate(
@@ -632,18 +636,24 @@ def test_grid_through_lattices_matches_the_exact_sums(periodic, monkeypatch):
     exact = ad._sums(ad._metric.frame(np.column_stack([gx.ravel(), gy.ravel()])))[0]
     monkeypatch.setattr(adaptive, "EXACT_TERMS", 0.0)  # lattices at any size
     got = ad._grid_sums([xs, ys]).ravel()
+    if route == "binned":
+        assert_binned_close(got, exact)
+        return
     assert_lattice_close(got, exact, worst=3e-3)
     # only kernels narrower than two lattice radii: on the grid itself, exact
     monkeypatch.setattr(adaptive, "LATTICE_SAMPLES", 1e6)
     np.testing.assert_allclose(ad._grid_sums([xs, ys]).ravel(), exact, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("route", ["drawn", "binned"])
 @pytest.mark.parametrize("case", ["line", "duplicates", "seam"])
-def test_grid_through_lattices_on_degenerate_inputs(case, monkeypatch):
-    """The lattice grid (issue 30) on points on a line, on many duplicates (kernels of
-    radius 0 where d_Pk is 0) and on a periodic seam: the exact sums at the centres, to the
-    same tolerance as on general points, never below 0, mass kept."""
+def test_grid_through_lattices_on_degenerate_inputs(case, route, monkeypatch):
+    """The lattice grid (issue 30, drawn; issue 53, binned) on points on a line, on many
+    duplicates (kernels of radius 0 where d_Pk is 0) and on a periodic seam: the exact sums
+    at the centres, to the same tolerance as on general points, never below 0, mass kept."""
     from knnrefine.density import adaptive
+
+    monkeypatch.setattr(adaptive, "GRID_BINNED_CELLS", 0.0 if route == "binned" else np.inf)
 
     rng = np.random.default_rng(8)
     periodic = case == "seam"
@@ -662,7 +672,10 @@ def test_grid_through_lattices_on_degenerate_inputs(case, monkeypatch):
     exact = ad._sums(ad._metric.frame(np.column_stack([gx.ravel(), gy.ravel()])))[0]
     monkeypatch.setattr(adaptive, "EXACT_TERMS", 0.0)
     got = ad._grid_sums([xs, ys]).ravel()
-    assert_lattice_close(got, exact, worst=3e-3, mean_rel=2e-3)
+    if route == "binned":
+        assert_binned_close(got, exact)
+    else:
+        assert_lattice_close(got, exact, worst=3e-3, mean_rel=2e-3)
 
 
 def _binned_case(case, rng):

@@ -45,14 +45,19 @@ LEAST_VALUES = 1 << 22  # or this many
 
 
 @kernel(entry=True, nogil=True)
-def assign_levels(cx, cy, r, samples, step0, level, lo, hi):
-    """level[i]: the lattice of kernel i (-1: radius 0, no kernel); lo, hi (LEVELS, 2): the
-    lowest and highest lattice indices of the cells holding each level's centres."""
+def assign_levels(cx, cy, r, samples, step0, level, log_r, lo, hi):
+    """level[i]: the lattice of kernel i (-1: radius 0, no kernel), log_r[i] its log(r)
+    (``deposit`` reads it: one logarithm per kernel); lo, hi (LEVELS, 2): the lowest and
+    highest lattice indices of the cells holding each level's centres."""
+    inv_log2 = 1.0 / np.log(2.0)
+    log_first = np.log(samples * step0)
     for i in range(r.shape[0]):
         if not r[i] > 0.0:
             level[i] = -1
             continue
-        m = int(np.floor(np.log2(r[i] / (samples * step0))))
+        lr = np.log(r[i])
+        log_r[i] = lr
+        m = int(np.floor((lr - log_first) * inv_log2))
         m = min(max(m, 0), LEVELS - 1)
         level[i] = m
         s = step0 * 2.0**m
@@ -66,15 +71,17 @@ def assign_levels(cx, cy, r, samples, step0, level, lo, hi):
 
 
 @kernel(entry=True, nogil=True)
-def deposit(cx, cy, r, mass, level, step0, lattices, mass_at, log_r_at):
+def deposit(cx, cy, log_r, mass, level, step0, lattices, mass_at, log_r_at):
     """Bin each kernel's mass at the four lattice points around its centre (linear
     weights), and mass * log(r / s) with it (for the mean radius, in steps)."""
-    for i in range(r.shape[0]):
+    log_step0 = np.log(step0)
+    log2 = np.log(2.0)
+    for i in range(log_r.shape[0]):
         m = level[i]
         if m < 0:
             continue
         s = step0 * 2.0**m
-        lq = np.log(r[i] / s)
+        lq = log_r[i] - log_step0 - m * log2
         fx = cx[i] / s - lattices[m, 0]
         fy = cy[i] / s - lattices[m, 1]
         ix = int(np.floor(fx))
@@ -247,7 +254,8 @@ class BinnedSums:
         r = np.ascontiguousarray(r, float)
         live = r > 0
         self.step0 = float(r[live].min()) / samples if live.any() else 1.0
-        self.level = np.empty(len(r), np.int64)
+        self.level = np.empty(len(r), np.int8)  # LEVELS < 128
+        log_r = np.empty(len(r))
         n = len(r)
         parts = []  # per range of centres: their lattices' bounds
 
@@ -255,7 +263,7 @@ class BinnedSums:
             lo = np.full((LEVELS, 2), 1 << 60, np.int64)
             hi = np.full((LEVELS, 2), -(1 << 60), np.int64)
             assign_levels(self.cx[a:b], self.cy[a:b], r[a:b], float(samples), self.step0,
-                          self.level[a:b], lo, hi)  # fmt: skip
+                          self.level[a:b], log_r[a:b], lo, hi)  # fmt: skip
             parts.append((lo, hi))
 
         in_chunks(bounds, n, least=65536, per_thread=1)
@@ -279,7 +287,7 @@ class BinnedSums:
 
         def bin_range(a, b):
             mass_at, log_r_at = np.zeros(total), np.zeros(total)
-            deposit(self.cx[a:b], self.cy[a:b], r[a:b], self.mass[a:b], self.level[a:b],
+            deposit(self.cx[a:b], self.cy[a:b], log_r[a:b], self.mass[a:b], self.level[a:b],
                     self.step0, self.lattices, mass_at, log_r_at)  # fmt: skip
             binned.append((mass_at, log_r_at))
 
@@ -333,6 +341,24 @@ class BinnedSums:
             out[m] = (a[0], a[1], b[0] - a[0] + 1, b[1] - a[1] + 1, offset)
             offset += int(out[m, 2] * out[m, 3])
         return out, offset
+
+    def at(self, qx, qy):
+        """The binned sums at any points (qx, qy) of the box (frame coordinates): every
+        lattice read there, and the narrowest kernels' exact sums where they were kept
+        apart."""
+        qx, qy = np.ascontiguousarray(qx, float), np.ascontiguousarray(qy, float)
+        sums = np.empty(len(qx))
+        in_chunks(lambda a, b: read_sums(qx, qy, self.values, self.step0, self.lattices, sums,
+                                         a, b), len(qx))  # fmt: skip
+        if self.exact is not None:
+            rows, box, node, extent = self.exact
+            q = np.column_stack([qx, qy])
+            more, ignored = np.empty(len(qx)), np.empty(len(qx))
+            in_chunks(lambda a, b: kernelsum.kernel_sums(rows, box, node, extent, q, False,
+                                                         self.period, self.periodic, more,
+                                                         ignored, a, b), len(qx))  # fmt: skip
+            sums += more
+        return sums
 
     def without(self, idx, copies):
         """(sums, own) at centres ``idx``: the binned sums there, and the share in them of the
