@@ -258,6 +258,8 @@ def test_point_location_by_walking_equals_the_centroid_candidates(case):
     np.testing.assert_allclose(v, v_ref, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(bary.sum(axis=1), 1.0)
     assert (bary >= -1e-9).all()
+    # the walk that interpolates as it goes (one value per node, issue 53) gives the same
+    np.testing.assert_allclose(pieces.interpolate(q), v_ref, rtol=1e-12, atol=1e-15)
 
 
 def test_highest_density_levels_hold_their_mass():

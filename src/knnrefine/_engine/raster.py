@@ -74,6 +74,36 @@ def rasterise(nodes, triangles, values, x0, y0, dx, dy, px, py, out, ids):
 WALK_STEPS = 4096  # a located walk's limit: far beyond a well-shaped mesh's, a lost walk's guard
 
 
+@kernel(inline="always")
+def _walk(nodes, triangles, neighbours, start, x0, y0, dx, dy, x, y, bary):
+    """The triangle holding (x, y), reached by walking from the one ``start`` names at its
+    cell (``walk_to``), with its barycentric coordinates in ``bary`` (3,); -1: not found."""
+    ny, nx = start.shape
+    i = min(max(int((x - x0) / dx), 0), nx - 1)
+    j = min(max(int((y - y0) / dy), 0), ny - 1)
+    t = int(start[j, i])
+    for _ in range(WALK_STEPS):
+        if t < 0:
+            return -1
+        ax, ay, bx, by, cx, cy, det = _corners(
+            nodes, triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        )
+        if det == 0.0:
+            return -1
+        la = ((bx - x) * (cy - y) - (by - y) * (cx - x)) / det
+        lb = ((cx - x) * (ay - y) - (cy - y) * (ax - x)) / det
+        lc = 1.0 - la - lb
+        worst = min(la, lb, lc)
+        if worst >= -1e-12:
+            bary[0] = la
+            bary[1] = lb
+            bary[2] = lc
+            return t
+        e = 0 if la == worst else (1 if lb == worst else 2)
+        t = neighbours[t, e]
+    return -1
+
+
 @kernel(entry=True, nogil=True)
 def walk_to(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx, qy, tri, bary, lo, hi):
     """Locate queries lo..hi-1 by walking over triangles: from the triangle ``start`` (an
@@ -82,33 +112,30 @@ def walk_to(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx, qy, tri, ba
     tri[q] and bary[q] (3,), or tri[q] = -1 where the cell names no triangle, the walk
     leaves the triangles (a side with no neighbour) or runs past WALK_STEPS (the caller
     locates those otherwise). The triangles must be consistently oriented, either way."""
-    ny, nx = start.shape
+    here = np.empty(3)
     for q in range(lo, hi):
-        x, y = qx[q], qy[q]
-        i = min(max(int((x - x0) / dx), 0), nx - 1)
-        j = min(max(int((y - y0) / dy), 0), ny - 1)
-        t = int(start[j, i])
-        tri[q] = -1
-        for _ in range(WALK_STEPS):
-            if t < 0:
-                break
-            ax, ay, bx, by, cx, cy, det = _corners(
-                nodes, triangles[t, 0], triangles[t, 1], triangles[t, 2]
-            )
-            if det == 0.0:
-                break
-            la = ((bx - x) * (cy - y) - (by - y) * (cx - x)) / det
-            lb = ((cx - x) * (ay - y) - (cy - y) * (ax - x)) / det
-            lc = 1.0 - la - lb
-            worst = min(la, lb, lc)
-            if worst >= -1e-12:
-                tri[q] = t
-                bary[q, 0] = la
-                bary[q, 1] = lb
-                bary[q, 2] = lc
-                break
-            e = 0 if la == worst else (1 if lb == worst else 2)
-            t = neighbours[t, e]
+        t = _walk(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx[q], qy[q], here)
+        tri[q] = t
+        if t >= 0:
+            bary[q, 0] = here[0]
+            bary[q, 1] = here[1]
+            bary[q, 2] = here[2]
+    return 0
+
+
+@kernel(entry=True, nogil=True)
+def walk_values(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx, qy, values, out, lo,
+                hi):  # fmt: skip
+    """``walk_to`` that interpolates: out[q] the node ``values`` (one per node) linearly
+    interpolated over the triangle holding query q, NaN where the walk finds none."""
+    here = np.empty(3)
+    for q in range(lo, hi):
+        t = _walk(nodes, triangles, neighbours, start, x0, y0, dx, dy, qx[q], qy[q], here)
+        if t < 0:
+            out[q] = np.nan
+        else:
+            out[q] = (here[0] * values[triangles[t, 0]] + here[1] * values[triangles[t, 1]]
+                      + here[2] * values[triangles[t, 2]])  # fmt: skip
     return 0
 
 

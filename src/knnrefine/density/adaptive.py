@@ -84,36 +84,37 @@ class AdaptiveDensity:
         self.lo, self.hi = dist.lo, dist.hi
         self.periodic = tuple(bool(p) for p in mesh.periodic)
         frame = self._metric.frame(pts)
-        # the kernels' table, one row per point in input order until a query needs the
-        # kd-tree (``_exact_tree``): the smoothing search and grids through lattices do not
-        # the kernels are kept in one order, the kernels' order: the points' until a query
-        # needs the kd-tree (``_exact_tree``), the tree's then. Their centres (frame
+        # the kernels are kept in one order, the kernels' order: the points' along a Z curve
+        # (``spatial_order``: neighbours near in memory, for binning and locating) until a
+        # query needs the kd-tree (``_exact_tree``), the tree's then. Their centres (frame
         # coordinates) and weights are columns; the table of every kernel column that exact
         # sums read (``_rows``) is made when one asks for it: a smoothing search through
         # binned sums and a grid through lattices read the columns alone
         self._points = pts  # as given (the index counts copies by exact place)
-        self._frame = np.ascontiguousarray(frame)
-        self._weights = np.asarray(w, float).copy()
-        self._order = np.arange(len(pts))  # the point of each kernel
-        self._row_of = np.arange(len(pts))  # the kernel of each point
+        w = np.asarray(w, float)
+        order = spatial_order(frame, self.hi - self.lo)  # the point of each kernel
+        self._frame = np.take(frame, order, axis=0)
+        self._weights = w[order]
+        self._set_order(order)
         self._table = None
         self._tree = None  # (box, node) once built
         self._extent = None  # the tree's extents at this smoothing (``_exact_tree``)
         if shape == "local":  # the covariance at the nodes counts points in disks: the tree
             self._build_tree()
         order = self._order
+        at = np.take(pts, order, axis=0)  # the points in the kernels' order
         # the pilot: d_{P,k} at every point, and the local covariance for shape="local"
         if shape == "local":
             cov = self._node_covariance(dist)
-            pilot = dist.interpolate(pts, np.column_stack([dist.values, cov]))
+            pilot = dist.interpolate(at, np.column_stack([dist.values, cov]))
             d, cov = pilot[:, 0], pilot[:, 1:]
         elif dim == 2:
-            d, cov = dist.interpolate(pts, dist.values), None
+            d, cov = dist.interpolate(at, dist.values), None
         else:
-            d, cov = dist(pts), None
+            d, cov = dist(at), None
         lost = ~np.isfinite(d)
         if lost.any():  # on no piece by rounding: exact
-            d[lost] = dist.exact(pts[lost])
+            d[lost] = dist.exact(at[lost])
         # per unit bandwidth: Q = S^-1 / d^2 (S of determinant 1: the plane's local shape,
         # else the identity), extent d sqrt(lambda_max(S)), amp w / W / (MASS d^dim) (the
         # triweight's mass is MASS / sqrt(det Q))
@@ -123,17 +124,17 @@ class AdaptiveDensity:
         self._q = np.empty((n, 3 if dim == 2 else 1))
         self._r, self._amp, self._log_ratio = np.empty(n), np.empty(n), np.empty(n)
         with np.errstate(divide="ignore"):
-            kernelsum.isotropic_units(d[order], np.asarray(w, float)[order], self.total,
-                                      self._kernels.MASS, dim, self._q, self._r, self._amp,
-                                      self._log_ratio)  # fmt: skip
+            kernelsum.isotropic_units(d, self._weights, self.total, self._kernels.MASS, dim,
+                                      self._q, self._r, self._amp, self._log_ratio)  # fmt: skip
         if cov is not None:  # the plane's local shapes
             d2 = d * d
             unit = unit_shapes(cov, len(pts), max_ratio)  # (n, 3): s11, s12, s22
             q = np.column_stack([unit[:, 2], -unit[:, 1], unit[:, 0]]) / d2[:, None]
             tr = unit[:, 0] + unit[:, 2]
-            r = d * np.sqrt(0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - 1.0, 0.0)))
-            self._q, self._r = np.ascontiguousarray(q[order]), r[order]
-        self.pilot = d
+            self._q = np.ascontiguousarray(q)
+            self._r = d * np.sqrt(0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - 1.0, 0.0)))
+        self.pilot = np.empty(n)  # in the points' order
+        self.pilot[order] = d
         # kernels no wider than the box along any axis (wrapping and folding stay exact)
         self._cap = float(np.min(self.hi - self.lo))
         self.sensitivity = 0.5
@@ -203,6 +204,13 @@ class AdaptiveDensity:
         table[:, self._kernels.ROW] = self._order
         return table
 
+    def _set_order(self, order):
+        """The kernels' order: ``_order`` the point of each kernel, ``_row_of`` the kernel of
+        each point."""
+        self._order = order
+        self._row_of = np.empty(len(order), np.int64)
+        self._row_of[order] = np.arange(len(order))
+
     def _build_tree(self):
         """Order the kernels as their kd-tree (``build_centres``) and keep the tree; every
         per-kernel array follows the new order."""
@@ -216,8 +224,7 @@ class AdaptiveDensity:
             if name in self.__dict__:
                 setattr(self, name, np.ascontiguousarray(getattr(self, name)[order]))
         rows[:, k.ROW] = self._order
-        self._row_of = np.empty(len(order), np.int64)
-        self._row_of[self._order] = np.arange(len(order))
+        self._set_order(self._order)
         self._tree = (box, node)
         self._extent = None
         for cached in ("_unit_radii", "_binned_columns", "_binned_last"):
@@ -527,6 +534,25 @@ def kernel_table(frame, weights, kernels):
     rows[:, kernels.W] = weights
     rows[:, kernels.ROW] = np.arange(n)
     return rows
+
+
+def spatial_order(frame, period):
+    """An order of points (n, d) in the box [0, period] along the Z (Morton) curve of a
+    grid of 2^(16 // d) cells per axis: points near each other come near each other. The
+    keys fit 16 bits, so that numpy's stable sort is a radix sort (O(n))."""
+    dim = frame.shape[1]
+    bits = 16 // dim
+    spread = np.zeros(1 << bits, np.uint16)  # a cell index's bits, dim - 1 zeros apart
+    cells = np.arange(1 << bits)
+    for b in range(bits):
+        spread |= (((cells >> b) & 1) << (dim * b)).astype(np.uint16)
+    key = np.zeros(len(frame), np.uint16)
+    top = (1 << bits) - 1
+    for a in range(dim):
+        scale = (1 << bits) / float(period[a])
+        cell = np.clip((frame[:, a] * scale).astype(np.intp), 0, top)
+        key |= spread[cell] << np.uint16(a)
+    return np.argsort(key, kind="stable")
 
 
 def z_order(frame, period, bits=10):

@@ -235,6 +235,8 @@ class KnnDistance:
         """
         values = np.asarray(values, float)
         inside = self._inside(x)
+        if inside.all():  # (the usual case: no masked copies of the points)
+            return self.pieces.interpolate(self._to_frame(x), values)
         out = np.full((len(x), *values.shape[1:]), np.nan)
         out[inside] = self.pieces.interpolate(self._to_frame(x[inside]), values)
         return out

@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..._engine.index import PointIndex
-from ..._engine.raster import clip_triangles, fans, rasterise, walk_to
+from ..._engine.raster import clip_triangles, fans, rasterise, walk_to, walk_values
 from ..._engine.threads import in_chunks
 from ...mesh import (
     TRIANGLE_RULE_POINTS,
@@ -124,6 +124,8 @@ class Pieces:
         """Node values (nodes, ...; default d_{P,k}'s) interpolated at the points x (q, 2), in
         the box: shape (q, ...), NaN where no piece holds a point (none expected)."""
         values = np.asarray(self.values if values is None else values, float)
+        if values.ndim == 1 and len(x) and len(self._pieces()):  # one walk, no (q, 3) arrays
+            return self._walk_values(x, values)
         tri, bary = self._locate(x)
         ok = tri >= 0
         pieces = self._pieces()
@@ -176,6 +178,29 @@ class Pieces:
             corners, dv = fans(*clip_triangles(c[touch], d[touch], *rect[0], *rect[1]))
             total += quadrature(corners, dv, func).sum()
         return float(total)
+
+    def _walk_values(self, x, values):
+        """``interpolate`` of one value per node: each point's piece found by ``_locate``'s
+        walk and its value interpolated there in one pass; the points the walk misses by
+        ``_locate`` itself."""
+        located = self._pieces()
+        side = int(np.clip(2 * np.sqrt(len(x)), 64, 1024))
+        start, dx, dy = self._id_raster(side)
+        if not hasattr(self, "_neighbours"):
+            self._neighbours = triangle_neighbours(located)
+        qx, qy = np.ascontiguousarray(x[:, 0]), np.ascontiguousarray(x[:, 1])
+        out = np.empty(len(x))
+        in_chunks(
+            lambda a, b: walk_values(self.nodes, located, self._neighbours, start, *self.lo, dx,
+                                     dy, qx, qy, values, out, a, b),
+            len(x),
+        )  # fmt: skip
+        lost = np.flatnonzero(np.isnan(out))
+        if len(lost):
+            tri, bary = self._locate(x[lost])
+            ok = tri >= 0
+            out[lost[ok]] = (bary[ok] * values[located[tri[ok]]]).sum(axis=1)
+        return out
 
     def _locate(self, x):
         """The linear piece holding each point, and its barycentric coordinates (-1: none).
