@@ -45,43 +45,40 @@ LEAST_VALUES = 1 << 22  # or this many
 
 
 @kernel(entry=True, nogil=True)
-def assign_levels(cx, cy, r, samples, step0, level, log_r, lo, hi):
-    """level[i]: the lattice of kernel i (-1: radius 0, no kernel), log_r[i] its log(r)
-    (``deposit`` reads it: one logarithm per kernel); lo, hi (LEVELS, 2): the lowest and
-    highest lattice indices of the cells holding each level's centres."""
+def assign_levels(cx, cy, r, samples, step0, level, steps, box):
+    """level[i]: the lattice of kernel i (-1: radius 0, no kernel), steps[i] the log of its
+    radius in that lattice's steps (``deposit`` reads it); box (LEVELS, 4): the least and
+    greatest x and y of each level's centres (the caller fills it with +-inf first)."""
     inv_log2 = 1.0 / np.log(2.0)
     log_first = np.log(samples * step0)
+    log_step0 = np.log(step0)
+    log2 = np.log(2.0)
     for i in range(r.shape[0]):
         if not r[i] > 0.0:
             level[i] = -1
             continue
         lr = np.log(r[i])
-        log_r[i] = lr
         m = int(np.floor((lr - log_first) * inv_log2))
         m = min(max(m, 0), LEVELS - 1)
         level[i] = m
-        s = step0 * 2.0**m
-        ix = int(np.floor(cx[i] / s))
-        iy = int(np.floor(cy[i] / s))
-        lo[m, 0] = min(lo[m, 0], ix)
-        lo[m, 1] = min(lo[m, 1], iy)
-        hi[m, 0] = max(hi[m, 0], ix + 1)
-        hi[m, 1] = max(hi[m, 1], iy + 1)
+        steps[i] = lr - log_step0 - m * log2
+        box[m, 0] = min(box[m, 0], cx[i])
+        box[m, 1] = min(box[m, 1], cy[i])
+        box[m, 2] = max(box[m, 2], cx[i])
+        box[m, 3] = max(box[m, 3], cy[i])
     return 0
 
 
 @kernel(entry=True, nogil=True)
-def deposit(cx, cy, log_r, mass, level, step0, lattices, mass_at, log_r_at):
+def deposit(cx, cy, steps, mass, level, step0, lattices, mass_at, log_r_at):
     """Bin each kernel's mass at the four lattice points around its centre (linear
-    weights), and mass * log(r / s) with it (for the mean radius, in steps)."""
-    log_step0 = np.log(step0)
-    log2 = np.log(2.0)
-    for i in range(log_r.shape[0]):
+    weights), and mass * log(r / s) with it (``steps``: for the mean radius, in steps)."""
+    for i in range(steps.shape[0]):
         m = level[i]
         if m < 0:
             continue
         s = step0 * 2.0**m
-        lq = log_r[i] - log_step0 - m * log2
+        lq = steps[i]
         fx = cx[i] / s - lattices[m, 0]
         fy = cy[i] / s - lattices[m, 1]
         ix = int(np.floor(fx))
@@ -240,35 +237,60 @@ def own_terms(qx, qy, mass, level, step0, lattices, radius_at, period, periodic,
     return 0
 
 
+class BinnedLevels:
+    """Each kernel's lattice: its level, its radius in that level's steps and each level's
+    span of centres, for kernels at (cx, cy) (frame coordinates) of radii r. Radii c r, for
+    any c > 0, fall on the same levels with the same radii in steps (the steps scale with
+    c): a search over c at one sensitivity finds its kernels' levels once
+    (``BinnedSums(..., levels=, scale=c)``)."""
+
+    def __init__(self, cx, cy, r, samples=SAMPLES):
+        self.r = np.ascontiguousarray(r, float)
+        live = self.r > 0
+        self.samples = samples
+        self.step0 = float(self.r[live].min()) / samples if live.any() else 1.0
+        n = len(self.r)
+        self.level = np.empty(n, np.int8)  # LEVELS < 128
+        self.steps = np.empty(n)
+        parts = []  # per range of centres: each level's span of centres
+
+        def spans(a, b):
+            box = np.empty((LEVELS, 4))
+            box[:, :2], box[:, 2:] = np.inf, -np.inf
+            assign_levels(cx[a:b], cy[a:b], self.r[a:b], float(samples), self.step0,
+                          self.level[a:b], self.steps[a:b], box)  # fmt: skip
+            parts.append(box)
+
+        in_chunks(spans, n, least=65536, per_thread=1)
+        self.box = np.concatenate([np.min([p[:, :2] for p in parts], axis=0),
+                                   np.max([p[:, 2:] for p in parts], axis=0)], axis=1)  # fmt: skip
+
+
 class BinnedSums:
     """The binned lattices of kernels at (cx, cy) (frame coordinates in the box [0, period])
     with radii r and masses ``mass``, built once, read as leave-one-out sums at centres
-    (``without``)."""
+    (``without``) or as sums anywhere (``at``). ``levels``: the kernels' ``BinnedLevels``
+    at radii r / scale, found once for several scales (r is then not read: None)."""
 
-    def __init__(self, cx, cy, r, mass, period, periodic, samples=SAMPLES):
+    def __init__(self, cx, cy, r, mass, period, periodic, samples=SAMPLES, levels=None,
+                 scale=1.0):  # fmt: skip
         self.cx = np.ascontiguousarray(cx, float)
         self.cy = np.ascontiguousarray(cy, float)
         self.mass = np.ascontiguousarray(mass, float)
         self.period = np.asarray(period, float)
         self.periodic = np.asarray(periodic, bool)
-        r = np.ascontiguousarray(r, float)
-        live = r > 0
-        self.step0 = float(r[live].min()) / samples if live.any() else 1.0
-        self.level = np.empty(len(r), np.int8)  # LEVELS < 128
-        log_r = np.empty(len(r))
-        n = len(r)
-        parts = []  # per range of centres: their lattices' bounds
-
-        def bounds(a, b):
-            lo = np.full((LEVELS, 2), 1 << 60, np.int64)
-            hi = np.full((LEVELS, 2), -(1 << 60), np.int64)
-            assign_levels(self.cx[a:b], self.cy[a:b], r[a:b], float(samples), self.step0,
-                          self.level[a:b], log_r[a:b], lo, hi)  # fmt: skip
-            parts.append((lo, hi))
-
-        in_chunks(bounds, n, least=65536, per_thread=1)
-        lo = np.min([p[0] for p in parts], axis=0)
-        hi = np.max([p[1] for p in parts], axis=0)
+        if levels is None:
+            levels, scale = BinnedLevels(self.cx, self.cy, r, samples), 1.0
+        samples = levels.samples
+        self.step0 = scale * levels.step0
+        self.level = levels.level
+        n = len(self.level)
+        lo = np.full((LEVELS, 2), 1 << 60, np.int64)
+        hi = np.full((LEVELS, 2), -(1 << 60), np.int64)
+        for m in np.flatnonzero(levels.box[:, 0] <= levels.box[:, 2]):
+            s = self.step0 * 2.0**m
+            lo[m] = np.floor(levels.box[m, :2] / s)
+            hi[m] = np.floor(levels.box[m, 2:] / s) + 1
         # the finest levels whose lattices would pass the limit are summed exactly (kernels
         # far narrower than most, spread wide: near-copies of points, say)
         limit = max(VALUES_PER_CENTRE * n, LEAST_VALUES)
@@ -279,15 +301,16 @@ class BinnedSums:
         if over.any():
             cut = int(np.flatnonzero(over)[-1]) + 1  # levels below it: exact
             narrow = (self.level >= 0) & (self.level < cut)
-            self.level[narrow] = -1
+            self.level = np.where(narrow, -1, self.level).astype(np.int8)
             lo[:cut], hi[:cut] = 1 << 60, -(1 << 60)
-            self.exact = self._exact_tree(np.flatnonzero(narrow), r)
+            self.exact = self._exact_tree(np.flatnonzero(narrow), scale * levels.r)
         self.lattices, total = self._lattices(lo, hi, samples)
+        steps = levels.steps
         binned = []  # per range of centres: (mass, mass * log r) at the lattice points
 
         def bin_range(a, b):
             mass_at, log_r_at = np.zeros(total), np.zeros(total)
-            deposit(self.cx[a:b], self.cy[a:b], log_r[a:b], self.mass[a:b], self.level[a:b],
+            deposit(self.cx[a:b], self.cy[a:b], steps[a:b], self.mass[a:b], self.level[a:b],
                     self.step0, self.lattices, mass_at, log_r_at)  # fmt: skip
             binned.append((mass_at, log_r_at))
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from .._domains.sphere.density import equal_area_radius
 from .._engine import kernelsum, kernelsum3, lattice
-from .._engine.binned import BinnedSums
+from .._engine.binned import BinnedLevels, BinnedSums
 from .._engine.kernelsum import Q11, Q12, Q22, X, Y, ball_moments, node_extents, one_leaf
 from .._engine.lattice import plan_levels, read_grid
 from .._engine.threads import in_chunks
@@ -190,12 +190,16 @@ class AdaptiveDensity:
         ``scale_kernels`` caps them."""
         if self._table is not None and not self._stale:
             return np.ascontiguousarray(self._table[:, self._kernels.R])
-        alpha = self.sensitivity
+        return np.minimum(self.bandwidth * self._unit_radii_at(self.sensitivity), self._cap)
+
+    def _unit_radii_at(self, alpha):
+        """The kernels' extents at bandwidth 1 and sensitivity alpha, uncapped (the last
+        sensitivity's kept: a search's climb keeps to a few)."""
         cache = self.__dict__.setdefault("_unit_radii", {})
         if alpha not in cache:
-            cache.clear()  # one sensitivity at a time (a search's climb keeps to a few)
+            cache.clear()
             cache[alpha] = self._r * np.exp((self.dim * alpha - 1.0) * self._log_ratio)
-        return np.minimum(self.bandwidth * cache[alpha], self._cap)
+        return cache[alpha]
 
     def _kernel_table(self):
         """The table of the kernels' columns (``kernel_table``) in the kernels' order: made
@@ -227,7 +231,7 @@ class AdaptiveDensity:
         self._set_order(self._order)
         self._tree = (box, node)
         self._extent = None
-        for cached in ("_unit_radii", "_binned_columns", "_binned_last"):
+        for cached in ("_unit_radii", "_binned_columns", "_binned_last", "_binned_levels"):
             self.__dict__.pop(cached, None)
 
     def _exact_tree(self, queries):
@@ -418,10 +422,19 @@ class AdaptiveDensity:
                 self._binned_columns = (cx, cy, self._weights / self.total)
             cx, cy, mass = self._binned_columns
             period = np.asarray(self.hi - self.lo, float)
+            periodic = np.array(self.periodic, bool)
             if len(kept) >= BINNED_KEPT:
                 del kept[next(iter(kept))]  # the oldest
-            kept[key] = BinnedSums(cx, cy, self._radii(), mass, period,
-                                   np.array(self.periodic, bool))  # fmt: skip
+            unit = self._unit_radii_at(self.sensitivity)
+            if self.bandwidth * float(unit.max(initial=0.0)) <= self._cap:  # none capped
+                levels = self.__dict__.get("_binned_levels")
+                if levels is None or levels[0] != self.sensitivity:  # once per sensitivity
+                    levels = (self.sensitivity, BinnedLevels(cx, cy, unit))
+                    self._binned_levels = levels
+                kept[key] = BinnedSums(cx, cy, None, mass, period, periodic, levels=levels[1],
+                                       scale=self.bandwidth)  # fmt: skip
+            else:
+                kept[key] = BinnedSums(cx, cy, self._radii(), mass, period, periodic)
         return kept[key]
 
     def _copies_at(self, idx):
