@@ -83,7 +83,6 @@ class AdaptiveDensity:
         self._metric = BoxMetric(mesh.box, mesh.periodic)
         self.lo, self.hi = dist.lo, dist.hi
         self.periodic = tuple(bool(p) for p in mesh.periodic)
-        frame = self._metric.frame(pts)
         # the kernels are kept in one order, the kernels' order: the points' along a Z curve
         # (``spatial_order``: neighbours near in memory, for binning and locating) until a
         # query needs the kd-tree (``_exact_tree``), the tree's then. Their centres (frame
@@ -91,18 +90,18 @@ class AdaptiveDensity:
         # sums read (``_rows``) is made when one asks for it: a smoothing search through
         # binned sums and a grid through lattices read the columns alone
         self._points = pts  # as given (the index counts copies by exact place)
-        w = np.asarray(w, float)
-        order = spatial_order(frame, self.hi - self.lo)  # the point of each kernel
-        self._frame = np.take(frame, order, axis=0)
-        self._weights = w[order]
+        order = spatial_order(pts, self.lo, self.hi)  # the point of each kernel
+        at = np.take(pts, order, axis=0)  # the points in the kernels' order
+        self._frame = np.ascontiguousarray(self._metric.frame(at))
+        self._weights = np.ones(len(pts)) if weights is None else np.asarray(w, float)[order]
         self._set_order(order)
         self._table = None
         self._tree = None  # (box, node) once built
         self._extent = None  # the tree's extents at this smoothing (``_exact_tree``)
         if shape == "local":  # the covariance at the nodes counts points in disks: the tree
             self._build_tree()
+            at = np.take(pts, self._order, axis=0)
         order = self._order
-        at = np.take(pts, order, axis=0)  # the points in the kernels' order
         # the pilot: d_{P,k} at every point, and the local covariance for shape="local"
         if shape == "local":
             cov = self._node_covariance(dist)
@@ -549,21 +548,22 @@ def kernel_table(frame, weights, kernels):
     return rows
 
 
-def spatial_order(frame, period):
-    """An order of points (n, d) in the box [0, period] along the Z (Morton) curve of a
-    grid of 2^(16 // d) cells per axis: points near each other come near each other. The
-    keys fit 16 bits, so that numpy's stable sort is a radix sort (O(n))."""
-    dim = frame.shape[1]
+def spatial_order(points, lo, hi):
+    """An order of points (n, d) of the box [lo, hi] (periodic coordinates wrapped or not:
+    those outside fall in the side cells) along the Z (Morton) curve of a grid of
+    2^(16 // d) cells per axis: points near each other come near each other. The keys fit
+    16 bits, so that numpy's stable sort is a radix sort (O(n))."""
+    dim = points.shape[1]
     bits = 16 // dim
     spread = np.zeros(1 << bits, np.uint16)  # a cell index's bits, dim - 1 zeros apart
     cells = np.arange(1 << bits)
     for b in range(bits):
         spread |= (((cells >> b) & 1) << (dim * b)).astype(np.uint16)
-    key = np.zeros(len(frame), np.uint16)
+    key = np.zeros(len(points), np.uint16)
     top = (1 << bits) - 1
     for a in range(dim):
-        scale = (1 << bits) / float(period[a])
-        cell = np.clip((frame[:, a] * scale).astype(np.intp), 0, top)
+        scale = (1 << bits) / float(hi[a] - lo[a])
+        cell = np.clip(((points[:, a] - lo[a]) * scale).astype(np.intp), 0, top)
         key |= spread[cell] << np.uint16(a)
     return np.argsort(key, kind="stable")
 
