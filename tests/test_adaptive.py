@@ -519,22 +519,53 @@ def test_local_shape_wins_on_a_thin_ridge():
 
 
 def test_adaptive_k_by_cross_validation():
-    """k="cv" with the adaptive estimate: held-out folds, each fold's bandwidth by its own
-    leave-one-out curve, recomputed by hand. (Leave-one-out alone cannot choose the pilot's
-    k: the pilot is computed with the left-out point, which favours small k.)"""
+    """k="cv" with the adaptive estimate: held-out folds, each fitted at the smoothing the
+    leave-one-out search chose for that k over all the points, recomputed by hand; the
+    estimate kept is the chosen k's fit over all the points, search record included (issue
+    53: no k fitted twice). (Leave-one-out alone cannot choose the pilot's k: the pilot is
+    computed with the left-out point, which favours small k.)"""
     from knnrefine.density.estimator import cv_folds
 
     X = mixture(1500, seed=13)
     est = KnnDensityEstimator(k="cv", k_grid=[5, 20, 80], cv=3, random_state=2).fit(X)
     by_hand = []
-    for k in est.cv_ks_:
+    for k, (alpha, c) in zip(est.cv_ks_, est.cv_smoothings_, strict=True):
+        whole = KnnDensityEstimator(k=int(k), box=est.box_, random_state=2).fit(X)
+        assert (whole.sensitivity_, whole.bandwidth_) == (alpha, c)
         total = 0.0
         for test in cv_folds(len(X), 3, 2):
             train = np.setdiff1d(np.arange(len(X)), test)
-            total += KnnDensityEstimator(k=int(k), box=est.box_).fit(X[train]).score(X[test])
+            fold = KnnDensityEstimator(k=int(k), box=est.box_, sensitivity=alpha, bandwidth=c)
+            total += fold.fit(X[train]).score(X[test])
         by_hand.append(total / len(X))
     np.testing.assert_allclose(est.cv_scores_, by_hand, rtol=1e-12)
-    assert est.k_ == est.cv_ks_[int(np.argmax(by_hand))]
+    best = int(np.argmax(by_hand))
+    assert est.k_ == est.cv_ks_[best]
+    whole = KnnDensityEstimator(k=int(est.k_), box=est.box_, random_state=2).fit(X)
+    np.testing.assert_array_equal(est.loo_scores_, whole.loo_scores_)
+    np.testing.assert_allclose(est.density_(X[:50]), whole.density_(X[:50]), rtol=1e-12)
+
+
+def test_adaptive_k_by_cross_validation_walks_the_doubling_grid():
+    """Without k_grid the adaptive k="cv" scores the default pilot's k times 1/2 to 8 by
+    walking from the default towards the better neighbour while the score improves (issue
+    53): the ks it scored are consecutive on that grid, the chosen one is their best and
+    beats each scored neighbour, and the walk stopped at a worse one or the grid's end. The
+    held-out points are a subsample of loo_points (each fold's share) when there are more."""
+    from knnrefine.density import default_pilot_k
+
+    X = mixture(3000, seed=15)
+    est = KnnDensityEstimator(k="cv", cv=3, random_state=4, loo_points=1200).fit(X)
+    grid = np.unique(np.round(default_pilot_k(3000) * 2.0 ** np.arange(-1, 4)).astype(int))
+    grid = grid[grid <= 2000]
+    at = np.searchsorted(grid, est.cv_ks_)
+    assert np.array_equal(grid[at], est.cv_ks_) and np.all(np.diff(at) == 1)
+    assert default_pilot_k(3000) in est.cv_ks_
+    best = int(np.argmax(est.cv_scores_))
+    assert est.k_ == est.cv_ks_[best]
+    # the walk stops at a worse score or at the grid's end, on both sides of the best
+    assert best < len(at) - 1 or at[-1] == len(grid) - 1
+    assert best > 0 or at[0] == 0
 
 
 def test_default_pilot_k_is_two_root_n():

@@ -54,10 +54,14 @@ class KnnDensityEstimator:
     k : int or "cv", optional
         Which neighbour (the smoothing of the kNN estimate, the pilot's of the adaptive one:
         larger is smoother). Default ``default_pilot_k(n)`` = 2 sqrt(n) (adaptive),
-        ``default_k(n)`` = sqrt(n) / 2 (kNN). ``"cv"``: the k of ``k_grid`` with the best
-        held-out log-likelihood in ``cv``-fold cross-validation (folds shuffled by
-        ``random_state``, every fold in the same box; adaptive: each fold with its own
-        bandwidth by leave-one-out).
+        ``default_k(n)`` = sqrt(n) / 2 (kNN). ``"cv"``: the k with the best held-out
+        log-likelihood in ``cv``-fold cross-validation (folds shuffled by ``random_state``,
+        every fold in the same box, at most ``loo_points`` held-out points scored in all).
+        Adaptive: each k's smoothing is chosen once, by the leave-one-out search over all
+        the points, and its folds are fitted at it; without ``k_grid`` the candidates are
+        the default k times 1/2, 1, 2, 4 and 8, walked from the default towards the better
+        neighbour while the score improves; the chosen k's estimate is the one made for its
+        search (about 10-15 default fits in all). kNN: every k of ``k_grid``.
     method : None, "adaptive" or "knn"
         The estimate (see above). None (default): the adaptive one, in the plane and in
         space (before issue 30 the kNN one in space). The adaptive one (default or
@@ -102,10 +106,11 @@ class KnnDensityEstimator:
     subdivide : bool
         Evaluate exactly at edge midpoints too (``KnnDistance``).
     cv, k_grid, random_state, loo_points
-        For ``k="cv"``: the number of folds, the candidate values of k (default: 10 values
-        spaced geometrically from 4 to a twentieth of a fold's training points), the seed of
-        the fold assignment and of the leave-one-out subsample (an int or None); the size of
-        that subsample.
+        For ``k="cv"``: the number of folds, the candidate values of k (default: the
+        adaptive estimate's walk above; the kNN estimate's 10 values spaced geometrically
+        from 4 to a twentieth of a fold's training points), the seed of the fold assignment
+        and of the subsamples (an int or None); the size of the leave-one-out subsample of
+        the smoothing search and of the held-out points scored.
     criterion : "likelihood" or "least-squares"
         What the searches ("cv" above) optimise: held-out log-likelihood (default; its
         choice wins held-out likelihood and Hellinger distance), or least-squares
@@ -137,8 +142,9 @@ class KnnDensityEstimator:
     either is ``"cv"``, ``loo_scores_`` (a row (alpha, c, score) for every pair the search
     scored: the leave-one-out log-likelihood per point, or the least-squares score, by
     ``criterion``) and ``bandwidths_``, ``bandwidth_scores_`` (the curve over c at the chosen
-    alpha), with ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (each candidate's score: the mean
-    held-out log-likelihood per point, or the least-squares score: the curve).
+    alpha), with ``k="cv"`` ``cv_ks_`` and ``cv_scores_`` (each candidate scored: the mean
+    held-out log-likelihood per point, or the least-squares score: the curve) and, adaptive,
+    ``cv_smoothings_`` (each candidate's (sensitivity, bandwidth)).
     """
 
     BANDWIDTHS = BANDWIDTHS
@@ -311,15 +317,16 @@ class KnnDensityEstimator:
         pts = pts / scale
         box = None if self.sphere else self._box(pts, scale)
         stale_attrs = (
-            "cv_ks_", "cv_scores_", "bandwidths_", "bandwidth_scores_", "bandwidth_",
-            "sensitivity_", "loo_scores_",
+            "cv_ks_", "cv_scores_", "cv_smoothings_", "bandwidths_", "bandwidth_scores_",
+            "bandwidth_", "sensitivity_", "loo_scores_",
         )  # fmt: skip
         for stale in stale_attrs:
             self.__dict__.pop(stale, None)  # from an earlier fit
+        fitted = None  # the estimate at the chosen k, when k="cv" made it
         if isinstance(self.k, str):
             if self.k != "cv":
                 raise InputError(f'k must be an integer, None or "cv", got {self.k!r}')
-            self.cv_ks_, self.cv_scores_ = self._cross_validate(pts, weights, box)
+            self.cv_ks_, self.cv_scores_, fitted = self._cross_validate(pts, weights, box)
             pick = np.argmax if self.criterion == "likelihood" else np.argmin
             k = int(self.cv_ks_[int(pick(self.cv_scores_))])
         else:
@@ -331,7 +338,11 @@ class KnnDensityEstimator:
             )
             if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= n:
                 raise InputError(f"k must be an integer in [1, n = {n:g}], got {k!r}")
-        self.density_, self.mesh_ = self._estimate(pts, weights, box, int(k))
+        if fitted is None:
+            self.density_, self.mesh_ = self._estimate(pts, weights, box, int(k))
+        else:  # the chosen k's estimate and its search's record
+            (self.density_, self.mesh_), searched = fitted
+            self.__dict__.update(searched)
         if self.method_ == "adaptive":
             self.bandwidth_ = self.density_.bandwidth
             self.sensitivity_ = self.density_.sensitivity
@@ -446,10 +457,19 @@ class KnnDensityEstimator:
             self.bandwidths_, self.bandwidth_scores_ = at[:, 1], at[:, 2]
         return density, mesh
 
-    def _k_candidates(self, n_train):
-        """The candidate ks: ``k_grid`` or 10 geometric steps from 4 to n_train / 20."""
+    def _k_candidates(self, n_train, n):
+        """The candidate ks: ``k_grid``; else, for the kNN estimate, 10 geometric steps from
+        4 to n_train / 20, and for the adaptive one the default pilot's k (of all n points)
+        times 1/2, 1, 2, 4 and 8 (at most n_train): held-out likelihood was flat or rising
+        above the default in the project's runs (docs/uses.md), while a pilot of a few
+        neighbours is noise that the bandwidth has to undo, and its mesh the largest to
+        make."""
         if self.k_grid is None:
-            return np.unique(np.round(np.geomspace(4, max(8, n_train / 20), 10)).astype(int))
+            if self.method_ == "knn":
+                top = max(8, n_train / 20)
+                return np.unique(np.round(np.geomspace(4, top, 10)).astype(int))
+            ks = np.round(default_pilot_k(n) * 2.0 ** np.arange(-1, 4)).astype(int)
+            return np.unique(np.clip(ks, 1, max(1, int(n_train))))
         ks = np.unique(np.asarray(self.k_grid))
         if ks.size == 0 or not np.issubdtype(ks.dtype, np.integer) or ks[0] < 1:
             raise InputError(f"k_grid must hold integers >= 1, got {self.k_grid!r}")
@@ -481,33 +501,81 @@ class KnnDensityEstimator:
         return tuple(float(v) for v in (*(lo - pad), *(hi + pad)))
 
     def _cross_validate(self, pts, weights, box):
-        """(candidate ks, the score of each): by ``criterion``, the mean held-out
-        log-likelihood per unit of weight (higher is better), or the mean over folds of the
-        least-squares score integral f^2 - 2 (weighted mean of f at the held-out points),
-        lower is better (``square_integral``). Every fold is refined in the same box, so
-        that held-out points are in it; folds split points, so a point is held out whole,
-        with its weight."""
+        """(candidate ks, the score of each, the chosen k's estimate or None): by
+        ``criterion``, the mean held-out log-likelihood per unit of weight (higher is
+        better), or the mean over folds of the least-squares score integral f^2 - 2
+        (weighted mean of f at the held-out points), lower is better (``square_integral``).
+        Every fold is refined in the same box, so that held-out points are in it; folds
+        split points, so a point is held out whole, with its weight.
+
+        The adaptive estimate's smoothing is chosen once per k, by the leave-one-out search
+        over all the points (``_estimate``), and its folds are fitted at that smoothing: a
+        fold costs a mesh and a pilot, not a search, and the estimate at the chosen k is the
+        one made for its search (returned with that search's record, so that no k is fitted
+        twice). Leave-one-out alone does not choose k: the pilot is computed with the
+        left-out point, which favours small k."""
         folds = cv_folds(len(pts), self.cv, self.random_state)
         weight = np.ones(len(pts)) if weights is None else weights
         n = float(weight.sum())
-        ks = self._k_candidates(n - max(float(weight[f].sum()) for f in folds))
+        ks = self._k_candidates(n - max(float(weight[f].sum()) for f in folds), n)
+        held = held_out_points(folds, len(pts), self.loo_points, self.random_state)
+        held_weight = sum(float(weight[h].sum()) for h in held)
         params = {**self.get_params(), "box": box, "whiten": False}
-        scores = np.zeros(len(ks))
-        for test in folds:
-            train = np.ones(len(pts), bool)
-            train[test] = False
-            fold_weight = None if weights is None else weight[train]
-            for i, k in enumerate(ks):
-                fold = type(self)(**{**params, "k": int(k)})
+        adaptive = self.method_ == "adaptive"
+        record = ("loo_scores_", "bandwidths_", "bandwidth_scores_")
+        sign = 1.0 if self.criterion == "likelihood" else -1.0  # higher is better
+        scores, smoothings, kept = {}, {}, {}
+
+        def evaluate(i):
+            """The score of ks[i] (each evaluated once); the best estimate so far kept."""
+            if i in scores:
+                return sign * scores[i]
+            fold_params = {**params, "k": int(ks[i])}
+            if adaptive:
+                for name in record:
+                    self.__dict__.pop(name, None)
+                estimate = self._estimate(pts, weights, box, int(ks[i]))
+                density = estimate[0]
+                smoothings[i] = (density.sensitivity, density.bandwidth)
+                fold_params.update(sensitivity=density.sensitivity, bandwidth=density.bandwidth)
+            total = 0.0
+            for test, scored in zip(folds, held, strict=True):
+                train = np.ones(len(pts), bool)
+                train[test] = False
+                fold_weight = None if weights is None else weight[train]
+                fold = type(self)(**fold_params)
                 fold.fit(pts[train], sample_weight=fold_weight)
+                w = weight[scored]
                 if self.criterion == "likelihood":
-                    scores[i] += (fold.score_samples(pts[test]) * weight[test]).sum() / n
+                    total += (fold.score_samples(pts[scored]) * w).sum() / held_weight
                 else:
-                    held = np.exp(fold.score_samples(pts[test]))
-                    mean = (held * weight[test]).sum() / weight[test].sum()
+                    f = np.exp(fold.score_samples(pts[scored]))
+                    mean = (f * w).sum() / w.sum()
                     square = square_integral(fold.density_, self.loo_points)
-                    scores[i] += (square - 2 * mean) / len(folds)
-        return ks, scores
+                    total += (square - 2 * mean) / len(folds)
+            scores[i] = total
+            if adaptive and ("score" not in kept or sign * total > kept["score"]):
+                kept.update(score=sign * total, estimate=estimate, record={
+                    name: self.__dict__[name] for name in record if name in self.__dict__})
+            return sign * total
+
+        if adaptive and self.k_grid is None:  # a walk along the doubling grid
+            i = int(np.argmin(np.abs(ks - default_pilot_k(n))))
+            step = 1 if i + 1 < len(ks) and evaluate(i + 1) > evaluate(i) else -1
+            if step == 1:
+                i += 1
+            while 0 <= i + step < len(ks) and evaluate(i + step) > evaluate(i):
+                i += step
+        else:
+            for i in range(len(ks)):
+                evaluate(i)
+        for name in record:
+            self.__dict__.pop(name, None)
+        done = sorted(scores)
+        if adaptive:
+            self.cv_smoothings_ = np.array([smoothings[i] for i in done])
+        fitted = (kept["estimate"], kept["record"]) if adaptive else None
+        return ks[done], np.array([scores[i] for i in done]), fitted
 
     # -- uncertainty -------------------------------------------------------------------------
     def standard_error(self, X: ArrayLike) -> np.ndarray:
@@ -773,6 +841,17 @@ def _same(a, b):
         return bool(a == b)
     except (TypeError, ValueError):
         return False
+
+
+def held_out_points(folds, n, most, random_state):
+    """The held-out points scored in each fold: all of them when the folds hold at most
+    ``most`` points together, else a share of each fold (``most`` in all, each fold's in
+    proportion to its size, chosen by ``random_state``): a score costs O(most), not O(n)."""
+    if n <= most:
+        return list(folds)
+    rng = random_generator(random_state)
+    return [np.sort(rng.choice(f, max(1, round(most * len(f) / n)), replace=False))
+            for f in folds]  # fmt: skip
 
 
 def cv_folds(n, cv, random_state):
