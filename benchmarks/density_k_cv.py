@@ -25,8 +25,10 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     print(f"# {platform.machine()}, n = {args.sizes}, {args.repeat} default fits a turn")
-    print("| truth | n | default fit | k=\"cv\" | ratio | k default / chosen | "
-          "held-out ll default / cv | ks scored |")
+    print(
+        '| truth | n | default fit | k="cv" | ratio | k default / chosen | '
+        "held-out ll default / cv | ks scored |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---|")
     for name in args.truths:
         truth = TRUTHS[name]()
@@ -46,9 +48,11 @@ def main():
                 cvs.append(time.perf_counter() - t0)
             fit, search = float(np.median(fits)), float(np.median(cvs))
             ll = [est.score(test) / len(test) for est in (default, cv)]
-            print(f"| {name} | {n:,} | {fit:.3f} s | {search:.2f} s | {search / fit:.1f} | "
-                  f"{default.k_} / {cv.k_} | {ll[0]:.4f} / {ll[1]:.4f} | "
-                  f"{', '.join(str(int(k)) for k in cv.cv_ks_)} |")
+            print(
+                f"| {name} | {n:,} | {fit:.3f} s | {search:.2f} s | {search / fit:.1f} | "
+                f"{default.k_} / {cv.k_} | {ll[0]:.4f} / {ll[1]:.4f} | "
+                f"{', '.join(str(int(k)) for k in cv.cv_ks_)} |"
+            )
 
 
 if __name__ == "__main__":

@@ -555,8 +555,11 @@ class KnnDensityEstimator:
                     total += (square - 2 * mean) / len(folds)
             scores[i] = total
             if adaptive and ("score" not in kept or sign * total > kept["score"]):
-                kept.update(score=sign * total, estimate=estimate, record={
-                    name: self.__dict__[name] for name in record if name in self.__dict__})
+                kept.update(
+                    score=sign * total,
+                    estimate=estimate,
+                    record={name: self.__dict__[name] for name in record if name in self.__dict__},
+                )
             return sign * total
 
         if adaptive and self.k_grid is None:  # a walk along the doubling grid
