@@ -877,3 +877,30 @@ def test_cluster_and_persistence_default_k(tmp_path, csv, capsys, command, out):
     persistence users need not pick one (-k was required)."""
     assert run(command, csv, "--columns", "lon,lat", "-o", tmp_path / out) == 0
     assert "k = 22" in capsys.readouterr().out  # n = 2,000: sqrt(n) / 2 = 22.4
+
+
+def test_density_grid_over_a_region(tmp_path):
+    """--extent (issue 53): the grid covers the region asked, its values the estimate's at
+    those centres (beyond the box NaN), and the file records the region; a bad region is a
+    usage error before any work."""
+    rng = np.random.default_rng(9)
+    pts = rng.normal(0.5, 0.1, (2000, 2))
+    src = tmp_path / "p.npy"
+    np.save(src, pts)
+    out = tmp_path / "d.npz"
+    args = ("density", src, "--box", 0, 0, 1, 1, "--bandwidth", 1, "--sensitivity", 0.5)
+    assert run(*args, "--grid", 20, 10, "--extent", 0.2, 0.5, 1.2, 0.9, "-o", out) == 0
+    g = np.load(out)
+    np.testing.assert_allclose(g["xs"], 0.2 + (np.arange(20) + 0.5) * 0.05)
+    np.testing.assert_allclose(g["ys"], 0.5 + (np.arange(10) + 0.5) * 0.04)
+    np.testing.assert_array_equal(g["extent"], [0.2, 0.5, 1.2, 0.9])
+    beyond = g["xs"] > 1.0
+    assert np.isnan(g["density"][:, beyond]).all() and (g["density"][:, ~beyond] > 0).all()
+    from knnrefine.density import AdaptiveDensity
+
+    mesh = knnrefine.refine(pts, int(g["k"]), box=(0, 0, 1, 1))
+    density = AdaptiveDensity(mesh, pts, bandwidth=1.0, sensitivity=0.5)
+    at = np.stack(np.meshgrid(g["xs"][~beyond], g["ys"]), axis=-1)
+    np.testing.assert_allclose(g["density"][:, ~beyond], density(at), rtol=2e-3)
+    assert run(*args, "--extent", 0, 1, 1, 0, "-o", tmp_path / "e.npz") == 2
+    assert not (tmp_path / "e.npz").exists()

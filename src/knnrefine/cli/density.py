@@ -86,6 +86,14 @@ def add_arguments(parser):
         "in the plane, 64 in space)",
     )
     parser.add_argument(
+        "--extent",
+        type=float,
+        nargs="+",
+        metavar="V",
+        help="the grid's region: X0 Y0 X1 Y1 (X0 Y0 Z0 X1 Y1 Z1 in space; LON0 LAT0 LON1 LAT1 "
+        "in degrees on the sphere); default the box (the whole sphere); NaN beyond the box",
+    )
+    parser.add_argument(
         "-o",
         "--output",
         action="append",
@@ -190,6 +198,14 @@ def run(args):
             f"{' '.join(map(str, grid))}"
         )
     _check_smoothing(args)
+    if args.extent is not None:
+        from ..density.distance import check_extent
+        from ..errors import InputError
+
+        try:
+            args.extent = check_extent(args.extent, dim, sphere)
+        except InputError as bad:
+            raise UsageError(f"--extent: {bad}") from None
     check_outputs(
         [(p, (".npz", ".csv"), "grids") for p in args.output]
         + ([(args.plot, PICTURES, "pictures")] if args.plot else []),
@@ -206,7 +222,7 @@ def run(args):
     mesh, _ = mesh_for(args, points, default_pilot_k if adaptive else default_k, weights)
     t0 = time.perf_counter()
     knn = KnnDensity(mesh, points, weights=weights)
-    *axes, d = knn.distance.grid(tuple(cells[::-1]))
+    *axes, d = knn.distance.grid(tuple(cells[::-1]), args.extent)
     if adaptive:
         alphas = SENSITIVITIES if args.sensitivity is None else (args.sensitivity,)
         cs = BANDWIDTHS if args.bandwidth is None else (args.bandwidth,)
@@ -225,7 +241,7 @@ def run(args):
                     random_state=args.random_state,
                 )[2]  # fmt: skip
             scored = len(table)
-        f = density.grid(tuple(cells[::-1]))[-1]
+        f = density.grid(tuple(cells[::-1]), args.extent)[-1]
     else:
         density = knn
         f = knn.at_distance(d)
@@ -250,6 +266,7 @@ def run(args):
                     k=mesh.k,
                     n=n,
                     box=np.array(mesh.extent),
+                    extent=np.array(mesh.extent if args.extent is None else args.extent),
                     periodic=np.array(mesh.periodic),
                     method=args.method,
                     **extra,

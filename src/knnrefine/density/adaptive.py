@@ -20,6 +20,7 @@ from .._validation import (
     weights_of_run,
 )
 from ..errors import InputError
+from .distance import check_extent, grid_axes, grid_points, grid_shape
 from .estimate import KnnDensity, unit_ball_volume
 
 
@@ -303,12 +304,21 @@ class AdaptiveDensity:
         var = np.maximum(s2 - s * s / self.n_eff, 0.0)
         return ((1.0 - self.eps) * np.sqrt(var)).reshape(shape)
 
-    def grid(self, shape=None):
-        """(xs, ys[, zs], values): the density at the centres of a grid over the box, cells
-        per axis slowest first ((ny, nx) or (nz, ny, nx); default 512 per axis in the plane,
-        64 in space, as ``KnnDensity.grid``)."""
-        *axes, knn = self.knn.grid(shape)
-        s = self._grid_sums(axes)
+    def grid(self, shape=None, extent=None):
+        """(xs, ys[, zs], values): the density at the centres of a grid over the box, or over
+        ``extent`` (x0, y0[, z0], x1, y1[, z1]) in the points' units, cells per axis slowest
+        first ((ny, nx) or (nz, ny, nx); default 512 per axis in the plane, 64 in space, as
+        ``KnnDensity.grid``). A region within the box is summed as the box is
+        (``_grid_sums``); one reaching beyond it centre by centre (periodic axes wrap; NaN
+        beyond non-periodic sides)."""
+        *axes, knn = self.knn.grid(shape, extent)
+        within = extent is None or all(
+            self.lo[a] <= axes[a][0] and axes[a][-1] <= self.hi[a] for a in range(self.dim)
+        )  # fmt: skip
+        if within:
+            s = self._grid_sums(axes)
+        else:
+            s = self._at(grid_points(axes))[0].reshape(knn.shape)
         return (*axes, (1.0 - self.eps) * s + self.eps * knn)
 
     def _grid_sums(self, axes):
@@ -978,13 +988,14 @@ class SphereAdaptiveDensity:
         with np.errstate(divide="ignore"):
             return np.log(f)
 
-    def grid(self, shape=None):
-        """(longitudes, latitudes, values (ny, nx)) at the centres of a lon/lat grid."""
-        ny, nx = (360, 720) if shape is None else shape
-        lon = -180.0 + (np.arange(nx) + 0.5) * 360.0 / nx
-        lat = -90.0 + (np.arange(ny) + 0.5) * 180.0 / ny
-        grid = np.stack(np.meshgrid(lon, lat), axis=-1).reshape(-1, 2)
-        return lon, lat, self(grid).reshape(ny, nx)
+    def grid(self, shape=None, extent=None):
+        """(longitudes, latitudes, values (ny, nx)) at the centres of a lon/lat grid over the
+        whole sphere, or over ``extent`` (lon0, lat0, lon1, lat1) in degrees (longitudes
+        wrap)."""
+        ny, nx = (360, 720) if shape is None else grid_shape(shape, 2)
+        region = (-180.0, -90.0, 180.0, 90.0) if extent is None else extent
+        lon, lat = grid_axes(check_extent(region, 2, sphere=True), (ny, nx))
+        return lon, lat, self(grid_points([lon, lat])).reshape(ny, nx)
 
     def sample(self, n, rng):
         """n lon/lat points drawn from the estimate: a kernel by its weight, then a point at

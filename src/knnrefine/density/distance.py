@@ -266,14 +266,21 @@ class KnnDistance:
             )
         return self._where_inside(x, lambda q: index.kth(q, self.k))
 
-    def grid(self, shape: int | tuple | None = None) -> tuple:
-        """The estimate at the centres of a grid over the box.
+    def grid(
+        self, shape: int | tuple | None = None, extent: Sequence[float] | None = None
+    ) -> tuple:
+        """The estimate at the centres of a grid over the box, or over any region.
 
         Parameters
         ----------
         shape : int or tuple of int, optional
             Cells per axis, slowest first: (ny, nx) in the plane, (nz, ny, nx) in space; one
             number for all axes; default 512 per axis in the plane, 64 in space.
+        extent : sequence of float, optional
+            The region the grid covers: (x0, y0, x1, y1) or (x0, y0, z0, x1, y1, z1) in the
+            points' units, on the sphere (lon0, lat0, lon1, lat1) in degrees; default the
+            box (the whole sphere). Centres beyond the box along non-periodic axes get NaN;
+            periodic axes and longitudes wrap.
 
         Returns
         -------
@@ -281,8 +288,16 @@ class KnnDistance:
             The cells' centres along each axis.
         values : ndarray (ny, nx) or (nz, ny, nx)
             Row j at ys[j] (image order, origin at the lower left).
+
+        Raises
+        ------
+        InputError
+            A bad shape or extent.
         """
         shape = grid_shape(shape, self.dim)
+        if extent is not None:  # any region: each centre located on the pieces
+            axes = grid_axes(check_extent(extent, self.dim, self.on_sphere), shape)
+            return (*axes, self(grid_points(axes)).reshape(shape))
         *axes, out = self.pieces.grid(shape)
         missed = np.isnan(out)  # centres on no piece by rounding (none expected): located
         if missed.any():
@@ -466,6 +481,43 @@ def _sphere_region(region):
             "lon0 + 360 (longitudes wrap: (170, -10, 190, 10) crosses the antimeridian)"
         )
     return lon0, lat0, lon1, lat1
+
+
+def check_extent(extent, dim=2, sphere=False):
+    """A grid's region as 2 * dim finite numbers (low corner, high corner), each side
+    positive; on the sphere longitudes and latitudes in degrees, latitudes within +-90."""
+    if sphere:
+        names, count = "(lon0, lat0, lon1, lat1) in degrees", "four"
+    else:
+        names = "(x0, y0, x1, y1)" if dim == 2 else "(x0, y0, z0, x1, y1, z1)"
+        count = "four" if dim == 2 else "six"
+    try:
+        vals = tuple(float(v) for v in extent)
+    except (TypeError, ValueError):
+        raise InputError(f"extent must be {count} numbers {names}, got {extent!r}") from None
+    if len(vals) != 2 * dim or not np.all(np.isfinite(vals)):
+        raise InputError(f"extent must be {count} finite numbers {names}, got {extent!r}")
+    if not all(vals[dim + a] > vals[a] for a in range(dim)):
+        raise InputError(f"extent {vals} must have each low corner below its high one {names}")
+    if sphere and not -90.0 <= vals[1] < vals[3] <= 90.0:
+        raise InputError(f"extent {vals}: latitudes must lie within [-90, 90]")
+    return vals
+
+
+def grid_axes(extent, shape):
+    """The cells' centres along each axis (x first) of a grid of ``shape`` cells (slowest
+    axis first) over ``extent`` (low corner, high corner)."""
+    dim = len(shape)
+    cells = shape[::-1]
+    return [extent[a] + (np.arange(cells[a]) + 0.5) * (extent[dim + a] - extent[a]) / cells[a]
+            for a in range(dim)]  # fmt: skip
+
+
+def grid_points(axes):
+    """The centres of a grid (its axes, x first) as points (q, d), the slowest axis's index
+    changing slowest (the order of the grid's values, flattened)."""
+    mesh = np.meshgrid(*axes[::-1], indexing="ij")
+    return np.column_stack([g.ravel() for g in mesh[::-1]])
 
 
 def grid_shape(shape, dim=2):

@@ -28,7 +28,7 @@ class DistanceLike(Protocol):
 
     def __call__(self, x: ArrayLike) -> np.ndarray: ...
 
-    def grid(self, shape: Any = None) -> tuple: ...
+    def grid(self, shape: Any = None, extent: Any = None) -> tuple: ...
 
     def integrate(self, func: Callable, region: Any = None) -> float: ...
 
@@ -168,20 +168,31 @@ class KnnDensity:
         """
         return self._of_d(self.constant)(np.asarray(d, float))
 
-    def grid(self, shape: int | tuple | None = None) -> tuple:
-        """The density at the centres of a grid over the box (``KnnDistance.grid``).
+    def grid(
+        self, shape: int | tuple | None = None, extent: Sequence[float] | None = None
+    ) -> tuple:
+        """The density at the centres of a grid over the box or any region
+        (``KnnDistance.grid``).
 
         Parameters
         ----------
         shape : int or tuple of int, optional
             Cells per axis, slowest first; default 512 per axis in the plane, 64 in space.
+        extent : sequence of float, optional
+            The grid's region (``KnnDistance.grid``); default the box. NaN beyond the box
+            along non-periodic axes.
 
         Returns
         -------
         xs, ys[, zs] : ndarray
         values : ndarray (ny, nx) or (nz, ny, nx)
+
+        Raises
+        ------
+        InputError
+            A bad shape or extent.
         """
-        *axes, d = self.distance.grid(shape)
+        *axes, d = self.distance.grid(shape, extent)
         return (*axes, self._of_d(self.constant)(d))
 
     def mass(self, region: Sequence[float] | None = None) -> float:

@@ -34,7 +34,7 @@ from .adaptive import (
     choose_smoothing,
     square_integral,
 )
-from .distance import grid_shape
+from .distance import check_extent, grid_shape
 from .estimate import KnnDensity, default_k, default_pilot_k
 
 
@@ -731,33 +731,45 @@ class KnnDensityEstimator:
         out[from_tail] = tail.sample(int(from_tail.sum()), rng)
         return out * self.scale_
 
-    def grid(self, shape: int | tuple | None = None) -> tuple:
-        """The density at the centres of a grid over the fitted box, in the data's units.
+    def grid(
+        self, shape: int | tuple | None = None, extent: Sequence[float] | None = None
+    ) -> tuple:
+        """The density at the centres of a grid over the fitted box, or over any region, in
+        the data's units.
 
         Parameters
         ----------
         shape : int or tuple of int, optional
             As for ``KnnDistance.grid``.
+        extent : sequence of float, optional
+            The region the grid covers, (x0, y0, x1, y1) or (x0, y0, z0, x1, y1, z1) in the
+            data's units, on the sphere (lon0, lat0, lon1, lat1) in degrees; default
+            ``box_`` (the whole sphere). Beyond the fitted box the density is the tail's
+            (``tail_``), or 0 where the box was given (periodic axes wrap).
 
         Returns
         -------
         xs, ys[, zs], values : ndarray
-            As ``KnnDistance.grid``'s, in the data's units (``box_``): the density per unit
-            area (volume) of the data, ``exp(score_samples)`` at the centres.
+            As ``KnnDistance.grid``'s, in the data's units: the density per unit area
+            (volume) of the data, ``exp(score_samples)`` at the centres.
 
         Raises
         ------
         InputError
-            A bad shape.
+            A bad shape or extent.
         """
         density = self._fitted()
         if self.sphere:  # longitude by latitude, half a degree by default
-            return density.grid((360, 720) if shape is None else grid_shape(shape, 2))
-        *axes, values = density.grid(grid_shape(shape, self.n_features_in_))
+            return density.grid((360, 720) if shape is None else grid_shape(shape, 2), extent)
+        dim = self.n_features_in_
+        scale = np.asarray(self.scale_)
+        if extent is not None:  # in the fitted (scaled) coordinates
+            extent = np.asarray(check_extent(extent, dim)) / np.tile(scale, 2)
+        *axes, values = density.grid(grid_shape(shape, dim), extent)
+        values = np.where(np.isnan(values), 0.0, values)  # beyond the box: no mass
         tail = getattr(self, "tail_", None)
         if tail is not None:
             values = (1.0 - tail.weight) * values + tail.weight * tail.on_grid(axes)
-        scale = np.asarray(self.scale_)
         return (*(np.asarray(a) * s for a, s in zip(axes, scale, strict=True)),
                 values / self._jacobian())  # fmt: skip
 

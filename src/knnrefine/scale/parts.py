@@ -51,7 +51,7 @@ from .._validation import (
     random_generator,
     weights_of_run,
 )
-from ..density.distance import KnnDistance, grid_shape
+from ..density.distance import KnnDistance, check_extent, grid_axes, grid_points, grid_shape
 from ..density.estimate import KnnDensity
 from ..errors import InputError
 from ..io import UNREADABLE, unreadable
@@ -735,9 +735,14 @@ class PartitionedDistance:
             out[at] = self.part(int(j))(flat[at])
         return out.reshape(shape)
 
-    def grid(self, shape=(512, 512)):
+    def grid(self, shape=(512, 512), extent=None):
         """(xs, ys, values) as ``KnnDistance.grid``: every part's own pieces drawn into one
-        grid; in space (xs, ys, zs, values), a slice at a time, each point by its part."""
+        grid; in space (xs, ys, zs, values), a slice at a time, each point by its part; over
+        ``extent`` (any region, as ``KnnDistance.grid``'s) each centre by its part."""
+        if extent is not None:
+            full = grid_shape(shape, self.dim)
+            axes = grid_axes(check_extent(extent, self.dim), full)
+            return (*axes, self(grid_points(axes)).reshape(full))
         if self.dim == 3:
             return grid3(self, self.lo, self.hi, grid_shape(shape, 3))
         ny, nx = grid_shape(shape)
