@@ -338,14 +338,19 @@ def test_least_squares_tracks_the_integrated_squared_error():
         for crit in ("likelihood", "least-squares")
     }
     ad = fits["least-squares"].density_
-    errors = {}
+    errors, scores = {}, {}
     for c in ad.bandwidth * np.array([0.5, 1 / np.sqrt(2), 1, np.sqrt(2), 2]):
         ad.set_bandwidth(c, 0)
         g = ad.grid((600, 600))[2]
         errors[c] = (np.mean((g - truth) ** 2), np.mean(np.abs(g - truth)))
-        assert ad.least_squares() + f0 == pytest.approx(errors[c][0], abs=5e-3)
+        scores[c] = ad.least_squares() + f0
     ise = {c: e[0] for c, e in errors.items()}
     chosen = fits["least-squares"].bandwidth_
+    # the Monte Carlo integral of f^2 (one set of draws for every c) moves every score
+    # alike, by its noise (about 0.004 here): the differences follow the error closely
+    for c in ise:
+        assert scores[c] == pytest.approx(ise[c], abs=1e-2)
+        assert scores[c] - scores[chosen] == pytest.approx(ise[c] - ise[chosen], abs=5e-3)
     assert ise[chosen] <= 1.05 * min(ise.values())
     assert chosen > fits["likelihood"].bandwidth_
     ll = fits["likelihood"]

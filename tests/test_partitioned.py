@@ -210,9 +210,9 @@ def test_density_part_by_part_equals_the_whole_meshs(tmp_path, periodic, parts):
     assert got.mass(region) == pytest.approx(want.mass(region), rel=1e-12)
     np.testing.assert_allclose(got.grid((48, 64))[2], want.grid((48, 64))[2], rtol=1e-12)
     # a grid over any region (issue 53), across the cuts and past the upper sides
-    a, b = got.grid((9, 11), extent=region)[2], want.grid((9, 11), extent=region)[2]
-    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
-    np.testing.assert_allclose(a, b, rtol=1e-12)
+    g, h = got.grid((9, 11), extent=region)[2], want.grid((9, 11), extent=region)[2]
+    np.testing.assert_array_equal(np.isnan(g), np.isnan(h))
+    np.testing.assert_allclose(g, h, rtol=1e-12)
 
 
 @pytest.mark.parametrize("periodic", [True, False])
@@ -307,9 +307,9 @@ def test_density_in_space_part_by_part_equals_the_whole_meshs(tmp_path, periodic
     region = (0.6, 0.7, 0.2, 1.3, 1.2, 0.9)  # past the upper sides along x and y
     assert got.mass(region) == pytest.approx(want.mass(region), rel=1e-12)
     np.testing.assert_allclose(got.grid((6, 7, 8))[3], want.grid((6, 7, 8))[3], rtol=1e-12)
-    a, b = got.grid(5, extent=region)[3], want.grid(5, extent=region)[3]  # any region
-    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
-    np.testing.assert_allclose(a, b, rtol=1e-12)
+    g, h = got.grid(5, extent=region)[3], want.grid(5, extent=region)[3]  # any region
+    np.testing.assert_array_equal(np.isnan(g), np.isnan(h))
+    np.testing.assert_allclose(g, h, rtol=1e-12)
     if weighted:
         np.testing.assert_allclose(pm.density(pts, weights=weights, workers=2)(q), a, rtol=1e-12)
         return
