@@ -1,5 +1,12 @@
-"""Leave-one-out sums of isotropic triweight kernels in the plane through binned lattices,
-so that scoring a smoothing costs about the same whatever the kernels' overlap.
+"""Leave-one-out sums of isotropic triweight kernels in the plane and in space through
+binned lattices, so that scoring a smoothing costs about the same whatever the kernels'
+overlap. (Below, the plane; space is the same in three dimensions, each ``*3`` kernel the
+plane's one's: trilinear binning at eight lattice points, balls stamped with rows along x
+spanning their chord, tricubic reads of 64 values, and SAMPLES3 = 3 steps a radius, since a
+ball's stamp costs about (4/3) pi S^3 cells. Measured there against exact sums on a
+three-Gaussian mixture at 10^5 points: 0.2 % (median) and 2 % (99th percentile) at S = 3,
+0.05 % and 0.8 % at S = 4; ``tests/test_adaptive.py`` checks folded, wrapped, weighted,
+duplicated points and the exact finest levels.)
 
 Summing at a point the kernels that cover it costs their number: about c^2 k for the
 adaptive estimate (k the pilot's, c the bandwidth factor), some 3,000 at 10^6 points. Here
@@ -31,15 +38,18 @@ exactly. Coordinates are relative to the box's lower corner (``BoxMetric.frame``
 
 import numpy as np
 
-from . import kernelsum
+from . import kernelsum, kernelsum3
 from .jit import kernel
 from .kernelsum import MASS, axis_image
 from .lattice import catmull_rom
 from .threads import in_chunks
 
 SAMPLES = 4  # lattice steps per kernel radius, at least (at most twice as many)
+SAMPLES3 = 3  # in space (a ball's stamp costs about (4/3) pi S^3 cells a lattice point)
 LEVELS = 64  # lattices step0 2^m, m < LEVELS (radii over 2^64 smallest radii: none)
 BINNING_VARIANCE = 10.0 / 6.0  # steps^2 off a radius^2: the binning's tent (see ``stamp``)
+BINNING_VARIANCE3 = 11.0 / 6.0  # in space (a ball's triweight has variance r^2 / 11 an axis)
+MASS3 = kernelsum3.MASS  # the integral of (1 - |x|^2)^3 over the unit ball
 VALUES_PER_CENTRE = 8  # the lattices hold at most this many values per kernel,
 LEAST_VALUES = 1 << 22  # or this many
 
@@ -237,14 +247,248 @@ def own_terms(qx, qy, mass, level, step0, lattices, radius_at, period, periodic,
     return 0
 
 
+@kernel(entry=True, nogil=True)
+def assign_levels3(cx, cy, cz, r, samples, step0, level, steps, box):
+    """``assign_levels`` in space: box (LEVELS, 6) the least and greatest x, y and z of each
+    level's centres."""
+    inv_log2 = 1.0 / np.log(2.0)
+    log_first = np.log(samples * step0)
+    log_step0 = np.log(step0)
+    log2 = np.log(2.0)
+    for i in range(r.shape[0]):
+        if not r[i] > 0.0:
+            level[i] = -1
+            continue
+        lr = np.log(r[i])
+        m = int(np.floor((lr - log_first) * inv_log2))
+        m = min(max(m, 0), LEVELS - 1)
+        level[i] = m
+        steps[i] = lr - log_step0 - m * log2
+        box[m, 0] = min(box[m, 0], cx[i])
+        box[m, 1] = min(box[m, 1], cy[i])
+        box[m, 2] = min(box[m, 2], cz[i])
+        box[m, 3] = max(box[m, 3], cx[i])
+        box[m, 4] = max(box[m, 4], cy[i])
+        box[m, 5] = max(box[m, 5], cz[i])
+    return 0
+
+
+@kernel(entry=True, nogil=True)
+def deposit3(cx, cy, cz, steps, mass, level, step0, lattices, mass_at, log_r_at):
+    """``deposit`` in space: each kernel's mass at the eight lattice points around its
+    centre (trilinear weights); a lattice's row is origin (3), counts (3), offset."""
+    for i in range(steps.shape[0]):
+        m = level[i]
+        if m < 0:
+            continue
+        s = step0 * 2.0**m
+        lq = steps[i]
+        fx = cx[i] / s - lattices[m, 0]
+        fy = cy[i] / s - lattices[m, 1]
+        fz = cz[i] / s - lattices[m, 2]
+        ix = int(np.floor(fx))
+        iy = int(np.floor(fy))
+        iz = int(np.floor(fz))
+        tx = fx - ix
+        ty = fy - iy
+        tz = fz - iz
+        nx, ny = lattices[m, 3], lattices[m, 4]
+        b = lattices[m, 6] + (iz * ny + iy) * nx + ix
+        w = mass[i]
+        for d in range(8):
+            dx = d & 1
+            dy = (d >> 1) & 1
+            dz = d >> 2
+            share = (w * (tx if dx else 1.0 - tx) * (ty if dy else 1.0 - ty)
+                     * (tz if dz else 1.0 - tz))  # fmt: skip
+            at = b + (dz * ny + dy) * nx + dx
+            mass_at[at] += share
+            log_r_at[at] += share * lq
+    return 0
+
+
+@kernel(entry=True, nogil=True)
+def stamp3(mass_at, log_r_at, values, step0, lattices, period, periodic, start, stop):
+    """``stamp`` in space: each lattice point's mass spread by a triweight ball of its mean
+    radius (narrowed by the binning's variance, BINNING_VARIANCE3), images included; rows
+    along x span the ball's chord."""
+    for m in range(LEVELS):
+        nx, ny, nz, off = lattices[m, 3], lattices[m, 4], lattices[m, 5], lattices[m, 6]
+        first = max(start, off)
+        last = min(stop, off + nx * ny * nz)
+        if first >= last:
+            continue
+        s = step0 * 2.0**m
+        ox, oy, oz = lattices[m, 0], lattices[m, 1], lattices[m, 2]
+        for b in range(first, last):
+            mm = mass_at[b]
+            if mm == 0.0:
+                continue
+            rest = b - off
+            iz = rest // (nx * ny)
+            iy = (rest - iz * nx * ny) // nx
+            ix = rest - (iz * ny + iy) * nx
+            rho = np.sqrt(np.exp(2.0 * log_r_at[b] / mm) - BINNING_VARIANCE3)
+            log_r_at[b] = rho
+            amp = mm / (MASS3 * rho * rho * rho * s * s * s)
+            inv = 1.0 / (rho * rho)
+            reach = int(rho) + 1
+            px = (ox + ix) * s
+            py = (oy + iy) * s
+            pz = (oz + iz) * s
+            for ia in range(3):
+                fx = axis_image(px, ia, period[0], periodic[0]) / s - ox
+                if fx < -reach or fx > nx + reach:
+                    continue
+                for ib in range(3):
+                    fy = axis_image(py, ib, period[1], periodic[1]) / s - oy
+                    if fy < -reach or fy > ny + reach:
+                        continue
+                    for ic in range(3):
+                        fz = axis_image(pz, ic, period[2], periodic[2]) / s - oz
+                        if fz < -reach or fz > nz + reach:
+                            continue
+                        czn = int(np.floor(fz))
+                        cyn = int(np.floor(fy))
+                        for zz in range(max(czn - reach, 0), min(czn + reach + 1, nz - 1) + 1):
+                            ez = zz - fz
+                            uz = ez * ez * inv
+                            if uz >= 1.0:
+                                continue
+                            for yy in range(max(cyn - reach, 0), min(cyn + reach + 1, ny - 1) + 1):
+                                ey = yy - fy
+                                uyz = ey * ey * inv + uz
+                                if uyz >= 1.0:
+                                    continue
+                                half = rho * np.sqrt(1.0 - uyz)  # the row's chord of the ball
+                                x0 = max(int(np.ceil(fx - half)), 0)
+                                x1 = min(int(np.floor(fx + half)), nx - 1)
+                                row = off + (zz * ny + yy) * nx
+                                for xx in range(x0, x1 + 1):
+                                    ex = xx - fx
+                                    v = max(1.0 - uyz - ex * ex * inv, 0.0)
+                                    values[row + xx] += amp * v * v * v
+    return 0
+
+
+@kernel(entry=True, nogil=True)
+def read_sums3(qx, qy, qz, values, step0, lattices, out, start, stop):
+    """``read_sums`` in space: every lattice read by tricubic Catmull-Rom interpolation."""
+    wx = np.empty(4)
+    wy = np.empty(4)
+    wz = np.empty(4)
+    for j in range(start, stop):
+        total = 0.0
+        for m in range(LEVELS):
+            nx, ny, nz, off = lattices[m, 3], lattices[m, 4], lattices[m, 5], lattices[m, 6]
+            if nx == 0:
+                continue
+            s = step0 * 2.0**m
+            fx = qx[j] / s - lattices[m, 0]
+            fy = qy[j] / s - lattices[m, 1]
+            fz = qz[j] / s - lattices[m, 2]
+            ix = int(np.floor(fx))
+            iy = int(np.floor(fy))
+            iz = int(np.floor(fz))
+            if ix < 1 or iy < 1 or iz < 1 or ix + 2 >= nx or iy + 2 >= ny or iz + 2 >= nz:
+                continue
+            catmull_rom(fx - ix, wx)
+            catmull_rom(fy - iy, wy)
+            catmull_rom(fz - iz, wz)
+            for c in range(4):
+                plane = 0.0
+                for b in range(4):
+                    row = off + ((iz - 1 + c) * ny + iy - 1 + b) * nx + ix - 1
+                    acc = 0.0
+                    for a in range(4):
+                        acc += wx[a] * values[row + a]
+                    plane += wy[b] * acc
+                total += wz[c] * plane
+        out[j] = total
+    return 0
+
+
+@kernel(entry=True, nogil=True)
+def own_terms3(qx, qy, qz, mass, level, step0, lattices, radius_at, period, periodic, out,
+               start, stop):  # fmt: skip
+    """``own_terms`` in space: the part of ``read_sums3`` at centre j that its own mass,
+    binned at the eight lattice points around it, gives."""
+    wx = np.empty(4)
+    wy = np.empty(4)
+    wz = np.empty(4)
+    for j in range(start, stop):
+        m = level[j]
+        if m < 0:
+            out[j] = 0.0
+            continue
+        s = step0 * 2.0**m
+        ox, oy, oz = lattices[m, 0], lattices[m, 1], lattices[m, 2]
+        nx, ny, off = lattices[m, 3], lattices[m, 4], lattices[m, 6]
+        fx = qx[j] / s - ox
+        fy = qy[j] / s - oy
+        fz = qz[j] / s - oz
+        ix = int(np.floor(fx))
+        iy = int(np.floor(fy))
+        iz = int(np.floor(fz))
+        tx = fx - ix
+        ty = fy - iy
+        tz = fz - iz
+        catmull_rom(tx, wx)
+        catmull_rom(ty, wy)
+        catmull_rom(tz, wz)
+        total = 0.0
+        for d in range(8):
+            dx = d & 1
+            dy = (d >> 1) & 1
+            dz = d >> 2
+            rho = radius_at[off + ((iz + dz) * ny + iy + dy) * nx + ix + dx]
+            share = ((tx if dx else 1.0 - tx) * (ty if dy else 1.0 - ty)
+                     * (tz if dz else 1.0 - tz))  # fmt: skip
+            if share == 0.0 or not rho > 0.0:
+                continue
+            amp = mass[j] * share / (MASS3 * rho * rho * rho * s * s * s)
+            inv = 1.0 / (rho * rho)
+            px = (ox + ix + dx) * s
+            py = (oy + iy + dy) * s
+            pz = (oz + iz + dz) * s
+            for ia in range(3):
+                x = axis_image(px, ia, period[0], periodic[0]) / s - ox
+                if abs(x - fx) > rho + 2.0:
+                    continue
+                for ib in range(3):
+                    y = axis_image(py, ib, period[1], periodic[1]) / s - oy
+                    if abs(y - fy) > rho + 2.0:
+                        continue
+                    for ic in range(3):
+                        z = axis_image(pz, ic, period[2], periodic[2]) / s - oz
+                        if abs(z - fz) > rho + 2.0:
+                            continue
+                        for c in range(4):
+                            ez = iz - 1 + c - z
+                            for b in range(4):
+                                ey = iy - 1 + b - y
+                                for a in range(4):
+                                    ex = ix - 1 + a - x
+                                    u = (ex * ex + ey * ey + ez * ez) * inv
+                                    if u < 1.0:
+                                        v = 1.0 - u
+                                        total += wx[a] * wy[b] * wz[c] * amp * v * v * v
+        out[j] = total
+    return 0
+
+
 class BinnedLevels:
     """Each kernel's lattice: its level, its radius in that level's steps and each level's
-    span of centres, for kernels at (cx, cy) (frame coordinates) of radii r. Radii c r, for
-    any c > 0, fall on the same levels with the same radii in steps (the steps scale with
-    c): a search over c at one sensitivity finds its kernels' levels once
-    (``BinnedSums(..., levels=, scale=c)``)."""
+    span of centres, for kernels at ``centres`` (frame coordinates: (cx, cy) in the plane,
+    (cx, cy, cz) in space) of radii r. Radii c r, for any c > 0, fall on the same levels
+    with the same radii in steps (the steps scale with c): a search over c at one
+    sensitivity finds its kernels' levels once (``BinnedSums(..., levels=, scale=c)``)."""
 
-    def __init__(self, cx, cy, r, samples=SAMPLES):
+    def __init__(self, centres, r, samples=None):
+        centres = [np.ascontiguousarray(c, float) for c in centres]
+        dim = len(centres)
+        if samples is None:
+            samples = SAMPLES if dim == 2 else SAMPLES3
         self.r = np.ascontiguousarray(r, float)
         live = self.r > 0
         self.samples = samples
@@ -252,50 +496,52 @@ class BinnedLevels:
         n = len(self.r)
         self.level = np.empty(n, np.int8)  # LEVELS < 128
         self.steps = np.empty(n)
+        assign = assign_levels if dim == 2 else assign_levels3
         parts = []  # per range of centres: each level's span of centres
 
         def spans(a, b):
-            box = np.empty((LEVELS, 4))
-            box[:, :2], box[:, 2:] = np.inf, -np.inf
-            assign_levels(cx[a:b], cy[a:b], self.r[a:b], float(samples), self.step0,
-                          self.level[a:b], self.steps[a:b], box)  # fmt: skip
+            box = np.empty((LEVELS, 2 * dim))
+            box[:, :dim], box[:, dim:] = np.inf, -np.inf
+            assign(*(c[a:b] for c in centres), self.r[a:b], float(samples), self.step0,
+                   self.level[a:b], self.steps[a:b], box)  # fmt: skip
             parts.append(box)
 
         in_chunks(spans, n, least=65536, per_thread=1)
-        self.box = np.concatenate([np.min([p[:, :2] for p in parts], axis=0),
-                                   np.max([p[:, 2:] for p in parts], axis=0)], axis=1)  # fmt: skip
+        self.box = np.concatenate([np.min([p[:, :dim] for p in parts], axis=0),
+                                   np.max([p[:, dim:] for p in parts], axis=0)], axis=1)  # fmt: skip
 
 
 class BinnedSums:
-    """The binned lattices of kernels at (cx, cy) (frame coordinates in the box [0, period])
-    with radii r and masses ``mass``, built once, read as leave-one-out sums at centres
-    (``without``) or as sums anywhere (``at``). ``levels``: the kernels' ``BinnedLevels``
-    at radii r / scale, found once for several scales (r is then not read: None)."""
+    """The binned lattices of kernels at ``centres`` ((cx, cy) in the plane, (cx, cy, cz) in
+    space: frame coordinates in the box [0, period]) with radii r and masses ``mass``, built
+    once, read as leave-one-out sums at centres (``without``) or as sums anywhere (``at``).
+    ``levels``: the kernels' ``BinnedLevels`` at radii r / scale, found once for several
+    scales (r is then not read: None)."""
 
-    def __init__(self, cx, cy, r, mass, period, periodic, samples=SAMPLES, levels=None,
+    def __init__(self, centres, r, mass, period, periodic, samples=None, levels=None,
                  scale=1.0):  # fmt: skip
-        self.cx = np.ascontiguousarray(cx, float)
-        self.cy = np.ascontiguousarray(cy, float)
+        self.centres = [np.ascontiguousarray(c, float) for c in centres]
+        self.dim = dim = len(self.centres)
         self.mass = np.ascontiguousarray(mass, float)
         self.period = np.asarray(period, float)
         self.periodic = np.asarray(periodic, bool)
         if levels is None:
-            levels, scale = BinnedLevels(self.cx, self.cy, r, samples), 1.0
+            levels, scale = BinnedLevels(self.centres, r, samples), 1.0
         samples = levels.samples
         self.step0 = scale * levels.step0
         self.level = levels.level
         n = len(self.level)
-        lo = np.full((LEVELS, 2), 1 << 60, np.int64)
-        hi = np.full((LEVELS, 2), -(1 << 60), np.int64)
-        for m in np.flatnonzero(levels.box[:, 0] <= levels.box[:, 2]):
+        lo = np.full((LEVELS, dim), 1 << 60, np.int64)
+        hi = np.full((LEVELS, dim), -(1 << 60), np.int64)
+        for m in np.flatnonzero(levels.box[:, 0] <= levels.box[:, dim]):
             s = self.step0 * 2.0**m
-            lo[m] = np.floor(levels.box[m, :2] / s)
-            hi[m] = np.floor(levels.box[m, 2:] / s) + 1
+            lo[m] = np.floor(levels.box[m, :dim] / s)
+            hi[m] = np.floor(levels.box[m, dim:] / s) + 1
         # the finest levels whose lattices would pass the limit are summed exactly (kernels
         # far narrower than most, spread wide: near-copies of points, say)
         limit = max(VALUES_PER_CENTRE * n, LEAST_VALUES)
         lattices, _ = self._lattices(lo, hi, samples)
-        size = lattices[:, 2] * lattices[:, 3]
+        size = np.prod(lattices[:, dim : 2 * dim], axis=1)
         over = np.cumsum(size[::-1])[::-1] > limit  # this level and the coarser ones
         self.exact = None
         if over.any():
@@ -306,12 +552,13 @@ class BinnedSums:
             self.exact = self._exact_tree(np.flatnonzero(narrow), scale * levels.r)
         self.lattices, total = self._lattices(lo, hi, samples)
         steps = levels.steps
+        put, draw = (deposit, stamp) if dim == 2 else (deposit3, stamp3)
         binned = []  # per range of centres: (mass, mass * log r) at the lattice points
 
         def bin_range(a, b):
             mass_at, log_r_at = np.zeros(total), np.zeros(total)
-            deposit(self.cx[a:b], self.cy[a:b], steps[a:b], self.mass[a:b], self.level[a:b],
-                    self.step0, self.lattices, mass_at, log_r_at)  # fmt: skip
+            put(*(c[a:b] for c in self.centres), steps[a:b], self.mass[a:b], self.level[a:b],
+                self.step0, self.lattices, mass_at, log_r_at)  # fmt: skip
             binned.append((mass_at, log_r_at))
 
         in_chunks(bin_range, n, least=65536, per_thread=1)
@@ -323,33 +570,38 @@ class BinnedSums:
 
         def stamp_range(a, b):
             values = np.zeros(total)
-            stamp(mass_at, log_r_at, values, self.step0, self.lattices, self.period,
-                  self.periodic, a, b)  # fmt: skip
+            draw(mass_at, log_r_at, values, self.step0, self.lattices, self.period,
+                 self.periodic, a, b)  # fmt: skip
             stamped.append(values)
 
-        in_chunks(stamp_range, total, least=65536, per_thread=1)
+        in_chunks(stamp_range, total, least=65536 if dim == 2 else 8192, per_thread=1)
         self.values = stamped[0]
         for more in stamped[1:]:
             self.values += more
         self.radius_at = log_r_at
 
     def _exact_tree(self, which, r):
-        """The kd-tree (``kernelsum``) of kernels ``which``, summed exactly."""
-        k = kernelsum
-        rows, box, node = k.build_centres(np.column_stack([self.cx[which], self.cy[which]]),
+        """The kd-tree (``kernelsum`` or ``kernelsum3``) of kernels ``which``, summed
+        exactly."""
+        k = kernelsum if self.dim == 2 else kernelsum3
+        rows, box, node = k.build_centres(np.column_stack([c[which] for c in self.centres]),
                                           self.mass[which])  # fmt: skip
         rr = r[which][rows[:, k.ROW].astype(np.int64)]
-        rows[:, k.Q11] = rows[:, k.Q22] = 1.0 / (rr * rr)
-        rows[:, k.AMP] = rows[:, k.W] / (MASS * rr * rr)
+        if self.dim == 2:
+            rows[:, k.Q11] = rows[:, k.Q22] = 1.0 / (rr * rr)
+        else:
+            rows[:, k.Q] = 1.0 / (rr * rr)
+        rows[:, k.AMP] = rows[:, k.W] / (k.MASS * rr**self.dim)
         rows[:, k.R] = rr
         extent = np.zeros(len(node))
-        k.node_extents(rows[:, k.R], node, extent)  # the column itself, as every caller
+        kernelsum.node_extents(rows[:, k.R], node, extent)  # the column itself, as every caller
         return rows, box, node, extent
 
     def _lattices(self, lo, hi, samples):
-        """((LEVELS, 5) int64: origin index x, y, counts x, y, offset of each lattice; the
-        lattices' total size)."""
-        out = np.zeros((LEVELS, 5), np.int64)
+        """((LEVELS, 2 dim + 1) int64: each lattice's origin index and counts per axis and
+        offset; the lattices' total size)."""
+        dim = self.dim
+        out = np.zeros((LEVELS, 2 * dim + 1), np.int64)
         pad = 2 * samples + 4  # a stamp (radius < 2S + 1) and an interpolation's reach
         offset = 0
         for m in range(LEVELS):
@@ -357,30 +609,37 @@ class BinnedSums:
                 continue
             s = self.step0 * 2.0**m
             a, b = lo[m] - pad, hi[m] + pad
-            for axis in range(2):
+            for axis in range(dim):
                 cells = int(np.ceil(self.period[axis] / s))
                 if self.periodic[axis] and (a[axis] < pad or b[axis] > cells - pad):
                     a[axis], b[axis] = min(a[axis], -pad), max(b[axis], cells + pad)
-            out[m] = (a[0], a[1], b[0] - a[0] + 1, b[1] - a[1] + 1, offset)
-            offset += int(out[m, 2] * out[m, 3])
+            out[m, :dim] = a
+            out[m, dim : 2 * dim] = b - a + 1
+            out[m, 2 * dim] = offset
+            offset += int(np.prod(out[m, dim : 2 * dim]))
         return out, offset
 
-    def at(self, qx, qy):
-        """The binned sums at any points (qx, qy) of the box (frame coordinates): every
-        lattice read there, and the narrowest kernels' exact sums where they were kept
-        apart."""
-        qx, qy = np.ascontiguousarray(qx, float), np.ascontiguousarray(qy, float)
-        sums = np.empty(len(qx))
-        in_chunks(lambda a, b: read_sums(qx, qy, self.values, self.step0, self.lattices, sums,
-                                         a, b), len(qx))  # fmt: skip
+    def _exact_sums(self, q, loo):
+        """The narrowest kernels' exact sums at points q (m, dim), left out at their places
+        with ``loo``."""
+        rows, box, node, extent = self.exact
+        sums = (kernelsum if self.dim == 2 else kernelsum3).kernel_sums
+        more, ignored = np.empty(len(q)), np.empty(len(q))
+        in_chunks(lambda a, b: sums(rows, box, node, extent, q, loo, self.period, self.periodic,
+                                    more, ignored, a, b), len(q))  # fmt: skip
+        return more
+
+    def at(self, *q):
+        """The binned sums at any points of the box (frame coordinates, one array per axis):
+        every lattice read there, and the narrowest kernels' exact sums where they were
+        kept apart."""
+        q = [np.ascontiguousarray(c, float) for c in q]
+        sums = np.empty(len(q[0]))
+        read = read_sums if self.dim == 2 else read_sums3
+        in_chunks(lambda a, b: read(*q, self.values, self.step0, self.lattices, sums, a, b),
+                  len(sums))  # fmt: skip
         if self.exact is not None:
-            rows, box, node, extent = self.exact
-            q = np.column_stack([qx, qy])
-            more, ignored = np.empty(len(qx)), np.empty(len(qx))
-            in_chunks(lambda a, b: kernelsum.kernel_sums(rows, box, node, extent, q, False,
-                                                         self.period, self.periodic, more,
-                                                         ignored, a, b), len(qx))  # fmt: skip
-            sums += more
+            sums += self._exact_sums(np.column_stack(q), False)
         return sums
 
     def without(self, idx, copies):
@@ -389,23 +648,18 @@ class BinnedSums:
         sum; where own is most of sums, that difference keeps binning's error but not the
         sum's size (check it exactly)."""
         idx = np.asarray(idx, np.int64)
-        qx, qy = self.cx[idx], self.cy[idx]
+        q = [c[idx] for c in self.centres]
         sums = np.empty(len(idx))
         own = np.empty(len(idx))
         mass, level = np.ascontiguousarray(copies, float), self.level[idx]
+        read, mine = (read_sums, own_terms) if self.dim == 2 else (read_sums3, own_terms3)
 
         def call(a, b):
-            read_sums(qx, qy, self.values, self.step0, self.lattices, sums, a, b)
-            own_terms(qx, qy, mass, level, self.step0, self.lattices, self.radius_at,
-                      self.period, self.periodic, own, a, b)  # fmt: skip
+            read(*q, self.values, self.step0, self.lattices, sums, a, b)
+            mine(*q, mass, level, self.step0, self.lattices, self.radius_at, self.period,
+                 self.periodic, own, a, b)  # fmt: skip
 
         in_chunks(call, len(idx))
         if self.exact is not None:  # the narrowest kernels' sums, their copies left out
-            rows, box, node, extent = self.exact
-            q = np.column_stack([qx, qy])
-            more, ignored = np.empty(len(idx)), np.empty(len(idx))
-            in_chunks(lambda a, b: kernelsum.kernel_sums(rows, box, node, extent, q, True,
-                                                         self.period, self.periodic, more,
-                                                         ignored, a, b), len(idx))  # fmt: skip
-            sums += more
+            sums += self._exact_sums(np.column_stack(q), True)
         return sums, own

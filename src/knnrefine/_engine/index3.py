@@ -252,6 +252,19 @@ def holds_k_within3(index, x, r2, k, period):
     return out
 
 
+@kernel(entry=True, nogil=True)
+def weights_at3(index, x, out, start, stop):
+    """out[j]: the number of points of P (weighted P: their weight) at exactly the place
+    x[j], in the frame the points were indexed in (so that a point's copies meet it
+    bit for bit; no periodic shift reaches a ball of radius 0): ``index.weights_at``."""
+    stack = np.empty(STACK_SIZE, np.int64)
+    none = index.pts[:0]  # no half-spaces (as ``count_in_ball3``)
+    for j in range(start, stop):
+        out[j] = count_in_region3(index, x[j, 0], x[j, 1], x[j, 2], none, none[:, 0], 0, 0.0,
+                                  np.inf, stack)  # fmt: skip
+    return 0
+
+
 # -- the k-th nearest distance itself (for evaluating d_{P,k}, not for refining) ---------------
 
 

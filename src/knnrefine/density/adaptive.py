@@ -404,10 +404,10 @@ class AdaptiveDensity:
     def _binned_loo(self, rows):
         """(leave-one-out kernel sums, the weight at the place) at the tree's rows ``rows``,
         through binned lattices (``engine.binned.BinnedSums``)."""
-        if self.dim != 2 or self.shape != "isotropic":
+        if self.shape != "isotropic":
             raise InputError(
-                "binned leave-one-out sums are built for isotropic kernels in the plane; use "
-                "binned=False"
+                "binned leave-one-out sums are built for isotropic kernels (disks or balls), "
+                'not shape="local"; use binned=False'
             )
         w = self._copies_of_rows(rows)
         total, own = self._binned().without(rows, w / self.total)
@@ -427,9 +427,9 @@ class AdaptiveDensity:
         kept = self.__dict__.setdefault("_binned_last", {})
         if key not in kept:
             if not hasattr(self, "_binned_columns"):  # the centres and masses (w / W)
-                cx, cy = (np.ascontiguousarray(self._frame[:, j]) for j in range(2))
-                self._binned_columns = (cx, cy, self._weights / self.total)
-            cx, cy, mass = self._binned_columns
+                centres = [np.ascontiguousarray(self._frame[:, j]) for j in range(self.dim)]
+                self._binned_columns = (centres, self._weights / self.total)
+            centres, mass = self._binned_columns
             period = np.asarray(self.hi - self.lo, float)
             periodic = np.array(self.periodic, bool)
             if len(kept) >= BINNED_KEPT:
@@ -438,12 +438,12 @@ class AdaptiveDensity:
             if self.bandwidth * float(unit.max(initial=0.0)) <= self._cap:  # none capped
                 levels = self.__dict__.get("_binned_levels")
                 if levels is None or levels[0] != self.sensitivity:  # once per sensitivity
-                    levels = (self.sensitivity, BinnedLevels(cx, cy, unit))
+                    levels = (self.sensitivity, BinnedLevels(centres, unit))
                     self._binned_levels = levels
-                kept[key] = BinnedSums(cx, cy, None, mass, period, periodic, levels=levels[1],
+                kept[key] = BinnedSums(centres, None, mass, period, periodic, levels=levels[1],
                                        scale=self.bandwidth)  # fmt: skip
             else:
-                kept[key] = BinnedSums(cx, cy, self._radii(), mass, period, periodic)
+                kept[key] = BinnedSums(centres, self._radii(), mass, period, periodic)
         return kept[key]
 
     def _copies_at(self, idx):
@@ -682,13 +682,13 @@ BINNED_COPIES = 0.01  # binned scores only where at most this share of the sampl
 
 def _binned_scores(density, sample, criterion, binned):
     """Whether ``choose_smoothing`` scores through binned lattices (``binned`` None: auto)."""
-    able = density.dim == 2 and density.shape == "isotropic" and criterion == "likelihood"
-    able = able and not getattr(density, "on_sphere", False)  # lattices of the plane only
+    able = density.shape == "isotropic" and criterion == "likelihood"
+    able = able and not getattr(density, "on_sphere", False)  # lattices of a box only
     if binned is not None:
         if binned and not able:
             raise InputError(
-                "binned=True scores the likelihood of isotropic kernels in the plane (not on "
-                "the sphere); use binned=False or None"
+                "binned=True scores the likelihood of isotropic kernels in a box, the plane's "
+                "or space's (not on the sphere); use binned=False or None"
             )
         return bool(binned)
     n = len(density.pilot)

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..._engine.bspline import shares_below, weighted_shares
-from ..._engine.index3 import build_index3, kth_distances3
+from ..._engine.index3 import build_index3, kth_distances3, weights_at3
 from ..._engine.raster import first_holding3, rasterise3
 from ..._engine.threads import in_chunks
 from ..._metric import BoxMetric, weighted_kth
@@ -76,6 +76,15 @@ class Index:
         self.total = float(len(pts) if weights is None else np.sum(weights))
         span = np.ptp(local, axis=0) if len(local) else np.ones(3)
         self._volume = float(np.prod(np.where(span > 0, span, max(span.max(), 1e-300))))
+
+    def weight_at(self, x):
+        """The number of indexed points (weighted: their weight) at exactly each of the
+        indexed points x (q, 3), input coordinates: one descent of the tree per point
+        (``PointIndex.weight_at`` in the plane)."""
+        q = np.ascontiguousarray(self._metric.frame(np.asarray(x, float)))
+        out = np.empty(len(q))
+        in_chunks(lambda a, b: weights_at3(self._tree, q, out, a, b), len(q))
+        return out
 
     def kth(self, x, k):
         """d_{P,k} at points x (q, 3) in input coordinates."""
