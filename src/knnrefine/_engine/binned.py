@@ -507,8 +507,9 @@ class BinnedLevels:
             parts.append(box)
 
         in_chunks(spans, n, least=65536, per_thread=1)
-        self.box = np.concatenate([np.min([p[:, :dim] for p in parts], axis=0),
-                                   np.max([p[:, dim:] for p in parts], axis=0)], axis=1)  # fmt: skip
+        low = np.min([p[:, :dim] for p in parts], axis=0)
+        high = np.max([p[:, dim:] for p in parts], axis=0)
+        self.box = np.concatenate([low, high], axis=1)
 
 
 class BinnedSums:
