@@ -54,24 +54,27 @@ VALUES_PER_CENTRE = 8  # the lattices hold at most this many values per kernel,
 LEAST_VALUES = 1 << 22  # or this many
 
 
+@kernel(inline="always")
+def _level(r, samples, step0):
+    """(the level m of a kernel of radius r > 0: r / (step0 2^m) in [samples, 2 samples)
+    within 0..LEVELS-1, the log of r in that level's steps)."""
+    lr = np.log(r)
+    m = int(np.floor((lr - np.log(samples * step0)) / np.log(2.0)))
+    m = min(max(m, 0), LEVELS - 1)
+    return m, lr - np.log(step0) - m * np.log(2.0)
+
+
 @kernel(entry=True, nogil=True)
 def assign_levels(cx, cy, r, samples, step0, level, steps, box):
     """level[i]: the lattice of kernel i (-1: radius 0, no kernel), steps[i] the log of its
     radius in that lattice's steps (``deposit`` reads it); box (LEVELS, 4): the least and
     greatest x and y of each level's centres (the caller fills it with +-inf first)."""
-    inv_log2 = 1.0 / np.log(2.0)
-    log_first = np.log(samples * step0)
-    log_step0 = np.log(step0)
-    log2 = np.log(2.0)
     for i in range(r.shape[0]):
         if not r[i] > 0.0:
             level[i] = -1
             continue
-        lr = np.log(r[i])
-        m = int(np.floor((lr - log_first) * inv_log2))
-        m = min(max(m, 0), LEVELS - 1)
+        m, steps[i] = _level(r[i], samples, step0)
         level[i] = m
-        steps[i] = lr - log_step0 - m * log2
         box[m, 0] = min(box[m, 0], cx[i])
         box[m, 1] = min(box[m, 1], cy[i])
         box[m, 2] = max(box[m, 2], cx[i])
@@ -251,19 +254,12 @@ def own_terms(qx, qy, mass, level, step0, lattices, radius_at, period, periodic,
 def assign_levels3(cx, cy, cz, r, samples, step0, level, steps, box):
     """``assign_levels`` in space: box (LEVELS, 6) the least and greatest x, y and z of each
     level's centres."""
-    inv_log2 = 1.0 / np.log(2.0)
-    log_first = np.log(samples * step0)
-    log_step0 = np.log(step0)
-    log2 = np.log(2.0)
     for i in range(r.shape[0]):
         if not r[i] > 0.0:
             level[i] = -1
             continue
-        lr = np.log(r[i])
-        m = int(np.floor((lr - log_first) * inv_log2))
-        m = min(max(m, 0), LEVELS - 1)
+        m, steps[i] = _level(r[i], samples, step0)
         level[i] = m
-        steps[i] = lr - log_step0 - m * log2
         box[m, 0] = min(box[m, 0], cx[i])
         box[m, 1] = min(box[m, 1], cy[i])
         box[m, 2] = min(box[m, 2], cz[i])
