@@ -810,13 +810,13 @@ def test_binned_levels_found_once_serve_every_bandwidth(case, monkeypatch):
 
 def _binned_case3(case, rng):
     """Points in the unit cube for the binned tests in space: (points, periodic, weights)."""
-    X = np.concatenate([rng.normal([0.02, 0.5, 0.5], [0.05, 0.2, 0.2], (3000, 3)) % 1,
-                        rng.normal(0.8, 0.01, (1500, 3)) % 1, rng.random((2000, 3))])  # fmt: skip
+    X = np.concatenate([rng.normal([0.02, 0.5, 0.5], [0.05, 0.2, 0.2], (1800, 3)) % 1,
+                        rng.normal(0.8, 0.01, (900, 3)) % 1, rng.random((1200, 3))])  # fmt: skip
     periodic, weights = case == "torus", None
     if case == "weighted":
         weights = rng.uniform(0.2, 3.0, len(X))
     elif case == "duplicates":
-        X = np.concatenate([np.repeat(rng.random((40, 3)), 30, axis=0), X])
+        X = np.concatenate([np.repeat(rng.random((30, 3)), 10, axis=0), X])
     return X, periodic, weights
 
 
@@ -835,11 +835,11 @@ def test_binned_leave_one_out_in_space_matches_the_exact_sums(case, monkeypatch)
         monkeypatch.setattr(binned, "LEAST_VALUES", 1000)
     rng = np.random.default_rng(13)
     X, periodic, weights = _binned_case3(case, rng)
-    mesh = knnrefine.refine(X, 60, box=(0, 0, 0, 1, 1, 1), periodic=periodic, weights=weights)
+    mesh = knnrefine.refine(X, 50, box=(0, 0, 0, 1, 1, 1), periodic=periodic, weights=weights)
     ad = AdaptiveDensity(mesh, X, weights=weights)
-    idx = np.sort(rng.choice(len(X), 2000, replace=False))
+    idx = np.sort(rng.choice(len(X), 1200, replace=False))
     if case == "duplicates":
-        idx[:30] = np.arange(30) * 30
+        idx[:30] = np.arange(30) * 10
         held = ad._copies_at(idx)  # the index's count against a brute-force one
         brute = [(X == X[i]).all(axis=1).sum() for i in idx]
         np.testing.assert_array_equal(held, brute)
