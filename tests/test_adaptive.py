@@ -820,14 +820,30 @@ def _binned_case3(case, rng):
     return X, periodic, weights
 
 
-@pytest.mark.parametrize("case", ["box", "torus", "weighted", "duplicates", "narrow-exact"])
-def test_binned_leave_one_out_in_space_matches_the_exact_sums(case, monkeypatch):
+def test_binned_leave_one_out_in_space_matches_the_exact_sums(monkeypatch):
     """Issue 53: the binned leave-one-out values in space (balls binned on lattices of
     their scale, ``engine.binned``'s kernels in three dimensions) against the exact sums:
-    folded at the sides, wrapped on the 3-torus, weighted, with copies left out together
-    (counted by the space index, ``Index.weight_at``) and with the finest lattices summed
-    exactly: each point's density within about 1 % (median; 12 % at the 99th percentile),
-    the mean log-likelihood within 2e-3, at three smoothings."""
+    folded at the sides, with copies left out together (counted by the space index,
+    ``Index.weight_at``) and with the finest lattices summed exactly (the 3-torus and
+    weights: the slow suite); and levels found once serve every bandwidth. One test, so
+    that one worker compiles the kernels."""
+    for case in ("box", "duplicates", "narrow-exact"):
+        with monkeypatch.context() as patched:
+            binned_leave_one_out_in_space(case, patched)
+    binned_levels_in_space_serve_every_bandwidth()  # (the same kernels: the same worker)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["torus", "weighted"])
+def test_binned_leave_one_out_in_space_wraps_and_weighs(case, monkeypatch):
+    """The same on the 3-torus and with weights."""
+    binned_leave_one_out_in_space(case, monkeypatch)
+
+
+def binned_leave_one_out_in_space(case, monkeypatch):
+    """The binned leave-one-out values in space against the exact sums: each point's density
+    within about 1 % (median; 12 % at the 99th percentile), the mean log-likelihood within
+    2e-3, at three smoothings."""
     from knnrefine._engine import binned
 
     if case == "narrow-exact":
@@ -853,7 +869,7 @@ def test_binned_leave_one_out_in_space_matches_the_exact_sums(case, monkeypatch)
         assert ad._binned().exact is not None
 
 
-def test_binned_levels_in_space_serve_every_bandwidth():
+def binned_levels_in_space_serve_every_bandwidth():
     """``BinnedLevels`` in space, found once, give the lattices made from the radii c r."""
     from knnrefine._engine import binned
 
