@@ -823,21 +823,14 @@ def _binned_case3(case, rng):
 def test_binned_leave_one_out_in_space_matches_the_exact_sums(monkeypatch):
     """Issue 53: the binned leave-one-out values in space (balls binned on lattices of
     their scale, ``engine.binned``'s kernels in three dimensions) against the exact sums:
-    folded at the sides, with copies left out together (counted by the space index,
-    ``Index.weight_at``) and with the finest lattices summed exactly (the 3-torus and
-    weights: the slow suite); and levels found once serve every bandwidth. One test, so
-    that one worker compiles the kernels."""
-    for case in ("box", "duplicates", "narrow-exact"):
+    folded at the sides, wrapped on the 3-torus, weighted, with copies left out together
+    (counted by the space index, ``Index.weight_at``) and with the finest lattices summed
+    exactly; and levels found once serve every bandwidth. One test: the kernels compile
+    once, in the fast suite only."""
+    for case in ("box", "torus", "weighted", "duplicates", "narrow-exact"):
         with monkeypatch.context() as patched:
             binned_leave_one_out_in_space(case, patched)
-    binned_levels_in_space_serve_every_bandwidth()  # (the same kernels: the same worker)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("case", ["torus", "weighted"])
-def test_binned_leave_one_out_in_space_wraps_and_weighs(case, monkeypatch):
-    """The same on the 3-torus and with weights."""
-    binned_leave_one_out_in_space(case, monkeypatch)
+    binned_levels_in_space_serve_every_bandwidth()  # (the same kernels: one compile)
 
 
 def binned_leave_one_out_in_space(case, monkeypatch):

@@ -258,10 +258,11 @@ def weights_at3(index, x, out, start, stop):
     x[j], in the frame the points were indexed in (so that a point's copies meet it
     bit for bit; no periodic shift reaches a ball of radius 0): ``index.weights_at``."""
     stack = np.empty(STACK_SIZE, np.int64)
-    none = index.pts[:0]  # no half-spaces (as ``count_in_ball3``)
+    # no half-spaces: empty slices typed as ``count_in_ball3``'s (one compile of the count)
+    h, hc = index.pts[:0], index.weight[:0]
     for j in range(start, stop):
-        out[j] = count_in_region3(index, x[j, 0], x[j, 1], x[j, 2], none, none[:, 0], 0, 0.0,
-                                  np.inf, stack)  # fmt: skip
+        out[j] = count_in_region3(index, x[j, 0], x[j, 1], x[j, 2], h, hc, 0, 0.0, np.inf,
+                                  stack)  # fmt: skip
     return 0
 
 
