@@ -872,6 +872,8 @@ def test_binned_leave_one_out_in_space_matches_the_exact_sums(monkeypatch):
         with monkeypatch.context() as patched:
             binned_leave_one_out_in_space(case, patched)
     binned_levels_in_space_serve_every_bandwidth()  # (the same kernels: one compile)
+    with monkeypatch.context() as patched:
+        thinned_search_in_space(patched)
 
 
 def binned_leave_one_out_in_space(case, monkeypatch):
@@ -922,6 +924,45 @@ def binned_levels_in_space_serve_every_bandwidth():
         np.testing.assert_allclose(once.values, direct.values, rtol=1e-9, atol=1e-12)
         for a, b in zip(once.without(idx, mass[idx]), direct.without(idx, mass[idx]), strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def thinned_search_in_space(monkeypatch):
+    """Issue 53: the thinned estimate (every 4th kernel along the spatial order, the same
+    pilot) sums its own kernels (against brute force at points away from the sides) and
+    counts copies among its own points; a search in space over THIN_FROM points climbs on
+    it (every other kernel here) and walks the full estimate's half steps: the same
+    sensitivity as the search without it, the bandwidth within a half step, and the table
+    holds the full estimate's scores."""
+    from knnrefine.density import adaptive
+
+    rng = np.random.default_rng(15)
+    X, _, _ = _binned_case3("duplicates", rng)
+    ad = AdaptiveDensity(knnrefine.refine(X, 50, box=(0, 0, 0, 1, 1, 1)), X, bandwidth=0.6)
+    thin = ad.thinned(4)
+    keep = ad._order[::4]  # the points kept, in the kernels' order
+    assert len(thin.pilot) == len(keep)
+    np.testing.assert_array_equal(thin.pilot, ad.pilot[keep])
+    q = 0.3 + 0.4 * rng.random((200, 3))
+    h = 0.6 * ad.unit_extents[keep]
+    u = ((q[:, None, :] - X[keep][None]) ** 2).sum(axis=2) / h**2
+    ball = 64 * np.pi / 315  # the triweight (1 - |x|^2)^3 over the unit ball
+    brute = (np.where(u < 1, (1 - u) ** 3, 0.0) / (ball * h**3)).sum(axis=1)
+    np.testing.assert_allclose(thin(q), (1 - thin.eps) * brute / len(keep) + thin.eps * thin.knn(q),
+                               rtol=1e-9)  # fmt: skip
+    copies = [(X[keep] == x).all(axis=1).sum() for x in X[keep]]
+    np.testing.assert_array_equal(thin._copies_at(np.arange(len(keep))), copies)
+    assert max(copies) > 1
+    searches = {}
+    monkeypatch.setattr(adaptive, "THIN_EVERY", 2)  # (an eighth of 4,000 points: too few)
+    for thin_from in (np.inf, 0):
+        monkeypatch.setitem(adaptive.THIN_FROM, 3, thin_from)
+        searches[thin_from] = adaptive.choose_smoothing(ad, binned=True)
+    (a0, c0, _), (a1, c1, table) = searches[np.inf], searches[0]
+    assert a1 == a0 and abs(np.log(c1 / c0)) <= np.log(adaptive.HALF_STEP) + 1e-9
+    assert (table[:, 0] == a1).all() and np.isclose(table[:, 1], c1, rtol=1e-11).any()
+    for alpha, c, score in table:
+        ad.set_bandwidth(c, alpha)
+        assert np.mean(ad.loo(None, binned=True)) == pytest.approx(score, rel=1e-9)
 
 
 def test_binned_search_chooses_as_the_exact_one():
