@@ -965,6 +965,27 @@ def thinned_search_in_space(monkeypatch):
         assert np.mean(ad.loo(None, binned=True)) == pytest.approx(score, rel=1e-9)
 
 
+def test_climb_runs_along_an_improving_step():
+    """The smoothing climb (issue 53): on a smooth score over the grid with its best pair
+    far from the start, it ends at that pair and scores one new pair per step along a
+    rising direction (a pattern search), not three."""
+    from knnrefine.density import adaptive
+
+    alphas, cs = adaptive.SENSITIVITIES, adaptive.BANDWIDTHS
+    for best in [(0, 3), (6, 12), (3, 6), (0, 0)]:
+        seen = []
+
+        def score(alpha, c, best=best, seen=seen):
+            seen.append((alpha, c))
+            return -((alpha - alphas[best[0]]) / 0.1) ** 2 - (np.log2(c / cs[best[1]]) * 2) ** 2
+
+        i, j, scored = adaptive._climb(score, alphas, cs, 3, 6)
+        assert (i, j) == best
+        steps = abs(best[0] - 3) + abs(best[1] - 6)
+        assert len(scored) == len(seen) <= 5 + steps + 4  # the start's four, a pair a step
+        assert scored[best] == max(scored.values())
+
+
 def test_binned_search_chooses_as_the_exact_one():
     """The smoothing chosen through binned scores is the exact search's (same sensitivity,
     bandwidth within one half step), and "auto" takes binned scores where the sample times

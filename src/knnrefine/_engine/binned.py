@@ -52,6 +52,7 @@ BINNING_VARIANCE3 = 11.0 / 6.0  # in space (a ball's triweight has variance r^2 
 MASS3 = kernelsum3.MASS  # the integral of (1 - |x|^2)^3 over the unit ball
 VALUES_PER_CENTRE = 8  # the lattices hold at most this many values per kernel,
 LEAST_VALUES = 1 << 22  # or this many
+READS_A_RANGE = 8192  # points read a thread's range at least (a read costs about 0.2 us)
 
 
 @kernel(inline="always")
@@ -634,7 +635,7 @@ class BinnedSums:
         sums = np.empty(len(q[0]))
         read = read_sums if self.dim == 2 else read_sums3
         in_chunks(lambda a, b: read(*q, self.values, self.step0, self.lattices, sums, a, b),
-                  len(sums))  # fmt: skip
+                  len(sums), least=READS_A_RANGE)  # fmt: skip
         if self.exact is not None:
             sums += self._exact_sums(np.column_stack(q), False)
         return sums
@@ -656,7 +657,7 @@ class BinnedSums:
             mine(*q, mass, level, self.step0, self.lattices, self.radius_at, self.period,
                  self.periodic, own, a, b)  # fmt: skip
 
-        in_chunks(call, len(idx))
+        in_chunks(call, len(idx), least=READS_A_RANGE)
         if self.exact is not None:  # the narrowest kernels' sums, their copies left out
             sums += self._exact_sums(np.column_stack(q), True)
         return sums, own

@@ -971,8 +971,10 @@ def _widest_within_one_se(scores, alpha, c, widest):
 
 def _climb(scores, alphas, cs, i, j):
     """Hill-climb of a cross-validation score (``Scores``) over the grid alphas x cs from
-    (i, j): (i, j) of the best pair found, {(i, j): score} of every pair scored (higher is
-    better for both criteria: the least-squares score negated)."""
+    (i, j): the best of the four neighbours, then on in that direction while the score
+    rises (a pattern search: a far optimum costs one pair a step), until no neighbour is
+    better. Returns (i, j) of the best pair found, {(i, j): score} of every pair scored
+    (higher is better for both criteria: the least-squares score negated)."""
     scored = {}
 
     def score(a, b):
@@ -980,14 +982,21 @@ def _climb(scores, alphas, cs, i, j):
             scored[a, b] = scores(alphas[a], cs[b])
         return scored[a, b]
 
+    def inside(a, b):
+        return 0 <= a < len(alphas) and 0 <= b < len(cs)
+
     best = score(i, j)
     while True:
         steps = [(i + a, j + b) for a, b in ((-1, 0), (1, 0), (0, -1), (0, 1))]
-        steps = [(a, b) for a, b in steps if 0 <= a < len(alphas) and 0 <= b < len(cs)]
-        top = max(steps, key=lambda ab: score(*ab))
+        top = max((ab for ab in steps if inside(*ab)), key=lambda ab: score(*ab))
         if not score(*top) > best:
             return i, j, scored
+        di, dj = top[0] - i, top[1] - j
         (i, j), best = top, score(*top)
+        # on along the step while it keeps improving (one new pair a step, not three)
+        while inside(i + di, j + dj) and score(i + di, j + dj) > best:
+            i, j = i + di, j + dj
+            best = score(i, j)
 
 
 def unit_shapes(cov, n, max_ratio):
