@@ -242,11 +242,13 @@ class AdaptiveDensity:
 
     def _exact_tree(self, queries):
         """(rows, box, node, extent) for exact sums at ``queries`` points: the kernels'
-        kd-tree, built at the first call that asks more than ONE_LEAF_QUERIES points (a
+        kd-tree, built once the calls have asked more than ONE_LEAF_QUERIES points in all (a
         tree costs about as much as summing every kernel at that many), else the table as
         one leaf (each query visits every kernel: the few points a binned search checks
-        exactly need no tree)."""
-        if self._tree is None and queries > ONE_LEAF_QUERIES:
+        exactly need no tree, unless each pass checks some: a search's passes add up)."""
+        asked = self.__dict__.get("_one_leaf_queries", 0) + queries
+        self._one_leaf_queries = asked
+        if self._tree is None and asked > ONE_LEAF_QUERIES:
             self._build_tree()
         rows = self._rows
         if self._tree is None:
@@ -504,7 +506,7 @@ class AdaptiveDensity:
         out._square_points = systematic_sample(len(keep), SQUARE_KERNELS)
         out._table, out._tree, out._extent = None, None, None
         for cached in ("_unit_radii", "_binned_columns", "_binned_last", "_binned_levels",
-                       "_copies"):  # fmt: skip
+                       "_copies", "_one_leaf_queries"):  # fmt: skip
             out.__dict__.pop(cached, None)
         out._own_copies = weight_at_place(out._points, out._weights)
         return out
