@@ -977,7 +977,7 @@ def test_climb_runs_along_an_improving_step():
 
         def score(alpha, c, best=best, seen=seen):
             seen.append((alpha, c))
-            return -((alpha - alphas[best[0]]) / 0.1) ** 2 - (np.log2(c / cs[best[1]]) * 2) ** 2
+            return -(((alpha - alphas[best[0]]) / 0.1) ** 2) - (np.log2(c / cs[best[1]]) * 2) ** 2
 
         i, j, scored = adaptive._climb(score, alphas, cs, 3, 6)
         assert (i, j) == best
