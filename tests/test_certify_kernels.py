@@ -56,13 +56,20 @@ def test_tree_answers_equal_brute_force(dim, periodic):
 
 def _brute_kth(x, pts, period, k, w=None):
     """The least radius about each x holding weight k, by brute force in chunks."""
-    out = np.empty(len(x))
+    return _brute_kths(x, pts, period, [k], w)[0]
+
+
+def _brute_kths(x, pts, period, ks, w=None):
+    """``_brute_kth`` for each k of ``ks``, the distances sorted once."""
+    out = np.empty((len(ks), len(x)))
     for a in range(0, len(x), 100):
         d2 = _brute_d2(x[a : a + 100], pts, period)
         order = np.argsort(d2, axis=1)
         run = np.cumsum((np.ones(len(pts)) if w is None else w)[order], axis=1)
-        first = np.argmax(run >= k - 1e-9 * k, axis=1)
-        out[a : a + 100] = np.sqrt(np.take_along_axis(d2, order, 1)[np.arange(len(d2)), first])
+        near = np.take_along_axis(d2, order, 1)
+        for j, k in enumerate(ks):
+            first = np.argmax(run >= k - 1e-9 * k, axis=1)
+            out[j, a : a + 100] = np.sqrt(near[np.arange(len(d2)), first])
     return out
 
 
@@ -87,8 +94,8 @@ def test_kth_read_from_bucketed_windows_equals_brute_force(dim, periodic):
     x = np.concatenate([rng.random((600, dim)), pts[rng.integers(0, n, 400)]])
     x[:50, 0] = 0.0
     tree = Tree(pts, None, period, 2)
-    for k in (60, 150):
-        np.testing.assert_allclose(tree.kth(x, k), _brute_kth(x, pts, period, k), rtol=1e-12)
+    for k, expected in zip((60, 150), _brute_kths(x, pts, period, (60, 150)), strict=True):
+        np.testing.assert_allclose(tree.kth(x, k), expected, rtol=1e-12)
     w = rng.random(n) + 0.01
     np.testing.assert_allclose(Tree(pts, w, period, 2).kth(x, 40.0),
                                _brute_kth(x, pts, period, 40.0, w), rtol=1e-12)  # fmt: skip
@@ -509,9 +516,9 @@ def test_kth_blocks_across_a_cluster_beside_a_void_equal_brute_force(dim):
     ])  # fmt: skip
     t = np.linspace(0, 1, 1500)[:, None]
     x = np.concatenate([rng.random((1500, dim)), 0.1 + t * (np.full(dim, 0.8))])
-    for k in (1, 30, 120):
-        np.testing.assert_allclose(Tree(pts, None, None, 2).kth(x, k),
-                                   _brute_kth(x, pts, None, k), rtol=1e-12)  # fmt: skip
+    brute = _brute_kths(x, pts, None, (1, 30, 120))
+    for k, expected in zip((1, 30, 120), brute, strict=True):
+        np.testing.assert_allclose(Tree(pts, None, None, 2).kth(x, k), expected, rtol=1e-12)
     w = rng.random(len(pts)) + 0.25
     np.testing.assert_allclose(Tree(pts, w, np.ones(dim), 2).kth(x, 50.0),
                                _brute_kth(x, pts, np.ones(dim), 50.0, w), rtol=1e-12)  # fmt: skip
@@ -549,8 +556,8 @@ def test_tree_on_points_on_a_line_equals_brute_force(dim, periodic):
     period = np.ones(dim) if periodic else None
     x = np.concatenate([pts[rng.integers(0, len(t), 300)], rng.random((300, dim))])
     tree = Tree(pts, None, period, 2)
-    for k in (1, 30, 700):
-        np.testing.assert_allclose(tree.kth(x, k), _brute_kth(x, pts, period, k), rtol=1e-12)
+    for k, expected in zip((1, 30, 700), _brute_kths(x, pts, period, (1, 30, 700)), strict=True):
+        np.testing.assert_allclose(tree.kth(x, k), expected, rtol=1e-12)
     r = rng.random(len(x)) * 0.05
     want = (_brute_d2(x, pts, period) <= r[:, None] ** 2).sum(1)
     np.testing.assert_array_equal(tree.held(x, r), want)
