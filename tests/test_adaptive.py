@@ -1065,6 +1065,13 @@ def test_binned_scores_are_refused_where_they_are_not_built():
     P = rng.random((600, 3))
     ad3 = AdaptiveDensity(knnrefine.refine(P, 20), P)
     assert np.isfinite(ad3.loo(np.arange(10), binned=True)).all()
+    # a thinned estimate (issue 53): isotropic kernels, every k-th for an integer k >= 1
+    with pytest.raises(InputError, match="isotropic kernels"):
+        ad.thinned(2)
+    for every in (0, -3, 2.5, True, "2"):
+        with pytest.raises(InputError, match="every must be an integer"):
+            ad3.thinned(every)
+    assert len(ad3.thinned(1).pilot) == len(P) and len(ad3.thinned(600).pilot) == 1
 
 
 def test_binned_scores_on_real_rounded_data():

@@ -490,6 +490,10 @@ class AdaptiveDensity:
         among themselves."""
         if self.shape != "isotropic":
             raise InputError('thinned estimates are built for isotropic kernels, not shape="local"')
+        if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+            raise InputError(
+                f"every must be an integer >= 1 (keep every every-th kernel), got {every!r}"
+            )
         out = copy.copy(self)
         keep = np.arange(0, len(self._order), int(every))
         out._frame = np.ascontiguousarray(self._frame[keep])
