@@ -492,7 +492,7 @@ class AdaptiveDensity:
             raise InputError('thinned estimates are built for isotropic kernels, not shape="local"')
         if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
             raise InputError(
-                f"every must be an integer >= 1 (keep every every-th kernel), got {every!r}"
+                f"every must be an integer >= 1 (every k-th kernel is kept), got {every!r}"
             )
         out = copy.copy(self)
         keep = np.arange(0, len(self._order), int(every))
@@ -582,7 +582,6 @@ class AdaptiveDensity:
         ``rows`` (m,) for unit-ball points z (m or 1, q, d): L_i L_i^T = Q_i^-1, the
         kernel's ellipse or ball."""
         table = self._rows
-        zz = z
         if self.dim == 2:
             q11, q12, q22 = (table[rows, col][:, None] for col in (Q11, Q12, Q22))
             det = q11 * q22 - q12 * q12
@@ -590,12 +589,12 @@ class AdaptiveDensity:
             l11 = np.sqrt(a)
             l21 = b / l11
             l22 = np.sqrt(np.maximum(c - l21 * l21, 0.0))
-            x = table[rows, X][:, None] + l11 * zz[..., 0]
-            y = table[rows, Y][:, None] + l21 * zz[..., 0] + l22 * zz[..., 1]
+            x = table[rows, X][:, None] + l11 * z[..., 0]
+            y = table[rows, Y][:, None] + l21 * z[..., 0] + l22 * z[..., 1]
             out = np.stack([x, y], axis=-1)
         else:
             k3 = kernelsum3
-            out = table[rows, None, k3.X : k3.Z + 1] + zz * table[rows, k3.R][:, None, None]
+            out = table[rows, None, k3.X : k3.Z + 1] + z * table[rows, k3.R][:, None, None]
         return out
 
     def sample(self, n, rng):
