@@ -970,6 +970,14 @@ def thinned_search_in_space(monkeypatch):
     for alpha, c, score in table:
         ad.set_bandwidth(c, alpha)
         assert np.mean(ad.loo(None, binned=True)) == pytest.approx(score, rel=1e-9)
+    # degenerate, through the thinned climb (THIN_FROM left at 0): points on a plane across
+    # the box (a flat cluster) over a background
+    flat = np.concatenate([np.column_stack([rng.random((1200, 2)), np.full(1200, 0.5)]),
+                           rng.random((600, 3))])  # fmt: skip
+    ad = AdaptiveDensity(knnrefine.refine(flat, 30, box=(0, 0, 0, 1, 1, 1)), flat)
+    alpha, c, table = adaptive.choose_smoothing(ad, binned=True)
+    assert alpha in adaptive.SENSITIVITIES and (table[:, 0] == alpha).all()
+    assert np.isfinite(table[:, 2]).all() and np.isfinite(ad.loo()).all()
 
 
 def test_climb_runs_along_an_improving_step():
@@ -1023,7 +1031,8 @@ def test_estimator_with_binned_scores_on_degenerate_inputs(case, monkeypatch):
     """Through the public estimator (issue 30: binned scores by default from loo_points x k >=
     10^6): points on a line with a background, and points across a periodic seam, choose the
     smoothing the exact search chooses (same sensitivity, bandwidth within a half step), and
-    the fitted density integrates to 1 over the box."""
+    the fitted density integrates to 1 over the box; least squares binned chooses within a
+    sensitivity step and a half step of bandwidth of its exact search."""
     from knnrefine.density import adaptive
 
     rng = np.random.default_rng(21)
@@ -1046,6 +1055,12 @@ def test_estimator_with_binned_scores_on_degenerate_inputs(case, monkeypatch):
     assert abs(np.log(binned.bandwidth_ / exact.bandwidth_)) <= np.log(adaptive.HALF_STEP) + 1e-9
     assert np.isfinite(binned.score_samples(X)).all()
     assert (binned.grid((100, 100))[2] >= 0).all()
+    # least squares there too (issue 53: binned, every point read; f^2 by the cubature)
+    ad = exact.density_
+    a0, c0, _ = adaptive.choose_smoothing(ad, binned=False, criterion="least-squares")
+    a1, c1, t1 = adaptive.choose_smoothing(ad, binned=True, criterion="least-squares")
+    assert abs(a1 - a0) <= 0.1 + 1e-9 and abs(np.log(c1 / c0)) <= np.log(adaptive.HALF_STEP) + 1e-9
+    assert np.isfinite(t1[:, 2]).all()
 
 
 def test_binned_scores_are_refused_where_they_are_not_built():

@@ -555,12 +555,12 @@ class AdaptiveDensity:
         is sum_i (w_i / W) (integral of K_i s): the mean of s over kernel i, by a cubature
         of the triweight on the unit disk or ball (``ball_cubature``: exact for the kernel's
         own share, a polynomial in |x|^2, and for smooth neighbours), s read through the
-        binned lattices (``engine.binned``; within about 0.2 % of a 3000^2 grid's integral
-        on the multi-scale mixture at 10^5 points, c from 1/2 to 8). Nodes beyond a side
-        fold back into the box as the kernels' mass does (the integral over the box of
-        K_i s is that of K_i times s at the folded point); the eps parts (one point's
-        worth) take g at the centres. No random draws: candidates' scores differ by their
-        smoothing alone.
+        binned lattices (``engine.binned``; within 0.3 % of fine grids' midpoint rules in
+        the plane, folded and wrapped, and in space: ``tests/test_adaptive.py``). Nodes
+        beyond a side fold back into the box as the kernels' mass does (the integral over
+        the box of K_i s is that of K_i times s at the folded point); the eps parts (one
+        point's worth) take g at the centres. No random draws: candidates' scores differ
+        by their smoothing alone.
 
         ``shape="local"`` (no lattices for ellipses): f at ``draws`` points drawn from f,
         seeded by ``seed`` (Monte Carlo, the same draws moving with the kernels from one
@@ -793,8 +793,9 @@ def choose_smoothing(
     loo_points * k >= BINNED_FROM) and the sample has few copies (at most ``BINNED_COPIES``
     of its points share their place: next to the share left out at a tie, binning's error
     is not small). Binned least-squares scores read every point, not ``loo_points`` of
-    them: that score's noise is its weakness (on the heavy-tailed truth at 10^5 points, L1
-    0.061 from 20,000 points, 0.046 from all), and a read costs O(1)."""
+    them: that score's noise is its weakness, and a read costs O(1) (the accuracy tables'
+    LSCV column, docs/uses.md, is measured so). Binned searches in space over THIN_FROM
+    points climb on a thinned estimate first (``_climb_thinned``)."""
     criterion = check_criterion(criterion)
     count = [0]
 
@@ -817,20 +818,20 @@ def choose_smoothing(
         coarse_scores = Scores(density, coarse, criterion, scored_one, binned)
         i, j, _ = _climb(coarse_scores, alphas, bandwidths, i, j)
     scores = Scores(density, sample, criterion, scored_one, binned)
-    if binned and n >= THIN_FROM[density.dim] and len(bandwidths) > 1:
+    thinned = binned and n >= THIN_FROM[density.dim] and len(bandwidths) > 1
+    if thinned:  # the table: every pair the full estimate scored (the climb's are another's)
         alpha, c = _climb_thinned(density, scores, alphas, bandwidths, i, j, m, random_state)
-        c, _ = _widest_within_one_se(scores, alpha, c, max(bandwidths))
-        sign = 1.0 if criterion == "likelihood" else -1.0
-        table = np.array([(a, b, sign * scores(a, b)) for a, b in scores.scored()])
-        density.set_bandwidth(c, alpha)
-        return alpha, c, table
-    i, j, scored = _climb(scores, alphas, bandwidths, i, j)
-    alpha, c = float(alphas[i]), float(bandwidths[j])
-    rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
+        rows = []
+    else:
+        i, j, scored = _climb(scores, alphas, bandwidths, i, j)
+        alpha, c = float(alphas[i]), float(bandwidths[j])
+        rows = [(alphas[a], bandwidths[b], v) for (a, b), v in scored.items()]
     if len(bandwidths) > 1:
         c, settled = _widest_within_one_se(scores, alpha, c, max(bandwidths))
         near = [b for a, b, _ in rows if a == alpha]
         rows += [(alpha, b, v) for b, v in settled.items() if not np.isclose(near, b).any()]
+    if thinned:
+        rows = [(a, b, scores(a, b)) for a, b in scores.scored()]
     sign = 1.0 if criterion == "likelihood" else -1.0  # the table has the scores as defined
     table = np.array([(a, b, sign * v) for a, b, v in rows])
     density.set_bandwidth(c, alpha)
@@ -838,9 +839,10 @@ def choose_smoothing(
 
 
 # binned searches over this many points climb on a thinned estimate, in space: there a pass
-# costs mostly what falls with the kernels (binning them, the finest levels' exact sums), a
-# search at 10^6 points 8.5 -> 5.2 s; in the plane mostly its stamps, about (area / r^2) S^4
-# whatever the kernels' number (0.30 -> 0.34 s at 10^6: no gain)
+# costs mostly what falls with the kernels (binning them, the finest levels' exact sums; the
+# search at 10^6 points: ``density_grid.py --dim 3 --profile``, docs/uses.md); in the plane
+# mostly its stamps, about (area / r^2) S^4 whatever the kernels' number (choose_smoothing
+# alone at 10^6 with THIN_FROM[2] = 2^19: 0.30 -> 0.34 s, no gain)
 THIN_FROM = {2: np.inf, 3: 1 << 19}
 THIN_EVERY = 8  # the thinned estimate's kernels: every 8th along the spatial order
 
