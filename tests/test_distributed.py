@@ -353,3 +353,24 @@ print("filters here", len(logging.getLogger("distributed.worker").filters))
     assert "another worker error, kept" in run.stderr  # the workers' logs still reach us
     assert "during heartbeat" not in run.stderr and "Traceback" not in run.stderr
     assert "filters here 0" in run.stdout
+
+
+def test_a_store_made_while_no_worker_is_listed_places_its_tasks_anywhere():
+    """Regression (a Dask run on degenerate inputs under load failed with ZeroDivisionError
+    in ``DaskStore._on``: the store was made while the scheduler listed no worker, one
+    restarting, and strip j went to worker j mod 0). The list is read again when empty, and
+    while it stays empty the tasks go wherever the scheduler puts them."""
+
+    class Scheduler:
+        def __init__(self, listed):
+            self.listed = listed
+
+        def scheduler_info(self):
+            return {"workers": dict.fromkeys(self.listed, {})}
+
+    store = distributed.DaskStore.__new__(distributed.DaskStore)
+    store.retries, store.workers = 2, []
+    store.client = Scheduler([])
+    assert store._on(3) == {"retries": 2}
+    store.client = Scheduler(["tcp://b", "tcp://a"])  # a worker came back
+    assert store._on(3) == {"workers": ["tcp://b"], "allow_other_workers": True, "retries": 2}

@@ -211,8 +211,9 @@ def test_ctrl_c_during_density_work_ends_it_within_a_second():
     estimator reports its smoothing search through progress=. Sent at the search's first
     scored pair, the interrupt ends the fit within a second; sent half a second into a long
     exact d_Pk (k = 400 at 120,000 probes: seconds of work), the process exits within a
-    second of it on a quiet machine (asserted: two, for this shared 2-core machine in the
-    middle of the whole suite once took 1.4 s; the bug took 8-10 s)."""
+    second of it on a quiet machine (asserted: three, for this shared 2-core machine in the
+    middle of the whole suite once took 1.4 s, and 2.1 s with another heavy process
+    running; the bug took 8-10 s)."""
     stdout, stderr = _child("""
         import os, signal, time
         import numpy as np
@@ -255,7 +256,7 @@ def test_ctrl_c_during_density_work_ends_it_within_a_second():
     exited = time.time()
     assert "interrupted" in stdout, stdout + stderr
     if "not interrupted" not in stdout:  # (a fast machine may finish within 0.5 s)
-        assert exited - float(stdout.split("sent at")[1].split()[0]) < 2.0
+        assert exited - float(stdout.split("sent at")[1].split()[0]) < 3.0
 
 
 def test_ctrl_c_during_build_index_is_a_keyboard_interrupt():

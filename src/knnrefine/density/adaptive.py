@@ -340,9 +340,14 @@ class AdaptiveDensity:
         values are those of exact sums at the centres where only grid-drawn kernels reach,
         and within about 1e-3 (relative) where wider ones do (``tests/test_adaptive.py``
         measures it). In the plane, where drawing would cost GRID_BINNED_CELLS grid cells a
-        kernel or more (many points, kernels wide on the grid), the sums are read from the
-        kernels' binned lattices instead (``engine.binned``; those a smoothing search built
-        at this smoothing, when kept), which cost O(n) and a read per centre: their L1
+        kernel or more (many points, kernels wide on the grid) and GRID_BINNED_COVER kernels
+        or more cover a point (mean), the sums are read from the kernels' binned lattices
+        instead, whatever drawing costs against exact sums (those cost a query per centre
+        besides their terms: the uniform disk's 512^2 grid at 10^5 points, kernels narrower
+        than the drawn lattices' cap, took 0.23 s exactly, 0.03 s binned;
+        ``test_grid_of_kernels_narrow_on_the_grid_reads_the_binned_lattices``). Binned
+        lattices (``engine.binned``; those a smoothing search built at this smoothing, when
+        kept) cost O(n) and a read per centre: their L1
         distance to the exact sums is within 1 % (0.1-0.8 % measured), a centre's within 2.5 %
         of the peak, never below 0."""
         dim = self.dim
@@ -357,8 +362,8 @@ class AdaptiveDensity:
         drawn = ball * float(cells.sum())
         exact = np.prod(shape) * cover  # kernel terms summed centre by centre
         plan = None
-        binned = dim == 2 and drawn >= GRID_BINNED_CELLS * len(r)
-        if self.shape == "isotropic" and exact >= EXACT_TERMS and drawn < exact and binned:
+        binned = dim == 2 and drawn >= GRID_BINNED_CELLS * len(r) and cover >= GRID_BINNED_COVER
+        if self.shape == "isotropic" and exact >= EXACT_TERMS and binned:  # O(n), whatever drawn
             mesh = np.meshgrid(*(a - lo for a, lo in zip(axes, self.lo, strict=True)))
             sums = self._binned().at(mesh[0].ravel(), mesh[1].ravel())
             return np.maximum(sums, 0.0).reshape(shape)  # (cubic reads may dip below 0)
@@ -755,9 +760,11 @@ SQUARE_KERNELS = 1 << 17  # kernels in the integral of f^2 read through binned l
 PER_SENSITIVITY_KEPT = 3  # unit radii and binned levels kept (a climb's alphas: 3 at a time)
 BINNED_KEPT = 4  # binned lattices kept for later reads (a search's last candidates)
 GRID_BINNED_CELLS = 16  # grid cells a kernel covers (mean) from which grids read binned sums
+GRID_BINNED_COVER = 20  # and kernels covering a point (mean) from which (few: sums spiky,
+# binning's error larger: 1.5 % L1 at 8, 0.5-0.7 % at 20-40 on a uniform disk)
 ONE_LEAF_QUERIES = 64  # exact sums at more points than this build the kernels' kd-tree
 LATTICE_SAMPLES = 5  # lattice steps per kernel radius on the coarser lattices (``engine.lattice``)
-EXACT_TERMS = 2e7  # a grid's exact sums below this many kernel terms (about 0.05 s): exact
+EXACT_TERMS = 2e7  # a grid's exact sums below this many kernel terms (0.1-0.2 s): exact
 LATTICE_VALUES = 1 << 22  # the most values the lattices may hold (32 MiB), per thread
 CRITERIA = ("likelihood", "least-squares")
 BANDWIDTHS = tuple(2.0 ** (np.arange(-6, 7) / 2))  # 1/8 to 8, steps of sqrt(2)

@@ -253,6 +253,12 @@ class DaskStore:
             self.index.append(row)
 
     def _on(self, j):
+        """Where strip j's tasks go: worker j mod W of those listed (read again when none
+        were: a worker restarting as the store was made), anywhere when none is listed."""
+        if not self.workers:
+            self.workers = sorted(self.client.scheduler_info()["workers"])
+        if not self.workers:  # the scheduler places it when a worker comes
+            return {"retries": self.retries}
         return {
             "workers": [self.workers[j % len(self.workers)]],
             "allow_other_workers": True,
