@@ -969,9 +969,9 @@ def thinned_search_in_space(monkeypatch):
     """Issue 53: the thinned estimate (every 4th kernel along the spatial order, the same
     pilot) sums its own kernels (against brute force at points away from the sides) and
     counts copies among its own points; a search in space over THIN_FROM points climbs on
-    it (every other kernel here) and walks the full estimate's half steps: the same
-    sensitivity as the search without it, the bandwidth within a half step, and the table
-    holds the full estimate's scores."""
+    it (every other kernel here), walks the full estimate's half steps and checks its
+    neighbours in alpha: the same sensitivity as the search without it, the bandwidth
+    within a half step, and the table holds the full estimate's scores."""
     from knnrefine.density import adaptive
 
     rng = np.random.default_rng(15)
@@ -1001,7 +1001,7 @@ def thinned_search_in_space(monkeypatch):
         searches[thin_from] = adaptive.choose_smoothing(ad, binned=True)
     (a0, c0, _), (a1, c1, table) = searches[np.inf], searches[0]
     assert a1 == a0 and abs(np.log(c1 / c0)) <= np.log(adaptive.HALF_STEP) + 1e-9
-    assert (table[:, 0] == a1).all() and np.isclose(table[:, 1], c1, rtol=1e-11).any()
+    assert np.isclose(table[table[:, 0] == a1, 1], c1, rtol=1e-11).any()  # (and alpha's check)
     for alpha, c, score in table:
         ad.set_bandwidth(c, alpha)
         assert np.mean(ad.loo(None, binned=True)) == pytest.approx(score, rel=1e-9)
@@ -1011,8 +1011,43 @@ def thinned_search_in_space(monkeypatch):
                            rng.random((600, 3))])  # fmt: skip
     ad = AdaptiveDensity(knnrefine.refine(flat, 30, box=(0, 0, 0, 1, 1, 1)), flat)
     alpha, c, table = adaptive.choose_smoothing(ad, binned=True)
-    assert alpha in adaptive.SENSITIVITIES and (table[:, 0] == alpha).all()
+    assert alpha in adaptive.SENSITIVITIES and alpha in table[:, 0]
     assert np.isfinite(table[:, 2]).all() and np.isfinite(ad.loo()).all()
+
+
+def test_thinned_search_in_the_plane_decides_the_sensitivity_on_the_full_estimate(monkeypatch):
+    """Issue 53: a binned search in the plane over THIN_FROM points climbs on a thinned
+    estimate, walks the full estimate's half steps in c and then checks the full estimate's
+    neighbours in alpha: the same sensitivity as the search without it, the bandwidth within
+    a half step, a table of the full estimate's scores; and where the thinned climb ends
+    far off in alpha (forced here), the check walks the full estimate back to its choice."""
+    from knnrefine.density import adaptive
+
+    rng = np.random.default_rng(21)
+    X = np.concatenate([rng.normal([0.3, 0.4], 0.1, (6000, 2)), rng.normal(0.7, 0.02, (2000, 2)),
+                        rng.random((2000, 2))]) % 1  # fmt: skip
+    ad = AdaptiveDensity(knnrefine.refine(X, 120, box=(0, 0, 1, 1)), X)
+    monkeypatch.setattr(adaptive, "THIN_EVERY", 4)  # (an eighth of 10,000 points: too few)
+    searches = {}
+    for thin_from in (np.inf, 0):
+        monkeypatch.setitem(adaptive.THIN_FROM, 2, thin_from)
+        searches[thin_from] = adaptive.choose_smoothing(ad, binned=True)
+    (a0, c0, _), (a1, c1, table) = searches[np.inf], searches[0]
+    assert a1 == a0 and abs(np.log(c1 / c0)) <= np.log(adaptive.HALF_STEP) + 1e-9
+    assert np.isclose(table[table[:, 0] == a1, 1], c1, rtol=1e-11).any()
+    for alpha, c, score in table[:4]:
+        ad.set_bandwidth(c, alpha)
+        assert np.mean(ad.loo(None, binned=True)) == pytest.approx(score, rel=1e-9)
+    climb = adaptive._climb
+    far = 0 if a0 >= 0.3 else len(adaptive.SENSITIVITIES) - 1
+
+    def off(scores, alphas, cs, i, j):  # the thinned climb ends at the far end in alpha
+        i, j, scored = climb(scores, alphas, cs, i, j)
+        return (far if scores.density is not ad else i), j, scored
+
+    monkeypatch.setattr(adaptive, "_climb", off)
+    a2, c2, _ = adaptive.choose_smoothing(ad, binned=True)
+    assert a2 == a0 and abs(np.log(c2 / c0)) <= np.log(adaptive.HALF_STEP) + 1e-9
 
 
 def test_climb_runs_along_an_improving_step():
