@@ -786,8 +786,8 @@ def test_grid_of_kernels_narrow_on_the_grid_reads_the_binned_lattices(monkeypatc
     exact = ad._sums(ad._metric.frame(np.column_stack([gx.ravel(), gy.ravel()])))[0]
     monkeypatch.setattr(adaptive, "EXACT_TERMS", 0.0)  # a long sum at this size
     reads = []
-    at = binned.BinnedSums.at
-    monkeypatch.setattr(binned.BinnedSums, "at", lambda self, *q: reads.append(1) or at(self, *q))
+    read = binned.BinnedSums.grid
+    monkeypatch.setattr(binned.BinnedSums, "grid", lambda s, *q: reads.append(1) or read(s, *q))
     *_, got = ad.grid((160, 160), extent=region)
     assert reads == [1]
     got = (got - ad.eps * ad.knn.grid((160, 160), extent=region)[2]) / (1 - ad.eps)
@@ -843,6 +843,14 @@ def test_binned_leave_one_out_matches_the_exact_sums(case, monkeypatch):
         assert np.median(rel) < 1e-2 and np.quantile(rel, 0.99) < 6e-2, (alpha, c)
         # on a line binning's tent reaches across it: the shape differs, not the variance
         assert abs(got.mean() - exact.mean()) < (1e-2 if case == "line" else 1e-3)
+    # a grid's reads, separable (``BinnedSums.grid``), are the point reads at its centres,
+    # over the box and over a region reaching beyond it (and beyond the lattices)
+    lattices = ad._binned()
+    for xs, ys in ((np.linspace(0.005, 0.995, 97), np.linspace(0.004, 0.996, 83)),
+                   (np.linspace(-0.1, 0.4, 31), np.linspace(0.7, 1.1, 17))):  # fmt: skip
+        gx, gy = np.meshgrid(xs, ys)
+        points = lattices.at(gx.ravel(), gy.ravel()).reshape(gx.shape)
+        np.testing.assert_allclose(lattices.grid(xs, ys), points, rtol=1e-12, atol=1e-12)
     if case == "narrow-exact":  # the budget did send lattices to exact sums
         from knnrefine._engine import kernelsum as ks
 

@@ -364,9 +364,8 @@ class AdaptiveDensity:
         plan = None
         binned = dim == 2 and drawn >= GRID_BINNED_CELLS * len(r) and cover >= GRID_BINNED_COVER
         if self.shape == "isotropic" and exact >= EXACT_TERMS and binned:  # O(n), whatever drawn
-            mesh = np.meshgrid(*(a - lo for a, lo in zip(axes, self.lo, strict=True)))
-            sums = self._binned().at(mesh[0].ravel(), mesh[1].ravel())
-            return np.maximum(sums, 0.0).reshape(shape)  # (cubic reads may dip below 0)
+            sums = self._binned().grid(axes[0] - self.lo[0], axes[1] - self.lo[1])
+            return np.maximum(sums, 0.0)  # (cubic reads may dip below 0)
         if self.shape == "isotropic" and exact >= EXACT_TERMS and drawn < exact:
             periodic = np.array(self.periodic, bool)
             centres = self._frame
