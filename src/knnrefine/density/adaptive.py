@@ -845,12 +845,12 @@ def choose_smoothing(
 
 
 # binned searches over this many points climb on a thinned estimate: a thinned pass bins an
-# eighth of the kernels and reads its own points (at most loo_points), on the lattices of
-# wider kernels (in space most of a pass falls with the kernels' number; in the plane, fit +
-# 512^2 grid at 10^5 points, medians of 3 on the seven truths of density_accuracy.py:
-# 0.26-0.60 s against 0.44-0.77 s, the same choice on six, L1 lower on the seventh; at 10^4
-# the thinned estimate's 1,250 points moved the hole's sensitivity from 0 to 0.3 and its L1
-# up 14 %: from 2^15 points, thinned estimates of 4,096 or more)
+# eighth of the kernels and reads an eighth of the sample, on the lattices of wider kernels
+# (in space most of a pass falls with the kernels' number; in the plane fit + 512^2 grid at
+# 10^5 points on the seven truths of density_accuracy.py went from 0.43-0.70 s to 0.31-0.61 s,
+# the same L1 or lower: docs/uses.md, the time budget curve; at 10^4 the thinned estimate's
+# 1,250 points moved the hole's sensitivity from 0 to 0.3 and its L1 up 14 % before the full
+# estimate decided it: from 2^15 points, thinned estimates of 4,096 or more)
 THIN_FROM = {2: 1 << 15, 3: 1 << 19}
 THIN_EVERY = 8  # the thinned estimate's kernels: every 8th along the spatial order
 THIN_LEAST = 2000  # a thinned climb's points, at least (loo_points / THIN_EVERY else: it
