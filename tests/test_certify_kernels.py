@@ -60,12 +60,24 @@ def _brute_kth(x, pts, period, k, w=None):
 
 
 def _brute_kths(x, pts, period, ks, w=None):
-    """``_brute_kth`` for each k of ``ks``, the distances sorted once."""
+    """``_brute_kth`` for each k of ``ks``, the distances sorted once: of each row only the
+    nearest points whose weights can reach max(ks) (max(ks) / the least weight of them, by
+    numpy's partition), then those sorted and their weights summed in order."""
+    weight = np.ones(len(pts)) if w is None else np.asarray(w, float)
+    least = float(weight.min()) if len(weight) else 0.0
+    most = len(pts)
+    if least > 0:
+        most = min(len(pts), int(np.ceil(max(ks) * (1 - 1e-9) / least)))
     out = np.empty((len(ks), len(x)))
     for a in range(0, len(x), 100):
         d2 = _brute_d2(x[a : a + 100], pts, period)
+        if most < len(pts):
+            idx = np.argpartition(d2, most - 1, axis=1)[:, :most]
+            d2 = np.take_along_axis(d2, idx, 1)
+        else:
+            idx = np.broadcast_to(np.arange(len(pts)), d2.shape)
         order = np.argsort(d2, axis=1)
-        run = np.cumsum((np.ones(len(pts)) if w is None else w)[order], axis=1)
+        run = np.cumsum(weight[np.take_along_axis(idx, order, 1)], axis=1)
         near = np.take_along_axis(d2, order, 1)
         for j, k in enumerate(ks):
             first = np.argmax(run >= k - 1e-9 * k, axis=1)
