@@ -1058,6 +1058,18 @@ def test_thinned_search_in_the_plane_decides_the_sensitivity_on_the_full_estimat
     monkeypatch.setattr(adaptive, "_climb", off)
     a2, c2, _ = adaptive.choose_smoothing(ad, binned=True)
     assert a2 == a0 and abs(np.log(c2 / c0)) <= np.log(adaptive.HALF_STEP) + 1e-9
+    monkeypatch.setattr(adaptive, "_climb", climb)
+    # degenerate, through the thinned climb (THIN_FROM left at 0): points on a line over a
+    # background, and a band across a periodic seam
+    t = rng.random(3000)
+    line = np.concatenate([np.column_stack([0.1 + 0.8 * t, 0.2 + 0.6 * t]), rng.random((600, 2))])
+    seam = np.column_stack([rng.random(3000), rng.normal(0.0, 0.01, 3000) % 1.0])
+    for pts, periodic in ((line, False), (seam, True)):
+        ad = AdaptiveDensity(knnrefine.refine(pts, 40, box=(0, 0, 1, 1), periodic=periodic), pts)
+        alpha, c, table = adaptive.choose_smoothing(ad, binned=True)
+        assert alpha in adaptive.SENSITIVITIES and alpha in table[:, 0]
+        assert np.isclose(table[table[:, 0] == alpha, 1], c, rtol=1e-11).any()
+        assert np.isfinite(table[:, 2]).all() and np.isfinite(ad.loo()).all()
 
 
 def test_climb_runs_along_an_improving_step():
