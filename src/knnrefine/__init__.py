@@ -5,11 +5,11 @@ An implementation of Gardner & Sheehy, "kth Nearest Neighbor Sampling in the Pla
 everywhere in the box, whose Delaunay triangulation is tau-well-spaced.
 """
 
-from . import datasets, io
-from .api import certify, refine
-from .certify import Certificate
-from .cluster import Clustering, cluster
-from .density import KnnDensity, KnnDensityEstimator, KnnDistance
+import importlib
+import sys
+import types
+from typing import TYPE_CHECKING
+
 from .errors import (
     BudgetError,
     EngineError,
@@ -19,30 +19,77 @@ from .errors import (
     LargeRunWarning,
     WrapWarning,
 )
-from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
-from .scale.parts import PartitionedMesh, write_partitioned
+
+if TYPE_CHECKING:  # what the names below are, for type checkers (imported on first use)
+    from . import datasets, io, plot  # noqa: F401  (plot: a module, not in __all__)
+    from .api import certify, refine
+    from .certify import Certificate
+    from .cluster import Clustering, cluster
+    from .density import KnnDensity, KnnDensityEstimator, KnnDistance
+    from .density.cdf import knn_cdf
+    from .mesh import KIND_NAMES, Mesh, Torus, theorem6_constants
+    from .scale.parts import PartitionedMesh, write_partitioned
 
 __version__ = "0.1.0"
 
-_LAZY = {"knn_cdf": ("density.cdf", "knn_cdf"), "plot": ("plot", None)}
+# the public names, each imported on first use ("module", attribute; None: the module):
+# ``import knnrefine`` then loads neither numba nor scipy (0.3 s of numba's import alone)
+_LAZY = {
+    "refine": ("api", "refine"), "certify": ("api", "certify"),
+    "Certificate": ("certify", "Certificate"),
+    "Clustering": ("cluster", "Clustering"), "cluster": ("cluster", "cluster"),
+    "KnnDensity": ("density", "KnnDensity"), "KnnDistance": ("density", "KnnDistance"),
+    "KnnDensityEstimator": ("density", "KnnDensityEstimator"),
+    "knn_cdf": ("density.cdf", "knn_cdf"),
+    "KIND_NAMES": ("mesh", "KIND_NAMES"), "Mesh": ("mesh", "Mesh"), "Torus": ("mesh", "Torus"),
+    "theorem6_constants": ("mesh", "theorem6_constants"),
+    "PartitionedMesh": ("scale.parts", "PartitionedMesh"),
+    "write_partitioned": ("scale.parts", "write_partitioned"),
+    "datasets": ("datasets", None), "io": ("io", None), "plot": ("plot", None),
+}  # fmt: skip
+
+
+def _load(name: str):
+    module, attr = _LAZY[name]
+    value = importlib.import_module(f".{module}", __name__)
+    return value if attr is None else getattr(value, attr)
 
 
 def __getattr__(name: str):
-    """``knn_cdf`` and ``plot`` on first use (``plot`` imports matplotlib, which
-    ``import knnrefine`` does not need)."""
-    if name not in _LAZY:
-        raise AttributeError(f"module 'knnrefine' has no attribute {name!r}")
-    import importlib
-
-    module, attr = _LAZY[name]
-    value = importlib.import_module(f".{module}", __name__)
-    value = value if attr is None else getattr(value, attr)
+    """The public names on first use (``_LAZY``), and the subpackages and modules (as an
+    eager ``import knnrefine`` made them attributes)."""
+    if name in _LAZY:
+        value = _load(name)
+    else:
+        try:
+            value = importlib.import_module(f".{name}", __name__)
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+            raise AttributeError(f"module 'knnrefine' has no attribute {name!r}") from None
     globals()[name] = value
     return value
 
 
 def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))
+
+
+class _Package(types.ModuleType):
+    """``knnrefine.certify`` is the function (``api.certify``) whatever was imported before:
+    importing the subpackage ``knnrefine.certify`` binds the package's attribute of that
+    name to the subpackage, which would hide the function."""
+
+    @property
+    def certify(self):
+        return _load("certify")
+
+    @certify.setter
+    def certify(self, value):
+        pass  # the subpackage, bound by the import system: the name stays the function's
+
+
+sys.modules[__name__].__class__ = _Package
 
 
 __all__ = [

@@ -29,6 +29,7 @@ import os
 import tempfile
 import warnings
 
+import numpy
 from numba import njit, types
 from numba.core.caching import FunctionCache, InTreeCacheLocator
 from numba.core.registry import CPUDispatcher
@@ -175,10 +176,14 @@ class _LazyKernel:
         self.func, self.options, self.dispatcher = func, options, None
         self.__doc__, self.__name__ = func.__doc__, func.__name__
 
-    def __call__(self, *args):
+    def made(self):
+        """The dispatcher, made now if it is not yet."""
         if self.dispatcher is None:
             self.dispatcher = kernel(entry=True, **self.options)(self.func)
-        return self.dispatcher(*args)
+        return self.dispatcher
+
+    def __call__(self, *args):
+        return self.made()(*args)
 
 
 def _dispatcher(func, options):
@@ -204,16 +209,20 @@ def _dispatcher(func, options):
         return njit(cache=False, **options)(func)
     _never_save(dispatcher)
     _stamp_with_sources(dispatcher)
+    _load_portable(dispatcher)
     return dispatcher
 
 
 _fingerprint: list = []
+# files of ``_engine/`` that run the compiles and hold no kernel code (their edits need not
+# compile every kernel again)
+COMPILE_MACHINERY = ("ahead.py", "shipped.py")
 
 
 def sources_fingerprint(root=PACKAGE):
     """A hash, by relative path and content, of the source files under ``root`` that a
-    compiled kernel may hold code or constants of: every file of ``_engine/`` and every
-    other file that defines kernels (``@kernel``)."""
+    compiled kernel may hold code or constants of: every file of ``_engine/`` (but
+    ``COMPILE_MACHINERY``) and every other file that defines kernels (``@kernel``)."""
     if root == PACKAGE and _fingerprint:
         return _fingerprint[0]
     digest = hashlib.sha256()
@@ -223,7 +232,8 @@ def sources_fingerprint(root=PACKAGE):
             path = os.path.join(folder, name)
             with open(path, "rb") as f:
                 text = f.read()
-            if b"@kernel" in text or os.path.basename(folder) == "_engine":
+            engine = os.path.basename(folder) == "_engine" and name not in COMPILE_MACHINERY
+            if b"@kernel" in text or engine:
                 digest.update(os.path.relpath(path, root).encode() + b"\0" + text + b"\0")
     value = digest.hexdigest()
     if root == PACKAGE:
@@ -231,15 +241,52 @@ def sources_fingerprint(root=PACKAGE):
     return value
 
 
+def source_stamp():
+    """The stamp of every kernel's cache index: the kernels' sources (``sources_fingerprint``)
+    and numpy's version, not the source file's time and size as numba's own (an install
+    writes the files anew: kernels compiled when the package was built would never be
+    found; numpy's version, as compiled code may hold its ABI)."""
+    return ("knnrefine", sources_fingerprint(), numpy.__version__)
+
+
 def _stamp_with_sources(dispatcher):
     """numba keeps a cached kernel while its own source file is unchanged, but the code it
     compiled holds the kernels it calls from other files (inlined or linked): after an
     upgrade, or an edit of such a file, a caller came back from the cache with its callees'
-    old code. The index's stamp is therefore the file's and ``sources_fingerprint()``: a
-    change to any kernel's source compiles every kernel again."""
+    old code. The index's stamp is therefore ``source_stamp()``: a change to any kernel's
+    source compiles every kernel again."""
     cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
     if cache_file is not None and hasattr(cache_file, "_source_stamp"):
-        cache_file._source_stamp = (cache_file._source_stamp, sources_fingerprint())
+        cache_file._source_stamp = source_stamp()
+
+
+# the CPU that the kernels built with the package are compiled for (``_engine/shipped.py``,
+# with NUMBA_CPU_NAME=generic): code every machine of the platform runs, and the key its
+# cache entries carry (numba's magic tuple: target triple, CPU name, CPU features)
+PORTABLE_CPU = ("generic", "")
+
+
+def _load_portable(dispatcher):
+    """A signature missing from the cache for this machine's CPU is looked up for the
+    portable one (``PORTABLE_CPU``) before it is compiled: the kernels the package was
+    built with. This process's own compiles are kept for its CPU, as numba keeps them."""
+    cache = getattr(dispatcher, "_cache", None)
+    host = getattr(cache, "_load_overload", None)
+    if host is None or not hasattr(cache, "_index_key"):
+        return
+
+    def load_overload(sig, target_context):
+        data = host(sig, target_context)
+        if data is None and cache._enabled:
+            sig_key, magic, code = cache._index_key(sig, target_context.codegen())
+            portable = (magic[0], *PORTABLE_CPU)
+            if portable != tuple(magic):
+                data = cache._cache_file.load((sig_key, portable, code))
+                if data is not None:
+                    data = cache._impl.rebuild(target_context, data)
+        return data
+
+    cache._load_overload = load_overload
 
 
 def is_ready(dispatcher):

@@ -1,0 +1,248 @@
+"""Kernels compiled when the package is built, so that a user's first call loads them.
+
+numba compiles a kernel at its first call; a first refinement waited 10-30 s for it
+(docs/benchmarks.md, "The first call"). Here the build of the package (``setup.py``'s
+``build_py``, run by ``pip install .``, ``pip wheel .`` and ``python -m build``) compiles
+every kernel signature that the public calls need, listed in ``kernels.json``, into the
+built package's ``__pycache__`` folders, which the wheel then carries:
+
+* for a CPU that every machine of the platform runs (``NUMBA_CPU_NAME=generic``), found by
+  any machine's process through ``jit.PORTABLE_CPU`` (a signature missing for the
+  machine's own CPU is looked up for the portable one before it is compiled);
+* under the stamp ``jit.source_stamp()`` (the kernels' sources and numpy's version), which
+  an install keeps (numba's own stamp, the source file's time, an install changes); and
+  numba's own version, which numba checks itself.
+
+An installed copy whose numba or numpy differ from the build's, a changed source, an
+editable install (nothing is built) or a signature the list lacks: the kernel is compiled
+at its first call as before (with ``ahead.py``'s helper and the "compiling" notice).
+``build_marker()`` says what was built, for which numba and numpy.
+
+``kernels.json`` is written by ``python -c "from knnrefine._engine import shipped;
+shipped.record()"``: ``WORKLOAD`` (every public use in every domain, at sizes that take each
+path: binned and thinned smoothing searches, tiles, the CLI) run in a fresh process with an
+empty numba cache, then every kernel's compiled signatures. ``tests/test_shipped.py``
+checks that the public calls compile nothing the list lacks.
+"""
+
+import importlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numba
+import numpy
+
+from . import ahead, jit, threads
+
+MANIFEST = os.path.join(os.path.dirname(os.path.abspath(__file__)), "kernels.json")
+MARKER = "shipped.json"  # written beside this file in a built package: what was compiled
+
+# the uses whose kernels are listed (recorded in a fresh process: every signature compiled)
+WORKLOAD = r"""
+import contextlib, io, tempfile
+import numpy as np
+import knnrefine
+from knnrefine.cli.main import main as cli
+
+rng = np.random.default_rng(0)
+plane, space = rng.random((3000, 2)), rng.random((3000, 3))
+lonlat = rng.random((3000, 2)) * [360, 180] - [180, 90]
+weights = rng.random(3000) + 0.5
+square, cube = (0.0, 0.0, 1.0, 1.0), (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+cases = ((plane, {}), (plane, {"periodic": True, "box": square}),
+         (plane, {"periodic": (True, False), "box": square}), (space, {}),
+         (space, {"periodic": True, "box": cube}), (lonlat, {"sphere": True}))
+for pts, options in cases:
+    mesh = knnrefine.refine(pts, 10, **options)
+    knnrefine.certify(mesh, pts)
+    weighted = knnrefine.refine(pts, 10, weights=weights, **options)
+    knnrefine.certify(weighted, pts, weights=weights)
+    knnrefine.KnnDistance(mesh, pts)(pts[:100])
+    knnrefine.KnnDistance(weighted, pts, weights=weights)(pts[:100])
+    mesh.d_m2(pts[:100])
+    knnrefine.cluster(mesh, pts)
+    knnrefine.cluster(weighted, pts, noise=True, weights=weights)
+    est = knnrefine.KnnDensityEstimator(**options).fit(pts)
+    est.score_samples(pts[:100])
+    est.grid()
+    knnrefine.KnnDensityEstimator(method="knn", **options).fit(pts).grid()
+    knnrefine.KnnDensityEstimator(k="cv", **options).fit(pts[:1500])
+    with contextlib.suppress(ImportError):
+        from knnrefine.topology import Persistence
+        Persistence(mesh, pts).diagram(1)
+    if "sphere" not in options:
+        box = square if pts.shape[1] == 2 else cube
+        knnrefine.knn_cdf(pts, [5, 10], [0.01, 0.05], box, queries=10000,
+                          periodic=options.get("periodic") is True)
+for n, dim in ((10_000, 2), (50_000, 2), (10_000, 3), (50_000, 3)):
+    pts = np.random.default_rng(1).random((n, dim))
+    est = knnrefine.KnnDensityEstimator().fit(pts)
+    est.grid()
+    est.score_samples(pts[:100])
+    knnrefine.certify(est.mesh_, pts)
+big = np.random.default_rng(2).random((200_000, 2))
+knnrefine.certify(knnrefine.refine(big, 50), big)
+for pts in (big, np.random.default_rng(3).random((100_000, 3))):  # tiles, in threads
+    knnrefine.certify(knnrefine.refine(pts, 50, workers=2), pts, workers=2)
+with tempfile.TemporaryDirectory() as out, contextlib.redirect_stdout(io.StringIO()):
+    cli(["demo", "-q", "--out", out])
+"""
+
+RECORDER = """
+import json, sys
+from knnrefine._engine import shipped
+exec(shipped.WORKLOAD)
+print("RECORD", json.dumps(shipped.compiled_signatures()))
+"""
+
+
+def _kernels():
+    """Every kernel of the package loaded in this process: {"module:qualname": dispatcher}
+    (lazy kernels once made)."""
+    found = {}
+    for name, module in list(sys.modules.items()):
+        if not name.startswith(jit.__name__.split(".")[0] + ".") or module is None:
+            continue
+        for value in list(vars(module).values()):
+            if isinstance(value, jit._LazyKernel):
+                value = value.dispatcher
+            if isinstance(value, jit.Kernel):
+                func = value.py_func
+                found[f"{func.__module__}:{func.__qualname__}"] = value
+    return found
+
+
+def compiled_signatures():
+    """[["module:qualname", [type spec, ...]], ...]: every signature of every kernel loaded
+    or compiled in this process, sorted."""
+    out = []
+    for name, dispatcher in sorted(_kernels().items()):
+        for sig in dispatcher.signatures:
+            out.append([name, [ahead.type_spec(t) for t in sig]])
+    return sorted(out, key=json.dumps)
+
+
+def record():
+    """Write ``kernels.json``: ``WORKLOAD`` in a fresh process with an empty numba cache,
+    then every signature its kernels compiled."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, **{ahead.ENV: "0"})
+        done = subprocess.run([sys.executable, "-c", RECORDER], env=env, capture_output=True,
+                              text=True)  # fmt: skip
+    if done.returncode != 0:
+        raise RuntimeError(f"the workload failed:\n{done.stderr[-3000:]}")
+    out = done.stdout
+    entries = json.loads(out.split("RECORD", 1)[1])
+    head = {"numba": numba.__version__.split("+")[0], "numpy": numpy.__version__}
+    rows = ",\n".join(f"  {json.dumps(e)}" for e in entries)
+    with open(MANIFEST, "w") as f:
+        f.write(f'{{\n "recorded with": {json.dumps(head)},\n "kernels": [\n{rows}\n ]\n}}\n')
+
+
+def load_manifest():
+    """The listed signatures [(name, [spec, ...]), ...], or [] when the file is missing."""
+    try:
+        with open(MANIFEST) as f:
+            return [tuple(e) for e in json.load(f)["kernels"]]
+    except (OSError, ValueError, KeyError):
+        return []
+
+
+def dispatcher_named(name):
+    """The kernel "module:qualname" (a lazy one made now)."""
+    module, attr = name.split(":")
+    value = getattr(importlib.import_module(module), attr)
+    if isinstance(value, jit._LazyKernel):
+        value = value.made()
+    return value
+
+
+def shares(entries, parts):
+    """``entries`` split into ``parts`` lists, each module's kernels in one list (kernels of
+    one module share the kernels they call, compiled with them: once, not once a process),
+    the lists about as long as one another."""
+    by_module = {}
+    for entry in entries:
+        by_module.setdefault(entry[0].split(":")[0], []).append(entry)
+    out = [[] for _ in range(parts)]
+    for group in sorted(by_module.values(), key=len, reverse=True):
+        min(out, key=len).extend(group)
+    return out
+
+
+def compile_listed(part=0, parts=1):
+    """Compile (or load, when cached) the listed signatures of share ``part`` of ``parts``
+    (``shares``) in this process; returns [(name, error)] of those that failed."""
+    failed = []
+    for name, specs in shares(load_manifest(), parts)[part]:
+        try:
+            dispatcher_named(name).compile(tuple(ahead.type_of_spec(s) for s in specs))
+        except Exception as exc:  # noqa: BLE001  the user's first call compiles it then
+            failed.append((name, repr(exc)))
+    return failed
+
+
+COMPILER = """
+import json, sys
+from knnrefine._engine import shipped
+print("FAILED", json.dumps(shipped.compile_listed(int(sys.argv[1]), int(sys.argv[2]))))
+"""
+
+
+def build(package_root, log=print):
+    """Compile the listed kernels into the package at ``package_root`` (the folder holding
+    ``knnrefine/``, a build's ``build/lib``), for the portable CPU, in one process per core;
+    then once more in one process, which loads what those wrote and compiles what they
+    missed (two processes may write one kernel's index at once: the last one's stays).
+    Writes ``shipped.json`` beside this file there. Returns the marker's content."""
+    t0 = time.perf_counter()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env.update(NUMBA_CPU_NAME=jit.PORTABLE_CPU[0], NUMBA_CPU_FEATURES=jit.PORTABLE_CPU[1],
+               PYTHONPATH=os.pathsep.join([package_root, env.get("PYTHONPATH", "")]),
+               **{ahead.ENV: "0"})  # fmt: skip
+    entries = load_manifest()
+    parts = max(1, min(threads.workers(), 4))
+
+    def run(part, count):
+        return subprocess.Popen([sys.executable, "-c", COMPILER, str(part), str(count)],
+                                env=env, stdout=subprocess.PIPE, text=True)  # fmt: skip
+
+    processes = [run(p, parts) for p in range(parts)]
+    for p in processes:
+        p.communicate()
+    last = run(0, 1)
+    out, _ = last.communicate()
+    failed = json.loads(out.split("FAILED", 1)[1]) if "FAILED" in out else [["all", "no report"]]
+    marker = {
+        "numba": numba.__version__, "numpy": numpy.__version__,
+        "cpu": list(jit.PORTABLE_CPU), "signatures": len(entries), "failed": failed,
+        "seconds": round(time.perf_counter() - t0, 1), "processes": parts,
+    }  # fmt: skip
+    path = os.path.join(package_root, *__name__.split(".")[:-1], MARKER)
+    with open(path, "w") as f:
+        json.dump(marker, f, indent=1)
+    log(f"knnrefine: compiled {len(entries) - len(failed)} of {len(entries)} kernel signatures "
+        f"in {marker['seconds']} s ({parts} processes)")  # fmt: skip
+    return marker
+
+
+def build_marker():
+    """What the build compiled (``build``'s marker), or None (an editable install, a
+    checkout, or a build that could not compile)."""
+    try:
+        with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), MARKER)) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
+def in_use():
+    """Whether this install's kernels were compiled when it was built, for the numba and
+    numpy it runs with (else they compile at first use)."""
+    marker = build_marker()
+    return bool(marker) and (marker["numba"], marker["numpy"]) == (
+        numba.__version__, numpy.__version__)  # fmt: skip

@@ -1,0 +1,194 @@
+"""Kernels compiled when the package is built (``_engine/shipped.py``, issue 54): found by an
+installed copy on any machine of the platform, listed completely, and, in a built install,
+a first call that compiles nothing."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+import knnrefine
+from knnrefine._engine import ahead, jit, shipped
+
+# a small listed kernel, and a call of it (the probe prints what numba did)
+SMALL = "knnrefine._metric:running_sums"
+PROBE = textwrap.dedent("""
+    import json, sys
+    import numpy as np
+    from knnrefine import _metric
+    from knnrefine._engine import jit
+    if sys.argv[1] == "host only":
+        jit.PORTABLE_CPU = ("no such cpu", "")
+    sums = _metric.running_sums(np.arange(12.0).reshape(3, 4))
+    assert sums[2, 3] == 8 + 9 + 10 + 11
+    d = _metric.running_sums.dispatcher
+    print(json.dumps({"hits": sum(d.stats.cache_hits.values()),
+                      "misses": sum(d.stats.cache_misses.values())}))
+""")
+
+
+def _environment(site, **more):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env.update(PYTHONPATH=str(site), HOME=str(site / "home"), **more)
+    return env
+
+
+def _run(args, env):
+    out = subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env,
+                         timeout=600)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+def test_the_list_names_kernels_with_signatures_that_read_back():
+    """``kernels.json`` lists kernels that exist, with argument types numba reads back, and
+    says which numba and numpy recorded it."""
+    with open(shipped.MANIFEST) as f:
+        head = json.load(f)["recorded with"]
+    assert set(head) == {"numba", "numpy"}
+    entries = shipped.load_manifest()
+    assert len(entries) > 100
+    names = {name for name, _ in entries}
+    for name in ("knnrefine._engine.refine:refine_steps", "knnrefine._engine.refine3:refine_steps3",
+                 "knnrefine._engine.refine_sphere:refine_steps_sphere", SMALL,
+                 "knnrefine._engine.binned:stamp", "knnrefine._engine.binned:stamp3"):  # fmt: skip
+        assert name in names, name
+    for name, specs in entries:
+        assert isinstance(shipped.dispatcher_named(name), jit.Kernel), name
+        [ahead.type_of_spec(s) for s in specs]
+
+
+def test_kernels_built_for_the_portable_cpu_are_loaded_by_an_install(tmp_path):
+    """A kernel compiled as the build compiles it (NUMBA_CPU_NAME=generic, into the package's
+    own __pycache__) is loaded, not compiled, by a process on this machine's CPU after its
+    source files were written anew (an install does: numba's own stamp, the file's time,
+    would have discarded it). Without the portable look-up it is compiled again: the check
+    can fail."""
+    site = tmp_path / "site"
+    shutil.copytree(Path(knnrefine.__file__).parent, site / "knnrefine",
+                    ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    (site / "home").mkdir()
+    listed = [e for e in shipped.load_manifest() if e[0] == SMALL]
+    assert listed
+    manifest = tmp_path / "kernels.json"
+    manifest.write_text(json.dumps({"recorded with": {}, "kernels": listed}))
+    build = ("import sys; from knnrefine._engine import shipped; "
+             f"shipped.MANIFEST = {str(manifest)!r}; shipped.build(sys.argv[1])")  # fmt: skip
+    _run(["-c", build, str(site)], _environment(site))
+    marker = json.loads((site / "knnrefine" / "_engine" / shipped.MARKER).read_text())
+    assert marker["failed"] == [] and marker["signatures"] == len(listed)
+    assert marker["cpu"] == ["generic", ""]
+    later = time.time() + 100
+    for path in (site / "knnrefine").rglob("*.py"):
+        os.utime(path, (later, later))
+    probe = site / "probe.py"
+    probe.write_text(PROBE)
+    found = json.loads(_run([str(probe), "portable"], _environment(site)))
+    assert found == {"hits": 1, "misses": 0}
+    host_only = json.loads(_run([str(probe), "host only"], _environment(site)))
+    assert host_only == {"hits": 0, "misses": 1}
+
+
+def test_a_changed_source_or_numpy_compiles_again(monkeypatch):
+    """The index's stamp: the kernels' sources and numpy's version (a kernel compiled
+    against other sources or another numpy is not loaded)."""
+    stamp = jit.source_stamp()
+    assert stamp[1] == jit.sources_fingerprint()
+    import numpy
+
+    monkeypatch.setattr(numpy, "__version__", "0.0.1")
+    assert jit.source_stamp() != stamp
+
+
+@pytest.mark.slow
+def test_the_list_holds_every_signature_the_public_calls_compile():
+    """After the recorded uses (``shipped.WORKLOAD``: every domain, every use, sizes that take
+    the binned and thinned searches and the tiles, the CLI) and other calls not in it, every
+    kernel signature this process loaded or compiled is listed: a kernel whose arguments
+    changed fails here (then: ``python -c "from knnrefine._engine import shipped;
+    shipped.record()"``)."""
+    code = textwrap.dedent("""
+        import json
+        import numpy as np
+        import knnrefine
+        from knnrefine._engine import shipped
+        exec(shipped.WORKLOAD)
+        rng = np.random.default_rng(5)
+        pts = rng.normal(size=(20000, 3))
+        knnrefine.KnnDensityEstimator(sample_weight=None).fit(pts, sample_weight=rng.random(20000))
+        lonlat = rng.random((8000, 2)) * [360, 180] - [180, 90]
+        est = knnrefine.KnnDensityEstimator(sphere=True).fit(lonlat)
+        est.score_samples(lonlat[:10])
+        print("SIGS", json.dumps(shipped.compiled_signatures()))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=1200)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    seen = {json.dumps(e) for e in json.loads(out.stdout.split("SIGS", 1)[1])}
+    listed = {json.dumps(list(e)) for e in shipped.load_manifest()}
+    assert not seen - listed, sorted(seen - listed)[:5]
+
+
+FIRST_CALLS = textwrap.dedent("""
+    import json, sys, time
+    from numba.core import event
+    compiled = []
+
+    class Listener(event.Listener):
+        def on_start(self, ev):
+            compiled.append(ev.data["dispatcher"].py_func.__qualname__)
+
+        def on_end(self, ev):
+            pass
+
+    event.register("numba:compile", Listener())
+    import numpy as np
+    import knnrefine
+    rng = np.random.default_rng(3)
+    times = {}
+    for name, pts, options in (("plane", rng.random((3000, 2)), {}),
+                               ("space", rng.random((3000, 3)), {}),
+                               ("sphere", rng.random((3000, 2)) * [360, 180] - [180, 90],
+                                {"sphere": True})):
+        t = time.perf_counter()
+        mesh = knnrefine.refine(pts, 10, **options)
+        knnrefine.certify(mesh, pts)
+        times[name] = time.perf_counter() - t
+    est = knnrefine.KnnDensityEstimator().fit(rng.random((3000, 2)))
+    t = time.perf_counter()
+    knnrefine.KnnDensityEstimator().fit(rng.random((10000, 2))).grid()
+    times["estimator 10^4"] = time.perf_counter() - t
+    print("FIRST", json.dumps({"compiled": compiled, "times": times,
+                               "file": knnrefine.__file__}))
+""")
+
+
+@pytest.mark.slow
+def test_an_installed_build_compiles_nothing_at_its_first_calls():
+    """In an install built with its kernels (a wheel, ``pip install .``: CI's), a new process's
+    first calls in every domain (refine, certify, the estimator at 3,000 then 10,000 points)
+    compile no kernel: every one is loaded."""
+    marker = shipped.build_marker()
+    if marker is None:
+        pytest.skip("this knnrefine was not built with its kernels (an editable install)")
+    assert marker["failed"] == []
+    import numba
+    import numpy
+
+    if (marker["numba"], marker["numpy"]) != (numba.__version__, numpy.__version__):
+        pytest.skip(f"built with numba {marker['numba']} and numpy {marker['numpy']}, run with "
+                    f"{numba.__version__} and {numpy.__version__}: its kernels compile at "
+                    "first use (the fallback)")  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    out = subprocess.run([sys.executable, "-c", FIRST_CALLS], capture_output=True, text=True,
+                         timeout=600, env=env, cwd=os.path.dirname(shipped.__file__))  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.split("FIRST", 1)[1])
+    assert Path(result["file"]).parent == Path(knnrefine.__file__).parent
+    assert result["compiled"] == []
