@@ -13,6 +13,11 @@ import sys
 from setuptools import setup
 from setuptools.command.build_py import build_py
 
+try:
+    from setuptools.command.bdist_wheel import bdist_wheel
+except ImportError:  # setuptools before 70.1
+    from wheel.bdist_wheel import bdist_wheel
+
 COMPILE = "import sys; from knnrefine._engine import shipped; shipped.build(sys.argv[1])"
 
 
@@ -21,7 +26,7 @@ class build_py_and_kernels(build_py):
         super().run()
         if getattr(self, "editable_mode", False):
             return
-        if os.environ.get("KNNREFINE_BUILD_KERNELS", "1").strip() == "0":
+        if not kernels_asked():
             print("knnrefine: KNNREFINE_BUILD_KERNELS=0: kernels compile at first use")
             return
         root = os.path.abspath(self.build_lib)
@@ -37,4 +42,18 @@ class build_py_and_kernels(build_py):
                   "at first use instead", file=sys.stderr)  # fmt: skip
 
 
-setup(cmdclass={"build_py": build_py_and_kernels})
+def kernels_asked():
+    return os.environ.get("KNNREFINE_BUILD_KERNELS", "1").strip() != "0"
+
+
+class bdist_wheel_for_this_platform(bdist_wheel):
+    """A wheel with compiled kernels is this platform's and this Python's (its tag says so:
+    the kernels are x86-64 Linux code, say, in files named for CPython 3.11)."""
+
+    def finalize_options(self):
+        super().finalize_options()
+        if kernels_asked():
+            self.root_is_pure = False
+
+
+setup(cmdclass={"build_py": build_py_and_kernels, "bdist_wheel": bdist_wheel_for_this_platform})

@@ -14,11 +14,11 @@ kernels; ``KNNREFINE_BUILD_KERNELS=0`` builds without them, as before this issue
 comparison: ``--source both``).
 
 The environments reuse this interpreter's installed dependencies (``--system-site-packages``,
-the wheel installed with ``--no-deps``: no download); the wheel is built without build
-isolation (this environment's numba and numpy: the ones the install runs with) unless
-``--isolated``.
+the package installed with ``--no-deps``); the builds are pip's own (isolated: setuptools,
+numba, numpy and scipy from the package index, which must offer the numba and numpy
+installed here for the kernels to be used).
 
-    python benchmarks/shipped_install.py [--repeat 3] [--busy] [--source both] [--isolated]
+    python benchmarks/shipped_install.py [--repeat 3] [--busy] [--source both]
 """
 
 import argparse
@@ -49,6 +49,11 @@ CALLS = {
     "sphere": "knnrefine.refine(rng.random((3000, 2)) * [360, 180] - [180, 90], 10, sphere=True)",
     "import": "pass",
 }
+WHERE = """
+import json, knnrefine
+from knnrefine._engine import shipped
+print(json.dumps([knnrefine.__file__, shipped.build_marker()]))
+"""
 ESTIMATOR = """
 import time
 import numpy as np
@@ -87,11 +92,9 @@ def timed(args, env, cwd=None):
     return time.perf_counter() - t, out.stdout
 
 
-def build_wheel(into, isolated, kernels=True):
+def build_wheel(into, kernels=True):
     env = dict(os.environ, KNNREFINE_BUILD_KERNELS="1" if kernels else "0")
     args = [sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "-w", str(into), "-q"]
-    if not isolated:
-        args.append("--no-build-isolation")
     shutil.rmtree(ROOT / "build", ignore_errors=True)
     seconds, _ = timed(args, env)
     wheel = next(Path(into).glob("knnrefine-*.whl"))
@@ -129,21 +132,20 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--busy", action="store_true", help="also with the other cores busy")
     ap.add_argument("--source", choices=["none", "kernels", "both"], default="none")
-    ap.add_argument("--isolated", action="store_true", help="build the wheel in isolation")
     args = ap.parse_args(argv)
     result = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        seconds, wheel = build_wheel(tmp / "dist", args.isolated)
+        seconds, wheel = build_wheel(tmp / "dist")
         size = wheel.stat().st_size
         print(f"wheel built in {seconds:.1f} s, {size / 2**20:.1f} MiB ({wheel.name})")
         result["wheel"] = {"seconds": seconds, "MiB": size / 2**20}
         python = make_venv(tmp / "venv")
         env = clean_env(tmp / "venv")
         timed([python, "-m", "pip", "install", "-q", "--no-deps", str(wheel)], env)
-        marker = json.loads(timed([python, "-c", "import json; from knnrefine._engine import "
-                                   "shipped; print(json.dumps(shipped.build_marker()))"],
-                                  env)[1])  # fmt: skip
+        where, marker = json.loads(timed([python, "-c", WHERE], env)[1])
+        if not where.startswith(str(tmp / "venv")):
+            raise SystemExit(f"the fresh environment imports knnrefine from {where}")
         print(f"built with: {marker}")
         result["first calls"] = first_calls(python, env, args.repeat, "idle")
         if args.busy:
@@ -173,8 +175,8 @@ def main(argv=None):
             env = clean_env(venv)
             env["KNNREFINE_BUILD_KERNELS"] = "1" if kernels else "0"
             shutil.rmtree(ROOT / "build", ignore_errors=True)
-            install, _ = timed([python, "-m", "pip", "install", "-q", "--no-deps",
-                                "--no-build-isolation", str(ROOT)], env)  # fmt: skip
+            install, _ = timed([python, "-m", "pip", "install", "-q", "--no-deps", str(ROOT)],
+                               env)  # fmt: skip
             env.pop("KNNREFINE_BUILD_KERNELS")
             demo, _ = timed([venv / "bin" / "knnrefine", "demo", "-q", "--out",
                              str(venv / "demo")], env)  # fmt: skip

@@ -78,9 +78,8 @@ def test_kernels_built_for_the_portable_cpu_are_loaded_by_an_install(tmp_path):
     assert listed
     manifest = tmp_path / "kernels.json"
     manifest.write_text(json.dumps({"recorded with": {}, "kernels": listed}))
-    build = ("import sys; from knnrefine._engine import shipped; "
-             f"shipped.MANIFEST = {str(manifest)!r}; shipped.build(sys.argv[1])")  # fmt: skip
-    _run(["-c", build, str(site)], _environment(site))
+    build = "import sys; from knnrefine._engine import shipped; shipped.build(*sys.argv[1:])"
+    _run(["-c", build, str(site), str(manifest)], _environment(site))
     marker = json.loads((site / "knnrefine" / "_engine" / shipped.MARKER).read_text())
     assert marker["failed"] == [] and marker["signatures"] == len(listed)
     assert marker["cpu"] == ["generic", ""]
@@ -192,3 +191,52 @@ def test_an_installed_build_compiles_nothing_at_its_first_calls():
     result = json.loads(out.stdout.split("FIRST", 1)[1])
     assert Path(result["file"]).parent == Path(knnrefine.__file__).parent
     assert result["compiled"] == []
+
+
+def test_import_knnrefine_loads_neither_numba_nor_scipy():
+    """``import knnrefine`` is lazy (issue 54: under 0.5 s): numba and scipy load with the
+    first public name used."""
+    code = textwrap.dedent("""
+        import sys, time
+        t = time.perf_counter()
+        import knnrefine
+        seconds = time.perf_counter() - t
+        before = sorted(m for m in ("numba", "scipy", "pandas", "matplotlib") if m in sys.modules)
+        knnrefine.refine
+        after = sorted(m for m in ("numba", "scipy") if m in sys.modules)
+        print(before, after, seconds)
+    """)
+    out = _run(["-c", code], {**os.environ}).split("]")
+    assert out[0].strip() == "["
+    assert out[1].strip() == "['numba', 'scipy'"
+
+
+def test_certify_and_cluster_stay_the_functions_after_their_modules_are_imported():
+    """Regression: with the lazy package, importing the module ``knnrefine.cluster`` (or the
+    subpackage ``knnrefine.certify``) first bound the package's attribute to the module:
+    ``knnrefine.cluster(mesh, points)`` raised "'module' object is not callable"."""
+    code = textwrap.dedent("""
+        import importlib
+        import knnrefine
+        importlib.import_module("knnrefine.cluster")
+        from knnrefine.certify import Certificate
+        import knnrefine.certify
+        print(callable(knnrefine.cluster), callable(knnrefine.certify),
+              knnrefine.cluster.__module__, knnrefine.certify.__module__)
+    """)
+    assert _run(["-c", code], {**os.environ}).split() == [
+        "True", "True", "knnrefine.cluster", "knnrefine.api"]  # fmt: skip
+
+
+def test_the_package_pickles_by_name():
+    """Regression: the package's module class broke cloudpickle (Dask's), which pickled the
+    module referenced by a function by value: "cannot pickle '_Package' object"."""
+    cloudpickle = pytest.importorskip("cloudpickle")
+    import pickle
+
+    assert pickle.loads(cloudpickle.dumps(knnrefine)) is knnrefine
+
+    def uses():
+        return knnrefine.refine
+
+    assert pickle.loads(cloudpickle.dumps(uses))() is knnrefine.refine

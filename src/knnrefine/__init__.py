@@ -75,18 +75,23 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))
 
 
+def _function_named_as_its_module(name: str) -> property:
+    """``knnrefine.<name>`` is the function, whatever was imported before: importing the
+    module ``knnrefine.<name>`` binds the package's attribute of that name to the module,
+    which would hide the function (an assignment here is the import system's: ignored)."""
+    return property(lambda self: _load(name), lambda self, value: None)
+
+
 class _Package(types.ModuleType):
-    """``knnrefine.certify`` is the function (``api.certify``) whatever was imported before:
-    importing the subpackage ``knnrefine.certify`` binds the package's attribute of that
-    name to the subpackage, which would hide the function."""
+    """This package's module: ``certify`` and ``cluster`` are the functions (the modules of
+    those names are imported as ``knnrefine.certify`` and ``knnrefine.cluster`` by
+    ``importlib`` or ``from ... import``); pickled by name, as a module is."""
 
-    @property
-    def certify(self):
-        return _load("certify")
+    certify = _function_named_as_its_module("certify")
+    cluster = _function_named_as_its_module("cluster")
 
-    @certify.setter
-    def certify(self, value):
-        pass  # the subpackage, bound by the import system: the name stays the function's
+    def __reduce__(self):
+        return importlib.import_module, (self.__name__,)
 
 
 sys.modules[__name__].__class__ = _Package

@@ -26,6 +26,7 @@ checks that the public calls compile nothing the list lacks.
 """
 
 import importlib
+import inspect
 import json
 import os
 import subprocess
@@ -143,10 +144,11 @@ def record():
         f.write(f'{{\n "recorded with": {json.dumps(head)},\n "kernels": [\n{rows}\n ]\n}}\n')
 
 
-def load_manifest():
-    """The listed signatures [(name, [spec, ...]), ...], or [] when the file is missing."""
+def load_manifest(path=None):
+    """The listed signatures [(name, [spec, ...]), ...] (of ``kernels.json``, or the file
+    ``path``), or [] when the file is missing."""
     try:
-        with open(MANIFEST) as f:
+        with open(path or MANIFEST) as f:
             return [tuple(e) for e in json.load(f)["kernels"]]
     except (OSError, ValueError, KeyError):
         return []
@@ -161,24 +163,70 @@ def dispatcher_named(name):
     return value
 
 
-def shares(entries, parts):
-    """``entries`` split into ``parts`` lists, each module's kernels in one list (kernels of
-    one module share the kernels they call, compiled with them: once, not once a process),
-    the lists about as long as one another."""
-    by_module = {}
-    for entry in entries:
-        by_module.setdefault(entry[0].split(":")[0], []).append(entry)
-    out = [[] for _ in range(parts)]
-    for group in sorted(by_module.values(), key=len, reverse=True):
-        min(out, key=len).extend(group)
+def _callees(dispatcher):
+    """The kernels ``dispatcher``'s code calls by a global name (its module's or imported)."""
+    func = dispatcher.py_func
+    out = []
+    for name in func.__code__.co_names:
+        value = func.__globals__.get(name)
+        if isinstance(value, jit._LazyKernel):
+            value = value.made()
+        if isinstance(value, jit.Kernel) and value is not dispatcher:
+            out.append(value)
     return out
 
 
-def compile_listed(part=0, parts=1):
-    """Compile (or load, when cached) the listed signatures of share ``part`` of ``parts``
-    (``shares``) in this process; returns [(name, error)] of those that failed."""
+def _compiled_with(dispatcher):
+    """The kernels compiling ``dispatcher`` compiles: itself and every kernel it calls,
+    directly or not, as {id: (dispatcher, lines of source)}."""
+    found, todo = {}, [dispatcher]
+    while todo:
+        d = todo.pop()
+        if id(d) not in found:
+            found[id(d)] = (d, len(inspect.getsource(d.py_func).splitlines()))
+            todo.extend(_callees(d))
+    return found
+
+
+def shares(entries, parts):
+    """``entries`` split into ``parts`` lists to compile in as many processes: each module's
+    kernels in one list, the modules placed (the largest first) where the most lines of
+    kernel source a process compiles, its kernels' and every kernel they call (which a
+    process compiles once, whoever calls it), stays least; its source lines stand for a
+    kernel's compile time."""
+    by_module = {}
+    for entry in entries:
+        by_module.setdefault(entry[0].split(":")[0], []).append(entry)
+    closure = {}
+    for module, group in by_module.items():
+        closure[module] = {}
+        for name in {name for name, _ in group}:
+            closure[module].update(_compiled_with(dispatcher_named(name)))
+
+    def lines(kernels):
+        return sum(size for _, size in kernels.values())
+
+    out = [[] for _ in range(parts)]
+    held = [{} for _ in range(parts)]
+    for module in sorted(by_module, key=lambda m: (-lines(closure[m]), m)):
+
+        def after(i, kernels=closure[module]):
+            merged = lines({**held[i], **kernels})
+            others = max((lines(held[j]) for j in range(parts) if j != i), default=0)
+            return max(merged, others), merged - lines(held[i]), i
+
+        best = min(range(parts), key=after)
+        out[best].extend(by_module[module])
+        held[best].update(closure[module])
+    return out
+
+
+def compile_listed(part=0, parts=1, manifest=None):
+    """Compile (or load, when cached) the signatures listed (``load_manifest(manifest)``)
+    of share ``part`` of ``parts`` (``shares``) in this process; returns [(name, error)] of
+    those that failed."""
     failed = []
-    for name, specs in shares(load_manifest(), parts)[part]:
+    for name, specs in shares(load_manifest(manifest), parts)[part]:
         try:
             dispatcher_named(name).compile(tuple(ahead.type_of_spec(s) for s in specs))
         except Exception as exc:  # noqa: BLE001  the user's first call compiles it then
@@ -189,26 +237,29 @@ def compile_listed(part=0, parts=1):
 COMPILER = """
 import json, sys
 from knnrefine._engine import shipped
-print("FAILED", json.dumps(shipped.compile_listed(int(sys.argv[1]), int(sys.argv[2]))))
+part, parts, manifest = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+print("FAILED", json.dumps(shipped.compile_listed(part, parts, manifest)))
 """
 
 
-def build(package_root, log=print):
+def build(package_root, manifest=None, log=print):
     """Compile the listed kernels into the package at ``package_root`` (the folder holding
     ``knnrefine/``, a build's ``build/lib``), for the portable CPU, in one process per core;
     then once more in one process, which loads what those wrote and compiles what they
     missed (two processes may write one kernel's index at once: the last one's stays).
-    Writes ``shipped.json`` beside this file there. Returns the marker's content."""
+    Writes ``shipped.json`` beside this file there. Returns the marker's content.
+    ``manifest``: another list than ``kernels.json`` (tests)."""
     t0 = time.perf_counter()
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
     env.update(NUMBA_CPU_NAME=jit.PORTABLE_CPU[0], NUMBA_CPU_FEATURES=jit.PORTABLE_CPU[1],
                PYTHONPATH=os.pathsep.join([package_root, env.get("PYTHONPATH", "")]),
                **{ahead.ENV: "0"})  # fmt: skip
-    entries = load_manifest()
+    manifest = os.path.abspath(manifest or MANIFEST)
+    entries = load_manifest(manifest)
     parts = max(1, min(threads.workers(), 4))
 
     def run(part, count):
-        return subprocess.Popen([sys.executable, "-c", COMPILER, str(part), str(count)],
+        return subprocess.Popen([sys.executable, "-c", COMPILER, str(part), str(count), manifest],
                                 env=env, stdout=subprocess.PIPE, text=True)  # fmt: skip
 
     processes = [run(p, parts) for p in range(parts)]
