@@ -120,7 +120,7 @@ def test_the_list_holds_every_signature_the_public_calls_compile():
         exec(shipped.WORKLOAD)
         rng = np.random.default_rng(5)
         pts = rng.normal(size=(20000, 3))
-        knnrefine.KnnDensityEstimator(sample_weight=None).fit(pts, sample_weight=rng.random(20000))
+        knnrefine.KnnDensityEstimator().fit(pts, sample_weight=rng.random(20000))
         lonlat = rng.random((8000, 2)) * [360, 180] - [180, 90]
         est = knnrefine.KnnDensityEstimator(sphere=True).fit(lonlat)
         est.score_samples(lonlat[:10])
@@ -169,7 +169,7 @@ FIRST_CALLS = textwrap.dedent("""
 
 
 @pytest.mark.slow
-def test_an_installed_build_compiles_nothing_at_its_first_calls():
+def test_an_installed_build_compiles_nothing_at_its_first_calls(tmp_path):
     """In an install built with its kernels (a wheel, ``pip install .``: CI's), a new process's
     first calls in every domain (refine, certify, the estimator at 3,000 then 10,000 points)
     compile no kernel: every one is loaded."""
@@ -186,7 +186,7 @@ def test_an_installed_build_compiles_nothing_at_its_first_calls():
                     "first use (the fallback)")  # fmt: skip
     env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
     out = subprocess.run([sys.executable, "-c", FIRST_CALLS], capture_output=True, text=True,
-                         timeout=600, env=env, cwd=os.path.dirname(shipped.__file__))  # fmt: skip
+                         timeout=600, env=env, cwd=tmp_path)  # fmt: skip
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout.split("FIRST", 1)[1])
     assert Path(result["file"]).parent == Path(knnrefine.__file__).parent
