@@ -20,19 +20,9 @@ import sys
 RUN = r"""
 import sys, time
 import numpy as np
-from numba.core import event
-compiled = []
+from knnrefine._engine import shipped
 
-
-class Listener(event.Listener):
-    def on_start(self, ev):
-        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
-
-    def on_end(self, ev):
-        pass
-
-
-event.register("numba:compile", Listener())
+compiled = shipped.compiles()
 import knnrefine
 
 rng = np.random.default_rng(0)

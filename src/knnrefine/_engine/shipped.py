@@ -301,3 +301,21 @@ def in_use():
         and (marker["numba"], marker["numpy"]) == (numba.__version__, numpy.__version__)
         and len(marker["failed"]) < marker["signatures"]
     )
+
+
+def compiles():
+    """A list that numba's compiles in this process append to from now on (each compiled
+    function's qualified name): how tests and benchmarks see that a call compiled nothing."""
+    from numba.core import event
+
+    names = []
+
+    class Listener(event.Listener):
+        def on_start(self, ev):
+            names.append(ev.data["dispatcher"].py_func.__qualname__)
+
+        def on_end(self, ev):
+            pass
+
+    event.register("numba:compile", Listener())
+    return names
