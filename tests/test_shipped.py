@@ -231,3 +231,18 @@ def test_the_package_pickles_by_name():
         return knnrefine.refine
 
     assert pickle.loads(cloudpickle.dumps(uses))() is knnrefine.refine
+
+
+def test_an_assigned_stand_in_for_cluster_or_certify_is_kept(monkeypatch):
+    """The lazy package ignores only the import system's binding of the modules ``cluster``
+    and ``certify``: a stand-in assigned to the names (a test's monkeypatch) is used, and
+    the function comes back when it is undone."""
+    real = knnrefine.cluster
+
+    def stand_in(*args, **kwargs):
+        return "stand-in"
+
+    monkeypatch.setattr(knnrefine, "cluster", stand_in)
+    assert knnrefine.cluster() == "stand-in"
+    monkeypatch.undo()
+    assert knnrefine.cluster is real

@@ -78,8 +78,18 @@ def __dir__() -> list[str]:
 def _function_named_as_its_module(name: str) -> property:
     """``knnrefine.<name>`` is the function, whatever was imported before: importing the
     module ``knnrefine.<name>`` binds the package's attribute of that name to the module,
-    which would hide the function (an assignment here is the import system's: ignored)."""
-    return property(lambda self: _load(name), lambda self, value: None)
+    which would hide the function: that binding (a module) is ignored, any other value
+    assigned (a test's stand-in, say) is kept and read back."""
+    key = f"_assigned_{name}"
+
+    def get(self):
+        return self.__dict__.get(key) or _load(name)
+
+    def put(self, value):
+        if not isinstance(value, types.ModuleType):
+            self.__dict__[key] = value
+
+    return property(get, put)
 
 
 class _Package(types.ModuleType):
