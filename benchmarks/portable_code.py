@@ -7,9 +7,14 @@ and the median of 3; the two sides alternate.
 The portable side is a Python whose knnrefine was installed from a wheel built with its
 kernels (``benchmarks/shipped_install.py`` makes one; or ``pip wheel .`` and a fresh
 virtual environment); the host side is this interpreter with its own numba cache (compiled
-here: run each family once first).
+here: run each family once first). ``--upgraded`` adds a third side: a Python with the same
+build whose kernel sums were compiled for this CPU (``shipped.upgrade``, which the estimator
+starts in the background after its first fit; here run to its end before timing): another
+virtual environment with the same wheel installed. The portable side runs with
+``KNNREFINE_HOST_KERNELS=0``, so that it keeps the portable code.
 
-    python benchmarks/portable_code.py --portable /path/to/venv/bin/python [--pairs 2]
+    python benchmarks/portable_code.py --portable /path/to/venv/bin/python \
+        [--upgraded /path/to/venv2/bin/python] [--pairs 2]
 """
 
 import argparse
@@ -59,6 +64,15 @@ FAMILIES = ("refine, plane", "refine, space", "refine, sphere", "certify, plane"
             "estimator, plane", "estimator, space")  # fmt: skip
 
 
+UPGRADE = """
+from knnrefine._engine import shipped
+import numpy as np, knnrefine
+for dim in (2, 3):
+    knnrefine.KnnDensityEstimator().fit(np.random.default_rng(0).random((3000, dim)))
+print("UPGRADE", shipped.upgrade("kernel sums", wait=True))
+"""
+
+
 def one(python, family, env):
     out = subprocess.run([python, "-c", RUN, family], capture_output=True, text=True, env=env)
     if out.returncode:
@@ -70,22 +84,33 @@ def one(python, family, env):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--portable", required=True, help="a Python with a built knnrefine")
+    ap.add_argument("--upgraded", help="a Python with the same build, its kernel sums upgraded")
     ap.add_argument("--pairs", type=int, default=2)
     ap.add_argument("--families", nargs="+", default=list(FAMILIES), choices=FAMILIES)
     args = ap.parse_args(argv)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_", "PYTHONPATH"))}
-    print("| run | this CPU's code: best (median) | portable code: best (median) | ratio |")
-    print("|---|---|---|---:|")
+    env["KNNREFINE_HOST_KERNELS"] = "0"
+    pythons = {"this CPU's code": sys.executable, "portable code": args.portable}
+    if args.upgraded:
+        pythons["portable, kernel sums upgraded"] = args.upgraded
+        done = subprocess.run([args.upgraded, "-c", UPGRADE], capture_output=True, text=True,
+                              env={**env, "KNNREFINE_HOST_KERNELS": "1"})  # fmt: skip
+        print("upgrade:", done.stdout.split("UPGRADE")[-1].strip() or done.stderr[-2000:])
+    names = list(pythons)
+    print("| run | " + " | ".join(f"{n}: best (median)" for n in names) + " | "
+          + " | ".join(f"{n} / this CPU's" for n in names[1:]) + " |")  # fmt: skip
+    print("|---|" + "---|" * len(names) + "---:|" * (len(names) - 1))
     for family in args.families:
-        host, portable = [], []
+        times = {n: [] for n in names}
         for pair in range(args.pairs):
-            sides = [(sys.executable, host), (args.portable, portable)]
-            for python, into in sides if pair % 2 == 0 else sides[::-1]:
-                into.append(one(python, family, env))
-        cell = [", ".join(f"{b:.3f} ({m:.3f})" + (f" [{c} compiled]" if c else "")
-                          for b, m, c in side) for side in (host, portable)]  # fmt: skip
-        ratio = sum(b for b, _, _ in portable) / sum(b for b, _, _ in host)
-        print(f"| {family} | {cell[0]} | {cell[1]} | {ratio:.2f} |", flush=True)
+            order = names if pair % 2 == 0 else names[::-1]
+            for n in order:
+                times[n].append(one(pythons[n], family, env))
+        cells = [", ".join(f"{b:.3f} ({m:.3f})" + (f" [{c} compiled]" if c else "")
+                           for b, m, c in times[n]) for n in names]  # fmt: skip
+        base = sum(b for b, _, _ in times[names[0]])
+        ratios = [f"{sum(b for b, _, _ in times[n]) / base:.2f}" for n in names[1:]]
+        print(f"| {family} | " + " | ".join(cells) + " | " + " | ".join(ratios) + " |", flush=True)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ whole (interpreter start and ``import knnrefine`` included):
 
 * import knnrefine and refine 3,000 points, in the plane, in space and on the sphere (each
   domain in its own process; ``--busy`` repeats them with the other cores kept busy);
-* the estimator's first fit + grid at 10^4 points after one at 3,000, against its second;
+* the estimator's first fit + grid at 10^4 points after one at 3,000, against its second
+  (while the process the first fit started compiles the kernel sums for this CPU, at the
+  lowest priority; then how long after the first fit that compile was done);
 * ``knnrefine demo``;
 * ``import knnrefine`` alone.
 
@@ -18,7 +20,9 @@ the package installed with ``--no-deps``); the builds are pip's own (isolated: s
 numba, numpy and scipy from the package index, which must offer the numba and numpy
 installed here for the kernels to be used).
 
-    python benchmarks/shipped_install.py [--repeat 3] [--busy] [--source both]
+    python benchmarks/shipped_install.py [--repeat 3] [--busy] [--source both] [--keep DIR]
+
+(``--keep``: the wheel is copied there, for ``benchmarks/portable_code.py``.)
 """
 
 import argparse
@@ -59,14 +63,17 @@ import time
 import numpy as np
 import knnrefine
 rng = np.random.default_rng(0)
+from knnrefine._engine import shipped
 knnrefine.KnnDensityEstimator().fit(rng.random((3000, 2)))
+started = time.perf_counter()
 out = []
 for seed in (1, 2):
     pts = np.random.default_rng(seed).random((10000, 2))
     t = time.perf_counter()
     knnrefine.KnnDensityEstimator().fit(pts).grid()
     out.append(time.perf_counter() - t)
-print("SECONDS", *out)
+state = shipped.upgrade("kernel sums", wait=True)  # this CPU's code, compiled meanwhile
+print("SECONDS", *out, time.perf_counter() - started, state)
 """
 
 
@@ -132,6 +139,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--busy", action="store_true", help="also with the other cores busy")
     ap.add_argument("--source", choices=["none", "kernels", "both"], default="none")
+    ap.add_argument("--keep", type=Path, help="copy the wheel into this folder")
     args = ap.parse_args(argv)
     result = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -140,6 +148,9 @@ def main(argv=None):
         size = wheel.stat().st_size
         print(f"wheel built in {seconds:.1f} s, {size / 2**20:.1f} MiB ({wheel.name})")
         result["wheel"] = {"seconds": seconds, "MiB": size / 2**20}
+        if args.keep:
+            args.keep.mkdir(parents=True, exist_ok=True)
+            shutil.copy(wheel, args.keep)
         python = make_venv(tmp / "venv")
         env = clean_env(tmp / "venv")
         timed([python, "-m", "pip", "install", "-q", "--no-deps", str(wheel)], env)
@@ -157,10 +168,13 @@ def main(argv=None):
                 for p in procs:
                     p.join()
         _, out = timed([python, "-c", ESTIMATOR], env)
-        first, second = map(float, out.split("SECONDS")[1].split())
+        first, second, upgraded, state = out.split("SECONDS")[1].split()
+        first, second = float(first), float(second)
         print(f"estimator at 10^4 after 3,000: first {first:.2f} s, second {second:.2f} s "
-              f"({first / second:.2f}x)")  # fmt: skip
+              f"({first / second:.2f}x); the kernel sums for this CPU: {state} "
+              f"{float(upgraded):.0f} s after the first fit")  # fmt: skip
         result["estimator"] = [first, second]
+        result["kernel sums upgraded"] = [state, float(upgraded)]
         demo = []
         for _ in range(args.repeat):
             seconds, _ = timed([tmp / "venv" / "bin" / "knnrefine", "demo", "-q", "--out",

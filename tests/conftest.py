@@ -16,6 +16,11 @@ SHARED_DATA = Path(
     )
 )
 
+# The suite runs the kernels it finds: a build's portable ones are not replaced by this CPU's
+# compiled in the background (``_engine/shipped.upgrade``; tests/test_shipped.py turns it on
+# where it tests it), which would compile while the tests run and write into the install.
+os.environ.setdefault("KNNREFINE_HOST_KERNELS", "0")
+
 # Property tests: CI runs a fixed, derandomized set of examples (the same every run, no
 # example database); the wide search is a separate profile run by hand:
 #     python -m pytest tests/test_properties.py tests/test_index.py --hypothesis-profile=wide

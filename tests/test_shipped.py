@@ -64,6 +64,18 @@ def test_the_list_names_kernels_with_signatures_that_read_back():
         [ahead.type_of_spec(s) for s in specs]
 
 
+def test_plain_tuple_arguments_are_listed_regression():
+    """The tiles' kernels take plain tuples of arrays: the list could not record them
+    ("compile ahead: no record for argument type Tuple(...)"), so the tiles compiled at
+    their first call."""
+    from numba import types
+
+    arr = types.Array(types.int32, 2, "C")
+    for t in (types.Tuple((arr, types.Array(types.float64, 1, "C"), types.int64)),
+              types.UniTuple(arr, 3)):  # fmt: skip
+        assert ahead.type_of_spec(json.loads(json.dumps(ahead.type_spec(t)))) == t
+
+
 def test_kernels_built_for_the_portable_cpu_are_loaded_by_an_install(tmp_path):
     """A kernel compiled as the build compiles it (NUMBA_CPU_NAME=generic, into the package's
     own __pycache__) is loaded, not compiled, by a process on this machine's CPU after its
@@ -92,6 +104,68 @@ def test_kernels_built_for_the_portable_cpu_are_loaded_by_an_install(tmp_path):
     assert found == {"hits": 1, "misses": 0}
     host_only = json.loads(_run([str(probe), "host only"], _environment(site)))
     assert host_only == {"hits": 0, "misses": 1}
+
+
+UPGRADE = textwrap.dedent("""
+    import json, os, sys
+    import numpy as np
+    from knnrefine._engine import jit, lattice, shipped
+    if sys.argv[1] == "host only":
+        jit.PORTABLE_CPU = ("no such cpu", "")
+    compiled = shipped.compiles()
+    t, out = np.linspace(0.0, 0.9, 7), np.empty((7, 4))
+    lattice.catmull_rom_rows(t, out)
+    expected = out.copy()
+    d = lattice.catmull_rom_rows
+    before = list(d.overloads.values())
+    host_code = list(shipped.host_keys(d).values())
+    states = [shipped.upgrade("kernel sums")]
+    if sys.argv[1] == "wait":
+        states.append(shipped.upgrade("kernel sums", wait=True))
+    out[:] = 0.0
+    lattice.catmull_rom_rows(t, out)
+    print(json.dumps({"states": states, "host code": host_code,
+                      "same code": list(d.overloads.values()) == before,
+                      "right": bool((out == expected).all()), "compiled": compiled,
+                      "hits": sum(d.stats.cache_hits.values()),
+                      "misses": sum(d.stats.cache_misses.values()),
+                      "folder": sorted(os.listdir(d._cache._cache_path))}))
+""")
+
+
+def test_the_kernel_sums_are_compiled_for_this_cpu_in_the_background(tmp_path):
+    """In an install whose kernels came portable, the first call of the kernel sums starts a
+    process that compiles them for this machine's CPU; once it is done, the next call loads
+    its code in place of the portable code (the process compiles nothing itself), and a later
+    process finds this CPU's code at once (it loads with the portable look-up off).
+    ``KNNREFINE_HOST_KERNELS=0`` keeps the portable code."""
+    site = tmp_path / "site"
+    shutil.copytree(Path(knnrefine.__file__).parent, site / "knnrefine",
+                    ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    (site / "home").mkdir()
+    listed = [
+        e for e in shipped.load_manifest() if e[0] == "knnrefine._engine.lattice:catmull_rom_rows"
+    ]
+    assert listed
+    manifest = site / "knnrefine" / "_engine" / "kernels.json"
+    manifest.write_text(json.dumps({"recorded with": {}, "kernels": listed}))
+    build = "import sys; from knnrefine._engine import shipped; shipped.build(*sys.argv[1:])"
+    _run(["-c", build, str(site)], _environment(site))
+    probe = site / "probe.py"
+    probe.write_text(UPGRADE)
+    kept = json.loads(_run([str(probe), "wait"], _environment(site, **{shipped.HOST_ENV: "0"})))
+    assert kept["states"] == ["off", "off"] and kept["same code"]
+    assert kept["host code"] == [False]  # the portable code only, so far
+    env = _environment(site)
+    env.pop(shipped.HOST_ENV, None)
+    first = json.loads(_run([str(probe), "wait"], env))
+    assert first["states"] == ["compiling", "done"], first
+    assert not first["same code"] and first["right"] and first["compiled"] == []
+    assert first["hits"] == 2 and first["misses"] == 0  # the portable code, then this CPU's
+    assert not any(name.endswith(".lock") for name in first["folder"])
+    later = json.loads(_run([str(probe), "host only"], env))
+    assert later["states"] == ["done"] and later["compiled"] == []
+    assert later["hits"] == 1 and later["misses"] == 0
 
 
 def test_a_changed_source_or_numpy_compiles_again(monkeypatch):

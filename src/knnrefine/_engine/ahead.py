@@ -78,7 +78,7 @@ def kernel_named(name):
 
 def type_spec(t):
     """A JSON-able description of a numba argument type (``type_of_spec`` reads it back):
-    scalars, arrays and named tuples of them, the types kernels take."""
+    scalars, arrays, and named or plain tuples of them, the types kernels take."""
     if isinstance(t, (types.Integer, types.Float, types.Boolean)):
         return str(t)
     if isinstance(t, types.Array):
@@ -87,6 +87,8 @@ def type_spec(t):
     if isinstance(t, (types.NamedTuple, types.NamedUniTuple)):
         cls = t.instance_class
         return {"named": f"{cls.__module__}:{cls.__qualname__}", "items": [type_spec(u) for u in t]}
+    if isinstance(t, types.BaseTuple):
+        return {"tuple": [type_spec(u) for u in t]}
     raise TypeError(f"compile ahead: no record for argument type {t!r}")
 
 
@@ -97,6 +99,9 @@ def type_of_spec(spec):
     if "array" in spec:
         return types.Array(getattr(types, spec["array"]), spec["ndim"], spec["layout"],
                            readonly=spec["readonly"], aligned=spec["aligned"])  # fmt: skip
+    if "tuple" in spec:
+        items = [type_of_spec(s) for s in spec["tuple"]]
+        return types.Tuple(items) if len(set(items)) > 1 else types.UniTuple(items[0], len(items))
     module, name = spec["named"].split(":")
     cls = getattr(importlib.import_module(module), name)
     items = [type_of_spec(s) for s in spec["items"]]

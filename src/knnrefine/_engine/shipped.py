@@ -20,8 +20,8 @@ at its first call as before (with ``ahead.py``'s helper and the "compiling" noti
 
 ``kernels.json`` is written by ``python -c "from knnrefine._engine import shipped;
 shipped.record()"``: ``WORKLOAD`` (every public use in every domain, at sizes that take the
-binned and thinned smoothing searches, threads, the CLI's demo; not the tiles of runs over
-2 million points in the plane or 300,000 in space, whose kernels compile at first use) run
+binned and thinned smoothing searches, threads, the tiles of runs over 2 million points in
+the plane or 300,000 in space (taken at a small size), the CLI's demo) run
 in a fresh process with an empty numba cache, then every kernel's compiled signatures.
 ``tests/test_shipped.py`` checks that the public calls compile nothing the list lacks.
 """
@@ -45,7 +45,8 @@ MARKER = "shipped.json"  # written beside this file in a built package: what was
 
 # the uses whose kernels are listed (recorded in a fresh process: every signature compiled)
 WORKLOAD = r"""
-import contextlib, io, tempfile
+import contextlib, io, os, tempfile
+from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import knnrefine
 from knnrefine.cli.main import main as cli
@@ -88,8 +89,18 @@ for n, dim in ((10_000, 2), (50_000, 2), (10_000, 3), (50_000, 3)):
     knnrefine.certify(est.mesh_, pts)
 big = np.random.default_rng(2).random((200_000, 2))
 knnrefine.certify(knnrefine.refine(big, 50), big)
-for pts in (big, np.random.default_rng(3).random((100_000, 3))):  # tiles, in threads
+for pts in (big, np.random.default_rng(3).random((100_000, 3))):  # one process, threads
     knnrefine.certify(knnrefine.refine(pts, 50, workers=2), pts, workers=2)
+os.environ["KNNREFINE_TILES"] = "always"  # the tiles of large runs, at a small size
+with ThreadPoolExecutor(2) as pool:  # stands for processes: its tiles take the same calls
+    for pts, box in ((plane, square), (space, cube)):
+        pts = np.concatenate([pts] * 10) + rng.random((30000, pts.shape[1])) * 1e-3
+        pts = np.clip(pts, 0.0, 1.0)
+        for options in ({}, {"weights": rng.random(len(pts)) + 0.5},
+                        {"periodic": True, "box": box}, {"executor": pool}):
+            mesh = knnrefine.refine(pts, 20, workers=2, **options)
+            knnrefine.certify(mesh, pts, workers=2, weights=options.get("weights"))
+del os.environ["KNNREFINE_TILES"]
 with tempfile.TemporaryDirectory() as out, contextlib.redirect_stdout(io.StringIO()):
     cli(["demo", "-q", "--out", out])
 """
@@ -319,3 +330,171 @@ def compiles():
 
     event.register("numba:compile", Listener())
     return names
+
+
+# -- this machine's own code, compiled in the background ---------------------------------------
+
+# kernel families whose code compiled for this machine's CPU ran measurably faster than the
+# portable code the package is built with (``benchmarks/portable_code.py``, docs/benchmarks.md,
+# "Kernels built with the package"): the modules of their kernels. The others keep the
+# portable code, which ran as fast (refine, certify, the index).
+HOST_FAMILIES = {
+    "kernel sums": ("knnrefine._engine.binned", "knnrefine._engine.kernelsum",
+                    "knnrefine._engine.kernelsum3", "knnrefine._engine.lattice"),
+}  # fmt: skip
+HOST_ENV = "KNNREFINE_HOST_KERNELS"  # "0": keep the portable code, compile nothing
+STALE_LOCK = 1800.0  # seconds after which a compiling process's lock is taken for lost
+
+_host: dict = {}  # family: its compiling process, "another" (one elsewhere), "done" or "off"
+_retired: list = []  # the portable code replaced (kept: a thread may still run it)
+
+HOST_COMPILER = """
+import json, os, sys
+if hasattr(os, "nice"):
+    os.nice(19)  # behind the user's own work
+from knnrefine._engine import jit, shipped
+jit.PORTABLE_CPU = ("none", "")  # compile for this CPU: never load the portable code
+family, lock = sys.argv[1], sys.argv[2]
+try:
+    shipped.compile_family(family)
+finally:
+    os.remove(lock)
+"""
+
+
+def family_kernels(family):
+    """The entry kernels of ``family`` (``HOST_FAMILIES``) loaded in this process."""
+    modules = HOST_FAMILIES[family]
+    return [d for name, d in sorted(_kernels().items())
+            if name.split(":")[0] in modules and type(d) is jit.Kernel]  # fmt: skip
+
+
+def compile_family(family, manifest=None):
+    """Compile (or load) the listed signatures of ``family``'s entry kernels in this process
+    (their callees with them); returns [(name, error)] of those that failed."""
+    failed = []
+    for name, specs in load_manifest(manifest):
+        if name.split(":")[0] not in HOST_FAMILIES[family]:
+            continue
+        dispatcher = dispatcher_named(name)
+        if type(dispatcher) is not jit.Kernel:
+            continue
+        try:
+            dispatcher.compile(tuple(ahead.type_of_spec(s) for s in specs))
+        except Exception as exc:  # noqa: BLE001  the portable code stays in use
+            failed.append((name, repr(exc)))
+    return failed
+
+
+def host_keys(dispatcher):
+    """{signature: whether the cache holds code for this machine's CPU}, for the signatures
+    in use here; None where no cache can take such code (a read-only install reading its
+    shipped kernels, no cache, or this process itself runs the portable CPU)."""
+    cache = getattr(dispatcher, "_cache", None)
+    cache_file = getattr(cache, "_cache_file", None)
+    if cache_file is None or not hasattr(cache, "_index_key"):
+        return None
+    if isinstance(getattr(cache._impl, "locator", None), jit.ShippedCacheLocator):
+        return None
+    codegen = dispatcher.targetctx.codegen()
+    if tuple(codegen.magic_tuple()[1:]) == jit.PORTABLE_CPU:
+        return None
+    index = cache_file._load_index()
+    return {sig: cache._index_key(sig, codegen) in index for sig in dispatcher.signatures}
+
+
+def _lock_path(family):
+    """The lock a process compiling ``family`` holds, in the cache folder of its kernels."""
+    cache = getattr(dispatcher_named(_first_listed(family)), "_cache", None)
+    folder = getattr(cache, "_cache_path", None)
+    return folder and os.path.join(folder, f"host-{family.replace(' ', '-')}.lock")
+
+
+def _first_listed(family):
+    return next(n for n, _ in load_manifest() if n.split(":")[0] in HOST_FAMILIES[family])
+
+
+def _start(family):
+    """After a first call of ``family``: start the background compile where its kernels
+    were loaded as portable code and the cache can keep this CPU's (else "off"; "done" when
+    this CPU's code is in use already; "another" while another process compiles it)."""
+    if os.environ.get(HOST_ENV, "").strip() == "0" or not in_use():
+        return "off"
+    found = [host_keys(d) for d in family_kernels(family)]
+    if not found or any(keys is None for keys in found):
+        return "off"
+    if all(all(keys.values()) for keys in found):
+        return "done"
+    lock = _lock_path(family)
+    if not lock:
+        return "off"
+    try:
+        if time.time() - os.path.getmtime(lock) < STALE_LOCK:
+            return "another"
+        os.remove(lock)
+    except OSError:
+        pass
+    try:
+        os.close(os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except OSError:
+        return "another" if os.path.exists(lock) else "off"
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES")}
+    env.update({ahead.ENV: "0", HOST_ENV: "0"})
+    try:
+        return subprocess.Popen([sys.executable, "-c", HOST_COMPILER, family, lock], env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)  # fmt: skip
+    except OSError:
+        os.remove(lock)
+        return "off"
+
+
+def _swap(family):
+    """Load this CPU's code of ``family``'s kernels in place of the portable code: each
+    kernel whose every signature in use here the cache now holds for this CPU (another is
+    left as it is: reloading it could mean compiling it here)."""
+    from numba.core.compiler_lock import global_compiler_lock
+
+    with global_compiler_lock:
+        for dispatcher in family_kernels(family):
+            keys = host_keys(dispatcher)
+            if not keys or not all(keys.values()):
+                continue
+            sigs = list(dispatcher.overloads)
+            _retired.append(list(dispatcher.overloads.values()))
+            dispatcher._reset_overloads()
+            for sig in sigs:
+                dispatcher.compile(sig)
+
+
+def upgrade(family, wait=False):
+    """Called after each call of ``family`` (``HOST_FAMILIES``): the first starts a process
+    that compiles the family's kernels for this machine's CPU in the background, at the
+    lowest priority, into the cache (where its kernels came portable with the package and
+    the cache can keep code); a later call, once that process is done, loads its code in
+    place of the portable code, which later processes then load at once. ``KNNREFINE_HOST_
+    KERNELS=0`` keeps the portable code. ``wait``: wait for the compile (tests,
+    benchmarks). Returns the state: "off", "compiling", "another" (a process elsewhere
+    compiles it) or "done". Never raises: the portable code stays in use."""
+    try:
+        state = _host.get(family)
+        if state is None:
+            state = _host[family] = _start(family)
+        if state in ("off", "done"):
+            return state
+        if isinstance(state, subprocess.Popen):
+            if wait:
+                state.wait()
+            if state.poll() is None:
+                return "compiling"
+        else:  # another process's compile: done when its lock is gone
+            lock = _lock_path(family)
+            while wait and os.path.exists(lock):
+                time.sleep(0.5)
+            if os.path.exists(lock):
+                return "another"
+        _swap(family)
+        _host[family] = "done"
+    except Exception:  # noqa: BLE001  the portable code stays in use
+        _host[family] = "off"
+    return _host[family]

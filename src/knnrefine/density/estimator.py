@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .. import _pipeline as pipeline
+from .._engine import shipped
 from .._metric import lonlat_of, unit_vectors
 from .._validation import (
     as_points,
@@ -286,7 +287,9 @@ class KnnDensityEstimator:
         InputError
             Bad points, weights or options (``shape="local"`` for points in space).
         """
-        return self._fit(X, sample_weight, counted=False)
+        self._fit(X, sample_weight, counted=False)
+        shipped.upgrade("kernel sums")  # this CPU's code for the kernel sums, from the next fit
+        return self
 
     def _fit(self, X, sample_weight, counted):
         """``fit``, the weights relative (scaled to sum to n_eff) or, with ``counted``,
