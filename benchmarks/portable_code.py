@@ -67,9 +67,9 @@ FAMILIES = ("refine, plane", "refine, space", "refine, sphere", "certify, plane"
 UPGRADE = """
 from knnrefine._engine import shipped
 import numpy as np, knnrefine
-for dim in (2, 3):
+for dim in (3,):
     knnrefine.KnnDensityEstimator().fit(np.random.default_rng(0).random((3000, dim)))
-print("UPGRADE", shipped.upgrade("kernel sums", wait=True))
+print("UPGRADE", shipped.upgrade("kernel sums in space", wait=True))
 """
 
 

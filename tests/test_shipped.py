@@ -117,11 +117,12 @@ UPGRADE = textwrap.dedent("""
     lattice.catmull_rom_rows(t, out)
     expected = out.copy()
     d = lattice.catmull_rom_rows
+    shipped.HOST_FAMILIES["small"] = ("knnrefine._engine.lattice:catmull_rom_rows",)
     before = list(d.overloads.values())
     host_code = list(shipped.host_keys(d).values())
-    states = [shipped.upgrade("kernel sums")]
+    states = [shipped.upgrade("small")]
     if sys.argv[1] == "wait":
-        states.append(shipped.upgrade("kernel sums", wait=True))
+        states.append(shipped.upgrade("small", wait=True))
     out[:] = 0.0
     lattice.catmull_rom_rows(t, out)
     print(json.dumps({"states": states, "host code": host_code,
@@ -133,9 +134,10 @@ UPGRADE = textwrap.dedent("""
 """)
 
 
-def test_the_kernel_sums_are_compiled_for_this_cpu_in_the_background(tmp_path):
-    """In an install whose kernels came portable, the first call of the kernel sums starts a
-    process that compiles them for this machine's CPU; once it is done, the next call loads
+def test_a_family_is_compiled_for_this_cpu_in_the_background(tmp_path):
+    """In an install whose kernels came portable, the first call of a family's kernels (here
+    a small one, as ``HOST_FAMILIES`` names the kernel sums in space) starts a process that
+    compiles them for this machine's CPU; once it is done, the next call loads
     its code in place of the portable code (the process compiles nothing itself), and a later
     process finds this CPU's code at once (it loads with the portable look-up off).
     ``KNNREFINE_HOST_KERNELS=0`` keeps the portable code."""
@@ -166,6 +168,25 @@ def test_the_kernel_sums_are_compiled_for_this_cpu_in_the_background(tmp_path):
     later = json.loads(_run([str(probe), "host only"], env))
     assert later["states"] == ["done"] and later["compiled"] == []
     assert later["hits"] == 1 and later["misses"] == 0
+
+
+def test_the_estimators_fit_asks_for_the_kernel_sums_of_this_cpu(monkeypatch):
+    """Every fit of the estimator calls ``upgrade`` for the listed kernel sums in space (the
+    first starts their compile, a later one swaps them in), and every kernel a family names
+    is listed (built with the package: there is portable code to replace)."""
+    asked = []
+    monkeypatch.setattr(shipped, "upgrade", lambda family, wait=False: asked.append(family))
+    import numpy as np
+
+    knnrefine.KnnDensityEstimator().fit(np.random.default_rng(0).random((300, 3)))
+    assert asked == ["kernel sums in space"]
+    listed = {name for name, _ in shipped.load_manifest()}
+    for family, patterns in shipped.HOST_FAMILIES.items():
+        for pattern in patterns:
+            assert any(shipped.in_family(n, family) for n in listed if n.startswith(pattern)), (
+                pattern
+            )
+    assert shipped.upgrade.__module__ != shipped.__name__  # the stand-in was called
 
 
 def test_a_changed_source_or_numpy_compiles_again(monkeypatch):

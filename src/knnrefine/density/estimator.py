@@ -288,7 +288,7 @@ class KnnDensityEstimator:
             Bad points, weights or options (``shape="local"`` for points in space).
         """
         self._fit(X, sample_weight, counted=False)
-        shipped.upgrade("kernel sums")  # this CPU's code for the kernel sums, from the next fit
+        shipped.upgrade("kernel sums in space")  # this CPU's code, for later fits
         return self
 
     def _fit(self, X, sample_weight, counted):
