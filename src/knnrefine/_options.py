@@ -9,6 +9,8 @@ the run's budget errors read (``past``), and what cannot fit refused up front (t
 mesh of the torus the box makes must fit the vertex budget and memory).
 """
 
+import copy
+import dataclasses
 import inspect
 import math
 import numbers
@@ -17,6 +19,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -50,6 +53,11 @@ class RunOptions:
     progress: Callable | None
     t_start: float
     deadline: float | None
+    start: Any = None  # the mesh a continued run starts from (``pipeline.checked``)
+
+    def continuing(self, start) -> "RunOptions":
+        """These options for a run continued from the mesh ``start``."""
+        return dataclasses.replace(self, start=start)
 
     @property
     def dim(self) -> int:
@@ -193,6 +201,7 @@ class SphereOptions:
 
     domain = "sphere"
     dim = 3  # unit vectors
+    start = None  # the mesh a continued run starts from (``pipeline.checked``)
     bytes_per_vertex = size.BYTES_PER_VERTEX_SPHERE  # a run's peak memory per vertex
 
     def __init__(self, n, total, *, k, tau=3.0, radius=None, min_size=None,
@@ -207,6 +216,12 @@ class SphereOptions:
         self.max_vertices = V.check_max_vertices(max_vertices)
         self.time_limit, self.deadline = check_time_limit(time_limit, self.t_start)
         self.progress = check_progress(progress)
+
+    def continuing(self, start) -> "SphereOptions":
+        """These options for a run continued from the mesh ``start``."""
+        out = copy.copy(self)
+        out.start = start
+        return out
 
     @property
     def floor_angle(self) -> float:

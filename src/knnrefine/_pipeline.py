@@ -13,6 +13,7 @@ domain's ``Geometry`` and ``Points`` (``certify_points``, which ``api.certify`` 
 
 from __future__ import annotations
 
+import hashlib
 import time
 from collections.abc import Callable
 
@@ -22,6 +23,7 @@ from numpy.typing import ArrayLike
 from ._domains import domain_of, part
 from .certify import steps
 from .certify.certificate import Certificate
+from .errors import InputError
 from .mesh import Mesh
 
 
@@ -55,7 +57,10 @@ def refine(
                                    radius=radius))  # fmt: skip
 
 
-def checked(domain: str, points: ArrayLike, weights: ArrayLike | None, **asked) -> tuple:
+def checked(
+    domain: str, points: ArrayLike, weights: ArrayLike | None, start: Mesh | None = None,
+    **asked,
+) -> tuple:  # fmt: skip
     """The points, weights and options of a run in ``domain``, checked before any work by
     the domain's ``run.checked``: (pts, weights or None, options), the options' ``domain``
     the domain's name.
@@ -66,11 +71,117 @@ def checked(domain: str, points: ArrayLike, weights: ArrayLike | None, **asked) 
         From ``domains.domain_of``.
     points, weights
         As ``knnrefine.refine`` takes them.
+    start : Mesh, optional
+        Continue this mesh (``refine``'s ``start``): its k, tau, box, periodic axes, floor
+        and radius are the run's (options given must be the same), its points the first
+        rows of ``points`` (by count and ``Stats.points_digest``), weighted as they are.
     **asked
         ``k``, ``tau``, ``periodic``, ``box``, ``min_size``, ``max_vertices``,
         ``time_limit``, ``progress``, ``radius``.
+
+    Raises
+    ------
+    InputError
+        Bad points or options; a start that cannot be continued with them (saying why and
+        what to do).
     """
-    return part(domain, "run").checked(points, weights, **asked)
+    if start is None:
+        return part(domain, "run").checked(points, weights, **asked)
+    asked = _start_options(start, domain, points, asked)
+    pts, w, opt = part(domain, "run").checked(points, weights, **asked)
+    _check_start_points(start, pts, w)
+    return pts, w, opt.continuing(start)
+
+
+def points_digest(pts: np.ndarray, w: np.ndarray | None) -> str:
+    """``Stats.points_digest``: a hash of checked points (and weights), in their order."""
+    h = hashlib.blake2b(np.ascontiguousarray(pts).view(np.uint8), digest_size=16)
+    if w is not None:
+        h.update(np.ascontiguousarray(w, dtype=np.float64).view(np.uint8))
+    return h.hexdigest()
+
+
+_AFRESH = "refine all the points afresh (without start=)"
+
+
+def _start_options(start, domain, points, asked):
+    """The options of a run continued from ``start``: the start's k, tau, box, periodic
+    axes, floor and radius where not given; InputError where one given differs, or where
+    new points lie outside an ordinary box (a continued mesh keeps its torus)."""
+    if not isinstance(start, Mesh):
+        raise InputError(f"start must be a knnrefine.Mesh (from refine or io.read_mesh), got "
+                         f"{type(start).__name__}")  # fmt: skip
+    if start.domain != domain:
+        raise InputError(
+            f"start is a mesh {_IN[start.domain]}, these points are {_IN[domain]}: continue "
+            "a mesh with points of its own domain"
+        )
+    if start.torus is None and not start.on_sphere:
+        raise InputError(f"start has no torus mesh to continue (a file without it): {_AFRESH}")
+    asked = dict(asked)
+    given = {"k": start.k, "tau": start.tau, "min_size": start.min_size}
+    if start.on_sphere:
+        given["radius"] = start.radius
+    elif asked.get("box") is None and asked.get("periodic") in (False, None):
+        asked["box"], asked["periodic"] = tuple(start.box), tuple(start.periodic)
+    else:
+        given.update(box=tuple(start.box), periodic=tuple(start.periodic))
+        if isinstance(asked.get("periodic"), bool):
+            asked["periodic"] = (asked["periodic"],) * len(start.periodic)
+        if asked.get("box") is not None:
+            asked["box"] = tuple(float(b) for b in asked["box"])
+    for name, value in given.items():
+        if asked.get(name) is None:
+            asked[name] = value
+        elif asked[name] != value:
+            raise InputError(f"start was refined with {name}={value!r}, this run asks for "
+                             f"{name}={asked[name]!r}: a continued mesh keeps its options "
+                             f"(give {name}={value!r}, or {_AFRESH})")  # fmt: skip
+    if not start.on_sphere:
+        _check_in_start_box(start, points)
+    return asked
+
+
+_IN = {"plane": "in the plane", "space": "in space", "sphere": "on the sphere"}
+
+
+def _check_in_start_box(start, points):
+    """InputError when a point lies outside the start's box along a non-periodic axis."""
+    pts = np.asarray(points, dtype=np.float64)
+    d = len(start.periodic)
+    if pts.ndim != 2 or pts.shape[1] != d:
+        return  # the domain's own check says what is wrong
+    for a in range(d):
+        if start.periodic[a] or not len(pts):
+            continue
+        lo, hi = start.box[a], start.box[a + d]
+        outside = int(np.count_nonzero((pts[:, a] < lo) | (pts[:, a] > hi)))
+        if outside:
+            raise InputError(
+                f"{outside:,} points lie outside the start mesh's box along axis {a} "
+                f"[{lo:g}, {hi:g}]: a continued mesh keeps the box of its first run; "
+                f"{_AFRESH}, with a box that holds them all (box=...) to continue later"
+            )
+
+
+def _check_start_points(start, pts, w):
+    """InputError unless the first rows of ``pts`` (and ``w``) are the start's points."""
+    n0 = int(start.stats.n)
+    if not start.stats.points_digest:
+        raise InputError(f"start does not record the points it was refined from (a mesh of "
+                         f"an older knnrefine): {_AFRESH}")  # fmt: skip
+    if (start.stats.weight is None) != (w is None):
+        had = "with weights" if w is None else "without weights"
+        raise InputError(f"start was refined {had}: continue it the same way, or {_AFRESH}")
+    if len(pts) < n0:
+        raise InputError(
+            f"start was refined from {n0:,} points, this run has {len(pts):,}: give the "
+            "start's points first, in their order, then the new ones"
+        )
+    if points_digest(pts[:n0], None if w is None else w[:n0]) != start.stats.points_digest:
+        raise InputError(f"the first {n0:,} points (and weights) are not the ones start was "
+                         f"refined from: give the start's points first, in their order, then "
+                         f"the new ones, or {_AFRESH}")  # fmt: skip
 
 
 def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt) -> Mesh:
@@ -87,7 +198,9 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt) -> Mesh:
     -------
     Mesh
     """
-    return part(opt.domain, "run").refine(pts, w, opt)
+    mesh = part(opt.domain, "run").refine(pts, w, opt)
+    mesh.stats.points_digest = points_digest(pts, w)
+    return mesh
 
 
 def certify_points(

@@ -35,6 +35,7 @@ def refine(
     executor: Executor | None = None,
     sphere: bool = False,
     radius: float | None = None,
+    start: Mesh | None = None,
 ) -> Mesh:
     """kNNRefine (Gardner & Sheehy, CCCG 2016): mesh vertices M with
     alpha d_{P,k} <= d_{M,2} <= beta d_{P,k} everywhere in the box.
@@ -146,6 +147,18 @@ def refine(
         On the sphere, its radius in the unit lengths are wanted in (``min_size``,
         ``Mesh.d_m2``): 1 (the default) gives angles in radians, 6371.0088 kilometres on the
         Earth.
+    start : Mesh, optional
+        Continue this mesh with points that arrived since: ``points`` are the ones it was
+        refined from, in the order given then (with their weights), followed by the new
+        ones. Adding points only lowers d_{P,k}, so every move the start made is one a run
+        on all the points may make; the run goes on from the start's mesh, looking again
+        only at the circumballs and cells the new points lie in, and returns what refine
+        guarantees for all the points (``certify`` checks it). The run keeps the start's k,
+        tau, box, periodic axes, floor (and radius): options left out are the start's, one
+        given must be the same. InputError, before any work, for a start of another domain
+        or options, first rows that are not its points (``Stats.points_digest``), and new
+        points outside an ordinary box (give the first run a box that holds what will
+        come). In the plane, in one process (``workers`` then runs one process).
 
     Returns
     -------
@@ -164,13 +177,15 @@ def refine(
     pts, w, opt = pipeline.checked(domain, points, weights, k=k, tau=tau, periodic=periodic,
                                    box=box, min_size=min_size, max_vertices=max_vertices,
                                    time_limit=time_limit, progress=progress,
-                                   radius=radius)  # fmt: skip
-    if tiles > 1:  # tiles where they pay
+                                   radius=radius, start=start)  # fmt: skip
+    if tiles > 1 and start is None:  # tiles where they pay
         from .scale.shared import refine_local
         from .scale.tiled import tiles_pay
 
         if executor is not None or tiles_pay(domain, len(pts)):
-            return refine_local(pts, w, opt, tiles, executor)
+            mesh = refine_local(pts, w, opt, tiles, executor)
+            mesh.stats.points_digest = pipeline.points_digest(pts, w)
+            return mesh
     return pipeline.refine_checked(pts, w, opt)
 
 

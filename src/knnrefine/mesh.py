@@ -123,6 +123,14 @@ class Stats(Mapping):
     time : dict
         Seconds: ``setup`` (index, embedding, initial mesh), ``refine``, ``assemble``,
         ``total`` (the call).
+    points_digest : str
+        A hash of the points (and weights) the mesh was refined from, as checked (hex): what
+        ``refine(..., start=mesh)`` checks the first rows of its points against. "" for a
+        mesh of an older version.
+    continued : dict or None
+        For a run continued from a start mesh (``refine(..., start=)``): the points added
+        (``points``), the start's vertices (``from_vertices``) and the triangles or
+        tetrahedra the new points reopened (``reopened``); None for a fresh run.
     """
 
     n: int = 0
@@ -143,6 +151,8 @@ class Stats(Mapping):
     max_vertices: int = 0
     rounds: list | None = None
     time: dict = field(default_factory=dict)
+    points_digest: str = ""
+    continued: dict | None = None
 
     # the keys of knnrefine 0.1's per-domain dictionaries (files written then still read)
     RENAMED = {

@@ -18,6 +18,7 @@ from .index import LEAF_SIZE, STACK_SIZE
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .region import WALK_LOST, insert_points, mark_settled, spatial_order
+from .reopen import reopen, settle_all
 from .state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -406,6 +407,26 @@ class Refinement(TileRun):
             queues[name] = q
         self.queues = Queues(**queues)
         R.queue_unsettled(self.mesh, self.book, self.queues, self.cnt, self.prm)
+
+    def reopen(self, xy, kinds):
+        """Continue a finished run's mesh (this one's ``m0``, its vertices' ``kinds``) with
+        more points, the index holding them all: every element settled but those the points
+        ``xy`` (internal coordinates) reach, which are queued (``_engine/reopen.py``).
+        Returns the triangles reopened (every one when a cavity was out of reach)."""
+        nv = self.vertices
+        self.book.kinds[:nv] = kinds
+        settle_all(self.book, self.cnt, nv)
+        reopened = 0
+        if len(xy):
+            xy = np.ascontiguousarray(xy[spatial_order(xy, self.lx, self.ly)])
+            reopened = reopen(xy, self.mesh, self.book, self.scratch, self.cnt, self.prm)
+            if reopened < 0:  # a broken walk or a huge cavity: look at everything again
+                nt = int(self.cnt[C_NT])
+                self.book.ball_state[:nt] = S.UNTESTED
+                self.book.cell_state[:nv] = S.UNTESTED
+                reopened = nt
+        self.queue_unsettled()
+        return int(reopened)
 
     def pending(self):
         """Queued candidates (an upper bound on the work left, not a promise)."""

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InputError
 from .geometry import FLOOR_BITS, Q
 from .jit import kernel
 from .threads import in_chunks
@@ -102,6 +103,27 @@ class Embedding:
         return cls(
             tuple(float(b) for b in box), tuple(bool(p) for p in per), origin, scale, lint, q
         )
+
+    @classmethod
+    def of_torus(cls, box, periodic, origin, period):
+        """The embedding whose torus has this origin and period (input units): the one
+        ``make`` made for a mesh (its scale and grid follow from the period as there);
+        InputError when they do not make one (a file's torus edited by hand)."""
+        period = np.array(period, float)
+        scale = 2.0 ** -int(np.ceil(np.log2(period.max())))
+        origin = np.array(origin, float)
+        biggest = float(np.max(np.maximum(np.abs(origin - period), np.abs(origin + 3 * period))))
+        g = max(Q / scale, float(np.spacing(biggest)))
+        q = g * scale
+        lint = tuple(float(p * scale) for p in period)
+        off_grid = any(np.rint(x / q) * q != x for x in lint)
+        if off_grid or np.any(np.rint(origin / g) * g != origin):
+            raise InputError(
+                "the mesh's torus is not one refine makes (its origin and period are off the "
+                "engine's grid): refine its points afresh"
+            )
+        return cls(tuple(float(b) for b in box), tuple(bool(p) for p in periodic), origin,
+                   scale, lint, q)  # fmt: skip
 
     @property
     def period(self):

@@ -48,6 +48,8 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
     -------
     Mesh
     """
+    if opt.start is not None:
+        return _continued(pts, w, opt)
     n = len(pts)
     total = None if w is None else math.fsum(w)
     report = Progress(opt.progress)
@@ -73,6 +75,60 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
         return finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts,
                       report=report, estimated=estimated, budget=budget,
                       initial=len(m0_order), interrupts=interrupts, kept=kept)  # fmt: skip
+
+
+def _continued(pts, w, opt):
+    """A run continued from the mesh ``opt.start`` (refined from the first rows of ``pts``,
+    checked by ``pipeline.checked``): its torus triangulation taken as it is, every element
+    settled but those the new points reach (``Refinement.reopen``), then refined on."""
+    start = opt.start
+    n, n0 = len(pts), int(start.stats.n)
+    total = None if w is None else math.fsum(w)
+    report = Progress(opt.progress)
+    with ahead.compiling("plane", report.compiling), Interrupts() as interrupts:
+        t0 = time.perf_counter()
+        emb = start_embedding(start)
+        index = build_index(emb.to_internal(pts), weights=w)
+        interrupts.check()
+        torus = start.torus
+        m0 = (
+            np.ascontiguousarray(torus.vertices * emb.scale),
+            np.ascontiguousarray(torus.cells, dtype=np.int32),
+            np.ascontiguousarray(torus.offsets, dtype=np.int8),
+            np.ascontiguousarray(torus.neighbours, dtype=np.int32),
+        )
+        m = len(m0[0])
+        grown_by = max(0.0, (n - n0) / max(n0, 1))
+        expected = m * (1.0 + 2.0 * grown_by) + 64
+        budget = vertex_budget(expected, opt, m, n)
+        run = Refinement(
+            index, opt.k, *emb.period_internal, opt.tau, opt.min_size * emb.scale, budget,
+            m0=m0, grid=emb.grid, expected_vertices=expected, queued=False,
+        )  # fmt: skip
+        new = emb.to_internal(pts[n0:])
+        if len(start.floor_points):  # reopened too: they stay at the floor, reported again
+            new = np.concatenate([new, emb.to_internal(start.floor_points)])
+        reopened = run.reopen(new, np.asarray(torus.kinds, np.int8))
+        run.time_index = time.perf_counter() - t0
+        opt.past("setting up")
+        status = run.run(deadline=opt.deadline, progress=report.refining, interrupts=interrupts)
+        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, w))
+        mesh = finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts,
+                      report=report, estimated=expected, budget=budget,
+                      initial=start.stats.initial_vertices, interrupts=interrupts,
+                      kept=kept)  # fmt: skip
+    mesh.stats.continued = {"points": n - n0, "from_vertices": m, "reopened": reopened}
+    return mesh
+
+
+def start_embedding(start) -> Embedding:
+    """The embedding torus of a mesh refined in the plane: its index's, else (a mesh read
+    from a file) the one its torus' origin and period make (``Embedding.of_torus``)."""
+    kept = getattr(start.index, "embedding", None)
+    if kept is not None:
+        return kept
+    t = start.torus
+    return Embedding.of_torus(start.box, start.periodic, t.origin, t.period)
 
 
 def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budget, initial,

@@ -1,0 +1,94 @@
+"""A finished run continued with more points: which of its elements the new points reach.
+
+Adding points only lowers d_{P,k}: every element of a finished mesh held fewer than k points
+of the old P (or sat at the floor), and it can hold k or more of the new P only where a new
+point lies in it. A circumball holds a point p exactly when its triangle is in p's cavity
+(the triangles whose circumcircle holds p, connected around the triangle that holds p), and
+a Voronoi cell holds p only when its vertex is p's nearest, a corner of that cavity. So a
+continued run settles every element, then reopens each new point's cavity and its corners
+(``reopen``), and refines from there: the rest of the mesh is not looked at again.
+
+The cavity here is found with a floating test loosened by ``SLACK`` (a triangle joins when
+p is within its circumradius times 1 + SLACK of its circumcentre): a few more elements than
+the exact cavity, never fewer (a loose cavity is connected around the exact one), which only
+costs their counts again.
+"""
+
+from .jit import kernel
+from .region import locate
+from .state import C_NT, C_STAMP, GOOD, P_LX, P_LY, UNTESTED
+from .triangulation import MAX_CAVITY, circumcentre, corner_of
+
+SLACK = 1e-6  # relative, on the squared circumradius
+REOPEN_LOST = -1  # a walk that found no triangle (a broken mesh)
+REOPEN_OVERFLOW = -2  # a loose cavity larger than MAX_CAVITY triangles
+
+
+@kernel(entry=True, nrt=False, nogil=True)
+def reopen(xy, mesh, book, scratch, cnt, prm):
+    """Mark untested every triangle whose circumball (loosened by ``SLACK``) holds one of the
+    points xy (internal coordinates, in [0, lx) x [0, ly), best in a space-filling order),
+    and every corner of such a triangle (its Voronoi cell may hold the point). Returns the
+    number of triangles reopened, or REOPEN_LOST / REOPEN_OVERFLOW."""
+    lx = prm[P_LX]
+    ly = prm[P_LY]
+    cav = scratch.cavity
+    cav_s = scratch.cavity_shift
+    loose = 1.0 + SLACK
+    reopened = 0
+    t = 0
+    for p in range(xy.shape[0]):
+        px = xy[p, 0]
+        py = xy[p, 1]
+        t, sx, sy = locate(px, py, t, mesh, lx, ly)
+        if t < 0:
+            return REOPEN_LOST
+        stamp = cnt[C_STAMP] + 1
+        cnt[C_STAMP] = stamp
+        cav[0] = t
+        cav_s[0, 0] = sx
+        cav_s[0, 1] = sy
+        scratch.mark[t] = stamp
+        n_cav = 1
+        i = 0
+        while i < n_cav:
+            u = cav[i]
+            ux = cav_s[i, 0]
+            uy = cav_s[i, 1]
+            if book.ball_state[u] != UNTESTED:
+                book.ball_state[u] = UNTESTED
+                reopened += 1
+            for c in range(3):
+                book.cell_state[mesh.corners[u, c]] = UNTESTED
+            for j in range(3):
+                n = mesh.neighbours[u, j]
+                if scratch.mark[n] == stamp:
+                    continue
+                ja = (j + 1) % 3
+                a = mesh.corners[u, ja]
+                jn = corner_of(mesh, n, a)
+                nx = ux + mesh.offsets[u, ja, 0] - mesh.offsets[n, jn, 0]
+                ny = uy + mesh.offsets[u, ja, 1] - mesh.offsets[n, jn, 1]
+                cx, cy, r2 = circumcentre(mesh, prm, n)
+                dx = px - (cx + nx * lx)
+                dy = py - (cy + ny * ly)
+                if dx * dx + dy * dy <= r2 * loose:
+                    if n_cav >= MAX_CAVITY:
+                        return REOPEN_OVERFLOW
+                    scratch.mark[n] = stamp
+                    cav[n_cav] = n
+                    cav_s[n_cav, 0] = nx
+                    cav_s[n_cav, 1] = ny
+                    n_cav += 1
+            i += 1
+    return reopened
+
+
+@kernel(entry=True, nrt=False, nogil=True)
+def settle_all(book, cnt, nv):
+    """Every triangle's circumball and every vertex's cell settled (GOOD): a finished run's
+    state, before ``reopen``."""
+    for t in range(cnt[C_NT]):
+        book.ball_state[t] = GOOD
+    for v in range(nv):
+        book.cell_state[v] = GOOD
