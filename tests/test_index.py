@@ -303,3 +303,65 @@ def test_mark_in_disks_matches_brute_force():
         ex, ey = np.minimum(ex, lx - ex), np.minimum(ey, ly - ey)
         want = (ex * ex + ey * ey <= r2).any(axis=1)
         assert got == want.sum() and (mark == want).all(), name
+
+
+def _check_partition(index, pts):
+    """The tree's invariants (``test_tree_is_a_partition``'s), for ``pts`` as indexed."""
+    sorted_pts, box, node, split, _ = index
+    assert sorted(map(tuple, sorted_pts[:, :2])) == sorted(map(tuple, pts))
+    for t in range(len(node)):
+        lo, hi, c, axis = node[t]
+        inside = sorted_pts[lo:hi, :2]
+        if hi > lo:  # tight boxes
+            assert np.array_equal(box[t, :2], inside.min(0))
+            assert np.array_equal(box[t, 2:], inside.max(0))
+        if c >= 0:
+            assert node[c, 0] == lo and node[c, 1] == node[c + 1, 0] and node[c + 1, 1] == hi
+            left = sorted_pts[node[c, 0] : node[c, 1], axis]
+            right = sorted_pts[node[c + 1, 0] : node[c + 1, 1], axis]
+            assert left.max(initial=-np.inf) <= split[t] <= right.min(initial=np.inf)
+        else:
+            assert hi - lo <= LEAF_SIZE or np.all(inside == inside[0])
+
+
+@pytest.mark.parametrize("case", ["clustered", "spread", "on splits", "empty start"])
+def test_merged_tree_counts_as_one_built_afresh(case):
+    """``merge_index`` (a continued run's index: the start's tree with new points) is a
+    valid tree over all the points (tight boxes, splits that separate, leaves of at most
+    LEAF_SIZE), counts in disks and cells as brute force does, and leaves the tree it was
+    given as it was."""
+    rng = np.random.default_rng(31)
+    old = rng.random((0 if case == "empty start" else 4000, 2))
+    if case == "clustered":
+        new = np.clip(rng.normal(0.3, 0.01, (500, 2)), 0, 0.999)
+    elif case == "on splits":  # exactly on split values: the first child's side
+        base = build_index(old.copy())
+        new = np.column_stack([base.split[:300], base.split[:300]])
+    else:
+        new = rng.random((700, 2))
+    index = build_index(old.copy())
+    before = [a.copy() for a in index]
+    merged = engine_index.merge_index(index, new)
+    for a, b in zip(index, before, strict=True):
+        assert np.array_equal(a, b)
+    every = np.concatenate([old, new])
+    _check_partition(merged, every)
+    stack = np.zeros(STACK_SIZE, np.int64)
+    for cx, cy, r in rng.random((300, 3)) * [1, 1, 0.1]:
+        brute = int((((every - [cx, cy]) ** 2).sum(1) <= r * r).sum())
+        assert count_in_disk(merged, cx, cy, r * r, 10**9, 10.0, 10.0, stack) == brute
+
+
+def test_merged_weighted_tree_sums_the_new_weights():
+    rng = np.random.default_rng(32)
+    old, new = rng.random((3000, 2)), np.clip(rng.normal(0.6, 0.02, (400, 2)), 0, 0.999)
+    w_old, w_new = rng.random(3000) + 0.5, rng.random(400) + 0.5
+    merged = engine_index.merge_index(build_index(old.copy(), weights=w_old), new, w_new)
+    fresh = build_index(np.concatenate([old, new]), weights=np.concatenate([w_old, w_new]))
+    assert np.isclose(merged.weight[0], fresh.weight[0], rtol=1e-14)
+    every, w = np.concatenate([old, new]), np.concatenate([w_old, w_new])
+    stack = np.zeros(STACK_SIZE, np.int64)
+    for cx, cy, r in rng.random((200, 3)) * [1, 1, 0.1]:
+        brute = w[((every - [cx, cy]) ** 2).sum(1) <= r * r].sum()
+        got = count_in_disk(merged, cx, cy, r * r, 1e18, 10.0, 10.0, stack)
+        assert np.isclose(got, brute, rtol=1e-12, atol=1e-12)

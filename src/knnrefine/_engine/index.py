@@ -301,6 +301,123 @@ def build_tree(pts, workers):
     return pts, box[:nnodes], node[:nnodes], split[:nnodes]
 
 
+# -- more points into a built tree (a continued run, ``refine(..., start=)``) -----------------
+
+
+@kernel(entry=True, nogil=True)
+def leaves_of(node, split, q):
+    """The leaf each point q[i] descends to: the side of each split it lies on (the first
+    child on the split value, whose points are <= it)."""
+    out = np.empty(q.shape[0], np.int64)
+    for i in range(q.shape[0]):
+        t = 0
+        while node[t, NODE_CHILD] >= 0:
+            if q[i, node[t, NODE_AXIS]] <= split[t]:
+                t = node[t, NODE_CHILD]
+            else:
+                t = node[t, NODE_CHILD] + 1
+        out[i] = t
+    return out
+
+
+@kernel(entry=True, nogil=True)
+def _merge_rows(pts, box, node, added, first, extra, out_pts, out_box, out_node):
+    """The rows of ``pts`` with leaf t's ``added[t]`` new rows (``extra[first[t]:]``) after
+    its own, in the tree's order: every node's row range moved by the rows before it, each
+    leaf's box grown by its new rows and every other node's made the union of its
+    children's (tight boxes stay tight)."""
+    d = box.shape[1] // 2
+    cols = pts.shape[1]
+    stack = np.empty(STACK_SIZE, np.int64)
+    after = np.zeros(STACK_SIZE, np.bool_)
+    stack[0] = 0
+    sp = 1
+    shift = 0
+    while sp > 0:
+        t = stack[sp - 1]
+        c = node[t, NODE_CHILD]
+        if after[sp - 1]:  # both children done
+            out_node[t, NODE_HI] = node[t, NODE_HI] + shift
+            for a in range(d):
+                out_box[t, a] = min(out_box[c, a], out_box[c + 1, a])
+                out_box[t, a + d] = max(out_box[c, a + d], out_box[c + 1, a + d])
+            sp -= 1
+            continue
+        out_node[t, NODE_LO] = node[t, NODE_LO] + shift
+        if c >= 0:
+            after[sp - 1] = True
+            stack[sp] = c + 1
+            after[sp] = False
+            stack[sp + 1] = c
+            after[sp + 1] = False
+            sp += 2
+            continue
+        lo = node[t, NODE_LO]
+        hi = node[t, NODE_HI]
+        dst = lo + shift
+        for i in range(lo, hi):
+            for a in range(cols):
+                out_pts[dst + i - lo, a] = pts[i, a]
+        for a in range(2 * d):
+            out_box[t, a] = box[t, a]
+        dst += hi - lo
+        for j in range(added[t]):
+            row = first[t] + j
+            for a in range(cols):
+                out_pts[dst + j, a] = extra[row, a]
+            for a in range(d):
+                out_box[t, a] = min(out_box[t, a], extra[row, a])
+                out_box[t, a + d] = max(out_box[t, a + d], extra[row, a])
+        shift += added[t]
+        out_node[t, NODE_HI] = hi + shift
+        sp -= 1
+    return shift
+
+
+def merge_index(index, q, weights=None):
+    """The index of ``index``'s points and the points q (b, 2) together (internal
+    coordinates; ``weights`` (b,) for a weighted index), made from ``index`` without
+    building it again: each new point goes into the leaf it descends to, the rows are
+    copied once in the tree's order, and a leaf grown past LEAF_SIZE is split as ``_build``
+    splits (the splits above stay valid: a point descends by them). Counts are those of a
+    tree built afresh; ``index`` is left as it was. About b log n work plus one copy of the
+    rows, against the n log n of ``build_index``."""
+    pts, box, node, split, weight = index
+    q = np.ascontiguousarray(q, dtype=np.float64)
+    if weight.shape[0] > 0:
+        q = np.column_stack([q[:, 0], q[:, 1], np.asarray(weights, np.float64)])
+    leaf = leaves_of(node, split, q)
+    order = np.argsort(leaf, kind="stable")
+    extra = np.ascontiguousarray(q[order])
+    added = np.bincount(leaf, minlength=node.shape[0]).astype(np.int64)
+    first = np.zeros(node.shape[0], np.int64)
+    np.cumsum(added[:-1], out=first[1:])
+    out_pts = np.empty((pts.shape[0] + q.shape[0], pts.shape[1]))
+    out_box = np.empty_like(box)
+    out_node = node.copy()
+    if pts.shape[0] == 0:
+        return build_index(q[:, :2].copy(), weights=weights)
+    _merge_rows(pts, box, node, added, first, extra, out_pts, out_box, out_node)
+    sizes = out_node[:, NODE_HI] - out_node[:, NODE_LO]
+    grown = np.flatnonzero((added > 0) & (out_node[:, NODE_CHILD] < 0) & (sizes > LEAF_SIZE))
+    out_split = split
+    if len(grown):
+        more = sum(node_bound(int(sizes[t])) for t in grown)
+        count = node.shape[0]
+        out_node = np.concatenate([out_node, np.zeros((more, 4), np.int64)])
+        out_box = np.concatenate([out_box, np.zeros((more, box.shape[1]))])
+        out_split = np.concatenate([split, np.zeros(more)])
+        for t in grown:
+            count = _build(out_pts, out_box, out_node, out_split, t, count, -1,
+                           np.empty(0, np.int64))[0]  # fmt: skip
+        out_node, out_box, out_split = out_node[:count], out_box[:count], out_split[:count]
+    out_weight = np.zeros(0)
+    if weight.shape[0] > 0:
+        out_weight = np.empty(out_node.shape[0])
+        node_weights(out_pts, out_node, out_weight)
+    return PointTree(out_pts, out_box, out_node, out_split, out_weight)
+
+
 @kernel(inline="always")
 def held_by_node(node, weight, t):
     """What node t holds: its number of points, or its weight total for weighted points."""

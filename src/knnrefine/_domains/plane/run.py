@@ -13,7 +13,7 @@ from ..._engine import state as S
 from ..._engine.driver import Refinement
 from ..._engine.embedding import Embedding, diameter, unfold, wrap
 from ..._engine.geometry import FLOOR_BITS
-from ..._engine.index import PointIndex, build_index, mark_in_disks
+from ..._engine.index import PointIndex, build_index, mark_in_disks, merge_index
 from ..._engine.initial import (
     candidate_grids,
     choose_initial_mesh,
@@ -88,7 +88,12 @@ def _continued(pts, w, opt):
     with ahead.compiling("plane", report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         emb = start_embedding(start)
-        index = build_index(emb.to_internal(pts), weights=w)
+        new = emb.to_internal(pts[n0:])
+        kept = getattr(start.index, "index", None)
+        if kept is not None and start.index.n == n0:  # the start's tree, with the new points
+            index = merge_index(kept, new, None if w is None else w[n0:])
+        else:  # a mesh read from a file keeps no tree
+            index = build_index(emb.to_internal(pts), weights=w)
         interrupts.check()
         torus = start.torus
         m0 = (
@@ -103,9 +108,8 @@ def _continued(pts, w, opt):
         budget = vertex_budget(expected, opt, m, n)
         run = Refinement(
             index, opt.k, *emb.period_internal, opt.tau, opt.min_size * emb.scale, budget,
-            m0=m0, grid=emb.grid, expected_vertices=expected, queued=False,
+            m0=m0, grid=emb.grid, capacity=min(expected, budget), queued=False,
         )  # fmt: skip
-        new = emb.to_internal(pts[n0:])
         if len(start.floor_points):  # reopened too: they stay at the floor, reported again
             new = np.concatenate([new, emb.to_internal(start.floor_points)])
         reopened = run.reopen(new, np.asarray(torus.kinds, np.int8))
