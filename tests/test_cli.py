@@ -808,7 +808,7 @@ def test_every_help_example_is_well_formed():
     from knnrefine.cli.main import SUBCOMMANDS
 
     demo_inputs = {"angles.csv", "quakes.csv", "ring.csv", "blobs.csv"}
-    placeholders = {"chi.csv", "counts.csv"}  # named as templates for the user's own data
+    placeholders = {"chi.csv", "counts.csv", "all.csv"}  # templates for the user's own data
     for name, module in SUBCOMMANDS.items():
         lines = module.EXAMPLES.split("\n\n")[0].splitlines()[1:]
         commands, current = [], ""

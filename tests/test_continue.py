@@ -158,3 +158,28 @@ def test_a_start_of_another_domain_or_kind_is_refused(first):
     weighted = knnrefine.refine(pts[:2000], 10, weights=np.ones(2000))
     with pytest.raises(InputError, match="refined with weights"):
         knnrefine.refine(pts[:2100], start=weighted)
+
+
+def test_the_command_line_continues_a_mesh_file(tmp_path, capsys):
+    """``knnrefine refine all.csv --start old.npz``: the rows of all.csv after old.npz's
+    points are new; the continued mesh certifies; another file's rows are refused (exit 1,
+    the message saying why)."""
+    from knnrefine.cli.main import main
+
+    rng = np.random.default_rng(13)
+    first = rng.random((3000, 2))
+    every = np.concatenate([first, _clustered(rng, 40, (0.5, 0.5), 0.01)])
+    np.savetxt(tmp_path / "first.csv", first, delimiter=",")
+    np.savetxt(tmp_path / "all.csv", every, delimiter=",")
+    np.savetxt(tmp_path / "other.csv", every[::-1], delimiter=",")
+    old, new = str(tmp_path / "old.npz"), str(tmp_path / "new.npz")
+    assert main(["refine", str(tmp_path / "first.csv"), "-k", "10", "--box", "0", "0", "1",
+                 "1", "-o", old, "-q"]) == 0  # fmt: skip
+    assert main(["refine", str(tmp_path / "all.csv"), "--start", old, "-o", new, "-q",
+                 "--certify"]) == 0  # fmt: skip
+    mesh = io.read_mesh(new)
+    assert mesh.stats.n == 3040 and mesh.stats.continued["points"] == 40
+    capsys.readouterr()
+    assert main(["refine", str(tmp_path / "other.csv"), "--start", old, "-o",
+                 str(tmp_path / "x.npz"), "-q"]) == 1  # fmt: skip
+    assert "not the ones start was refined from" in capsys.readouterr().err

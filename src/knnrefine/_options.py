@@ -54,10 +54,12 @@ class RunOptions:
     t_start: float
     deadline: float | None
     start: Any = None  # the mesh a continued run starts from (``pipeline.checked``)
+    points_digest: str = ""  # a continued run's points' digest, known from its check
 
-    def continuing(self, start) -> "RunOptions":
-        """These options for a run continued from the mesh ``start``."""
-        return dataclasses.replace(self, start=start)
+    def continuing(self, start, digest: str) -> "RunOptions":
+        """These options for a run continued from the mesh ``start``, its points' digest
+        ``digest`` (``pipeline.points_digest``) known."""
+        return dataclasses.replace(self, start=start, points_digest=digest)
 
     @property
     def dim(self) -> int:
@@ -202,6 +204,7 @@ class SphereOptions:
     domain = "sphere"
     dim = 3  # unit vectors
     start = None  # the mesh a continued run starts from (``pipeline.checked``)
+    points_digest = ""  # a continued run's points' digest, known from its check
     bytes_per_vertex = size.BYTES_PER_VERTEX_SPHERE  # a run's peak memory per vertex
 
     def __init__(self, n, total, *, k, tau=3.0, radius=None, min_size=None,
@@ -217,10 +220,11 @@ class SphereOptions:
         self.time_limit, self.deadline = check_time_limit(time_limit, self.t_start)
         self.progress = check_progress(progress)
 
-    def continuing(self, start) -> "SphereOptions":
-        """These options for a run continued from the mesh ``start``."""
+    def continuing(self, start, digest: str) -> "SphereOptions":
+        """These options for a run continued from the mesh ``start``, its points' digest
+        ``digest`` (``pipeline.points_digest``) known."""
         out = copy.copy(self)
-        out.start = start
+        out.start, out.points_digest = start, digest
         return out
 
     @property

@@ -89,16 +89,27 @@ def checked(
         return part(domain, "run").checked(points, weights, **asked)
     asked = _start_options(start, domain, points, asked)
     pts, w, opt = part(domain, "run").checked(points, weights, **asked)
-    _check_start_points(start, pts, w)
-    return pts, w, opt.continuing(start)
+    return pts, w, opt.continuing(start, _check_start_points(start, pts, w))
 
 
 def points_digest(pts: np.ndarray, w: np.ndarray | None) -> str:
     """``Stats.points_digest``: a hash of checked points (and weights), in their order."""
-    h = hashlib.blake2b(np.ascontiguousarray(pts).view(np.uint8), digest_size=16)
-    if w is not None:
-        h.update(np.ascontiguousarray(w, dtype=np.float64).view(np.uint8))
-    return h.hexdigest()
+    return _digest(*_hashers(pts, w))
+
+
+def _hashers(pts, w, rows=None):
+    """Hashes of the rows ``rows`` (a slice; all by default) of the points and weights."""
+    rows = slice(None) if rows is None else rows
+    h = hashlib.blake2b(np.ascontiguousarray(pts[rows]).view(np.uint8), digest_size=16)
+    if w is None:
+        return h, None
+    hw = hashlib.blake2b(np.ascontiguousarray(w[rows], dtype=np.float64).view(np.uint8),
+                         digest_size=16)  # fmt: skip
+    return h, hw
+
+
+def _digest(h, hw):
+    return h.hexdigest() + ("" if hw is None else hw.hexdigest())
 
 
 _AFRESH = "refine all the points afresh (without start=)"
@@ -165,7 +176,8 @@ def _check_in_start_box(start, points):
 
 
 def _check_start_points(start, pts, w):
-    """InputError unless the first rows of ``pts`` (and ``w``) are the start's points."""
+    """InputError unless the first rows of ``pts`` (and ``w``) are the start's points; else
+    the digest of all of them."""
     n0 = int(start.stats.n)
     if not start.stats.points_digest:
         raise InputError(f"start does not record the points it was refined from (a mesh of "
@@ -178,10 +190,15 @@ def _check_start_points(start, pts, w):
             f"start was refined from {n0:,} points, this run has {len(pts):,}: give the "
             "start's points first, in their order, then the new ones"
         )
-    if points_digest(pts[:n0], None if w is None else w[:n0]) != start.stats.points_digest:
+    h, hw = _hashers(pts, w, slice(None, n0))
+    if _digest(h, hw) != start.stats.points_digest:
         raise InputError(f"the first {n0:,} points (and weights) are not the ones start was "
                          f"refined from: give the start's points first, in their order, then "
                          f"the new ones, or {_AFRESH}")  # fmt: skip
+    h.update(np.ascontiguousarray(pts[n0:]).view(np.uint8))
+    if hw is not None:
+        hw.update(np.ascontiguousarray(w[n0:], dtype=np.float64).view(np.uint8))
+    return _digest(h, hw)
 
 
 def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt) -> Mesh:
@@ -199,7 +216,7 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt) -> Mesh:
     Mesh
     """
     mesh = part(opt.domain, "run").refine(pts, w, opt)
-    mesh.stats.points_digest = points_digest(pts, w)
+    mesh.stats.points_digest = opt.points_digest or points_digest(pts, w)
     return mesh
 
 

@@ -18,7 +18,7 @@ from .index import LEAF_SIZE, STACK_SIZE
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .region import WALK_LOST, insert_points, mark_settled, spatial_order
-from .reopen import reopen, settle_all
+from .reopen import reopen, set_nearest_from_edges, settle_all
 from .state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -118,7 +118,10 @@ class Refinement(TileRun):
         arrays have room for at first instead (``capacity`` >= the mesh's); queued: every
         element queued (else the caller queues: ``queue_unsettled``); caches: m0's triangles'
         squared circumradii and its vertices' d_{M,2}(v)^2 where known (a mask; the others
-        are computed; R(v)^2 always comes from these circumradii). Elements smaller than
+        are computed; R(v)^2 always comes from these circumradii), or "edges" for a whole
+        Delaunay triangulation (a finished run's, continued: ``reopen``), whose vertex caches
+        come from its triangles in one pass (``reopen.set_nearest_from_edges``) rather
+        than a walk round each vertex. Elements smaller than
         2^14 grid (the resolution floor) or than min_size are never split."""
         self.lx = lx
         self.ly = ly
@@ -190,6 +193,10 @@ class Refinement(TileRun):
         if caches is None:
             set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
             self._set_vertex_caches(np.arange(m0))
+        elif isinstance(caches, str) and caches == "edges":  # every vertex's star is whole
+            set_all_circumcircles(self.mesh, self.prm, corners.shape[0])
+            set_outradii(self.mesh, corners.shape[0], m0)
+            set_nearest_from_edges(self.mesh, self.prm, corners.shape[0], m0)
         else:  # a stitched triangulation's, where its tiles knew them (``scale/shared.py``)
             radius2, nearest2, known = caches
             self.mesh.radius2[: corners.shape[0]] = radius2

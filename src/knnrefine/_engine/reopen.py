@@ -14,10 +14,12 @@ the exact cavity, never fewer (a loose cavity is connected around the exact one)
 costs their counts again.
 """
 
+import numpy as np
+
 from .jit import kernel
 from .region import locate
 from .state import C_NT, C_STAMP, GOOD, P_LX, P_LY, UNTESTED
-from .triangulation import MAX_CAVITY, circumcentre, corner_of
+from .triangulation import MAX_CAVITY, circumcentre, corner_of, edge_to
 
 SLACK = 1e-6  # relative, on the squared circumradius
 REOPEN_LOST = -1  # a walk that found no triangle (a broken mesh)
@@ -92,3 +94,26 @@ def settle_all(book, cnt, nv):
         book.ball_state[t] = GOOD
     for v in range(nv):
         book.cell_state[v] = GOOD
+
+
+@kernel(entry=True, nrt=False, nogil=True)
+def set_nearest_from_edges(mesh, prm, nt, nv):
+    """d_{M,2}(v)^2 of vertices 0..nv-1 (``mesh.nearest2``) from the edges of triangles
+    0..nt-1: the shortest edge at each vertex, as ``vertex_star`` finds it walking round v
+    (the same differences of grid coordinates, so the same values), in one pass over the
+    triangles instead of a walk per vertex."""
+    lx = prm[P_LX]
+    ly = prm[P_LY]
+    for v in range(nv):
+        mesh.nearest2[v] = np.inf
+    for t in range(nt):
+        for i in range(3):
+            j = (i + 1) % 3
+            ex, ey = edge_to(mesh, t, i, j, lx, ly)
+            e2 = ex * ex + ey * ey
+            a = mesh.corners[t, i]
+            b = mesh.corners[t, j]
+            if e2 < mesh.nearest2[a]:
+                mesh.nearest2[a] = e2
+            if e2 < mesh.nearest2[b]:
+                mesh.nearest2[b] = e2

@@ -277,9 +277,9 @@ def stage_bar(quiet, desc, unit):
             bar.close()
 
 
-def refine_with_progress(points, args, quiet, weights=None):
+def refine_with_progress(points, args, quiet, weights=None, start=None):
     """knnrefine.refine with a progress bar (shown only after a second, and only on a
-    terminal) unless quiet."""
+    terminal) unless quiet; ``start``: the mesh it continues."""
     from .. import refine
 
     shape = getattr(points, "shape", ())
@@ -311,6 +311,7 @@ def refine_with_progress(points, args, quiet, weights=None):
                 progress=bar,
                 weights=weights,
                 workers=getattr(args, "workers", None),
+                start=start,
             )
     finally:
         if bar is not None:

@@ -28,6 +28,7 @@ EXAMPLES = """examples:
   cat points.txt | knnrefine refine - -k 10 -o mesh.geojson
   knnrefine refine chi.csv --columns chi1,chi2,chi3 -k 20 --periodic \\
       --box 0 0 0 360 360 360 -o chi.vtu -o chi.npz --certify
+  knnrefine refine all.csv --start old.npz -o new.npz
 
 outputs (by extension): .npz (knnrefine's lossless format), .vtu/.vtk/.xdmf (ParaView),
 .geojson (GIS), .csv (the vertices); in space (three --columns): .npz, .vtu, .vtk; on the
@@ -44,6 +45,12 @@ def add_arguments(parser):
         default=[],
         metavar="FILE",
         help="write the mesh here (repeatable); default: <points>-k<K>.npz",
+    )
+    parser.add_argument(
+        "--start",
+        metavar="MESH",
+        help="continue this mesh (.npz, refined from the first rows of the points, in their "
+        "order; the rows after them are new): its k, tau, box and floor are kept",
     )
     parser.add_argument("--plot", metavar="PICTURE", help="also draw it (.png, .svg or .pdf)")
     parser.add_argument(
@@ -72,6 +79,12 @@ def run(args):
                 raise InputError(
                     f"{path}: a mesh in space is written as {', '.join(sorted(WRITERS3))}"
                 )
+    start = None
+    if args.start:
+        if os.path.splitext(args.start)[1].lower() != ".npz":
+            raise InputError(f"--start {args.start}: a mesh to continue is a .npz file "
+                             "(knnrefine's lossless format, which keeps its torus)")  # fmt: skip
+        start = io.read_mesh(args.start)
     t0 = time.perf_counter()
     points, weights, names = read_input(args)
     if not args.quiet:
@@ -79,7 +92,7 @@ def run(args):
             f"read {plural(len(points), 'point')} from {args.points} in "
             f"{time.perf_counter() - t0:.2f} s"
         )
-    mesh, seconds = refine_with_progress(points, args, args.quiet, weights)
+    mesh, seconds = refine_with_progress(points, args, args.quiet, weights, start)
     for path in outputs:
         io.write_mesh(mesh, path, force=args.force)
     if args.plot and mesh.dim == 3:

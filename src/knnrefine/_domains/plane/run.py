@@ -108,7 +108,7 @@ def _continued(pts, w, opt):
         budget = vertex_budget(expected, opt, m, n)
         run = Refinement(
             index, opt.k, *emb.period_internal, opt.tau, opt.min_size * emb.scale, budget,
-            m0=m0, grid=emb.grid, capacity=min(expected, budget), queued=False,
+            m0=m0, grid=emb.grid, capacity=min(expected, budget), queued=False, caches="edges",
         )  # fmt: skip
         if len(start.floor_points):  # reopened too: they stay at the floor, reported again
             new = np.concatenate([new, emb.to_internal(start.floor_points)])
