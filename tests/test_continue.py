@@ -150,6 +150,9 @@ def test_a_start_of_another_domain_or_kind_is_refused(first):
     pts, mesh = first
     with pytest.raises(InputError, match="in the plane, these points are in space"):
         knnrefine.refine(np.random.default_rng(0).random((100, 3)), 5, start=mesh)
+    cube = np.random.default_rng(1).random((400, 3))
+    with pytest.raises(InputError, match="built in the plane so far, not yet in space"):
+        knnrefine.refine(cube, start=knnrefine.refine(cube, 5))
     with pytest.raises(InputError, match="start must be a knnrefine.Mesh"):
         knnrefine.refine(pts, start="first.npz")
     older = dataclasses.replace(mesh, stats=dataclasses.replace(mesh.stats, points_digest=""))

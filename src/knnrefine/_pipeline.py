@@ -127,6 +127,11 @@ def _start_options(start, domain, points, asked):
             f"start is a mesh {_IN[start.domain]}, these points are {_IN[domain]}: continue "
             "a mesh with points of its own domain"
         )
+    if domain != "plane":
+        raise InputError(
+            f"continuing a mesh (start=) is built in the plane so far, not yet {_IN[domain]}: "
+            f"{_AFRESH}"
+        )
     if start.torus is None and not start.on_sphere:
         raise InputError(f"start has no torus mesh to continue (a file without it): {_AFRESH}")
     asked = dict(asked)
