@@ -186,3 +186,21 @@ def test_the_command_line_continues_a_mesh_file(tmp_path, capsys):
     assert main(["refine", str(tmp_path / "other.csv"), "--start", old, "-o",
                  str(tmp_path / "x.npz"), "-q"]) == 1  # fmt: skip
     assert "not the ones start was refined from" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["duplicates", "on a line", "on the box's edge"])
+def test_degenerate_new_points_continue(kind):
+    """New points that repeat old ones (some many times), lie on one line, or on the box's
+    edge: the continued mesh certifies."""
+    rng = np.random.default_rng(14)
+    pts = rng.random((3000, 2))
+    mesh = knnrefine.refine(pts, 10, box=(0, 0, 1, 1))
+    if kind == "duplicates":
+        new = np.concatenate([pts[:30], np.repeat(pts[40:41], 25, axis=0)])
+    elif kind == "on a line":
+        new = np.column_stack([np.linspace(0.1, 0.9, 200), np.full(200, 0.5)])
+    else:
+        new = np.column_stack([np.zeros(100), np.linspace(0.0, 1.0, 100)])
+    every = np.concatenate([pts, new])
+    out = knnrefine.refine(every, start=mesh)
+    assert knnrefine.certify(out, every).passed
