@@ -13,8 +13,8 @@ domain's ``Geometry`` and ``Points`` (``certify_points``, which ``api.certify`` 
 
 from __future__ import annotations
 
-import hashlib
 import time
+import zlib
 from collections.abc import Callable
 
 import numpy as np
@@ -97,15 +97,27 @@ def points_digest(pts: np.ndarray, w: np.ndarray | None) -> str:
     return _digest(*_hashers(pts, w))
 
 
+class _Crc:
+    """A running CRC-32 (zlib's: 4.5 ms for 10^6 points here, against 20 ms for blake2b,
+    which cost 8 % of a fresh refine at the default k): a changed, missing or reordered
+    row is what it catches, not an adversary."""
+
+    def __init__(self, a):
+        self.value = zlib.crc32(np.ascontiguousarray(a).view(np.uint8))
+
+    def update(self, a):
+        self.value = zlib.crc32(np.ascontiguousarray(a).view(np.uint8), self.value)
+
+    def hexdigest(self):
+        return f"{self.value:08x}"
+
+
 def _hashers(pts, w, rows=None):
-    """Hashes of the rows ``rows`` (a slice; all by default) of the points and weights."""
+    """Running hashes of the rows ``rows`` (a slice; all by default) of the points and
+    weights."""
     rows = slice(None) if rows is None else rows
-    h = hashlib.blake2b(np.ascontiguousarray(pts[rows]).view(np.uint8), digest_size=16)
-    if w is None:
-        return h, None
-    hw = hashlib.blake2b(np.ascontiguousarray(w[rows], dtype=np.float64).view(np.uint8),
-                         digest_size=16)  # fmt: skip
-    return h, hw
+    h = _Crc(pts[rows])
+    return h, None if w is None else _Crc(np.asarray(w[rows], dtype=np.float64))
 
 
 def _digest(h, hw):
@@ -200,9 +212,9 @@ def _check_start_points(start, pts, w):
         raise InputError(f"the first {n0:,} points (and weights) are not the ones start was "
                          f"refined from: give the start's points first, in their order, then "
                          f"the new ones, or {_AFRESH}")  # fmt: skip
-    h.update(np.ascontiguousarray(pts[n0:]).view(np.uint8))
+    h.update(pts[n0:])
     if hw is not None:
-        hw.update(np.ascontiguousarray(w[n0:], dtype=np.float64).view(np.uint8))
+        hw.update(np.asarray(w[n0:], dtype=np.float64))
     return _digest(h, hw)
 
 
