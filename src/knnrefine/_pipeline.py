@@ -139,11 +139,6 @@ def _start_options(start, domain, points, asked):
             f"start is a mesh {_IN[start.domain]}, these points are {_IN[domain]}: continue "
             "a mesh with points of its own domain"
         )
-    if domain != "plane":
-        raise InputError(
-            f"continuing a mesh (start=) is built in the plane so far, not yet {_IN[domain]}: "
-            f"{_AFRESH}"
-        )
     if start.torus is None and not start.on_sphere:
         raise InputError(f"start has no torus mesh to continue (a file without it): {_AFRESH}")
     asked = dict(asked)
@@ -232,8 +227,9 @@ def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt) -> Mesh:
     -------
     Mesh
     """
+    digest = opt.points_digest or points_digest(pts, w)  # before a run reorders them
     mesh = part(opt.domain, "run").refine(pts, w, opt)
-    mesh.stats.points_digest = opt.points_digest or points_digest(pts, w)
+    mesh.stats.points_digest = digest
     return mesh
 
 

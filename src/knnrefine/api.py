@@ -171,6 +171,8 @@ def refine(
     by ``domains.space.run`` into the same ``Mesh`` type, weights, workers and executor (slabs)
     included.
     """
+    if isinstance(start, Mesh) and start.on_sphere:  # a start on the sphere says where
+        sphere = True
     domain = domain_of(points, sphere, radius)
     tiles = V.check_workers(workers)
     V.check_executor(executor, tiles, domain)
@@ -183,8 +185,9 @@ def refine(
         from .scale.tiled import tiles_pay
 
         if executor is not None or tiles_pay(domain, len(pts)):
+            digest = pipeline.points_digest(pts, w)
             mesh = refine_local(pts, w, opt, tiles, executor)
-            mesh.stats.points_digest = pipeline.points_digest(pts, w)
+            mesh.stats.points_digest = digest
             return mesh
     return pipeline.refine_checked(pts, w, opt)
 

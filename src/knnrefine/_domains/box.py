@@ -1,13 +1,15 @@
 """What the two box domains (the plane and space) share, written once: the frame their
 pieces and exact indexes take (input coordinates, periodic axes wrapped), the flat balls
-of their densities, and the points a mesh in a box was made from. Each box domain's
-modules re-export these under the names every domain has."""
+of their densities, the points a mesh in a box was made from, and where a run continued
+from such a mesh starts (its embedding torus, its index). Each box domain's modules
+re-export these under the names every domain has."""
 
 import numpy as np
 
+from .._engine.embedding import Embedding
 from .._metric import BoxMetric
 from .._validation import points_of_run
-from ..errors import EngineError
+from ..errors import EngineError, InputError
 
 
 def to_frame(mesh):
@@ -53,4 +55,47 @@ def not_simplicial():
     of vertices (a torus only a few cells across)."""
     return EngineError(
         "two edges join the same pair of vertices: the mesh is not a simplicial complex"
+    )
+
+
+def start_embedding(start) -> Embedding:
+    """The embedding torus of a mesh refined in a box: its index's, else (a mesh read from
+    a file) the one its torus' origin and period make (``Embedding.of_torus``)."""
+    kept = getattr(start.index, "embedding", None)
+    if kept is not None:
+        return kept
+    t = start.torus
+    return Embedding.of_torus(start.box, start.periodic, t.origin, t.period)
+
+
+def continued_index(start, emb, pts, w, merge, build):
+    """The counting index over every point of a run continued from ``start``: the start's
+    tree with the new rows merged in (``merge(tree, new, new_weights)``, which answers None
+    for an empty tree) when the mesh kept it, else one built over them all
+    (``build(points, weights)``: a mesh read from a file keeps no tree). ``pts``, ``w``:
+    the input points (the start's first) and weights or None."""
+    n0 = int(start.stats.n)
+    kept = getattr(start.index, "index", None)
+    if kept is not None and start.index.n == n0:
+        merged = merge(kept, emb.to_internal(pts[n0:]), None if w is None else w[n0:])
+        if merged is not None:
+            return merged
+    return build(emb.to_internal(pts), w)
+
+
+def start_mesh(start, emb):
+    """The start's torus triangulation as a run takes it: (vertices (m, d) internal units,
+    cells, offsets, neighbours); InputError for a torus without neighbours (a file written
+    before they were kept in space)."""
+    t = start.torus
+    if t.neighbours is None:
+        raise InputError(
+            "start's torus has no neighbours (a file written before continuing was built): "
+            "refine all the points afresh (without start=)"
+        )
+    return (
+        np.ascontiguousarray(t.vertices * emb.scale),
+        np.ascontiguousarray(t.cells, dtype=np.int32),
+        np.ascontiguousarray(t.offsets, dtype=np.int8),
+        np.ascontiguousarray(t.neighbours, dtype=np.int32),
     )

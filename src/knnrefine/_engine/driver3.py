@@ -29,6 +29,7 @@ from .refine3 import (
     sweep_cells3,
 )
 from .region3 import WALK_LOST3, insert_points3, mark_settled3, spatial_order3
+from .reopen import reopen3, settle_all
 from .state import (
     C_BALLS_SWEPT,
     C_CELL_TESTS,
@@ -50,6 +51,7 @@ from .state import (
     STATUS_MAX_VERTICES,
     STATUS_STEPS,
     STATUS_SWEEP,
+    UNTESTED,
     Bookkeeping,
     Probe3,
     Queues,
@@ -240,6 +242,29 @@ class Refinement3(TileRun):
         """Queued candidates (an upper bound on the work left, not a promise)."""
         return int(sum(q.scalars[Q_SIZE] for q in self.queues))
 
+    def reopen(self, xyz, kinds):
+        """Continue a finished run's mesh (this one's ``grid``, its vertices' ``kinds``)
+        with more points, the index holding them all: every element settled but those the
+        points ``xyz`` (internal coordinates) reach, which are queued
+        (``_engine/reopen.py``). Returns the tetrahedra reopened (every one when a cavity
+        was out of reach)."""
+        nv, nt = self.vertices, int(self.cnt[C_NT])
+        self.book.kinds[:nv] = kinds
+        settle_all(self.book, self.cnt, nv)
+        reopened = 0
+        if len(xyz):
+            xyz = np.ascontiguousarray(xyz[spatial_order3(np.ascontiguousarray(xyz),
+                                                          self.period)])  # fmt: skip
+            reopened = reopen3(xyz, self.mesh, self.book, self.scratch, self.cnt, self.period)
+            if reopened < 0:  # a broken walk or a huge cavity: look at everything again
+                self.book.ball_state[:nt] = UNTESTED
+                self.book.cell_state[:nv] = UNTESTED
+                reopened = nt
+            if self.cnt[C_STAMP] > STAMP_LIMIT:
+                self._restart_stamps()
+        self.requeue()
+        return int(reopened)
+
     def outradii(self):
         """An upper bound on R(v) (the distance from v to its Voronoi cell's farthest
         corner) for every vertex: the cache holds R(v) or, negated, a bound on it
@@ -367,7 +392,8 @@ class Refinement3(TileRun):
                 grow(self, parts, _grown(cap), in_place=True)
 
     def take_result(self):
-        """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters, floor),
+        """(xyz (m, 3), corners (t, 4), offsets (t, 4, 3), kinds (m,), counters, floor,
+        neighbours (t, 4)),
         consuming the run: the index, scratch, queues and bookkeeping are let go first, and
         each mesh array as soon as its trimmed copy exists, so that the copies never sit
         beside the whole state (the peak memory of a run). ``floor``: (centres (f, 3),
@@ -389,12 +415,13 @@ class Refinement3(TileRun):
         )
         arrays = self.mesh._asdict()
         self.mesh = self.book = self.queues = self.scratch = self.probe = self.index = None
-        for name in ("neighbours", "radius2", "star", "outradius2", "nearest2"):
+        for name in ("radius2", "star", "outradius2", "nearest2"):
             del arrays[name]
         xyz = arrays.pop("xyz")[:nv].copy()
         corners = arrays.pop("corners")[:nt].copy()
         offsets = unpack_offsets(arrays.pop("offsets")[:nt])
-        return xyz, corners, offsets, kinds, cnt, floor
+        neighbours = arrays.pop("neighbours")[:nt].copy()
+        return xyz, corners, offsets, kinds, cnt, floor, neighbours
 
 
 def circumcentres3(c):

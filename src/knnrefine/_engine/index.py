@@ -374,18 +374,25 @@ def _merge_rows(pts, box, node, added, first, extra, out_pts, out_box, out_node)
     return shift
 
 
-def merge_index(index, q, weights=None):
-    """The index of ``index``'s points and the points q (b, 2) together (internal
+def merge_index(index, q, weights=None, split_leaf=None):
+    """The index of ``index``'s points and the points q (b, d) together (internal
     coordinates; ``weights`` (b,) for a weighted index), made from ``index`` without
     building it again: each new point goes into the leaf it descends to, the rows are
-    copied once in the tree's order, and a leaf grown past LEAF_SIZE is split as ``_build``
-    splits (the splits above stay valid: a point descends by them). Counts are those of a
-    tree built afresh; ``index`` is left as it was. About b log n work plus one copy of the
-    rows, against the n log n of ``build_index``."""
+    copied once in the tree's order, and a leaf grown past LEAF_SIZE is split as a fresh
+    build splits (the splits above stay valid: a point descends by them). Counts are those
+    of a tree built afresh; ``index`` is left as it was. About b log n work plus one copy of
+    the rows, against the n log n of a build. ``split_leaf(pts, box, node, split, t, free)``
+    splits leaf t (its rows set) numbering new nodes from ``free`` and returns the next
+    free node: the plane's ``_build`` by default (``index3.merge_index3`` gives space's)."""
     pts, box, node, split, weight = index
-    q = np.ascontiguousarray(q, dtype=np.float64)
+    d = box.shape[1] // 2
+    q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, d)
     if weight.shape[0] > 0:
-        q = np.column_stack([q[:, 0], q[:, 1], np.asarray(weights, np.float64)])
+        q = np.ascontiguousarray(np.column_stack([q, np.asarray(weights, np.float64)]))
+    if pts.shape[0] == 0:
+        return None  # nothing to merge into: the caller builds afresh
+    if split_leaf is None:
+        split_leaf = _split_leaf
     leaf = leaves_of(node, split, q)
     order = np.argsort(leaf, kind="stable")
     extra = np.ascontiguousarray(q[order])
@@ -395,8 +402,6 @@ def merge_index(index, q, weights=None):
     out_pts = np.empty((pts.shape[0] + q.shape[0], pts.shape[1]))
     out_box = np.empty_like(box)
     out_node = node.copy()
-    if pts.shape[0] == 0:
-        return build_index(q[:, :2].copy(), weights=weights)
     _merge_rows(pts, box, node, added, first, extra, out_pts, out_box, out_node)
     sizes = out_node[:, NODE_HI] - out_node[:, NODE_LO]
     grown = np.flatnonzero((added > 0) & (out_node[:, NODE_CHILD] < 0) & (sizes > LEAF_SIZE))
@@ -408,14 +413,18 @@ def merge_index(index, q, weights=None):
         out_box = np.concatenate([out_box, np.zeros((more, box.shape[1]))])
         out_split = np.concatenate([split, np.zeros(more)])
         for t in grown:
-            count = _build(out_pts, out_box, out_node, out_split, t, count, -1,
-                           np.empty(0, np.int64))[0]  # fmt: skip
+            count = split_leaf(out_pts, out_box, out_node, out_split, int(t), count)
         out_node, out_box, out_split = out_node[:count], out_box[:count], out_split[:count]
     out_weight = np.zeros(0)
     if weight.shape[0] > 0:
         out_weight = np.empty(out_node.shape[0])
         node_weights(out_pts, out_node, out_weight)
     return PointTree(out_pts, out_box, out_node, out_split, out_weight)
+
+
+def _split_leaf(pts, box, node, split, t, free):
+    """``merge_index``'s leaf split in the plane: ``_build`` from node t."""
+    return int(_build(pts, box, node, split, t, free, -1, np.empty(0, np.int64))[0])
 
 
 @kernel(inline="always")

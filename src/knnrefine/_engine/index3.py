@@ -31,6 +31,7 @@ from .index import (
     WINDOW_LOW,
     axis_gap,
     held_by_node,
+    merge_index,
     move_window,
     node_bound,
     node_weights,
@@ -109,6 +110,33 @@ def build_index3(points, copy=True, weights=None):
         weight = np.empty(n)
         node_weights(pts, node, weight)
     return PointTree(pts, box[:n], node, split[:n], weight)
+
+
+def merge_index3(index, q, weights=None):
+    """``index.merge_index`` in space: the index of ``index``'s points and the points q
+    (b, 3) together, without building it again; None when ``index`` is empty."""
+    return merge_index(index, q, weights, _split_leaf3)
+
+
+def _split_leaf3(pts, box, node, split, t, free):
+    """Split leaf t of a tree in space (its rows set), numbering new nodes from ``free``:
+    ``_build3`` over its rows alone, its root written over t and the rest from ``free``.
+    Returns the next free node."""
+    lo, hi = int(node[t, NODE_LO]), int(node[t, NODE_HI])
+    cap = node_bound(hi - lo)
+    sub_box = np.empty((cap, 6))
+    sub_node = np.empty((cap, 4), np.int64)
+    sub_split = np.zeros(cap)
+    count = _build3(pts[lo:hi], sub_box, sub_node, sub_split)  # permutes those rows in place
+    sub_node[:count, NODE_LO] += lo
+    sub_node[:count, NODE_HI] += lo
+    child = sub_node[:count, NODE_CHILD]
+    sub_node[:count, NODE_CHILD] = np.where(child >= 0, child - 1 + free, -1)
+    rows = np.concatenate([[t], np.arange(free, free + count - 1)])
+    box[rows] = sub_box[:count]
+    node[rows] = sub_node[:count]
+    split[rows] = sub_split[:count]
+    return free + count - 1
 
 
 @kernel(inline="always")

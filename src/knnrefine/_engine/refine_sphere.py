@@ -137,6 +137,18 @@ def queue_all_sphere(mesh, book, queues, scratch, cnt):
         _touch(v, mesh, book, queues, scratch)
 
 
+@kernel(entry=True, nrt=False)
+def queue_unsettled_sphere(mesh, book, queues, scratch, cnt):
+    """Queue every triangle and vertex left untested (a continued run: ``reopen_sphere``
+    marked them), the rest settled as they are."""
+    for t in range(cnt[C_NT]):
+        if book.ball_state[t] == UNTESTED:
+            queue_push(queues.balls, size_class(0.25 * mesh.chord2[t]), t, mesh.gen[t])
+    for v in range(cnt[C_NV]):
+        if book.cell_state[v] == UNTESTED:
+            _touch(v, mesh, book, queues, scratch)
+
+
 @kernel(nrt=False)
 def count_cell_sphere(v, mesh, scratch, cnt, prm, index):
     """Points of P (their weight) in the closed Voronoi cell of v, inflated: exact below k,

@@ -11,15 +11,20 @@ continued run settles every element, then reopens each new point's cavity and it
 The cavity here is found with a floating test loosened by ``SLACK`` (a triangle joins when
 p is within its circumradius times 1 + SLACK of its circumcentre): a few more elements than
 the exact cavity, never fewer (a loose cavity is connected around the exact one), which only
-costs their counts again.
+costs their counts again. Space (``reopen3``: tetrahedra, circumspheres) and the sphere
+(``reopen_sphere``: circumcaps) do the same.
 """
 
 import numpy as np
 
+from .geometry import circumsphere
 from .jit import kernel
 from .region import locate
+from .region3 import locate3
 from .state import C_NT, C_STAMP, GOOD, P_LX, P_LY, UNTESTED
 from .triangulation import MAX_CAVITY, circumcentre, corner_of, edge_to
+from .triangulation3 import corner_of3, load_corners, offset3
+from .triangulation_sphere import circumcap_centre, locate_sphere
 
 SLACK = 1e-6  # relative, on the squared circumradius
 REOPEN_LOST = -1  # a walk that found no triangle (a broken mesh)
@@ -81,6 +86,117 @@ def reopen(xy, mesh, book, scratch, cnt, prm):
                     cav[n_cav] = n
                     cav_s[n_cav, 0] = nx
                     cav_s[n_cav, 1] = ny
+                    n_cav += 1
+            i += 1
+    return reopened
+
+
+@kernel(entry=True, nrt=False, nogil=True)
+def reopen3(xyz, mesh, book, scratch, cnt, period):
+    """``reopen`` in space: every tetrahedron whose circumball (loosened by ``SLACK``) holds
+    one of the points xyz (internal coordinates in [0, period), best in a space-filling
+    order) and every corner of one marked untested. Returns the number of tetrahedra
+    reopened, or REOPEN_LOST / REOPEN_OVERFLOW."""
+    cav = scratch.cavity
+    cav_s = scratch.cavity_shift
+    pts = scratch.points
+    shift = scratch.shift
+    q = scratch.walk_point
+    loose = 1.0 + SLACK
+    reopened = 0
+    t = 0
+    for p in range(xyz.shape[0]):
+        t = locate3(xyz[p], t, mesh, period, pts, shift)
+        if t < 0:
+            return REOPEN_LOST
+        for a in range(3):
+            q[a] = xyz[p, a] - shift[a] * period[a]  # p in t's frame
+        stamp = cnt[C_STAMP] + 1
+        cnt[C_STAMP] = stamp
+        cav[0] = t
+        cav_s[0, 0] = 0
+        cav_s[0, 1] = 0
+        cav_s[0, 2] = 0
+        scratch.mark[t] = stamp
+        n_cav = 1
+        i = 0
+        while i < n_cav:
+            u = cav[i]
+            if book.ball_state[u] != UNTESTED:
+                book.ball_state[u] = UNTESTED
+                reopened += 1
+            for c in range(4):
+                book.cell_state[mesh.corners[u, c]] = UNTESTED
+            for j in range(4):
+                n = mesh.neighbours[u, j]
+                if scratch.mark[n] == stamp:
+                    continue
+                ja = (j + 1) % 4
+                jn = corner_of3(mesh, n, mesh.corners[u, ja])
+                if jn < 0:
+                    return REOPEN_LOST
+                sx = cav_s[i, 0] + offset3(mesh.offsets, u, ja, 0) - offset3(mesh.offsets, n, jn, 0)
+                sy = cav_s[i, 1] + offset3(mesh.offsets, u, ja, 1) - offset3(mesh.offsets, n, jn, 1)
+                sz = cav_s[i, 2] + offset3(mesh.offsets, u, ja, 2) - offset3(mesh.offsets, n, jn, 2)
+                load_corners(mesh, n, sx, sy, sz, period, pts)
+                cx, cy, cz, r2 = circumsphere(pts)
+                d2 = (q[0] - cx) ** 2 + (q[1] - cy) ** 2 + (q[2] - cz) ** 2
+                if d2 <= r2 * loose:
+                    if n_cav >= cav.shape[0]:
+                        return REOPEN_OVERFLOW
+                    scratch.mark[n] = stamp
+                    cav[n_cav] = n
+                    cav_s[n_cav, 0] = sx
+                    cav_s[n_cav, 1] = sy
+                    cav_s[n_cav, 2] = sz
+                    n_cav += 1
+            i += 1
+    return reopened
+
+
+@kernel(entry=True, nrt=False, nogil=True)
+def reopen_sphere(xyz, mesh, book, scratch, cnt):
+    """``reopen`` on the sphere: every triangle whose circumcap (loosened by ``SLACK``)
+    holds one of the unit vectors xyz (best in a space-filling order) and every corner of
+    one marked untested. Returns the number of triangles reopened, or REOPEN_LOST /
+    REOPEN_OVERFLOW."""
+    cav = scratch.cavity
+    pts = scratch.points
+    centre = scratch.point
+    loose = 1.0 + SLACK
+    nt = cnt[C_NT]
+    reopened = 0
+    t = 0
+    for p in range(xyz.shape[0]):
+        t = locate_sphere(xyz[p], t, mesh, pts, nt, False)
+        if t < 0:
+            return REOPEN_LOST
+        stamp = cnt[C_STAMP] + 1
+        cnt[C_STAMP] = stamp
+        cav[0] = t
+        scratch.mark[t] = stamp
+        n_cav = 1
+        i = 0
+        while i < n_cav:
+            u = cav[i]
+            if book.ball_state[u] != UNTESTED:
+                book.ball_state[u] = UNTESTED
+                reopened += 1
+            for c in range(3):
+                book.cell_state[mesh.corners[u, c]] = UNTESTED
+            for j in range(3):
+                n = mesh.neighbours[u, j]
+                if scratch.mark[n] == stamp:
+                    continue
+                circumcap_centre(mesh, n, centre)
+                d2 = 0.0
+                for a in range(3):
+                    d2 += (xyz[p, a] - centre[a]) ** 2
+                if d2 <= mesh.chord2[n] * loose:
+                    if n_cav >= cav.shape[0]:
+                        return REOPEN_OVERFLOW
+                    scratch.mark[n] = stamp
+                    cav[n_cav] = n
                     n_cav += 1
             i += 1
     return reopened

@@ -297,6 +297,38 @@ def walk_star(v, mesh, scratch):
     return nh, far, far2, near2
 
 
+@kernel(inline="always")
+def locate_sphere(p, t, mesh, pts, nt, strict):
+    """A triangle whose circumcap holds the unit vector p, walking from triangle t across
+    the edges p lies beyond until none is left (p then lies in the triangle's cone, so its
+    closed circumcap holds p). ``strict``: one whose open circumcap holds p (``visible``),
+    scanning the nt triangles should the walk end on one that does not; -1 if none."""
+    for _ in range(4 * nt + 16):
+        if visible(mesh, t, p, pts):
+            return t
+        moved = False
+        for j in range(3):
+            a = mesh.corners[t, (j + 1) % 3]
+            b = mesh.corners[t, (j + 2) % 3]
+            for ax in range(3):
+                pts[0, ax] = mesh.xyz[a, ax]
+                pts[1, ax] = mesh.xyz[b, ax]
+                pts[2, ax] = 0.0
+                pts[3, ax] = p[ax]
+            if orient3d(pts) > 0:  # p beyond the plane through a, b and the centre
+                t = mesh.neighbours[t, j]
+                moved = True
+                break
+        if not moved:
+            if not strict:
+                return t
+            break
+    for u in range(nt):
+        if visible(mesh, u, p, pts):
+            return u
+    return -1
+
+
 @kernel(entry=True, nrt=False)
 def insert_points_sphere(points, mesh, scratch, cnt):
     """Insert unit vectors in order, each from a visible triangle found by walking from the
@@ -306,32 +338,7 @@ def insert_points_sphere(points, mesh, scratch, cnt):
     pts = scratch.points
     for i in range(points.shape[0]):
         p = points[i]
-        t = seed
-        found = -1
-        for _ in range(4 * cnt[C_NT] + 16):  # a walk towards p across edges it lies beyond
-            if visible(mesh, t, p, pts):
-                found = t
-                break
-            moved = False
-            for j in range(3):
-                a = mesh.corners[t, (j + 1) % 3]
-                b = mesh.corners[t, (j + 2) % 3]
-                for ax in range(3):
-                    pts[0, ax] = mesh.xyz[a, ax]
-                    pts[1, ax] = mesh.xyz[b, ax]
-                    pts[2, ax] = 0.0
-                    pts[3, ax] = p[ax]
-                if orient3d(pts) < 0:
-                    t = mesh.neighbours[t, j]
-                    moved = True
-                    break
-            if not moved:
-                break
-        if found < 0:
-            for t in range(cnt[C_NT]):
-                if visible(mesh, t, p, pts):
-                    found = t
-                    break
+        found = locate_sphere(p, seed, mesh, pts, cnt[C_NT], True)
         if found < 0:
             return i
         v, nb = insert_sphere(p, found, mesh, scratch, cnt)

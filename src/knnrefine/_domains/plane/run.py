@@ -12,6 +12,7 @@ from ..._engine import ahead, size
 from ..._engine import state as S
 from ..._engine.driver import Refinement
 from ..._engine.embedding import Embedding, diameter, unfold, wrap
+from ..box import continued_index, start_embedding, start_mesh
 from ..._engine.geometry import FLOOR_BITS
 from ..._engine.index import PointIndex, build_index, mark_in_disks, merge_index
 from ..._engine.initial import (
@@ -89,19 +90,11 @@ def _continued(pts, w, opt):
         t0 = time.perf_counter()
         emb = start_embedding(start)
         new = emb.to_internal(pts[n0:])
-        kept = getattr(start.index, "index", None)
-        if kept is not None and start.index.n == n0:  # the start's tree, with the new points
-            index = merge_index(kept, new, None if w is None else w[n0:])
-        else:  # a mesh read from a file keeps no tree
-            index = build_index(emb.to_internal(pts), weights=w)
+        index = continued_index(start, emb, pts, w, merge_index,
+                                lambda x, weights: build_index(x, weights=weights))  # fmt: skip
         interrupts.check()
         torus = start.torus
-        m0 = (
-            np.ascontiguousarray(torus.vertices * emb.scale),
-            np.ascontiguousarray(torus.cells, dtype=np.int32),
-            np.ascontiguousarray(torus.offsets, dtype=np.int8),
-            np.ascontiguousarray(torus.neighbours, dtype=np.int32),
-        )
+        m0 = start_mesh(start, emb)
         m = len(m0[0])
         grown_by = max(0.0, (n - n0) / max(n0, 1))
         expected = m * (1.0 + 2.0 * grown_by) + 64
@@ -123,16 +116,6 @@ def _continued(pts, w, opt):
                       kept=kept)  # fmt: skip
     mesh.stats.continued = {"points": n - n0, "from_vertices": m, "reopened": reopened}
     return mesh
-
-
-def start_embedding(start) -> Embedding:
-    """The embedding torus of a mesh refined in the plane: its index's, else (a mesh read
-    from a file) the one its torus' origin and period make (``Embedding.of_torus``)."""
-    kept = getattr(start.index, "embedding", None)
-    if kept is not None:
-        return kept
-    t = start.torus
-    return Embedding.of_torus(start.box, start.periodic, t.origin, t.period)
 
 
 def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budget, initial,

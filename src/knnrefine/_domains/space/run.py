@@ -13,7 +13,8 @@ from ..._engine import ahead, size
 from ..._engine.driver3 import Refinement3, choose_grid3
 from ..._engine.embedding import Embedding, diameter, unfold
 from ..._engine.geometry import FLOOR_BITS
-from ..._engine.index3 import build_index3, holds_k_within3
+from ..._engine.index import PointIndex
+from ..._engine.index3 import build_index3, holds_k_within3, merge_index3
 from ..._engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from ..._engine.interrupt import Interrupts
 from ..._engine.state import (
@@ -29,6 +30,7 @@ from ..._metric import BoxMetric, held_in_balls, points_in_balls, weighted_kth
 from ..._options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 from ...errors import BudgetError, InputError
 from ...mesh import Mesh, Stats, Torus, moves_of
+from ..box import continued_index, start_embedding, start_mesh
 
 
 def holds_k(index, x, reach, k, period):
@@ -182,6 +184,8 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
     an initial mesh that cannot fit is refused before any work (``RunOptions.check``),
     time_limit and Ctrl-C hold during the setup too, a refusal names the largest k and tau
     that would certify, and a FloorWarning says when most points lie below the floor."""
+    if opt.start is not None:
+        return _continued(pts, w, opt)
     k, tau, min_size = opt.k, opt.tau, opt.min_size
     report = Progress(opt.progress)
     budget = opt.start_budget(len(pts))
@@ -191,7 +195,8 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
         if found is None:
             raise InputError(start.refusal(k, tau))
         emb, run_index, grid = found
-        del found  # the index must go with the run (take_result), not live on in this tuple
+        del found  # the index must go with the run or the mesh, not live on in this tuple
+        kept = PointIndex(emb, run_index, PointIndex.fingerprint_of(pts, w))
         start.release()
         opt.past("setting up")
         floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
@@ -206,7 +211,47 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
         status = run.run(opt.deadline, report.refining, interrupts)
     total = None if w is None else math.fsum(w)
     return finish(run, status, emb, opt, n=len(pts), weight=total, points=lambda: pts,
-                  report=report, estimated=estimated, budget=budget, initial=0)  # fmt: skip
+                  report=report, estimated=estimated, budget=budget, initial=0,
+                  kept=kept)  # fmt: skip
+
+
+def _continued(pts, w, opt):
+    """A run continued from the mesh ``opt.start`` (refined from the first rows of ``pts``,
+    checked by ``pipeline.checked``), as in the plane: its torus triangulation taken as it
+    is, every element settled but those the new points reach (``Refinement3.reopen``), then
+    refined on."""
+    start = opt.start
+    n, n0 = len(pts), int(start.stats.n)
+    report = Progress(opt.progress)
+    with ahead.compiling("space", report.compiling), Interrupts() as interrupts:
+        t0 = time.perf_counter()
+        emb = start_embedding(start)
+        grid = start_mesh(start, emb)
+        index = continued_index(start, emb, pts, w, merge_index3,
+                                lambda x, weights: build_index3(x, copy=False,
+                                                                weights=weights))  # fmt: skip
+        interrupts.check()
+        m = len(grid[0])
+        grown_by = max(0.0, (n - n0) / max(n0, 1))
+        expected = m * (1.0 + 2.0 * grown_by) + 64
+        budget = vertex_budget(expected, opt, m, n)
+        run = Refinement3(index, emb.period_internal, opt.k, opt.tau, opt.min_size * emb.scale,
+                          budget, grid, emb.grid, queued=False,
+                          capacity=int(min(expected, budget)))  # fmt: skip
+        new = emb.to_internal(pts[n0:])
+        if len(start.floor_points):  # reopened too: they stay at the floor, reported again
+            new = np.concatenate([new, emb.to_internal(start.floor_points)])
+        reopened = run.reopen(new, np.asarray(start.torus.kinds, np.int8))
+        run.time_index = time.perf_counter() - t0
+        opt.past("setting up")
+        status = run.run(opt.deadline, report.refining, interrupts)
+        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, w))
+        del index
+    total = None if w is None else math.fsum(w)
+    mesh = finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts, report=report,
+                  estimated=expected, budget=budget, initial=0, kept=kept)  # fmt: skip
+    mesh.stats.continued = {"points": n - n0, "from_vertices": m, "reopened": reopened}
+    return mesh
 
 
 def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budget, initial,
@@ -233,7 +278,7 @@ def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budge
     t_assemble = time.perf_counter()
     report.assembling(int(run.cnt[C_NV]))
     setup, refined = run.time_index, run.time_refine
-    xyz, corners, offsets, kinds, cnt, floor = run.take_result()
+    xyz, corners, offsets, kinds, cnt, floor, neighbours = run.take_result()
     largest = float(np.sqrt(run.largest_radius2))
     del run
     under = _points_under_floor(points, floor, emb, n)
@@ -243,6 +288,7 @@ def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budge
     torus = Torus(
         origin=tuple(float(o) for o in emb.origin), period=emb.period,
         vertices=xyz / emb.scale, cells=corners, offsets=offsets, kinds=kinds,
+        neighbours=neighbours,
     )  # fmt: skip
     floor_points = emb.to_input(floor[0]) if len(floor[0]) else np.zeros((0, 3))
     stats = Stats(
@@ -263,7 +309,7 @@ def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budge
         vertices=emb.to_input(pos, copy=False), cells=tetrahedra, offsets=out_offsets,
         kinds=kinds[out_v], order=out_v, k=k, tau=tau, periodic=per, box=box,
         min_size=max(min_size, emb.resolution), floor_points=floor_points, torus=torus,
-        stats=stats,
+        stats=stats, index=kept,
     )  # fmt: skip
     report.assembling(len(mesh.vertices), done=True)
     return mesh

@@ -18,7 +18,9 @@ from scipy.spatial import cKDTree
 
 from ..._engine import ahead
 from ..._engine.geometry import RESOLUTION_ANGLE
-from ..._engine.index3 import build_index3
+from ..._engine.index3 import build_index3, merge_index3
+from ..._engine.region3 import spatial_order3
+from ..._engine.reopen import reopen_sphere
 from ..._engine.interrupt import Interrupts
 from ..._engine.queue import Q_SIZE, Q_USED, new_queue
 from ..._engine.refine_sphere import (
@@ -33,6 +35,7 @@ from ..._engine.refine_sphere import (
     QUEUE_HEADROOM,
     SLACK2,
     queue_all_sphere,
+    queue_unsettled_sphere,
     refine_steps_sphere,
 )
 from ..._engine.size import floored_per_site
@@ -47,18 +50,20 @@ from ..._engine.state import (
     C_STAMP,
     ERRORS,
     FLOOR,
+    GOOD,
     N_COUNTERS,
     STATUS_DONE,
     STATUS_ERROR,
     STATUS_GROW,
     STATUS_MAX_VERTICES,
     STATUS_STEPS,
+    UNTESTED,
     Bookkeeping,
     Queues,
     grown,
 )
-from ..._engine.triangulation_sphere import new_sphere, new_sphere_scratch
-from ..._metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls
+from ..._engine.triangulation_sphere import neighbours_of, new_sphere, new_sphere_scratch
+from ..._metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls, unit_vectors
 from ..._options import Progress, SphereOptions, check_size, check_sphere_run, warn_floor
 from ...errors import BudgetError, EngineError
 from ...mesh import Mesh, Stats, moves_of
@@ -158,7 +163,6 @@ def _refine(xyz_p, w, opt, report):
     mass = n if total is None else total
     estimated = estimate_sphere(n, mass, opt)
     check_size(estimated, opt, n)  # the k = 1 notice, refusals and warnings of every domain
-    index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
     prm = np.zeros(N_PARAMS_SPHERE)
     prm[PS_TAU2] = opt.tau**2 * (1.0 - 1e-12)
     prm[PS_FLOOR2] = angle_to_chord(opt.floor_angle) ** 2
@@ -166,13 +170,18 @@ def _refine(xyz_p, w, opt, report):
     prm[PS_INFLATE] = 1.0 + 1e-9
     prm[PS_K] = float(opt.k)
     prm[PS_SLACK2] = SLACK2
-    # room for 3 (n / k) vertices, a little more than the estimate, grown when short
-    first = int(max(1024, min(budget, 3.0 * mass / max(opt.k, 1e-300) + 1024)))
-    run = SphereRun(first, 2 * first, first + 4 * QUEUE_HEADROOM)
+    continued = None
+    if opt.start is None:
+        index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
+        # room for 3 (n / k) vertices, a little more than the estimate, grown when short
+        first = int(max(1024, min(budget, 3.0 * mass / max(opt.k, 1e-300) + 1024)))
+        run = SphereRun(first, 2 * first, first + 4 * QUEUE_HEADROOM)
+        queue_all_sphere(run.mesh, run.book, run.queues, run.scratch, run.cnt)
+    else:
+        index, run, continued = _continued(xyz_p, w, opt)
     run.cnt[C_MAX_VERTICES] = budget
     t0 = time.perf_counter()
     with Interrupts() as interrupts:
-        queue_all_sphere(run.mesh, run.book, run.queues, run.scratch, run.cnt)
         while True:
             run.restart_stamps()
             status = run.step(prm, index, STEPS)
@@ -212,10 +221,80 @@ def _refine(xyz_p, w, opt, report):
     report.assembling(int(run.cnt[C_NV]))
     times = {"setup": t0 - opt.t_start, "refine": t1 - t0}
     mesh = _assemble(run, opt, index, times, xyz_p, total, budget, estimated)
+    if continued is not None:
+        mesh.stats.continued = continued
     mesh.stats.time = {**times, "assemble": time.perf_counter() - t1,
                        "total": time.perf_counter() - opt.t_start}  # fmt: skip
     report.assembling(len(mesh.vertices), done=True)
     return mesh
+
+
+def _continued(xyz_p, w, opt):
+    """(index, run, the stats' ``continued``) of a run continued from the mesh ``opt.start``
+    (refined from the first rows of ``xyz_p``, checked by ``pipeline.checked``), as in the
+    plane: the start's tree with the new points merged in (built afresh for a mesh read
+    from a file), its triangulation taken as it is, every element settled but those the new
+    points reach (``reopen.reopen_sphere``), which are queued."""
+    start = opt.start
+    n0 = int(start.stats.n)
+    kept = start.index
+    index = None
+    if kept is not None and kept.pts.shape[0] == n0 and n0 > 0:
+        index = merge_index3(kept, xyz_p[n0:], None if w is None else w[n0:])
+    if index is None:
+        index = build_index3(xyz_p, copy=False, weights=w)
+    xyz = np.ascontiguousarray(start.xyz, np.float64)
+    tri = np.ascontiguousarray(start.cells, np.int32)
+    nv, nt = len(xyz), len(tri)
+    grown_by = max(0.0, (len(xyz_p) - n0) / max(n0, 1))
+    cap_v = int(max(1024, nv * (1.0 + 2.0 * grown_by) + 1024))
+    run = SphereRun(max(cap_v, nv + 64), max(2 * cap_v, nt + 128), nt + cap_v + 4 * QUEUE_HEADROOM)
+    mesh = run.mesh
+    mesh.xyz[:nv] = xyz
+    mesh.corners[:nt] = tri
+    mesh.neighbours[:nt] = neighbours_of(tri)
+    mesh.chord2[:nt] = circumcap_chords2(xyz, tri)
+    mesh.gen[:nt] = 0
+    mesh.star[tri[:, 0]] = np.arange(nt, dtype=np.int32)
+    mesh.star[tri[:, 1]] = np.arange(nt, dtype=np.int32)
+    mesh.star[tri[:, 2]] = np.arange(nt, dtype=np.int32)
+    run.cnt[C_NV], run.cnt[C_NT] = nv, nt
+    run.book.kinds[:nv] = start.kinds
+    run.book.ball_state[:nt] = GOOD
+    run.book.cell_state[:nv] = GOOD
+    new = xyz_p[n0:]
+    if len(start.floor_points):  # reopened too: they stay at the floor, reported again
+        new = np.concatenate([new, unit_vectors(start.floor_points)])
+    reopened = 0
+    if len(new):
+        order = spatial_order3(np.ascontiguousarray(new + 1.0), np.full(3, 2.0))
+        reopened = reopen_sphere(np.ascontiguousarray(new[order]), mesh, run.book, run.scratch,
+                                 run.cnt)  # fmt: skip
+        if reopened < 0:  # a lost walk or a huge cavity: look at everything again
+            run.book.ball_state[:nt] = UNTESTED
+            run.book.cell_state[:nv] = UNTESTED
+            reopened = nt
+        run.restart_stamps()
+    queue_unsettled_sphere(mesh, run.book, run.queues, run.scratch, run.cnt)
+    return index, run, {"points": len(xyz_p) - n0, "from_vertices": nv, "reopened": int(reopened)}
+
+
+def circumcap_chords2(xyz, tri):
+    """Each triangle's squared circumcap chord as ``triangulation_sphere.set_circumcap``
+    finds it (the same arithmetic, in numpy): the largest squared distance from the cap's
+    centre to a corner."""
+    a, b, c = xyz[tri[:, 0]], xyz[tri[:, 1]], xyz[tri[:, 2]]
+    ba, ca = b - a, c - a
+    normal = np.stack([ba[:, 1] * ca[:, 2] - ba[:, 2] * ca[:, 1],
+                       ba[:, 2] * ca[:, 0] - ba[:, 0] * ca[:, 2],
+                       ba[:, 0] * ca[:, 1] - ba[:, 1] * ca[:, 0]], axis=1)  # fmt: skip
+    norm = np.sqrt(normal[:, 0] ** 2 + normal[:, 1] ** 2 + normal[:, 2] ** 2)
+    centre = normal / norm[:, None]
+    out = np.zeros(len(tri))
+    for p in (a, b, c):
+        d = p - centre
+        out = np.maximum(out, d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)
+    return out
 
 
 def estimate_sphere(n, mass, opt):
