@@ -12,7 +12,6 @@ from ..._engine import ahead, size
 from ..._engine import state as S
 from ..._engine.driver import Refinement
 from ..._engine.embedding import Embedding, diameter, unfold, wrap
-from ..box import continued_index, start_embedding, start_mesh
 from ..._engine.geometry import FLOOR_BITS
 from ..._engine.index import PointIndex, build_index, mark_in_disks, merge_index
 from ..._engine.initial import (
@@ -27,6 +26,7 @@ from ..._engine.interrupt import Interrupts
 from ..._options import Progress, RunOptions, check_box_run, vertex_budget, warn_floor
 from ...errors import BudgetError, InputError
 from ...mesh import Mesh, Stats, Torus
+from ..box import continued_index, start_embedding, start_mesh
 
 
 def checked(points, weights, **asked) -> tuple[np.ndarray, np.ndarray | None, RunOptions]:

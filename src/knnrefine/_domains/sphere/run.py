@@ -19,8 +19,6 @@ from scipy.spatial import cKDTree
 from ..._engine import ahead
 from ..._engine.geometry import RESOLUTION_ANGLE
 from ..._engine.index3 import build_index3, merge_index3
-from ..._engine.region3 import spatial_order3
-from ..._engine.reopen import reopen_sphere
 from ..._engine.interrupt import Interrupts
 from ..._engine.queue import Q_SIZE, Q_USED, new_queue
 from ..._engine.refine_sphere import (
@@ -38,6 +36,8 @@ from ..._engine.refine_sphere import (
     queue_unsettled_sphere,
     refine_steps_sphere,
 )
+from ..._engine.region3 import spatial_order3
+from ..._engine.reopen import reopen_sphere
 from ..._engine.size import floored_per_site
 from ..._engine.state import (
     C_CELL_TESTS,
