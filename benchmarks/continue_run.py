@@ -4,9 +4,11 @@ for batches of 0.1 % to 50 % of the points, clustered in a new place. Each pair 
 which runs first; medians of ``--repeat``. ``--stream N`` then adds N batches of 1 % one
 after another and compares the last mesh with a fresh run (size; ``--certify`` certifies it).
 
-    python benchmarks/continue_run.py [--n 1e6] [--k 10] [--repeat 3] [--stream 100]
+    python benchmarks/continue_run.py [--domain plane|space|sphere] [--n 1e6] [--k 10]
+        [--repeat 3] [--stream 100] [--certify]
 
-Only the plane so far (space and the sphere: not yet).
+The plane in the unit square, space in the unit cube, the sphere with points in
+(longitude, latitude); the default k is refine's (sqrt(n) / 2).
 """
 
 import argparse
@@ -17,19 +19,37 @@ import numpy as np
 
 import knnrefine
 
-BOX = (0.0, 0.0, 1.0, 1.0)
+BOXES = {"plane": (0.0, 0.0, 1.0, 1.0), "space": (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)}
 
 
-def points(n, rng):
+def points(domain, n, rng):
     """Half uniform, half a wide normal blob: the start's points."""
     half = n // 2
-    blob = np.clip(rng.normal(0.6, 0.1, (n - half, 2)), 0.0, 1.0)
-    return np.concatenate([rng.random((half, 2)), blob])
+    if domain == "sphere":
+        uniform = np.column_stack([rng.uniform(-180, 180, half),
+                                   np.degrees(np.arcsin(rng.uniform(-1, 1, half)))])  # fmt: skip
+        blob = np.column_stack([rng.normal(20, 10, n - half),
+                                np.clip(rng.normal(40, 10, n - half), -90, 90)])  # fmt: skip
+        return np.concatenate([uniform, blob])
+    d = 2 if domain == "plane" else 3
+    blob = np.clip(rng.normal(0.6, 0.1, (n - half, d)), 0.0, 1.0)
+    return np.concatenate([rng.random((half, d)), blob])
 
 
-def batch(b, rng, spread=0.02):
+def batch(domain, b, rng, spread=0.02):
     """b new points clustered in one new place."""
-    return np.clip(rng.normal(rng.uniform(0.1, 0.9, 2), spread, (b, 2)), 0.0, 1.0)
+    if domain == "sphere":
+        centre = (rng.uniform(-170, 170), rng.uniform(-60, 60))
+        lat = np.clip(rng.normal(centre[1], 100 * spread, b), -90, 90)
+        return np.column_stack([rng.normal(centre[0], 100 * spread, b), lat])
+    d = 2 if domain == "plane" else 3
+    return np.clip(rng.normal(rng.uniform(0.1, 0.9, d), spread, (b, d)), 0.0, 1.0)
+
+
+def fresh_run(domain, pts, k):
+    if domain == "sphere":
+        return knnrefine.refine(pts, k, sphere=True)
+    return knnrefine.refine(pts, k, box=BOXES[domain])
 
 
 def timed(f):
@@ -40,6 +60,7 @@ def timed(f):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--domain", choices=["plane", "space", "sphere"], default="plane")
     ap.add_argument("--n", type=float, default=1e6)
     ap.add_argument("--k", type=float, default=None, help="default: refine's (sqrt(n) / 2)")
     ap.add_argument("--repeat", type=int, default=3)
@@ -49,18 +70,19 @@ def main(argv=None):
     args = ap.parse_args(argv)
     n = int(args.n)
     rng = np.random.default_rng(0)
-    first = points(n, rng)
+    domain = args.domain
+    first = points(domain, n, rng)
     k = args.k if args.k is not None else knnrefine.density.default_k(n)
-    start = knnrefine.refine(first, k, box=BOX)
-    knnrefine.refine(np.concatenate([first, batch(10, rng)]), start=start)  # warm
-    print(f"n = {n:,}, k = {k:g}, start: {start.stats.m:,} vertices")
+    start = fresh_run(domain, first, k)
+    knnrefine.refine(np.concatenate([first, batch(domain, 10, rng)]), start=start)  # warm
+    print(f"{domain}, n = {n:,}, k = {k:g}, start: {start.stats.m:,} vertices")
     print("| batch | fresh refine (s) | continued (s) | continued / fresh | reopened triangles |")
     print("|---|---:|---:|---:|---:|")
     for fraction in args.fractions:
-        every = np.concatenate([first, batch(max(1, int(fraction * n)), rng)])
+        every = np.concatenate([first, batch(domain, max(1, int(fraction * n)), rng)])
         fresh, cont, reopened = [], [], 0
         for r in range(args.repeat):
-            runs = [("fresh", lambda every=every: knnrefine.refine(every, k, box=BOX)),
+            runs = [("fresh", lambda every=every: fresh_run(domain, every, k)),
                     ("cont", lambda every=every: knnrefine.refine(every, start=start))]  # fmt: skip
             for name, f in runs if r % 2 == 0 else runs[::-1]:
                 seconds, mesh = timed(f)
@@ -72,10 +94,10 @@ def main(argv=None):
     if args.stream:
         pts, mesh, seconds = first, start, []
         for _ in range(args.stream):
-            pts = np.concatenate([pts, batch(max(1, n // 100), rng, 0.05)])
+            pts = np.concatenate([pts, batch(domain, max(1, n // 100), rng, 0.05)])
             t, mesh = timed(lambda pts=pts, mesh=mesh: knnrefine.refine(pts, start=mesh))
             seconds.append(t)
-        t_fresh, fresh = timed(lambda: knnrefine.refine(pts, k, box=BOX))
+        t_fresh, fresh = timed(lambda: fresh_run(domain, pts, k))
         print(f"stream of {args.stream} batches of 1 %: {len(pts):,} points, continued "
               f"{mesh.stats.m:,} vertices against {fresh.stats.m:,} fresh "
               f"({mesh.stats.m / fresh.stats.m - 1:+.1%}); a batch took "

@@ -151,8 +151,8 @@ def test_a_start_of_another_domain_or_kind_is_refused(first):
     with pytest.raises(InputError, match="in the plane, these points are in space"):
         knnrefine.refine(np.random.default_rng(0).random((100, 3)), 5, start=mesh)
     cube = np.random.default_rng(1).random((400, 3))
-    with pytest.raises(InputError, match="built in the plane so far, not yet in space"):
-        knnrefine.refine(cube, start=knnrefine.refine(cube, 5))
+    with pytest.raises(InputError, match="in space, these points are on the sphere"):
+        knnrefine.refine(cube, sphere=True, start=knnrefine.refine(cube, 5))
     with pytest.raises(InputError, match="start must be a knnrefine.Mesh"):
         knnrefine.refine(pts, start="first.npz")
     older = dataclasses.replace(mesh, stats=dataclasses.replace(mesh.stats, points_digest=""))
@@ -204,3 +204,196 @@ def test_degenerate_new_points_continue(kind):
     every = np.concatenate([pts, new])
     out = knnrefine.refine(every, start=mesh)
     assert knnrefine.certify(out, every).passed
+
+
+# -- space and the sphere: the same continuation over the domain protocol ----------------
+
+SPACE_BOX = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+
+
+def _domain_points(domain, rng, n):
+    """n points of the domain: uniform in the unit box, or on the sphere (lon, lat)."""
+    if domain == "space":
+        return rng.random((n, 3))
+    lon = rng.uniform(-180.0, 180.0, n)
+    lat = np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, n)))
+    return np.column_stack([lon, lat])
+
+
+def _domain_cluster(domain, rng, n, spread=0.02):
+    """n points clustered in one new place of the domain."""
+    if domain == "space":
+        return np.clip(rng.normal(rng.uniform(0.2, 0.8, 3), spread, (n, 3)), 0.0, 1.0)
+    centre = (rng.uniform(-170, 170), rng.uniform(-60, 60))
+    lon = rng.normal(centre[0], 100 * spread, n)
+    lat = np.clip(rng.normal(centre[1], 100 * spread, n), -90.0, 90.0)
+    return np.column_stack([lon, lat])
+
+
+def _domain_refine(domain, pts, k, **options):
+    if domain == "space":
+        options.setdefault("box", SPACE_BOX)
+    else:
+        options["sphere"] = True
+    return knnrefine.refine(pts, k, **options)
+
+
+def _exact_d_pk(domain, pts, probes, k):
+    """d_{P,k} by brute force: Euclidean in space, great-circle (radians x radius) on the
+    sphere."""
+    if domain == "space":
+        return cKDTree(pts).query(probes, k=k)[0][:, -1]
+    from knnrefine._metric import unit_vectors
+
+    chord = cKDTree(unit_vectors(pts)).query(unit_vectors(probes), k=k)[0][:, -1]
+    return 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0))  # radians: the default radius 1
+
+
+@pytest.fixture(scope="module", params=["space", "sphere"])
+def first_of(request):
+    domain = request.param
+    rng = np.random.default_rng(21)
+    pts = _domain_points(domain, rng, 6000)
+    return domain, pts, _domain_refine(domain, pts, 12)
+
+
+def test_space_and_the_sphere_continue_and_certify(first_of):
+    domain, pts, mesh = first_of
+    new = _domain_cluster(domain, np.random.default_rng(22), 120)  # 2 %, a new place
+    every = np.concatenate([pts, new])
+    out = knnrefine.refine(every, start=mesh)
+    assert out.domain == domain and out.k == mesh.k and out.tau == mesh.tau
+    cert = knnrefine.certify(out, every)
+    assert cert.passed, cert
+    cells = len(mesh.cells) if domain == "sphere" else len(mesh.torus.cells)
+    assert 0 < out.stats.continued["reopened"] < 0.1 * cells
+    assert out.stats.m > mesh.stats.m  # the new cluster was split
+    fresh = _domain_refine(domain, every, 12)
+    assert abs(out.stats.m - fresh.stats.m) <= 0.1 * fresh.stats.m
+
+
+def test_space_and_the_sphere_with_no_new_point_give_the_start(first_of):
+    domain, pts, mesh = first_of
+    out = knnrefine.refine(pts, start=mesh)
+    assert np.array_equal(out.vertices, mesh.vertices)
+    assert np.array_equal(out.cells, mesh.cells)
+    assert out.stats.continued == {"points": 0, "from_vertices": mesh.stats.m_torus,
+                                   "reopened": 0}  # fmt: skip
+
+
+def test_d_pk_of_a_continued_mesh_in_space_and_on_the_sphere_is_exact(first_of):
+    domain, pts, mesh = first_of
+    every = np.concatenate([pts, _domain_cluster(domain, np.random.default_rng(23), 200)])
+    out = knnrefine.refine(every, start=mesh)
+    probes = _domain_points(domain, np.random.default_rng(24), 300)
+    got = knnrefine.KnnDistance(out, every).exact(probes)
+    assert np.allclose(got, _exact_d_pk(domain, every, probes, 12), rtol=1e-9)
+
+
+def test_a_file_start_in_space_and_on_the_sphere_continues_as_in_memory(first_of, tmp_path):
+    domain, pts, mesh = first_of
+    io.write_mesh(mesh, tmp_path / "first.npz")
+    read = io.read_mesh(tmp_path / "first.npz")
+    assert read.index is None
+    every = np.concatenate([pts, _domain_cluster(domain, np.random.default_rng(25), 90)])
+    a = knnrefine.refine(every, start=mesh)
+    b = knnrefine.refine(every, start=read)
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.cells, b.cells)
+
+
+@pytest.mark.parametrize("domain", ["space", "sphere"])
+def test_weighted_points_continue_in_space_and_on_the_sphere(domain):
+    rng = np.random.default_rng(26)
+    pts = _domain_points(domain, rng, 3000)
+    w = rng.random(3000) + 0.5
+    mesh = _domain_refine(domain, pts, 12.5, weights=w)
+    every = np.concatenate([pts, _domain_cluster(domain, rng, 60)])
+    weights = np.concatenate([w, rng.random(60) + 0.5])
+    out = knnrefine.refine(every, weights=weights, start=mesh)
+    assert knnrefine.certify(out, every, weights=weights).passed
+    with pytest.raises(InputError, match="weights"):
+        knnrefine.refine(every, start=mesh)
+
+
+@pytest.mark.parametrize("domain", ["space", "sphere"])
+def test_a_stream_in_space_and_on_the_sphere_ends_near_a_fresh_run(domain):
+    rng = np.random.default_rng(27)
+    pts = _domain_points(domain, rng, 4000)
+    mesh = _domain_refine(domain, pts, 10)
+    for _ in range(8):
+        pts = np.concatenate([pts, _domain_cluster(domain, rng, 40, 0.03)])
+        mesh = knnrefine.refine(pts, start=mesh)
+    assert knnrefine.certify(mesh, pts).passed
+    fresh = _domain_refine(domain, pts, 10)
+    assert abs(mesh.stats.m - fresh.stats.m) <= 0.1 * fresh.stats.m
+
+
+def test_a_periodic_cube_continues_across_its_seam():
+    rng = np.random.default_rng(28)
+    pts = rng.random((4000, 3))
+    mesh = knnrefine.refine(pts, 10, box=SPACE_BOX, periodic=True)
+    new = np.column_stack([np.full(80, 0.999), rng.normal(0.5, 0.01, (80, 2))]) % 1.0
+    every = np.concatenate([pts, new])
+    out = knnrefine.refine(every, start=mesh)
+    assert out.periodic == (True, True, True)
+    assert knnrefine.certify(out, every).passed
+
+
+@pytest.mark.parametrize("kind", ["duplicates", "on a line", "on the box's edge or the seam"])
+@pytest.mark.parametrize("domain", ["space", "sphere"])
+def test_degenerate_new_points_continue_in_space_and_on_the_sphere(domain, kind):
+    """New points that repeat old ones, lie on one line (a meridian on the sphere), or on
+    the box's edge (the date line and a pole on the sphere): the continued mesh
+    certifies."""
+    rng = np.random.default_rng(29)
+    pts = _domain_points(domain, rng, 3000)
+    mesh = _domain_refine(domain, pts, 10)
+    line = np.linspace(0.1, 0.9, 150)
+    if kind == "duplicates":
+        new = np.concatenate([pts[:30], np.repeat(pts[40:41], 25, axis=0)])
+    elif domain == "space":
+        new = (np.column_stack([line, np.full(150, 0.5), np.full(150, 0.5)])
+               if kind == "on a line" else
+               np.column_stack([np.zeros(150), line, np.ones(150)]))  # fmt: skip
+    elif kind == "on a line":
+        new = np.column_stack([np.full(150, 30.0), 160 * line - 80])
+    else:
+        new = np.concatenate([np.column_stack([np.full(140, 180.0), 160 * line[:140] - 80]),
+                              np.tile([[0.0, 90.0]], (10, 1))])  # fmt: skip
+    every = np.concatenate([pts, new])
+    out = knnrefine.refine(every, start=mesh)
+    assert knnrefine.certify(out, every).passed
+
+
+def test_refusals_in_space_and_on_the_sphere(first_of):
+    domain, pts, mesh = first_of
+    every = np.concatenate([pts, pts[:10]])
+    with pytest.raises(InputError, match="k=12"):
+        knnrefine.refine(every, 13, start=mesh)
+    with pytest.raises(InputError, match="tau=3"):
+        knnrefine.refine(every, tau=2.5, start=mesh)
+    with pytest.raises(InputError, match="not the ones start was refined from"):
+        knnrefine.refine(np.concatenate([pts[::-1], pts[:5]]), start=mesh)
+    if domain == "space":
+        with pytest.raises(InputError, match="outside the start mesh's box along axis 2"):
+            knnrefine.refine(np.concatenate([pts, [[0.5, 0.5, 1.5]]]), start=mesh)
+        bare = dataclasses.replace(mesh, torus=dataclasses.replace(mesh.torus, neighbours=None))
+        with pytest.raises(InputError, match="no neighbours"):
+            knnrefine.refine(every, start=bare)
+    else:
+        with pytest.raises(InputError, match="radius=1.0"):
+            knnrefine.refine(every, radius=2.0, start=mesh)
+        plane = knnrefine.refine(np.random.default_rng(0).random((500, 2)), 5)
+        with pytest.raises(InputError, match="in the plane, these points are on the sphere"):
+            knnrefine.refine(every, sphere=True, start=plane)
+
+
+def test_sphere_digest_is_of_the_points_as_given():
+    """Regression: the sphere's index reorders its unit vectors in place, and the digest was
+    taken after the run, of the reordered ones: no start on the sphere could continue."""
+    from knnrefine._metric import unit_vectors
+    from knnrefine._pipeline import points_digest
+
+    pts = _domain_points("sphere", np.random.default_rng(30), 2000)
+    mesh = _domain_refine("sphere", pts, 10)
+    assert mesh.stats.points_digest == points_digest(unit_vectors(pts), None)

@@ -113,6 +113,38 @@ def test_sphere_triangulation_is_the_convex_hull():
     assert (det > 0).all()
 
 
+def test_sphere_walk_steps_towards_the_point_not_its_antipode():
+    """Regression: the walk crossed the edges p lies inside of, so it ended in the triangle
+    antipodal to p (a scan of every triangle hid it from insertion, not from a continued
+    run's reopening, which found the wrong cavity and refined nothing new)."""
+    from knnrefine._engine.jit import python_entry
+    from knnrefine._engine.state import C_NT, C_NV, N_COUNTERS
+    from knnrefine._engine.triangulation_sphere import (
+        insert_points_sphere,
+        locate_sphere,
+        new_sphere,
+        new_sphere_scratch,
+    )
+
+    x = RNG.normal(size=(2000, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    mesh, nv, nt = new_sphere(4000, 8000)
+    scratch = new_sphere_scratch(4000, 8000, 4096)
+    cnt = np.zeros(N_COUNTERS, np.int64)
+    cnt[C_NV], cnt[C_NT] = nv, nt
+    assert insert_points_sphere(x, mesh, scratch, cnt) == len(x)
+    nt = int(cnt[C_NT])
+    walk = python_entry(locate_sphere)
+    pts = np.zeros((4, 3))
+    for p in RNG.normal(size=(200, 3)):
+        p /= np.linalg.norm(p)
+        t = walk(p, int(RNG.integers(nt)), mesh, pts, nt, False)
+        a, b, c = mesh.xyz[mesh.corners[t]]
+        normal = np.cross(b - a, c - a)
+        normal /= np.linalg.norm(normal)  # the circumcap's centre
+        assert np.sum((p - normal) ** 2) <= mesh.chord2[t] * (1 + 1e-9)  # it holds p
+
+
 def test_sphere_insertion_too_close_to_a_vertex_is_refused():
     """A point within rounding of a vertex must not swallow it: refused, nothing changed."""
     from knnrefine._engine.state import C_NT, C_NV, N_COUNTERS

@@ -237,6 +237,7 @@ def _continued(xyz_p, w, opt):
     points reach (``reopen.reopen_sphere``), which are queued."""
     start = opt.start
     n0 = int(start.stats.n)
+    new = xyz_p[n0:].copy()  # (a tree built afresh reorders xyz_p in place)
     kept = start.index
     index = None
     if kept is not None and kept.pts.shape[0] == n0 and n0 > 0:
@@ -262,7 +263,6 @@ def _continued(xyz_p, w, opt):
     run.book.kinds[:nv] = start.kinds
     run.book.ball_state[:nt] = GOOD
     run.book.cell_state[:nv] = GOOD
-    new = xyz_p[n0:]
     if len(start.floor_points):  # reopened too: they stay at the floor, reported again
         new = np.concatenate([new, unit_vectors(start.floor_points)])
     reopened = 0
