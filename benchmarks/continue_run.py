@@ -76,7 +76,7 @@ def main(argv=None):
     start = fresh_run(domain, first, k)
     knnrefine.refine(np.concatenate([first, batch(domain, 10, rng)]), start=start)  # warm
     print(f"{domain}, n = {n:,}, k = {k:g}, start: {start.stats.m:,} vertices")
-    print("| batch | fresh refine (s) | continued (s) | continued / fresh | reopened triangles |")
+    print("| batch | fresh refine (s) | continued (s) | continued / fresh | reopened cells |")
     print("|---|---:|---:|---:|---:|")
     for fraction in args.fractions:
         every = np.concatenate([first, batch(domain, max(1, int(fraction * n)), rng)])

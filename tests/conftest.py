@@ -87,7 +87,10 @@ def certify_every_mesh(monkeypatch):
 
     @functools.wraps(refine_checked)
     def refine_and_register(pts, w, opt):
-        return register(refine_checked(pts, w, opt), pts, {"weights": w})
+        mesh = refine_checked(pts, w, opt)
+        if opt.start is not None:  # a continued run: pts are its new points, all are given
+            pts, w = opt.given, opt.given_weights
+        return register(mesh, pts, {"weights": w})
 
     def seen_by(check):
         @functools.wraps(check)

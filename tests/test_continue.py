@@ -390,10 +390,10 @@ def test_refusals_in_space_and_on_the_sphere(first_of):
 
 def test_sphere_digest_is_of_the_points_as_given():
     """Regression: the sphere's index reorders its unit vectors in place, and the digest was
-    taken after the run, of the reordered ones: no start on the sphere could continue."""
-    from knnrefine._metric import unit_vectors
+    taken after the run, of the reordered ones: no start on the sphere could continue. The
+    digest is now taken at the check, of the points as given."""
     from knnrefine._pipeline import points_digest
 
     pts = _domain_points("sphere", np.random.default_rng(30), 2000)
     mesh = _domain_refine("sphere", pts, 10)
-    assert mesh.stats.points_digest == points_digest(unit_vectors(pts), None)
+    assert mesh.stats.points_digest == points_digest(pts, None)  # (lon, lat) as given

@@ -54,12 +54,16 @@ class RunOptions:
     t_start: float
     deadline: float | None
     start: Any = None  # the mesh a continued run starts from (``pipeline.checked``)
-    points_digest: str = ""  # a continued run's points' digest, known from its check
+    points_digest: str = ""  # the points' digest, known from their check
+    given: Any = None  # a continued run's points, all of them, as given (float64)
+    given_weights: Any = None  # and their weights (float64), or None
 
-    def continuing(self, start, digest: str) -> "RunOptions":
-        """These options for a run continued from the mesh ``start``, its points' digest
-        ``digest`` (``pipeline.points_digest``) known."""
-        return dataclasses.replace(self, start=start, points_digest=digest)
+    def continuing(self, start, digest: str, given=None, given_weights=None) -> "RunOptions":
+        """These options with the points' digest ``digest`` (``pipeline.points_digest``)
+        known; for a run continued from the mesh ``start``, with all its points and weights
+        as given (the run's checked ones are the new rows alone)."""
+        return dataclasses.replace(self, start=start, points_digest=digest, given=given,
+                                   given_weights=given_weights)  # fmt: skip
 
     @property
     def dim(self) -> int:
@@ -158,9 +162,11 @@ class RunOptions:
         return options
 
 
-def check_box_run(points, weights, dim, *, radius=None, **asked):
+def check_box_run(points, weights, dim, *, radius=None, before=None, **asked):
     """A run in a box (the plane's or space's ``run.checked``): its points (n, dim), weights
-    and options checked before any work.
+    and options checked before any work. ``before``: (count, total weight) of the rows a
+    continued run verified already (by digest: ``pipeline.checked``); ``points`` and
+    ``weights`` are then the new rows alone.
 
     Returns
     -------
@@ -168,17 +174,36 @@ def check_box_run(points, weights, dim, *, radius=None, **asked):
     """
     if radius is not None:
         raise InputError("radius is the sphere's: give it with sphere=True")
-    pts = V.as_points(points, dim)
-    n = len(pts)
-    w = None if weights is None else V.check_weights(weights, n)
-    total = None if w is None else math.fsum(w)
-    bounds, inside = lambda: V.default_box(pts), lambda b, p: V.check_inside(pts, b, p)
-    return pts, w, RunOptions.check(n, total, bounds, inside, **asked, dim=dim)
+    pts, w, n, total = _new_rows(points, weights, before, lambda x: V.as_points(x, dim), dim)
+    def inside(b, p):
+        if len(pts):  # (a continued run without new points has none to check)
+            V.check_inside(pts, b, p)
+
+    return pts, w, RunOptions.check(n, total, lambda: V.default_box(pts), inside, **asked,
+                                    dim=dim)  # fmt: skip
 
 
-def check_sphere_run(points, weights, *, periodic=False, box=None, **asked):
+def _new_rows(points, weights, before, as_points, dim):
+    """(points, weights, n, total weight) of a run's checked rows: all of them, or with
+    ``before`` = (n0, total0) of rows a continued run verified by their digest, only the
+    new ones (possibly none), n and the total counting both."""
+    if before is None:
+        pts = as_points(points)
+        w = None if weights is None else V.check_weights(weights, len(pts))
+        return pts, w, len(pts), None if w is None else math.fsum(w)
+    n0, total0 = before
+    pts = as_points(points) if len(points) else np.zeros((0, dim))
+    w = None
+    if weights is not None:
+        w = V.check_weights(weights, len(pts), positive=False)
+    total = None if w is None else float(total0) + math.fsum(w)
+    return pts, w, n0 + len(pts), total
+
+
+def check_sphere_run(points, weights, *, periodic=False, box=None, before=None, **asked):
     """A run on the sphere (its ``run.checked``): its points as unit vectors (n, 3), weights
-    and options checked before any work; the options it has no use for refused.
+    and options checked before any work; the options it has no use for refused. ``before``:
+    as ``check_box_run``'s.
 
     Returns
     -------
@@ -189,10 +214,7 @@ def check_sphere_run(points, weights, *, periodic=False, box=None, **asked):
             "the sphere has no box and no periodic axes: drop box= and periodic= with "
             "sphere=True (longitudes wrap by themselves)"
         )
-    xyz = V.as_sphere_points(points)
-    n = len(xyz)
-    w = None if weights is None else V.check_weights(weights, n)
-    total = None if w is None else math.fsum(w)
+    xyz, w, n, total = _new_rows(points, weights, before, V.as_sphere_points, 3)
     return xyz, w, SphereOptions(n, total, **asked)
 
 
@@ -204,7 +226,9 @@ class SphereOptions:
     domain = "sphere"
     dim = 3  # unit vectors
     start = None  # the mesh a continued run starts from (``pipeline.checked``)
-    points_digest = ""  # a continued run's points' digest, known from its check
+    points_digest = ""  # the points' digest, known from their check
+    given = None  # a continued run's points, all of them, as given (float64)
+    given_weights = None  # and their weights (float64), or None
     bytes_per_vertex = size.BYTES_PER_VERTEX_SPHERE  # a run's peak memory per vertex
 
     def __init__(self, n, total, *, k, tau=3.0, radius=None, min_size=None,
@@ -220,11 +244,11 @@ class SphereOptions:
         self.time_limit, self.deadline = check_time_limit(time_limit, self.t_start)
         self.progress = check_progress(progress)
 
-    def continuing(self, start, digest: str) -> "SphereOptions":
-        """These options for a run continued from the mesh ``start``, its points' digest
-        ``digest`` (``pipeline.points_digest``) known."""
+    def continuing(self, start, digest: str, given=None, given_weights=None) -> "SphereOptions":
+        """``RunOptions.continuing``."""
         out = copy.copy(self)
         out.start, out.points_digest = start, digest
+        out.given, out.given_weights = given, given_weights
         return out
 
     @property

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike
 
+from . import _validation as V
 from ._domains import domain_of, part
 from .certify import steps
 from .certify.certificate import Certificate
@@ -75,6 +76,9 @@ def checked(
         Continue this mesh (``refine``'s ``start``): its k, tau, box, periodic axes, floor
         and radius are the run's (options given must be the same), its points the first
         rows of ``points`` (by count and ``Stats.points_digest``), weighted as they are.
+        Those rows were checked when the start was refined and are not checked again: the
+        run's checked points and weights are then the new rows alone, the options carrying
+        all of them as given (``RunOptions.given``).
     **asked
         ``k``, ``tau``, ``periodic``, ``box``, ``min_size``, ``max_vertices``,
         ``time_limit``, ``progress``, ``radius``.
@@ -85,15 +89,30 @@ def checked(
         Bad points or options; a start that cannot be continued with them (saying why and
         what to do).
     """
-    if start is None:
-        return part(domain, "run").checked(points, weights, **asked)
-    asked = _start_options(start, domain, points, asked)
-    pts, w, opt = part(domain, "run").checked(points, weights, **asked)
-    return pts, w, opt.continuing(start, _check_start_points(start, pts, w))
+    run = part(domain, "run")
+    rows = V.as_rows(points)
+    if start is None or rows is None or rows.ndim != 2:
+        pts, w, opt = run.checked(points, weights, **asked)
+        if rows is None or rows.ndim != 2 or len(rows) != len(pts):
+            rows = pts
+        return pts, w, opt.continuing(None, points_digest(rows, w))
+    asked = _start_options(start, domain, asked)
+    n0 = int(start.stats.n)
+    w_rows = None if weights is None else V.as_rows(weights)
+    if w_rows is not None and w_rows.shape != (len(rows),):  # the domain's check says so
+        run.checked(points, weights, **asked)
+    digest = _check_start_points(start, rows, w_rows)
+    if not start.on_sphere:
+        _check_in_start_box(start, rows[n0:])
+    # the first n0 rows are the start's, checked when it was refined: only the new ones here
+    new = None if w_rows is None else w_rows[n0:]
+    pts, w, opt = run.checked(rows[n0:], new, before=(n0, start.stats.weight), **asked)
+    return pts, w, opt.continuing(start, digest, rows, w_rows)
 
 
 def points_digest(pts: np.ndarray, w: np.ndarray | None) -> str:
-    """``Stats.points_digest``: a hash of checked points (and weights), in their order."""
+    """``Stats.points_digest``: a hash of the points as given, as float64 rows (and the
+    weights), in their order."""
     return _digest(*_hashers(pts, w))
 
 
@@ -127,7 +146,7 @@ def _digest(h, hw):
 _AFRESH = "refine all the points afresh (without start=)"
 
 
-def _start_options(start, domain, points, asked):
+def _start_options(start, domain, asked):
     """The options of a run continued from ``start``: the start's k, tau, box, periodic
     axes, floor and radius where not given; InputError where one given differs, or where
     new points lie outside an ordinary box (a continued mesh keeps its torus)."""
@@ -160,19 +179,17 @@ def _start_options(start, domain, points, asked):
             raise InputError(f"start was refined with {name}={value!r}, this run asks for "
                              f"{name}={asked[name]!r}: a continued mesh keeps its options "
                              f"(give {name}={value!r}, or {_AFRESH})")  # fmt: skip
-    if not start.on_sphere:
-        _check_in_start_box(start, points)
     return asked
 
 
 _IN = {"plane": "in the plane", "space": "in space", "sphere": "on the sphere"}
 
 
-def _check_in_start_box(start, points):
-    """InputError when a point lies outside the start's box along a non-periodic axis."""
-    pts = np.asarray(points, dtype=np.float64)
+def _check_in_start_box(start, pts):
+    """InputError when a new point lies outside the start's box along a non-periodic axis
+    (``pts`` float64 rows)."""
     d = len(start.periodic)
-    if pts.ndim != 2 or pts.shape[1] != d:
+    if pts.shape[1] != d:
         return  # the domain's own check says what is wrong
     for a in range(d):
         if start.periodic[a] or not len(pts):
@@ -188,8 +205,8 @@ def _check_in_start_box(start, points):
 
 
 def _check_start_points(start, pts, w):
-    """InputError unless the first rows of ``pts`` (and ``w``) are the start's points; else
-    the digest of all of them."""
+    """InputError unless the first rows of ``pts`` (and ``w``), float64 as given, are the
+    start's points; else the digest of all of them."""
     n0 = int(start.stats.n)
     if not start.stats.points_digest:
         raise InputError(f"start does not record the points it was refined from (a mesh of "

@@ -26,6 +26,16 @@ def _nullable(x):
         return x
 
 
+def as_rows(x):
+    """Points or weights as given, as a C-contiguous float64 array (no copy of one that is
+    already): what ``Stats.points_digest`` hashes; None when they cannot be read as numbers
+    (the domain's check then says why)."""
+    try:
+        return np.ascontiguousarray(np.asarray(_nullable(x)), dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+
+
 def as_points(points, dim=2):
     """(n, dim) float64 array from lists, numpy arrays of any real dtype, pandas frames
     (nullable Float64 / Int64 columns included: a missing value is then a NaN, refused)."""
@@ -116,9 +126,10 @@ def check_k(k, n=None):
     return int(k)
 
 
-def check_weights(weights, n):
-    """Point weights: n finite numbers >= 0 with a positive total, as float64 (n,), from any
-    array-like (lists, tuples, NumPy arrays, pandas Series, nullable ones included)."""
+def check_weights(weights, n, positive=True):
+    """Point weights: n finite numbers >= 0 with a positive total (``positive``; a continued
+    run's new weights may all be 0), as float64 (n,), from any array-like (lists, tuples,
+    NumPy arrays, pandas Series, nullable ones included)."""
     try:
         arr = np.asarray(_nullable(weights))
     except Exception:
@@ -137,7 +148,7 @@ def check_weights(weights, n):
             f"weights must be finite and >= 0; weight {bad} is {w[bad]!r} (drop such points "
             "or set their weight to 0)"
         )
-    if n and not w.sum() > 0:
+    if positive and n and not w.sum() > 0:
         raise InputError("the weights sum to 0: no point counts")
     return np.ascontiguousarray(w)
 

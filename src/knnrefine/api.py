@@ -185,9 +185,8 @@ def refine(
         from .scale.tiled import tiles_pay
 
         if executor is not None or tiles_pay(domain, len(pts)):
-            digest = pipeline.points_digest(pts, w)
             mesh = refine_local(pts, w, opt, tiles, executor)
-            mesh.stats.points_digest = digest
+            mesh.stats.points_digest = opt.points_digest
             return mesh
     return pipeline.refine_checked(pts, w, opt)
 

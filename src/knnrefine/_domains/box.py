@@ -68,16 +68,15 @@ def start_embedding(start) -> Embedding:
     return Embedding.of_torus(start.box, start.periodic, t.origin, t.period)
 
 
-def continued_index(start, emb, pts, w, merge, build):
+def continued_index(start, emb, pts, w, new, new_w, merge, build):
     """The counting index over every point of a run continued from ``start``: the start's
-    tree with the new rows merged in (``merge(tree, new, new_weights)``, which answers None
-    for an empty tree) when the mesh kept it, else one built over them all
-    (``build(points, weights)``: a mesh read from a file keeps no tree). ``pts``, ``w``:
-    the input points (the start's first) and weights or None."""
-    n0 = int(start.stats.n)
+    tree with the new points merged in (``merge(tree, new, new_w)``, which answers None for
+    an empty tree) when the mesh kept it, else one built over them all (``build(points,
+    weights)``: a mesh read from a file keeps no tree). ``pts``, ``w``: every input point
+    (the start's first) and weights or None; ``new`` the new points, internal coordinates."""
     kept = getattr(start.index, "index", None)
-    if kept is not None and start.index.n == n0:
-        merged = merge(kept, emb.to_internal(pts[n0:]), None if w is None else w[n0:])
+    if kept is not None and start.index.n == int(start.stats.n):
+        merged = merge(kept, new, new_w)
         if merged is not None:
             return merged
     return build(emb.to_internal(pts), w)

@@ -79,18 +79,20 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
 
 
 def _continued(pts, w, opt):
-    """A run continued from the mesh ``opt.start`` (refined from the first rows of ``pts``,
-    checked by ``pipeline.checked``): its torus triangulation taken as it is, every element
-    settled but those the new points reach (``Refinement.reopen``), then refined on."""
-    start = opt.start
+    """A run continued from the mesh ``opt.start`` with the new points ``pts`` and weights
+    ``w`` (checked by ``pipeline.checked``; all of them: ``opt.given``): its torus
+    triangulation taken as it is, every element settled but those the new points reach
+    (``Refinement.reopen``), then refined on."""
+    start, new_pts, new_w = opt.start, pts, w
+    pts, w = opt.given, opt.given_weights  # every point, the start's first
     n, n0 = len(pts), int(start.stats.n)
     total = None if w is None else math.fsum(w)
     report = Progress(opt.progress)
     with ahead.compiling("plane", report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         emb = start_embedding(start)
-        new = emb.to_internal(pts[n0:])
-        index = continued_index(start, emb, pts, w, merge_index,
+        new = emb.to_internal(new_pts)
+        index = continued_index(start, emb, pts, w, new, new_w, merge_index,
                                 lambda x, weights: build_index(x, weights=weights))  # fmt: skip
         interrupts.check()
         torus = start.torus

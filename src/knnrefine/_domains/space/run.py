@@ -216,18 +216,20 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
 
 
 def _continued(pts, w, opt):
-    """A run continued from the mesh ``opt.start`` (refined from the first rows of ``pts``,
-    checked by ``pipeline.checked``), as in the plane: its torus triangulation taken as it
+    """A run continued from the mesh ``opt.start`` with the new points ``pts`` and weights
+    ``w`` (all of them: ``opt.given``), as in the plane: its torus triangulation taken as it
     is, every element settled but those the new points reach (``Refinement3.reopen``), then
     refined on."""
-    start = opt.start
+    start, new_pts, new_w = opt.start, pts, w
+    pts, w = opt.given, opt.given_weights  # every point, the start's first
     n, n0 = len(pts), int(start.stats.n)
     report = Progress(opt.progress)
     with ahead.compiling("space", report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         emb = start_embedding(start)
         grid = start_mesh(start, emb)
-        index = continued_index(start, emb, pts, w, merge_index3,
+        new = emb.to_internal(new_pts)
+        index = continued_index(start, emb, pts, w, new, new_w, merge_index3,
                                 lambda x, weights: build_index3(x, copy=False,
                                                                 weights=weights))  # fmt: skip
         interrupts.check()
@@ -238,7 +240,6 @@ def _continued(pts, w, opt):
         run = Refinement3(index, emb.period_internal, opt.k, opt.tau, opt.min_size * emb.scale,
                           budget, grid, emb.grid, queued=False,
                           capacity=int(min(expected, budget)))  # fmt: skip
-        new = emb.to_internal(pts[n0:])
         if len(start.floor_points):  # reopened too: they stay at the floor, reported again
             new = np.concatenate([new, emb.to_internal(start.floor_points)])
         reopened = run.reopen(new, np.asarray(start.torus.kinds, np.int8))

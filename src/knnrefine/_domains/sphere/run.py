@@ -65,6 +65,7 @@ from ..._engine.state import (
 from ..._engine.triangulation_sphere import neighbours_of, new_sphere, new_sphere_scratch
 from ..._metric import angle_to_chord, chord_to_angle, lonlat_of, points_in_balls, unit_vectors
 from ..._options import Progress, SphereOptions, check_size, check_sphere_run, warn_floor
+from ..._validation import as_sphere_points
 from ...errors import BudgetError, EngineError
 from ...mesh import Mesh, Stats, moves_of
 
@@ -156,9 +157,13 @@ def refine(xyz_p: np.ndarray, w: np.ndarray | None, opt: SphereOptions) -> Mesh:
 
 
 def _refine(xyz_p, w, opt, report):
-    """``refine`` in the compiling notice's scope."""
-    total = None if w is None else math.fsum(w)
-    n = len(xyz_p)
+    """``refine`` in the compiling notice's scope (a continued run's ``xyz_p`` and ``w``
+    are its new points alone: ``_continued``)."""
+    every, w_all = (lambda: xyz_p), w
+    if opt.start is not None:
+        every, w_all = _every_point(xyz_p, opt), opt.given_weights
+    total = None if w_all is None else math.fsum(w_all)
+    n = len(xyz_p) if opt.start is None else len(opt.given)
     budget = opt.max_vertices if opt.max_vertices is not None else max(10**6, 4 * n)
     mass = n if total is None else total
     estimated = estimate_sphere(n, mass, opt)
@@ -178,7 +183,7 @@ def _refine(xyz_p, w, opt, report):
         run = SphereRun(first, 2 * first, first + 4 * QUEUE_HEADROOM)
         queue_all_sphere(run.mesh, run.book, run.queues, run.scratch, run.cnt)
     else:
-        index, run, continued = _continued(xyz_p, w, opt)
+        index, run, continued = _continued(xyz_p, w, opt, every)
     run.cnt[C_MAX_VERTICES] = budget
     t0 = time.perf_counter()
     with Interrupts() as interrupts:
@@ -220,7 +225,7 @@ def _refine(xyz_p, w, opt, report):
     t1 = time.perf_counter()
     report.assembling(int(run.cnt[C_NV]))
     times = {"setup": t0 - opt.t_start, "refine": t1 - t0}
-    mesh = _assemble(run, opt, index, times, xyz_p, total, budget, estimated)
+    mesh = _assemble(run, opt, index, times, n, every, total, budget, estimated)
     if continued is not None:
         mesh.stats.continued = continued
     mesh.stats.time = {**times, "assemble": time.perf_counter() - t1,
@@ -229,25 +234,25 @@ def _refine(xyz_p, w, opt, report):
     return mesh
 
 
-def _continued(xyz_p, w, opt):
+def _continued(new, w, opt, every):
     """(index, run, the stats' ``continued``) of a run continued from the mesh ``opt.start``
-    (refined from the first rows of ``xyz_p``, checked by ``pipeline.checked``), as in the
+    with the new points ``new`` (unit vectors) and weights ``w`` (checked by
+    ``pipeline.checked``; ``every()`` gives all the points' unit vectors), as in the
     plane: the start's tree with the new points merged in (built afresh for a mesh read
     from a file), its triangulation taken as it is, every element settled but those the new
     points reach (``reopen.reopen_sphere``), which are queued."""
     start = opt.start
     n0 = int(start.stats.n)
-    new = xyz_p[n0:].copy()  # (a tree built afresh reorders xyz_p in place)
     kept = start.index
     index = None
     if kept is not None and kept.pts.shape[0] == n0 and n0 > 0:
-        index = merge_index3(kept, xyz_p[n0:], None if w is None else w[n0:])
+        index = merge_index3(kept, new, w)
     if index is None:
-        index = build_index3(xyz_p, copy=False, weights=w)
+        index = build_index3(every().copy(), copy=False, weights=opt.given_weights)
     xyz = np.ascontiguousarray(start.xyz, np.float64)
     tri = np.ascontiguousarray(start.cells, np.int32)
     nv, nt = len(xyz), len(tri)
-    grown_by = max(0.0, (len(xyz_p) - n0) / max(n0, 1))
+    grown_by = len(new) / max(n0, 1)
     cap_v = int(max(1024, nv * (1.0 + 2.0 * grown_by) + 1024))
     run = SphereRun(max(cap_v, nv + 64), max(2 * cap_v, nt + 128), nt + cap_v + 4 * QUEUE_HEADROOM)
     mesh = run.mesh
@@ -276,7 +281,21 @@ def _continued(xyz_p, w, opt):
             reopened = nt
         run.restart_stamps()
     queue_unsettled_sphere(mesh, run.book, run.queues, run.scratch, run.cnt)
-    return index, run, {"points": len(xyz_p) - n0, "from_vertices": nv, "reopened": int(reopened)}
+    return index, run, {"points": len(new), "from_vertices": nv, "reopened": int(reopened)}
+
+
+def _every_point(new, opt):
+    """A function giving the unit vectors of every point of a run continued with the new
+    ones ``new`` (``opt.given``: all of them as given), converted when first asked for."""
+    kept = []
+
+    def every():
+        if not kept:
+            n0 = int(opt.start.stats.n)
+            kept.append(np.concatenate([as_sphere_points(opt.given[:n0]), new]))
+        return kept[0]
+
+    return every
 
 
 def circumcap_chords2(xyz, tri):
@@ -308,8 +327,8 @@ def estimate_sphere(n, mass, opt):
     return 2.5 * mass / opt.k
 
 
-def _points_under_floor(xyz_p, xyz, corners, chord2, normal, floor_t, floor_v):
-    """How many input points (unit vectors) lie in a floor element: a floor circumcap
+def _points_under_floor(points, xyz, corners, chord2, normal, floor_t, floor_v):
+    """How many input points (unit vectors: ``points()``) lie in a floor element: a floor circumcap
     (centre ``normal``), or the cap of chord R(v) about a floor cell's vertex (R(v): the
     largest circumcap chord of the triangles at v, whose caps cover v's Voronoi cell): the
     rule of every domain (``metric.points_in_balls``)."""
@@ -320,7 +339,7 @@ def _points_under_floor(xyz_p, xyz, corners, chord2, normal, floor_t, floor_v):
         np.maximum.at(reach2, corners[:, i], chord2)
     centres = np.concatenate([normal, xyz[floor_v]])
     radii = np.sqrt(np.concatenate([chord2[floor_t], reach2[floor_v]]))
-    return points_in_balls(cKDTree(xyz_p), centres, radii)
+    return points_in_balls(cKDTree(points()), centres, radii)
 
 
 def _progress(run, t0):
@@ -333,9 +352,10 @@ def _progress(run, t0):
     }
 
 
-def _assemble(run, opt, index, times, xyz_p, total, budget, estimated):
+def _assemble(run, opt, index, times, n, points, total, budget, estimated):
+    """The Mesh of a finished run: ``n`` points, ``points()`` their unit vectors (asked
+    only when elements were left below the floor)."""
     nv, nt = int(run.cnt[C_NV]), int(run.cnt[C_NT])
-    n = len(xyz_p)
     xyz = run.mesh.xyz[:nv].copy()
     kinds = run.book.kinds[:nv].copy()
     floor_t = np.flatnonzero(run.book.ball_state[:nt] == FLOOR)
@@ -345,7 +365,7 @@ def _assemble(run, opt, index, times, xyz_p, total, budget, estimated):
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
     sites = np.concatenate([normal, xyz[floor_v]])
     chord2 = run.mesh.chord2[:nt]
-    under = _points_under_floor(xyz_p, xyz, run.mesh.corners[:nt], chord2, normal, floor_t,
+    under = _points_under_floor(points, xyz, run.mesh.corners[:nt], chord2, normal, floor_t,
                                 floor_v)  # fmt: skip
     warn_floor(under, n, opt.k, opt.min_size, "pi 1e-6 radians (20 m on the Earth)")
     stats = Stats(
