@@ -89,8 +89,9 @@ def test_sphere_mesh_meets_the_guarantee_by_brute_force(name, k):
     assert cert.passed, str(cert)
 
 
-def test_sphere_triangulation_is_the_convex_hull():
-    """The engine's incremental insertion against qhull, vertex by vertex order kept."""
+def _sphere_of(x):
+    """(mesh, counters): the Delaunay triangulation of the unit vectors x (up to 3,000),
+    inserted one by one into the tetrahedron."""
     from knnrefine._engine.state import C_NT, C_NV, N_COUNTERS
     from knnrefine._engine.triangulation_sphere import (
         insert_points_sphere,
@@ -98,13 +99,21 @@ def test_sphere_triangulation_is_the_convex_hull():
         new_sphere_scratch,
     )
 
-    x = RNG.normal(size=(3000, 3))
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
     mesh, nv, nt = new_sphere(4000, 8000)
     scratch = new_sphere_scratch(4000, 8000, 4096)
     cnt = np.zeros(N_COUNTERS, np.int64)
     cnt[C_NV], cnt[C_NT] = nv, nt
     assert insert_points_sphere(x, mesh, scratch, cnt) == len(x)
+    return mesh, cnt
+
+
+def test_sphere_triangulation_is_the_convex_hull():
+    """The engine's incremental insertion against qhull, vertex by vertex order kept."""
+    from knnrefine._engine.state import C_NT, C_NV
+
+    x = RNG.normal(size=(3000, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    mesh, cnt = _sphere_of(x)
     xyz = mesh.xyz[: cnt[C_NV]]
     tri = mesh.corners[: cnt[C_NT]]
     hull = ConvexHull(xyz)
@@ -118,21 +127,12 @@ def test_sphere_walk_steps_towards_the_point_not_its_antipode():
     antipodal to p (a scan of every triangle hid it from insertion, not from a continued
     run's reopening, which found the wrong cavity and refined nothing new)."""
     from knnrefine._engine.jit import python_entry
-    from knnrefine._engine.state import C_NT, C_NV, N_COUNTERS
-    from knnrefine._engine.triangulation_sphere import (
-        insert_points_sphere,
-        locate_sphere,
-        new_sphere,
-        new_sphere_scratch,
-    )
+    from knnrefine._engine.state import C_NT
+    from knnrefine._engine.triangulation_sphere import locate_sphere
 
     x = RNG.normal(size=(2000, 3))
     x /= np.linalg.norm(x, axis=1, keepdims=True)
-    mesh, nv, nt = new_sphere(4000, 8000)
-    scratch = new_sphere_scratch(4000, 8000, 4096)
-    cnt = np.zeros(N_COUNTERS, np.int64)
-    cnt[C_NV], cnt[C_NT] = nv, nt
-    assert insert_points_sphere(x, mesh, scratch, cnt) == len(x)
+    mesh, cnt = _sphere_of(x)
     nt = int(cnt[C_NT])
     walk = python_entry(locate_sphere)
     pts = np.zeros((4, 3))

@@ -175,6 +175,7 @@ def check_box_run(points, weights, dim, *, radius=None, before=None, **asked):
     if radius is not None:
         raise InputError("radius is the sphere's: give it with sphere=True")
     pts, w, n, total = _new_rows(points, weights, before, lambda x: V.as_points(x, dim), dim)
+
     def inside(b, p):
         if len(pts):  # (a continued run without new points has none to check)
             V.check_inside(pts, b, p)

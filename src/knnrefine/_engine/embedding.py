@@ -204,6 +204,9 @@ def _to_internal(x, origin, scale, period, periodic, into_torus):
     return out
 
 
+UNFOLD_RANGE = 8192  # cells or vertices at least per thread's range (fewer: one thread)
+
+
 def unfold(points, cells, offsets, emb, copy=True):
     """The part of the torus mesh that the box needs, as the user will see it: triangles
     (points (m, 2)) or tetrahedra (points (m, 3)).
@@ -238,20 +241,24 @@ def unfold(points, cells, offsets, emb, copy=True):
     m, d = points.shape
     nt, nc = cells.shape
     keep = np.zeros(nt, np.uint32)
+    least = UNFOLD_RANGE
     rstar2 = max(in_chunks(lambda a, b: _keep_cells(points, cells, offsets, L, blo, bhi, free,
-                                                   keep, a, b), nt), default=0.0)  # fmt: skip
+                                                   keep, a, b), nt, least=least),
+                 default=0.0)  # fmt: skip
     need = np.zeros(m, np.uint64)
-    in_chunks(lambda a, b: _need_vertices(points, L, blo, bhi, free, rstar2, need, a, b), m)
+    in_chunks(lambda a, b: _need_vertices(points, L, blo, bhi, free, rstar2, need, a, b), m,
+              least=least)  # fmt: skip
     first = np.empty(m + 1, np.int64)
     start = np.empty(nt + 1, np.int64)
     _number_copies(cells, offsets, free, keep, need, first, start)
     out_v = np.empty(first[m], np.int64)
     pos = np.empty((first[m], d))
-    in_chunks(lambda a, b: _vertex_copies(points, L, need, first, out_v, pos, a, b), m)
+    in_chunks(lambda a, b: _vertex_copies(points, L, need, first, out_v, pos, a, b), m,
+              least=least)  # fmt: skip
     kept = np.empty((start[nt], nc), np.int32)
     off = np.zeros((start[nt], nc, d), np.int8)
     in_chunks(lambda a, b: _cell_copies(cells, offsets, free, keep, need, first, start, kept,
-                                        off, a, b), nt)  # fmt: skip
+                                        off, a, b), nt, least=least)  # fmt: skip
     return out_v, pos, kept, (off if any(per) else None)
 
 

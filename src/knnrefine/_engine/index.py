@@ -321,90 +321,90 @@ def leaves_of(node, split, q):
 
 
 @kernel(entry=True, nogil=True)
-def _merge_rows(pts, box, node, added, first, extra, out_pts, out_box, out_node):
-    """The rows of ``pts`` with leaf t's ``added[t]`` new rows (``extra[first[t]:]``) after
-    its own, in the tree's order: every node's row range moved by the rows before it, each
-    leaf's box grown by its new rows and every other node's made the union of its
-    children's (tight boxes stay tight)."""
+def _insert_rows(flat, extra, at, cols, out, first, last):
+    """Rows of ``out`` (flat, ``cols`` numbers a row) for the new rows ``first``..``last``-1
+    and the old ones before each: the old rows (``flat``) with new row j (``extra``)
+    inserted before old row at[j] (ascending), the old rows after the last one too when
+    ``last`` is the count. Ranges of new rows run apart on threads (disjoint rows of out)."""
+    src = 0 if first == 0 else at[first - 1]
+    for j in range(first, last):
+        a = src * cols
+        b = at[j] * cols
+        out[a + j * cols : b + j * cols] = flat[a:b]
+        for c in range(cols):
+            out[b + j * cols + c] = extra[j, c]
+        src = at[j]
+    if last == at.shape[0]:
+        a = src * cols
+        out[a + last * cols :] = flat[a:]
+
+
+@kernel(entry=True, nogil=True)
+def _merge_boxes(box, node, leaf, extra):
+    """Each leaf's tight box grown by its new rows (``extra[j]`` into ``leaf[j]``), then
+    every inner node's made the union of its children's, children first (a child's number
+    is always above its parent's)."""
     d = box.shape[1] // 2
-    cols = pts.shape[1]
-    stack = np.empty(STACK_SIZE, np.int64)
-    after = np.zeros(STACK_SIZE, np.bool_)
-    stack[0] = 0
-    sp = 1
-    shift = 0
-    while sp > 0:
-        t = stack[sp - 1]
+    for j in range(leaf.shape[0]):
+        t = leaf[j]
+        for a in range(d):
+            box[t, a] = min(box[t, a], extra[j, a])
+            box[t, a + d] = max(box[t, a + d], extra[j, a])
+    for t in range(node.shape[0] - 1, -1, -1):
         c = node[t, NODE_CHILD]
-        if after[sp - 1]:  # both children done
-            out_node[t, NODE_HI] = node[t, NODE_HI] + shift
-            for a in range(d):
-                out_box[t, a] = min(out_box[c, a], out_box[c + 1, a])
-                out_box[t, a + d] = max(out_box[c, a + d], out_box[c + 1, a + d])
-            sp -= 1
-            continue
-        out_node[t, NODE_LO] = node[t, NODE_LO] + shift
         if c >= 0:
-            after[sp - 1] = True
-            stack[sp] = c + 1
-            after[sp] = False
-            stack[sp + 1] = c
-            after[sp + 1] = False
-            sp += 2
-            continue
-        lo = node[t, NODE_LO]
-        hi = node[t, NODE_HI]
-        dst = lo + shift
-        for i in range(lo, hi):
-            for a in range(cols):
-                out_pts[dst + i - lo, a] = pts[i, a]
-        for a in range(2 * d):
-            out_box[t, a] = box[t, a]
-        dst += hi - lo
-        for j in range(added[t]):
-            row = first[t] + j
-            for a in range(cols):
-                out_pts[dst + j, a] = extra[row, a]
             for a in range(d):
-                out_box[t, a] = min(out_box[t, a], extra[row, a])
-                out_box[t, a + d] = max(out_box[t, a + d], extra[row, a])
-        shift += added[t]
-        out_node[t, NODE_HI] = hi + shift
-        sp -= 1
-    return shift
+                box[t, a] = min(box[c, a], box[c + 1, a])
+                box[t, a + d] = max(box[c, a + d], box[c + 1, a + d])
+
+
+@kernel(entry=True, nogil=True)
+def _split_leaves(pts, box, node, split, grown, free):
+    """``_build`` from each leaf in ``grown`` (its rows set), numbering new nodes from
+    ``free``; returns the next free node."""
+    none = np.empty(0, np.int64)
+    for i in range(grown.shape[0]):
+        free = _build(pts, box, node, split, grown[i], free, -1, none)[0]
+    return free
 
 
 def merge_index(index, q, weights=None, split_leaf=None):
     """The index of ``index``'s points and the points q (b, d) together (internal
     coordinates; ``weights`` (b,) for a weighted index), made from ``index`` without
-    building it again: each new point goes into the leaf it descends to, the rows are
-    copied once in the tree's order, and a leaf grown past LEAF_SIZE is split as a fresh
-    build splits (the splits above stay valid: a point descends by them). Counts are those
-    of a tree built afresh; ``index`` is left as it was. About b log n work plus one copy of
-    the rows, against the n log n of a build. ``split_leaf(pts, box, node, split, t, free)``
-    splits leaf t (its rows set) numbering new nodes from ``free`` and returns the next
-    free node: the plane's ``_build`` by default (``index3.merge_index3`` gives space's)."""
+    building it again: each new point goes into the leaf it descends to, after that leaf's
+    rows (the rows copied once, in runs between the leaves that grow), every node's range
+    moved by the rows inserted before it, boxes grown, and a leaf grown past LEAF_SIZE split
+    as a fresh build splits (the splits above stay valid: a point descends by them). Counts
+    are those of a tree built afresh; ``index`` is left as it was; None when it is empty
+    (the caller builds afresh). About b log n work plus one copy of the rows, against the
+    n log n of a build. ``split_leaf(pts, box, node, split, t, free)`` splits leaf t
+    numbering new nodes from ``free`` and returns the next free node: by default the
+    plane's ``_build`` (all grown leaves in one call); ``index3.merge_index3`` gives space's.
+    """
     pts, box, node, split, weight = index
     d = box.shape[1] // 2
     q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, d)
     if weight.shape[0] > 0:
         q = np.ascontiguousarray(np.column_stack([q, np.asarray(weights, np.float64)]))
     if pts.shape[0] == 0:
-        return None  # nothing to merge into: the caller builds afresh
-    if split_leaf is None:
-        split_leaf = _split_leaf
+        return None
+    n, b, cols = pts.shape[0], q.shape[0], pts.shape[1]
     leaf = leaves_of(node, split, q)
-    order = np.argsort(leaf, kind="stable")
-    extra = np.ascontiguousarray(q[order])
-    added = np.bincount(leaf, minlength=node.shape[0]).astype(np.int64)
-    first = np.zeros(node.shape[0], np.int64)
-    np.cumsum(added[:-1], out=first[1:])
-    out_pts = np.empty((pts.shape[0] + q.shape[0], pts.shape[1]))
-    out_box = np.empty_like(box)
+    # leaves own disjoint, non-empty row ranges: each new row goes before the old row that
+    # follows its leaf, and rows of one leaf keep their order
+    at = node[leaf, NODE_HI]
+    order = np.argsort(at, kind="stable")
+    at, leaf, extra = at[order], leaf[order], np.ascontiguousarray(q[order])
+    out_pts = np.empty((n + b, cols))
+    flat, out = pts.reshape(-1), out_pts.reshape(-1)
+    in_chunks(lambda i, j: _insert_rows(flat, extra, at, cols, out, i, j), b, least=4096)
     out_node = node.copy()
-    _merge_rows(pts, box, node, added, first, extra, out_pts, out_box, out_node)
+    out_node[:, NODE_LO] += np.searchsorted(at, node[:, NODE_LO], side="right")
+    out_node[:, NODE_HI] += np.searchsorted(at, node[:, NODE_HI], side="right")
+    out_box = box.copy()
+    _merge_boxes(out_box, node, leaf, extra)
     sizes = out_node[:, NODE_HI] - out_node[:, NODE_LO]
-    grown = np.flatnonzero((added > 0) & (out_node[:, NODE_CHILD] < 0) & (sizes > LEAF_SIZE))
+    grown = np.unique(leaf[(out_node[leaf, NODE_CHILD] < 0) & (sizes[leaf] > LEAF_SIZE)])
     out_split = split
     if len(grown):
         more = sum(node_bound(int(sizes[t])) for t in grown)
@@ -412,19 +412,17 @@ def merge_index(index, q, weights=None, split_leaf=None):
         out_node = np.concatenate([out_node, np.zeros((more, 4), np.int64)])
         out_box = np.concatenate([out_box, np.zeros((more, box.shape[1]))])
         out_split = np.concatenate([split, np.zeros(more)])
-        for t in grown:
-            count = split_leaf(out_pts, out_box, out_node, out_split, int(t), count)
+        if split_leaf is None:
+            count = _split_leaves(out_pts, out_box, out_node, out_split, grown, count)
+        else:
+            for t in grown:
+                count = split_leaf(out_pts, out_box, out_node, out_split, int(t), count)
         out_node, out_box, out_split = out_node[:count], out_box[:count], out_split[:count]
     out_weight = np.zeros(0)
     if weight.shape[0] > 0:
         out_weight = np.empty(out_node.shape[0])
         node_weights(out_pts, out_node, out_weight)
     return PointTree(out_pts, out_box, out_node, out_split, out_weight)
-
-
-def _split_leaf(pts, box, node, split, t, free):
-    """``merge_index``'s leaf split in the plane: ``_build`` from node t."""
-    return int(_build(pts, box, node, split, t, free, -1, np.empty(0, np.int64))[0])
 
 
 @kernel(inline="always")
@@ -996,7 +994,7 @@ class PointIndex:
     def __init__(self, embedding, index, fingerprint):
         self.embedding = embedding
         self.index = index
-        self.fingerprint = fingerprint
+        self._fingerprint = fingerprint  # or a function giving it, called when first asked
         self.n = int(index.pts.shape[0])
         self.weighted = index.weight.shape[0] > 0
         self.total = float(index.weight[0]) if self.weighted and self.n else float(self.n)
@@ -1010,6 +1008,14 @@ class PointIndex:
         emb = Embedding.make(box, periodic)
         index = build_index(emb.to_internal(points), weights=weights)
         return cls(emb, index, cls.fingerprint_of(points, weights))
+
+    @property
+    def fingerprint(self):
+        """``fingerprint_of`` the indexed points (a continued run's, found when first
+        asked: its caller does not wait for the sums of every point)."""
+        if callable(self._fingerprint):
+            self._fingerprint = self._fingerprint()
+        return self._fingerprint
 
     @staticmethod
     def fingerprint_of(points, weights=None):

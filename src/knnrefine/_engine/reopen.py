@@ -23,12 +23,44 @@ from .region import locate
 from .region3 import locate3
 from .state import C_NT, C_STAMP, GOOD, P_LX, P_LY, UNTESTED
 from .triangulation import MAX_CAVITY, circumcentre, corner_of, edge_to
-from .triangulation3 import corner_of3, load_corners, offset3
+from .triangulation3 import load_corners, shift_across3
 from .triangulation_sphere import circumcap_centre, locate_sphere
 
 SLACK = 1e-6  # relative, on the squared circumradius
 REOPEN_LOST = -1  # a walk that found no triangle (a broken mesh)
 REOPEN_OVERFLOW = -2  # a loose cavity larger than MAX_CAVITY triangles
+
+
+@kernel(inline="always")
+def _reopen_element(book, mesh, u):
+    """Mark cell u's circumball and its corners' Voronoi cells untested; 1 if the ball was
+    not already, else 0."""
+    for c in range(mesh.corners.shape[1]):
+        book.cell_state[mesh.corners[u, c]] = UNTESTED
+    if book.ball_state[u] == UNTESTED:
+        return 0
+    book.ball_state[u] = UNTESTED
+    return 1
+
+
+@kernel(inline="always")
+def _seed_cavity(scratch, cnt, t):
+    """Start a new cavity at cell t (a new stamp marks its cells); returns the stamp."""
+    stamp = cnt[C_STAMP] + 1
+    cnt[C_STAMP] = stamp
+    scratch.cavity[0] = t
+    scratch.mark[t] = stamp
+    return stamp
+
+
+@kernel(inline="always")
+def _join_cavity(scratch, n, n_cav, stamp):
+    """Add cell n to the cavity as its cell n_cav; False when the cavity is full."""
+    if n_cav >= scratch.cavity.shape[0]:
+        return False
+    scratch.mark[n] = stamp
+    scratch.cavity[n_cav] = n
+    return True
 
 
 @kernel(entry=True, nrt=False, nogil=True)
@@ -50,23 +82,16 @@ def reopen(xy, mesh, book, scratch, cnt, prm):
         t, sx, sy = locate(px, py, t, mesh, lx, ly)
         if t < 0:
             return REOPEN_LOST
-        stamp = cnt[C_STAMP] + 1
-        cnt[C_STAMP] = stamp
-        cav[0] = t
+        stamp = _seed_cavity(scratch, cnt, t)
         cav_s[0, 0] = sx
         cav_s[0, 1] = sy
-        scratch.mark[t] = stamp
         n_cav = 1
         i = 0
         while i < n_cav:
             u = cav[i]
             ux = cav_s[i, 0]
             uy = cav_s[i, 1]
-            if book.ball_state[u] != UNTESTED:
-                book.ball_state[u] = UNTESTED
-                reopened += 1
-            for c in range(3):
-                book.cell_state[mesh.corners[u, c]] = UNTESTED
+            reopened += _reopen_element(book, mesh, u)
             for j in range(3):
                 n = mesh.neighbours[u, j]
                 if scratch.mark[n] == stamp:
@@ -80,10 +105,8 @@ def reopen(xy, mesh, book, scratch, cnt, prm):
                 dx = px - (cx + nx * lx)
                 dy = py - (cy + ny * ly)
                 if dx * dx + dy * dy <= r2 * loose:
-                    if n_cav >= MAX_CAVITY:
+                    if n_cav >= MAX_CAVITY or not _join_cavity(scratch, n, n_cav, stamp):
                         return REOPEN_OVERFLOW
-                    scratch.mark[n] = stamp
-                    cav[n_cav] = n
                     cav_s[n_cav, 0] = nx
                     cav_s[n_cav, 1] = ny
                     n_cav += 1
@@ -111,41 +134,29 @@ def reopen3(xyz, mesh, book, scratch, cnt, period):
             return REOPEN_LOST
         for a in range(3):
             q[a] = xyz[p, a] - shift[a] * period[a]  # p in t's frame
-        stamp = cnt[C_STAMP] + 1
-        cnt[C_STAMP] = stamp
-        cav[0] = t
+        stamp = _seed_cavity(scratch, cnt, t)
         cav_s[0, 0] = 0
         cav_s[0, 1] = 0
         cav_s[0, 2] = 0
-        scratch.mark[t] = stamp
         n_cav = 1
         i = 0
         while i < n_cav:
             u = cav[i]
-            if book.ball_state[u] != UNTESTED:
-                book.ball_state[u] = UNTESTED
-                reopened += 1
-            for c in range(4):
-                book.cell_state[mesh.corners[u, c]] = UNTESTED
+            reopened += _reopen_element(book, mesh, u)
             for j in range(4):
                 n = mesh.neighbours[u, j]
                 if scratch.mark[n] == stamp:
                     continue
-                ja = (j + 1) % 4
-                jn = corner_of3(mesh, n, mesh.corners[u, ja])
-                if jn < 0:
+                ok, sx, sy, sz = shift_across3(mesh, u, j, n, cav_s[i, 0], cav_s[i, 1],
+                                               cav_s[i, 2])  # fmt: skip
+                if not ok:
                     return REOPEN_LOST
-                sx = cav_s[i, 0] + offset3(mesh.offsets, u, ja, 0) - offset3(mesh.offsets, n, jn, 0)
-                sy = cav_s[i, 1] + offset3(mesh.offsets, u, ja, 1) - offset3(mesh.offsets, n, jn, 1)
-                sz = cav_s[i, 2] + offset3(mesh.offsets, u, ja, 2) - offset3(mesh.offsets, n, jn, 2)
                 load_corners(mesh, n, sx, sy, sz, period, pts)
                 cx, cy, cz, r2 = circumsphere(pts)
                 d2 = (q[0] - cx) ** 2 + (q[1] - cy) ** 2 + (q[2] - cz) ** 2
                 if d2 <= r2 * loose:
-                    if n_cav >= cav.shape[0]:
+                    if not _join_cavity(scratch, n, n_cav, stamp):
                         return REOPEN_OVERFLOW
-                    scratch.mark[n] = stamp
-                    cav[n_cav] = n
                     cav_s[n_cav, 0] = sx
                     cav_s[n_cav, 1] = sy
                     cav_s[n_cav, 2] = sz
@@ -171,19 +182,12 @@ def reopen_sphere(xyz, mesh, book, scratch, cnt):
         t = locate_sphere(xyz[p], t, mesh, pts, nt, False)
         if t < 0:
             return REOPEN_LOST
-        stamp = cnt[C_STAMP] + 1
-        cnt[C_STAMP] = stamp
-        cav[0] = t
-        scratch.mark[t] = stamp
+        stamp = _seed_cavity(scratch, cnt, t)
         n_cav = 1
         i = 0
         while i < n_cav:
             u = cav[i]
-            if book.ball_state[u] != UNTESTED:
-                book.ball_state[u] = UNTESTED
-                reopened += 1
-            for c in range(3):
-                book.cell_state[mesh.corners[u, c]] = UNTESTED
+            reopened += _reopen_element(book, mesh, u)
             for j in range(3):
                 n = mesh.neighbours[u, j]
                 if scratch.mark[n] == stamp:
@@ -193,10 +197,8 @@ def reopen_sphere(xyz, mesh, book, scratch, cnt):
                 for a in range(3):
                     d2 += (xyz[p, a] - centre[a]) ** 2
                 if d2 <= mesh.chord2[n] * loose:
-                    if n_cav >= cav.shape[0]:
+                    if not _join_cavity(scratch, n, n_cav, stamp):
                         return REOPEN_OVERFLOW
-                    scratch.mark[n] = stamp
-                    cav[n_cav] = n
                     n_cav += 1
             i += 1
     return reopened

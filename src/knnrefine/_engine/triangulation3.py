@@ -143,6 +143,24 @@ def corner_of3(mesh, t, v):
 
 
 @kernel(inline="always")
+def shift_across3(mesh, t, j, n, sx, sy, sz):
+    """(found, the frame shift of tetrahedron n) where n is t's neighbour across face j and
+    t's frame is shifted by (sx, sy, sz) periods: the shift that puts their shared corners
+    in one place. found is False when n does not share t's corner (a broken mesh)."""
+    a = (j + 1) % 4
+    b = corner_of3(mesh, n, mesh.corners[t, a])
+    if b < 0:
+        return False, 0, 0, 0
+    o = mesh.offsets
+    return (
+        True,
+        sx + offset3(o, t, a, 0) - offset3(o, n, b, 0),
+        sy + offset3(o, t, a, 1) - offset3(o, n, b, 1),
+        sz + offset3(o, t, a, 2) - offset3(o, n, b, 2),
+    )
+
+
+@kernel(inline="always")
 def _forget_outradius(mesh, t):
     """Tetrahedron t leaves: a corner whose R(v) it realised keeps it as a bound only
     (negated; one already a bound stays one)."""
@@ -366,13 +384,9 @@ def insert_vertex3(p, seed, mesh, scratch, cnt, period):
             n = neighbours[t, j]
             if scratch.mark[n] == stamp:
                 continue
-            ja = (j + 1) % 4
-            ia = corner_of3(mesh, n, corners[t, ja])
-            if ia < 0:
+            ok, sx, sy, sz = shift_across3(mesh, t, j, n, cav_s[i, 0], cav_s[i, 1], cav_s[i, 2])
+            if not ok:
                 return _undo(mesh, scratch, ncav, INSERT_TOPOLOGY)
-            sx = cav_s[i, 0] + offset3(offsets, t, ja, 0) - offset3(offsets, n, ia, 0)
-            sy = cav_s[i, 1] + offset3(offsets, t, ja, 1) - offset3(offsets, n, ia, 1)
-            sz = cav_s[i, 2] + offset3(offsets, t, ja, 2) - offset3(offsets, n, ia, 2)
             load_corners(mesh, n, sx, sy, sz, period, pts)
             if insphere(pts) > 0:
                 if ncav >= cav.shape[0]:

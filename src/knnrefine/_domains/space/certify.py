@@ -494,11 +494,13 @@ class Geometry(TorusGeometry):
         self.local = self.vertices
         self.corners = torus.cells
         self.offsets = as_offsets(torus.offsets)
+        self.links = torus.neighbours  # what a continued run walks by: checked too
         self.pk_period = np.where(mesh.periodic, self.period, 0.0)  # the box's own metric
 
     def triangulation(self):
-        """Faces paired, orientation, local Delaunay, volume; circumballs (centres wrapped
-        into the torus), R(v); ``extra``: the tetrahedra's volumes."""
+        """Faces paired (and the torus' neighbour links, where it has them, the pairing),
+        orientation, local Delaunay, volume; circumballs (centres wrapped into the torus),
+        R(v); ``extra``: the tetrahedra's volumes."""
         local, corners, offsets, period = self.local, self.corners, self.offsets, self.period
         neighbours = _neighbours(corners, offsets, self.workers)
         bad_o = bad_d = -1
@@ -510,6 +512,15 @@ class Geometry(TorusGeometry):
         problems = []
         if neighbours is None:
             problems.append("the tetrahedra's faces do not pair up")
+        elif self.links is not None:
+            links = np.asarray(self.links)
+            wrong = (
+                len(corners) if links.shape != neighbours.shape
+                else int((links != neighbours).any(axis=1).sum())
+            )  # fmt: skip
+            if wrong:
+                problems.append(f"{wrong} tetrahedra's neighbour links are not symmetric or "
+                                "not across their faces")  # fmt: skip
         if bad_o > 0:
             problems.append(f"{bad_o} tetrahedra not positively oriented")
         if bad_d > 0:
