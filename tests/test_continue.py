@@ -397,3 +397,86 @@ def test_sphere_digest_is_of_the_points_as_given():
     pts = _domain_points("sphere", np.random.default_rng(30), 2000)
     mesh = _domain_refine("sphere", pts, 10)
     assert mesh.stats.points_digest == points_digest(pts, None)  # (lon, lat) as given
+
+
+# -- the points' digest (``_engine/digest.py``) ------------------------------------------
+
+
+def _digest_oracle(a, position=0):
+    """The digest's definition in plain Python integers: each 64-bit word, mixed with its
+    position, summed modulo 2^64."""
+    mask = (1 << 64) - 1
+    total = 0
+    for i, w in enumerate(np.ascontiguousarray(a, np.float64).reshape(-1).view(np.uint64)):
+        x = int(w) ^ (((position + i) * 0x9E3779B97F4A7C15) & mask)
+        x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & mask
+        total = (total + (x ^ (x >> 31))) & mask
+    return total
+
+
+def test_the_digest_is_its_definition_and_ranges_add_up():
+    from knnrefine._engine.digest import digest_of
+
+    rng = np.random.default_rng(40)
+    pts = rng.random((700, 2)) * 1e3 - 500
+    assert digest_of(pts) == _digest_oracle(pts)
+    first, rest = digest_of(pts[:300]), digest_of(pts[300:], 600)  # at its words' position
+    assert (first + rest) % (1 << 64) == digest_of(pts)
+    big = rng.random((600_000, 3))  # ranges on threads: the same sum
+    assert digest_of(big) == (digest_of(big[:1]) + digest_of(big[1:], 3)) % (1 << 64)
+
+
+@pytest.mark.parametrize(
+    "change", ["one bit", "two rows swapped", "a sign", "a row dropped", "a row added"]
+)
+def test_the_digest_tells_changed_points(change):
+    from knnrefine._pipeline import points_digest
+
+    pts = np.random.default_rng(41).random((1000, 2))
+    other = pts.copy()
+    if change == "one bit":
+        other[517, 1] = np.nextafter(other[517, 1], 2.0)
+    elif change == "two rows swapped":
+        other[[3, 900]] = other[[900, 3]]
+    elif change == "a sign":
+        other[20, 0] = -other[20, 0]
+    elif change == "a row dropped":
+        other = other[:-1]
+    else:
+        other = np.concatenate([other, [[0.0, 0.0]]])
+    assert points_digest(other, None) != points_digest(pts, None)
+    w = np.ones(len(pts))
+    assert points_digest(pts, w) != points_digest(pts, w * 2) != points_digest(pts, None)
+
+
+def test_a_start_with_a_digest_of_an_older_form_is_refused(first):
+    pts, mesh = first
+    crc = dataclasses.replace(mesh.stats, points_digest="1a2b3c4d")  # a CRC-32's
+    older = dataclasses.replace(mesh, stats=crc)
+    with pytest.raises(InputError, match="older form"):
+        knnrefine.refine(pts, start=older)
+
+
+@pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
+def test_a_continuation_with_workers_or_an_executor_is_the_one_of_one_process(domain):
+    """A continued run's work is where the new points are: ``workers`` (threads on the
+    sphere) and an executor give the mesh of one process, which certifies."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(42)
+    if domain == "plane":
+        pts, new = rng.random((5000, 2)), _clustered(rng, 60, (0.3, 0.6), 0.01)
+        mesh = knnrefine.refine(pts, 10, box=(0, 0, 1, 1))
+    else:
+        pts, new = _domain_points(domain, rng, 5000), _domain_cluster(domain, rng, 60)
+        mesh = _domain_refine(domain, pts, 10)
+    every = np.concatenate([pts, new])
+    one = knnrefine.refine(every, start=mesh)
+    two = knnrefine.refine(every, start=mesh, workers=2)
+    assert np.array_equal(one.vertices, two.vertices) and np.array_equal(one.cells, two.cells)
+    if domain != "sphere":
+        with ThreadPoolExecutor(2) as pool:
+            pooled = knnrefine.refine(every, start=mesh, workers=2, executor=pool)
+        assert np.array_equal(one.vertices, pooled.vertices)
+    assert knnrefine.certify(two, every).passed

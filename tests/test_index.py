@@ -306,15 +306,17 @@ def test_mark_in_disks_matches_brute_force():
 
 
 def _check_partition(index, pts):
-    """The tree's invariants (``test_tree_is_a_partition``'s), for ``pts`` as indexed."""
+    """The tree's invariants (``test_tree_is_a_partition``'s), for ``pts`` (n, d) as
+    indexed, in the plane or in space."""
     sorted_pts, box, node, split, _ = index
-    assert sorted(map(tuple, sorted_pts[:, :2])) == sorted(map(tuple, pts))
+    d = pts.shape[1]
+    assert sorted(map(tuple, sorted_pts[:, :d])) == sorted(map(tuple, pts))
     for t in range(len(node)):
         lo, hi, c, axis = node[t]
-        inside = sorted_pts[lo:hi, :2]
+        inside = sorted_pts[lo:hi, :d]
         if hi > lo:  # tight boxes
-            assert np.array_equal(box[t, :2], inside.min(0))
-            assert np.array_equal(box[t, 2:], inside.max(0))
+            assert np.array_equal(box[t, :d], inside.min(0))
+            assert np.array_equal(box[t, d:], inside.max(0))
         if c >= 0:
             assert node[c, 0] == lo and node[c, 1] == node[c + 1, 0] and node[c + 1, 1] == hi
             left = sorted_pts[node[c, 0] : node[c, 1], axis]
@@ -324,7 +326,9 @@ def _check_partition(index, pts):
             assert hi - lo <= LEAF_SIZE or np.all(inside == inside[0])
 
 
-@pytest.mark.parametrize("case", ["clustered", "spread", "on splits", "empty start"])
+@pytest.mark.parametrize(
+    "case", ["clustered", "spread", "on splits", "empty start", "more than there were"]
+)
 def test_merged_tree_counts_as_one_built_afresh(case):
     """``merge_index`` (a continued run's index: the start's tree with new points) is a
     valid tree over all the points (tight boxes, splits that separate, leaves of at most
@@ -337,6 +341,8 @@ def test_merged_tree_counts_as_one_built_afresh(case):
     elif case == "on splits":  # exactly on split values: the first child's side
         base = build_index(old.copy())
         new = np.column_stack([base.split[:300], base.split[:300]])
+    elif case == "more than there were":  # every leaf grows and splits
+        new = rng.random((9000, 2))
     else:
         new = rng.random((700, 2))
     index = build_index(old.copy())
@@ -344,6 +350,9 @@ def test_merged_tree_counts_as_one_built_afresh(case):
     merged = engine_index.merge_index(index, new)
     for a, b in zip(index, before, strict=True):
         assert np.array_equal(a, b)
+    if case == "empty start":  # nothing to merge into: the caller builds afresh
+        assert merged is None
+        return
     every = np.concatenate([old, new])
     _check_partition(merged, every)
     stack = np.zeros(STACK_SIZE, np.int64)
@@ -365,3 +374,33 @@ def test_merged_weighted_tree_sums_the_new_weights():
         brute = w[((every - [cx, cy]) ** 2).sum(1) <= r * r].sum()
         got = count_in_disk(merged, cx, cy, r * r, 1e18, 10.0, 10.0, stack)
         assert np.isclose(got, brute, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["clustered", "spread", "weighted"])
+def test_merged_tree_in_space_counts_as_one_built_afresh(case):
+    """``index3.merge_index3`` (a continued run's index in space and on the sphere): a valid
+    tree over all the points whose counts in balls are brute force's, the given tree left
+    as it was; its grown leaves split by ``_build3`` and grafted in."""
+    from knnrefine._engine.index3 import build_index3, holds_k_within3, merge_index3
+
+    rng = np.random.default_rng(33)
+    old = rng.random((5000, 3))
+    new = (np.clip(rng.normal(0.4, 0.01, (900, 3)), 0, 0.999) if case == "clustered"
+           else rng.random((3000, 3)))  # fmt: skip
+    w_old = w_new = None
+    if case == "weighted":
+        w_old, w_new = rng.random(len(old)) + 0.5, rng.random(len(new)) + 0.5
+    index = build_index3(old.copy(), weights=w_old)
+    before = [a.copy() for a in index]
+    merged = merge_index3(index, new, w_new)
+    for a, b in zip(index, before, strict=True):
+        assert np.array_equal(a, b)
+    every = np.concatenate([old, new])
+    _check_partition(merged, every)
+    w = np.ones(len(every)) if w_old is None else np.concatenate([w_old, w_new])
+    x, r = rng.random((300, 3)), rng.uniform(0.02, 0.2, 300)
+    dist = np.linalg.norm(every[None] - x[:, None], axis=2)
+    held = (w * (dist <= r[:, None])).sum(axis=1)
+    k = np.median(held) + 0.25  # (no ball's sum within rounding of k)
+    got = holds_k_within3(merged, x, r**2, float(k), np.full(3, 10.0))
+    assert np.array_equal(got, held >= k)

@@ -158,7 +158,11 @@ def refine(
         given must be the same. InputError, before any work, for a start of another domain
         or options, first rows that are not its points (``Stats.points_digest``), and new
         points outside an ordinary box (give the first run a box that holds what will
-        come). In the plane, in one process (``workers`` then runs one process).
+        come). In every domain; the start's first rows are verified by their digest, not
+        checked again, and its kd-tree is kept and grown, not built again. A continued
+        run's work is where the new points are: it runs in this process (``workers`` and
+        ``executor`` are not used; its index, sweeps and assembly use the threads they
+        always do); ``distributed.refine`` does not continue a start yet.
 
     Returns
     -------
