@@ -340,22 +340,45 @@ def _insert_rows(flat, extra, at, cols, out, first, last):
 
 
 @kernel(entry=True, nogil=True)
-def _merge_boxes(box, node, leaf, extra):
-    """Each leaf's tight box grown by its new rows (``extra[j]`` into ``leaf[j]``), then
-    every inner node's made the union of its children's, children first (a child's number
-    is always above its parent's)."""
+def _merge_nodes(box, node, added, extra):
+    """Every node's row range moved by the new rows before it and its box grown by its new
+    rows, in one depth-first pass (leaves in row order: leaf t takes the next added[t] rows
+    of ``extra``, which are in that order); an inner node's box becomes the union of its
+    children's once both are done (tight boxes stay tight)."""
     d = box.shape[1] // 2
-    for j in range(leaf.shape[0]):
-        t = leaf[j]
-        for a in range(d):
-            box[t, a] = min(box[t, a], extra[j, a])
-            box[t, a + d] = max(box[t, a + d], extra[j, a])
-    for t in range(node.shape[0] - 1, -1, -1):
+    stack = np.empty(STACK_SIZE, np.int64)
+    after = np.zeros(STACK_SIZE, np.bool_)
+    stack[0] = 0
+    sp = 1
+    shift = 0
+    row = 0
+    while sp > 0:
+        t = stack[sp - 1]
         c = node[t, NODE_CHILD]
-        if c >= 0:
+        if after[sp - 1]:  # both children done
+            node[t, NODE_HI] += shift
             for a in range(d):
                 box[t, a] = min(box[c, a], box[c + 1, a])
                 box[t, a + d] = max(box[c, a + d], box[c + 1, a + d])
+            sp -= 1
+            continue
+        node[t, NODE_LO] += shift
+        if c >= 0:
+            after[sp - 1] = True
+            stack[sp] = c + 1
+            after[sp] = False
+            stack[sp + 1] = c
+            after[sp + 1] = False
+            sp += 2
+            continue
+        for j in range(row, row + added[t]):
+            for a in range(d):
+                box[t, a] = min(box[t, a], extra[j, a])
+                box[t, a + d] = max(box[t, a + d], extra[j, a])
+        row += added[t]
+        shift += added[t]
+        node[t, NODE_HI] += shift
+        sp -= 1
 
 
 @kernel(entry=True, nogil=True)
@@ -368,18 +391,19 @@ def _split_leaves(pts, box, node, split, grown, free):
     return free
 
 
-def merge_index(index, q, weights=None, split_leaf=None):
+def merge_index(index, q, weights=None, split_leaves=None):
     """The index of ``index``'s points and the points q (b, d) together (internal
     coordinates; ``weights`` (b,) for a weighted index), made from ``index`` without
     building it again: each new point goes into the leaf it descends to, after that leaf's
-    rows (the rows copied once, in runs between the leaves that grow), every node's range
-    moved by the rows inserted before it, boxes grown, and a leaf grown past LEAF_SIZE split
+    rows (the rows copied once, in runs between the leaves that grow, on threads), every
+    node's range moved by the rows inserted before it and its box grown (one depth-first
+    pass), and a leaf grown past LEAF_SIZE split
     as a fresh build splits (the splits above stay valid: a point descends by them). Counts
     are those of a tree built afresh; ``index`` is left as it was; None when it is empty
     (the caller builds afresh). About b log n work plus one copy of the rows, against the
-    n log n of a build. ``split_leaf(pts, box, node, split, t, free)`` splits leaf t
-    numbering new nodes from ``free`` and returns the next free node: by default the
-    plane's ``_build`` (all grown leaves in one call); ``index3.merge_index3`` gives space's.
+    n log n of a build. ``split_leaves(pts, box, node, split, leaves, free)`` splits those
+    leaves numbering new nodes from ``free`` and returns the next free node: the plane's
+    ``_split_leaves`` by default; ``index3.merge_index3`` gives space's.
     """
     pts, box, node, split, weight = index
     d = box.shape[1] // 2
@@ -398,25 +422,21 @@ def merge_index(index, q, weights=None, split_leaf=None):
     out_pts = np.empty((n + b, cols))
     flat, out = pts.reshape(-1), out_pts.reshape(-1)
     in_chunks(lambda i, j: _insert_rows(flat, extra, at, cols, out, i, j), b, least=4096)
-    out_node = node.copy()
-    out_node[:, NODE_LO] += np.searchsorted(at, node[:, NODE_LO], side="right")
-    out_node[:, NODE_HI] += np.searchsorted(at, node[:, NODE_HI], side="right")
-    out_box = box.copy()
-    _merge_boxes(out_box, node, leaf, extra)
+    out_node, out_box = node.copy(), box.copy()
+    added = np.bincount(leaf, minlength=node.shape[0])
+    _merge_nodes(out_box, out_node, added, extra)
     sizes = out_node[:, NODE_HI] - out_node[:, NODE_LO]
-    grown = np.unique(leaf[(out_node[leaf, NODE_CHILD] < 0) & (sizes[leaf] > LEAF_SIZE)])
+    grown = np.flatnonzero((added > 0) & (sizes > LEAF_SIZE))  # (only leaves have added)
     out_split = split
     if len(grown):
-        more = sum(node_bound(int(sizes[t])) for t in grown)
+        # a split leaf's leaves hold >= LEAF_SIZE / 2 rows: fewer than 4 s / LEAF_SIZE nodes
+        more = int(np.sum(4 * sizes[grown] // LEAF_SIZE + 1))
         count = node.shape[0]
         out_node = np.concatenate([out_node, np.zeros((more, 4), np.int64)])
         out_box = np.concatenate([out_box, np.zeros((more, box.shape[1]))])
         out_split = np.concatenate([split, np.zeros(more)])
-        if split_leaf is None:
-            count = _split_leaves(out_pts, out_box, out_node, out_split, grown, count)
-        else:
-            for t in grown:
-                count = split_leaf(out_pts, out_box, out_node, out_split, int(t), count)
+        count = (split_leaves or _split_leaves)(out_pts, out_box, out_node, out_split, grown,
+                                                 count)  # fmt: skip
         out_node, out_box, out_split = out_node[:count], out_box[:count], out_split[:count]
     out_weight = np.zeros(0)
     if weight.shape[0] > 0:

@@ -43,15 +43,13 @@ from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
 
 
 @kernel(entry=True)
-def _build3(pts, box, node, split):
-    """Build the tree over pts (permuted in place) into box, node, split; returns the node
-    count."""
+def _build3(pts, box, node, split, root, free):
+    """Split node ``root`` (its row range set) and its descendants, the rows of pts
+    permuted in place, numbering new nodes from ``free``; returns the next free node (the
+    node count when the root is node 0 and ``free`` 1)."""
     stack = np.empty(STACK_SIZE, np.int64)
-    stack[0] = 0
-    node[0, NODE_LO] = 0
-    node[0, NODE_HI] = pts.shape[0]
+    stack[0] = root
     sp = 1
-    free = 1
     while sp > 0:
         sp -= 1
         t = stack[sp]
@@ -103,7 +101,9 @@ def build_index3(points, copy=True, weights=None):
     box = np.empty((cap, 6))
     node = np.empty((cap, 4), np.int64)
     split = np.zeros(cap)
-    n = _build3(pts, box, node, split)
+    node[0, NODE_LO] = 0
+    node[0, NODE_HI] = pts.shape[0]
+    n = _build3(pts, box, node, split, 0, 1)
     node = node[:n]
     weight = np.zeros(0)
     if weights is not None:
@@ -115,28 +115,16 @@ def build_index3(points, copy=True, weights=None):
 def merge_index3(index, q, weights=None):
     """``index.merge_index`` in space: the index of ``index``'s points and the points q
     (b, 3) together, without building it again; None when ``index`` is empty."""
-    return merge_index(index, q, weights, _split_leaf3)
+    return merge_index(index, q, weights, _split_leaves3)
 
 
-def _split_leaf3(pts, box, node, split, t, free):
-    """Split leaf t of a tree in space (its rows set), numbering new nodes from ``free``:
-    ``_build3`` over its rows alone, its root written over t and the rest from ``free``.
-    Returns the next free node."""
-    lo, hi = int(node[t, NODE_LO]), int(node[t, NODE_HI])
-    cap = node_bound(hi - lo)
-    sub_box = np.empty((cap, 6))
-    sub_node = np.empty((cap, 4), np.int64)
-    sub_split = np.zeros(cap)
-    count = _build3(pts[lo:hi], sub_box, sub_node, sub_split)  # permutes those rows in place
-    sub_node[:count, NODE_LO] += lo
-    sub_node[:count, NODE_HI] += lo
-    child = sub_node[:count, NODE_CHILD]
-    sub_node[:count, NODE_CHILD] = np.where(child >= 0, child - 1 + free, -1)
-    rows = np.concatenate([[t], np.arange(free, free + count - 1)])
-    box[rows] = sub_box[:count]
-    node[rows] = sub_node[:count]
-    split[rows] = sub_split[:count]
-    return free + count - 1
+@kernel(entry=True, nogil=True)
+def _split_leaves3(pts, box, node, split, grown, free):
+    """``_build3`` from each leaf in ``grown`` (its rows set), numbering new nodes from
+    ``free``; returns the next free node."""
+    for i in range(grown.shape[0]):
+        free = _build3(pts, box, node, split, grown[i], free)
+    return free
 
 
 @kernel(inline="always")

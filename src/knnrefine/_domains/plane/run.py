@@ -111,7 +111,7 @@ def _continued(pts, w, opt):
         run.time_index = time.perf_counter() - t0
         opt.past("setting up")
         status = run.run(deadline=opt.deadline, progress=report.refining, interrupts=interrupts)
-        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, w))
+        kept = PointIndex(emb, index, lambda: PointIndex.fingerprint_of(pts, w))
         mesh = finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts,
                       report=report, estimated=expected, budget=budget,
                       initial=start.stats.initial_vertices, interrupts=interrupts,

@@ -246,7 +246,7 @@ def _continued(pts, w, opt):
         run.time_index = time.perf_counter() - t0
         opt.past("setting up")
         status = run.run(opt.deadline, report.refining, interrupts)
-        kept = PointIndex(emb, index, PointIndex.fingerprint_of(pts, w))
+        kept = PointIndex(emb, index, lambda: PointIndex.fingerprint_of(pts, w))
         del index
     total = None if w is None else math.fsum(w)
     mesh = finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts, report=report,
