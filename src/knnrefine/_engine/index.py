@@ -321,22 +321,20 @@ def leaves_of(node, split, q):
 
 
 @kernel(entry=True, nogil=True)
-def _insert_rows(flat, extra, at, cols, out, first, last):
-    """Rows of ``out`` (flat, ``cols`` numbers a row) for the new rows ``first``..``last``-1
-    and the old ones before each: the old rows (``flat``) with new row j (``extra``)
-    inserted before old row at[j] (ascending), the old rows after the last one too when
-    ``last`` is the count. Ranges of new rows run apart on threads (disjoint rows of out)."""
-    src = 0 if first == 0 else at[first - 1]
-    for j in range(first, last):
+def _insert_rows(flat, extra, at, cols, out):
+    """``out`` (flat, ``cols`` numbers a row): the old rows (``flat``) with new row j
+    (``extra``) inserted before old row at[j] (ascending), copied in runs. (One thread:
+    the copy is bound by memory, two took longer here.)"""
+    src = 0
+    for j in range(at.shape[0]):
         a = src * cols
         b = at[j] * cols
         out[a + j * cols : b + j * cols] = flat[a:b]
         for c in range(cols):
             out[b + j * cols + c] = extra[j, c]
         src = at[j]
-    if last == at.shape[0]:
-        a = src * cols
-        out[a + last * cols :] = flat[a:]
+    a = src * cols
+    out[a + at.shape[0] * cols :] = flat[a:]
 
 
 @kernel(entry=True, nogil=True)
@@ -395,7 +393,7 @@ def merge_index(index, q, weights=None, split_leaves=None):
     """The index of ``index``'s points and the points q (b, d) together (internal
     coordinates; ``weights`` (b,) for a weighted index), made from ``index`` without
     building it again: each new point goes into the leaf it descends to, after that leaf's
-    rows (the rows copied once, in runs between the leaves that grow, on threads), every
+    rows (the rows copied once, in runs between the leaves that grow), every
     node's range moved by the rows inserted before it and its box grown (one depth-first
     pass), and a leaf grown past LEAF_SIZE split
     as a fresh build splits (the splits above stay valid: a point descends by them). Counts
@@ -420,8 +418,7 @@ def merge_index(index, q, weights=None, split_leaves=None):
     order = np.argsort(at, kind="stable")
     at, leaf, extra = at[order], leaf[order], np.ascontiguousarray(q[order])
     out_pts = np.empty((n + b, cols))
-    flat, out = pts.reshape(-1), out_pts.reshape(-1)
-    in_chunks(lambda i, j: _insert_rows(flat, extra, at, cols, out, i, j), b, least=4096)
+    _insert_rows(pts.reshape(-1), extra, at, cols, out_pts.reshape(-1))
     out_node, out_box = node.copy(), box.copy()
     added = np.bincount(leaf, minlength=node.shape[0])
     _merge_nodes(out_box, out_node, added, extra)

@@ -86,10 +86,13 @@ for pts, options in cases:
         box = square if pts.shape[1] == 2 else cube
         knnrefine.knn_cdf(pts, [5, 10], [0.01, 0.05], box, queries=10000,
                           periodic=options.get("periodic") is True)
-for w in (None, weights):  # continued runs (start=): the tree merged, the cavities reopened
-    mesh = knnrefine.refine(plane, 10, box=square, weights=w)
-    more = np.concatenate([plane, plane[:40] * 0.5])
-    knnrefine.refine(more, start=mesh, weights=None if w is None else np.concatenate([w, w[:40]]))
+# continued runs (start=): the tree merged (a leaf grown and split), the cavities reopened
+for pts, options in ((plane, {"box": square}), (space, {"box": cube}), (lonlat, {"sphere": True})):
+    for w in (None, weights):
+        mesh = knnrefine.refine(pts, 10, weights=w, **options)
+        more = np.concatenate([pts, pts[:1] + rng.random((100, pts.shape[1])) * 1e-3])
+        knnrefine.refine(more, start=mesh,
+                         weights=None if w is None else np.concatenate([w, w[:100]]))
 for n, dim in ((10_000, 2), (50_000, 2), (10_000, 3), (50_000, 3)):
     pts = np.random.default_rng(1).random((n, dim))
     est = knnrefine.KnnDensityEstimator().fit(pts)
