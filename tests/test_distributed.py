@@ -374,3 +374,81 @@ def test_a_store_made_while_no_worker_is_listed_places_its_tasks_anywhere():
     assert store._on(3) == {"retries": 2}
     store.client = Scheduler(["tcp://b", "tcp://a"])  # a worker came back
     assert store._on(3) == {"workers": ["tcp://b"], "allow_other_workers": True, "retries": 2}
+
+
+# -- a mesh continued on the cluster (``start=``, issue 55) ------------------------------
+
+
+@pytest.fixture(scope="module")
+def first_on_the_cluster(client):
+    pts = clustered(30000, 21)
+    return pts, distributed.refine(pts, 20, client=client, box=(0, 0, 1, 1))
+
+
+def test_a_mesh_made_on_the_cluster_records_the_digest_of_its_points(first_on_the_cluster):
+    """The digest summed over the partitions where the points lie is the one of a run in
+    one process: a mesh made on the cluster continues anywhere."""
+    from knnrefine._pipeline import points_digest
+
+    pts, mesh = first_on_the_cluster
+    assert mesh.stats.points_digest == points_digest(pts, None)
+    every = np.concatenate([pts, clustered(300, 22) * 0.1 + 0.45])
+    here = knnrefine.refine(every, start=mesh)  # no tree kept: built in this process
+    assert knnrefine.certify(here, every).passed
+
+
+def test_a_continuation_on_the_cluster_fetches_only_what_is_near(client, first_on_the_cluster):
+    """1 % new points in one place: the run moves inside a region about them, counting the
+    points there alone (fetched from the partitions), and certifies; a partitioned mesh
+    continues the same way."""
+    pts, mesh = first_on_the_cluster
+    rng = np.random.default_rng(23)
+    new = np.clip(rng.normal((0.8, 0.15), 0.01, (300, 2)), 0, 1)
+    every = np.concatenate([pts, new])
+    out = distributed.refine(every, client=client, start=mesh)
+    assert out.k == mesh.k and out.stats.continued["points"] == 300
+    assert knnrefine.certify(out, every).passed
+    near = out.stats["rounds"][0]
+    assert near["round"] == "near" and near["points"] < 0.5 * len(every)
+    here = knnrefine.refine(every, start=mesh)
+    assert abs(out.stats.m - here.stats.m) <= 0.05 * here.stats.m
+    from knnrefine._pipeline import points_digest
+
+    assert out.stats.points_digest == points_digest(every, None) == here.stats.points_digest
+
+
+def test_a_partitioned_mesh_continues_on_the_cluster(client, first_on_the_cluster, tmp_path):
+    pts, _ = first_on_the_cluster
+    parts = distributed.refine(pts, 20, client=client, box=(0, 0, 1, 1),
+                               output=tmp_path / "parts", parts=3)  # fmt: skip
+    every = np.concatenate([pts, clustered(200, 24) * 0.05 + 0.2])
+    out = distributed.refine(every, client=client, start=parts)
+    assert knnrefine.certify(out, every).passed
+
+
+def test_a_continuation_on_the_cluster_refuses_what_cannot_be_continued(
+    client, first_on_the_cluster
+):
+    pts, mesh = first_on_the_cluster
+    with pytest.raises(InputError, match="not the ones start was refined from"):
+        distributed.refine(np.concatenate([pts[::-1], pts[:5]]), client=client, start=mesh)
+    with pytest.raises(InputError, match="k=20"):
+        distributed.refine(pts, 21, client=client, start=mesh)
+    with pytest.raises(InputError, match="refined from 30,000 points, this run has 29,999"):
+        distributed.refine(pts[:-1], client=client, start=mesh)
+    with pytest.raises(InputError, match="in the plane, these points are in space"):
+        distributed.refine(np.random.default_rng(0).random((500, 3)), client=client,
+                           start=mesh)  # fmt: skip
+
+
+def test_a_continuation_in_space_on_the_cluster_certifies(client):
+    from conftest import gaussian_clusters
+
+    pts = gaussian_clusters(8000, 25, clusters=6, dim=3)
+    box = (0.0, 0.0, 0.0, 1.0, 1.0, 1.0)
+    mesh = distributed.refine(pts, 15, client=client, box=box, periodic=(True, False, True))
+    new = np.clip(np.random.default_rng(26).normal(0.3, 0.01, (120, 3)), 0, 1)
+    every = np.concatenate([pts, new])
+    out = distributed.refine(every, client=client, start=mesh)
+    assert out.periodic == (True, False, True)
+    assert knnrefine.certify(out, every).passed

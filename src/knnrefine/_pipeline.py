@@ -95,14 +95,14 @@ def checked(
         if rows is None or rows.ndim != 2 or len(rows) != len(pts):
             rows = pts
         return pts, w, opt.continuing(None, points_digest(rows, w))
-    asked = _start_options(start, domain, asked)
+    asked = start_options(start, domain, asked)
     n0 = int(start.stats.n)
     w_rows = None if weights is None else V.as_rows(weights)
     if w_rows is not None and w_rows.shape != (len(rows),):  # the domain's check says so
         run.checked(points, weights, **asked)
     digest = _check_start_points(start, rows, w_rows)
     if not start.on_sphere:
-        _check_in_start_box(start, rows[n0:])
+        check_in_start_box(start, rows[n0:])
     # the first n0 rows are the start's, checked when it was refined: only the new ones here
     new = None if w_rows is None else w_rows[n0:]
     pts, w, opt = run.checked(rows[n0:], new, before=(n0, start.stats.weight), **asked)
@@ -112,7 +112,7 @@ def checked(
 def points_digest(pts: np.ndarray, w: np.ndarray | None) -> str:
     """``Stats.points_digest``: a hash of the points as given, as float64 rows (and of the
     weights), in their order (``_engine/digest.py``)."""
-    return _digest(_hashes(pts, w))
+    return digest_of_hashes(_hashes(pts, w))
 
 
 DIGEST_FORM = "h64:"  # what a digest starts with (an older form is refused, not misread)
@@ -129,7 +129,8 @@ def _hashes(pts, w, rows=None, position=0):
     return h, None if w is None else digest_of(w[rows], position)
 
 
-def _digest(hashes):
+def digest_of_hashes(hashes) -> str:
+    """``Stats.points_digest`` of the hashes (points, weights or None) of all the rows."""
     h, hw = hashes
     return DIGEST_FORM + f"{h:016x}" + ("" if hw is None else f"{hw:016x}")
 
@@ -137,7 +138,7 @@ def _digest(hashes):
 _AFRESH = "refine all the points afresh (without start=)"
 
 
-def _start_options(start, domain, asked):
+def start_options(start: Mesh, domain: str, asked: dict) -> dict:
     """The options of a run continued from ``start``: the start's k, tau, box, periodic
     axes, floor and radius where not given; InputError where one given differs, or where
     new points lie outside an ordinary box (a continued mesh keeps its torus)."""
@@ -176,7 +177,7 @@ def _start_options(start, domain, asked):
 _IN = {"plane": "in the plane", "space": "in space", "sphere": "on the sphere"}
 
 
-def _check_in_start_box(start, pts):
+def check_in_start_box(start: Mesh, pts: np.ndarray) -> None:
     """InputError when a new point lies outside the start's box along a non-periodic axis
     (``pts`` float64 rows)."""
     d = len(start.periodic)
@@ -198,29 +199,42 @@ def _check_in_start_box(start, pts):
 def _check_start_points(start, pts, w):
     """InputError unless the first rows of ``pts`` (and ``w``), float64 as given, are the
     start's points; else the digest of all of them."""
+
+    def hashes(n0):
+        return _hashes(pts, w, slice(None, n0)), _hashes(pts, w, slice(n0, None), n0)
+
+    return continued_digest(start, len(pts), w is not None, hashes)
+
+
+def continued_digest(start: Mesh, n: int, weighted: bool, hashes: Callable) -> str:
+    """The digest of the points of a run continued from ``start`` (n of them, weighted or
+    not), whose first rows must be the start's, checked cheaply first (their count, the
+    weights rule, the digest's form), then by their hashes: ``hashes(n0)`` gives ((points,
+    weights) before row n0, the same from it on), weights None when unweighted (a store
+    sums them where its points lie). InputError saying why and what to do otherwise."""
     n0 = int(start.stats.n)
     if not start.stats.points_digest:
         raise InputError(f"start does not record the points it was refined from (a mesh of "
                          f"an older knnrefine): {_AFRESH}")  # fmt: skip
-    if (start.stats.weight is None) != (w is None):
-        had = "with weights" if w is None else "without weights"
+    if (start.stats.weight is not None) != weighted:
+        had = "with weights" if not weighted else "without weights"
         raise InputError(f"start was refined {had}: continue it the same way, or {_AFRESH}")
-    if len(pts) < n0:
+    if n < n0:
         raise InputError(
-            f"start was refined from {n0:,} points, this run has {len(pts):,}: give the "
+            f"start was refined from {n0:,} points, this run has {n:,}: give the "
             "start's points first, in their order, then the new ones"
         )
     if not start.stats.points_digest.startswith(DIGEST_FORM):
         raise InputError(f"start records its points' digest in an older form (a mesh of an "
                          f"older knnrefine): {_AFRESH}")  # fmt: skip
-    old = _hashes(pts, w, slice(None, n0))
-    if _digest(old) != start.stats.points_digest:
+    old, new = hashes(n0)
+    if digest_of_hashes(old) != start.stats.points_digest:
         raise InputError(f"the first {n0:,} points (and weights) are not the ones start was "
                          f"refined from: give the start's points first, in their order, then "
                          f"the new ones, or {_AFRESH}")  # fmt: skip
-    new = _hashes(pts, w, slice(n0, None), n0)
     mod = 1 << 64
-    return _digest(((old[0] + new[0]) % mod, None if w is None else (old[1] + new[1]) % mod))
+    both = [None if a is None else (a + b) % mod for a, b in zip(old, new, strict=True)]
+    return digest_of_hashes(both)
 
 
 def refine_checked(pts: np.ndarray, w: np.ndarray | None, opt) -> Mesh:

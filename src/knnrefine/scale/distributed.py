@@ -24,12 +24,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .. import _pipeline as pipeline
 from .. import _validation as V
 from .._options import RunOptions
 from .._sampling import canonical, key_sample
 from ..errors import InputError
 from .parts import check_output, write_partitioned
-from .tiled import refine_store, run_tile, split_strips, tile_index
+from .tiled import continue_store, in_region, refine_store, run_tile, split_strips, tile_index
 
 if TYPE_CHECKING:  # the annotations' types only
     from ..certify.certificate import Certificate
@@ -166,6 +167,40 @@ def _stats(part):
     return len(xy), lo, hi, 0.0 if w is None else float(w.sum())
 
 
+def _box_domain(source, columns):
+    """The domain of the source's points: the plane or space (no sphere on a cluster)."""
+    return "space" if source_dim(source, columns) == 3 else "plane"
+
+
+def _digests(part, first, n0):
+    """The digests (``_engine/digest.py``) of one partition's rows, the first being row
+    ``first`` of all: (points before row n0, points from it on, the same of the weights)."""
+    from .._engine.digest import digest_of
+
+    xy, w = part
+    cut = min(max(n0 - first, 0), len(xy))
+    d = xy.shape[1]
+    out = [digest_of(xy[:cut], first * d), digest_of(xy[cut:], (first + cut) * d)]
+    if w is not None:
+        out += [digest_of(w[:cut], first), digest_of(w[cut:], first + cut)]
+    return out
+
+
+def _rows_from(part, first, n0):
+    xy, w = part
+    cut = min(max(n0 - first, 0), len(xy))
+    return xy[cut:], None if w is None else w[cut:]
+
+
+def _near(part, frame, period, region):
+    """One partition's points in ``region`` of the torus of ``period`` (``frame``: the map
+    into it), in its coordinates, and their weights."""
+    xy, w = part
+    internal = frame(xy)
+    inside = in_region(internal, region, 0.0, period)
+    return internal[inside], None if w is None else w[inside]
+
+
 def _inside(part, box, per):
     if len(part[0]):
         V.check_inside(part[0], box, per, warn=False)
@@ -219,7 +254,8 @@ class DaskStore:
         arrays = [dask.delayed(_arrays)(p, columns, w, dim) for p, w in parts]
         self.parts = client.compute(arrays, retries=self.retries)
         stats = client.gather(client.map(_stats, self.parts, pure=False))
-        self.n = int(sum(s[0] for s in stats))
+        self.counts = [int(s[0]) for s in stats]
+        self.n = int(sum(self.counts))
         if self.n == 0:
             raise InputError("points is empty: give at least one point")
         weighted = any(w is not None for _, w in parts)
@@ -291,6 +327,33 @@ class DaskStore:
         xy = np.concatenate([g[0] for g in got])
         return xy, None if self.weight is None else np.concatenate([g[1] for g in got])
 
+    def _firsts(self):
+        return np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(int).tolist()
+
+    def digests(self, n0):
+        """The points' digests (``_engine/digest.py``), summed over the partitions where
+        they lie: (points before row n0, from it on; the same of the weights, or None)."""
+        got = self.client.gather(self.client.map(_digests, self.parts, self._firsts(),
+                                                 [n0] * len(self.parts), pure=False))  # fmt: skip
+        sums = [sum(g[i] for g in got) % (1 << 64) for i in range(len(got[0]))]
+        return sums[:2], (sums[2:] if self.weight is not None else None)
+
+    def rows_from(self, n0):
+        """(points, weights or None) of the rows from row n0 on, fetched."""
+        got = self.client.gather(self.client.map(_rows_from, self.parts, self._firsts(),
+                                                 [n0] * len(self.parts), pure=False))  # fmt: skip
+        xy = np.concatenate([g[0] for g in got])
+        return xy, None if self.weight is None else np.concatenate([g[1] for g in got])
+
+    def points_in(self, emb, region):
+        """(points in internal coordinates, weights or None) of every point in ``region``
+        of ``emb``'s torus (corner, widths), fetched."""
+        got = self.client.gather(self.client.map(
+            _near, self.parts, frame=emb.to_internal, period=np.array(emb.period_internal),
+            region=np.asarray(region, float), pure=False))  # fmt: skip
+        xy = np.concatenate([g[0] for g in got]) if got else np.zeros((0, self.dim))
+        return xy, None if self.weight is None else np.concatenate([g[1] for g in got])
+
     def close(self):
         for f in self.parts + [i for row in self.index or [] for i in row]:
             f.release()
@@ -300,7 +363,7 @@ class DaskStore:
 def refine(
     source: Any,
     k: float | None = None,
-    tau: float = 3.0,
+    tau: float | None = None,
     *,
     client: Any = None,
     workers: int | None = None,
@@ -316,6 +379,7 @@ def refine(
     output: str | os.PathLike | None = None,
     parts: int | None = None,
     force: bool = False,
+    start: Mesh | PartitionedMesh | None = None,
 ) -> Mesh | PartitionedMesh:
     """kNNRefine of ``source`` on a Dask cluster, the points never gathered in this process
     (module docstring); the same result type and guarantees as ``knnrefine.refine``.
@@ -326,7 +390,7 @@ def refine(
         Parquet path. See ``partitions`` (``columns``: three for points in space;
         ``weights``: an array, or a column's name).
     k, tau, periodic, box, min_size, max_vertices, time_limit, progress
-        As for ``knnrefine.refine``.
+        As for ``knnrefine.refine`` (tau: 3 by default).
     client : dask.distributed.Client, optional
         Where the strips run; None: a LocalCluster of ``workers`` processes (default: this
         machine's cores, at least 2) with one thread each, closed afterwards.
@@ -338,6 +402,12 @@ def refine(
         Write the mesh as a folder of ``parts`` parts (default: one per worker) and return it
         as a ``PartitionedMesh`` (``write_partitioned``: written atomically, a finished marker
         last; ``force`` overwrites an existing folder), in the plane and in space.
+    start : Mesh or PartitionedMesh, optional
+        Continue this mesh (``knnrefine.refine``'s ``start``): the source's first rows are
+        its points, verified by their digest where they lie (``Stats.points_digest``, summed
+        over the partitions); the new rows are fetched, and the old points only where the
+        run may move (``tiled.continue_store``): the region about the new points, widened
+        while it leaves anything unsettled, then all of them.
 
     Returns
     -------
@@ -350,15 +420,36 @@ def refine(
     """
     if output is not None:
         check_output(output, parts, force)
+    asked = {"k": k, "tau": tau, "periodic": periodic, "box": box, "min_size": min_size}
+    if start is not None:
+        start = start.to_mesh() if hasattr(start, "to_mesh") else start
+        asked = pipeline.start_options(start, _box_domain(source, columns), asked)
+    asked["tau"] = 3.0 if asked["tau"] is None else asked["tau"]
     with _store(source, client, workers, columns, weights, retries) as (store, tiles):
         opt = RunOptions.check(
             store.n, store.weight, lambda: V.default_box(np.array(store.bounds)),
-            store.check_inside, k=k, tau=tau, periodic=periodic, box=box, min_size=min_size,
-            max_vertices=max_vertices, time_limit=time_limit, progress=progress, dim=store.dim,
+            store.check_inside, **asked, max_vertices=max_vertices, time_limit=time_limit,
+            progress=progress, dim=store.dim,
         )  # fmt: skip
         lo, hi = store.bounds
         V.fold_warning(lo, hi, opt.box, opt.periodic, stacklevel=3)
-        mesh = refine_store(store, opt, tiles)
+        if start is None:
+            (h, _), hw = store.digests(store.n)  # summed where the points lie
+            mesh = refine_store(store, opt, tiles)
+            mesh.stats.points_digest = pipeline.digest_of_hashes(
+                (h, None if hw is None else hw[0]))  # fmt: skip
+        else:
+
+            def hashes(n0):
+                (h_old, h_new), hw = store.digests(n0)
+                return (h_old, None if hw is None else hw[0]), (
+                    h_new, None if hw is None else hw[1])  # fmt: skip
+
+            digest = pipeline.continued_digest(start, store.n, store.weight is not None, hashes)
+            new_pts, new_w = store.rows_from(int(start.stats.n))
+            pipeline.check_in_start_box(start, new_pts)
+            mesh = continue_store(store, start, opt.continuing(start, digest), new_pts, new_w)
+            mesh.stats.points_digest = digest
     if output is None:
         return mesh
     return write_partitioned(mesh, output, parts or tiles, force)

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._domains import box as box_domain
 from .._domains import part
 from .._engine import ahead, size
 from .._engine import state as S
@@ -692,3 +693,96 @@ def refine_store(store, opt, workers) -> Mesh:
                       points=lambda: store.points()[0], report=report,
                       estimated=p.reported_estimate, budget=budget, initial=len(m0_order),
                       rounds=rounds, interrupts=interrupts)  # fmt: skip
+
+
+# -- a run continued from a mesh, the points in a store (``distributed.refine(start=)``) --
+
+
+CONTINUE_TRIES = 3  # regions tried, each PAD_GROWTH times wider, before all the points
+PAD_GROWTH = 4.0
+
+
+def continue_store(store, start, opt, new_pts, new_w) -> Mesh:
+    """A run continued from the mesh ``start`` (``opt.start``; its points the store's first
+    rows, checked by the caller) with the store's new points ``new_pts`` and weights
+    ``new_w`` (fetched), the old points fetched only where the run may move.
+
+    The start's elements are settled but those the new points reach (the domain's
+    ``continue_run``). The run may move only inside a region (``set_region``): the new
+    points' (and the start's floor points') bounding box on the torus, widened by 4 times
+    the mesh's spacing there; it counts with the points in that region alone, which hold
+    every point its moves count (an element inside the region has its counting region
+    inside it). What the region deferred is tried again in one 4 times wider, then with
+    every point (``stats["rounds"]`` says which)."""
+    run_mod = part(opt.domain, "run")
+    n, n0 = store.n, int(start.stats.n)
+    report = Progress(opt.progress)
+    with ahead.compiling(opt.domain, report.compiling), Interrupts() as interrupts:
+        t0 = time.perf_counter()
+        emb = box_domain.start_embedding(start)
+        period = np.array(emb.period_internal)
+        new = emb.to_internal(new_pts)
+        index = new_index(new.copy(), new_w)  # the new points: the reopening counts none
+        run, expected, budget, reopened = run_mod.continue_run(start, emb, index, new, opt, n)
+        spots = new if not len(start.floor_points) else np.concatenate(
+            [new, emb.to_internal(start.floor_points)])  # fmt: skip
+        pad = PAD_GROWTH * emb.scale * float(np.max(start.d_m2(emb.to_input(spots)),
+                                                     initial=0.0))  # fmt: skip
+        run.time_index = time.perf_counter() - t0
+        opt.past("setting up")
+        rounds, status, region = [], S.STATUS_DONE, None
+        for _ in range(CONTINUE_TRIES if len(spots) else 0):  # (none: nothing reopened)
+            region = _region_around(spots, pad, period)
+            if region is None:  # as wide as the torus: every point
+                break
+            t1 = time.perf_counter()
+            pts, w = store.points_in(emb, region)
+            run.index = new_index(pts, w)
+            run.set_region(region)
+            run.queue_unsettled()
+            status = run.run(deadline=opt.deadline, progress=report.refining,
+                             interrupts=interrupts)  # fmt: skip
+            run.set_region(None)
+            unsettled = run.unsettled()
+            rounds.append({"round": "near", "points": len(pts), "region": [float(r) / emb.scale
+                           for r in region], "unsettled": unsettled,
+                           "seconds": time.perf_counter() - t1})  # fmt: skip
+            if status != S.STATUS_DONE or unsettled == 0:
+                break
+            pad *= PAD_GROWTH
+            region = None
+        if status == S.STATUS_DONE and region is None and len(spots):  # every point counts
+            t1 = time.perf_counter()
+            pts, w = store.points()
+            run.index = new_index(emb.to_internal(pts), w)
+            run.queue_unsettled()
+            status = run.run(deadline=opt.deadline, progress=report.refining,
+                             interrupts=interrupts)  # fmt: skip
+            rounds.append({"round": "all", "points": n, "seconds": time.perf_counter() - t1})
+        run.time_refine = time.perf_counter() - t0 - run.time_index
+        mesh = run_mod.finish(run, status, emb, opt, n=n, weight=store.weight,
+                              points=lambda: store.points()[0], report=report,
+                              estimated=expected, budget=budget,
+                              initial=start.stats.initial_vertices, rounds=rounds,
+                              interrupts=interrupts)  # fmt: skip
+    mesh.stats.continued = {"points": n - n0, "from_vertices": len(start.torus.vertices),
+                            "reopened": reopened}  # fmt: skip
+    return mesh
+
+
+def _region_around(x, pad, period):
+    """The box (corner, widths) on the torus holding the points x (internal coordinates)
+    widened by ``pad``, as ``set_region`` takes it; None when it is the whole torus. Along
+    each axis the shortest arc holding them (the largest gap between them left out)."""
+    d = len(period)
+    corner, widths = np.empty(d), np.empty(d)
+    for a in range(d):
+        c = np.sort(np.mod(x[:, a], period[a]))
+        gaps = np.diff(np.concatenate([c, [c[0] + period[a]]]))
+        j = int(np.argmax(gaps))  # the arc starts after the largest gap
+        start = c[(j + 1) % len(c)]
+        corner[a] = start - pad
+        widths[a] = period[a] - gaps[j] + 2 * pad
+    if (widths >= period).all():
+        return None
+    return np.concatenate([np.mod(corner, period), np.minimum(widths, period)])

@@ -95,19 +95,7 @@ def _continued(pts, w, opt):
         index = continued_index(start, emb, pts, w, new, new_w, merge_index,
                                 lambda x, weights: build_index(x, weights=weights))  # fmt: skip
         interrupts.check()
-        torus = start.torus
-        m0 = start_mesh(start, emb)
-        m = len(m0[0])
-        grown_by = max(0.0, (n - n0) / max(n0, 1))
-        expected = m * (1.0 + 2.0 * grown_by) + 64
-        budget = vertex_budget(expected, opt, m, n)
-        run = Refinement(
-            index, opt.k, *emb.period_internal, opt.tau, opt.min_size * emb.scale, budget,
-            m0=m0, grid=emb.grid, capacity=min(expected, budget), queued=False, caches="edges",
-        )  # fmt: skip
-        if len(start.floor_points):  # reopened too: they stay at the floor, reported again
-            new = np.concatenate([new, emb.to_internal(start.floor_points)])
-        reopened = run.reopen(new, np.asarray(torus.kinds, np.int8))
+        run, expected, budget, reopened = continue_run(start, emb, index, new, opt, n)
         run.time_index = time.perf_counter() - t0
         opt.past("setting up")
         status = run.run(deadline=opt.deadline, progress=report.refining, interrupts=interrupts)
@@ -116,8 +104,32 @@ def _continued(pts, w, opt):
                       report=report, estimated=expected, budget=budget,
                       initial=start.stats.initial_vertices, interrupts=interrupts,
                       kept=kept)  # fmt: skip
-    mesh.stats.continued = {"points": n - n0, "from_vertices": m, "reopened": reopened}
+    mesh.stats.continued = {"points": n - n0, "from_vertices": len(start.torus.vertices),
+                            "reopened": reopened}  # fmt: skip
     return mesh
+
+
+def continue_run(start, emb, index, new, opt, n):
+    """(run, expected vertices, vertex budget, cells reopened): the run of ``n`` points
+    continued from the mesh ``start`` (its embedding ``emb``), counting with ``index``,
+    its torus triangulation taken as it is and every element settled but those the new
+    points ``new`` (internal coordinates) reach, which are queued (``Refinement.reopen``;
+    the start's floor points are reopened too, so that they are reported again). Every
+    box domain's ``continue_run`` takes the same arguments (``scale.tiled`` continues a
+    store's run with it)."""
+    m0 = start_mesh(start, emb)
+    m = len(m0[0])
+    grown_by = max(0.0, (n - int(start.stats.n)) / max(int(start.stats.n), 1))
+    expected = m * (1.0 + 2.0 * grown_by) + 64
+    budget = vertex_budget(expected, opt, m, n)
+    run = Refinement(
+        index, opt.k, *emb.period_internal, opt.tau, opt.min_size * emb.scale, budget,
+        m0=m0, grid=emb.grid, capacity=min(expected, budget), queued=False, caches="edges",
+    )  # fmt: skip
+    if len(start.floor_points):
+        new = np.concatenate([new, emb.to_internal(start.floor_points)])
+    reopened = run.reopen(new, np.asarray(start.torus.kinds, np.int8))
+    return run, expected, budget, reopened
 
 
 def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budget, initial,

@@ -227,22 +227,12 @@ def _continued(pts, w, opt):
     with ahead.compiling("space", report.compiling), Interrupts() as interrupts:
         t0 = time.perf_counter()
         emb = start_embedding(start)
-        grid = start_mesh(start, emb)
         new = emb.to_internal(new_pts)
         index = continued_index(start, emb, pts, w, new, new_w, merge_index3,
                                 lambda x, weights: build_index3(x, copy=False,
                                                                 weights=weights))  # fmt: skip
         interrupts.check()
-        m = len(grid[0])
-        grown_by = max(0.0, (n - n0) / max(n0, 1))
-        expected = m * (1.0 + 2.0 * grown_by) + 64
-        budget = vertex_budget(expected, opt, m, n)
-        run = Refinement3(index, emb.period_internal, opt.k, opt.tau, opt.min_size * emb.scale,
-                          budget, grid, emb.grid, queued=False,
-                          capacity=int(min(expected, budget)))  # fmt: skip
-        if len(start.floor_points):  # reopened too: they stay at the floor, reported again
-            new = np.concatenate([new, emb.to_internal(start.floor_points)])
-        reopened = run.reopen(new, np.asarray(start.torus.kinds, np.int8))
+        run, expected, budget, reopened = continue_run(start, emb, index, new, opt, n)
         run.time_index = time.perf_counter() - t0
         opt.past("setting up")
         status = run.run(opt.deadline, report.refining, interrupts)
@@ -251,8 +241,28 @@ def _continued(pts, w, opt):
     total = None if w is None else math.fsum(w)
     mesh = finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts, report=report,
                   estimated=expected, budget=budget, initial=0, kept=kept)  # fmt: skip
-    mesh.stats.continued = {"points": n - n0, "from_vertices": m, "reopened": reopened}
+    mesh.stats.continued = {"points": n - n0, "from_vertices": len(start.torus.vertices),
+                            "reopened": reopened}  # fmt: skip
     return mesh
+
+
+def continue_run(start, emb, index, new, opt, n):
+    """The plane's ``continue_run`` in space: (run, expected vertices, vertex budget,
+    tetrahedra reopened) of ``n`` points continued from ``start``, counting with ``index``,
+    every element settled but those the new points ``new`` (internal coordinates) and the
+    start's floor points reach (``Refinement3.reopen``)."""
+    grid = start_mesh(start, emb)
+    m = len(grid[0])
+    grown_by = max(0.0, (n - int(start.stats.n)) / max(int(start.stats.n), 1))
+    expected = m * (1.0 + 2.0 * grown_by) + 64
+    budget = vertex_budget(expected, opt, m, n)
+    run = Refinement3(index, emb.period_internal, opt.k, opt.tau, opt.min_size * emb.scale,
+                      budget, grid, emb.grid, queued=False,
+                      capacity=int(min(expected, budget)))  # fmt: skip
+    if len(start.floor_points):
+        new = np.concatenate([new, emb.to_internal(start.floor_points)])
+    reopened = run.reopen(new, np.asarray(start.torus.kinds, np.int8))
+    return run, expected, budget, reopened
 
 
 def finish(run, status, emb, opt, *, n, weight, points, report, estimated, budget, initial,
