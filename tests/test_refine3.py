@@ -330,9 +330,9 @@ def _start_run(pts, k=10):
 
 def _finish(run, pts, k=10):
     assert run.run() == 0  # STATUS_DONE
-    xyz, corners, offsets, kinds, cnt, _ = run.take_result()
+    xyz, corners, offsets, kinds, cnt, _, neighbours = run.take_result()
     torus = Torus(origin=(0.0,) * 3, period=(1.0,) * 3, vertices=xyz, cells=corners,
-                  offsets=offsets, kinds=kinds)  # fmt: skip
+                  offsets=offsets, kinds=kinds, neighbours=neighbours)  # fmt: skip
     return Mesh(vertices=xyz, cells=corners, offsets=offsets, kinds=kinds,
                 order=np.arange(len(xyz)), k=k, tau=3.0, periodic=(True,) * 3, box=BOX,
                 min_size=1e-6, floor_points=np.zeros((0, 3)), stats={"n": len(pts)},
@@ -620,33 +620,31 @@ def test_the_data_bound_on_d_pk_is_computed_only_when_the_default_torus_fails(mo
 
 
 @pytest.mark.parametrize("periodic", [True, False])
-def test_the_counting_index_is_freed_before_the_unfolding(monkeypatch, periodic):
+def test_the_counting_index_lives_on_only_in_the_mesh(monkeypatch, periodic):
     """Regression: the tuple run3's start returned kept the counting index (28 bytes a point)
     alive until refine3 returned, through the unfolding, where an ordinary box's run then
-    peaked. Every array of the index must be gone when the unfolding starts."""
+    peaked. The mesh now keeps the index on purpose (``Mesh.index``: a continued run grows
+    it instead of building it again, as in the plane), so it lives through the unfolding,
+    but nothing else holds it: every array of it is gone with the mesh."""
     import gc
     import weakref
 
     from knnrefine._domains.space import run as api3
 
-    refs, dead = [], []
-    build, unfold = api3.build_index3, api3.unfold
+    refs = []
+    build = api3.build_index3
 
     def built(*args, **kwargs):
         index = build(*args, **kwargs)
         refs.extend(weakref.ref(a) for a in index)
         return index
 
-    def unfolded(*args, **kwargs):
-        gc.collect()
-        dead.append([r() is None for r in refs])
-        return unfold(*args, **kwargs)
-
     monkeypatch.setattr(api3, "build_index3", built)
-    monkeypatch.setattr(api3, "unfold", unfolded)
     pts = multiscale(3000, 21)
-    knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
-    assert len(refs) == 5 and dead == [[True] * 5]  # the PointTree's five arrays
+    mesh = knnrefine.refine(pts, 10, periodic=periodic, box=BOX)
+    assert len(refs) == 5 and all(r() is a for r, a in zip(refs, mesh.index.index, strict=True))
+    gc.collect()
+    assert len(gc.get_referrers(mesh.index.index)) == 1  # the mesh's PointIndex alone
 
 
 @pytest.mark.parametrize("kind", ["uniform", "clustered", "coplanar", "duplicates"])
