@@ -10,6 +10,7 @@ from .._engine.embedding import Embedding
 from .._metric import BoxMetric
 from .._validation import points_of_run
 from ..errors import EngineError, InputError
+from . import MERGE_UP_TO
 
 
 def to_frame(mesh):
@@ -71,11 +72,13 @@ def start_embedding(start) -> Embedding:
 def continued_index(start, emb, pts, w, new, new_w, merge, build):
     """The counting index over every point of a run continued from ``start``: the start's
     tree with the new points merged in (``merge(tree, new, new_w)``, which answers None for
-    an empty tree) when the mesh kept it, else one built over them all (``build(points,
-    weights)``: a mesh read from a file keeps no tree). ``pts``, ``w``: every input point
+    an empty tree) when the mesh kept it and they are at most MERGE_UP_TO of its points,
+    else one built over them all (``build(points, weights)``; a mesh read from a file keeps
+    no tree). ``pts``, ``w``: every input point
     (the start's first) and weights or None; ``new`` the new points, internal coordinates."""
     kept = getattr(start.index, "index", None)
-    if kept is not None and start.index.n == int(start.stats.n):
+    n0 = int(start.stats.n)
+    if kept is not None and start.index.n == n0 and len(new) <= MERGE_UP_TO * n0:
         merged = merge(kept, new, new_w)
         if merged is not None:
             return merged

@@ -68,6 +68,7 @@ from ..._options import Progress, SphereOptions, check_size, check_sphere_run, w
 from ..._validation import as_sphere_points
 from ...errors import BudgetError, EngineError
 from ...mesh import Mesh, Stats, moves_of
+from .. import MERGE_UP_TO
 
 STEPS = 20_000  # insertions per kernel call
 MAX_DEGREE = 256
@@ -245,7 +246,7 @@ def _continued(new, w, opt, every):
     n0 = int(start.stats.n)
     kept = start.index
     index = None
-    if kept is not None and kept.pts.shape[0] == n0 and n0 > 0:
+    if kept is not None and kept.pts.shape[0] == n0 and 0 < len(new) <= MERGE_UP_TO * n0:
         index = merge_index3(kept, new, w)
     if index is None:
         index = build_index3(every().copy(), copy=False, weights=opt.given_weights)
