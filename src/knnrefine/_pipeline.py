@@ -153,7 +153,7 @@ def start_options(start: Mesh, domain: str, asked: dict) -> dict:
     if start.torus is None and not start.on_sphere:
         raise InputError(f"start has no torus mesh to continue (a file without it): {_AFRESH}")
     asked = dict(asked)
-    given = {"k": start.k, "tau": start.tau, "min_size": start.min_size}
+    given: dict[str, object] = {"k": start.k, "tau": start.tau, "min_size": start.min_size}
     if start.on_sphere:
         given["radius"] = start.radius
     elif asked.get("box") is None and asked.get("periodic") in (False, None):
