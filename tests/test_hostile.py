@@ -259,6 +259,46 @@ def test_ctrl_c_during_density_work_ends_it_within_a_second():
         assert exited - float(stdout.split("sent at")[1].split()[0]) < 3.0
 
 
+def test_ctrl_c_during_exact_kth_waits_for_short_ranges_in_every_domain():
+    """CI: a Ctrl-C half a second into the exact d_Pk above (k = 400) ended the process 3.7 s
+    later on a loaded machine: each thread finished its range, 1/16 of its queries (0.5 s of
+    work at k = 400 on a quiet core), and the sphere's search was one scipy call that no
+    interrupt cut. A k-th distance search now runs in ranges of KTH_WORK / k queries, in
+    every domain; each range is checked here against a brute-force k-th distance."""
+    from knnrefine._engine import threads
+    from knnrefine.density import KnnDistance
+
+    spans = []
+    threads.in_chunks(lambda a, b: spans.append(b - a), 120_000, threads=2, most=500)
+    assert sum(spans) == 120_000 and max(spans) <= 500
+    assert threads.kth_range(400) * 400 <= threads.KTH_WORK and threads.kth_range(10**9) == 64
+    rng = np.random.default_rng(5)
+    k = 40
+    for points, probes, exact in (
+        (rng.random((3000, 2)), 0.05 + 0.9 * rng.random((700, 2)), None),
+        (rng.random((3000, 3)), 0.05 + 0.9 * rng.random((700, 3)), None),
+        (np.c_[rng.uniform(-180, 180, 3000), rng.uniform(-80, 80, 3000)],
+         np.c_[rng.uniform(-180, 180, 700), rng.uniform(-80, 80, 700)], "sphere"),
+    ):  # fmt: skip
+        old = threads.KTH_WORK
+        threads.KTH_WORK = 64 * k // 4  # ranges of 64 queries: 11 of them at least
+        try:
+            mesh = knnrefine.refine(points, k, sphere=exact == "sphere")
+            got = KnnDistance(mesh, points).exact(probes)
+        finally:
+            threads.KTH_WORK = old
+        if exact == "sphere":
+            u, q = (np.c_[np.cos(np.radians(a[:, 1])) * np.cos(np.radians(a[:, 0])),
+                          np.cos(np.radians(a[:, 1])) * np.sin(np.radians(a[:, 0])),
+                          np.sin(np.radians(a[:, 1]))] for a in (points, probes))  # fmt: skip
+            chord = np.sort(np.linalg.norm(q[:, None] - u[None], axis=2), axis=1)[:, k - 1]
+            want = 2 * np.arcsin(np.minimum(chord / 2, 1)) * mesh.radius
+        else:
+            want = np.sort(np.linalg.norm(probes[:, None] - points[None], axis=2), axis=1)
+            want = want[:, k - 1]
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+
+
 def test_ctrl_c_during_build_index_is_a_keyboard_interrupt():
     """Ctrl-C 30-50 ms into refine on 2e5 points (while the index is built) raised
     'SystemError: CPUDispatcher(build_index) returned a result with an exception set' in 9 of

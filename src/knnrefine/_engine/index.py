@@ -34,7 +34,7 @@ import numpy as np
 from .geometry import plus_compensated
 from .jit import kernel
 from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
-from .threads import in_chunks, run_all
+from .threads import in_chunks, kth_range, run_all
 from .threads import workers as thread_count
 
 LEAF_SIZE = 32
@@ -1089,7 +1089,7 @@ class PointIndex:
             args = (qx, qy, k, r_in, r_out, low, high, lx, ly, px, py, cap, out, a, b)
             return kth_distances(self.index, *args)
 
-        in_chunks(chunk, m, workers)
+        in_chunks(chunk, m, workers, most=kth_range(k))
         lost = np.flatnonzero(np.isnan(out))
         if len(lost):  # more ties than a window holds: by brute force (rare)
             out[lost] = self._brute_kth(q[lost], k)

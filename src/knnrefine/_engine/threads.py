@@ -56,6 +56,14 @@ def run_all(task, count, meanwhile=None, every=0.05):
 
 
 PER_THREAD = 16  # ranges per thread: an interrupt waits for the ranges running only
+KTH_WORK = 400_000  # neighbours gathered per range of a k-th distance search (~0.1 s)
+
+
+def kth_range(k):
+    """Queries per range of a k-th distance search at ``k``: a query's work grows with k, so
+    that at k = 400, 1/16 of a thread's queries took 0.5 s on a quiet core and a Ctrl-C
+    waited that long (3.7 s on a loaded one); ranges of KTH_WORK / k queries keep it short."""
+    return max(64, int(KTH_WORK / max(float(k), 1.0)))
 
 
 def thread_count(threads=None):
@@ -64,15 +72,17 @@ def thread_count(threads=None):
     return workers() if threads is None or int(threads) < 0 else max(1, int(threads))
 
 
-def in_chunks(call, m, threads=None, least=256, per_thread=PER_THREAD):
+def in_chunks(call, m, threads=None, least=256, per_thread=PER_THREAD, most=None):
     """[call(start, stop)] over ranges that split [0, m) evenly, ``per_thread`` ranges for
     each of ``threads`` (``thread_count``: None or -1 every core), each at least ``least``
-    long (one range when m is small), run by at most ``threads`` threads at once: many
-    short calls rather than one long one per thread, so that an interrupt (Ctrl-C) waits
-    only for the ranges running, about 1 / per_thread of the work (the threads take no new
-    range once it came)."""
+    long (one range when m is small) and, when ``most`` is given, at most ``most`` long, run
+    by at most ``threads`` threads at once: many short calls rather than one long one per
+    thread, so that an interrupt (Ctrl-C) waits only for the ranges running, about
+    1 / per_thread of the work (the threads take no new range once it came)."""
     threads = thread_count(threads)
     chunks = max(1, min(threads * int(per_thread), m // least))
+    if most is not None:
+        chunks = max(chunks, -(-m // max(int(most), 1)))
     edges = np.linspace(0, m, chunks + 1).astype(np.int64)
     out = [None] * chunks
     if threads == 1 or chunks == 1:  # here, between ranges Ctrl-C is raised at once

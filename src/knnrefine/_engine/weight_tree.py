@@ -23,7 +23,7 @@ import numpy as np
 
 from .geometry import plus_compensated
 from .jit import kernel
-from .threads import in_chunks
+from .threads import in_chunks, kth_range
 
 LEAF = 16  # points per leaf at most
 SHELL = 64  # points between the bracket's ends below which they are sorted
@@ -350,7 +350,7 @@ def kth_radius(tree, x, k, low=None, high=None, threads=-1):
     low = np.full(len(x), -1.0) if low is None else np.ascontiguousarray(low, float)
     high = np.full(len(x), -1.0) if high is None else np.ascontiguousarray(high, float)
     in_chunks(lambda a, b: _kth_radii(tree, x, float(k), low, high, out, a, b), len(x),
-              _threads(threads))  # fmt: skip
+              _threads(threads), most=kth_range(k))  # fmt: skip
     return out
 
 

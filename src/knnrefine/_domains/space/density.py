@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from ..._engine.bspline import shares_below, weighted_shares
 from ..._engine.index3 import build_index3, kth_distances3, weights_at3
 from ..._engine.raster import first_holding3, rasterise3
-from ..._engine.threads import in_chunks
+from ..._engine.threads import in_chunks, kth_range
 from ..._metric import BoxMetric, weighted_kth
 from ..._validation import check_inside
 from ...errors import InputError
@@ -117,7 +117,7 @@ class Index:
         def chunk(a, b):
             kth_distances3(tree, q, k, r_in, r_out, period, periodic, cap, out, a, b)
 
-        in_chunks(chunk, m)
+        in_chunks(chunk, m, most=kth_range(k))
         lost = np.flatnonzero(np.isnan(out))
         if len(lost):  # more ties than a window holds (rare): scipy's tree
             ck = self._scipy_tree()

@@ -16,6 +16,7 @@ pi (chord)^2 (Archimedes), through ``equal_area_radius``.
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..._engine.threads import in_chunks, kth_range
 from ..._metric import chord_to_angle, lonlat_of, unit_vectors, weighted_kth
 from ..._validation import answerable as answerable_on_sphere
 from ..._validation import sphere_points_of_run
@@ -35,8 +36,14 @@ class Index:
         self.radius = float(radius)
 
     def kth(self, x, k):
-        if self.weights is None:
-            chord = self.tree.query(x, k=[int(k)], workers=-1)[0][:, 0]
+        if self.weights is None:  # in short ranges on threads: Ctrl-C waits for few
+            x = np.asarray(x, float).reshape(-1, 3)
+            chord = np.empty(len(x))
+
+            def part(a, b):
+                chord[a:b] = self.tree.query(x[a:b], k=[int(k)])[0][:, 0]
+
+            in_chunks(part, len(x), most=kth_range(k))
         else:
             chord = weighted_kth(self.tree, self.weights, x, k, -1)
         return chord_to_angle(chord) * self.radius
