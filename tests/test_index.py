@@ -327,16 +327,20 @@ def _check_partition(index, pts):
 
 
 @pytest.mark.parametrize(
-    "case", ["clustered", "spread", "on splits", "empty start", "more than there were"]
-)
-def test_merged_tree_counts_as_one_built_afresh(case):
+    "case",
+    ["clustered", "clustered, one thread", "spread", "on splits", "empty start",
+     "more than there were"],
+)  # fmt: skip
+def test_merged_tree_counts_as_one_built_afresh(case, monkeypatch):
     """``merge_index`` (a continued run's index: the start's tree with new points) is a
     valid tree over all the points (tight boxes, splits that separate, leaves of at most
     LEAF_SIZE), counts in disks and cells as brute force does, and leaves the tree it was
-    given as it was."""
+    given as it was; rows and nodes move on two threads, or one after the other on one."""
+    if case.endswith("one thread"):
+        monkeypatch.setenv("KNNREFINE_THREADS", "1")
     rng = np.random.default_rng(31)
     old = rng.random((0 if case == "empty start" else 4000, 2))
-    if case == "clustered":
+    if case.startswith("clustered"):
         new = np.clip(rng.normal(0.3, 0.01, (500, 2)), 0, 0.999)
     elif case == "on splits":  # exactly on split values: the first child's side
         base = build_index(old.copy())

@@ -417,24 +417,34 @@ def merge_index(index, q, weights=None, split_leaves=None):
     at = node[leaf, NODE_HI]
     order = np.argsort(at, kind="stable")
     at, leaf, extra = at[order], leaf[order], np.ascontiguousarray(q[order])
-    out_pts = np.empty((n + b, cols))
-    _insert_rows(pts.reshape(-1), extra, at, cols, out_pts.reshape(-1))
-    out_node, out_box = node.copy(), box.copy()
-    added = np.bincount(leaf, minlength=node.shape[0])
-    _merge_nodes(out_box, out_node, added, extra)
-    sizes = out_node[:, NODE_HI] - out_node[:, NODE_LO]
+    count = node.shape[0]
+    added = np.bincount(leaf, minlength=count)
+    sizes = node[:, NODE_HI] - node[:, NODE_LO] + added
     grown = np.flatnonzero((added > 0) & (sizes > LEAF_SIZE))  # (only leaves have added)
-    out_split = split
+    # a split leaf's leaves hold >= LEAF_SIZE / 2 rows: fewer than 4 s / LEAF_SIZE nodes
+    room = count + int(np.sum(4 * sizes[grown] // LEAF_SIZE + 1))
+    out_node, out_box, out_split = (
+        np.empty((room, *x.shape[1:]), x.dtype) for x in (node, box, split)
+    )
+    out_pts = np.empty((n + b, cols))
+
+    def rows():
+        _insert_rows(pts.reshape(-1), extra, at, cols, out_pts.reshape(-1))
+
+    def nodes():
+        out_node[:count], out_box[:count], out_split[:count] = node, box, split
+        _merge_nodes(out_box, out_node, added, extra)
+
+    # the rows (bound by memory) copied on one thread while the nodes move on another
+    if thread_count() > 1:
+        run_all(lambda j: rows() if j == 0 else nodes(), 2)
+    else:
+        rows()
+        nodes()
     if len(grown):
-        # a split leaf's leaves hold >= LEAF_SIZE / 2 rows: fewer than 4 s / LEAF_SIZE nodes
-        more = int(np.sum(4 * sizes[grown] // LEAF_SIZE + 1))
-        count = node.shape[0]
-        out_node = np.concatenate([out_node, np.zeros((more, 4), np.int64)])
-        out_box = np.concatenate([out_box, np.zeros((more, box.shape[1]))])
-        out_split = np.concatenate([split, np.zeros(more)])
         count = (split_leaves or _split_leaves)(out_pts, out_box, out_node, out_split, grown,
                                                  count)  # fmt: skip
-        out_node, out_box, out_split = out_node[:count], out_box[:count], out_split[:count]
+    out_node, out_box, out_split = out_node[:count], out_box[:count], out_split[:count]
     out_weight = np.zeros(0)
     if weight.shape[0] > 0:
         out_weight = np.empty(out_node.shape[0])
