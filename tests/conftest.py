@@ -473,3 +473,13 @@ def as_tile(run, number, area):
 
     return SimpleNamespace(run=run, gid=np.arange(run.vertices), area=np.asarray(area, float),
                            number=number)  # fmt: skip
+
+
+def of_trees(kernel):
+    """A counting kernel of the plane's index that takes a ``state.PointForest`` (its
+    ``python_entry``), called with one tree or a forest."""
+    from knnrefine._engine.index import forest_of
+    from knnrefine._engine.jit import python_entry
+
+    entry = python_entry(kernel)
+    return lambda index, *args: entry(forest_of(index), *args)

@@ -2,6 +2,7 @@
 
 import numpy as np
 import oracle
+from conftest import of_trees
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -10,8 +11,8 @@ from knnrefine._engine import index as engine_index
 from knnrefine._engine.index import LEAF_SIZE, STACK_SIZE, build_index
 from knnrefine._engine.jit import python_entry
 
-count_in_cell = python_entry(engine_index.count_in_cell)
-count_in_disk = python_entry(engine_index.count_in_disk)
+count_in_cell = of_trees(engine_index.count_in_cell)
+count_in_disk = of_trees(engine_index.count_in_disk)
 
 
 def periodic_copies(points, lx, ly):
@@ -259,6 +260,7 @@ def test_select_puts_the_kth_row_in_place(kind):
     # Floyd-Rivest on long ranges, quickselect on short ones: rows move whole, the kth is the
     # sorted order's, nothing outside [lo, hi) moves
     select = python_entry(engine_index.select_kth)
+
     rng = np.random.default_rng(len(kind))
     for n in (1, 2, 33, 601, 602, 5000, 70000):
         p = {
@@ -378,6 +380,73 @@ def test_merged_weighted_tree_sums_the_new_weights():
         brute = w[((every - [cx, cy]) ** 2).sum(1) <= r * r].sum()
         got = count_in_disk(merged, cx, cy, r * r, 1e18, 10.0, 10.0, stack)
         assert np.isclose(got, brute, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("weighted", [False, True], ids=["counts", "weights"])
+def test_a_grown_forest_counts_as_one_tree_of_all_its_points(weighted):
+    """``grow_forest`` (a continued run's index: the start's tree untouched, the new points
+    in a second tree) counts disks and cells, across the period, as brute force over every
+    point does, batch after batch; the forest it grew from is left as it was; the extra
+    tree is merged into the main one once it holds more than EXTRA_UP_TO of its points;
+    ``tree_of`` is a valid tree of them all."""
+    rng = np.random.default_rng(33)
+    pts = rng.random((4000, 2))
+    w = rng.random(4000) + 0.5 if weighted else None
+    forest = engine_index.forest_of(build_index(pts.copy(), weights=w))
+    main = forest.main
+    stack = np.zeros(STACK_SIZE, np.int64)
+    mask = np.zeros(LEAF_SIZE, np.bool_)
+    extras = []
+    for batch in range(6):  # 150 points a batch: the sixth passes 4000 / 8 and folds
+        new = np.clip(rng.normal(rng.random(2), 0.03, (150, 2)), 0, 0.999)
+        w_new = rng.random(150) + 0.5 if weighted else None
+        before = [a.copy() for a in forest.extra]
+        grown = engine_index.grow_forest(forest, new, w_new)
+        for a, b in zip(forest.extra, before, strict=True):
+            assert np.array_equal(a, b)
+        pts = np.concatenate([pts, new])
+        w = np.concatenate([w, w_new]) if weighted else None
+        forest = grown
+        extras.append(len(forest.extra.pts))
+        cover = periodic_copies(pts, 1.0, 1.0)
+        cw = np.tile(w, 9) if weighted else np.ones(len(cover))
+        for _ in range(60):
+            c, r = rng.random(2) * 1.2 - 0.1, 0.2 * rng.random()
+            d2 = ((cover - c) ** 2).sum(1)
+            brute = cw[d2 <= r * r].sum()
+            got = count_in_disk(forest, c[0], c[1], r * r, 1e18, 1.0, 1.0, stack)
+            assert np.isclose(got, brute, rtol=1e-12, atol=1e-12)
+            nb, hc, R2 = oracle.random_cell(rng)
+            inside = oracle.in_cell(cover - c, nb, hc, R2, 1.0)
+            got = count_in_cell(forest, c[0], c[1], nb[:, 0].copy(), nb[:, 1].copy(), hc,
+                                len(hc), R2, 1e18, 1.0, 1.0, stack, mask)  # fmt: skip
+            assert np.isclose(got, cw[inside].sum(), rtol=1e-12, atol=1e-12)
+    assert extras == [150, 300, 450, 0, 150, 300]  # 600 > 4000 / 8: merged at the 4th
+    assert forest.main is not main and len(forest.main.pts) == 4600 and len(pts) == 4900
+    one = engine_index.tree_of(forest)
+    _check_partition(one, pts)
+    assert engine_index.marked_in_disks(forest, np.array([0.5]), np.array([0.5]),
+                                        np.array([0.04]), 1.0, 1.0) == int(
+        (((pts - 0.5) ** 2).sum(1) <= 0.04).sum())  # fmt: skip
+
+
+def test_a_point_index_over_a_forest_merges_it_when_first_asked():
+    """A continued mesh keeps its index's two trees; d_Pk at points (which needs one tree)
+    merges them once, and answers as an index built over every point does."""
+    rng = np.random.default_rng(34)
+    from knnrefine._engine.embedding import Embedding
+
+    emb = Embedding.make((0.0, 0.0, 1.0, 1.0), (False, False))
+    old, new = rng.random((3000, 2)), np.clip(rng.normal(0.4, 0.02, (200, 2)), 0, 1)
+    tree = build_index(emb.to_internal(old))
+    forest = engine_index.grow_forest(tree, emb.to_internal(new))
+    kept = engine_index.PointIndex(emb, forest, None)
+    assert kept.n == 3200 and len(kept.forest.extra.pts) == 200
+    every = np.concatenate([old, new])
+    fresh = engine_index.PointIndex.build(every, (0.0, 0.0, 1.0, 1.0), (False, False))
+    x = rng.random((300, 2))
+    assert np.array_equal(kept.kth(x, 25), fresh.kth(x, 25))
+    assert len(kept.forest.extra.pts) == 0 and len(kept.index.pts) == 3200
 
 
 @pytest.mark.parametrize("case", ["clustered", "spread", "weighted"])

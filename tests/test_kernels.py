@@ -52,7 +52,7 @@ def type_callees():
 
     own_refcounts(refine.refine_steps)  # a fresh compile types its direct callees
 
-    idx = index.build_index(np.random.default_rng(0).random((200, 2)))
+    idx = index.forest_of(index.build_index(np.random.default_rng(0).random((200, 2))))
     stack = np.zeros(index.STACK_SIZE, np.int64)
     python_entry(index.count_in_disk)(idx, 0.5, 0.5, 0.01, 5, 1.0, 1.0, stack)
     h = np.array([1.0, -1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0, -1.0]), np.full(4, 0.01)

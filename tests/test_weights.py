@@ -5,7 +5,7 @@ rescaling (weights and k halved: sums of halves are exact)."""
 import numpy as np
 import oracle
 import pytest
-from conftest import unit_box
+from conftest import of_trees, unit_box
 
 import knnrefine
 from knnrefine._engine import index as engine_index
@@ -14,9 +14,10 @@ from knnrefine._engine.jit import python_entry
 from knnrefine.density import KnnDensity, KnnDistance
 from knnrefine.errors import InputError
 
-count_in_disk = python_entry(engine_index.count_in_disk)
-count_in_cell = python_entry(engine_index.count_in_cell)
+count_in_disk = of_trees(engine_index.count_in_disk)
+count_in_cell = of_trees(engine_index.count_in_cell)
 count_in_torus_disk = python_entry(engine_index.count_in_torus_disk)
+
 
 
 def weighted_sets(rng):

@@ -71,12 +71,13 @@ def start_embedding(start) -> Embedding:
 
 def continued_index(start, emb, pts, w, new, new_w, merge, build):
     """The counting index over every point of a run continued from ``start``: the start's
-    tree with the new points merged in (``merge(tree, new, new_w)``, which answers None for
-    an empty tree) when the mesh kept it and they are at most MERGE_UP_TO of its points,
-    else one built over them all (``build(points, weights)``; a mesh read from a file keeps
-    no tree). ``pts``, ``w``: every input point
-    (the start's first) and weights or None; ``new`` the new points, internal coordinates."""
-    kept = getattr(start.index, "index", None)
+    index (its ``state.PointForest``) with the new points added (``merge(forest, new,
+    new_w)``, which answers None for an empty tree or one it cannot grow) when the mesh
+    kept it and they are at most MERGE_UP_TO of its points, else one built over them all
+    (``build(points, weights)``; a mesh read from a file keeps no tree). ``pts``, ``w``:
+    every input point (the start's first) and weights or None; ``new`` the new points,
+    internal coordinates."""
+    kept = getattr(start.index, "forest", None)
     n0 = int(start.stats.n)
     if kept is not None and start.index.n == n0 and len(new) <= MERGE_UP_TO * n0:
         merged = merge(kept, new, new_w)

@@ -14,7 +14,7 @@ from ..errors import EngineError
 from . import refine as R
 from . import state as S
 from .geometry import FLOOR_BITS, Q
-from .index import LEAF_SIZE, STACK_SIZE
+from .index import LEAF_SIZE, STACK_SIZE, forest_of
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .region import WALK_LOST, insert_points, mark_settled, spatial_order
@@ -128,7 +128,7 @@ class Refinement(TileRun):
         self.index = index
         self.time_index = 0.0  # seconds building the index (set by the caller)
         self.threads = None  # threads of a bulk sweep; None: ``threads.workers()``
-        self.n = int(index.pts.shape[0])
+        self.n = sum(int(t.pts.shape[0]) for t in self.index)
         xy, corners, offsets, neighbours = initial_grid(lx, ly, q=grid)[:4] if m0 is None else m0
         self.grid = grid
         clean_floor = grid * 2.0**FLOOR_BITS
@@ -414,6 +414,16 @@ class Refinement(TileRun):
             queues[name] = q
         self.queues = Queues(**queues)
         R.queue_unsettled(self.mesh, self.book, self.queues, self.cnt, self.prm)
+
+    @property
+    def index(self):
+        """The counting index over P, a ``state.PointForest`` (``index.forest_of``)."""
+        return self._index
+
+    @index.setter
+    def index(self, index):
+        """A PointTree (``build_index``) or a PointForest (``index.grow_forest``)."""
+        self._index = forest_of(index)
 
     def reopen(self, xy, kinds):
         """Continue a finished run's mesh (this one's ``m0``, its vertices' ``kinds``) with

@@ -33,7 +33,7 @@ import numpy as np
 
 from .geometry import plus_compensated
 from .jit import kernel
-from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointTree
+from .state import NODE_AXIS, NODE_CHILD, NODE_HI, NODE_LO, PointForest, PointTree
 from .threads import in_chunks, kth_range, run_all
 from .threads import workers as thread_count
 
@@ -452,6 +452,69 @@ def merge_index(index, q, weights=None, split_leaves=None):
     return PointTree(out_pts, out_box, out_node, out_split, out_weight)
 
 
+EXTRA_UP_TO = 0.125  # the extra tree's points, as a fraction of the main tree's, at most
+
+
+def forest_of(index):
+    """``index`` as a ``state.PointForest``: a PointTree with an empty extra tree, or the
+    forest itself."""
+    if isinstance(index, PointForest):
+        return index
+    empty = PointTree(
+        np.zeros((0, index.pts.shape[1])), np.zeros((1, index.box.shape[1])),
+        np.array([[0, 0, -1, 0]], np.int64), np.zeros(1), np.zeros(min(index.weight.shape[0], 1)),
+    )  # fmt: skip
+    return PointForest(index, empty)
+
+
+def tree_of(forest):
+    """The one tree holding both trees' points (``merge_index``), or the main tree when the
+    extra one is empty."""
+    main, extra = forest_of(forest)
+    if extra.pts.shape[0] == 0:
+        return main
+    d = main.box.shape[1] // 2
+    weights = extra.pts[:, d] if extra.weight.shape[0] > 0 else None
+    return merge_index(main, extra.pts[:, :d], weights)
+
+
+def grow_forest(forest, q, weights=None, merge=None, build=None):
+    """The forest of ``forest``'s points and the points q (b, d) (internal coordinates;
+    ``weights`` (b,) for a weighted index) without copying its main tree: the new points
+    merged into its extra tree (``merge_index``) or one built over them, and the extra tree
+    merged into the main one once it holds more than EXTRA_UP_TO of its points (the copy
+    of every row then, for many batches: Bentley and Saxe's logarithmic method with two
+    levels). ``forest`` is left as it was; None when its main tree is empty (the caller
+    builds afresh). ``merge``, ``build``: ``merge_index`` and ``build_index`` by default."""
+    merge, build = merge or merge_index, build or build_index
+    main, extra = forest_of(forest)
+    if main.pts.shape[0] == 0:
+        return None
+    d = main.box.shape[1] // 2
+    q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, d)
+    weights = None if weights is None else np.asarray(weights, np.float64)
+    m = extra.pts.shape[0]
+    if m + q.shape[0] > EXTRA_UP_TO * main.pts.shape[0]:
+        if m:
+            q = np.concatenate([extra.pts[:, :d], q])
+            if weights is not None:
+                weights = np.concatenate([extra.pts[:, d], weights])
+        return forest_of(merge(main, q, weights))
+    if m == 0:
+        return PointForest(main, build(q.copy(), weights=weights))
+    return PointForest(main, merge(extra, q, weights))
+
+
+def marked_in_disks(forest, cx, cy, r2, lx, ly):
+    """How many points of ``forest`` (both trees) lie in one of the closed disks
+    (``mark_in_disks``)."""
+    total = 0
+    for tree in forest_of(forest):
+        if tree.pts.shape[0]:
+            total += mark_in_disks(tree, cx, cy, r2, lx, ly, np.zeros(tree.pts.shape[0], np.bool_))
+    return total
+
+
 @kernel(inline="always")
 def held_by_node(node, weight, t):
     """What node t holds: its number of points, or its weight total for weighted points."""
@@ -551,12 +614,22 @@ def _copies(c, r, period):
 
 
 @kernel(nrt=False)
-def count_in_disk(index, cx, cy, r2, k, lx, ly, stack):
-    """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)):
-    exact when below k; otherwise the search stops early and returns some value >= k.
+def count_in_disk(forest, cx, cy, r2, k, lx, ly, stack):
+    """Number of points of the periodic set P + (lx, ly)Z^2 in the closed disk (c, sqrt(r2)),
+    P the points of both trees of ``forest`` (a ``state.PointForest``): exact when below k;
+    otherwise the search stops early and returns some value >= k.
     Needs sqrt(r2) < min(lx, ly) / 2. Shifted copies of c round at the scale of the period;
     the copy nearest the domain is c itself when c is inside it. Coordinates are zero or of
     magnitude >= 1e-150 (squared distances must not underflow; the engine's are far larger)."""
+    count = _disk_copies(forest.main, cx, cy, r2, k, lx, ly, stack)
+    if count >= k or forest.extra.node[0, NODE_HI] == 0:
+        return count
+    return count + _disk_copies(forest.extra, cx, cy, r2, k - count, lx, ly, stack)
+
+
+@kernel(nrt=False)
+def _disk_copies(index, cx, cy, r2, k, lx, ly, stack):
+    """``count_in_disk`` in one tree."""
     r = np.sqrt(r2)
     count = 0.0
     comp = 0.0
@@ -657,11 +730,23 @@ def _count_cell(index, vx, vy, hx, hy, hc, nh, r2, k, stack, mask):
 
 
 @kernel(nrt=False)
-def count_in_cell(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
+def count_in_cell(forest, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
     """Number of points of the periodic P in the closed cell {v + p : hx[j] px + hy[j] py <= hc[j]}
-    contained in the disk (v, sqrt(r2)): exact when below k, otherwise some value >= k. For a
-    Voronoi cell, (hx[j], hy[j]) is the j-th neighbour minus v and hc[j] half its squared
-    length. ``mask`` is scratch of LEAF_SIZE booleans. Weighted points count their weight."""
+    contained in the disk (v, sqrt(r2)), P the points of both trees of ``forest``: exact when
+    below k, otherwise some value >= k. For a Voronoi cell, (hx[j], hy[j]) is the j-th
+    neighbour minus v and hc[j] half its squared length. ``mask`` is scratch of LEAF_SIZE
+    booleans. Weighted points count their weight."""
+    count = _cell_copies(forest.main, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask)
+    if count >= k or forest.extra.node[0, NODE_HI] == 0:
+        return count
+    left = k - count
+    return count + _cell_copies(forest.extra, vx, vy, hx, hy, hc, nh, r2, left, lx, ly, stack,
+                                mask)  # fmt: skip
+
+
+@kernel(nrt=False)
+def _cell_copies(index, vx, vy, hx, hy, hc, nh, r2, k, lx, ly, stack, mask):
+    """``count_in_cell`` in one tree."""
     r = np.sqrt(r2)
     count = 0.0
     comp = 0.0
@@ -1020,11 +1105,20 @@ class PointIndex:
 
     def __init__(self, embedding, index, fingerprint):
         self.embedding = embedding
-        self.index = index
+        self.forest = forest_of(index)  # a continued run's two trees (``grow_forest``)
         self._fingerprint = fingerprint  # or a function giving it, called when first asked
-        self.n = int(index.pts.shape[0])
-        self.weighted = index.weight.shape[0] > 0
-        self.total = float(index.weight[0]) if self.weighted and self.n else float(self.n)
+        self.n = sum(int(t.pts.shape[0]) for t in self.forest)
+        self.weighted = self.forest.main.weight.shape[0] > 0
+        self.total = float(sum(t.weight[0] for t in self.forest if t.pts.shape[0])
+                           if self.weighted else self.n)  # fmt: skip
+
+    @property
+    def index(self):
+        """The one tree over every indexed point: a continued run's two trees are merged
+        when first asked (``tree_of``), not by the run."""
+        if self.forest.extra.pts.shape[0]:
+            self.forest = forest_of(tree_of(self.forest))
+        return self.forest.main
 
     @classmethod
     def build(cls, points, box, periodic, weights=None):

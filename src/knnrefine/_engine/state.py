@@ -344,6 +344,10 @@ PointTree = namedtuple(
         "weight",  # (nodes,) float64: each node's total weight; (0,) unweighted
     ],
 )
+# the plane's counting index in a run: two PointTrees counted as one, the tree the run began
+# with and a small one over the points added since (a continued run; empty otherwise), so
+# that adding points copies neither the large tree nor its points (``index.grow_forest``)
+PointForest = namedtuple("PointForest", ["main", "extra"])
 NODE_LO = 0  # the node's first point
 NODE_HI = 1  # one past its last point
 NODE_CHILD = 2  # its first child (the second follows it); -1 at a leaf

@@ -13,7 +13,7 @@ from ..._engine import state as S
 from ..._engine.driver import Refinement
 from ..._engine.embedding import Embedding, diameter, unfold, wrap
 from ..._engine.geometry import FLOOR_BITS
-from ..._engine.index import PointIndex, build_index, mark_in_disks, merge_index
+from ..._engine.index import PointIndex, build_index, grow_forest, marked_in_disks
 from ..._engine.initial import (
     candidate_grids,
     choose_initial_mesh,
@@ -92,7 +92,7 @@ def _continued(pts, w, opt):
         t0 = time.perf_counter()
         emb = start_embedding(start)
         new = emb.to_internal(new_pts)
-        index = continued_index(start, emb, pts, w, new, new_w, merge_index,
+        index = continued_index(start, emb, pts, w, new, new_w, grow_forest,
                                 lambda x, weights: build_index(x, weights=weights))  # fmt: skip
         interrupts.check()
         run, expected, budget, reopened = continue_run(start, emb, index, new, opt, n)
@@ -266,18 +266,9 @@ def _points_under_floor(res, run):
     around a cell's vertex, that holds >= k points below the floor)."""
     if not len(res.floor_radii2):
         return 0
-    mark = np.zeros(run.n, np.bool_)
-    return int(
-        mark_in_disks(
-            run.index,
-            res.floor_centres[:, 0].copy(),
-            res.floor_centres[:, 1].copy(),
-            res.floor_radii2 * (1.0 + 1e-9),
-            run.lx,
-            run.ly,
-            mark,
-        )
-    )
+    centres = res.floor_centres
+    return marked_in_disks(run.index, centres[:, 0].copy(), centres[:, 1].copy(),
+                           res.floor_radii2 * (1.0 + 1e-9), run.lx, run.ly)  # fmt: skip
 
 
 def _assemble(res, emb, k, tau, min_size, run, initial, report, interrupts, index=None):

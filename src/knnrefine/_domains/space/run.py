@@ -228,7 +228,7 @@ def _continued(pts, w, opt):
         t0 = time.perf_counter()
         emb = start_embedding(start)
         new = emb.to_internal(new_pts)
-        index = continued_index(start, emb, pts, w, new, new_w, merge_index3,
+        index = continued_index(start, emb, pts, w, new, new_w, _merged,
                                 lambda x, weights: build_index3(x, copy=False,
                                                                 weights=weights))  # fmt: skip
         interrupts.check()
@@ -244,6 +244,14 @@ def _continued(pts, w, opt):
     mesh.stats.continued = {"points": n - n0, "from_vertices": len(start.torus.vertices),
                             "reopened": reopened}  # fmt: skip
     return mesh
+
+
+def _merged(forest, new, new_w):
+    """The start's tree (space's index is one tree: its extra tree is empty) with the new
+    points merged in (``merge_index3``); None for a start whose index is not one tree."""
+    if forest.extra.pts.shape[0]:
+        return None
+    return merge_index3(forest.main, new, new_w)
 
 
 def continue_run(start, emb, index, new, opt, n):
