@@ -2,8 +2,8 @@
 
 import numpy as np
 import oracle
-from conftest import of_trees
 import pytest
+from conftest import of_trees
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -397,7 +397,7 @@ def test_a_grown_forest_counts_as_one_tree_of_all_its_points(weighted):
     stack = np.zeros(STACK_SIZE, np.int64)
     mask = np.zeros(LEAF_SIZE, np.bool_)
     extras = []
-    for batch in range(6):  # 150 points a batch: the sixth passes 4000 / 8 and folds
+    for _ in range(6):  # 150 points a batch: the fourth passes 4000 / 8 and folds
         new = np.clip(rng.normal(rng.random(2), 0.03, (150, 2)), 0, 0.999)
         w_new = rng.random(150) + 0.5 if weighted else None
         before = [a.copy() for a in forest.extra]

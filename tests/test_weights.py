@@ -19,7 +19,6 @@ count_in_cell = of_trees(engine_index.count_in_cell)
 count_in_torus_disk = python_entry(engine_index.count_in_torus_disk)
 
 
-
 def weighted_sets(rng):
     yield "uniform", rng.random((3000, 2)), rng.gamma(1.5, 1.0, 3000)
     yield "duplicates", np.repeat(rng.random((40, 2)), 30, axis=0), rng.random(1200) * 2
