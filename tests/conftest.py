@@ -476,8 +476,8 @@ def as_tile(run, number, area):
 
 
 def of_trees(kernel):
-    """A counting kernel of the plane's index that takes a ``state.PointForest`` (its
-    ``python_entry``), called with one tree or a forest."""
+    """A counting kernel that takes a ``state.PointForest`` (its ``python_entry``; the
+    plane's or space's), called with one tree or a forest."""
     from knnrefine._engine.index import forest_of
     from knnrefine._engine.jit import python_entry
 

@@ -113,28 +113,31 @@ def test_a_stream_of_batches_ends_near_a_fresh_run():
     assert abs(mesh.stats.m - fresh.stats.m) <= 0.1 * fresh.stats.m
 
 
-def test_a_continued_mesh_continues_again_on_its_two_trees():
+@pytest.mark.parametrize("d", [2, 3], ids=["plane", "space"])
+def test_a_continued_mesh_continues_again_on_its_two_trees(d):
     """A continued mesh keeps the start's tree and a small one over the new points
     (``index.grow_forest``); continued again, the small tree grows, and is merged into the
     large one once it passes 1/8 of it; every mesh certifies, and d_Pk of the last (which
-    merges its trees when first asked) is exact."""
+    merges its trees when first asked, in the plane) is exact."""
     rng = np.random.default_rng(13)
-    pts = rng.random((4000, 2))
-    mesh = knnrefine.refine(pts, 10, box=(0, 0, 1, 1))
+    pts = rng.random((4000, d))
+    mesh = knnrefine.refine(pts, 10, box=(0,) * d + (1,) * d)
     extra = []
     for b in (100, 150, 400):  # 250 <= 4000 / 8 < 650
-        pts = np.concatenate([pts, _clustered(rng, b, rng.random(2), 0.03)])
+        batch = np.clip(rng.normal(rng.random(d), 0.03, (b, d)), 0.0, 1.0)
+        pts = np.concatenate([pts, batch])
         mesh = knnrefine.refine(pts, start=mesh)
         assert knnrefine.certify(mesh, pts).passed
         extra.append(len(mesh.index.forest.extra.pts))
     assert extra == [100, 250, 0]
-    pts = np.concatenate([pts, _clustered(rng, 120, (0.5, 0.5), 0.02)])
+    pts = np.concatenate([pts, np.clip(rng.normal(0.5, 0.02, (120, d)), 0.0, 1.0)])
     mesh = knnrefine.refine(pts, start=mesh)
     assert len(mesh.index.forest.extra.pts) == 120
-    probes = rng.random((400, 2))
+    probes = rng.random((400, d))
     exact = cKDTree(pts).query(probes, k=10)[0][:, -1]
     assert np.allclose(knnrefine.KnnDistance(mesh, pts).exact(probes), exact, rtol=1e-12)
-    assert len(mesh.index.forest.extra.pts) == 0 and mesh.index.n == len(pts)
+    assert mesh.index.n == len(pts) and len(mesh.index.index.pts) == len(pts)
+    assert len(mesh.index.forest.extra.pts) == 0
 
 
 # -- refused before any work -------------------------------------------------------------

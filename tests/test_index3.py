@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import of_trees
 from scipy.spatial import cKDTree
 
 from knnrefine._engine import index3, triangulation3
@@ -17,8 +18,8 @@ from knnrefine._engine.initial import initial_grid3
 from knnrefine._engine.jit import python_entry
 from knnrefine._engine.triangulation3 import insert_largest3, new_torus3
 
-_ball = python_entry(index3.count_in_ball3)
-_cell = python_entry(index3.count_in_cell3)
+_ball = of_trees(index3.count_in_ball3)
+_cell = of_trees(index3.count_in_cell3)
 _neighbours = python_entry(triangulation3.vertex_neighbours3)
 
 
@@ -86,6 +87,40 @@ def test_ball_counts_match_a_periodic_kd_tree(period, weighted):
             below = want < k * (1 - 1e-12)
             np.testing.assert_allclose(got[below], want[below], rtol=1e-13, atol=0)
             assert (got[want >= k * (1 + 1e-12)] >= k).all()
+
+
+@pytest.mark.parametrize("weighted", [False, True], ids=["counts", "weights"])
+def test_a_grown_forest_in_space_counts_as_a_periodic_kd_tree_of_all_its_points(weighted):
+    """``index.grow_forest`` with space's trees (a continued run's index: the start's tree,
+    untouched, and a small one over the points added since): ball counts across the
+    torus' faces match cKDTree over every point, batch after batch, through the fold of
+    the small tree into the large one; ``tree_of`` merges them into one tree of them all."""
+    from knnrefine._engine.index import forest_of, grow_forest, tree_of
+
+    period = np.array([1.0, 1.0, 1.0])
+    pts = _points(3000, period, 7)
+    w = _weights(len(pts), 8) if weighted else None
+    forest = forest_of(build_index3(pts, weights=w))
+    rng = np.random.default_rng(9)
+    stack = np.empty(128, np.int64)
+    sizes = []
+    for _ in range(5):  # 120 a batch: the fourth passes 3000 / 8 and folds
+        new = np.mod(rng.normal(rng.random(3), 0.02, (120, 3)), 1.0)
+        w_new = _weights(120, int(rng.integers(1000))) if weighted else None
+        forest = grow_forest(forest, new, w_new, index3.merge_index3,
+                             lambda x, weights: build_index3(x, weights=weights))  # fmt: skip
+        sizes.append(len(forest.extra.pts))
+        pts = np.concatenate([pts, new])
+        w = np.concatenate([w, w_new]) if weighted else None
+        tree = cKDTree(pts, boxsize=period)
+        centres, radii = rng.random((300, 3)), rng.random(300) * 0.3
+        want = _held(tree.query_ball_point(centres, radii), w)
+        got = np.array([_ball(forest, c, r * r, 1e15, period, stack)
+                        for c, r in zip(centres, radii, strict=True)])  # fmt: skip
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)
+    assert sizes == [120, 240, 360, 0, 120]
+    one = tree_of(forest, index3.merge_index3)
+    assert sorted(map(tuple, one.pts[:, :3])) == sorted(map(tuple, pts))
 
 
 @pytest.mark.slow

@@ -143,7 +143,8 @@ def test_the_ball_count_in_space_and_the_cell_count_share_one_compile(tmp_path):
 import numpy as np
 from knnrefine._engine import index3
 from knnrefine._engine.jit import python_entry
-idx = index3.build_index3(np.random.default_rng(0).random((300, 3)))
+from knnrefine._engine.index import forest_of
+idx = forest_of(index3.build_index3(np.random.default_rng(0).random((300, 3))))
 stack = np.zeros(128, np.int64)
 period = np.ones(3)
 c = np.full(3, 0.5)

@@ -14,7 +14,7 @@ from ..errors import EngineError
 from . import refine as R
 from . import state as S
 from .geometry import FLOOR_BITS, Q
-from .index import LEAF_SIZE, STACK_SIZE, forest_of
+from .index import LEAF_SIZE, STACK_SIZE
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .region import WALK_LOST, insert_points, mark_settled, spatial_order
@@ -414,16 +414,6 @@ class Refinement(TileRun):
             queues[name] = q
         self.queues = Queues(**queues)
         R.queue_unsettled(self.mesh, self.book, self.queues, self.cnt, self.prm)
-
-    @property
-    def index(self):
-        """The counting index over P, a ``state.PointForest`` (``index.forest_of``)."""
-        return self._index
-
-    @index.setter
-    def index(self, index):
-        """A PointTree (``build_index``) or a PointForest (``index.grow_forest``)."""
-        self._index = forest_of(index)
 
     def reopen(self, xy, kinds):
         """Continue a finished run's mesh (this one's ``m0``, its vertices' ``kinds``) with

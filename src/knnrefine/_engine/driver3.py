@@ -109,7 +109,7 @@ class Refinement3(TileRun):
         self, index, period, k, tau, floor, max_vertices, grid, q=Q, queued=True, capacity=None
     ):
         self.period = np.asarray(period, float)
-        self.index = index
+        self.index = index  # a PointForest (``index.forest_of``)
         self.time_index = 0.0  # seconds of the setup (set by the caller), as in the plane
         self.time_refine = 0.0  # seconds in ``run``
         estimate = max(4096, len(grid[0]) * 4) if capacity is None else capacity

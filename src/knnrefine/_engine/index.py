@@ -467,15 +467,15 @@ def forest_of(index):
     return PointForest(index, empty)
 
 
-def tree_of(forest):
-    """The one tree holding both trees' points (``merge_index``), or the main tree when the
-    extra one is empty."""
+def tree_of(forest, merge=None):
+    """The one tree holding both trees' points (``merge``: ``merge_index``, or space's
+    ``index3.merge_index3``), or the main tree when the extra one is empty."""
     main, extra = forest_of(forest)
     if extra.pts.shape[0] == 0:
         return main
     d = main.box.shape[1] // 2
     weights = extra.pts[:, d] if extra.weight.shape[0] > 0 else None
-    return merge_index(main, extra.pts[:, :d], weights)
+    return (merge or merge_index)(main, extra.pts[:, :d], weights)
 
 
 def grow_forest(forest, q, weights=None, merge=None, build=None):
@@ -1101,11 +1101,15 @@ class PointIndex:
     frame: exact d_{P,k} at any points, periodic axes by the distance of the circle, the others
     in the plane; weighted P counts weights. ``refine`` keeps the one it refined with on the
     Mesh (``Mesh.index``), so that evaluating d_{P,k} needs no second tree; ``build`` makes
-    one for points alone."""
+    one for points alone. It holds the run's ``state.PointForest`` (``forest``: a continued
+    run's two trees, which a later continuation grows) and merges it into one tree when
+    that is first asked for (``index``). Space's meshes keep theirs here too (``merge``:
+    ``index3.merge_index3``; its d_Pk is ``space.density.Index``'s)."""
 
-    def __init__(self, embedding, index, fingerprint):
+    def __init__(self, embedding, index, fingerprint, merge=None):
         self.embedding = embedding
         self.forest = forest_of(index)  # a continued run's two trees (``grow_forest``)
+        self._merge = merge  # what merges them (``tree_of``): space's merge_index3
         self._fingerprint = fingerprint  # or a function giving it, called when first asked
         self.n = sum(int(t.pts.shape[0]) for t in self.forest)
         self.weighted = self.forest.main.weight.shape[0] > 0
@@ -1117,7 +1121,7 @@ class PointIndex:
         """The one tree over every indexed point: a continued run's two trees are merged
         when first asked (``tree_of``), not by the run."""
         if self.forest.extra.pts.shape[0]:
-            self.forest = forest_of(tree_of(self.forest))
+            self.forest = forest_of(tree_of(self.forest, self._merge))
         return self.forest.main
 
     @classmethod

@@ -151,13 +151,14 @@ def _shifts(c, r, period):
 
 
 @kernel(nrt=False)
-def count_in_ball3(index, c, r2, k, period, stack):
-    """Points of P in the closed ball (c, sqrt(r2)) of the torus, up to k (the count stops
-    there); c anywhere (wrapped here), the radius below half the shortest period: a cell
-    with no half-spaces (``count_in_cell3``)."""
+def count_in_ball3(forest, c, r2, k, period, stack):
+    """Points of P (both trees of ``forest``, a ``state.PointForest``) in the closed ball
+    (c, sqrt(r2)) of the torus, up to k (the count stops there); c anywhere (wrapped here),
+    the radius below half the shortest period: a cell with no half-spaces
+    (``count_in_cell3``)."""
     # no half-spaces: empty slices of the index's own arrays, not module constants (numba
-    # types those read-only and would compile count_in_cell3 a second time for them)
-    return count_in_cell3(index, c, index.pts[:0], period[:0], 0, r2, k, period, stack)
+    # types those read-only and would compile the count a second time for them)
+    return count_in_cell3(forest, c, forest.main.pts[:0], period[:0], 0, r2, k, period, stack)
 
 
 @kernel(nrt=False)
@@ -223,10 +224,19 @@ def count_in_region3(index, vx, vy, vz, h, hc, nh, r2, k, stack):
 
 
 @kernel(nrt=False)
-def count_in_cell3(index, v, h, hc, nh, r2, k, period, stack):
-    """Points of P in the closed Voronoi cell of the vertex at v: within sqrt(r2) (R(v),
-    inflated) of v and on v's side of the bisector of each neighbour at v + h[i] (that is,
-    (x - v) . h[i] <= hc[i] = |h[i]|^2 / 2, inflated), up to k."""
+def count_in_cell3(forest, v, h, hc, nh, r2, k, period, stack):
+    """Points of P (both trees of ``forest``) in the closed Voronoi cell of the vertex at v:
+    within sqrt(r2) (R(v), inflated) of v and on v's side of the bisector of each neighbour
+    at v + h[i] (that is, (x - v) . h[i] <= hc[i] = |h[i]|^2 / 2, inflated), up to k."""
+    count = _cell_copies3(forest.main, v, h, hc, nh, r2, k, period, stack)
+    if count >= k or forest.extra.node[0, NODE_HI] == 0:
+        return count
+    return count + _cell_copies3(forest.extra, v, h, hc, nh, r2, k - count, period, stack)
+
+
+@kernel(nrt=False)
+def _cell_copies3(index, v, h, hc, nh, r2, k, period, stack):
+    """``count_in_cell3`` in one tree."""
     r = np.sqrt(r2)
     w0 = v[0] - np.floor(v[0] / period[0]) * period[0]
     w1 = v[1] - np.floor(v[1] / period[1]) * period[1]
@@ -263,8 +273,9 @@ def holds_k_within3(index, x, r2, k, period):
     points of P? (Radii below half the shortest period: ``count_in_ball3``.)"""
     out = np.zeros(x.shape[0], np.bool_)
     stack = np.empty(STACK_SIZE, np.int64)
+    none = index.pts[:0]
     for i in range(x.shape[0]):
-        out[i] = count_in_ball3(index, x[i], r2[i], k, period, stack) >= k
+        out[i] = _cell_copies3(index, x[i], none, period[:0], 0, r2[i], k, period, stack) >= k
     return out
 
 

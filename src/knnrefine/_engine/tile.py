@@ -6,6 +6,7 @@ kernels through four hooks."""
 import numpy as np
 
 from ..errors import EngineError
+from .index import forest_of
 from .state import C_NT, ERRORS, GOOD
 
 
@@ -16,6 +17,17 @@ class TileRun:
     ``_lost`` (that kernel's code for a lost walk), ``_mark_settled(stamps, regions)``
     ((balls, cells) marked GOOD), ``requeue()``, ``_grow()``, and ``positions`` (the vertex
     array) and ``_tau2`` (tau^2 as the kernels compare it)."""
+
+    @property
+    def index(self):
+        """The counting index over P the kernels take: a ``state.PointForest``."""
+        return self._index
+
+    @index.setter
+    def index(self, index):
+        """A PointTree (``build_index``, ``build_index3``), a PointForest
+        (``index.grow_forest``), or None (the run let go of it)."""
+        self._index = None if index is None else forest_of(index)
 
     def seed(self, x, kinds, stamps, regions):
         """Insert the vertices x (with their kinds and the rounds that made them) into the

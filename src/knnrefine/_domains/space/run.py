@@ -13,7 +13,7 @@ from ..._engine import ahead, size
 from ..._engine.driver3 import Refinement3, choose_grid3
 from ..._engine.embedding import Embedding, diameter, unfold
 from ..._engine.geometry import FLOOR_BITS
-from ..._engine.index import PointIndex
+from ..._engine.index import PointIndex, grow_forest
 from ..._engine.index3 import build_index3, holds_k_within3, merge_index3
 from ..._engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from ..._engine.interrupt import Interrupts
@@ -196,7 +196,7 @@ def refine(pts: np.ndarray, w: np.ndarray | None, opt: RunOptions) -> Mesh:
             raise InputError(start.refusal(k, tau))
         emb, run_index, grid = found
         del found  # the index must go with the run or the mesh, not live on in this tuple
-        kept = PointIndex(emb, run_index, PointIndex.fingerprint_of(pts, w))
+        kept = PointIndex(emb, run_index, PointIndex.fingerprint_of(pts, w), merge_index3)
         start.release()
         opt.past("setting up")
         floor = max(min_size * emb.scale, emb.grid * 2.0**FLOOR_BITS)
@@ -228,15 +228,13 @@ def _continued(pts, w, opt):
         t0 = time.perf_counter()
         emb = start_embedding(start)
         new = emb.to_internal(new_pts)
-        index = continued_index(start, emb, pts, w, new, new_w, _merged,
-                                lambda x, weights: build_index3(x, copy=False,
-                                                                weights=weights))  # fmt: skip
+        index = continued_index(start, emb, pts, w, new, new_w, _grown, _build)
         interrupts.check()
         run, expected, budget, reopened = continue_run(start, emb, index, new, opt, n)
         run.time_index = time.perf_counter() - t0
         opt.past("setting up")
         status = run.run(opt.deadline, report.refining, interrupts)
-        kept = PointIndex(emb, index, lambda: PointIndex.fingerprint_of(pts, w))
+        kept = PointIndex(emb, index, lambda: PointIndex.fingerprint_of(pts, w), merge_index3)
         del index
     total = None if w is None else math.fsum(w)
     mesh = finish(run, status, emb, opt, n=n, weight=total, points=lambda: pts, report=report,
@@ -246,12 +244,14 @@ def _continued(pts, w, opt):
     return mesh
 
 
-def _merged(forest, new, new_w):
-    """The start's tree (space's index is one tree: its extra tree is empty) with the new
-    points merged in (``merge_index3``); None for a start whose index is not one tree."""
-    if forest.extra.pts.shape[0]:
-        return None
-    return merge_index3(forest.main, new, new_w)
+def _build(x, weights=None):
+    """``build_index3`` over the (n, 3) float64 points x themselves (reordered in place)."""
+    return build_index3(x, copy=False, weights=weights)
+
+
+def _grown(forest, new, new_w):
+    """The start's index with the new points added (``index.grow_forest``, space's trees)."""
+    return grow_forest(forest, new, new_w, merge=merge_index3, build=_build)
 
 
 def continue_run(start, emb, index, new, opt, n):
