@@ -19,6 +19,11 @@ k points" when their weights sum to k or more; whole nodes add their weight tota
 boundary leaves their own weight. Without weights every point weighs 1 and the counts are
 the integer counts (the same code, a branch on whether ``weight`` is empty).
 
+The refinement counts with a ``state.PointForest``: the tree it started with and a second
+one over points added since (a continued run, ``grow_forest``; empty otherwise), counted as
+one (``count_in_disk``, ``count_in_cell`` ask the second tree for what the first left short
+of k), so that a batch of new points never copies the large tree.
+
 Layout, chosen for the cache (a query visits both children of a node, whose boxes share one
 64-byte line): ``pts`` (n, 2) float64, permuted, or (n, 3) with each point's weight in the
 third column; ``box`` (nodes, 4) float64 tight bounding

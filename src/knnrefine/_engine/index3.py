@@ -9,7 +9,9 @@ contiguous range) answers both, adding whole nodes inside the region, skipping n
 miss it, testing the points of boundary leaves, and stopping as soon as the count reaches k.
 On the 3-torus a question is asked once per periodic copy of the region that meets the
 fundamental domain (regions are smaller than half the shortest period, so a point lies in at
-most one copy).
+most one copy). Both questions take the refinement's ``state.PointForest`` (two trees
+counted as one: a continued run's new points in the second, ``index.grow_forest``), as in
+the plane.
 
 Layout: ``pts`` (n, 3) float64, permuted; ``box`` (nodes, 6): x0, y0, z0, x1, y1, z1;
 ``node`` (nodes, 4) int64: the ``state.NODE_*`` columns (lo, hi, first child, the second
