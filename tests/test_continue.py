@@ -140,6 +140,38 @@ def test_a_continued_mesh_continues_again_on_its_two_trees(d):
     assert len(mesh.index.forest.extra.pts) == 0
 
 
+@pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
+def test_reopening_by_balls_finds_what_the_walks_find(domain, monkeypatch):
+    """A large batch reopens by testing every circumball (circumcap) against a tree of the
+    new points (``reopen.reopen_by_balls``, ``reopen_by_balls3``, ``reopen_by_caps``), a
+    small one by a walk and a cavity per point: both reopen the same elements (the
+    loosened cavities) and give the same mesh, which certifies."""
+    from knnrefine._domains.sphere import run as sphere_run
+    from knnrefine._engine.driver import Refinement
+    from knnrefine._engine.driver3 import Refinement3
+
+    owner, name = {"plane": (Refinement, "BALLS_FROM"), "space": (Refinement3, "BALLS_FROM"),
+                   "sphere": (sphere_run, "CAPS_FROM")}[domain]  # fmt: skip
+    rng = np.random.default_rng(14)
+    d = 3 if domain == "space" else 2
+    pts = rng.random((3000, d))
+    new = np.clip(rng.normal(0.3, 0.05, (1500, d)), 0.0, 1.0)
+    if domain == "sphere":  # longitude, latitude
+        pts, new = pts * [360, 180] - [180, 90], new * [360, 180] - [180, 90]
+        mesh = knnrefine.refine(pts, 10, sphere=True)
+    else:
+        mesh = knnrefine.refine(pts, 10, box=(0,) * d + (1,) * d)
+    every = np.concatenate([pts, new])
+    out = {}
+    for how, above in (("walk", 1e9), ("balls", 0.0)):
+        monkeypatch.setattr(owner, name, above)
+        out[how] = knnrefine.refine(every, start=mesh)
+    walk, balls = out["walk"], out["balls"]
+    assert walk.stats.continued["reopened"] == balls.stats.continued["reopened"] > 0
+    assert np.array_equal(walk.vertices, balls.vertices)
+    assert knnrefine.certify(balls, every).passed
+
+
 # -- refused before any work -------------------------------------------------------------
 
 

@@ -14,11 +14,11 @@ from ..errors import EngineError
 from . import refine as R
 from . import state as S
 from .geometry import FLOOR_BITS, Q
-from .index import LEAF_SIZE, STACK_SIZE
+from .index import LEAF_SIZE, STACK_SIZE, build_index, forest_of
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .region import WALK_LOST, insert_points, mark_settled, spatial_order
-from .reopen import reopen, set_nearest_from_edges, settle_all
+from .reopen import reopen, reopen_by_balls, set_nearest_from_edges, settle_all
 from .state import (
     C_CELL_TESTS,
     C_DISK_TESTS,
@@ -105,6 +105,7 @@ class Refinement(TileRun):
     GROWTH = 1.25  # capacity factor when an array runs full
     SWEEP_MIN = 1024  # cells newly queued that make a bulk sweep worthwhile (refine.py)
     SWEEP_PER_THREAD = 4096  # fewer cells than this per thread are swept by one
+    BALLS_FROM = 1.0  # new points per triangle above which ``reopen`` tests every circumball
 
     def __init__(
         self, index, k, lx, ly, tau, min_size, max_vertices, m0=None, grid=Q, expected_vertices=0,
@@ -424,11 +425,15 @@ class Refinement(TileRun):
         self.book.kinds[:nv] = kinds
         settle_all(self.book, self.cnt, nv)
         reopened = 0
-        if len(xy):
+        nt = int(self.cnt[C_NT])
+        if len(xy) > self.BALLS_FROM * nt:  # many points a triangle: test each ball
+            new = forest_of(build_index(np.array(xy, dtype=np.float64)))
+            stack = np.empty(STACK_SIZE, np.int64)
+            reopened = reopen_by_balls(self.mesh, self.book, self.prm, new, nt, stack)
+        elif len(xy):
             xy = np.ascontiguousarray(xy[spatial_order(xy, self.lx, self.ly)])
             reopened = reopen(xy, self.mesh, self.book, self.scratch, self.cnt, self.prm)
             if reopened < 0:  # a broken walk or a huge cavity: look at everything again
-                nt = int(self.cnt[C_NT])
                 self.book.ball_state[:nt] = S.UNTESTED
                 self.book.cell_state[:nv] = S.UNTESTED
                 reopened = nt

@@ -6,6 +6,8 @@ import numpy as np
 
 from ..errors import EngineError
 from .geometry import FLOOR_BITS, Q
+from .index import STACK_SIZE, forest_of
+from .index3 import build_index3
 from .initial import GRIDS3, grid_shape3, initial_grid3, peel_order
 from .interrupt import Interrupts
 from .queue import Q_SIZE, new_queue
@@ -29,7 +31,7 @@ from .refine3 import (
     sweep_cells3,
 )
 from .region3 import WALK_LOST3, insert_points3, mark_settled3, spatial_order3
-from .reopen import reopen3, settle_all
+from .reopen import reopen3, reopen_by_balls3, settle_all
 from .state import (
     C_BALLS_SWEPT,
     C_CELL_TESTS,
@@ -104,6 +106,7 @@ class Refinement3(TileRun):
     SWEEP_SLOTS = 16384  # the least slots a thread sweeps at once
     SAMPLE_STRIDE = 16  # a sweep counts every 16th slot first ...
     SWEEP_GOOD = 0.95  # ... and the rest if this share of those held < k
+    BALLS_FROM = 0.25  # new points per tetrahedron above which ``reopen`` tests every ball
 
     def __init__(
         self, index, period, k, tau, floor, max_vertices, grid, q=Q, queued=True, capacity=None
@@ -252,7 +255,12 @@ class Refinement3(TileRun):
         self.book.kinds[:nv] = kinds
         settle_all(self.book, self.cnt, nv)
         reopened = 0
-        if len(xyz):
+        if len(xyz) > self.BALLS_FROM * nt:  # many points a tetrahedron: test each ball
+            new = forest_of(build_index3(xyz))
+            stack = np.empty(STACK_SIZE, np.int64)
+            reopened = reopen_by_balls3(self.mesh, self.book, self.scratch, new, nt, self.period,
+                                        stack)  # fmt: skip
+        elif len(xyz):
             xyz = np.ascontiguousarray(xyz[spatial_order3(np.ascontiguousarray(xyz),
                                                           self.period)])  # fmt: skip
             reopened = reopen3(xyz, self.mesh, self.book, self.scratch, self.cnt, self.period)

@@ -18,6 +18,8 @@ costs their counts again. Space (``reopen3``: tetrahedra, circumspheres) and the
 import numpy as np
 
 from .geometry import circumsphere
+from .index import count_in_disk
+from .index3 import count_in_ball3, count_in_region3
 from .jit import kernel
 from .region import locate
 from .region3 import locate3
@@ -115,6 +117,25 @@ def reopen(xy, mesh, book, scratch, cnt, prm):
 
 
 @kernel(entry=True, nrt=False, nogil=True)
+def reopen_by_balls(mesh, book, prm, new, nt, stack):
+    """``reopen`` for a batch of points many times the triangles: every triangle whose
+    circumball (loosened by ``SLACK``) holds one of the points, and its corners, marked
+    untested, by one count per triangle that stops at the first point (``count_in_disk``
+    over ``new``, a ``state.PointForest`` of the points alone) instead of a walk and a
+    cavity per point. The triangles found include every cavity (a triangle of one holds
+    its point). Returns the number of triangles reopened."""
+    lx = prm[P_LX]
+    ly = prm[P_LY]
+    loose = 1.0 + SLACK
+    reopened = 0
+    for t in range(nt):
+        cx, cy, r2 = circumcentre(mesh, prm, t)
+        if count_in_disk(new, cx, cy, r2 * loose, 1.0, lx, ly, stack) >= 1.0:
+            reopened += _reopen_element(book, mesh, t)
+    return reopened
+
+
+@kernel(entry=True, nrt=False, nogil=True)
 def reopen3(xyz, mesh, book, scratch, cnt, period):
     """``reopen`` in space: every tetrahedron whose circumball (loosened by ``SLACK``) holds
     one of the points xyz (internal coordinates in [0, period), best in a space-filling
@@ -166,6 +187,24 @@ def reopen3(xyz, mesh, book, scratch, cnt, period):
 
 
 @kernel(entry=True, nrt=False, nogil=True)
+def reopen_by_balls3(mesh, book, scratch, new, nt, period, stack):
+    """``reopen_by_balls`` in space: every tetrahedron whose circumball (loosened by
+    ``SLACK``) holds one of the points of ``new`` (their own ``state.PointForest``), and its
+    corners, marked untested, by one count per tetrahedron that stops at the first point
+    (``count_in_ball3``). Returns the number of tetrahedra reopened."""
+    pts = scratch.points
+    c = scratch.walk_point
+    loose = 1.0 + SLACK
+    reopened = 0
+    for t in range(nt):
+        load_corners(mesh, t, 0, 0, 0, period, pts)
+        c[0], c[1], c[2], r2 = circumsphere(pts)
+        if count_in_ball3(new, c, r2 * loose, 1.0, period, stack) >= 1.0:
+            reopened += _reopen_element(book, mesh, t)
+    return reopened
+
+
+@kernel(entry=True, nrt=False, nogil=True)
 def reopen_sphere(xyz, mesh, book, scratch, cnt):
     """``reopen`` on the sphere: every triangle whose circumcap (loosened by ``SLACK``)
     holds one of the unit vectors xyz (best in a space-filling order) and every corner of
@@ -201,6 +240,24 @@ def reopen_sphere(xyz, mesh, book, scratch, cnt):
                         return REOPEN_OVERFLOW
                     n_cav += 1
             i += 1
+    return reopened
+
+
+@kernel(entry=True, nrt=False, nogil=True)
+def reopen_by_caps(mesh, book, scratch, new, nt):
+    """``reopen_by_balls`` on the sphere: every triangle whose circumcap (loosened by
+    ``SLACK``) holds one of the unit vectors of ``new`` (their own ``state.PointTree``),
+    and its corners, marked untested, by one count per triangle that stops at the first
+    point (``count_in_region3`` with no half-spaces). Returns the number reopened."""
+    centre = scratch.point
+    loose = 1.0 + SLACK
+    reopened = 0
+    for t in range(nt):
+        circumcap_centre(mesh, t, centre)
+        held = count_in_region3(new, centre[0], centre[1], centre[2], scratch.h, scratch.hc, 0,
+                                mesh.chord2[t] * loose, 1.0, scratch.stack)  # fmt: skip
+        if held >= 1.0:
+            reopened += _reopen_element(book, mesh, t)
     return reopened
 
 

@@ -37,7 +37,7 @@ from ..._engine.refine_sphere import (
     refine_steps_sphere,
 )
 from ..._engine.region3 import spatial_order3
-from ..._engine.reopen import reopen_sphere
+from ..._engine.reopen import reopen_by_caps, reopen_sphere
 from ..._engine.size import floored_per_site
 from ..._engine.state import (
     C_CELL_TESTS,
@@ -73,6 +73,7 @@ from .. import MERGE_UP_TO
 STEPS = 20_000  # insertions per kernel call
 MAX_DEGREE = 256
 STAMP_LIMIT_SPHERE = 2**30  # a kernel call makes at most STEPS insertions: far below 2^31
+CAPS_FROM = 0.5  # new points per triangle above which a continuation tests every circumcap
 
 
 class SphereRun:
@@ -272,7 +273,9 @@ def _continued(new, w, opt, every):
     if len(start.floor_points):  # reopened too: they stay at the floor, reported again
         new = np.concatenate([new, unit_vectors(start.floor_points)])
     reopened = 0
-    if len(new):
+    if len(new) > CAPS_FROM * nt:  # many points a triangle: test each circumcap
+        reopened = reopen_by_caps(mesh, run.book, run.scratch, build_index3(new), nt)
+    elif len(new):
         order = spatial_order3(np.ascontiguousarray(new + 1.0), np.full(3, 2.0))
         reopened = reopen_sphere(np.ascontiguousarray(new[order]), mesh, run.book, run.scratch,
                                  run.cnt)  # fmt: skip
