@@ -86,13 +86,20 @@ for pts, options in cases:
         box = square if pts.shape[1] == 2 else cube
         knnrefine.knn_cdf(pts, [5, 10], [0.01, 0.05], box, queries=10000,
                           periodic=options.get("periodic") is True)
-# continued runs (start=): the tree merged (a leaf grown and split), the cavities reopened
+# continued runs (start=): the tree grown, the cavities reopened (by walks; by balls)
 for pts, options in ((plane, {"box": square}), (space, {"box": cube}), (lonlat, {"sphere": True})):
     for w in (None, weights):
         mesh = knnrefine.refine(pts, 10, weights=w, **options)
         more = np.concatenate([pts, pts[:1] + rng.random((100, pts.shape[1])) * 1e-3])
-        knnrefine.refine(more, start=mesh,
-                         weights=None if w is None else np.concatenate([w, w[:100]]))
+        grown = knnrefine.refine(more, start=mesh,
+                                 weights=None if w is None else np.concatenate([w, w[:100]]))
+        # continued again: the small tree merged into the large (past 1/8 of its points)
+        knnrefine.refine(np.concatenate([more, pts[: len(pts) // 8]]), start=grown,
+                         weights=None if w is None else np.concatenate([w, w[:100],
+                                                                        w[: len(pts) // 8]]))
+        # twice as many new points as old (each again): the cells asked, not the points
+        knnrefine.refine(np.concatenate([pts] * 3), start=mesh,
+                         weights=None if w is None else np.concatenate([w] * 3))
 for n, dim in ((10_000, 2), (50_000, 2), (10_000, 3), (50_000, 3)):
     pts = np.random.default_rng(1).random((n, dim))
     est = knnrefine.KnnDensityEstimator().fit(pts)
