@@ -140,6 +140,23 @@ def test_a_continued_mesh_continues_again_on_its_two_trees(d):
     assert len(mesh.index.forest.extra.pts) == 0
 
 
+def test_a_continued_mesh_on_the_sphere_continues_again_on_its_two_trees():
+    """On the sphere too the start's tree is kept and the new points go into a second one,
+    merged into the first past 1/8 of its points; every mesh certifies."""
+    rng = np.random.default_rng(15)
+    pts = np.column_stack([rng.uniform(-180, 180, 4000),
+                           np.degrees(np.arcsin(rng.uniform(-1, 1, 4000)))])  # fmt: skip
+    mesh = knnrefine.refine(pts, 10, sphere=True)
+    extra = []
+    for b in (100, 150, 400):
+        centre = rng.uniform(-60, 60, 2)
+        pts = np.concatenate([pts, np.clip(rng.normal(centre, 2.0, (b, 2)), -89, 89)])
+        mesh = knnrefine.refine(pts, start=mesh)
+        assert knnrefine.certify(mesh, pts).passed
+        extra.append(len(mesh.index.extra.pts))
+    assert extra == [100, 250, 0] and len(mesh.index.main.pts) == len(pts)
+
+
 @pytest.mark.parametrize("domain", ["plane", "space", "sphere"])
 def test_reopening_by_balls_finds_what_the_walks_find(domain, monkeypatch):
     """A large batch reopens by testing every circumball (circumcap) against a tree of the

@@ -318,8 +318,10 @@ class Mesh(Cells):
         The triangulation of the whole torus that the engine refined (``certify`` checks it).
     index : PointIndex or None
         The engine's counting kd-tree over P (plane), kept by ``refine`` so that d_{P,k} can
-        be evaluated exactly without a second tree (``KnnDistance``, the density estimate);
-        about 20 bytes per input point. None for a mesh read from a file;
+        be evaluated exactly without a second tree (``KnnDistance``, the density estimate)
+        and so that a continued run (``start=``) grows it; in space the same, on the sphere
+        the engine's trees alone; about 20 bytes per input point. None for a mesh read
+        from a file;
         ``dataclasses.replace(mesh, index=None)`` gives a copy without it.
     domain : str
         "plane" or "space" (a box of two or three dimensions, the box above; "box", the

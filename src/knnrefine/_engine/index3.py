@@ -226,6 +226,16 @@ def count_in_region3(index, vx, vy, vz, h, hc, nh, r2, k, stack):
 
 
 @kernel(nrt=False)
+def count_in_forest3(forest, vx, vy, vz, h, hc, nh, r2, k, stack):
+    """``count_in_region3`` over both trees of ``forest`` (no periodic copies: the sphere's
+    unit vectors), the second asked only for what the first left short of k."""
+    count = count_in_region3(forest.main, vx, vy, vz, h, hc, nh, r2, k, stack)
+    if count >= k or forest.extra.node[0, NODE_HI] == 0:
+        return count
+    return count + count_in_region3(forest.extra, vx, vy, vz, h, hc, nh, r2, k - count, stack)
+
+
+@kernel(nrt=False)
 def count_in_cell3(forest, v, h, hc, nh, r2, k, period, stack):
     """Points of P (both trees of ``forest``) in the closed Voronoi cell of the vertex at v:
     within sqrt(r2) (R(v), inflated) of v and on v's side of the bisector of each neighbour

@@ -23,7 +23,7 @@ the vertices joined to the new one, whose cells changed.
 
 import numpy as np
 
-from .index3 import count_in_region3
+from .index3 import count_in_forest3
 from .jit import kernel
 from .queue import Q_USED, queue_pop, queue_push, queue_size, size_class
 from .state import (
@@ -169,7 +169,7 @@ def count_cell_sphere(v, mesh, scratch, cnt, prm, index):
             h[j, a] = mesh.xyz[w, a] - x[a]
             s += h[j, a] * h[j, a]
         hc[j] = 0.5 * s * inflate + slack2  # the bisector of w and v, moved past w's rounding
-    return count_in_region3(index, x[0], x[1], x[2], h, hc, nh, far2 * inflate + slack2, k,
+    return count_in_forest3(index, x[0], x[1], x[2], h, hc, nh, far2 * inflate + slack2, k,
                             scratch.stack)  # fmt: skip
 
 
@@ -220,7 +220,7 @@ def refine_steps_sphere(mesh, book, queues, scratch, cnt, prm, index, max_steps)
             cnt[C_DISK_TESTS] += 1
             c = scratch.point
             circumcap_centre(mesh, t, c)
-            held = count_in_region3(
+            held = count_in_forest3(
                 index, c[0], c[1], c[2], scratch.h, scratch.hc, 0,
                 mesh.chord2[t] * inflate + prm[PS_SLACK2], k, scratch.stack,
             )  # fmt: skip

@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from ..._engine import ahead
 from ..._engine.geometry import RESOLUTION_ANGLE
+from ..._engine.index import forest_of, grow_forest
 from ..._engine.index3 import build_index3, merge_index3
 from ..._engine.interrupt import Interrupts
 from ..._engine.queue import Q_SIZE, Q_USED, new_queue
@@ -179,7 +180,7 @@ def _refine(xyz_p, w, opt, report):
     prm[PS_SLACK2] = SLACK2
     continued = None
     if opt.start is None:
-        index = build_index3(xyz_p, copy=False, weights=w)  # the unit vectors are its own
+        index = forest_of(build_index3(xyz_p, copy=False, weights=w))  # over unit vectors
         # room for 3 (n / k) vertices, a little more than the estimate, grown when short
         first = int(max(1024, min(budget, 3.0 * mass / max(opt.k, 1e-300) + 1024)))
         run = SphereRun(first, 2 * first, first + 4 * QUEUE_HEADROOM)
@@ -240,17 +241,21 @@ def _continued(new, w, opt, every):
     """(index, run, the stats' ``continued``) of a run continued from the mesh ``opt.start``
     with the new points ``new`` (unit vectors) and weights ``w`` (checked by
     ``pipeline.checked``; ``every()`` gives all the points' unit vectors), as in the
-    plane: the start's tree with the new points merged in (built afresh for a mesh read
-    from a file), its triangulation taken as it is, every element settled but those the new
-    points reach (``reopen.reopen_sphere``), which are queued."""
+    plane: the start's index with the new points in its second tree (``index.grow_forest``;
+    built afresh for a mesh read from a file), its triangulation taken as it is, every
+    element settled but those the new points reach (``reopen.reopen_sphere``, or
+    ``reopen_by_caps`` for many), which are queued."""
     start = opt.start
     n0 = int(start.stats.n)
-    kept = start.index
+    kept = None if start.index is None else forest_of(start.index)
     index = None
-    if kept is not None and kept.pts.shape[0] == n0 and 0 < len(new) <= MERGE_UP_TO * n0:
-        index = merge_index3(kept, new, w)
+    if kept is not None and sum(len(t.pts) for t in kept) == n0:
+        if not len(new):
+            index = kept
+        elif len(new) <= MERGE_UP_TO * n0:  # the new points in a second tree
+            index = grow_forest(kept, new, w, merge=merge_index3, build=_build)
     if index is None:
-        index = build_index3(every().copy(), copy=False, weights=opt.given_weights)
+        index = forest_of(build_index3(every().copy(), copy=False, weights=opt.given_weights))
     xyz = np.ascontiguousarray(start.xyz, np.float64)
     tri = np.ascontiguousarray(start.cells, np.int32)
     nv, nt = len(xyz), len(tri)
@@ -286,6 +291,11 @@ def _continued(new, w, opt, every):
         run.restart_stamps()
     queue_unsettled_sphere(mesh, run.book, run.queues, run.scratch, run.cnt)
     return index, run, {"points": len(new), "from_vertices": nv, "reopened": int(reopened)}
+
+
+def _build(x, weights=None):
+    """``build_index3`` over the unit vectors x themselves (reordered in place)."""
+    return build_index3(x, copy=False, weights=weights)
 
 
 def _every_point(new, opt):
