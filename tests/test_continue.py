@@ -162,7 +162,8 @@ def test_reopening_by_balls_finds_what_the_walks_find(domain, monkeypatch):
     """A large batch reopens by testing every circumball (circumcap) against a tree of the
     new points (``reopen.reopen_by_balls``, ``reopen_by_balls3``, ``reopen_by_caps``), a
     small one by a walk and a cavity per point: both reopen the same elements (the
-    loosened cavities) and give the same mesh, which certifies."""
+    loosened cavities) and give the same mesh, which certifies; the batch holds duplicates
+    and points on a line."""
     from knnrefine._domains.sphere import run as sphere_run
     from knnrefine._engine.driver import Refinement
     from knnrefine._engine.driver3 import Refinement3
@@ -173,6 +174,9 @@ def test_reopening_by_balls_finds_what_the_walks_find(domain, monkeypatch):
     d = 3 if domain == "space" else 2
     pts = rng.random((3000, d))
     new = np.clip(rng.normal(0.3, 0.05, (1500, d)), 0.0, 1.0)
+    new[1000:1200] = new[:200]  # duplicates of new points
+    new[1200:1400] = pts[:200]  # and of old ones
+    new[1400:, 0] = 0.5  # on a line
     if domain == "sphere":  # longitude, latitude
         pts, new = pts * [360, 180] - [180, 90], new * [360, 180] - [180, 90]
         mesh = knnrefine.refine(pts, 10, sphere=True)

@@ -14,7 +14,7 @@ from ..errors import EngineError
 from . import refine as R
 from . import state as S
 from .geometry import FLOOR_BITS, Q
-from .index import LEAF_SIZE, STACK_SIZE, build_index, forest_of
+from .index import LEAF_SIZE, STACK_SIZE, build_index, forest_of, points_in
 from .initial import initial_grid
 from .queue import Q_SIZE, Q_USED, new_queue
 from .region import WALK_LOST, insert_points, mark_settled, spatial_order
@@ -129,7 +129,7 @@ class Refinement(TileRun):
         self.index = index
         self.time_index = 0.0  # seconds building the index (set by the caller)
         self.threads = None  # threads of a bulk sweep; None: ``threads.workers()``
-        self.n = sum(int(t.pts.shape[0]) for t in self.index)
+        self.n = points_in(self.index)
         xy, corners, offsets, neighbours = initial_grid(lx, ly, q=grid)[:4] if m0 is None else m0
         self.grid = grid
         clean_floor = grid * 2.0**FLOOR_BITS

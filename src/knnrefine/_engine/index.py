@@ -472,6 +472,11 @@ def forest_of(index):
     return PointForest(index, empty)
 
 
+def points_in(forest):
+    """The number of points of both trees of ``forest`` (or of one tree)."""
+    return sum(int(t.pts.shape[0]) for t in forest_of(forest))
+
+
 def tree_of(forest, merge=None):
     """The one tree holding both trees' points (``merge``: ``merge_index``, or space's
     ``index3.merge_index3``), or the main tree when the extra one is empty."""
@@ -1116,7 +1121,7 @@ class PointIndex:
         self.forest = forest_of(index)  # a continued run's two trees (``grow_forest``)
         self._merge = merge  # what merges them (``tree_of``): space's merge_index3
         self._fingerprint = fingerprint  # or a function giving it, called when first asked
-        self.n = sum(int(t.pts.shape[0]) for t in self.forest)
+        self.n = points_in(self.forest)
         self.weighted = self.forest.main.weight.shape[0] > 0
         self.total = float(sum(t.weight[0] for t in self.forest if t.pts.shape[0])
                            if self.weighted else self.n)  # fmt: skip

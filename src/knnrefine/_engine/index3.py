@@ -32,6 +32,7 @@ from .index import (
     WINDOW_HIGH,
     WINDOW_LOW,
     axis_gap,
+    grow_forest,
     held_by_node,
     merge_index,
     move_window,
@@ -118,6 +119,18 @@ def merge_index3(index, q, weights=None):
     """``index.merge_index`` in space: the index of ``index``'s points and the points q
     (b, 3) together, without building it again; None when ``index`` is empty."""
     return merge_index(index, q, weights, _split_leaves3)
+
+
+def grow_forest3(forest, q, weights=None):
+    """``index.grow_forest`` with space's trees (space's and the sphere's continued runs):
+    the new points q (b, 3) in the second tree, built over a copy of them
+    (``build_index3``) or merged into it (``merge_index3``)."""
+    return grow_forest(forest, q, weights, merge=merge_index3, build=_build_over)
+
+
+def _build_over(x, weights=None):
+    """``build_index3`` over the points x themselves (``grow_forest`` gives it a copy)."""
+    return build_index3(x, copy=False, weights=weights)
 
 
 @kernel(entry=True, nogil=True)

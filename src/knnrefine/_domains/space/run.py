@@ -13,8 +13,8 @@ from ..._engine import ahead, size
 from ..._engine.driver3 import Refinement3, choose_grid3
 from ..._engine.embedding import Embedding, diameter, unfold
 from ..._engine.geometry import FLOOR_BITS
-from ..._engine.index import PointIndex, grow_forest
-from ..._engine.index3 import build_index3, holds_k_within3, merge_index3
+from ..._engine.index import PointIndex
+from ..._engine.index3 import build_index3, grow_forest3, holds_k_within3, merge_index3
 from ..._engine.initial import GRIDS3, grid_shape3, largest_passing, reach_factor, refusal_message
 from ..._engine.interrupt import Interrupts
 from ..._engine.state import (
@@ -228,7 +228,9 @@ def _continued(pts, w, opt):
         t0 = time.perf_counter()
         emb = start_embedding(start)
         new = emb.to_internal(new_pts)
-        index = continued_index(start, emb, pts, w, new, new_w, _grown, _build)
+        index = continued_index(start, emb, pts, w, new, new_w, grow_forest3,
+                                lambda x, weights: build_index3(x, copy=False,
+                                                                weights=weights))  # fmt: skip
         interrupts.check()
         run, expected, budget, reopened = continue_run(start, emb, index, new, opt, n)
         run.time_index = time.perf_counter() - t0
@@ -242,16 +244,6 @@ def _continued(pts, w, opt):
     mesh.stats.continued = {"points": n - n0, "from_vertices": len(start.torus.vertices),
                             "reopened": reopened}  # fmt: skip
     return mesh
-
-
-def _build(x, weights=None):
-    """``build_index3`` over the (n, 3) float64 points x themselves (reordered in place)."""
-    return build_index3(x, copy=False, weights=weights)
-
-
-def _grown(forest, new, new_w):
-    """The start's index with the new points added (``index.grow_forest``, space's trees)."""
-    return grow_forest(forest, new, new_w, merge=merge_index3, build=_build)
 
 
 def continue_run(start, emb, index, new, opt, n):

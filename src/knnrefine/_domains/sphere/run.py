@@ -18,8 +18,8 @@ from scipy.spatial import cKDTree
 
 from ..._engine import ahead
 from ..._engine.geometry import RESOLUTION_ANGLE
-from ..._engine.index import forest_of, grow_forest
-from ..._engine.index3 import build_index3, merge_index3
+from ..._engine.index import forest_of, points_in
+from ..._engine.index3 import build_index3, grow_forest3
 from ..._engine.interrupt import Interrupts
 from ..._engine.queue import Q_SIZE, Q_USED, new_queue
 from ..._engine.refine_sphere import (
@@ -249,11 +249,11 @@ def _continued(new, w, opt, every):
     n0 = int(start.stats.n)
     kept = None if start.index is None else forest_of(start.index)
     index = None
-    if kept is not None and sum(len(t.pts) for t in kept) == n0:
+    if kept is not None and points_in(kept) == n0:
         if not len(new):
             index = kept
         elif len(new) <= MERGE_UP_TO * n0:  # the new points in a second tree
-            index = grow_forest(kept, new, w, merge=merge_index3, build=_build)
+            index = grow_forest3(kept, new, w)
     if index is None:
         index = forest_of(build_index3(every().copy(), copy=False, weights=opt.given_weights))
     xyz = np.ascontiguousarray(start.xyz, np.float64)
@@ -291,11 +291,6 @@ def _continued(new, w, opt, every):
         run.restart_stamps()
     queue_unsettled_sphere(mesh, run.book, run.queues, run.scratch, run.cnt)
     return index, run, {"points": len(new), "from_vertices": nv, "reopened": int(reopened)}
-
-
-def _build(x, weights=None):
-    """``build_index3`` over the unit vectors x themselves (reordered in place)."""
-    return build_index3(x, copy=False, weights=weights)
 
 
 def _every_point(new, opt):
